@@ -1,0 +1,63 @@
+//! `veila`: the command-line front end of the Veila workspace.
+//!
+//! Each command family lives in its own module and contributes a clap `Subcommand` enum that is flattened
+//! into [`Command`]. Errors are reported through `anyhow` with the file and the problem named; the process
+//! exits non-zero and never leaves partial output behind.
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+
+mod progress;
+// command modules (one per family):
+// mod data_cmd;     // project, unproject, render           (veila-data)
+// mod eval_cmd;     // eval, fd                               (veila-metrics)
+// mod sim_cmd;      // simulate                               (veila-data::sim)
+// mod weather_cmd;  // weather                                (veila-data::weather)
+
+/// Panoramic LiDAR generation from a monocular RGB image, and the tools around it.
+#[derive(Debug, Parser)]
+#[command(name = "veila", version, about, long_about = None)]
+struct Cli {
+    /// Suppress progress bars (they are also hidden when stderr is not a terminal).
+    #[arg(long, global = true)]
+    quiet: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    // #[command(flatten)] Data(data_cmd::DataCmd),
+    // #[command(flatten)] Eval(eval_cmd::EvalCmd),
+    // #[command(flatten)] Sim(sim_cmd::SimCmd),
+    // #[command(flatten)] Weather(weather_cmd::WeatherCmd),
+    /// Print the built-in sensor presets as TOML (a starting point for `--sensor FILE.toml`).
+    Sensors,
+}
+
+fn main() {
+    let cli = Cli::parse();
+    progress::set_quiet(cli.quiet);
+    if let Err(err) = run(cli.command) {
+        eprintln!("error: {err:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run(command: Command) -> Result<()> {
+    match command {
+        // Command::Data(c) => data_cmd::run(c),
+        // Command::Eval(c) => eval_cmd::run(c),
+        // Command::Sim(c) => sim_cmd::run(c),
+        // Command::Weather(c) => weather_cmd::run(c),
+        Command::Sensors => {
+            for (name, sensor) in [
+                ("hdl64e", veila_geom::LidarSensor::hdl64e()),
+                ("hdl32e", veila_geom::LidarSensor::hdl32e()),
+            ] {
+                println!("# preset {name}\n{}", toml::to_string_pretty(&sensor)?);
+            }
+            Ok(())
+        }
+    }
+}

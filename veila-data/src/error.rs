@@ -1,0 +1,59 @@
+//! The one error type of `veila-data`. Every variant that concerns a file names it.
+
+use std::path::PathBuf;
+
+/// Result alias of this crate.
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+/// Everything that can go wrong while reading, writing or simulating data.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum Error {
+    /// An operating-system error on a file or directory.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The file or directory.
+        path: PathBuf,
+        /// The underlying error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// A file whose content is not what its format requires.
+    #[error("{}: {message}", path.display())]
+    Format {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong, in words.
+        message: String,
+    },
+    /// Inputs that do not fit together (point and label counts, image sizes, ...).
+    #[error("{context}: {message}")]
+    Mismatch {
+        /// Which inputs (file names where there are files).
+        context: String,
+        /// What does not fit.
+        message: String,
+    },
+    /// An invalid configuration or argument.
+    #[error("invalid {what}: {message}")]
+    Invalid {
+        /// What was invalid.
+        what: String,
+        /// Why.
+        message: String,
+    },
+    /// A geometry error from `veila-geom`.
+    #[error(transparent)]
+    Geom(#[from] veila_geom::GeomError),
+}
+
+impl Error {
+    /// Build an [`Error::Io`] for `path`.
+    pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Error::Io { path: path.into(), source }
+    }
+    /// Build an [`Error::Format`] for `path`.
+    pub fn format(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
+        Error::Format { path: path.into(), message: message.into() }
+    }
+}

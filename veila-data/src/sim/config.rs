@@ -1,0 +1,537 @@
+//! The scene file: a TOML description of a procedural driving scene.
+//!
+//! Every section and field is optional; a missing value takes the default of the chosen layout.
+//! Unknown fields are an error (a typo never silently falls back to a default).
+//!
+//! ```toml
+//! name = "junction"
+//! layout = "junction"          # straight | junction | narrow_street
+//!
+//! [road]
+//! length_m = 240.0
+//! lanes_per_direction = 2
+//!
+//! [population]
+//! moving_vehicles = 8
+//! pedestrians = 12
+//!
+//! [ego]
+//! speed_mps = 8.0
+//!
+//! [lidar]
+//! preset = "hdl64e"            # or a full [lidar.sensor] table (veila_geom::LidarSensor)
+//!
+//! [frames]
+//! count = 10
+//! ```
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+use veila_geom::LidarSensor;
+
+use crate::{Error, Result};
+
+/// Street layout of a scene.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Layout {
+    /// A straight street with lanes in both directions, parking strips, sidewalks and buildings.
+    #[default]
+    Straight,
+    /// Two streets crossing at the origin, with crosswalks, stop lines and traffic lights.
+    Junction,
+    /// A narrow street: one lane per direction without markings, narrow sidewalks, facades close to
+    /// the road and cars parked on the carriageway.
+    NarrowStreet,
+}
+
+/// A complete scene description (the root of a scene TOML file).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct SceneConfig {
+    /// Free-form name, written to the output's `scene.json`.
+    pub name: String,
+    /// Street layout.
+    pub layout: Layout,
+    /// Road cross-section and building lots.
+    pub road: RoadConfig,
+    /// How many objects of each kind.
+    pub population: PopulationConfig,
+    /// The ego vehicle carrying the sensors.
+    pub ego: EgoConfig,
+    /// The LiDAR and its return model.
+    pub lidar: LidarConfig,
+    /// The camera (KITTI-like by default).
+    pub camera: CameraConfig,
+    /// Sun and sky.
+    pub lighting: LightingConfig,
+    /// Number of frames and their spacing.
+    pub frames: FramesConfig,
+}
+
+/// Road cross-section and lots; `None` takes the layout's default (see [`RoadParams`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct RoadConfig {
+    /// Length of the main street, metres.
+    pub length_m: Option<f32>,
+    /// Lanes in each direction (1..=4).
+    pub lanes_per_direction: Option<u32>,
+    /// Lane width, metres.
+    pub lane_width_m: Option<f32>,
+    /// A parking strip (SemanticKITTI `parking`) along both kerbs.
+    pub parking_lane: Option<bool>,
+    /// Width of the parking strip, metres.
+    pub parking_width_m: Option<f32>,
+    /// Sidewalk width, metres.
+    pub sidewalk_width_m: Option<f32>,
+    /// Kerb height, metres.
+    pub kerb_height_m: Option<f32>,
+    /// Front-garden depth between sidewalk and facades, metres.
+    pub setback_m: Option<f32>,
+    /// Fraction of the street frontage covered by buildings, `[0, 1]`.
+    pub building_frontage: Option<f32>,
+    /// Lowest and highest building height, metres.
+    pub building_height_m: Option<[f32; 2]>,
+    /// Lane markings (dashed lane lines, edge lines, crosswalks).
+    pub lane_markings: Option<bool>,
+}
+
+/// Road parameters with every default resolved for a layout.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RoadParams {
+    /// Length of the main street, metres.
+    pub length_m: f32,
+    /// Lanes in each direction.
+    pub lanes_per_direction: u32,
+    /// Lane width, metres.
+    pub lane_width_m: f32,
+    /// Parking strips along the kerbs.
+    pub parking_lane: bool,
+    /// Parking strip width, metres.
+    pub parking_width_m: f32,
+    /// Sidewalk width, metres.
+    pub sidewalk_width_m: f32,
+    /// Kerb height, metres.
+    pub kerb_height_m: f32,
+    /// Front-garden depth, metres.
+    pub setback_m: f32,
+    /// Building frontage fraction.
+    pub building_frontage: f32,
+    /// Building height range, metres.
+    pub building_height_m: [f32; 2],
+    /// Lane markings.
+    pub lane_markings: bool,
+}
+
+impl RoadParams {
+    /// Half width of the carriageway (kerb to kerb / 2), metres.
+    pub fn half_carriageway_m(&self) -> f32 {
+        self.lanes_per_direction as f32 * self.lane_width_m
+            + if self.parking_lane { self.parking_width_m } else { 0.0 }
+    }
+}
+
+impl RoadConfig {
+    /// Resolve every default for `layout`.
+    pub fn resolve(&self, layout: Layout) -> RoadParams {
+        let narrow = layout == Layout::NarrowStreet;
+        RoadParams {
+            length_m: self.length_m.unwrap_or(if narrow { 160.0 } else { 240.0 }),
+            lanes_per_direction: self.lanes_per_direction.unwrap_or(if narrow { 1 } else { 2 }),
+            lane_width_m: self.lane_width_m.unwrap_or(if narrow { 2.9 } else { 3.5 }),
+            parking_lane: self.parking_lane.unwrap_or(!narrow),
+            parking_width_m: self.parking_width_m.unwrap_or(2.3),
+            sidewalk_width_m: self.sidewalk_width_m.unwrap_or(if narrow { 1.6 } else { 3.5 }),
+            kerb_height_m: self.kerb_height_m.unwrap_or(0.15),
+            setback_m: self.setback_m.unwrap_or(if narrow { 0.0 } else { 3.0 }),
+            building_frontage: self.building_frontage.unwrap_or(if narrow { 0.95 } else { 0.7 }),
+            building_height_m: self.building_height_m.unwrap_or(if narrow { [9.0, 18.0] } else { [6.0, 22.0] }),
+            lane_markings: self.lane_markings.unwrap_or(!narrow),
+        }
+    }
+}
+
+/// Object counts and densities (per 100 m of street, both sides together, unless a count).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PopulationConfig {
+    /// Parked vehicles per 100 m of street.
+    pub parked_vehicles_per_100m: f32,
+    /// Moving vehicles in the whole scene.
+    pub moving_vehicles: u32,
+    /// Fraction of vehicles that are vans (labelled car, as SemanticKITTI does).
+    pub van_fraction: f32,
+    /// Fraction of vehicles that are trucks.
+    pub truck_fraction: f32,
+    /// Fraction of vehicles that are buses.
+    pub bus_fraction: f32,
+    /// Fraction of parked vehicles that are trailers / caravans (other-vehicle).
+    pub trailer_fraction: f32,
+    /// Pedestrians in the whole scene.
+    pub pedestrians: u32,
+    /// Fraction of pedestrians standing still.
+    pub standing_fraction: f32,
+    /// Cyclists in the whole scene.
+    pub cyclists: u32,
+    /// Street trees per 100 m.
+    pub trees_per_100m: f32,
+    /// Street lights per 100 m.
+    pub poles_per_100m: f32,
+    /// Traffic signs per 100 m.
+    pub signs_per_100m: f32,
+    /// Bushes per 100 m (in front gardens and lot gaps).
+    pub bushes_per_100m: f32,
+    /// Probability that a gap between buildings is closed by a fence (else a hedge or open).
+    pub fence_probability: f32,
+}
+
+impl Default for PopulationConfig {
+    fn default() -> Self {
+        PopulationConfig {
+            parked_vehicles_per_100m: 8.0,
+            moving_vehicles: 6,
+            van_fraction: 0.15,
+            truck_fraction: 0.08,
+            bus_fraction: 0.03,
+            trailer_fraction: 0.04,
+            pedestrians: 10,
+            standing_fraction: 0.3,
+            cyclists: 3,
+            trees_per_100m: 8.0,
+            poles_per_100m: 5.0,
+            signs_per_100m: 3.0,
+            bushes_per_100m: 10.0,
+            fence_probability: 0.4,
+        }
+    }
+}
+
+/// The ego vehicle: it drives along the rightmost lane of the main street in +x.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EgoConfig {
+    /// Speed, m/s.
+    pub speed_mps: f32,
+    /// Position along the main street at frame 0, metres (0 = street centre / junction centre).
+    pub start_x_m: f32,
+    /// LiDAR height above the road, metres (KITTI: 1.73).
+    pub lidar_height_m: f32,
+}
+
+impl Default for EgoConfig {
+    fn default() -> Self {
+        EgoConfig { speed_mps: 8.0, start_x_m: -25.0, lidar_height_m: 1.73 }
+    }
+}
+
+/// The LiDAR sensor and its return model.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LidarConfig {
+    /// A sensor preset: `hdl64e` (default), `hdl32e`, `hdl32e_per_beam`. Ignored when `sensor` is given.
+    pub preset: String,
+    /// A full sensor description (overrides `preset`).
+    pub sensor: Option<LidarSensor>,
+    /// Return model (intensity, ray drop).
+    pub returns: LidarReturnModel,
+}
+
+impl Default for LidarConfig {
+    fn default() -> Self {
+        LidarConfig { preset: "hdl64e".into(), sensor: None, returns: LidarReturnModel::default() }
+    }
+}
+
+impl LidarConfig {
+    /// The sensor this configuration names, validated.
+    pub fn sensor(&self) -> Result<LidarSensor> {
+        let s = match &self.sensor {
+            Some(s) => s.clone(),
+            None => match self.preset.as_str() {
+                "hdl64e" => LidarSensor::hdl64e(),
+                "hdl32e" => LidarSensor::hdl32e(),
+                "hdl32e_per_beam" => LidarSensor::hdl32e_per_beam(),
+                other => {
+                    return Err(Error::Invalid {
+                        what: "lidar.preset".into(),
+                        message: format!("unknown preset {other:?} (expected hdl64e, hdl32e or hdl32e_per_beam)"),
+                    });
+                }
+            },
+        };
+        s.validate()?;
+        Ok(s)
+    }
+}
+
+/// The LiDAR return model (see [`crate::sim::lidar`] for the equations).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LidarReturnModel {
+    /// Detection threshold: the reflectivity a surface at normal incidence needs to be detected at
+    /// 100 m. A return is weak (dropped) when `rho cos(theta) (100 m / R)^2` falls below it.
+    pub min_reflectivity_at_100m: f32,
+    /// Width of the soft drop zone around the threshold, in decades of received power (0 = hard cut).
+    pub drop_softness_decades: f32,
+    /// Returns with `cos(incidence)` below this are dropped (grazing).
+    pub grazing_cos_min: f32,
+    /// Probability of dropping any return at random (dust, multipath, sensor dead time).
+    pub random_drop: f32,
+    /// Range at which the reported intensity falls to half: `I = rho cos(theta) / (1 + (R / R_half)^2)`.
+    pub intensity_half_range_m: f32,
+    /// Standard deviation of the range noise, metres (0 = exact ranges).
+    pub range_noise_m: f32,
+}
+
+impl Default for LidarReturnModel {
+    fn default() -> Self {
+        LidarReturnModel {
+            min_reflectivity_at_100m: 0.02,
+            drop_softness_decades: 0.3,
+            grazing_cos_min: 0.02,
+            random_drop: 0.005,
+            intensity_half_range_m: 60.0,
+            range_noise_m: 0.0,
+        }
+    }
+}
+
+impl LidarReturnModel {
+    /// An ideal sensor: every hit within range returns, exact ranges (for tests and references).
+    pub fn ideal() -> Self {
+        LidarReturnModel {
+            min_reflectivity_at_100m: 0.0,
+            drop_softness_decades: 0.0,
+            grazing_cos_min: 0.0,
+            random_drop: 0.0,
+            intensity_half_range_m: 60.0,
+            range_noise_m: 0.0,
+        }
+    }
+
+    /// Check ranges of every parameter.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |field: &str, msg: &str| Err(Error::Invalid { what: format!("lidar.returns.{field}"), message: msg.into() });
+        let finite_nonneg = |x: f32| x.is_finite() && x >= 0.0;
+        if !finite_nonneg(self.min_reflectivity_at_100m) {
+            return bad("min_reflectivity_at_100m", "must be finite and >= 0");
+        }
+        if !finite_nonneg(self.drop_softness_decades) || self.drop_softness_decades > 5.0 {
+            return bad("drop_softness_decades", "must be in [0, 5]");
+        }
+        if !(0.0..1.0).contains(&self.grazing_cos_min) {
+            return bad("grazing_cos_min", "must be in [0, 1)");
+        }
+        if !(0.0..=1.0).contains(&self.random_drop) {
+            return bad("random_drop", "must be in [0, 1]");
+        }
+        if !(self.intensity_half_range_m.is_finite() && self.intensity_half_range_m > 0.0) {
+            return bad("intensity_half_range_m", "must be finite and > 0");
+        }
+        if !finite_nonneg(self.range_noise_m) || self.range_noise_m > 1.0 {
+            return bad("range_noise_m", "must be in [0, 1] m");
+        }
+        Ok(())
+    }
+}
+
+/// A pinhole camera, mounted KITTI-like: `image_2` sits `ahead_m` in front of the LiDAR, `up_m`
+/// above it (negative: below) and `left_m` to its left, looking along the LiDAR's x axis.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CameraConfig {
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// Focal length along x, pixels.
+    pub fx: f32,
+    /// Focal length along y, pixels.
+    pub fy: f32,
+    /// Principal point x, pixels.
+    pub cx: f32,
+    /// Principal point y, pixels.
+    pub cy: f32,
+    /// Camera 0 (the rectified reference camera) ahead of the LiDAR, metres.
+    pub ahead_m: f32,
+    /// Camera 0 above the LiDAR, metres.
+    pub up_m: f32,
+    /// Camera 2 (`image_2`, the rendered one) to the left of camera 0, metres (KITTI: 0.06).
+    pub cam2_left_m: f32,
+    /// Stereo baseline between camera 0 and camera 1 (and 2 and 3), metres (KITTI: 0.54).
+    pub baseline_m: f32,
+    /// Downward pitch of the camera, degrees.
+    pub pitch_down_deg: f32,
+    /// Samples per pixel along each axis (1 = one ray through the pixel centre; n = n x n grid).
+    pub samples_per_axis: u32,
+    /// Shadow rays toward the sun.
+    pub shadows: bool,
+}
+
+impl Default for CameraConfig {
+    fn default() -> Self {
+        CameraConfig {
+            width: 1242,
+            height: 375,
+            fx: 721.5377,
+            fy: 721.5377,
+            cx: 609.5593,
+            cy: 172.854,
+            ahead_m: 0.27,
+            up_m: -0.08,
+            cam2_left_m: 0.06,
+            baseline_m: 0.54,
+            pitch_down_deg: 0.0,
+            samples_per_axis: 1,
+            shadows: true,
+        }
+    }
+}
+
+/// Sun and sky (linear RGB radiometry, arbitrary units; 1.0 is white paper in full sun).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LightingConfig {
+    /// Sun azimuth, degrees counter-clockwise from the world +x axis (the main street).
+    pub sun_azimuth_deg: f32,
+    /// Sun elevation above the horizon, degrees.
+    pub sun_elevation_deg: f32,
+    /// Direct sun irradiance on a surface facing the sun (linear RGB).
+    pub sun_rgb: [f32; 3],
+    /// Ambient sky irradiance on an upward-facing surface (linear RGB).
+    pub sky_ambient_rgb: [f32; 3],
+    /// Sky radiance at the zenith (linear RGB), for rays that miss.
+    pub sky_zenith_rgb: [f32; 3],
+    /// Sky radiance at the horizon (linear RGB).
+    pub sky_horizon_rgb: [f32; 3],
+    /// Exposure multiplier before the sRGB transfer curve.
+    pub exposure: f32,
+}
+
+impl Default for LightingConfig {
+    fn default() -> Self {
+        LightingConfig {
+            sun_azimuth_deg: 130.0,
+            sun_elevation_deg: 40.0,
+            sun_rgb: [1.0, 0.95, 0.85],
+            sky_ambient_rgb: [0.3, 0.34, 0.42],
+            sky_zenith_rgb: [0.22, 0.38, 0.75],
+            sky_horizon_rgb: [0.72, 0.8, 0.9],
+            exposure: 1.6,
+        }
+    }
+}
+
+/// Number of frames and their spacing.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FramesConfig {
+    /// Frames to render (the CLI's `--frames` overrides it).
+    pub count: u32,
+    /// Time between frames, seconds (KITTI: 0.1).
+    pub interval_s: f32,
+}
+
+impl Default for FramesConfig {
+    fn default() -> Self {
+        FramesConfig { count: 1, interval_s: 0.1 }
+    }
+}
+
+impl SceneConfig {
+    /// Parse a scene from TOML text (`origin` names the source in errors).
+    pub fn from_toml_str(text: &str, origin: &Path) -> Result<Self> {
+        let cfg: SceneConfig =
+            toml::from_str(text).map_err(|e| Error::format(origin, format!("not a valid scene file: {e}")))?;
+        cfg.validate().map_err(|e| Error::format(origin, e.to_string()))?;
+        Ok(cfg)
+    }
+
+    /// Read and validate a scene file.
+    pub fn from_file(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        Self::from_toml_str(&text, path)
+    }
+
+    /// Resolved road parameters.
+    pub fn road_params(&self) -> RoadParams {
+        self.road.resolve(self.layout)
+    }
+
+    /// Check every value (ranges, finiteness, the LiDAR sensor).
+    pub fn validate(&self) -> Result<()> {
+        fn check(ok: bool, what: &str, message: String) -> Result<()> {
+            if ok { Ok(()) } else { Err(Error::Invalid { what: what.into(), message }) }
+        }
+        let r = self.road_params();
+        let pos = |x: f32| x.is_finite() && x > 0.0;
+        let nonneg = |x: f32| x.is_finite() && x >= 0.0;
+        check(pos(r.length_m) && r.length_m <= 5000.0, "road.length_m", format!("{} not in (0, 5000]", r.length_m))?;
+        check((1..=4).contains(&r.lanes_per_direction), "road.lanes_per_direction", format!("{} not in 1..=4", r.lanes_per_direction))?;
+        check(pos(r.lane_width_m) && r.lane_width_m <= 6.0, "road.lane_width_m", format!("{} not in (0, 6]", r.lane_width_m))?;
+        check(pos(r.parking_width_m) && r.parking_width_m <= 6.0, "road.parking_width_m", format!("{} not in (0, 6]", r.parking_width_m))?;
+        check(pos(r.sidewalk_width_m) && r.sidewalk_width_m <= 15.0, "road.sidewalk_width_m", format!("{} not in (0, 15]", r.sidewalk_width_m))?;
+        check(nonneg(r.kerb_height_m) && r.kerb_height_m <= 0.5, "road.kerb_height_m", format!("{} not in [0, 0.5]", r.kerb_height_m))?;
+        check(nonneg(r.setback_m) && r.setback_m <= 50.0, "road.setback_m", format!("{} not in [0, 50]", r.setback_m))?;
+        check((0.0..=1.0).contains(&r.building_frontage), "road.building_frontage", format!("{} not in [0, 1]", r.building_frontage))?;
+        let [h0, h1] = r.building_height_m;
+        check(pos(h0) && h1 >= h0 && h1 <= 300.0, "road.building_height_m", format!("[{h0}, {h1}] must satisfy 0 < low <= high <= 300"))?;
+        let p = &self.population;
+        check(nonneg(p.parked_vehicles_per_100m) && p.parked_vehicles_per_100m <= 50.0, "population.parked_vehicles_per_100m", "must be in [0, 50]".into())?;
+        for (name, v) in [
+            ("trees_per_100m", p.trees_per_100m),
+            ("poles_per_100m", p.poles_per_100m),
+            ("signs_per_100m", p.signs_per_100m),
+            ("bushes_per_100m", p.bushes_per_100m),
+        ] {
+            check(nonneg(v) && v <= 100.0, &format!("population.{name}"), format!("{v} not in [0, 100]"))?;
+        }
+        for (name, v) in [
+            ("van_fraction", p.van_fraction),
+            ("truck_fraction", p.truck_fraction),
+            ("bus_fraction", p.bus_fraction),
+            ("trailer_fraction", p.trailer_fraction),
+            ("standing_fraction", p.standing_fraction),
+            ("fence_probability", p.fence_probability),
+        ] {
+            check((0.0..=1.0).contains(&v), &format!("population.{name}"), format!("{v} not in [0, 1]"))?;
+        }
+        check(
+            p.van_fraction + p.truck_fraction + p.bus_fraction <= 1.0,
+            "population",
+            "van_fraction + truck_fraction + bus_fraction must not exceed 1".into(),
+        )?;
+        for (name, v) in [("moving_vehicles", p.moving_vehicles), ("pedestrians", p.pedestrians), ("cyclists", p.cyclists)] {
+            check(v <= 500, &format!("population.{name}"), format!("{v} is more than 500"))?;
+        }
+        let e = &self.ego;
+        check(nonneg(e.speed_mps) && e.speed_mps <= 60.0, "ego.speed_mps", format!("{} not in [0, 60]", e.speed_mps))?;
+        check(e.start_x_m.is_finite() && e.start_x_m.abs() <= r.length_m / 2.0, "ego.start_x_m", format!("{} is off the street (|x| <= {})", e.start_x_m, r.length_m / 2.0))?;
+        check(pos(e.lidar_height_m) && e.lidar_height_m <= 10.0, "ego.lidar_height_m", format!("{} not in (0, 10]", e.lidar_height_m))?;
+        self.lidar.sensor()?;
+        self.lidar.returns.validate()?;
+        let c = &self.camera;
+        check((1..=8192).contains(&c.width) && (1..=8192).contains(&c.height), "camera", format!("size {}x{} not in 1..=8192", c.width, c.height))?;
+        check(pos(c.fx) && pos(c.fy) && c.cx.is_finite() && c.cy.is_finite(), "camera", "focal lengths must be positive and the principal point finite".into())?;
+        check(
+            [c.ahead_m, c.up_m, c.cam2_left_m, c.baseline_m].iter().all(|x| x.is_finite() && x.abs() <= 5.0),
+            "camera",
+            "mounting offsets must be finite and within 5 m".into(),
+        )?;
+        check(c.pitch_down_deg.is_finite() && c.pitch_down_deg.abs() <= 45.0, "camera.pitch_down_deg", "must be within [-45, 45]".into())?;
+        check((1..=8).contains(&c.samples_per_axis), "camera.samples_per_axis", format!("{} not in 1..=8", c.samples_per_axis))?;
+        let l = &self.lighting;
+        check(l.sun_azimuth_deg.is_finite() && (-90.0..=90.0).contains(&l.sun_elevation_deg), "lighting", "sun elevation must be within [-90, 90] degrees".into())?;
+        check(
+            [l.sun_rgb, l.sky_ambient_rgb, l.sky_zenith_rgb, l.sky_horizon_rgb].iter().flatten().all(|x| nonneg(*x) && *x <= 100.0)
+                && pos(l.exposure),
+            "lighting",
+            "colours must be in [0, 100] and exposure positive".into(),
+        )?;
+        check(self.frames.count <= 100_000, "frames.count", format!("{} is more than 100000", self.frames.count))?;
+        check(pos(self.frames.interval_s) && self.frames.interval_s <= 10.0, "frames.interval_s", format!("{} not in (0, 10]", self.frames.interval_s))?;
+        Ok(())
+    }
+}

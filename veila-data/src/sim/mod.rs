@@ -1,0 +1,1 @@
+//! Procedural scene simulator (being filled in).

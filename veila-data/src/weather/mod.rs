@@ -1,0 +1,1 @@
+//! Weather simulator (being filled in).

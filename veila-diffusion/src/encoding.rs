@@ -1,0 +1,292 @@
+//! Range-image encoding for diffusion, after R2DM (Nakashima & Kurazume, ICRA 2024).
+//!
+//! Each pixel becomes up to three channels in `[-1, 1]`:
+//!
+//! | channel | encoding |
+//! |---|---|
+//! | range | `2 · log2(r + 1) / log2(r_max + 1) − 1`, `r` clamped to `[0, r_max]` |
+//! | intensity (optional) | `2 · i / i_max − 1`, `i` clamped to `[0, i_max]` |
+//! | ray drop (optional) | `+1` for a return, `−1` for a dropped ray |
+//!
+//! A dropped ray has range `−1` and intensity `−1` as well, so a model trained without the explicit
+//! ray-drop channel still sees R2DM's convention (a drop is range zero). Decoding turns a pixel back
+//! into a missing point when its ray-drop channel is at or below
+//! [`RangeEncoding::raydrop_threshold`] (or, without that channel, when its decoded range is below
+//! [`RangeEncoding::min_range_m`]); NaN outputs are always decoded as missing points.
+
+use candle_core::{Device, Tensor};
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Error, Result, invalid};
+
+/// How range images are mapped to and from the network's `[-1, 1]` channels.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RangeEncoding {
+    /// Ranges above this are clamped to it before encoding (metres).
+    pub max_range_m: f32,
+    /// Decoded returns closer than this are treated as dropped rays (metres).
+    pub min_range_m: f32,
+    /// Intensity value that maps to `+1` (1.0 for KITTI, 255.0 for nuScenes).
+    pub intensity_max: f32,
+    /// Whether an intensity channel is present.
+    pub intensity: bool,
+    /// Whether an explicit ray-drop channel is present (last channel).
+    pub raydrop: bool,
+    /// Decoded ray-drop values at or below this mean "no return".
+    pub raydrop_threshold: f32,
+}
+
+impl Default for RangeEncoding {
+    fn default() -> Self {
+        Self::kitti()
+    }
+}
+
+/// A borrowed range image to encode: row-major, `rows * cols` pixels, row 0 = top beam.
+#[derive(Debug, Clone, Copy)]
+pub struct ScanView<'a> {
+    /// Number of rows (beams).
+    pub rows: usize,
+    /// Number of columns (azimuth bins).
+    pub cols: usize,
+    /// Range per pixel in metres.
+    pub range_m: &'a [f32],
+    /// Intensity per pixel (ignored when the encoding has no intensity channel; zeros when `None`).
+    pub intensity: Option<&'a [f32]>,
+    /// Validity per pixel; `None` means "finite range > 0".
+    pub mask: Option<&'a [bool]>,
+}
+
+/// A decoded range image: row-major, `rows * cols` pixels.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DecodedScan {
+    /// Number of rows (beams).
+    pub rows: usize,
+    /// Number of columns (azimuth bins).
+    pub cols: usize,
+    /// Range in metres; `0.0` where `mask` is false.
+    pub range_m: Vec<f32>,
+    /// Intensity in the original units; `0.0` where `mask` is false or without an intensity channel.
+    pub intensity: Vec<f32>,
+    /// `true` where the pixel holds a return.
+    pub mask: Vec<bool>,
+}
+
+impl DecodedScan {
+    /// Number of pixels with a return.
+    pub fn num_valid(&self) -> usize {
+        self.mask.iter().filter(|&&m| m).count()
+    }
+}
+
+impl RangeEncoding {
+    /// R2DM's KITTI setting: 1.45–80 m, intensity in `[0, 1]`, with intensity and ray-drop channels.
+    pub fn kitti() -> Self {
+        Self {
+            max_range_m: 80.0,
+            min_range_m: 1.45,
+            intensity_max: 1.0,
+            intensity: true,
+            raydrop: true,
+            raydrop_threshold: 0.0,
+        }
+    }
+
+    /// Checks that every field is in its domain.
+    pub fn validate(&self) -> Result<()> {
+        if !(self.max_range_m.is_finite() && self.max_range_m > 0.0) {
+            return Err(invalid("max_range_m", format!("must be finite and > 0, got {}", self.max_range_m)));
+        }
+        if !(self.min_range_m.is_finite() && self.min_range_m >= 0.0 && self.min_range_m < self.max_range_m) {
+            return Err(invalid(
+                "min_range_m",
+                format!("must be in [0, max_range_m), got {}", self.min_range_m),
+            ));
+        }
+        if !(self.intensity_max.is_finite() && self.intensity_max > 0.0) {
+            return Err(invalid("intensity_max", format!("must be finite and > 0, got {}", self.intensity_max)));
+        }
+        if !(self.raydrop_threshold.is_finite() && self.raydrop_threshold.abs() < 1.0) {
+            return Err(invalid(
+                "raydrop_threshold",
+                format!("must be in (-1, 1), got {}", self.raydrop_threshold),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Number of encoded channels (1 to 3).
+    pub fn num_channels(&self) -> usize {
+        1 + usize::from(self.intensity) + usize::from(self.raydrop)
+    }
+
+    /// Index of the intensity channel, if any.
+    pub fn intensity_channel(&self) -> Option<usize> {
+        self.intensity.then_some(1)
+    }
+
+    /// Index of the ray-drop channel, if any.
+    pub fn raydrop_channel(&self) -> Option<usize> {
+        self.raydrop.then_some(self.num_channels() - 1)
+    }
+
+    /// Encodes one range in metres to `[-1, 1]` (log scale). Non-finite or negative ranges map to `-1`.
+    pub fn encode_range(&self, range_m: f32) -> f32 {
+        if !range_m.is_finite() || range_m <= 0.0 {
+            return -1.0;
+        }
+        let r = range_m.min(self.max_range_m) as f64;
+        let v = (r + 1.0).log2() / (self.max_range_m as f64 + 1.0).log2();
+        (2.0 * v - 1.0) as f32
+    }
+
+    /// Decodes one encoded range back to metres (input clamped to `[-1, 1]`; NaN gives NaN).
+    pub fn decode_range(&self, v: f32) -> f32 {
+        if v.is_nan() {
+            return f32::NAN;
+        }
+        let u = ((v.clamp(-1.0, 1.0) as f64) + 1.0) * 0.5;
+        let r = (u * (self.max_range_m as f64 + 1.0).log2()).exp2() - 1.0;
+        r.max(0.0) as f32
+    }
+
+    /// Encodes one intensity to `[-1, 1]` (clamped; non-finite gives `-1`).
+    pub fn encode_intensity(&self, intensity: f32) -> f32 {
+        if !intensity.is_finite() {
+            return -1.0;
+        }
+        2.0 * (intensity / self.intensity_max).clamp(0.0, 1.0) - 1.0
+    }
+
+    /// Decodes one encoded intensity (clamped to `[0, intensity_max]`).
+    pub fn decode_intensity(&self, v: f32) -> f32 {
+        if v.is_nan() {
+            return 0.0;
+        }
+        (v.clamp(-1.0, 1.0) + 1.0) * 0.5 * self.intensity_max
+    }
+
+    /// Encodes one scan into a `C * rows * cols` channel-major buffer.
+    pub fn encode_to_vec(&self, scan: &ScanView<'_>) -> Result<Vec<f32>> {
+        self.validate()?;
+        let n = scan.rows * scan.cols;
+        check_len("range_m", n, scan.range_m.len())?;
+        if let Some(i) = scan.intensity {
+            check_len("intensity", n, i.len())?;
+        }
+        if let Some(m) = scan.mask {
+            check_len("mask", n, m.len())?;
+        }
+        let c = self.num_channels();
+        let mut out = vec![-1.0f32; c * n];
+        for p in 0..n {
+            let r = scan.range_m[p];
+            let valid = scan.mask.map_or(true, |m| m[p]) && r.is_finite() && r > 0.0;
+            if !valid {
+                continue;
+            }
+            out[p] = self.encode_range(r);
+            if let Some(ci) = self.intensity_channel() {
+                let i = scan.intensity.map_or(0.0, |i| i[p]);
+                out[ci * n + p] = self.encode_intensity(i);
+            }
+            if let Some(cd) = self.raydrop_channel() {
+                out[cd * n + p] = 1.0;
+            }
+        }
+        Ok(out)
+    }
+
+    /// Encodes a batch of equally sized scans into a `[B, C, rows, cols]` f32 tensor.
+    pub fn encode_batch(&self, scans: &[ScanView<'_>], device: &Device) -> Result<Tensor> {
+        let Some(first) = scans.first() else {
+            return Err(invalid("scans", "empty batch"));
+        };
+        let (rows, cols) = (first.rows, first.cols);
+        let mut data = Vec::with_capacity(scans.len() * self.num_channels() * rows * cols);
+        for s in scans {
+            if (s.rows, s.cols) != (rows, cols) {
+                return Err(Error::Shape {
+                    what: "scan in batch",
+                    expected: format!("{rows}x{cols}"),
+                    got: format!("{}x{}", s.rows, s.cols),
+                });
+            }
+            data.extend(self.encode_to_vec(s)?);
+        }
+        Ok(Tensor::from_vec(data, (scans.len(), self.num_channels(), rows, cols), device)?)
+    }
+
+    /// Decodes a `[B, C, rows, cols]` tensor (any float dtype, any device) into scans.
+    pub fn decode_batch(&self, x: &Tensor) -> Result<Vec<DecodedScan>> {
+        self.validate()?;
+        let (b, c, rows, cols) = x.dims4()?;
+        if c != self.num_channels() {
+            return Err(Error::Shape {
+                what: "encoded range image channels",
+                expected: self.num_channels().to_string(),
+                got: c.to_string(),
+            });
+        }
+        let data = x
+            .to_dtype(candle_core::DType::F32)?
+            .flatten_all()?
+            .to_vec1::<f32>()?;
+        let n = rows * cols;
+        Ok(data
+            .chunks_exact(c * n)
+            .take(b)
+            .map(|img| self.decode_slice(img, rows, cols))
+            .collect())
+    }
+
+    /// Decodes one channel-major `C * rows * cols` buffer.
+    pub fn decode_slice(&self, img: &[f32], rows: usize, cols: usize) -> DecodedScan {
+        let n = rows * cols;
+        let mut out = DecodedScan {
+            rows,
+            cols,
+            range_m: vec![0.0; n],
+            intensity: vec![0.0; n],
+            mask: vec![false; n],
+        };
+        for p in 0..n.min(img.len()) {
+            let v = img[p];
+            if v.is_nan() {
+                continue;
+            }
+            if let Some(cd) = self.raydrop_channel() {
+                match img.get(cd * n + p) {
+                    Some(d) if *d > self.raydrop_threshold => {}
+                    _ => continue,
+                }
+            }
+            let r = self.decode_range(v);
+            if !(r >= self.min_range_m) {
+                continue;
+            }
+            out.range_m[p] = r;
+            out.mask[p] = true;
+            if let Some(ci) = self.intensity_channel() {
+                out.intensity[p] = img.get(ci * n + p).map_or(0.0, |&i| self.decode_intensity(i));
+            }
+        }
+        out
+    }
+}
+
+fn check_len(what: &'static str, expected: usize, got: usize) -> Result<()> {
+    if expected == got {
+        Ok(())
+    } else {
+        Err(Error::Shape {
+            what,
+            expected: format!("{expected} pixels"),
+            got: format!("{got} pixels"),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests;

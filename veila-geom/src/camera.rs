@@ -1,0 +1,217 @@
+//! Pinhole cameras with a 3x4 intrinsic matrix `K` and a 4x4 extrinsic `T` (camera from LiDAR),
+//! equation 2 of the paper: `[u, v, 1]^T = 1/w K T [p, 1]^T`.
+//!
+//! Pixel convention (OpenCV / KITTI): the centre of pixel `(i, j)` sits at `(u, v) = (i, j)`; the image
+//! covers `[-0.5, W - 0.5) x [-0.5, H - 0.5)`. [`ImagePoint::pixel`] rounds to the nearest pixel.
+
+use glam::{Mat3, Mat4, Vec3, Vec4};
+
+use crate::{GeomError, RayTable};
+
+/// A point projected into the image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ImagePoint {
+    /// Horizontal pixel coordinate.
+    pub u_px: f32,
+    /// Vertical pixel coordinate.
+    pub v_px: f32,
+    /// Depth: `z` of the point in the camera frame, metres.
+    pub depth_m: f32,
+}
+
+impl ImagePoint {
+    /// The nearest pixel `(col, row)`; `None` if outside `width x height`.
+    pub fn pixel(&self, width: u32, height: u32) -> Option<(u32, u32)> {
+        let c = (self.u_px + 0.5).floor();
+        let r = (self.v_px + 0.5).floor();
+        (c >= 0.0 && r >= 0.0 && c < width as f32 && r < height as f32).then_some((c as u32, r as u32))
+    }
+}
+
+/// A pinhole camera rigidly attached to the LiDAR.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PinholeCamera {
+    /// `K` as a 4x4 matrix whose last row is `(0, 0, 0, 1)` (the 3x4 intrinsic / projection matrix
+    /// padded). KITTI's `P2` carries a translation in its fourth column; it is kept.
+    pub intrinsics: Mat4,
+    /// `T`: camera frame from LiDAR frame.
+    pub cam_from_lidar: Mat4,
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Points whose projective depth `w` is at or below this (metres) do not project.
+    pub near_m: f32,
+}
+
+fn rows3x4(m: [[f32; 4]; 3]) -> Mat4 {
+    Mat4::from_cols_array_2d(&[
+        [m[0][0], m[1][0], m[2][0], 0.0],
+        [m[0][1], m[1][1], m[2][1], 0.0],
+        [m[0][2], m[1][2], m[2][2], 0.0],
+        [m[0][3], m[1][3], m[2][3], 1.0],
+    ])
+}
+
+impl PinholeCamera {
+    /// Default near plane, metres.
+    pub const DEFAULT_NEAR_M: f32 = 0.1;
+
+    /// Build from a row-major 3x4 `K` and `T = cam_from_lidar`; validates both.
+    pub fn new(
+        intrinsics_3x4: [[f32; 4]; 3],
+        cam_from_lidar: Mat4,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, GeomError> {
+        let cam = PinholeCamera {
+            intrinsics: rows3x4(intrinsics_3x4),
+            cam_from_lidar,
+            width,
+            height,
+            near_m: Self::DEFAULT_NEAR_M,
+        };
+        cam.validate()?;
+        Ok(cam)
+    }
+
+    /// KITTI object benchmark: `K = P2`, `T = R0_rect * Tr_velo_to_cam` (both padded to 4x4).
+    pub fn from_kitti(
+        p2: [[f32; 4]; 3],
+        r0_rect: Mat3,
+        velo_to_cam: [[f32; 4]; 3],
+        width: u32,
+        height: u32,
+    ) -> Result<Self, GeomError> {
+        let t = Mat4::from_mat3(r0_rect) * rows3x4(velo_to_cam);
+        Self::new(p2, t, width, height)
+    }
+
+    /// KITTI odometry / SemanticKITTI: `K = P2`, `T = Tr` (already to the rectified frame, no R0_rect).
+    pub fn from_kitti_odometry(
+        p2: [[f32; 4]; 3],
+        tr: [[f32; 4]; 3],
+        width: u32,
+        height: u32,
+    ) -> Result<Self, GeomError> {
+        Self::new(p2, rows3x4(tr), width, height)
+    }
+
+    /// nuScenes: a 3x3 intrinsic matrix and the 4x4 `lidar2cam` transform.
+    pub fn from_nuscenes(
+        intrinsic: Mat3,
+        lidar2cam: Mat4,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, GeomError> {
+        let k = intrinsic.transpose().to_cols_array_2d(); // rows of K
+        let k34 = [
+            [k[0][0], k[0][1], k[0][2], 0.0],
+            [k[1][0], k[1][1], k[1][2], 0.0],
+            [k[2][0], k[2][1], k[2][2], 0.0],
+        ];
+        Self::new(k34, lidar2cam, width, height)
+    }
+
+    /// With another near plane.
+    pub fn with_near_m(mut self, near_m: f32) -> Self {
+        self.near_m = near_m;
+        self
+    }
+
+    /// Check that the matrices are finite and invertible, the image non-empty and the near plane sane.
+    pub fn validate(&self) -> Result<(), GeomError> {
+        let bad = |m: String| Err(GeomError::InvalidCamera(m));
+        if self.width == 0 || self.height == 0 {
+            return bad(format!("image size must be positive, got {}x{}", self.width, self.height));
+        }
+        if !self.intrinsics.is_finite() || !self.cam_from_lidar.is_finite() {
+            return bad("matrices must be finite".into());
+        }
+        if !(self.near_m.is_finite() && self.near_m > 0.0) {
+            return bad(format!("near plane must be finite and positive, got {}", self.near_m));
+        }
+        let k3 = Mat3::from_mat4(self.intrinsics);
+        let scale = k3.to_cols_array().iter().fold(0.0f32, |a, v| a.max(v.abs()));
+        let det = k3.determinant();
+        if !(scale > 0.0) || det.abs() <= 1e-9 * scale * scale * scale {
+            return bad(format!("the 3x3 part of K is singular (det {det})"));
+        }
+        if self.cam_from_lidar.row(3) != Vec4::new(0.0, 0.0, 0.0, 1.0) {
+            return bad("the last row of T must be (0, 0, 0, 1)".into());
+        }
+        if Mat3::from_mat4(self.cam_from_lidar).determinant().abs() < 1e-6 {
+            return bad("the rotation part of T is singular".into());
+        }
+        Ok(())
+    }
+
+    /// `K T`, the full LiDAR-to-image matrix (last row padding).
+    pub fn image_from_lidar(&self) -> Mat4 {
+        self.intrinsics * self.cam_from_lidar
+    }
+
+    /// Project a LiDAR-frame point. `None` for non-finite input, for points at or behind the near plane
+    /// (never a mirrored pixel) and for non-finite results. The point may fall outside the image.
+    pub fn try_project(&self, p_lidar: Vec3) -> Option<ImagePoint> {
+        if !p_lidar.is_finite() {
+            return None;
+        }
+        let p_cam = self.cam_from_lidar * p_lidar.extend(1.0);
+        let q = self.intrinsics * p_cam;
+        let w = q.z;
+        if !(w > self.near_m && p_cam.z > 0.0) {
+            return None;
+        }
+        let ip = ImagePoint { u_px: q.x / w, v_px: q.y / w, depth_m: p_cam.z };
+        (ip.u_px.is_finite() && ip.v_px.is_finite()).then_some(ip)
+    }
+
+    /// Whether pixel coordinates lie inside the image (`[-0.5, W - 0.5) x [-0.5, H - 0.5)`).
+    #[inline]
+    pub fn contains(&self, u_px: f32, v_px: f32) -> bool {
+        u_px >= -0.5 && v_px >= -0.5 && u_px < self.width as f32 - 0.5 && v_px < self.height as f32 - 0.5
+    }
+
+    /// [`PinholeCamera::try_project`], and `None` outside the image too.
+    pub fn try_project_in_image(&self, p_lidar: Vec3) -> Option<ImagePoint> {
+        self.try_project(p_lidar).filter(|ip| self.contains(ip.u_px, ip.v_px))
+    }
+
+    /// The LiDAR-frame point seen at pixel `(u_px, v_px)` with camera-frame depth `depth_m`; `None` if
+    /// the pixel's ray is parallel to the image plane or the input is not finite. Inverse of
+    /// [`PinholeCamera::try_project`].
+    pub fn try_back_project(&self, u_px: f32, v_px: f32, depth_m: f32) -> Option<Vec3> {
+        if !(u_px.is_finite() && v_px.is_finite() && depth_m.is_finite()) {
+            return None;
+        }
+        let k3 = Mat3::from_mat4(self.intrinsics);
+        let t = self.intrinsics.w_axis.truncate();
+        let k_inv = k3.inverse();
+        let ray = k_inv * Vec3::new(u_px, v_px, 1.0);
+        let off = k_inv * t;
+        // p_cam = w * ray - off, with p_cam.z = depth
+        if ray.z.abs() < f32::EPSILON {
+            return None;
+        }
+        let w = (depth_m + off.z) / ray.z;
+        let p_cam = ray * w - off;
+        let p = self.cam_from_lidar.inverse() * p_cam.extend(1.0);
+        let p = p.truncate();
+        p.is_finite().then_some(p)
+    }
+
+    /// Per range pixel: whether the pixel's ray, followed to infinity, is seen by the camera (the
+    /// panorama's camera-frustum mask). Uses only the rotation of `T` and the 3x3 part of `K`.
+    pub fn frustum_mask(&self, rays: &RayTable) -> Vec<bool> {
+        let rot = Mat3::from_mat4(self.cam_from_lidar);
+        let k3 = Mat3::from_mat4(self.intrinsics);
+        rays.dirs()
+            .iter()
+            .map(|d| {
+                let q = k3 * (rot * *d);
+                q.z > 0.0 && self.contains(q.x / q.z, q.y / q.z)
+            })
+            .collect()
+    }
+}

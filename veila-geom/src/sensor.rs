@@ -1,0 +1,230 @@
+//! LiDAR sensor models: a uniform grid of beams or a per-beam elevation table.
+
+use serde::{Deserialize, Serialize};
+
+use crate::GeomError;
+
+/// How the rows (beams) of a range image are laid out in elevation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum BeamLayout {
+    /// Rows split the vertical field of view evenly: row `r` covers
+    /// `[fov_up - (r+1) f/h, fov_up - r f/h]` (equation 1 of the paper).
+    #[default]
+    Uniform,
+    /// One elevation per beam, as the sensor's calibration gives it.
+    PerBeam {
+        /// Elevation of every beam in degrees, strictly monotone (either direction) and inside the field
+        /// of view. Entry `i` is beam (ring) `i`.
+        elevations_deg: Vec<f32>,
+        /// How a point finds its row.
+        row_source: RowSource,
+    },
+}
+
+/// How a point is assigned to a beam in [`BeamLayout::PerBeam`] mode.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RowSource {
+    /// The dataset stores the ring (beam) index of every point (nuScenes); use it.
+    Ring,
+    /// The beam whose elevation is nearest to the point's elevation (binary search).
+    NearestElevation,
+}
+
+/// A spinning LiDAR: `rows` beams by `cols` azimuth steps, a vertical field of view and a valid range.
+///
+/// Row 0 is the top beam; column 0 starts at azimuth +pi (behind the sensor, on the left-hand side of
+/// the seam) and columns advance clockwise seen from above, exactly as equation 1 of the paper:
+/// `u = 1/2 (1 - atan2(y, x) / pi) w`. The LiDAR frame is x forward, y left, z up, metres.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LidarSensor {
+    /// Number of beams (range-image height).
+    pub rows: u32,
+    /// Number of azimuth steps (range-image width).
+    pub cols: u32,
+    /// Upper edge of the vertical field of view in degrees (positive up).
+    pub fov_up_deg: f32,
+    /// Lower edge of the vertical field of view in degrees (negative below the horizon).
+    pub fov_down_deg: f32,
+    /// Smallest valid range in metres; nearer returns are rejected.
+    pub min_range_m: f32,
+    /// Largest valid range in metres; farther returns are rejected.
+    pub max_range_m: f32,
+    /// Beam layout.
+    #[serde(default)]
+    pub beams: BeamLayout,
+}
+
+impl LidarSensor {
+    /// Velodyne HDL-64E as used by KITTI and SemanticKITTI: 64 x 1024, +3 deg / -25 deg, uniform
+    /// rows (the R2DM / LiDARGen convention), valid range 0.5 m to 120 m.
+    pub fn hdl64e() -> Self {
+        LidarSensor {
+            rows: 64,
+            cols: 1024,
+            fov_up_deg: 3.0,
+            fov_down_deg: -25.0,
+            min_range_m: 0.5,
+            max_range_m: 120.0,
+            beams: BeamLayout::Uniform,
+        }
+    }
+
+    /// Velodyne HDL-32E as used by nuScenes: 32 x 1024, +10 deg / -30 deg, uniform rows, valid range
+    /// 1 m to 100 m (nuScenes' points within 1 m are returns from the ego vehicle).
+    pub fn hdl32e() -> Self {
+        LidarSensor {
+            rows: 32,
+            cols: 1024,
+            fov_up_deg: 10.0,
+            fov_down_deg: -30.0,
+            min_range_m: 1.0,
+            max_range_m: 100.0,
+            beams: BeamLayout::Uniform,
+        }
+    }
+
+    /// HDL-32E in per-beam mode with its nominal elevation table (-30.67 deg to +10.67 deg in
+    /// steps of 4/3 deg), rows taken from the ring index nuScenes stores with every point.
+    ///
+    /// nuScenes' ring 0 is the lowest beam; the table is therefore increasing and row 0 (top) is ring 31.
+    pub fn hdl32e_per_beam() -> Self {
+        let elevations_deg = (0..32).map(|i| -30.67 + i as f32 * (4.0 / 3.0)).collect();
+        LidarSensor {
+            fov_up_deg: 10.67,
+            fov_down_deg: -30.67,
+            beams: BeamLayout::PerBeam { elevations_deg, row_source: RowSource::Ring },
+            ..Self::hdl32e()
+        }
+    }
+
+    /// Check every invariant; all other methods assume a validated sensor.
+    pub fn validate(&self) -> Result<(), GeomError> {
+        let bad = |m: String| Err(GeomError::InvalidSensor(m));
+        if self.rows == 0 || self.cols == 0 {
+            return bad(format!("size must be positive, got {}x{}", self.rows, self.cols));
+        }
+        if self.rows > 1 << 16 || self.cols > 1 << 20 {
+            return bad(format!("size {}x{} is unreasonably large", self.rows, self.cols));
+        }
+        if !self.fov_up_deg.is_finite() || !self.fov_down_deg.is_finite() {
+            return bad("field of view must be finite".into());
+        }
+        if self.fov_up_deg <= self.fov_down_deg {
+            return bad(format!(
+                "fov_up_deg ({}) must be greater than fov_down_deg ({})",
+                self.fov_up_deg, self.fov_down_deg
+            ));
+        }
+        if self.fov_up_deg > 90.0 || self.fov_down_deg < -90.0 {
+            return bad("field of view must lie within [-90, 90] degrees".into());
+        }
+        if !(self.min_range_m.is_finite() && self.max_range_m.is_finite())
+            || self.min_range_m < 0.0
+            || self.min_range_m >= self.max_range_m
+        {
+            return bad(format!(
+                "valid range must satisfy 0 <= min < max (finite), got [{}, {}]",
+                self.min_range_m, self.max_range_m
+            ));
+        }
+        if let BeamLayout::PerBeam { elevations_deg, .. } = &self.beams {
+            if elevations_deg.len() != self.rows as usize {
+                return bad(format!(
+                    "per-beam table has {} entries for {} rows",
+                    elevations_deg.len(),
+                    self.rows
+                ));
+            }
+            if let Some((i, e)) = elevations_deg.iter().enumerate().find(|(_, e)| !e.is_finite()) {
+                return bad(format!("beam {i} elevation {e} is not finite"));
+            }
+            if let Some((i, e)) = elevations_deg
+                .iter()
+                .enumerate()
+                .find(|(_, e)| **e > self.fov_up_deg || **e < self.fov_down_deg)
+            {
+                return bad(format!(
+                    "beam {i} elevation {e} deg lies outside the field of view [{}, {}]",
+                    self.fov_down_deg, self.fov_up_deg
+                ));
+            }
+            if self.rows > 1 {
+                let inc = elevations_deg.windows(2).all(|w| w[1] > w[0]);
+                let dec = elevations_deg.windows(2).all(|w| w[1] < w[0]);
+                if !inc && !dec {
+                    return bad("per-beam elevations must be strictly monotone".into());
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Number of pixels of the range image (`rows * cols`).
+    pub fn num_pixels(&self) -> usize {
+        self.rows as usize * self.cols as usize
+    }
+
+    /// Upper edge of the vertical field of view, radians.
+    pub fn fov_up_rad(&self) -> f32 {
+        self.fov_up_deg.to_radians()
+    }
+
+    /// Lower edge of the vertical field of view, radians (negative below the horizon).
+    pub fn fov_down_rad(&self) -> f32 {
+        self.fov_down_deg.to_radians()
+    }
+
+    /// Total vertical field of view `f = |f_up| + |f_down|` for a field of view spanning the horizon,
+    /// in general `f_up - f_down`, radians.
+    pub fn fov_rad(&self) -> f32 {
+        (self.fov_up_deg - self.fov_down_deg).to_radians()
+    }
+
+    /// The beam (ring) that feeds `row`, in per-beam mode; `row` itself in uniform mode.
+    pub fn ring_of_row(&self, row: u32) -> u32 {
+        match &self.beams {
+            BeamLayout::PerBeam { elevations_deg, .. } if self.rows > 1 && elevations_deg[1] > elevations_deg[0] => {
+                self.rows - 1 - row
+            }
+            _ => row,
+        }
+    }
+
+    /// The row that beam (ring) `ring` feeds; `None` for a ring outside `0..rows`.
+    pub fn row_of_ring(&self, ring: u32) -> Option<u32> {
+        (ring < self.rows).then(|| self.ring_of_row(ring))
+    }
+
+    /// Elevation of the centre of `row` in radians. Uniform mode: the centre of the row's band
+    /// (`v = row + 1/2` in equation 1); per-beam mode: the beam's own elevation.
+    pub fn row_elevation_rad(&self, row: u32) -> f32 {
+        match &self.beams {
+            BeamLayout::Uniform => {
+                let up = f64::from(self.fov_up_deg).to_radians();
+                let f = f64::from(self.fov_up_deg - self.fov_down_deg).to_radians();
+                (up - (f64::from(row) + 0.5) / f64::from(self.rows) * f) as f32
+            }
+            BeamLayout::PerBeam { elevations_deg, .. } => {
+                elevations_deg[self.ring_of_row(row) as usize].to_radians()
+            }
+        }
+    }
+
+    /// Azimuth of the centre of `col` in radians, in `(-pi, pi]`; the inverse of equation 1
+    /// (`atan2(y, x) = pi (1 - 2u/w)` at `u = col + 1/2`).
+    pub fn col_azimuth_rad(&self, col: u32) -> f32 {
+        let u = f64::from(col) + 0.5;
+        (std::f64::consts::PI * (1.0 - 2.0 * u / f64::from(self.cols))) as f32
+    }
+
+    /// Read-only access to the per-beam elevations (degrees, by ring), if any.
+    pub fn beam_elevations_deg(&self) -> Option<&[f32]> {
+        match &self.beams {
+            BeamLayout::PerBeam { elevations_deg, .. } => Some(elevations_deg),
+            BeamLayout::Uniform => None,
+        }
+    }
+}

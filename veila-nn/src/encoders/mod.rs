@@ -1,0 +1,433 @@
+//! Image encoders `E_s` (semantic) and `E_d` (depth) of the Veila paper (section 3, "Semantic and
+//! Depth Feature Extraction"): each turns one RGB image into four feature maps `F^(i)`, `i = 1..4`,
+//! that CACM fuses and GCMA samples along the epipolar lines of the range pixels.
+//!
+//! Three encoders implement the common [`ImageEncoder`] trait, so the denoiser can take any of them:
+//!
+//! | encoder | weights | channels | strides (input px per feature px) |
+//! |---|---|---|---|
+//! | [`mit::MitEncoder`] (SegFormer MiT-b0..b5) | HuggingFace `nvidia/mit-b0`, `nvidia/segformer-b0-*` | 32, 64, 160, 256 (b0) | 4, 8, 16, 32 |
+//! | [`dinov2::DepthAnythingV2Encoder`] (DINOv2 ViT-S/14 + DPT reassemble) | HuggingFace `depth-anything/Depth-Anything-V2-Small(-hf)` | 48, 96, 192, 384 | 3.5, 7, 14, 28 |
+//! | [`small_cnn::SmallCnn`] (GroupNorm + SiLU CNN with semantic and depth heads) | trained by this project | 16, 32, 64, 96 (default) | 4, 8, 16, 32 |
+//!
+//! # Input convention
+//!
+//! Every encoder takes a `[B, 3, H, W]` float tensor holding RGB in `[0, 1]` normalised with the
+//! ImageNet statistics ([`Normalization::IMAGENET`]: mean `(0.485, 0.456, 0.406)`, std
+//! `(0.229, 0.224, 0.225)`), i.e. `x = (rgb / 255 - mean) / std`, which is what the HuggingFace
+//! image processors of SegFormer and Depth-Anything produce. [`rgb8_to_tensor`] builds that tensor
+//! from an interleaved `H x W x 3` `u8` buffer; resizing is a separate step ([`resize_bilinear`],
+//! [`size_for_multiple`]) because the right target size depends on the encoder (Depth-Anything wants
+//! multiples of its patch size 14, see [`ImageEncoder::input_spec`]).
+//!
+//! # Freezing
+//!
+//! The paper keeps `E_s` and `E_d` frozen while the diffusion model trains. In candle a tensor only
+//! receives a gradient when it is a `Var` handed to the optimiser, so there are two independent
+//! guarantees, both provided here:
+//!
+//! 1. Build the encoder from its own `VarBuilder`: pretrained weights come from
+//!    `VarBuilder::from_buffered_safetensors` (plain tensors, never `Var`s), and a project-trained
+//!    encoder held in a `VarMap` can be snapshotted into constants with [`freeze_varmap`]. Never pass
+//!    that `VarMap` to the diffusion optimiser.
+//! 2. Wrap it in [`Frozen`], whose `forward` detaches the input and every output, so no backward
+//!    pass ever walks into the encoder graph (this also saves the memory of its activations).
+//!
+//! # Example
+//!
+//! ```
+//! use candle_core::{DType, Device};
+//! use candle_nn::{VarBuilder, VarMap};
+//! use veila_nn::encoders::{
+//!     Frozen, ImageEncoder, Normalization, rgb8_to_tensor,
+//!     small_cnn::{SmallCnn, SmallCnnConfig},
+//! };
+//!
+//! # fn main() -> candle_core::Result<()> {
+//! let device = Device::Cpu;
+//! let varmap = VarMap::new();
+//! let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
+//! let cfg = SmallCnnConfig { channels: [8, 16, 16, 16], head_channels: 8, ..SmallCnnConfig::default() };
+//! let encoder = Frozen::new(SmallCnn::new(&cfg, vb)?);
+//!
+//! let (h, w) = (32, 64);
+//! let rgb = vec![128u8; h * w * 3];
+//! let image = rgb8_to_tensor(&rgb, h, w, &Normalization::IMAGENET, &device)?;
+//! let features = encoder.forward(&image)?;
+//! assert_eq!(features.len(), 4);
+//! assert_eq!(features[0].dims(), &[1, 8, h / 4, w / 4]);
+//! assert_eq!(encoder.feature_sizes(h, w)[3], (1, 2));
+//! # Ok(())
+//! # }
+//! ```
+
+pub mod dinov2;
+pub mod losses;
+pub mod mit;
+pub mod small_cnn;
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+
+use candle_core::{DType, Device, Shape, Tensor};
+use candle_nn::{VarBuilder, VarMap};
+
+/// Per-channel normalisation applied to RGB values in `[0, 1]`: `x = (v - mean) / std`.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Normalization {
+    /// Mean per channel (R, G, B), in `[0, 1]` units.
+    pub mean: [f32; 3],
+    /// Standard deviation per channel (R, G, B), in `[0, 1]` units.
+    pub std: [f32; 3],
+}
+
+impl Normalization {
+    /// ImageNet statistics, used by SegFormer, DINOv2 / Depth-Anything and the project's small CNN.
+    pub const IMAGENET: Normalization = Normalization {
+        mean: [0.485, 0.456, 0.406],
+        std: [0.229, 0.224, 0.225],
+    };
+}
+
+impl Default for Normalization {
+    fn default() -> Self {
+        Self::IMAGENET
+    }
+}
+
+/// What an encoder expects of its input image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct InputSpec {
+    /// Normalisation the weights were trained with.
+    pub normalization: Normalization,
+    /// Height and width should be multiples of this (1 = any size). Other sizes are accepted where
+    /// the architecture allows it, but the trailing pixels are then ignored (patch encoders) or the
+    /// feature grid is padded (strided convolutions).
+    pub size_multiple: usize,
+    /// Smallest accepted height and width in pixels.
+    pub min_size: usize,
+}
+
+/// The common interface of the image encoders `E_s` and `E_d`.
+///
+/// `forward` maps a normalised `[B, 3, H, W]` image (see the [module docs](self) for the
+/// normalisation) to exactly four feature maps `[B, C_i, H_i, W_i]`, finest first, with
+/// `C_i = channels()[i]` and `(H_i, W_i) = feature_sizes(H, W)[i]`.
+pub trait ImageEncoder: std::fmt::Debug + Send + Sync {
+    /// Four feature maps, finest first.
+    fn forward(&self, image: &Tensor) -> candle_core::Result<Vec<Tensor>>;
+    /// Channel count of each of the four feature maps.
+    fn channels(&self) -> [usize; 4];
+    /// Nominal stride of each feature map in input pixels (e.g. `[4, 8, 16, 32]`; Depth-Anything's
+    /// first map has stride 3.5 = 14 / 4, hence `f32`).
+    fn strides(&self) -> [f32; 4];
+    /// Exact `(H_i, W_i)` of each feature map for an input of `height x width` pixels.
+    fn feature_sizes(&self, height: usize, width: usize) -> [(usize, usize); 4];
+    /// Input normalisation, size multiple and minimum size.
+    fn input_spec(&self) -> InputSpec;
+}
+
+impl<E: ImageEncoder + ?Sized> ImageEncoder for Box<E> {
+    fn forward(&self, image: &Tensor) -> candle_core::Result<Vec<Tensor>> {
+        (**self).forward(image)
+    }
+    fn channels(&self) -> [usize; 4] {
+        (**self).channels()
+    }
+    fn strides(&self) -> [f32; 4] {
+        (**self).strides()
+    }
+    fn feature_sizes(&self, height: usize, width: usize) -> [(usize, usize); 4] {
+        (**self).feature_sizes(height, width)
+    }
+    fn input_spec(&self) -> InputSpec {
+        (**self).input_spec()
+    }
+}
+
+impl<E: ImageEncoder + ?Sized> ImageEncoder for Arc<E> {
+    fn forward(&self, image: &Tensor) -> candle_core::Result<Vec<Tensor>> {
+        (**self).forward(image)
+    }
+    fn channels(&self) -> [usize; 4] {
+        (**self).channels()
+    }
+    fn strides(&self) -> [f32; 4] {
+        (**self).strides()
+    }
+    fn feature_sizes(&self, height: usize, width: usize) -> [(usize, usize); 4] {
+        (**self).feature_sizes(height, width)
+    }
+    fn input_spec(&self) -> InputSpec {
+        (**self).input_spec()
+    }
+}
+
+/// An encoder whose outputs are detached from the autograd graph: gradients of the diffusion loss
+/// never reach the encoder's weights, whatever `VarBuilder` they came from.
+#[derive(Debug, Clone)]
+pub struct Frozen<E> {
+    inner: E,
+}
+
+impl<E: ImageEncoder> Frozen<E> {
+    /// Wraps `inner`.
+    pub fn new(inner: E) -> Self {
+        Self { inner }
+    }
+    /// The wrapped encoder.
+    pub fn inner(&self) -> &E {
+        &self.inner
+    }
+    /// Unwraps the encoder.
+    pub fn into_inner(self) -> E {
+        self.inner
+    }
+}
+
+impl<E: ImageEncoder> ImageEncoder for Frozen<E> {
+    fn forward(&self, image: &Tensor) -> candle_core::Result<Vec<Tensor>> {
+        let feats = self.inner.forward(&image.detach())?;
+        Ok(feats.into_iter().map(|t| t.detach()).collect())
+    }
+    fn channels(&self) -> [usize; 4] {
+        self.inner.channels()
+    }
+    fn strides(&self) -> [f32; 4] {
+        self.inner.strides()
+    }
+    fn feature_sizes(&self, height: usize, width: usize) -> [(usize, usize); 4] {
+        self.inner.feature_sizes(height, width)
+    }
+    fn input_spec(&self) -> InputSpec {
+        self.inner.input_spec()
+    }
+}
+
+/// Snapshots every variable of `varmap` into constant tensors (deep copies, detached) and returns a
+/// `VarBuilder` over them. Build an encoder from it to freeze a project-trained encoder: later
+/// optimiser steps on `varmap` do not change the snapshot, and no gradient flows into it.
+pub fn freeze_varmap(
+    varmap: &VarMap,
+    dtype: DType,
+    device: &Device,
+) -> candle_core::Result<VarBuilder<'static>> {
+    let data = varmap
+        .data()
+        .lock()
+        .map_err(|_| candle_core::Error::Msg("VarMap lock poisoned".into()))?;
+    let mut tensors = HashMap::with_capacity(data.len());
+    for (name, var) in data.iter() {
+        tensors.insert(name.clone(), var.as_tensor().copy()?.detach());
+    }
+    Ok(VarBuilder::from_tensors(tensors, dtype, device))
+}
+
+/// Converts an interleaved RGB `u8` buffer (`height x width x 3`, row-major, row 0 = top) into a
+/// normalised `[1, 3, height, width]` f32 tensor on `device`.
+///
+/// # Errors
+/// When the buffer length is not `height * width * 3` or a dimension is zero.
+pub fn rgb8_to_tensor(
+    rgb: &[u8],
+    height: usize,
+    width: usize,
+    norm: &Normalization,
+    device: &Device,
+) -> candle_core::Result<Tensor> {
+    if height == 0 || width == 0 {
+        candle_core::bail!("rgb8_to_tensor: image size {height}x{width} has a zero dimension");
+    }
+    let expected = height * width * 3;
+    if rgb.len() != expected {
+        candle_core::bail!(
+            "rgb8_to_tensor: buffer holds {} bytes but a {height}x{width} RGB image needs {expected}",
+            rgb.len()
+        );
+    }
+    let hw = height * width;
+    let mut out = vec![0f32; expected];
+    for c in 0..3 {
+        let scale = 1.0 / (255.0 * norm.std[c]);
+        let offset = norm.mean[c] / norm.std[c];
+        let plane = &mut out[c * hw..(c + 1) * hw];
+        for (p, v) in plane.iter_mut().enumerate() {
+            *v = rgb[p * 3 + c] as f32 * scale - offset;
+        }
+    }
+    Tensor::from_vec(out, (1, 3, height, width), device)
+}
+
+/// Resizes a `[B, C, H, W]` tensor bilinearly (half-pixel centres, `align_corners = false`, no
+/// antialiasing; PyTorch's `interpolate(mode="bilinear")`).
+pub fn resize_bilinear(
+    image: &Tensor,
+    height: usize,
+    width: usize,
+) -> candle_core::Result<Tensor> {
+    let (_, _, h, w) = image.dims4()?;
+    if (h, w) == (height, width) {
+        return Ok(image.clone());
+    }
+    if height == 0 || width == 0 {
+        candle_core::bail!("resize_bilinear: target size {height}x{width} has a zero dimension");
+    }
+    image.upsample_bilinear2d(height, width, false)
+}
+
+/// The size closest to `(height, width)` whose sides are positive multiples of `multiple`
+/// (rounding to nearest; use it with [`InputSpec::size_multiple`] before [`resize_bilinear`]).
+pub fn size_for_multiple(height: usize, width: usize, multiple: usize) -> (usize, usize) {
+    let m = multiple.max(1);
+    let round = |v: usize| (((v + m / 2) / m).max(1)) * m;
+    (round(height), round(width))
+}
+
+/// Name and shape of one tensor a model reads from its `VarBuilder`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TensorSpec {
+    /// Full tensor name, e.g. `segformer.encoder.block.0.0.attention.self.query.weight`.
+    pub name: String,
+    /// Expected shape.
+    pub shape: Vec<usize>,
+}
+
+#[derive(Debug, Default)]
+struct RecordingBackend {
+    seen: Arc<Mutex<Vec<TensorSpec>>>,
+}
+
+impl candle_nn::var_builder::SimpleBackend for RecordingBackend {
+    fn get(
+        &self,
+        s: Shape,
+        name: &str,
+        _: candle_nn::Init,
+        dtype: DType,
+        dev: &Device,
+    ) -> candle_core::Result<Tensor> {
+        if let Ok(mut seen) = self.seen.lock() {
+            seen.push(TensorSpec {
+                name: name.to_string(),
+                shape: s.dims().to_vec(),
+            });
+        }
+        Tensor::zeros(s, dtype, dev)
+    }
+    fn get_unchecked(&self, name: &str, _: DType, _: &Device) -> candle_core::Result<Tensor> {
+        candle_core::bail!("record_tensor_specs: tensor {name} requested without a shape")
+    }
+    fn contains_tensor(&self, _: &str) -> bool {
+        true
+    }
+}
+
+/// Lists every tensor (name and shape) that `build` reads, in request order, by running it on a
+/// recording `VarBuilder` that hands out zeros. Use it to compare a checkpoint's keys against a model
+/// (missing, unexpected and mis-shaped tensors) before loading, e.g.
+/// `record_tensor_specs(|vb| MitEncoder::new(&cfg, vb))`.
+pub fn record_tensor_specs<T>(
+    build: impl FnOnce(VarBuilder<'static>) -> candle_core::Result<T>,
+) -> candle_core::Result<Vec<TensorSpec>> {
+    let seen = Arc::new(Mutex::new(Vec::new()));
+    let backend = RecordingBackend { seen: seen.clone() };
+    let vb = VarBuilder::from_backend(Box::new(backend), DType::F32, Device::Cpu);
+    build(vb)?;
+    let specs = seen
+        .lock()
+        .map_err(|_| candle_core::Error::Msg("record_tensor_specs: lock poisoned".into()))?
+        .clone();
+    Ok(specs)
+}
+
+/// Checks that `image` is `[B, 3, H, W]` with `H, W >= min_size`; returns `(B, H, W)`.
+pub(crate) fn check_image(
+    image: &Tensor,
+    min_size: usize,
+    who: &str,
+) -> candle_core::Result<(usize, usize, usize)> {
+    let dims = image.dims();
+    if dims.len() != 4 || dims[1] != 3 {
+        candle_core::bail!("{who}: expected an image tensor [B, 3, H, W], got shape {dims:?}");
+    }
+    let (b, h, w) = (dims[0], dims[2], dims[3]);
+    if b == 0 || h < min_size || w < min_size {
+        candle_core::bail!(
+            "{who}: image {h}x{w} (batch {b}) is too small; height and width must be at least {min_size} and the batch non-empty"
+        );
+    }
+    Ok((b, h, w))
+}
+
+/// Output size of a convolution along one axis.
+pub(crate) fn conv_out(size: usize, kernel: usize, stride: usize, padding: usize) -> usize {
+    (size + 2 * padding).saturating_sub(kernel) / stride + 1
+}
+
+/// `[B, C, H, W]` -> `[B, H*W, C]` (contiguous).
+pub(crate) fn map_to_tokens(x: &Tensor) -> candle_core::Result<Tensor> {
+    x.flatten_from(2)?.transpose(1, 2)?.contiguous()
+}
+
+/// `[B, H*W, C]` -> `[B, C, H, W]` (contiguous).
+pub(crate) fn tokens_to_map(x: &Tensor, h: usize, w: usize) -> candle_core::Result<Tensor> {
+    let (b, n, c) = x.dims3()?;
+    if n != h * w {
+        candle_core::bail!("tokens_to_map: {n} tokens do not form a {h}x{w} grid");
+    }
+    x.transpose(1, 2)?.reshape((b, c, h, w))
+}
+
+/// Depthwise `k x k` convolution, stride 1, zero padding `padding`: `weight` is `[C, 1, k, k]`
+/// (PyTorch layout of `Conv2d(C, C, k, groups=C)`), `bias` is `[C]`.
+///
+/// Computed as a sum of `k^2` shifted, per-channel-scaled copies of the padded input, which is far
+/// faster in candle than a grouped convolution with `groups = C` (that runs `C` separate convs).
+pub fn depthwise_conv2d(
+    x: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    padding: usize,
+) -> candle_core::Result<Tensor> {
+    let (_, c, h, w) = x.dims4()?;
+    let (wc, one, kh, kw) = weight.dims4()?;
+    if wc != c || one != 1 {
+        candle_core::bail!(
+            "depthwise_conv2d: weight {:?} does not match {c} input channels",
+            weight.dims()
+        );
+    }
+    let out_h = conv_out(h, kh, 1, padding);
+    let out_w = conv_out(w, kw, 1, padding);
+    let xp = if padding > 0 {
+        x.pad_with_zeros(2, padding, padding)?
+            .pad_with_zeros(3, padding, padding)?
+    } else {
+        x.clone()
+    };
+    let mut acc: Option<Tensor> = None;
+    for ky in 0..kh {
+        for kx in 0..kw {
+            let wk = weight
+                .narrow(2, ky, 1)?
+                .narrow(3, kx, 1)?
+                .reshape((1, c, 1, 1))?;
+            let term = xp
+                .narrow(2, ky, out_h)?
+                .narrow(3, kx, out_w)?
+                .broadcast_mul(&wk)?;
+            acc = Some(match acc {
+                None => term,
+                Some(a) => (a + term)?,
+            });
+        }
+    }
+    let mut out = match acc {
+        Some(a) => a,
+        None => candle_core::bail!("depthwise_conv2d: empty kernel"),
+    };
+    if let Some(b) = bias {
+        out = out.broadcast_add(&b.reshape((1, c, 1, 1))?)?;
+    }
+    Ok(out)
+}

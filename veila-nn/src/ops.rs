@@ -1,0 +1,258 @@
+//! Low-level tensor operations shared by the denoiser blocks.
+//!
+//! Everything here works on candle tensors, is differentiable (built from ops candle can backpropagate
+//! through) and runs on any device.
+
+use candle_core::{D, DType, Device, Tensor};
+use candle_nn::{Init, VarBuilder};
+
+use crate::error::{Result, shape_err};
+
+/// Pads `[B, C, H, W]` by `pad_w` columns on each side *circularly* (the azimuth axis wraps around a
+/// spinning LiDAR) and by `pad_h` rows of zeros on top and bottom (the vertical field of view does not
+/// wrap).
+///
+/// Built from `narrow` + `cat`, so it backpropagates. `pad_w` may not exceed `W`.
+pub fn ring_pad(x: &Tensor, pad_h: usize, pad_w: usize) -> Result<Tensor> {
+    let (_, _, _, w) = x.dims4()?;
+    let x = if pad_w > 0 {
+        if pad_w > w {
+            return Err(shape_err(
+                "ring_pad input",
+                format!("width >= {pad_w} (the circular padding)"),
+                x.dims(),
+            ));
+        }
+        let left = x.narrow(3, w - pad_w, pad_w)?;
+        let right = x.narrow(3, 0, pad_w)?;
+        Tensor::cat(&[&left, x, &right], 3)?
+    } else {
+        x.clone()
+    };
+    Ok(if pad_h > 0 { x.pad_with_zeros(2, pad_h, pad_h)? } else { x })
+}
+
+/// A 2-D convolution whose input is padded with [`ring_pad`] (circular in W, zeros in H), followed by a
+/// convolution with padding 0. Weights `weight: [out, in, k, k]` and `bias: [out]`, as `candle_nn::Conv2d`.
+#[derive(Debug, Clone)]
+pub struct RingConv2d {
+    weight: Tensor,
+    bias: Option<Tensor>,
+    kernel: usize,
+    stride: usize,
+    span: tracing::Span,
+}
+
+impl RingConv2d {
+    /// A `k x k` convolution (k odd) with the candle default initialisation (Kaiming normal weights,
+    /// uniform bias), weights under `vb` as `weight` and `bias`.
+    pub fn new(in_c: usize, out_c: usize, kernel: usize, stride: usize, vb: VarBuilder<'_>) -> Result<Self> {
+        let ws = vb.get_with_hints((out_c, in_c, kernel, kernel), "weight", candle_nn::init::DEFAULT_KAIMING_NORMAL)?;
+        let bound = 1.0 / ((in_c * kernel * kernel) as f64).sqrt();
+        let bs = vb.get_with_hints(out_c, "bias", Init::Uniform { lo: -bound, up: bound })?;
+        Self::from_weights(ws, Some(bs), stride)
+    }
+
+    /// Builds from explicit weights (`[out, in, k, k]`, `k` odd).
+    pub fn from_weights(weight: Tensor, bias: Option<Tensor>, stride: usize) -> Result<Self> {
+        let (_, _, kh, kw) = weight.dims4()?;
+        if kh != kw || kh % 2 == 0 || stride == 0 {
+            return Err(shape_err("ring conv weight", "[out, in, k, k] with odd k and stride >= 1", weight.dims()));
+        }
+        Ok(Self { weight, bias, kernel: kh, stride, span: tracing::span!(tracing::Level::TRACE, "ring_conv") })
+    }
+
+    /// `[B, in, H, W] -> [B, out, ceil(H/stride), ceil(W/stride)]` (for odd kernels).
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let _enter = self.span.enter();
+        let p = self.kernel / 2;
+        let xp = ring_pad(x, p, p)?;
+        let y = xp.conv2d(&self.weight, 0, self.stride, 1, 1)?;
+        Ok(match &self.bias {
+            Some(b) => y.broadcast_add(&b.reshape((1, b.dim(0)?, 1, 1))?)?,
+            None => y,
+        })
+    }
+}
+
+/// A 1x1 convolution as a per-pixel linear map, weights `weight: [out, in, 1, 1]`, `bias: [out]`
+/// (the layout of `candle_nn::Conv2d` / PyTorch `nn.Conv2d(k=1)`).
+#[derive(Debug, Clone)]
+pub struct Conv1x1 {
+    weight: Tensor,
+    bias: Option<Tensor>,
+}
+
+impl Conv1x1 {
+    /// Default (Kaiming normal) initialisation.
+    pub fn new(in_c: usize, out_c: usize, bias: bool, vb: VarBuilder<'_>) -> Result<Self> {
+        Self::with_init(in_c, out_c, bias, candle_nn::init::DEFAULT_KAIMING_NORMAL, vb)
+    }
+
+    /// Zero-initialised weights and bias (the "zero convolution" of ControlNet-style residual branches).
+    pub fn zeros(in_c: usize, out_c: usize, vb: VarBuilder<'_>) -> Result<Self> {
+        let weight = vb.get_with_hints((out_c, in_c, 1, 1), "weight", Init::Const(0.0))?;
+        let bias = vb.get_with_hints(out_c, "bias", Init::Const(0.0))?;
+        Ok(Self { weight, bias: Some(bias) })
+    }
+
+    fn with_init(in_c: usize, out_c: usize, bias: bool, init: Init, vb: VarBuilder<'_>) -> Result<Self> {
+        let weight = vb.get_with_hints((out_c, in_c, 1, 1), "weight", init)?;
+        let bias = if bias {
+            let bound = 1.0 / (in_c as f64).sqrt();
+            Some(vb.get_with_hints(out_c, "bias", Init::Uniform { lo: -bound, up: bound })?)
+        } else {
+            None
+        };
+        Ok(Self { weight, bias })
+    }
+
+    /// `[B, in, ...spatial] -> [B, out, ...spatial]` (any number of trailing spatial dims).
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let dims = x.dims().to_vec();
+        if dims.len() < 2 {
+            return Err(shape_err("conv1x1 input", "[B, C, ...]", &dims));
+        }
+        let (b, c) = (dims[0], dims[1]);
+        let n: usize = dims[2..].iter().product();
+        let (out_c, in_c) = (self.weight.dim(0)?, self.weight.dim(1)?);
+        if c != in_c {
+            return Err(shape_err("conv1x1 input", format!("[B, {in_c}, ...]"), &dims));
+        }
+        let w = self.weight.reshape((1, out_c, in_c))?;
+        let y = w.broadcast_matmul(&x.reshape((b, c, n))?)?;
+        let y = match &self.bias {
+            Some(bias) => y.broadcast_add(&bias.reshape((1, out_c, 1))?)?,
+            None => y,
+        };
+        let mut out_dims = dims;
+        out_dims[1] = out_c;
+        Ok(y.reshape(out_dims)?)
+    }
+}
+
+/// Interpolation matrix `[out, in]` of PyTorch's 1-D linear resize with `align_corners=False`
+/// (the size-given form of `F.interpolate(mode="bilinear")`, `antialias=False`).
+///
+/// For output index `i` the source coordinate is `(i + 0.5) * in / out - 0.5`, clamped below at 0;
+/// the two neighbours are `floor(src)` and `min(floor(src) + 1, in - 1)`.
+pub fn linear_resize_matrix(in_len: usize, out_len: usize) -> Vec<f32> {
+    let mut m = vec![0f32; out_len * in_len];
+    if in_len == 0 || out_len == 0 {
+        return m;
+    }
+    let scale = in_len as f64 / out_len as f64;
+    for i in 0..out_len {
+        let src = ((i as f64 + 0.5) * scale - 0.5).max(0.0);
+        let i0 = (src.floor() as usize).min(in_len - 1);
+        let i1 = (i0 + 1).min(in_len - 1);
+        let l1 = src - i0 as f64;
+        let l0 = 1.0 - l1;
+        m[i * in_len + i0] += l0 as f32;
+        m[i * in_len + i1] += l1 as f32;
+    }
+    m
+}
+
+/// Bilinear resize of `[B, C, H, W]` to `[B, C, out_h, out_w]`, matching PyTorch
+/// `F.interpolate(x, size=(out_h, out_w), mode="bilinear", align_corners=False)` (no antialiasing).
+///
+/// Implemented as two matrix products with the separable interpolation matrices of
+/// [`linear_resize_matrix`], so it is differentiable and runs on any device. Same size is a no-op.
+pub fn bilinear_resize(x: &Tensor, out_h: usize, out_w: usize) -> Result<Tensor> {
+    let (b, c, h, w) = x.dims4()?;
+    if (h, w) == (out_h, out_w) {
+        return Ok(x.clone());
+    }
+    if h == 0 || w == 0 || out_h == 0 || out_w == 0 {
+        return Err(shape_err("bilinear_resize", "non-empty input and output sizes", &[b, c, h, w]));
+    }
+    let dev = x.device();
+    let dtype = x.dtype();
+    let mw = Tensor::from_vec(linear_resize_matrix(w, out_w), (out_w, w), dev)?.to_dtype(dtype)?;
+    let mh = Tensor::from_vec(linear_resize_matrix(h, out_h), (out_h, h), dev)?.to_dtype(dtype)?;
+    // [B*C*H, W] x [W, out_w]
+    let y = x.reshape((b * c * h, w))?.matmul(&mw.t()?)?;
+    // [B*C, H, out_w] -> mh [out_h, H] x ...
+    let y = y.reshape((b * c, h, out_w))?;
+    let y = mh.unsqueeze(0)?.broadcast_matmul(&y)?;
+    Ok(y.reshape((b, c, out_h, out_w))?)
+}
+
+/// Softmax over the last dimension with log-weights and a validity mask, stable for huge logits.
+///
+/// Computes `a_k = valid_k * w_k * exp(s_k) / sum_j valid_j * w_j * exp(s_j)` as
+/// `exp(s'_k - max_valid s')` with `s' = clamp(s, ±1e30) + log_w` on valid entries only, so the largest
+/// term is exactly 1 whenever any entry is valid (no overflow, no underflow of the denominator). Rows with
+/// no valid entry give all zeros, never NaN.
+///
+/// * `logits`: `[..., K]`
+/// * `log_w`: broadcastable to `logits`; finite on valid entries (anything on invalid ones)
+/// * `valid`: broadcastable to `logits`, `u8` (1 = valid)
+pub fn masked_softmax_last_dim(logits: &Tensor, log_w: &Tensor, valid: &Tensor) -> Result<Tensor> {
+    const BIG: f64 = 1e30;
+    let shape = logits.shape().clone();
+    let dtype = logits.dtype();
+    let valid = valid.broadcast_as(shape.clone())?;
+    let s = logits.clamp(-BIG, BIG)?.broadcast_add(log_w)?;
+    let neg = Tensor::full(-3.0e38f32, shape.clone(), logits.device())?.to_dtype(dtype)?;
+    let zero = Tensor::zeros(shape.clone(), dtype, logits.device())?;
+    let s_valid = valid.where_cond(&s, &neg)?;
+    let m = s_valid.max_keepdim(D::Minus1)?;
+    // rows without any valid entry have m = -3e38; replace by 0 so that s - m stays finite
+    let any = m.gt(-1.0e38)?;
+    let m = any.where_cond(&m, &m.zeros_like()?)?;
+    let z = s_valid.broadcast_sub(&m)?;
+    // exp of invalid entries is exp(-3e38 - m) = 0 (or masked below when m is hugely negative)
+    let e = valid.where_cond(&z.exp()?, &zero)?;
+    let denom = e.sum_keepdim(D::Minus1)?;
+    // denominators are >= 1 on rows with a valid entry and 0 otherwise
+    let denom = denom.maximum(1e-30)?;
+    Ok(e.broadcast_div(&denom)?)
+}
+
+/// Sinusoidal embedding of a per-sample scalar (diffusion time, step index or log-SNR), `[B] -> [B, dim]`.
+///
+/// `emb = [cos(scale * t * f_j), sin(scale * t * f_j)]`, `f_j = exp(-ln(max_period) * j / (dim/2))`,
+/// `j = 0 .. dim/2` (the DDPM / ADM convention). `dim` must be even.
+pub fn sinusoidal_embedding(t: &Tensor, dim: usize, max_period: f64, scale: f64) -> Result<Tensor> {
+    if dim % 2 != 0 || dim == 0 {
+        return Err(crate::Error::Config(format!("time embedding dim must be even and > 0, got {dim}")));
+    }
+    let b = match t.dims() {
+        [b] => *b,
+        other => return Err(shape_err("timestep", "[B]", other)),
+    };
+    let half = dim / 2;
+    let freqs: Vec<f32> =
+        (0..half).map(|j| (-(max_period.ln()) * j as f64 / half as f64).exp() as f32).collect();
+    let freqs = Tensor::from_vec(freqs, (1, half), t.device())?;
+    let args = (t.to_dtype(DType::F32)?.affine(scale, 0.0)?.reshape((b, 1))?).broadcast_mul(&freqs)?;
+    Ok(Tensor::cat(&[args.cos()?, args.sin()?], 1)?)
+}
+
+/// Swish / SiLU.
+pub fn silu(x: &Tensor) -> Result<Tensor> {
+    Ok(candle_nn::ops::silu(x)?)
+}
+
+/// Group normalisation `[B, C, ...]` with learned `weight`/`bias` (`vb`), PyTorch `nn.GroupNorm` names.
+pub fn group_norm(groups: usize, channels: usize, vb: VarBuilder<'_>) -> Result<candle_nn::GroupNorm> {
+    if groups == 0 || channels % groups != 0 {
+        return Err(crate::Error::Config(format!(
+            "group norm: {channels} channels are not divisible into {groups} groups (at {})",
+            vb.prefix()
+        )));
+    }
+    Ok(candle_nn::group_norm(groups, channels, 1e-5, vb)?)
+}
+
+/// Largest group count `<= max_groups` that divides `channels` (at least 1).
+pub fn groups_for(channels: usize, max_groups: usize) -> usize {
+    (1..=max_groups.max(1)).rev().find(|g| channels % g == 0).unwrap_or(1)
+}
+
+/// A `[1, C, H, W]` tensor from a channel-major `Vec<f32>`.
+pub(crate) fn image_tensor(data: Vec<f32>, c: usize, h: usize, w: usize, dev: &Device) -> Result<Tensor> {
+    Ok(Tensor::from_vec(data, (1, c, h, w), dev)?)
+}
