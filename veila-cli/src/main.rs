@@ -9,10 +9,10 @@ use clap::{Parser, Subcommand};
 
 mod progress;
 // command modules (one per family):
-// mod data_cmd;     // project, unproject, render           (veila-data)
+mod data_cmd; // project, unproject, render           (veila-data)
 // mod eval_cmd;     // eval, fd                               (veila-metrics)
-// mod sim_cmd;      // simulate                               (veila-data::sim)
-// mod weather_cmd;  // weather                                (veila-data::weather)
+mod sim_cmd; // simulate                               (veila-data::sim)
+mod weather_cmd; // weather                                (veila-data::weather)
 
 /// Panoramic LiDAR generation from a monocular RGB image, and the tools around it.
 #[derive(Debug, Parser)]
@@ -27,10 +27,13 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    // #[command(flatten)] Data(data_cmd::DataCmd),
+    #[command(flatten)]
+    Data(data_cmd::DataCmd),
     // #[command(flatten)] Eval(eval_cmd::EvalCmd),
-    // #[command(flatten)] Sim(sim_cmd::SimCmd),
-    // #[command(flatten)] Weather(weather_cmd::WeatherCmd),
+    #[command(flatten)]
+    Sim(sim_cmd::SimCmd),
+    #[command(flatten)]
+    Weather(weather_cmd::WeatherCmd),
     /// Print the built-in sensor presets as TOML (a starting point for `--sensor FILE.toml`).
     Sensors,
 }
@@ -46,10 +49,10 @@ fn main() {
 
 fn run(command: Command) -> Result<()> {
     match command {
-        // Command::Data(c) => data_cmd::run(c),
+        Command::Data(c) => data_cmd::run(c),
         // Command::Eval(c) => eval_cmd::run(c),
-        // Command::Sim(c) => sim_cmd::run(c),
-        // Command::Weather(c) => weather_cmd::run(c),
+        Command::Sim(c) => sim_cmd::run(c),
+        Command::Weather(c) => weather_cmd::run(c),
         Command::Sensors => {
             for (name, sensor) in [
                 ("hdl64e", veila_geom::LidarSensor::hdl64e()),

@@ -212,7 +212,7 @@ pub fn parse_ply(bytes: &[u8], path: &Path) -> Result<PointCloud> {
         label: pl.map(|_| Vec::with_capacity(n.min(1 << 24))),
     };
     let mut row = vec![0f64; vertex.properties.len()];
-    let mut push = |row: &[f64], cloud: &mut PointCloud, idx: usize| -> Result<()> {
+    let push = |row: &[f64], cloud: &mut PointCloud, idx: usize| -> Result<()> {
         cloud.xyz.push(Vec3::new(row[px] as f32, row[py] as f32, row[pz] as f32));
         cloud.intensity.push(pi.map_or(0.0, |i| row[i] as f32));
         if let (Some(r), Some(rings)) = (pr, cloud.ring.as_mut()) {

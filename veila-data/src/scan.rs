@@ -172,8 +172,8 @@ fn f32_at(b: &[u8], i: usize) -> f32 {
     f32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]])
 }
 
-/// Decode KITTI velodyne bytes (x, y, z, reflectance f32 records). `path` names the source in errors.
-pub fn parse_kitti_bin(bytes: &[u8], path: &Path) -> Result<LoadedPoints> {
+/// Decode KITTI records without dropping anything (callers attach labels first, then drop).
+pub(crate) fn decode_kitti_records(bytes: &[u8], path: &Path) -> Result<PointCloud> {
     check_records(bytes, KITTI_RECORD_BYTES, path)?;
     let n = bytes.len() / KITTI_RECORD_BYTES;
     let mut cloud = PointCloud {
@@ -186,6 +186,12 @@ pub fn parse_kitti_bin(bytes: &[u8], path: &Path) -> Result<LoadedPoints> {
         cloud.xyz.push(Vec3::new(f32_at(rec, 0), f32_at(rec, 1), f32_at(rec, 2)));
         cloud.intensity.push(f32_at(rec, 3));
     }
+    Ok(cloud)
+}
+
+/// Decode KITTI velodyne bytes (x, y, z, reflectance f32 records). `path` names the source in errors.
+pub fn parse_kitti_bin(bytes: &[u8], path: &Path) -> Result<LoadedPoints> {
+    let mut cloud = decode_kitti_records(bytes, path)?;
     let dropped = cloud.retain_finite();
     Ok(LoadedPoints { cloud, format: PointFormat::KittiBin, dropped_non_finite: dropped, sensor: None })
 }
@@ -318,7 +324,11 @@ mod tests {
 
     #[test]
     fn pcd_bin_keeps_rings_and_rejects_bad_rings() {
-        let bytes = rec(&[1.0, 2.0, 3.0, 100.0, 7.0, 0.0, 0.0, f32::NAN, 9.0, 1.0, 1.0, 1.0, 3.0, f32::NAN]);
+        let bytes = rec(&[
+            1.0, 2.0, 3.0, 100.0, 7.0, //
+            0.0, 0.0, f32::NAN, 9.0, 1.0, //
+            1.0, 1.0, 1.0, 3.0, f32::NAN,
+        ]);
         let l = parse_nuscenes_pcd_bin(&bytes, Path::new("a.pcd.bin")).unwrap();
         assert_eq!(l.dropped_non_finite, 2);
         assert_eq!(l.cloud.ring, Some(vec![7]));

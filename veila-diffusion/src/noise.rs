@@ -12,3 +12,8 @@ pub fn randn<R: Rng + ?Sized>(rng: &mut R, shape: &[usize], device: &Device) -> 
     let v: Vec<f32> = (0..n).map(|_| rng.sample::<f32, _>(StandardNormal)).collect();
     Ok(Tensor::from_vec(v, shape, device)?)
 }
+
+/// Standard-normal noise with the shape, dtype and device of `like`.
+pub fn randn_like<R: Rng + ?Sized>(rng: &mut R, like: &Tensor) -> Result<Tensor> {
+    Ok(randn(rng, like.dims(), like.device())?.to_dtype(like.dtype())?)
+}

@@ -5,7 +5,7 @@ use candle_core::{Device, Tensor};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::denoiser::{CondDropout, Conditioning, Denoiser, time_tensor};
+use crate::denoiser::{CondDropout, Denoiser, time_tensor};
 use crate::error::{Error, Result, invalid};
 use crate::noise::randn;
 use crate::prediction::{LossWeighting, Prediction, TimeInput};

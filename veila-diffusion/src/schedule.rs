@@ -454,8 +454,7 @@ impl NoiseSchedule {
                         .collect(),
                     Spacing::LogSnr => {
                         let hi = d.level_at_index(t_total).log_snr;
-                        let lo_k = (t_total as f64 / steps as f64).round().max(1.0) as usize;
-                        let lo = d.level_at_index(lo_k).log_snr;
+                        let lo = d.level_at_index(1).log_snr;
                         let mut ks: Vec<usize> = (0..steps)
                             .map(|i| {
                                 let f = if steps == 1 { 0.0 } else { i as f64 / (steps - 1) as f64 };
@@ -476,7 +475,7 @@ impl NoiseSchedule {
                     }
                     Spacing::LogSnr => {
                         let hi = c.log_snr(1.0);
-                        let lo = c.log_snr(1.0 / steps as f64);
+                        let lo = c.log_snr(LOGSNR_SPACING_T_END);
                         (0..steps)
                             .map(|i| {
                                 let f = if steps == 1 { 0.0 } else { i as f64 / (steps - 1) as f64 };
@@ -494,6 +493,9 @@ impl NoiseSchedule {
     }
 }
 
+/// Time at which [`Spacing::LogSnr`] ends on a continuous schedule (DPM-Solver's `t_ε = 1e-3`).
+pub const LOGSNR_SPACING_T_END: f64 = 1e-3;
+
 /// How sampling levels are placed on the schedule.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -505,8 +507,10 @@ pub enum Spacing {
     Leading,
     /// `N` points spread evenly over `[1/T, 1]` including both ends.
     Linspace,
-    /// Uniform in log-SNR between the trailing schedule's ends (suits DPM-Solver++). Discrete
-    /// schedules may return fewer than `N` levels when grid points coincide.
+    /// Uniform in log-SNR from the noisiest level to the least noisy one (`k = 1` on a discrete
+    /// schedule, `t = 1e-3` on a continuous one), so the final jump to clean data is negligible
+    /// (suits DPM-Solver++). Discrete schedules may return fewer than `N` levels when grid points
+    /// coincide.
     LogSnr,
 }
 

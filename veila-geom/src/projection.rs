@@ -236,19 +236,148 @@ pub enum PixelOutcome {
     BadRing,
 }
 
+/// Per-point result of the locate kernel: a pixel index (with [`CLAMP_BIT`] when it was clamped into an
+/// edge row) or one of the `CODE_*` rejection codes.
+type Code = u64;
+const CLAMP_BIT: Code = 1 << 62;
+const CODE_NON_FINITE: Code = u64::MAX - 6;
+const CODE_ZERO_RANGE: Code = u64::MAX - 5;
+const CODE_TOO_NEAR: Code = u64::MAX - 4;
+const CODE_TOO_FAR: Code = u64::MAX - 3;
+const CODE_ABOVE_FOV: Code = u64::MAX - 2;
+const CODE_BELOW_FOV: Code = u64::MAX - 1;
+const CODE_BAD_RING: Code = u64::MAX;
+/// Smallest rejection code; every code below it is a pixel.
+const CODE_REJECT_MIN: Code = CODE_NON_FINITE;
+
+/// Points per block of the two-pass kernel.
+const BLOCK: usize = 128;
+
+/// Bins of the row candidate table per row (the table maps `sin(elevation)` to a candidate row).
+const ROW_TABLE_BINS_PER_ROW: usize = 64;
+
+/// Points per thread below which [`Projector::project`] uses fewer threads.
+const MIN_POINTS_PER_THREAD: usize = 16_384;
+
+/// Bound on the error of [`atan2_approx`] used by the exact path's filter, radians. The measured
+/// worst case is below 4e-6 (tests); the filter assumes five times that.
+const ATAN2_ERR_BOUND: f64 = 2e-5;
+/// Bound on the error of the `f32` elevation estimate `asin_approx(z / d)` for `|elevation| <= 64`
+/// degrees, radians: `asin_approx` is within 2e-6 (tested), `z / d` in `f32` within 2e-7 relative
+/// (times at most 2.3 for the slope of `asin`); the filter assumes about five times the sum.
+const ELEV_ERR_BOUND: f64 = 2e-5;
+/// The row filter is used when the whole field of view lies within this elevation (degrees).
+const ROW_FILTER_MAX_ELEV_DEG: f32 = 64.0;
+
+/// How rows are found (decided once in [`Projector::new`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum RowMode {
+    /// Uniform rows, exact: filtered `f32` estimate of `v`, boundary tests near boundaries.
+    UniformExact,
+    /// Uniform rows, equation 1 with the polynomial `asin` (fast path).
+    UniformFast,
+    /// Per-beam, nearest beam elevation: boundary tests from a table candidate.
+    Nearest,
+    /// Per-beam, the point's ring.
+    Ring,
+}
+
 /// Projects point clouds for one sensor. Building it precomputes the boundary tables; reuse it.
+///
+/// # How [`AngleMethod::Exact`] decides a pixel
+///
+/// Every decision is, in the end, a sign test in `f64`:
+/// - rows: `z |z| <= sin(b) |sin(b)| (x^2 + y^2 + z^2)` against the row boundaries `b` (no `asin`, no
+///   square root, no division; `x^2` etc. are exact for `f32` inputs);
+/// - columns: the sign of the cross product of the column-boundary direction with `(x, y)`.
+///
+/// Boundary directions that an `f32` point can lie on exactly are represented exactly: the azimuths
+/// that are multiples of 45 degrees (`(1, 0)`, `(1, 1)`, `(0, 1)`, ...) and the elevation 0. Every
+/// other boundary is irrational, so no `f32` point lies on it; the `f64` rounding of the boundaries and
+/// of the tests (a few `1e-16` relative) can only matter for points closer than about `1e-15` rad to a
+/// boundary.
+///
+/// For speed, `u` and `v` of equation 1 are first estimated in `f32` with the polynomial `atan2` /
+/// `asin` (vectorised over blocks of points). Where the estimate is farther from an integer than its
+/// error bound (a few `1e-3` pixels at 64 x 1024, with a five-fold margin over the measured error),
+/// its floor *is* the exact pixel; only the remaining ~1 % of points run the sign tests. The result is
+/// the same as with the sign tests alone (tested against an independent `f64` implementation).
 #[derive(Debug, Clone)]
 pub struct Projector {
     sensor: LidarSensor,
     opts: ProjectionOptions,
-    /// sin of row boundaries, top to bottom, `rows + 1` entries (descending). Interior entries
-    /// `1..rows` separate rows; entries 0 and `rows` are the field-of-view edges with tolerance.
-    row_bound_sin: Vec<f64>,
-    /// Directions (cos a_c, sin a_c) of the column boundaries a_c = pi (1 - 2c/w), c = 0..=w.
+    row_mode: RowMode,
+    /// `sin(b) |sin(b)|` of the row boundaries `b`, top to bottom, `rows + 1` entries (descending).
+    /// Interior entries `1..rows` separate rows; entries 0 and `rows` are the field-of-view edges
+    /// widened by the edge tolerance.
+    row_bound_sq: Vec<f64>,
+    /// Candidate row for `sin(elevation)` in bins of `1 / row_table_inv_step` from `row_table_lo`.
+    row_table: Vec<u32>,
+    row_table_lo: f32,
+    row_table_inv_step: f32,
+    /// Directions of the column boundaries `a_c = pi (1 - 2c/w)`, `c = 0..=w` (not normalised: exact
+    /// integer vectors at multiples of 45 degrees; entries 0 and `w` are both `(-1, 0)`).
     col_bound_dir: Vec<(f64, f64)>,
-    /// For the fast path: the uniform-row constants.
+    /// Squared valid range interval, `f64`.
+    min_range_sq: f64,
+    max_range_sq: f64,
+    /// Squared range interval of the filtered lane: the valid interval, narrowed so that the `f32`
+    /// estimates are accurate (no `f32` overflow or subnormal).
+    lane_min_sq: f64,
+    lane_max_sq: f64,
+    /// Error bounds of the `u` and `v` estimates, pixels (a filter is off when its bound is >= 0.25).
+    col_delta: f32,
+    row_delta: f32,
+    /// Whether the row filter applies (uniform rows inside +-64 degrees).
+    row_filter: bool,
+    /// Uniform-row constants of the `v` estimate: `v = (fov_up - el) * v_scale`.
     fov_up_rad: f32,
-    fov_rad: f32,
+    v_scale: f32,
+    /// Threads used by [`Projector::project`] (1 = the calling thread only).
+    threads: usize,
+}
+
+/// `x |x|`: a monotone function that compares like `x` and is exact on `f32` inputs in `f64`.
+#[inline(always)]
+fn signed_sq(x: f64) -> f64 {
+    x * x.abs()
+}
+
+/// Direction `(cos a, sin a)` of `a = pi k / n` for `k` in `-n..=n`; exact (unnormalised integer
+/// vectors) where `a` is a multiple of 45 degrees.
+fn boundary_dir(k: i64, n: i64) -> (f64, f64) {
+    if (4 * k) % n == 0 {
+        match (4 * k) / n {
+            4 | -4 => (-1.0, 0.0),
+            3 => (-1.0, 1.0),
+            2 => (0.0, 1.0),
+            1 => (1.0, 1.0),
+            0 => (1.0, 0.0),
+            -1 => (1.0, -1.0),
+            -2 => (0.0, -1.0),
+            _ => (-1.0, -1.0), // -3
+        }
+    } else {
+        let a = std::f64::consts::PI * (k as f64 / n as f64);
+        (a.cos(), a.sin())
+    }
+}
+
+/// Whether `x >= 0` lies at least `delta` away from every integer (and is not NaN).
+#[inline(always)]
+fn clear_of_integers(x: f32, delta: f32) -> bool {
+    let f = x - (x as u32) as f32; // exact for 0 <= x < 2^24
+    f >= delta && f <= 1.0 - delta
+}
+
+/// The `f32` estimates of one point: squared range (`f64`, exact products), `sin(elevation)`, `u` and
+/// (when `WITH_V`) `v` of equation 1. Branch-free, so loops over a block vectorise.
+#[derive(Debug, Clone, Copy, Default)]
+struct Estimate {
+    d2: f64,
+    s: f32,
+    u: f32,
+    v: f32,
 }
 
 impl Projector {
@@ -262,43 +391,99 @@ impl Projector {
             });
         }
         let h = sensor.rows as usize;
-        let up = f64::from(sensor.fov_up_deg).to_radians();
-        let down = f64::from(sensor.fov_down_deg).to_radians();
+        let up_deg = f64::from(sensor.fov_up_deg);
+        let down_deg = f64::from(sensor.fov_down_deg);
         let tol = f64::from(opts.edge_tolerance_rad);
+        let half_pi = std::f64::consts::FRAC_PI_2;
+        // boundaries in degrees first, so that a boundary at exactly 0 deg stays exactly 0
         let mut row_bound = vec![0.0f64; h + 1];
-        row_bound[0] = (up + tol).min(std::f64::consts::FRAC_PI_2);
-        row_bound[h] = (down - tol).max(-std::f64::consts::FRAC_PI_2);
         match &sensor.beams {
             BeamLayout::Uniform => {
                 for (r, b) in row_bound.iter_mut().enumerate().take(h).skip(1) {
-                    *b = up - (r as f64) / (h as f64) * (up - down);
+                    let deg = (up_deg * (h - r) as f64 + down_deg * r as f64) / h as f64;
+                    *b = deg.to_radians();
                 }
             }
-            BeamLayout::PerBeam { .. } => {
+            BeamLayout::PerBeam { elevations_deg, .. } => {
                 // midpoints between consecutive beams, in row order (top to bottom)
                 for r in 1..h {
-                    let a = f64::from(sensor.row_elevation_rad(r as u32 - 1));
-                    let b = f64::from(sensor.row_elevation_rad(r as u32));
-                    row_bound[r] = 0.5 * (a + b);
+                    let a = f64::from(elevations_deg[sensor.ring_of_row(r as u32 - 1) as usize]);
+                    let b = f64::from(elevations_deg[sensor.ring_of_row(r as u32) as usize]);
+                    row_bound[r] = (0.5 * (a + b)).to_radians();
                 }
             }
         }
-        let row_bound_sin = row_bound.iter().map(|b| b.sin()).collect();
-        let w = sensor.cols as usize;
-        let col_bound_dir = (0..=w)
-            .map(|c| {
-                let a = std::f64::consts::PI * (1.0 - 2.0 * c as f64 / w as f64);
-                (a.cos(), a.sin())
+        row_bound[0] = (up_deg.to_radians() + tol).min(half_pi);
+        row_bound[h] = (down_deg.to_radians() - tol).max(-half_pi);
+        let row_bound_sin: Vec<f64> =
+            row_bound.iter().map(|b| if b.abs() == half_pi { b.signum() } else { b.sin() }).collect();
+        let row_bound_sq = row_bound_sin.iter().map(|s| signed_sq(*s)).collect();
+
+        // candidate table over sin(elevation): the row of each bin's lower end
+        let bins = (ROW_TABLE_BINS_PER_ROW * h).max(256);
+        let (s_lo, s_hi) = (row_bound_sin[h], row_bound_sin[0]);
+        let step = (s_hi - s_lo) / bins as f64;
+        let interior = &row_bound_sin[1..h];
+        let row_table = (0..bins)
+            .map(|i| {
+                let s = s_lo + step * i as f64;
+                interior.partition_point(|&b| b >= s) as u32
             })
             .collect();
+
+        let w = i64::from(sensor.cols);
+        let col_bound_dir = (0..=w).map(|c| boundary_dir(w - 2 * c, w)).collect();
+
+        let row_mode = match (&sensor.beams, opts.angles) {
+            (BeamLayout::PerBeam { row_source: RowSource::Ring, .. }, _) => RowMode::Ring,
+            (BeamLayout::PerBeam { row_source: RowSource::NearestElevation, .. }, _) => RowMode::Nearest,
+            (BeamLayout::Uniform, AngleMethod::Exact) => RowMode::UniformExact,
+            (BeamLayout::Uniform, AngleMethod::Fast) => RowMode::UniformFast,
+        };
+        // error bounds of the f32 estimates, in pixels (see ATAN2_ERR_BOUND / ELEV_ERR_BOUND); the
+        // second terms bound the f32 rounding of the formula itself
+        let (wf, hf) = (f64::from(sensor.cols), h as f64);
+        let fov = f64::from(sensor.fov_up_deg - sensor.fov_down_deg).to_radians();
+        let col_delta = wf * (ATAN2_ERR_BOUND / std::f64::consts::TAU + 4e-7);
+        let row_delta = hf * (ELEV_ERR_BOUND / fov + 4e-7);
+        let row_filter = sensor.fov_up_deg.abs().max(sensor.fov_down_deg.abs()) <= ROW_FILTER_MAX_ELEV_DEG;
+        let min_range_sq = f64::from(sensor.min_range_m) * f64::from(sensor.min_range_m);
+        let max_range_sq = f64::from(sensor.max_range_m) * f64::from(sensor.max_range_m);
         Ok(Projector {
             sensor: sensor.clone(),
             opts,
-            row_bound_sin,
+            row_mode,
+            row_bound_sq,
+            row_table,
+            row_table_lo: s_lo as f32,
+            row_table_inv_step: (1.0 / step) as f32,
             col_bound_dir,
+            min_range_sq,
+            max_range_sq,
+            lane_min_sq: min_range_sq.max(1e-20),
+            lane_max_sq: max_range_sq.min(1e30),
+            col_delta: col_delta as f32,
+            row_delta: row_delta as f32,
+            row_filter,
             fov_up_rad: sensor.fov_up_rad(),
-            fov_rad: sensor.fov_rad(),
+            v_scale: (hf / fov) as f32,
+            threads: 1,
         })
+    }
+
+    /// Use up to `threads` threads in [`Projector::project`] (clamped to at least 1; the default is 1).
+    /// The result is bit-identical for every thread count: threads only locate points, and the
+    /// nearest-wins merge runs once, in point order. Clouds smaller than about 16k points per thread
+    /// are projected on fewer threads.
+    #[must_use]
+    pub fn with_threads(mut self, threads: usize) -> Self {
+        self.threads = threads.max(1);
+        self
+    }
+
+    /// The largest number of threads [`Projector::project`] uses.
+    pub fn threads(&self) -> usize {
+        self.threads
     }
 
     /// The sensor.
@@ -313,62 +498,26 @@ impl Projector {
 
     /// Locate one point (with its ring, needed in ring mode). Never panics.
     pub fn locate(&self, p: Vec3, ring: Option<u16>) -> PixelOutcome {
-        if !p.is_finite() {
-            return PixelOutcome::NonFinite;
-        }
-        let (x, y, z) = (f64::from(p.x), f64::from(p.y), f64::from(p.z));
-        let d = (x * x + y * y + z * z).sqrt();
-        if d == 0.0 {
-            return PixelOutcome::ZeroRange;
-        }
-        if d < f64::from(self.sensor.min_range_m) {
-            return PixelOutcome::TooNear;
-        }
-        if d > f64::from(self.sensor.max_range_m) {
-            return PixelOutcome::TooFar;
-        }
-        let h = self.sensor.rows;
-        let s = z / d;
-        // field of view (with tolerance); clamping keeps the point in an edge row
-        let mut clamped = false;
-        let fov_row = if s > self.row_bound_sin[0] {
-            match self.opts.out_of_fov {
-                OutOfFov::Reject => return PixelOutcome::AboveFov,
-                OutOfFov::ClampToEdgeRows => {
-                    clamped = true;
-                    Some(0)
+        let (code, d2) = self.finish(p, 0.0, ring, self.estimate::<true>(p));
+        match code {
+            CODE_NON_FINITE => PixelOutcome::NonFinite,
+            CODE_ZERO_RANGE => PixelOutcome::ZeroRange,
+            CODE_TOO_NEAR => PixelOutcome::TooNear,
+            CODE_TOO_FAR => PixelOutcome::TooFar,
+            CODE_ABOVE_FOV => PixelOutcome::AboveFov,
+            CODE_BELOW_FOV => PixelOutcome::BelowFov,
+            CODE_BAD_RING => PixelOutcome::BadRing,
+            _ => {
+                let k = (code & !CLAMP_BIT) as usize;
+                let w = self.sensor.cols as usize;
+                PixelOutcome::Pixel {
+                    row: (k / w) as u32,
+                    col: (k % w) as u32,
+                    clamped: code & CLAMP_BIT != 0,
+                    range_m: d2.sqrt() as f32,
                 }
             }
-        } else if s < self.row_bound_sin[h as usize] {
-            match self.opts.out_of_fov {
-                OutOfFov::Reject => return PixelOutcome::BelowFov,
-                OutOfFov::ClampToEdgeRows => {
-                    clamped = true;
-                    Some(h - 1)
-                }
-            }
-        } else {
-            None
-        };
-        let row = match (&self.sensor.beams, fov_row) {
-            (BeamLayout::PerBeam { row_source: RowSource::Ring, .. }, _) => {
-                match ring.and_then(|r| self.sensor.row_of_ring(u32::from(r))) {
-                    Some(row) => row,
-                    None => return PixelOutcome::BadRing,
-                }
-            }
-            (_, Some(row)) => row,
-            (BeamLayout::PerBeam { .. }, None) => self.row_by_search(s),
-            (BeamLayout::Uniform, None) => match self.opts.angles {
-                AngleMethod::Exact => self.row_exact_uniform(z as f32, d as f32, s),
-                AngleMethod::Fast => self.row_fast_uniform(p.z / d as f32),
-            },
-        };
-        let col = match self.opts.angles {
-            AngleMethod::Exact => self.col_exact(p.x, p.y, x, y),
-            AngleMethod::Fast => self.col_fast(p.x, p.y),
-        };
-        PixelOutcome::Pixel { row, col, clamped, range_m: d as f32 }
+        }
     }
 
     /// The pixel of `p`, or `None` when the point would be rejected.
@@ -379,73 +528,205 @@ impl Projector {
         }
     }
 
-    /// Row = number of interior boundaries at or above the point's elevation (binary search).
-    #[inline]
-    fn row_by_search(&self, s: f64) -> u32 {
-        let h = self.sensor.rows as usize;
-        let interior = &self.row_bound_sin[1..h];
-        // descending: count entries >= s
-        interior.partition_point(|&b| b >= s) as u32
+    /// Whether the row mode uses the `v` estimate.
+    #[inline(always)]
+    fn uses_v(&self) -> bool {
+        matches!(self.row_mode, RowMode::UniformExact | RowMode::UniformFast)
     }
 
-    /// Uniform rows: candidate from an approximate asin, corrected with exact boundary tests.
-    #[inline]
-    fn row_exact_uniform(&self, z: f32, d: f32, s: f64) -> u32 {
+    /// The branch-free first pass of the kernel (see [`Estimate`]). Any input is fine: non-finite or
+    /// extreme values give estimates that [`Projector::finish`] does not trust.
+    #[inline(always)]
+    fn estimate<const WITH_V: bool>(&self, p: Vec3) -> Estimate {
+        let (x, y, z) = (f64::from(p.x), f64::from(p.y), f64::from(p.z));
+        // exact products (f32 * f32 fits in f64); one rounding per addition
+        let d2 = x * x + y * y + z * z;
+        let s = p.z / (d2 as f32).sqrt();
+        let az = atan2_approx(p.y, p.x);
+        let u = 0.5 * (1.0 - az * std::f32::consts::FRAC_1_PI) * self.sensor.cols as f32;
+        let v = if WITH_V { (self.fov_up_rad - asin_approx(s.clamp(-1.0, 1.0))) * self.v_scale } else { 0.0 };
+        Estimate { d2, s, u, v }
+    }
+
+    /// Locate `block` (points `start..start + block.len()`) in two passes: the estimates of every
+    /// point first (branch-free, vectorised), then the decisions. Calls `out(i, code, d2)` in point
+    /// order.
+    #[inline(always)]
+    fn locate_block(
+        &self,
+        block: &[Vec3],
+        start: usize,
+        intensity: Option<&[f32]>,
+        rings: Option<&[u16]>,
+        mut out: impl FnMut(usize, Code, f64),
+    ) {
+        let mut est = [Estimate::default(); BLOCK];
+        if self.uses_v() {
+            for (e, &p) in est.iter_mut().zip(block) {
+                *e = self.estimate::<true>(p);
+            }
+        } else {
+            for (e, &p) in est.iter_mut().zip(block) {
+                *e = self.estimate::<false>(p);
+            }
+        }
+        for (j, (&p, &e)) in block.iter().zip(&est).enumerate() {
+            let i = start + j;
+            let (code, d2) = self.finish(p, intensity.map_or(0.0, |v| v[i]), rings.map(|r| r[i]), e);
+            out(i, code, d2);
+        }
+    }
+
+    /// The second pass of the kernel: rejections and the pixel.
+    #[inline(always)]
+    fn finish(&self, p: Vec3, intensity: f32, ring: Option<u16>, e: Estimate) -> (Code, f64) {
+        let d2 = e.d2;
+        let w = self.sensor.cols;
+        // the filtered lane: in range (so finite), estimates trustworthy and clear of boundaries
+        if d2 >= self.lane_min_sq && d2 <= self.lane_max_sq && intensity.is_finite() {
+            let h = self.sensor.rows as f32;
+            let (dv, du) = (self.row_delta, self.col_delta);
+            match self.row_mode {
+                RowMode::UniformExact => {
+                    if self.row_filter
+                        && e.v >= dv
+                        && e.v <= h - dv
+                        && clear_of_integers(e.v, dv)
+                        && e.u >= du
+                        && e.u <= w as f32 - du
+                        && clear_of_integers(e.u, du)
+                    {
+                        return ((e.v as usize * w as usize + e.u as usize) as Code, d2);
+                    }
+                }
+                RowMode::UniformFast => {
+                    if self.row_filter && e.v >= dv && e.v <= h - dv {
+                        let row = (e.v as u32).min(self.sensor.rows - 1);
+                        return ((row as usize * w as usize + self.col_fast(e.u)) as Code, d2);
+                    }
+                }
+                RowMode::Nearest | RowMode::Ring => {}
+            }
+        }
+        self.finish_slow(p, intensity, ring, e)
+    }
+
+    /// The kernel without the filter: every test spelled out.
+    #[inline(never)]
+    fn finish_slow(&self, p: Vec3, intensity: f32, ring: Option<u16>, e: Estimate) -> (Code, f64) {
+        let d2 = e.d2;
+        if !(p.is_finite() && intensity.is_finite()) {
+            return (CODE_NON_FINITE, 0.0);
+        }
+        if d2 == 0.0 {
+            return (CODE_ZERO_RANGE, d2);
+        }
+        if d2 < self.min_range_sq {
+            return (CODE_TOO_NEAR, d2);
+        }
+        if d2 > self.max_range_sq {
+            return (CODE_TOO_FAR, d2);
+        }
         let h = self.sensor.rows as usize;
-        let el = asin_approx((z / d).clamp(-1.0, 1.0));
-        let v = (self.fov_up_rad - el) / self.fov_rad * h as f32;
-        let mut r = (v.max(0.0) as usize).min(h - 1);
-        // row r holds s with bound[r+1] < s <= bound[r] (interior bounds only; edges already checked)
-        while r > 0 && s > self.row_bound_sin[r] {
+        let zz = signed_sq(f64::from(p.z));
+        let mut clamp_bit = 0;
+        let mut edge_row = None;
+        if zz > self.row_bound_sq[0] * d2 {
+            if self.opts.out_of_fov == OutOfFov::Reject {
+                return (CODE_ABOVE_FOV, d2);
+            }
+            clamp_bit = CLAMP_BIT;
+            edge_row = Some(0);
+        } else if zz < self.row_bound_sq[h] * d2 {
+            if self.opts.out_of_fov == OutOfFov::Reject {
+                return (CODE_BELOW_FOV, d2);
+            }
+            clamp_bit = CLAMP_BIT;
+            edge_row = Some(h - 1);
+        }
+        let row = match (self.row_mode, edge_row) {
+            (RowMode::Ring, _) => match ring.and_then(|r| self.sensor.row_of_ring(u32::from(r))) {
+                Some(row) => row as usize,
+                None => return (CODE_BAD_RING, d2),
+            },
+            (_, Some(row)) => row,
+            (RowMode::UniformFast, None) => (e.v.max(0.0) as usize).min(h - 1),
+            (RowMode::UniformExact | RowMode::Nearest, None) => self.row_exact(e.s, zz, d2),
+        };
+        let col = match self.opts.angles {
+            AngleMethod::Exact => self.col_exact(e.u, p.x, p.y),
+            AngleMethod::Fast => self.col_fast(e.u),
+        };
+        ((row * self.sensor.cols as usize + col) as Code | clamp_bit, d2)
+    }
+
+    /// Exact row inside the field of view: a candidate from the table, then boundary tests.
+    /// Row `r` holds `b[r+1] < s <= b[r]` (`s = sin(elevation)`), the bottom row `b[h] <= s <= b[h-1]`.
+    #[inline(always)]
+    fn row_exact(&self, s_estimate: f32, zz: f64, d2: f64) -> usize {
+        let h = self.sensor.rows as usize;
+        // saturating cast: NaN and negatives give bin 0; a poor candidate only costs steps
+        let bin = ((s_estimate - self.row_table_lo) * self.row_table_inv_step) as usize;
+        let mut r = self.row_table[bin.min(self.row_table.len() - 1)] as usize;
+        while r > 0 && zz > self.row_bound_sq[r] * d2 {
             r -= 1;
         }
-        while r + 1 < h && s <= self.row_bound_sin[r + 1] {
+        while r + 1 < h && zz <= self.row_bound_sq[r + 1] * d2 {
             r += 1;
         }
-        r as u32
+        r
     }
 
-    #[inline]
-    fn row_fast_uniform(&self, s: f32) -> u32 {
-        let h = self.sensor.rows;
-        let el = asin_approx(s.clamp(-1.0, 1.0));
-        let v = (self.fov_up_rad - el) / self.fov_rad * h as f32;
-        (v.max(0.0) as u32).min(h - 1)
-    }
-
-    /// Exact column: approximate candidate, then boundary tests with f64 cross products.
-    /// Column c holds azimuths in (a_{c+1}, a_c]; "az <= a_c" is `cross(b_c, p) <= 0` locally.
-    #[inline]
-    fn col_exact(&self, xf: f32, yf: f32, x: f64, y: f64) -> u32 {
+    /// Exact column: the filtered estimate, else cross-product sign tests from it.
+    ///
+    /// Column `c` holds the azimuths `(a_{c+1}, a_c]`, i.e. the points clockwise of (or on) the
+    /// boundary direction `b_c` and strictly counter-clockwise of `b_{c+1}`. For `w >= 3` every column
+    /// spans less than `pi`, so the two half-plane tests identify the column exactly; the walk wraps
+    /// around the seam. The seam `a_0 = pi = a_w + 2 pi` is the exact direction `(-1, 0)`: points on the
+    /// negative x axis (`y = +0` or `y = -0`) land in column 0, as equation 1 with the wrap `u mod w`
+    /// says.
+    #[inline(always)]
+    fn col_exact(&self, u: f32, xf: f32, yf: f32) -> usize {
         let w = self.sensor.cols as usize;
-        let az = atan2_approx(yf, xf);
-        let u = 0.5 * (1.0 - az * std::f32::consts::FRAC_1_PI) * w as f32;
-        let mut c = (u.max(0.0) as usize).min(w - 1);
+        let du = self.col_delta;
+        if u >= du && u <= w as f32 - du && clear_of_integers(u, du) {
+            return u as usize;
+        }
+        let (x, y) = (f64::from(xf), f64::from(yf));
+        if w <= 2 {
+            // column 0 holds (pi (1 - 2/w), pi], column 1 (if any) holds (-pi, 0]
+            let in_upper = y > 0.0 || (y == 0.0 && x < 0.0);
+            return if w == 1 || in_upper { 0 } else { 1 };
+        }
+        let mut c = self.col_fast(u);
         let cross = |b: (f64, f64)| b.0 * y - b.1 * x;
-        // at most a couple of steps: the approximation is within ~1e-5 rad
-        for _ in 0..4 {
-            if cross(self.col_bound_dir[c]) > 0.0 && c > 0 {
-                c -= 1; // p is counter-clockwise of a_c: az > a_c
-            } else if cross(self.col_bound_dir[c + 1]) <= 0.0 && c + 1 < w {
-                c += 1; // az <= a_{c+1}
+        // a step or none in practice; bounded by w for any input
+        for _ in 0..w {
+            if cross(self.col_bound_dir[c]) > 0.0 {
+                c = if c == 0 { w - 1 } else { c - 1 }; // counter-clockwise of a_c
+            } else if cross(self.col_bound_dir[c + 1]) <= 0.0 {
+                c = if c + 1 == w { 0 } else { c + 1 }; // clockwise of (or on) a_{c+1}
             } else {
                 break;
             }
         }
-        c as u32
+        c
     }
 
-    #[inline]
-    fn col_fast(&self, x: f32, y: f32) -> u32 {
-        let w = self.sensor.cols;
-        let az = atan2_approx(y, x);
-        let u = 0.5 * (1.0 - az * std::f32::consts::FRAC_1_PI) * w as f32;
-        let c = u.max(0.0) as u32;
-        if c >= w { c - w } else { c }
+    /// Equation 1's column from the `u` estimate: `floor(u) mod w` (saturating: NaN gives 0).
+    #[inline(always)]
+    fn col_fast(&self, u: f32) -> usize {
+        let w = self.sensor.cols as usize;
+        let c = u.max(0.0) as usize; // u lies in [0, w] up to rounding; u = w wraps to column 0
+        if c >= w { (c - w).min(w - 1) } else { c }
     }
 
     /// Project a point cloud. `intensity` and `rings` must have one entry per point when given; rings
     /// are required by per-beam ring mode (points without one are rejected as `bad_ring`).
+    ///
+    /// Nearest wins: ranges are compared as squared `f64` ranges (exact products of the `f32`
+    /// coordinates), and equal ranges go to the lower point index. The stored range is the `f64`
+    /// range rounded to `f32`.
     pub fn project(
         &self,
         points: &[Vec3],
@@ -469,62 +750,71 @@ impl Projector {
                 message: format!("{n} points exceed the supported maximum of {}", NO_POINT - 1),
             });
         }
-        let mut img = RangeImage::new_empty(self.sensor.rows, self.sensor.cols);
-        let mut stats = ProjectionStats { input: n, ..Default::default() };
+        let np = self.sensor.num_pixels();
+        let mut best_d2 = vec![f64::INFINITY; np];
+        let mut best_i = vec![NO_POINT; np];
+        let mut counts = [0usize; 7];
+        let mut clamped = 0usize;
         let mut candidates = 0usize;
-        for (i, &p) in points.iter().enumerate() {
-            let inten = intensity.map_or(0.0, |v| v[i]);
-            if !inten.is_finite() {
-                stats.rejected.non_finite += 1;
-                continue;
+        let mut merge = |i: usize, code: Code, d2: f64| {
+            if code >= CODE_REJECT_MIN {
+                counts[(code - CODE_REJECT_MIN) as usize] += 1;
+            } else {
+                clamped += usize::from(code & CLAMP_BIT != 0);
+                candidates += 1;
+                let k = (code & !CLAMP_BIT) as usize;
+                // points arrive in increasing index order: only a strictly nearer point replaces
+                if d2 < best_d2[k] {
+                    best_d2[k] = d2;
+                    best_i[k] = i as u32;
+                }
             }
-            let outcome = self.locate(p, rings.map(|r| r[i]));
-            let (row, col, range) = match outcome {
-                PixelOutcome::Pixel { row, col, clamped, range_m } => {
-                    stats.clamped += usize::from(clamped);
-                    (row, col, range_m)
+        };
+        let threads = self.threads.min(n / MIN_POINTS_PER_THREAD).max(1);
+        if threads == 1 {
+            for (b, block) in points.chunks(BLOCK).enumerate() {
+                self.locate_block(block, b * BLOCK, intensity, rings, &mut merge);
+            }
+        } else {
+            // locate in parallel (pure per point), merge serially in point order: bit-identical
+            let mut located = vec![(0 as Code, 0.0f64); n];
+            let chunk = n.div_ceil(threads).next_multiple_of(BLOCK);
+            std::thread::scope(|s| {
+                for (t, out) in located.chunks_mut(chunk).enumerate() {
+                    s.spawn(move || {
+                        for (b, out) in out.chunks_mut(BLOCK).enumerate() {
+                            let start = t * chunk + b * BLOCK;
+                            let block = &points[start..start + out.len()];
+                            self.locate_block(block, start, intensity, rings, |i, code, d2| {
+                                out[i - start] = (code, d2);
+                            });
+                        }
+                    });
                 }
-                PixelOutcome::NonFinite => {
-                    stats.rejected.non_finite += 1;
-                    continue;
-                }
-                PixelOutcome::ZeroRange => {
-                    stats.rejected.zero_range += 1;
-                    continue;
-                }
-                PixelOutcome::TooNear => {
-                    stats.rejected.too_near += 1;
-                    continue;
-                }
-                PixelOutcome::TooFar => {
-                    stats.rejected.too_far += 1;
-                    continue;
-                }
-                PixelOutcome::AboveFov => {
-                    stats.rejected.above_fov += 1;
-                    continue;
-                }
-                PixelOutcome::BelowFov => {
-                    stats.rejected.below_fov += 1;
-                    continue;
-                }
-                PixelOutcome::BadRing => {
-                    stats.rejected.bad_ring += 1;
-                    continue;
-                }
-            };
-            candidates += 1;
-            let k = img.idx(row, col);
-            // points arrive in increasing index order: only a strictly nearer point replaces
-            if !img.mask[k] || range < img.range_m[k] {
-                img.mask[k] = true;
-                img.range_m[k] = range;
-                img.intensity[k] = inten;
-                img.point_index[k] = i as u32;
+            });
+            for (i, &(code, d2)) in located.iter().enumerate() {
+                merge(i, code, d2);
             }
         }
-        stats.written = img.num_valid();
-        stats.occluded = candidates - stats.written;
+        let mut img = RangeImage::new_empty(self.sensor.rows, self.sensor.cols);
+        for k in 0..np {
+            let i = best_i[k];
+            if i != NO_POINT {
+                img.mask[k] = true;
+                img.range_m[k] = best_d2[k].sqrt() as f32;
+                img.intensity[k] = intensity.map_or(0.0, |v| v[i as usize]);
+                img.point_index[k] = i;
+            }
+        }
+        let [non_finite, zero_range, too_near, too_far, above_fov, below_fov, bad_ring] = counts;
+        let written = img.num_valid();
+        let stats = ProjectionStats {
+            input: n,
+            written,
+            occluded: candidates - written,
+            clamped,
+            rejected: Rejections { non_finite, zero_range, too_near, too_far, above_fov, below_fov, bad_ring },
+        };
         Ok((img, stats))
     }
 }

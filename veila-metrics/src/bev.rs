@@ -75,7 +75,8 @@ impl BevConfig {
         self.bins * self.bins
     }
 
-    fn window_text(&self) -> String {
+    /// A human-readable description of the window, for error messages.
+    pub fn window_description(&self) -> String {
         format!(
             "BEV ({} m < |p| < {} m, |x|,|y| <= {} m)",
             self.min_range_m, self.max_range_m, self.half_extent_m
@@ -285,10 +286,6 @@ pub fn bev_histogram_sparse<P: Copy + Into<Vec3>>(
         }
     }
     Ok(s)
-}
-
-pub(crate) fn empty_window_error(cfg: &BevConfig, what: String) -> Error {
-    Error::NoPointsInWindow { what, window: cfg.window_text() }
 }
 
 #[cfg(test)]

@@ -272,7 +272,11 @@ pub fn trace_sqrt_product_eigen(s1: MatRef<'_, f64>, s2: MatRef<'_, f64>) -> Res
     let evd = s1.self_adjoint_eigen(Side::Lower).map_err(|e| Error::Linalg(format!("eigendecomposition: {e:?}")))?;
     let u = evd.U();
     let lam = evd.S().column_vector();
-    let keep: Vec<usize> = (0..d).filter(|&i| lam[i] > 0.0).collect();
+    // eigenvalues below the eigensolver's noise floor are zero: their square roots (~sqrt(eps)) would
+    // otherwise leak into the trace
+    let lam_max = (0..d).map(|i| lam[i]).fold(0.0f64, f64::max);
+    let floor1 = lam_max * d as f64 * f64::EPSILON;
+    let keep: Vec<usize> = (0..d).filter(|&i| lam[i] > floor1).collect();
     if keep.is_empty() {
         return Ok(0.0);
     }
@@ -284,7 +288,9 @@ pub fn trace_sqrt_product_eigen(s1: MatRef<'_, f64>, s2: MatRef<'_, f64>) -> Res
     faer::linalg::matmul::matmul(m.as_mut(), Accum::Replace, a.transpose(), c.as_ref(), 1.0, Par::rayon(0));
     let m = Mat::<f64>::from_fn(r, r, |i, j| 0.5 * (m[(i, j)] + m[(j, i)]));
     let mu = m.self_adjoint_eigenvalues(Side::Lower).map_err(|e| Error::Linalg(format!("eigenvalues: {e:?}")))?;
-    Ok(mu.iter().map(|&v| v.max(0.0).sqrt()).sum())
+    let mu_max = mu.iter().copied().fold(0.0f64, f64::max);
+    let floor2 = mu_max * r as f64 * f64::EPSILON;
+    Ok(mu.iter().filter(|&&v| v > floor2).map(|&v| v.sqrt()).sum())
 }
 
 /// `Tr (S1 S2)^{1/2}` approximated with `iterations` coupled Newton–Schulz steps (see the module docs).

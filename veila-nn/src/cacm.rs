@@ -30,8 +30,17 @@ pub struct Cacm {
 
 impl Cacm {
     /// `sem_c`, `depth_c`: encoder widths; `out_c`: width of `F^(i)`.
-    pub fn new(sem_c: usize, depth_c: usize, out_c: usize, delta: f32, vb: VarBuilder<'_>) -> Result<Self> {
-        let conv3 = Conv2dConfig { padding: 1, ..Default::default() };
+    pub fn new(
+        sem_c: usize,
+        depth_c: usize,
+        out_c: usize,
+        delta: f32,
+        vb: VarBuilder<'_>,
+    ) -> Result<Self> {
+        let conv3 = Conv2dConfig {
+            padding: 1,
+            ..Default::default()
+        };
         Ok(Self {
             proj_s: Conv1x1::new(sem_c, out_c, true, vb.pp("proj_s"))?,
             proj_d: Conv1x1::new(depth_c, out_c, true, vb.pp("proj_d"))?,
@@ -48,7 +57,11 @@ impl Cacm {
     }
 
     /// As [`Cacm::forward`], also returning the confidence maps `c_s`, `c_d` (`[N, 1, H, W]`).
-    pub fn forward_with_confidence(&self, sem: &Tensor, depth: &Tensor) -> Result<(Tensor, Tensor, Tensor)> {
+    pub fn forward_with_confidence(
+        &self,
+        sem: &Tensor,
+        depth: &Tensor,
+    ) -> Result<(Tensor, Tensor, Tensor)> {
         let _enter = self.span.enter();
         let (_, _, h, w) = sem.dims4()?;
         let fs = self.proj_s.forward(sem)?;
@@ -106,16 +119,26 @@ impl ConditionFusion {
                         vb.pp("proj"),
                     )?),
                 },
-                Cues::SemanticOnly => {
-                    ScaleFusion::Semantic(Conv1x1::new(cfg.semantic_channels[i], out, true, vb.pp("proj"))?)
-                }
-                Cues::DepthOnly => {
-                    ScaleFusion::Depth(Conv1x1::new(cfg.depth_channels[i], out, true, vb.pp("proj"))?)
-                }
+                Cues::SemanticOnly => ScaleFusion::Semantic(Conv1x1::new(
+                    cfg.semantic_channels[i],
+                    out,
+                    true,
+                    vb.pp("proj"),
+                )?),
+                Cues::DepthOnly => ScaleFusion::Depth(Conv1x1::new(
+                    cfg.depth_channels[i],
+                    out,
+                    true,
+                    vb.pp("proj"),
+                )?),
             };
             scales.push(s);
         }
-        Ok(Self { scales, sizes: cfg.feature_sizes.clone(), cues: cfg.cues })
+        Ok(Self {
+            scales,
+            sizes: cfg.feature_sizes.clone(),
+            cues: cfg.cues,
+        })
     }
 
     /// Fuses per-scale features (`[N, D, H, W]`, `N` = batch x views) into `F^(i)`, `[N, C_i, H_i, W_i]`.
@@ -123,35 +146,61 @@ impl ConditionFusion {
     /// `semantic` is required unless the config is depth-only, `depth` unless it is semantic-only; each
     /// must have one tensor per scale. Semantic maps must already be `feature_sizes[i]`; depth maps of any
     /// size are resized bilinearly to it.
-    pub fn forward(&self, semantic: Option<&[Tensor]>, depth: Option<&[Tensor]>) -> Result<Vec<Tensor>> {
+    pub fn forward(
+        &self,
+        semantic: Option<&[Tensor]>,
+        depth: Option<&[Tensor]>,
+    ) -> Result<Vec<Tensor>> {
         let n = self.scales.len();
         let need = |name: &str, t: Option<&[Tensor]>| -> Result<Vec<Tensor>> {
             match t {
                 Some(v) if v.len() == n => Ok(v.to_vec()),
-                Some(v) => Err(shape_err(format!("{name} feature list"), format!("{n} scales"), &[v.len()])),
+                Some(v) => Err(shape_err(
+                    format!("{name} feature list"),
+                    format!("{n} scales"),
+                    &[v.len()],
+                )),
                 None => Err(Error::Config(format!("this model needs {name} features"))),
             }
         };
-        let sem = if self.cues != Cues::DepthOnly { Some(need("semantic", semantic)?) } else { None };
-        let dep = if self.cues != Cues::SemanticOnly { Some(need("depth", depth)?) } else { None };
+        let sem = if self.cues != Cues::DepthOnly {
+            Some(need("semantic", semantic)?)
+        } else {
+            None
+        };
+        let dep = if self.cues != Cues::SemanticOnly {
+            Some(need("depth", depth)?)
+        } else {
+            None
+        };
         let mut out = Vec::with_capacity(n);
         for (i, s) in self.scales.iter().enumerate() {
             let [h, w] = self.sizes[i];
             let check_sem = |t: &Tensor| -> Result<()> {
                 let d = t.dims();
                 if d.len() != 4 || d[2] != h || d[3] != w {
-                    return Err(shape_err(format!("semantic feature {i}"), format!("[N, C, {h}, {w}]"), d));
+                    return Err(shape_err(
+                        format!("semantic feature {i}"),
+                        format!("[N, C, {h}, {w}]"),
+                        d,
+                    ));
                 }
                 Ok(())
             };
             let f = match s {
                 ScaleFusion::Cacm(m) => {
-                    let (fs, fd) = (&sem.as_ref().expect("checked")[i], &dep.as_ref().expect("checked")[i]);
+                    let (fs, fd) = (
+                        &sem.as_ref().expect("checked")[i],
+                        &dep.as_ref().expect("checked")[i],
+                    );
                     check_sem(fs)?;
                     m.forward(fs, fd)?
                 }
                 ScaleFusion::Concat(p) => {
-                    let (fs, fd) = (&sem.as_ref().expect("checked")[i], &dep.as_ref().expect("checked")[i]);
+                    let (fs, fd) = (
+                        &sem.as_ref().expect("checked")[i],
+                        &dep.as_ref().expect("checked")[i],
+                    );
                     check_sem(fs)?;
                     p.forward(&Tensor::cat(&[fs, &bilinear_resize(fd, h, w)?], 1)?)?
                 }
@@ -160,7 +209,9 @@ impl ConditionFusion {
                     check_sem(fs)?;
                     p.forward(fs)?
                 }
-                ScaleFusion::Depth(p) => p.forward(&bilinear_resize(&dep.as_ref().expect("checked")[i], h, w)?)?,
+                ScaleFusion::Depth(p) => {
+                    p.forward(&bilinear_resize(&dep.as_ref().expect("checked")[i], h, w)?)?
+                }
             };
             out.push(f);
         }

@@ -89,7 +89,10 @@ impl ConditioningConfig {
     /// Feature sizes of a 4-scale pyramid with strides 4, 8, 16, 32 (SegFormer MiT convention, with
     /// `ceil` like a stride-2 conv with padding) for an input image of `image_h x image_w`.
     pub fn pyramid_sizes(image_h: usize, image_w: usize) -> Vec<[usize; 2]> {
-        [4usize, 8, 16, 32].iter().map(|s| [image_h.div_ceil(*s), image_w.div_ceil(*s)]).collect()
+        [4usize, 8, 16, 32]
+            .iter()
+            .map(|s| [image_h.div_ceil(*s), image_w.div_ceil(*s)])
+            .collect()
     }
 
     /// Number of feature scales.
@@ -147,7 +150,12 @@ impl DenoiserConfig {
     /// A CPU-sized model at 32 x 512 (HDL-64E field of view, uniform rows): 32 base channels, 4 levels,
     /// 1 residual block per level, CACM + GCMA (encoder levels) + PFC, 96 x 320 conditioning images.
     pub fn tiny() -> Self {
-        let sensor = LidarSensor { rows: 32, cols: 512, beams: BeamLayout::Uniform, ..LidarSensor::hdl64e() };
+        let sensor = LidarSensor {
+            rows: 32,
+            cols: 512,
+            beams: BeamLayout::Uniform,
+            ..LidarSensor::hdl64e()
+        };
         DenoiserConfig {
             sensor,
             in_channels: 3,
@@ -157,8 +165,16 @@ impl DenoiserConfig {
             num_res_blocks: 1,
             norm_groups: 8,
             residual_scale: std::f32::consts::FRAC_1_SQRT_2,
-            time: TimeEmbeddingConfig { dim: 64, max_period: 10_000.0, input_scale: 1000.0 },
-            ray_features: Some(FourierEncoding { num_freqs: 4, scale: 1.0, include_input: true }),
+            time: TimeEmbeddingConfig {
+                dim: 64,
+                max_period: 10_000.0,
+                input_scale: 1000.0,
+            },
+            ray_features: Some(FourierEncoding {
+                num_freqs: 4,
+                scale: 1.0,
+                include_input: true,
+            }),
             pfc: Some(PfcConfig { num_heads: 4 }),
             conditioning: Some(ConditioningConfig {
                 cues: Cues::Both,
@@ -174,7 +190,11 @@ impl DenoiserConfig {
                     decoder: false,
                     attn_dim: 32,
                     num_heads: 4,
-                    point_encoding: FourierEncoding { num_freqs: 4, scale: 1.0 / 80.0, include_input: true },
+                    point_encoding: FourierEncoding {
+                        num_freqs: 4,
+                        scale: 1.0 / 80.0,
+                        include_input: true,
+                    },
                 }),
             }),
         }
@@ -194,8 +214,16 @@ impl DenoiserConfig {
             num_res_blocks: 3,
             norm_groups: 8,
             residual_scale: std::f32::consts::FRAC_1_SQRT_2,
-            time: TimeEmbeddingConfig { dim: 128, max_period: 10_000.0, input_scale: 1000.0 },
-            ray_features: Some(FourierEncoding { num_freqs: 6, scale: 1.0, include_input: true }),
+            time: TimeEmbeddingConfig {
+                dim: 128,
+                max_period: 10_000.0,
+                input_scale: 1000.0,
+            },
+            ray_features: Some(FourierEncoding {
+                num_freqs: 6,
+                scale: 1.0,
+                include_input: true,
+            }),
             pfc: Some(PfcConfig { num_heads: 8 }),
             conditioning: Some(ConditioningConfig {
                 cues: Cues::Both,
@@ -211,7 +239,11 @@ impl DenoiserConfig {
                     decoder: true,
                     attn_dim: 64,
                     num_heads: 4,
-                    point_encoding: FourierEncoding { num_freqs: 6, scale: 1.0 / 80.0, include_input: true },
+                    point_encoding: FourierEncoding {
+                        num_freqs: 6,
+                        scale: 1.0 / 80.0,
+                        include_input: true,
+                    },
                 }),
             }),
         }
@@ -272,10 +304,13 @@ impl DenoiserConfig {
             return bad("in_channels, out_channels and base_channels must be positive".into());
         }
         if self.channel_mults.is_empty() || self.channel_mults.contains(&0) {
-            return bad(format!("channel_mults must be non-empty and positive, got {:?}", self.channel_mults));
+            return bad(format!(
+                "channel_mults must be non-empty and positive, got {:?}",
+                self.channel_mults
+            ));
         }
         let f = 1usize << (self.num_levels() - 1);
-        if self.height() % f != 0 || self.width() % f != 0 {
+        if !self.height().is_multiple_of(f) || !self.width().is_multiple_of(f) {
             return bad(format!(
                 "range image {}x{} must be divisible by 2^(levels-1) = {f} for {} levels",
                 self.height(),
@@ -287,18 +322,27 @@ impl DenoiserConfig {
             return bad("norm_groups must be positive".into());
         }
         if !(self.residual_scale.is_finite() && self.residual_scale > 0.0) {
-            return bad(format!("residual_scale must be finite and positive, got {}", self.residual_scale));
+            return bad(format!(
+                "residual_scale must be finite and positive, got {}",
+                self.residual_scale
+            ));
         }
-        if self.time.dim == 0 || self.time.dim % 2 != 0 || !(self.time.max_period > 1.0) {
-            return bad(format!("time embedding needs an even dim and max_period > 1, got {:?}", self.time));
+        if self.time.dim == 0 || !self.time.dim.is_multiple_of(2) || self.time.max_period.partial_cmp(&1.0) != Some(std::cmp::Ordering::Greater) {
+            return bad(format!(
+                "time embedding needs an even dim and max_period > 1, got {:?}",
+                self.time
+            ));
         }
         if let Some(rf) = &self.ray_features {
             rf.validate()?;
         }
         if let Some(pfc) = &self.pfc {
             let c = self.level_channels(self.num_levels() - 1);
-            if pfc.num_heads == 0 || c % pfc.num_heads != 0 {
-                return bad(format!("pfc.num_heads {} must divide the deepest channels {c}", pfc.num_heads));
+            if pfc.num_heads == 0 || !c.is_multiple_of(pfc.num_heads) {
+                return bad(format!(
+                    "pfc.num_heads {} must divide the deepest channels {c}",
+                    pfc.num_heads
+                ));
             }
         }
         if let Some(cc) = &self.conditioning {
@@ -307,29 +351,47 @@ impl DenoiserConfig {
                 return bad("conditioning.feature_sizes must list at least one scale".into());
             }
             if cc.cond_channels.len() != n {
-                return bad(format!("conditioning.cond_channels needs {n} entries (one per scale)"));
+                return bad(format!(
+                    "conditioning.cond_channels needs {n} entries (one per scale)"
+                ));
             }
             if cc.cues != Cues::DepthOnly && cc.semantic_channels.len() != n {
-                return bad(format!("conditioning.semantic_channels needs {n} entries (one per scale)"));
+                return bad(format!(
+                    "conditioning.semantic_channels needs {n} entries (one per scale)"
+                ));
             }
             if cc.cues != Cues::SemanticOnly && cc.depth_channels.len() != n {
-                return bad(format!("conditioning.depth_channels needs {n} entries (one per scale)"));
+                return bad(format!(
+                    "conditioning.depth_channels needs {n} entries (one per scale)"
+                ));
             }
-            if cc.feature_sizes.iter().any(|s| s[0] == 0 || s[1] == 0) || cc.cond_channels.contains(&0) {
+            if cc.feature_sizes.iter().any(|s| s[0] == 0 || s[1] == 0)
+                || cc.cond_channels.contains(&0)
+            {
                 return bad("conditioning feature sizes and channels must be positive".into());
             }
             if cc.num_views == 0 {
                 return bad("conditioning.num_views must be at least 1".into());
             }
             if !(cc.cacm_delta.is_finite() && cc.cacm_delta > 0.0) {
-                return bad(format!("cacm_delta must be finite and positive, got {}", cc.cacm_delta));
+                return bad(format!(
+                    "cacm_delta must be finite and positive, got {}",
+                    cc.cacm_delta
+                ));
             }
             if let Some(g) = &cc.gcma {
                 if g.levels.iter().any(|l| *l >= self.num_levels()) {
-                    return bad(format!("gcma.levels {:?} out of range for {} levels", g.levels, self.num_levels()));
+                    return bad(format!(
+                        "gcma.levels {:?} out of range for {} levels",
+                        g.levels,
+                        self.num_levels()
+                    ));
                 }
-                if g.num_heads == 0 || g.attn_dim == 0 || g.attn_dim % g.num_heads != 0 {
-                    return bad(format!("gcma.num_heads {} must divide attn_dim {}", g.num_heads, g.attn_dim));
+                if g.num_heads == 0 || g.attn_dim == 0 || !g.attn_dim.is_multiple_of(g.num_heads) {
+                    return bad(format!(
+                        "gcma.num_heads {} must divide attn_dim {}",
+                        g.num_heads, g.attn_dim
+                    ));
                 }
                 g.point_encoding.validate()?;
             }

@@ -18,6 +18,11 @@ pub enum Error {
     #[error("invalid config: {0}")]
     Config(String),
 
+    /// An input value (image tensor, pixel buffer, label map, loss argument) is invalid; the message
+    /// names the function and what is wrong.
+    #[error("invalid input: {0}")]
+    Input(String),
+
     /// A tensor handed to a forward pass has the wrong shape.
     #[error("bad shape for {what}: expected {expected}, got {got:?}")]
     Shape {
@@ -95,14 +100,23 @@ impl fmt::Display for TensorReport {
         const SHOW: usize = 8;
         let mut parts = Vec::new();
         let list = |names: &[String]| {
-            let mut s = names.iter().take(SHOW).cloned().collect::<Vec<_>>().join(", ");
+            let mut s = names
+                .iter()
+                .take(SHOW)
+                .cloned()
+                .collect::<Vec<_>>()
+                .join(", ");
             if names.len() > SHOW {
                 s.push_str(&format!(", ... ({} more)", names.len() - SHOW));
             }
             s
         };
         if !self.missing.is_empty() {
-            parts.push(format!("{} missing [{}]", self.missing.len(), list(&self.missing)));
+            parts.push(format!(
+                "{} missing [{}]",
+                self.missing.len(),
+                list(&self.missing)
+            ));
         }
         if !self.unexpected.is_empty() {
             parts.push(format!(
@@ -132,6 +146,14 @@ impl fmt::Display for TensorReport {
     }
 }
 
-pub(crate) fn shape_err(what: impl Into<String>, expected: impl Into<String>, got: &[usize]) -> Error {
-    Error::Shape { what: what.into(), expected: expected.into(), got: got.to_vec() }
+pub(crate) fn shape_err(
+    what: impl Into<String>,
+    expected: impl Into<String>,
+    got: &[usize],
+) -> Error {
+    Error::Shape {
+        what: what.into(),
+        expected: expected.into(),
+        got: got.to_vec(),
+    }
 }

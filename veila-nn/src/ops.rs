@@ -29,7 +29,11 @@ pub fn ring_pad(x: &Tensor, pad_h: usize, pad_w: usize) -> Result<Tensor> {
     } else {
         x.clone()
     };
-    Ok(if pad_h > 0 { x.pad_with_zeros(2, pad_h, pad_h)? } else { x })
+    Ok(if pad_h > 0 {
+        x.pad_with_zeros(2, pad_h, pad_h)?
+    } else {
+        x
+    })
 }
 
 /// A 2-D convolution whose input is padded with [`ring_pad`] (circular in W, zeros in H), followed by a
@@ -46,10 +50,27 @@ pub struct RingConv2d {
 impl RingConv2d {
     /// A `k x k` convolution (k odd) with the candle default initialisation (Kaiming normal weights,
     /// uniform bias), weights under `vb` as `weight` and `bias`.
-    pub fn new(in_c: usize, out_c: usize, kernel: usize, stride: usize, vb: VarBuilder<'_>) -> Result<Self> {
-        let ws = vb.get_with_hints((out_c, in_c, kernel, kernel), "weight", candle_nn::init::DEFAULT_KAIMING_NORMAL)?;
+    pub fn new(
+        in_c: usize,
+        out_c: usize,
+        kernel: usize,
+        stride: usize,
+        vb: VarBuilder<'_>,
+    ) -> Result<Self> {
+        let ws = vb.get_with_hints(
+            (out_c, in_c, kernel, kernel),
+            "weight",
+            candle_nn::init::DEFAULT_KAIMING_NORMAL,
+        )?;
         let bound = 1.0 / ((in_c * kernel * kernel) as f64).sqrt();
-        let bs = vb.get_with_hints(out_c, "bias", Init::Uniform { lo: -bound, up: bound })?;
+        let bs = vb.get_with_hints(
+            out_c,
+            "bias",
+            Init::Uniform {
+                lo: -bound,
+                up: bound,
+            },
+        )?;
         Self::from_weights(ws, Some(bs), stride)
     }
 
@@ -57,9 +78,19 @@ impl RingConv2d {
     pub fn from_weights(weight: Tensor, bias: Option<Tensor>, stride: usize) -> Result<Self> {
         let (_, _, kh, kw) = weight.dims4()?;
         if kh != kw || kh % 2 == 0 || stride == 0 {
-            return Err(shape_err("ring conv weight", "[out, in, k, k] with odd k and stride >= 1", weight.dims()));
+            return Err(shape_err(
+                "ring conv weight",
+                "[out, in, k, k] with odd k and stride >= 1",
+                weight.dims(),
+            ));
         }
-        Ok(Self { weight, bias, kernel: kh, stride, span: tracing::span!(tracing::Level::TRACE, "ring_conv") })
+        Ok(Self {
+            weight,
+            bias,
+            kernel: kh,
+            stride,
+            span: tracing::span!(tracing::Level::TRACE, "ring_conv"),
+        })
     }
 
     /// `[B, in, H, W] -> [B, out, ceil(H/stride), ceil(W/stride)]` (for odd kernels).
@@ -86,21 +117,43 @@ pub struct Conv1x1 {
 impl Conv1x1 {
     /// Default (Kaiming normal) initialisation.
     pub fn new(in_c: usize, out_c: usize, bias: bool, vb: VarBuilder<'_>) -> Result<Self> {
-        Self::with_init(in_c, out_c, bias, candle_nn::init::DEFAULT_KAIMING_NORMAL, vb)
+        Self::with_init(
+            in_c,
+            out_c,
+            bias,
+            candle_nn::init::DEFAULT_KAIMING_NORMAL,
+            vb,
+        )
     }
 
     /// Zero-initialised weights and bias (the "zero convolution" of ControlNet-style residual branches).
     pub fn zeros(in_c: usize, out_c: usize, vb: VarBuilder<'_>) -> Result<Self> {
         let weight = vb.get_with_hints((out_c, in_c, 1, 1), "weight", Init::Const(0.0))?;
         let bias = vb.get_with_hints(out_c, "bias", Init::Const(0.0))?;
-        Ok(Self { weight, bias: Some(bias) })
+        Ok(Self {
+            weight,
+            bias: Some(bias),
+        })
     }
 
-    fn with_init(in_c: usize, out_c: usize, bias: bool, init: Init, vb: VarBuilder<'_>) -> Result<Self> {
+    fn with_init(
+        in_c: usize,
+        out_c: usize,
+        bias: bool,
+        init: Init,
+        vb: VarBuilder<'_>,
+    ) -> Result<Self> {
         let weight = vb.get_with_hints((out_c, in_c, 1, 1), "weight", init)?;
         let bias = if bias {
             let bound = 1.0 / (in_c as f64).sqrt();
-            Some(vb.get_with_hints(out_c, "bias", Init::Uniform { lo: -bound, up: bound })?)
+            Some(vb.get_with_hints(
+                out_c,
+                "bias",
+                Init::Uniform {
+                    lo: -bound,
+                    up: bound,
+                },
+            )?)
         } else {
             None
         };
@@ -117,7 +170,11 @@ impl Conv1x1 {
         let n: usize = dims[2..].iter().product();
         let (out_c, in_c) = (self.weight.dim(0)?, self.weight.dim(1)?);
         if c != in_c {
-            return Err(shape_err("conv1x1 input", format!("[B, {in_c}, ...]"), &dims));
+            return Err(shape_err(
+                "conv1x1 input",
+                format!("[B, {in_c}, ...]"),
+                &dims,
+            ));
         }
         let w = self.weight.reshape((1, out_c, in_c))?;
         let y = w.broadcast_matmul(&x.reshape((b, c, n))?)?;
@@ -165,7 +222,11 @@ pub fn bilinear_resize(x: &Tensor, out_h: usize, out_w: usize) -> Result<Tensor>
         return Ok(x.clone());
     }
     if h == 0 || w == 0 || out_h == 0 || out_w == 0 {
-        return Err(shape_err("bilinear_resize", "non-empty input and output sizes", &[b, c, h, w]));
+        return Err(shape_err(
+            "bilinear_resize",
+            "non-empty input and output sizes",
+            &[b, c, h, w],
+        ));
     }
     let dev = x.device();
     let dtype = x.dtype();
@@ -182,7 +243,7 @@ pub fn bilinear_resize(x: &Tensor, out_h: usize, out_w: usize) -> Result<Tensor>
 /// Softmax over the last dimension with log-weights and a validity mask, stable for huge logits.
 ///
 /// Computes `a_k = valid_k * w_k * exp(s_k) / sum_j valid_j * w_j * exp(s_j)` as
-/// `exp(s'_k - max_valid s')` with `s' = clamp(s, ±1e30) + log_w` on valid entries only, so the largest
+/// `exp(s'_k - max_valid s')` with `s' = clamp(s, ±1e38) + log_w` on valid entries only, so the largest
 /// term is exactly 1 whenever any entry is valid (no overflow, no underflow of the denominator). Rows with
 /// no valid entry give all zeros, never NaN.
 ///
@@ -190,7 +251,7 @@ pub fn bilinear_resize(x: &Tensor, out_h: usize, out_w: usize) -> Result<Tensor>
 /// * `log_w`: broadcastable to `logits`; finite on valid entries (anything on invalid ones)
 /// * `valid`: broadcastable to `logits`, `u8` (1 = valid)
 pub fn masked_softmax_last_dim(logits: &Tensor, log_w: &Tensor, valid: &Tensor) -> Result<Tensor> {
-    const BIG: f64 = 1e30;
+    const BIG: f64 = 1e38;
     let shape = logits.shape().clone();
     let dtype = logits.dtype();
     let valid = valid.broadcast_as(shape.clone())?;
@@ -216,18 +277,25 @@ pub fn masked_softmax_last_dim(logits: &Tensor, log_w: &Tensor, valid: &Tensor) 
 /// `emb = [cos(scale * t * f_j), sin(scale * t * f_j)]`, `f_j = exp(-ln(max_period) * j / (dim/2))`,
 /// `j = 0 .. dim/2` (the DDPM / ADM convention). `dim` must be even.
 pub fn sinusoidal_embedding(t: &Tensor, dim: usize, max_period: f64, scale: f64) -> Result<Tensor> {
-    if dim % 2 != 0 || dim == 0 {
-        return Err(crate::Error::Config(format!("time embedding dim must be even and > 0, got {dim}")));
+    if !dim.is_multiple_of(2) || dim == 0 {
+        return Err(crate::Error::Config(format!(
+            "time embedding dim must be even and > 0, got {dim}"
+        )));
     }
     let b = match t.dims() {
         [b] => *b,
         other => return Err(shape_err("timestep", "[B]", other)),
     };
     let half = dim / 2;
-    let freqs: Vec<f32> =
-        (0..half).map(|j| (-(max_period.ln()) * j as f64 / half as f64).exp() as f32).collect();
+    let freqs: Vec<f32> = (0..half)
+        .map(|j| (-(max_period.ln()) * j as f64 / half as f64).exp() as f32)
+        .collect();
     let freqs = Tensor::from_vec(freqs, (1, half), t.device())?;
-    let args = (t.to_dtype(DType::F32)?.affine(scale, 0.0)?.reshape((b, 1))?).broadcast_mul(&freqs)?;
+    let args = (t
+        .to_dtype(DType::F32)?
+        .affine(scale, 0.0)?
+        .reshape((b, 1))?)
+    .broadcast_mul(&freqs)?;
     Ok(Tensor::cat(&[args.cos()?, args.sin()?], 1)?)
 }
 
@@ -237,8 +305,12 @@ pub fn silu(x: &Tensor) -> Result<Tensor> {
 }
 
 /// Group normalisation `[B, C, ...]` with learned `weight`/`bias` (`vb`), PyTorch `nn.GroupNorm` names.
-pub fn group_norm(groups: usize, channels: usize, vb: VarBuilder<'_>) -> Result<candle_nn::GroupNorm> {
-    if groups == 0 || channels % groups != 0 {
+pub fn group_norm(
+    groups: usize,
+    channels: usize,
+    vb: VarBuilder<'_>,
+) -> Result<candle_nn::GroupNorm> {
+    if groups == 0 || !channels.is_multiple_of(groups) {
         return Err(crate::Error::Config(format!(
             "group norm: {channels} channels are not divisible into {groups} groups (at {})",
             vb.prefix()
@@ -249,10 +321,19 @@ pub fn group_norm(groups: usize, channels: usize, vb: VarBuilder<'_>) -> Result<
 
 /// Largest group count `<= max_groups` that divides `channels` (at least 1).
 pub fn groups_for(channels: usize, max_groups: usize) -> usize {
-    (1..=max_groups.max(1)).rev().find(|g| channels % g == 0).unwrap_or(1)
+    (1..=max_groups.max(1))
+        .rev()
+        .find(|g| channels.is_multiple_of(*g))
+        .unwrap_or(1)
 }
 
 /// A `[1, C, H, W]` tensor from a channel-major `Vec<f32>`.
-pub(crate) fn image_tensor(data: Vec<f32>, c: usize, h: usize, w: usize, dev: &Device) -> Result<Tensor> {
+pub(crate) fn image_tensor(
+    data: Vec<f32>,
+    c: usize,
+    h: usize,
+    w: usize,
+    dev: &Device,
+) -> Result<Tensor> {
     Ok(Tensor::from_vec(data, (1, c, h, w), dev)?)
 }

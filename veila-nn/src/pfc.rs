@@ -25,9 +25,17 @@ pub struct Pfc {
 
 impl Pfc {
     /// Builds the block for `channels` channels.
-    pub fn new(cfg: &PfcConfig, channels: usize, max_groups: usize, vb: VarBuilder<'_>) -> Result<Self> {
-        if cfg.num_heads == 0 || channels % cfg.num_heads != 0 {
-            return Err(Error::Config(format!("pfc: {} heads do not divide {channels} channels", cfg.num_heads)));
+    pub fn new(
+        cfg: &PfcConfig,
+        channels: usize,
+        max_groups: usize,
+        vb: VarBuilder<'_>,
+    ) -> Result<Self> {
+        if cfg.num_heads == 0 || !channels.is_multiple_of(cfg.num_heads) {
+            return Err(Error::Config(format!(
+                "pfc: {} heads do not divide {channels} channels",
+                cfg.num_heads
+            )));
         }
         Ok(Self {
             norm: group_norm(groups_for(channels, max_groups), channels, vb.pp("norm"))?,
@@ -46,15 +54,21 @@ impl Pfc {
         let n = h * w;
         let heads = self.num_heads;
         let dh = self.channels / heads;
-        let qkv = self.qkv.forward(&self.norm.forward(x)?)?.reshape((b, 3, heads, dh, n))?;
+        let qkv = self
+            .qkv
+            .forward(&self.norm.forward(x)?)?
+            .reshape((b, 3, heads, dh, n))?;
         let q = qkv.narrow(1, 0, 1)?.reshape((b * heads, dh, n))?;
         let k = qkv.narrow(1, 1, 1)?.reshape((b * heads, dh, n))?;
         let v = qkv.narrow(1, 2, 1)?.reshape((b * heads, dh, n))?;
         // logits [B*h, N_q, N_k]
-        let logits = (q.transpose(1, 2)?.contiguous()?.matmul(&k.contiguous()?)? / (dh as f64).sqrt())?;
+        let logits =
+            (q.transpose(1, 2)?.contiguous()?.matmul(&k.contiguous()?)? / (dh as f64).sqrt())?;
         let attn = candle_nn::ops::softmax(&logits, D::Minus1)?;
         // out [B*h, dh, N_q] = v [dh, N_k] x attn^T [N_k, N_q]
-        let out = v.contiguous()?.matmul(&attn.transpose(1, 2)?.contiguous()?)?;
+        let out = v
+            .contiguous()?
+            .matmul(&attn.transpose(1, 2)?.contiguous()?)?;
         let out = self.proj.forward(&out.reshape((b, c, h, w))?)?;
         Ok((x + out)?)
     }

@@ -4,7 +4,7 @@
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
-// mod convert;        // cargo xtask convert       (veila-data shards)
+mod convert; // cargo xtask convert       (veila-data shards)
 // mod kitti_weather;  // cargo xtask kitti-weather (veila-data weather)
 #[cfg(test)]
 mod tidy;
@@ -18,7 +18,7 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
-    // Convert(convert::ConvertArgs),
+    Convert(convert::ConvertArgs),
     // KittiWeather(kitti_weather::KittiWeatherArgs),
     /// Print the workspace's crate layering rules (checked by `cargo test -p xtask`).
     Layers,
@@ -33,7 +33,7 @@ fn main() {
 
 fn run(command: Command) -> Result<()> {
     match command {
-        // Command::Convert(a) => convert::run(a),
+        Command::Convert(a) => convert::run(a),
         // Command::KittiWeather(a) => kitti_weather::run(a),
         Command::Layers => {
             println!("see ARCHITECTURE.md, section 'Layering'");

@@ -43,7 +43,6 @@ pub(crate) mod tag {
     pub const LIDAR_FOG: u64 = 0x11;
     pub const LIDAR_RAIN: u64 = 0x12;
     pub const LIDAR_SNOW_FIELD: u64 = 0x13;
-    pub const LIDAR_SNOW: u64 = 0x14;
     pub const CAMERA_RAIN: u64 = 0x21;
     pub const CAMERA_SNOW: u64 = 0x22;
     pub const CAMERA_NOISE: u64 = 0x23;

@@ -97,28 +97,28 @@ impl MitConfig {
     }
 
     /// Checks the configuration for values the architecture cannot use.
-    pub fn validate(&self) -> candle_core::Result<()> {
+    pub fn validate(&self) -> crate::Result<()> {
         if self.num_channels == 0 {
-            candle_core::bail!("MitConfig: num_channels must be positive");
+            config_bail!("MitConfig: num_channels must be positive");
         }
         for i in 0..4 {
             let (c, h) = (self.hidden_sizes[i], self.num_attention_heads[i]);
             if c == 0 || h == 0 || c % h != 0 {
-                candle_core::bail!(
+                config_bail!(
                     "MitConfig: stage {i}: hidden size {c} must be a positive multiple of the {h} attention heads"
                 );
             }
             if self.sr_ratios[i] == 0 || self.strides[i] == 0 || self.patch_sizes[i] == 0 {
-                candle_core::bail!(
+                config_bail!(
                     "MitConfig: stage {i}: sr_ratio, stride and patch size must be positive"
                 );
             }
             if self.mlp_ratios[i] == 0 {
-                candle_core::bail!("MitConfig: stage {i}: mlp_ratio must be positive");
+                config_bail!("MitConfig: stage {i}: mlp_ratio must be positive");
             }
         }
         if !(self.layer_norm_eps > 0.0) {
-            candle_core::bail!("MitConfig: layer_norm_eps must be positive");
+            config_bail!("MitConfig: layer_norm_eps must be positive");
         }
         Ok(())
     }
@@ -155,8 +155,8 @@ impl Default for MitConfig {
     }
 }
 
-fn layer_norm(size: usize, eps: f64, vb: VarBuilder<'_>) -> candle_core::Result<LayerNorm> {
-    candle_nn::layer_norm(size, eps, vb)
+fn layer_norm(size: usize, eps: f64, vb: VarBuilder<'_>) -> crate::Result<LayerNorm> {
+    Ok(candle_nn::layer_norm(size, eps, vb)?)
 }
 
 /// Overlapping patch embedding: strided conv with padding `k / 2`, then LayerNorm over channels.
@@ -175,7 +175,7 @@ impl OverlapPatchEmbed {
         stride: usize,
         eps: f64,
         vb: VarBuilder<'_>,
-    ) -> candle_core::Result<Self> {
+    ) -> crate::Result<Self> {
         let cfg = Conv2dConfig {
             padding: patch_size / 2,
             stride,
@@ -187,7 +187,7 @@ impl OverlapPatchEmbed {
     }
 
     /// `[B, C_in, H, W]` -> (tokens `[B, h*w, hidden]`, h, w).
-    pub fn forward(&self, x: &Tensor) -> candle_core::Result<(Tensor, usize, usize)> {
+    pub fn forward(&self, x: &Tensor) -> crate::Result<(Tensor, usize, usize)> {
         let y = self.proj.forward(x)?;
         let (_, _, h, w) = y.dims4()?;
         let tokens = self.layer_norm.forward(&map_to_tokens(&y)?)?;
@@ -217,9 +217,9 @@ impl MitAttention {
         sr_ratio: usize,
         eps: f64,
         vb: VarBuilder<'_>,
-    ) -> candle_core::Result<Self> {
+    ) -> crate::Result<Self> {
         if num_heads == 0 || hidden % num_heads != 0 {
-            candle_core::bail!(
+            input_bail!(
                 "MitAttention: hidden size {hidden} is not a multiple of {num_heads} heads"
             );
         }
@@ -250,15 +250,15 @@ impl MitAttention {
         })
     }
 
-    fn split_heads(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+    fn split_heads(&self, x: &Tensor) -> crate::Result<Tensor> {
         let (b, n, _) = x.dims3()?;
-        x.reshape((b, n, self.num_heads, self.head_dim))?
+        Ok(x.reshape((b, n, self.num_heads, self.head_dim))?
             .transpose(1, 2)?
-            .contiguous()
+            .contiguous()?)
     }
 
     /// Tokens `[B, h*w, C]` of an `h x w` map -> `[B, h*w, C]`.
-    pub fn forward(&self, x: &Tensor, h: usize, w: usize) -> candle_core::Result<Tensor> {
+    pub fn forward(&self, x: &Tensor, h: usize, w: usize) -> crate::Result<Tensor> {
         let (b, n, c) = x.dims3()?;
         let q = self.split_heads(&self.query.forward(x)?)?;
         let kv_src = match &self.sr {
@@ -274,11 +274,8 @@ impl MitAttention {
         let scale = 1.0 / (self.head_dim as f64).sqrt();
         let scores = (q.matmul(&k.t()?)? * scale)?;
         let probs = candle_nn::ops::softmax_last_dim(&scores)?;
-        let ctx = probs
-            .matmul(&v)?
-            .transpose(1, 2)?
-            .reshape((b, n, c))?;
-        self.dense.forward(&ctx)
+        let ctx = probs.matmul(&v)?.transpose(1, 2)?.reshape((b, n, c))?;
+        Ok(self.dense.forward(&ctx)?)
     }
 }
 
@@ -293,7 +290,7 @@ pub struct MixFfn {
 
 impl MixFfn {
     /// `vb` points at `...mlp`.
-    pub fn new(hidden: usize, mlp_hidden: usize, vb: VarBuilder<'_>) -> candle_core::Result<Self> {
+    pub fn new(hidden: usize, mlp_hidden: usize, vb: VarBuilder<'_>) -> crate::Result<Self> {
         let dense1 = candle_nn::linear(hidden, mlp_hidden, vb.pp("dense1"))?;
         let vd = vb.pp("dwconv").pp("dwconv");
         let dw_weight = vd.get_with_hints(
@@ -312,12 +309,12 @@ impl MixFfn {
     }
 
     /// Tokens `[B, h*w, C]` -> `[B, h*w, C]`.
-    pub fn forward(&self, x: &Tensor, h: usize, w: usize) -> candle_core::Result<Tensor> {
+    pub fn forward(&self, x: &Tensor, h: usize, w: usize) -> crate::Result<Tensor> {
         let y = self.dense1.forward(x)?;
         let map = tokens_to_map(&y, h, w)?;
         let map = depthwise_conv2d(&map, &self.dw_weight, Some(&self.dw_bias), 1)?;
         let y = map_to_tokens(&map)?.gelu_erf()?;
-        self.dense2.forward(&y)
+        Ok(self.dense2.forward(&y)?)
     }
 }
 
@@ -339,7 +336,7 @@ impl MitLayer {
         mlp_ratio: usize,
         eps: f64,
         vb: VarBuilder<'_>,
-    ) -> candle_core::Result<Self> {
+    ) -> crate::Result<Self> {
         Ok(Self {
             layer_norm_1: layer_norm(hidden, eps, vb.pp("layer_norm_1"))?,
             attention: MitAttention::new(hidden, num_heads, sr_ratio, eps, vb.pp("attention"))?,
@@ -349,13 +346,13 @@ impl MitLayer {
     }
 
     /// Tokens `[B, h*w, C]` -> `[B, h*w, C]`.
-    pub fn forward(&self, x: &Tensor, h: usize, w: usize) -> candle_core::Result<Tensor> {
+    pub fn forward(&self, x: &Tensor, h: usize, w: usize) -> crate::Result<Tensor> {
         let a = self
             .attention
             .forward(&self.layer_norm_1.forward(x)?, h, w)?;
         let x = (x + a)?;
         let m = self.mlp.forward(&self.layer_norm_2.forward(&x)?, h, w)?;
-        x + m
+        Ok((x + m)?)
     }
 }
 
@@ -373,7 +370,7 @@ impl MitEncoder {
     /// Builds the encoder, reading `{weight_prefix}.patch_embeddings.*`, `{weight_prefix}.block.*`
     /// and `{weight_prefix}.layer_norm.*` from `vb` (missing or mis-shaped tensors are errors that
     /// name the tensor).
-    pub fn new(cfg: &MitConfig, vb: VarBuilder<'_>) -> candle_core::Result<Self> {
+    pub fn new(cfg: &MitConfig, vb: VarBuilder<'_>) -> crate::Result<Self> {
         cfg.validate()?;
         let vb = if cfg.weight_prefix.is_empty() {
             vb
@@ -432,17 +429,17 @@ impl MitEncoder {
 }
 
 impl ImageEncoder for MitEncoder {
-    fn forward(&self, image: &Tensor) -> candle_core::Result<Vec<Tensor>> {
+    fn forward(&self, image: &Tensor) -> crate::Result<Vec<Tensor>> {
         let _span = tracing::trace_span!("mit_encoder").entered();
         let dims = image.dims();
         if dims.len() != 4 || dims[1] != self.cfg.num_channels {
-            candle_core::bail!(
+            input_bail!(
                 "MitEncoder: expected an image tensor [B, {}, H, W], got shape {dims:?}",
                 self.cfg.num_channels
             );
         }
         if dims[2] < self.min_size || dims[3] < self.min_size || dims[0] == 0 {
-            candle_core::bail!(
+            input_bail!(
                 "MitEncoder: image {}x{} is too small; with sr_ratios {:?} both sides must be at least {} pixels",
                 dims[2],
                 dims[3],

@@ -43,7 +43,7 @@
 //!     small_cnn::{SmallCnn, SmallCnnConfig},
 //! };
 //!
-//! # fn main() -> candle_core::Result<()> {
+//! # fn main() -> crate::Result<()> {
 //! let device = Device::Cpu;
 //! let varmap = VarMap::new();
 //! let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
@@ -60,6 +60,20 @@
 //! # Ok(())
 //! # }
 //! ```
+
+/// `return Err(Error::Config(format!(..)))`.
+macro_rules! config_bail {
+    ($($arg:tt)*) => {
+        return Err(crate::Error::Config(format!($($arg)*)))
+    };
+}
+
+/// `return Err(Error::Input(format!(..)))`.
+macro_rules! input_bail {
+    ($($arg:tt)*) => {
+        return Err(crate::Error::Input(format!($($arg)*)))
+    };
+}
 
 pub mod dinov2;
 pub mod losses;
@@ -115,7 +129,7 @@ pub struct InputSpec {
 /// `C_i = channels()[i]` and `(H_i, W_i) = feature_sizes(H, W)[i]`.
 pub trait ImageEncoder: std::fmt::Debug + Send + Sync {
     /// Four feature maps, finest first.
-    fn forward(&self, image: &Tensor) -> candle_core::Result<Vec<Tensor>>;
+    fn forward(&self, image: &Tensor) -> crate::Result<Vec<Tensor>>;
     /// Channel count of each of the four feature maps.
     fn channels(&self) -> [usize; 4];
     /// Nominal stride of each feature map in input pixels (e.g. `[4, 8, 16, 32]`; Depth-Anything's
@@ -128,7 +142,7 @@ pub trait ImageEncoder: std::fmt::Debug + Send + Sync {
 }
 
 impl<E: ImageEncoder + ?Sized> ImageEncoder for Box<E> {
-    fn forward(&self, image: &Tensor) -> candle_core::Result<Vec<Tensor>> {
+    fn forward(&self, image: &Tensor) -> crate::Result<Vec<Tensor>> {
         (**self).forward(image)
     }
     fn channels(&self) -> [usize; 4] {
@@ -146,7 +160,7 @@ impl<E: ImageEncoder + ?Sized> ImageEncoder for Box<E> {
 }
 
 impl<E: ImageEncoder + ?Sized> ImageEncoder for Arc<E> {
-    fn forward(&self, image: &Tensor) -> candle_core::Result<Vec<Tensor>> {
+    fn forward(&self, image: &Tensor) -> crate::Result<Vec<Tensor>> {
         (**self).forward(image)
     }
     fn channels(&self) -> [usize; 4] {
@@ -186,7 +200,7 @@ impl<E: ImageEncoder> Frozen<E> {
 }
 
 impl<E: ImageEncoder> ImageEncoder for Frozen<E> {
-    fn forward(&self, image: &Tensor) -> candle_core::Result<Vec<Tensor>> {
+    fn forward(&self, image: &Tensor) -> crate::Result<Vec<Tensor>> {
         let feats = self.inner.forward(&image.detach())?;
         Ok(feats.into_iter().map(|t| t.detach()).collect())
     }
@@ -211,7 +225,7 @@ pub fn freeze_varmap(
     varmap: &VarMap,
     dtype: DType,
     device: &Device,
-) -> candle_core::Result<VarBuilder<'static>> {
+) -> crate::Result<VarBuilder<'static>> {
     let data = varmap
         .data()
         .lock()
@@ -234,13 +248,13 @@ pub fn rgb8_to_tensor(
     width: usize,
     norm: &Normalization,
     device: &Device,
-) -> candle_core::Result<Tensor> {
+) -> crate::Result<Tensor> {
     if height == 0 || width == 0 {
-        candle_core::bail!("rgb8_to_tensor: image size {height}x{width} has a zero dimension");
+        input_bail!("rgb8_to_tensor: image size {height}x{width} has a zero dimension");
     }
     let expected = height * width * 3;
     if rgb.len() != expected {
-        candle_core::bail!(
+        input_bail!(
             "rgb8_to_tensor: buffer holds {} bytes but a {height}x{width} RGB image needs {expected}",
             rgb.len()
         );
@@ -255,24 +269,68 @@ pub fn rgb8_to_tensor(
             *v = rgb[p * 3 + c] as f32 * scale - offset;
         }
     }
-    Tensor::from_vec(out, (1, 3, height, width), device)
+    Ok(Tensor::from_vec(out, (1, 3, height, width), device)?)
 }
 
 /// Resizes a `[B, C, H, W]` tensor bilinearly (half-pixel centres, `align_corners = false`, no
 /// antialiasing; PyTorch's `interpolate(mode="bilinear")`).
-pub fn resize_bilinear(
-    image: &Tensor,
-    height: usize,
-    width: usize,
-) -> candle_core::Result<Tensor> {
+pub fn resize_bilinear(image: &Tensor, height: usize, width: usize) -> crate::Result<Tensor> {
     let (_, _, h, w) = image.dims4()?;
     if (h, w) == (height, width) {
         return Ok(image.clone());
     }
     if height == 0 || width == 0 {
-        candle_core::bail!("resize_bilinear: target size {height}x{width} has a zero dimension");
+        input_bail!("resize_bilinear: target size {height}x{width} has a zero dimension");
     }
-    image.upsample_bilinear2d(height, width, false)
+    Ok(image.upsample_bilinear2d(height, width, false)?)
+}
+
+/// Interpolation matrix `[out_size, in_size]` (row-major) of 1-D linear resampling with half-pixel
+/// centres (`align_corners = false`; negative source coordinates clamp to 0, as in PyTorch).
+pub fn bilinear_matrix(in_size: usize, out_size: usize) -> Vec<f32> {
+    let mut m = vec![0f32; out_size * in_size];
+    if in_size == 0 {
+        return m;
+    }
+    let scale = in_size as f32 / out_size.max(1) as f32;
+    for o in 0..out_size {
+        let src = ((o as f32 + 0.5) * scale - 0.5).max(0.0);
+        let i0 = (src.floor() as usize).min(in_size - 1);
+        let i1 = (i0 + 1).min(in_size - 1);
+        let t = src - i0 as f32;
+        m[o * in_size + i0] += 1.0 - t;
+        m[o * in_size + i1] += t;
+    }
+    m
+}
+
+/// Bilinear resize of `[B, C, H, W]` with the same numerics as [`resize_bilinear`], written as two
+/// matrix products so that it is differentiable (candle 0.11 has no backward pass for
+/// `upsample_bilinear2d`). Use it in anything that is trained.
+pub fn resize_bilinear_differentiable(
+    x: &Tensor,
+    height: usize,
+    width: usize,
+) -> crate::Result<Tensor> {
+    let (_, _, h, w) = x.dims4()?;
+    if (h, w) == (height, width) {
+        return Ok(x.clone());
+    }
+    if height == 0 || width == 0 || h == 0 || w == 0 {
+        input_bail!("resize_bilinear_differentiable: cannot resize {h}x{w} to {height}x{width}");
+    }
+    let dev = x.device();
+    let dtype = x.dtype();
+    let mut y = x.clone();
+    if w != width {
+        let rx = Tensor::from_vec(bilinear_matrix(w, width), (width, w), dev)?.to_dtype(dtype)?;
+        y = y.broadcast_matmul(&rx.t()?)?;
+    }
+    if h != height {
+        let ry = Tensor::from_vec(bilinear_matrix(h, height), (height, h), dev)?.to_dtype(dtype)?;
+        y = ry.broadcast_matmul(&y)?;
+    }
+    Ok(y)
 }
 
 /// The size closest to `(height, width)` whose sides are positive multiples of `multiple`
@@ -327,8 +385,8 @@ impl candle_nn::var_builder::SimpleBackend for RecordingBackend {
 /// (missing, unexpected and mis-shaped tensors) before loading, e.g.
 /// `record_tensor_specs(|vb| MitEncoder::new(&cfg, vb))`.
 pub fn record_tensor_specs<T>(
-    build: impl FnOnce(VarBuilder<'static>) -> candle_core::Result<T>,
-) -> candle_core::Result<Vec<TensorSpec>> {
+    build: impl FnOnce(VarBuilder<'static>) -> crate::Result<T>,
+) -> crate::Result<Vec<TensorSpec>> {
     let seen = Arc::new(Mutex::new(Vec::new()));
     let backend = RecordingBackend { seen: seen.clone() };
     let vb = VarBuilder::from_backend(Box::new(backend), DType::F32, Device::Cpu);
@@ -345,14 +403,14 @@ pub(crate) fn check_image(
     image: &Tensor,
     min_size: usize,
     who: &str,
-) -> candle_core::Result<(usize, usize, usize)> {
+) -> crate::Result<(usize, usize, usize)> {
     let dims = image.dims();
     if dims.len() != 4 || dims[1] != 3 {
-        candle_core::bail!("{who}: expected an image tensor [B, 3, H, W], got shape {dims:?}");
+        input_bail!("{who}: expected an image tensor [B, 3, H, W], got shape {dims:?}");
     }
     let (b, h, w) = (dims[0], dims[2], dims[3]);
     if b == 0 || h < min_size || w < min_size {
-        candle_core::bail!(
+        input_bail!(
             "{who}: image {h}x{w} (batch {b}) is too small; height and width must be at least {min_size} and the batch non-empty"
         );
     }
@@ -365,17 +423,17 @@ pub(crate) fn conv_out(size: usize, kernel: usize, stride: usize, padding: usize
 }
 
 /// `[B, C, H, W]` -> `[B, H*W, C]` (contiguous).
-pub(crate) fn map_to_tokens(x: &Tensor) -> candle_core::Result<Tensor> {
-    x.flatten_from(2)?.transpose(1, 2)?.contiguous()
+pub(crate) fn map_to_tokens(x: &Tensor) -> crate::Result<Tensor> {
+    Ok(x.flatten_from(2)?.transpose(1, 2)?.contiguous()?)
 }
 
 /// `[B, H*W, C]` -> `[B, C, H, W]` (contiguous).
-pub(crate) fn tokens_to_map(x: &Tensor, h: usize, w: usize) -> candle_core::Result<Tensor> {
+pub(crate) fn tokens_to_map(x: &Tensor, h: usize, w: usize) -> crate::Result<Tensor> {
     let (b, n, c) = x.dims3()?;
     if n != h * w {
-        candle_core::bail!("tokens_to_map: {n} tokens do not form a {h}x{w} grid");
+        input_bail!("tokens_to_map: {n} tokens do not form a {h}x{w} grid");
     }
-    x.transpose(1, 2)?.reshape((b, c, h, w))
+    Ok(x.transpose(1, 2)?.reshape((b, c, h, w))?)
 }
 
 /// Depthwise `k x k` convolution, stride 1, zero padding `padding`: `weight` is `[C, 1, k, k]`
@@ -388,11 +446,11 @@ pub fn depthwise_conv2d(
     weight: &Tensor,
     bias: Option<&Tensor>,
     padding: usize,
-) -> candle_core::Result<Tensor> {
+) -> crate::Result<Tensor> {
     let (_, c, h, w) = x.dims4()?;
     let (wc, one, kh, kw) = weight.dims4()?;
     if wc != c || one != 1 {
-        candle_core::bail!(
+        input_bail!(
             "depthwise_conv2d: weight {:?} does not match {c} input channels",
             weight.dims()
         );
@@ -424,7 +482,7 @@ pub fn depthwise_conv2d(
     }
     let mut out = match acc {
         Some(a) => a,
-        None => candle_core::bail!("depthwise_conv2d: empty kernel"),
+        None => input_bail!("depthwise_conv2d: empty kernel"),
     };
     if let Some(b) = bias {
         out = out.broadcast_add(&b.reshape((1, c, 1, 1))?)?;

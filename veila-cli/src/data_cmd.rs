@@ -1,0 +1,246 @@
+//! `veila project`, `veila unproject`, `veila render`: point files <-> range images, and previews.
+//!
+//! Every command renders all of its outputs in memory first and writes them together
+//! (`write_atomic_all`), so a failure never leaves part of the output behind.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Subcommand};
+use veila_data::image_io::{encode_png, read_rgb_image};
+use veila_data::range_exr::{encode_range_exr, read_range_exr};
+use veila_data::render::{
+    BevOptions, OverlayOptions, RangePreview, render_bev, render_intensity, render_labels, render_overlay,
+    render_range,
+};
+use veila_data::scan::{LoadedPoints, PointFormat, read_points};
+use veila_data::semantic_kitti::{LabelMap, read_labels};
+use veila_data::spec::{camera_from_calib_file, sensor_from_spec};
+use veila_geom::{BeamLayout, LidarSensor, ProjectionOptions, Projector, RangeImage, RowSource};
+
+/// Data commands.
+#[derive(Debug, Subcommand)]
+pub(crate) enum DataCmd {
+    /// Project a point file (.bin, .pcd.bin, .ply, range .exr) into a range-image EXR.
+    Project(ProjectArgs),
+    /// Turn a range-image EXR back into points (.ply or KITTI .bin).
+    Unproject(UnprojectArgs),
+    /// Render previews of a scan: bird's-eye view, range image, and points over the camera image.
+    Render(RenderArgs),
+}
+
+#[derive(Debug, Args)]
+pub(crate) struct ProjectArgs {
+    /// The scan: KITTI .bin, nuScenes .pcd.bin, .ply or a range .exr (format detected).
+    scan: PathBuf,
+    /// Sensor: hdl64e, hdl32e, hdl32e-per-beam or a .toml/.json sensor file. Default: hdl32e for
+    /// nuScenes scans, the stored sensor for .exr, hdl64e otherwise.
+    #[arg(long)]
+    sensor: Option<String>,
+    /// Output range image (.exr).
+    #[arg(long)]
+    out: PathBuf,
+    /// Also write a range preview PNG.
+    #[arg(long)]
+    png: Option<PathBuf>,
+    /// Also write an intensity preview PNG.
+    #[arg(long)]
+    intensity_png: Option<PathBuf>,
+    /// Per-point SemanticKITTI labels (.label) to carry into the range image.
+    #[arg(long)]
+    labels: Option<PathBuf>,
+    /// semantic-kitti.yaml, for a label preview (needs labels from --labels or the PLY).
+    #[arg(long, requires = "label_png")]
+    label_map: Option<PathBuf>,
+    /// Also write a label preview PNG (SemanticKITTI colours).
+    #[arg(long, requires = "label_map")]
+    label_png: Option<PathBuf>,
+}
+
+#[derive(Debug, Args)]
+pub(crate) struct UnprojectArgs {
+    /// A range-image EXR written by `veila project` (it carries its sensor).
+    input: PathBuf,
+    /// Output points: .ply (x, y, z, intensity, label) or .bin (KITTI records).
+    #[arg(long)]
+    out: PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub(crate) struct RenderArgs {
+    /// The scan: KITTI .bin, nuScenes .pcd.bin, .ply or a range .exr (format detected).
+    scan: PathBuf,
+    /// Bird's-eye-view PNG.
+    #[arg(long)]
+    bev: Option<PathBuf>,
+    /// Range-image preview PNG.
+    #[arg(long)]
+    range: Option<PathBuf>,
+    /// Sensor for the range preview (as for `project`).
+    #[arg(long)]
+    sensor: Option<String>,
+    /// Camera image for the overlay.
+    #[arg(long, requires_all = ["calib", "overlay"])]
+    image: Option<PathBuf>,
+    /// Calibration: KITTI object calib/*.txt, KITTI odometry calib.txt or nuScenes per-sample JSON.
+    #[arg(long, requires_all = ["image", "overlay"])]
+    calib: Option<PathBuf>,
+    /// Overlay PNG: LiDAR points on the camera image, coloured by depth.
+    #[arg(long, requires_all = ["image", "calib"])]
+    overlay: Option<PathBuf>,
+    /// nuScenes camera channel of the calibration JSON.
+    #[arg(long, default_value = "CAM_FRONT")]
+    camera: String,
+    /// Half the side of the bird's-eye view, metres.
+    #[arg(long, default_value_t = 50.0)]
+    bev_extent_m: f32,
+    /// Bird's-eye-view resolution, metres per pixel.
+    #[arg(long, default_value_t = 0.1)]
+    bev_resolution_m: f32,
+}
+
+pub(crate) fn run(cmd: DataCmd) -> Result<()> {
+    match cmd {
+        DataCmd::Project(a) => project(a),
+        DataCmd::Unproject(a) => unproject(a),
+        DataCmd::Render(a) => render(a),
+    }
+}
+
+fn load(scan: &Path) -> Result<LoadedPoints> {
+    let l = read_points(scan).with_context(|| format!("cannot read scan {}", scan.display()))?;
+    println!(
+        "{}: {} points ({}), {} non-finite dropped",
+        scan.display(),
+        l.cloud.len(),
+        l.format,
+        l.dropped_non_finite
+    );
+    Ok(l)
+}
+
+fn pick_sensor(spec: Option<&str>, loaded: &LoadedPoints) -> Result<LidarSensor> {
+    Ok(match (spec, &loaded.sensor) {
+        (Some(s), _) => sensor_from_spec(s)?,
+        (None, Some(stored)) => stored.clone(),
+        (None, None) if loaded.format == PointFormat::NuScenesPcdBin => LidarSensor::hdl32e(),
+        (None, None) => LidarSensor::hdl64e(),
+    })
+}
+
+fn project_points(loaded: &LoadedPoints, sensor: &LidarSensor) -> Result<RangeImage> {
+    let projector = Projector::new(sensor, ProjectionOptions::default())?;
+    let ring_mode = matches!(sensor.beams, BeamLayout::PerBeam { row_source: RowSource::Ring, .. });
+    let rings = loaded.cloud.ring.as_deref();
+    if ring_mode && rings.is_none() {
+        bail!("the sensor takes rows from ring indices, but this scan has none (use a uniform sensor)");
+    }
+    let (mut img, stats) =
+        projector.project(&loaded.cloud.xyz, Some(&loaded.cloud.intensity), if ring_mode { rings } else { None })?;
+    if let Some(l) = &loaded.cloud.label {
+        img.gather_labels(l)?;
+    }
+    println!(
+        "projected into {}x{}: {} pixels, {} occluded, {} rejected (range/field of view)",
+        sensor.rows,
+        sensor.cols,
+        stats.written,
+        stats.occluded,
+        stats.rejected.total()
+    );
+    Ok(img)
+}
+
+fn intensity_max(loaded: &LoadedPoints) -> f32 {
+    if loaded.format == PointFormat::NuScenesPcdBin { 255.0 } else { 1.0 }
+}
+
+fn project(a: ProjectArgs) -> Result<()> {
+    let mut loaded = load(&a.scan)?;
+    if let Some(lp) = &a.labels {
+        // labels index the file's records: only valid when no record was dropped
+        if loaded.dropped_non_finite > 0 {
+            bail!(
+                "{}: {} non-finite points were dropped, so per-point labels from {} no longer line up",
+                a.scan.display(),
+                loaded.dropped_non_finite,
+                lp.display()
+            );
+        }
+        loaded.cloud.label = Some(read_labels(lp, Some(loaded.cloud.len()))?);
+    }
+    let sensor = pick_sensor(a.sensor.as_deref(), &loaded)?;
+    let img = project_points(&loaded, &sensor)?;
+    let mut outputs: Vec<(PathBuf, Vec<u8>)> = vec![(a.out.clone(), encode_range_exr(&sensor, &img)?)];
+    if let Some(p) = &a.png {
+        let preview = RangePreview { far_m: sensor.max_range_m.min(80.0), ..Default::default() };
+        outputs.push((p.clone(), encode_png(&render_range(&img, &preview))?));
+    }
+    if let Some(p) = &a.intensity_png {
+        outputs.push((p.clone(), encode_png(&render_intensity(&img, intensity_max(&loaded), 4))?));
+    }
+    if let (Some(p), Some(mp)) = (&a.label_png, &a.label_map) {
+        let map = LabelMap::read(mp)?;
+        let Some(png) = render_labels(&img, &map, 4) else {
+            bail!("--label-png needs labels: pass --labels FILE.label or a PLY with a label property");
+        };
+        outputs.push((p.clone(), encode_png(&png)?));
+    }
+    write_all(&outputs)
+}
+
+fn write_all(outputs: &[(PathBuf, Vec<u8>)]) -> Result<()> {
+    let refs: Vec<(&Path, &[u8])> = outputs.iter().map(|(p, b)| (p.as_path(), b.as_slice())).collect();
+    veila_data::atomic::write_atomic_all(&refs)?;
+    for (p, _) in outputs {
+        println!("wrote {}", p.display());
+    }
+    Ok(())
+}
+
+fn unproject(a: UnprojectArgs) -> Result<()> {
+    let exr = read_range_exr(&a.input)?;
+    let cloud = exr.to_points()?;
+    let name = a.out.file_name().map(|n| n.to_string_lossy().to_lowercase()).unwrap_or_default();
+    let bytes = if name.ends_with(".ply") {
+        let mut buf = Vec::new();
+        veila_data::ply::encode_ply(&cloud, &mut buf)?;
+        buf
+    } else if name.ends_with(".bin") && !name.ends_with(".pcd.bin") {
+        veila_data::scan::encode_kitti_bin(&cloud)
+    } else {
+        bail!("{}: the output must end in .ply or .bin", a.out.display());
+    };
+    println!("{}: {} points from a {}x{} range image", a.input.display(), cloud.len(), exr.sensor.rows, exr.sensor.cols);
+    write_all(&[(a.out, bytes)])
+}
+
+fn render(a: RenderArgs) -> Result<()> {
+    if a.bev.is_none() && a.range.is_none() && a.overlay.is_none() {
+        bail!("nothing to render: give --bev, --range and/or --overlay");
+    }
+    let loaded = load(&a.scan)?;
+    let mut outputs: Vec<(PathBuf, Vec<u8>)> = Vec::new();
+    if let Some(p) = &a.bev {
+        let opts = BevOptions { half_extent_m: a.bev_extent_m, resolution_m: a.bev_resolution_m, ..Default::default() };
+        outputs.push((p.clone(), encode_png(&render_bev(&loaded.cloud, &opts)?)?));
+    }
+    if let Some(p) = &a.range {
+        let img = if loaded.format == PointFormat::RangeExr && a.sensor.is_none() {
+            read_range_exr(&a.scan)?.image
+        } else {
+            let sensor = pick_sensor(a.sensor.as_deref(), &loaded)?;
+            project_points(&loaded, &sensor)?
+        };
+        outputs.push((p.clone(), encode_png(&render_range(&img, &RangePreview::default()))?));
+    }
+    if let (Some(ip), Some(cp), Some(op)) = (&a.image, &a.calib, &a.overlay) {
+        let image = read_rgb_image(ip)?;
+        let camera = camera_from_calib_file(cp, image.width(), image.height(), &a.camera)?;
+        let min_depth = if loaded.format == PointFormat::NuScenesPcdBin { 1.0 } else { 0.1 };
+        let ov = render_overlay(&image, &camera, &loaded.cloud.xyz, &OverlayOptions { min_depth_m: min_depth, ..Default::default() })?;
+        println!("overlay: {} points land in the {}x{} image", ov.drawn, image.width(), image.height());
+        outputs.push((op.clone(), encode_png(&ov.image)?));
+    }
+    write_all(&outputs)
+}

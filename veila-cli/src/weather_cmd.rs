@@ -1,0 +1,141 @@
+//! `veila weather`: physical weather on a real scan (and optionally its camera image).
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Subcommand};
+use veila_data::weather::files::{FrameFiles, FrameOutputs, output_image_name, output_scan_name, process_frame};
+use veila_data::weather::{Headlights, Preset, Sensor, TimeOfDay, Weather, WeatherConfig, WeatherSim};
+
+/// Weather commands.
+#[derive(Debug, Subcommand)]
+pub enum WeatherCmd {
+    /// Apply physical weather (fog, rain, snow, wet road, night) to a LiDAR scan and optionally its
+    /// camera image. Only the effects asked for run; with none, the outputs are byte-identical copies.
+    /// Writes OUT/<scan name> (input format), OUT/<image stem>.png and OUT/effects.json.
+    Weather(WeatherArgs),
+}
+
+/// Arguments of `veila weather`.
+#[derive(Debug, Args)]
+pub struct WeatherArgs {
+    /// The scan: KITTI .bin, nuScenes .pcd.bin or PLY.
+    pub scan: PathBuf,
+    /// The camera image (PNG or JPEG) seen with the scan.
+    #[arg(long)]
+    pub image: Option<PathBuf>,
+    /// KITTI calibration (calib/NNNNNN.txt or odometry calib.txt): intrinsics and the depth map that
+    /// camera fog, particles and headlights need.
+    #[arg(long)]
+    pub calib: Option<PathBuf>,
+    /// SemanticKITTI .label file: the road mask for wet ground (else a plane fit).
+    #[arg(long)]
+    pub labels: Option<PathBuf>,
+    /// Start from a preset (clear, fog-light|moderate|heavy, rain-*, snow-*, kitti-clean|night|fog|snow);
+    /// the options below override its fields.
+    #[arg(long, value_parser = parse_preset)]
+    pub preset: Option<Preset>,
+    /// Fog visibility (meteorological optical range), metres (>= 10).
+    #[arg(long, value_name = "M")]
+    pub fog_visibility: Option<f64>,
+    /// Rain rate, mm/h.
+    #[arg(long, value_name = "MM_H")]
+    pub rain_rate: Option<f64>,
+    /// Snowfall rate, mm/h.
+    #[arg(long, value_name = "MM_H")]
+    pub snowfall_rate: Option<f64>,
+    /// Snowflake terminal velocity, m/s (default 1.6).
+    #[arg(long, value_name = "M_S")]
+    pub snow_terminal_velocity: Option<f64>,
+    /// Water film depth on the road, mm.
+    #[arg(long, value_name = "MM")]
+    pub wet_ground_mm: Option<f64>,
+    /// Time of day (camera only): day, dusk or night.
+    #[arg(long, value_parser = parse_time)]
+    pub time_of_day: Option<TimeOfDay>,
+    /// Switch the ego vehicle's headlights on at dusk / night.
+    #[arg(long)]
+    pub headlights: bool,
+    /// Seed of every random draw.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Output folder (created if missing).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+fn parse_preset(s: &str) -> Result<Preset, String> {
+    s.parse().map_err(|e: veila_data::Error| e.to_string())
+}
+
+fn parse_time(s: &str) -> Result<TimeOfDay, String> {
+    s.parse().map_err(|e: veila_data::Error| e.to_string())
+}
+
+/// Build the weather from the preset and the overrides.
+pub fn weather_from_args(a: &WeatherArgs) -> Weather {
+    let mut w = a.preset.map(Preset::weather).unwrap_or_default();
+    if let Some(v) = a.fog_visibility {
+        w.fog_visibility_m = Some(v);
+    }
+    if let Some(v) = a.rain_rate {
+        w.rain_rate_mm_h = v;
+    }
+    if let Some(v) = a.snowfall_rate {
+        w.snowfall_rate_mm_h = v;
+    }
+    if let Some(v) = a.snow_terminal_velocity {
+        w.snow_terminal_velocity_m_s = v;
+    }
+    if let Some(v) = a.wet_ground_mm {
+        w.water_depth_mm = v;
+    }
+    if let Some(t) = a.time_of_day {
+        w.time_of_day = t;
+    }
+    w.seed = a.seed;
+    w
+}
+
+/// Run a weather command.
+pub fn run(cmd: WeatherCmd) -> Result<()> {
+    match cmd {
+        WeatherCmd::Weather(a) => run_weather(&a),
+    }
+}
+
+fn run_weather(a: &WeatherArgs) -> Result<()> {
+    let weather = weather_from_args(a);
+    let mut cfg = WeatherConfig::default();
+    if a.headlights {
+        cfg.camera.headlights = Some(Headlights::default());
+    }
+    let sim = WeatherSim::new(&weather, &cfg).context("invalid weather")?;
+    if a.image.is_none() && a.calib.is_some() {
+        bail!("--calib is only used with --image");
+    }
+    std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
+    let outputs = FrameOutputs {
+        scan: a.out.join(output_scan_name(&a.scan)?),
+        image: a.image.as_deref().map(output_image_name).transpose()?.map(|n| a.out.join(n)),
+    };
+    if outputs.scan == a.scan || outputs.image.as_ref().is_some_and(|p| Some(p) == a.image.as_ref()) {
+        bail!("--out {} would overwrite an input file", a.out.display());
+    }
+    let files = FrameFiles { scan: a.scan.clone(), image: a.image.clone(), calib: a.calib.clone(), labels: a.labels.clone() };
+    let report = process_frame(&sim, &files, &outputs)?;
+    let json = report.to_json()?;
+    veila_data::atomic::write_atomic(&a.out.join("effects.json"), json.as_bytes())?;
+    let show = |s: Sensor| {
+        let n = report.names(s);
+        if n.is_empty() { "none (identity)".to_string() } else { n.join(", ") }
+    };
+    eprintln!(
+        "alpha {:.3e} 1/m; lidar: {}; camera: {}",
+        report.alpha_total_per_m,
+        show(Sensor::Lidar),
+        if a.image.is_some() { show(Sensor::Camera) } else { "no image".into() }
+    );
+    eprintln!("wrote {}", a.out.display());
+    Ok(())
+}

@@ -1,0 +1,309 @@
+//! Dataset -> training shards: project every frame, write fixed-size shards atomically, skip shards
+//! that are already complete (verified by checksum), split the work across independent workers.
+//!
+//! # Guarantees
+//!
+//! - **Bounded memory**: frames are read, projected and written one shard (`frames_per_shard`
+//!   frames) at a time; nothing is kept across shards but small manifest entries.
+//! - **Atomic**: every shard and its sidecar (`shard-NNNNN.safetensors.json`) are written to a
+//!   temporary file and renamed; killing the process at any moment leaves complete files only.
+//! - **Resumable**: a shard whose sidecar exists, was made with the same settings and matches the
+//!   shard file's size and SHA-256 is skipped; anything else is rebuilt.
+//! - **Shardable**: worker `i` of `n` converts the shards `k` with `k % n == i`, so the same command
+//!   runs as a Slurm array or a Kubernetes Indexed Job. Whichever worker finds every shard complete
+//!   writes `manifest.json`.
+
+use std::path::{Path, PathBuf};
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use veila_geom::{BeamLayout, LidarSensor, ProjectionOptions, ProjectionStats, Projector, RowSource};
+
+use crate::dataset::{Dataset, Frame};
+use crate::semantic_kitti::LabelMap;
+use crate::shard::{
+    CameraMatrices, MANIFEST_FORMAT, Manifest, ShardEntry, ShardSample, sha256_file, sha256_hex, write_shard,
+};
+use crate::{Error, Result};
+
+/// Conversion settings.
+#[derive(Debug, Clone)]
+pub struct ConvertOptions {
+    /// Output folder (created if missing).
+    pub out_dir: PathBuf,
+    /// The sensor to project with.
+    pub sensor: LidarSensor,
+    /// Frames per shard (memory use is about this many frames).
+    pub frames_per_shard: usize,
+    /// This worker's index, `0..worker_count`.
+    pub worker_index: usize,
+    /// Number of workers.
+    pub worker_count: usize,
+    /// Store the camera image in every sample.
+    pub include_images: bool,
+    /// Projection options.
+    pub projection: ProjectionOptions,
+}
+
+impl ConvertOptions {
+    /// Defaults: 64 frames per shard, one worker, images included.
+    pub fn new(out_dir: impl Into<PathBuf>, sensor: LidarSensor) -> Self {
+        ConvertOptions {
+            out_dir: out_dir.into(),
+            sensor,
+            frames_per_shard: 64,
+            worker_index: 0,
+            worker_count: 1,
+            include_images: true,
+            projection: ProjectionOptions::default(),
+        }
+    }
+}
+
+/// What one conversion run did.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct ConvertSummary {
+    /// Shards in the whole dataset.
+    pub total_shards: usize,
+    /// Shards this worker is responsible for.
+    pub assigned_shards: usize,
+    /// Shards written in this run.
+    pub written_shards: usize,
+    /// Shards found complete and skipped.
+    pub skipped_shards: usize,
+    /// Frames converted in this run.
+    pub frames: usize,
+    /// Points dropped for non-finite values.
+    pub dropped_non_finite: usize,
+    /// Points read.
+    pub points_in: usize,
+    /// Pixels written.
+    pub pixels_written: usize,
+    /// Points that lost their pixel to a nearer point.
+    pub occluded: usize,
+    /// Points rejected by the projection (range or field of view).
+    pub rejected: usize,
+    /// True when this run wrote `manifest.json` (every shard was complete).
+    pub manifest_written: bool,
+}
+
+/// Progress events, for a progress bar.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Progress {
+    /// The run starts: this many frames are assigned to this worker.
+    Start {
+        /// Frames assigned to this worker.
+        frames: usize,
+    },
+    /// Frames finished (converted or found complete).
+    Frames(usize),
+}
+
+/// Sidecar written next to every shard: its manifest entry and the settings fingerprint.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct Sidecar {
+    fingerprint: String,
+    entry: ShardEntry,
+}
+
+/// Project one frame into a training sample. Intensity is divided by `intensity_max`; labels become
+/// train ids through `label_map`, when given.
+pub fn frame_to_sample(
+    frame: &Frame,
+    projector: &Projector,
+    intensity_max: f32,
+    label_map: Option<&LabelMap>,
+    include_image: bool,
+) -> Result<(ShardSample, ProjectionStats)> {
+    let pts = &frame.points;
+    let uses_ring = matches!(
+        projector.sensor().beams,
+        BeamLayout::PerBeam { row_source: RowSource::Ring, .. }
+    );
+    let rings = if uses_ring {
+        Some(pts.ring.as_deref().ok_or_else(|| Error::Invalid {
+            what: "sensor".into(),
+            message: format!("frame {}: the sensor takes rows from rings but the scan has none", frame.id),
+        })?)
+    } else {
+        None
+    };
+    let scale = if intensity_max > 0.0 { 1.0 / intensity_max } else { 1.0 };
+    let intensity: Vec<f32> = pts.intensity.iter().map(|i| i * scale).collect();
+    let (mut img, stats) = projector.project(&pts.xyz, Some(&intensity), rings)?;
+    if let Some(l) = &pts.label {
+        img.gather_labels(l)?;
+    }
+    let label = match (&img.label, label_map) {
+        (Some(raw), Some(map)) => Some(map.train_ids(raw)),
+        _ => None,
+    };
+    let sample = ShardSample {
+        id: frame.id.clone(),
+        mask: img.mask.iter().map(|m| u8::from(*m)).collect(),
+        range_m: img.range_m,
+        intensity: img.intensity,
+        label,
+        label_raw: img.label,
+        image: if include_image { frame.image.clone() } else { None },
+        camera: frame.camera.as_ref().map(CameraMatrices::from_camera),
+    };
+    Ok((sample, stats))
+}
+
+fn fingerprint(dataset: &dyn Dataset, opts: &ConvertOptions) -> Result<String> {
+    let desc = serde_json::json!({
+        "format": MANIFEST_FORMAT,
+        "dataset": dataset.name(),
+        "frames": dataset.len(),
+        "first": if dataset.is_empty() { String::new() } else { dataset.frame_id(0) },
+        "last": if dataset.is_empty() { String::new() } else { dataset.frame_id(dataset.len() - 1) },
+        "sensor": opts.sensor,
+        "frames_per_shard": opts.frames_per_shard,
+        "images": opts.include_images,
+        "projection": format!("{:?}", opts.projection),
+    });
+    Ok(sha256_hex(desc.to_string().as_bytes())[..16].to_string())
+}
+
+/// File name of shard `k`.
+pub fn shard_file_name(k: usize) -> String {
+    format!("shard-{k:05}.safetensors")
+}
+
+fn sidecar_path(out: &Path, k: usize) -> PathBuf {
+    out.join(format!("{}.json", shard_file_name(k)))
+}
+
+/// The sidecar's entry when shard `k` is complete and was made with these settings.
+fn complete_entry(out: &Path, k: usize, fp: &str) -> Option<ShardEntry> {
+    let text = std::fs::read_to_string(sidecar_path(out, k)).ok()?;
+    let sc: Sidecar = serde_json::from_str(&text).ok()?;
+    if sc.fingerprint != fp {
+        return None;
+    }
+    let (sha, bytes) = sha256_file(&out.join(&sc.entry.file)).ok()?;
+    (sha == sc.entry.sha256 && bytes == sc.entry.bytes).then_some(sc.entry)
+}
+
+/// Convert `dataset` into shards under `opts.out_dir` (see the module docs).
+pub fn convert(
+    dataset: &dyn Dataset,
+    label_map: Option<&LabelMap>,
+    opts: &ConvertOptions,
+    progress: &(dyn Fn(Progress) + Sync),
+) -> Result<ConvertSummary> {
+    if opts.frames_per_shard == 0 {
+        return Err(Error::Invalid { what: "frames per shard".into(), message: "must be at least 1".into() });
+    }
+    if opts.worker_count == 0 || opts.worker_index >= opts.worker_count {
+        return Err(Error::Invalid {
+            what: "shard selection".into(),
+            message: format!("index {} is not in 0..{}", opts.worker_index, opts.worker_count),
+        });
+    }
+    let projector = Projector::new(&opts.sensor, opts.projection)?;
+    let out = &opts.out_dir;
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    // probe writability up front, so a read-only folder fails before any work
+    crate::atomic::write_atomic(&out.join(".veila-write-probe"), b"")?;
+    let _ = std::fs::remove_file(out.join(".veila-write-probe"));
+
+    let fp = fingerprint(dataset, opts)?;
+    let n = dataset.len();
+    let fps = opts.frames_per_shard;
+    let total_shards = n.div_ceil(fps);
+    let mine: Vec<usize> = (0..total_shards).filter(|k| k % opts.worker_count == opts.worker_index).collect();
+    let my_frames: usize = mine.iter().map(|k| (n - k * fps).min(fps)).sum();
+    progress(Progress::Start { frames: my_frames });
+    let mut summary = ConvertSummary { total_shards, assigned_shards: mine.len(), ..Default::default() };
+    let intensity_max = dataset.intensity_max();
+
+    for &k in &mine {
+        let range = k * fps..((k + 1) * fps).min(n);
+        let count = range.len();
+        if complete_entry(out, k, &fp).is_some() {
+            summary.skipped_shards += 1;
+            progress(Progress::Frames(count));
+            continue;
+        }
+        let results: Vec<Result<(ShardSample, ProjectionStats, usize)>> = range
+            .into_par_iter()
+            .map(|i| {
+                let frame = dataset.load(i)?;
+                let (s, st) = frame_to_sample(&frame, &projector, intensity_max, label_map, opts.include_images)?;
+                progress(Progress::Frames(1));
+                Ok((s, st, frame.dropped_non_finite))
+            })
+            .collect();
+        let mut samples = Vec::with_capacity(count);
+        for r in results {
+            let (s, st, dropped) = r?;
+            summary.frames += 1;
+            summary.dropped_non_finite += dropped;
+            summary.points_in += st.input;
+            summary.pixels_written += st.written;
+            summary.occluded += st.occluded;
+            summary.rejected += st.rejected.total();
+            samples.push(s);
+        }
+        let path = out.join(shard_file_name(k));
+        let entry = write_shard(&path, &opts.sensor, dataset.name(), &samples)?;
+        drop(samples);
+        let sc = Sidecar { fingerprint: fp.clone(), entry };
+        let text = serde_json::to_string_pretty(&sc)
+            .map_err(|e| Error::Invalid { what: "sidecar".into(), message: e.to_string() })?;
+        crate::atomic::write_atomic(&sidecar_path(out, k), text.as_bytes())?;
+        summary.written_shards += 1;
+    }
+
+    // the manifest, once every shard (from any worker) is complete
+    let mut entries = Vec::with_capacity(total_shards);
+    for k in 0..total_shards {
+        let mine_now = k % opts.worker_count == opts.worker_index;
+        // our own shards were verified or written above; re-hashing them would double the IO
+        let entry = if mine_now {
+            std::fs::read_to_string(sidecar_path(out, k))
+                .ok()
+                .and_then(|t| serde_json::from_str::<Sidecar>(&t).ok())
+                .filter(|s| s.fingerprint == fp)
+                .map(|s| s.entry)
+        } else {
+            complete_entry(out, k, &fp)
+        };
+        match entry {
+            Some(e) => entries.push(e),
+            None => return Ok(summary),
+        }
+    }
+    let manifest = Manifest {
+        format: MANIFEST_FORMAT.into(),
+        dataset: dataset.name().into(),
+        sensor: opts.sensor.clone(),
+        frames_per_shard: fps,
+        count: n,
+        shards: entries,
+    };
+    manifest.write(&out.join("manifest.json"))?;
+    summary.manifest_written = true;
+    Ok(summary)
+}
+
+/// Open a dataset by name (`kitti`, `semantickitti`, `nuscenes`) for conversion; nuScenes pairs with
+/// `CAM_FRONT`. Returns the dataset and its label map (SemanticKITTI with `semantic-kitti.yaml`).
+pub fn open_dataset(name: &str, root: &Path, load_images: bool) -> Result<(Box<dyn Dataset>, Option<LabelMap>)> {
+    match name {
+        "kitti" => Ok((Box::new(crate::kitti::KittiObjectDataset::open(root)?.with_images(load_images)), None)),
+        "semantickitti" => {
+            let ds = crate::semantic_kitti::SemanticKittiDataset::open(root, crate::semantic_kitti::Sequences::All)?
+                .with_images(load_images);
+            let map = ds.label_map().cloned();
+            Ok((Box::new(ds), map))
+        }
+        "nuscenes" => Ok((Box::new(crate::nuscenes::NuScenesDataset::open(root, "CAM_FRONT")?.with_images(load_images)), None)),
+        other => Err(Error::Invalid {
+            what: "dataset".into(),
+            message: format!("`{other}` is not one of kitti, semantickitti, nuscenes"),
+        }),
+    }
+}

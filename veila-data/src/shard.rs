@@ -1,0 +1,480 @@
+//! Training shards: safetensors files of range images, camera images and camera matrices, with the
+//! sensor in the metadata, listed in a JSON manifest with per-shard SHA-256 checksums.
+//!
+//! # Layout of one shard
+//!
+//! Sample `k` of a shard (`k` = 0, 1, ... as a 5-digit number) holds the tensors
+//!
+//! | name                  | dtype | shape       | content                                           |
+//! |-----------------------|-------|-------------|---------------------------------------------------|
+//! | `NNNNN/range_m`       | F32   | `[h, w]`    | range in metres, 0 where empty                    |
+//! | `NNNNN/intensity`     | F32   | `[h, w]`    | intensity scaled to `[0, 1]`, 0 where empty       |
+//! | `NNNNN/mask`          | U8    | `[h, w]`    | 1 where the pixel holds a return                  |
+//! | `NNNNN/label`         | U8    | `[h, w]`    | train id 0..19 (when a label map is known)        |
+//! | `NNNNN/label_raw`     | U32   | `[h, w]`    | raw dataset label (when the dataset has labels)   |
+//! | `NNNNN/image`         | U8    | `[H, W, 3]` | the camera image, RGB                             |
+//! | `NNNNN/intrinsics`    | F32   | `[3, 4]`    | `K`, row-major                                    |
+//! | `NNNNN/cam_from_lidar`| F32   | `[4, 4]`    | `T`, row-major                                    |
+//!
+//! and the string metadata `format` ([`SHARD_FORMAT`]), `sensor` (JSON of [`LidarSensor`]), `count`,
+//! `ids` (JSON list of frame ids) and `dataset`.
+
+use std::collections::HashMap;
+use std::io::Read;
+use std::path::Path;
+
+use glam::Mat4;
+use image::RgbImage;
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use veila_geom::{LidarSensor, PinholeCamera};
+
+use crate::atomic::write_atomic_with;
+use crate::{Error, Result};
+
+/// The `format` metadata of every shard.
+pub const SHARD_FORMAT: &str = "veila-shard/1";
+/// The `format` field of every manifest.
+pub const MANIFEST_FORMAT: &str = "veila-manifest/1";
+
+/// One training sample.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ShardSample {
+    /// Frame id in its dataset.
+    pub id: String,
+    /// Range, metres, `rows x cols` row-major.
+    pub range_m: Vec<f32>,
+    /// Intensity in `[0, 1]`.
+    pub intensity: Vec<f32>,
+    /// 1 where the pixel holds a return.
+    pub mask: Vec<u8>,
+    /// Train ids (0 = ignored).
+    pub label: Option<Vec<u8>>,
+    /// Raw dataset labels.
+    pub label_raw: Option<Vec<u32>>,
+    /// Camera image.
+    pub image: Option<RgbImage>,
+    /// `K` (3x4, row-major) and `cam_from_lidar` (4x4, row-major).
+    pub camera: Option<CameraMatrices>,
+}
+
+/// Camera matrices as stored in a shard.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraMatrices {
+    /// `K`, row-major 3x4.
+    pub intrinsics: [[f32; 4]; 3],
+    /// `T` (camera from LiDAR), row-major 4x4.
+    pub cam_from_lidar: [[f32; 4]; 4],
+}
+
+impl CameraMatrices {
+    /// From a pinhole camera.
+    pub fn from_camera(c: &PinholeCamera) -> Self {
+        let k = c.intrinsics.transpose().to_cols_array_2d();
+        CameraMatrices {
+            intrinsics: [k[0], k[1], k[2]],
+            cam_from_lidar: c.cam_from_lidar.transpose().to_cols_array_2d(),
+        }
+    }
+
+    /// Back to a pinhole camera for an image of `width x height`.
+    pub fn to_camera(&self, width: u32, height: u32) -> Result<PinholeCamera> {
+        let t = Mat4::from_cols_array_2d(&self.cam_from_lidar).transpose();
+        Ok(PinholeCamera::new(self.intrinsics, t, width, height)?)
+    }
+}
+
+/// A shard read back.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Shard {
+    /// The sensor of every range image.
+    pub sensor: LidarSensor,
+    /// The dataset name.
+    pub dataset: String,
+    /// The samples, in order.
+    pub samples: Vec<ShardSample>,
+}
+
+struct OwnedTensor {
+    dtype: Dtype,
+    shape: Vec<usize>,
+    data: Vec<u8>,
+}
+
+impl safetensors::View for &OwnedTensor {
+    fn dtype(&self) -> Dtype {
+        self.dtype
+    }
+    fn shape(&self) -> &[usize] {
+        &self.shape
+    }
+    fn data(&self) -> std::borrow::Cow<'_, [u8]> {
+        std::borrow::Cow::Borrowed(&self.data)
+    }
+    fn data_len(&self) -> usize {
+        self.data.len()
+    }
+}
+
+fn bytes_f32(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+fn bytes_u32(v: &[u32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// Encode samples as safetensors bytes. Every sample must match the sensor's size.
+pub fn encode_shard(sensor: &LidarSensor, dataset: &str, samples: &[ShardSample]) -> Result<Vec<u8>> {
+    sensor.validate()?;
+    let (h, w) = (sensor.rows as usize, sensor.cols as usize);
+    let n = h * w;
+    let mut tensors: Vec<(String, OwnedTensor)> = Vec::new();
+    for (k, s) in samples.iter().enumerate() {
+        let bad = |what: &str, len: usize| Error::Mismatch {
+            context: format!("shard sample {} ({})", k, s.id),
+            message: format!("{what} has {len} values, the {h}x{w} sensor needs {n}"),
+        };
+        if s.range_m.len() != n {
+            return Err(bad("range_m", s.range_m.len()));
+        }
+        if s.intensity.len() != n {
+            return Err(bad("intensity", s.intensity.len()));
+        }
+        if s.mask.len() != n {
+            return Err(bad("mask", s.mask.len()));
+        }
+        let p = format!("{k:05}");
+        let mut put = |name: &str, dtype, shape: Vec<usize>, data| {
+            tensors.push((format!("{p}/{name}"), OwnedTensor { dtype, shape, data }));
+        };
+        put("range_m", Dtype::F32, vec![h, w], bytes_f32(&s.range_m));
+        put("intensity", Dtype::F32, vec![h, w], bytes_f32(&s.intensity));
+        put("mask", Dtype::U8, vec![h, w], s.mask.clone());
+        if let Some(l) = &s.label {
+            if l.len() != n {
+                return Err(bad("label", l.len()));
+            }
+            put("label", Dtype::U8, vec![h, w], l.clone());
+        }
+        if let Some(l) = &s.label_raw {
+            if l.len() != n {
+                return Err(bad("label_raw", l.len()));
+            }
+            put("label_raw", Dtype::U32, vec![h, w], bytes_u32(l));
+        }
+        if let Some(img) = &s.image {
+            let (iw, ih) = img.dimensions();
+            put("image", Dtype::U8, vec![ih as usize, iw as usize, 3], img.as_raw().clone());
+        }
+        if let Some(c) = &s.camera {
+            let k: Vec<f32> = c.intrinsics.iter().flatten().copied().collect();
+            let t: Vec<f32> = c.cam_from_lidar.iter().flatten().copied().collect();
+            put("intrinsics", Dtype::F32, vec![3, 4], bytes_f32(&k));
+            put("cam_from_lidar", Dtype::F32, vec![4, 4], bytes_f32(&t));
+        }
+    }
+    let ids: Vec<&str> = samples.iter().map(|s| s.id.as_str()).collect();
+    let meta: HashMap<String, String> = [
+        ("format".to_string(), SHARD_FORMAT.to_string()),
+        ("sensor".to_string(), json(sensor)?),
+        ("count".to_string(), samples.len().to_string()),
+        ("ids".to_string(), json(&ids)?),
+        ("dataset".to_string(), dataset.to_string()),
+    ]
+    .into_iter()
+    .collect();
+    safetensors::serialize(tensors.iter().map(|(k, t)| (k.clone(), t)), Some(meta))
+        .map_err(|e| Error::Invalid { what: "shard".into(), message: format!("safetensors encoding failed: {e}") })
+}
+
+fn json<T: Serialize + ?Sized>(v: &T) -> Result<String> {
+    serde_json::to_string(v).map_err(|e| Error::Invalid { what: "JSON".into(), message: e.to_string() })
+}
+
+/// Hex SHA-256 of bytes.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    hex(&Sha256::digest(bytes))
+}
+
+fn hex(d: &[u8]) -> String {
+    d.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// Hex SHA-256 and size of a file, streamed.
+pub fn sha256_file(path: &Path) -> Result<(String, u64)> {
+    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut h = Sha256::new();
+    let mut buf = vec![0u8; 1 << 20];
+    let mut total = 0u64;
+    loop {
+        let k = f.read(&mut buf).map_err(|e| Error::io(path, e))?;
+        if k == 0 {
+            break;
+        }
+        total += k as u64;
+        h.update(&buf[..k]);
+    }
+    Ok((hex(&h.finalize()), total))
+}
+
+/// Write a shard atomically and return its manifest entry (file name, count, size, checksum).
+pub fn write_shard(
+    path: &Path,
+    sensor: &LidarSensor,
+    dataset: &str,
+    samples: &[ShardSample],
+) -> Result<ShardEntry> {
+    let bytes = encode_shard(sensor, dataset, samples)?;
+    let sha256 = sha256_hex(&bytes);
+    write_atomic_with(path, |w| std::io::Write::write_all(w, &bytes))?;
+    Ok(ShardEntry {
+        file: path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default(),
+        count: samples.len(),
+        bytes: bytes.len() as u64,
+        sha256,
+        ids: samples.iter().map(|s| s.id.clone()).collect(),
+    })
+}
+
+fn tensor<'a>(st: &SafeTensors<'a>, name: &str, path: &Path) -> Result<Option<TensorView<'a>>> {
+    match st.tensor(name) {
+        Ok(t) => Ok(Some(t)),
+        Err(safetensors::SafeTensorError::TensorNotFound(_)) => Ok(None),
+        Err(e) => Err(Error::format(path, format!("tensor {name}: {e}"))),
+    }
+}
+
+fn expect(t: &TensorView<'_>, dtype: Dtype, shape: &[usize], name: &str, path: &Path) -> Result<()> {
+    if t.dtype() != dtype || t.shape() != shape {
+        return Err(Error::format(
+            path,
+            format!("tensor {name}: expected {dtype:?} {shape:?}, found {:?} {:?}", t.dtype(), t.shape()),
+        ));
+    }
+    Ok(())
+}
+
+fn f32s(b: &[u8]) -> Vec<f32> {
+    b.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+}
+
+/// Decode shard bytes (`path` names the source in errors).
+pub fn decode_shard(bytes: &[u8], path: &Path) -> Result<Shard> {
+    let fmt = |m: String| Error::format(path, m);
+    let st = SafeTensors::deserialize(bytes).map_err(|e| fmt(format!("not a safetensors file: {e}")))?;
+    let (_, meta) = SafeTensors::read_metadata(bytes).map_err(|e| fmt(format!("bad header: {e}")))?;
+    let meta = meta.metadata().clone().unwrap_or_default();
+    let get = |k: &str| meta.get(k).ok_or_else(|| fmt(format!("shard metadata has no `{k}`")));
+    if get("format")? != SHARD_FORMAT {
+        return Err(fmt(format!("unsupported shard format `{}`", get("format")?)));
+    }
+    let sensor: LidarSensor =
+        serde_json::from_str(get("sensor")?).map_err(|e| fmt(format!("bad sensor metadata: {e}")))?;
+    sensor.validate().map_err(|e| fmt(format!("bad sensor metadata: {e}")))?;
+    let ids: Vec<String> = serde_json::from_str(get("ids")?).map_err(|e| fmt(format!("bad ids metadata: {e}")))?;
+    let count: usize = get("count")?.parse().map_err(|_| fmt("bad count metadata".into()))?;
+    if ids.len() != count {
+        return Err(fmt(format!("metadata count {count} but {} ids", ids.len())));
+    }
+    let (h, w) = (sensor.rows as usize, sensor.cols as usize);
+    let mut samples = Vec::with_capacity(count);
+    for (k, id) in ids.into_iter().enumerate() {
+        let p = format!("{k:05}");
+        let req = |name: &str| -> Result<TensorView<'_>> {
+            tensor(&st, &format!("{p}/{name}"), path)?.ok_or_else(|| fmt(format!("missing tensor {p}/{name}")))
+        };
+        let range = req("range_m")?;
+        expect(&range, Dtype::F32, &[h, w], "range_m", path)?;
+        let inten = req("intensity")?;
+        expect(&inten, Dtype::F32, &[h, w], "intensity", path)?;
+        let mask = req("mask")?;
+        expect(&mask, Dtype::U8, &[h, w], "mask", path)?;
+        let label = match tensor(&st, &format!("{p}/label"), path)? {
+            Some(t) => {
+                expect(&t, Dtype::U8, &[h, w], "label", path)?;
+                Some(t.data().to_vec())
+            }
+            None => None,
+        };
+        let label_raw = match tensor(&st, &format!("{p}/label_raw"), path)? {
+            Some(t) => {
+                expect(&t, Dtype::U32, &[h, w], "label_raw", path)?;
+                Some(t.data().chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect())
+            }
+            None => None,
+        };
+        let image = match tensor(&st, &format!("{p}/image"), path)? {
+            Some(t) => {
+                let s = t.shape().to_vec();
+                if t.dtype() != Dtype::U8 || s.len() != 3 || s[2] != 3 {
+                    return Err(fmt(format!("tensor {p}/image: expected U8 [H, W, 3], found {:?} {s:?}", t.dtype())));
+                }
+                Some(
+                    RgbImage::from_raw(s[1] as u32, s[0] as u32, t.data().to_vec())
+                        .ok_or_else(|| fmt(format!("tensor {p}/image: size mismatch")))?,
+                )
+            }
+            None => None,
+        };
+        let camera = match (tensor(&st, &format!("{p}/intrinsics"), path)?, tensor(&st, &format!("{p}/cam_from_lidar"), path)?) {
+            (Some(k), Some(t)) => {
+                expect(&k, Dtype::F32, &[3, 4], "intrinsics", path)?;
+                expect(&t, Dtype::F32, &[4, 4], "cam_from_lidar", path)?;
+                let (kv, tv) = (f32s(k.data()), f32s(t.data()));
+                let mut intrinsics = [[0f32; 4]; 3];
+                let mut cam_from_lidar = [[0f32; 4]; 4];
+                for r in 0..3 {
+                    intrinsics[r].copy_from_slice(&kv[r * 4..r * 4 + 4]);
+                }
+                for r in 0..4 {
+                    cam_from_lidar[r].copy_from_slice(&tv[r * 4..r * 4 + 4]);
+                }
+                Some(CameraMatrices { intrinsics, cam_from_lidar })
+            }
+            (None, None) => None,
+            _ => return Err(fmt(format!("sample {p}: intrinsics and cam_from_lidar must come together"))),
+        };
+        samples.push(ShardSample {
+            id,
+            range_m: f32s(range.data()),
+            intensity: f32s(inten.data()),
+            mask: mask.data().to_vec(),
+            label,
+            label_raw,
+            image,
+            camera,
+        });
+    }
+    Ok(Shard { sensor, dataset: meta.get("dataset").cloned().unwrap_or_default(), samples })
+}
+
+/// Read a shard file.
+pub fn read_shard(path: &Path) -> Result<Shard> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    decode_shard(&bytes, path)
+}
+
+/// One shard in a manifest.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ShardEntry {
+    /// File name, relative to the manifest's folder.
+    pub file: String,
+    /// Number of samples.
+    pub count: usize,
+    /// File size in bytes.
+    pub bytes: u64,
+    /// Hex SHA-256 of the file.
+    pub sha256: String,
+    /// Frame ids, in order.
+    pub ids: Vec<String>,
+}
+
+/// The manifest of a converted dataset (`manifest.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    /// Always [`MANIFEST_FORMAT`].
+    pub format: String,
+    /// Dataset name.
+    pub dataset: String,
+    /// The sensor of every range image.
+    pub sensor: LidarSensor,
+    /// Frames per shard (the last shard may hold fewer).
+    pub frames_per_shard: usize,
+    /// Total number of samples.
+    pub count: usize,
+    /// The shards, in order.
+    pub shards: Vec<ShardEntry>,
+}
+
+impl Manifest {
+    /// Read `manifest.json`.
+    pub fn read(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let m: Manifest =
+            serde_json::from_str(&text).map_err(|e| Error::format(path, format!("not a shard manifest: {e}")))?;
+        if m.format != MANIFEST_FORMAT {
+            return Err(Error::format(path, format!("unsupported manifest format `{}`", m.format)));
+        }
+        let sum: usize = m.shards.iter().map(|s| s.count).sum();
+        if sum != m.count {
+            return Err(Error::format(path, format!("count {} but the shards hold {sum}", m.count)));
+        }
+        Ok(m)
+    }
+
+    /// Write atomically.
+    pub fn write(&self, path: &Path) -> Result<()> {
+        let text = serde_json::to_string_pretty(self)
+            .map_err(|e| Error::Invalid { what: "manifest".into(), message: e.to_string() })?;
+        crate::atomic::write_atomic(path, text.as_bytes())
+    }
+
+    /// Check every shard file in `dir` against its size and checksum.
+    pub fn verify(&self, dir: &Path) -> Result<()> {
+        for s in &self.shards {
+            let p = dir.join(&s.file);
+            let (sha, bytes) = sha256_file(&p)?;
+            if bytes != s.bytes || sha != s.sha256 {
+                return Err(Error::format(
+                    &p,
+                    format!("checksum mismatch: manifest says {} bytes sha256 {}, file has {bytes} bytes sha256 {sha}", s.bytes, s.sha256),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample(id: &str, sensor: &LidarSensor, seed: u32) -> ShardSample {
+        let n = sensor.num_pixels();
+        ShardSample {
+            id: id.into(),
+            range_m: (0..n).map(|i| (i as u32 ^ seed) as f32 * 0.25).collect(),
+            intensity: (0..n).map(|i| (i % 7) as f32 / 7.0).collect(),
+            mask: (0..n).map(|i| (i % 3 != 0) as u8).collect(),
+            label: Some((0..n).map(|i| (i % 20) as u8).collect()),
+            label_raw: Some((0..n).map(|i| (i as u32) << 16 | 40).collect()),
+            image: Some(RgbImage::from_fn(5, 3, |x, y| image::Rgb([x as u8, y as u8, seed as u8]))),
+            camera: Some(CameraMatrices {
+                intrinsics: [[700.0, 0.0, 600.0, 45.0], [0.0, 700.0, 180.0, 0.0], [0.0, 0.0, 1.0, 0.005]],
+                cam_from_lidar: [[0.0, -1.0, 0.0, 0.1], [0.0, 0.0, -1.0, 0.2], [1.0, 0.0, 0.0, 0.3], [0.0, 0.0, 0.0, 1.0]],
+            }),
+        }
+    }
+
+    #[test]
+    fn shard_round_trip_and_checksums() {
+        let sensor = LidarSensor { rows: 4, cols: 8, ..LidarSensor::hdl64e() };
+        let samples = vec![sample("a", &sensor, 1), ShardSample { label: None, label_raw: None, image: None, camera: None, ..sample("b", &sensor, 2) }];
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("shard-00000.safetensors");
+        let entry = write_shard(&p, &sensor, "test", &samples).unwrap();
+        assert_eq!(entry.count, 2);
+        assert_eq!(sha256_file(&p).unwrap(), (entry.sha256.clone(), entry.bytes));
+        let back = read_shard(&p).unwrap();
+        assert_eq!(back.sensor, sensor);
+        assert_eq!(back.samples, samples);
+        let m = Manifest { format: MANIFEST_FORMAT.into(), dataset: "test".into(), sensor, frames_per_shard: 2, count: 2, shards: vec![entry] };
+        m.verify(dir.path()).unwrap();
+        // corrupt one byte: verify names the file
+        let mut bytes = std::fs::read(&p).unwrap();
+        let last = bytes.len() - 1;
+        bytes[last] ^= 1;
+        std::fs::write(&p, &bytes).unwrap();
+        let e = m.verify(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("shard-00000.safetensors") && e.contains("checksum"), "{e}");
+    }
+
+    #[test]
+    fn camera_matrices_round_trip_through_pinhole() {
+        let s = sample("a", &LidarSensor::hdl64e(), 0);
+        let c = s.camera.unwrap();
+        let cam = c.to_camera(1242, 375).unwrap();
+        assert_eq!(CameraMatrices::from_camera(&cam), c);
+    }
+}

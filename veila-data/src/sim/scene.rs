@@ -1,0 +1,671 @@
+//! Procedural scene generation: streets, lots, street furniture and actors from a [`SceneConfig`]
+//! and a seed.
+//!
+//! World frame: x along the main street, y to its left, z up, metres; the road surface is `z = 0`,
+//! sidewalks, gardens and terrain sit at the kerb height. Traffic drives on the right: the ego
+//! vehicle drives in +x in the rightmost lane (`y < 0`).
+
+use glam::{Affine3A, Mat3, Vec3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::config::{Layout, RoadParams, SceneConfig};
+use super::material::{class, stock};
+use super::mesh::Mesh;
+use super::objects::{self, VehicleKind, yaw};
+use super::raycast::Accel;
+use crate::Result;
+
+/// Tile size of ground rectangles, metres.
+const TILE_M: f32 = 10.0;
+/// Height of lane paint above the asphalt, metres (keeps markings ahead of the road in closest-hit).
+const PAINT_Z: f32 = 0.003;
+
+/// A moving or movable object: a mesh in its own frame moved along a straight line.
+#[derive(Debug, Clone)]
+pub struct Actor {
+    /// Mesh in the actor's frame (x forward, z up, origin on the ground).
+    pub mesh: Mesh,
+    /// Position of the actor's origin at time 0, world frame.
+    pub start: Vec3,
+    /// Heading (rotation about z) in radians.
+    pub heading_rad: f32,
+    /// Velocity, world frame, m/s.
+    pub velocity: Vec3,
+}
+
+impl Actor {
+    /// World-from-actor transform at `time_s`.
+    pub fn world_from_actor(&self, time_s: f32) -> Affine3A {
+        Affine3A::from_translation(self.start + self.velocity * time_s) * yaw(self.heading_rad)
+    }
+}
+
+/// A generated scene: the static world, the actors and the ego trajectory. Deterministic in
+/// (config, seed).
+#[derive(Debug, Clone)]
+pub struct Scene {
+    config: SceneConfig,
+    seed: u64,
+    static_mesh: Mesh,
+    actors: Vec<Actor>,
+    ego_start: Vec3,
+    ego_velocity: Vec3,
+}
+
+/// One frame of a scene: the world at one instant with its ray-casting accelerator and the pose of
+/// the LiDAR.
+#[derive(Debug)]
+pub struct SceneSnapshot {
+    /// Ray-casting accelerator over every triangle at this instant.
+    pub accel: Accel,
+    /// Time since frame 0, seconds.
+    pub time_s: f32,
+    /// Pose of the LiDAR (world from LiDAR frame) at this instant.
+    pub world_from_lidar: Affine3A,
+    /// Lighting of the scene.
+    pub lighting: super::config::LightingConfig,
+    /// Random stream of this frame (ray drop, range noise).
+    pub noise_seed: u64,
+}
+
+impl Scene {
+    /// Generate the scene described by `config` with `seed`.
+    pub fn generate(config: &SceneConfig, seed: u64) -> Result<Scene> {
+        config.validate()?;
+        let road = config.road_params();
+        let mut g = Gen::new(config, road, seed);
+        match config.layout {
+            Layout::Straight | Layout::NarrowStreet => g.straight(),
+            Layout::Junction => g.junction(),
+        }
+        g.populate();
+        let ego_d = -(road.lanes_per_direction as f32 - 0.5) * road.lane_width_m;
+        Ok(Scene {
+            config: config.clone(),
+            seed,
+            static_mesh: g.mesh,
+            actors: g.actors,
+            ego_start: Vec3::new(config.ego.start_x_m, ego_d, config.ego.lidar_height_m),
+            ego_velocity: Vec3::new(config.ego.speed_mps, 0.0, 0.0),
+        })
+    }
+
+    /// Build a scene from explicit geometry (for tests and custom worlds): a static mesh, actors and
+    /// a fixed LiDAR pose; `config` supplies sensors, lighting and return model.
+    pub fn from_parts(config: &SceneConfig, seed: u64, static_mesh: Mesh, actors: Vec<Actor>, world_from_lidar: Vec3) -> Scene {
+        Scene {
+            config: config.clone(),
+            seed,
+            static_mesh,
+            actors,
+            ego_start: world_from_lidar,
+            ego_velocity: Vec3::ZERO,
+        }
+    }
+
+    /// The configuration the scene was generated from.
+    pub fn config(&self) -> &SceneConfig {
+        &self.config
+    }
+
+    /// The seed the scene was generated with.
+    pub fn seed(&self) -> u64 {
+        self.seed
+    }
+
+    /// The static world (road, buildings, furniture, parked vehicles).
+    pub fn static_mesh(&self) -> &Mesh {
+        &self.static_mesh
+    }
+
+    /// The moving and movable actors.
+    pub fn actors(&self) -> &[Actor] {
+        &self.actors
+    }
+
+    /// Time of frame `index`, seconds.
+    pub fn frame_time_s(&self, index: u32) -> f32 {
+        index as f32 * self.config.frames.interval_s
+    }
+
+    /// LiDAR pose (world from LiDAR: x forward along the ego's heading, z up) at `time_s`.
+    pub fn world_from_lidar(&self, time_s: f32) -> Affine3A {
+        Affine3A::from_translation(self.ego_start + self.ego_velocity * time_s)
+    }
+
+    /// The whole world at `time_s` as one mesh (static world plus actors moved).
+    pub fn mesh_at(&self, time_s: f32) -> Mesh {
+        let mut m = self.static_mesh.clone();
+        for a in &self.actors {
+            m.append_transformed(&a.mesh, a.world_from_actor(time_s));
+        }
+        m
+    }
+
+    /// The world at frame `index`, ready for rendering.
+    pub fn snapshot(&self, index: u32) -> SceneSnapshot {
+        let time_s = self.frame_time_s(index);
+        let mesh = self.mesh_at(time_s);
+        SceneSnapshot {
+            accel: Accel::build(&mesh),
+            time_s,
+            world_from_lidar: self.world_from_lidar(time_s),
+            lighting: self.config.lighting,
+            noise_seed: splitmix(self.seed ^ splitmix(u64::from(index).wrapping_add(0x5eed))),
+        }
+    }
+}
+
+/// SplitMix64: a well-mixed 64-bit hash, used for per-ray deterministic random numbers.
+pub(crate) fn splitmix(mut x: u64) -> u64 {
+    x = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    x = (x ^ (x >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    x = (x ^ (x >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    x ^ (x >> 31)
+}
+
+/// A street in its own frame: `s` along the street, `d` across (left positive), z up.
+#[derive(Clone, Copy)]
+struct StreetFrame {
+    world_from_street: Affine3A,
+}
+
+impl StreetFrame {
+    fn main() -> Self {
+        StreetFrame { world_from_street: Affine3A::IDENTITY }
+    }
+    /// The cross street: s along world +y, d along world -x (exact 90 degree rotation).
+    fn cross() -> Self {
+        StreetFrame { world_from_street: Affine3A::from_mat3(Mat3::from_cols(Vec3::Y, -Vec3::X, Vec3::Z)) }
+    }
+    fn p(&self, s: f32, d: f32, z: f32) -> Vec3 {
+        self.world_from_street.transform_point3(Vec3::new(s, d, z))
+    }
+    /// Place an object at (s, d, z) heading `h` (radians from +s toward +d).
+    fn place(&self, s: f32, d: f32, z: f32, h: f32) -> Affine3A {
+        self.world_from_street * Affine3A::from_translation(Vec3::new(s, d, z)) * yaw(h)
+    }
+    fn heading(&self, h: f32) -> f32 {
+        // the cross street's +s axis is world +y (heading +pi/2)
+        if self.world_from_street == Affine3A::IDENTITY { h } else { h + std::f32::consts::FRAC_PI_2 }
+    }
+    fn dir(&self, s: f32, d: f32) -> Vec3 {
+        self.world_from_street.transform_vector3(Vec3::new(s, d, 0.0))
+    }
+    /// Ground rectangle in street coordinates.
+    fn rect(&self, mesh: &mut Mesh, s0: f32, s1: f32, d0: f32, d1: f32, z: f32, surf: u32) {
+        let a = self.p(s0, d0, z);
+        let b = self.p(s1, d1, z);
+        mesh.add_ground_rect(a.x, b.x, a.y, b.y, z, TILE_M, surf);
+    }
+}
+
+/// Occupied intervals along s on one side of a street (keeps objects apart).
+#[derive(Default)]
+struct Occupancy(Vec<(f32, f32)>);
+
+impl Occupancy {
+    fn free(&self, a: f32, b: f32) -> bool {
+        self.0.iter().all(|&(x, y)| b <= x || a >= y)
+    }
+    fn take(&mut self, a: f32, b: f32) {
+        self.0.push((a, b));
+    }
+}
+
+/// A section of street the population step may use.
+#[derive(Clone, Copy)]
+struct Section {
+    frame: StreetFrame,
+    s0: f32,
+    s1: f32,
+    main: bool,
+}
+
+struct Gen<'a> {
+    cfg: &'a SceneConfig,
+    road: RoadParams,
+    seed: u64,
+    mesh: Mesh,
+    actors: Vec<Actor>,
+    sections: Vec<Section>,
+    /// s intervals of crosswalk / junction areas on the main street where nothing parks.
+    no_parking: Vec<(f32, f32)>,
+    next_instance: u16,
+    furniture: Vec<Occupancy>,
+}
+
+impl<'a> Gen<'a> {
+    fn new(cfg: &'a SceneConfig, road: RoadParams, seed: u64) -> Self {
+        Gen {
+            cfg,
+            road,
+            seed,
+            mesh: Mesh::new(),
+            actors: Vec::new(),
+            sections: Vec::new(),
+            no_parking: Vec::new(),
+            next_instance: 1,
+            furniture: (0..4).map(|_| Occupancy::default()).collect(),
+        }
+    }
+
+    /// An independent random stream per purpose, so that changing one count does not reshuffle
+    /// everything else.
+    fn rng(&self, stream: u64) -> ChaCha8Rng {
+        let mut r = ChaCha8Rng::seed_from_u64(self.seed);
+        r.set_stream(stream);
+        r
+    }
+
+    fn instance(&mut self) -> u16 {
+        let i = self.next_instance;
+        self.next_instance = self.next_instance.wrapping_add(1).max(1);
+        i
+    }
+
+    fn half_len(&self) -> f32 {
+        self.road.length_m / 2.0
+    }
+
+    /// Outer extent of the world across a street (terrain reaches this far).
+    fn outer_d(&self) -> f32 {
+        self.road.half_carriageway_m() + self.road.sidewalk_width_m + self.road.setback_m + 45.0
+    }
+
+    fn straight(&mut self) {
+        let h = self.half_len();
+        let f = StreetFrame::main();
+        let mut rng = self.rng(1);
+        self.street_surfaces(f, -h, h, -h, h, true);
+        self.lots(&mut rng, f, -h, h);
+        self.furniture(&mut rng, f, -h, h, 0);
+        self.sections.push(Section { frame: f, s0: -h, s1: h, main: true });
+    }
+
+    fn junction(&mut self) {
+        let h = self.half_len();
+        let r = self.road;
+        let wc = r.half_carriageway_m();
+        let sw = r.sidewalk_width_m;
+        let mut rng = self.rng(2);
+        let main = StreetFrame::main();
+        let cross = StreetFrame::cross();
+        // junction box
+        let road = self.mesh.surface(stock::ROAD, 0);
+        main.rect(&mut self.mesh, -wc, wc, -wc, wc, 0.0, road);
+        for (f, is_main) in [(main, true), (cross, false)] {
+            for (s0, s1) in [(-h, -wc), (wc, h)] {
+                let (ts0, ts1) = if s0 < 0.0 { (s0, -wc - sw) } else { (wc + sw, s1) };
+                self.street_surfaces(f, s0, s1, ts0, ts1, is_main);
+                let (l0, l1) = if s0 < 0.0 { (s0, -(wc + sw + r.setback_m + 1.0)) } else { (wc + sw + r.setback_m + 1.0, s1) };
+                self.lots(&mut rng, f, l0, l1);
+                self.furniture(&mut rng, f, s0 + if s0 < 0.0 { 0.0 } else { 2.0 }, s1 - if s0 < 0.0 { 2.0 } else { 0.0 }, if is_main { 0 } else { 1 });
+                self.sections.push(Section { frame: f, s0, s1, main: is_main });
+            }
+            self.crosswalks(f);
+        }
+        self.no_parking.push((-wc - 12.0, wc + 12.0));
+        // traffic lights on the four corners, facing the approaching traffic of the main street
+        for (sx, sy) in [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] {
+            let light = objects::traffic_light();
+            let facing = if sy < 0.0 { std::f32::consts::PI } else { 0.0 };
+            let xf = Affine3A::from_translation(Vec3::new(sx * (wc + 0.6), sy * (wc + 0.6), r.kerb_height_m)) * yaw(facing);
+            self.mesh.append_transformed(&light, xf);
+        }
+    }
+
+    /// Road (with parking strips and markings), kerbs, sidewalks and terrain of one street section.
+    /// Terrain covers `[ts0, ts1]` along s when `terrain` is set.
+    fn street_surfaces(&mut self, f: StreetFrame, s0: f32, s1: f32, ts0: f32, ts1: f32, terrain: bool) {
+        let r = self.road;
+        let wl = r.lanes_per_direction as f32 * r.lane_width_m;
+        let wc = r.half_carriageway_m();
+        let kh = r.kerb_height_m;
+        let road = self.mesh.surface(stock::ROAD, 0);
+        let parking = self.mesh.surface(stock::PARKING, 0);
+        let walk = self.mesh.surface(stock::SIDEWALK, 0);
+        let grass = self.mesh.surface(stock::TERRAIN, 0);
+        f.rect(&mut self.mesh, s0, s1, -wl, wl, 0.0, road);
+        if r.parking_lane {
+            f.rect(&mut self.mesh, s0, s1, -wc, -wl, 0.0, parking);
+            f.rect(&mut self.mesh, s0, s1, wl, wc, 0.0, parking);
+        }
+        for side in [-1.0f32, 1.0] {
+            // kerb face, split along s like the ground tiles
+            let n = ((s1 - s0) / TILE_M).ceil().max(1.0) as usize;
+            for i in 0..n {
+                let a = s0 + (s1 - s0) * i as f32 / n as f32;
+                let b = if i + 1 == n { s1 } else { s0 + (s1 - s0) * (i + 1) as f32 / n as f32 };
+                let d = side * wc;
+                self.mesh.add_quad(f.p(a, d, 0.0), f.p(b, d, 0.0), f.p(b, d, kh), f.p(a, d, kh), walk);
+            }
+            let (d0, d1) = (side * wc, side * (wc + r.sidewalk_width_m));
+            f.rect(&mut self.mesh, s0, s1, d0, d1, kh, walk);
+            if terrain && ts1 > ts0 {
+                let (e0, e1) = (side * (wc + r.sidewalk_width_m), side * self.outer_d());
+                f.rect(&mut self.mesh, ts0, ts1, e0, e1, kh, grass);
+            }
+        }
+        if r.lane_markings {
+            self.markings(f, s0, s1);
+        }
+    }
+
+    fn markings(&mut self, f: StreetFrame, s0: f32, s1: f32) {
+        let r = self.road;
+        let paint = self.mesh.surface(stock::LANE_MARKING, 0);
+        let wl = r.lanes_per_direction as f32 * r.lane_width_m;
+        let line = |mesh: &mut Mesh, a: f32, b: f32, d: f32, w: f32| {
+            mesh.add_quad(f.p(a, d - w / 2.0, PAINT_Z), f.p(b, d - w / 2.0, PAINT_Z), f.p(b, d + w / 2.0, PAINT_Z), f.p(a, d + w / 2.0, PAINT_Z), paint);
+        };
+        // centre line: solid
+        line(&mut self.mesh, s0, s1, 0.0, 0.15);
+        // edge lines
+        let edge = if r.parking_lane { wl } else { wl - 0.3 };
+        line(&mut self.mesh, s0, s1, edge, 0.15);
+        line(&mut self.mesh, s0, s1, -edge, 0.15);
+        // dashed lane separators: 3 m dashes every 9 m
+        for k in 1..r.lanes_per_direction {
+            let d = k as f32 * r.lane_width_m;
+            let mut a = (s0 / 9.0).ceil() * 9.0;
+            while a + 3.0 <= s1 {
+                line(&mut self.mesh, a, a + 3.0, d, 0.12);
+                line(&mut self.mesh, a, a + 3.0, -d, 0.12);
+                a += 9.0;
+            }
+        }
+    }
+
+    /// Zebra crossings and stop lines on both arms of a street at the junction.
+    fn crosswalks(&mut self, f: StreetFrame) {
+        let r = self.road;
+        if !r.lane_markings {
+            return;
+        }
+        let paint = self.mesh.surface(stock::LANE_MARKING, 0);
+        let wl = r.lanes_per_direction as f32 * r.lane_width_m;
+        let wc = r.half_carriageway_m();
+        for dir in [-1.0f32, 1.0] {
+            let (a, b) = (wc + 1.0, wc + 4.0);
+            let (a, b) = if dir > 0.0 { (a, b) } else { (-b, -a) };
+            let mut d = -wl + 0.25;
+            while d + 0.5 <= wl {
+                self.mesh.add_quad(f.p(a, d, PAINT_Z), f.p(b, d, PAINT_Z), f.p(b, d + 0.5, PAINT_Z), f.p(a, d + 0.5, PAINT_Z), paint);
+                d += 1.0;
+            }
+            // stop line across the lanes approaching the junction on this arm
+            let s = dir * (wc + 5.0);
+            let (d0, d1) = if dir > 0.0 { (0.1, wl) } else { (-wl, -0.1) };
+            self.mesh.add_quad(f.p(s - 0.2, d0, PAINT_Z), f.p(s + 0.2, d0, PAINT_Z), f.p(s + 0.2, d1, PAINT_Z), f.p(s - 0.2, d1, PAINT_Z), paint);
+        }
+    }
+
+    /// Buildings and the gaps between them (fences, hedges, bushes) on both sides of `[s0, s1]`.
+    fn lots(&mut self, rng: &mut ChaCha8Rng, f: StreetFrame, s0: f32, s1: f32) {
+        let r = self.road;
+        let front = r.half_carriageway_m() + r.sidewalk_width_m + r.setback_m;
+        let [hmin, hmax] = r.building_height_m;
+        for side in [-1.0f32, 1.0] {
+            let mut s = s0 + rng.random_range(0.0..4.0f32);
+            while s < s1 - 4.0 {
+                if rng.random::<f32>() < r.building_frontage {
+                    let w = rng.random_range(8.0..24.0f32).min(s1 - s);
+                    let depth = rng.random_range(8.0..18.0f32);
+                    let height = rng.random_range(hmin..=hmax);
+                    let b = objects::building(rng, w, depth, height);
+                    // building frame: facade at local y = 0 faces local +y; turn it to face the street
+                    let h = if side > 0.0 { std::f32::consts::PI } else { 0.0 };
+                    self.mesh.append_transformed(&b, f.place(s + w / 2.0, side * front, r.kerb_height_m, h));
+                    s += w + rng.random_range(0.0..1.5f32);
+                } else {
+                    let w = rng.random_range(4.0..12.0f32).min(s1 - s);
+                    let u = rng.random::<f32>();
+                    let d = side * (front - 0.4);
+                    if u < self.cfg.population.fence_probability {
+                        let fe = objects::fence(w, rng.random_range(1.0..2.0f32));
+                        self.mesh.append_transformed(&fe, f.place(s + w / 2.0, d, r.kerb_height_m, 0.0));
+                    } else if u < self.cfg.population.fence_probability + 0.35 {
+                        let he = objects::hedge(rng, w);
+                        self.mesh.append_transformed(&he, f.place(s + w / 2.0, d, r.kerb_height_m, 0.0));
+                    } else if rng.random_bool(0.6) {
+                        let t = objects::tree(rng);
+                        self.mesh.append_transformed(&t, f.place(s + w / 2.0, side * (front + 4.0), r.kerb_height_m, 0.0));
+                    }
+                    s += w;
+                }
+            }
+            // bushes in front gardens and gaps
+            if r.setback_m > 0.8 {
+                let n = poisson_count(rng, self.cfg.population.bushes_per_100m * 0.5 * (s1 - s0) / 100.0);
+                for _ in 0..n {
+                    let bs = rng.random_range(s0..s1);
+                    let bd = side * (front - rng.random_range(0.5..r.setback_m.min(3.0)));
+                    let b = objects::bush(rng);
+                    self.mesh.append_transformed(&b, f.place(bs, bd, r.kerb_height_m, 0.0));
+                }
+            }
+        }
+    }
+
+    /// Trees, street lights and signs along the kerb of both sides.
+    fn furniture(&mut self, rng: &mut ChaCha8Rng, f: StreetFrame, s0: f32, s1: f32, occ: usize) {
+        let r = self.road;
+        let p = &self.cfg.population;
+        let wc = r.half_carriageway_m();
+        let kh = r.kerb_height_m;
+        let len = (s1 - s0).max(0.0);
+        let d_kerb = (0.6f32).min(r.sidewalk_width_m * 0.4);
+        for (kind, per100) in [(0u8, p.trees_per_100m), (1, p.poles_per_100m), (2, p.signs_per_100m)] {
+            let n = poisson_count(rng, per100 * len / 100.0);
+            for _ in 0..n {
+                let side = if rng.random_bool(0.5) { 1.0f32 } else { -1.0 };
+                let si = usize::from(side > 0.0);
+                let s = rng.random_range(s0..s1.max(s0 + 1e-3));
+                let (clear, d_off) = match kind {
+                    0 => (3.0, d_kerb + 0.3),
+                    _ => (1.0, d_kerb),
+                };
+                let slot = &mut self.furniture[(occ * 2 + si) % 4];
+                if !slot.free(s - clear, s + clear) {
+                    continue;
+                }
+                slot.take(s - clear, s + clear);
+                let d = side * (wc + d_off);
+                let (m, h) = match kind {
+                    0 => (objects::tree(rng), 0.0),
+                    // the light's arm points to local +y: toward the road
+                    1 => (objects::street_light(rng), if side > 0.0 { std::f32::consts::PI } else { 0.0 }),
+                    // signs face the traffic approaching on that side
+                    _ => (objects::traffic_sign(rng), if side > 0.0 { 0.0 } else { std::f32::consts::PI }),
+                };
+                self.mesh.append_transformed(&m, f.place(s, d, kh, h));
+            }
+        }
+    }
+
+    fn vehicle_kind(&self, rng: &mut ChaCha8Rng, parked: bool) -> VehicleKind {
+        let p = &self.cfg.population;
+        let u = rng.random::<f32>();
+        if parked && rng.random::<f32>() < p.trailer_fraction {
+            return VehicleKind::Trailer;
+        }
+        if u < p.van_fraction {
+            VehicleKind::Van
+        } else if u < p.van_fraction + p.truck_fraction {
+            VehicleKind::Truck
+        } else if u < p.van_fraction + p.truck_fraction + p.bus_fraction {
+            VehicleKind::Bus
+        } else {
+            VehicleKind::Car
+        }
+    }
+
+    /// Parked vehicles, moving vehicles, pedestrians and cyclists.
+    fn populate(&mut self) {
+        let r = self.road;
+        let p = self.cfg.population.clone();
+        let wl = r.lanes_per_direction as f32 * r.lane_width_m;
+        let wc = r.half_carriageway_m();
+        let lw = r.lane_width_m;
+        let kh = r.kerb_height_m;
+        let one_way = !r.parking_lane && self.cfg.layout == Layout::NarrowStreet;
+        let sections = self.sections.clone();
+
+        // parked vehicles: in the parking strips, or along the left kerb on the carriageway
+        let mut rng = self.rng(10);
+        for sec in &sections {
+            let sides: &[f32] = if r.parking_lane { &[-1.0, 1.0] } else if one_way { &[1.0] } else { &[] };
+            for &side in sides {
+                let d = if r.parking_lane { side * (wl + r.parking_width_m / 2.0) } else { side * (wc - 1.0) };
+                let mean_gap = if p.parked_vehicles_per_100m > 0.0 { 100.0 / (p.parked_vehicles_per_100m / 2.0) } else { f32::INFINITY };
+                let mut s = sec.s0 + rng.random_range(0.0..6.0f32);
+                while s < sec.s1 && mean_gap.is_finite() {
+                    let kind = self.vehicle_kind(&mut rng, true);
+                    let inst = self.instance();
+                    let (m, len) = objects::vehicle(&mut rng, kind, kind.class(), inst);
+                    let (a, b) = (s, s + len);
+                    let blocked = b > sec.s1 - 1.0 || (sec.main && self.no_parking.iter().any(|&(x, y)| b > x && a < y));
+                    if !blocked {
+                        let h = if side > 0.0 && rng.random_bool(0.5) { std::f32::consts::PI } else { 0.0 };
+                        self.mesh.append_transformed(&m, sec.frame.place(s + len / 2.0, d, 0.0, h));
+                    }
+                    // exponential-ish gaps around the mean spacing
+                    let gap = (mean_gap - 4.5).max(0.8) * (-rng.random::<f32>().max(1e-6).ln()).min(4.0) + 0.8;
+                    s = b + gap;
+                }
+            }
+        }
+
+        // moving vehicles: one speed per lane (no overtaking inside a lane), spacing >= 12 m
+        let mut rng = self.rng(11);
+        let main = sections.iter().filter(|s| s.main).copied().collect::<Vec<_>>();
+        let cross = sections.iter().filter(|s| !s.main).copied().collect::<Vec<_>>();
+        let lanes_fwd = r.lanes_per_direction;
+        let mut lanes: Vec<(StreetFrame, f32, f32, f32, f32, bool)> = Vec::new(); // frame, d, dir, speed, s-range half, is ego lane
+        let ego_lane_d = -(lanes_fwd as f32 - 0.5) * lw;
+        for k in 0..lanes_fwd {
+            let d = -(k as f32 + 0.5) * lw;
+            let ego = (d - ego_lane_d).abs() < 1e-3;
+            let speed = if ego { self.cfg.ego.speed_mps } else { rng.random_range(6.0..14.0f32) };
+            lanes.push((StreetFrame::main(), d, 1.0, speed, self.half_len(), ego));
+            if !one_way {
+                lanes.push((StreetFrame::main(), -d, -1.0, rng.random_range(6.0..14.0f32), self.half_len(), false));
+            }
+        }
+        if !cross.is_empty() {
+            for k in 0..lanes_fwd {
+                let d = (k as f32 + 0.5) * lw;
+                lanes.push((StreetFrame::cross(), -d, 1.0, rng.random_range(5.0..11.0f32), self.half_len(), false));
+                lanes.push((StreetFrame::cross(), d, -1.0, rng.random_range(5.0..11.0f32), self.half_len(), false));
+            }
+        }
+        let mut taken: Vec<Vec<f32>> = vec![Vec::new(); lanes.len()];
+        let mut placed = 0;
+        let mut tries = 0;
+        while placed < p.moving_vehicles && tries < p.moving_vehicles * 40 + 40 && !lanes.is_empty() {
+            tries += 1;
+            let li = rng.random_range(0..lanes.len());
+            let (frame, d, dir, speed, half, ego) = lanes[li];
+            let s = rng.random_range(-half * 0.8..half * 0.8);
+            if ego && (s - self.cfg.ego.start_x_m).abs() < 18.0 {
+                continue;
+            }
+            if taken[li].iter().any(|&o| (o - s).abs() < 16.0) {
+                continue;
+            }
+            taken[li].push(s);
+            let kind = self.vehicle_kind(&mut rng, false);
+            let inst = self.instance();
+            let (m, _) = objects::vehicle(&mut rng, kind, class::moving(kind.class()), inst);
+            let heading = frame.heading(if dir > 0.0 { 0.0 } else { std::f32::consts::PI });
+            self.actors.push(Actor {
+                mesh: m,
+                start: frame.p(s, d, 0.0),
+                heading_rad: heading,
+                velocity: frame.dir(dir * speed, 0.0),
+            });
+            placed += 1;
+        }
+
+        // pedestrians on the sidewalks (some crossing at the junction)
+        let mut rng = self.rng(12);
+        let sw = r.sidewalk_width_m;
+        for i in 0..p.pedestrians {
+            let sec = sections[rng.random_range(0..sections.len())];
+            let side = if rng.random_bool(0.5) { 1.0f32 } else { -1.0 };
+            let inner = (wc + 1.1).min(wc + sw * 0.5);
+            let outer = (wc + sw - 0.35).max(inner + 1e-3);
+            let d = side * rng.random_range(inner..outer);
+            let s = rng.random_range(sec.s0..sec.s1);
+            let standing = rng.random::<f32>() < p.standing_fraction;
+            let crossing = !standing && cross.len() + main.len() > 2 && i % 5 == 4;
+            let inst = self.instance();
+            let cls = if standing { class::PERSON } else { class::moving(class::PERSON) };
+            let m = objects::person(&mut rng, cls, inst);
+            let speed = if standing { 0.0 } else { rng.random_range(0.8..1.6f32) };
+            if crossing {
+                // on a crosswalk of the main street, walking across it
+                let s_cw = if rng.random_bool(0.5) { wc + 2.5 } else { -(wc + 2.5) };
+                let d0 = rng.random_range(-wl..wl);
+                let dir = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+                self.actors.push(Actor {
+                    mesh: m,
+                    start: Vec3::new(s_cw, d0, 0.0),
+                    heading_rad: dir * std::f32::consts::FRAC_PI_2,
+                    velocity: Vec3::new(0.0, dir * speed, 0.0),
+                });
+                continue;
+            }
+            let dir = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+            let heading = if standing { rng.random_range(-3.1..3.1f32) } else if dir > 0.0 { 0.0 } else { std::f32::consts::PI };
+            self.actors.push(Actor {
+                mesh: m,
+                start: sec.frame.p(s, d, kh),
+                heading_rad: sec.frame.heading(heading),
+                velocity: sec.frame.dir(dir * speed, 0.0),
+            });
+        }
+
+        // cyclists near the right edge of the carriageway
+        let mut rng = self.rng(13);
+        for _ in 0..p.cyclists {
+            let sec = sections[rng.random_range(0..sections.len())];
+            let dir = if one_way || rng.random_bool(0.6) { 1.0f32 } else { -1.0 };
+            let d = -dir * (wl - 0.7);
+            let s = rng.random_range(sec.s0..sec.s1);
+            let speed = rng.random_range(3.5..6.5f32);
+            let inst = self.instance();
+            let m = objects::cyclist(&mut rng, class::moving(class::BICYCLIST), inst);
+            self.actors.push(Actor {
+                mesh: m,
+                start: sec.frame.p(s, d, 0.0),
+                heading_rad: sec.frame.heading(if dir > 0.0 { 0.0 } else { std::f32::consts::PI }),
+                velocity: sec.frame.dir(dir * speed, 0.0),
+            });
+        }
+    }
+}
+
+/// A Poisson-distributed count with mean `lambda` (inversion; fine for the small means used here).
+fn poisson_count(rng: &mut ChaCha8Rng, lambda: f32) -> u32 {
+    if !(lambda > 0.0) {
+        return 0;
+    }
+    if lambda > 50.0 {
+        // normal approximation
+        let z: f32 = rand_distr::Distribution::sample(&rand_distr::StandardNormal, rng);
+        return (lambda + z * lambda.sqrt()).round().max(0.0) as u32;
+    }
+    let l = (-f64::from(lambda)).exp();
+    let mut k = 0;
+    let mut p = 1.0f64;
+    loop {
+        p *= rng.random::<f64>();
+        if p <= l {
+            return k;
+        }
+        k += 1;
+    }
+}

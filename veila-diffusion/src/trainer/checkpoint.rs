@@ -1,0 +1,303 @@
+//! Atomic checkpoints.
+//!
+//! A checkpoint is a directory `step-<10 digits>/` holding
+//!
+//! * `model.safetensors`: the training weights, named as in the model's `VarMap`;
+//! * `ema.safetensors`: the EMA weights under the same names (load these for sampling);
+//! * `optimizer.safetensors`: AdamW moments `m.<name>`, `v.<name>`;
+//! * `state.json`: [`CheckpointState`] (step, optimizer counter, RNG position, configs).
+//!
+//! It is written into a hidden temporary directory beside the final one and renamed into place,
+//! so a crash never leaves a partial checkpoint under a `step-*` name.
+
+use std::collections::HashMap;
+use std::fs;
+use std::path::{Path, PathBuf};
+
+use candle_core::Tensor;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use super::{TrainConfig, Trainer};
+use crate::denoiser::Denoiser;
+use crate::error::{Error, Result};
+use crate::objective::DiffusionConfig;
+
+const FORMAT_VERSION: u32 = 1;
+const MODEL_FILE: &str = "model.safetensors";
+const EMA_FILE: &str = "ema.safetensors";
+const OPT_FILE: &str = "optimizer.safetensors";
+const STATE_FILE: &str = "state.json";
+
+/// Position of the trainer's ChaCha8 stream.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RngState {
+    /// The 32-byte seed, hex encoded.
+    pub seed_hex: String,
+    /// Stream id.
+    pub stream: u64,
+    /// Word position, decimal (a `u128`).
+    pub word_pos: String,
+}
+
+impl RngState {
+    /// Captures `rng`.
+    pub fn capture(rng: &ChaCha8Rng) -> Self {
+        Self {
+            seed_hex: rng.get_seed().iter().map(|b| format!("{b:02x}")).collect(),
+            stream: rng.get_stream(),
+            word_pos: rng.get_word_pos().to_string(),
+        }
+    }
+
+    /// Rebuilds the RNG at the captured position.
+    pub fn restore(&self) -> Option<ChaCha8Rng> {
+        use rand::SeedableRng;
+        if self.seed_hex.len() != 64 {
+            return None;
+        }
+        let mut seed = [0u8; 32];
+        for (i, b) in seed.iter_mut().enumerate() {
+            *b = u8::from_str_radix(self.seed_hex.get(2 * i..2 * i + 2)?, 16).ok()?;
+        }
+        let mut rng = ChaCha8Rng::from_seed(seed);
+        rng.set_stream(self.stream);
+        rng.set_word_pos(self.word_pos.parse().ok()?);
+        Some(rng)
+    }
+}
+
+/// The JSON part of a checkpoint.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CheckpointState {
+    /// Layout version (1).
+    pub format_version: u32,
+    /// Updates done.
+    pub step: u64,
+    /// Updates skipped so far.
+    pub skipped_steps: u64,
+    /// AdamW step counter.
+    pub optimizer_steps: usize,
+    /// Trainer RNG position.
+    pub rng: RngState,
+    /// Training settings at save time.
+    pub train_config: TrainConfig,
+    /// The diffusion process (must match on resume).
+    pub diffusion_config: DiffusionConfig,
+}
+
+fn io<'a>(action: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> Error + 'a {
+    move |source| Error::Io {
+        action,
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+fn bad(path: &Path, reason: impl Into<String>) -> Error {
+    Error::Checkpoint {
+        reason: reason.into(),
+        path: path.to_path_buf(),
+    }
+}
+
+fn save_tensors(map: &HashMap<String, Tensor>, path: &Path) -> Result<()> {
+    candle_core::safetensors::save(map, path).map_err(|e| bad(path, format!("writing safetensors: {e}")))?;
+    fs::File::open(path)
+        .and_then(|f| f.sync_all())
+        .map_err(io("syncing", path))
+}
+
+fn load_tensors(path: &Path, device: &candle_core::Device) -> Result<HashMap<String, Tensor>> {
+    if !path.is_file() {
+        return Err(bad(path, "file missing"));
+    }
+    candle_core::safetensors::load(path, device).map_err(|e| bad(path, format!("reading safetensors: {e}")))
+}
+
+/// The checkpoint directory name for `step`.
+pub(crate) fn checkpoint_name(step: u64) -> String {
+    format!("step-{step:010}")
+}
+
+/// The newest complete checkpoint (`step-*` directory with a `state.json`) in `dir`, if any.
+pub fn find_latest_checkpoint(dir: &Path) -> Result<Option<PathBuf>> {
+    Ok(list_checkpoints(dir)?.pop().map(|(_, p)| p))
+}
+
+fn list_checkpoints(dir: &Path) -> Result<Vec<(u64, PathBuf)>> {
+    if !dir.exists() {
+        return Ok(Vec::new());
+    }
+    let mut out = Vec::new();
+    for entry in fs::read_dir(dir).map_err(io("listing checkpoints", dir))? {
+        let entry = entry.map_err(io("listing checkpoints", dir))?;
+        let name = entry.file_name();
+        let Some(name) = name.to_str() else { continue };
+        let Some(step) = name.strip_prefix("step-").and_then(|s| s.parse::<u64>().ok()) else {
+            continue;
+        };
+        let p = entry.path();
+        if p.join(STATE_FILE).is_file() {
+            out.push((step, p));
+        }
+    }
+    out.sort();
+    Ok(out)
+}
+
+impl<M: Denoiser> Trainer<M> {
+    /// Writes a checkpoint of the current state into `dir` (created if needed) and returns its path.
+    /// Applies `keep_checkpoints`.
+    pub fn save_checkpoint(&self, dir: &Path) -> Result<PathBuf> {
+        fs::create_dir_all(dir).map_err(io("creating checkpoint directory", dir))?;
+        let final_path = dir.join(checkpoint_name(self.step));
+        let tmp = dir.join(format!(".{}.tmp-{}", checkpoint_name(self.step), std::process::id()));
+        if tmp.exists() {
+            fs::remove_dir_all(&tmp).map_err(io("removing stale temporary checkpoint", &tmp))?;
+        }
+        fs::create_dir(&tmp).map_err(io("creating temporary checkpoint", &tmp))?;
+        let write = || -> Result<()> {
+            save_tensors(&self.weights(), &tmp.join(MODEL_FILE))?;
+            save_tensors(&self.ema_weights(), &tmp.join(EMA_FILE))?;
+            save_tensors(&self.opt.state_tensors(), &tmp.join(OPT_FILE))?;
+            let state = CheckpointState {
+                format_version: FORMAT_VERSION,
+                step: self.step,
+                skipped_steps: self.skipped,
+                optimizer_steps: self.opt.step_count(),
+                rng: RngState::capture(&self.rng),
+                train_config: self.config.clone(),
+                diffusion_config: self.diffusion.config().clone(),
+            };
+            let json_path = tmp.join(STATE_FILE);
+            let json = serde_json::to_vec_pretty(&state).map_err(|source| Error::Json {
+                path: json_path.clone(),
+                source,
+            })?;
+            fs::write(&json_path, json).map_err(io("writing", &json_path))?;
+            fs::File::open(&json_path)
+                .and_then(|f| f.sync_all())
+                .map_err(io("syncing", &json_path))?;
+            Ok(())
+        };
+        if let Err(e) = write() {
+            let _ = fs::remove_dir_all(&tmp);
+            return Err(e);
+        }
+        if final_path.exists() {
+            let old = dir.join(format!(".{}.old-{}", checkpoint_name(self.step), std::process::id()));
+            fs::rename(&final_path, &old).map_err(io("replacing checkpoint", &final_path))?;
+            fs::rename(&tmp, &final_path).map_err(io("renaming checkpoint into place", &final_path))?;
+            let _ = fs::remove_dir_all(&old);
+        } else {
+            fs::rename(&tmp, &final_path).map_err(io("renaming checkpoint into place", &final_path))?;
+        }
+        if let Ok(d) = fs::File::open(dir) {
+            let _ = d.sync_all();
+        }
+        if let Some(keep) = self.config.keep_checkpoints {
+            let all = list_checkpoints(dir)?;
+            if all.len() > keep {
+                for (_, p) in &all[..all.len() - keep] {
+                    fs::remove_dir_all(p).map_err(io("pruning old checkpoint", p))?;
+                }
+            }
+        }
+        Ok(final_path)
+    }
+
+    /// Restores weights, EMA, optimizer, step and RNG from a checkpoint directory written by
+    /// [`Self::save_checkpoint`]. Every tensor must match the model's variables by name and shape;
+    /// the diffusion configuration must be the one this trainer uses. The trainer's current
+    /// [`TrainConfig`] is kept (so a run can be continued with, e.g., more steps). Nothing is
+    /// modified when validation fails.
+    pub fn load_checkpoint(&mut self, path: &Path) -> Result<()> {
+        let state_path = path.join(STATE_FILE);
+        let text = fs::read_to_string(&state_path).map_err(io("reading", &state_path))?;
+        let state: CheckpointState = serde_json::from_str(&text).map_err(|source| Error::Json {
+            path: state_path.clone(),
+            source,
+        })?;
+        if state.format_version != FORMAT_VERSION {
+            return Err(bad(path, format!("unsupported format_version {}", state.format_version)));
+        }
+        if &state.diffusion_config != self.diffusion.config() {
+            return Err(bad(path, "diffusion config differs from the trainer's"));
+        }
+        let rng = state.rng.restore().ok_or_else(|| bad(&state_path, "unreadable rng state"))?;
+        let device = self
+            .vars
+            .first()
+            .map(|v| v.device().clone())
+            .unwrap_or(candle_core::Device::Cpu);
+        let model = load_tensors(&path.join(MODEL_FILE), &device)?;
+        let ema = load_tensors(&path.join(EMA_FILE), &device)?;
+        let opt = load_tensors(&path.join(OPT_FILE), &device)?;
+        self.check_names(&model, &path.join(MODEL_FILE))?;
+        self.check_names(&ema, &path.join(EMA_FILE))?;
+        let opt_path = path.join(OPT_FILE);
+        // validate the optimizer state before touching anything
+        for n in &self.names {
+            for prefix in ["m", "v"] {
+                if !opt.contains_key(&format!("{prefix}.{n}")) {
+                    return Err(bad(&opt_path, format!("missing {prefix}.{n}")));
+                }
+            }
+        }
+        self.opt
+            .load_state(&opt, state.optimizer_steps)
+            .map_err(|e| bad(&opt_path, e.to_string()))?;
+        for (i, n) in self.names.iter().enumerate() {
+            let (Some(w), Some(e)) = (model.get(n), ema.get(n)) else {
+                return Err(bad(path, format!("tensor {n} vanished")));
+            };
+            let v = &self.vars[i];
+            v.set(&w.to_dtype(v.dtype())?)?;
+            self.ema[i] = e.to_dtype(v.dtype())?.detach();
+        }
+        self.step = state.step;
+        self.skipped = state.skipped_steps;
+        self.rng = rng;
+        Ok(())
+    }
+
+    /// Loads the newest checkpoint in `dir`, if any, and returns its path.
+    pub fn resume_latest(&mut self, dir: &Path) -> Result<Option<PathBuf>> {
+        match find_latest_checkpoint(dir)? {
+            Some(p) => {
+                self.load_checkpoint(&p)?;
+                Ok(Some(p))
+            }
+            None => Ok(None),
+        }
+    }
+
+    fn check_names(&self, tensors: &HashMap<String, Tensor>, path: &Path) -> Result<()> {
+        let mut missing = Vec::new();
+        let mut mis_shaped = Vec::new();
+        for (n, v) in self.names.iter().zip(&self.vars) {
+            match tensors.get(n) {
+                None => missing.push(n.clone()),
+                Some(t) if t.dims() != v.dims() => {
+                    mis_shaped.push(format!("{n} {:?} (model {:?})", t.dims(), v.dims()))
+                }
+                Some(_) => {}
+            }
+        }
+        let mut unexpected: Vec<&String> = tensors.keys().filter(|k| !self.names.contains(k)).collect();
+        unexpected.sort();
+        if missing.is_empty() && mis_shaped.is_empty() && unexpected.is_empty() {
+            return Ok(());
+        }
+        Err(bad(
+            path,
+            format!(
+                "tensors do not match the model: missing [{}], unexpected [{}], mis-shaped [{}]",
+                missing.join(", "),
+                unexpected.iter().map(|s| s.as_str()).collect::<Vec<_>>().join(", "),
+                mis_shaped.join(", ")
+            ),
+        ))
+    }
+}

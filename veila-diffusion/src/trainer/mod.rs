@@ -1,0 +1,537 @@
+//! Training loop: AdamW, warm-up + cosine learning rate, EMA weights, gradient clipping by global
+//! norm, condition dropout, deterministic seeding, atomic checkpoints with exact resume, progress and
+//! sample-preview callbacks.
+//!
+//! The trainer is generic over the model (any [`Denoiser`] whose parameters live in a
+//! [`candle_nn::VarMap`]) and over the data ([`BatchSource`], e.g. a closure `step -> Batch`).
+//!
+//! **Exact resume.** Everything that influences the next update is in the checkpoint: weights, EMA
+//! weights, AdamW moments and step counter, the step, and the position of the trainer's ChaCha8
+//! stream (which draws timesteps, noise and condition-dropout masks). Data sources get the step
+//! number, so a source that is a function of the step (a seeded shuffle per epoch, say) resumes
+//! exactly too.
+
+mod checkpoint;
+mod lr;
+mod optim;
+
+pub use checkpoint::{CheckpointState, RngState, find_latest_checkpoint};
+pub use lr::LrSchedule;
+pub use optim::{AdamW, ParamsAdamW};
+
+use std::collections::HashMap;
+use std::ops::ControlFlow;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use candle_core::{Tensor, Var};
+use candle_nn::VarMap;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::denoiser::{CondDropout, Denoiser};
+use crate::error::{Error, Result, invalid};
+use crate::objective::Diffusion;
+
+/// Training hyper-parameters.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainConfig {
+    /// Seed of the trainer's RNG (timesteps, noise, dropout masks).
+    pub seed: u64,
+    /// Peak learning rate.
+    pub lr: f64,
+    /// Learning rate at the end of the cosine.
+    pub min_lr: f64,
+    /// Linear warm-up steps.
+    pub warmup_steps: u64,
+    /// Total number of steps ([`Trainer::fit`] stops there; the cosine ends there).
+    pub total_steps: u64,
+    /// AdamW β₁.
+    pub beta1: f64,
+    /// AdamW β₂.
+    pub beta2: f64,
+    /// AdamW ε.
+    pub adam_eps: f64,
+    /// AdamW decoupled weight decay.
+    pub weight_decay: f64,
+    /// EMA decay (e.g. 0.9999 for long runs; 0 disables averaging: EMA = weights).
+    pub ema_decay: f64,
+    /// Use `min(decay, (1 + n)/(10 + n))` for the n-th update, so early EMA follows the weights.
+    pub ema_warmup: bool,
+    /// Clip the global gradient norm to this.
+    pub grad_clip_norm: Option<f64>,
+    /// Per-sample condition dropout probability for classifier-free guidance (0 = off).
+    pub cond_drop_prob: f64,
+    /// Skip (instead of failing on) steps with a non-finite loss or gradient norm.
+    pub skip_non_finite: bool,
+    /// Save a checkpoint every this many steps (and at the end) when `fit` gets a directory.
+    pub checkpoint_every: Option<u64>,
+    /// Keep only the newest this many checkpoints.
+    pub keep_checkpoints: Option<usize>,
+    /// Call [`TrainObserver::on_preview`] every this many steps.
+    pub preview_every: Option<u64>,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            seed: 0,
+            lr: 2e-4,
+            min_lr: 0.0,
+            warmup_steps: 1000,
+            total_steps: 100_000,
+            beta1: 0.9,
+            beta2: 0.999,
+            adam_eps: 1e-8,
+            weight_decay: 0.0,
+            ema_decay: 0.9999,
+            ema_warmup: true,
+            grad_clip_norm: Some(1.0),
+            cond_drop_prob: 0.1,
+            skip_non_finite: true,
+            checkpoint_every: Some(5000),
+            keep_checkpoints: Some(3),
+            preview_every: None,
+        }
+    }
+}
+
+impl TrainConfig {
+    /// Checks the domains.
+    pub fn validate(&self) -> Result<()> {
+        let pos = |v: f64| v.is_finite() && v > 0.0;
+        if !pos(self.lr) {
+            return Err(invalid("lr", format!("must be finite and > 0, got {}", self.lr)));
+        }
+        if !(self.min_lr.is_finite() && self.min_lr >= 0.0 && self.min_lr <= self.lr) {
+            return Err(invalid("min_lr", format!("must be in [0, lr], got {}", self.min_lr)));
+        }
+        for (name, v) in [("beta1", self.beta1), ("beta2", self.beta2)] {
+            if !(0.0..1.0).contains(&v) {
+                return Err(invalid(name, format!("must be in [0, 1), got {v}")));
+            }
+        }
+        if !pos(self.adam_eps) {
+            return Err(invalid("adam_eps", "must be finite and > 0"));
+        }
+        if !(self.weight_decay.is_finite() && self.weight_decay >= 0.0) {
+            return Err(invalid("weight_decay", "must be finite and >= 0"));
+        }
+        if !(0.0..1.0).contains(&self.ema_decay) {
+            return Err(invalid("ema_decay", format!("must be in [0, 1), got {}", self.ema_decay)));
+        }
+        if let Some(c) = self.grad_clip_norm
+            && !pos(c)
+        {
+            return Err(invalid("grad_clip_norm", format!("must be finite and > 0, got {c}")));
+        }
+        if !(0.0..=1.0).contains(&self.cond_drop_prob) {
+            return Err(invalid("cond_drop_prob", "must be in [0, 1]"));
+        }
+        if self.checkpoint_every == Some(0) || self.preview_every == Some(0) {
+            return Err(invalid("checkpoint_every/preview_every", "must be at least 1"));
+        }
+        if self.keep_checkpoints == Some(0) {
+            return Err(invalid("keep_checkpoints", "must be at least 1"));
+        }
+        Ok(())
+    }
+
+    /// The learning-rate schedule these settings describe.
+    pub fn lr_schedule(&self) -> LrSchedule {
+        LrSchedule {
+            base_lr: self.lr,
+            warmup_steps: self.warmup_steps,
+            total_steps: self.total_steps,
+            min_lr: self.min_lr,
+        }
+    }
+}
+
+/// One training batch.
+#[derive(Debug, Clone)]
+pub struct Batch<C> {
+    /// Encoded clean range images `[B, C, H, W]`.
+    pub x0: Tensor,
+    /// Conditioning for the batch (`None` for unconditional training).
+    pub cond: Option<C>,
+}
+
+/// Where batches come from. `step` is the 0-based index of the update the batch is for; a source
+/// that is a pure function of `step` makes resumed runs identical to uninterrupted ones.
+pub trait BatchSource<C> {
+    /// The batch for update `step`.
+    fn batch(&mut self, step: u64) -> Result<Batch<C>>;
+}
+
+impl<C, F: FnMut(u64) -> Result<Batch<C>>> BatchSource<C> for F {
+    fn batch(&mut self, step: u64) -> Result<Batch<C>> {
+        self(step)
+    }
+}
+
+/// What one update did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepStats {
+    /// Number of updates done after this one.
+    pub step: u64,
+    /// Weighted loss of the batch.
+    pub loss: f64,
+    /// Learning rate used.
+    pub lr: f64,
+    /// Global gradient norm before clipping (NaN when the loss was non-finite).
+    pub grad_norm: f64,
+    /// Whether clipping scaled the gradient.
+    pub clipped: bool,
+    /// Whether the update was skipped (non-finite loss or gradient).
+    pub skipped: bool,
+    /// Batch size.
+    pub batch_size: usize,
+    /// Wall time of this step in seconds (data loading excluded).
+    pub step_secs: f64,
+    /// Samples per second of this step.
+    pub samples_per_sec: f64,
+}
+
+/// Callbacks from [`Trainer::fit`]; every method has a no-op default.
+pub trait TrainObserver<M: Denoiser> {
+    /// After every update (draw the progress bar here). Return `Break` to stop early.
+    fn on_step(&mut self, _stats: &StepStats) -> ControlFlow<()> {
+        ControlFlow::Continue(())
+    }
+
+    /// Every `preview_every` steps, with the EMA weights loaded into `model` (restored afterwards).
+    fn on_preview(&mut self, _step: u64, _model: &M, _diffusion: &Diffusion) -> Result<()> {
+        Ok(())
+    }
+
+    /// After a checkpoint was written.
+    fn on_checkpoint(&mut self, _step: u64, _path: &Path) {}
+}
+
+/// The do-nothing observer.
+impl<M: Denoiser> TrainObserver<M> for () {}
+
+/// Summary of a [`Trainer::fit`] call.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FitSummary {
+    /// Updates performed in this call.
+    pub steps_run: u64,
+    /// The trainer's step afterwards.
+    pub final_step: u64,
+    /// Mean loss over this call's non-skipped updates (NaN if none).
+    pub mean_loss: f64,
+    /// Skipped updates in this call.
+    pub skipped: u64,
+    /// Whether the observer stopped the run.
+    pub stopped_early: bool,
+    /// Checkpoints written in this call.
+    pub checkpoints: Vec<PathBuf>,
+}
+
+/// The trainer. Owns the model, its `VarMap`, the optimizer, the EMA weights and the RNG.
+pub struct Trainer<M: Denoiser> {
+    model: M,
+    varmap: VarMap,
+    diffusion: Diffusion,
+    config: TrainConfig,
+    names: Vec<String>,
+    vars: Vec<Var>,
+    ema: Vec<Tensor>,
+    opt: AdamW,
+    step: u64,
+    skipped: u64,
+    rng: ChaCha8Rng,
+}
+
+impl<M: Denoiser> std::fmt::Debug for Trainer<M> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Trainer")
+            .field("step", &self.step)
+            .field("skipped", &self.skipped)
+            .field("parameters", &self.names.len())
+            .field("config", &self.config)
+            .field("diffusion", &self.diffusion)
+            .finish_non_exhaustive()
+    }
+}
+
+impl<M: Denoiser> Trainer<M> {
+    /// Creates a trainer. `varmap` must hold `model`'s parameters (build the model with
+    /// `VarBuilder::from_varmap(&varmap, ..)`); variables are handled in name order.
+    pub fn new(model: M, varmap: VarMap, diffusion: Diffusion, config: TrainConfig) -> Result<Self> {
+        config.validate()?;
+        let mut named: Vec<(String, Var)> = {
+            let data = varmap
+                .data()
+                .lock()
+                .map_err(|_| invalid("varmap", "the VarMap lock is poisoned"))?;
+            data.iter().map(|(k, v)| (k.clone(), v.clone())).collect()
+        };
+        named.retain(|(_, v)| v.dtype().is_float());
+        named.sort_by(|a, b| a.0.cmp(&b.0));
+        if named.is_empty() {
+            return Err(invalid("varmap", "holds no float variables; build the model from it first"));
+        }
+        let names: Vec<String> = named.iter().map(|(n, _)| n.clone()).collect();
+        let vars: Vec<Var> = named.iter().map(|(_, v)| v.clone()).collect();
+        let ema = vars
+            .iter()
+            .map(|v| Ok(v.as_tensor().copy()?.detach()))
+            .collect::<Result<Vec<_>>>()?;
+        let opt = AdamW::new(
+            named,
+            ParamsAdamW {
+                lr: config.lr,
+                beta1: config.beta1,
+                beta2: config.beta2,
+                eps: config.adam_eps,
+                weight_decay: config.weight_decay,
+            },
+        )?;
+        let rng = ChaCha8Rng::seed_from_u64(config.seed);
+        Ok(Self {
+            model,
+            varmap,
+            diffusion,
+            config,
+            names,
+            vars,
+            ema,
+            opt,
+            step: 0,
+            skipped: 0,
+            rng,
+        })
+    }
+
+    /// The model (current, non-averaged weights).
+    pub fn model(&self) -> &M {
+        &self.model
+    }
+
+    /// The variable map.
+    pub fn varmap(&self) -> &VarMap {
+        &self.varmap
+    }
+
+    /// The diffusion process.
+    pub fn diffusion(&self) -> &Diffusion {
+        &self.diffusion
+    }
+
+    /// The settings.
+    pub fn config(&self) -> &TrainConfig {
+        &self.config
+    }
+
+    /// Replaces the settings (e.g. a longer `total_steps` when continuing a run).
+    pub fn set_config(&mut self, config: TrainConfig) -> Result<()> {
+        config.validate()?;
+        self.config = config;
+        Ok(())
+    }
+
+    /// Updates done so far.
+    pub fn step(&self) -> u64 {
+        self.step
+    }
+
+    /// Updates skipped so far (non-finite loss or gradient).
+    pub fn skipped_steps(&self) -> u64 {
+        self.skipped
+    }
+
+    /// The learning rate the next update will use.
+    pub fn next_lr(&self) -> f64 {
+        self.config.lr_schedule().lr_at(self.step)
+    }
+
+    /// Parameter names, sorted.
+    pub fn parameter_names(&self) -> &[String] {
+        &self.names
+    }
+
+    /// The current weights by name.
+    pub fn weights(&self) -> HashMap<String, Tensor> {
+        self.names
+            .iter()
+            .cloned()
+            .zip(self.vars.iter().map(|v| v.as_tensor().clone()))
+            .collect()
+    }
+
+    /// The EMA weights by name (same names as the model's variables: loadable into it directly).
+    pub fn ema_weights(&self) -> HashMap<String, Tensor> {
+        self.names.iter().cloned().zip(self.ema.iter().cloned()).collect()
+    }
+
+    /// Runs `f` with the EMA weights loaded into the model, restoring the training weights after
+    /// (also when `f` fails).
+    pub fn with_ema_weights<R>(&self, f: impl FnOnce(&M) -> Result<R>) -> Result<R> {
+        let backup = self
+            .vars
+            .iter()
+            .map(|v| Ok(v.as_tensor().copy()?))
+            .collect::<Result<Vec<_>>>()?;
+        for (v, e) in self.vars.iter().zip(&self.ema) {
+            v.set(e)?;
+        }
+        let out = f(&self.model);
+        for (v, b) in self.vars.iter().zip(&backup) {
+            v.set(b)?;
+        }
+        out
+    }
+
+    /// One update on `batch`.
+    pub fn train_step(&mut self, batch: &Batch<M::Cond>) -> Result<StepStats> {
+        let started = Instant::now();
+        let b = batch.x0.dim(0)?;
+        let lr = self.config.lr_schedule().lr_at(self.step);
+        let dropout = (self.config.cond_drop_prob > 0.0).then_some(CondDropout {
+            prob: self.config.cond_drop_prob,
+        });
+        let out = self
+            .diffusion
+            .training_loss(&self.model, &batch.x0, batch.cond.as_ref(), dropout, &mut self.rng)?;
+        let loss = out.loss.to_dtype(candle_core::DType::F64)?.to_scalar::<f64>()?;
+        let mut stats = StepStats {
+            step: self.step + 1,
+            loss,
+            lr,
+            grad_norm: f64::NAN,
+            clipped: false,
+            skipped: false,
+            batch_size: b,
+            step_secs: 0.0,
+            samples_per_sec: 0.0,
+        };
+        if loss.is_finite() {
+            let grads = out.loss.backward()?;
+            let mut sq = 0f64;
+            for v in &self.vars {
+                if let Some(g) = grads.get(v.as_tensor()) {
+                    sq += g
+                        .to_dtype(candle_core::DType::F32)?
+                        .sqr()?
+                        .sum_all()?
+                        .to_scalar::<f32>()? as f64;
+                }
+            }
+            let norm = sq.sqrt();
+            stats.grad_norm = norm;
+            if norm.is_finite() {
+                let scale = match self.config.grad_clip_norm {
+                    Some(c) if norm > c => {
+                        stats.clipped = true;
+                        c / (norm + 1e-6)
+                    }
+                    _ => 1.0,
+                };
+                self.opt.set_learning_rate(lr);
+                self.opt.step(&grads, scale)?;
+                self.update_ema()?;
+            } else {
+                stats.skipped = true;
+            }
+        } else {
+            stats.skipped = true;
+        }
+        if stats.skipped {
+            if !self.config.skip_non_finite {
+                let what = if loss.is_finite() { "gradient norm" } else { "loss" };
+                return Err(Error::NonFinite { what, step: self.step });
+            }
+            self.skipped += 1;
+            tracing::warn!(step = self.step, loss, "skipping update with non-finite loss or gradient");
+        }
+        self.step += 1;
+        stats.step_secs = started.elapsed().as_secs_f64();
+        stats.samples_per_sec = b as f64 / stats.step_secs.max(1e-9);
+        Ok(stats)
+    }
+
+    fn update_ema(&mut self) -> Result<()> {
+        let n = self.opt.step_count() as f64;
+        let mut d = self.config.ema_decay;
+        if self.config.ema_warmup {
+            d = d.min((1.0 + n) / (10.0 + n));
+        }
+        for (e, v) in self.ema.iter_mut().zip(&self.vars) {
+            *e = ((&*e * d)? + (v.as_tensor() * (1.0 - d))?)?.detach();
+        }
+        Ok(())
+    }
+
+    /// Trains until `config.total_steps`, pulling batches from `source`, reporting to `observer`,
+    /// previewing every `preview_every` steps and, with `checkpoint_dir`, checkpointing every
+    /// `checkpoint_every` steps and at the end.
+    pub fn fit<S: BatchSource<M::Cond>, O: TrainObserver<M>>(
+        &mut self,
+        source: &mut S,
+        checkpoint_dir: Option<&Path>,
+        observer: &mut O,
+    ) -> Result<FitSummary> {
+        let mut summary = FitSummary {
+            steps_run: 0,
+            final_step: self.step,
+            mean_loss: f64::NAN,
+            skipped: 0,
+            stopped_early: false,
+            checkpoints: Vec::new(),
+        };
+        let mut loss_sum = 0.0;
+        let mut loss_n = 0u64;
+        let mut last_saved = None;
+        while self.step < self.config.total_steps {
+            let batch = source.batch(self.step)?;
+            let stats = self.train_step(&batch)?;
+            summary.steps_run += 1;
+            if stats.skipped {
+                summary.skipped += 1;
+            } else {
+                loss_sum += stats.loss;
+                loss_n += 1;
+            }
+            let flow = observer.on_step(&stats);
+            if let Some(every) = self.config.preview_every
+                && self.step % every == 0
+            {
+                let step = self.step;
+                let diffusion = self.diffusion.clone();
+                self.with_ema_weights(|m| observer.on_preview(step, m, &diffusion))?;
+            }
+            if let (Some(dir), Some(every)) = (checkpoint_dir, self.config.checkpoint_every)
+                && self.step % every == 0
+            {
+                let p = self.save_checkpoint(dir)?;
+                observer.on_checkpoint(self.step, &p);
+                summary.checkpoints.push(p);
+                last_saved = Some(self.step);
+            }
+            if flow.is_break() {
+                summary.stopped_early = true;
+                break;
+            }
+        }
+        if let Some(dir) = checkpoint_dir
+            && last_saved != Some(self.step)
+            && summary.steps_run > 0
+        {
+            let p = self.save_checkpoint(dir)?;
+            observer.on_checkpoint(self.step, &p);
+            summary.checkpoints.push(p);
+        }
+        summary.final_step = self.step;
+        if loss_n > 0 {
+            summary.mean_loss = loss_sum / loss_n as f64;
+        }
+        Ok(summary)
+    }
+}
+
+#[cfg(test)]
+mod tests;

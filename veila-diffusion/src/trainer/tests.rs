@@ -1,0 +1,175 @@
+use super::*;
+use candle_core::{DType, Device};
+use candle_nn::Optimizer as _;
+use rand::SeedableRng;
+
+fn problem(seed: u64) -> (Vec<(String, Var)>, Tensor, Tensor) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let w = Var::from_tensor(&crate::noise::randn(&mut rng, &[4, 3], &Device::Cpu).unwrap()).unwrap();
+    let b = Var::from_tensor(&crate::noise::randn(&mut rng, &[3], &Device::Cpu).unwrap()).unwrap();
+    let x = crate::noise::randn(&mut rng, &[16, 4], &Device::Cpu).unwrap();
+    let y = crate::noise::randn(&mut rng, &[16, 3], &Device::Cpu).unwrap();
+    (vec![("b".into(), b), ("w".into(), w)], x, y)
+}
+
+fn loss(vars: &[(String, Var)], x: &Tensor, y: &Tensor) -> Tensor {
+    let pred = x.matmul(vars[1].1.as_tensor()).unwrap().broadcast_add(vars[0].1.as_tensor()).unwrap();
+    (pred - y).unwrap().sqr().unwrap().mean_all().unwrap()
+}
+
+fn values(vars: &[(String, Var)]) -> Vec<Vec<f32>> {
+    vars.iter()
+        .map(|(_, v)| v.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap())
+        .collect()
+}
+
+#[test]
+fn adamw_is_bit_identical_to_candle_nn_adamw() {
+    let params = ParamsAdamW {
+        lr: 0.05,
+        weight_decay: 0.1,
+        ..ParamsAdamW::default()
+    };
+    let (ours, x, y) = problem(1);
+    let (theirs, _, _) = problem(1);
+    let mut a = AdamW::new(ours.clone(), params.clone()).unwrap();
+    let mut b = candle_nn::AdamW::new(theirs.iter().map(|(_, v)| v.clone()).collect(), params).unwrap();
+    for step in 0..20 {
+        let ga = loss(&ours, &x, &y).backward().unwrap();
+        let gb = loss(&theirs, &x, &y).backward().unwrap();
+        a.step(&ga, 1.0).unwrap();
+        b.step(&gb).unwrap();
+        assert_eq!(values(&ours), values(&theirs), "step {step}");
+    }
+    assert_eq!(a.step_count(), 20);
+}
+
+#[test]
+fn adamw_grad_scale_equals_scaling_the_gradients() {
+    let params = ParamsAdamW {
+        lr: 0.05,
+        eps: 0.3, // large eps: Adam is no longer scale invariant, so scaling shows
+        ..ParamsAdamW::default()
+    };
+    let (ours, x, y) = problem(2);
+    let (theirs, _, _) = problem(2);
+    let mut a = AdamW::new(ours.clone(), params.clone()).unwrap();
+    let mut b = candle_nn::AdamW::new(theirs.iter().map(|(_, v)| v.clone()).collect(), params).unwrap();
+    let before = values(&ours);
+    for _ in 0..5 {
+        let ga = loss(&ours, &x, &y).backward().unwrap();
+        let mut gb = loss(&theirs, &x, &y).backward().unwrap();
+        for (_, v) in &theirs {
+            let g = gb.get(v.as_tensor()).unwrap().clone();
+            gb.insert(v.as_tensor(), (g * 0.25).unwrap());
+        }
+        a.step(&ga, 0.25).unwrap();
+        b.step(&gb).unwrap();
+    }
+    let (va, vb) = (values(&ours), values(&theirs));
+    for (ra, rb) in va.iter().zip(&vb) {
+        for (p, q) in ra.iter().zip(rb) {
+            assert!((p - q).abs() <= 1e-6 * p.abs().max(1.0));
+        }
+    }
+    assert_ne!(va, before);
+}
+
+#[test]
+fn adamw_state_round_trips() {
+    let (vars, x, y) = problem(3);
+    let mut a = AdamW::new(vars.clone(), ParamsAdamW::default()).unwrap();
+    a.step(&loss(&vars, &x, &y).backward().unwrap(), 1.0).unwrap();
+    let st = a.state_tensors();
+    assert_eq!(st.len(), 4);
+    let (vars2, _, _) = problem(3);
+    let mut b = AdamW::new(vars2, ParamsAdamW::default()).unwrap();
+    b.load_state(&st, 1).unwrap();
+    for (k, t) in b.state_tensors() {
+        let want = st[&k].flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert_eq!(t.flatten_all().unwrap().to_vec1::<f32>().unwrap(), want, "{k}");
+    }
+    let mut partial = st.clone();
+    partial.remove("m.w");
+    assert!(b.load_state(&partial, 1).is_err());
+}
+
+#[test]
+fn lr_schedule_warmup_then_cosine() {
+    let s = LrSchedule {
+        base_lr: 1e-3,
+        warmup_steps: 10,
+        total_steps: 110,
+        min_lr: 1e-5,
+    };
+    assert!((s.lr_at(0) - 1e-4).abs() < 1e-15);
+    assert!((s.lr_at(4) - 5e-4).abs() < 1e-15);
+    assert!((s.lr_at(10) - 1e-3).abs() < 1e-15, "peak right after warm-up");
+    // halfway through the cosine: the mean of peak and floor
+    assert!((s.lr_at(60) - (1e-3 + 1e-5) / 2.0).abs() < 1e-15);
+    let q = 1e-5 + (1e-3 - 1e-5) * 0.5 * (1.0 + (std::f64::consts::PI * 0.25).cos());
+    assert!((s.lr_at(35) - q).abs() < 1e-15);
+    assert!((s.lr_at(110) - 1e-5).abs() < 1e-15);
+    assert!((s.lr_at(10_000) - 1e-5).abs() < 1e-15);
+    let no_warm = LrSchedule { warmup_steps: 0, ..s };
+    assert!((no_warm.lr_at(0) - 1e-3).abs() < 1e-15);
+}
+
+#[test]
+fn rng_state_round_trips_mid_stream() {
+    use rand::Rng;
+    let mut rng = ChaCha8Rng::seed_from_u64(42);
+    for _ in 0..37 {
+        let _: u32 = rng.random();
+    }
+    let st = RngState::capture(&rng);
+    let mut back = st.restore().unwrap();
+    let a: Vec<u64> = (0..10).map(|_| rng.random()).collect();
+    let b: Vec<u64> = (0..10).map(|_| back.random()).collect();
+    assert_eq!(a, b);
+    let json = serde_json::to_string(&st).unwrap();
+    let st2: RngState = serde_json::from_str(&json).unwrap();
+    assert_eq!(st, st2);
+    assert!(
+        RngState {
+            seed_hex: "zz".into(),
+            ..st
+        }
+        .restore()
+        .is_none()
+    );
+}
+
+#[test]
+fn train_config_validation() {
+    assert!(TrainConfig::default().validate().is_ok());
+    for bad in [
+        TrainConfig {
+            lr: 0.0,
+            ..TrainConfig::default()
+        },
+        TrainConfig {
+            min_lr: 1.0,
+            ..TrainConfig::default()
+        },
+        TrainConfig {
+            ema_decay: 1.0,
+            ..TrainConfig::default()
+        },
+        TrainConfig {
+            grad_clip_norm: Some(-1.0),
+            ..TrainConfig::default()
+        },
+        TrainConfig {
+            cond_drop_prob: 1.5,
+            ..TrainConfig::default()
+        },
+        TrainConfig {
+            checkpoint_every: Some(0),
+            ..TrainConfig::default()
+        },
+    ] {
+        assert!(bad.validate().is_err(), "{bad:?}");
+    }
+    let _ = DType::F32;
+}

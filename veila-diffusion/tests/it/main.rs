@@ -1,0 +1,5 @@
+//! Integration tests of veila-diffusion (one binary, modules per area).
+
+mod common;
+mod samplers;
+mod training;

@@ -1,0 +1,136 @@
+//! `cargo xtask convert`: a dataset into training shards (see `veila_data::convert` for the
+//! guarantees: bounded memory, atomic, resumable, shardable).
+//!
+//! The worker's shard comes from `--shard-index/--shard-count`, else from the environment:
+//! `SLURM_ARRAY_TASK_ID` (minus `SLURM_ARRAY_TASK_MIN`) of `SLURM_ARRAY_TASK_COUNT` (a Slurm array
+//! job), or `JOB_COMPLETION_INDEX` (a Kubernetes Indexed Job) with `--shard-count` or
+//! `VEILA_SHARD_COUNT` giving the number of workers.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use veila_data::convert::{ConvertOptions, Progress, convert, open_dataset};
+
+/// Convert a dataset into training shards (safetensors + manifest.json).
+#[derive(Debug, Args)]
+pub struct ConvertArgs {
+    /// Dataset kind.
+    #[arg(long, value_parser = ["semantickitti", "kitti", "nuscenes"])]
+    dataset: String,
+    /// Dataset root (KITTI: the folder with training/; SemanticKITTI: the folder with sequences/;
+    /// nuScenes: the data root with v1.0-*/ tables or calib/*.json).
+    #[arg(long)]
+    root: PathBuf,
+    /// Output folder for shards and manifest.json.
+    #[arg(long)]
+    out: PathBuf,
+    /// Sensor: hdl64e, hdl32e, hdl32e-per-beam or a .toml/.json file (default: the dataset's sensor).
+    #[arg(long)]
+    sensor: Option<String>,
+    /// This worker's index (default: from Slurm / Kubernetes environment variables, else 0).
+    #[arg(long)]
+    shard_index: Option<usize>,
+    /// Number of workers (default: from the environment, else 1).
+    #[arg(long)]
+    shard_count: Option<usize>,
+    /// Frames per shard file; memory use is about this many frames.
+    #[arg(long, default_value_t = 64)]
+    frames_per_shard: usize,
+    /// Leave camera images out of the shards (matrices are still stored).
+    #[arg(long)]
+    no_images: bool,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+fn env_usize(name: &str) -> Result<Option<usize>> {
+    match std::env::var(name) {
+        Ok(v) => v
+            .trim()
+            .parse::<usize>()
+            .map(Some)
+            .with_context(|| format!("environment variable {name}={v:?} is not a non-negative integer")),
+        Err(_) => Ok(None),
+    }
+}
+
+/// Resolve (index, count) from the flags and the environment.
+fn worker(args: &ConvertArgs) -> Result<(usize, usize)> {
+    if let Some(i) = args.shard_index {
+        let n = args.shard_count.unwrap_or(1);
+        return check(i, n, "--shard-index/--shard-count");
+    }
+    if let Some(id) = env_usize("SLURM_ARRAY_TASK_ID")? {
+        let min = env_usize("SLURM_ARRAY_TASK_MIN")?.unwrap_or(0);
+        let n = match args.shard_count {
+            Some(n) => n,
+            None => env_usize("SLURM_ARRAY_TASK_COUNT")?
+                .context("SLURM_ARRAY_TASK_ID is set but SLURM_ARRAY_TASK_COUNT is not; pass --shard-count")?,
+        };
+        let i = id.checked_sub(min).context("SLURM_ARRAY_TASK_ID is below SLURM_ARRAY_TASK_MIN")?;
+        return check(i, n, "SLURM_ARRAY_TASK_ID/SLURM_ARRAY_TASK_COUNT");
+    }
+    if let Some(i) = env_usize("JOB_COMPLETION_INDEX")? {
+        let n = match args.shard_count {
+            Some(n) => n,
+            None => env_usize("VEILA_SHARD_COUNT")?.context(
+                "JOB_COMPLETION_INDEX is set: pass --shard-count (or VEILA_SHARD_COUNT) with the job's completions",
+            )?,
+        };
+        return check(i, n, "JOB_COMPLETION_INDEX");
+    }
+    check(0, args.shard_count.unwrap_or(1), "--shard-count")
+}
+
+fn check(i: usize, n: usize, from: &str) -> Result<(usize, usize)> {
+    if n == 0 || i >= n {
+        bail!("shard index {i} is not in 0..{n} (from {from})");
+    }
+    Ok((i, n))
+}
+
+pub fn run(args: ConvertArgs) -> Result<()> {
+    let (index, count) = worker(&args)?;
+    let (dataset, label_map) = open_dataset(&args.dataset, &args.root, !args.no_images)
+        .with_context(|| format!("cannot open {} dataset at {}", args.dataset, args.root.display()))?;
+    let sensor = match &args.sensor {
+        Some(s) => veila_data::spec::sensor_from_spec(s)?,
+        None => dataset.default_sensor(),
+    };
+    let mut opts = ConvertOptions::new(&args.out, sensor);
+    opts.frames_per_shard = args.frames_per_shard;
+    opts.worker_index = index;
+    opts.worker_count = count;
+    opts.include_images = !args.no_images;
+    eprintln!(
+        "converting {} frames of {} ({}) as worker {index} of {count} into {}",
+        dataset.len(),
+        args.dataset,
+        args.root.display(),
+        args.out.display()
+    );
+    let bar = ProgressBar::new(0);
+    if args.quiet {
+        bar.set_draw_target(ProgressDrawTarget::hidden());
+    }
+    bar.set_style(
+        ProgressStyle::with_template("{prefix:>10.bold} [{bar:30}] {pos}/{len} {per_sec} eta {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    bar.set_prefix("convert");
+    let on_progress = |p: Progress| match p {
+        Progress::Start { frames } => bar.set_length(frames as u64),
+        Progress::Frames(k) => bar.inc(k as u64),
+    };
+    let summary = convert(dataset.as_ref(), label_map.as_ref(), &opts, &on_progress)?;
+    bar.finish_and_clear();
+    println!("{}", serde_json::to_string_pretty(&summary)?);
+    if !summary.manifest_written {
+        eprintln!("manifest.json not written yet: other workers' shards are still missing");
+    }
+    Ok(())
+}
