@@ -10,8 +10,8 @@ use clap::{Args, Subcommand};
 use veila_data::image_io::{encode_png, read_rgb_image};
 use veila_data::range_exr::{encode_range_exr, read_range_exr};
 use veila_data::render::{
-    BevOptions, OverlayOptions, RangePreview, render_bev, render_intensity, render_labels, render_overlay,
-    render_range,
+    BevOptions, OverlayOptions, RangePreview, render_bev, render_intensity, render_labels,
+    render_overlay, render_range,
 };
 use veila_data::scan::{LoadedPoints, PointFormat, read_points};
 use veila_data::semantic_kitti::{LabelMap, read_labels};
@@ -130,13 +130,24 @@ fn pick_sensor(spec: Option<&str>, loaded: &LoadedPoints) -> Result<LidarSensor>
 
 fn project_points(loaded: &LoadedPoints, sensor: &LidarSensor) -> Result<RangeImage> {
     let projector = Projector::new(sensor, ProjectionOptions::default())?;
-    let ring_mode = matches!(sensor.beams, BeamLayout::PerBeam { row_source: RowSource::Ring, .. });
+    let ring_mode = matches!(
+        sensor.beams,
+        BeamLayout::PerBeam {
+            row_source: RowSource::Ring,
+            ..
+        }
+    );
     let rings = loaded.cloud.ring.as_deref();
     if ring_mode && rings.is_none() {
-        bail!("the sensor takes rows from ring indices, but this scan has none (use a uniform sensor)");
+        bail!(
+            "the sensor takes rows from ring indices, but this scan has none (use a uniform sensor)"
+        );
     }
-    let (mut img, stats) =
-        projector.project(&loaded.cloud.xyz, Some(&loaded.cloud.intensity), if ring_mode { rings } else { None })?;
+    let (mut img, stats) = projector.project(
+        &loaded.cloud.xyz,
+        Some(&loaded.cloud.intensity),
+        if ring_mode { rings } else { None },
+    )?;
     if let Some(l) = &loaded.cloud.label {
         img.gather_labels(l)?;
     }
@@ -152,7 +163,11 @@ fn project_points(loaded: &LoadedPoints, sensor: &LidarSensor) -> Result<RangeIm
 }
 
 fn intensity_max(loaded: &LoadedPoints) -> f32 {
-    if loaded.format == PointFormat::NuScenesPcdBin { 255.0 } else { 1.0 }
+    if loaded.format == PointFormat::NuScenesPcdBin {
+        255.0
+    } else {
+        1.0
+    }
 }
 
 fn project(a: ProjectArgs) -> Result<()> {
@@ -171,18 +186,27 @@ fn project(a: ProjectArgs) -> Result<()> {
     }
     let sensor = pick_sensor(a.sensor.as_deref(), &loaded)?;
     let img = project_points(&loaded, &sensor)?;
-    let mut outputs: Vec<(PathBuf, Vec<u8>)> = vec![(a.out.clone(), encode_range_exr(&sensor, &img)?)];
+    let mut outputs: Vec<(PathBuf, Vec<u8>)> =
+        vec![(a.out.clone(), encode_range_exr(&sensor, &img)?)];
     if let Some(p) = &a.png {
-        let preview = RangePreview { far_m: sensor.max_range_m.min(80.0), ..Default::default() };
+        let preview = RangePreview {
+            far_m: sensor.max_range_m.min(80.0),
+            ..Default::default()
+        };
         outputs.push((p.clone(), encode_png(&render_range(&img, &preview))?));
     }
     if let Some(p) = &a.intensity_png {
-        outputs.push((p.clone(), encode_png(&render_intensity(&img, intensity_max(&loaded), 4))?));
+        outputs.push((
+            p.clone(),
+            encode_png(&render_intensity(&img, intensity_max(&loaded), 4))?,
+        ));
     }
     if let (Some(p), Some(mp)) = (&a.label_png, &a.label_map) {
         let map = LabelMap::read(mp)?;
         let Some(png) = render_labels(&img, &map, 4) else {
-            bail!("--label-png needs labels: pass --labels FILE.label or a PLY with a label property");
+            bail!(
+                "--label-png needs labels: pass --labels FILE.label or a PLY with a label property"
+            );
         };
         outputs.push((p.clone(), encode_png(&png)?));
     }
@@ -190,7 +214,10 @@ fn project(a: ProjectArgs) -> Result<()> {
 }
 
 fn write_all(outputs: &[(PathBuf, Vec<u8>)]) -> Result<()> {
-    let refs: Vec<(&Path, &[u8])> = outputs.iter().map(|(p, b)| (p.as_path(), b.as_slice())).collect();
+    let refs: Vec<(&Path, &[u8])> = outputs
+        .iter()
+        .map(|(p, b)| (p.as_path(), b.as_slice()))
+        .collect();
     veila_data::atomic::write_atomic_all(&refs)?;
     for (p, _) in outputs {
         println!("wrote {}", p.display());
@@ -201,7 +228,11 @@ fn write_all(outputs: &[(PathBuf, Vec<u8>)]) -> Result<()> {
 fn unproject(a: UnprojectArgs) -> Result<()> {
     let exr = read_range_exr(&a.input)?;
     let cloud = exr.to_points()?;
-    let name = a.out.file_name().map(|n| n.to_string_lossy().to_lowercase()).unwrap_or_default();
+    let name = a
+        .out
+        .file_name()
+        .map(|n| n.to_string_lossy().to_lowercase())
+        .unwrap_or_default();
     let bytes = if name.ends_with(".ply") {
         let mut buf = Vec::new();
         veila_data::ply::encode_ply(&cloud, &mut buf)?;
@@ -211,7 +242,13 @@ fn unproject(a: UnprojectArgs) -> Result<()> {
     } else {
         bail!("{}: the output must end in .ply or .bin", a.out.display());
     };
-    println!("{}: {} points from a {}x{} range image", a.input.display(), cloud.len(), exr.sensor.rows, exr.sensor.cols);
+    println!(
+        "{}: {} points from a {}x{} range image",
+        a.input.display(),
+        cloud.len(),
+        exr.sensor.rows,
+        exr.sensor.cols
+    );
     write_all(&[(a.out, bytes)])
 }
 
@@ -222,7 +259,11 @@ fn render(a: RenderArgs) -> Result<()> {
     let loaded = load(&a.scan)?;
     let mut outputs: Vec<(PathBuf, Vec<u8>)> = Vec::new();
     if let Some(p) = &a.bev {
-        let opts = BevOptions { half_extent_m: a.bev_extent_m, resolution_m: a.bev_resolution_m, ..Default::default() };
+        let opts = BevOptions {
+            half_extent_m: a.bev_extent_m,
+            resolution_m: a.bev_resolution_m,
+            ..Default::default()
+        };
         outputs.push((p.clone(), encode_png(&render_bev(&loaded.cloud, &opts)?)?));
     }
     if let Some(p) = &a.range {
@@ -232,14 +273,34 @@ fn render(a: RenderArgs) -> Result<()> {
             let sensor = pick_sensor(a.sensor.as_deref(), &loaded)?;
             project_points(&loaded, &sensor)?
         };
-        outputs.push((p.clone(), encode_png(&render_range(&img, &RangePreview::default()))?));
+        outputs.push((
+            p.clone(),
+            encode_png(&render_range(&img, &RangePreview::default()))?,
+        ));
     }
     if let (Some(ip), Some(cp), Some(op)) = (&a.image, &a.calib, &a.overlay) {
         let image = read_rgb_image(ip)?;
         let camera = camera_from_calib_file(cp, image.width(), image.height(), &a.camera)?;
-        let min_depth = if loaded.format == PointFormat::NuScenesPcdBin { 1.0 } else { 0.1 };
-        let ov = render_overlay(&image, &camera, &loaded.cloud.xyz, &OverlayOptions { min_depth_m: min_depth, ..Default::default() })?;
-        println!("overlay: {} points land in the {}x{} image", ov.drawn, image.width(), image.height());
+        let min_depth = if loaded.format == PointFormat::NuScenesPcdBin {
+            1.0
+        } else {
+            0.1
+        };
+        let ov = render_overlay(
+            &image,
+            &camera,
+            &loaded.cloud.xyz,
+            &OverlayOptions {
+                min_depth_m: min_depth,
+                ..Default::default()
+            },
+        )?;
+        println!(
+            "overlay: {} points land in the {}x{} image",
+            ov.drawn,
+            image.width(),
+            image.height()
+        );
         outputs.push((op.clone(), encode_png(&ov.image)?));
     }
     write_all(&outputs)

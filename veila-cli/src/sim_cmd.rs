@@ -45,20 +45,27 @@ pub(crate) fn run(cmd: SimCmd) -> Result<()> {
 }
 
 fn is_empty_dir(p: &Path) -> Result<bool> {
-    Ok(std::fs::read_dir(p).with_context(|| format!("{}: cannot read directory", p.display()))?.next().is_none())
+    Ok(std::fs::read_dir(p)
+        .with_context(|| format!("{}: cannot read directory", p.display()))?
+        .next()
+        .is_none())
 }
 
 /// Move every file under `from` to the same relative path under `to` (renames within one file system).
 fn merge_into(from: &Path, to: &Path) -> Result<()> {
-    for entry in std::fs::read_dir(from).with_context(|| format!("{}: cannot read", from.display()))? {
+    for entry in
+        std::fs::read_dir(from).with_context(|| format!("{}: cannot read", from.display()))?
+    {
         let entry = entry?;
         let src = entry.path();
         let dst = to.join(entry.file_name());
         if src.is_dir() {
-            std::fs::create_dir_all(&dst).with_context(|| format!("{}: cannot create", dst.display()))?;
+            std::fs::create_dir_all(&dst)
+                .with_context(|| format!("{}: cannot create", dst.display()))?;
             merge_into(&src, &dst)?;
         } else {
-            std::fs::rename(&src, &dst).with_context(|| format!("{}: cannot move into place", dst.display()))?;
+            std::fs::rename(&src, &dst)
+                .with_context(|| format!("{}: cannot move into place", dst.display()))?;
         }
     }
     Ok(())
@@ -76,29 +83,36 @@ fn simulate(args: SimulateArgs) -> Result<()> {
         bail!("{}: exists and is not a directory", out.display());
     }
     if exists && !args.force && !is_empty_dir(out)? {
-        bail!("{}: exists and is not empty (choose another --out or pass --force)", out.display());
+        bail!(
+            "{}: exists and is not empty (choose another --out or pass --force)",
+            out.display()
+        );
     }
     // Render into a staging directory beside OUT, then move it into place: a failure leaves nothing.
     let parent = match out.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),
     };
-    std::fs::create_dir_all(&parent).with_context(|| format!("{}: cannot create", parent.display()))?;
+    std::fs::create_dir_all(&parent)
+        .with_context(|| format!("{}: cannot create", parent.display()))?;
     let staging = tempfile::Builder::new()
         .prefix(".veila-simulate-")
         .tempdir_in(&parent)
         .with_context(|| format!("{}: cannot create a staging directory", parent.display()))?;
 
     let pb = progress::bar(u64::from(frames), "simulate");
-    let summary = simulate_to_dir(&config, args.seed, frames, staging.path(), |done| pb.set_position(u64::from(done)))
-        .with_context(|| format!("simulating {}", args.scene.display()))?;
+    let summary = simulate_to_dir(&config, args.seed, frames, staging.path(), |done| {
+        pb.set_position(u64::from(done))
+    })
+    .with_context(|| format!("simulating {}", args.scene.display()))?;
     pb.finish_and_clear();
 
     if exists {
         merge_into(staging.path(), out)?;
     } else {
         let staged = staging.keep();
-        std::fs::rename(&staged, out).with_context(|| format!("{}: cannot move the output into place", out.display()))?;
+        std::fs::rename(&staged, out)
+            .with_context(|| format!("{}: cannot move the output into place", out.display()))?;
     }
     let points: usize = summary.frame_stats.iter().map(|f| f.points).sum();
     let rays: usize = summary.frame_stats.iter().map(|f| f.rays).sum();

@@ -7,7 +7,10 @@ use std::process::{Command, Output};
 use veila_data::image;
 
 fn veila(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_veila")).args(args).output().expect("run veila")
+    Command::new(env!("CARGO_BIN_EXE_veila"))
+        .args(args)
+        .output()
+        .expect("run veila")
 }
 
 fn s(p: &Path) -> &str {
@@ -24,7 +27,11 @@ fn stdout(o: &Output) -> String {
 
 /// Fails with the command's output when it did not fail with a message containing every needle.
 fn assert_fails(o: &Output, needles: &[&str]) {
-    assert!(!o.status.success(), "expected failure, got success:\n{}", stdout(o));
+    assert!(
+        !o.status.success(),
+        "expected failure, got success:\n{}",
+        stdout(o)
+    );
     let e = stderr(o);
     for n in needles {
         assert!(e.contains(n), "stderr lacks {n:?}:\n{e}");
@@ -33,8 +40,10 @@ fn assert_fails(o: &Output, needles: &[&str]) {
 
 /// Files in `dir` (names), to check that nothing, not even a temporary, was left behind.
 fn listing(dir: &Path) -> Vec<String> {
-    let mut v: Vec<String> =
-        std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().to_string()).collect();
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+        .collect();
     v.sort();
     v
 }
@@ -45,13 +54,22 @@ fn scan_records(n: usize) -> Vec<[f32; 4]> {
         .map(|i| {
             let a = i as f32 * 0.37;
             let r = 5.0 + (i % 13) as f32;
-            [r * a.cos(), r * a.sin(), -1.0 + (i % 5) as f32 * 0.1, (i % 10) as f32 / 10.0]
+            [
+                r * a.cos(),
+                r * a.sin(),
+                -1.0 + (i % 5) as f32 * 0.1,
+                (i % 10) as f32 / 10.0,
+            ]
         })
         .collect()
 }
 
 fn write_bin(path: &Path, recs: &[[f32; 4]]) {
-    let bytes: Vec<u8> = recs.iter().flatten().flat_map(|v| v.to_le_bytes()).collect();
+    let bytes: Vec<u8> = recs
+        .iter()
+        .flatten()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
     std::fs::write(path, bytes).unwrap();
 }
 
@@ -63,7 +81,9 @@ struct Fixture {
 
 impl Fixture {
     fn new() -> Self {
-        let f = Fixture { dir: tempfile::tempdir().unwrap() };
+        let f = Fixture {
+            dir: tempfile::tempdir().unwrap(),
+        };
         write_bin(&f.p("scan.bin"), &scan_records(2000));
         std::fs::write(f.p("calib.txt"), CALIB).unwrap();
         let img = image::RgbImage::from_pixel(100, 40, image::Rgb([40, 40, 40]));
@@ -84,7 +104,16 @@ impl Fixture {
 fn project_unproject_render_round_trip() {
     let f = Fixture::new();
     let out = f.out_dir();
-    let o = veila(&["project", s(&f.p("scan.bin")), "--sensor", "hdl64e", "--out", s(&out.join("a.exr")), "--png", s(&out.join("a.png"))]);
+    let o = veila(&[
+        "project",
+        s(&f.p("scan.bin")),
+        "--sensor",
+        "hdl64e",
+        "--out",
+        s(&out.join("a.exr")),
+        "--png",
+        s(&out.join("a.png")),
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(stdout(&o).contains("2000 points"), "{}", stdout(&o));
     let exr = veila_data::range_exr::read_range_exr(&out.join("a.exr")).unwrap();
@@ -94,18 +123,42 @@ fn project_unproject_render_round_trip() {
     let png = image::open(out.join("a.png")).unwrap();
     assert_eq!((png.width(), png.height()), (1024, 64 * 4));
 
-    let o = veila(&["unproject", s(&out.join("a.exr")), "--out", s(&out.join("b.ply"))]);
+    let o = veila(&[
+        "unproject",
+        s(&out.join("a.exr")),
+        "--out",
+        s(&out.join("b.ply")),
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let back = veila_data::scan::read_points(&out.join("b.ply")).unwrap();
     assert_eq!(back.cloud.len(), valid);
-    let o = veila(&["unproject", s(&out.join("a.exr")), "--out", s(&out.join("b.bin"))]);
+    let o = veila(&[
+        "unproject",
+        s(&out.join("a.exr")),
+        "--out",
+        s(&out.join("b.bin")),
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
-    assert_eq!(std::fs::metadata(out.join("b.bin")).unwrap().len() as usize, valid * 16);
+    assert_eq!(
+        std::fs::metadata(out.join("b.bin")).unwrap().len() as usize,
+        valid * 16
+    );
 
     let o = veila(&[
-        "render", s(&f.p("scan.bin")), "--bev", s(&out.join("bev.png")), "--range", s(&out.join("r.png")),
-        "--image", s(&f.p("img.png")), "--calib", s(&f.p("calib.txt")), "--overlay", s(&out.join("ov.png")),
-        "--bev-resolution-m", "0.5",
+        "render",
+        s(&f.p("scan.bin")),
+        "--bev",
+        s(&out.join("bev.png")),
+        "--range",
+        s(&out.join("r.png")),
+        "--image",
+        s(&f.p("img.png")),
+        "--calib",
+        s(&f.p("calib.txt")),
+        "--overlay",
+        s(&out.join("ov.png")),
+        "--bev-resolution-m",
+        "0.5",
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
     // brute force: points in front of the camera (x > 0.1 m) whose pixel lands in 100 x 40
@@ -120,13 +173,22 @@ fn project_unproject_render_round_trip() {
             (-0.5..99.5).contains(&u) && (-0.5..39.5).contains(&v)
         })
         .count();
-    assert!(stdout(&o).contains(&format!("overlay: {brute} points")), "{} (brute force {brute})", stdout(&o));
+    assert!(
+        stdout(&o).contains(&format!("overlay: {brute} points")),
+        "{} (brute force {brute})",
+        stdout(&o)
+    );
     let ov = image::open(out.join("ov.png")).unwrap().to_rgb8();
     assert!(ov.pixels().any(|p| p.0 != [40, 40, 40]));
     assert_eq!(image::open(out.join("bev.png")).unwrap().width(), 200);
     // the EXR renders too (format detected by magic, even under a misleading name)
     std::fs::copy(out.join("a.exr"), out.join("renamed.bin")).unwrap();
-    let o = veila(&["render", s(&out.join("renamed.bin")), "--range", s(&out.join("r2.png"))]);
+    let o = veila(&[
+        "render",
+        s(&out.join("renamed.bin")),
+        "--range",
+        s(&out.join("r2.png")),
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(stdout(&o).contains("range-image EXR"));
 }
@@ -138,7 +200,14 @@ fn bin_length_not_a_multiple_of_the_record() {
     let mut bytes = std::fs::read(f.p("scan.bin")).unwrap();
     bytes.truncate(bytes.len() - 6);
     std::fs::write(f.p("cut.bin"), bytes).unwrap();
-    let o = veila(&["project", s(&f.p("cut.bin")), "--out", s(&out.join("a.exr")), "--png", s(&out.join("a.png"))]);
+    let o = veila(&[
+        "project",
+        s(&f.p("cut.bin")),
+        "--out",
+        s(&out.join("a.exr")),
+        "--png",
+        s(&out.join("a.png")),
+    ]);
     assert_fails(&o, &["cut.bin", "not a multiple of the 16-byte record"]);
     assert!(listing(&out).is_empty(), "{:?}", listing(&out));
 }
@@ -152,13 +221,33 @@ fn non_finite_points_are_dropped_and_counted() {
     recs[10][2] = f32::INFINITY;
     recs[20][3] = f32::NEG_INFINITY;
     write_bin(&f.p("nan.bin"), &recs);
-    let o = veila(&["project", s(&f.p("nan.bin")), "--out", s(&out.join("a.exr"))]);
+    let o = veila(&[
+        "project",
+        s(&f.p("nan.bin")),
+        "--out",
+        s(&out.join("a.exr")),
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
-    assert!(stdout(&o).contains("497 points") && stdout(&o).contains("3 non-finite dropped"), "{}", stdout(&o));
+    assert!(
+        stdout(&o).contains("497 points") && stdout(&o).contains("3 non-finite dropped"),
+        "{}",
+        stdout(&o)
+    );
     let exr = veila_data::range_exr::read_range_exr(&out.join("a.exr")).unwrap();
-    assert!(exr.image.range_m.iter().chain(&exr.image.intensity).all(|v| v.is_finite()));
+    assert!(
+        exr.image
+            .range_m
+            .iter()
+            .chain(&exr.image.intensity)
+            .all(|v| v.is_finite())
+    );
     // PLY output of such a scan holds finite values only
-    let o = veila(&["unproject", s(&out.join("a.exr")), "--out", s(&out.join("a.ply"))]);
+    let o = veila(&[
+        "unproject",
+        s(&out.join("a.exr")),
+        "--out",
+        s(&out.join("a.ply")),
+    ]);
     assert!(o.status.success());
     let back = veila_data::scan::read_points(&out.join("a.ply")).unwrap();
     assert_eq!(back.dropped_non_finite, 0);
@@ -169,17 +258,41 @@ fn calib_missing_key_or_malformed_number() {
     let f = Fixture::new();
     let out = f.out_dir();
     for (name, text, needles) in [
-        ("nokey.txt", CALIB.replace("R0_rect: 1 0 0 0 1 0 0 0 1\n", "R0_rect: 1 0 0 0 1 0 0 0 1\n").replace("Tr_velo_to_cam", "Tr_velo_to_cax"), vec!["nokey.txt", "Tr_velo_to_cam", "missing"]),
-        ("badnum.txt", CALIB.replace("P2: 100 0 50", "P2: 100 0 5,0"), vec!["badnum.txt", "P2", "malformed number `5,0`"]),
-        ("nop2.txt", CALIB.replace("P2: 100 0 50 0 0 100 20 0 0 0 1 0\n", ""), vec!["nop2.txt", "P2", "missing"]),
+        (
+            "nokey.txt",
+            CALIB.replace("Tr_velo_to_cam", "Tr_velo_to_cax"),
+            vec!["nokey.txt", "Tr_velo_to_cam", "missing"],
+        ),
+        (
+            "badnum.txt",
+            CALIB.replace("P2: 100 0 50", "P2: 100 0 5,0"),
+            vec!["badnum.txt", "P2", "malformed number `5,0`"],
+        ),
+        (
+            "nop2.txt",
+            CALIB.replace("P2: 100 0 50 0 0 100 20 0 0 0 1 0\n", ""),
+            vec!["nop2.txt", "P2", "missing"],
+        ),
     ] {
         std::fs::write(f.p(name), text).unwrap();
         let o = veila(&[
-            "render", s(&f.p("scan.bin")), "--bev", s(&out.join("bev.png")),
-            "--image", s(&f.p("img.png")), "--calib", s(&f.p(name)), "--overlay", s(&out.join("ov.png")),
+            "render",
+            s(&f.p("scan.bin")),
+            "--bev",
+            s(&out.join("bev.png")),
+            "--image",
+            s(&f.p("img.png")),
+            "--calib",
+            s(&f.p(name)),
+            "--overlay",
+            s(&out.join("ov.png")),
         ]);
         assert_fails(&o, &needles);
-        assert!(listing(&out).is_empty(), "partial output: {:?}", listing(&out));
+        assert!(
+            listing(&out).is_empty(),
+            "partial output: {:?}",
+            listing(&out)
+        );
     }
 }
 
@@ -190,14 +303,31 @@ fn more_or_fewer_labels_than_points() {
     for (n, word) in [(1999usize, "fewer"), (2001, "more")] {
         let bytes: Vec<u8> = (0..n as u32).flat_map(|v| (v % 30).to_le_bytes()).collect();
         std::fs::write(f.p("l.label"), bytes).unwrap();
-        let o = veila(&["project", s(&f.p("scan.bin")), "--labels", s(&f.p("l.label")), "--out", s(&out.join("a.exr"))]);
-        assert_fails(&o, &["l.label", &format!("{n} labels"), "2000 points", word]);
+        let o = veila(&[
+            "project",
+            s(&f.p("scan.bin")),
+            "--labels",
+            s(&f.p("l.label")),
+            "--out",
+            s(&out.join("a.exr")),
+        ]);
+        assert_fails(
+            &o,
+            &["l.label", &format!("{n} labels"), "2000 points", word],
+        );
         assert!(listing(&out).is_empty());
     }
     // the right count works and the labels reach the EXR
     let bytes: Vec<u8> = (0..2000u32).flat_map(|v| (v % 30).to_le_bytes()).collect();
     std::fs::write(f.p("l.label"), bytes).unwrap();
-    let o = veila(&["project", s(&f.p("scan.bin")), "--labels", s(&f.p("l.label")), "--out", s(&out.join("a.exr"))]);
+    let o = veila(&[
+        "project",
+        s(&f.p("scan.bin")),
+        "--labels",
+        s(&f.p("l.label")),
+        "--out",
+        s(&out.join("a.exr")),
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let exr = veila_data::range_exr::read_range_exr(&out.join("a.exr")).unwrap();
     let l = exr.image.label.unwrap();
@@ -215,19 +345,38 @@ fn unreadable_or_truncated_image() {
     let bytes = std::fs::read(f.p("img.png")).unwrap();
     std::fs::write(f.p("cut.png"), &bytes[..bytes.len() / 2]).unwrap();
     std::fs::write(f.p("text.png"), b"hello").unwrap();
-    for (name, needle) in [("cut.png", "cut.png"), ("text.png", "text.png"), ("missing.png", "missing.png")] {
+    for (name, needle) in [
+        ("cut.png", "cut.png"),
+        ("text.png", "text.png"),
+        ("missing.png", "missing.png"),
+    ] {
         let o = veila(&[
-            "render", s(&f.p("scan.bin")), "--bev", s(&out.join("bev.png")),
-            "--image", s(&f.p(name)), "--calib", s(&f.p("calib.txt")), "--overlay", s(&out.join("ov.png")),
+            "render",
+            s(&f.p("scan.bin")),
+            "--bev",
+            s(&out.join("bev.png")),
+            "--image",
+            s(&f.p(name)),
+            "--calib",
+            s(&f.p("calib.txt")),
+            "--overlay",
+            s(&out.join("ov.png")),
         ]);
         assert_fails(&o, &[needle]);
-        assert!(listing(&out).is_empty(), "partial output: {:?}", listing(&out));
+        assert!(
+            listing(&out).is_empty(),
+            "partial output: {:?}",
+            listing(&out)
+        );
     }
 }
 
 fn patch(bytes: &mut [u8], from: &[u8], to: &[u8]) {
     assert_eq!(from.len(), to.len());
-    let at = bytes.windows(from.len()).position(|w| w == from).expect("pattern in EXR header");
+    let at = bytes
+        .windows(from.len())
+        .position(|w| w == from)
+        .expect("pattern in EXR header");
     bytes[at..at + to.len()].copy_from_slice(to);
 }
 
@@ -235,7 +384,11 @@ fn patch(bytes: &mut [u8], from: &[u8], to: &[u8]) {
 fn exr_with_missing_channel_or_wrong_size() {
     let f = Fixture::new();
     let out = f.out_dir();
-    let sensor = veila_geom::LidarSensor { rows: 4, cols: 16, ..veila_geom::LidarSensor::hdl64e() };
+    let sensor = veila_geom::LidarSensor {
+        rows: 4,
+        cols: 16,
+        ..veila_geom::LidarSensor::hdl64e()
+    };
     let mut img = veila_geom::RangeImage::new_empty(4, 16);
     img.mask[5] = true;
     img.range_m[5] = 7.5;
@@ -244,22 +397,46 @@ fn exr_with_missing_channel_or_wrong_size() {
     let mut no_mask = good.clone();
     patch(&mut no_mask, b"mask\0", b"masq\0");
     std::fs::write(f.p("nomask.exr"), no_mask).unwrap();
-    let o = veila(&["unproject", s(&f.p("nomask.exr")), "--out", s(&out.join("a.ply"))]);
+    let o = veila(&[
+        "unproject",
+        s(&f.p("nomask.exr")),
+        "--out",
+        s(&out.join("a.ply")),
+    ]);
     assert_fails(&o, &["nomask.exr", "missing channel `mask`"]);
 
     let mut wrong = good.clone();
     patch(&mut wrong, b"\"rows\":4", b"\"rows\":5");
     std::fs::write(f.p("size.exr"), wrong).unwrap();
-    let o = veila(&["unproject", s(&f.p("size.exr")), "--out", s(&out.join("a.ply"))]);
+    let o = veila(&[
+        "unproject",
+        s(&f.p("size.exr")),
+        "--out",
+        s(&out.join("a.ply")),
+    ]);
     assert_fails(&o, &["size.exr", "16x4", "5 rows"]);
 
     std::fs::write(f.p("cut.exr"), &good[..good.len() - 20]).unwrap();
-    let o = veila(&["render", s(&f.p("cut.exr")), "--range", s(&out.join("r.png"))]);
+    let o = veila(&[
+        "render",
+        s(&f.p("cut.exr")),
+        "--range",
+        s(&out.join("r.png")),
+    ]);
     assert_fails(&o, &["cut.exr"]);
-    assert!(listing(&out).is_empty(), "partial output: {:?}", listing(&out));
+    assert!(
+        listing(&out).is_empty(),
+        "partial output: {:?}",
+        listing(&out)
+    );
 
     std::fs::write(f.p("good.exr"), &good).unwrap();
-    let o = veila(&["unproject", s(&f.p("good.exr")), "--out", s(&out.join("a.ply"))]);
+    let o = veila(&[
+        "unproject",
+        s(&f.p("good.exr")),
+        "--out",
+        s(&out.join("a.ply")),
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
 }
 
@@ -269,12 +446,27 @@ fn output_directory_that_cannot_be_written() {
     // a "directory" that is a file, and one that does not exist
     std::fs::write(f.p("afile"), b"x").unwrap();
     for bad in [f.p("afile").join("a.exr"), f.p("no/such/dir/a.exr")] {
-        let o = veila(&["project", s(&f.p("scan.bin")), "--out", s(&bad), "--png", s(&f.p("ok.png"))]);
+        let o = veila(&[
+            "project",
+            s(&f.p("scan.bin")),
+            "--out",
+            s(&bad),
+            "--png",
+            s(&f.p("ok.png")),
+        ]);
         assert_fails(&o, &[s(bad.parent().unwrap())]);
-        assert!(!f.p("ok.png").exists(), "the preview was written although the EXR could not be");
+        assert!(
+            !f.p("ok.png").exists(),
+            "the preview was written although the EXR could not be"
+        );
     }
     let before = listing(f.dir.path());
-    let o = veila(&["unproject", s(&f.p("missing.exr")), "--out", s(&f.p("x.ply"))]);
+    let o = veila(&[
+        "unproject",
+        s(&f.p("missing.exr")),
+        "--out",
+        s(&f.p("x.ply")),
+    ]);
     assert_fails(&o, &["missing.exr"]);
     assert_eq!(listing(f.dir.path()), before);
 }
@@ -288,12 +480,26 @@ fn real_kitti_overlay_counts() {
     }
     let dir = tempfile::tempdir().unwrap();
     let o = veila(&[
-        "render", s(&real.join("velodyne/000000.bin")), "--image", s(&real.join("image_2/000000.png")),
-        "--calib", s(&real.join("calib/000000.txt")), "--overlay", s(&dir.path().join("ov.png")),
+        "render",
+        s(&real.join("velodyne/000000.bin")),
+        "--image",
+        s(&real.join("image_2/000000.png")),
+        "--calib",
+        s(&real.join("calib/000000.txt")),
+        "--overlay",
+        s(&dir.path().join("ov.png")),
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
     let out = stdout(&o);
     assert!(out.contains("115384 points"), "{out}");
-    let n: usize = out.split("overlay: ").nth(1).unwrap().split(' ').next().unwrap().parse().unwrap();
+    let n: usize = out
+        .split("overlay: ")
+        .nth(1)
+        .unwrap()
+        .split(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
     assert!((19_000..=21_000).contains(&n), "{n}");
 }

@@ -30,12 +30,23 @@ fn veila() -> Command {
 
 fn files(dir: &Path) -> Vec<(String, Vec<u8>)> {
     let mut out = Vec::new();
-    for sub in ["", "velodyne", "labels", "image_2", "calib", "depth_2", "semantic_2"] {
+    for sub in [
+        "",
+        "velodyne",
+        "labels",
+        "image_2",
+        "calib",
+        "depth_2",
+        "semantic_2",
+    ] {
         let d = dir.join(sub);
         for e in std::fs::read_dir(&d).unwrap() {
             let p = e.unwrap().path();
             if p.is_file() {
-                out.push((format!("{sub}/{}", p.file_name().unwrap().to_string_lossy()), std::fs::read(&p).unwrap()));
+                out.push((
+                    format!("{sub}/{}", p.file_name().unwrap().to_string_lossy()),
+                    std::fs::read(&p).unwrap(),
+                ));
             }
         }
     }
@@ -57,41 +68,88 @@ fn same_seed_gives_identical_bytes() {
             .args(["--seed", seed])
             .output()
             .unwrap();
-        assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+        assert!(
+            st.status.success(),
+            "{}",
+            String::from_utf8_lossy(&st.stderr)
+        );
     }
-    let (a, b, c) = (files(&tmp.path().join("a")), files(&tmp.path().join("b")), files(&tmp.path().join("c")));
+    let (a, b, c) = (
+        files(&tmp.path().join("a")),
+        files(&tmp.path().join("b")),
+        files(&tmp.path().join("c")),
+    );
     assert_eq!(a.iter().filter(|f| f.0.starts_with("velodyne/")).count(), 2);
     assert_eq!(a.len(), 2 * 6 + 3);
     assert!(a == b, "same seed, different bytes");
     assert!(a != c, "another seed, same bytes");
     // --frames overrides the scene file
-    let st = veila().args(["simulate", "--quiet", "--frames", "1", "--scene"]).arg(&scene).arg("--out").arg(tmp.path().join("d")).output().unwrap();
+    let st = veila()
+        .args(["simulate", "--quiet", "--frames", "1", "--scene"])
+        .arg(&scene)
+        .arg("--out")
+        .arg(tmp.path().join("d"))
+        .output()
+        .unwrap();
     assert!(st.status.success());
-    assert_eq!(std::fs::read_dir(tmp.path().join("d/velodyne")).unwrap().count(), 1);
+    assert_eq!(
+        std::fs::read_dir(tmp.path().join("d/velodyne"))
+            .unwrap()
+            .count(),
+        1
+    );
 }
 
 #[test]
 fn bad_scene_fails_clearly_without_output() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = tmp.path().join("bad.toml");
-    std::fs::write(&scene, "layout = \"straight\"\n[road]\nlane_width_m = -3.0\n").unwrap();
+    std::fs::write(
+        &scene,
+        "layout = \"straight\"\n[road]\nlane_width_m = -3.0\n",
+    )
+    .unwrap();
     let out = tmp.path().join("out");
-    let st = veila().args(["simulate", "--quiet", "--scene"]).arg(&scene).arg("--out").arg(&out).output().unwrap();
+    let st = veila()
+        .args(["simulate", "--quiet", "--scene"])
+        .arg(&scene)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
     assert!(!st.status.success());
     let err = String::from_utf8_lossy(&st.stderr);
-    assert!(err.contains("bad.toml") && err.contains("lane_width_m"), "{err}");
+    assert!(
+        err.contains("bad.toml") && err.contains("lane_width_m"),
+        "{err}"
+    );
     assert!(!out.exists(), "partial output left behind");
     // nothing else (no staging directory) is left either
-    let left: Vec<_> = std::fs::read_dir(tmp.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+    let left: Vec<_> = std::fs::read_dir(tmp.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
     assert_eq!(left.len(), 1, "{left:?}");
     // an existing non-empty output directory is refused
     std::fs::create_dir(&out).unwrap();
     std::fs::write(out.join("keep.txt"), "x").unwrap();
     std::fs::write(&scene, TINY_SCENE).unwrap();
-    let st = veila().args(["simulate", "--quiet", "--scene"]).arg(&scene).arg("--out").arg(&out).output().unwrap();
+    let st = veila()
+        .args(["simulate", "--quiet", "--scene"])
+        .arg(&scene)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
     assert!(!st.status.success());
     assert!(String::from_utf8_lossy(&st.stderr).contains("not empty"));
-    let st = veila().args(["simulate", "--quiet", "--force", "--frames", "1", "--scene"]).arg(&scene).arg("--out").arg(&out).output().unwrap();
+    let st = veila()
+        .args(["simulate", "--quiet", "--force", "--frames", "1", "--scene"])
+        .arg(&scene)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
     assert!(st.status.success());
     assert!(out.join("keep.txt").exists() && out.join("velodyne/000000.bin").exists());
 }

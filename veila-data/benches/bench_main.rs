@@ -1,9 +1,21 @@
-use criterion::{Criterion, criterion_group, criterion_main};
+use criterion::{criterion_group, criterion_main};
 
+mod io_bench;
 mod sim_bench;
+mod weather_bench;
 
-fn placeholder(_c: &mut Criterion) {}
-
-criterion_group!(benches, placeholder);
-criterion_group!(sim, sim_bench::bench_lidar, sim_bench::bench_snapshot, sim_bench::bench_camera);
-criterion_main!(benches, sim);
+criterion_group!(io, io_bench::bench_shard, io_bench::bench_previews);
+criterion_group!(
+    sim,
+    sim_bench::bench_lidar,
+    sim_bench::bench_snapshot,
+    sim_bench::bench_camera
+);
+criterion_group!(
+    weather,
+    weather_bench::bench_lidar_effects,
+    weather_bench::bench_fog_table,
+    weather_bench::bench_snow_density,
+    weather_bench::bench_camera_effects
+);
+criterion_main!(io, sim, weather);

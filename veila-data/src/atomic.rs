@@ -14,7 +14,8 @@ fn make_readable(file: &std::fs::File, path: &Path) -> Result<()> {
     #[cfg(unix)]
     {
         use std::os::unix::fs::PermissionsExt;
-        file.set_permissions(std::fs::Permissions::from_mode(0o644)).map_err(|e| Error::io(path, e))?;
+        file.set_permissions(std::fs::Permissions::from_mode(0o644))
+            .map_err(|e| Error::io(path, e))?;
     }
     #[cfg(not(unix))]
     let _ = (file, path);
@@ -38,7 +39,10 @@ pub fn write_atomic_with(
     if !dir.is_dir() {
         return Err(Error::io(
             dir,
-            std::io::Error::new(std::io::ErrorKind::NotFound, "output directory does not exist"),
+            std::io::Error::new(
+                std::io::ErrorKind::NotFound,
+                "output directory does not exist",
+            ),
         ));
     }
     let mut tmp = tempfile::Builder::new()
@@ -71,7 +75,10 @@ pub fn write_atomic_all(files: &[(&Path, &[u8])]) -> Result<()> {
         if !dir.is_dir() {
             return Err(Error::io(
                 dir,
-                std::io::Error::new(std::io::ErrorKind::NotFound, "output directory does not exist"),
+                std::io::Error::new(
+                    std::io::ErrorKind::NotFound,
+                    "output directory does not exist",
+                ),
             ));
         }
         let mut tmp = tempfile::Builder::new()
@@ -79,7 +86,9 @@ pub fn write_atomic_all(files: &[(&Path, &[u8])]) -> Result<()> {
             .suffix(".tmp")
             .tempfile_in(dir)
             .map_err(|e| Error::io(dir, e))?;
-        tmp.as_file_mut().write_all(bytes).map_err(|e| Error::io(*path, e))?;
+        tmp.as_file_mut()
+            .write_all(bytes)
+            .map_err(|e| Error::io(*path, e))?;
         tmp.as_file().sync_all().map_err(|e| Error::io(*path, e))?;
         make_readable(tmp.as_file(), path)?;
         staged.push((tmp, *path));
@@ -99,10 +108,16 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let a = dir.path().join("a.txt");
         let missing = dir.path().join("no/such/dir/b.txt");
-        let e = write_atomic_all(&[(&a, b"1"), (&missing, b"2")]).unwrap_err().to_string();
+        let e = write_atomic_all(&[(&a, b"1"), (&missing, b"2")])
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("no/such/dir"), "{e}");
         assert!(!a.exists());
-        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0, "temporaries left behind");
+        assert_eq!(
+            std::fs::read_dir(dir.path()).unwrap().count(),
+            0,
+            "temporaries left behind"
+        );
         write_atomic_all(&[(&a, b"1"), (&dir.path().join("b.txt"), b"2")]).unwrap();
         assert_eq!(std::fs::read(&a).unwrap(), b"1");
     }

@@ -35,7 +35,10 @@ impl CalibEntries {
             let mut values = Vec::new();
             for tok in rest.split_whitespace() {
                 let v: f64 = tok.parse().map_err(|_| {
-                    Error::format(path, format!("line {line_no}, key {key}: malformed number `{tok}`"))
+                    Error::format(
+                        path,
+                        format!("line {line_no}, key {key}: malformed number `{tok}`"),
+                    )
                 })?;
                 if !v.is_finite() {
                     return Err(Error::format(
@@ -46,7 +49,10 @@ impl CalibEntries {
                 values.push(v);
             }
             if entries.insert(key.to_string(), (line_no, values)).is_some() {
-                return Err(Error::format(path, format!("line {line_no}: key {key} appears twice")));
+                return Err(Error::format(
+                    path,
+                    format!("line {line_no}: key {key} appears twice"),
+                ));
             }
         }
         Ok(CalibEntries { entries })
@@ -59,7 +65,10 @@ impl CalibEntries {
                 if v.len() != n {
                     return Err(Error::format(
                         path,
-                        format!("line {line}, key {name}: expected {n} numbers, found {}", v.len()),
+                        format!(
+                            "line {line}, key {name}: expected {n} numbers, found {}",
+                            v.len()
+                        ),
                     ));
                 }
                 return Ok(Some(v.clone()));
@@ -70,7 +79,10 @@ impl CalibEntries {
 
     pub(crate) fn require(&self, names: &[&str], n: usize, path: &Path) -> Result<Vec<f64>> {
         self.get(names, n, path)?.ok_or_else(|| {
-            Error::format(path, format!("calibration key {} is missing", names.join(" / ")))
+            Error::format(
+                path,
+                format!("calibration key {} is missing", names.join(" / ")),
+            )
         })
     }
 

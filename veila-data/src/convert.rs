@@ -17,12 +17,15 @@ use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use veila_geom::{BeamLayout, LidarSensor, ProjectionOptions, ProjectionStats, Projector, RowSource};
+use veila_geom::{
+    BeamLayout, LidarSensor, ProjectionOptions, ProjectionStats, Projector, RowSource,
+};
 
 use crate::dataset::{Dataset, Frame};
 use crate::semantic_kitti::LabelMap;
 use crate::shard::{
-    CameraMatrices, MANIFEST_FORMAT, Manifest, ShardEntry, ShardSample, sha256_file, sha256_hex, write_shard,
+    CameraMatrices, MANIFEST_FORMAT, Manifest, ShardEntry, ShardSample, sha256_file, sha256_hex,
+    write_shard,
 };
 use crate::{Error, Result};
 
@@ -46,12 +49,12 @@ pub struct ConvertOptions {
 }
 
 impl ConvertOptions {
-    /// Defaults: 64 frames per shard, one worker, images included.
+    /// Defaults: 32 frames per shard (about 130 MiB peak with KITTI images), one worker, images included.
     pub fn new(out_dir: impl Into<PathBuf>, sensor: LidarSensor) -> Self {
         ConvertOptions {
             out_dir: out_dir.into(),
             sensor,
-            frames_per_shard: 64,
+            frames_per_shard: 32,
             worker_index: 0,
             worker_count: 1,
             include_images: true,
@@ -118,17 +121,27 @@ pub fn frame_to_sample(
     let pts = &frame.points;
     let uses_ring = matches!(
         projector.sensor().beams,
-        BeamLayout::PerBeam { row_source: RowSource::Ring, .. }
+        BeamLayout::PerBeam {
+            row_source: RowSource::Ring,
+            ..
+        }
     );
     let rings = if uses_ring {
         Some(pts.ring.as_deref().ok_or_else(|| Error::Invalid {
             what: "sensor".into(),
-            message: format!("frame {}: the sensor takes rows from rings but the scan has none", frame.id),
+            message: format!(
+                "frame {}: the sensor takes rows from rings but the scan has none",
+                frame.id
+            ),
         })?)
     } else {
         None
     };
-    let scale = if intensity_max > 0.0 { 1.0 / intensity_max } else { 1.0 };
+    let scale = if intensity_max > 0.0 {
+        1.0 / intensity_max
+    } else {
+        1.0
+    };
     let intensity: Vec<f32> = pts.intensity.iter().map(|i| i * scale).collect();
     let (mut img, stats) = projector.project(&pts.xyz, Some(&intensity), rings)?;
     if let Some(l) = &pts.label {
@@ -145,7 +158,11 @@ pub fn frame_to_sample(
         intensity: img.intensity,
         label,
         label_raw: img.label,
-        image: if include_image { frame.image.clone() } else { None },
+        image: if include_image {
+            frame.image.clone()
+        } else {
+            None
+        },
         camera: frame.camera.as_ref().map(CameraMatrices::from_camera),
     };
     Ok((sample, stats))
@@ -194,12 +211,18 @@ pub fn convert(
     progress: &(dyn Fn(Progress) + Sync),
 ) -> Result<ConvertSummary> {
     if opts.frames_per_shard == 0 {
-        return Err(Error::Invalid { what: "frames per shard".into(), message: "must be at least 1".into() });
+        return Err(Error::Invalid {
+            what: "frames per shard".into(),
+            message: "must be at least 1".into(),
+        });
     }
     if opts.worker_count == 0 || opts.worker_index >= opts.worker_count {
         return Err(Error::Invalid {
             what: "shard selection".into(),
-            message: format!("index {} is not in 0..{}", opts.worker_index, opts.worker_count),
+            message: format!(
+                "index {} is not in 0..{}",
+                opts.worker_index, opts.worker_count
+            ),
         });
     }
     let projector = Projector::new(&opts.sensor, opts.projection)?;
@@ -213,10 +236,16 @@ pub fn convert(
     let n = dataset.len();
     let fps = opts.frames_per_shard;
     let total_shards = n.div_ceil(fps);
-    let mine: Vec<usize> = (0..total_shards).filter(|k| k % opts.worker_count == opts.worker_index).collect();
+    let mine: Vec<usize> = (0..total_shards)
+        .filter(|k| k % opts.worker_count == opts.worker_index)
+        .collect();
     let my_frames: usize = mine.iter().map(|k| (n - k * fps).min(fps)).sum();
     progress(Progress::Start { frames: my_frames });
-    let mut summary = ConvertSummary { total_shards, assigned_shards: mine.len(), ..Default::default() };
+    let mut summary = ConvertSummary {
+        total_shards,
+        assigned_shards: mine.len(),
+        ..Default::default()
+    };
     let intensity_max = dataset.intensity_max();
 
     for &k in &mine {
@@ -231,7 +260,13 @@ pub fn convert(
             .into_par_iter()
             .map(|i| {
                 let frame = dataset.load(i)?;
-                let (s, st) = frame_to_sample(&frame, &projector, intensity_max, label_map, opts.include_images)?;
+                let (s, st) = frame_to_sample(
+                    &frame,
+                    &projector,
+                    intensity_max,
+                    label_map,
+                    opts.include_images,
+                )?;
                 progress(Progress::Frames(1));
                 Ok((s, st, frame.dropped_non_finite))
             })
@@ -250,9 +285,14 @@ pub fn convert(
         let path = out.join(shard_file_name(k));
         let entry = write_shard(&path, &opts.sensor, dataset.name(), &samples)?;
         drop(samples);
-        let sc = Sidecar { fingerprint: fp.clone(), entry };
-        let text = serde_json::to_string_pretty(&sc)
-            .map_err(|e| Error::Invalid { what: "sidecar".into(), message: e.to_string() })?;
+        let sc = Sidecar {
+            fingerprint: fp.clone(),
+            entry,
+        };
+        let text = serde_json::to_string_pretty(&sc).map_err(|e| Error::Invalid {
+            what: "sidecar".into(),
+            message: e.to_string(),
+        })?;
         crate::atomic::write_atomic(&sidecar_path(out, k), text.as_bytes())?;
         summary.written_shards += 1;
     }
@@ -291,16 +331,31 @@ pub fn convert(
 
 /// Open a dataset by name (`kitti`, `semantickitti`, `nuscenes`) for conversion; nuScenes pairs with
 /// `CAM_FRONT`. Returns the dataset and its label map (SemanticKITTI with `semantic-kitti.yaml`).
-pub fn open_dataset(name: &str, root: &Path, load_images: bool) -> Result<(Box<dyn Dataset>, Option<LabelMap>)> {
+pub fn open_dataset(
+    name: &str,
+    root: &Path,
+    load_images: bool,
+) -> Result<(Box<dyn Dataset>, Option<LabelMap>)> {
     match name {
-        "kitti" => Ok((Box::new(crate::kitti::KittiObjectDataset::open(root)?.with_images(load_images)), None)),
+        "kitti" => Ok((
+            Box::new(crate::kitti::KittiObjectDataset::open(root)?.with_images(load_images)),
+            None,
+        )),
         "semantickitti" => {
-            let ds = crate::semantic_kitti::SemanticKittiDataset::open(root, crate::semantic_kitti::Sequences::All)?
-                .with_images(load_images);
+            let ds = crate::semantic_kitti::SemanticKittiDataset::open(
+                root,
+                crate::semantic_kitti::Sequences::All,
+            )?
+            .with_images(load_images);
             let map = ds.label_map().cloned();
             Ok((Box::new(ds), map))
         }
-        "nuscenes" => Ok((Box::new(crate::nuscenes::NuScenesDataset::open(root, "CAM_FRONT")?.with_images(load_images)), None)),
+        "nuscenes" => Ok((
+            Box::new(
+                crate::nuscenes::NuScenesDataset::open(root, "CAM_FRONT")?.with_images(load_images),
+            ),
+            None,
+        )),
         other => Err(Error::Invalid {
             what: "dataset".into(),
             message: format!("`{other}` is not one of kitti, semantickitti, nuscenes"),

@@ -22,7 +22,10 @@ pub fn read_rgb_image(path: &Path) -> Result<RgbImage> {
         .with_guessed_format()
         .map_err(|e| Error::io(path, e))?;
     if reader.format().is_none() {
-        return Err(Error::format(path, "not a PNG or JPEG image (unrecognised content)"));
+        return Err(Error::format(
+            path,
+            "not a PNG or JPEG image (unrecognised content)",
+        ));
     }
     let img = reader.decode().map_err(|e| image_error(path, e))?;
     Ok(img.into_rgb8())
@@ -35,7 +38,10 @@ pub fn image_dimensions(path: &Path) -> Result<(u32, u32)> {
         .with_guessed_format()
         .map_err(|e| Error::io(path, e))?;
     if reader.format().is_none() {
-        return Err(Error::format(path, "not a PNG or JPEG image (unrecognised content)"));
+        return Err(Error::format(
+            path,
+            "not a PNG or JPEG image (unrecognised content)",
+        ));
     }
     reader.into_dimensions().map_err(|e| image_error(path, e))
 }
@@ -44,7 +50,10 @@ pub fn image_dimensions(path: &Path) -> Result<(u32, u32)> {
 pub fn encode_png(img: &RgbImage) -> Result<Vec<u8>> {
     let mut buf = std::io::Cursor::new(Vec::new());
     img.write_to(&mut buf, ImageFormat::Png)
-        .map_err(|e| Error::Invalid { what: "image".into(), message: format!("PNG encoding failed: {e}") })?;
+        .map_err(|e| Error::Invalid {
+            what: "image".into(),
+            message: format!("PNG encoding failed: {e}"),
+        })?;
     Ok(buf.into_inner())
 }
 
@@ -77,7 +86,9 @@ mod tests {
         std::fs::write(&junk, b"definitely not an image").unwrap();
         let e = read_rgb_image(&junk).unwrap_err().to_string();
         assert!(e.contains("junk.png") && e.contains("decode"), "{e}");
-        let e = read_rgb_image(&dir.path().join("missing.png")).unwrap_err().to_string();
+        let e = read_rgb_image(&dir.path().join("missing.png"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("missing.png"), "{e}");
     }
 }

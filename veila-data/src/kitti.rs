@@ -39,13 +39,24 @@ impl KittiCalib {
         }
         let r = e.require(&["R0_rect", "R_rect"], 9, path)?;
         let r0_rect = Mat3::from_cols_array(&[
-            r[0] as f32, r[3] as f32, r[6] as f32, //
-            r[1] as f32, r[4] as f32, r[7] as f32, //
-            r[2] as f32, r[5] as f32, r[8] as f32,
+            r[0] as f32,
+            r[3] as f32,
+            r[6] as f32, //
+            r[1] as f32,
+            r[4] as f32,
+            r[7] as f32, //
+            r[2] as f32,
+            r[5] as f32,
+            r[8] as f32,
         ]);
         let tr_velo_to_cam = e.require_3x4(&["Tr_velo_to_cam", "Tr_velo_cam"], path)?;
         let tr_imu_to_velo = e.get_3x4(&["Tr_imu_to_velo", "Tr_imu_velo"], path)?;
-        Ok(KittiCalib { p, r0_rect, tr_velo_to_cam, tr_imu_to_velo })
+        Ok(KittiCalib {
+            p,
+            r0_rect,
+            tr_velo_to_cam,
+            tr_imu_to_velo,
+        })
     }
 
     /// Read `calib/NNNNNN.txt`.
@@ -61,7 +72,13 @@ impl KittiCalib {
             what: "KITTI camera index".into(),
             message: format!("{index} is not one of 0..=3"),
         })?;
-        Ok(PinholeCamera::from_kitti(p, self.r0_rect, self.tr_velo_to_cam, width, height)?)
+        Ok(PinholeCamera::from_kitti(
+            p,
+            self.r0_rect,
+            self.tr_velo_to_cam,
+            width,
+            height,
+        )?)
     }
 }
 
@@ -100,16 +117,32 @@ pub fn parse_kitti_labels(text: &str, path: &Path) -> Result<Vec<KittiObjectLabe
         if w.len() != 15 && w.len() != 16 {
             return Err(Error::format(
                 path,
-                format!("line {line_no}: expected 15 or 16 fields, found {}", w.len()),
+                format!(
+                    "line {line_no}: expected 15 or 16 fields, found {}",
+                    w.len()
+                ),
             ));
         }
         let num = |k: usize| -> Result<f32> {
-            w[k].parse::<f32>().ok().filter(|v| v.is_finite()).ok_or_else(|| {
-                Error::format(path, format!("line {line_no}, field {}: malformed number `{}`", k + 1, w[k]))
-            })
+            w[k].parse::<f32>()
+                .ok()
+                .filter(|v| v.is_finite())
+                .ok_or_else(|| {
+                    Error::format(
+                        path,
+                        format!(
+                            "line {line_no}, field {}: malformed number `{}`",
+                            k + 1,
+                            w[k]
+                        ),
+                    )
+                })
         };
         let occluded = w[2].parse::<i32>().map_err(|_| {
-            Error::format(path, format!("line {line_no}, field 3: malformed integer `{}`", w[2]))
+            Error::format(
+                path,
+                format!("line {line_no}, field 3: malformed integer `{}`", w[2]),
+            )
         })?;
         out.push(KittiObjectLabel {
             class: w[0].to_string(),
@@ -174,7 +207,11 @@ impl KittiObjectDataset {
             ));
         };
         let ids = list_stems(&base.join("velodyne"), ".bin")?;
-        Ok(KittiObjectDataset { base, ids, load_images: true })
+        Ok(KittiObjectDataset {
+            base,
+            ids,
+            load_images: true,
+        })
     }
 
     /// Decode camera images when loading frames (default true); without, frames carry the image
@@ -275,13 +312,25 @@ mod tests {
     #[test]
     fn calib_errors_name_file_key_and_problem() {
         let missing = CALIB.replace("R0_rect: 1 0 0 0 1 0 0 0 1\n", "");
-        let e = KittiCalib::parse(&missing, Path::new("000007.txt")).unwrap_err().to_string();
-        assert!(e.contains("000007.txt") && e.contains("R0_rect") && e.contains("missing"), "{e}");
+        let e = KittiCalib::parse(&missing, Path::new("000007.txt"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("000007.txt") && e.contains("R0_rect") && e.contains("missing"),
+            "{e}"
+        );
         let bad = CALIB.replace("700 0 600", "700 0 6x0");
-        let e = KittiCalib::parse(&bad, Path::new("c.txt")).unwrap_err().to_string();
-        assert!(e.contains("P2") && e.contains("malformed number `6x0`") && e.contains("line 3"), "{e}");
+        let e = KittiCalib::parse(&bad, Path::new("c.txt"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("P2") && e.contains("malformed number `6x0`") && e.contains("line 3"),
+            "{e}"
+        );
         let short = CALIB.replace("R0_rect: 1 0 0 0 1 0 0 0 1", "R0_rect: 1 0 0 0 1 0 0 0");
-        let e = KittiCalib::parse(&short, Path::new("c.txt")).unwrap_err().to_string();
+        let e = KittiCalib::parse(&short, Path::new("c.txt"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("expected 9 numbers, found 8"), "{e}");
         let nan = CALIB.replace("P3: 1 ", "P3: nan ");
         assert!(KittiCalib::parse(&nan, Path::new("c.txt")).is_err());

@@ -1,4 +1,66 @@
 //! Veila's data layer: the only library crate of the workspace that touches files.
+//!
+//! # Reading
+//!
+//! - Point files with format detection: [`scan::read_points`] (KITTI `.bin`, nuScenes `.pcd.bin`,
+//!   PLY, range `.exr`; rules in [`scan`]), or one format directly: [`scan::read_kitti_bin`],
+//!   [`scan::read_nuscenes_pcd_bin`], [`ply::read_ply`], [`range_exr::read_range_exr`]. NaN and
+//!   infinite points are dropped and counted, never passed on.
+//! - Datasets, read lazily through the [`dataset::Dataset`] trait (frame ids up front, frames on
+//!   demand, [`dataset::frames`] iterates): [`kitti::KittiObjectDataset`] (velodyne, image_2, calib,
+//!   label_2), [`semantic_kitti::SemanticKittiDataset`] (sequences, `calib.txt`, `.label`, the label
+//!   map and split of `semantic-kitti.yaml`), [`nuscenes::NuScenesDataset`] (release JSON tables with
+//!   the devkit's LiDAR -> ego -> global -> ego -> camera chain, or per-sample JSON).
+//! - Calibration: [`kitti::KittiCalib`], [`semantic_kitti::OdometryCalib`],
+//!   [`nuscenes::NuScenesSample`], each giving a [`veila_geom::PinholeCamera`]; any of them by content
+//!   with [`spec::camera_from_calib_file`]. Sensors by preset or file: [`spec::sensor_from_spec`].
+//! - Images: [`image_io::read_rgb_image`] (PNG / JPEG).
+//!
+//! # Writing
+//!
+//! Every writer is atomic (temporary file in the destination folder, then rename; see [`atomic`]).
+//! - Points: [`scan::write_points`] (`.ply` or `.bin` by name), [`ply::write_ply`],
+//!   [`scan::write_kitti_bin`], [`semantic_kitti::write_labels`].
+//! - Range images as self-describing OpenEXR: [`range_exr::write_range_exr`] (bit-exact round trip).
+//! - Previews: [`render`] (range, intensity, labels, bird's-eye view, camera overlay) and
+//!   [`image_io::write_png`].
+//! - Training shards: [`shard::write_shard`] / [`shard::read_shard`] and [`shard::Manifest`]; whole
+//!   datasets with [`convert::convert`] (bounded memory, resumable, shardable across workers).
+//!
+//! The procedural scene simulator ([`sim`]) and the weather simulator ([`weather`]) build on these
+//! readers and writers.
+//!
+//! # Example
+//!
+//! ```
+//! use glam::Vec3;
+//! use veila_data::{PointCloud, range_exr, scan};
+//! use veila_geom::{LidarSensor, ProjectionOptions, Projector};
+//!
+//! let dir = tempfile::tempdir()?;
+//! let cloud = PointCloud {
+//!     xyz: vec![Vec3::new(10.0, 0.0, -1.0), Vec3::new(f32::NAN, 0.0, 0.0), Vec3::new(-5.0, 2.0, 0.0)],
+//!     intensity: vec![0.3, 0.1, 0.8],
+//!     ring: None,
+//!     label: None,
+//! };
+//! let bin = dir.path().join("000000.bin");
+//! scan::write_points(&bin, &cloud)?;
+//!
+//! // the format is detected; the NaN point is dropped and counted
+//! let loaded = scan::read_points(&bin)?;
+//! assert_eq!((loaded.format, loaded.cloud.len(), loaded.dropped_non_finite), (scan::PointFormat::KittiBin, 2, 1));
+//!
+//! // project, store as EXR with the sensor in the header, read back bit-exactly
+//! let sensor = LidarSensor::hdl64e();
+//! let (image, _stats) = Projector::new(&sensor, ProjectionOptions::default())?
+//!     .project(&loaded.cloud.xyz, Some(&loaded.cloud.intensity), None)?;
+//! let exr = dir.path().join("000000.exr");
+//! range_exr::write_range_exr(&exr, &sensor, &image)?;
+//! let back = range_exr::read_range_exr(&exr)?;
+//! assert_eq!((back.sensor, back.image), (sensor, image));
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
 
 pub mod atomic;
 mod calib;
@@ -16,8 +78,8 @@ pub mod render;
 pub mod scan;
 pub mod semantic_kitti;
 pub mod shard;
-pub mod spec;
 pub mod sim;
+pub mod spec;
 pub mod weather;
 mod yaml_lite;
 

@@ -30,8 +30,14 @@ use crate::scan::read_nuscenes_pcd_bin;
 use crate::{Error, Result};
 
 /// The six camera channels of nuScenes.
-pub const CAMERA_CHANNELS: [&str; 6] =
-    ["CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT"];
+pub const CAMERA_CHANNELS: [&str; 6] = [
+    "CAM_FRONT",
+    "CAM_FRONT_RIGHT",
+    "CAM_FRONT_LEFT",
+    "CAM_BACK",
+    "CAM_BACK_LEFT",
+    "CAM_BACK_RIGHT",
+];
 
 /// A rigid transform as nuScenes stores it: rotation quaternion `w, x, y, z` and translation (metres).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -54,7 +60,10 @@ impl Pose {
         let [w, x, y, z] = self.rotation_wxyz;
         let n = (w * w + x * x + y * y + z * z).sqrt();
         if !n.is_finite() || n < 1e-6 || !self.translation.iter().all(|t| t.is_finite()) {
-            return Err(Error::format(path, format!("{what}: non-finite or zero quaternion/translation")));
+            return Err(Error::format(
+                path,
+                format!("{what}: non-finite or zero quaternion/translation"),
+            ));
         }
         Ok(())
     }
@@ -64,7 +73,12 @@ impl Pose {
 fn rigid_inverse(m: &DMat4) -> DMat4 {
     let r = DMat3::from_mat4(*m).transpose();
     let t = -(r * m.w_axis.truncate());
-    DMat4::from_cols(r.x_axis.extend(0.0), r.y_axis.extend(0.0), r.z_axis.extend(0.0), t.extend(1.0))
+    DMat4::from_cols(
+        r.x_axis.extend(0.0),
+        r.y_axis.extend(0.0),
+        r.z_axis.extend(0.0),
+        t.extend(1.0),
+    )
 }
 
 /// `cam_from_lidar` by the devkit chain: LiDAR -> ego(t_lidar) -> global -> ego(t_cam) -> camera.
@@ -107,10 +121,16 @@ impl JsonTransform {
     fn to_dmat4(&self, what: &str, path: &Path) -> Result<DMat4> {
         let m = &self.matrix_4x4_row_major;
         if !m.iter().flatten().all(|v| v.is_finite()) {
-            return Err(Error::format(path, format!("{what}: non-finite matrix entry")));
+            return Err(Error::format(
+                path,
+                format!("{what}: non-finite matrix entry"),
+            ));
         }
         if m[3] != [0.0, 0.0, 0.0, 1.0] {
-            return Err(Error::format(path, format!("{what}: last row must be 0 0 0 1, found {:?}", m[3])));
+            return Err(Error::format(
+                path,
+                format!("{what}: last row must be 0 0 0 1, found {:?}", m[3]),
+            ));
         }
         Ok(DMat4::from_cols_array_2d(m).transpose())
     }
@@ -206,12 +226,16 @@ impl NuScenesSample {
     /// Read the simple per-sample JSON (`calib/<sample_token>.json`).
     pub fn read_json(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let j: JsonSample = serde_json::from_str(&python_json_to_strict(&text))
-            .map_err(|e| Error::format(path, format!("not a nuScenes sample calibration JSON: {e}")))?;
+        let j: JsonSample = serde_json::from_str(&python_json_to_strict(&text)).map_err(|e| {
+            Error::format(path, format!("not a nuScenes sample calibration JSON: {e}"))
+        })?;
         let mut cameras = BTreeMap::new();
         for (name, c) in &j.cameras {
             if !c.intrinsic_3x3.iter().flatten().all(|v| v.is_finite()) {
-                return Err(Error::format(path, format!("{name}.intrinsic_3x3: non-finite entry")));
+                return Err(Error::format(
+                    path,
+                    format!("{name}.intrinsic_3x3: non-finite entry"),
+                ));
             }
             cameras.insert(
                 name.clone(),
@@ -229,8 +253,16 @@ impl NuScenesSample {
             .iter()
             .map(|b| NuScenesBox {
                 label: b.label.clone(),
-                center_m: glam::Vec3::new(b.bbox_3d[0] as f32, b.bbox_3d[1] as f32, b.bbox_3d[2] as f32),
-                size_lwh_m: glam::Vec3::new(b.bbox_3d[3] as f32, b.bbox_3d[4] as f32, b.bbox_3d[5] as f32),
+                center_m: glam::Vec3::new(
+                    b.bbox_3d[0] as f32,
+                    b.bbox_3d[1] as f32,
+                    b.bbox_3d[2] as f32,
+                ),
+                size_lwh_m: glam::Vec3::new(
+                    b.bbox_3d[3] as f32,
+                    b.bbox_3d[4] as f32,
+                    b.bbox_3d[5] as f32,
+                ),
                 yaw_rad: b.bbox_3d[6] as f32,
                 num_lidar_pts: b.num_lidar_pts,
             })
@@ -240,7 +272,9 @@ impl NuScenesSample {
             lidar_file: j.lidar.file,
             lidar_timestamp_s: j.lidar.timestamp_s,
             ego_from_lidar: j.lidar.lidar2ego.to_dmat4("lidar.lidar2ego", path)?,
-            global_from_ego: j.ego2global_at_lidar_time.to_dmat4("ego2global_at_lidar_time", path)?,
+            global_from_ego: j
+                .ego2global_at_lidar_time
+                .to_dmat4("ego2global_at_lidar_time", path)?,
             cameras,
             boxes,
         })
@@ -256,7 +290,12 @@ impl NuScenesSample {
                 self.cameras.keys().cloned().collect::<Vec<_>>().join(", ")
             ),
         })?;
-        Ok(PinholeCamera::from_nuscenes(c.intrinsic, dmat4_to_mat4(&c.cam_from_lidar), width, height)?)
+        Ok(PinholeCamera::from_nuscenes(
+            c.intrinsic,
+            dmat4_to_mat4(&c.cam_from_lidar),
+            width,
+            height,
+        )?)
     }
 }
 
@@ -362,7 +401,10 @@ impl<'de, T: DeserializeOwned, F: FnMut(&T) -> bool> DeserializeSeed<'de> for Fi
             fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
                 f.write_str("a JSON array of records")
             }
-            fn visit_seq<A: SeqAccess<'de>>(mut self, mut seq: A) -> std::result::Result<Vec<T>, A::Error> {
+            fn visit_seq<A: SeqAccess<'de>>(
+                mut self,
+                mut seq: A,
+            ) -> std::result::Result<Vec<T>, A::Error> {
                 let mut out = Vec::new();
                 while let Some(item) = seq.next_element::<T>()? {
                     if (self.0)(&item) {
@@ -378,11 +420,16 @@ impl<'de, T: DeserializeOwned, F: FnMut(&T) -> bool> DeserializeSeed<'de> for Fi
 
 fn read_table<T: DeserializeOwned>(path: &Path, keep: impl FnMut(&T) -> bool) -> Result<Vec<T>> {
     let f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-    let mut de = serde_json::Deserializer::from_reader(std::io::BufReader::with_capacity(1 << 20, f));
-    let v = FilteredSeq { keep, _t: PhantomData }
-        .deserialize(&mut de)
-        .map_err(|e| Error::format(path, format!("malformed nuScenes table: {e}")))?;
-    de.end().map_err(|e| Error::format(path, format!("trailing data after the table: {e}")))?;
+    let mut de =
+        serde_json::Deserializer::from_reader(std::io::BufReader::with_capacity(1 << 20, f));
+    let v = FilteredSeq {
+        keep,
+        _t: PhantomData,
+    }
+    .deserialize(&mut de)
+    .map_err(|e| Error::format(path, format!("malformed nuScenes table: {e}")))?;
+    de.end()
+        .map_err(|e| Error::format(path, format!("trailing data after the table: {e}")))?;
     Ok(v)
 }
 
@@ -417,10 +464,19 @@ impl NuScenesTables {
         let cs: Vec<CalibratedSensorRec> = read_table(&cs_path, |_| true)?;
         let mut calibrated = HashMap::new();
         for c in cs {
-            let pose = Pose { rotation_wxyz: c.rotation, translation: c.translation };
+            let pose = Pose {
+                rotation_wxyz: c.rotation,
+                translation: c.translation,
+            };
             pose.check(&format!("calibrated_sensor {}", c.token), &cs_path)?;
             let channel = channel_of.get(&c.sensor_token).cloned().ok_or_else(|| {
-                Error::format(&cs_path, format!("calibrated_sensor {} names unknown sensor {}", c.token, c.sensor_token))
+                Error::format(
+                    &cs_path,
+                    format!(
+                        "calibrated_sensor {} names unknown sensor {}",
+                        c.token, c.sensor_token
+                    ),
+                )
             })?;
             calibrated.insert(c.token, (channel, pose, c.camera_intrinsic));
         }
@@ -441,7 +497,10 @@ impl NuScenesTables {
                 .ok_or_else(|| {
                     Error::format(
                         &sd_path,
-                        format!("sample_data {} names unknown calibrated_sensor {}", r.token, r.calibrated_sensor_token),
+                        format!(
+                            "sample_data {} names unknown calibrated_sensor {}",
+                            r.token, r.calibrated_sensor_token
+                        ),
                     )
                 })?;
             needed_poses.insert(r.ego_pose_token.clone());
@@ -458,14 +517,24 @@ impl NuScenesTables {
             );
         }
         let ep_path = table_dir.join("ego_pose.json");
-        let poses: Vec<EgoPoseRec> = read_table(&ep_path, |p: &EgoPoseRec| needed_poses.contains(&p.token))?;
+        let poses: Vec<EgoPoseRec> =
+            read_table(&ep_path, |p: &EgoPoseRec| needed_poses.contains(&p.token))?;
         let mut ego_poses = HashMap::new();
         for p in poses {
-            let pose = Pose { rotation_wxyz: p.rotation, translation: p.translation };
+            let pose = Pose {
+                rotation_wxyz: p.rotation,
+                translation: p.translation,
+            };
             pose.check(&format!("ego_pose {}", p.token), &ep_path)?;
             ego_poses.insert(p.token, pose);
         }
-        Ok(NuScenesTables { table_dir: table_dir.to_path_buf(), samples, key_data, calibrated, ego_poses })
+        Ok(NuScenesTables {
+            table_dir: table_dir.to_path_buf(),
+            samples,
+            key_data,
+            calibrated,
+            ego_poses,
+        })
     }
 
     /// Sample tokens in timestamp order.
@@ -484,17 +553,22 @@ impl NuScenesTables {
     }
 
     fn key(&self, sample: &str, channel: &str) -> Result<&KeyData> {
-        self.key_data.get(&(sample.to_string(), channel.to_string())).ok_or_else(|| {
-            Error::format(
-                self.table_dir.join("sample_data.json"),
-                format!("sample {sample} has no key-frame {channel} sample_data"),
-            )
-        })
+        self.key_data
+            .get(&(sample.to_string(), channel.to_string()))
+            .ok_or_else(|| {
+                Error::format(
+                    self.table_dir.join("sample_data.json"),
+                    format!("sample {sample} has no key-frame {channel} sample_data"),
+                )
+            })
     }
 
     fn pose(&self, token: &str) -> Result<&Pose> {
         self.ego_poses.get(token).ok_or_else(|| {
-            Error::format(self.table_dir.join("ego_pose.json"), format!("ego_pose {token} is missing"))
+            Error::format(
+                self.table_dir.join("ego_pose.json"),
+                format!("ego_pose {token} is missing"),
+            )
         })
     }
 
@@ -508,13 +582,23 @@ impl NuScenesTables {
         for ch in channels {
             let cam = self.key(token, ch)?;
             let (_, cam_cs, k) = &self.calibrated[&cam.calibrated_sensor];
-            if k.len() != 3 || k.iter().any(|r| r.len() != 3) || !k.iter().flatten().all(|v| v.is_finite()) {
+            if k.len() != 3
+                || k.iter().any(|r| r.len() != 3)
+                || !k.iter().flatten().all(|v| v.is_finite())
+            {
                 return Err(Error::format(
                     &cs_path,
-                    format!("calibrated_sensor {}: camera_intrinsic is not a finite 3x3 matrix", cam.calibrated_sensor),
+                    format!(
+                        "calibrated_sensor {}: camera_intrinsic is not a finite 3x3 matrix",
+                        cam.calibrated_sensor
+                    ),
                 ));
             }
-            let k3 = [[k[0][0], k[0][1], k[0][2]], [k[1][0], k[1][1], k[1][2]], [k[2][0], k[2][1], k[2][2]]];
+            let k3 = [
+                [k[0][0], k[0][1], k[0][2]],
+                [k[1][0], k[1][1], k[1][2]],
+                [k[2][0], k[2][1], k[2][2]],
+            ];
             let cam_pose = self.pose(&cam.ego_pose)?;
             cameras.insert(
                 ch.to_string(),
@@ -602,7 +686,10 @@ impl NuScenesDataset {
     pub fn open_sample_json(dataroot: &Path, camera: &str) -> Result<Self> {
         let dir = dataroot.join("calib");
         let stems = crate::kitti::list_stems(&dir, ".json")?;
-        let files = stems.iter().map(|s| dir.join(format!("{s}.json"))).collect();
+        let files = stems
+            .iter()
+            .map(|s| dir.join(format!("{s}.json")))
+            .collect();
         Ok(NuScenesDataset {
             dataroot: dataroot.to_path_buf(),
             source: Source::SampleJson(files),
@@ -634,14 +721,18 @@ fn find_table_dir(dataroot: &Path) -> Result<Option<PathBuf>> {
     let Ok(rd) = std::fs::read_dir(dataroot) else {
         return Err(Error::io(
             dataroot,
-            std::io::Error::new(std::io::ErrorKind::NotFound, "data root is not a readable directory"),
+            std::io::Error::new(
+                std::io::ErrorKind::NotFound,
+                "data root is not a readable directory",
+            ),
         ));
     };
     let mut dirs: Vec<PathBuf> = rd
         .filter_map(|e| e.ok())
         .map(|e| e.path())
         .filter(|p| {
-            p.file_name().is_some_and(|n| n.to_string_lossy().starts_with("v1.0"))
+            p.file_name()
+                .is_some_and(|n| n.to_string_lossy().starts_with("v1.0"))
                 && p.join("sample.json").is_file()
         })
         .collect();
@@ -649,7 +740,10 @@ fn find_table_dir(dataroot: &Path) -> Result<Option<PathBuf>> {
     if dirs.len() > 1 {
         return Err(Error::format(
             dataroot,
-            format!("several table folders ({}); open one with NuScenesDataset::open_tables", dirs.len()),
+            format!(
+                "several table folders ({}); open one with NuScenesDataset::open_tables",
+                dirs.len()
+            ),
         ));
     }
     Ok(dirs.pop())
@@ -669,10 +763,13 @@ impl Dataset for NuScenesDataset {
         let sample = self.sample(index)?;
         let scan_path = self.dataroot.join(&sample.lidar_file);
         let loaded = read_nuscenes_pcd_bin(&scan_path)?;
-        let cam = sample.cameras.get(&self.channel).ok_or_else(|| Error::Invalid {
-            what: "nuScenes camera channel".into(),
-            message: format!("sample {} has no camera {}", sample.token, self.channel),
-        })?;
+        let cam = sample
+            .cameras
+            .get(&self.channel)
+            .ok_or_else(|| Error::Invalid {
+                what: "nuScenes camera channel".into(),
+                message: format!("sample {} has no camera {}", sample.token, self.channel),
+            })?;
         let image_path = self.dataroot.join(&cam.file);
         let (image, (w, h)) = if self.load_images {
             let img = read_rgb_image(&image_path)?;
@@ -705,7 +802,10 @@ mod tests {
     use super::*;
 
     fn pose(w: f64, x: f64, y: f64, z: f64, t: [f64; 3]) -> Pose {
-        Pose { rotation_wxyz: [w, x, y, z], translation: t }
+        Pose {
+            rotation_wxyz: [w, x, y, z],
+            translation: t,
+        }
     }
 
     #[test]
@@ -724,18 +824,29 @@ mod tests {
         let ego_l = pose(1.0, 0.0, 0.0, 0.0, [100.0, 50.0, 0.0]);
         let ego_c = pose(1.0, 0.0, 0.0, 0.0, [101.0, 50.0, 0.0]);
         // camera looking forward: z_cam = x_ego, x_cam = -y_ego, y_cam = -z_ego
-        let cam_cs_m = DMat3::from_cols(DVec3::new(0.0, -1.0, 0.0), DVec3::new(0.0, 0.0, -1.0), DVec3::new(1.0, 0.0, 0.0));
+        let cam_cs_m = DMat3::from_cols(
+            DVec3::new(0.0, -1.0, 0.0),
+            DVec3::new(0.0, 0.0, -1.0),
+            DVec3::new(1.0, 0.0, 0.0),
+        );
         let q = DQuat::from_mat3(&cam_cs_m);
         let cam_cs = pose(q.w, q.x, q.y, q.z, [1.5, 0.0, 1.5]);
         let t = cam_from_lidar(&lidar_cs, &ego_l, &ego_c, &cam_cs);
         // a point 10 m along lidar +x = ego +y (left): ego(t_l) = (1, 10, 2) -> global (101, 60, 2)
         // -> ego(t_c) = (0, 10, 2) -> camera: d = (-1.5, 10, 0.5) -> (x=-10, y=-0.5, z=-1.5)
         let p = t.transform_point3(DVec3::new(10.0, 0.0, 0.0));
-        assert!((p - DVec3::new(-10.0, -0.5, -1.5)).length() < 1e-12, "{p:?}");
+        assert!(
+            (p - DVec3::new(-10.0, -0.5, -1.5)).length() < 1e-12,
+            "{p:?}"
+        );
         // unnormalised quaternions give the same result (pyquaternion normalises)
         let lidar_cs2 = pose(2.0 * s, 0.0, 0.0, 2.0 * s, [1.0, 0.0, 2.0]);
         let t2 = cam_from_lidar(&lidar_cs2, &ego_l, &ego_c, &cam_cs);
         assert!(t2.abs_diff_eq(t, 1e-12));
-        assert!(rigid_inverse(&t).mul_mat4(&t).abs_diff_eq(DMat4::IDENTITY, 1e-12));
+        assert!(
+            rigid_inverse(&t)
+                .mul_mat4(&t)
+                .abs_diff_eq(DMat4::IDENTITY, 1e-12)
+        );
     }
 }

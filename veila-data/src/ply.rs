@@ -65,7 +65,11 @@ impl Scalar {
             ($t:ty, $n:expr) => {{
                 let mut a = [0u8; $n];
                 a.copy_from_slice(&b[..$n]);
-                (if le { <$t>::from_le_bytes(a) } else { <$t>::from_be_bytes(a) }) as f64
+                (if le {
+                    <$t>::from_le_bytes(a)
+                } else {
+                    <$t>::from_be_bytes(a)
+                }) as f64
             }};
         }
         match self {
@@ -141,10 +145,14 @@ fn parse_header(bytes: &[u8], path: &Path) -> Result<Header> {
             }
             "element" => {
                 let (Some(name), Some(count)) = (words.get(1), words.get(2)) else {
-                    return Err(fmt(format!("header line {line_no}: malformed element line")));
+                    return Err(fmt(format!(
+                        "header line {line_no}: malformed element line"
+                    )));
                 };
                 let count: usize = count.parse().map_err(|_| {
-                    fmt(format!("header line {line_no}: element count `{count}` is not a number"))
+                    fmt(format!(
+                        "header line {line_no}: element count `{count}` is not a number"
+                    ))
                 })?;
                 elements.push(Element {
                     name: name.to_string(),
@@ -155,27 +163,42 @@ fn parse_header(bytes: &[u8], path: &Path) -> Result<Header> {
             }
             "property" => {
                 let Some(el) = elements.last_mut() else {
-                    return Err(fmt(format!("header line {line_no}: property before any element")));
+                    return Err(fmt(format!(
+                        "header line {line_no}: property before any element"
+                    )));
                 };
                 if words.get(1) == Some(&"list") {
                     el.has_list = true;
                     continue;
                 }
                 let (Some(ty), Some(name)) = (words.get(1), words.get(2)) else {
-                    return Err(fmt(format!("header line {line_no}: malformed property line")));
+                    return Err(fmt(format!(
+                        "header line {line_no}: malformed property line"
+                    )));
                 };
                 let scalar = Scalar::parse(ty).ok_or_else(|| {
-                    fmt(format!("header line {line_no}: unknown property type `{ty}`"))
+                    fmt(format!(
+                        "header line {line_no}: unknown property type `{ty}`"
+                    ))
                 })?;
-                el.properties.push(Property { name: name.to_string(), scalar });
+                el.properties.push(Property {
+                    name: name.to_string(),
+                    scalar,
+                });
             }
             other => {
-                return Err(fmt(format!("header line {line_no}: unknown keyword `{other}`")));
+                return Err(fmt(format!(
+                    "header line {line_no}: unknown keyword `{other}`"
+                )));
             }
         }
     }
     let encoding = encoding.ok_or_else(|| fmt("PLY header has no `format` line".into()))?;
-    Ok(Header { encoding, elements, body_offset })
+    Ok(Header {
+        encoding,
+        elements,
+        body_offset,
+    })
 }
 
 fn find(hay: &[u8], needle: &[u8]) -> Option<usize> {
@@ -194,9 +217,16 @@ pub fn parse_ply(bytes: &[u8], path: &Path) -> Result<PointCloud> {
         .ok_or_else(|| fmt("PLY file has no `vertex` element".into()))?;
     let vertex = &header.elements[vi];
     if vertex.has_list {
-        return Err(fmt("the PLY `vertex` element has a list property (unsupported)".into()));
+        return Err(fmt(
+            "the PLY `vertex` element has a list property (unsupported)".into(),
+        ));
     }
-    let find_prop = |names: &[&str]| vertex.properties.iter().position(|p| names.contains(&p.name.as_str()));
+    let find_prop = |names: &[&str]| {
+        vertex
+            .properties
+            .iter()
+            .position(|p| names.contains(&p.name.as_str()))
+    };
     let px = find_prop(&["x"]).ok_or_else(|| fmt("PLY vertex has no `x` property".into()))?;
     let py = find_prop(&["y"]).ok_or_else(|| fmt("PLY vertex has no `y` property".into()))?;
     let pz = find_prop(&["z"]).ok_or_else(|| fmt("PLY vertex has no `z` property".into()))?;
@@ -213,19 +243,25 @@ pub fn parse_ply(bytes: &[u8], path: &Path) -> Result<PointCloud> {
     };
     let mut row = vec![0f64; vertex.properties.len()];
     let push = |row: &[f64], cloud: &mut PointCloud, idx: usize| -> Result<()> {
-        cloud.xyz.push(Vec3::new(row[px] as f32, row[py] as f32, row[pz] as f32));
+        cloud
+            .xyz
+            .push(Vec3::new(row[px] as f32, row[py] as f32, row[pz] as f32));
         cloud.intensity.push(pi.map_or(0.0, |i| row[i] as f32));
         if let (Some(r), Some(rings)) = (pr, cloud.ring.as_mut()) {
             let v = row[r];
             if !(0.0..=f64::from(u16::MAX)).contains(&v) || v.fract() != 0.0 {
-                return Err(fmt(format!("vertex {idx}: ring {v} is not an integer in 0..=65535")));
+                return Err(fmt(format!(
+                    "vertex {idx}: ring {v} is not an integer in 0..=65535"
+                )));
             }
             rings.push(v as u16);
         }
         if let (Some(l), Some(labels)) = (pl, cloud.label.as_mut()) {
             let v = row[l];
             if !(0.0..=f64::from(u32::MAX)).contains(&v) || v.fract() != 0.0 {
-                return Err(fmt(format!("vertex {idx}: label {v} is not an integer in 0..=2^32-1")));
+                return Err(fmt(format!(
+                    "vertex {idx}: label {v} is not an integer in 0..=2^32-1"
+                )));
             }
             labels.push(v as u32);
         }
@@ -241,22 +277,30 @@ pub fn parse_ply(bytes: &[u8], path: &Path) -> Result<PointCloud> {
             for el in &header.elements[..vi] {
                 for k in 0..el.count {
                     lines.next().ok_or_else(|| {
-                        fmt(format!("truncated ASCII PLY: element `{}` item {k} missing", el.name))
+                        fmt(format!(
+                            "truncated ASCII PLY: element `{}` item {k} missing",
+                            el.name
+                        ))
                     })?;
                 }
             }
             for idx in 0..n {
                 let line = lines.next().ok_or_else(|| {
-                    fmt(format!("truncated ASCII PLY: header declares {n} vertices, found {idx}"))
+                    fmt(format!(
+                        "truncated ASCII PLY: header declares {n} vertices, found {idx}"
+                    ))
                 })?;
                 let mut words = line.split_whitespace();
                 for (j, slot) in row.iter_mut().enumerate() {
                     let w = words.next().ok_or_else(|| {
-                        fmt(format!("vertex {idx}: expected {} values, found {j}", vertex.properties.len()))
+                        fmt(format!(
+                            "vertex {idx}: expected {} values, found {j}",
+                            vertex.properties.len()
+                        ))
                     })?;
-                    *slot = w.parse::<f64>().map_err(|_| {
-                        fmt(format!("vertex {idx}: `{w}` is not a number"))
-                    })?;
+                    *slot = w
+                        .parse::<f64>()
+                        .map_err(|_| fmt(format!("vertex {idx}: `{w}` is not a number")))?;
                 }
                 push(&row, &mut cloud, idx)?;
             }
@@ -298,7 +342,11 @@ pub fn parse_ply(bytes: &[u8], path: &Path) -> Result<PointCloud> {
                     Some(o)
                 })
                 .collect();
-            for (idx, rec) in bytes[offset..needed].chunks_exact(stride.max(1)).enumerate().take(n) {
+            for (idx, rec) in bytes[offset..needed]
+                .chunks_exact(stride.max(1))
+                .enumerate()
+                .take(n)
+            {
                 for (j, p) in vertex.properties.iter().enumerate() {
                     row[j] = p.scalar.decode(&rec[offsets[j]..], le);
                 }
@@ -377,7 +425,10 @@ mod tests {
     fn ascii_and_big_endian_with_extra_properties() {
         let ascii = b"ply\nformat ascii 1.0\nelement vertex 2\nproperty double x\nproperty double y\nproperty double z\nproperty uchar red\nproperty float reflectance\nend_header\n1 2 3 255 0.5\n-1 -2 -3 0 0.25\n";
         let c = parse_ply(ascii, Path::new("a.ply")).unwrap();
-        assert_eq!(c.xyz, vec![Vec3::new(1.0, 2.0, 3.0), Vec3::new(-1.0, -2.0, -3.0)]);
+        assert_eq!(
+            c.xyz,
+            vec![Vec3::new(1.0, 2.0, 3.0), Vec3::new(-1.0, -2.0, -3.0)]
+        );
         assert_eq!(c.intensity, vec![0.5, 0.25]);
         assert!(c.ring.is_none() && c.label.is_none());
 
@@ -396,13 +447,20 @@ mod tests {
         let c = cloud();
         let mut buf = Vec::new();
         encode_ply(&c, &mut buf).unwrap();
-        let e = parse_ply(&buf[..buf.len() - 3], Path::new("cut.ply")).unwrap_err().to_string();
-        assert!(e.contains("cut.ply") && e.contains("truncated"), "{e}");
-        let e = parse_ply(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float y\nend_header\n1\n", Path::new("nox.ply"))
+        let e = parse_ply(&buf[..buf.len() - 3], Path::new("cut.ply"))
             .unwrap_err()
             .to_string();
+        assert!(e.contains("cut.ply") && e.contains("truncated"), "{e}");
+        let e = parse_ply(
+            b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float y\nend_header\n1\n",
+            Path::new("nox.ply"),
+        )
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("nox.ply") && e.contains("`x`"), "{e}");
-        let e = parse_ply(b"plx\n", Path::new("m.ply")).unwrap_err().to_string();
+        let e = parse_ply(b"plx\n", Path::new("m.ply"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("magic"), "{e}");
         let e = parse_ply(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nproperty float label\nend_header\n1 2 3 -4\n", Path::new("l.ply"))
             .unwrap_err()

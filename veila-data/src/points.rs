@@ -64,7 +64,11 @@ impl PointCloud {
             return 0;
         }
         fn filter<T: Copy>(v: &[T], keep: &[bool]) -> Vec<T> {
-            v.iter().zip(keep).filter(|(_, k)| **k).map(|(x, _)| *x).collect()
+            v.iter()
+                .zip(keep)
+                .filter(|(_, k)| **k)
+                .map(|(x, _)| *x)
+                .collect()
         }
         self.xyz = filter(&self.xyz, &keep);
         self.intensity = filter(&self.intensity, &keep);

@@ -47,9 +47,17 @@ impl RangeExr {
         let rays = RayTable::new(&self.sensor)?;
         let u = rays.unproject(&self.image)?;
         let label = self.image.label.as_ref().map(|l| {
-            u.pixels.iter().map(|(r, c)| l[self.image.idx(*r, *c)]).collect::<Vec<u32>>()
+            u.pixels
+                .iter()
+                .map(|(r, c)| l[self.image.idx(*r, *c)])
+                .collect::<Vec<u32>>()
         });
-        Ok(PointCloud { xyz: u.points, intensity: u.intensity, ring: None, label })
+        Ok(PointCloud {
+            xyz: u.points,
+            intensity: u.intensity,
+            ring: None,
+            label,
+        })
     }
 }
 
@@ -67,14 +75,20 @@ pub fn encode_range_exr(sensor: &LidarSensor, image: &RangeImage) -> Result<Vec<
             ),
         });
     }
-    let json = serde_json::to_string(sensor)
-        .map_err(|e| Error::Invalid { what: "sensor".into(), message: e.to_string() })?;
+    let json = serde_json::to_string(sensor).map_err(|e| Error::Invalid {
+        what: "sensor".into(),
+        message: e.to_string(),
+    })?;
     let sensor_text = Text::new_or_none(&json).ok_or_else(|| Error::Invalid {
         what: "sensor".into(),
         message: "description is not representable as an EXR string".into(),
     })?;
     let size = (image.cols as usize, image.rows as usize);
-    let mask: Vec<f32> = image.mask.iter().map(|m| if *m { 1.0 } else { 0.0 }).collect();
+    let mask: Vec<f32> = image
+        .mask
+        .iter()
+        .map(|m| if *m { 1.0 } else { 0.0 })
+        .collect();
     let mut channels = vec![
         AnyChannel::new("range_m", FlatSamples::F32(image.range_m.clone())),
         AnyChannel::new("intensity", FlatSamples::F32(image.intensity.clone())),
@@ -84,11 +98,19 @@ pub fn encode_range_exr(sensor: &LidarSensor, image: &RangeImage) -> Result<Vec<
         channels.push(AnyChannel::new("label", FlatSamples::U32(l.clone())));
     }
     if image.point_index.iter().any(|p| *p != NO_POINT) {
-        channels.push(AnyChannel::new("point_index", FlatSamples::U32(image.point_index.clone())));
+        channels.push(AnyChannel::new(
+            "point_index",
+            FlatSamples::U32(image.point_index.clone()),
+        ));
     }
     let mut attrs = LayerAttributes::named("veila_range");
-    attrs.other.insert(Text::from(ATTR_SENSOR), AttributeValue::Text(sensor_text));
-    attrs.other.insert(Text::from(ATTR_FORMAT), AttributeValue::Text(Text::from(FORMAT_TAG)));
+    attrs
+        .other
+        .insert(Text::from(ATTR_SENSOR), AttributeValue::Text(sensor_text));
+    attrs.other.insert(
+        Text::from(ATTR_FORMAT),
+        AttributeValue::Text(Text::from(FORMAT_TAG)),
+    );
     let layer = Layer::new(
         size,
         attrs,
@@ -97,10 +119,12 @@ pub fn encode_range_exr(sensor: &LidarSensor, image: &RangeImage) -> Result<Vec<
     );
     let img = Image::from_layer(layer);
     let mut buf = Cursor::new(Vec::new());
-    img.write().to_buffered(&mut buf).map_err(|e| Error::Invalid {
-        what: "range image".into(),
-        message: format!("EXR encoding failed: {e}"),
-    })?;
+    img.write()
+        .to_buffered(&mut buf)
+        .map_err(|e| Error::Invalid {
+            what: "range image".into(),
+            message: format!("EXR encoding failed: {e}"),
+        })?;
     Ok(buf.into_inner())
 }
 
@@ -126,25 +150,42 @@ pub fn decode_range_exr(bytes: &[u8], path: &Path) -> Result<RangeExr> {
         .map_err(|e| fmt(format!("cannot read EXR: {e}")))?;
     let layer = &img.layer_data;
     let text_attr = |name: &str| -> Option<String> {
-        match layer.attributes.other.get(&Text::from(name)).or_else(|| img.attributes.other.get(&Text::from(name))) {
+        match layer
+            .attributes
+            .other
+            .get(&Text::from(name))
+            .or_else(|| img.attributes.other.get(&Text::from(name)))
+        {
             Some(AttributeValue::Text(t)) => Some(t.to_string()),
             _ => None,
         }
     };
     match text_attr(ATTR_FORMAT) {
         Some(tag) if tag == FORMAT_TAG => {}
-        Some(tag) => return Err(fmt(format!("unsupported range-image version `{tag}` (expected `{FORMAT_TAG}`)"))),
+        Some(tag) => {
+            return Err(fmt(format!(
+                "unsupported range-image version `{tag}` (expected `{FORMAT_TAG}`)"
+            )));
+        }
         None => {
             return Err(fmt(format!(
                 "EXR has no `{ATTR_FORMAT}` attribute: not a Veila range image"
             )));
         }
     }
-    let sensor_json = text_attr(ATTR_SENSOR)
-        .ok_or_else(|| fmt(format!("EXR has no `{ATTR_SENSOR}` attribute (the sensor description)")))?;
-    let sensor: LidarSensor = serde_json::from_str(&sensor_json)
-        .map_err(|e| fmt(format!("`{ATTR_SENSOR}` attribute is not a valid sensor: {e}")))?;
-    sensor.validate().map_err(|e| fmt(format!("stored sensor is invalid: {e}")))?;
+    let sensor_json = text_attr(ATTR_SENSOR).ok_or_else(|| {
+        fmt(format!(
+            "EXR has no `{ATTR_SENSOR}` attribute (the sensor description)"
+        ))
+    })?;
+    let sensor: LidarSensor = serde_json::from_str(&sensor_json).map_err(|e| {
+        fmt(format!(
+            "`{ATTR_SENSOR}` attribute is not a valid sensor: {e}"
+        ))
+    })?;
+    sensor
+        .validate()
+        .map_err(|e| fmt(format!("stored sensor is invalid: {e}")))?;
     let (w, h) = (layer.size.width(), layer.size.height());
     if w != sensor.cols as usize || h != sensor.rows as usize {
         return Err(fmt(format!(
@@ -152,7 +193,7 @@ pub fn decode_range_exr(bytes: &[u8], path: &Path) -> Result<RangeExr> {
             sensor.cols, sensor.rows
         )));
     }
-    let find = |name: &str| layer.channel_data.list.iter().find(|c| c.name == Text::from(name));
+    let find = |name: &str| layer.channel_data.list.iter().find(|c| c.name.eq(name));
     let f32_channel = |name: &str| -> Result<Vec<f32>> {
         match find(name).map(|c| &c.sample_data) {
             Some(FlatSamples::F32(v)) => Ok(v.clone()),
@@ -175,14 +216,16 @@ pub fn decode_range_exr(bytes: &[u8], path: &Path) -> Result<RangeExr> {
     let mut mask = Vec::with_capacity(mask_f.len());
     for (k, m) in mask_f.iter().enumerate() {
         mask.push(match *m {
-            v if v == 1.0 => true,
-            v if v == 0.0 => false,
+            1.0 => true,
+            0.0 => false,
             v => return Err(fmt(format!("mask pixel {k} is {v}, expected 0 or 1"))),
         });
     }
     for (k, (&r, &m)) in range_m.iter().zip(&mask).enumerate() {
         if m && !(r.is_finite() && r > 0.0) {
-            return Err(fmt(format!("valid pixel {k} has range {r}, expected a finite positive value")));
+            return Err(fmt(format!(
+                "valid pixel {k} has range {r}, expected a finite positive value"
+            )));
         }
     }
     let n = w * h;
@@ -195,7 +238,9 @@ pub fn decode_range_exr(bytes: &[u8], path: &Path) -> Result<RangeExr> {
         mask,
         label,
     };
-    image.validate().map_err(|e| fmt(format!("inconsistent channels: {e}")))?;
+    image
+        .validate()
+        .map_err(|e| fmt(format!("inconsistent channels: {e}")))?;
     Ok(RangeExr { sensor, image })
 }
 
@@ -230,7 +275,11 @@ mod tests {
 
     #[test]
     fn round_trip_is_bit_exact() {
-        let sensor = LidarSensor { rows: 8, cols: 32, ..LidarSensor::hdl64e() };
+        let sensor = LidarSensor {
+            rows: 8,
+            cols: 32,
+            ..LidarSensor::hdl64e()
+        };
         for labels in [false, true] {
             let img = random_image(&sensor, 7, labels);
             let bytes = encode_range_exr(&sensor, &img).unwrap();
@@ -247,7 +296,11 @@ mod tests {
 
     #[test]
     fn missing_channel_and_wrong_size_are_rejected() {
-        let sensor = LidarSensor { rows: 4, cols: 16, ..LidarSensor::hdl64e() };
+        let sensor = LidarSensor {
+            rows: 4,
+            cols: 16,
+            ..LidarSensor::hdl64e()
+        };
         // an EXR with the right attributes but no `mask` channel
         let json = serde_json::to_string(&sensor).unwrap();
         let build = |w: usize, h: usize, with_mask: bool| {
@@ -259,20 +312,43 @@ mod tests {
                 ch.push(AnyChannel::new("mask", FlatSamples::F32(vec![1.0; w * h])));
             }
             let mut attrs = LayerAttributes::named("veila_range");
-            attrs.other.insert(Text::from(ATTR_SENSOR), AttributeValue::Text(Text::from(json.as_str())));
-            attrs.other.insert(Text::from(ATTR_FORMAT), AttributeValue::Text(Text::from(FORMAT_TAG)));
-            let layer = Layer::new((w, h), attrs, Encoding::UNCOMPRESSED, AnyChannels::sort(ch.into_iter().collect()));
+            attrs.other.insert(
+                Text::from(ATTR_SENSOR),
+                AttributeValue::Text(Text::from(json.as_str())),
+            );
+            attrs.other.insert(
+                Text::from(ATTR_FORMAT),
+                AttributeValue::Text(Text::from(FORMAT_TAG)),
+            );
+            let layer = Layer::new(
+                (w, h),
+                attrs,
+                Encoding::UNCOMPRESSED,
+                AnyChannels::sort(ch.into_iter().collect()),
+            );
             let mut buf = Cursor::new(Vec::new());
-            Image::from_layer(layer).write().to_buffered(&mut buf).unwrap();
+            Image::from_layer(layer)
+                .write()
+                .to_buffered(&mut buf)
+                .unwrap();
             buf.into_inner()
         };
-        let e = decode_range_exr(&build(16, 4, false), Path::new("nomask.exr")).unwrap_err().to_string();
-        assert!(e.contains("nomask.exr") && e.contains("missing channel `mask`"), "{e}");
-        let e = decode_range_exr(&build(16, 5, true), Path::new("size.exr")).unwrap_err().to_string();
+        let e = decode_range_exr(&build(16, 4, false), Path::new("nomask.exr"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("nomask.exr") && e.contains("missing channel `mask`"),
+            "{e}"
+        );
+        let e = decode_range_exr(&build(16, 5, true), Path::new("size.exr"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("size.exr") && e.contains("16x5"), "{e}");
         assert!(decode_range_exr(&build(16, 4, true), Path::new("ok.exr")).is_ok());
         let good = build(16, 4, true);
-        let e = decode_range_exr(&good[..good.len() - 10], Path::new("cut.exr")).unwrap_err().to_string();
+        let e = decode_range_exr(&good[..good.len() - 10], Path::new("cut.exr"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("cut.exr"), "{e}");
     }
 }

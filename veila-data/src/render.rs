@@ -59,13 +59,21 @@ pub struct RangePreview {
 
 impl Default for RangePreview {
     fn default() -> Self {
-        RangePreview { near_m: 1.0, far_m: 80.0, log_scale: true, row_scale: 4 }
+        RangePreview {
+            near_m: 1.0,
+            far_m: 80.0,
+            log_scale: true,
+            row_scale: 4,
+        }
     }
 }
 
 impl RangePreview {
     fn t(&self, r: f32) -> f32 {
-        let (a, b) = (self.near_m.max(1e-3), self.far_m.max(self.near_m.max(1e-3) * 1.0001));
+        let (a, b) = (
+            self.near_m.max(1e-3),
+            self.far_m.max(self.near_m.max(1e-3) * 1.0001),
+        );
         let t = if self.log_scale {
             (r.max(a).ln() - a.ln()) / (b.ln() - a.ln())
         } else {
@@ -77,22 +85,36 @@ impl RangePreview {
 
 fn scaled(rows: u32, cols: u32, row_scale: u32, px: impl Fn(usize) -> [u8; 3]) -> RgbImage {
     let s = row_scale.max(1);
-    RgbImage::from_fn(cols, rows * s, |x, y| Rgb(px((y / s) as usize * cols as usize + x as usize)))
+    RgbImage::from_fn(cols, rows * s, |x, y| {
+        Rgb(px((y / s) as usize * cols as usize + x as usize))
+    })
 }
 
 /// Range preview: near bright, far dark (viridis), empty pixels black.
 pub fn render_range(image: &RangeImage, opts: &RangePreview) -> RgbImage {
     scaled(image.rows, image.cols, opts.row_scale, |k| {
         let r = image.range_m[k];
-        if image.mask[k] && r.is_finite() { Colormap::Viridis.rgb(opts.t(r)) } else { [0, 0, 0] }
+        if image.mask[k] && r.is_finite() {
+            Colormap::Viridis.rgb(opts.t(r))
+        } else {
+            [0, 0, 0]
+        }
     })
 }
 
 /// Intensity preview (magma, `intensity / max_intensity`), empty pixels black.
 pub fn render_intensity(image: &RangeImage, max_intensity: f32, row_scale: u32) -> RgbImage {
-    let m = if max_intensity > 0.0 { max_intensity } else { 1.0 };
+    let m = if max_intensity > 0.0 {
+        max_intensity
+    } else {
+        1.0
+    };
     scaled(image.rows, image.cols, row_scale, |k| {
-        if image.mask[k] { Colormap::Magma.rgb(image.intensity[k] / m) } else { [0, 0, 0] }
+        if image.mask[k] {
+            Colormap::Magma.rgb(image.intensity[k] / m)
+        } else {
+            [0, 0, 0]
+        }
     })
 }
 
@@ -101,7 +123,11 @@ pub fn render_intensity(image: &RangeImage, max_intensity: f32, row_scale: u32) 
 pub fn render_labels(image: &RangeImage, map: &LabelMap, row_scale: u32) -> Option<RgbImage> {
     let labels = image.label.as_ref()?;
     Some(scaled(image.rows, image.cols, row_scale, |k| {
-        if image.mask[k] { map.color_rgb(labels[k]) } else { [0, 0, 0] }
+        if image.mask[k] {
+            map.color_rgb(labels[k])
+        } else {
+            [0, 0, 0]
+        }
     }))
 }
 
@@ -118,10 +144,20 @@ pub fn render_train_labels(
     if train_ids.len() != n || mask.len() != n {
         return Err(Error::Mismatch {
             context: "label preview".into(),
-            message: format!("{rows}x{cols} image but {} labels and {} mask values", train_ids.len(), mask.len()),
+            message: format!(
+                "{rows}x{cols} image but {} labels and {} mask values",
+                train_ids.len(),
+                mask.len()
+            ),
         });
     }
-    Ok(scaled(rows, cols, row_scale, |k| if mask[k] { map.train_color_rgb(train_ids[k]) } else { [0, 0, 0] }))
+    Ok(scaled(rows, cols, row_scale, |k| {
+        if mask[k] {
+            map.train_color_rgb(train_ids[k])
+        } else {
+            [0, 0, 0]
+        }
+    }))
 }
 
 /// Bird's-eye-view parameters. The image looks down on the LiDAR: forward (+x) is up, left (+y) is
@@ -140,14 +176,20 @@ pub struct BevOptions {
 
 impl Default for BevOptions {
     fn default() -> Self {
-        BevOptions { half_extent_m: 50.0, resolution_m: 0.1, z_min_m: -2.5, z_max_m: 1.5 }
+        BevOptions {
+            half_extent_m: 50.0,
+            resolution_m: 0.1,
+            z_min_m: -2.5,
+            z_max_m: 1.5,
+        }
     }
 }
 
 /// Bird's-eye view coloured by height (viridis), the highest point of each cell wins; background
 /// black. Non-finite points are skipped.
 pub fn render_bev(cloud: &PointCloud, opts: &BevOptions) -> Result<RgbImage> {
-    if !(opts.half_extent_m > 0.0 && opts.resolution_m > 0.0) || !(opts.z_max_m > opts.z_min_m) {
+    let valid = opts.half_extent_m > 0.0 && opts.resolution_m > 0.0 && opts.z_max_m > opts.z_min_m;
+    if !valid {
         return Err(Error::Invalid {
             what: "BEV options".into(),
             message: format!("{opts:?}: extent and resolution must be positive and z_max > z_min"),
@@ -177,7 +219,11 @@ pub fn render_bev(cloud: &PointCloud, opts: &BevOptions) -> Result<RgbImage> {
     let span = opts.z_max_m - opts.z_min_m;
     Ok(RgbImage::from_fn(side, side, |x, y| {
         let z = top[y as usize * side as usize + x as usize];
-        if z == f32::NEG_INFINITY { Rgb([0, 0, 0]) } else { Rgb(Colormap::Viridis.rgb((z - opts.z_min_m) / span)) }
+        if z == f32::NEG_INFINITY {
+            Rgb([0, 0, 0])
+        } else {
+            Rgb(Colormap::Viridis.rgb((z - opts.z_min_m) / span))
+        }
     }))
 }
 
@@ -196,7 +242,12 @@ pub struct OverlayOptions {
 
 impl Default for OverlayOptions {
     fn default() -> Self {
-        OverlayOptions { near_m: 2.0, far_m: 60.0, radius_px: 1, min_depth_m: 1.0 }
+        OverlayOptions {
+            near_m: 2.0,
+            far_m: 60.0,
+            radius_px: 1,
+            min_depth_m: 1.0,
+        }
     }
 }
 
@@ -256,7 +307,10 @@ pub fn render_overlay(
             }
         }
     }
-    Ok(Overlay { image: out, drawn: hits.len() })
+    Ok(Overlay {
+        image: out,
+        drawn: hits.len(),
+    })
 }
 
 #[cfg(test)]
@@ -267,7 +321,11 @@ mod tests {
     fn luminance(c: [u8; 3]) -> f32 {
         let lin = |v: u8| {
             let s = v as f32 / 255.0;
-            if s <= 0.04045 { s / 12.92 } else { ((s + 0.055) / 1.055).powf(2.4) }
+            if s <= 0.04045 {
+                s / 12.92
+            } else {
+                ((s + 0.055) / 1.055).powf(2.4)
+            }
         };
         0.2126 * lin(c[0]) + 0.7152 * lin(c[1]) + 0.0722 * lin(c[2])
     }
@@ -294,7 +352,13 @@ mod tests {
         img.range_m[0] = 2.0;
         img.mask[1] = true;
         img.range_m[1] = 60.0;
-        let png = render_range(&img, &RangePreview { row_scale: 2, ..Default::default() });
+        let png = render_range(
+            &img,
+            &RangePreview {
+                row_scale: 2,
+                ..Default::default()
+            },
+        );
         assert_eq!(png.dimensions(), (3, 4));
         assert_eq!(png.get_pixel(2, 0).0, [0, 0, 0]);
         assert_eq!(png.get_pixel(0, 1).0, png.get_pixel(0, 0).0);
@@ -304,12 +368,20 @@ mod tests {
     #[test]
     fn bev_puts_forward_up_and_left_left() {
         let cloud = PointCloud {
-            xyz: vec![Vec3::new(40.0, 0.0, 0.0), Vec3::new(0.0, 40.0, 0.0), Vec3::new(f32::NAN, 0.0, 0.0)],
+            xyz: vec![
+                Vec3::new(40.0, 0.0, 0.0),
+                Vec3::new(0.0, 40.0, 0.0),
+                Vec3::new(f32::NAN, 0.0, 0.0),
+            ],
             intensity: vec![0.0; 3],
             ring: None,
             label: None,
         };
-        let opts = BevOptions { half_extent_m: 50.0, resolution_m: 1.0, ..Default::default() };
+        let opts = BevOptions {
+            half_extent_m: 50.0,
+            resolution_m: 1.0,
+            ..Default::default()
+        };
         let img = render_bev(&cloud, &opts).unwrap();
         assert_eq!(img.dimensions(), (100, 100));
         assert_ne!(img.get_pixel(50, 10).0, [0, 0, 0]); // forward: row 10, centre column

@@ -69,7 +69,9 @@ pub struct LoadedPoints {
 }
 
 fn name_of(path: &Path) -> String {
-    path.file_name().map(|n| n.to_string_lossy().to_lowercase()).unwrap_or_default()
+    path.file_name()
+        .map(|n| n.to_string_lossy().to_lowercase())
+        .unwrap_or_default()
 }
 
 /// Decide the format of `path` from its first bytes and, for raw float records, its name (rules in
@@ -124,7 +126,12 @@ pub fn read_points(path: &Path) -> Result<LoadedPoints> {
         PointFormat::Ply => {
             let mut cloud = crate::ply::read_ply(path)?;
             let dropped = cloud.retain_finite();
-            Ok(LoadedPoints { cloud, format: PointFormat::Ply, dropped_non_finite: dropped, sensor: None })
+            Ok(LoadedPoints {
+                cloud,
+                format: PointFormat::Ply,
+                dropped_non_finite: dropped,
+                sensor: None,
+            })
         }
         PointFormat::RangeExr => {
             let exr = crate::range_exr::read_range_exr(path)?;
@@ -144,11 +151,15 @@ fn read_all(path: &Path) -> Result<Vec<u8>> {
 }
 
 fn check_records(bytes: &[u8], record: usize, path: &Path) -> Result<()> {
-    if bytes.len() % record == 0 {
+    if bytes.len().is_multiple_of(record) {
         return Ok(());
     }
-    let other = if record == KITTI_RECORD_BYTES { NUSCENES_RECORD_BYTES } else { KITTI_RECORD_BYTES };
-    let hint = if bytes.len() % other == 0 {
+    let other = if record == KITTI_RECORD_BYTES {
+        NUSCENES_RECORD_BYTES
+    } else {
+        KITTI_RECORD_BYTES
+    };
+    let hint = if bytes.len().is_multiple_of(other) {
         if other == NUSCENES_RECORD_BYTES {
             " (it is a multiple of 20: a nuScenes scan should be named *.pcd.bin)"
         } else {
@@ -183,7 +194,9 @@ pub(crate) fn decode_kitti_records(bytes: &[u8], path: &Path) -> Result<PointClo
         label: None,
     };
     for rec in bytes.chunks_exact(KITTI_RECORD_BYTES) {
-        cloud.xyz.push(Vec3::new(f32_at(rec, 0), f32_at(rec, 1), f32_at(rec, 2)));
+        cloud
+            .xyz
+            .push(Vec3::new(f32_at(rec, 0), f32_at(rec, 1), f32_at(rec, 2)));
         cloud.intensity.push(f32_at(rec, 3));
     }
     Ok(cloud)
@@ -193,7 +206,12 @@ pub(crate) fn decode_kitti_records(bytes: &[u8], path: &Path) -> Result<PointClo
 pub fn parse_kitti_bin(bytes: &[u8], path: &Path) -> Result<LoadedPoints> {
     let mut cloud = decode_kitti_records(bytes, path)?;
     let dropped = cloud.retain_finite();
-    Ok(LoadedPoints { cloud, format: PointFormat::KittiBin, dropped_non_finite: dropped, sensor: None })
+    Ok(LoadedPoints {
+        cloud,
+        format: PointFormat::KittiBin,
+        dropped_non_finite: dropped,
+        sensor: None,
+    })
 }
 
 /// Read a KITTI velodyne `.bin` (also SemanticKITTI / KITTI odometry scans).
@@ -226,10 +244,14 @@ pub fn parse_nuscenes_pcd_bin(bytes: &[u8], path: &Path) -> Result<LoadedPoints>
         if !(0.0..=65535.0).contains(&ring) || ring.fract() != 0.0 {
             return Err(Error::format(
                 path,
-                format!("record {i}: ring {ring} is not an integer in 0..=65535 (is this a nuScenes scan?)"),
+                format!(
+                    "record {i}: ring {ring} is not an integer in 0..=65535 (is this a nuScenes scan?)"
+                ),
             ));
         }
-        cloud.xyz.push(Vec3::new(f32_at(rec, 0), f32_at(rec, 1), f32_at(rec, 2)));
+        cloud
+            .xyz
+            .push(Vec3::new(f32_at(rec, 0), f32_at(rec, 1), f32_at(rec, 2)));
         cloud.intensity.push(f32_at(rec, 3));
         rings.push(ring as u16);
     }
@@ -277,7 +299,10 @@ pub fn write_points(path: &Path, cloud: &PointCloud) -> Result<()> {
     } else if name.ends_with(".pcd.bin") {
         Err(Error::Invalid {
             what: "output file name".into(),
-            message: format!("{}: writing nuScenes .pcd.bin is not supported; use .ply or .bin", path.display()),
+            message: format!(
+                "{}: writing nuScenes .pcd.bin is not supported; use .ply or .bin",
+                path.display()
+            ),
         })
     } else if name.ends_with(".bin") {
         write_kitti_bin(path, cloud)
@@ -300,34 +325,73 @@ mod tests {
     #[test]
     fn kitti_bin_drops_and_counts_non_finite() {
         let bytes = rec(&[
-            1.0, 2.0, 3.0, 0.5, //
-            f32::NAN, 0.0, 0.0, 0.1, //
-            4.0, f32::INFINITY, 0.0, 0.2, //
-            5.0, 6.0, 7.0, f32::NAN, //
-            -1.0, -2.0, -3.0, 0.9,
+            1.0,
+            2.0,
+            3.0,
+            0.5, //
+            f32::NAN,
+            0.0,
+            0.0,
+            0.1, //
+            4.0,
+            f32::INFINITY,
+            0.0,
+            0.2, //
+            5.0,
+            6.0,
+            7.0,
+            f32::NAN, //
+            -1.0,
+            -2.0,
+            -3.0,
+            0.9,
         ]);
         let l = parse_kitti_bin(&bytes, Path::new("x.bin")).unwrap();
         assert_eq!(l.dropped_non_finite, 3);
-        assert_eq!(l.cloud.xyz, vec![Vec3::new(1.0, 2.0, 3.0), Vec3::new(-1.0, -2.0, -3.0)]);
+        assert_eq!(
+            l.cloud.xyz,
+            vec![Vec3::new(1.0, 2.0, 3.0), Vec3::new(-1.0, -2.0, -3.0)]
+        );
         assert_eq!(l.cloud.intensity, vec![0.5, 0.9]);
     }
 
     #[test]
     fn record_size_errors_name_file_and_hint() {
-        let e = parse_kitti_bin(&[0u8; 20], Path::new("scan.bin")).unwrap_err().to_string();
-        assert!(e.contains("scan.bin") && e.contains("16-byte") && e.contains("pcd.bin"), "{e}");
-        let e = parse_kitti_bin(&[0u8; 17], Path::new("scan.bin")).unwrap_err().to_string();
+        let e = parse_kitti_bin(&[0u8; 20], Path::new("scan.bin"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("scan.bin") && e.contains("16-byte") && e.contains("pcd.bin"),
+            "{e}"
+        );
+        let e = parse_kitti_bin(&[0u8; 17], Path::new("scan.bin"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("truncated"), "{e}");
-        let e = parse_nuscenes_pcd_bin(&[0u8; 32], Path::new("a.pcd.bin")).unwrap_err().to_string();
+        let e = parse_nuscenes_pcd_bin(&[0u8; 32], Path::new("a.pcd.bin"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("20-byte") && e.contains("KITTI"), "{e}");
     }
 
     #[test]
     fn pcd_bin_keeps_rings_and_rejects_bad_rings() {
         let bytes = rec(&[
-            1.0, 2.0, 3.0, 100.0, 7.0, //
-            0.0, 0.0, f32::NAN, 9.0, 1.0, //
-            1.0, 1.0, 1.0, 3.0, f32::NAN,
+            1.0,
+            2.0,
+            3.0,
+            100.0,
+            7.0, //
+            0.0,
+            0.0,
+            f32::NAN,
+            9.0,
+            1.0, //
+            1.0,
+            1.0,
+            1.0,
+            3.0,
+            f32::NAN,
         ]);
         let l = parse_nuscenes_pcd_bin(&bytes, Path::new("a.pcd.bin")).unwrap();
         assert_eq!(l.dropped_non_finite, 2);
@@ -340,11 +404,22 @@ mod tests {
     fn detection_by_magic_then_name() {
         let p = Path::new("weird_name.bin");
         assert_eq!(detect_from(b"ply\nformat", p).unwrap(), PointFormat::Ply);
-        assert_eq!(detect_from(&[0x76, 0x2f, 0x31, 0x01, 2, 0, 0, 0], p).unwrap(), PointFormat::RangeExr);
-        assert_eq!(detect_from(&[0; 8], Path::new("a.pcd.bin")).unwrap(), PointFormat::NuScenesPcdBin);
-        assert_eq!(detect_from(&[0; 8], Path::new("A.BIN")).unwrap(), PointFormat::KittiBin);
+        assert_eq!(
+            detect_from(&[0x76, 0x2f, 0x31, 0x01, 2, 0, 0, 0], p).unwrap(),
+            PointFormat::RangeExr
+        );
+        assert_eq!(
+            detect_from(&[0; 8], Path::new("a.pcd.bin")).unwrap(),
+            PointFormat::NuScenesPcdBin
+        );
+        assert_eq!(
+            detect_from(&[0; 8], Path::new("A.BIN")).unwrap(),
+            PointFormat::KittiBin
+        );
         assert!(detect_from(b"# .PCD v0.7", Path::new("a.pcd")).is_err());
-        let e = detect_from(&[0; 8], Path::new("a.xyz")).unwrap_err().to_string();
+        let e = detect_from(&[0; 8], Path::new("a.xyz"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("a.xyz") && e.contains("unknown"), "{e}");
     }
 }

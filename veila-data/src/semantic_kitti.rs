@@ -51,7 +51,9 @@ impl OdometryCalib {
             what: "KITTI camera index".into(),
             message: format!("{index} is not one of 0..=3"),
         })?;
-        Ok(PinholeCamera::from_kitti_odometry(p, self.tr, width, height)?)
+        Ok(PinholeCamera::from_kitti_odometry(
+            p, self.tr, width, height,
+        )?)
     }
 }
 
@@ -69,14 +71,19 @@ pub fn instance_id(raw: u32) -> u16 {
 
 /// Decode `.label` bytes. With `expected_points`, a different count is an error naming both numbers.
 pub fn parse_labels(bytes: &[u8], expected_points: Option<usize>, path: &Path) -> Result<Vec<u32>> {
-    if bytes.len() % 4 != 0 {
+    if !bytes.len().is_multiple_of(4) {
         return Err(Error::format(
             path,
-            format!("length {} bytes is not a multiple of 4 (u32 per point); truncated?", bytes.len()),
+            format!(
+                "length {} bytes is not a multiple of 4 (u32 per point); truncated?",
+                bytes.len()
+            ),
         ));
     }
-    let labels: Vec<u32> =
-        bytes.chunks_exact(4).map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+    let labels: Vec<u32> = bytes
+        .chunks_exact(4)
+        .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
     if let Some(n) = expected_points
         && labels.len() != n
     {
@@ -157,7 +164,10 @@ pub struct LabelMap {
 
 fn yaml_int_map(root: &Yaml, key: &str, path: &Path) -> Result<Vec<(u64, Yaml)>> {
     let Some(Yaml::Map(entries)) = root.get(key) else {
-        return Err(Error::format(path, format!("label map has no `{key}` mapping")));
+        return Err(Error::format(
+            path,
+            format!("label map has no `{key}` mapping"),
+        ));
     };
     entries
         .iter()
@@ -172,9 +182,15 @@ fn yaml_int_map(root: &Yaml, key: &str, path: &Path) -> Result<Vec<(u64, Yaml)>>
 fn scalar_int(v: &Yaml, what: &str, max: u64, path: &Path) -> Result<u64> {
     match v {
         Yaml::Scalar(s) => s.parse::<u64>().ok().filter(|x| *x <= max).ok_or_else(|| {
-            Error::format(path, format!("{what}: `{s}` is not an integer in 0..={max}"))
+            Error::format(
+                path,
+                format!("{what}: `{s}` is not an integer in 0..={max}"),
+            )
         }),
-        other => Err(Error::format(path, format!("{what}: expected an integer, found {other:?}"))),
+        other => Err(Error::format(
+            path,
+            format!("{what}: expected an integer, found {other:?}"),
+        )),
     }
 }
 
@@ -183,12 +199,16 @@ impl LabelMap {
     pub fn parse(text: &str, path: &Path) -> Result<Self> {
         let root = yaml_lite::parse(text, path)?;
         let key16 = |k: u64, what: &str| -> Result<u16> {
-            u16::try_from(k).map_err(|_| Error::format(path, format!("{what}: id {k} exceeds 65535")))
+            u16::try_from(k)
+                .map_err(|_| Error::format(path, format!("{what}: id {k} exceeds 65535")))
         };
         let mut names = BTreeMap::new();
         for (k, v) in yaml_int_map(&root, "labels", path)? {
             let Yaml::Scalar(name) = v else {
-                return Err(Error::format(path, format!("labels: entry {k} is not a name")));
+                return Err(Error::format(
+                    path,
+                    format!("labels: entry {k} is not a name"),
+                ));
             };
             names.insert(key16(k, "labels")?, name);
         }
@@ -199,7 +219,10 @@ impl LabelMap {
                 return Err(Error::format(path, format!("{what}: expected [b, g, r]")));
             };
             if items.len() != 3 {
-                return Err(Error::format(path, format!("{what}: expected 3 values, found {}", items.len())));
+                return Err(Error::format(
+                    path,
+                    format!("{what}: expected 3 values, found {}", items.len()),
+                ));
             }
             let mut c = [0u8; 3];
             for (ci, item) in c.iter_mut().zip(items) {
@@ -214,8 +237,9 @@ impl LabelMap {
         }
         let mut learning_map_inv = BTreeMap::new();
         for (k, v) in yaml_int_map(&root, "learning_map_inv", path)? {
-            let k = u8::try_from(k)
-                .map_err(|_| Error::format(path, format!("learning_map_inv: train id {k} exceeds 255")))?;
+            let k = u8::try_from(k).map_err(|_| {
+                Error::format(path, format!("learning_map_inv: train id {k} exceeds 255"))
+            })?;
             let raw = scalar_int(&v, &format!("learning_map_inv entry {k}"), 65535, path)? as u16;
             learning_map_inv.insert(k, raw);
         }
@@ -228,20 +252,25 @@ impl LabelMap {
                     other => {
                         return Err(Error::format(
                             path,
-                            format!("learning_ignore entry {k}: expected True/False, found {other:?}"),
+                            format!(
+                                "learning_ignore entry {k}: expected True/False, found {other:?}"
+                            ),
                         ));
                     }
                 };
-                let k = u8::try_from(k)
-                    .map_err(|_| Error::format(path, format!("learning_ignore: id {k} exceeds 255")))?;
+                let k = u8::try_from(k).map_err(|_| {
+                    Error::format(path, format!("learning_ignore: id {k} exceeds 255"))
+                })?;
                 learning_ignore.insert(k, b);
             }
         }
         let mut split = Split::default();
         if let Some(s) = root.get("split") {
-            for (part, out) in
-                [("train", &mut split.train), ("valid", &mut split.valid), ("test", &mut split.test)]
-            {
+            for (part, out) in [
+                ("train", &mut split.train),
+                ("valid", &mut split.valid),
+                ("test", &mut split.test),
+            ] {
                 match s.get(part) {
                     Some(Yaml::Seq(items)) => {
                         for it in items {
@@ -263,7 +292,9 @@ impl LabelMap {
             if *t != 0 && !learning_map_inv.contains_key(t) {
                 return Err(Error::format(
                     path,
-                    format!("learning_map maps {raw} to train id {t}, which learning_map_inv lacks"),
+                    format!(
+                        "learning_map maps {raw} to train id {t}, which learning_map_inv lacks"
+                    ),
                 ));
             }
         }
@@ -271,7 +302,15 @@ impl LabelMap {
         for (raw, t) in &learning_map {
             lut[*raw as usize] = *t;
         }
-        Ok(LabelMap { names, color_bgr, learning_map, learning_map_inv, learning_ignore, split, lut })
+        Ok(LabelMap {
+            names,
+            color_bgr,
+            learning_map,
+            learning_map_inv,
+            learning_ignore,
+            split,
+            lut,
+        })
     }
 
     /// Read `semantic-kitti.yaml`.
@@ -282,7 +321,10 @@ impl LabelMap {
 
     /// Number of train classes including 0 (`max(learning_map_inv) + 1`, 20 for SemanticKITTI).
     pub fn num_classes(&self) -> usize {
-        self.learning_map_inv.keys().next_back().map_or(1, |k| *k as usize + 1)
+        self.learning_map_inv
+            .keys()
+            .next_back()
+            .map_or(1, |k| *k as usize + 1)
     }
 
     /// Train id of a raw label (the instance bits are ignored); unknown classes map to 0.
@@ -308,17 +350,24 @@ impl LabelMap {
 
     /// Display colour (**RGB**) of a raw label; black for unknown classes.
     pub fn color_rgb(&self, raw: u32) -> [u8; 3] {
-        self.color_bgr.get(&semantic_id(raw)).map_or([0, 0, 0], |[b, g, r]| [*r, *g, *b])
+        self.color_bgr
+            .get(&semantic_id(raw))
+            .map_or([0, 0, 0], |[b, g, r]| [*r, *g, *b])
     }
 
     /// Display colour (**RGB**) of a train id, through its representative raw class.
     pub fn train_color_rgb(&self, train_id: u8) -> [u8; 3] {
-        self.learning_map_inv.get(&train_id).map_or([0, 0, 0], |raw| self.color_rgb(u32::from(*raw)))
+        self.learning_map_inv
+            .get(&train_id)
+            .map_or([0, 0, 0], |raw| self.color_rgb(u32::from(*raw)))
     }
 
     /// Name of a train id (the name of its representative raw class).
     pub fn train_name(&self, train_id: u8) -> Option<&str> {
-        self.learning_map_inv.get(&train_id).and_then(|raw| self.names.get(raw)).map(String::as_str)
+        self.learning_map_inv
+            .get(&train_id)
+            .and_then(|raw| self.names.get(raw))
+            .map(String::as_str)
     }
 }
 
@@ -355,9 +404,12 @@ impl SemanticKittiDataset {
     /// `ROOT/semantic-kitti.yaml`, then `ROOT/../semantic-kitti.yaml` (absent is allowed: labels then
     /// stay raw). Calibration of every selected sequence is read now; scans, labels and images lazily.
     pub fn open(root: &Path, sequences: Sequences) -> Result<Self> {
-        let map_path = [root.join("semantic-kitti.yaml"), root.join("../semantic-kitti.yaml")]
-            .into_iter()
-            .find(|p| p.is_file());
+        let map_path = [
+            root.join("semantic-kitti.yaml"),
+            root.join("../semantic-kitti.yaml"),
+        ]
+        .into_iter()
+        .find(|p| p.is_file());
         let label_map = map_path.map(|p| LabelMap::read(&p)).transpose()?;
         Self::open_with_label_map(root, sequences, label_map)
     }
@@ -370,7 +422,10 @@ impl SemanticKittiDataset {
     ) -> Result<Self> {
         let seq_root = root.join("sequences");
         if !seq_root.is_dir() {
-            return Err(Error::format(root, "not a KITTI odometry folder: sequences/ does not exist"));
+            return Err(Error::format(
+                root,
+                "not a KITTI odometry folder: sequences/ does not exist",
+            ));
         }
         let wanted: Option<Vec<u32>> = match &sequences {
             Sequences::All => None,
@@ -399,7 +454,9 @@ impl SemanticKittiDataset {
                 if !present.iter().any(|(n, _)| n == s) {
                     return Err(Error::format(
                         &seq_root,
-                        format!("sequence {s:02} was requested but sequences/{s:02}/velodyne does not exist"),
+                        format!(
+                            "sequence {s:02} was requested but sequences/{s:02}/velodyne does not exist"
+                        ),
                     ));
                 }
             }
@@ -418,9 +475,18 @@ impl SemanticKittiDataset {
             seqs.push(SeqInfo { dir, calib });
         }
         if seqs.is_empty() && wanted.is_some() {
-            return Err(Error::format(&seq_root, format!("none of the selected sequences {wanted:?} is present")));
+            return Err(Error::format(
+                &seq_root,
+                format!("none of the selected sequences {wanted:?} is present"),
+            ));
         }
-        Ok(SemanticKittiDataset { seqs, frames, label_map, load_images: true, require_labels: false })
+        Ok(SemanticKittiDataset {
+            seqs,
+            frames,
+            label_map,
+            load_images: true,
+            require_labels: false,
+        })
     }
 
     /// Decode camera images when loading frames (default true).
@@ -442,7 +508,11 @@ impl SemanticKittiDataset {
 
     fn seq_name(&self, index: usize) -> String {
         let (si, _) = &self.frames[index];
-        self.seqs[*si].dir.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default()
+        self.seqs[*si]
+            .dir
+            .file_name()
+            .map(|n| n.to_string_lossy().to_string())
+            .unwrap_or_default()
     }
 
     /// The scan, label and image paths of frame `index`.
@@ -537,14 +607,19 @@ mod tests {
         assert_eq!(m.color_rgb(10), [100, 150, 245]);
         assert_eq!(m.train_color_rgb(1), [100, 150, 245]);
         assert_eq!(m.split.valid, vec![8]);
-        assert_eq!(m.train_histogram(&[0, 10, 252, 7, 10 | (3 << 16)]), vec![2, 3]);
+        assert_eq!(
+            m.train_histogram(&[0, 10, 252, 7, 10 | (3 << 16)]),
+            vec![2, 3]
+        );
         assert_eq!(m.train_name(1), Some("car"));
     }
 
     #[test]
     fn label_map_rejects_inconsistent_maps() {
         let bad = YAML.replace("  252: 1\nlearning_map_inv", "  252: 7\nlearning_map_inv");
-        let e = LabelMap::parse(&bad, Path::new("s.yaml")).unwrap_err().to_string();
+        let e = LabelMap::parse(&bad, Path::new("s.yaml"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("train id 7"), "{e}");
         let bad = YAML.replace("10: [245, 150, 100]", "10: [245, 150]");
         assert!(LabelMap::parse(&bad, Path::new("s.yaml")).is_err());
@@ -555,10 +630,23 @@ mod tests {
     #[test]
     fn label_counts_must_match() {
         let bytes: Vec<u8> = [1u32, 2, 3].iter().flat_map(|v| v.to_le_bytes()).collect();
-        assert_eq!(parse_labels(&bytes, Some(3), Path::new("a.label")).unwrap(), vec![1, 2, 3]);
-        let e = parse_labels(&bytes, Some(4), Path::new("a.label")).unwrap_err().to_string();
-        assert!(e.contains("a.label") && e.contains("3 labels") && e.contains("4 points") && e.contains("fewer"), "{e}");
-        let e = parse_labels(&bytes, Some(2), Path::new("a.label")).unwrap_err().to_string();
+        assert_eq!(
+            parse_labels(&bytes, Some(3), Path::new("a.label")).unwrap(),
+            vec![1, 2, 3]
+        );
+        let e = parse_labels(&bytes, Some(4), Path::new("a.label"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("a.label")
+                && e.contains("3 labels")
+                && e.contains("4 points")
+                && e.contains("fewer"),
+            "{e}"
+        );
+        let e = parse_labels(&bytes, Some(2), Path::new("a.label"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("more"), "{e}");
         assert!(parse_labels(&bytes[..5], None, Path::new("a.label")).is_err());
     }
@@ -566,7 +654,9 @@ mod tests {
     #[test]
     fn odometry_calib_needs_tr() {
         let txt = "P0: 1 0 0 0 0 1 0 0 0 0 1 0\nP1: 1 0 0 0 0 1 0 0 0 0 1 0\nP2: 1 0 0 0 0 1 0 0 0 0 1 0\nP3: 1 0 0 0 0 1 0 0 0 0 1 0\n";
-        let e = OdometryCalib::parse(txt, Path::new("calib.txt")).unwrap_err().to_string();
+        let e = OdometryCalib::parse(txt, Path::new("calib.txt"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("calib.txt") && e.contains("Tr"), "{e}");
         let ok = format!("{txt}Tr: 0 -1 0 0 0 0 -1 0 1 0 0 0\n");
         let c = OdometryCalib::parse(&ok, Path::new("calib.txt")).unwrap();

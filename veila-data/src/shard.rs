@@ -19,7 +19,6 @@
 //! and the string metadata `format` ([`SHARD_FORMAT`]), `sensor` (JSON of [`LidarSensor`]), `count`,
 //! `ids` (JSON list of frame ids) and `dataset`.
 
-use std::collections::HashMap;
 use std::io::Read;
 use std::path::Path;
 
@@ -102,18 +101,14 @@ struct OwnedTensor {
     data: Vec<u8>,
 }
 
-impl safetensors::View for &OwnedTensor {
-    fn dtype(&self) -> Dtype {
-        self.dtype
-    }
-    fn shape(&self) -> &[usize] {
-        &self.shape
-    }
-    fn data(&self) -> std::borrow::Cow<'_, [u8]> {
-        std::borrow::Cow::Borrowed(&self.data)
-    }
-    fn data_len(&self) -> usize {
-        self.data.len()
+/// Tensors in file order, with their names.
+type NamedTensors = Vec<(String, OwnedTensor)>;
+
+fn dtype_name(d: Dtype) -> &'static str {
+    match d {
+        Dtype::U8 => "U8",
+        Dtype::U32 => "U32",
+        _ => "F32",
     }
 }
 
@@ -124,8 +119,14 @@ fn bytes_u32(v: &[u32]) -> Vec<u8> {
     v.iter().flat_map(|x| x.to_le_bytes()).collect()
 }
 
-/// Encode samples as safetensors bytes. Every sample must match the sensor's size.
-pub fn encode_shard(sensor: &LidarSensor, dataset: &str, samples: &[ShardSample]) -> Result<Vec<u8>> {
+/// The tensors of a shard, in file order (4-byte types first so every tensor stays aligned, then by
+/// name), and the header bytes (length prefix included). Everything is deterministic: the same samples
+/// always give the same bytes, which makes checksums meaningful.
+fn prepare_shard(
+    sensor: &LidarSensor,
+    dataset: &str,
+    samples: &[ShardSample],
+) -> Result<(Vec<u8>, NamedTensors)> {
     sensor.validate()?;
     let (h, w) = (sensor.rows as usize, sensor.cols as usize);
     let n = h * w;
@@ -165,7 +166,12 @@ pub fn encode_shard(sensor: &LidarSensor, dataset: &str, samples: &[ShardSample]
         }
         if let Some(img) = &s.image {
             let (iw, ih) = img.dimensions();
-            put("image", Dtype::U8, vec![ih as usize, iw as usize, 3], img.as_raw().clone());
+            put(
+                "image",
+                Dtype::U8,
+                vec![ih as usize, iw as usize, 3],
+                img.as_raw().clone(),
+            );
         }
         if let Some(c) = &s.camera {
             let k: Vec<f32> = c.intrinsics.iter().flatten().copied().collect();
@@ -174,22 +180,53 @@ pub fn encode_shard(sensor: &LidarSensor, dataset: &str, samples: &[ShardSample]
             put("cam_from_lidar", Dtype::F32, vec![4, 4], bytes_f32(&t));
         }
     }
+    tensors.sort_by(|(a, ta), (b, tb)| {
+        let wide = |t: &OwnedTensor| t.dtype != Dtype::U8;
+        wide(tb).cmp(&wide(ta)).then_with(|| a.cmp(b))
+    });
     let ids: Vec<&str> = samples.iter().map(|s| s.id.as_str()).collect();
-    let meta: HashMap<String, String> = [
-        ("format".to_string(), SHARD_FORMAT.to_string()),
-        ("sensor".to_string(), json(sensor)?),
-        ("count".to_string(), samples.len().to_string()),
-        ("ids".to_string(), json(&ids)?),
-        ("dataset".to_string(), dataset.to_string()),
-    ]
-    .into_iter()
-    .collect();
-    safetensors::serialize(tensors.iter().map(|(k, t)| (k.clone(), t)), Some(meta))
-        .map_err(|e| Error::Invalid { what: "shard".into(), message: format!("safetensors encoding failed: {e}") })
+    let mut header = serde_json::Map::new();
+    let mut meta = serde_json::Map::new();
+    meta.insert("format".into(), SHARD_FORMAT.into());
+    meta.insert("sensor".into(), json(sensor)?.into());
+    meta.insert("count".into(), samples.len().to_string().into());
+    meta.insert("ids".into(), json(&ids)?.into());
+    meta.insert("dataset".into(), dataset.into());
+    header.insert("__metadata__".into(), serde_json::Value::Object(meta));
+    let mut offset = 0usize;
+    for (name, t) in &tensors {
+        let end = offset + t.data.len();
+        header.insert(
+            name.clone(),
+            serde_json::json!({ "dtype": dtype_name(t.dtype), "shape": t.shape, "data_offsets": [offset, end] }),
+        );
+        offset = end;
+    }
+    let mut text = serde_json::Value::Object(header).to_string().into_bytes();
+    text.resize(text.len().next_multiple_of(8), b' ');
+    let mut bytes = (text.len() as u64).to_le_bytes().to_vec();
+    bytes.extend_from_slice(&text);
+    Ok((bytes, tensors))
+}
+
+/// Encode samples as safetensors bytes (deterministic). Every sample must match the sensor's size.
+pub fn encode_shard(
+    sensor: &LidarSensor,
+    dataset: &str,
+    samples: &[ShardSample],
+) -> Result<Vec<u8>> {
+    let (mut out, tensors) = prepare_shard(sensor, dataset, samples)?;
+    for (_, t) in &tensors {
+        out.extend_from_slice(&t.data);
+    }
+    Ok(out)
 }
 
 fn json<T: Serialize + ?Sized>(v: &T) -> Result<String> {
-    serde_json::to_string(v).map_err(|e| Error::Invalid { what: "JSON".into(), message: e.to_string() })
+    serde_json::to_string(v).map_err(|e| Error::Invalid {
+        what: "JSON".into(),
+        message: e.to_string(),
+    })
 }
 
 /// Hex SHA-256 of bytes.
@@ -218,21 +255,33 @@ pub fn sha256_file(path: &Path) -> Result<(String, u64)> {
     Ok((hex(&h.finalize()), total))
 }
 
-/// Write a shard atomically and return its manifest entry (file name, count, size, checksum).
+/// Write a shard atomically, streaming the tensors to disk while hashing them (no second copy of
+/// the shard in memory), and return its manifest entry (file name, count, size, checksum).
 pub fn write_shard(
     path: &Path,
     sensor: &LidarSensor,
     dataset: &str,
     samples: &[ShardSample],
 ) -> Result<ShardEntry> {
-    let bytes = encode_shard(sensor, dataset, samples)?;
-    let sha256 = sha256_hex(&bytes);
-    write_atomic_with(path, |w| std::io::Write::write_all(w, &bytes))?;
+    let (header, tensors) = prepare_shard(sensor, dataset, samples)?;
+    let mut hasher = Sha256::new();
+    let mut total = 0u64;
+    write_atomic_with(path, |w| {
+        for chunk in std::iter::once(&header[..]).chain(tensors.iter().map(|(_, t)| &t.data[..])) {
+            hasher.update(chunk);
+            total += chunk.len() as u64;
+            std::io::Write::write_all(w, chunk)?;
+        }
+        Ok(())
+    })?;
     Ok(ShardEntry {
-        file: path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default(),
+        file: path
+            .file_name()
+            .map(|n| n.to_string_lossy().to_string())
+            .unwrap_or_default(),
         count: samples.len(),
-        bytes: bytes.len() as u64,
-        sha256,
+        bytes: total,
+        sha256: hex(&hasher.finalize()),
         ids: samples.iter().map(|s| s.id.clone()).collect(),
     })
 }
@@ -245,35 +294,60 @@ fn tensor<'a>(st: &SafeTensors<'a>, name: &str, path: &Path) -> Result<Option<Te
     }
 }
 
-fn expect(t: &TensorView<'_>, dtype: Dtype, shape: &[usize], name: &str, path: &Path) -> Result<()> {
+fn expect(
+    t: &TensorView<'_>,
+    dtype: Dtype,
+    shape: &[usize],
+    name: &str,
+    path: &Path,
+) -> Result<()> {
     if t.dtype() != dtype || t.shape() != shape {
         return Err(Error::format(
             path,
-            format!("tensor {name}: expected {dtype:?} {shape:?}, found {:?} {:?}", t.dtype(), t.shape()),
+            format!(
+                "tensor {name}: expected {dtype:?} {shape:?}, found {:?} {:?}",
+                t.dtype(),
+                t.shape()
+            ),
         ));
     }
     Ok(())
 }
 
 fn f32s(b: &[u8]) -> Vec<f32> {
-    b.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+    b.chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
 }
 
 /// Decode shard bytes (`path` names the source in errors).
 pub fn decode_shard(bytes: &[u8], path: &Path) -> Result<Shard> {
     let fmt = |m: String| Error::format(path, m);
-    let st = SafeTensors::deserialize(bytes).map_err(|e| fmt(format!("not a safetensors file: {e}")))?;
-    let (_, meta) = SafeTensors::read_metadata(bytes).map_err(|e| fmt(format!("bad header: {e}")))?;
+    let st =
+        SafeTensors::deserialize(bytes).map_err(|e| fmt(format!("not a safetensors file: {e}")))?;
+    let (_, meta) =
+        SafeTensors::read_metadata(bytes).map_err(|e| fmt(format!("bad header: {e}")))?;
     let meta = meta.metadata().clone().unwrap_or_default();
-    let get = |k: &str| meta.get(k).ok_or_else(|| fmt(format!("shard metadata has no `{k}`")));
+    let get = |k: &str| {
+        meta.get(k)
+            .ok_or_else(|| fmt(format!("shard metadata has no `{k}`")))
+    };
     if get("format")? != SHARD_FORMAT {
-        return Err(fmt(format!("unsupported shard format `{}`", get("format")?)));
+        return Err(fmt(format!(
+            "unsupported shard format `{}`",
+            get("format")?
+        )));
     }
-    let sensor: LidarSensor =
-        serde_json::from_str(get("sensor")?).map_err(|e| fmt(format!("bad sensor metadata: {e}")))?;
-    sensor.validate().map_err(|e| fmt(format!("bad sensor metadata: {e}")))?;
-    let ids: Vec<String> = serde_json::from_str(get("ids")?).map_err(|e| fmt(format!("bad ids metadata: {e}")))?;
-    let count: usize = get("count")?.parse().map_err(|_| fmt("bad count metadata".into()))?;
+    let sensor: LidarSensor = serde_json::from_str(get("sensor")?)
+        .map_err(|e| fmt(format!("bad sensor metadata: {e}")))?;
+    sensor
+        .validate()
+        .map_err(|e| fmt(format!("bad sensor metadata: {e}")))?;
+    let ids: Vec<String> =
+        serde_json::from_str(get("ids")?).map_err(|e| fmt(format!("bad ids metadata: {e}")))?;
+    let count: usize = get("count")?
+        .parse()
+        .map_err(|_| fmt("bad count metadata".into()))?;
     if ids.len() != count {
         return Err(fmt(format!("metadata count {count} but {} ids", ids.len())));
     }
@@ -282,7 +356,8 @@ pub fn decode_shard(bytes: &[u8], path: &Path) -> Result<Shard> {
     for (k, id) in ids.into_iter().enumerate() {
         let p = format!("{k:05}");
         let req = |name: &str| -> Result<TensorView<'_>> {
-            tensor(&st, &format!("{p}/{name}"), path)?.ok_or_else(|| fmt(format!("missing tensor {p}/{name}")))
+            tensor(&st, &format!("{p}/{name}"), path)?
+                .ok_or_else(|| fmt(format!("missing tensor {p}/{name}")))
         };
         let range = req("range_m")?;
         expect(&range, Dtype::F32, &[h, w], "range_m", path)?;
@@ -300,7 +375,12 @@ pub fn decode_shard(bytes: &[u8], path: &Path) -> Result<Shard> {
         let label_raw = match tensor(&st, &format!("{p}/label_raw"), path)? {
             Some(t) => {
                 expect(&t, Dtype::U32, &[h, w], "label_raw", path)?;
-                Some(t.data().chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect())
+                Some(
+                    t.data()
+                        .chunks_exact(4)
+                        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                        .collect(),
+                )
             }
             None => None,
         };
@@ -308,7 +388,10 @@ pub fn decode_shard(bytes: &[u8], path: &Path) -> Result<Shard> {
             Some(t) => {
                 let s = t.shape().to_vec();
                 if t.dtype() != Dtype::U8 || s.len() != 3 || s[2] != 3 {
-                    return Err(fmt(format!("tensor {p}/image: expected U8 [H, W, 3], found {:?} {s:?}", t.dtype())));
+                    return Err(fmt(format!(
+                        "tensor {p}/image: expected U8 [H, W, 3], found {:?} {s:?}",
+                        t.dtype()
+                    )));
                 }
                 Some(
                     RgbImage::from_raw(s[1] as u32, s[0] as u32, t.data().to_vec())
@@ -317,7 +400,10 @@ pub fn decode_shard(bytes: &[u8], path: &Path) -> Result<Shard> {
             }
             None => None,
         };
-        let camera = match (tensor(&st, &format!("{p}/intrinsics"), path)?, tensor(&st, &format!("{p}/cam_from_lidar"), path)?) {
+        let camera = match (
+            tensor(&st, &format!("{p}/intrinsics"), path)?,
+            tensor(&st, &format!("{p}/cam_from_lidar"), path)?,
+        ) {
             (Some(k), Some(t)) => {
                 expect(&k, Dtype::F32, &[3, 4], "intrinsics", path)?;
                 expect(&t, Dtype::F32, &[4, 4], "cam_from_lidar", path)?;
@@ -330,10 +416,17 @@ pub fn decode_shard(bytes: &[u8], path: &Path) -> Result<Shard> {
                 for r in 0..4 {
                     cam_from_lidar[r].copy_from_slice(&tv[r * 4..r * 4 + 4]);
                 }
-                Some(CameraMatrices { intrinsics, cam_from_lidar })
+                Some(CameraMatrices {
+                    intrinsics,
+                    cam_from_lidar,
+                })
             }
             (None, None) => None,
-            _ => return Err(fmt(format!("sample {p}: intrinsics and cam_from_lidar must come together"))),
+            _ => {
+                return Err(fmt(format!(
+                    "sample {p}: intrinsics and cam_from_lidar must come together"
+                )));
+            }
         };
         samples.push(ShardSample {
             id,
@@ -346,7 +439,11 @@ pub fn decode_shard(bytes: &[u8], path: &Path) -> Result<Shard> {
             camera,
         });
     }
-    Ok(Shard { sensor, dataset: meta.get("dataset").cloned().unwrap_or_default(), samples })
+    Ok(Shard {
+        sensor,
+        dataset: meta.get("dataset").cloned().unwrap_or_default(),
+        samples,
+    })
 }
 
 /// Read a shard file.
@@ -391,22 +488,30 @@ impl Manifest {
     /// Read `manifest.json`.
     pub fn read(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let m: Manifest =
-            serde_json::from_str(&text).map_err(|e| Error::format(path, format!("not a shard manifest: {e}")))?;
+        let m: Manifest = serde_json::from_str(&text)
+            .map_err(|e| Error::format(path, format!("not a shard manifest: {e}")))?;
         if m.format != MANIFEST_FORMAT {
-            return Err(Error::format(path, format!("unsupported manifest format `{}`", m.format)));
+            return Err(Error::format(
+                path,
+                format!("unsupported manifest format `{}`", m.format),
+            ));
         }
         let sum: usize = m.shards.iter().map(|s| s.count).sum();
         if sum != m.count {
-            return Err(Error::format(path, format!("count {} but the shards hold {sum}", m.count)));
+            return Err(Error::format(
+                path,
+                format!("count {} but the shards hold {sum}", m.count),
+            ));
         }
         Ok(m)
     }
 
     /// Write atomically.
     pub fn write(&self, path: &Path) -> Result<()> {
-        let text = serde_json::to_string_pretty(self)
-            .map_err(|e| Error::Invalid { what: "manifest".into(), message: e.to_string() })?;
+        let text = serde_json::to_string_pretty(self).map_err(|e| Error::Invalid {
+            what: "manifest".into(),
+            message: e.to_string(),
+        })?;
         crate::atomic::write_atomic(path, text.as_bytes())
     }
 
@@ -418,7 +523,10 @@ impl Manifest {
             if bytes != s.bytes || sha != s.sha256 {
                 return Err(Error::format(
                     &p,
-                    format!("checksum mismatch: manifest says {} bytes sha256 {}, file has {bytes} bytes sha256 {sha}", s.bytes, s.sha256),
+                    format!(
+                        "checksum mismatch: manifest says {} bytes sha256 {}, file has {bytes} bytes sha256 {sha}",
+                        s.bytes, s.sha256
+                    ),
                 ));
             }
         }
@@ -439,27 +547,61 @@ mod tests {
             mask: (0..n).map(|i| (i % 3 != 0) as u8).collect(),
             label: Some((0..n).map(|i| (i % 20) as u8).collect()),
             label_raw: Some((0..n).map(|i| (i as u32) << 16 | 40).collect()),
-            image: Some(RgbImage::from_fn(5, 3, |x, y| image::Rgb([x as u8, y as u8, seed as u8]))),
+            image: Some(RgbImage::from_fn(5, 3, |x, y| {
+                image::Rgb([x as u8, y as u8, seed as u8])
+            })),
             camera: Some(CameraMatrices {
-                intrinsics: [[700.0, 0.0, 600.0, 45.0], [0.0, 700.0, 180.0, 0.0], [0.0, 0.0, 1.0, 0.005]],
-                cam_from_lidar: [[0.0, -1.0, 0.0, 0.1], [0.0, 0.0, -1.0, 0.2], [1.0, 0.0, 0.0, 0.3], [0.0, 0.0, 0.0, 1.0]],
+                intrinsics: [
+                    [700.0, 0.0, 600.0, 45.0],
+                    [0.0, 700.0, 180.0, 0.0],
+                    [0.0, 0.0, 1.0, 0.005],
+                ],
+                cam_from_lidar: [
+                    [0.0, -1.0, 0.0, 0.1],
+                    [0.0, 0.0, -1.0, 0.2],
+                    [1.0, 0.0, 0.0, 0.3],
+                    [0.0, 0.0, 0.0, 1.0],
+                ],
             }),
         }
     }
 
     #[test]
     fn shard_round_trip_and_checksums() {
-        let sensor = LidarSensor { rows: 4, cols: 8, ..LidarSensor::hdl64e() };
-        let samples = vec![sample("a", &sensor, 1), ShardSample { label: None, label_raw: None, image: None, camera: None, ..sample("b", &sensor, 2) }];
+        let sensor = LidarSensor {
+            rows: 4,
+            cols: 8,
+            ..LidarSensor::hdl64e()
+        };
+        let samples = vec![
+            sample("a", &sensor, 1),
+            ShardSample {
+                label: None,
+                label_raw: None,
+                image: None,
+                camera: None,
+                ..sample("b", &sensor, 2)
+            },
+        ];
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("shard-00000.safetensors");
         let entry = write_shard(&p, &sensor, "test", &samples).unwrap();
         assert_eq!(entry.count, 2);
-        assert_eq!(sha256_file(&p).unwrap(), (entry.sha256.clone(), entry.bytes));
+        assert_eq!(
+            sha256_file(&p).unwrap(),
+            (entry.sha256.clone(), entry.bytes)
+        );
         let back = read_shard(&p).unwrap();
         assert_eq!(back.sensor, sensor);
         assert_eq!(back.samples, samples);
-        let m = Manifest { format: MANIFEST_FORMAT.into(), dataset: "test".into(), sensor, frames_per_shard: 2, count: 2, shards: vec![entry] };
+        let m = Manifest {
+            format: MANIFEST_FORMAT.into(),
+            dataset: "test".into(),
+            sensor,
+            frames_per_shard: 2,
+            count: 2,
+            shards: vec![entry],
+        };
         m.verify(dir.path()).unwrap();
         // corrupt one byte: verify names the file
         let mut bytes = std::fs::read(&p).unwrap();
@@ -467,7 +609,33 @@ mod tests {
         bytes[last] ^= 1;
         std::fs::write(&p, &bytes).unwrap();
         let e = m.verify(dir.path()).unwrap_err().to_string();
-        assert!(e.contains("shard-00000.safetensors") && e.contains("checksum"), "{e}");
+        assert!(
+            e.contains("shard-00000.safetensors") && e.contains("checksum"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn encoding_is_deterministic_and_readable_by_the_safetensors_crate() {
+        let sensor = LidarSensor {
+            rows: 2,
+            cols: 4,
+            ..LidarSensor::hdl64e()
+        };
+        let samples = vec![sample("x", &sensor, 3), sample("y", &sensor, 4)];
+        let a = encode_shard(&sensor, "d", &samples).unwrap();
+        for _ in 0..5 {
+            assert_eq!(encode_shard(&sensor, "d", &samples).unwrap(), a);
+        }
+        let st = SafeTensors::deserialize(&a).unwrap();
+        assert_eq!(st.len(), 16);
+        let t = st.tensor("00001/range_m").unwrap();
+        assert_eq!(t.shape(), &[2, 4]);
+        assert_eq!(f32s(t.data()), samples[1].range_m);
+        let dir = tempfile::tempdir().unwrap();
+        let e = write_shard(&dir.path().join("s.safetensors"), &sensor, "d", &samples).unwrap();
+        assert_eq!(e.sha256, sha256_hex(&a));
+        assert_eq!(std::fs::read(dir.path().join("s.safetensors")).unwrap(), a);
     }
 
     #[test]

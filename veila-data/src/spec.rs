@@ -34,14 +34,18 @@ pub fn sensor_from_spec(spec: &str) -> Result<LidarSensor> {
             }
             let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
             if lower.ends_with(".toml") {
-                toml::from_str(&text).map_err(|e| Error::format(path, format!("not a sensor description: {e}")))?
+                toml::from_str(&text)
+                    .map_err(|e| Error::format(path, format!("not a sensor description: {e}")))?
             } else {
                 serde_json::from_str(&text)
                     .map_err(|e| Error::format(path, format!("not a sensor description: {e}")))?
             }
         }
     };
-    sensor.validate().map_err(|e| Error::Invalid { what: format!("sensor `{spec}`"), message: e.to_string() })?;
+    sensor.validate().map_err(|e| Error::Invalid {
+        what: format!("sensor `{spec}`"),
+        message: e.to_string(),
+    })?;
     Ok(sensor)
 }
 
@@ -60,7 +64,7 @@ pub enum CalibKind {
 /// text file with an `R0_rect`/`R_rect` key is KITTI object; one with a `Tr` key is KITTI odometry.
 pub fn detect_calib_kind(path: &Path) -> Result<CalibKind> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    Ok(calib_kind_of(&text, path)?)
+    calib_kind_of(&text, path)
 }
 
 fn calib_kind_of(text: &str, path: &Path) -> Result<CalibKind> {
@@ -70,7 +74,8 @@ fn calib_kind_of(text: &str, path: &Path) -> Result<CalibKind> {
     let has = |k: &str| {
         text.lines().any(|l| {
             let l = l.trim_start();
-            l.strip_prefix(k).is_some_and(|r| r.starts_with(':') || r.starts_with(' '))
+            l.strip_prefix(k)
+                .is_some_and(|r| r.starts_with(':') || r.starts_with(' '))
         })
     };
     if has("R0_rect") || has("R_rect") {
@@ -97,7 +102,9 @@ pub fn camera_from_calib_file(
     let cam = match calib_kind_of(&text, path)? {
         CalibKind::KittiObject => KittiCalib::parse(&text, path)?.camera(2, width, height),
         CalibKind::KittiOdometry => OdometryCalib::parse(&text, path)?.camera(2, width, height),
-        CalibKind::NuScenesJson => NuScenesSample::read_json(path)?.camera(nuscenes_channel, width, height),
+        CalibKind::NuScenesJson => {
+            NuScenesSample::read_json(path)?.camera(nuscenes_channel, width, height)
+        }
     };
     cam.map_err(|e| match e {
         Error::Geom(g) => Error::format(path, format!("calibration gives an invalid camera: {g}")),
@@ -114,13 +121,18 @@ mod tests {
         assert_eq!(sensor_from_spec("hdl64e").unwrap(), LidarSensor::hdl64e());
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("s.toml");
-        let s = LidarSensor { rows: 16, ..LidarSensor::hdl32e() };
+        let s = LidarSensor {
+            rows: 16,
+            ..LidarSensor::hdl32e()
+        };
         std::fs::write(&p, toml::to_string(&s).unwrap()).unwrap();
         assert_eq!(sensor_from_spec(p.to_str().unwrap()).unwrap(), s);
         std::fs::write(&p, "rows = 0\ncols = 4\nfov_up_deg = 1.0\nfov_down_deg = -1.0\nmin_range_m = 1.0\nmax_range_m = 2.0\n").unwrap();
         assert!(sensor_from_spec(p.to_str().unwrap()).is_err());
         std::fs::write(&p, "rows = \"x\"").unwrap();
-        let e = sensor_from_spec(p.to_str().unwrap()).unwrap_err().to_string();
+        let e = sensor_from_spec(p.to_str().unwrap())
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("s.toml"), "{e}");
         assert!(sensor_from_spec("vlp16").is_err());
     }
@@ -128,9 +140,18 @@ mod tests {
     #[test]
     fn calib_kinds() {
         let p = Path::new("c");
-        assert_eq!(calib_kind_of(" {\"a\": 1}", p).unwrap(), CalibKind::NuScenesJson);
-        assert_eq!(calib_kind_of("P2: 1\nR0_rect: 1\n", p).unwrap(), CalibKind::KittiObject);
-        assert_eq!(calib_kind_of("P2: 1\nTr: 1\n", p).unwrap(), CalibKind::KittiOdometry);
+        assert_eq!(
+            calib_kind_of(" {\"a\": 1}", p).unwrap(),
+            CalibKind::NuScenesJson
+        );
+        assert_eq!(
+            calib_kind_of("P2: 1\nR0_rect: 1\n", p).unwrap(),
+            CalibKind::KittiObject
+        );
+        assert_eq!(
+            calib_kind_of("P2: 1\nTr: 1\n", p).unwrap(),
+            CalibKind::KittiOdometry
+        );
         assert!(calib_kind_of("P2: 1\nTrx: 1\n", p).is_err());
     }
 }

@@ -45,7 +45,10 @@ pub(crate) fn parse(text: &str, path: &Path) -> Result<Yaml> {
         let number = i + 1;
         let lead = &raw[..raw.len() - raw.trim_start().len()];
         if lead.contains('\t') {
-            return Err(Error::format(path, format!("line {number}: tab indentation is not YAML")));
+            return Err(Error::format(
+                path,
+                format!("line {number}: tab indentation is not YAML"),
+            ));
         }
         let content = strip_comment(raw);
         let trimmed = content.trim_end();
@@ -56,7 +59,11 @@ pub(crate) fn parse(text: &str, path: &Path) -> Result<Yaml> {
             continue;
         }
         let indent = trimmed.len() - trimmed.trim_start().len();
-        lines.push(Line { number, indent, text: trimmed.trim_start() });
+        lines.push(Line {
+            number,
+            indent,
+            text: trimmed.trim_start(),
+        });
     }
     if lines.is_empty() {
         return Ok(Yaml::Null);
@@ -68,7 +75,10 @@ pub(crate) fn parse(text: &str, path: &Path) -> Result<Yaml> {
         let l = &lines[pos];
         return Err(Error::format(
             path,
-            format!("line {}: unexpected indentation (expected column {})", l.number, indent),
+            format!(
+                "line {}: unexpected indentation (expected column {})",
+                l.number, indent
+            ),
         ));
     }
     Ok(node)
@@ -113,7 +123,10 @@ fn parse_block(lines: &[Line<'_>], pos: &mut usize, indent: usize, path: &Path) 
             } else if split_key(rest).is_some() {
                 return Err(Error::format(
                     path,
-                    format!("line {}: mappings inside sequence items are not supported", l.number),
+                    format!(
+                        "line {}: mappings inside sequence items are not supported",
+                        l.number
+                    ),
                 ));
             } else {
                 items.push(parse_inline(rest, l.number, path)?);
@@ -127,12 +140,18 @@ fn parse_block(lines: &[Line<'_>], pos: &mut usize, indent: usize, path: &Path) 
         let Some((key, value)) = split_key(l.text) else {
             return Err(Error::format(
                 path,
-                format!("line {}: expected `key: value`, found `{}`", l.number, l.text),
+                format!(
+                    "line {}: expected `key: value`, found `{}`",
+                    l.number, l.text
+                ),
             ));
         };
         let key = unquote(key.trim(), l.number, path)?;
         if entries.iter().any(|(k, _)| *k == key) {
-            return Err(Error::format(path, format!("line {}: duplicate key `{key}`", l.number)));
+            return Err(Error::format(
+                path,
+                format!("line {}: duplicate key `{key}`", l.number),
+            ));
         }
         *pos += 1;
         let value = value.trim();
@@ -145,7 +164,10 @@ fn parse_block(lines: &[Line<'_>], pos: &mut usize, indent: usize, path: &Path) 
     }
     if *pos < lines.len() && lines[*pos].indent > indent {
         let l = &lines[*pos];
-        return Err(Error::format(path, format!("line {}: unexpected indentation", l.number)));
+        return Err(Error::format(
+            path,
+            format!("line {}: unexpected indentation", l.number),
+        ));
     }
     Ok(Yaml::Map(entries))
 }
@@ -193,7 +215,10 @@ fn parse_inline(text: &str, line: usize, path: &Path) -> Result<Yaml> {
     let t = text.trim();
     if let Some(inner) = t.strip_prefix('[') {
         let Some(inner) = inner.strip_suffix(']') else {
-            return Err(Error::format(path, format!("line {line}: unterminated flow sequence")));
+            return Err(Error::format(
+                path,
+                format!("line {line}: unterminated flow sequence"),
+            ));
         };
         if inner.trim().is_empty() {
             return Ok(Yaml::Seq(Vec::new()));
@@ -202,7 +227,10 @@ fn parse_inline(text: &str, line: usize, path: &Path) -> Result<Yaml> {
         for part in inner.split(',') {
             let part = part.trim();
             if part.starts_with('[') || part.starts_with('{') {
-                return Err(Error::format(path, format!("line {line}: nested flow collections")));
+                return Err(Error::format(
+                    path,
+                    format!("line {line}: nested flow collections"),
+                ));
             }
             items.push(Yaml::Scalar(unquote(part, line, path)?));
         }
@@ -216,7 +244,9 @@ fn parse_inline(text: &str, line: usize, path: &Path) -> Result<Yaml> {
     {
         return Err(Error::format(
             path,
-            format!("line {line}: unsupported YAML construct `{t}` (flow map, anchor, alias or block string)"),
+            format!(
+                "line {line}: unsupported YAML construct `{t}` (flow map, anchor, alias or block string)"
+            ),
         ));
     }
     Ok(Yaml::Scalar(unquote(t, line, path)?))
@@ -227,7 +257,10 @@ fn unquote(t: &str, line: usize, path: &Path) -> Result<String> {
         if let Some(rest) = t.strip_prefix(q) {
             return match rest.strip_suffix(q) {
                 Some(inner) => Ok(inner.to_string()),
-                None => Err(Error::format(path, format!("line {line}: unterminated quote in `{t}`"))),
+                None => Err(Error::format(
+                    path,
+                    format!("line {line}: unterminated quote in `{t}`"),
+                )),
             };
         }
     }
@@ -244,17 +277,29 @@ mod tests {
 
     #[test]
     fn nested_maps_sequences_and_comments() {
-        let y = p("# head\na: # bgr\n  0 : [1, 2, 3]\n  10: \"car # not a comment\"\nsplit:\n  train:\n    - 0\n    - 1\n  valid:\n  - 8\nflag: True\n");
+        let y = p(
+            "# head\na: # bgr\n  0 : [1, 2, 3]\n  10: \"car # not a comment\"\nsplit:\n  train:\n    - 0\n    - 1\n  valid:\n  - 8\nflag: True\n",
+        );
         assert_eq!(
             y.get("a").unwrap().get("0").unwrap(),
-            &Yaml::Seq(vec![Yaml::Scalar("1".into()), Yaml::Scalar("2".into()), Yaml::Scalar("3".into())])
+            &Yaml::Seq(vec![
+                Yaml::Scalar("1".into()),
+                Yaml::Scalar("2".into()),
+                Yaml::Scalar("3".into())
+            ])
         );
-        assert_eq!(y.get("a").unwrap().get("10").unwrap(), &Yaml::Scalar("car # not a comment".into()));
+        assert_eq!(
+            y.get("a").unwrap().get("10").unwrap(),
+            &Yaml::Scalar("car # not a comment".into())
+        );
         assert_eq!(
             y.get("split").unwrap().get("train").unwrap(),
             &Yaml::Seq(vec![Yaml::Scalar("0".into()), Yaml::Scalar("1".into())])
         );
-        assert_eq!(y.get("split").unwrap().get("valid").unwrap(), &Yaml::Seq(vec![Yaml::Scalar("8".into())]));
+        assert_eq!(
+            y.get("split").unwrap().get("valid").unwrap(),
+            &Yaml::Seq(vec![Yaml::Scalar("8".into())])
+        );
         assert_eq!(y.get("flag").unwrap(), &Yaml::Scalar("True".into()));
     }
 

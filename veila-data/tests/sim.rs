@@ -21,12 +21,26 @@ fn ground_mesh(extent: f32) -> Mesh {
 }
 
 fn scene_of(mesh: Mesh, lidar_at: Vec3) -> Scene {
-    Scene::from_parts(&SceneConfig::default(), 3, mesh, Vec::new(), lidar_at)
+    Scene::from_parts(
+        &SceneConfig::default(),
+        3,
+        mesh,
+        Vec::new(),
+        glam::Affine3A::from_translation(lidar_at),
+    )
 }
 
 fn small_camera_config() -> CameraConfig {
     // KITTI intrinsics scaled by 1/3 (the same field of view)
-    CameraConfig { width: 414, height: 125, fx: 240.5, fy: 240.5, cx: 203.2, cy: 57.6, ..CameraConfig::default() }
+    CameraConfig {
+        width: 414,
+        height: 125,
+        fx: 240.5,
+        fy: 240.5,
+        cx: 203.2,
+        cy: 57.6,
+        ..CameraConfig::default()
+    }
 }
 
 #[test]
@@ -34,16 +48,38 @@ fn moller_trumbore_matches_plane_closed_form() {
     let mut rng = ChaCha8Rng::seed_from_u64(1);
     let mut hits = 0;
     for _ in 0..20_000 {
-        let r = |rng: &mut ChaCha8Rng| Vec3::new(rng.random_range(-5.0..5.0), rng.random_range(-5.0..5.0), rng.random_range(-5.0..5.0));
+        let r = |rng: &mut ChaCha8Rng| {
+            Vec3::new(
+                rng.random_range(-5.0..5.0),
+                rng.random_range(-5.0..5.0),
+                rng.random_range(-5.0..5.0),
+            )
+        };
         let (a, b, c) = (r(&mut rng), r(&mut rng), r(&mut rng));
         let o = r(&mut rng) * 3.0;
         // aim at a random barycentric point, possibly outside the triangle
         let (u, v): (f32, f32) = (rng.random_range(-0.3..1.0), rng.random_range(-0.3..1.0));
         let target = a + (b - a) * u + (c - a) * v;
-        let Some(d) = (target - o).try_normalize() else { continue };
-        let got = intersect_triangle(o.into(), d.into(), a.into(), (b - a).into(), (c - a).into(), 0.0, f32::INFINITY);
+        let Some(d) = (target - o).try_normalize() else {
+            continue;
+        };
+        let got = intersect_triangle(
+            o.into(),
+            d.into(),
+            a.into(),
+            (b - a).into(),
+            (c - a).into(),
+            0.0,
+            f32::INFINITY,
+        );
         // reference in f64: plane intersection and barycentrics from the test's own algebra
-        let (ad, bd, cd, od, dd) = (a.as_dvec3(), b.as_dvec3(), c.as_dvec3(), o.as_dvec3(), d.as_dvec3());
+        let (ad, bd, cd, od, dd) = (
+            a.as_dvec3(),
+            b.as_dvec3(),
+            c.as_dvec3(),
+            o.as_dvec3(),
+            d.as_dvec3(),
+        );
         let n = (bd - ad).cross(cd - ad);
         let denom = n.dot(dd);
         let margin = 1e-3;
@@ -55,46 +91,121 @@ fn moller_trumbore_matches_plane_closed_form() {
         let t_ref = n.dot(ad - od) / denom;
         if inside_clearly && t_ref > 1e-3 {
             let h = got.unwrap_or_else(|| panic!("missed an interior point: o={o} d={d}"));
-            assert!((f64::from(h.t) - t_ref).abs() <= 1e-4 * t_ref.max(1.0), "t {} vs {t_ref}", h.t);
+            assert!(
+                (f64::from(h.t) - t_ref).abs() <= 1e-4 * t_ref.max(1.0),
+                "t {} vs {t_ref}",
+                h.t
+            );
             let p = od + dd * f64::from(h.t);
             let _ = p;
-            assert!((f64::from(h.u) - f64::from(u)).abs() < 1e-3 && (f64::from(h.v) - f64::from(v)).abs() < 1e-3);
+            assert!(
+                (f64::from(h.u) - f64::from(u)).abs() < 1e-3
+                    && (f64::from(h.v) - f64::from(v)).abs() < 1e-3
+            );
             hits += 1;
         } else if outside_clearly || t_ref < -1e-3 {
-            assert!(got.is_none(), "hit outside the triangle or behind the origin: u={u} v={v} t_ref={t_ref}");
+            assert!(
+                got.is_none(),
+                "hit outside the triangle or behind the origin: u={u} v={v} t_ref={t_ref}"
+            );
         }
     }
     assert!(hits > 5_000, "too few interior cases exercised: {hits}");
     // degenerate and non-finite input
     let z = Vec3A::ZERO;
     let x = Vec3A::X;
-    assert!(intersect_triangle(Vec3A::new(0.2, 0.2, 1.0), -Vec3A::Z, z, x, x * 2.0, 0.0, f32::INFINITY).is_none());
-    assert!(intersect_triangle(Vec3A::new(0.2, 0.2, 1.0), Vec3A::X, z, x, Vec3A::Y, 0.0, f32::INFINITY).is_none());
-    assert!(intersect_triangle(Vec3A::splat(f32::NAN), -Vec3A::Z, z, x, Vec3A::Y, 0.0, f32::INFINITY).is_none());
-    assert!(intersect_triangle(Vec3A::new(0.2, 0.2, 1.0), Vec3A::new(0.0, 0.0, f32::NAN), z, x, Vec3A::Y, 0.0, f32::INFINITY).is_none());
+    assert!(
+        intersect_triangle(
+            Vec3A::new(0.2, 0.2, 1.0),
+            -Vec3A::Z,
+            z,
+            x,
+            x * 2.0,
+            0.0,
+            f32::INFINITY
+        )
+        .is_none()
+    );
+    assert!(
+        intersect_triangle(
+            Vec3A::new(0.2, 0.2, 1.0),
+            Vec3A::X,
+            z,
+            x,
+            Vec3A::Y,
+            0.0,
+            f32::INFINITY
+        )
+        .is_none()
+    );
+    assert!(
+        intersect_triangle(
+            Vec3A::splat(f32::NAN),
+            -Vec3A::Z,
+            z,
+            x,
+            Vec3A::Y,
+            0.0,
+            f32::INFINITY
+        )
+        .is_none()
+    );
+    assert!(
+        intersect_triangle(
+            Vec3A::new(0.2, 0.2, 1.0),
+            Vec3A::new(0.0, 0.0, f32::NAN),
+            z,
+            x,
+            Vec3A::Y,
+            0.0,
+            f32::INFINITY
+        )
+        .is_none()
+    );
 }
 
 #[test]
 fn ground_plane_ranges_are_h_over_sin_elevation() {
     let scene = scene_of(ground_mesh(300.0), Vec3::new(0.0, 0.0, H));
     let snap = scene.snapshot(0);
-    for sensor in [LidarSensor { cols: 256, ..LidarSensor::hdl64e() }, LidarSensor { cols: 128, ..LidarSensor::hdl32e_per_beam() }] {
-        let scan = snap.render_lidar(&sensor, &LidarReturnModel::ideal()).unwrap();
+    for sensor in [
+        LidarSensor {
+            cols: 256,
+            ..LidarSensor::hdl64e()
+        },
+        LidarSensor {
+            cols: 128,
+            ..LidarSensor::hdl32e_per_beam()
+        },
+    ] {
+        let scan = snap
+            .render_lidar(&sensor, &LidarReturnModel::ideal())
+            .unwrap();
         let rays = RayTable::new(&sensor).unwrap();
         let mut returns = 0;
         for row in 0..sensor.rows {
             let el = f64::from(sensor.row_elevation_rad(row));
             for col in 0..sensor.cols {
                 let k = (row * sensor.cols + col) as usize;
-                let expected = if el < 0.0 { f64::from(H) / (-el).sin() } else { f64::INFINITY };
+                let expected = if el < 0.0 {
+                    f64::from(H) / (-el).sin()
+                } else {
+                    f64::INFINITY
+                };
                 if expected <= f64::from(sensor.max_range_m) * 0.999 {
                     assert_eq!(scan.outcome[k], RayOutcome::Return, "row {row} col {col}");
                     let r = f64::from(scan.range_image.range_m[k]);
-                    assert!((r - expected).abs() <= 2e-5 * expected, "row {row}: {r} vs {expected}");
+                    assert!(
+                        (r - expected).abs() <= 2e-5 * expected,
+                        "row {row}: {r} vs {expected}"
+                    );
                     let p = scan.points.xyz[scan.range_image.point_index[k] as usize];
                     assert!((p.z + H).abs() < 2e-4 * expected as f32, "z {}", p.z);
                     assert!(p.normalize().cross(rays.dir(row, col)).length() < 1e-5);
-                    assert_eq!(scan.range_image.label.as_ref().unwrap()[k], u32::from(class::TERRAIN));
+                    assert_eq!(
+                        scan.range_image.label.as_ref().unwrap()[k],
+                        u32::from(class::TERRAIN)
+                    );
                     returns += 1;
                 } else if expected > f64::from(sensor.max_range_m) * 1.001 {
                     assert_eq!(scan.outcome[k], RayOutcome::NoHit, "row {row} el {el}");
@@ -106,7 +217,10 @@ fn ground_plane_ranges_are_h_over_sin_elevation() {
         let rings = scan.points.ring.as_ref().unwrap();
         for (i, &pi) in scan.range_image.point_index.iter().enumerate() {
             if pi != veila_geom::NO_POINT {
-                assert_eq!(u32::from(rings[pi as usize]), sensor.ring_of_row(i as u32 / sensor.cols));
+                assert_eq!(
+                    u32::from(rings[pi as usize]),
+                    sensor.ring_of_row(i as u32 / sensor.cols)
+                );
             }
         }
     }
@@ -133,8 +247,15 @@ fn known_boxes_give_exact_ranges_and_labels() {
     mesh.add_aabb(wall.0.as_vec3(), wall.1.as_vec3(), sw);
     mesh.add_aabb(car.0.as_vec3(), car.1.as_vec3(), sc);
     let scene = scene_of(mesh, Vec3::ZERO);
-    let sensor = LidarSensor { rows: 32, cols: 512, ..LidarSensor::hdl64e() };
-    let scan = scene.snapshot(0).render_lidar(&sensor, &LidarReturnModel::ideal()).unwrap();
+    let sensor = LidarSensor {
+        rows: 32,
+        cols: 512,
+        ..LidarSensor::hdl64e()
+    };
+    let scan = scene
+        .snapshot(0)
+        .render_lidar(&sensor, &LidarReturnModel::ideal())
+        .unwrap();
     let rays = RayTable::new(&sensor).unwrap();
     let labels = scan.range_image.label.as_ref().unwrap();
     let (mut n_wall, mut n_car) = (0, 0);
@@ -156,8 +277,11 @@ fn known_boxes_give_exact_ranges_and_labels() {
                     let p = d * t;
                     let near_edge = [wall, car].iter().any(|(mn, mx)| {
                         let e = 1e-4 * t;
-                        let on = |x: f64, lo: f64, hi: f64| (x - lo).abs() < e || (x - hi).abs() < e;
-                        let boundary_coords = u8::from(on(p.x, mn.x, mx.x)) + u8::from(on(p.y, mn.y, mx.y)) + u8::from(on(p.z, mn.z, mx.z));
+                        let on =
+                            |x: f64, lo: f64, hi: f64| (x - lo).abs() < e || (x - hi).abs() < e;
+                        let boundary_coords = u8::from(on(p.x, mn.x, mx.x))
+                            + u8::from(on(p.y, mn.y, mx.y))
+                            + u8::from(on(p.z, mn.z, mx.z));
                         boundary_coords >= 2 && p.cmpge(*mn - e).all() && p.cmple(*mx + e).all()
                     });
                     if near_edge {
@@ -167,7 +291,11 @@ fn known_boxes_give_exact_ranges_and_labels() {
                     let r = f64::from(scan.range_image.range_m[k]);
                     assert!((r - t).abs() <= 1e-5 * t, "row {row} col {col}: {r} vs {t}");
                     assert_eq!(labels[k], label, "row {row} col {col}");
-                    if label == u32::from(class::BUILDING) { n_wall += 1 } else { n_car += 1 }
+                    if label == u32::from(class::BUILDING) {
+                        n_wall += 1
+                    } else {
+                        n_car += 1
+                    }
                 }
                 None => assert_eq!(scan.outcome[k], RayOutcome::NoHit, "row {row} col {col}"),
             }
@@ -180,7 +308,10 @@ fn known_boxes_give_exact_ranges_and_labels() {
 fn return_model_drops_grazing_and_weak_returns_and_sets_intensity() {
     let scene = scene_of(ground_mesh(300.0), Vec3::new(0.0, 0.0, H));
     let snap = scene.snapshot(0);
-    let sensor = LidarSensor { cols: 64, ..LidarSensor::hdl64e() };
+    let sensor = LidarSensor {
+        cols: 64,
+        ..LidarSensor::hdl64e()
+    };
     let rho = f64::from(stock::TERRAIN.reflectivity);
     let model = LidarReturnModel {
         grazing_cos_min: 0.03,
@@ -212,16 +343,24 @@ fn return_model_drops_grazing_and_weak_returns_and_sets_intensity() {
             } else if cos > 0.03 * (1.0 + 1e-4) && p_ratio > 1.0 + 1e-4 {
                 assert_eq!(o, RayOutcome::Return, "row {row}");
                 let i = f64::from(scan.range_image.intensity[k]);
-                let expected = rho * cos / (1.0 + (r / 60.0).powi(2));
+                let k2 = 0.15f64 * 0.15;
+                let g = (1.0 + k2) * cos * cos / (cos * cos + k2);
+                let expected = rho * g / (1.0 + (r / 45.0).powi(2));
                 assert!((i - expected).abs() < 1e-4, "intensity {i} vs {expected}");
                 kept += 1;
             }
         }
     }
-    assert!(grazing > 0 && weak > 0 && kept > 0, "grazing {grazing} weak {weak} kept {kept}");
+    assert!(
+        grazing > 0 && weak > 0 && kept > 0,
+        "grazing {grazing} weak {weak} kept {kept}"
+    );
 
     // random drop: the rate matches, and the same seed drops the same rays
-    let model = LidarReturnModel { random_drop: 0.2, ..LidarReturnModel::ideal() };
+    let model = LidarReturnModel {
+        random_drop: 0.2,
+        ..LidarReturnModel::ideal()
+    };
     let a = snap.render_lidar(&sensor, &model).unwrap();
     let b = snap.render_lidar(&sensor, &model).unwrap();
     assert_eq!(a.outcome, b.outcome);
@@ -238,12 +377,22 @@ fn sensor_inside_a_box_gets_too_near_and_bad_models_are_rejected() {
     let s = mesh.surface(stock::SIDEWALK, 0);
     mesh.add_aabb(Vec3::splat(-0.3), Vec3::splat(0.3), s);
     let scene = scene_of(mesh, Vec3::ZERO);
-    let sensor = LidarSensor { rows: 8, cols: 32, ..LidarSensor::hdl64e() };
-    let scan = scene.snapshot(0).render_lidar(&sensor, &LidarReturnModel::ideal()).unwrap();
+    let sensor = LidarSensor {
+        rows: 8,
+        cols: 32,
+        ..LidarSensor::hdl64e()
+    };
+    let scan = scene
+        .snapshot(0)
+        .render_lidar(&sensor, &LidarReturnModel::ideal())
+        .unwrap();
     assert!(scan.points.is_empty());
     assert!(scan.outcome.iter().all(|o| *o == RayOutcome::TooNear));
     assert!(scan.surface_range_m.iter().all(|r| *r > 0.29 && *r < 0.53));
-    let bad = LidarReturnModel { random_drop: f32::NAN, ..LidarReturnModel::ideal() };
+    let bad = LidarReturnModel {
+        random_drop: f32::NAN,
+        ..LidarReturnModel::ideal()
+    };
     assert!(scene.snapshot(0).render_lidar(&sensor, &bad).is_err());
 }
 
@@ -252,7 +401,16 @@ fn camera_depth_on_a_ground_plane_matches_closed_form() {
     let scene = scene_of(ground_mesh(400.0), Vec3::new(0.0, 0.0, H));
     let cfg = small_camera_config();
     let camera = SimCalib::from_config(&cfg).camera().unwrap();
-    let img = scene.snapshot(0).render_camera(&camera, &CameraRenderOptions { samples_per_axis: 1, shadows: false }).unwrap();
+    let img = scene
+        .snapshot(0)
+        .render_camera(
+            &camera,
+            &CameraRenderOptions {
+                samples_per_axis: 1,
+                shadows: false,
+            },
+        )
+        .unwrap();
     let cam_h = f64::from(H + cfg.up_m); // camera height above the ground
     let mut checked = 0;
     for v in 0..cfg.height {
@@ -263,7 +421,10 @@ fn camera_depth_on_a_ground_plane_matches_closed_form() {
                 let z = cam_h * f64::from(cfg.fy) / dv;
                 if z < 150.0 {
                     let got = f64::from(img.depth_m[k]);
-                    assert!((got - z).abs() <= 1e-4 * z, "pixel ({u}, {v}): depth {got} vs {z}");
+                    assert!(
+                        (got - z).abs() <= 1e-4 * z,
+                        "pixel ({u}, {v}): depth {got} vs {z}"
+                    );
                     assert_eq!(img.semantic[k], class::TERRAIN);
                     checked += 1;
                 }
@@ -283,17 +444,34 @@ fn camera_depth_and_semantics_agree_with_projected_lidar() {
     let cfg = SceneConfig::default();
     let scene = Scene::generate(&cfg, 11).unwrap();
     let snap = scene.snapshot(0);
-    let sensor = LidarSensor { cols: 1024, ..LidarSensor::hdl64e() };
-    let scan = snap.render_lidar(&sensor, &LidarReturnModel::ideal()).unwrap();
+    let sensor = LidarSensor {
+        cols: 1024,
+        ..LidarSensor::hdl64e()
+    };
+    let scan = snap
+        .render_lidar(&sensor, &LidarReturnModel::ideal())
+        .unwrap();
     let ccfg = small_camera_config();
     let camera = SimCalib::from_config(&ccfg).camera().unwrap();
-    let img = snap.render_camera(&camera, &CameraRenderOptions { samples_per_axis: 1, shadows: false }).unwrap();
+    let img = snap
+        .render_camera(
+            &camera,
+            &CameraRenderOptions {
+                samples_per_axis: 1,
+                shadows: false,
+            },
+        )
+        .unwrap();
     let (w, h) = (img.width as i64, img.height as i64);
     let (mut total, mut depth_ok, mut sem_ok) = (0usize, 0usize, 0usize);
     let labels = scan.points.label.as_ref().unwrap();
     for (p, l) in scan.points.xyz.iter().zip(labels) {
-        let Some(ip) = camera.try_project_in_image(*p) else { continue };
-        let Some((c, r)) = ip.pixel(img.width, img.height) else { continue };
+        let Some(ip) = camera.try_project_in_image(*p) else {
+            continue;
+        };
+        let Some((c, r)) = ip.pixel(img.width, img.height) else {
+            continue;
+        };
         total += 1;
         // the point's depth must lie within the depths of the 3x3 neighbourhood (smooth surfaces)
         let (mut lo, mut hi) = (f32::INFINITY, 0.0f32);
@@ -318,7 +496,10 @@ fn camera_depth_and_semantics_agree_with_projected_lidar() {
             sem_ok += 1;
         }
     }
-    assert!(total > 3000, "only {total} LiDAR points project into the image");
+    assert!(
+        total > 3000,
+        "only {total} LiDAR points project into the image"
+    );
     let (fd, fs) = (depth_ok as f64 / total as f64, sem_ok as f64 / total as f64);
     eprintln!("camera/LiDAR agreement over {total} points: depth {fd:.4}, semantics {fs:.4}");
     assert!(fd > 0.97, "depth agreement {fd}");
@@ -341,19 +522,37 @@ fn scan_bytes(s: &SimScan) -> Vec<u8> {
 
 #[test]
 fn deterministic_regardless_of_thread_count() {
-    let mut cfg = SceneConfig { layout: Layout::Junction, ..SceneConfig::default() };
+    let mut cfg = SceneConfig {
+        layout: Layout::Junction,
+        ..SceneConfig::default()
+    };
     cfg.lidar.returns.range_noise_m = 0.02;
-    let sensor = LidarSensor { cols: 512, ..LidarSensor::hdl64e() };
-    let ccfg = CameraConfig { samples_per_axis: 2, ..small_camera_config() };
+    let sensor = LidarSensor {
+        cols: 512,
+        ..LidarSensor::hdl64e()
+    };
+    let ccfg = CameraConfig {
+        samples_per_axis: 2,
+        ..small_camera_config()
+    };
     let camera = SimCalib::from_config(&ccfg).camera().unwrap();
     let run = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
         pool.install(|| {
             let scene = Scene::generate(&cfg, 5).unwrap();
             let snap = scene.snapshot(3);
             let scan = snap.render_lidar(&sensor, &cfg.lidar.returns).unwrap();
-            let img = snap.render_camera(&camera, &CameraRenderOptions::from(&ccfg)).unwrap();
-            let depth: Vec<u8> = img.depth_m.iter().flat_map(|d| d.to_bits().to_le_bytes()).collect();
+            let img = snap
+                .render_camera(&camera, &CameraRenderOptions::from(&ccfg))
+                .unwrap();
+            let depth: Vec<u8> = img
+                .depth_m
+                .iter()
+                .flat_map(|d| d.to_bits().to_le_bytes())
+                .collect();
             (scan_bytes(&scan), img.rgb, depth, img.semantic)
         })
     };
@@ -365,8 +564,20 @@ fn deterministic_regardless_of_thread_count() {
 
 fn tiny_config() -> SceneConfig {
     let mut cfg = SceneConfig::default();
-    cfg.lidar.sensor = Some(LidarSensor { rows: 32, cols: 256, ..LidarSensor::hdl64e() });
-    cfg.camera = CameraConfig { width: 124, height: 38, fx: 72.15, fy: 72.15, cx: 61.0, cy: 17.3, ..CameraConfig::default() };
+    cfg.lidar.sensor = Some(LidarSensor {
+        rows: 32,
+        cols: 256,
+        ..LidarSensor::hdl64e()
+    });
+    cfg.camera = CameraConfig {
+        width: 124,
+        height: 38,
+        fx: 72.15,
+        fy: 72.15,
+        cx: 61.0,
+        cy: 17.3,
+        ..CameraConfig::default()
+    };
     cfg
 }
 
@@ -379,7 +590,10 @@ fn read_dir_bytes(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
             if p.is_dir() {
                 stack.push(p);
             } else {
-                out.push((p.strip_prefix(dir).unwrap().to_path_buf(), std::fs::read(&p).unwrap()));
+                out.push((
+                    p.strip_prefix(dir).unwrap().to_path_buf(),
+                    std::fs::read(&p).unwrap(),
+                ));
             }
         }
     }
@@ -391,22 +605,40 @@ fn read_dir_bytes(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
 fn same_seed_gives_byte_identical_kitti_output() {
     let cfg = tiny_config();
     let tmp = tempfile::tempdir().unwrap();
-    let (a, b, c) = (tmp.path().join("a"), tmp.path().join("b"), tmp.path().join("c"));
+    let (a, b, c) = (
+        tmp.path().join("a"),
+        tmp.path().join("b"),
+        tmp.path().join("c"),
+    );
     let mut calls = Vec::new();
     let summary = simulate_to_dir(&cfg, 42, 3, &a, |i| calls.push(i)).unwrap();
     assert_eq!(calls, vec![1, 2, 3]);
     simulate_to_dir(&cfg, 42, 3, &b, |_| {}).unwrap();
     simulate_to_dir(&cfg, 43, 3, &c, |_| {}).unwrap();
     let (fa, fb, fc) = (read_dir_bytes(&a), read_dir_bytes(&b), read_dir_bytes(&c));
-    assert_eq!(fa.len(), 6 * 3 + 3, "{:?}", fa.iter().map(|f| &f.0).collect::<Vec<_>>());
+    assert_eq!(
+        fa.len(),
+        6 * 3 + 3,
+        "{:?}",
+        fa.iter().map(|f| &f.0).collect::<Vec<_>>()
+    );
     assert!(fa == fb, "same seed, different bytes");
-    assert!(fa.iter().zip(&fc).any(|(x, y)| x.1 != y.1), "another seed gave the same output");
+    assert!(
+        fa.iter().zip(&fc).any(|(x, y)| x.1 != y.1),
+        "another seed gave the same output"
+    );
 
     // the files hold what the scan and image hold
     let paths = FramePaths::new(&a, 1);
     let n = summary.frame_stats[1].points;
-    assert_eq!(std::fs::metadata(&paths.velodyne).unwrap().len() as usize, n * 16);
-    assert_eq!(std::fs::metadata(&paths.labels).unwrap().len() as usize, n * 4);
+    assert_eq!(
+        std::fs::metadata(&paths.velodyne).unwrap().len() as usize,
+        n * 16
+    );
+    assert_eq!(
+        std::fs::metadata(&paths.labels).unwrap().len() as usize,
+        n * 4
+    );
     let depth = image::open(&paths.depth).unwrap().into_luma16();
     assert_eq!(depth.dimensions(), (124, 38));
     let sem = image::open(&paths.semantic).unwrap().into_luma16();
@@ -415,11 +647,20 @@ fn same_seed_gives_byte_identical_kitti_output() {
     assert_eq!((rgb.width(), rgb.height()), (124, 38));
     // frames advance: the ego moved between frame 0 and 2
     let poses = std::fs::read_to_string(a.join("lidar_poses.txt")).unwrap();
-    let xs: Vec<f32> = poses.lines().map(|l| l.split_whitespace().nth(3).unwrap().parse().unwrap()).collect();
-    assert!((xs[2] - xs[0] - 2.0 * 0.1 * cfg.ego.speed_mps).abs() < 1e-4, "{xs:?}");
+    let xs: Vec<f32> = poses
+        .lines()
+        .map(|l| l.split_whitespace().nth(3).unwrap().parse().unwrap())
+        .collect();
+    assert!(
+        (xs[2] - xs[0] - 2.0 * 0.1 * cfg.ego.speed_mps).abs() < 1e-4,
+        "{xs:?}"
+    );
     // the re-rendered frame matches the written one exactly
     let scene = Scene::generate(&cfg, 42).unwrap();
-    let scan = scene.snapshot(1).render_lidar(&cfg.lidar.sensor().unwrap(), &cfg.lidar.returns).unwrap();
+    let scan = scene
+        .snapshot(1)
+        .render_lidar(&cfg.lidar.sensor().unwrap(), &cfg.lidar.returns)
+        .unwrap();
     let bin = std::fs::read(&paths.velodyne).unwrap();
     let first = f32::from_le_bytes(bin[0..4].try_into().unwrap());
     assert_eq!(first.to_bits(), scan.points.xyz[0].x.to_bits());
@@ -427,7 +668,16 @@ fn same_seed_gives_byte_identical_kitti_output() {
 
 #[test]
 fn depth_png_encoding_follows_kitti_convention() {
-    let enc = veila_data::sim::output::encode_kitti_depth(&[0.0, -1.0, f32::NAN, f32::INFINITY, 1.0, 10.5, 300.0, 1e-4]);
+    let enc = veila_data::sim::output::encode_kitti_depth(&[
+        0.0,
+        -1.0,
+        f32::NAN,
+        f32::INFINITY,
+        1.0,
+        10.5,
+        300.0,
+        1e-4,
+    ]);
     assert_eq!(enc, vec![0, 0, 0, 0, 256, 2688, 65535, 1]);
 }
 
@@ -436,8 +686,22 @@ fn calibration_text_is_kitti_and_consistent_with_the_camera() {
     let calib = SimCalib::from_config(&CameraConfig::default());
     let text = calib.to_kitti_text();
     let keys: Vec<&str> = text.lines().map(|l| l.split(':').next().unwrap()).collect();
-    assert_eq!(keys, ["P0", "P1", "P2", "P3", "R0_rect", "Tr_velo_to_cam", "Tr_imu_to_velo"]);
-    let counts: Vec<usize> = text.lines().map(|l| l.split_whitespace().count() - 1).collect();
+    assert_eq!(
+        keys,
+        [
+            "P0",
+            "P1",
+            "P2",
+            "P3",
+            "R0_rect",
+            "Tr_velo_to_cam",
+            "Tr_imu_to_velo"
+        ]
+    );
+    let counts: Vec<usize> = text
+        .lines()
+        .map(|l| l.split_whitespace().count() - 1)
+        .collect();
     assert_eq!(counts, [12, 12, 12, 12, 9, 12, 12]);
     // KITTI-like numbers: P2's x offset near KITTI's 44.86 px, the camera 0.27 m ahead of the LiDAR
     assert!((calib.p[2][0][3] - 43.29).abs() < 0.01);
@@ -445,23 +709,44 @@ fn calibration_text_is_kitti_and_consistent_with_the_camera() {
     // a point 20 m ahead at camera height projects to the principal point's row, at depth 20 - 0.27
     let ip = camera.try_project(Vec3::new(20.0, 0.06, -0.08)).unwrap();
     assert!((ip.depth_m - 19.73).abs() < 1e-4);
-    assert!((ip.u_px - 609.5593).abs() < 1e-2 && (ip.v_px - 172.854).abs() < 1e-2, "{ip:?}");
+    assert!(
+        (ip.u_px - 609.5593).abs() < 1e-2 && (ip.v_px - 172.854).abs() < 1e-2,
+        "{ip:?}"
+    );
 }
 
 #[test]
 fn scene_files_reject_unknown_fields_and_bad_values() {
     let p = Path::new("bad_scene.toml");
-    let e = SceneConfig::from_toml_str("layout = \"straight\"\n[road]\nlane_widht_m = 3.0\n", p).unwrap_err().to_string();
-    assert!(e.contains("bad_scene.toml") && e.contains("lane_widht_m"), "{e}");
-    let e = SceneConfig::from_toml_str("layout = \"roundabout\"\n", p).unwrap_err().to_string();
-    assert!(e.contains("bad_scene.toml") && e.contains("roundabout"), "{e}");
-    let e = SceneConfig::from_toml_str("[road]\nlanes_per_direction = 0\n", p).unwrap_err().to_string();
+    let e = SceneConfig::from_toml_str("layout = \"straight\"\n[road]\nlane_widht_m = 3.0\n", p)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("bad_scene.toml") && e.contains("lane_widht_m"),
+        "{e}"
+    );
+    let e = SceneConfig::from_toml_str("layout = \"roundabout\"\n", p)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("bad_scene.toml") && e.contains("roundabout"),
+        "{e}"
+    );
+    let e = SceneConfig::from_toml_str("[road]\nlanes_per_direction = 0\n", p)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("lanes_per_direction"), "{e}");
-    let e = SceneConfig::from_toml_str("[lidar]\npreset = \"vlp16\"\n", p).unwrap_err().to_string();
+    let e = SceneConfig::from_toml_str("[lidar]\npreset = \"vlp16\"\n", p)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("vlp16"), "{e}");
-    let e = SceneConfig::from_toml_str("[ego]\nspeed_mps = nan\n", p).unwrap_err().to_string();
+    let e = SceneConfig::from_toml_str("[ego]\nspeed_mps = nan\n", p)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("speed_mps"), "{e}");
-    let e = SceneConfig::from_file(Path::new("/nonexistent/scene.toml")).unwrap_err().to_string();
+    let e = SceneConfig::from_file(Path::new("/nonexistent/scene.toml"))
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("/nonexistent/scene.toml"), "{e}");
     // a sensor given in full
     let cfg = SceneConfig::from_toml_str(
@@ -482,11 +767,20 @@ fn generation_is_deterministic_and_seed_dependent() {
     assert_eq!(a.actors().len(), b.actors().len());
     assert_ne!(a.static_mesh().triangles, c.static_mesh().triangles);
     // moving actors carry moving-* labels, and actors move between frames
-    let moving = a.actors().iter().filter(|x| x.velocity.length() > 0.0).count();
+    let moving = a
+        .actors()
+        .iter()
+        .filter(|x| x.velocity.length() > 0.0)
+        .count();
     assert!(moving >= 5, "{moving}");
     for actor in a.actors() {
         let moving_label = actor.mesh.surfaces.iter().all(|s| s.material.class >= 252);
-        assert_eq!(moving_label, actor.velocity.length() > 0.0, "class {:?}", actor.mesh.surfaces[0].material.class);
+        assert_eq!(
+            moving_label,
+            actor.velocity.length() > 0.0,
+            "class {:?}",
+            actor.mesh.surfaces[0].material.class
+        );
     }
     let m0 = a.mesh_at(0.0);
     let m1 = a.mesh_at(0.5);
@@ -497,29 +791,67 @@ fn generation_is_deterministic_and_seed_dependent() {
 #[test]
 fn example_scenes_parse_and_give_plausible_scans() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|e| e == "toml")).collect();
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "toml"))
+        .collect();
     files.sort();
     assert!(files.len() >= 3, "{files:?}");
     let mut layouts = std::collections::BTreeSet::new();
     for f in &files {
         let cfg = SceneConfig::from_file(f).unwrap();
         layouts.insert(format!("{:?}", cfg.layout));
-        let sensor = LidarSensor { cols: 512, ..cfg.lidar.sensor().unwrap() };
+        let sensor = LidarSensor {
+            cols: 512,
+            ..cfg.lidar.sensor().unwrap()
+        };
         let scene = Scene::generate(&cfg, 0).unwrap();
         let snap = scene.snapshot(0);
         let scan = snap.render_lidar(&sensor, &cfg.lidar.returns).unwrap();
         let frac = scan.points.len() as f64 / sensor.num_pixels() as f64;
-        let mut classes: Vec<u32> = scan.points.label.iter().flatten().map(|l| l & 0xFFFF).collect();
+        let mut classes: Vec<u32> = scan
+            .points
+            .label
+            .iter()
+            .flatten()
+            .map(|l| l & 0xFFFF)
+            .collect();
         classes.sort_unstable();
         classes.dedup();
-        eprintln!("{}: {:.1}% returns, classes {classes:?}", f.display(), 100.0 * frac);
-        assert!(frac > 0.5, "{}: only {:.1}% of rays return", f.display(), 100.0 * frac);
+        eprintln!(
+            "{}: {:.1}% returns, classes {classes:?}",
+            f.display(),
+            100.0 * frac
+        );
+        assert!(
+            frac > 0.5,
+            "{}: only {:.1}% of rays return",
+            f.display(),
+            100.0 * frac
+        );
         assert!(classes.len() >= 6, "{}: classes {classes:?}", f.display());
         for must in [class::ROAD, class::SIDEWALK, class::BUILDING] {
-            assert!(classes.contains(&u32::from(must)), "{}: no class {must}", f.display());
+            assert!(
+                classes.contains(&u32::from(must)),
+                "{}: no class {must}",
+                f.display()
+            );
         }
-        let cam = SimCalib::from_config(&CameraConfig { width: 124, height: 38, fx: 72.15, fy: 72.15, cx: 61.0, cy: 17.3, ..cfg.camera }).camera().unwrap();
-        let img = snap.render_camera(&cam, &CameraRenderOptions::default()).unwrap();
+        let cam = SimCalib::from_config(&CameraConfig {
+            width: 124,
+            height: 38,
+            fx: 72.15,
+            fy: 72.15,
+            cx: 61.0,
+            cy: 17.3,
+            ..cfg.camera
+        })
+        .camera()
+        .unwrap();
+        let img = snap
+            .render_camera(&cam, &CameraRenderOptions::default())
+            .unwrap();
         let mut sem = img.semantic.clone();
         sem.sort_unstable();
         sem.dedup();
@@ -536,16 +868,43 @@ fn non_finite_rays_and_degenerate_triangles_are_harmless() {
     m.add_triangle(Vec3::ZERO, Vec3::splat(f32::NAN), Vec3::Y, s);
     assert!(m.is_empty());
     let accel = Accel::build(&ground_mesh(10.0));
-    assert!(accel.closest_hit(Vec3::new(0.0, 0.0, 1.0), Vec3::new(f32::NAN, 0.0, -1.0), 0.0, 100.0).is_none());
-    assert!(accel.closest_hit(Vec3::new(0.0, 0.0, 1.0), Vec3::ZERO, 0.0, 100.0).is_none());
-    assert!(accel.closest_hit(Vec3::new(0.0, 0.0, 1.0), Vec3::X, 0.0, 100.0).is_none());
-    let hit = accel.closest_hit(Vec3::new(0.3, -0.7, 1.0), -Vec3::Z, 0.0, 100.0).unwrap();
+    assert!(
+        accel
+            .closest_hit(
+                Vec3::new(0.0, 0.0, 1.0),
+                Vec3::new(f32::NAN, 0.0, -1.0),
+                0.0,
+                100.0
+            )
+            .is_none()
+    );
+    assert!(
+        accel
+            .closest_hit(Vec3::new(0.0, 0.0, 1.0), Vec3::ZERO, 0.0, 100.0)
+            .is_none()
+    );
+    assert!(
+        accel
+            .closest_hit(Vec3::new(0.0, 0.0, 1.0), Vec3::X, 0.0, 100.0)
+            .is_none()
+    );
+    let hit = accel
+        .closest_hit(Vec3::new(0.3, -0.7, 1.0), -Vec3::Z, 0.0, 100.0)
+        .unwrap();
     assert!((hit.t - 1.0).abs() < 1e-6 && hit.normal.z > 0.99);
     // exactly through a shared tile vertex and along tile edges: no cracks
-    for p in [Vec3::new(0.0, 0.0, 1.0), Vec3::new(5.0, 0.0, 1.0), Vec3::new(0.0, 3.0, 1.0)] {
+    for p in [
+        Vec3::new(0.0, 0.0, 1.0),
+        Vec3::new(5.0, 0.0, 1.0),
+        Vec3::new(0.0, 3.0, 1.0),
+    ] {
         assert!(accel.closest_hit(p, -Vec3::Z, 0.0, 100.0).is_some(), "{p}");
     }
-    assert!(Accel::build(&Mesh::new()).closest_hit(Vec3::ZERO, Vec3::X, 0.0, 1.0).is_none());
+    assert!(
+        Accel::build(&Mesh::new())
+            .closest_hit(Vec3::ZERO, Vec3::X, 0.0, 1.0)
+            .is_none()
+    );
 }
 
 #[test]
@@ -560,19 +919,56 @@ fn simulated_output_loads_with_the_kitti_readers() {
     let frame = ds.load(1).unwrap();
     let scene = Scene::generate(&cfg, 9).unwrap();
     let snap = scene.snapshot(1);
-    let scan = snap.render_lidar(&cfg.lidar.sensor().unwrap(), &cfg.lidar.returns).unwrap();
+    let scan = snap
+        .render_lidar(&cfg.lidar.sensor().unwrap(), &cfg.lidar.returns)
+        .unwrap();
     assert_eq!(frame.points.xyz, scan.points.xyz);
     assert_eq!(frame.points.intensity, scan.points.intensity);
-    let labels = veila_data::semantic_kitti::read_labels(&FramePaths::new(&out, 1).labels, Some(scan.points.len())).unwrap();
+    let labels = veila_data::semantic_kitti::read_labels(
+        &FramePaths::new(&out, 1).labels,
+        Some(scan.points.len()),
+    )
+    .unwrap();
     assert_eq!(Some(labels), scan.points.label);
     // the camera the reader builds from calib/ is the simulator's camera
     let cam = frame.camera.unwrap();
     let sim_cam = SimCalib::from_config(&cfg.camera).camera().unwrap();
     for p in [Vec3::new(12.0, 1.0, -1.0), Vec3::new(30.0, -4.0, 2.0)] {
         let (a, b) = (cam.try_project(p).unwrap(), sim_cam.try_project(p).unwrap());
-        assert!((a.u_px - b.u_px).abs() < 1e-3 && (a.v_px - b.v_px).abs() < 1e-3 && (a.depth_m - b.depth_m).abs() < 1e-5);
+        assert!(
+            (a.u_px - b.u_px).abs() < 1e-3
+                && (a.v_px - b.v_px).abs() < 1e-3
+                && (a.depth_m - b.depth_m).abs() < 1e-5
+        );
     }
     let img = frame.image.unwrap();
-    let sim_img = snap.render_camera(&sim_cam, &CameraRenderOptions::from(&cfg.camera)).unwrap();
+    let sim_img = snap
+        .render_camera(&sim_cam, &CameraRenderOptions::from(&cfg.camera))
+        .unwrap();
     assert_eq!(img.as_raw(), &sim_img.rgb);
+}
+
+#[test]
+fn scene_lists_parse_and_train_test_seeds_are_disjoint() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
+    let train = SceneList::read(&dir.join("train.txt")).unwrap();
+    let test = SceneList::read(&dir.join("test.txt")).unwrap();
+    assert!(train.len() >= 3 * 100 && test.len() >= 3 * 10);
+    for e in train.entries.iter().chain(&test.entries) {
+        assert!(e.scene.is_file(), "{}", e.scene.display());
+        SceneConfig::from_file(&e.scene).unwrap();
+    }
+    for a in &train.entries {
+        for b in test.entries.iter().filter(|b| b.scene == a.scene) {
+            assert!(a.seeds.end() < b.seeds.start() || b.seeds.end() < a.seeds.start(), "{} seeds overlap", a.scene.display());
+        }
+    }
+    assert_eq!(train.iter().count() as u64, train.len());
+    let p = Path::new("list.txt");
+    let e = SceneList::parse("a.toml 5\n", p).unwrap_err().to_string();
+    assert!(e.contains("list.txt") && e.contains("line 1"), "{e}");
+    let e = SceneList::parse("# c\na.toml 9 3\n", p).unwrap_err().to_string();
+    assert!(e.contains("line 2") && e.contains("greater"), "{e}");
+    let e = SceneList::parse("a.toml x 3\n", p).unwrap_err().to_string();
+    assert!(e.contains("`x`"), "{e}");
 }

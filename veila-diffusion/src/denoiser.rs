@@ -15,19 +15,34 @@ pub trait Denoiser {
     type Cond: Conditioning;
 
     /// Runs the network.
-    fn forward(&self, x_t: &Tensor, t: &Tensor, cond: Option<&Self::Cond>) -> candle_core::Result<Tensor>;
+    fn forward(
+        &self,
+        x_t: &Tensor,
+        t: &Tensor,
+        cond: Option<&Self::Cond>,
+    ) -> candle_core::Result<Tensor>;
 }
 
 impl<D: Denoiser + ?Sized> Denoiser for &D {
     type Cond = D::Cond;
-    fn forward(&self, x_t: &Tensor, t: &Tensor, cond: Option<&Self::Cond>) -> candle_core::Result<Tensor> {
+    fn forward(
+        &self,
+        x_t: &Tensor,
+        t: &Tensor,
+        cond: Option<&Self::Cond>,
+    ) -> candle_core::Result<Tensor> {
         (**self).forward(x_t, t, cond)
     }
 }
 
 impl<D: Denoiser + ?Sized> Denoiser for Box<D> {
     type Cond = D::Cond;
-    fn forward(&self, x_t: &Tensor, t: &Tensor, cond: Option<&Self::Cond>) -> candle_core::Result<Tensor> {
+    fn forward(
+        &self,
+        x_t: &Tensor,
+        t: &Tensor,
+        cond: Option<&Self::Cond>,
+    ) -> candle_core::Result<Tensor> {
         (**self).forward(x_t, t, cond)
     }
 }
@@ -52,7 +67,10 @@ impl Conditioning for Tensor {
     fn drop_samples(&self, drop: &[bool]) -> candle_core::Result<Self> {
         let b = self.dim(0)?;
         if drop.len() != b {
-            candle_core::bail!("drop_samples: mask of length {} for a batch of {b}", drop.len())
+            candle_core::bail!(
+                "drop_samples: mask of length {} for a batch of {b}",
+                drop.len()
+            )
         }
         let keep: Vec<f32> = drop.iter().map(|&d| if d { 0.0 } else { 1.0 }).collect();
         let mut shape = vec![1usize; self.rank()];
@@ -85,7 +103,9 @@ impl CondDropout {
     /// Draws the per-sample drop mask (one uniform draw per sample, always, so the RNG stream does
     /// not depend on the outcome).
     pub fn sample_mask<R: Rng + ?Sized>(&self, batch: usize, rng: &mut R) -> Vec<bool> {
-        (0..batch).map(|_| rng.random::<f64>() < self.prob).collect()
+        (0..batch)
+            .map(|_| rng.random::<f64>() < self.prob)
+            .collect()
     }
 
     /// Applies dropout to `cond`, returning the new conditioning and the mask.
@@ -110,7 +130,14 @@ pub fn guide(uncond: &Tensor, cond: &Tensor, scale: f64) -> candle_core::Result<
 }
 
 /// A `[B]` f32 time tensor from per-sample values.
-pub(crate) fn time_tensor(values: &[f64], device: &candle_core::Device) -> candle_core::Result<Tensor> {
-    Tensor::from_vec(values.iter().map(|&v| v as f32).collect::<Vec<f32>>(), values.len(), device)?
-        .to_dtype(DType::F32)
+pub(crate) fn time_tensor(
+    values: &[f64],
+    device: &candle_core::Device,
+) -> candle_core::Result<Tensor> {
+    Tensor::from_vec(
+        values.iter().map(|&v| v as f32).collect::<Vec<f32>>(),
+        values.len(),
+        device,
+    )?
+    .to_dtype(DType::F32)
 }

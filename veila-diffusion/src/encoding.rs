@@ -78,6 +78,34 @@ impl DecodedScan {
     pub fn num_valid(&self) -> usize {
         self.mask.iter().filter(|&&m| m).count()
     }
+
+    /// Converts to a `veila-geom` range image (no source points: `point_index` is
+    /// [`veila_geom::NO_POINT`] everywhere, no labels), ready for `RayTable::unproject`.
+    pub fn into_range_image(self) -> veila_geom::RangeImage {
+        let n = self.range_m.len();
+        veila_geom::RangeImage {
+            rows: self.rows as u32,
+            cols: self.cols as u32,
+            range_m: self.range_m,
+            intensity: self.intensity,
+            point_index: vec![veila_geom::NO_POINT; n],
+            mask: self.mask,
+            label: None,
+        }
+    }
+}
+
+impl<'a> ScanView<'a> {
+    /// Views a `veila-geom` range image (its mask, range and intensity).
+    pub fn from_range_image(img: &'a veila_geom::RangeImage) -> Self {
+        Self {
+            rows: img.rows as usize,
+            cols: img.cols as usize,
+            range_m: &img.range_m,
+            intensity: Some(&img.intensity),
+            mask: Some(&img.mask),
+        }
+    }
 }
 
 impl RangeEncoding {
@@ -96,16 +124,25 @@ impl RangeEncoding {
     /// Checks that every field is in its domain.
     pub fn validate(&self) -> Result<()> {
         if !(self.max_range_m.is_finite() && self.max_range_m > 0.0) {
-            return Err(invalid("max_range_m", format!("must be finite and > 0, got {}", self.max_range_m)));
+            return Err(invalid(
+                "max_range_m",
+                format!("must be finite and > 0, got {}", self.max_range_m),
+            ));
         }
-        if !(self.min_range_m.is_finite() && self.min_range_m >= 0.0 && self.min_range_m < self.max_range_m) {
+        if !(self.min_range_m.is_finite()
+            && self.min_range_m >= 0.0
+            && self.min_range_m < self.max_range_m)
+        {
             return Err(invalid(
                 "min_range_m",
                 format!("must be in [0, max_range_m), got {}", self.min_range_m),
             ));
         }
         if !(self.intensity_max.is_finite() && self.intensity_max > 0.0) {
-            return Err(invalid("intensity_max", format!("must be finite and > 0, got {}", self.intensity_max)));
+            return Err(invalid(
+                "intensity_max",
+                format!("must be finite and > 0, got {}", self.intensity_max),
+            ));
         }
         if !(self.raydrop_threshold.is_finite() && self.raydrop_threshold.abs() < 1.0) {
             return Err(invalid(
@@ -182,7 +219,7 @@ impl RangeEncoding {
         let mut out = vec![-1.0f32; c * n];
         for p in 0..n {
             let r = scan.range_m[p];
-            let valid = scan.mask.map_or(true, |m| m[p]) && r.is_finite() && r > 0.0;
+            let valid = scan.mask.is_none_or(|m| m[p]) && r.is_finite() && r > 0.0;
             if !valid {
                 continue;
             }
@@ -215,7 +252,11 @@ impl RangeEncoding {
             }
             data.extend(self.encode_to_vec(s)?);
         }
-        Ok(Tensor::from_vec(data, (scans.len(), self.num_channels(), rows, cols), device)?)
+        Ok(Tensor::from_vec(
+            data,
+            (scans.len(), self.num_channels(), rows, cols),
+            device,
+        )?)
     }
 
     /// Decodes a `[B, C, rows, cols]` tensor (any float dtype, any device) into scans.
@@ -263,13 +304,15 @@ impl RangeEncoding {
                 }
             }
             let r = self.decode_range(v);
-            if !(r >= self.min_range_m) {
+            if r.is_nan() || r < self.min_range_m {
                 continue;
             }
             out.range_m[p] = r;
             out.mask[p] = true;
             if let Some(ci) = self.intensity_channel() {
-                out.intensity[p] = img.get(ci * n + p).map_or(0.0, |&i| self.decode_intensity(i));
+                out.intensity[p] = img
+                    .get(ci * n + p)
+                    .map_or(0.0, |&i| self.decode_intensity(i));
             }
         }
         out

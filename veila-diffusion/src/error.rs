@@ -69,6 +69,10 @@ pub enum Error {
         source: serde_json::Error,
     },
 
+    /// The `veila-nn` network failed.
+    #[error(transparent)]
+    Model(#[from] veila_nn::Error),
+
     /// The training data source ran out or failed.
     #[error("data source: {0}")]
     Data(String),

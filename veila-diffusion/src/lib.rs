@@ -11,6 +11,7 @@
 //! * [`prediction`]: ε-, v- and x₀-prediction with conversions, the network's time input, min-SNR-γ.
 //! * [`Diffusion`]: forward noising and the training loss (one random level per sample).
 //! * [`sampler`]: DDPM, DDIM (η), DPM-Solver++(2M), classifier-free guidance, RePaint inpainting.
+//! * [`nn`]: the Veila U-Net from `veila-nn` as a [`Denoiser`] ([`VeilaDenoiser`]).
 //! * [`trainer`]: AdamW, warm-up + cosine LR, EMA, gradient clipping, atomic checkpoints with exact
 //!   resume, progress and preview callbacks.
 //!
@@ -44,8 +45,8 @@
 //!
 //! let scans = encoding.decode_batch(&x)?;
 //! assert_eq!(scans.len(), 2);
-//! // ray-drop channel ~ N(0.3, 0.2²) > 0 almost everywhere: nearly every pixel is a return
-//! assert!(scans[0].num_valid() > 500);
+//! // ray-drop channel ~ N(0.3, 0.2²) is > 0 for ~93% of the 512 pixels: those are returns
+//! assert!((400..512).contains(&scans[0].num_valid()));
 //! assert!(scans[0].range_m.iter().all(|r| (0.0..=80.0).contains(r)));
 //! # Ok(())
 //! # }
@@ -54,6 +55,7 @@
 pub mod denoiser;
 pub mod encoding;
 pub mod error;
+pub mod nn;
 pub mod noise;
 pub mod objective;
 pub mod oracle;
@@ -65,10 +67,16 @@ pub mod trainer;
 pub use denoiser::{CondDropout, Conditioning, Denoiser, guide};
 pub use encoding::{DecodedScan, RangeEncoding, ScanView};
 pub use error::{Error, Result};
+pub use nn::VeilaDenoiser;
 pub use objective::{Denoised, Diffusion, DiffusionConfig, LossOutput};
 pub use prediction::{LossWeighting, Prediction, TimeInput};
 pub use sampler::{
-    DdpmVariance, DpmSolverPp2M, RepaintConfig, Sampler, SamplerConfig, SamplerKind, StepInfo, inpaint,
+    DdpmVariance, DpmSolverPp2M, RepaintConfig, Sampler, SamplerConfig, SamplerKind, StepInfo,
+    inpaint,
 };
-pub use schedule::{CosineLogSnr, DiscreteSchedule, NoiseLevel, NoiseSchedule, ScheduleConfig, Spacing};
-pub use trainer::{Batch, BatchSource, FitSummary, LrSchedule, StepStats, TrainConfig, TrainObserver, Trainer};
+pub use schedule::{
+    CosineLogSnr, DiscreteSchedule, NoiseLevel, NoiseSchedule, ScheduleConfig, Spacing,
+};
+pub use trainer::{
+    Batch, BatchSource, FitSummary, LrSchedule, StepStats, TrainConfig, TrainObserver, Trainer,
+};

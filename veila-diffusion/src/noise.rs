@@ -9,7 +9,9 @@ use crate::error::Result;
 /// A standard-normal f32 tensor of `shape`, drawn from `rng` (in row-major order) and moved to `device`.
 pub fn randn<R: Rng + ?Sized>(rng: &mut R, shape: &[usize], device: &Device) -> Result<Tensor> {
     let n: usize = shape.iter().product();
-    let v: Vec<f32> = (0..n).map(|_| rng.sample::<f32, _>(StandardNormal)).collect();
+    let v: Vec<f32> = (0..n)
+        .map(|_| rng.sample::<f32, _>(StandardNormal))
+        .collect();
     Ok(Tensor::from_vec(v, shape, device)?)
 }
 

@@ -29,7 +29,7 @@ pub struct DiffusionConfig {
 }
 
 impl Default for DiffusionConfig {
-    /// R2DM-like default: continuous cosine log-SNR schedule, ε-prediction, `1000·t` input,
+    /// R2DM-like default: continuous cosine log-SNR schedule, ε-prediction, `t ∈ [0, 1]` input,
     /// min-SNR-5 weighting.
     fn default() -> Self {
         Self {
@@ -75,12 +75,18 @@ impl Diffusion {
         if let LossWeighting::MinSnr { gamma } = config.loss_weighting
             && !(gamma.is_finite() && gamma > 0.0)
         {
-            return Err(invalid("loss_weighting.gamma", format!("must be finite and > 0, got {gamma}")));
+            return Err(invalid(
+                "loss_weighting.gamma",
+                format!("must be finite and > 0, got {gamma}"),
+            ));
         }
         if let TimeInput::Scaled { scale } = config.time_input
             && !(scale.is_finite() && scale > 0.0)
         {
-            return Err(invalid("time_input.scale", format!("must be finite and > 0, got {scale}")));
+            return Err(invalid(
+                "time_input.scale",
+                format!("must be finite and > 0, got {scale}"),
+            ));
         }
         Ok(Self { config, schedule })
     }
@@ -102,7 +108,10 @@ impl Diffusion {
 
     /// The `[B]` f32 time tensor fed to the network for `levels`.
     pub fn model_time(&self, levels: &[NoiseLevel], device: &Device) -> Result<Tensor> {
-        let v: Vec<f64> = levels.iter().map(|l| self.config.time_input.value(l)).collect();
+        let v: Vec<f64> = levels
+            .iter()
+            .map(|l| self.config.time_input.value(l))
+            .collect();
         Ok(time_tensor(&v, device)?)
     }
 
@@ -120,7 +129,7 @@ impl Diffusion {
     /// Runs the network at one level for the whole batch and converts its output to `(x̂_0, ε̂)`.
     ///
     /// With `guidance = Some((scale, uncond))` the output is `uncond_out + scale·(cond_out − uncond_out)`
-    /// where `uncond` is the null conditioning (see [`Conditioning`]). `clip_x0` clamps `x̂_0` to
+    /// where `uncond` is the null conditioning (see [`Conditioning`](crate::Conditioning)). `clip_x0` clamps `x̂_0` to
     /// `[-c, c]` and recomputes `ε̂` from it.
     pub fn denoise<D: Denoiser>(
         &self,
@@ -132,7 +141,10 @@ impl Diffusion {
         clip_x0: Option<f64>,
     ) -> Result<Denoised> {
         if level.is_clean() {
-            return Err(invalid("level", "the network is never evaluated on clean data (sigma = 0)"));
+            return Err(invalid(
+                "level",
+                "the network is never evaluated on clean data (sigma = 0)",
+            ));
         }
         let b = x_t.dim(0)?;
         let t = self.model_time(&vec![*level; b], x_t.device())?;
@@ -185,7 +197,9 @@ impl Diffusion {
         if b == 0 {
             return Err(invalid("x0", "empty batch"));
         }
-        let levels: Vec<NoiseLevel> = (0..b).map(|_| self.schedule.sample_train_level(rng)).collect();
+        let levels: Vec<NoiseLevel> = (0..b)
+            .map(|_| self.schedule.sample_train_level(rng))
+            .collect();
         let (cond_used, dropped) = match (cond, cond_dropout) {
             (Some(c), Some(d)) if d.prob > 0.0 => {
                 let (c, m) = d.apply(c, b, rng)?;
@@ -214,12 +228,19 @@ impl Diffusion {
             .collect();
         let w = Tensor::from_vec(w, b, x0.device())?.to_dtype(per_sample.dtype())?;
         let loss = (per_sample * w)?.mean_all()?;
-        Ok(LossOutput { loss, levels, dropped })
+        Ok(LossOutput {
+            loss,
+            levels,
+            dropped,
+        })
     }
 }
 
 /// `[B, 1, …, 1]` tensors of α and σ (f64 → dtype of `like`).
-pub(crate) fn per_sample_alpha_sigma(levels: &[NoiseLevel], like: &Tensor) -> Result<(Tensor, Tensor)> {
+pub(crate) fn per_sample_alpha_sigma(
+    levels: &[NoiseLevel],
+    like: &Tensor,
+) -> Result<(Tensor, Tensor)> {
     let b = like.dim(0)?;
     if levels.len() != b {
         return Err(Error::Shape {

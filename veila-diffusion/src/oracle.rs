@@ -27,9 +27,16 @@ impl GaussianOracle {
     /// A new oracle; `std` must be positive.
     pub fn new(mean: f64, std: f64, diffusion: Diffusion) -> Result<Self> {
         if !(mean.is_finite() && std.is_finite() && std > 0.0) {
-            return Err(invalid("std", format!("need finite mean and std > 0, got {mean}, {std}")));
+            return Err(invalid(
+                "std",
+                format!("need finite mean and std > 0, got {mean}, {std}"),
+            ));
         }
-        Ok(Self { mean, std, diffusion })
+        Ok(Self {
+            mean,
+            std,
+            diffusion,
+        })
     }
 
     /// Data mean `μ`.

@@ -33,7 +33,13 @@ pub enum Prediction {
 impl Prediction {
     /// The regression target for `x_0` and noise `eps`; `alpha`, `sigma` broadcast against them
     /// (shape `[B, 1, 1, 1]` or scalar).
-    pub fn target(&self, x0: &Tensor, eps: &Tensor, alpha: &Tensor, sigma: &Tensor) -> Result<Tensor> {
+    pub fn target(
+        &self,
+        x0: &Tensor,
+        eps: &Tensor,
+        alpha: &Tensor,
+        sigma: &Tensor,
+    ) -> Result<Tensor> {
         Ok(match self {
             Self::Epsilon => eps.clone(),
             Self::Sample => x0.clone(),
@@ -43,7 +49,13 @@ impl Prediction {
 
     /// `x̂_0` from the model output. For [`Prediction::Epsilon`] this divides by `α`, which is positive
     /// on every level a schedule produces (never exactly 0).
-    pub fn x0_from_output(&self, x_t: &Tensor, out: &Tensor, alpha: &Tensor, sigma: &Tensor) -> Result<Tensor> {
+    pub fn x0_from_output(
+        &self,
+        x_t: &Tensor,
+        out: &Tensor,
+        alpha: &Tensor,
+        sigma: &Tensor,
+    ) -> Result<Tensor> {
         Ok(match self {
             Self::Epsilon => (x_t - out.broadcast_mul(sigma)?)?.broadcast_div(alpha)?,
             Self::V => (x_t.broadcast_mul(alpha)? - out.broadcast_mul(sigma)?)?,
@@ -53,7 +65,13 @@ impl Prediction {
 
     /// `ε̂` from the model output. For [`Prediction::Sample`] this divides by `σ`, which is positive on
     /// every level the samplers evaluate the model at (never the clean level).
-    pub fn eps_from_output(&self, x_t: &Tensor, out: &Tensor, alpha: &Tensor, sigma: &Tensor) -> Result<Tensor> {
+    pub fn eps_from_output(
+        &self,
+        x_t: &Tensor,
+        out: &Tensor,
+        alpha: &Tensor,
+        sigma: &Tensor,
+    ) -> Result<Tensor> {
         Ok(match self {
             Self::Epsilon => out.clone(),
             Self::V => (x_t.broadcast_mul(sigma)? + out.broadcast_mul(alpha)?)?,
@@ -103,8 +121,9 @@ pub enum TimeInput {
 }
 
 impl Default for TimeInput {
+    /// [`TimeInput::Unit`]: what the `veila-nn` presets expect (they scale it by 1000 themselves).
     fn default() -> Self {
-        Self::Scaled { scale: 1000.0 }
+        Self::Unit
     }
 }
 

@@ -188,7 +188,10 @@ impl DiscreteSchedule {
             .enumerate()
             .find(|(_, b)| !(b.is_finite() && **b > 0.0 && **b < 1.0))
         {
-            return Err(invalid("betas", format!("beta[{k}] = {b} is not in (0, 1)")));
+            return Err(invalid(
+                "betas",
+                format!("beta[{k}] = {b} is not in (0, 1)"),
+            ));
         }
         let mut acc = 0.0f64;
         let log_alpha_bar = betas
@@ -198,7 +201,10 @@ impl DiscreteSchedule {
                 acc
             })
             .collect();
-        Ok(Self { betas, log_alpha_bar })
+        Ok(Self {
+            betas,
+            log_alpha_bar,
+        })
     }
 
     /// DDPM's linear schedule.
@@ -229,7 +235,10 @@ impl DiscreteSchedule {
             return Err(invalid("s", format!("must be finite and >= 0, got {s}")));
         }
         if !(max_beta > 0.0 && max_beta < 1.0) {
-            return Err(invalid("max_beta", format!("must be in (0, 1), got {max_beta}")));
+            return Err(invalid(
+                "max_beta",
+                format!("must be in (0, 1), got {max_beta}"),
+            ));
         }
         let t_total = num_timesteps as f64;
         let f = |k: usize| {
@@ -258,7 +267,10 @@ impl DiscreteSchedule {
             return NoiseLevel::CLEAN;
         }
         let k = k.min(self.num_timesteps());
-        NoiseLevel::from_log_alpha_bar(k as f64 / self.num_timesteps() as f64, self.log_alpha_bar[k - 1])
+        NoiseLevel::from_log_alpha_bar(
+            k as f64 / self.num_timesteps() as f64,
+            self.log_alpha_bar[k - 1],
+        )
     }
 }
 
@@ -326,7 +338,11 @@ impl NoiseSchedule {
                 num_timesteps,
                 beta_start,
                 beta_end,
-            } => Self::Discrete(DiscreteSchedule::linear(num_timesteps, beta_start, beta_end)?),
+            } => Self::Discrete(DiscreteSchedule::linear(
+                num_timesteps,
+                beta_start,
+                beta_end,
+            )?),
             ScheduleConfig::Cosine {
                 num_timesteps,
                 s,
@@ -436,7 +452,10 @@ impl NoiseSchedule {
                 }
                 let ks: Vec<usize> = match spacing {
                     Spacing::Trailing => (0..steps)
-                        .map(|i| (t_total as f64 - i as f64 * t_total as f64 / steps as f64).round() as usize)
+                        .map(|i| {
+                            (t_total as f64 - i as f64 * t_total as f64 / steps as f64).round()
+                                as usize
+                        })
                         .collect(),
                     Spacing::Leading => {
                         let stride = t_total / steps;
@@ -447,8 +466,9 @@ impl NoiseSchedule {
                             if steps == 1 {
                                 t_total
                             } else {
-                                (t_total as f64 - i as f64 * (t_total - 1) as f64 / (steps - 1) as f64).round()
-                                    as usize
+                                (t_total as f64
+                                    - i as f64 * (t_total - 1) as f64 / (steps - 1) as f64)
+                                    .round() as usize
                             }
                         })
                         .collect(),
@@ -457,7 +477,11 @@ impl NoiseSchedule {
                         let lo = d.level_at_index(1).log_snr;
                         let mut ks: Vec<usize> = (0..steps)
                             .map(|i| {
-                                let f = if steps == 1 { 0.0 } else { i as f64 / (steps - 1) as f64 };
+                                let f = if steps == 1 {
+                                    0.0
+                                } else {
+                                    i as f64 / (steps - 1) as f64
+                                };
                                 let l = self.level_of_log_snr(hi + f * (lo - hi));
                                 (l.t * t_total as f64).round() as usize
                             })
@@ -466,7 +490,10 @@ impl NoiseSchedule {
                         ks
                     }
                 };
-                Ok(ks.into_iter().map(|k| d.level_at_index(k.clamp(1, t_total))).collect())
+                Ok(ks
+                    .into_iter()
+                    .map(|k| d.level_at_index(k.clamp(1, t_total)))
+                    .collect())
             }
             Self::Continuous(c) => {
                 let ts: Vec<f64> = match spacing {
@@ -478,7 +505,11 @@ impl NoiseSchedule {
                         let lo = c.log_snr(LOGSNR_SPACING_T_END);
                         (0..steps)
                             .map(|i| {
-                                let f = if steps == 1 { 0.0 } else { i as f64 / (steps - 1) as f64 };
+                                let f = if steps == 1 {
+                                    0.0
+                                } else {
+                                    i as f64 / (steps - 1) as f64
+                                };
                                 c.time_of_log_snr(hi + f * (lo - hi))
                             })
                             .collect()

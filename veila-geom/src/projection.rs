@@ -328,7 +328,7 @@ pub struct Projector {
     /// Error bounds of the `u` and `v` estimates, pixels (a filter is off when its bound is >= 0.25).
     col_delta: f32,
     row_delta: f32,
-    /// Whether the row filter applies (uniform rows inside +-64 degrees).
+    /// Whether the filtered lane applies (uniform rows, field of view inside +-64 degrees).
     row_filter: bool,
     /// Uniform-row constants of the `v` estimate: `v = (fov_up - el) * v_scale`.
     fov_up_rad: f32,
@@ -363,21 +363,49 @@ fn boundary_dir(k: i64, n: i64) -> (f64, f64) {
     }
 }
 
-/// Whether `x >= 0` lies at least `delta` away from every integer (and is not NaN).
+/// Whether `0 <= x < 2^22` lies at least `delta` (< 0.5) away from every integer; false for NaN.
+/// Branch-free (`x + 1.5 * 2^23 - 1.5 * 2^23` rounds to the nearest integer), so it vectorises.
 #[inline(always)]
 fn clear_of_integers(x: f32, delta: f32) -> bool {
-    let f = x - (x as u32) as f32; // exact for 0 <= x < 2^24
-    f >= delta && f <= 1.0 - delta
+    const MAGIC: f32 = 12_582_912.0;
+    let nearest = (x + MAGIC) - MAGIC;
+    (x - nearest).abs() >= delta
 }
 
 /// The `f32` estimates of one point: squared range (`f64`, exact products), `sin(elevation)`, `u` and
-/// (when `WITH_V`) `v` of equation 1. Branch-free, so loops over a block vectorise.
+/// (when the row mode uses it) `v` of equation 1.
 #[derive(Debug, Clone, Copy, Default)]
 struct Estimate {
     d2: f64,
     s: f32,
     u: f32,
     v: f32,
+    /// The filter's verdict on `u` and `v` (see [`Projector::finish`]).
+    clear: bool,
+    /// The pixel `floor(v) w + col(u)` the filtered lane uses when `clear`.
+    pixel: u32,
+}
+
+/// [`Estimate`]s of a block of points, structure of arrays (so the loop filling it vectorises).
+#[derive(Debug)]
+struct EstimateBlock {
+    d2: [f64; BLOCK],
+    s: [f32; BLOCK],
+    u: [f32; BLOCK],
+    v: [f32; BLOCK],
+    clear: [bool; BLOCK],
+    pixel: [u32; BLOCK],
+}
+
+impl EstimateBlock {
+    fn new() -> Self {
+        EstimateBlock { d2: [0.0; BLOCK], s: [0.0; BLOCK], u: [0.0; BLOCK], v: [0.0; BLOCK], clear: [false; BLOCK], pixel: [0; BLOCK] }
+    }
+
+    #[inline(always)]
+    fn get(&self, j: usize) -> Estimate {
+        Estimate { d2: self.d2[j], s: self.s[j], u: self.u[j], v: self.v[j], clear: self.clear[j], pixel: self.pixel[j] }
+    }
 }
 
 impl Projector {
@@ -446,7 +474,9 @@ impl Projector {
         let fov = f64::from(sensor.fov_up_deg - sensor.fov_down_deg).to_radians();
         let col_delta = wf * (ATAN2_ERR_BOUND / std::f64::consts::TAU + 4e-7);
         let row_delta = hf * (ELEV_ERR_BOUND / fov + 4e-7);
-        let row_filter = sensor.fov_up_deg.abs().max(sensor.fov_down_deg.abs()) <= ROW_FILTER_MAX_ELEV_DEG;
+        let row_filter = matches!(row_mode, RowMode::UniformExact | RowMode::UniformFast)
+            && sensor.num_pixels() < (1 << 31)
+            && sensor.fov_up_deg.abs().max(sensor.fov_down_deg.abs()) <= ROW_FILTER_MAX_ELEV_DEG;
         let min_range_sq = f64::from(sensor.min_range_m) * f64::from(sensor.min_range_m);
         let max_range_sq = f64::from(sensor.max_range_m) * f64::from(sensor.max_range_m);
         Ok(Projector {
@@ -498,7 +528,7 @@ impl Projector {
 
     /// Locate one point (with its ring, needed in ring mode). Never panics.
     pub fn locate(&self, p: Vec3, ring: Option<u16>) -> PixelOutcome {
-        let (code, d2) = self.finish(p, 0.0, ring, self.estimate::<true>(p));
+        let (code, d2) = self.finish(p, 0.0, ring, self.estimate(p));
         match code {
             CODE_NON_FINITE => PixelOutcome::NonFinite,
             CODE_ZERO_RANGE => PixelOutcome::ZeroRange,
@@ -528,29 +558,82 @@ impl Projector {
         }
     }
 
-    /// Whether the row mode uses the `v` estimate.
+    /// The first pass of the kernel for one point (see [`Estimate`]): the block pass on a block of one,
+    /// so that [`Projector::locate`] and [`Projector::project`] agree bit for bit.
     #[inline(always)]
-    fn uses_v(&self) -> bool {
-        matches!(self.row_mode, RowMode::UniformExact | RowMode::UniformFast)
+    fn estimate(&self, p: Vec3) -> Estimate {
+        let mut est = EstimateBlock::new();
+        self.estimate_any(std::slice::from_ref(&p), &mut est);
+        est.get(0)
     }
 
-    /// The branch-free first pass of the kernel (see [`Estimate`]). Any input is fine: non-finite or
-    /// extreme values give estimates that [`Projector::finish`] does not trust.
+    /// [`Projector::estimate_block`] for the row mode.
     #[inline(always)]
-    fn estimate<const WITH_V: bool>(&self, p: Vec3) -> Estimate {
-        let (x, y, z) = (f64::from(p.x), f64::from(p.y), f64::from(p.z));
-        // exact products (f32 * f32 fits in f64); one rounding per addition
-        let d2 = x * x + y * y + z * z;
-        let s = p.z / (d2 as f32).sqrt();
-        let az = atan2_approx(p.y, p.x);
-        let u = 0.5 * (1.0 - az * std::f32::consts::FRAC_1_PI) * self.sensor.cols as f32;
-        let v = if WITH_V { (self.fov_up_rad - asin_approx(s.clamp(-1.0, 1.0))) * self.v_scale } else { 0.0 };
-        Estimate { d2, s, u, v }
+    fn estimate_any(&self, block: &[Vec3], est: &mut EstimateBlock) {
+        match self.row_mode {
+            RowMode::UniformExact => self.estimate_block::<true, true>(block, est),
+            RowMode::UniformFast => self.estimate_block::<true, false>(block, est),
+            RowMode::Nearest | RowMode::Ring => self.estimate_block::<false, false>(block, est),
+        }
     }
 
-    /// Locate `block` (points `start..start + block.len()`) in two passes: the estimates of every
-    /// point first (branch-free, vectorised), then the decisions. Calls `out(i, code, d2)` in point
-    /// order.
+    /// [`Projector::estimate`] over a block, into structure-of-arrays form. The body is spelled out
+    /// with every constant hoisted, so that the compiler vectorises it.
+    #[inline(always)]
+    fn estimate_block<const WITH_V: bool, const CLEAR_UV: bool>(&self, block: &[Vec3], out: &mut EstimateBlock) {
+        let n = block.len().min(BLOCK);
+        let (d2o, so, uo, vo, co, po) = (
+            &mut out.d2[..n],
+            &mut out.s[..n],
+            &mut out.u[..n],
+            &mut out.v[..n],
+            &mut out.clear[..n],
+            &mut out.pixel[..n],
+        );
+        let wi = self.sensor.cols as i32;
+        let block = &block[..n];
+        let w = self.sensor.cols as f32;
+        let h = self.sensor.rows as f32;
+        let (up, v_scale, dv, du) = (self.fov_up_rad, self.v_scale, self.row_delta, self.col_delta);
+        let row_filter = self.row_filter;
+        for j in 0..n {
+            let p = block[j];
+            let (x, y, z) = (f64::from(p.x), f64::from(p.y), f64::from(p.z));
+            // exact products (f32 * f32 fits in f64); one rounding per addition
+            let d2 = x * x + y * y + z * z;
+            let s = p.z / (d2 as f32).sqrt();
+            let az = atan2_approx(p.y, p.x);
+            let u = 0.5 * (1.0 - az * std::f32::consts::FRAC_1_PI) * w;
+            d2o[j] = d2;
+            so[j] = s;
+            uo[j] = u;
+            if WITH_V {
+                let v = (up - asin_approx(s.clamp(-1.0, 1.0))) * v_scale;
+                let mut clear = (v >= dv) & (v <= h - dv);
+                if CLEAR_UV {
+                    clear = clear
+                        & clear_of_integers(v, dv)
+                        & (u >= du)
+                        & (u <= w - du)
+                        & clear_of_integers(u, du);
+                }
+                // i32 arithmetic (the filter is off for images of 2^31 pixels or more)
+                let c = u as i32; // for the fast path: u = w wraps to column 0
+                let c = if c >= wi { c - wi } else { c };
+                vo[j] = v;
+                co[j] = clear & row_filter;
+                po[j] = ((v as i32) * wi + c) as u32;
+            } else {
+                vo[j] = 0.0;
+                co[j] = false;
+                po[j] = 0;
+            }
+        }
+    }
+
+    /// Locate `block` (points `start..start + block.len()`, at most [`BLOCK`]) in two passes: the
+    /// estimates of every point first (branch-free, vectorised), then the decisions. Calls
+    /// `out(i, code, d2)` in point order.
     #[inline(always)]
     fn locate_block(
         &self,
@@ -558,21 +641,13 @@ impl Projector {
         start: usize,
         intensity: Option<&[f32]>,
         rings: Option<&[u16]>,
+        est: &mut EstimateBlock,
         mut out: impl FnMut(usize, Code, f64),
     ) {
-        let mut est = [Estimate::default(); BLOCK];
-        if self.uses_v() {
-            for (e, &p) in est.iter_mut().zip(block) {
-                *e = self.estimate::<true>(p);
-            }
-        } else {
-            for (e, &p) in est.iter_mut().zip(block) {
-                *e = self.estimate::<false>(p);
-            }
-        }
-        for (j, (&p, &e)) in block.iter().zip(&est).enumerate() {
+        self.estimate_any(block, est);
+        for (j, &p) in block.iter().enumerate() {
             let i = start + j;
-            let (code, d2) = self.finish(p, intensity.map_or(0.0, |v| v[i]), rings.map(|r| r[i]), e);
+            let (code, d2) = self.finish(p, intensity.map_or(0.0, |v| v[i]), rings.map(|r| r[i]), est.get(j));
             out(i, code, d2);
         }
     }
@@ -582,31 +657,11 @@ impl Projector {
     fn finish(&self, p: Vec3, intensity: f32, ring: Option<u16>, e: Estimate) -> (Code, f64) {
         let d2 = e.d2;
         let w = self.sensor.cols;
-        // the filtered lane: in range (so finite), estimates trustworthy and clear of boundaries
-        if d2 >= self.lane_min_sq && d2 <= self.lane_max_sq && intensity.is_finite() {
-            let h = self.sensor.rows as f32;
-            let (dv, du) = (self.row_delta, self.col_delta);
-            match self.row_mode {
-                RowMode::UniformExact => {
-                    if self.row_filter
-                        && e.v >= dv
-                        && e.v <= h - dv
-                        && clear_of_integers(e.v, dv)
-                        && e.u >= du
-                        && e.u <= w as f32 - du
-                        && clear_of_integers(e.u, du)
-                    {
-                        return ((e.v as usize * w as usize + e.u as usize) as Code, d2);
-                    }
-                }
-                RowMode::UniformFast => {
-                    if self.row_filter && e.v >= dv && e.v <= h - dv {
-                        let row = (e.v as u32).min(self.sensor.rows - 1);
-                        return ((row as usize * w as usize + self.col_fast(e.u)) as Code, d2);
-                    }
-                }
-                RowMode::Nearest | RowMode::Ring => {}
-            }
+        // the filtered lane: in range (so finite), estimates clear of every boundary by more than
+        // their error bound, so their floors are the exact pixel (fast path: the row is inside the
+        // field of view and equation 1's estimate is the answer)
+        if e.clear && d2 >= self.lane_min_sq && d2 <= self.lane_max_sq && intensity.is_finite() {
+            return (Code::from(e.pixel), d2);
         }
         self.finish_slow(p, intensity, ring, e)
     }
@@ -764,16 +819,17 @@ impl Projector {
                 candidates += 1;
                 let k = (code & !CLAMP_BIT) as usize;
                 // points arrive in increasing index order: only a strictly nearer point replaces
-                if d2 < best_d2[k] {
-                    best_d2[k] = d2;
-                    best_i[k] = i as u32;
-                }
+                // (written as selects: the outcome is unpredictable, a branch would stall)
+                let better = d2 < best_d2[k];
+                best_d2[k] = if better { d2 } else { best_d2[k] };
+                best_i[k] = if better { i as u32 } else { best_i[k] };
             }
         };
         let threads = self.threads.min(n / MIN_POINTS_PER_THREAD).max(1);
         if threads == 1 {
+            let mut est = EstimateBlock::new();
             for (b, block) in points.chunks(BLOCK).enumerate() {
-                self.locate_block(block, b * BLOCK, intensity, rings, &mut merge);
+                self.locate_block(block, b * BLOCK, intensity, rings, &mut est, &mut merge);
             }
         } else {
             // locate in parallel (pure per point), merge serially in point order: bit-identical
@@ -782,10 +838,11 @@ impl Projector {
             std::thread::scope(|s| {
                 for (t, out) in located.chunks_mut(chunk).enumerate() {
                     s.spawn(move || {
+                        let mut est = EstimateBlock::new();
                         for (b, out) in out.chunks_mut(BLOCK).enumerate() {
                             let start = t * chunk + b * BLOCK;
                             let block = &points[start..start + out.len()];
-                            self.locate_block(block, start, intensity, rings, |i, code, d2| {
+                            self.locate_block(block, start, intensity, rings, &mut est, |i, code, d2| {
                                 out[i - start] = (code, d2);
                             });
                         }

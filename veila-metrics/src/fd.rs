@@ -5,12 +5,14 @@
 //!
 //! **Stable trace term ([`SqrtMethod::Eigen`], the default).** `Σ₁ Σ₂` is not symmetric, and `scipy.linalg.sqrtm`
 //! (used by the reference implementations) returns complex round-off for singular covariances. Instead,
-//! with `Σ₁ = V Λ Vᵀ` (self-adjoint eigendecomposition, eigenvalues `< 0` from rounding clamped to 0) and
-//! `A = V Λ^{1/2}` restricted to the columns with `λ > 0`, the matrix `Σ₁^{1/2} Σ₂ Σ₁^{1/2}` is orthogonally
-//! similar to the symmetric positive semi-definite `Aᵀ Σ₂ A`, which has the same non-zero eigenvalues as
-//! `Σ₁ Σ₂`. Hence `Tr (Σ₁ Σ₂)^{1/2} = Σᵢ sqrt(max(μᵢ, 0))` over the eigenvalues `μᵢ` of `Aᵀ Σ₂ A`. This is
-//! exact for singular covariances and for fewer samples than dimensions (the matrix then shrinks to the
-//! rank of `Σ₁`). The result is clamped at 0; bitwise identical statistics give exactly 0.
+//! with `Σ₁ = V Λ Vᵀ` (self-adjoint eigendecomposition) and `A = V Λ^{1/2}` restricted to the eigenvalues
+//! above the rank tolerance `d·ε·λ_max`, the matrix `Σ₁^{1/2} Σ₂ Σ₁^{1/2}` is orthogonally similar to the
+//! symmetric positive semi-definite `Aᵀ Σ₂ A`, which has the same non-zero eigenvalues as `Σ₁ Σ₂`. Hence
+//! `Tr (Σ₁ Σ₂)^{1/2} = Σᵢ sqrt(max(μᵢ, 0))` over the eigenvalues `μᵢ` of `Aᵀ Σ₂ A` (tiny negative ones from
+//! rounding clamped to 0). This is exact for singular covariances and for fewer samples than dimensions
+//! (the matrix then shrinks to the rank of `Σ₁`). When `Σ₁` is well inside the positive-definite cone its
+//! Cholesky factor serves as `A` instead (same eigenvalues, cheaper; see [`trace_sqrt_product_eigen`]).
+//! The result is clamped at 0; bitwise identical statistics give exactly 0.
 //!
 //! **Newton–Schulz ([`SqrtMethod::NewtonSchulz`]).** The coupled iteration `T = (3I - Z Y)/2, Y ← Y T,
 //! Z ← T Z` started from `Y = Σ₁Σ₂ / ‖Σ₁Σ₂‖_F, Z = I` (three matrix products per step, no eigensolver), as used
@@ -267,30 +269,73 @@ fn fd_impl(mu1: &[f64], s1: MatRef<'_, f64>, mu2: &[f64], s2: MatRef<'_, f64>, m
 }
 
 /// `Tr (S1 S2)^{1/2}` for symmetric positive semi-definite `S1`, `S2`, exactly (see the module docs).
+///
+/// Fast path: when `S1` is numerically positive definite (its Cholesky factor `L` exists and
+/// `min L_ii² > d·ε·max S1_ii`), `A = L` is used instead of `V Λ^{1/2}` (any `A` with `A Aᵀ = S1` works), which
+/// replaces the first eigendecomposition by a Cholesky factorisation and halves the matrix products.
+/// Otherwise the eigendecomposition path drops the eigenvalues of `S1` below its rank tolerance
+/// `d·ε·λ_max` (their square roots would be `√ε`-level noise).
 pub fn trace_sqrt_product_eigen(s1: MatRef<'_, f64>, s2: MatRef<'_, f64>) -> Result<f64> {
+    use faer::linalg::matmul::triangular::{BlockStructure, matmul as tri_matmul};
     let d = s1.nrows();
+    let max_diag = (0..d).map(|i| s1[(i, i)]).fold(0.0f64, f64::max);
+    if max_diag <= 0.0 {
+        return Ok(0.0);
+    }
+    let par = Par::rayon(0);
+    if let Ok(llt) = s1.llt(Side::Lower) {
+        let l = llt.L();
+        let min_l2 = (0..d).map(|i| l[(i, i)] * l[(i, i)]).fold(f64::INFINITY, f64::min);
+        if min_l2 > d as f64 * f64::EPSILON * max_diag {
+            // C = S2 L, M = Lᵀ C (lower half only)
+            let mut c = Mat::<f64>::zeros(d, d);
+            tri_matmul(
+                c.as_mut(),
+                BlockStructure::Rectangular,
+                Accum::Replace,
+                s2,
+                BlockStructure::Rectangular,
+                l,
+                BlockStructure::TriangularLower,
+                1.0,
+                par,
+            );
+            let mut m = Mat::<f64>::zeros(d, d);
+            tri_matmul(
+                m.as_mut(),
+                BlockStructure::TriangularLower,
+                Accum::Replace,
+                l.transpose(),
+                BlockStructure::TriangularUpper,
+                c.as_ref(),
+                BlockStructure::Rectangular,
+                1.0,
+                par,
+            );
+            let mu =
+                m.self_adjoint_eigenvalues(Side::Lower).map_err(|e| Error::Linalg(format!("eigenvalues: {e:?}")))?;
+            return Ok(mu.iter().map(|&v| v.max(0.0).sqrt()).sum());
+        }
+    }
     let evd = s1.self_adjoint_eigen(Side::Lower).map_err(|e| Error::Linalg(format!("eigendecomposition: {e:?}")))?;
     let u = evd.U();
     let lam = evd.S().column_vector();
-    // eigenvalues below the eigensolver's noise floor are zero: their square roots (~sqrt(eps)) would
-    // otherwise leak into the trace
+    // eigenvalues below the rank tolerance are zero: their square roots (~sqrt(eps)) would otherwise leak
+    // into the trace
     let lam_max = (0..d).map(|i| lam[i]).fold(0.0f64, f64::max);
-    let floor1 = lam_max * d as f64 * f64::EPSILON;
-    let keep: Vec<usize> = (0..d).filter(|&i| lam[i] > floor1).collect();
+    let floor = lam_max * d as f64 * f64::EPSILON;
+    let keep: Vec<usize> = (0..d).filter(|&i| lam[i] > floor).collect();
     if keep.is_empty() {
         return Ok(0.0);
     }
     let r = keep.len();
     let a = Mat::<f64>::from_fn(d, r, |i, k| u[(i, keep[k])] * lam[keep[k]].sqrt());
     let mut c = Mat::<f64>::zeros(d, r);
-    faer::linalg::matmul::matmul(c.as_mut(), Accum::Replace, s2, a.as_ref(), 1.0, Par::rayon(0));
+    faer::linalg::matmul::matmul(c.as_mut(), Accum::Replace, s2, a.as_ref(), 1.0, par);
     let mut m = Mat::<f64>::zeros(r, r);
-    faer::linalg::matmul::matmul(m.as_mut(), Accum::Replace, a.transpose(), c.as_ref(), 1.0, Par::rayon(0));
-    let m = Mat::<f64>::from_fn(r, r, |i, j| 0.5 * (m[(i, j)] + m[(j, i)]));
+    faer::linalg::matmul::matmul(m.as_mut(), Accum::Replace, a.transpose(), c.as_ref(), 1.0, par);
     let mu = m.self_adjoint_eigenvalues(Side::Lower).map_err(|e| Error::Linalg(format!("eigenvalues: {e:?}")))?;
-    let mu_max = mu.iter().copied().fold(0.0f64, f64::max);
-    let floor2 = mu_max * r as f64 * f64::EPSILON;
-    Ok(mu.iter().filter(|&&v| v > floor2).map(|&v| v.sqrt()).sum())
+    Ok(mu.iter().map(|&v| v.max(0.0).sqrt()).sum())
 }
 
 /// `Tr (S1 S2)^{1/2}` approximated with `iterations` coupled Newton–Schulz steps (see the module docs).

@@ -51,6 +51,15 @@ impl std::fmt::Debug for PointIndex {
     }
 }
 
+fn search_distance() -> PlocSearchDistance {
+    match std::env::var("PROBE_PLOC").as_deref() {
+        Ok("medium") => PlocSearchDistance::Medium,
+        Ok("low") => PlocSearchDistance::Low,
+        Ok("verylow") => PlocSearchDistance::VeryLow,
+        _ => PlocSearchDistance::Minimum,
+    }
+}
+
 /// Points per leaf after collapsing the BVH.
 const MAX_LEAF_POINTS: u32 = 4;
 
@@ -93,13 +102,16 @@ impl PointIndex {
         let aabbs: Vec<Aabb> = pts.iter().map(|&p| Aabb::from_point(p)).collect();
         let indices: Vec<u32> = (0..pts.len() as u32).collect();
         let mut bvh = PlocBuilder::with_capacity(aabbs.len()).build(
-            PlocSearchDistance::Minimum,
+            search_distance(),
             &aabbs,
             indices,
             SortPrecision::U64,
             0,
         );
-        collapse(&mut bvh, MAX_LEAF_POINTS, 1.0);
+        // a traversal cost of `MAX_LEAF_POINTS` makes the SAH test always pass (point boxes have no area), so
+        // every subtree of at most `MAX_LEAF_POINTS` points becomes one leaf
+        let leaf: u32 = std::env::var("PROBE_LEAF").ok().and_then(|v| v.parse().ok()).unwrap_or(MAX_LEAF_POINTS);
+        collapse(&mut bvh, leaf, leaf as f32);
         let original = bvh.primitive_indices.clone();
         let points: Vec<Vec3A> = original.iter().map(|&i| pts[i as usize]).collect();
         Ok(Self { bvh, points, original })

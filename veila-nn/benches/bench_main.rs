@@ -3,6 +3,7 @@
 //!
 //! `cargo bench -p veila-nn` (set `VEILA_BENCH_PAPER=1` to include the paper-sized model, which takes
 //! several seconds per step on a small CPU).
+#![allow(clippy::excessive_precision)]
 
 use std::hint::black_box;
 use std::time::{Duration, Instant};
@@ -129,10 +130,10 @@ fn bench_gcma_k(c: &mut Criterion) {
     // smooth image features (a few low-frequency waves), so the K-dependence is a discretisation error
     let mut f = vec![0f32; fc * fh * fw];
     for c in 0..fc {
-        let (a, b, p) = (rng.random_range(0.5f32..3.0), rng.random_range(0.5f32..3.0), rng.random_range(0.0f32..6.28));
+        let (a, b, p) = (rng.random_range(0.5f32..3.0), rng.random_range(0.5f32..3.0), rng.random_range(0.0f32..std::f32::consts::TAU));
         for y in 0..fh {
             for x in 0..fw {
-                f[(c * fh + y) * fw + x] = (a * x as f32 / fw as f32 * 6.28 + b * y as f32 / fh as f32 * 6.28 + p).sin();
+                f[(c * fh + y) * fw + x] = (a * x as f32 / fw as f32 * std::f32::consts::TAU + b * y as f32 / fh as f32 * std::f32::consts::TAU + p).sin();
             }
         }
     }

@@ -1,7 +1,6 @@
 //! Image-encoder benchmarks (time per image, batch 1, random weights, CPU).
 //!
-//! Included from `bench_main.rs` with `mod encoders_bench;` and `encoders_bench::bench_encoders` in
-//! the `criterion_group!`. Sizes: 192x640 is KITTI's 376x1241 at half resolution (the size the
+//! `cargo bench -p veila-nn --bench encoders_bench`. Sizes: 192x640 is KITTI's 376x1241 at half resolution (the size the
 //! encoders see in training), 96x320 a quarter. Depth-Anything-V2-Small runs at 182x616 (13x44
 //! patches of 14 px) only with `VEILA_BENCH_PAPER=1` (about a second per image on a small CPU); its
 //! 98x322 case always runs. No speed/quality knob here: the table printed after the group lists
@@ -12,15 +11,19 @@ use std::time::{Duration, Instant};
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;
-use criterion::Criterion;
-use veila_nn::encoders::ImageEncoder;
+use criterion::{Criterion, criterion_group, criterion_main};
 use veila_nn::encoders::dinov2::{DepthAnythingV2Config, DepthAnythingV2Encoder};
 use veila_nn::encoders::mit::{MitConfig, MitEncoder};
 use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
+use veila_nn::encoders::{ImageEncoder, freeze_varmap};
 use veila_nn::seeded_var_builder;
 
 fn params(varmap: &VarMap) -> usize {
     varmap.all_vars().iter().map(|v| v.elem_count()).sum()
+}
+
+fn frozen(varmap: &VarMap) -> candle_nn::VarBuilder<'static> {
+    freeze_varmap(varmap, DType::F32, &Device::Cpu).expect("freeze")
 }
 
 fn mean_ms(enc: &dyn ImageEncoder, img: &Tensor, reps: usize) -> f64 {
@@ -31,14 +34,20 @@ fn mean_ms(enc: &dyn ImageEncoder, img: &Tensor, reps: usize) -> f64 {
     t.elapsed().as_secs_f64() * 1e3 / reps as f64
 }
 
+/// Name, encoder, parameter count, input size.
+type Case = (String, Box<dyn ImageEncoder>, usize, (usize, usize));
+
 /// The `encoders` criterion group.
 pub fn bench_encoders(c: &mut Criterion) {
     let dev = Device::Cpu;
-    let mut cases: Vec<(String, Box<dyn ImageEncoder>, usize, (usize, usize))> = Vec::new();
+    let mut cases: Vec<Case> = Vec::new();
 
     let vm = VarMap::new();
-    let mit = MitEncoder::new(&MitConfig::mit_b0(), seeded_var_builder(&vm, 0, DType::F32, &dev))
-        .expect("mit-b0");
+    let mit = MitEncoder::new(
+        &MitConfig::mit_b0(),
+        seeded_var_builder(&vm, 0, DType::F32, &dev),
+    )
+    .expect("mit-b0");
     let mit_params = params(&vm);
     let mit: std::sync::Arc<MitEncoder> = std::sync::Arc::new(mit);
     for hw in [(96, 320), (192, 640)] {
@@ -51,11 +60,9 @@ pub fn bench_encoders(c: &mut Criterion) {
     }
 
     let vm = VarMap::new();
-    let cnn = SmallCnn::new(
-        &SmallCnnConfig::default(),
-        seeded_var_builder(&vm, 1, DType::F32, &dev),
-    )
-    .expect("small cnn");
+    let cnn_cfg = SmallCnnConfig::default();
+    SmallCnn::new(&cnn_cfg, seeded_var_builder(&vm, 1, DType::F32, &dev)).expect("small cnn");
+    let cnn = SmallCnn::new(&cnn_cfg, frozen(&vm)).expect("small cnn");
     let cnn_params = params(&vm);
     let cnn = std::sync::Arc::new(cnn);
     for hw in [(96, 320), (192, 640)] {
@@ -68,11 +75,10 @@ pub fn bench_encoders(c: &mut Criterion) {
     }
 
     let vm = VarMap::new();
-    let da = DepthAnythingV2Encoder::new(
-        &DepthAnythingV2Config::small(),
-        seeded_var_builder(&vm, 2, DType::F32, &dev),
-    )
-    .expect("depth anything");
+    let da_cfg = DepthAnythingV2Config::small();
+    DepthAnythingV2Encoder::new(&da_cfg, seeded_var_builder(&vm, 2, DType::F32, &dev))
+        .expect("depth anything");
+    let da = DepthAnythingV2Encoder::new(&da_cfg, frozen(&vm)).expect("depth anything");
     let da_params = params(&vm);
     let da = std::sync::Arc::new(da);
     let mut da_sizes = vec![(98, 322)];
@@ -117,3 +123,6 @@ pub fn bench_encoders(c: &mut Criterion) {
         eprintln!("{line}");
     }
 }
+
+criterion_group!(benches, bench_encoders);
+criterion_main!(benches);

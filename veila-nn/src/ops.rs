@@ -94,11 +94,32 @@ impl RingConv2d {
     }
 
     /// `[B, in, H, W] -> [B, out, ceil(H/stride), ceil(W/stride)]` (for odd kernels).
+    ///
+    /// Stride 1 runs as an explicit im2col (`k^2` shifted views of the padded input concatenated along
+    /// channels) and one matrix product, about twice as fast as candle's CPU `conv2d`; other strides use
+    /// `conv2d` on the padded input.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let _enter = self.span.enter();
-        let p = self.kernel / 2;
+        let k = self.kernel;
+        let p = k / 2;
         let xp = ring_pad(x, p, p)?;
-        let y = xp.conv2d(&self.weight, 0, self.stride, 1, 1)?;
+        let y = if self.stride == 1 && k > 1 {
+            let (b, c, h, w) = x.dims4()?;
+            let out_c = self.weight.dim(0)?;
+            let mut cols = Vec::with_capacity(k * k);
+            for ky in 0..k {
+                for kx in 0..k {
+                    cols.push(xp.narrow(2, ky, h)?.narrow(3, kx, w)?);
+                }
+            }
+            // [B, k*k*C, H*W], channel index (ky * k + kx) * C + c
+            let col = Tensor::cat(&cols, 1)?.reshape((b, k * k * c, h * w))?;
+            // weight [out, C, k, k] -> [out, k, k, C] -> [1, out, k*k*C]
+            let wm = self.weight.permute((0, 2, 3, 1))?.reshape((1, out_c, k * k * c))?;
+            wm.broadcast_matmul(&col)?.reshape((b, out_c, h, w))?
+        } else {
+            xp.conv2d(&self.weight, 0, self.stride, 1, 1)?
+        };
         Ok(match &self.bias {
             Some(b) => y.broadcast_add(&b.reshape((1, b.dim(0)?, 1, 1))?)?,
             None => y,

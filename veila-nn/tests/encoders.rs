@@ -14,7 +14,7 @@ use veila_nn::encoders::dinov2::{
 };
 use veila_nn::encoders::losses::{log_depth_l1, pixel_accuracy, semantic_cross_entropy, silog};
 use veila_nn::encoders::mit::{MitAttention, MitConfig, MitEncoder, OverlapPatchEmbed};
-use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
+use veila_nn::encoders::small_cnn::{DepthLoss, SmallCnn, SmallCnnConfig, SmallCnnLossConfig};
 use veila_nn::encoders::{
     Frozen, ImageEncoder, Normalization, depthwise_conv2d, freeze_varmap, record_tensor_specs,
     resize_bilinear, resize_bilinear_differentiable, rgb8_to_tensor, size_for_multiple,
@@ -214,6 +214,122 @@ fn mit_bare_prefix_and_clear_errors() {
     let mut c = tiny_mit("");
     c.num_attention_heads[2] = 5;
     assert!(MitEncoder::new(&c, VarBuilder::zeros(DType::F32, &DEV)).is_err());
+}
+
+#[test]
+fn checked_loading_reports_by_name_and_file() {
+    let mut rng = ChaCha8Rng::seed_from_u64(13);
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_mit("segformer.encoder");
+    let mut ckpt = mit_checkpoint(&cfg, "segformer.encoder.", &mut rng);
+    ckpt.insert(
+        "decode_head.classifier.weight".into(),
+        rand_t(&mut rng, &[19, 8, 1, 1], 0.1),
+    );
+    let good = save(dir.path(), "good.safetensors", &ckpt);
+    let enc = MitEncoder::load(&cfg, &good, DType::F32, &DEV).unwrap();
+    assert_eq!(enc.channels(), [8, 16, 24, 32]);
+
+    // missing + mis-shaped + unexpected-in-scope, all in one report, with the file name
+    let mut broken = ckpt.clone();
+    broken.remove("segformer.encoder.layer_norm.3.bias");
+    broken.insert(
+        "segformer.encoder.block.0.0.attention.self.query.weight".into(),
+        rand_t(&mut rng, &[8, 9], 0.1),
+    );
+    broken.insert(
+        "segformer.encoder.block.0.7.mlp.dense1.weight".into(),
+        rand_t(&mut rng, &[2], 0.1),
+    );
+    let bad = save(dir.path(), "bad.safetensors", &broken);
+    let err = MitEncoder::load(&cfg, &bad, DType::F32, &DEV).unwrap_err();
+    let msg = err.to_string();
+    match &err {
+        veila_nn::Error::CheckpointMismatch { report, .. } => {
+            assert_eq!(
+                report.missing,
+                vec!["segformer.encoder.layer_norm.3.bias".to_string()]
+            );
+            assert_eq!(
+                report.unexpected,
+                vec!["segformer.encoder.block.0.7.mlp.dense1.weight".to_string()]
+            );
+            assert_eq!(report.mis_shaped.len(), 1);
+            assert_eq!(report.mis_shaped[0].2, vec![8, 9]);
+        }
+        other => panic!("unexpected error {other}"),
+    }
+    assert!(
+        msg.contains("bad.safetensors") && msg.contains("layer_norm.3.bias"),
+        "{msg}"
+    );
+
+    // IO and parse errors name the file
+    let err = MitEncoder::load(&cfg, &dir.path().join("nope.safetensors"), DType::F32, &DEV)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("nope.safetensors"), "{err}");
+    let junk = dir.path().join("junk.safetensors");
+    std::fs::write(&junk, b"not a safetensors file").unwrap();
+    let err = MitEncoder::load(&cfg, &junk, DType::F32, &DEV)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("junk.safetensors"), "{err}");
+
+    // Depth-Anything: the full file (with mask_token) loads for the encoder and for the full model
+    let dcfg = tiny_da();
+    let (dckpt, _) = da_checkpoint(&dcfg, &mut rng, None);
+    let dpath = save(dir.path(), "da.safetensors", &dckpt);
+    DepthAnythingV2Encoder::load(&dcfg, &dpath, DType::F32, &DEV).unwrap();
+    let full = DepthAnythingV2::load(&dcfg, &dpath, DType::F32, &DEV).unwrap();
+    assert_eq!(
+        full.predict_depth(&rand_t(&mut rng, &[1, 3, 28, 42], 1.0))
+            .unwrap()
+            .dims(),
+        &[1, 28, 42]
+    );
+    let mut no_head = dckpt.clone();
+    no_head.remove("head.conv3.bias");
+    let p = save(dir.path(), "da_nohead.safetensors", &no_head);
+    DepthAnythingV2Encoder::load(&dcfg, &p, DType::F32, &DEV).unwrap();
+    let err = DepthAnythingV2::load(&dcfg, &p, DType::F32, &DEV)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("head.conv3.bias"), "{err}");
+
+    // the small CNN round-trips through VarMap::save
+    let scfg = SmallCnnConfig {
+        channels: [8, 8, 8, 8],
+        head_channels: 8,
+        ..SmallCnnConfig::default()
+    };
+    let vm = VarMap::new();
+    let model = SmallCnn::new(
+        &scfg,
+        veila_nn::seeded_var_builder(&vm, 9, DType::F32, &DEV),
+    )
+    .unwrap();
+    let sp = dir.path().join("cnn.safetensors");
+    vm.save(&sp).unwrap();
+    let loaded = SmallCnn::load(&scfg, &sp, DType::F32, &DEV).unwrap();
+    let img = rand_t(&mut rng, &[1, 3, 32, 32], 1.0);
+    let a = model.forward_all(&img).unwrap();
+    let b = loaded.forward_all(&img).unwrap();
+    assert_eq!(
+        flat(a.log_depth.as_ref().unwrap()),
+        flat(b.log_depth.as_ref().unwrap())
+    );
+    let no_depth = SmallCnnConfig {
+        depth_head: false,
+        ..scfg.clone()
+    };
+    let err = SmallCnn::load(&no_depth, &sp, DType::F32, &DEV)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("unexpected") && err.contains("depth_head"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -466,6 +582,22 @@ fn depthwise_conv_matches_grouped_conv_and_brute_force() {
     let wt = rand_t(&mut rng, &[c, 1, 3, 3], 1.0);
     let bias = rand_t(&mut rng, &[c], 1.0);
     let got = depthwise_conv2d(&x, &wt, Some(&bias), 1).unwrap();
+    // the differentiable tensor path (taken when an input tracks gradients) agrees
+    let xv = candle_core::Var::from_tensor(&x).unwrap();
+    let got_graph = depthwise_conv2d(xv.as_tensor(), &wt, Some(&bias), 1).unwrap();
+    assert!(max_abs_diff(&flat(&got), &flat(&got_graph)) < 1e-5);
+    let g = got_graph.sum_all().unwrap().backward().unwrap();
+    assert!(g.get(xv.as_tensor()).is_some());
+    // other kernel sizes / no padding
+    let w5 = rand_t(&mut rng, &[c, 1, 5, 5], 1.0);
+    for pad in [0, 2] {
+        let a = depthwise_conv2d(&x, &w5, None, pad).unwrap();
+        let r = x.conv2d(&w5, pad, 1, 1, c).unwrap();
+        assert_eq!(a.dims(), r.dims());
+        assert!(max_abs_diff(&flat(&a), &flat(&r)) < 1e-4);
+        let a2 = depthwise_conv2d(xv.as_tensor(), &w5, None, pad).unwrap();
+        assert!(max_abs_diff(&flat(&a2), &flat(&r)) < 1e-4);
+    }
     let grouped = x
         .conv2d(&wt, 1, 1, 1, c)
         .unwrap()
@@ -724,6 +856,24 @@ fn depth_anything_loads_hf_layout_and_gives_four_scales() {
         .forward(&Tensor::zeros((1, 3, 10, 40), DType::F32, &DEV).unwrap())
         .unwrap_err();
     assert!(err.to_string().contains("too small"), "{err}");
+}
+
+#[test]
+fn depth_anything_v2_small_has_the_published_parameter_count() {
+    // Depth-Anything-V2 paper / model card: Small 24.8 M parameters (backbone, neck and head)
+    let specs = record_tensor_specs(|vb| DepthAnythingV2::new(&DepthAnythingV2Config::small(), vb))
+        .unwrap();
+    let n: usize = specs
+        .iter()
+        .map(|s| s.shape.iter().product::<usize>())
+        .sum();
+    assert!((24_750_000..24_850_000).contains(&n), "{n}");
+    // the checkpoint's stored position grid is 37 x 37 (+ CLS) for 518 px training images
+    let pos = specs
+        .iter()
+        .find(|s| s.name == "backbone.embeddings.position_embeddings")
+        .unwrap();
+    assert_eq!(pos.shape, vec![1, 1 + 37 * 37, 384]);
 }
 
 /// PyTorch's bicubic kernel, written as the 2-D sum over the 4x4 neighbourhood.
@@ -1065,17 +1215,12 @@ fn small_cnn_overfits_one_image() {
         },
     )
     .unwrap();
+    let loss_cfg = SmallCnnLossConfig::default();
     let loss_at = |model: &SmallCnn| -> (Tensor, f32, f32) {
-        let out = model.forward_all(&image).unwrap();
-        let ce = semantic_cross_entropy(out.semantic_logits.as_ref().unwrap(), &labels_t, Some(0))
+        let l = model
+            .loss(&image, Some(&labels_t), Some(&depth_t), &loss_cfg)
             .unwrap();
-        let dl = log_depth_l1(out.log_depth.as_ref().unwrap(), &depth_t).unwrap();
-        let total = (&ce + &dl).unwrap();
-        let (a, b) = (
-            ce.to_scalar::<f32>().unwrap(),
-            dl.to_scalar::<f32>().unwrap(),
-        );
-        (total, a, b)
+        (l.total, l.semantic.unwrap(), l.depth.unwrap())
     };
     let (_, ce0, dl0) = loss_at(&model);
     for _ in 0..120 {
@@ -1327,4 +1472,46 @@ fn differentiable_resize_matches_candle_bilinear() {
     // every output pixel distributes weight 1 over the input: the gradient sums to B*C*9*9
     let total: f32 = gx.iter().sum();
     assert!((total - 2.0 * 3.0 * 81.0).abs() < 1e-3, "{total}");
+}
+
+#[test]
+fn small_cnn_loss_combines_heads_and_rejects_missing_targets() {
+    let mut rng = ChaCha8Rng::seed_from_u64(14);
+    let cfg = SmallCnnConfig {
+        channels: [8, 8, 8, 8],
+        head_channels: 8,
+        ..SmallCnnConfig::default()
+    };
+    let vm = VarMap::new();
+    let model =
+        SmallCnn::new(&cfg, veila_nn::seeded_var_builder(&vm, 5, DType::F32, &DEV)).unwrap();
+    let img = rand_t(&mut rng, &[2, 3, 16, 24], 1.0);
+    let labels = Tensor::from_vec(
+        (0..2 * 16 * 24).map(|i| (i % 20) as u32).collect(),
+        (2, 16, 24),
+        &DEV,
+    )
+    .unwrap();
+    let depth = Tensor::full(7.0f32, (2, 16, 24), &DEV).unwrap();
+    let out = model.forward_all(&img).unwrap();
+    let ce = semantic_cross_entropy(out.semantic_logits.as_ref().unwrap(), &labels, Some(0))
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap();
+    let si = silog(out.log_depth.as_ref().unwrap(), &depth, 0.5)
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap();
+    let lc = SmallCnnLossConfig {
+        semantic_weight: 0.5,
+        depth_weight: 2.0,
+        depth_loss: DepthLoss::SiLog { lambda: 0.5 },
+    };
+    let l = model.loss(&img, Some(&labels), Some(&depth), &lc).unwrap();
+    assert!((l.total.to_scalar::<f32>().unwrap() - (0.5 * ce + 2.0 * si)).abs() < 1e-5);
+    assert_eq!(l.semantic, Some(ce));
+    let only_depth = model.loss(&img, None, Some(&depth), &lc).unwrap();
+    assert!(only_depth.semantic.is_none() && only_depth.depth.is_some());
+    let err = model.loss(&img, None, None, &lc).unwrap_err().to_string();
+    assert!(err.contains("no target"), "{err}");
 }

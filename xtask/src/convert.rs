@@ -35,8 +35,8 @@ pub struct ConvertArgs {
     /// Number of workers (default: from the environment, else 1).
     #[arg(long)]
     shard_count: Option<usize>,
-    /// Frames per shard file; memory use is about this many frames.
-    #[arg(long, default_value_t = 64)]
+    /// Frames per shard file; peak memory is about this many frames (~4 MiB each for KITTI with images).
+    #[arg(long, default_value_t = 32)]
     frames_per_shard: usize,
     /// Leave camera images out of the shards (matrices are still stored).
     #[arg(long)]
@@ -46,43 +46,47 @@ pub struct ConvertArgs {
     quiet: bool,
 }
 
-fn env_usize(name: &str) -> Result<Option<usize>> {
-    match std::env::var(name) {
-        Ok(v) => v
-            .trim()
-            .parse::<usize>()
-            .map(Some)
-            .with_context(|| format!("environment variable {name}={v:?} is not a non-negative integer")),
-        Err(_) => Ok(None),
+fn env_usize(env: &dyn Fn(&str) -> Option<String>, name: &str) -> Result<Option<usize>> {
+    match env(name) {
+        Some(v) => v.trim().parse::<usize>().map(Some).with_context(|| {
+            format!("environment variable {name}={v:?} is not a non-negative integer")
+        }),
+        None => Ok(None),
     }
 }
 
-/// Resolve (index, count) from the flags and the environment.
-fn worker(args: &ConvertArgs) -> Result<(usize, usize)> {
-    if let Some(i) = args.shard_index {
-        let n = args.shard_count.unwrap_or(1);
-        return check(i, n, "--shard-index/--shard-count");
+/// Resolve (index, count) from the flags and the environment (`env` looks a variable up).
+fn worker(
+    shard_index: Option<usize>,
+    shard_count: Option<usize>,
+    env: &dyn Fn(&str) -> Option<String>,
+) -> Result<(usize, usize)> {
+    if let Some(i) = shard_index {
+        return check(i, shard_count.unwrap_or(1), "--shard-index/--shard-count");
     }
-    if let Some(id) = env_usize("SLURM_ARRAY_TASK_ID")? {
-        let min = env_usize("SLURM_ARRAY_TASK_MIN")?.unwrap_or(0);
-        let n = match args.shard_count {
+    if let Some(id) = env_usize(env, "SLURM_ARRAY_TASK_ID")? {
+        let min = env_usize(env, "SLURM_ARRAY_TASK_MIN")?.unwrap_or(0);
+        let n = match shard_count {
             Some(n) => n,
-            None => env_usize("SLURM_ARRAY_TASK_COUNT")?
-                .context("SLURM_ARRAY_TASK_ID is set but SLURM_ARRAY_TASK_COUNT is not; pass --shard-count")?,
+            None => env_usize(env, "SLURM_ARRAY_TASK_COUNT")?.context(
+                "SLURM_ARRAY_TASK_ID is set but SLURM_ARRAY_TASK_COUNT is not; pass --shard-count",
+            )?,
         };
-        let i = id.checked_sub(min).context("SLURM_ARRAY_TASK_ID is below SLURM_ARRAY_TASK_MIN")?;
+        let i = id
+            .checked_sub(min)
+            .context("SLURM_ARRAY_TASK_ID is below SLURM_ARRAY_TASK_MIN")?;
         return check(i, n, "SLURM_ARRAY_TASK_ID/SLURM_ARRAY_TASK_COUNT");
     }
-    if let Some(i) = env_usize("JOB_COMPLETION_INDEX")? {
-        let n = match args.shard_count {
+    if let Some(i) = env_usize(env, "JOB_COMPLETION_INDEX")? {
+        let n = match shard_count {
             Some(n) => n,
-            None => env_usize("VEILA_SHARD_COUNT")?.context(
+            None => env_usize(env, "VEILA_SHARD_COUNT")?.context(
                 "JOB_COMPLETION_INDEX is set: pass --shard-count (or VEILA_SHARD_COUNT) with the job's completions",
             )?,
         };
         return check(i, n, "JOB_COMPLETION_INDEX");
     }
-    check(0, args.shard_count.unwrap_or(1), "--shard-count")
+    check(0, shard_count.unwrap_or(1), "--shard-count")
 }
 
 fn check(i: usize, n: usize, from: &str) -> Result<(usize, usize)> {
@@ -93,9 +97,17 @@ fn check(i: usize, n: usize, from: &str) -> Result<(usize, usize)> {
 }
 
 pub fn run(args: ConvertArgs) -> Result<()> {
-    let (index, count) = worker(&args)?;
+    let (index, count) = worker(args.shard_index, args.shard_count, &|k| {
+        std::env::var(k).ok()
+    })?;
     let (dataset, label_map) = open_dataset(&args.dataset, &args.root, !args.no_images)
-        .with_context(|| format!("cannot open {} dataset at {}", args.dataset, args.root.display()))?;
+        .with_context(|| {
+            format!(
+                "cannot open {} dataset at {}",
+                args.dataset,
+                args.root.display()
+            )
+        })?;
     let sensor = match &args.sensor {
         Some(s) => veila_data::spec::sensor_from_spec(s)?,
         None => dataset.default_sensor(),
@@ -117,9 +129,11 @@ pub fn run(args: ConvertArgs) -> Result<()> {
         bar.set_draw_target(ProgressDrawTarget::hidden());
     }
     bar.set_style(
-        ProgressStyle::with_template("{prefix:>10.bold} [{bar:30}] {pos}/{len} {per_sec} eta {eta}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
+        ProgressStyle::with_template(
+            "{prefix:>10.bold} [{bar:30}] {pos}/{len} {per_sec} eta {eta}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .progress_chars("=> "),
     );
     bar.set_prefix("convert");
     let on_progress = |p: Progress| match p {
@@ -133,4 +147,63 @@ pub fn run(args: ConvertArgs) -> Result<()> {
         eprintln!("manifest.json not written yet: other workers' shards are still missing");
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn env(vars: &'static [(&'static str, &'static str)]) -> impl Fn(&str) -> Option<String> {
+        move |k| {
+            vars.iter()
+                .find(|(n, _)| *n == k)
+                .map(|(_, v)| v.to_string())
+        }
+    }
+
+    #[test]
+    fn worker_from_flags_slurm_and_kubernetes() {
+        assert_eq!(worker(None, None, &env(&[])).unwrap(), (0, 1));
+        assert_eq!(
+            worker(Some(2), Some(4), &env(&[("SLURM_ARRAY_TASK_ID", "0")])).unwrap(),
+            (2, 4)
+        );
+        let slurm = env(&[
+            ("SLURM_ARRAY_TASK_ID", "3"),
+            ("SLURM_ARRAY_TASK_COUNT", "4"),
+        ]);
+        assert_eq!(worker(None, None, &slurm).unwrap(), (3, 4));
+        // arrays numbered 1..=4
+        let slurm1 = env(&[
+            ("SLURM_ARRAY_TASK_ID", "4"),
+            ("SLURM_ARRAY_TASK_MIN", "1"),
+            ("SLURM_ARRAY_TASK_COUNT", "4"),
+        ]);
+        assert_eq!(worker(None, None, &slurm1).unwrap(), (3, 4));
+        assert!(worker(None, None, &env(&[("SLURM_ARRAY_TASK_ID", "3")])).is_err());
+        let k8s = env(&[("JOB_COMPLETION_INDEX", "5")]);
+        assert!(worker(None, None, &k8s).is_err());
+        assert_eq!(worker(None, Some(8), &k8s).unwrap(), (5, 8));
+        assert_eq!(
+            worker(
+                None,
+                None,
+                &env(&[("JOB_COMPLETION_INDEX", "1"), ("VEILA_SHARD_COUNT", "2")])
+            )
+            .unwrap(),
+            (1, 2)
+        );
+        assert!(worker(None, Some(5), &k8s).is_err());
+        assert!(
+            worker(
+                None,
+                None,
+                &env(&[
+                    ("SLURM_ARRAY_TASK_ID", "x"),
+                    ("SLURM_ARRAY_TASK_COUNT", "4")
+                ])
+            )
+            .is_err()
+        );
+    }
 }

@@ -5,7 +5,7 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 
 mod convert; // cargo xtask convert       (veila-data shards)
-// mod kitti_weather;  // cargo xtask kitti-weather (veila-data weather)
+mod kitti_weather; // cargo xtask kitti-weather (veila-data weather)
 #[cfg(test)]
 mod tidy;
 
@@ -19,7 +19,8 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     Convert(convert::ConvertArgs),
-    // KittiWeather(kitti_weather::KittiWeatherArgs),
+    /// Build KITTI-Weather (clean, night, fog, snow variants) from a KITTI-layout dataset.
+    KittiWeather(kitti_weather::KittiWeatherArgs),
     /// Print the workspace's crate layering rules (checked by `cargo test -p xtask`).
     Layers,
 }
@@ -34,7 +35,7 @@ fn main() {
 fn run(command: Command) -> Result<()> {
     match command {
         Command::Convert(a) => convert::run(a),
-        // Command::KittiWeather(a) => kitti_weather::run(a),
+        Command::KittiWeather(a) => kitti_weather::run(a),
         Command::Layers => {
             println!("see ARCHITECTURE.md, section 'Layering'");
             Ok(())

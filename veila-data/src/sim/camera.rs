@@ -48,7 +48,8 @@ pub struct SimImage {
 impl SimImage {
     /// The RGB buffer as an [`image::RgbImage`].
     pub fn to_rgb_image(&self) -> image::RgbImage {
-        image::RgbImage::from_raw(self.width, self.height, self.rgb.clone()).unwrap_or_else(|| image::RgbImage::new(self.width, self.height))
+        image::RgbImage::from_raw(self.width, self.height, self.rgb.clone())
+            .unwrap_or_else(|| image::RgbImage::new(self.width, self.height))
     }
 }
 
@@ -63,13 +64,19 @@ pub struct CameraRenderOptions {
 
 impl Default for CameraRenderOptions {
     fn default() -> Self {
-        CameraRenderOptions { samples_per_axis: 1, shadows: true }
+        CameraRenderOptions {
+            samples_per_axis: 1,
+            shadows: true,
+        }
     }
 }
 
 impl From<&CameraConfig> for CameraRenderOptions {
     fn from(c: &CameraConfig) -> Self {
-        CameraRenderOptions { samples_per_axis: c.samples_per_axis, shadows: c.shadows }
+        CameraRenderOptions {
+            samples_per_axis: c.samples_per_axis,
+            shadows: c.shadows,
+        }
     }
 }
 
@@ -117,13 +124,26 @@ impl SimCalib {
         // P_i = K [I | t_i], t_i = -(camera centre in camera-0 coordinates)
         let p_of = |cx_offset_m: f32| -> [[f32; 4]; 3] {
             let tx = -cx_offset_m;
-            [[c.fx, 0.0, c.cx, c.fx * tx], [0.0, c.fy, c.cy, 0.0], [0.0, 0.0, 1.0, 0.0]]
+            [
+                [c.fx, 0.0, c.cx, c.fx * tx],
+                [0.0, c.fy, c.cy, 0.0],
+                [0.0, 0.0, 1.0, 0.0],
+            ]
         };
         SimCalib {
-            p: [p_of(0.0), p_of(c.baseline_m), p_of(-c.cam2_left_m), p_of(c.baseline_m - c.cam2_left_m)],
+            p: [
+                p_of(0.0),
+                p_of(c.baseline_m),
+                p_of(-c.cam2_left_m),
+                p_of(c.baseline_m - c.cam2_left_m),
+            ],
             r0_rect: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
             tr_velo_to_cam: tr,
-            tr_imu_to_velo: [[1.0, 0.0, 0.0, -0.81], [0.0, 1.0, 0.0, 0.32], [0.0, 0.0, 1.0, -0.8]],
+            tr_imu_to_velo: [
+                [1.0, 0.0, 0.0, -0.81],
+                [0.0, 1.0, 0.0, 0.32],
+                [0.0, 0.0, 1.0, -0.8],
+            ],
             width: c.width,
             height: c.height,
         }
@@ -132,7 +152,13 @@ impl SimCalib {
     /// The `image_2` camera (`K = P2`, `T = R0_rect Tr_velo_to_cam`).
     pub fn camera(&self) -> Result<PinholeCamera> {
         let r0 = Mat3::from_cols_array_2d(&self.r0_rect).transpose();
-        Ok(PinholeCamera::from_kitti(self.p[2], r0, self.tr_velo_to_cam, self.width, self.height)?)
+        Ok(PinholeCamera::from_kitti(
+            self.p[2],
+            r0,
+            self.tr_velo_to_cam,
+            self.width,
+            self.height,
+        )?)
     }
 
     /// The calibration as KITTI object-benchmark text (`calib/NNNNNN.txt`).
@@ -150,8 +176,14 @@ impl SimCalib {
             line(&format!("P{i}"), &mut p.iter().flatten().copied());
         }
         line("R0_rect", &mut self.r0_rect.iter().flatten().copied());
-        line("Tr_velo_to_cam", &mut self.tr_velo_to_cam.iter().flatten().copied());
-        line("Tr_imu_to_velo", &mut self.tr_imu_to_velo.iter().flatten().copied());
+        line(
+            "Tr_velo_to_cam",
+            &mut self.tr_velo_to_cam.iter().flatten().copied(),
+        );
+        line(
+            "Tr_imu_to_velo",
+            &mut self.tr_imu_to_velo.iter().flatten().copied(),
+        );
         s
     }
 }
@@ -174,14 +206,22 @@ impl CameraRays {
         let m = camera.image_from_lidar();
         let a = Mat3::from_mat4(m);
         if a.determinant().abs() < 1e-12 {
-            return Err(Error::Invalid { what: "camera".into(), message: "K T is singular".into() });
+            return Err(Error::Invalid {
+                what: "camera".into(),
+                message: "K T is singular".into(),
+            });
         }
         let a_inv = a.inverse();
         let b = m.w_axis.truncate();
         let centre_lidar = -(a_inv * b);
         let t = camera.cam_from_lidar;
         let row_z = Vec3::new(t.x_axis.z, t.y_axis.z, t.z_axis.z);
-        Ok(CameraRays { a_inv, centre_lidar, row_z, t_z: t.w_axis.z })
+        Ok(CameraRays {
+            a_inv,
+            centre_lidar,
+            row_z,
+            t_z: t.w_axis.z,
+        })
     }
 
     /// Unit ray direction (LiDAR frame) through image point `(u, v)`.
@@ -196,7 +236,11 @@ impl CameraRays {
 }
 
 fn srgb_encode(x: f32) -> f32 {
-    if x <= 0.003_130_8 { 12.92 * x } else { 1.055 * x.powf(1.0 / 2.4) - 0.055 }
+    if x <= 0.003_130_8 {
+        12.92 * x
+    } else {
+        1.055 * x.powf(1.0 / 2.4) - 0.055
+    }
 }
 
 fn cell_noise(p: Vec3, scale: f32) -> f32 {
@@ -206,6 +250,9 @@ fn cell_noise(p: Vec3, scale: f32) -> f32 {
         ^ (q.z as i64 as u64).wrapping_mul(0xC2B2_AE35);
     (splitmix(key) >> 40) as f32 / (1u64 << 24) as f32
 }
+
+/// One rendered pixel: sRGB, depth, class, instance.
+type PixelOut = ([u8; 3], f32, u16, u16);
 
 struct Shading {
     sun_dir: Vec3,
@@ -220,7 +267,10 @@ struct Shading {
 impl SceneSnapshot {
     fn shading(&self, shadows: bool) -> Shading {
         let l = &self.lighting;
-        let (az, el) = (l.sun_azimuth_deg.to_radians(), l.sun_elevation_deg.to_radians());
+        let (az, el) = (
+            l.sun_azimuth_deg.to_radians(),
+            l.sun_elevation_deg.to_radians(),
+        );
         Shading {
             sun_dir: Vec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin()),
             sun: Vec3::from(l.sun_rgb),
@@ -235,7 +285,11 @@ impl SceneSnapshot {
     fn radiance(&self, sh: &Shading, origin: Vec3, dir: Vec3, hit: Option<&Hit>) -> Vec3 {
         let Some(hit) = hit else {
             let e = dir.z;
-            let mut sky = if e >= 0.0 { sh.horizon.lerp(sh.zenith, e.sqrt()) } else { sh.horizon * 0.7 };
+            let mut sky = if e >= 0.0 {
+                sh.horizon.lerp(sh.zenith, e.sqrt())
+            } else {
+                sh.horizon * 0.7
+            };
             if dir.dot(sh.sun_dir) > 0.99995 {
                 sky += sh.sun * 20.0;
             }
@@ -264,12 +318,21 @@ impl SceneSnapshot {
     }
 
     /// Render `camera` (its `cam_from_lidar` relative to this snapshot's LiDAR pose).
-    pub fn render_camera(&self, camera: &PinholeCamera, opts: &CameraRenderOptions) -> Result<SimImage> {
+    pub fn render_camera(
+        &self,
+        camera: &PinholeCamera,
+        opts: &CameraRenderOptions,
+    ) -> Result<SimImage> {
         self.render_camera_at(camera, opts, self.world_from_lidar)
     }
 
     /// Render `camera` with the LiDAR at `world_from_lidar`.
-    pub fn render_camera_at(&self, camera: &PinholeCamera, opts: &CameraRenderOptions, world_from_lidar: Affine3A) -> Result<SimImage> {
+    pub fn render_camera_at(
+        &self,
+        camera: &PinholeCamera,
+        opts: &CameraRenderOptions,
+        world_from_lidar: Affine3A,
+    ) -> Result<SimImage> {
         if !(1..=16).contains(&opts.samples_per_axis) {
             return Err(Error::Invalid {
                 what: "camera samples_per_axis".into(),
@@ -281,7 +344,7 @@ impl SceneSnapshot {
         let sh = self.shading(opts.shadows);
         let origin_w = world_from_lidar.transform_point3(rays.centre_lidar);
         let n = opts.samples_per_axis;
-        let rows: Vec<Vec<([u8; 3], f32, u16, u16)>> = (0..h)
+        let rows: Vec<Vec<PixelOut>> = (0..h)
             .into_par_iter()
             .map(|row| {
                 (0..w)
@@ -293,7 +356,11 @@ impl SceneSnapshot {
                         let (depth, sem, inst) = match &hit {
                             Some(hh) => {
                                 let p_l = rays.centre_lidar + dir_l * hh.t;
-                                (rays.depth(p_l).max(0.0), hh.surface.material.class, hh.surface.instance)
+                                (
+                                    rays.depth(p_l).max(0.0),
+                                    hh.surface.material.class,
+                                    hh.surface.instance,
+                                )
                             }
                             None => (0.0, 0, 0),
                         };
@@ -305,18 +372,28 @@ impl SceneSnapshot {
                                 for sx in 0..n {
                                     let du = (sx as f32 + 0.5) / n as f32 - 0.5;
                                     let dv = (sy as f32 + 0.5) / n as f32 - 0.5;
-                                    let d = world_from_lidar.transform_vector3(rays.dir(u + du, v + dv)).normalize();
-                                    let hs = self.accel.closest_hit(origin_w, d, 0.0, f32::INFINITY);
+                                    let d = world_from_lidar
+                                        .transform_vector3(rays.dir(u + du, v + dv))
+                                        .normalize();
+                                    let hs =
+                                        self.accel.closest_hit(origin_w, d, 0.0, f32::INFINITY);
                                     acc += self.radiance(&sh, origin_w, d, hs.as_ref());
                                 }
                             }
                             acc /= (n * n) as f32;
                         }
                         // a faint per-pixel dither breaks banding in the sky gradient
-                        let dither = (hash_unit(0x5157, u64::from(row) * u64::from(w) + u64::from(col), 7) - 0.5) / 255.0;
-                        let px = (Vec3::ONE - (-acc * sh.exposure).exp()).to_array().map(|c| {
-                            ((srgb_encode(c.clamp(0.0, 1.0)) + dither) * 255.0).round().clamp(0.0, 255.0) as u8
-                        });
+                        let dither =
+                            (hash_unit(0x5157, u64::from(row) * u64::from(w) + u64::from(col), 7)
+                                - 0.5)
+                                / 255.0;
+                        let px = (Vec3::ONE - (-acc * sh.exposure).exp())
+                            .to_array()
+                            .map(|c| {
+                                ((srgb_encode(c.clamp(0.0, 1.0)) + dither) * 255.0)
+                                    .round()
+                                    .clamp(0.0, 255.0) as u8
+                            });
                         (px, depth, sem, inst)
                     })
                     .collect()

@@ -129,7 +129,11 @@ impl RoadParams {
     /// Half width of the carriageway (kerb to kerb / 2), metres.
     pub fn half_carriageway_m(&self) -> f32 {
         self.lanes_per_direction as f32 * self.lane_width_m
-            + if self.parking_lane { self.parking_width_m } else { 0.0 }
+            + if self.parking_lane {
+                self.parking_width_m
+            } else {
+                0.0
+            }
     }
 }
 
@@ -139,15 +143,25 @@ impl RoadConfig {
         let narrow = layout == Layout::NarrowStreet;
         RoadParams {
             length_m: self.length_m.unwrap_or(if narrow { 160.0 } else { 240.0 }),
-            lanes_per_direction: self.lanes_per_direction.unwrap_or(if narrow { 1 } else { 2 }),
+            lanes_per_direction: self
+                .lanes_per_direction
+                .unwrap_or(if narrow { 1 } else { 2 }),
             lane_width_m: self.lane_width_m.unwrap_or(if narrow { 2.9 } else { 3.5 }),
             parking_lane: self.parking_lane.unwrap_or(!narrow),
             parking_width_m: self.parking_width_m.unwrap_or(2.3),
-            sidewalk_width_m: self.sidewalk_width_m.unwrap_or(if narrow { 1.6 } else { 3.5 }),
+            sidewalk_width_m: self
+                .sidewalk_width_m
+                .unwrap_or(if narrow { 1.6 } else { 3.5 }),
             kerb_height_m: self.kerb_height_m.unwrap_or(0.15),
             setback_m: self.setback_m.unwrap_or(if narrow { 0.0 } else { 3.0 }),
-            building_frontage: self.building_frontage.unwrap_or(if narrow { 0.95 } else { 0.7 }),
-            building_height_m: self.building_height_m.unwrap_or(if narrow { [9.0, 18.0] } else { [6.0, 22.0] }),
+            building_frontage: self
+                .building_frontage
+                .unwrap_or(if narrow { 0.95 } else { 0.7 }),
+            building_height_m: self.building_height_m.unwrap_or(if narrow {
+                [9.0, 18.0]
+            } else {
+                [6.0, 22.0]
+            }),
             lane_markings: self.lane_markings.unwrap_or(!narrow),
         }
     }
@@ -222,7 +236,11 @@ pub struct EgoConfig {
 
 impl Default for EgoConfig {
     fn default() -> Self {
-        EgoConfig { speed_mps: 8.0, start_x_m: -25.0, lidar_height_m: 1.73 }
+        EgoConfig {
+            speed_mps: 8.0,
+            start_x_m: -25.0,
+            lidar_height_m: 1.73,
+        }
     }
 }
 
@@ -240,7 +258,11 @@ pub struct LidarConfig {
 
 impl Default for LidarConfig {
     fn default() -> Self {
-        LidarConfig { preset: "hdl64e".into(), sensor: None, returns: LidarReturnModel::default() }
+        LidarConfig {
+            preset: "hdl64e".into(),
+            sensor: None,
+            returns: LidarReturnModel::default(),
+        }
     }
 }
 
@@ -256,7 +278,9 @@ impl LidarConfig {
                 other => {
                     return Err(Error::Invalid {
                         what: "lidar.preset".into(),
-                        message: format!("unknown preset {other:?} (expected hdl64e, hdl32e or hdl32e_per_beam)"),
+                        message: format!(
+                            "unknown preset {other:?} (expected hdl64e, hdl32e or hdl32e_per_beam)"
+                        ),
                     });
                 }
             },
@@ -279,8 +303,11 @@ pub struct LidarReturnModel {
     pub grazing_cos_min: f32,
     /// Probability of dropping any return at random (dust, multipath, sensor dead time).
     pub random_drop: f32,
-    /// Range at which the reported intensity falls to half: `I = rho cos(theta) / (1 + (R / R_half)^2)`.
+    /// Range at which the reported intensity falls to half (see [`crate::sim::lidar`]).
     pub intensity_half_range_m: f32,
+    /// Incidence knee `c0` of the intensity: `g(c) = (1 + c0^2) c^2 / (c^2 + c0^2)`, `c = cos(theta)`;
+    /// near 1 down to `c ~ 2 c0`, falling like `c^2` at grazing incidence (0 = no incidence effect).
+    pub incidence_knee: f32,
     /// Standard deviation of the range noise, metres (0 = exact ranges).
     pub range_noise_m: f32,
 }
@@ -292,7 +319,8 @@ impl Default for LidarReturnModel {
             drop_softness_decades: 0.3,
             grazing_cos_min: 0.02,
             random_drop: 0.005,
-            intensity_half_range_m: 60.0,
+            intensity_half_range_m: 45.0,
+            incidence_knee: 0.15,
             range_noise_m: 0.0,
         }
     }
@@ -306,14 +334,20 @@ impl LidarReturnModel {
             drop_softness_decades: 0.0,
             grazing_cos_min: 0.0,
             random_drop: 0.0,
-            intensity_half_range_m: 60.0,
+            intensity_half_range_m: 45.0,
+            incidence_knee: 0.15,
             range_noise_m: 0.0,
         }
     }
 
     /// Check ranges of every parameter.
     pub fn validate(&self) -> Result<()> {
-        let bad = |field: &str, msg: &str| Err(Error::Invalid { what: format!("lidar.returns.{field}"), message: msg.into() });
+        let bad = |field: &str, msg: &str| {
+            Err(Error::Invalid {
+                what: format!("lidar.returns.{field}"),
+                message: msg.into(),
+            })
+        };
         let finite_nonneg = |x: f32| x.is_finite() && x >= 0.0;
         if !finite_nonneg(self.min_reflectivity_at_100m) {
             return bad("min_reflectivity_at_100m", "must be finite and >= 0");
@@ -329,6 +363,9 @@ impl LidarReturnModel {
         }
         if !(self.intensity_half_range_m.is_finite() && self.intensity_half_range_m > 0.0) {
             return bad("intensity_half_range_m", "must be finite and > 0");
+        }
+        if !finite_nonneg(self.incidence_knee) || self.incidence_knee > 10.0 {
+            return bad("incidence_knee", "must be in [0, 10]");
         }
         if !finite_nonneg(self.range_noise_m) || self.range_noise_m > 1.0 {
             return bad("range_noise_m", "must be in [0, 1] m");
@@ -436,16 +473,20 @@ pub struct FramesConfig {
 
 impl Default for FramesConfig {
     fn default() -> Self {
-        FramesConfig { count: 1, interval_s: 0.1 }
+        FramesConfig {
+            count: 1,
+            interval_s: 0.1,
+        }
     }
 }
 
 impl SceneConfig {
     /// Parse a scene from TOML text (`origin` names the source in errors).
     pub fn from_toml_str(text: &str, origin: &Path) -> Result<Self> {
-        let cfg: SceneConfig =
-            toml::from_str(text).map_err(|e| Error::format(origin, format!("not a valid scene file: {e}")))?;
-        cfg.validate().map_err(|e| Error::format(origin, e.to_string()))?;
+        let cfg: SceneConfig = toml::from_str(text)
+            .map_err(|e| Error::format(origin, format!("not a valid scene file: {e}")))?;
+        cfg.validate()
+            .map_err(|e| Error::format(origin, e.to_string()))?;
         Ok(cfg)
     }
 
@@ -463,30 +504,81 @@ impl SceneConfig {
     /// Check every value (ranges, finiteness, the LiDAR sensor).
     pub fn validate(&self) -> Result<()> {
         fn check(ok: bool, what: &str, message: String) -> Result<()> {
-            if ok { Ok(()) } else { Err(Error::Invalid { what: what.into(), message }) }
+            if ok {
+                Ok(())
+            } else {
+                Err(Error::Invalid {
+                    what: what.into(),
+                    message,
+                })
+            }
         }
         let r = self.road_params();
         let pos = |x: f32| x.is_finite() && x > 0.0;
         let nonneg = |x: f32| x.is_finite() && x >= 0.0;
-        check(pos(r.length_m) && r.length_m <= 5000.0, "road.length_m", format!("{} not in (0, 5000]", r.length_m))?;
-        check((1..=4).contains(&r.lanes_per_direction), "road.lanes_per_direction", format!("{} not in 1..=4", r.lanes_per_direction))?;
-        check(pos(r.lane_width_m) && r.lane_width_m <= 6.0, "road.lane_width_m", format!("{} not in (0, 6]", r.lane_width_m))?;
-        check(pos(r.parking_width_m) && r.parking_width_m <= 6.0, "road.parking_width_m", format!("{} not in (0, 6]", r.parking_width_m))?;
-        check(pos(r.sidewalk_width_m) && r.sidewalk_width_m <= 15.0, "road.sidewalk_width_m", format!("{} not in (0, 15]", r.sidewalk_width_m))?;
-        check(nonneg(r.kerb_height_m) && r.kerb_height_m <= 0.5, "road.kerb_height_m", format!("{} not in [0, 0.5]", r.kerb_height_m))?;
-        check(nonneg(r.setback_m) && r.setback_m <= 50.0, "road.setback_m", format!("{} not in [0, 50]", r.setback_m))?;
-        check((0.0..=1.0).contains(&r.building_frontage), "road.building_frontage", format!("{} not in [0, 1]", r.building_frontage))?;
+        check(
+            pos(r.length_m) && r.length_m <= 5000.0,
+            "road.length_m",
+            format!("{} not in (0, 5000]", r.length_m),
+        )?;
+        check(
+            (1..=4).contains(&r.lanes_per_direction),
+            "road.lanes_per_direction",
+            format!("{} not in 1..=4", r.lanes_per_direction),
+        )?;
+        check(
+            pos(r.lane_width_m) && r.lane_width_m <= 6.0,
+            "road.lane_width_m",
+            format!("{} not in (0, 6]", r.lane_width_m),
+        )?;
+        check(
+            pos(r.parking_width_m) && r.parking_width_m <= 6.0,
+            "road.parking_width_m",
+            format!("{} not in (0, 6]", r.parking_width_m),
+        )?;
+        check(
+            pos(r.sidewalk_width_m) && r.sidewalk_width_m <= 15.0,
+            "road.sidewalk_width_m",
+            format!("{} not in (0, 15]", r.sidewalk_width_m),
+        )?;
+        check(
+            nonneg(r.kerb_height_m) && r.kerb_height_m <= 0.5,
+            "road.kerb_height_m",
+            format!("{} not in [0, 0.5]", r.kerb_height_m),
+        )?;
+        check(
+            nonneg(r.setback_m) && r.setback_m <= 50.0,
+            "road.setback_m",
+            format!("{} not in [0, 50]", r.setback_m),
+        )?;
+        check(
+            (0.0..=1.0).contains(&r.building_frontage),
+            "road.building_frontage",
+            format!("{} not in [0, 1]", r.building_frontage),
+        )?;
         let [h0, h1] = r.building_height_m;
-        check(pos(h0) && h1 >= h0 && h1 <= 300.0, "road.building_height_m", format!("[{h0}, {h1}] must satisfy 0 < low <= high <= 300"))?;
+        check(
+            pos(h0) && h1 >= h0 && h1 <= 300.0,
+            "road.building_height_m",
+            format!("[{h0}, {h1}] must satisfy 0 < low <= high <= 300"),
+        )?;
         let p = &self.population;
-        check(nonneg(p.parked_vehicles_per_100m) && p.parked_vehicles_per_100m <= 50.0, "population.parked_vehicles_per_100m", "must be in [0, 50]".into())?;
+        check(
+            nonneg(p.parked_vehicles_per_100m) && p.parked_vehicles_per_100m <= 50.0,
+            "population.parked_vehicles_per_100m",
+            "must be in [0, 50]".into(),
+        )?;
         for (name, v) in [
             ("trees_per_100m", p.trees_per_100m),
             ("poles_per_100m", p.poles_per_100m),
             ("signs_per_100m", p.signs_per_100m),
             ("bushes_per_100m", p.bushes_per_100m),
         ] {
-            check(nonneg(v) && v <= 100.0, &format!("population.{name}"), format!("{v} not in [0, 100]"))?;
+            check(
+                nonneg(v) && v <= 100.0,
+                &format!("population.{name}"),
+                format!("{v} not in [0, 100]"),
+            )?;
         }
         for (name, v) in [
             ("van_fraction", p.van_fraction),
@@ -496,42 +588,108 @@ impl SceneConfig {
             ("standing_fraction", p.standing_fraction),
             ("fence_probability", p.fence_probability),
         ] {
-            check((0.0..=1.0).contains(&v), &format!("population.{name}"), format!("{v} not in [0, 1]"))?;
+            check(
+                (0.0..=1.0).contains(&v),
+                &format!("population.{name}"),
+                format!("{v} not in [0, 1]"),
+            )?;
         }
         check(
             p.van_fraction + p.truck_fraction + p.bus_fraction <= 1.0,
             "population",
             "van_fraction + truck_fraction + bus_fraction must not exceed 1".into(),
         )?;
-        for (name, v) in [("moving_vehicles", p.moving_vehicles), ("pedestrians", p.pedestrians), ("cyclists", p.cyclists)] {
-            check(v <= 500, &format!("population.{name}"), format!("{v} is more than 500"))?;
+        for (name, v) in [
+            ("moving_vehicles", p.moving_vehicles),
+            ("pedestrians", p.pedestrians),
+            ("cyclists", p.cyclists),
+        ] {
+            check(
+                v <= 500,
+                &format!("population.{name}"),
+                format!("{v} is more than 500"),
+            )?;
         }
         let e = &self.ego;
-        check(nonneg(e.speed_mps) && e.speed_mps <= 60.0, "ego.speed_mps", format!("{} not in [0, 60]", e.speed_mps))?;
-        check(e.start_x_m.is_finite() && e.start_x_m.abs() <= r.length_m / 2.0, "ego.start_x_m", format!("{} is off the street (|x| <= {})", e.start_x_m, r.length_m / 2.0))?;
-        check(pos(e.lidar_height_m) && e.lidar_height_m <= 10.0, "ego.lidar_height_m", format!("{} not in (0, 10]", e.lidar_height_m))?;
+        check(
+            nonneg(e.speed_mps) && e.speed_mps <= 60.0,
+            "ego.speed_mps",
+            format!("{} not in [0, 60]", e.speed_mps),
+        )?;
+        check(
+            e.start_x_m.is_finite() && e.start_x_m.abs() <= r.length_m / 2.0,
+            "ego.start_x_m",
+            format!(
+                "{} is off the street (|x| <= {})",
+                e.start_x_m,
+                r.length_m / 2.0
+            ),
+        )?;
+        check(
+            pos(e.lidar_height_m) && e.lidar_height_m <= 10.0,
+            "ego.lidar_height_m",
+            format!("{} not in (0, 10]", e.lidar_height_m),
+        )?;
         self.lidar.sensor()?;
         self.lidar.returns.validate()?;
         let c = &self.camera;
-        check((1..=8192).contains(&c.width) && (1..=8192).contains(&c.height), "camera", format!("size {}x{} not in 1..=8192", c.width, c.height))?;
-        check(pos(c.fx) && pos(c.fy) && c.cx.is_finite() && c.cy.is_finite(), "camera", "focal lengths must be positive and the principal point finite".into())?;
         check(
-            [c.ahead_m, c.up_m, c.cam2_left_m, c.baseline_m].iter().all(|x| x.is_finite() && x.abs() <= 5.0),
+            (1..=8192).contains(&c.width) && (1..=8192).contains(&c.height),
+            "camera",
+            format!("size {}x{} not in 1..=8192", c.width, c.height),
+        )?;
+        check(
+            pos(c.fx) && pos(c.fy) && c.cx.is_finite() && c.cy.is_finite(),
+            "camera",
+            "focal lengths must be positive and the principal point finite".into(),
+        )?;
+        check(
+            [c.ahead_m, c.up_m, c.cam2_left_m, c.baseline_m]
+                .iter()
+                .all(|x| x.is_finite() && x.abs() <= 5.0),
             "camera",
             "mounting offsets must be finite and within 5 m".into(),
         )?;
-        check(c.pitch_down_deg.is_finite() && c.pitch_down_deg.abs() <= 45.0, "camera.pitch_down_deg", "must be within [-45, 45]".into())?;
-        check((1..=8).contains(&c.samples_per_axis), "camera.samples_per_axis", format!("{} not in 1..=8", c.samples_per_axis))?;
-        let l = &self.lighting;
-        check(l.sun_azimuth_deg.is_finite() && (-90.0..=90.0).contains(&l.sun_elevation_deg), "lighting", "sun elevation must be within [-90, 90] degrees".into())?;
         check(
-            [l.sun_rgb, l.sky_ambient_rgb, l.sky_zenith_rgb, l.sky_horizon_rgb].iter().flatten().all(|x| nonneg(*x) && *x <= 100.0)
+            c.pitch_down_deg.is_finite() && c.pitch_down_deg.abs() <= 45.0,
+            "camera.pitch_down_deg",
+            "must be within [-45, 45]".into(),
+        )?;
+        check(
+            (1..=8).contains(&c.samples_per_axis),
+            "camera.samples_per_axis",
+            format!("{} not in 1..=8", c.samples_per_axis),
+        )?;
+        let l = &self.lighting;
+        check(
+            l.sun_azimuth_deg.is_finite() && (-90.0..=90.0).contains(&l.sun_elevation_deg),
+            "lighting",
+            "sun elevation must be within [-90, 90] degrees".into(),
+        )?;
+        check(
+            [
+                l.sun_rgb,
+                l.sky_ambient_rgb,
+                l.sky_zenith_rgb,
+                l.sky_horizon_rgb,
+            ]
+            .iter()
+            .flatten()
+            .all(|x| nonneg(*x) && *x <= 100.0)
                 && pos(l.exposure),
             "lighting",
             "colours must be in [0, 100] and exposure positive".into(),
         )?;
-        check(self.frames.count <= 100_000, "frames.count", format!("{} is more than 100000", self.frames.count))?;
-        check(pos(self.frames.interval_s) && self.frames.interval_s <= 10.0, "frames.interval_s", format!("{} not in (0, 10]", self.frames.interval_s))?;
+        check(
+            self.frames.count <= 100_000,
+            "frames.count",
+            format!("{} is more than 100000", self.frames.count),
+        )?;
+        check(
+            pos(self.frames.interval_s) && self.frames.interval_s <= 10.0,
+            "frames.interval_s",
+            format!("{} not in (0, 10]", self.frames.interval_s),
+        )?;
         Ok(())
     }
 }

@@ -18,9 +18,12 @@
 //!   (`s = drop_softness_decades`) the return is kept with probability `smoothstep(-1, 1, x)`
 //!   (`s = 0`: kept iff `P >= P_min`).
 //! - **Random drop** with probability `random_drop`.
-//! - **Intensity** (KITTI scale, `[0, 1]`): `I = rho cos(theta) / (1 + (R / R_half)^2)` with
-//!   `R_half = intensity_half_range_m`: the sensor's range compensation keeps near returns at their
-//!   reflectivity, far ones fade.
+//! - **Intensity** (KITTI scale, `[0, 1]`): `I = rho g(cos theta) / (1 + (R / R_half)^2)` with
+//!   `g(c) = (1 + c0^2) c^2 / (c^2 + c0^2)` (`c0 = incidence_knee`, `R_half = intensity_half_range_m`).
+//!   Real Velodyne intensities are range- and angle-compensated: in SemanticKITTI a road seen at
+//!   `cos(theta) ~ 0.2` still reports ~0.22 near the car but fades to ~0.015 beyond 30 m, which a
+//!   Lambertian `cos(theta)` cannot give; `g` is flat down to `c ~ 2 c0` and falls like `c^2` at
+//!   grazing incidence. Detection (above) keeps the physical `cos(theta) / R^2` power.
 //! - **Range noise**: Gaussian with standard deviation `range_noise_m` along the ray (0 = exact).
 //!
 //! Every random decision uses a hash of (frame seed, pixel index), never a shared generator, so the
@@ -88,6 +91,13 @@ pub(crate) fn hash_unit(seed: u64, pixel: u64, stream: u64) -> f32 {
     (h >> 40) as f32 / (1u64 << 24) as f32
 }
 
+/// The incidence term `g(c) = (1 + c0^2) c^2 / (c^2 + c0^2)` of the intensity (`g(1) = 1`, `g(0) = 0`;
+/// `c0 = 0` gives 1 everywhere).
+pub fn incidence_gain(cos: f32, knee: f32) -> f32 {
+    let (c2, k2) = (cos * cos, knee * knee);
+    if c2 + k2 <= 0.0 { 1.0 } else { (1.0 + k2) * c2 / (c2 + k2) }
+}
+
 fn smoothstep(x: f32) -> f32 {
     let t = ((x + 1.0) * 0.5).clamp(0.0, 1.0);
     t * t * (3.0 - 2.0 * t)
@@ -108,7 +118,12 @@ impl SceneSnapshot {
     }
 
     /// Render a scan of `sensor` mounted at `world_from_lidar` (rotation and translation only).
-    pub fn render_lidar_at(&self, sensor: &LidarSensor, model: &LidarReturnModel, world_from_lidar: Affine3A) -> Result<SimScan> {
+    pub fn render_lidar_at(
+        &self,
+        sensor: &LidarSensor,
+        model: &LidarReturnModel,
+        world_from_lidar: Affine3A,
+    ) -> Result<SimScan> {
         model.validate()?;
         let rays = RayTable::new(sensor)?;
         let origin = Vec3::from(world_from_lidar.translation);
@@ -131,7 +146,11 @@ impl SceneSnapshot {
         let mut outcome = Vec::with_capacity(n);
         let mut surface_range_m = Vec::with_capacity(n);
         let mut surface_label = Vec::with_capacity(n);
-        let mut cloud = PointCloud { ring: Some(Vec::new()), label: Some(Vec::new()), ..Default::default() };
+        let mut cloud = PointCloud {
+            ring: Some(Vec::new()),
+            label: Some(Vec::new()),
+            ..Default::default()
+        };
         for (k, r) in per_pixel.into_iter().enumerate() {
             outcome.push(r.outcome);
             surface_range_m.push(r.surface_range_m);
@@ -157,17 +176,43 @@ impl SceneSnapshot {
             }
         }
         image.label = Some(labels_img);
-        Ok(SimScan { points: cloud, range_image: image, outcome, surface_range_m, surface_label })
+        Ok(SimScan {
+            points: cloud,
+            range_image: image,
+            outcome,
+            surface_range_m,
+            surface_label,
+        })
     }
 
-    fn cast_lidar_ray(&self, origin: Vec3, dir: Vec3, sensor: &LidarSensor, m: &LidarReturnModel, seed: u64, pixel: u64) -> RayResult {
-        let none = |outcome| RayResult { outcome, range_m: 0.0, surface_range_m: 0.0, intensity: 0.0, label: 0 };
+    fn cast_lidar_ray(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        sensor: &LidarSensor,
+        m: &LidarReturnModel,
+        seed: u64,
+        pixel: u64,
+    ) -> RayResult {
+        let none = |outcome| RayResult {
+            outcome,
+            range_m: 0.0,
+            surface_range_m: 0.0,
+            intensity: 0.0,
+            label: 0,
+        };
         let Some(hit) = self.accel.closest_hit(origin, dir, 0.0, sensor.max_range_m) else {
             return none(RayOutcome::NoHit);
         };
         let t = hit.t;
         let label = u32::from(hit.surface.material.class) | (u32::from(hit.surface.instance) << 16);
-        let mut res = RayResult { outcome: RayOutcome::Return, range_m: t, surface_range_m: t, intensity: 0.0, label };
+        let mut res = RayResult {
+            outcome: RayOutcome::Return,
+            range_m: t,
+            surface_range_m: t,
+            intensity: 0.0,
+            label,
+        };
         if t < sensor.min_range_m {
             res.outcome = RayOutcome::TooNear;
             return res;
@@ -182,7 +227,11 @@ impl SceneSnapshot {
             // P / P_min = rho cos (100 / R)^2 / min_reflectivity_at_100m
             let ratio = rho * cos * (100.0 / t).powi(2) / m.min_reflectivity_at_100m;
             let keep = if m.drop_softness_decades > 0.0 {
-                let x = if ratio > 0.0 { ratio.log10() / m.drop_softness_decades } else { f32::NEG_INFINITY };
+                let x = if ratio > 0.0 {
+                    ratio.log10() / m.drop_softness_decades
+                } else {
+                    f32::NEG_INFINITY
+                };
                 hash_unit(seed, pixel, 1) < smoothstep(x)
             } else {
                 ratio >= 1.0
@@ -204,7 +253,7 @@ impl SceneSnapshot {
             res.range_m = (t + m.range_noise_m * z).max(sensor.min_range_m);
         }
         let falloff = 1.0 / (1.0 + (t / m.intensity_half_range_m).powi(2));
-        res.intensity = (rho * cos * falloff).clamp(0.0, 1.0);
+        res.intensity = (rho * incidence_gain(cos, m.incidence_knee) * falloff).clamp(0.0, 1.0);
         res
     }
 }

@@ -72,14 +72,39 @@ impl Mesh {
 
     /// Add an axis-aligned horizontal rectangle `[x0, x1] x [y0, y1]` at height `z`, split into
     /// tiles of at most `tile_m` metres so that the BVH stays tight around large ground areas.
-    pub fn add_ground_rect(&mut self, x0: f32, x1: f32, y0: f32, y1: f32, z: f32, tile_m: f32, surface: u32) {
+    pub fn add_ground_rect(
+        &mut self,
+        x0: f32,
+        x1: f32,
+        y0: f32,
+        y1: f32,
+        z: f32,
+        tile_m: f32,
+        surface: u32,
+    ) {
         let (x0, x1) = (x0.min(x1), x0.max(x1));
         let (y0, y1) = (y0.min(y1), y0.max(y1));
         let nx = ((x1 - x0) / tile_m).ceil().max(1.0) as usize;
         let ny = ((y1 - y0) / tile_m).ceil().max(1.0) as usize;
         // Vertices shared exactly between neighbouring tiles (same float expression) keep it watertight.
-        let xs: Vec<f32> = (0..=nx).map(|i| if i == nx { x1 } else { x0 + (x1 - x0) * i as f32 / nx as f32 }).collect();
-        let ys: Vec<f32> = (0..=ny).map(|j| if j == ny { y1 } else { y0 + (y1 - y0) * j as f32 / ny as f32 }).collect();
+        let xs: Vec<f32> = (0..=nx)
+            .map(|i| {
+                if i == nx {
+                    x1
+                } else {
+                    x0 + (x1 - x0) * i as f32 / nx as f32
+                }
+            })
+            .collect();
+        let ys: Vec<f32> = (0..=ny)
+            .map(|j| {
+                if j == ny {
+                    y1
+                } else {
+                    y0 + (y1 - y0) * j as f32 / ny as f32
+                }
+            })
+            .collect();
         for i in 0..nx {
             for j in 0..ny {
                 self.add_quad(
@@ -123,17 +148,36 @@ impl Mesh {
     /// Add an axis-aligned box `[min, max]` (no rotation).
     pub fn add_aabb(&mut self, min: Vec3, max: Vec3, surface: u32) {
         let centre = (min + max) * 0.5;
-        self.add_box(Affine3A::from_translation(centre), (max - min) * 0.5, surface);
+        self.add_box(
+            Affine3A::from_translation(centre),
+            (max - min) * 0.5,
+            surface,
+        );
     }
 
     /// Add a cylinder of `radius` around the local z axis from `z = 0` to `z = height`, with
     /// `segments` sides and both caps, placed by `world_from_local`.
-    pub fn add_cylinder(&mut self, world_from_local: Affine3A, radius: f32, height: f32, segments: u32, surface: u32) {
+    pub fn add_cylinder(
+        &mut self,
+        world_from_local: Affine3A,
+        radius: f32,
+        height: f32,
+        segments: u32,
+        surface: u32,
+    ) {
         self.add_frustum(world_from_local, radius, radius, height, segments, surface);
     }
 
     /// Add a truncated cone (bottom radius `r0` at `z = 0`, top radius `r1` at `z = height`) with caps.
-    pub fn add_frustum(&mut self, world_from_local: Affine3A, r0: f32, r1: f32, height: f32, segments: u32, surface: u32) {
+    pub fn add_frustum(
+        &mut self,
+        world_from_local: Affine3A,
+        r0: f32,
+        r1: f32,
+        height: f32,
+        segments: u32,
+        surface: u32,
+    ) {
         let n = segments.max(3);
         let ring = |r: f32, z: f32, i: u32| {
             let a = std::f32::consts::TAU * (i % n) as f32 / n as f32;
@@ -152,12 +196,23 @@ impl Mesh {
 
     /// Add an ellipsoid with semi-axes `radii` around the local origin (a UV sphere with `lon`
     /// segments around and `lat` segments from pole to pole), placed by `world_from_local`.
-    pub fn add_ellipsoid(&mut self, world_from_local: Affine3A, radii: Vec3, lon: u32, lat: u32, surface: u32) {
+    pub fn add_ellipsoid(
+        &mut self,
+        world_from_local: Affine3A,
+        radii: Vec3,
+        lon: u32,
+        lat: u32,
+        surface: u32,
+    ) {
         let (lon, lat) = (lon.max(3), lat.max(2));
         let p = |i: u32, j: u32| {
             let phi = std::f32::consts::TAU * (i % lon) as f32 / lon as f32;
             let theta = std::f32::consts::PI * j as f32 / lat as f32;
-            let local = Vec3::new(theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos()) * radii;
+            let local = Vec3::new(
+                theta.sin() * phi.cos(),
+                theta.sin() * phi.sin(),
+                theta.cos(),
+            ) * radii;
             world_from_local.transform_point3(local)
         };
         for j in 0..lat {
@@ -172,15 +227,30 @@ impl Mesh {
 
     /// Append another mesh (its surfaces are merged into this mesh's table).
     pub fn append(&mut self, other: &Mesh) {
-        let map: Vec<u32> = other.surfaces.iter().map(|s| self.surface(s.material, s.instance)).collect();
+        let map: Vec<u32> = other
+            .surfaces
+            .iter()
+            .map(|s| self.surface(s.material, s.instance))
+            .collect();
         self.triangles.extend_from_slice(&other.triangles);
-        self.surface_of.extend(other.surface_of.iter().map(|s| map[*s as usize]));
+        self.surface_of
+            .extend(other.surface_of.iter().map(|s| map[*s as usize]));
     }
 
     /// Append another mesh moved by `world_from_local`.
     pub fn append_transformed(&mut self, other: &Mesh, world_from_local: Affine3A) {
-        let map: Vec<u32> = other.surfaces.iter().map(|s| self.surface(s.material, s.instance)).collect();
-        self.triangles.extend(other.triangles.iter().map(|t| t.map(|v| world_from_local.transform_point3(v))));
-        self.surface_of.extend(other.surface_of.iter().map(|s| map[*s as usize]));
+        let map: Vec<u32> = other
+            .surfaces
+            .iter()
+            .map(|s| self.surface(s.material, s.instance))
+            .collect();
+        self.triangles.extend(
+            other
+                .triangles
+                .iter()
+                .map(|t| t.map(|v| world_from_local.transform_point3(v))),
+        );
+        self.surface_of
+            .extend(other.surface_of.iter().map(|s| map[*s as usize]));
     }
 }

@@ -10,7 +10,8 @@
 //! - [`Scene::snapshot`]: the world at one frame with its BVH ([`Accel`]) and the ego's LiDAR pose;
 //!   [`SceneSnapshot::render_lidar`] gives a [`SimScan`] (points with intensity, ring and label, range
 //!   image, per-ray outcome), [`SceneSnapshot::render_camera`] a [`SimImage`] (RGB, depth, semantics).
-//! - [`simulate_to_dir`]: frames in the KITTI layout (see [`output`]).
+//! - [`simulate_to_dir`]: frames in the KITTI layout (see [`output`]); [`SceneList`]: train / test
+//!   splits of scene files and seeds (`scenes/train.txt`, `scenes/test.txt`).
 //!
 //! Everything is deterministic in (config, seed) and independent of the number of threads.
 //!
@@ -43,11 +44,12 @@ pub mod objects;
 pub mod output;
 pub mod raycast;
 pub mod scene;
+pub mod split;
 
 pub use camera::{CameraRenderOptions, SimCalib, SimImage};
 pub use config::{
-    CameraConfig, EgoConfig, FramesConfig, Layout, LidarConfig, LidarReturnModel, LightingConfig, PopulationConfig,
-    RoadConfig, RoadParams, SceneConfig,
+    CameraConfig, EgoConfig, FramesConfig, Layout, LidarConfig, LidarReturnModel, LightingConfig,
+    PopulationConfig, RoadConfig, RoadParams, SceneConfig,
 };
 pub use lidar::{RayOutcome, SimScan};
 pub use material::{Material, class};
@@ -55,3 +57,4 @@ pub use mesh::{Mesh, Surface};
 pub use output::{FramePaths, SimSummary, simulate_to_dir, write_frame};
 pub use raycast::{Accel, Hit};
 pub use scene::{Actor, Scene, SceneSnapshot};
+pub use split::{SceneList, SceneListEntry};

@@ -36,14 +36,14 @@ impl VehicleKind {
 }
 
 const PAINTS: [([f32; 3], f32); 8] = [
-    ([0.75, 0.75, 0.75], 0.55), // white
-    ([0.45, 0.46, 0.48], 0.4),  // silver
+    ([0.75, 0.75, 0.75], 0.55),  // white
+    ([0.45, 0.46, 0.48], 0.4),   // silver
     ([0.03, 0.03, 0.035], 0.06), // black
-    ([0.04, 0.07, 0.2], 0.15),  // dark blue
-    ([0.45, 0.04, 0.03], 0.3),  // red
-    ([0.2, 0.2, 0.21], 0.2),    // grey
-    ([0.05, 0.15, 0.07], 0.15), // dark green
-    ([0.6, 0.45, 0.1], 0.35),   // yellow-brown
+    ([0.04, 0.07, 0.2], 0.15),   // dark blue
+    ([0.45, 0.04, 0.03], 0.3),   // red
+    ([0.2, 0.2, 0.21], 0.2),     // grey
+    ([0.05, 0.15, 0.07], 0.15),  // dark green
+    ([0.6, 0.45, 0.1], 0.35),    // yellow-brown
 ];
 
 fn paint(rng: &mut ChaCha8Rng, class: u16) -> Material {
@@ -57,7 +57,8 @@ fn relabel(m: Material, class: u16) -> Material {
 
 fn wheel(mesh: &mut Mesh, x: f32, y: f32, r: f32, w: f32, surf: u32) {
     // axis along y: rotate the local z axis onto y
-    let xf = Affine3A::from_translation(Vec3::new(x, y - w / 2.0, r)) * Affine3A::from_quat(Quat::from_rotation_x(-std::f32::consts::FRAC_PI_2));
+    let xf = Affine3A::from_translation(Vec3::new(x, y - w / 2.0, r))
+        * Affine3A::from_quat(Quat::from_rotation_x(-std::f32::consts::FRAC_PI_2));
     mesh.add_cylinder(xf, r, w, 12, surf);
 }
 
@@ -77,7 +78,11 @@ pub fn vehicle(rng: &mut ChaCha8Rng, kind: VehicleKind, class: u16, instance: u1
             let r = 0.31;
             length = l;
             // lower body
-            m.add_aabb(Vec3::new(-l / 2.0, -w / 2.0, 0.28), Vec3::new(l / 2.0, w / 2.0, 0.95), body);
+            m.add_aabb(
+                Vec3::new(-l / 2.0, -w / 2.0, 0.28),
+                Vec3::new(l / 2.0, w / 2.0, 0.95),
+                body,
+            );
             // greenhouse: glass band + roof
             let cab_l = l * rng.random_range(0.48..0.58f32);
             let cab_x = -l * 0.06;
@@ -103,10 +108,22 @@ pub fn vehicle(rng: &mut ChaCha8Rng, kind: VehicleKind, class: u16, instance: u1
             let w = rng.random_range(1.9..2.05f32);
             let h = rng.random_range(1.95..2.5f32);
             length = l;
-            m.add_aabb(Vec3::new(-l / 2.0, -w / 2.0, 0.32), Vec3::new(l / 2.0 - 0.9, w / 2.0, h), body);
+            m.add_aabb(
+                Vec3::new(-l / 2.0, -w / 2.0, 0.32),
+                Vec3::new(l / 2.0 - 0.9, w / 2.0, h),
+                body,
+            );
             // sloped front: bonnet box + windscreen block
-            m.add_aabb(Vec3::new(l / 2.0 - 0.9, -w / 2.0, 0.32), Vec3::new(l / 2.0, w / 2.0, 1.05), body);
-            m.add_aabb(Vec3::new(l / 2.0 - 0.9, -w / 2.0 + 0.08, 1.05), Vec3::new(l / 2.0 - 0.35, w / 2.0 - 0.08, h - 0.15), glass);
+            m.add_aabb(
+                Vec3::new(l / 2.0 - 0.9, -w / 2.0, 0.32),
+                Vec3::new(l / 2.0, w / 2.0, 1.05),
+                body,
+            );
+            m.add_aabb(
+                Vec3::new(l / 2.0 - 0.9, -w / 2.0 + 0.08, 1.05),
+                Vec3::new(l / 2.0 - 0.35, w / 2.0 - 0.08, h - 0.15),
+                glass,
+            );
             for x in [l / 2.0 - 0.9, -l / 2.0 + 0.9] {
                 for y in [-w / 2.0 + 0.12, w / 2.0 - 0.12] {
                     wheel(&mut m, x, y, 0.34, 0.22, tyre);
@@ -121,12 +138,28 @@ pub fn vehicle(rng: &mut ChaCha8Rng, kind: VehicleKind, class: u16, instance: u1
             length = l;
             let cargo = m.surface(Material::new([0.7, 0.7, 0.68], 0.5, class), instance);
             let x0 = -l / 2.0;
-            m.add_aabb(Vec3::new(x0, -w / 2.0, 1.0), Vec3::new(x0 + cargo_l, w / 2.0, rng.random_range(3.3..3.9f32)), cargo);
+            m.add_aabb(
+                Vec3::new(x0, -w / 2.0, 1.0),
+                Vec3::new(x0 + cargo_l, w / 2.0, rng.random_range(3.3..3.9f32)),
+                cargo,
+            );
             m.add_aabb(Vec3::new(x0, -0.5, 0.6), Vec3::new(l / 2.0, 0.5, 1.0), body); // chassis
             let cx = l / 2.0 - cab_l;
-            m.add_aabb(Vec3::new(cx, -w / 2.0 + 0.05, 0.6), Vec3::new(l / 2.0, w / 2.0 - 0.05, 2.0), body);
-            m.add_aabb(Vec3::new(cx, -w / 2.0 + 0.08, 2.0), Vec3::new(l / 2.0 - 0.05, w / 2.0 - 0.08, 2.7), glass);
-            m.add_aabb(Vec3::new(cx, -w / 2.0 + 0.05, 2.7), Vec3::new(l / 2.0, w / 2.0 - 0.05, 3.0), body);
+            m.add_aabb(
+                Vec3::new(cx, -w / 2.0 + 0.05, 0.6),
+                Vec3::new(l / 2.0, w / 2.0 - 0.05, 2.0),
+                body,
+            );
+            m.add_aabb(
+                Vec3::new(cx, -w / 2.0 + 0.08, 2.0),
+                Vec3::new(l / 2.0 - 0.05, w / 2.0 - 0.08, 2.7),
+                glass,
+            );
+            m.add_aabb(
+                Vec3::new(cx, -w / 2.0 + 0.05, 2.7),
+                Vec3::new(l / 2.0, w / 2.0 - 0.05, 3.0),
+                body,
+            );
             for x in [l / 2.0 - 1.2, x0 + 1.0, x0 + 2.4] {
                 for y in [-w / 2.0 + 0.15, w / 2.0 - 0.15] {
                     wheel(&mut m, x, y, 0.5, 0.3, tyre);
@@ -138,9 +171,21 @@ pub fn vehicle(rng: &mut ChaCha8Rng, kind: VehicleKind, class: u16, instance: u1
             let w = 2.55;
             let h = 3.1;
             length = l;
-            m.add_aabb(Vec3::new(-l / 2.0, -w / 2.0, 0.35), Vec3::new(l / 2.0, w / 2.0, 1.2), body);
-            m.add_aabb(Vec3::new(-l / 2.0 + 0.05, -w / 2.0 + 0.03, 1.2), Vec3::new(l / 2.0 - 0.05, w / 2.0 - 0.03, 2.5), glass);
-            m.add_aabb(Vec3::new(-l / 2.0, -w / 2.0, 2.5), Vec3::new(l / 2.0, w / 2.0, h), body);
+            m.add_aabb(
+                Vec3::new(-l / 2.0, -w / 2.0, 0.35),
+                Vec3::new(l / 2.0, w / 2.0, 1.2),
+                body,
+            );
+            m.add_aabb(
+                Vec3::new(-l / 2.0 + 0.05, -w / 2.0 + 0.03, 1.2),
+                Vec3::new(l / 2.0 - 0.05, w / 2.0 - 0.03, 2.5),
+                glass,
+            );
+            m.add_aabb(
+                Vec3::new(-l / 2.0, -w / 2.0, 2.5),
+                Vec3::new(l / 2.0, w / 2.0, h),
+                body,
+            );
             for x in [l / 2.0 - 2.5, -l / 2.0 + 3.0] {
                 for y in [-w / 2.0 + 0.15, w / 2.0 - 0.15] {
                     wheel(&mut m, x, y, 0.5, 0.3, tyre);
@@ -153,8 +198,16 @@ pub fn vehicle(rng: &mut ChaCha8Rng, kind: VehicleKind, class: u16, instance: u1
             let h = rng.random_range(2.2..2.7f32);
             length = l + 1.0;
             let shell = m.surface(Material::new([0.78, 0.78, 0.75], 0.55, class), instance);
-            m.add_aabb(Vec3::new(-length / 2.0, -w / 2.0, 0.45), Vec3::new(-length / 2.0 + l, w / 2.0, h), shell);
-            m.add_aabb(Vec3::new(-length / 2.0 + l, -0.06, 0.4), Vec3::new(length / 2.0, 0.06, 0.5), body); // drawbar
+            m.add_aabb(
+                Vec3::new(-length / 2.0, -w / 2.0, 0.45),
+                Vec3::new(-length / 2.0 + l, w / 2.0, h),
+                shell,
+            );
+            m.add_aabb(
+                Vec3::new(-length / 2.0 + l, -0.06, 0.4),
+                Vec3::new(length / 2.0, 0.06, 0.5),
+                body,
+            ); // drawbar
             for y in [-w / 2.0 + 0.15, w / 2.0 - 0.15] {
                 wheel(&mut m, -length / 2.0 + l * 0.5, y, 0.33, 0.2, tyre);
             }
@@ -167,19 +220,46 @@ pub fn vehicle(rng: &mut ChaCha8Rng, kind: VehicleKind, class: u16, instance: u1
 pub fn person(rng: &mut ChaCha8Rng, class: u16, instance: u16) -> Mesh {
     let mut m = Mesh::new();
     let s = rng.random_range(0.9..1.08f32);
-    let shirt = [[0.5, 0.1, 0.1], [0.1, 0.2, 0.45], [0.6, 0.6, 0.55], [0.1, 0.1, 0.1], [0.3, 0.4, 0.2]];
-    let top = m.surface(Material::new(shirt[rng.random_range(0..shirt.len())], 0.35, class), instance);
+    let shirt = [
+        [0.5, 0.1, 0.1],
+        [0.1, 0.2, 0.45],
+        [0.6, 0.6, 0.55],
+        [0.1, 0.1, 0.1],
+        [0.3, 0.4, 0.2],
+    ];
+    let top = m.surface(
+        Material::new(shirt[rng.random_range(0..shirt.len())], 0.35, class),
+        instance,
+    );
     let legs = m.surface(Material::new([0.08, 0.09, 0.15], 0.25, class), instance);
     let skin = m.surface(relabel(stock::SKIN, class), instance);
     let stride = rng.random_range(-0.18..0.18f32);
     for (y, dx) in [(0.1, stride), (-0.1, -stride)] {
-        m.add_aabb(Vec3::new(dx - 0.07, y - 0.07, 0.0), Vec3::new(dx + 0.09, y + 0.07, 0.86 * s), legs);
+        m.add_aabb(
+            Vec3::new(dx - 0.07, y - 0.07, 0.0),
+            Vec3::new(dx + 0.09, y + 0.07, 0.86 * s),
+            legs,
+        );
     }
-    m.add_aabb(Vec3::new(-0.12, -0.21, 0.86 * s), Vec3::new(0.12, 0.21, 1.45 * s), top);
+    m.add_aabb(
+        Vec3::new(-0.12, -0.21, 0.86 * s),
+        Vec3::new(0.12, 0.21, 1.45 * s),
+        top,
+    );
     for y in [0.26, -0.26] {
-        m.add_aabb(Vec3::new(-0.06, y - 0.05, 0.85 * s), Vec3::new(0.06, y + 0.05, 1.42 * s), top);
+        m.add_aabb(
+            Vec3::new(-0.06, y - 0.05, 0.85 * s),
+            Vec3::new(0.06, y + 0.05, 1.42 * s),
+            top,
+        );
     }
-    m.add_ellipsoid(Affine3A::from_translation(Vec3::new(0.0, 0.0, 1.58 * s)), Vec3::new(0.1, 0.09, 0.12) * s, 8, 5, skin);
+    m.add_ellipsoid(
+        Affine3A::from_translation(Vec3::new(0.0, 0.0, 1.58 * s)),
+        Vec3::new(0.1, 0.09, 0.12) * s,
+        8,
+        5,
+        skin,
+    );
     m
 }
 
@@ -195,14 +275,37 @@ pub fn cyclist(rng: &mut ChaCha8Rng, class: u16, instance: u16) -> Mesh {
     for x in [0.52, -0.52] {
         wheel(&mut m, x, 0.0, 0.34, 0.05, tyre);
     }
-    m.add_aabb(Vec3::new(-0.5, -0.03, 0.5), Vec3::new(0.45, 0.03, 0.6), frame);
-    m.add_aabb(Vec3::new(0.35, -0.03, 0.35), Vec3::new(0.42, 0.03, 1.0), frame);
-    m.add_aabb(Vec3::new(0.36, -0.28, 0.98), Vec3::new(0.42, 0.28, 1.02), frame);
-    m.add_aabb(Vec3::new(-0.3, -0.1, 0.45), Vec3::new(-0.05, 0.1, 0.95), legs);
+    m.add_aabb(
+        Vec3::new(-0.5, -0.03, 0.5),
+        Vec3::new(0.45, 0.03, 0.6),
+        frame,
+    );
+    m.add_aabb(
+        Vec3::new(0.35, -0.03, 0.35),
+        Vec3::new(0.42, 0.03, 1.0),
+        frame,
+    );
+    m.add_aabb(
+        Vec3::new(0.36, -0.28, 0.98),
+        Vec3::new(0.42, 0.28, 1.02),
+        frame,
+    );
+    m.add_aabb(
+        Vec3::new(-0.3, -0.1, 0.45),
+        Vec3::new(-0.05, 0.1, 0.95),
+        legs,
+    );
     // rider torso leaning forward
-    let torso = Affine3A::from_translation(Vec3::new(-0.05, 0.0, 1.25)) * Affine3A::from_quat(Quat::from_rotation_y(0.6));
+    let torso = Affine3A::from_translation(Vec3::new(-0.05, 0.0, 1.25))
+        * Affine3A::from_quat(Quat::from_rotation_y(0.6));
     m.add_box(torso, Vec3::new(0.12, 0.2, 0.3), top);
-    m.add_ellipsoid(Affine3A::from_translation(Vec3::new(0.2, 0.0, 1.58)), Vec3::new(0.11, 0.1, 0.12), 8, 5, skin);
+    m.add_ellipsoid(
+        Affine3A::from_translation(Vec3::new(0.2, 0.0, 1.58)),
+        Vec3::new(0.11, 0.1, 0.12),
+        8,
+        5,
+        skin,
+    );
     m
 }
 
@@ -214,9 +317,19 @@ pub fn tree(rng: &mut ChaCha8Rng) -> Mesh {
     let h = rng.random_range(2.2..4.0f32);
     let r = rng.random_range(0.12..0.28f32);
     m.add_frustum(Affine3A::IDENTITY, r, r * 0.7, h + 0.5, 8, trunk);
-    let cr = Vec3::new(rng.random_range(1.4..2.8f32), 0.0, rng.random_range(1.6..3.2f32));
+    let cr = Vec3::new(
+        rng.random_range(1.4..2.8f32),
+        0.0,
+        rng.random_range(1.6..3.2f32),
+    );
     let radii = Vec3::new(cr.x, cr.x * rng.random_range(0.85..1.15f32), cr.z);
-    m.add_ellipsoid(Affine3A::from_translation(Vec3::new(0.0, 0.0, h + radii.z * 0.8)), radii, 12, 7, leaves);
+    m.add_ellipsoid(
+        Affine3A::from_translation(Vec3::new(0.0, 0.0, h + radii.z * 0.8)),
+        radii,
+        12,
+        7,
+        leaves,
+    );
     m
 }
 
@@ -224,8 +337,18 @@ pub fn tree(rng: &mut ChaCha8Rng) -> Mesh {
 pub fn bush(rng: &mut ChaCha8Rng) -> Mesh {
     let mut m = Mesh::new();
     let leaves = m.surface(stock::VEGETATION, 0);
-    let r = Vec3::new(rng.random_range(0.5..1.4f32), rng.random_range(0.5..1.4f32), rng.random_range(0.4..1.0f32));
-    m.add_ellipsoid(Affine3A::from_translation(Vec3::new(0.0, 0.0, r.z * 0.7)), r, 10, 5, leaves);
+    let r = Vec3::new(
+        rng.random_range(0.5..1.4f32),
+        rng.random_range(0.5..1.4f32),
+        rng.random_range(0.4..1.0f32),
+    );
+    m.add_ellipsoid(
+        Affine3A::from_translation(Vec3::new(0.0, 0.0, r.z * 0.7)),
+        r,
+        10,
+        5,
+        leaves,
+    );
     m
 }
 
@@ -236,8 +359,16 @@ pub fn street_light(rng: &mut ChaCha8Rng) -> Mesh {
     let h = rng.random_range(5.5..8.0f32);
     m.add_frustum(Affine3A::IDENTITY, 0.1, 0.07, h, 8, pole);
     let arm = rng.random_range(1.0..2.0f32);
-    m.add_aabb(Vec3::new(-0.04, 0.0, h - 0.08), Vec3::new(0.04, arm, h), pole);
-    m.add_aabb(Vec3::new(-0.15, arm - 0.5, h - 0.2), Vec3::new(0.15, arm, h - 0.05), pole);
+    m.add_aabb(
+        Vec3::new(-0.04, 0.0, h - 0.08),
+        Vec3::new(0.04, arm, h),
+        pole,
+    );
+    m.add_aabb(
+        Vec3::new(-0.15, arm - 0.5, h - 0.2),
+        Vec3::new(0.15, arm, h - 0.05),
+        pole,
+    );
     m
 }
 
@@ -245,16 +376,33 @@ pub fn street_light(rng: &mut ChaCha8Rng) -> Mesh {
 pub fn traffic_sign(rng: &mut ChaCha8Rng) -> Mesh {
     let mut m = Mesh::new();
     let pole = m.surface(stock::POLE, 0);
-    let colours = [[0.7, 0.05, 0.05], [0.05, 0.15, 0.6], [0.8, 0.7, 0.1], [0.8, 0.8, 0.8]];
-    let plate = m.surface(Material::new(colours[rng.random_range(0..colours.len())], 0.95, class::TRAFFIC_SIGN), 0);
+    let colours = [
+        [0.7, 0.05, 0.05],
+        [0.05, 0.15, 0.6],
+        [0.8, 0.7, 0.1],
+        [0.8, 0.8, 0.8],
+    ];
+    let plate = m.surface(
+        Material::new(
+            colours[rng.random_range(0..colours.len())],
+            0.95,
+            class::TRAFFIC_SIGN,
+        ),
+        0,
+    );
     let h = rng.random_range(2.0..2.6f32);
     m.add_cylinder(Affine3A::IDENTITY, 0.04, h, 6, pole);
     if rng.random_bool(0.5) {
         // round plate: a thin disc facing +x
-        let xf = Affine3A::from_translation(Vec3::new(0.05, 0.0, h + 0.3)) * Affine3A::from_quat(Quat::from_rotation_y(std::f32::consts::FRAC_PI_2));
+        let xf = Affine3A::from_translation(Vec3::new(0.05, 0.0, h + 0.3))
+            * Affine3A::from_quat(Quat::from_rotation_y(std::f32::consts::FRAC_PI_2));
         m.add_cylinder(xf, 0.32, 0.03, 16, plate);
     } else {
-        m.add_aabb(Vec3::new(0.05, -0.32, h), Vec3::new(0.08, 0.32, h + 0.64), plate);
+        m.add_aabb(
+            Vec3::new(0.05, -0.32, h),
+            Vec3::new(0.08, 0.32, h + 0.64),
+            plate,
+        );
     }
     m
 }
@@ -263,7 +411,10 @@ pub fn traffic_sign(rng: &mut ChaCha8Rng) -> Mesh {
 pub fn traffic_light() -> Mesh {
     let mut m = Mesh::new();
     let pole = m.surface(stock::POLE, 0);
-    let head = m.surface(Material::new([0.05, 0.05, 0.05], 0.2, class::TRAFFIC_SIGN), 0);
+    let head = m.surface(
+        Material::new([0.05, 0.05, 0.05], 0.2, class::TRAFFIC_SIGN),
+        0,
+    );
     m.add_cylinder(Affine3A::IDENTITY, 0.07, 3.0, 8, pole);
     m.add_aabb(Vec3::new(0.0, -0.17, 2.9), Vec3::new(0.3, 0.17, 3.85), head);
     m
@@ -273,7 +424,11 @@ pub fn traffic_light() -> Mesh {
 pub fn fence(length: f32, height: f32) -> Mesh {
     let mut m = Mesh::new();
     let f = m.surface(stock::FENCE, 0);
-    m.add_aabb(Vec3::new(-length / 2.0, -0.03, 0.0), Vec3::new(length / 2.0, 0.03, height), f);
+    m.add_aabb(
+        Vec3::new(-length / 2.0, -0.03, 0.0),
+        Vec3::new(length / 2.0, 0.03, height),
+        f,
+    );
     m
 }
 
@@ -283,17 +438,21 @@ pub fn hedge(rng: &mut ChaCha8Rng, length: f32) -> Mesh {
     let f = m.surface(stock::VEGETATION, 0);
     let h = rng.random_range(0.8..1.8f32);
     let w = rng.random_range(0.5..0.9f32);
-    m.add_aabb(Vec3::new(-length / 2.0, -w / 2.0, 0.0), Vec3::new(length / 2.0, w / 2.0, h), f);
+    m.add_aabb(
+        Vec3::new(-length / 2.0, -w / 2.0, 0.0),
+        Vec3::new(length / 2.0, w / 2.0, h),
+        f,
+    );
     m
 }
 
 const FACADES: [([f32; 3], f32); 6] = [
-    ([0.62, 0.56, 0.45], 0.5),
-    ([0.72, 0.72, 0.7], 0.6),
-    ([0.42, 0.19, 0.13], 0.35),
-    ([0.42, 0.42, 0.42], 0.4),
-    ([0.7, 0.62, 0.35], 0.5),
-    ([0.55, 0.6, 0.62], 0.45),
+    ([0.62, 0.56, 0.45], 0.65),
+    ([0.72, 0.72, 0.7], 0.75),
+    ([0.42, 0.19, 0.13], 0.5),
+    ([0.42, 0.42, 0.42], 0.55),
+    ([0.7, 0.62, 0.35], 0.65),
+    ([0.55, 0.6, 0.62], 0.6),
 ];
 
 /// A building of `width` along local x, `depth` along -y (the facade at y = 0 faces +y, the street)
@@ -304,8 +463,16 @@ pub fn building(rng: &mut ChaCha8Rng, width: f32, depth: f32, height: f32) -> Me
     let wall = m.surface(Material::new(albedo, refl, class::BUILDING), 0);
     let window = m.surface(Material::new([0.04, 0.05, 0.06], 0.1, class::BUILDING), 0);
     let roof = m.surface(Material::new([0.15, 0.13, 0.12], 0.15, class::BUILDING), 0);
-    m.add_aabb(Vec3::new(-width / 2.0, -depth, 0.0), Vec3::new(width / 2.0, 0.0, height - 0.3), wall);
-    m.add_aabb(Vec3::new(-width / 2.0 - 0.1, -depth - 0.1, height - 0.3), Vec3::new(width / 2.0 + 0.1, 0.1, height), roof);
+    m.add_aabb(
+        Vec3::new(-width / 2.0, -depth, 0.0),
+        Vec3::new(width / 2.0, 0.0, height - 0.3),
+        wall,
+    );
+    m.add_aabb(
+        Vec3::new(-width / 2.0 - 0.1, -depth - 0.1, height - 0.3),
+        Vec3::new(width / 2.0 + 0.1, 0.1, height),
+        roof,
+    );
     // windows: a grid on the street facade, 2 cm proud of the wall
     let storey = rng.random_range(2.9..3.4f32);
     let spacing = rng.random_range(2.2..3.2f32);

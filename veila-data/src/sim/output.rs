@@ -28,7 +28,14 @@ use crate::atomic::write_atomic;
 use crate::{Error, Result};
 
 /// Sub-folders of a simulated dataset.
-pub const SUBDIRS: [&str; 6] = ["velodyne", "labels", "image_2", "calib", "depth_2", "semantic_2"];
+pub const SUBDIRS: [&str; 6] = [
+    "velodyne",
+    "labels",
+    "image_2",
+    "calib",
+    "depth_2",
+    "semantic_2",
+];
 
 /// Paths of one frame's files.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -73,7 +80,10 @@ pub fn create_output_dirs(dir: &Path) -> Result<()> {
 
 fn encode_png_u16(path: &Path, width: u32, height: u32, data: Vec<u16>) -> Result<Vec<u8>> {
     let img: ImageBuffer<Luma<u16>, Vec<u16>> = ImageBuffer::from_raw(width, height, data)
-        .ok_or_else(|| Error::Mismatch { context: path.display().to_string(), message: "buffer size does not match the image size".into() })?;
+        .ok_or_else(|| Error::Mismatch {
+            context: path.display().to_string(),
+            message: "buffer size does not match the image size".into(),
+        })?;
     let mut buf = std::io::Cursor::new(Vec::new());
     img.write_to(&mut buf, ImageFormat::Png)
         .map_err(|e| Error::format(path, format!("PNG encoding failed: {e}")))?;
@@ -85,12 +95,24 @@ fn encode_png_u16(path: &Path, width: u32, height: u32, data: Vec<u16>) -> Resul
 pub fn encode_kitti_depth(depth_m: &[f32]) -> Vec<u16> {
     depth_m
         .iter()
-        .map(|&d| if d.is_finite() && d > 0.0 { (d * 256.0).round().clamp(1.0, 65535.0) as u16 } else { 0 })
+        .map(|&d| {
+            if d.is_finite() && d > 0.0 {
+                (d * 256.0).round().clamp(1.0, 65535.0) as u16
+            } else {
+                0
+            }
+        })
         .collect()
 }
 
 /// Write one frame (scan, image and calibration) into `dir` (sub-folders must exist).
-pub fn write_frame(dir: &Path, index: u32, scan: &SimScan, image: &SimImage, calib: &SimCalib) -> Result<FramePaths> {
+pub fn write_frame(
+    dir: &Path,
+    index: u32,
+    scan: &SimScan,
+    image: &SimImage,
+    calib: &SimCalib,
+) -> Result<FramePaths> {
     let paths = FramePaths::new(dir, index);
     crate::scan::write_kitti_bin(&paths.velodyne, &scan.points)?;
     let labels = scan.points.label.as_deref().unwrap_or(&[]);
@@ -103,9 +125,19 @@ pub fn write_frame(dir: &Path, index: u32, scan: &SimScan, image: &SimImage, cal
     crate::semantic_kitti::write_labels(&paths.labels, labels)?;
     crate::image_io::write_png(&paths.image, &image.to_rgb_image())?;
     write_atomic(&paths.calib, calib.to_kitti_text().as_bytes())?;
-    let depth = encode_png_u16(&paths.depth, image.width, image.height, encode_kitti_depth(&image.depth_m))?;
+    let depth = encode_png_u16(
+        &paths.depth,
+        image.width,
+        image.height,
+        encode_kitti_depth(&image.depth_m),
+    )?;
     write_atomic(&paths.depth, &depth)?;
-    let sem = encode_png_u16(&paths.semantic, image.width, image.height, image.semantic.clone())?;
+    let sem = encode_png_u16(
+        &paths.semantic,
+        image.width,
+        image.height,
+        image.semantic.clone(),
+    )?;
     write_atomic(&paths.semantic, &sem)?;
     Ok(paths)
 }
@@ -154,20 +186,39 @@ struct SceneJson<'a> {
 fn pose_line(p: &Affine3A) -> String {
     let m = p.matrix3;
     let t = p.translation;
-    let rows = [[m.x_axis.x, m.y_axis.x, m.z_axis.x, t.x], [m.x_axis.y, m.y_axis.y, m.z_axis.y, t.y], [m.x_axis.z, m.y_axis.z, m.z_axis.z, t.z]];
-    rows.iter().flatten().map(|v| format!("{v:.9e}")).collect::<Vec<_>>().join(" ")
+    let rows = [
+        [m.x_axis.x, m.y_axis.x, m.z_axis.x, t.x],
+        [m.x_axis.y, m.y_axis.y, m.z_axis.y, t.y],
+        [m.x_axis.z, m.y_axis.z, m.z_axis.z, t.z],
+    ];
+    rows.iter()
+        .flatten()
+        .map(|v| format!("{v:.9e}"))
+        .collect::<Vec<_>>()
+        .join(" ")
 }
 
 /// Generate `config` with `seed` and write `frames` frames into `dir` in the KITTI layout.
 /// `progress` is called after every frame with the number of frames done.
-pub fn simulate_to_dir(config: &SceneConfig, seed: u64, frames: u32, dir: &Path, mut progress: impl FnMut(u32)) -> Result<SimSummary> {
+pub fn simulate_to_dir(
+    config: &SceneConfig,
+    seed: u64,
+    frames: u32,
+    dir: &Path,
+    mut progress: impl FnMut(u32),
+) -> Result<SimSummary> {
     let scene = Scene::generate(config, seed)?;
     let sensor = config.lidar.sensor()?;
     let calib = SimCalib::from_config(&config.camera);
     let camera = calib.camera()?;
     let opts = CameraRenderOptions::from(&config.camera);
     create_output_dirs(dir)?;
-    let mut summary = SimSummary { name: config.name.clone(), seed, frames, frame_stats: Vec::new() };
+    let mut summary = SimSummary {
+        name: config.name.clone(),
+        seed,
+        frames,
+        frame_stats: Vec::new(),
+    };
     let mut poses = String::new();
     let mut times = String::new();
     for i in 0..frames {
@@ -175,7 +226,13 @@ pub fn simulate_to_dir(config: &SceneConfig, seed: u64, frames: u32, dir: &Path,
         let scan = snap.render_lidar(&sensor, &config.lidar.returns)?;
         let image = snap.render_camera(&camera, &opts)?;
         write_frame(dir, i, &scan, &image, &calib)?;
-        let mut classes: Vec<u16> = scan.points.label.iter().flatten().map(|l| (l & 0xFFFF) as u16).collect();
+        let mut classes: Vec<u16> = scan
+            .points
+            .label
+            .iter()
+            .flatten()
+            .map(|l| (l & 0xFFFF) as u16)
+            .collect();
         classes.sort_unstable();
         classes.dedup();
         summary.frame_stats.push(FrameStats {
@@ -194,9 +251,17 @@ pub fn simulate_to_dir(config: &SceneConfig, seed: u64, frames: u32, dir: &Path,
     }
     write_atomic(&dir.join("lidar_poses.txt"), poses.as_bytes())?;
     write_atomic(&dir.join("times.txt"), times.as_bytes())?;
-    let json = SceneJson { generator: concat!("veila-data ", env!("CARGO_PKG_VERSION")), seed, frames, config, summary: &summary };
-    let text = serde_json::to_string_pretty(&json)
-        .map_err(|e| Error::Invalid { what: "scene.json".into(), message: e.to_string() })?;
+    let json = SceneJson {
+        generator: concat!("veila-data ", env!("CARGO_PKG_VERSION")),
+        seed,
+        frames,
+        config,
+        summary: &summary,
+    };
+    let text = serde_json::to_string_pretty(&json).map_err(|e| Error::Invalid {
+        what: "scene.json".into(),
+        message: e.to_string(),
+    })?;
     write_atomic(&dir.join("scene.json"), text.as_bytes())?;
     Ok(summary)
 }

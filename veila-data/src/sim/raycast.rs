@@ -7,11 +7,11 @@
 use std::time::Duration;
 
 use glam::{Vec3, Vec3A};
+use obvhs::BvhBuildParams;
 use obvhs::bvh2::Bvh2;
 use obvhs::bvh2::builder::build_bvh2_from_tris;
 use obvhs::ray::{Ray, RayHit};
 use obvhs::triangle::Triangle;
-use obvhs::BvhBuildParams;
 
 use super::mesh::{Mesh, Surface};
 
@@ -34,11 +34,20 @@ pub struct TriangleHit {
 /// Returns `None` for a miss, a ray parallel to the triangle's plane, a degenerate triangle or
 /// non-finite input.
 #[inline]
-pub fn intersect_triangle(origin: Vec3A, dir: Vec3A, a: Vec3A, e1: Vec3A, e2: Vec3A, t_min: f32, t_max: f32) -> Option<TriangleHit> {
+pub fn intersect_triangle(
+    origin: Vec3A,
+    dir: Vec3A,
+    a: Vec3A,
+    e1: Vec3A,
+    e2: Vec3A,
+    t_min: f32,
+    t_max: f32,
+) -> Option<TriangleHit> {
     let p = dir.cross(e2);
     let det = e1.dot(p);
     // relative parallel test: |det| tiny compared with |e1||e2||dir|
-    if det.abs() <= 1e-12 * (e1.length_squared() * e2.length_squared() * dir.length_squared()).sqrt()
+    if det.abs()
+        <= 1e-12 * (e1.length_squared() * e2.length_squared() * dir.length_squared()).sqrt()
         || !det.is_finite()
     {
         return None;
@@ -107,19 +116,30 @@ impl Accel {
         let obvhs_tris: Vec<Triangle> = mesh
             .triangles
             .iter()
-            .map(|[a, b, c]| Triangle { v0: (*a).into(), v1: (*b).into(), v2: (*c).into() })
+            .map(|[a, b, c]| Triangle {
+                v0: (*a).into(),
+                v1: (*b).into(),
+                v2: (*c).into(),
+            })
             .collect();
         let (bvh, tris, original) = if obvhs_tris.is_empty() {
             (Bvh2::default(), Vec::new(), Vec::new())
         } else {
-            let params = BvhBuildParams { pre_split: true, ..BvhBuildParams::fast_build() };
+            let params = BvhBuildParams {
+                pre_split: true,
+                ..BvhBuildParams::fast_build()
+            };
             let bvh = build_bvh2_from_tris(&obvhs_tris, params, &mut Duration::default());
             let original = bvh.primitive_indices.clone();
             let tris = original
                 .iter()
                 .map(|&i| {
                     let t = &obvhs_tris[i as usize];
-                    PreTri { a: t.v0, e1: t.v1 - t.v0, e2: t.v2 - t.v0 }
+                    PreTri {
+                        a: t.v0,
+                        e1: t.v1 - t.v0,
+                        e2: t.v2 - t.v0,
+                    }
                 })
                 .collect();
             (bvh, tris, original)
@@ -163,7 +183,12 @@ impl Accel {
         }
         let triangle = self.original[slot];
         let surface = self.surfaces[self.surface_of[triangle as usize] as usize];
-        Some(Hit { t: hit.t, triangle, normal: n, surface })
+        Some(Hit {
+            t: hit.t,
+            triangle,
+            normal: n,
+            surface,
+        })
     }
 
     /// True when anything lies on the ray within `[t_min, t_max]` (shadow rays).

@@ -49,7 +49,8 @@ pub struct Scene {
     seed: u64,
     static_mesh: Mesh,
     actors: Vec<Actor>,
-    ego_start: Vec3,
+    /// LiDAR pose at time 0.
+    ego_pose0: Affine3A,
     ego_velocity: Vec3,
 }
 
@@ -86,20 +87,31 @@ impl Scene {
             seed,
             static_mesh: g.mesh,
             actors: g.actors,
-            ego_start: Vec3::new(config.ego.start_x_m, ego_d, config.ego.lidar_height_m),
+            ego_pose0: Affine3A::from_translation(Vec3::new(
+                config.ego.start_x_m,
+                ego_d,
+                config.ego.lidar_height_m,
+            )),
             ego_velocity: Vec3::new(config.ego.speed_mps, 0.0, 0.0),
         })
     }
 
     /// Build a scene from explicit geometry (for tests and custom worlds): a static mesh, actors and
-    /// a fixed LiDAR pose; `config` supplies sensors, lighting and return model.
-    pub fn from_parts(config: &SceneConfig, seed: u64, static_mesh: Mesh, actors: Vec<Actor>, world_from_lidar: Vec3) -> Scene {
+    /// a fixed LiDAR pose (world from LiDAR, rigid); `config` supplies sensors, lighting, return
+    /// model and frame interval.
+    pub fn from_parts(
+        config: &SceneConfig,
+        seed: u64,
+        static_mesh: Mesh,
+        actors: Vec<Actor>,
+        world_from_lidar: Affine3A,
+    ) -> Scene {
         Scene {
             config: config.clone(),
             seed,
             static_mesh,
             actors,
-            ego_start: world_from_lidar,
+            ego_pose0: world_from_lidar,
             ego_velocity: Vec3::ZERO,
         }
     }
@@ -131,7 +143,7 @@ impl Scene {
 
     /// LiDAR pose (world from LiDAR: x forward along the ego's heading, z up) at `time_s`.
     pub fn world_from_lidar(&self, time_s: f32) -> Affine3A {
-        Affine3A::from_translation(self.ego_start + self.ego_velocity * time_s)
+        Affine3A::from_translation(self.ego_velocity * time_s) * self.ego_pose0
     }
 
     /// The whole world at `time_s` as one mesh (static world plus actors moved).
@@ -173,11 +185,15 @@ struct StreetFrame {
 
 impl StreetFrame {
     fn main() -> Self {
-        StreetFrame { world_from_street: Affine3A::IDENTITY }
+        StreetFrame {
+            world_from_street: Affine3A::IDENTITY,
+        }
     }
     /// The cross street: s along world +y, d along world -x (exact 90 degree rotation).
     fn cross() -> Self {
-        StreetFrame { world_from_street: Affine3A::from_mat3(Mat3::from_cols(Vec3::Y, -Vec3::X, Vec3::Z)) }
+        StreetFrame {
+            world_from_street: Affine3A::from_mat3(Mat3::from_cols(Vec3::Y, -Vec3::X, Vec3::Z)),
+        }
     }
     fn p(&self, s: f32, d: f32, z: f32) -> Vec3 {
         self.world_from_street.transform_point3(Vec3::new(s, d, z))
@@ -188,10 +204,15 @@ impl StreetFrame {
     }
     fn heading(&self, h: f32) -> f32 {
         // the cross street's +s axis is world +y (heading +pi/2)
-        if self.world_from_street == Affine3A::IDENTITY { h } else { h + std::f32::consts::FRAC_PI_2 }
+        if self.world_from_street == Affine3A::IDENTITY {
+            h
+        } else {
+            h + std::f32::consts::FRAC_PI_2
+        }
     }
     fn dir(&self, s: f32, d: f32) -> Vec3 {
-        self.world_from_street.transform_vector3(Vec3::new(s, d, 0.0))
+        self.world_from_street
+            .transform_vector3(Vec3::new(s, d, 0.0))
     }
     /// Ground rectangle in street coordinates.
     fn rect(&self, mesh: &mut Mesh, s0: f32, s1: f32, d0: f32, d1: f32, z: f32, surf: u32) {
@@ -281,7 +302,12 @@ impl<'a> Gen<'a> {
         self.street_surfaces(f, -h, h, -h, h, true);
         self.lots(&mut rng, f, -h, h);
         self.furniture(&mut rng, f, -h, h, 0);
-        self.sections.push(Section { frame: f, s0: -h, s1: h, main: true });
+        self.sections.push(Section {
+            frame: f,
+            s0: -h,
+            s1: h,
+            main: true,
+        });
     }
 
     fn junction(&mut self) {
@@ -297,12 +323,31 @@ impl<'a> Gen<'a> {
         main.rect(&mut self.mesh, -wc, wc, -wc, wc, 0.0, road);
         for (f, is_main) in [(main, true), (cross, false)] {
             for (s0, s1) in [(-h, -wc), (wc, h)] {
-                let (ts0, ts1) = if s0 < 0.0 { (s0, -wc - sw) } else { (wc + sw, s1) };
+                let (ts0, ts1) = if s0 < 0.0 {
+                    (s0, -wc - sw)
+                } else {
+                    (wc + sw, s1)
+                };
                 self.street_surfaces(f, s0, s1, ts0, ts1, is_main);
-                let (l0, l1) = if s0 < 0.0 { (s0, -(wc + sw + r.setback_m + 1.0)) } else { (wc + sw + r.setback_m + 1.0, s1) };
+                let (l0, l1) = if s0 < 0.0 {
+                    (s0, -(wc + sw + r.setback_m + 1.0))
+                } else {
+                    (wc + sw + r.setback_m + 1.0, s1)
+                };
                 self.lots(&mut rng, f, l0, l1);
-                self.furniture(&mut rng, f, s0 + if s0 < 0.0 { 0.0 } else { 2.0 }, s1 - if s0 < 0.0 { 2.0 } else { 0.0 }, if is_main { 0 } else { 1 });
-                self.sections.push(Section { frame: f, s0, s1, main: is_main });
+                self.furniture(
+                    &mut rng,
+                    f,
+                    s0 + if s0 < 0.0 { 0.0 } else { 2.0 },
+                    s1 - if s0 < 0.0 { 2.0 } else { 0.0 },
+                    if is_main { 0 } else { 1 },
+                );
+                self.sections.push(Section {
+                    frame: f,
+                    s0,
+                    s1,
+                    main: is_main,
+                });
             }
             self.crosswalks(f);
         }
@@ -311,14 +356,26 @@ impl<'a> Gen<'a> {
         for (sx, sy) in [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] {
             let light = objects::traffic_light();
             let facing = if sy < 0.0 { std::f32::consts::PI } else { 0.0 };
-            let xf = Affine3A::from_translation(Vec3::new(sx * (wc + 0.6), sy * (wc + 0.6), r.kerb_height_m)) * yaw(facing);
+            let xf = Affine3A::from_translation(Vec3::new(
+                sx * (wc + 0.6),
+                sy * (wc + 0.6),
+                r.kerb_height_m,
+            )) * yaw(facing);
             self.mesh.append_transformed(&light, xf);
         }
     }
 
     /// Road (with parking strips and markings), kerbs, sidewalks and terrain of one street section.
     /// Terrain covers `[ts0, ts1]` along s when `terrain` is set.
-    fn street_surfaces(&mut self, f: StreetFrame, s0: f32, s1: f32, ts0: f32, ts1: f32, terrain: bool) {
+    fn street_surfaces(
+        &mut self,
+        f: StreetFrame,
+        s0: f32,
+        s1: f32,
+        ts0: f32,
+        ts1: f32,
+        terrain: bool,
+    ) {
         let r = self.road;
         let wl = r.lanes_per_direction as f32 * r.lane_width_m;
         let wc = r.half_carriageway_m();
@@ -337,9 +394,19 @@ impl<'a> Gen<'a> {
             let n = ((s1 - s0) / TILE_M).ceil().max(1.0) as usize;
             for i in 0..n {
                 let a = s0 + (s1 - s0) * i as f32 / n as f32;
-                let b = if i + 1 == n { s1 } else { s0 + (s1 - s0) * (i + 1) as f32 / n as f32 };
+                let b = if i + 1 == n {
+                    s1
+                } else {
+                    s0 + (s1 - s0) * (i + 1) as f32 / n as f32
+                };
                 let d = side * wc;
-                self.mesh.add_quad(f.p(a, d, 0.0), f.p(b, d, 0.0), f.p(b, d, kh), f.p(a, d, kh), walk);
+                self.mesh.add_quad(
+                    f.p(a, d, 0.0),
+                    f.p(b, d, 0.0),
+                    f.p(b, d, kh),
+                    f.p(a, d, kh),
+                    walk,
+                );
             }
             let (d0, d1) = (side * wc, side * (wc + r.sidewalk_width_m));
             f.rect(&mut self.mesh, s0, s1, d0, d1, kh, walk);
@@ -358,7 +425,13 @@ impl<'a> Gen<'a> {
         let paint = self.mesh.surface(stock::LANE_MARKING, 0);
         let wl = r.lanes_per_direction as f32 * r.lane_width_m;
         let line = |mesh: &mut Mesh, a: f32, b: f32, d: f32, w: f32| {
-            mesh.add_quad(f.p(a, d - w / 2.0, PAINT_Z), f.p(b, d - w / 2.0, PAINT_Z), f.p(b, d + w / 2.0, PAINT_Z), f.p(a, d + w / 2.0, PAINT_Z), paint);
+            mesh.add_quad(
+                f.p(a, d - w / 2.0, PAINT_Z),
+                f.p(b, d - w / 2.0, PAINT_Z),
+                f.p(b, d + w / 2.0, PAINT_Z),
+                f.p(a, d + w / 2.0, PAINT_Z),
+                paint,
+            );
         };
         // centre line: solid
         line(&mut self.mesh, s0, s1, 0.0, 0.15);
@@ -392,13 +465,25 @@ impl<'a> Gen<'a> {
             let (a, b) = if dir > 0.0 { (a, b) } else { (-b, -a) };
             let mut d = -wl + 0.25;
             while d + 0.5 <= wl {
-                self.mesh.add_quad(f.p(a, d, PAINT_Z), f.p(b, d, PAINT_Z), f.p(b, d + 0.5, PAINT_Z), f.p(a, d + 0.5, PAINT_Z), paint);
+                self.mesh.add_quad(
+                    f.p(a, d, PAINT_Z),
+                    f.p(b, d, PAINT_Z),
+                    f.p(b, d + 0.5, PAINT_Z),
+                    f.p(a, d + 0.5, PAINT_Z),
+                    paint,
+                );
                 d += 1.0;
             }
             // stop line across the lanes approaching the junction on this arm
             let s = dir * (wc + 5.0);
             let (d0, d1) = if dir > 0.0 { (0.1, wl) } else { (-wl, -0.1) };
-            self.mesh.add_quad(f.p(s - 0.2, d0, PAINT_Z), f.p(s + 0.2, d0, PAINT_Z), f.p(s + 0.2, d1, PAINT_Z), f.p(s - 0.2, d1, PAINT_Z), paint);
+            self.mesh.add_quad(
+                f.p(s - 0.2, d0, PAINT_Z),
+                f.p(s + 0.2, d0, PAINT_Z),
+                f.p(s + 0.2, d1, PAINT_Z),
+                f.p(s - 0.2, d1, PAINT_Z),
+                paint,
+            );
         }
     }
 
@@ -416,8 +501,15 @@ impl<'a> Gen<'a> {
                     let height = rng.random_range(hmin..=hmax);
                     let b = objects::building(rng, w, depth, height);
                     // building frame: facade at local y = 0 faces local +y; turn it to face the street
-                    let h = if side > 0.0 { std::f32::consts::PI } else { 0.0 };
-                    self.mesh.append_transformed(&b, f.place(s + w / 2.0, side * front, r.kerb_height_m, h));
+                    let h = if side > 0.0 {
+                        std::f32::consts::PI
+                    } else {
+                        0.0
+                    };
+                    self.mesh.append_transformed(
+                        &b,
+                        f.place(s + w / 2.0, side * front, r.kerb_height_m, h),
+                    );
                     s += w + rng.random_range(0.0..1.5f32);
                 } else {
                     let w = rng.random_range(4.0..12.0f32).min(s1 - s);
@@ -425,25 +517,34 @@ impl<'a> Gen<'a> {
                     let d = side * (front - 0.4);
                     if u < self.cfg.population.fence_probability {
                         let fe = objects::fence(w, rng.random_range(1.0..2.0f32));
-                        self.mesh.append_transformed(&fe, f.place(s + w / 2.0, d, r.kerb_height_m, 0.0));
+                        self.mesh
+                            .append_transformed(&fe, f.place(s + w / 2.0, d, r.kerb_height_m, 0.0));
                     } else if u < self.cfg.population.fence_probability + 0.35 {
                         let he = objects::hedge(rng, w);
-                        self.mesh.append_transformed(&he, f.place(s + w / 2.0, d, r.kerb_height_m, 0.0));
+                        self.mesh
+                            .append_transformed(&he, f.place(s + w / 2.0, d, r.kerb_height_m, 0.0));
                     } else if rng.random_bool(0.6) {
                         let t = objects::tree(rng);
-                        self.mesh.append_transformed(&t, f.place(s + w / 2.0, side * (front + 4.0), r.kerb_height_m, 0.0));
+                        self.mesh.append_transformed(
+                            &t,
+                            f.place(s + w / 2.0, side * (front + 4.0), r.kerb_height_m, 0.0),
+                        );
                     }
                     s += w;
                 }
             }
             // bushes in front gardens and gaps
             if r.setback_m > 0.8 {
-                let n = poisson_count(rng, self.cfg.population.bushes_per_100m * 0.5 * (s1 - s0) / 100.0);
+                let n = poisson_count(
+                    rng,
+                    self.cfg.population.bushes_per_100m * 0.5 * (s1 - s0) / 100.0,
+                );
                 for _ in 0..n {
                     let bs = rng.random_range(s0..s1);
                     let bd = side * (front - rng.random_range(0.5..r.setback_m.min(3.0)));
                     let b = objects::bush(rng);
-                    self.mesh.append_transformed(&b, f.place(bs, bd, r.kerb_height_m, 0.0));
+                    self.mesh
+                        .append_transformed(&b, f.place(bs, bd, r.kerb_height_m, 0.0));
                 }
             }
         }
@@ -457,7 +558,11 @@ impl<'a> Gen<'a> {
         let kh = r.kerb_height_m;
         let len = (s1 - s0).max(0.0);
         let d_kerb = (0.6f32).min(r.sidewalk_width_m * 0.4);
-        for (kind, per100) in [(0u8, p.trees_per_100m), (1, p.poles_per_100m), (2, p.signs_per_100m)] {
+        for (kind, per100) in [
+            (0u8, p.trees_per_100m),
+            (1, p.poles_per_100m),
+            (2, p.signs_per_100m),
+        ] {
             let n = poisson_count(rng, per100 * len / 100.0);
             for _ in 0..n {
                 let side = if rng.random_bool(0.5) { 1.0f32 } else { -1.0 };
@@ -476,9 +581,23 @@ impl<'a> Gen<'a> {
                 let (m, h) = match kind {
                     0 => (objects::tree(rng), 0.0),
                     // the light's arm points to local +y: toward the road
-                    1 => (objects::street_light(rng), if side > 0.0 { std::f32::consts::PI } else { 0.0 }),
+                    1 => (
+                        objects::street_light(rng),
+                        if side > 0.0 {
+                            std::f32::consts::PI
+                        } else {
+                            0.0
+                        },
+                    ),
                     // signs face the traffic approaching on that side
-                    _ => (objects::traffic_sign(rng), if side > 0.0 { 0.0 } else { std::f32::consts::PI }),
+                    _ => (
+                        objects::traffic_sign(rng),
+                        if side > 0.0 {
+                            0.0
+                        } else {
+                            std::f32::consts::PI
+                        },
+                    ),
                 };
                 self.mesh.append_transformed(&m, f.place(s, d, kh, h));
             }
@@ -516,23 +635,45 @@ impl<'a> Gen<'a> {
         // parked vehicles: in the parking strips, or along the left kerb on the carriageway
         let mut rng = self.rng(10);
         for sec in &sections {
-            let sides: &[f32] = if r.parking_lane { &[-1.0, 1.0] } else if one_way { &[1.0] } else { &[] };
+            let sides: &[f32] = if r.parking_lane {
+                &[-1.0, 1.0]
+            } else if one_way {
+                &[1.0]
+            } else {
+                &[]
+            };
             for &side in sides {
-                let d = if r.parking_lane { side * (wl + r.parking_width_m / 2.0) } else { side * (wc - 1.0) };
-                let mean_gap = if p.parked_vehicles_per_100m > 0.0 { 100.0 / (p.parked_vehicles_per_100m / 2.0) } else { f32::INFINITY };
+                let d = if r.parking_lane {
+                    side * (wl + r.parking_width_m / 2.0)
+                } else {
+                    side * (wc - 1.0)
+                };
+                let mean_gap = if p.parked_vehicles_per_100m > 0.0 {
+                    100.0 / (p.parked_vehicles_per_100m / 2.0)
+                } else {
+                    f32::INFINITY
+                };
                 let mut s = sec.s0 + rng.random_range(0.0..6.0f32);
                 while s < sec.s1 && mean_gap.is_finite() {
                     let kind = self.vehicle_kind(&mut rng, true);
                     let inst = self.instance();
                     let (m, len) = objects::vehicle(&mut rng, kind, kind.class(), inst);
                     let (a, b) = (s, s + len);
-                    let blocked = b > sec.s1 - 1.0 || (sec.main && self.no_parking.iter().any(|&(x, y)| b > x && a < y));
+                    let blocked = b > sec.s1 - 1.0
+                        || (sec.main && self.no_parking.iter().any(|&(x, y)| b > x && a < y));
                     if !blocked {
-                        let h = if side > 0.0 && rng.random_bool(0.5) { std::f32::consts::PI } else { 0.0 };
-                        self.mesh.append_transformed(&m, sec.frame.place(s + len / 2.0, d, 0.0, h));
+                        let h = if side > 0.0 && rng.random_bool(0.5) {
+                            std::f32::consts::PI
+                        } else {
+                            0.0
+                        };
+                        self.mesh
+                            .append_transformed(&m, sec.frame.place(s + len / 2.0, d, 0.0, h));
                     }
                     // exponential-ish gaps around the mean spacing
-                    let gap = (mean_gap - 4.5).max(0.8) * (-rng.random::<f32>().max(1e-6).ln()).min(4.0) + 0.8;
+                    let gap = (mean_gap - 4.5).max(0.8)
+                        * (-rng.random::<f32>().max(1e-6).ln()).min(4.0)
+                        + 0.8;
                     s = b + gap;
                 }
             }
@@ -540,31 +681,65 @@ impl<'a> Gen<'a> {
 
         // moving vehicles: one speed per lane (no overtaking inside a lane), spacing >= 12 m
         let mut rng = self.rng(11);
-        let main = sections.iter().filter(|s| s.main).copied().collect::<Vec<_>>();
-        let cross = sections.iter().filter(|s| !s.main).copied().collect::<Vec<_>>();
+        let main = sections
+            .iter()
+            .filter(|s| s.main)
+            .copied()
+            .collect::<Vec<_>>();
+        let cross = sections
+            .iter()
+            .filter(|s| !s.main)
+            .copied()
+            .collect::<Vec<_>>();
         let lanes_fwd = r.lanes_per_direction;
         let mut lanes: Vec<(StreetFrame, f32, f32, f32, f32, bool)> = Vec::new(); // frame, d, dir, speed, s-range half, is ego lane
         let ego_lane_d = -(lanes_fwd as f32 - 0.5) * lw;
         for k in 0..lanes_fwd {
             let d = -(k as f32 + 0.5) * lw;
             let ego = (d - ego_lane_d).abs() < 1e-3;
-            let speed = if ego { self.cfg.ego.speed_mps } else { rng.random_range(6.0..14.0f32) };
+            let speed = if ego {
+                self.cfg.ego.speed_mps
+            } else {
+                rng.random_range(6.0..14.0f32)
+            };
             lanes.push((StreetFrame::main(), d, 1.0, speed, self.half_len(), ego));
             if !one_way {
-                lanes.push((StreetFrame::main(), -d, -1.0, rng.random_range(6.0..14.0f32), self.half_len(), false));
+                lanes.push((
+                    StreetFrame::main(),
+                    -d,
+                    -1.0,
+                    rng.random_range(6.0..14.0f32),
+                    self.half_len(),
+                    false,
+                ));
             }
         }
         if !cross.is_empty() {
             for k in 0..lanes_fwd {
                 let d = (k as f32 + 0.5) * lw;
-                lanes.push((StreetFrame::cross(), -d, 1.0, rng.random_range(5.0..11.0f32), self.half_len(), false));
-                lanes.push((StreetFrame::cross(), d, -1.0, rng.random_range(5.0..11.0f32), self.half_len(), false));
+                lanes.push((
+                    StreetFrame::cross(),
+                    -d,
+                    1.0,
+                    rng.random_range(5.0..11.0f32),
+                    self.half_len(),
+                    false,
+                ));
+                lanes.push((
+                    StreetFrame::cross(),
+                    d,
+                    -1.0,
+                    rng.random_range(5.0..11.0f32),
+                    self.half_len(),
+                    false,
+                ));
             }
         }
         let mut taken: Vec<Vec<f32>> = vec![Vec::new(); lanes.len()];
         let mut placed = 0;
         let mut tries = 0;
-        while placed < p.moving_vehicles && tries < p.moving_vehicles * 40 + 40 && !lanes.is_empty() {
+        while placed < p.moving_vehicles && tries < p.moving_vehicles * 40 + 40 && !lanes.is_empty()
+        {
             tries += 1;
             let li = rng.random_range(0..lanes.len());
             let (frame, d, dir, speed, half, ego) = lanes[li];
@@ -602,12 +777,24 @@ impl<'a> Gen<'a> {
             let standing = rng.random::<f32>() < p.standing_fraction;
             let crossing = !standing && cross.len() + main.len() > 2 && i % 5 == 4;
             let inst = self.instance();
-            let cls = if standing { class::PERSON } else { class::moving(class::PERSON) };
+            let cls = if standing {
+                class::PERSON
+            } else {
+                class::moving(class::PERSON)
+            };
             let m = objects::person(&mut rng, cls, inst);
-            let speed = if standing { 0.0 } else { rng.random_range(0.8..1.6f32) };
+            let speed = if standing {
+                0.0
+            } else {
+                rng.random_range(0.8..1.6f32)
+            };
             if crossing {
                 // on a crosswalk of the main street, walking across it
-                let s_cw = if rng.random_bool(0.5) { wc + 2.5 } else { -(wc + 2.5) };
+                let s_cw = if rng.random_bool(0.5) {
+                    wc + 2.5
+                } else {
+                    -(wc + 2.5)
+                };
                 let d0 = rng.random_range(-wl..wl);
                 let dir = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
                 self.actors.push(Actor {
@@ -619,7 +806,13 @@ impl<'a> Gen<'a> {
                 continue;
             }
             let dir = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
-            let heading = if standing { rng.random_range(-3.1..3.1f32) } else if dir > 0.0 { 0.0 } else { std::f32::consts::PI };
+            let heading = if standing {
+                rng.random_range(-3.1..3.1f32)
+            } else if dir > 0.0 {
+                0.0
+            } else {
+                std::f32::consts::PI
+            };
             self.actors.push(Actor {
                 mesh: m,
                 start: sec.frame.p(s, d, kh),
@@ -632,7 +825,11 @@ impl<'a> Gen<'a> {
         let mut rng = self.rng(13);
         for _ in 0..p.cyclists {
             let sec = sections[rng.random_range(0..sections.len())];
-            let dir = if one_way || rng.random_bool(0.6) { 1.0f32 } else { -1.0 };
+            let dir = if one_way || rng.random_bool(0.6) {
+                1.0f32
+            } else {
+                -1.0
+            };
             let d = -dir * (wl - 0.7);
             let s = rng.random_range(sec.s0..sec.s1);
             let speed = rng.random_range(3.5..6.5f32);
@@ -641,7 +838,9 @@ impl<'a> Gen<'a> {
             self.actors.push(Actor {
                 mesh: m,
                 start: sec.frame.p(s, d, 0.0),
-                heading_rad: sec.frame.heading(if dir > 0.0 { 0.0 } else { std::f32::consts::PI }),
+                heading_rad: sec
+                    .frame
+                    .heading(if dir > 0.0 { 0.0 } else { std::f32::consts::PI }),
                 velocity: sec.frame.dir(dir * speed, 0.0),
             });
         }
@@ -650,7 +849,7 @@ impl<'a> Gen<'a> {
 
 /// A Poisson-distributed count with mean `lambda` (inversion; fine for the small means used here).
 fn poisson_count(rng: &mut ChaCha8Rng, lambda: f32) -> u32 {
-    if !(lambda > 0.0) {
+    if lambda.is_nan() || lambda <= 0.0 {
         return 0;
     }
     if lambda > 50.0 {

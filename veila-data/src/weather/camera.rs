@@ -10,7 +10,8 @@
 //!   the one of median grey value; in the dark it is scaled by the ambient level.
 //! * **Darken**: linear light times [`TimeOfDay::ambient_scale`](super::TimeOfDay::ambient_scale).
 //! * **Headlights** (optional): `E = I0 max(cos phi, 0)^m / d^2` from a light at a fixed pose in the camera
-//!   frame, times the albedo (the clean linear image), added after darkening.
+//!   frame, zero above a low-beam cut-off, times the albedo (the clean linear image), added after
+//!   darkening.
 //! * **Rain streaks / snowflakes**: particles with the weather's size distribution (Marshall-Palmer /
 //!   Gunn-Marshall, diameters >= 1 mm), uniform in the frustum volume between 0.5 and 8 m, each drawn as
 //!   a motion-blurred streak of length `fy v T / z` (v = Atlas' drop speed or the snow terminal velocity,
@@ -120,7 +121,8 @@ impl DepthMap {
     /// Densify sparse samples `(u_px, v_px, z_m)` (e.g. LiDAR points projected into the image): nearest
     /// sample per pixel, linear interpolation in 1/z along each image column between samples, the
     /// topmost sample extended upward and the lowest downward, columns without samples copied from the
-    /// nearest column that has some; with no sample at all, everything is sky (+inf).
+    /// nearest column that has some, then a 9x9 box filter on 1/z (a transmission map must be smooth,
+    /// as with Foggy Cityscapes' guided filter); with no sample at all, everything is sky (+inf).
     pub fn from_sparse(width: u32, height: u32, samples: &[(f32, f32, f32)]) -> Self {
         let (w, h) = (width as usize, height as usize);
         let mut sparse = vec![f32::INFINITY; w * h];
@@ -175,6 +177,24 @@ impl DepthMap {
                 }
             }
         }
+        // soften the column structure of the fill: box filter (radius 4 px) on inverse depth, so sky
+        // (inverse depth 0) blends without infinities
+        let rad = 4usize;
+        let inv: Vec<f64> = out.iter().map(|z| if z.is_finite() { 1.0 / *z as f64 } else { 0.0 }).collect();
+        let mut tmp = vec![0f64; w * h];
+        for r in 0..h {
+            for c in 0..w {
+                let (a, b) = (c.saturating_sub(rad), (c + rad).min(w - 1));
+                tmp[r * w + c] = inv[r * w + a..=r * w + b].iter().sum::<f64>() / (b - a + 1) as f64;
+            }
+        }
+        for c in 0..w {
+            for r in 0..h {
+                let (a, b) = (r.saturating_sub(rad), (r + rad).min(h - 1));
+                let m = (a..=b).map(|k| tmp[k * w + c]).sum::<f64>() / (b - a + 1) as f64;
+                out[r * w + c] = if m > 0.0 { (1.0 / m) as f32 } else { f32::INFINITY };
+            }
+        }
         DepthMap { width, height, z_m: out }
     }
 }
@@ -191,11 +211,13 @@ pub struct Headlights {
     pub position_m: [f64; 3],
     /// Downward tilt of the beam axis (deg).
     pub tilt_down_deg: f64,
+    /// Low-beam cut-off: no light more than this far above the lamp's horizontal plane (deg).
+    pub cutoff_above_horizontal_deg: f64,
 }
 
 impl Default for Headlights {
     fn default() -> Self {
-        Headlights { intensity: 40.0, exponent: 8.0, position_m: [0.0, 0.95, 0.0], tilt_down_deg: 2.0 }
+        Headlights { intensity: 40.0, exponent: 8.0, position_m: [0.0, 0.95, 0.0], tilt_down_deg: 2.0, cutoff_above_horizontal_deg: 0.5 }
     }
 }
 
@@ -247,11 +269,42 @@ pub fn srgb_to_linear(v: u8) -> f32 {
     if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
 }
 
-/// sRGB encode of a linear value (clamped to [0, 1]) to 8 bits.
-pub fn linear_to_srgb(x: f32) -> u8 {
+/// The sRGB encoding formula (slow path; [`linear_to_srgb`] reproduces it exactly with a table).
+fn linear_to_srgb_formula(x: f32) -> u8 {
     let x = if x.is_nan() { 0.0 } else { x.clamp(0.0, 1.0) };
     let c = if x <= 0.003_130_8 { 12.92 * x } else { 1.055 * x.powf(1.0 / 2.4) - 0.055 };
     (c * 255.0).round().clamp(0.0, 255.0) as u8
+}
+
+/// For each code k in 1..=255, the smallest non-negative f32 whose encoding is >= k (bisection on the
+/// bit patterns, which order like the values for non-negative floats).
+fn srgb_thresholds() -> &'static [f32; 255] {
+    static T: std::sync::OnceLock<[f32; 255]> = std::sync::OnceLock::new();
+    T.get_or_init(|| {
+        let mut t = [0f32; 255];
+        for (k, slot) in t.iter_mut().enumerate() {
+            let want = (k + 1) as u8;
+            let (mut lo, mut hi) = (0u32, 1.0f32.to_bits());
+            while lo < hi {
+                let mid = lo + (hi - lo) / 2;
+                if linear_to_srgb_formula(f32::from_bits(mid)) >= want {
+                    hi = mid;
+                } else {
+                    lo = mid + 1;
+                }
+            }
+            *slot = f32::from_bits(lo);
+        }
+        t
+    })
+}
+
+/// sRGB encode of a linear value (clamped to [0, 1]; NaN -> 0) to 8 bits, rounding to nearest.
+pub fn linear_to_srgb(x: f32) -> u8 {
+    if !(x > 0.0) {
+        return 0;
+    }
+    srgb_thresholds().partition_point(|t| *t <= x) as u8
 }
 
 /// Airlight estimate (linear RGB): dark channel with a 15x15 minimum filter, the brightest 0.1 % of it,
@@ -277,12 +330,16 @@ pub fn estimate_airlight(lin: &[f32], width: usize, height: usize) -> [f32; 3] {
         }
     }
     let mut idx: Vec<usize> = (0..dc.len()).collect();
-    idx.sort_by(|&x, &y| dc[y].total_cmp(&dc[x]).then(x.cmp(&y)));
     let mut n = ((dc.len() as f64 * 0.001).ceil() as usize).max(1);
     if n % 2 == 0 {
         n += 1;
     }
-    let mut top: Vec<usize> = idx.into_iter().take(n.min(dc.len())).collect();
+    let n = n.min(dc.len());
+    let brighter = |x: &usize, y: &usize| dc[*y].total_cmp(&dc[*x]).then(x.cmp(y));
+    if n < idx.len() {
+        idx.select_nth_unstable_by(n - 1, brighter);
+    }
+    let mut top: Vec<usize> = idx.into_iter().take(n).collect();
     let grey = |i: usize| lin[3 * i] + lin[3 * i + 1] + lin[3 * i + 2];
     top.sort_by(|&x, &y| grey(x).total_cmp(&grey(y)).then(x.cmp(&y)));
     let m = top[top.len() / 2];
@@ -446,7 +503,7 @@ pub fn apply_camera(
         }
     }
     let lut: Vec<f32> = (0..=255u8).map(srgb_to_linear).collect();
-    let clean: Vec<f32> = img.as_raw().iter().map(|&v| lut[v as usize]).collect();
+    let clean: Vec<f32> = img.as_raw().par_iter().map(|&v| lut[v as usize]).collect();
     let mut lin = clean.clone();
     let ambient = weather.time_of_day.ambient_scale() as f32;
     let needs_airlight = plan.camera.iter().any(|e| {
@@ -474,6 +531,7 @@ pub fn apply_camera(
                 let tilt = hl.tilt_down_deg.to_radians();
                 let axis = glam::DVec3::new(0.0, tilt.sin(), tilt.cos());
                 let pos = glam::DVec3::from_array(hl.position_m);
+                let cutoff_sin = hl.cutoff_above_horizontal_deg.to_radians().sin();
                 lin.par_chunks_mut(3 * w).zip(clean.par_chunks(3 * w)).enumerate().for_each(|(r, (row, cl))| {
                     for c in 0..w {
                         let z = depth.z_m[r * w + c] as f64;
@@ -483,6 +541,10 @@ pub fn apply_camera(
                         let p = glam::DVec3::new((c as f64 - k.cx) / k.fx * z, (r as f64 - k.cy) / k.fy * z, z);
                         let v = p - pos;
                         let d2 = v.length_squared().max(1e-4);
+                        // low-beam cut-off: no light above the lamp's horizontal plane (+ cut-off angle)
+                        if v.y < -cutoff_sin * d2.sqrt() {
+                            continue;
+                        }
                         let cosphi = (v.dot(axis) / d2.sqrt()).max(0.0);
                         let e_irr = (hl.intensity * cosphi.powf(hl.exponent) / d2) as f32;
                         for ch in 0..3 {
@@ -555,10 +617,32 @@ pub fn apply_camera(
         };
         records.push(rec);
     }
-    let raw: Vec<u8> = lin.iter().map(|&x| linear_to_srgb(x)).collect();
+    let raw: Vec<u8> = lin.par_iter().map(|&x| linear_to_srgb(x)).collect();
     let image = RgbImage::from_raw(img.width(), img.height(), raw).ok_or_else(|| Error::Invalid {
         what: "camera output".into(),
         message: "buffer size mismatch".into(),
     })?;
     Ok(CameraOutput { image, records })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn table_encoding_equals_the_formula() {
+        let mut x = 0.0f32;
+        while x <= 1.001 {
+            assert_eq!(linear_to_srgb(x), linear_to_srgb_formula(x), "{x}");
+            x += 1.7e-5;
+        }
+        for t in srgb_thresholds() {
+            let below = f32::from_bits(t.to_bits() - 1);
+            assert_eq!(linear_to_srgb(*t), linear_to_srgb_formula(*t));
+            assert_eq!(linear_to_srgb(below), linear_to_srgb_formula(below));
+        }
+        assert_eq!(linear_to_srgb(f32::NAN), 0);
+        assert_eq!(linear_to_srgb(f32::INFINITY), 255);
+        assert_eq!(linear_to_srgb(-1.0), 0);
+    }
 }

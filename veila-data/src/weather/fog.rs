@@ -336,7 +336,8 @@ impl FogTable {
         let (rb, ib) = self.entries[k + 1];
         if ia == 0.0 || ib == 0.0 {
             // do not interpolate a range between "no return" (R = 0) and a real return
-            return if w < 0.5 || ib == 0.0 { (ra, ia * (1.0 - w) + ib * w) } else { (rb, ia * (1.0 - w) + ib * w) };
+            let r = if ia == 0.0 { rb } else { ra };
+            return (r, ia * (1.0 - w) + ib * w);
         }
         (ra + w * (rb - ra), ia + w * (ib - ia))
     }

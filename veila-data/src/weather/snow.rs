@@ -110,6 +110,8 @@ pub struct Flake {
 #[derive(Debug, Clone, PartialEq)]
 struct Layer {
     flakes: Vec<Flake>,
+    /// angular half-width `asin(r / d)` per flake (NaN when the flake contains the sensor)
+    half: Vec<f64>,
     /// CSR: flake indices of bucket b are `ids[offsets[b]..offsets[b + 1]]`
     offsets: Vec<u32>,
     ids: Vec<u32>,
@@ -144,20 +146,29 @@ impl SnowField {
     }
 
     fn bucket(flakes: Vec<Flake>, bins: usize) -> Layer {
-        let span = |f: &Flake| -> (i64, i64) {
-            let (d, r) = (f.range_m as f64, f.radius_m as f64);
-            if !(d > r) {
-                return (0, -1); // contains the sensor: never a candidate
-            }
-            let half = (r / d).asin();
-            let a = f.azimuth_rad as f64;
-            let lo = Self::bin_of(bins, a - half);
-            let hi = Self::bin_of(bins, a + half);
-            (lo, hi.min(lo + bins as i64 - 1))
-        };
+        let half: Vec<f64> = flakes
+            .iter()
+            .map(|f| {
+                let (d, r) = (f.range_m as f64, f.radius_m as f64);
+                if d > r { (r / d).asin() } else { f64::NAN }
+            })
+            .collect();
+        // bucket span of each flake; (0, -1) = none (the flake contains the sensor)
+        let spans: Vec<(i64, i64)> = flakes
+            .iter()
+            .zip(&half)
+            .map(|(f, h)| {
+                if h.is_nan() {
+                    return (0, -1);
+                }
+                let a = f.azimuth_rad as f64;
+                let lo = Self::bin_of(bins, a - h);
+                let hi = Self::bin_of(bins, a + h);
+                (lo, hi.min(lo + bins as i64 - 1))
+            })
+            .collect();
         let mut counts = vec![0u32; bins + 1];
-        for f in &flakes {
-            let (lo, hi) = span(f);
+        for &(lo, hi) in &spans {
             for b in lo..=hi {
                 counts[b.rem_euclid(bins as i64) as usize + 1] += 1;
             }
@@ -168,15 +179,14 @@ impl SnowField {
         let offsets = counts.clone();
         let mut fill = counts;
         let mut ids = vec![0u32; *offsets.last().unwrap_or(&0) as usize];
-        for (i, f) in flakes.iter().enumerate() {
-            let (lo, hi) = span(f);
+        for (i, &(lo, hi)) in spans.iter().enumerate() {
             for b in lo..=hi {
                 let b = b.rem_euclid(bins as i64) as usize;
                 ids[fill[b] as usize] = i as u32;
                 fill[b] += 1;
             }
         }
-        Layer { flakes, offsets, ids }
+        Layer { flakes, half, offsets, ids }
     }
 
     /// Sample `rings` layers for `weather` (deterministic in the seed and the ring index).
@@ -266,7 +276,7 @@ impl SnowField {
                 }
                 seen.push(id);
                 let c = wrap_angle(f.azimuth_rad as f64 - azimuth);
-                let half = (r / d).asin();
+                let half = layer.half[id as usize];
                 let a = (c - half).max(-half_width);
                 let bb = (c + half).min(half_width);
                 if bb > a {

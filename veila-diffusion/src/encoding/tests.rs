@@ -13,9 +13,15 @@ fn range_encoding_matches_closed_form_and_round_trips() {
     for &r in &[1e-3f32, 0.5, 1.45, 2.0, 5.3, 17.0, 42.42, 79.9, 80.0] {
         let v = e.encode_range(r);
         let want = r2dm_expected(r as f64, 80.0);
-        assert!((v as f64 - want).abs() < 1e-6, "encode({r}) = {v}, want {want}");
+        assert!(
+            (v as f64 - want).abs() < 1e-6,
+            "encode({r}) = {v}, want {want}"
+        );
         let back = e.decode_range(v);
-        assert!((back - r).abs() <= 2e-5 * r.max(1.0), "round trip {r} -> {v} -> {back}");
+        assert!(
+            (back - r).abs() <= 2e-5 * r.max(1.0),
+            "round trip {r} -> {v} -> {back}"
+        );
     }
     assert_eq!(e.encode_range(80.0), 1.0);
     assert_eq!(e.encode_range(500.0), 1.0, "ranges beyond r_max clamp");
@@ -25,7 +31,10 @@ fn range_encoding_matches_closed_form_and_round_trips() {
     assert_eq!(e.encode_range(f32::INFINITY), -1.0);
     assert_eq!(e.decode_range(-1.0), 0.0);
     assert!((e.decode_range(1.0) - 80.0).abs() < 1e-4);
-    assert!((e.decode_range(7.0) - 80.0).abs() < 1e-4, "decode clamps to [-1, 1]");
+    assert!(
+        (e.decode_range(7.0) - 80.0).abs() < 1e-4,
+        "decode clamps to [-1, 1]"
+    );
     assert!(e.decode_range(f32::NAN).is_nan());
 }
 
@@ -87,7 +96,10 @@ fn scan_round_trip_keeps_mask_range_and_intensity() -> Result<()> {
     let v = x.flatten_all()?.to_vec1::<f32>()?;
     assert!(v.iter().all(|x| (-1.0..=1.0).contains(x)));
     let dec = e.decode_batch(&x)?;
-    for (s, (r, i, m)) in dec.iter().zip([(&range, &inten, &mask), (&range2, &inten2, &mask2)]) {
+    for (s, (r, i, m)) in dec
+        .iter()
+        .zip([(&range, &inten, &mask), (&range2, &inten2, &mask2)])
+    {
         assert_eq!(&s.mask, m);
         for p in 0..rows * cols {
             if m[p] {
@@ -151,7 +163,12 @@ fn without_raydrop_channel_short_ranges_are_drops() -> Result<()> {
         ..RangeEncoding::kitti()
     };
     assert_eq!(e.num_channels(), 1);
-    let vals = [e.encode_range(1.0), e.encode_range(1.5), e.encode_range(30.0), -1.0];
+    let vals = [
+        e.encode_range(1.0),
+        e.encode_range(1.5),
+        e.encode_range(30.0),
+        -1.0,
+    ];
     let x = Tensor::from_vec(vals.to_vec(), (1, 1, 1, 4), &Device::Cpu)?;
     let s = &e.decode_batch(&x)?[0];
     assert_eq!(s.mask, vec![false, true, true, false]);
@@ -195,4 +212,25 @@ fn bad_inputs_are_errors_not_panics() {
     ] {
         assert!(bad.validate().is_err(), "{bad:?}");
     }
+}
+
+#[test]
+fn geom_range_image_round_trip() -> Result<()> {
+    let mut img = veila_geom::RangeImage::new_empty(2, 8);
+    for (p, r) in [(0usize, 5.0f32), (3, 12.5), (9, 70.0), (15, 2.0)] {
+        img.range_m[p] = r;
+        img.intensity[p] = 0.25;
+        img.mask[p] = true;
+    }
+    let e = RangeEncoding::kitti();
+    let x = e.encode_batch(&[ScanView::from_range_image(&img)], &Device::Cpu)?;
+    let back = e.decode_batch(&x)?.remove(0).into_range_image();
+    assert_eq!(back.mask, img.mask);
+    assert_eq!(back.num_valid(), 4);
+    assert!(back.point_index.iter().all(|&i| i == veila_geom::NO_POINT));
+    for p in 0..16 {
+        assert!((back.range_m[p] - img.range_m[p]).abs() < 1e-4 * img.range_m[p].max(1.0));
+        assert!((back.intensity[p] - img.intensity[p]).abs() < 1e-6);
+    }
+    Ok(())
 }

@@ -42,7 +42,10 @@ impl Default for RepaintConfig {
 /// `jump_n_sample − 1` times.
 pub fn repaint_schedule(n: usize, cfg: &RepaintConfig) -> Result<Vec<usize>> {
     if cfg.jump_length == 0 || cfg.jump_n_sample == 0 {
-        return Err(invalid("repaint", "jump_length and jump_n_sample must be at least 1"));
+        return Err(invalid(
+            "repaint",
+            "jump_length and jump_n_sample must be at least 1",
+        ));
     }
     let mut remaining = vec![0usize; n + 1];
     let mut i = 1;
@@ -86,11 +89,13 @@ pub fn inpaint<D: Denoiser, R: Rng + ?Sized>(
     if matches!(sampler.config().kind, SamplerKind::DpmSolverPp2M) {
         return Err(invalid("kind", "inpainting needs the ddpm or ddim sampler"));
     }
-    let mask = known_mask.broadcast_as(known_x0.shape()).map_err(|_| Error::Shape {
-        what: "known_mask",
-        expected: format!("broadcastable to {:?}", known_x0.dims()),
-        got: format!("{:?}", known_mask.dims()),
-    })?;
+    let mask = known_mask
+        .broadcast_as(known_x0.shape())
+        .map_err(|_| Error::Shape {
+            what: "known_mask",
+            expected: format!("broadcastable to {:?}", known_x0.dims()),
+            got: format!("{:?}", known_mask.dims()),
+        })?;
     let mask = mask.to_dtype(known_x0.dtype())?;
     let inv = mask.affine(-1.0, 1.0)?;
     let b = known_x0.dim(0)?;
@@ -110,7 +115,11 @@ pub fn inpaint<D: Denoiser, R: Rng + ?Sized>(
             let d = sampler.denoise(model, &x, &from, cond, uncond.as_ref())?;
             let unknown = match sampler.config().kind {
                 SamplerKind::Ddpm { variance } => {
-                    let z = if to.is_clean() { None } else { Some(randn_like(rng, known_x0)?) };
+                    let z = if to.is_clean() {
+                        None
+                    } else {
+                        Some(randn_like(rng, known_x0)?)
+                    };
                     ddpm_step(&x, &d, &from, &to, variance, z.as_ref())?
                 }
                 SamplerKind::Ddim { eta } => {

@@ -8,7 +8,7 @@ use crate::objective::Denoised;
 use crate::schedule::NoiseLevel;
 
 fn check_order(from: &NoiseLevel, to: &NoiseLevel) -> Result<()> {
-    if from.is_clean() || !(to.log_snr > from.log_snr) {
+    if from.is_clean() || to.log_snr.is_nan() || to.log_snr <= from.log_snr {
         return Err(invalid(
             "levels",
             format!(
@@ -98,7 +98,13 @@ impl DpmSolverPp2M {
     }
 
     /// One step from `from` to the less noisy `to`, given the model's `x̂_0` at `from`.
-    pub fn step(&mut self, x_t: &Tensor, x0: &Tensor, from: &NoiseLevel, to: &NoiseLevel) -> Result<Tensor> {
+    pub fn step(
+        &mut self,
+        x_t: &Tensor,
+        x0: &Tensor,
+        from: &NoiseLevel,
+        to: &NoiseLevel,
+    ) -> Result<Tensor> {
         check_order(from, to)?;
         if to.is_clean() {
             self.prev = None;

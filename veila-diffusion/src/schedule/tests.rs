@@ -11,7 +11,10 @@ fn linear_alpha_bar_is_the_product_of_one_minus_beta() {
     for k in 1..=1000 {
         prod *= 1.0 - s.betas()[k - 1];
         let l = s.level_at_index(k);
-        assert!((l.alpha_bar - prod).abs() <= 1e-12 * prod.max(1e-300), "k={k}");
+        assert!(
+            (l.alpha_bar - prod).abs() <= 1e-12 * prod.max(1e-300),
+            "k={k}"
+        );
         assert!((l.alpha_bar + l.sigma2 - 1.0).abs() < 1e-14);
     }
     // DDPM's known value: alpha_bar_T ~ 4.04e-5
@@ -22,7 +25,11 @@ fn linear_alpha_bar_is_the_product_of_one_minus_beta() {
 fn cosine_schedule_follows_closed_form_with_float_division() {
     let t_total = 1000usize;
     let sch = DiscreteSchedule::cosine(t_total, 0.008, 0.999).unwrap();
-    let f = |k: f64| (((k / t_total as f64) + 0.008) / 1.008 * std::f64::consts::FRAC_PI_2).cos().powi(2);
+    let f = |k: f64| {
+        (((k / t_total as f64) + 0.008) / 1.008 * std::f64::consts::FRAC_PI_2)
+            .cos()
+            .powi(2)
+    };
     for k in [1usize, 2, 10, 100, 500, 900, 990] {
         let want = f(k as f64) / f(0.0);
         let got = sch.level_at_index(k).alpha_bar;
@@ -64,7 +71,11 @@ fn discrete_ends_never_divide_by_zero_or_one() {
         };
         assert!((first.sigma2 - b1).abs() < 1e-15 * b1.max(1e-4) * 1e3);
         assert!(sch.level(0.0).is_clean());
-        assert_eq!(sch.level(f64::NAN), last, "NaN time is treated as the noisiest level");
+        assert_eq!(
+            sch.level(f64::NAN),
+            last,
+            "NaN time is treated as the noisiest level"
+        );
     }
 }
 
@@ -73,7 +84,10 @@ fn continuous_log_snr_hits_its_clipped_ends() {
     let c = CosineLogSnr::new(-20.0, 20.0, 0.0).unwrap();
     assert!((c.log_snr(0.0) - 20.0).abs() < 1e-9);
     assert!((c.log_snr(1.0) + 20.0).abs() < 1e-9);
-    assert!((c.log_snr(0.5)).abs() < 1e-9, "symmetric clipping puts lambda = 0 at t = 0.5");
+    assert!(
+        (c.log_snr(0.5)).abs() < 1e-9,
+        "symmetric clipping puts lambda = 0 at t = 0.5"
+    );
     assert_eq!(c.log_snr(-3.0), c.log_snr(0.0));
     assert_eq!(c.log_snr(7.0), c.log_snr(1.0));
     let mut prev = f64::INFINITY;
@@ -104,13 +118,20 @@ fn continuous_extremes_are_finite_and_strictly_inside_zero_one() {
         assert!(l.alpha_bar > 0.0 && l.alpha_bar < 1.0, "t={t}: {l:?}");
         assert!(l.sigma2 > 0.0 && l.sigma2 < 1.0, "t={t}: {l:?}");
         assert!((l.alpha_bar + l.sigma2 - 1.0).abs() < 1e-15);
-        assert!(l.alpha() as f32 > 0.0 && l.sigma() as f32 > 0.0, "f32 alpha and sigma stay positive");
+        assert!(
+            l.alpha() as f32 > 0.0 && l.sigma() as f32 > 0.0,
+            "f32 alpha and sigma stay positive"
+        );
     }
     // sigma at t = 0 is sqrt(sigmoid(-20)) = 4.54e-5, not 0, even though 1 - alpha_bar underflows in f32
     let l0 = sch.level(0.0);
     let want = (1.0 / (1.0 + 20f64.exp())).sqrt();
     assert!((l0.sigma() - want).abs() < 1e-15);
-    assert_eq!(1.0f32 - l0.alpha_bar as f32, 0.0, "the f32 difference would have been 0");
+    assert_eq!(
+        1.0f32 - l0.alpha_bar as f32,
+        0.0,
+        "the f32 difference would have been 0"
+    );
 }
 
 #[test]
@@ -122,24 +143,45 @@ fn noise_level_from_extreme_log_snr_is_finite() {
         assert!(n.log_alpha_bar().is_finite() && n.log_alpha_bar() <= 0.0);
     }
     let n = NoiseLevel::from_log_snr(0.5, 40.0);
-    assert!((n.sigma2 - (-40f64).exp()).abs() < 1e-30, "sigma^2 accurate far below f64 epsilon");
+    assert!(
+        (n.sigma2 - (-40f64).exp()).abs() < 1e-30,
+        "sigma^2 accurate far below f64 epsilon"
+    );
     assert_eq!(NoiseLevel::CLEAN.log_alpha_bar(), 0.0);
     // log alpha-bar through log-SNR agrees with the discrete cumulative sum
     let d = DiscreteSchedule::cosine(1000, 0.008, 0.999).unwrap();
     for k in [1, 10, 500, 999, 1000] {
         let l = d.level_at_index(k);
-        assert!((l.log_alpha_bar() - l.alpha_bar.ln()).abs() < 1e-9 * l.alpha_bar.ln().abs().max(1e-9));
+        assert!(
+            (l.log_alpha_bar() - l.alpha_bar.ln()).abs() < 1e-9 * l.alpha_bar.ln().abs().max(1e-9)
+        );
     }
 }
 
 #[test]
 fn sampling_levels_spacings() {
     let sch = NoiseSchedule::new(&ScheduleConfig::ddpm_linear()).unwrap();
-    let idx = |v: Vec<NoiseLevel>| v.iter().map(|l| (l.t * 1000.0).round() as usize).collect::<Vec<_>>();
-    assert_eq!(idx(sch.sampling_levels(4, Spacing::Trailing).unwrap()), vec![1000, 750, 500, 250]);
-    assert_eq!(idx(sch.sampling_levels(4, Spacing::Leading).unwrap()), vec![751, 501, 251, 1]);
-    assert_eq!(idx(sch.sampling_levels(4, Spacing::Linspace).unwrap()), vec![1000, 667, 334, 1]);
-    assert_eq!(sch.sampling_levels(1000, Spacing::Trailing).unwrap().len(), 1000);
+    let idx = |v: Vec<NoiseLevel>| {
+        v.iter()
+            .map(|l| (l.t * 1000.0).round() as usize)
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(
+        idx(sch.sampling_levels(4, Spacing::Trailing).unwrap()),
+        vec![1000, 750, 500, 250]
+    );
+    assert_eq!(
+        idx(sch.sampling_levels(4, Spacing::Leading).unwrap()),
+        vec![751, 501, 251, 1]
+    );
+    assert_eq!(
+        idx(sch.sampling_levels(4, Spacing::Linspace).unwrap()),
+        vec![1000, 667, 334, 1]
+    );
+    assert_eq!(
+        sch.sampling_levels(1000, Spacing::Trailing).unwrap().len(),
+        1000
+    );
     let all = idx(sch.sampling_levels(1000, Spacing::Trailing).unwrap());
     assert_eq!(all, (1..=1000).rev().collect::<Vec<_>>());
     assert!(sch.sampling_levels(1001, Spacing::Trailing).is_err());
@@ -150,7 +192,10 @@ fn sampling_levels_spacings() {
     // roughly uniform in log-SNR
     let gaps: Vec<f64> = ls.windows(2).map(|w| w[1].log_snr - w[0].log_snr).collect();
     let mean = gaps.iter().sum::<f64>() / gaps.len() as f64;
-    assert!(gaps.iter().all(|g| (g - mean).abs() < 0.2 * mean), "{gaps:?}");
+    assert!(
+        gaps.iter().all(|g| (g - mean).abs() < 0.2 * mean),
+        "{gaps:?}"
+    );
 
     let c = NoiseSchedule::new(&ScheduleConfig::cosine_logsnr()).unwrap();
     let lv = c.sampling_levels(5, Spacing::Trailing).unwrap();
@@ -167,7 +212,9 @@ fn sampling_levels_spacings() {
 #[test]
 fn level_of_log_snr_picks_nearest_grid_point() {
     let sch = NoiseSchedule::new(&ScheduleConfig::cosine()).unwrap();
-    let NoiseSchedule::Discrete(d) = &sch else { unreachable!() };
+    let NoiseSchedule::Discrete(d) = &sch else {
+        unreachable!()
+    };
     for k in [1usize, 2, 37, 500, 999, 1000] {
         let l = d.level_at_index(k);
         assert_eq!(sch.level_of_log_snr(l.log_snr), l);

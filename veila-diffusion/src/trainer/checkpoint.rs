@@ -102,7 +102,8 @@ fn bad(path: &Path, reason: impl Into<String>) -> Error {
 }
 
 fn save_tensors(map: &HashMap<String, Tensor>, path: &Path) -> Result<()> {
-    candle_core::safetensors::save(map, path).map_err(|e| bad(path, format!("writing safetensors: {e}")))?;
+    candle_core::safetensors::save(map, path)
+        .map_err(|e| bad(path, format!("writing safetensors: {e}")))?;
     fs::File::open(path)
         .and_then(|f| f.sync_all())
         .map_err(io("syncing", path))
@@ -112,7 +113,8 @@ fn load_tensors(path: &Path, device: &candle_core::Device) -> Result<HashMap<Str
     if !path.is_file() {
         return Err(bad(path, "file missing"));
     }
-    candle_core::safetensors::load(path, device).map_err(|e| bad(path, format!("reading safetensors: {e}")))
+    candle_core::safetensors::load(path, device)
+        .map_err(|e| bad(path, format!("reading safetensors: {e}")))
 }
 
 /// The checkpoint directory name for `step`.
@@ -134,7 +136,10 @@ fn list_checkpoints(dir: &Path) -> Result<Vec<(u64, PathBuf)>> {
         let entry = entry.map_err(io("listing checkpoints", dir))?;
         let name = entry.file_name();
         let Some(name) = name.to_str() else { continue };
-        let Some(step) = name.strip_prefix("step-").and_then(|s| s.parse::<u64>().ok()) else {
+        let Some(step) = name
+            .strip_prefix("step-")
+            .and_then(|s| s.parse::<u64>().ok())
+        else {
             continue;
         };
         let p = entry.path();
@@ -152,13 +157,17 @@ impl<M: Denoiser> Trainer<M> {
     pub fn save_checkpoint(&self, dir: &Path) -> Result<PathBuf> {
         fs::create_dir_all(dir).map_err(io("creating checkpoint directory", dir))?;
         let final_path = dir.join(checkpoint_name(self.step));
-        let tmp = dir.join(format!(".{}.tmp-{}", checkpoint_name(self.step), std::process::id()));
+        let tmp = dir.join(format!(
+            ".{}.tmp-{}",
+            checkpoint_name(self.step),
+            std::process::id()
+        ));
         if tmp.exists() {
             fs::remove_dir_all(&tmp).map_err(io("removing stale temporary checkpoint", &tmp))?;
         }
         fs::create_dir(&tmp).map_err(io("creating temporary checkpoint", &tmp))?;
         let write = || -> Result<()> {
-            save_tensors(&self.weights(), &tmp.join(MODEL_FILE))?;
+            save_tensors(&self.weights()?, &tmp.join(MODEL_FILE))?;
             save_tensors(&self.ema_weights(), &tmp.join(EMA_FILE))?;
             save_tensors(&self.opt.state_tensors(), &tmp.join(OPT_FILE))?;
             let state = CheckpointState {
@@ -186,12 +195,18 @@ impl<M: Denoiser> Trainer<M> {
             return Err(e);
         }
         if final_path.exists() {
-            let old = dir.join(format!(".{}.old-{}", checkpoint_name(self.step), std::process::id()));
+            let old = dir.join(format!(
+                ".{}.old-{}",
+                checkpoint_name(self.step),
+                std::process::id()
+            ));
             fs::rename(&final_path, &old).map_err(io("replacing checkpoint", &final_path))?;
-            fs::rename(&tmp, &final_path).map_err(io("renaming checkpoint into place", &final_path))?;
+            fs::rename(&tmp, &final_path)
+                .map_err(io("renaming checkpoint into place", &final_path))?;
             let _ = fs::remove_dir_all(&old);
         } else {
-            fs::rename(&tmp, &final_path).map_err(io("renaming checkpoint into place", &final_path))?;
+            fs::rename(&tmp, &final_path)
+                .map_err(io("renaming checkpoint into place", &final_path))?;
         }
         if let Ok(d) = fs::File::open(dir) {
             let _ = d.sync_all();
@@ -220,12 +235,18 @@ impl<M: Denoiser> Trainer<M> {
             source,
         })?;
         if state.format_version != FORMAT_VERSION {
-            return Err(bad(path, format!("unsupported format_version {}", state.format_version)));
+            return Err(bad(
+                path,
+                format!("unsupported format_version {}", state.format_version),
+            ));
         }
         if &state.diffusion_config != self.diffusion.config() {
             return Err(bad(path, "diffusion config differs from the trainer's"));
         }
-        let rng = state.rng.restore().ok_or_else(|| bad(&state_path, "unreadable rng state"))?;
+        let rng = state
+            .rng
+            .restore()
+            .ok_or_else(|| bad(&state_path, "unreadable rng state"))?;
         let device = self
             .vars
             .first()
@@ -285,7 +306,8 @@ impl<M: Denoiser> Trainer<M> {
                 Some(_) => {}
             }
         }
-        let mut unexpected: Vec<&String> = tensors.keys().filter(|k| !self.names.contains(k)).collect();
+        let mut unexpected: Vec<&String> =
+            tensors.keys().filter(|k| !self.names.contains(k)).collect();
         unexpected.sort();
         if missing.is_empty() && mis_shaped.is_empty() && unexpected.is_empty() {
             return Ok(());
@@ -295,7 +317,11 @@ impl<M: Denoiser> Trainer<M> {
             format!(
                 "tensors do not match the model: missing [{}], unexpected [{}], mis-shaped [{}]",
                 missing.join(", "),
-                unexpected.iter().map(|s| s.as_str()).collect::<Vec<_>>().join(", "),
+                unexpected
+                    .iter()
+                    .map(|s| s.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", "),
                 mis_shaped.join(", ")
             ),
         ))

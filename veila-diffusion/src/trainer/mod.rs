@@ -103,10 +103,16 @@ impl TrainConfig {
     pub fn validate(&self) -> Result<()> {
         let pos = |v: f64| v.is_finite() && v > 0.0;
         if !pos(self.lr) {
-            return Err(invalid("lr", format!("must be finite and > 0, got {}", self.lr)));
+            return Err(invalid(
+                "lr",
+                format!("must be finite and > 0, got {}", self.lr),
+            ));
         }
         if !(self.min_lr.is_finite() && self.min_lr >= 0.0 && self.min_lr <= self.lr) {
-            return Err(invalid("min_lr", format!("must be in [0, lr], got {}", self.min_lr)));
+            return Err(invalid(
+                "min_lr",
+                format!("must be in [0, lr], got {}", self.min_lr),
+            ));
         }
         for (name, v) in [("beta1", self.beta1), ("beta2", self.beta2)] {
             if !(0.0..1.0).contains(&v) {
@@ -120,18 +126,27 @@ impl TrainConfig {
             return Err(invalid("weight_decay", "must be finite and >= 0"));
         }
         if !(0.0..1.0).contains(&self.ema_decay) {
-            return Err(invalid("ema_decay", format!("must be in [0, 1), got {}", self.ema_decay)));
+            return Err(invalid(
+                "ema_decay",
+                format!("must be in [0, 1), got {}", self.ema_decay),
+            ));
         }
         if let Some(c) = self.grad_clip_norm
             && !pos(c)
         {
-            return Err(invalid("grad_clip_norm", format!("must be finite and > 0, got {c}")));
+            return Err(invalid(
+                "grad_clip_norm",
+                format!("must be finite and > 0, got {c}"),
+            ));
         }
         if !(0.0..=1.0).contains(&self.cond_drop_prob) {
             return Err(invalid("cond_drop_prob", "must be in [0, 1]"));
         }
         if self.checkpoint_every == Some(0) || self.preview_every == Some(0) {
-            return Err(invalid("checkpoint_every/preview_every", "must be at least 1"));
+            return Err(invalid(
+                "checkpoint_every/preview_every",
+                "must be at least 1",
+            ));
         }
         if self.keep_checkpoints == Some(0) {
             return Err(invalid("keep_checkpoints", "must be at least 1"));
@@ -261,7 +276,12 @@ impl<M: Denoiser> std::fmt::Debug for Trainer<M> {
 impl<M: Denoiser> Trainer<M> {
     /// Creates a trainer. `varmap` must hold `model`'s parameters (build the model with
     /// `VarBuilder::from_varmap(&varmap, ..)`); variables are handled in name order.
-    pub fn new(model: M, varmap: VarMap, diffusion: Diffusion, config: TrainConfig) -> Result<Self> {
+    pub fn new(
+        model: M,
+        varmap: VarMap,
+        diffusion: Diffusion,
+        config: TrainConfig,
+    ) -> Result<Self> {
         config.validate()?;
         let mut named: Vec<(String, Var)> = {
             let data = varmap
@@ -273,7 +293,10 @@ impl<M: Denoiser> Trainer<M> {
         named.retain(|(_, v)| v.dtype().is_float());
         named.sort_by(|a, b| a.0.cmp(&b.0));
         if named.is_empty() {
-            return Err(invalid("varmap", "holds no float variables; build the model from it first"));
+            return Err(invalid(
+                "varmap",
+                "holds no float variables; build the model from it first",
+            ));
         }
         let names: Vec<String> = named.iter().map(|(n, _)| n.clone()).collect();
         let vars: Vec<Var> = named.iter().map(|(_, v)| v.clone()).collect();
@@ -354,18 +377,22 @@ impl<M: Denoiser> Trainer<M> {
         &self.names
     }
 
-    /// The current weights by name.
-    pub fn weights(&self) -> HashMap<String, Tensor> {
+    /// A snapshot (copy) of the current weights by name.
+    pub fn weights(&self) -> Result<HashMap<String, Tensor>> {
         self.names
             .iter()
-            .cloned()
-            .zip(self.vars.iter().map(|v| v.as_tensor().clone()))
+            .zip(&self.vars)
+            .map(|(n, v)| Ok((n.clone(), v.as_tensor().copy()?)))
             .collect()
     }
 
     /// The EMA weights by name (same names as the model's variables: loadable into it directly).
     pub fn ema_weights(&self) -> HashMap<String, Tensor> {
-        self.names.iter().cloned().zip(self.ema.iter().cloned()).collect()
+        self.names
+            .iter()
+            .cloned()
+            .zip(self.ema.iter().cloned())
+            .collect()
     }
 
     /// Runs `f` with the EMA weights loaded into the model, restoring the training weights after
@@ -394,10 +421,17 @@ impl<M: Denoiser> Trainer<M> {
         let dropout = (self.config.cond_drop_prob > 0.0).then_some(CondDropout {
             prob: self.config.cond_drop_prob,
         });
-        let out = self
-            .diffusion
-            .training_loss(&self.model, &batch.x0, batch.cond.as_ref(), dropout, &mut self.rng)?;
-        let loss = out.loss.to_dtype(candle_core::DType::F64)?.to_scalar::<f64>()?;
+        let out = self.diffusion.training_loss(
+            &self.model,
+            &batch.x0,
+            batch.cond.as_ref(),
+            dropout,
+            &mut self.rng,
+        )?;
+        let loss = out
+            .loss
+            .to_dtype(candle_core::DType::F64)?
+            .to_scalar::<f64>()?;
         let mut stats = StepStats {
             step: self.step + 1,
             loss,
@@ -442,11 +476,22 @@ impl<M: Denoiser> Trainer<M> {
         }
         if stats.skipped {
             if !self.config.skip_non_finite {
-                let what = if loss.is_finite() { "gradient norm" } else { "loss" };
-                return Err(Error::NonFinite { what, step: self.step });
+                let what = if loss.is_finite() {
+                    "gradient norm"
+                } else {
+                    "loss"
+                };
+                return Err(Error::NonFinite {
+                    what,
+                    step: self.step,
+                });
             }
             self.skipped += 1;
-            tracing::warn!(step = self.step, loss, "skipping update with non-finite loss or gradient");
+            tracing::warn!(
+                step = self.step,
+                loss,
+                "skipping update with non-finite loss or gradient"
+            );
         }
         self.step += 1;
         stats.step_secs = started.elapsed().as_secs_f64();
@@ -498,14 +543,14 @@ impl<M: Denoiser> Trainer<M> {
             }
             let flow = observer.on_step(&stats);
             if let Some(every) = self.config.preview_every
-                && self.step % every == 0
+                && self.step.is_multiple_of(every)
             {
                 let step = self.step;
                 let diffusion = self.diffusion.clone();
                 self.with_ema_weights(|m| observer.on_preview(step, m, &diffusion))?;
             }
             if let (Some(dir), Some(every)) = (checkpoint_dir, self.config.checkpoint_every)
-                && self.step % every == 0
+                && self.step.is_multiple_of(every)
             {
                 let p = self.save_checkpoint(dir)?;
                 observer.on_checkpoint(self.step, &p);

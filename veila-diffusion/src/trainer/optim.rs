@@ -79,7 +79,11 @@ impl AdamW {
             let Some(g) = grads.get(s.var.as_tensor()) else {
                 continue;
             };
-            let g = if grad_scale == 1.0 { g.clone() } else { (g * grad_scale)? };
+            let g = if grad_scale == 1.0 {
+                g.clone()
+            } else {
+                (g * grad_scale)?
+            };
             let next_m = ((s.m.as_tensor() * p.beta1)? + (&g * (1.0 - p.beta1))?)?;
             let next_v = ((s.v.as_tensor() * p.beta2)? + (g.sqr()? * (1.0 - p.beta2))?)?;
             let m_hat = (&next_m * scale_m)?;
@@ -120,7 +124,10 @@ impl AdamW {
             }
         }
         if !problems.is_empty() {
-            return Err(Error::Data(format!("optimizer state: {}", problems.join(", "))));
+            return Err(Error::Data(format!(
+                "optimizer state: {}",
+                problems.join(", ")
+            )));
         }
         for s in &self.slots {
             for (prefix, var) in [("m", &s.m), ("v", &s.v)] {

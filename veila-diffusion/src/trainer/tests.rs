@@ -5,7 +5,8 @@ use rand::SeedableRng;
 
 fn problem(seed: u64) -> (Vec<(String, Var)>, Tensor, Tensor) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let w = Var::from_tensor(&crate::noise::randn(&mut rng, &[4, 3], &Device::Cpu).unwrap()).unwrap();
+    let w =
+        Var::from_tensor(&crate::noise::randn(&mut rng, &[4, 3], &Device::Cpu).unwrap()).unwrap();
     let b = Var::from_tensor(&crate::noise::randn(&mut rng, &[3], &Device::Cpu).unwrap()).unwrap();
     let x = crate::noise::randn(&mut rng, &[16, 4], &Device::Cpu).unwrap();
     let y = crate::noise::randn(&mut rng, &[16, 3], &Device::Cpu).unwrap();
@@ -13,13 +14,23 @@ fn problem(seed: u64) -> (Vec<(String, Var)>, Tensor, Tensor) {
 }
 
 fn loss(vars: &[(String, Var)], x: &Tensor, y: &Tensor) -> Tensor {
-    let pred = x.matmul(vars[1].1.as_tensor()).unwrap().broadcast_add(vars[0].1.as_tensor()).unwrap();
+    let pred = x
+        .matmul(vars[1].1.as_tensor())
+        .unwrap()
+        .broadcast_add(vars[0].1.as_tensor())
+        .unwrap();
     (pred - y).unwrap().sqr().unwrap().mean_all().unwrap()
 }
 
 fn values(vars: &[(String, Var)]) -> Vec<Vec<f32>> {
     vars.iter()
-        .map(|(_, v)| v.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap())
+        .map(|(_, v)| {
+            v.as_tensor()
+                .flatten_all()
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap()
+        })
         .collect()
 }
 
@@ -33,7 +44,8 @@ fn adamw_is_bit_identical_to_candle_nn_adamw() {
     let (ours, x, y) = problem(1);
     let (theirs, _, _) = problem(1);
     let mut a = AdamW::new(ours.clone(), params.clone()).unwrap();
-    let mut b = candle_nn::AdamW::new(theirs.iter().map(|(_, v)| v.clone()).collect(), params).unwrap();
+    let mut b =
+        candle_nn::AdamW::new(theirs.iter().map(|(_, v)| v.clone()).collect(), params).unwrap();
     for step in 0..20 {
         let ga = loss(&ours, &x, &y).backward().unwrap();
         let gb = loss(&theirs, &x, &y).backward().unwrap();
@@ -54,7 +66,8 @@ fn adamw_grad_scale_equals_scaling_the_gradients() {
     let (ours, x, y) = problem(2);
     let (theirs, _, _) = problem(2);
     let mut a = AdamW::new(ours.clone(), params.clone()).unwrap();
-    let mut b = candle_nn::AdamW::new(theirs.iter().map(|(_, v)| v.clone()).collect(), params).unwrap();
+    let mut b =
+        candle_nn::AdamW::new(theirs.iter().map(|(_, v)| v.clone()).collect(), params).unwrap();
     let before = values(&ours);
     for _ in 0..5 {
         let ga = loss(&ours, &x, &y).backward().unwrap();
@@ -79,7 +92,8 @@ fn adamw_grad_scale_equals_scaling_the_gradients() {
 fn adamw_state_round_trips() {
     let (vars, x, y) = problem(3);
     let mut a = AdamW::new(vars.clone(), ParamsAdamW::default()).unwrap();
-    a.step(&loss(&vars, &x, &y).backward().unwrap(), 1.0).unwrap();
+    a.step(&loss(&vars, &x, &y).backward().unwrap(), 1.0)
+        .unwrap();
     let st = a.state_tensors();
     assert_eq!(st.len(), 4);
     let (vars2, _, _) = problem(3);
@@ -87,7 +101,11 @@ fn adamw_state_round_trips() {
     b.load_state(&st, 1).unwrap();
     for (k, t) in b.state_tensors() {
         let want = st[&k].flatten_all().unwrap().to_vec1::<f32>().unwrap();
-        assert_eq!(t.flatten_all().unwrap().to_vec1::<f32>().unwrap(), want, "{k}");
+        assert_eq!(
+            t.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+            want,
+            "{k}"
+        );
     }
     let mut partial = st.clone();
     partial.remove("m.w");
@@ -104,14 +122,20 @@ fn lr_schedule_warmup_then_cosine() {
     };
     assert!((s.lr_at(0) - 1e-4).abs() < 1e-15);
     assert!((s.lr_at(4) - 5e-4).abs() < 1e-15);
-    assert!((s.lr_at(10) - 1e-3).abs() < 1e-15, "peak right after warm-up");
+    assert!(
+        (s.lr_at(10) - 1e-3).abs() < 1e-15,
+        "peak right after warm-up"
+    );
     // halfway through the cosine: the mean of peak and floor
     assert!((s.lr_at(60) - (1e-3 + 1e-5) / 2.0).abs() < 1e-15);
     let q = 1e-5 + (1e-3 - 1e-5) * 0.5 * (1.0 + (std::f64::consts::PI * 0.25).cos());
     assert!((s.lr_at(35) - q).abs() < 1e-15);
     assert!((s.lr_at(110) - 1e-5).abs() < 1e-15);
     assert!((s.lr_at(10_000) - 1e-5).abs() < 1e-15);
-    let no_warm = LrSchedule { warmup_steps: 0, ..s };
+    let no_warm = LrSchedule {
+        warmup_steps: 0,
+        ..s
+    };
     assert!((no_warm.lr_at(0) - 1e-3).abs() < 1e-15);
 }
 

@@ -52,7 +52,11 @@ impl TinyNet {
                 None
             },
             pos: match cfg.pos {
-                Some((h, w)) => Some(vb.get_with_hints((1, cfg.hidden, h, w), "pos", candle_nn::Init::Const(0.0))?),
+                Some((h, w)) => Some(vb.get_with_hints(
+                    (1, cfg.hidden, h, w),
+                    "pos",
+                    candle_nn::Init::Const(0.0),
+                )?),
                 None => None,
             },
             hidden: cfg.hidden,
@@ -91,9 +95,11 @@ impl TinyNet {
     }
 
     fn time_features(t: &Tensor) -> candle_core::Result<Tensor> {
-        // t is 1000·t_unit; map to [0, 1] and take sin/cos at octave frequencies
-        let t = (t.to_dtype(DType::F32)? / 1000.0)?.unsqueeze(1)?; // [B, 1]
-        let freqs: Vec<f32> = (0..TIME_FREQS).map(|k| std::f32::consts::PI * (1 << k) as f32 / 2.0).collect();
+        // t in [0, 1] (TimeInput::Unit); sin/cos at octave frequencies
+        let t = t.to_dtype(DType::F32)?.unsqueeze(1)?; // [B, 1]
+        let freqs: Vec<f32> = (0..TIME_FREQS)
+            .map(|k| std::f32::consts::PI * (1 << k) as f32 / 2.0)
+            .collect();
         let f = Tensor::from_vec(freqs, (1, TIME_FREQS), t.device())?;
         let a = t.broadcast_mul(&f)?;
         Tensor::cat(&[a.sin()?, a.cos()?], 1)
@@ -103,18 +109,29 @@ impl TinyNet {
 impl Denoiser for TinyNet {
     type Cond = Tensor;
 
-    fn forward(&self, x_t: &Tensor, t: &Tensor, cond: Option<&Tensor>) -> candle_core::Result<Tensor> {
+    fn forward(
+        &self,
+        x_t: &Tensor,
+        t: &Tensor,
+        cond: Option<&Tensor>,
+    ) -> candle_core::Result<Tensor> {
         let mut film = self.film.forward(&Self::time_features(t)?)?; // [B, 2h]
         if let (Some(lin), Some(c)) = (&self.cond, cond) {
             film = (film + lin.forward(c)?)?;
         }
         let scale = film.narrow(1, 0, self.hidden)?.unsqueeze(2)?.unsqueeze(3)?;
-        let shift = film.narrow(1, self.hidden, self.hidden)?.unsqueeze(2)?.unsqueeze(3)?;
+        let shift = film
+            .narrow(1, self.hidden, self.hidden)?
+            .unsqueeze(2)?
+            .unsqueeze(3)?;
         let mut h = self.conv_in.forward(x_t)?;
         if let Some(p) = &self.pos {
             h = h.broadcast_add(p)?;
         }
-        let h = h.broadcast_mul(&(scale + 1.0)?)?.broadcast_add(&shift)?.silu()?;
+        let h = h
+            .broadcast_mul(&(scale + 1.0)?)?
+            .broadcast_add(&shift)?
+            .silu()?;
         let h = self.conv_mid.forward(&h)?.silu()?;
         self.conv_out.forward(&h)
     }
@@ -147,14 +164,23 @@ impl CondOracle {
 impl Denoiser for CondOracle {
     type Cond = Tensor;
 
-    fn forward(&self, x_t: &Tensor, t: &Tensor, cond: Option<&Tensor>) -> candle_core::Result<Tensor> {
+    fn forward(
+        &self,
+        x_t: &Tensor,
+        t: &Tensor,
+        cond: Option<&Tensor>,
+    ) -> candle_core::Result<Tensor> {
         self.calls.set(self.calls.get() + 1);
         let l = self.level(t)?;
         let s2 = self.std * self.std;
         let d = l.alpha_bar * s2 + l.sigma2;
         let mu = match cond {
             Some(c) => c.clone(),
-            None => x_t.zeros_like()?.narrow(1, 0, 1)?.narrow(2, 0, 1)?.narrow(3, 0, 1)?,
+            None => x_t
+                .zeros_like()?
+                .narrow(1, 0, 1)?
+                .narrow(2, 0, 1)?
+                .narrow(3, 0, 1)?,
         };
         // E[x0 | x_t] = mu·σ²/d + α s²/d · x_t
         let x0 = (x_t * (l.alpha() * s2 / d))?.broadcast_add(&(mu * (l.sigma2 / d))?)?;
@@ -178,5 +204,10 @@ pub fn stats(t: &Tensor) -> (f64, f64) {
 }
 
 pub fn all_finite(t: &Tensor) -> bool {
-    t.flatten_all().unwrap().to_vec1::<f32>().unwrap().iter().all(|x| x.is_finite())
+    t.flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap()
+        .iter()
+        .all(|x| x.is_finite())
 }

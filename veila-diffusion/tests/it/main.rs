@@ -1,5 +1,6 @@
 //! Integration tests of veila-diffusion (one binary, modules per area).
 
 mod common;
+mod device;
 mod samplers;
 mod training;

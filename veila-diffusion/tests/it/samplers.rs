@@ -6,8 +6,8 @@ use rand_chacha::ChaCha8Rng;
 use veila_diffusion::noise::randn;
 use veila_diffusion::oracle::GaussianOracle;
 use veila_diffusion::{
-    Diffusion, DiffusionConfig, LossWeighting, Prediction, RepaintConfig, Sampler, SamplerConfig, SamplerKind,
-    ScheduleConfig, Spacing, TimeInput, inpaint,
+    Diffusion, DiffusionConfig, LossWeighting, Prediction, RepaintConfig, Sampler, SamplerConfig,
+    SamplerKind, ScheduleConfig, Spacing, TimeInput, inpaint,
 };
 
 use crate::common::{CondOracle, TinyConfig, TinyNet, all_finite, stats};
@@ -29,11 +29,22 @@ fn diffusion(schedule: ScheduleConfig, prediction: Prediction) -> Diffusion {
 fn ode_error(d: &Diffusion, cfg: SamplerConfig) -> f64 {
     let oracle = GaussianOracle::new(MU, STD, d.clone()).unwrap();
     let sampler = Sampler::new(d, cfg).unwrap();
-    let x_t = randn(&mut ChaCha8Rng::seed_from_u64(3), &[1, 1, 16, 16], &Device::Cpu).unwrap();
+    let x_t = randn(
+        &mut ChaCha8Rng::seed_from_u64(3),
+        &[1, 1, 16, 16],
+        &Device::Cpu,
+    )
+    .unwrap();
     let start = sampler.levels()[0];
     let xs = x_t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
     let out = sampler
-        .sample_from(&oracle, x_t, None, &mut ChaCha8Rng::seed_from_u64(0), |_| {})
+        .sample_from(
+            &oracle,
+            x_t,
+            None,
+            &mut ChaCha8Rng::seed_from_u64(0),
+            |_| {},
+        )
         .unwrap();
     let ys = out.flatten_all().unwrap().to_vec1::<f32>().unwrap();
     xs.iter()
@@ -77,7 +88,10 @@ fn deterministic_samplers_converge_to_the_exact_ode_solution() {
         // DPM-Solver++(2M) (second order): at least 3x from 40 to 80 steps, always below DDIM
         let r = e[1].1 / e[2].1;
         assert!(r > 3.0, "DPM-Solver++ order: ratio {r}");
-        assert!(e.iter().all(|(a, b)| b < a), "second order beats first order");
+        assert!(
+            e.iter().all(|(a, b)| b < a),
+            "second order beats first order"
+        );
         assert!(e[2].1 < 5e-3, "{}", e[2].1);
         for n in [10, 20] {
             assert!(run(dpm, n, Spacing::Trailing) < run(ddim, n, Spacing::Trailing));
@@ -98,7 +112,13 @@ fn ddpm_samples_the_data_distribution() {
     )
     .unwrap();
     let x = s
-        .sample(&oracle, &[1, 1, 64, 64], &Device::Cpu, None, &mut ChaCha8Rng::seed_from_u64(1))
+        .sample(
+            &oracle,
+            &[1, 1, 64, 64],
+            &Device::Cpu,
+            None,
+            &mut ChaCha8Rng::seed_from_u64(1),
+        )
         .unwrap();
     let (m, v) = stats(&x);
     // 4096 samples: the standard error of the mean is 0.5/64 ≈ 0.008
@@ -107,15 +127,42 @@ fn ddpm_samples_the_data_distribution() {
     // DDIM with eta = 0 is deterministic in x_T: same seed, same result; different seed differs
     let s = Sampler::new(&d, SamplerConfig::ddim(20, 0.0)).unwrap();
     let a = s
-        .sample(&oracle, &[1, 1, 8, 8], &Device::Cpu, None, &mut ChaCha8Rng::seed_from_u64(5))
+        .sample(
+            &oracle,
+            &[1, 1, 8, 8],
+            &Device::Cpu,
+            None,
+            &mut ChaCha8Rng::seed_from_u64(5),
+        )
         .unwrap();
     let b = s
-        .sample(&oracle, &[1, 1, 8, 8], &Device::Cpu, None, &mut ChaCha8Rng::seed_from_u64(5))
+        .sample(
+            &oracle,
+            &[1, 1, 8, 8],
+            &Device::Cpu,
+            None,
+            &mut ChaCha8Rng::seed_from_u64(5),
+        )
         .unwrap();
     let c = s
-        .sample(&oracle, &[1, 1, 8, 8], &Device::Cpu, None, &mut ChaCha8Rng::seed_from_u64(6))
+        .sample(
+            &oracle,
+            &[1, 1, 8, 8],
+            &Device::Cpu,
+            None,
+            &mut ChaCha8Rng::seed_from_u64(6),
+        )
         .unwrap();
-    let diff = |p: &Tensor, q: &Tensor| (p - q).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
+    let diff = |p: &Tensor, q: &Tensor| {
+        (p - q)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .max_all()
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap()
+    };
     assert_eq!(diff(&a, &b), 0.0);
     assert!(diff(&a, &c) > 0.1);
 }
@@ -161,10 +208,18 @@ fn full_runs_from_noise_stay_finite_at_the_schedule_extremes() {
                     };
                     let s = Sampler::new(&d, cfg).unwrap();
                     let mut rng = ChaCha8Rng::seed_from_u64(2);
-                    let x = s.sample(&net, &[1, 3, 4, 16], &Device::Cpu, None, &mut rng).unwrap();
+                    let x = s
+                        .sample(&net, &[1, 3, 4, 16], &Device::Cpu, None, &mut rng)
+                        .unwrap();
                     assert!(all_finite(&x), "{sc:?} {pred:?} {kind:?} clip {clip:?}");
                     if clip.is_some() {
-                        let m = x.abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
+                        let m = x
+                            .abs()
+                            .unwrap()
+                            .max_all()
+                            .unwrap()
+                            .to_scalar::<f32>()
+                            .unwrap();
                         assert!(m <= 1.0 + 1e-5, "clipped x0 bounds the final sample: {m}");
                     }
                 }
@@ -190,20 +245,36 @@ fn classifier_free_guidance_extrapolates_the_condition() {
             },
         )
         .unwrap();
-        s.sample(&oracle, &shape, &Device::Cpu, Some(cond), &mut ChaCha8Rng::seed_from_u64(4))
-            .unwrap()
+        s.sample(
+            &oracle,
+            &shape,
+            &Device::Cpu,
+            Some(cond),
+            &mut ChaCha8Rng::seed_from_u64(4),
+        )
+        .unwrap()
     };
     // the guided denoiser of two equal-variance Gaussians is the denoiser of mean u + s(c - u)
     let zero = cond.zeros_like().unwrap();
     for (scale, want_mean) in [(1.0, 0.3), (0.0, 0.0), (2.0, 0.6), (3.0, 0.9)] {
         let x = run(scale, &cond);
         let (m, _) = stats(&x);
-        assert!((m - want_mean).abs() < 0.05, "scale {scale}: mean {m}, want {want_mean}");
+        assert!(
+            (m - want_mean).abs() < 0.05,
+            "scale {scale}: mean {m}, want {want_mean}"
+        );
     }
     // scale 0 equals sampling with the null conditioning, exactly up to rounding
     let a = run(0.0, &cond);
     let z = run(1.0, &zero);
-    let diff = (a - z).unwrap().abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
+    let diff = (a - z)
+        .unwrap()
+        .abs()
+        .unwrap()
+        .max_all()
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap();
     assert!(diff < 1e-4, "{diff}");
     // guidance doubles the network evaluations
     oracle.calls.set(0);
@@ -222,7 +293,9 @@ fn inpainting_keeps_known_pixels_and_fills_the_rest() {
     let (h, w) = (32, 64);
     // known: a constant 0.9 (far from the prior mean) on the left half
     let known = Tensor::full(0.9f32, (1, 2, h, w), &Device::Cpu).unwrap();
-    let left: Vec<f32> = (0..h * w).map(|i| if i % w < w / 2 { 1.0 } else { 0.0 }).collect();
+    let left: Vec<f32> = (0..h * w)
+        .map(|i| if i % w < w / 2 { 1.0 } else { 0.0 })
+        .collect();
     let mask = Tensor::from_vec(left, (1, 1, h, w), &Device::Cpu).unwrap();
     for (kind, repaint, expected_calls) in [
         (
@@ -269,15 +342,25 @@ fn inpainting_keeps_known_pixels_and_fills_the_rest() {
         let xv = x.flatten_all().unwrap().to_vec1::<f32>().unwrap();
         let (mut kept, mut generated) = (Vec::new(), Vec::new());
         for (i, v) in xv.iter().enumerate() {
-            if i % w < w / 2 { kept.push(*v) } else { generated.push(*v as f64) }
+            if i % w < w / 2 {
+                kept.push(*v)
+            } else {
+                generated.push(*v as f64)
+            }
         }
-        assert!(kept.iter().all(|&v| v == 0.9), "known pixels are kept exactly");
+        assert!(
+            kept.iter().all(|&v| v == 0.9),
+            "known pixels are kept exactly"
+        );
         let n = generated.len() as f64;
         let m = generated.iter().sum::<f64>() / n;
         let var = generated.iter().map(|x| (x - m).powi(2)).sum::<f64>() / n;
         assert!((m - MU).abs() < 0.05, "{kind:?}: generated mean {m}");
         if matches!(kind, SamplerKind::Ddpm { .. }) {
-            assert!((var / (STD * STD) - 1.0).abs() < 0.15, "generated variance {var}");
+            assert!(
+                (var / (STD * STD) - 1.0).abs() < 0.15,
+                "generated variance {var}"
+            );
         }
     }
     // a multistep solver cannot jump
@@ -297,5 +380,16 @@ fn inpainting_keeps_known_pixels_and_fills_the_rest() {
     // a mask that cannot broadcast is an error
     let bad = Tensor::ones((1, 1, 3, 3), DType::F32, &Device::Cpu).unwrap();
     let s = Sampler::new(&d, SamplerConfig::ddpm(5)).unwrap();
-    assert!(inpaint(&s, &oracle, &known, &bad, Some(&cond), &RepaintConfig::default(), &mut ChaCha8Rng::seed_from_u64(0)).is_err());
+    assert!(
+        inpaint(
+            &s,
+            &oracle,
+            &known,
+            &bad,
+            Some(&cond),
+            &RepaintConfig::default(),
+            &mut ChaCha8Rng::seed_from_u64(0)
+        )
+        .is_err()
+    );
 }

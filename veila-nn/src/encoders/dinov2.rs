@@ -101,7 +101,7 @@ impl DinoV2Config {
     /// Checks the configuration.
     pub fn validate(&self) -> crate::Result<()> {
         let (c, h) = (self.hidden_size, self.num_attention_heads);
-        if c == 0 || h == 0 || c % h != 0 {
+        if c == 0 || h == 0 || !c.is_multiple_of(h) {
             config_bail!(
                 "DinoV2Config: hidden size {c} must be a positive multiple of the {h} heads"
             );
@@ -116,7 +116,7 @@ impl DinoV2Config {
         if self.mlp_ratio == 0 || self.num_channels == 0 || self.num_hidden_layers == 0 {
             config_bail!("DinoV2Config: mlp_ratio, num_channels and layers must be positive");
         }
-        if !(self.layer_norm_eps > 0.0) {
+        if self.layer_norm_eps.is_nan() || self.layer_norm_eps <= 0.0 {
             config_bail!("DinoV2Config: layer_norm_eps must be positive");
         }
         Ok(())
@@ -526,6 +526,14 @@ impl Default for DepthAnythingV2Config {
     }
 }
 
+fn scope_prefix(prefix: &str) -> String {
+    if prefix.is_empty() {
+        String::new()
+    } else {
+        format!("{prefix}.")
+    }
+}
+
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Resize {
     Up(usize),
@@ -636,6 +644,30 @@ impl DepthAnythingV2Encoder {
             backbone,
             reassemble,
         })
+    }
+
+    /// Loads a HuggingFace Depth-Anything(-V2) safetensors file (e.g.
+    /// `Depth-Anything-V2-Small-hf/model.safetensors`), checking the backbone and reassemble tensors
+    /// first (see [`super::load_checked`]); the fusion neck, the head and `mask_token` are ignored.
+    pub fn load(
+        cfg: &DepthAnythingV2Config,
+        path: &std::path::Path,
+        dtype: DType,
+        device: &candle_core::Device,
+    ) -> crate::Result<Self> {
+        let p = scope_prefix(&cfg.weight_prefix);
+        let backbone = format!("{p}backbone.");
+        let reassemble = format!("{p}neck.reassemble_stage.");
+        super::load_checked(
+            path,
+            dtype,
+            device,
+            |n| {
+                (n.starts_with(&backbone) || n.starts_with(&reassemble))
+                    && !n.ends_with("mask_token")
+            },
+            |vb| Self::new(cfg, vb),
+        )
     }
 
     /// The configuration.
@@ -834,6 +866,24 @@ impl DepthAnythingV2 {
             head_conv2,
             head_conv3,
         })
+    }
+
+    /// Loads a complete HuggingFace Depth-Anything(-V2) safetensors file, checking every tensor
+    /// (only `mask_token`, used in pre-training, may be left unread).
+    pub fn load(
+        cfg: &DepthAnythingV2Config,
+        path: &std::path::Path,
+        dtype: DType,
+        device: &candle_core::Device,
+    ) -> crate::Result<Self> {
+        let p = scope_prefix(&cfg.weight_prefix);
+        super::load_checked(
+            path,
+            dtype,
+            device,
+            |n| n.starts_with(&p) && !n.ends_with("mask_token"),
+            |vb| Self::new(cfg, vb),
+        )
     }
 
     /// The feature encoder.

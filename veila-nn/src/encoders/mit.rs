@@ -103,7 +103,7 @@ impl MitConfig {
         }
         for i in 0..4 {
             let (c, h) = (self.hidden_sizes[i], self.num_attention_heads[i]);
-            if c == 0 || h == 0 || c % h != 0 {
+            if c == 0 || h == 0 || !c.is_multiple_of(h) {
                 config_bail!(
                     "MitConfig: stage {i}: hidden size {c} must be a positive multiple of the {h} attention heads"
                 );
@@ -117,7 +117,7 @@ impl MitConfig {
                 config_bail!("MitConfig: stage {i}: mlp_ratio must be positive");
             }
         }
-        if !(self.layer_norm_eps > 0.0) {
+        if self.layer_norm_eps.is_nan() || self.layer_norm_eps <= 0.0 {
             config_bail!("MitConfig: layer_norm_eps must be positive");
         }
         Ok(())
@@ -218,7 +218,7 @@ impl MitAttention {
         eps: f64,
         vb: VarBuilder<'_>,
     ) -> crate::Result<Self> {
-        if num_heads == 0 || hidden % num_heads != 0 {
+        if num_heads == 0 || !hidden.is_multiple_of(num_heads) {
             input_bail!(
                 "MitAttention: hidden size {hidden} is not a multiple of {num_heads} heads"
             );
@@ -422,6 +422,29 @@ impl MitEncoder {
         })
     }
 
+    /// Loads a HuggingFace SegFormer / MiT safetensors file (e.g. `nvidia/mit-b0`'s
+    /// `model.safetensors`), checking every encoder tensor first (see [`super::load_checked`]):
+    /// tensors outside `weight_prefix` (classifier, decode head) are ignored.
+    pub fn load(
+        cfg: &MitConfig,
+        path: &std::path::Path,
+        dtype: candle_core::DType,
+        device: &candle_core::Device,
+    ) -> crate::Result<Self> {
+        let scope = if cfg.weight_prefix.is_empty() {
+            String::new()
+        } else {
+            format!("{}.", cfg.weight_prefix)
+        };
+        super::load_checked(
+            path,
+            dtype,
+            device,
+            |n| n.starts_with(&scope),
+            |vb| Self::new(cfg, vb),
+        )
+    }
+
     /// The configuration.
     pub fn config(&self) -> &MitConfig {
         &self.cfg
@@ -485,5 +508,212 @@ impl ImageEncoder for MitEncoder {
             size_multiple: self.cfg.strides.iter().product(),
             min_size: self.min_size,
         }
+    }
+}
+
+/// Configuration of [`SegFormer`]: a MiT encoder plus the all-MLP decode head of transformers'
+/// `SegformerForSemanticSegmentation`.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SegFormerConfig {
+    /// The encoder.
+    pub encoder: MitConfig,
+    /// Width of the decode head (256 for b0/b1, 768 for b2..b5).
+    pub decoder_hidden_size: usize,
+    /// Number of output classes (19 for the Cityscapes checkpoints, 150 for ADE20k).
+    pub num_labels: usize,
+    /// Prefix of the head's tensors (`"decode_head"`).
+    pub head_prefix: String,
+    /// BatchNorm epsilon of the head (1e-5).
+    pub batch_norm_eps: f64,
+}
+
+impl SegFormerConfig {
+    /// `nvidia/segformer-b0-finetuned-cityscapes-*`: MiT-b0, head width 256, 19 classes.
+    pub fn b0_cityscapes() -> Self {
+        Self {
+            encoder: MitConfig::mit_b0(),
+            decoder_hidden_size: 256,
+            num_labels: 19,
+            head_prefix: "decode_head".to_string(),
+            batch_norm_eps: 1e-5,
+        }
+    }
+}
+
+/// SegFormer's decode head (`decode_head.*`): per-scale `Linear` to the head width
+/// (`linear_c.{i}.proj`), bilinear upsampling to the stride-4 grid, concatenation deepest first,
+/// 1x1 conv without bias (`linear_fuse`), BatchNorm in inference mode (`batch_norm`, running
+/// statistics), ReLU and a 1x1 classifier (`classifier`).
+#[derive(Debug, Clone)]
+pub struct SegFormerDecodeHead {
+    linear_c: Vec<Linear>,
+    fuse: Conv2d,
+    bn_scale: Tensor,
+    bn_shift: Tensor,
+    classifier: Conv2d,
+}
+
+impl SegFormerDecodeHead {
+    /// `vb` points at the head (`decode_head`).
+    pub fn new(
+        in_channels: [usize; 4],
+        hidden: usize,
+        num_labels: usize,
+        bn_eps: f64,
+        vb: VarBuilder<'_>,
+    ) -> crate::Result<Self> {
+        if hidden == 0 || num_labels == 0 {
+            config_bail!("SegFormerConfig: decoder_hidden_size and num_labels must be positive");
+        }
+        let linear_c = (0..4)
+            .map(|i| candle_nn::linear(in_channels[i], hidden, vb.pp("linear_c").pp(i).pp("proj")))
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        let fuse = candle_nn::conv2d_no_bias(
+            4 * hidden,
+            hidden,
+            1,
+            Conv2dConfig::default(),
+            vb.pp("linear_fuse"),
+        )?;
+        let vbn = vb.pp("batch_norm");
+        let one = candle_nn::Init::Const(1.0);
+        let zero = candle_nn::Init::Const(0.0);
+        let w = vbn.get_with_hints(hidden, "weight", one)?;
+        let b = vbn.get_with_hints(hidden, "bias", zero)?;
+        let mean = vbn.get_with_hints(hidden, "running_mean", zero)?;
+        let var = vbn.get_with_hints(hidden, "running_var", one)?;
+        let bn_scale = (w / (var + bn_eps)?.sqrt()?)?;
+        let bn_shift = (b - (mean * &bn_scale)?)?;
+        let classifier = candle_nn::conv2d(
+            hidden,
+            num_labels,
+            1,
+            Conv2dConfig::default(),
+            vb.pp("classifier"),
+        )?;
+        Ok(Self {
+            linear_c,
+            fuse,
+            bn_scale: bn_scale.reshape((1, hidden, 1, 1))?,
+            bn_shift: bn_shift.reshape((1, hidden, 1, 1))?,
+            classifier,
+        })
+    }
+
+    /// Four encoder maps (finest first) -> logits `[B, num_labels, H_0, W_0]` on the finest grid.
+    pub fn forward(&self, features: &[Tensor]) -> crate::Result<Tensor> {
+        if features.len() != 4 {
+            input_bail!(
+                "SegFormerDecodeHead: expected 4 feature maps, got {}",
+                features.len()
+            );
+        }
+        let (_, _, h0, w0) = features[0].dims4()?;
+        let mut ups = Vec::with_capacity(4);
+        for (f, lin) in features.iter().zip(&self.linear_c) {
+            let (_, _, h, w) = f.dims4()?;
+            let y = tokens_to_map(&lin.forward(&map_to_tokens(f)?)?, h, w)?;
+            let y = if (h, w) != (h0, w0) {
+                y.upsample_bilinear2d(h0, w0, false)?
+            } else {
+                y.contiguous()?
+            };
+            ups.push(y);
+        }
+        ups.reverse();
+        let x = Tensor::cat(&ups, 1)?;
+        let x = self
+            .fuse
+            .forward(&x)?
+            .broadcast_mul(&self.bn_scale)?
+            .broadcast_add(&self.bn_shift)?
+            .relu()?;
+        Ok(self.classifier.forward(&x)?)
+    }
+}
+
+/// SegFormer for semantic segmentation (HuggingFace `SegformerForSemanticSegmentation`, e.g.
+/// `nvidia/segformer-b0-finetuned-cityscapes-1024-1024`): the pretrained `E_s` together with the
+/// head that yields its label map. Its [`ImageEncoder`] features are the MiT encoder's.
+#[derive(Debug, Clone)]
+pub struct SegFormer {
+    encoder: MitEncoder,
+    head: SegFormerDecodeHead,
+}
+
+impl SegFormer {
+    /// Reads `{encoder.weight_prefix}.*` and `{head_prefix}.*`.
+    pub fn new(cfg: &SegFormerConfig, vb: VarBuilder<'_>) -> crate::Result<Self> {
+        let encoder = MitEncoder::new(&cfg.encoder, vb.clone())?;
+        let vh = if cfg.head_prefix.is_empty() {
+            vb
+        } else {
+            vb.pp(&cfg.head_prefix)
+        };
+        let head = SegFormerDecodeHead::new(
+            cfg.encoder.hidden_sizes,
+            cfg.decoder_hidden_size,
+            cfg.num_labels,
+            cfg.batch_norm_eps,
+            vh,
+        )?;
+        Ok(Self { encoder, head })
+    }
+
+    /// Loads a HuggingFace `SegformerForSemanticSegmentation` safetensors file, checking every
+    /// tensor (BatchNorm's `num_batches_tracked` may be left unread).
+    pub fn load(
+        cfg: &SegFormerConfig,
+        path: &std::path::Path,
+        dtype: candle_core::DType,
+        device: &candle_core::Device,
+    ) -> crate::Result<Self> {
+        super::load_checked(
+            path,
+            dtype,
+            device,
+            |n| !n.ends_with("num_batches_tracked"),
+            |vb| Self::new(cfg, vb),
+        )
+    }
+
+    /// The encoder.
+    pub fn encoder(&self) -> &MitEncoder {
+        &self.encoder
+    }
+
+    /// Logits `[B, num_labels, ceil(H/4), ceil(W/4)]` (the head's native stride-4 grid).
+    pub fn logits(&self, image: &Tensor) -> crate::Result<Tensor> {
+        let feats = self.encoder.forward(image)?;
+        self.head.forward(&feats)
+    }
+
+    /// Per-image label maps at the input resolution (logits upsampled bilinearly, then argmax, as
+    /// transformers' `post_process_semantic_segmentation`), row-major.
+    pub fn predict_labels(&self, image: &Tensor) -> crate::Result<Vec<Vec<u32>>> {
+        let (_, _, h, w) = image.dims4()?;
+        let logits = self
+            .logits(&image.detach())?
+            .to_dtype(candle_core::DType::F32)?
+            .upsample_bilinear2d(h, w, false)?;
+        Ok(logits.argmax(1)?.flatten_from(1)?.to_vec2::<u32>()?)
+    }
+}
+
+impl ImageEncoder for SegFormer {
+    fn forward(&self, image: &Tensor) -> crate::Result<Vec<Tensor>> {
+        self.encoder.forward(image)
+    }
+    fn channels(&self) -> [usize; 4] {
+        self.encoder.channels()
+    }
+    fn strides(&self) -> [f32; 4] {
+        self.encoder.strides()
+    }
+    fn feature_sizes(&self, height: usize, width: usize) -> [(usize, usize); 4] {
+        self.encoder.feature_sizes(height, width)
+    }
+    fn input_spec(&self) -> InputSpec {
+        self.encoder.input_spec()
     }
 }

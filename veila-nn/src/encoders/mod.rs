@@ -20,6 +20,15 @@
 //! [`size_for_multiple`]) because the right target size depends on the encoder (Depth-Anything wants
 //! multiples of its patch size 14, see [`ImageEncoder::input_spec`]).
 //!
+//! # Loading pretrained weights
+//!
+//! [`mit::MitEncoder::load`], [`dinov2::DepthAnythingV2Encoder::load`],
+//! [`dinov2::DepthAnythingV2::load`] and [`small_cnn::SmallCnn::load`] read a `.safetensors` file
+//! and verify it against the model before building it ([`load_checked`]): missing, mis-shaped and
+//! (within the encoder's namespace) unexpected tensors are reported together, by name, in
+//! [`crate::Error::CheckpointMismatch`]. `new(cfg, vb)` works with any `VarBuilder` as usual; a
+//! missing or mis-shaped tensor is then reported by candle, also by its full name.
+//!
 //! # Freezing
 //!
 //! The paper keeps `E_s` and `E_d` frozen while the diffusion model trains. In candle a tensor only
@@ -43,7 +52,7 @@
 //!     small_cnn::{SmallCnn, SmallCnnConfig},
 //! };
 //!
-//! # fn main() -> crate::Result<()> {
+//! # fn main() -> veila_nn::Result<()> {
 //! let device = Device::Cpu;
 //! let varmap = VarMap::new();
 //! let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
@@ -398,6 +407,55 @@ pub fn record_tensor_specs<T>(
     Ok(specs)
 }
 
+/// Loads the weights of a model from a safetensors file, verifying them first.
+///
+/// `build` constructs the model from a `VarBuilder` (it is run once on a recording builder to learn
+/// the expected names and shapes, then on the file's tensors). Tensors the model needs but the file
+/// lacks, and tensors with the wrong shape, fail with [`crate::Error::CheckpointMismatch`] naming
+/// them and the file; tensors of the file that the model does not read are reported as unexpected
+/// only when `in_scope(name)` is true (pretrained files carry heads the encoder ignores, e.g.
+/// `classifier.*` or `decode_head.*`). IO and parse errors name the file.
+pub fn load_checked<T>(
+    path: &std::path::Path,
+    dtype: DType,
+    device: &Device,
+    in_scope: impl Fn(&str) -> bool,
+    build: impl Fn(VarBuilder<'static>) -> crate::Result<T>,
+) -> crate::Result<T> {
+    let bytes = std::fs::read(path).map_err(|source| crate::Error::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let tensors = candle_core::safetensors::load_buffer(&bytes, device).map_err(|e| {
+        crate::Error::SafeTensors {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        }
+    })?;
+    let expected: std::collections::BTreeMap<String, Vec<usize>> = record_tensor_specs(&build)?
+        .into_iter()
+        .map(|s| (s.name, s.shape))
+        .collect();
+    let found: std::collections::BTreeMap<String, Vec<usize>> = tensors
+        .iter()
+        .map(|(k, v)| (k.clone(), v.dims().to_vec()))
+        .collect();
+    let mut report = crate::checkpoint::compare_tensors(&expected, &found);
+    report.unexpected.retain(|n| in_scope(n));
+    if !report.is_clean() {
+        return Err(crate::Error::CheckpointMismatch {
+            path: path.to_path_buf(),
+            report,
+        });
+    }
+    let tensors = tensors
+        .into_iter()
+        .filter(|(k, _)| expected.contains_key(k))
+        .map(|(k, v)| Ok((k, v.to_dtype(dtype)?)))
+        .collect::<crate::Result<HashMap<_, _>>>()?;
+    build(VarBuilder::from_tensors(tensors, dtype, device))
+}
+
 /// Checks that `image` is `[B, 3, H, W]` with `H, W >= min_size`; returns `(B, H, W)`.
 pub(crate) fn check_image(
     image: &Tensor,
@@ -457,6 +515,10 @@ pub fn depthwise_conv2d(
     }
     let out_h = conv_out(h, kh, 1, padding);
     let out_w = conv_out(w, kw, 1, padding);
+    let no_grad = !x.track_op() && !weight.track_op() && bias.is_none_or(|b| !b.track_op());
+    if no_grad && x.device().is_cpu() && x.dtype() == DType::F32 {
+        return depthwise_conv2d_host(x, weight, bias, padding, (out_h, out_w));
+    }
     let xp = if padding > 0 {
         x.pad_with_zeros(2, padding, padding)?
             .pad_with_zeros(3, padding, padding)?
@@ -488,4 +550,54 @@ pub fn depthwise_conv2d(
         out = out.broadcast_add(&b.reshape((1, c, 1, 1))?)?;
     }
     Ok(out)
+}
+
+/// CPU f32 path of [`depthwise_conv2d`] for tensors that need no gradient (frozen encoders): a
+/// direct loop over a padded copy of each plane, row-vectorised, ~10x faster than the tensor path.
+fn depthwise_conv2d_host(
+    x: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    padding: usize,
+    (out_h, out_w): (usize, usize),
+) -> crate::Result<Tensor> {
+    let (b, c, h, w) = x.dims4()?;
+    let (_, _, kh, kw) = weight.dims4()?;
+    let xs = x.flatten_all()?.to_vec1::<f32>()?;
+    let ws = weight
+        .to_dtype(DType::F32)?
+        .flatten_all()?
+        .to_vec1::<f32>()?;
+    let bs = match bias {
+        Some(t) => t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?,
+        None => vec![0f32; c],
+    };
+    let (ph, pw) = (h + 2 * padding, w + 2 * padding);
+    let mut padded = vec![0f32; ph * pw];
+    let mut out = vec![0f32; b * c * out_h * out_w];
+    for bi in 0..b {
+        for ci in 0..c {
+            let plane = &xs[(bi * c + ci) * h * w..(bi * c + ci + 1) * h * w];
+            for y in 0..h {
+                let dst = (y + padding) * pw + padding;
+                padded[dst..dst + w].copy_from_slice(&plane[y * w..(y + 1) * w]);
+            }
+            let o = &mut out[(bi * c + ci) * out_h * out_w..(bi * c + ci + 1) * out_h * out_w];
+            o.fill(bs[ci]);
+            let wk = &ws[ci * kh * kw..(ci + 1) * kh * kw];
+            for ky in 0..kh {
+                for kx in 0..kw {
+                    let wv = wk[ky * kw + kx];
+                    for y in 0..out_h {
+                        let src = &padded[(y + ky) * pw + kx..(y + ky) * pw + kx + out_w];
+                        let dst = &mut o[y * out_w..(y + 1) * out_w];
+                        for (d, s) in dst.iter_mut().zip(src) {
+                            *d += wv * s;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Ok(Tensor::from_vec(out, (b, c, out_h, out_w), x.device())?)
 }

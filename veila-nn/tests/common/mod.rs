@@ -1,5 +1,5 @@
 //! Shared helpers for the veila-nn integration tests: small configs, a KITTI-like camera, seeded data.
-#![allow(dead_code)]
+#![allow(dead_code, clippy::excessive_precision)]
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;

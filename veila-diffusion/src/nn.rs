@@ -1,0 +1,94 @@
+//! The Veila denoiser from `veila-nn` as a [`Denoiser`].
+//!
+//! [`VeilaDenoiser`] wraps [`veila_nn::Denoiser`]; its conditioning is the
+//! [`PreparedCondition`] that `veila_nn::Denoiser::prepare_condition` builds once per image (CACM
+//! output and GCMA geometry), so the image encoders and the fusion run once per sample, not once per
+//! step. Condition dropout and the unconditional branch of classifier-free guidance go through the
+//! condition's per-sample `keep` factor (0 = drop), which the network defines to give exactly its
+//! unconditional output.
+//!
+//! The network multiplies its time input by `TimeEmbeddingConfig::input_scale` (1000 in the
+//! presets), so pair the presets with [`TimeInput::Unit`](crate::TimeInput::Unit) (the default).
+
+use std::marker::PhantomData;
+
+use candle_core::{Device, Tensor};
+use veila_nn::{GcmaGeometry, PreparedCondition};
+
+use crate::denoiser::{Conditioning, Denoiser};
+
+/// The Veila U-Net as a [`Denoiser`]; `'g` is the lifetime of the GCMA geometry that prepared
+/// conditions borrow.
+#[derive(Debug, Clone)]
+pub struct VeilaDenoiser<'g> {
+    net: veila_nn::Denoiser,
+    _geometry: PhantomData<&'g GcmaGeometry>,
+}
+
+impl<'g> VeilaDenoiser<'g> {
+    /// Wraps a network.
+    pub fn new(net: veila_nn::Denoiser) -> Self {
+        Self {
+            net,
+            _geometry: PhantomData,
+        }
+    }
+
+    /// The wrapped network.
+    pub fn net(&self) -> &veila_nn::Denoiser {
+        &self.net
+    }
+
+    /// Unwraps the network.
+    pub fn into_inner(self) -> veila_nn::Denoiser {
+        self.net
+    }
+}
+
+fn to_candle(e: veila_nn::Error) -> candle_core::Error {
+    match e {
+        veila_nn::Error::Candle(c) => c,
+        other => candle_core::Error::Msg(other.to_string()),
+    }
+}
+
+impl<'g> Denoiser for VeilaDenoiser<'g> {
+    type Cond = PreparedCondition<'g>;
+
+    fn forward(
+        &self,
+        x_t: &Tensor,
+        t: &Tensor,
+        cond: Option<&Self::Cond>,
+    ) -> candle_core::Result<Tensor> {
+        self.net.forward(x_t, t, cond).map_err(to_candle)
+    }
+}
+
+/// Dropping a sample multiplies its `keep` factor by 0.
+impl Conditioning for PreparedCondition<'_> {
+    fn drop_samples(&self, drop: &[bool]) -> candle_core::Result<Self> {
+        let b = self.batch();
+        if drop.len() != b {
+            candle_core::bail!(
+                "drop_samples: mask of length {} for a batch of {b}",
+                drop.len()
+            )
+        }
+        let device = match (&self.keep, self.fused.first()) {
+            (Some(k), _) => k.device().clone(),
+            (None, Some(f)) => f.device().clone(),
+            (None, None) => Device::Cpu,
+        };
+        let mask: Vec<f32> = drop.iter().map(|&d| if d { 0.0 } else { 1.0 }).collect();
+        let mask = Tensor::from_vec(mask, b, &device)?;
+        let keep = match &self.keep {
+            Some(k) => k.mul(&mask.to_dtype(k.dtype())?)?,
+            None => mask,
+        };
+        Ok(self.clone().with_keep(Some(keep)))
+    }
+}
+
+#[cfg(test)]
+mod tests;
