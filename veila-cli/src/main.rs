@@ -10,7 +10,7 @@ use clap::{Parser, Subcommand};
 mod progress;
 // command modules (one per family):
 mod data_cmd; // project, unproject, render           (veila-data)
-// mod eval_cmd;     // eval, fd                               (veila-metrics)
+mod eval_cmd; // eval, fd                               (veila-metrics)
 mod sim_cmd; // simulate                               (veila-data::sim)
 mod weather_cmd; // weather                                (veila-data::weather)
 
@@ -29,7 +29,8 @@ struct Cli {
 enum Command {
     #[command(flatten)]
     Data(data_cmd::DataCmd),
-    // #[command(flatten)] Eval(eval_cmd::EvalCmd),
+    #[command(flatten)]
+    Eval(eval_cmd::EvalCmd),
     #[command(flatten)]
     Sim(sim_cmd::SimCmd),
     #[command(flatten)]
@@ -50,7 +51,7 @@ fn main() {
 fn run(command: Command) -> Result<()> {
     match command {
         Command::Data(c) => data_cmd::run(c),
-        // Command::Eval(c) => eval_cmd::run(c),
+        Command::Eval(c) => eval_cmd::run(c),
         Command::Sim(c) => sim_cmd::run(c),
         Command::Weather(c) => weather_cmd::run(c),
         Command::Sensors => {

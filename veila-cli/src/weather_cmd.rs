@@ -4,8 +4,12 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
-use veila_data::weather::files::{FrameFiles, FrameOutputs, output_image_name, output_scan_name, process_frame};
-use veila_data::weather::{Headlights, Preset, Sensor, TimeOfDay, Weather, WeatherConfig, WeatherSim};
+use veila_data::weather::files::{
+    FrameFiles, FrameOutputs, output_image_name, output_scan_name, process_frame,
+};
+use veila_data::weather::{
+    Headlights, Preset, Sensor, TimeOfDay, Weather, WeatherConfig, WeatherSim,
+};
 
 /// Weather commands.
 #[derive(Debug, Subcommand)]
@@ -114,27 +118,51 @@ fn run_weather(a: &WeatherArgs) -> Result<()> {
     if a.image.is_none() && a.calib.is_some() {
         bail!("--calib is only used with --image");
     }
-    std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
+    std::fs::create_dir_all(&a.out)
+        .with_context(|| format!("cannot create {}", a.out.display()))?;
     let outputs = FrameOutputs {
         scan: a.out.join(output_scan_name(&a.scan)?),
-        image: a.image.as_deref().map(output_image_name).transpose()?.map(|n| a.out.join(n)),
+        image: a
+            .image
+            .as_deref()
+            .map(output_image_name)
+            .transpose()?
+            .map(|n| a.out.join(n)),
     };
-    if outputs.scan == a.scan || outputs.image.as_ref().is_some_and(|p| Some(p) == a.image.as_ref()) {
+    if outputs.scan == a.scan
+        || outputs
+            .image
+            .as_ref()
+            .is_some_and(|p| Some(p) == a.image.as_ref())
+    {
         bail!("--out {} would overwrite an input file", a.out.display());
     }
-    let files = FrameFiles { scan: a.scan.clone(), image: a.image.clone(), calib: a.calib.clone(), labels: a.labels.clone() };
+    let files = FrameFiles {
+        scan: a.scan.clone(),
+        image: a.image.clone(),
+        calib: a.calib.clone(),
+        labels: a.labels.clone(),
+    };
     let report = process_frame(&sim, &files, &outputs)?;
     let json = report.to_json()?;
     veila_data::atomic::write_atomic(&a.out.join("effects.json"), json.as_bytes())?;
     let show = |s: Sensor| {
         let n = report.names(s);
-        if n.is_empty() { "none (identity)".to_string() } else { n.join(", ") }
+        if n.is_empty() {
+            "none (identity)".to_string()
+        } else {
+            n.join(", ")
+        }
     };
     eprintln!(
         "alpha {:.3e} 1/m; lidar: {}; camera: {}",
         report.alpha_total_per_m,
         show(Sensor::Lidar),
-        if a.image.is_some() { show(Sensor::Camera) } else { "no image".into() }
+        if a.image.is_some() {
+            show(Sensor::Camera)
+        } else {
+            "no image".into()
+        }
     );
     eprintln!("wrote {}", a.out.display());
     Ok(())

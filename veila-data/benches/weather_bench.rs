@@ -166,7 +166,7 @@ pub fn bench_snow_density(c: &mut Criterion) {
     let (cloud, what) = scan();
     let beams = BeamTable::hdl64e();
     eprintln!("snow (1.0 mm/h, 1.6 m/s) density scale vs time on {what}");
-    eprintln!("  density  flakes(64 rings)  flake_returns  intensity_changed  ms/scan");
+    eprintln!("  density  flakes(64 rings)  flake_returns  intensity_changed  ms/scan  field_ms");
     let mut g = quick(c);
     let w = Preset::SnowModerate.weather().with_seed(1);
     let scfg = veila_data::weather::snow::SnowConfig::default();
@@ -186,13 +186,14 @@ pub fn bench_snow_density(c: &mut Criterion) {
         let t = Instant::now();
         let out = sim.apply_lidar(input).expect("apply");
         let ms = t.elapsed().as_secs_f64() * 1e3;
-        let r = out
-            .records
-            .iter()
-            .find(|r| r.effect == "snow")
-            .expect("snow record");
+        let scfg = veila_data::weather::snow::SnowConfig { density_scale: scale, ..Default::default() };
+        let t = Instant::now();
+        let field = veila_data::weather::snow::SnowField::sample(&w, 64, &scfg).expect("field");
+        let field_ms = t.elapsed().as_secs_f64() * 1e3;
+        drop(field);
+        let r = out.records.iter().find(|r| r.effect == "snow").expect("snow record");
         eprintln!(
-            "  {scale:>7} {:>17} {:>14} {:>18} {ms:>8.1}",
+            "  {scale:>7} {:>17} {:>14} {:>18} {ms:>8.1} {field_ms:>9.1}",
             r.counts["flakes"], r.counts["flake_returns"], r.counts["intensity_changed"]
         );
         g.bench_function(BenchmarkId::new("snow_density", scale), |b| {

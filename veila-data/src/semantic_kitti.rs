@@ -386,7 +386,7 @@ pub enum Sequences {
 #[derive(Debug, Clone)]
 struct SeqInfo {
     dir: PathBuf,
-    calib: OdometryCalib,
+    calib: Option<OdometryCalib>,
 }
 
 /// KITTI odometry / SemanticKITTI, read lazily. Frame ids are `NN/NNNNNN`.
@@ -467,7 +467,13 @@ impl SemanticKittiDataset {
             if wanted.as_ref().is_some_and(|w| !w.contains(&n)) {
                 continue;
             }
-            let calib = OdometryCalib::read(&dir.join("calib.txt"))?;
+            // a velodyne-only download has no calib.txt: frames then carry no camera
+            let calib_path = dir.join("calib.txt");
+            let calib = if calib_path.exists() {
+                Some(OdometryCalib::read(&calib_path)?)
+            } else {
+                None
+            };
             let si = seqs.len();
             for stem in list_stems(&dir.join("velodyne"), ".bin")? {
                 frames.push((si, stem));
@@ -526,9 +532,9 @@ impl SemanticKittiDataset {
         )
     }
 
-    /// Calibration of the sequence of frame `index`.
-    pub fn calib(&self, index: usize) -> &OdometryCalib {
-        &self.seqs[self.frames[index].0].calib
+    /// Calibration of the sequence of frame `index` (`None` when the sequence has no `calib.txt`).
+    pub fn calib(&self, index: usize) -> Option<&OdometryCalib> {
+        self.seqs[self.frames[index].0].calib.as_ref()
     }
 }
 
@@ -557,18 +563,19 @@ impl Dataset for SemanticKittiDataset {
             ));
         }
         let dropped_non_finite = cloud.retain_finite();
-        let camera_and_image = if image_path.is_file() {
-            let (image, (w, h)) = if self.load_images {
-                let img = read_rgb_image(&image_path)?;
-                let d = img.dimensions();
-                (Some(img), d)
+        let camera_and_image =
+            if let (true, Some(calib)) = (image_path.is_file(), self.calib(index)) {
+                let (image, (w, h)) = if self.load_images {
+                    let img = read_rgb_image(&image_path)?;
+                    let d = img.dimensions();
+                    (Some(img), d)
+                } else {
+                    (None, image_dimensions(&image_path)?)
+                };
+                Some((image, calib.camera(2, w, h)?))
             } else {
-                (None, image_dimensions(&image_path)?)
+                None
             };
-            Some((image, self.calib(index).camera(2, w, h)?))
-        } else {
-            None
-        };
         let (image, camera) = match camera_and_image {
             Some((i, c)) => (i, Some(c)),
             None => (None, None),

@@ -960,15 +960,37 @@ fn scene_lists_parse_and_train_test_seeds_are_disjoint() {
     }
     for a in &train.entries {
         for b in test.entries.iter().filter(|b| b.scene == a.scene) {
-            assert!(a.seeds.end() < b.seeds.start() || b.seeds.end() < a.seeds.start(), "{} seeds overlap", a.scene.display());
+            assert!(
+                a.seeds.end() < b.seeds.start() || b.seeds.end() < a.seeds.start(),
+                "{} seeds overlap",
+                a.scene.display()
+            );
         }
     }
     assert_eq!(train.iter().count() as u64, train.len());
     let p = Path::new("list.txt");
     let e = SceneList::parse("a.toml 5\n", p).unwrap_err().to_string();
     assert!(e.contains("list.txt") && e.contains("line 1"), "{e}");
-    let e = SceneList::parse("# c\na.toml 9 3\n", p).unwrap_err().to_string();
+    let e = SceneList::parse("# c\na.toml 9 3\n", p)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("line 2") && e.contains("greater"), "{e}");
     let e = SceneList::parse("a.toml x 3\n", p).unwrap_err().to_string();
     assert!(e.contains("`x`"), "{e}");
+}
+
+#[test]
+fn render_frame_pairs_the_scene_sensors() {
+    let cfg = tiny_config();
+    let scene = Scene::generate(&cfg, 21).unwrap();
+    let f = scene.render_frame(2).unwrap();
+    assert_eq!(f.index, 2);
+    assert!((f.time_s - 0.2).abs() < 1e-6);
+    assert_eq!(f.sensor, cfg.lidar.sensor().unwrap());
+    assert_eq!(f.scan.outcome.len(), 32 * 256);
+    assert_eq!((f.image.width, f.image.height), (124, 38));
+    let snap = scene.snapshot(2);
+    let scan = snap.render_lidar(&f.sensor, &cfg.lidar.returns).unwrap();
+    assert_eq!(scan.points, f.scan.points);
+    assert_eq!(f.world_from_lidar, scene.world_from_lidar(0.2));
 }

@@ -656,7 +656,6 @@ impl Projector {
     #[inline(always)]
     fn finish(&self, p: Vec3, intensity: f32, ring: Option<u16>, e: Estimate) -> (Code, f64) {
         let d2 = e.d2;
-        let w = self.sensor.cols;
         // the filtered lane: in range (so finite), estimates clear of every boundary by more than
         // their error bound, so their floors are the exact pixel (fast path: the row is inside the
         // field of view and equation 1's estimate is the answer)

@@ -86,15 +86,19 @@ impl LidarSensor {
         }
     }
 
-    /// HDL-32E in per-beam mode with its nominal elevation table (-30.67 deg to +10.67 deg in
+    /// HDL-32E in per-beam mode with its nominal elevation table (-30.67 deg to +10.66 deg in
     /// steps of 4/3 deg), rows taken from the ring index nuScenes stores with every point.
     ///
     /// nuScenes' ring 0 is the lowest beam; the table is therefore increasing and row 0 (top) is ring 31.
+    /// The field of view reaches half a beam spacing (2/3 deg) beyond the outer beams, so that the
+    /// returns of the top and bottom rings, which scatter by about +-0.2 deg around their nominal
+    /// elevation in real nuScenes sweeps, are not rejected as outside the field of view.
     pub fn hdl32e_per_beam() -> Self {
-        let elevations_deg = (0..32).map(|i| -30.67 + i as f32 * (4.0 / 3.0)).collect();
+        let elevations_deg: Vec<f32> = (0..32).map(|i| -30.67 + i as f32 * (4.0 / 3.0)).collect();
+        let half_step = 2.0 / 3.0;
         LidarSensor {
-            fov_up_deg: 10.67,
-            fov_down_deg: -30.67,
+            fov_up_deg: elevations_deg[31] + half_step,
+            fov_down_deg: elevations_deg[0] - half_step,
             beams: BeamLayout::PerBeam { elevations_deg, row_source: RowSource::Ring },
             ..Self::hdl32e()
         }

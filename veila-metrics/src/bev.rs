@@ -42,13 +42,21 @@ impl Default for BevConfig {
 impl BevConfig {
     /// The R2DM / LiDARGen protocol: `3 m < |p| < 70 m`, 100 x 100 bins over `[-80, 80]` m.
     pub const fn r2dm() -> Self {
-        Self { min_range_m: 3.0, max_range_m: 70.0, bins: 100, half_extent_m: 80.0 }
+        Self {
+            min_range_m: 3.0,
+            max_range_m: 70.0,
+            bins: 100,
+            half_extent_m: 80.0,
+        }
     }
 
     /// Checks the configuration.
     pub fn validate(&self) -> Result<()> {
         if self.bins == 0 || self.bins > 65_535 {
-            return Err(Error::InvalidParameter { name: "bins", reason: format!("{} not in 1..=65535", self.bins) });
+            return Err(Error::InvalidParameter {
+                name: "bins",
+                reason: format!("{} not in 1..=65535", self.bins),
+            });
         }
         if !(self.half_extent_m.is_finite() && self.half_extent_m > 0.0) {
             return Err(Error::InvalidParameter {
@@ -59,7 +67,10 @@ impl BevConfig {
         if !(self.min_range_m >= 0.0 && self.min_range_m < self.max_range_m) {
             return Err(Error::InvalidParameter {
                 name: "min_range_m",
-                reason: format!("need 0 <= min_range_m < max_range_m, got {} and {}", self.min_range_m, self.max_range_m),
+                reason: format!(
+                    "need 0 <= min_range_m < max_range_m, got {} and {}",
+                    self.min_range_m, self.max_range_m
+                ),
             });
         }
         Ok(())
@@ -182,12 +193,20 @@ impl Histogram for SparseBevHistogram {
 impl BevHistogram {
     /// An all-zero histogram.
     pub fn zeros(bins: usize) -> Self {
-        Self { bins, counts: vec![0; bins * bins], total: 0 }
+        Self {
+            bins,
+            counts: vec![0; bins * bins],
+            total: 0,
+        }
     }
 
     /// The sparse form of this histogram.
     pub fn to_sparse(&self) -> SparseBevHistogram {
-        let mut s = SparseBevHistogram { bins: self.bins, total: self.total, ..Default::default() };
+        let mut s = SparseBevHistogram {
+            bins: self.bins,
+            total: self.total,
+            ..Default::default()
+        };
         self.for_each_nonzero(|i, c| {
             s.cells.push(i as u32);
             s.counts.push(c);
@@ -276,7 +295,11 @@ pub fn bev_histogram_sparse<P: Copy + Into<Vec3>>(
         }
     }
     cells.sort_unstable();
-    let mut s = SparseBevHistogram { bins: cfg.bins, total: cells.len() as u64, ..Default::default() };
+    let mut s = SparseBevHistogram {
+        bins: cfg.bins,
+        total: cells.len() as u64,
+        ..Default::default()
+    };
     for c in cells {
         if s.cells.last() == Some(&c) {
             *s.counts.last_mut().expect("non-empty") += 1;

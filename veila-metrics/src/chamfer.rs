@@ -32,8 +32,20 @@ impl Chamfer {
 
 /// Chamfer distance between two point sets (builds both BVHs). Errors on empty sets or non-finite points.
 pub fn chamfer_distance<P: Copy + Into<Vec3> + Sync>(a: &[P], b: &[P]) -> Result<Chamfer> {
-    let (ia, ib) = rayon::join(|| PointIndex::build(a, "first point set"), || PointIndex::build(b, "second point set"));
-    Ok(chamfer_distance_indexed(&ia?, &ib?))
+    let (ia, ib) = rayon::join(
+        || PointIndex::build(a, "first point set"),
+        || PointIndex::build(b, "second point set"),
+    );
+    let (ia, ib) = (ia?, ib?);
+    // query in the caller's order (scan order is spatially coherent, which the warm start exploits)
+    let (sab, sba) = rayon::join(
+        || ib.sum_nearest_dist2(a.par_iter().map(|&p| p.into())),
+        || ia.sum_nearest_dist2(b.par_iter().map(|&p| p.into())),
+    );
+    Ok(Chamfer {
+        a_to_b: sab / a.len() as f64,
+        b_to_a: sba / b.len() as f64,
+    })
 }
 
 /// Chamfer distance between two indexed point sets (each set is queried in its own leaf order).
@@ -42,11 +54,17 @@ pub fn chamfer_distance_indexed(a: &PointIndex, b: &PointIndex) -> Chamfer {
         || b.sum_nearest_dist2(a.leaf_points().par_iter().map(|&p| Vec3::from(p))),
         || a.sum_nearest_dist2(b.leaf_points().par_iter().map(|&p| Vec3::from(p))),
     );
-    Chamfer { a_to_b: sab / a.len() as f64, b_to_a: sba / b.len() as f64 }
+    Chamfer {
+        a_to_b: sab / a.len() as f64,
+        b_to_a: sba / b.len() as f64,
+    }
 }
 
 /// MMD-CD: `mean_{r∈reference} min_{g∈generated} CD(g, r)`.
-pub fn minimum_matching_distance(generated: &[PointIndex], reference: &[PointIndex]) -> Result<f64> {
+pub fn minimum_matching_distance(
+    generated: &[PointIndex],
+    reference: &[PointIndex],
+) -> Result<f64> {
     if generated.is_empty() {
         return Err(Error::empty("generated set"));
     }
@@ -55,7 +73,12 @@ pub fn minimum_matching_distance(generated: &[PointIndex], reference: &[PointInd
     }
     let mins: Vec<f64> = reference
         .par_iter()
-        .map(|r| generated.iter().map(|g| chamfer_distance_indexed(g, r).value()).fold(f64::INFINITY, f64::min))
+        .map(|r| {
+            generated
+                .iter()
+                .map(|g| chamfer_distance_indexed(g, r).value())
+                .fold(f64::INFINITY, f64::min)
+        })
         .collect();
     Ok(mins.iter().sum::<f64>() / mins.len() as f64)
 }

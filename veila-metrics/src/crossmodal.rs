@@ -49,11 +49,18 @@ impl<'a, T> Map2d<'a, T> {
         if width == 0 || height == 0 || data.len() != width as usize * height as usize {
             return Err(Error::ShapeMismatch {
                 what: "map".into(),
-                expected: format!("{width} x {height} = {} values (non-empty)", width as usize * height as usize),
+                expected: format!(
+                    "{width} x {height} = {} values (non-empty)",
+                    width as usize * height as usize
+                ),
                 got: format!("{} values", data.len()),
             });
         }
-        Ok(Self { width, height, data })
+        Ok(Self {
+            width,
+            height,
+            data,
+        })
     }
 }
 
@@ -87,7 +94,13 @@ pub struct ProjectionFilter {
 
 impl Default for ProjectionFilter {
     fn default() -> Self {
-        Self { zbuffer: true, min_depth_m: 0.0, max_depth_m: f32::INFINITY, ignore_label: None, region: Region::All }
+        Self {
+            zbuffer: true,
+            min_depth_m: 0.0,
+            max_depth_m: f32::INFINITY,
+            ignore_label: None,
+            region: Region::All,
+        }
     }
 }
 
@@ -121,7 +134,10 @@ fn project_points<P: Copy + Into<Vec3>>(
     map_h: u32,
     filter: &ProjectionFilter,
 ) -> Result<Vec<(usize, usize, f32)>> {
-    let (sx, sy) = (map_w as f32 / camera.width as f32, map_h as f32 / camera.height as f32);
+    let (sx, sy) = (
+        map_w as f32 / camera.width as f32,
+        map_h as f32 / camera.height as f32,
+    );
     let mut hits = Vec::new();
     for (i, &p) in points.iter().enumerate() {
         let p: Vec3 = p.into();
@@ -129,7 +145,9 @@ fn project_points<P: Copy + Into<Vec3>>(
         if !filter.region.contains(p) {
             continue;
         }
-        let Some(ip) = camera.try_project_in_image(p) else { continue };
+        let Some(ip) = camera.try_project_in_image(p) else {
+            continue;
+        };
         if !(ip.depth_m > filter.min_depth_m && ip.depth_m < filter.max_depth_m) {
             continue;
         }
@@ -152,7 +170,11 @@ fn project_points<P: Copy + Into<Vec3>>(
 fn median(v: &mut [f64]) -> f64 {
     v.sort_unstable_by(f64::total_cmp);
     let n = v.len();
-    if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) }
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
 }
 
 /// CM-DC: depth consistency between generated points and a (relative) monocular depth map.
@@ -194,13 +216,23 @@ pub fn cm_depth_consistency<P: Copy + Into<Vec3>>(
                 let s = sxy / sxx;
                 (s, md - s * mm)
             } else {
-                let s = pairs.iter().map(|p| p.0 * p.1).sum::<f64>() / pairs.iter().map(|p| p.0 * p.0).sum::<f64>();
+                let s = pairs.iter().map(|p| p.0 * p.1).sum::<f64>()
+                    / pairs.iter().map(|p| p.0 * p.0).sum::<f64>();
                 (s, 0.0)
             }
         }
     };
-    let abs_rel = pairs.iter().map(|&(m, d)| ((scale * m + shift) - d).abs() / d).sum::<f64>() / pairs.len() as f64;
-    Ok(DepthConsistency { abs_rel, scale, shift, points: pairs.len() })
+    let abs_rel = pairs
+        .iter()
+        .map(|&(m, d)| ((scale * m + shift) - d).abs() / d)
+        .sum::<f64>()
+        / pairs.len() as f64;
+    Ok(DepthConsistency {
+        abs_rel,
+        scale,
+        shift,
+        points: pairs.len(),
+    })
 }
 
 /// CM-SC: semantic agreement between per-point labels of the generated points and a semantic map.
@@ -218,7 +250,13 @@ pub fn cm_semantic_consistency<P: Copy + Into<Vec3>, L: Copy + Into<u32>, M: Cop
             got: format!("{}", point_labels.len()),
         });
     }
-    let hits = project_points(points, camera, semantic_map.width, semantic_map.height, filter)?;
+    let hits = project_points(
+        points,
+        camera,
+        semantic_map.width,
+        semantic_map.height,
+        filter,
+    )?;
     let (mut agree, mut total) = (0usize, 0usize);
     for (i, px, _) in hits {
         let (lp, lm): (u32, u32) = (point_labels[i].into(), semantic_map.data[px].into());
@@ -229,7 +267,13 @@ pub fn cm_semantic_consistency<P: Copy + Into<Vec3>, L: Copy + Into<u32>, M: Cop
         agree += usize::from(lp == lm);
     }
     if total == 0 {
-        return Err(Error::NoPointsInWindow { what: "generated scan".into(), window: "camera image (labelled)".into() });
+        return Err(Error::NoPointsInWindow {
+            what: "generated scan".into(),
+            window: "camera image (labelled)".into(),
+        });
     }
-    Ok(SemanticConsistency { percent: 100.0 * agree as f64 / total as f64, points: total })
+    Ok(SemanticConsistency {
+        percent: 100.0 * agree as f64 / total as f64,
+        points: total,
+    })
 }

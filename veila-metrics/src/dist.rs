@@ -60,12 +60,17 @@ pub fn jensen_shannon_distance(p: &[f64], q: &[f64]) -> Result<f64> {
     }
     for (name, v) in [("p", p), ("q", q)] {
         if let Some(i) = v.iter().position(|x| !x.is_finite() || *x < 0.0) {
-            return Err(Error::NonFinite { what: format!("jensen_shannon_distance {name} (or negative)"), index: i });
+            return Err(Error::NonFinite {
+                what: format!("jensen_shannon_distance {name} (or negative)"),
+                index: i,
+            });
         }
     }
     let (sp, sq): (f64, f64) = (p.iter().sum(), q.iter().sum());
     if sp <= 0.0 || sq <= 0.0 {
-        return Err(Error::empty("jensen_shannon_distance distribution (all zeros)"));
+        return Err(Error::empty(
+            "jensen_shannon_distance distribution (all zeros)",
+        ));
     }
     let (mut left, mut right) = (0.0f64, 0.0f64);
     for (&a, &b) in p.iter().zip(q) {
@@ -110,7 +115,10 @@ pub fn jsd<H: Histogram>(generated: &[H], reference: &[H]) -> Result<f64> {
     }
     for (v, what) in [(&p, "generated"), (&q, "reference")] {
         if v.iter().all(|&x| x == 0.0) {
-            return Err(Error::NoPointsInWindow { what: format!("every {what} scan"), window: "BEV".into() });
+            return Err(Error::NoPointsInWindow {
+                what: format!("every {what} scan"),
+                window: "BEV".into(),
+            });
         }
     }
     jensen_shannon_distance(&p, &q)
@@ -129,7 +137,10 @@ fn check_set<H: Histogram>(set: &[H], what: &str, cells: usize) -> Result<()> {
             });
         }
         if h.total() == 0 {
-            return Err(Error::NoPointsInWindow { what: format!("{what} scan {i}"), window: "BEV".into() });
+            return Err(Error::NoPointsInWindow {
+                what: format!("{what} scan {i}"),
+                window: "BEV".into(),
+            });
         }
     }
     Ok(())
@@ -139,7 +150,10 @@ fn check_sigma(sigma: f64) -> Result<()> {
     if sigma.is_finite() && sigma > 0.0 {
         Ok(())
     } else {
-        Err(Error::InvalidParameter { name: "sigma", reason: format!("{sigma} must be finite and > 0") })
+        Err(Error::InvalidParameter {
+            name: "sigma",
+            reason: format!("{sigma} must be finite and > 0"),
+        })
     }
 }
 
@@ -165,21 +179,31 @@ fn normalized_matrix(set: &[BevHistogram]) -> Mat<f64> {
 }
 
 fn row_norms(m: &Mat<f64>) -> Vec<f64> {
-    (0..m.nrows()).map(|i| (0..m.ncols()).map(|j| m[(i, j)] * m[(i, j)]).sum()).collect()
+    (0..m.nrows())
+        .map(|i| (0..m.ncols()).map(|j| m[(i, j)] * m[(i, j)]).sum())
+        .collect()
 }
 
 /// Sum over all `(i, j)` of `exp(-max(na_i + nb_j - 2 g_ij, 0) * gamma)`, row sums in parallel, summed in order.
 fn kernel_sum_from_gram(g: &Mat<f64>, na: &[f64], nb: &[f64], gamma: f64) -> f64 {
     let rows: Vec<f64> = (0..g.nrows())
         .into_par_iter()
-        .map(|i| (0..g.ncols()).map(|j| (-(na[i] + nb[j] - 2.0 * g[(i, j)]).max(0.0) * gamma).exp()).sum())
+        .map(|i| {
+            (0..g.ncols())
+                .map(|j| (-(na[i] + nb[j] - 2.0 * g[(i, j)]).max(0.0) * gamma).exp())
+                .sum()
+        })
         .collect();
     rows.iter().sum()
 }
 
 /// R2DM's BEV MMD (raw, not scaled) on dense histograms, through Gram matrices (`‖a-b‖² = ‖a‖² + ‖b‖² - 2a·b`
 /// in `f64`, negatives from rounding clamped to 0) computed with a dense matrix product.
-pub fn mmd_r2dm_dense(generated: &[BevHistogram], reference: &[BevHistogram], sigma: f64) -> Result<f64> {
+pub fn mmd_r2dm_dense(
+    generated: &[BevHistogram],
+    reference: &[BevHistogram],
+    sigma: f64,
+) -> Result<f64> {
     check_sigma(sigma)?;
     let cells = generated.first().map(|h| h.counts.len()).unwrap_or(0);
     check_set(generated, "generated", cells)?;
@@ -190,7 +214,14 @@ pub fn mmd_r2dm_dense(generated: &[BevHistogram], reference: &[BevHistogram], si
     let gamma = 1.0 / (2.0 * sigma * sigma);
     let gram = |a: &Mat<f64>, b: &Mat<f64>| {
         let mut g = Mat::<f64>::zeros(a.nrows(), b.nrows());
-        faer::linalg::matmul::matmul(g.as_mut(), Accum::Replace, a.as_ref(), b.transpose(), 1.0, Par::rayon(0));
+        faer::linalg::matmul::matmul(
+            g.as_mut(),
+            Accum::Replace,
+            a.as_ref(),
+            b.transpose(),
+            1.0,
+            Par::rayon(0),
+        );
         g
     };
     let kxx = kernel_sum_from_gram(&gram(&x, &x), &nx, &nx, gamma);
@@ -211,7 +242,11 @@ fn sparse_rows(set: &[SparseBevHistogram]) -> Vec<SparseRow> {
             let t = h.total as f64;
             let vals: Vec<f64> = h.counts.iter().map(|&c| c as f64 / t).collect();
             let norm2 = vals.iter().map(|v| v * v).sum();
-            SparseRow { cells: h.cells.clone(), vals, norm2 }
+            SparseRow {
+                cells: h.cells.clone(),
+                vals,
+                norm2,
+            }
         })
         .collect()
 }
@@ -227,7 +262,12 @@ fn kernel_sum_sparse(a: &[SparseRow], b: &[SparseRow], cells: usize, gamma: f64)
                 }
                 let mut s = 0.0;
                 for rb in b {
-                    let dot: f64 = rb.cells.iter().zip(&rb.vals).map(|(&c, &v)| buf[c as usize] * v).sum();
+                    let dot: f64 = rb
+                        .cells
+                        .iter()
+                        .zip(&rb.vals)
+                        .map(|(&c, &v)| buf[c as usize] * v)
+                        .sum();
                     s += (-(ra.norm2 + rb.norm2 - 2.0 * dot).max(0.0) * gamma).exp();
                 }
                 for &c in &ra.cells {
@@ -275,14 +315,20 @@ pub fn spectral_norm(values: &[f64], n: usize) -> Result<f64> {
         return Ok(0.0);
     }
     let m = Mat::<f64>::from_fn(n, n, |i, j| values[i * n + j]);
-    let s = m.singular_values().map_err(|e| Error::Linalg(format!("SVD failed: {e:?}")))?;
+    let s = m
+        .singular_values()
+        .map_err(|e| Error::Linalg(format!("SVD failed: {e:?}")))?;
     Ok(s.first().copied().unwrap_or(0.0))
 }
 
 /// LiDARGen's BEV MMD (raw): the R2DM estimator with the distance between two normalised histograms taken
 /// as the spectral norm of their `bins x bins` difference (`numpy.linalg.norm(a - b, 2)` on 2-D arrays).
 /// Costs one small SVD per pair (LiDARGen runs it in a Python double loop).
-pub fn mmd_lidargen(generated: &[BevHistogram], reference: &[BevHistogram], sigma: f64) -> Result<f64> {
+pub fn mmd_lidargen(
+    generated: &[BevHistogram],
+    reference: &[BevHistogram],
+    sigma: f64,
+) -> Result<f64> {
     check_sigma(sigma)?;
     let cells = generated.first().map(|h| h.counts.len()).unwrap_or(0);
     check_set(generated, "generated", cells)?;

@@ -54,7 +54,12 @@ pub struct FeatureStats {
 impl FeatureStats {
     /// Empty statistics for `dim`-dimensional rows.
     pub fn new(dim: usize) -> Self {
-        Self { dim, n: 0, mean: vec![0.0; dim], m2: Mat::zeros(dim, dim) }
+        Self {
+            dim,
+            n: 0,
+            mean: vec![0.0; dim],
+            m2: Mat::zeros(dim, dim),
+        }
     }
 
     /// Statistics of a row-major `rows.len() / dim` x `dim` matrix.
@@ -84,7 +89,10 @@ impl FeatureStats {
     pub fn push_rows<T: Copy + Into<f64>>(&mut self, rows: &[T], what: &str) -> Result<()> {
         let d = self.dim;
         if d == 0 {
-            return Err(Error::InvalidParameter { name: "dim", reason: "feature dimension must be > 0".into() });
+            return Err(Error::InvalidParameter {
+                name: "dim",
+                reason: "feature dimension must be > 0".into(),
+            });
         }
         if rows.len() % d != 0 {
             return Err(Error::ShapeMismatch {
@@ -101,7 +109,10 @@ impl FeatureStats {
         for i in 0..k {
             for j in 0..d {
                 if !x[(i, j)].is_finite() {
-                    return Err(Error::NonFinite { what: what.to_string(), index: i * d + j });
+                    return Err(Error::NonFinite {
+                        what: what.to_string(),
+                        index: i * d + j,
+                    });
                 }
             }
         }
@@ -120,7 +131,14 @@ impl FeatureStats {
             }
         }
         let mut m2b = Mat::<f64>::zeros(d, d);
-        faer::linalg::matmul::matmul(m2b.as_mut(), Accum::Replace, x.transpose(), x.as_ref(), 1.0, Par::rayon(0));
+        faer::linalg::matmul::matmul(
+            m2b.as_mut(),
+            Accum::Replace,
+            x.transpose(),
+            x.as_ref(),
+            1.0,
+            Par::rayon(0),
+        );
         self.merge_parts(k as u64, &mb, &m2b);
         Ok(())
     }
@@ -174,11 +192,17 @@ impl FeatureStats {
 
     fn covariance_mat(&self, what: &str) -> Result<Mat<f64>> {
         if self.n < 2 {
-            return Err(Error::TooFewSamples { what: what.to_string(), needed: 2, got: self.n as usize });
+            return Err(Error::TooFewSamples {
+                what: what.to_string(),
+                needed: 2,
+                got: self.n as usize,
+            });
         }
         let s = 1.0 / (self.n as f64 - 1.0);
         let d = self.dim;
-        Ok(Mat::from_fn(d, d, |i, j| 0.5 * (self.m2[(i, j)] + self.m2[(j, i)]) * s))
+        Ok(Mat::from_fn(d, d, |i, j| {
+            0.5 * (self.m2[(i, j)] + self.m2[(j, i)]) * s
+        }))
     }
 }
 
@@ -188,7 +212,11 @@ pub fn frechet_distance(a: &FeatureStats, b: &FeatureStats) -> Result<f64> {
 }
 
 /// Fréchet distance between two feature sets given as statistics.
-pub fn frechet_distance_with(a: &FeatureStats, b: &FeatureStats, method: SqrtMethod) -> Result<f64> {
+pub fn frechet_distance_with(
+    a: &FeatureStats,
+    b: &FeatureStats,
+    method: SqrtMethod,
+) -> Result<f64> {
     if a.dim != b.dim {
         return Err(Error::ShapeMismatch {
             what: "second feature set".into(),
@@ -202,7 +230,12 @@ pub fn frechet_distance_with(a: &FeatureStats, b: &FeatureStats, method: SqrtMet
 }
 
 /// Fréchet distance between two row-major feature matrices (`f32` or `f64`) with `dim` columns.
-pub fn frechet_distance_rows<T: Copy + Into<f64>>(a: &[T], b: &[T], dim: usize, method: SqrtMethod) -> Result<f64> {
+pub fn frechet_distance_rows<T: Copy + Into<f64>>(
+    a: &[T],
+    b: &[T],
+    dim: usize,
+    method: SqrtMethod,
+) -> Result<f64> {
     let sa = FeatureStats::from_rows(a, dim, "first feature matrix")?;
     let sb = FeatureStats::from_rows(b, dim, "second feature matrix")?;
     frechet_distance_with(&sa, &sb, method)
@@ -224,7 +257,11 @@ pub fn frechet_distance_from_moments(
         ("sigma2", sigma2.len(), d * d),
     ] {
         if len != want {
-            return Err(Error::ShapeMismatch { what: what.into(), expected: format!("{want} values"), got: format!("{len}") });
+            return Err(Error::ShapeMismatch {
+                what: what.into(),
+                expected: format!("{want} values"),
+                got: format!("{len}"),
+            });
         }
     }
     let s1 = Mat::from_fn(d, d, |i, j| 0.5 * (sigma1[i * d + j] + sigma1[j * d + i]));
@@ -236,21 +273,33 @@ fn check_finite_mat(m: MatRef<'_, f64>, what: &str) -> Result<()> {
     for j in 0..m.ncols() {
         for i in 0..m.nrows() {
             if !m[(i, j)].is_finite() {
-                return Err(Error::NonFinite { what: what.into(), index: i * m.ncols() + j });
+                return Err(Error::NonFinite {
+                    what: what.into(),
+                    index: i * m.ncols() + j,
+                });
             }
         }
     }
     Ok(())
 }
 
-fn fd_impl(mu1: &[f64], s1: MatRef<'_, f64>, mu2: &[f64], s2: MatRef<'_, f64>, method: SqrtMethod) -> Result<f64> {
+fn fd_impl(
+    mu1: &[f64],
+    s1: MatRef<'_, f64>,
+    mu2: &[f64],
+    s2: MatRef<'_, f64>,
+    method: SqrtMethod,
+) -> Result<f64> {
     let d = mu1.len();
     if d == 0 {
         return Err(Error::empty("feature dimension"));
     }
     for (what, mu) in [("mu1", mu1), ("mu2", mu2)] {
         if let Some(i) = mu.iter().position(|v| !v.is_finite()) {
-            return Err(Error::NonFinite { what: what.into(), index: i });
+            return Err(Error::NonFinite {
+                what: what.into(),
+                index: i,
+            });
         }
     }
     check_finite_mat(s1, "sigma1")?;
@@ -263,7 +312,9 @@ fn fd_impl(mu1: &[f64], s1: MatRef<'_, f64>, mu2: &[f64], s2: MatRef<'_, f64>, m
     let tr2: f64 = (0..d).map(|i| s2[(i, i)]).sum();
     let tr_sqrt = match method {
         SqrtMethod::Eigen => trace_sqrt_product_eigen(s1, s2)?,
-        SqrtMethod::NewtonSchulz { iterations } => trace_sqrt_product_newton_schulz(s1, s2, iterations),
+        SqrtMethod::NewtonSchulz { iterations } => {
+            trace_sqrt_product_newton_schulz(s1, s2, iterations)
+        }
     };
     Ok((mean_term + tr1 + tr2 - 2.0 * tr_sqrt).max(0.0))
 }
@@ -285,7 +336,9 @@ pub fn trace_sqrt_product_eigen(s1: MatRef<'_, f64>, s2: MatRef<'_, f64>) -> Res
     let par = Par::rayon(0);
     if let Ok(llt) = s1.llt(Side::Lower) {
         let l = llt.L();
-        let min_l2 = (0..d).map(|i| l[(i, i)] * l[(i, i)]).fold(f64::INFINITY, f64::min);
+        let min_l2 = (0..d)
+            .map(|i| l[(i, i)] * l[(i, i)])
+            .fold(f64::INFINITY, f64::min);
         if min_l2 > d as f64 * f64::EPSILON * max_diag {
             // C = S2 L, M = Lᵀ C (lower half only)
             let mut c = Mat::<f64>::zeros(d, d);
@@ -312,12 +365,15 @@ pub fn trace_sqrt_product_eigen(s1: MatRef<'_, f64>, s2: MatRef<'_, f64>) -> Res
                 1.0,
                 par,
             );
-            let mu =
-                m.self_adjoint_eigenvalues(Side::Lower).map_err(|e| Error::Linalg(format!("eigenvalues: {e:?}")))?;
+            let mu = m
+                .self_adjoint_eigenvalues(Side::Lower)
+                .map_err(|e| Error::Linalg(format!("eigenvalues: {e:?}")))?;
             return Ok(mu.iter().map(|&v| v.max(0.0).sqrt()).sum());
         }
     }
-    let evd = s1.self_adjoint_eigen(Side::Lower).map_err(|e| Error::Linalg(format!("eigendecomposition: {e:?}")))?;
+    let evd = s1
+        .self_adjoint_eigen(Side::Lower)
+        .map_err(|e| Error::Linalg(format!("eigendecomposition: {e:?}")))?;
     let u = evd.U();
     let lam = evd.S().column_vector();
     // eigenvalues below the rank tolerance are zero: their square roots (~sqrt(eps)) would otherwise leak
@@ -333,13 +389,26 @@ pub fn trace_sqrt_product_eigen(s1: MatRef<'_, f64>, s2: MatRef<'_, f64>) -> Res
     let mut c = Mat::<f64>::zeros(d, r);
     faer::linalg::matmul::matmul(c.as_mut(), Accum::Replace, s2, a.as_ref(), 1.0, par);
     let mut m = Mat::<f64>::zeros(r, r);
-    faer::linalg::matmul::matmul(m.as_mut(), Accum::Replace, a.transpose(), c.as_ref(), 1.0, par);
-    let mu = m.self_adjoint_eigenvalues(Side::Lower).map_err(|e| Error::Linalg(format!("eigenvalues: {e:?}")))?;
+    faer::linalg::matmul::matmul(
+        m.as_mut(),
+        Accum::Replace,
+        a.transpose(),
+        c.as_ref(),
+        1.0,
+        par,
+    );
+    let mu = m
+        .self_adjoint_eigenvalues(Side::Lower)
+        .map_err(|e| Error::Linalg(format!("eigenvalues: {e:?}")))?;
     Ok(mu.iter().map(|&v| v.max(0.0).sqrt()).sum())
 }
 
 /// `Tr (S1 S2)^{1/2}` approximated with `iterations` coupled Newton–Schulz steps (see the module docs).
-pub fn trace_sqrt_product_newton_schulz(s1: MatRef<'_, f64>, s2: MatRef<'_, f64>, iterations: usize) -> f64 {
+pub fn trace_sqrt_product_newton_schulz(
+    s1: MatRef<'_, f64>,
+    s2: MatRef<'_, f64>,
+    iterations: usize,
+) -> f64 {
     let d = s1.nrows();
     let par = Par::rayon(0);
     let mut p = Mat::<f64>::zeros(d, d);
@@ -354,13 +423,34 @@ pub fn trace_sqrt_product_newton_schulz(s1: MatRef<'_, f64>, s2: MatRef<'_, f64>
     let mut tmp = Mat::<f64>::zeros(d, d);
     for _ in 0..iterations {
         // t = (3 I - z y) / 2
-        faer::linalg::matmul::matmul(t.as_mut(), Accum::Replace, z.as_ref(), y.as_ref(), -0.5, par);
+        faer::linalg::matmul::matmul(
+            t.as_mut(),
+            Accum::Replace,
+            z.as_ref(),
+            y.as_ref(),
+            -0.5,
+            par,
+        );
         for i in 0..d {
             t[(i, i)] += 1.5;
         }
-        faer::linalg::matmul::matmul(tmp.as_mut(), Accum::Replace, y.as_ref(), t.as_ref(), 1.0, par);
+        faer::linalg::matmul::matmul(
+            tmp.as_mut(),
+            Accum::Replace,
+            y.as_ref(),
+            t.as_ref(),
+            1.0,
+            par,
+        );
         std::mem::swap(&mut y, &mut tmp);
-        faer::linalg::matmul::matmul(tmp.as_mut(), Accum::Replace, t.as_ref(), z.as_ref(), 1.0, par);
+        faer::linalg::matmul::matmul(
+            tmp.as_mut(),
+            Accum::Replace,
+            t.as_ref(),
+            z.as_ref(),
+            1.0,
+            par,
+        );
         std::mem::swap(&mut z, &mut tmp);
     }
     let tr: f64 = (0..d).map(|i| y[(i, i)]).sum();

@@ -64,10 +64,21 @@ use glam::Vec3;
 /// `Err(NonFinite)` naming `what` and `index` when `p` has a NaN or infinite coordinate.
 #[inline]
 pub(crate) fn check_finite(p: Vec3, what: &str, index: usize) -> Result<()> {
-    if p.is_finite() { Ok(()) } else { Err(Error::NonFinite { what: what.to_string(), index }) }
+    if p.is_finite() {
+        Ok(())
+    } else {
+        Err(Error::NonFinite {
+            what: what.to_string(),
+            index,
+        })
+    }
 }
 
 /// The points of `points` that lie in `region` (front: `x > 0`, rear: `x <= 0`).
 pub fn filter_region<P: Copy + Into<Vec3>>(points: &[P], region: Region) -> Vec<Vec3> {
-    points.iter().map(|&p| p.into()).filter(|&p| region.contains(p)).collect()
+    points
+        .iter()
+        .map(|&p| p.into())
+        .filter(|&p| region.contains(p))
+        .collect()
 }

@@ -43,25 +43,40 @@ impl Default for LidmBevConfig {
 impl LidmBevConfig {
     /// 64-beam (KITTI) setting: ±50 m, 0.5 m cells.
     pub const fn kitti() -> Self {
-        Self { half_extent_m: 50.0, cell_m: 0.5 }
+        Self {
+            half_extent_m: 50.0,
+            cell_m: 0.5,
+        }
     }
 
     /// 32-beam (nuScenes) setting: ±30 m, 0.5 m cells.
     pub const fn nuscenes() -> Self {
-        Self { half_extent_m: 30.0, cell_m: 0.5 }
+        Self {
+            half_extent_m: 30.0,
+            cell_m: 0.5,
+        }
     }
 
     fn grid(&self) -> Result<(i64, i64)> {
-        if !(self.half_extent_m.is_finite() && self.half_extent_m > 0.0 && self.cell_m.is_finite() && self.cell_m > 0.0)
+        if !(self.half_extent_m.is_finite()
+            && self.half_extent_m > 0.0
+            && self.cell_m.is_finite()
+            && self.cell_m > 0.0)
         {
             return Err(Error::InvalidParameter {
                 name: "LidmBevConfig",
-                reason: format!("half_extent_m {} and cell_m {} must be finite and > 0", self.half_extent_m, self.cell_m),
+                reason: format!(
+                    "half_extent_m {} and cell_m {} must be finite and > 0",
+                    self.half_extent_m, self.cell_m
+                ),
             });
         }
         let size = ((2.0 * self.half_extent_m) / self.cell_m).ceil();
         if size > 8192.0 {
-            return Err(Error::InvalidParameter { name: "LidmBevConfig", reason: format!("grid of {size} cells per axis") });
+            return Err(Error::InvalidParameter {
+                name: "LidmBevConfig",
+                reason: format!("grid of {size} cells per axis"),
+            });
         }
         let min_bound = (-self.half_extent_m / self.cell_m).ceil() as i64;
         Ok((size as i64, min_bound))
@@ -105,7 +120,10 @@ pub fn lidm_bev_occupancy<P: Copy + Into<Vec3>>(
     }
     cells.sort_unstable();
     cells.dedup();
-    Ok(BevOccupancy { size: size as usize, cells })
+    Ok(BevOccupancy {
+        size: size as usize,
+        cells,
+    })
 }
 
 /// "No occupied cell in this line": larger than any squared distance on a grid of at most 8192 cells per
@@ -188,7 +206,10 @@ fn check_occ_set(set: &[BevOccupancy], what: &str, size: usize) -> Result<()> {
             });
         }
         if o.cells.is_empty() {
-            return Err(Error::NoPointsInWindow { what: format!("{what} scan {i}"), window: "LiDM BEV".into() });
+            return Err(Error::NoPointsInWindow {
+                what: format!("{what} scan {i}"),
+                window: "LiDM BEV".into(),
+            });
         }
     }
     Ok(())
@@ -219,12 +240,14 @@ pub fn mmd_lidm(generated: &[BevOccupancy], reference: &[BevOccupancy]) -> Resul
     const BLOCK: usize = 128;
     for block in generated.chunks(BLOCK) {
         let edts: Vec<Vec<f64>> = block.par_iter().map(squared_edt).collect();
-        best.par_iter_mut().zip(reference.par_iter()).for_each(|(b, r)| {
-            let er = squared_edt(r);
-            for (g, eg) in block.iter().zip(&edts) {
-                *b = b.min(cd2_with_edts(r, &er, g, eg));
-            }
-        });
+        best.par_iter_mut()
+            .zip(reference.par_iter())
+            .for_each(|(b, r)| {
+                let er = squared_edt(r);
+                for (g, eg) in block.iter().zip(&edts) {
+                    *b = b.min(cd2_with_edts(r, &er, g, eg));
+                }
+            });
     }
     Ok(best.iter().sum::<f64>() / best.len() as f64)
 }
@@ -256,7 +279,9 @@ mod tests {
             let n = 7 + trial % 9;
             let mut cells = Vec::new();
             for c in 0..n * n {
-                state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
                 if (state >> 33) % 7 == 0 || c == (trial * 13) % (n * n) {
                     cells.push(c as u32);
                 }

@@ -51,17 +51,8 @@ impl std::fmt::Debug for PointIndex {
     }
 }
 
-fn search_distance() -> PlocSearchDistance {
-    match std::env::var("PROBE_PLOC").as_deref() {
-        Ok("medium") => PlocSearchDistance::Medium,
-        Ok("low") => PlocSearchDistance::Low,
-        Ok("verylow") => PlocSearchDistance::VeryLow,
-        _ => PlocSearchDistance::Minimum,
-    }
-}
-
 /// Points per leaf after collapsing the BVH.
-const MAX_LEAF_POINTS: u32 = 4;
+const MAX_LEAF_POINTS: u32 = 8;
 
 #[inline]
 fn dist2_f64(a: Vec3A, b: Vec3A) -> f64 {
@@ -91,7 +82,10 @@ impl PointIndex {
             return Err(Error::empty(what));
         }
         if points.len() >= u32::MAX as usize {
-            return Err(Error::InvalidParameter { name: "points", reason: format!("{what}: too many points") });
+            return Err(Error::InvalidParameter {
+                name: "points",
+                reason: format!("{what}: too many points"),
+            });
         }
         let mut pts: Vec<Vec3A> = Vec::with_capacity(points.len());
         for (i, &p) in points.iter().enumerate() {
@@ -102,7 +96,7 @@ impl PointIndex {
         let aabbs: Vec<Aabb> = pts.iter().map(|&p| Aabb::from_point(p)).collect();
         let indices: Vec<u32> = (0..pts.len() as u32).collect();
         let mut bvh = PlocBuilder::with_capacity(aabbs.len()).build(
-            search_distance(),
+            PlocSearchDistance::Minimum,
             &aabbs,
             indices,
             SortPrecision::U64,
@@ -110,11 +104,14 @@ impl PointIndex {
         );
         // a traversal cost of `MAX_LEAF_POINTS` makes the SAH test always pass (point boxes have no area), so
         // every subtree of at most `MAX_LEAF_POINTS` points becomes one leaf
-        let leaf: u32 = std::env::var("PROBE_LEAF").ok().and_then(|v| v.parse().ok()).unwrap_or(MAX_LEAF_POINTS);
-        collapse(&mut bvh, leaf, leaf as f32);
+        collapse(&mut bvh, MAX_LEAF_POINTS, MAX_LEAF_POINTS as f32);
         let original = bvh.primitive_indices.clone();
         let points: Vec<Vec3A> = original.iter().map(|&i| pts[i as usize]).collect();
-        Ok(Self { bvh, points, original })
+        Ok(Self {
+            bvh,
+            points,
+            original,
+        })
     }
 
     /// Number of points.
@@ -136,12 +133,24 @@ impl PointIndex {
     pub fn nearest(&self, query: Vec3) -> Nearest {
         let mut stack = Vec::with_capacity(self.bvh.max_depth + 2);
         let (d, k) = self.nearest_impl(query.into(), f64::INFINITY, u32::MAX, &mut stack);
-        Nearest { dist2: d, index: self.original.get(k as usize).map_or(usize::MAX, |&i| i as usize) }
+        Nearest {
+            dist2: d,
+            index: self
+                .original
+                .get(k as usize)
+                .map_or(usize::MAX, |&i| i as usize),
+        }
     }
 
     /// Branch and bound from an initial upper bound `(best, best_k)` (`best_k` an internal point index or
     /// `u32::MAX`). Returns the squared distance and the internal index.
-    fn nearest_impl(&self, q: Vec3A, mut best: f64, mut best_k: u32, stack: &mut Vec<(u32, f32)>) -> (f64, u32) {
+    fn nearest_impl(
+        &self,
+        q: Vec3A,
+        mut best: f64,
+        mut best_k: u32,
+        stack: &mut Vec<(u32, f32)>,
+    ) -> (f64, u32) {
         let nodes = &self.bvh.nodes;
         stack.clear();
         stack.push((0, 0.0));
@@ -154,10 +163,14 @@ impl PointIndex {
                 let start = node.first_index as usize;
                 let end = start + node.prim_count as usize;
                 for k in start..end {
-                    let d = dist2_f64(self.points[k], q);
-                    if d < best {
-                        best = d;
-                        best_k = k as u32;
+                    let p = self.points[k];
+                    // cheap f32 screen with the same safety margin as the box test, exact f64 distance after
+                    if may_improve((p - q).length_squared(), best) {
+                        let d = dist2_f64(p, q);
+                        if d < best {
+                            best = d;
+                            best_k = k as u32;
+                        }
                     }
                 }
                 continue;
@@ -166,7 +179,11 @@ impl PointIndex {
             let c1 = c0 + 1;
             let d0 = box_dist2(nodes[c0 as usize].aabb(), q);
             let d1 = box_dist2(nodes[c1 as usize].aabb(), q);
-            let (near, dn, far, df) = if d0 <= d1 { (c0, d0, c1, d1) } else { (c1, d1, c0, d0) };
+            let (near, dn, far, df) = if d0 <= d1 {
+                (c0, d0, c1, d1)
+            } else {
+                (c1, d1, c0, d0)
+            };
             if may_improve(df, best) {
                 stack.push((far, df));
             }
@@ -180,16 +197,18 @@ impl PointIndex {
     /// Squared nearest distances for every query point, in query order (parallel).
     pub fn nearest_dist2_all<P: Copy + Into<Vec3> + Sync>(&self, queries: &[P]) -> Vec<f64> {
         let mut out = vec![0.0; queries.len()];
-        out.par_chunks_mut(1024).zip(queries.par_chunks(1024)).for_each(|(o, qs)| {
-            let mut stack = Vec::with_capacity(self.bvh.max_depth + 2);
-            let mut hint = u32::MAX;
-            for (slot, &q) in o.iter_mut().zip(qs) {
-                let q: Vec3A = Into::<Vec3>::into(q).into();
-                let (d, k) = self.query_with_hint(q, hint, &mut stack);
-                *slot = d;
-                hint = k;
-            }
-        });
+        out.par_chunks_mut(1024)
+            .zip(queries.par_chunks(1024))
+            .for_each(|(o, qs)| {
+                let mut stack = Vec::with_capacity(self.bvh.max_depth + 2);
+                let mut hint = u32::MAX;
+                for (slot, &q) in o.iter_mut().zip(qs) {
+                    let q: Vec3A = Into::<Vec3>::into(q).into();
+                    let (d, k) = self.query_with_hint(q, hint, &mut stack);
+                    *slot = d;
+                    hint = k;
+                }
+            });
         out
     }
 
@@ -239,6 +258,9 @@ pub fn nearest_brute_force(points: &[Vec3], query: Vec3) -> Option<Nearest> {
     points
         .iter()
         .enumerate()
-        .map(|(i, &p)| Nearest { dist2: dist2_f64(p.into(), q), index: i })
+        .map(|(i, &p)| Nearest {
+            dist2: dist2_f64(p.into(), q),
+            index: i,
+        })
         .min_by(|a, b| a.dist2.total_cmp(&b.dist2))
 }

@@ -8,8 +8,16 @@ use veila_metrics::{
 };
 
 fn brute_chamfer(a: &[Vec3], b: &[Vec3]) -> f64 {
-    let ab: f64 = a.iter().map(|&p| nearest_brute_force(b, p).unwrap().dist2).sum::<f64>() / a.len() as f64;
-    let ba: f64 = b.iter().map(|&p| nearest_brute_force(a, p).unwrap().dist2).sum::<f64>() / b.len() as f64;
+    let ab: f64 = a
+        .iter()
+        .map(|&p| nearest_brute_force(b, p).unwrap().dist2)
+        .sum::<f64>()
+        / a.len() as f64;
+    let ba: f64 = b
+        .iter()
+        .map(|&p| nearest_brute_force(a, p).unwrap().dist2)
+        .sum::<f64>()
+        / b.len() as f64;
     ab + ba
 }
 
@@ -22,14 +30,18 @@ fn cloud() -> impl Strategy<Value = Vec<Vec3>> {
         // spread out
         (1usize..300).prop_flat_map(|n| prop::collection::vec(point(50.0), n)),
         // clustered with exact duplicates
-        (1usize..100).prop_flat_map(|n| prop::collection::vec(point(0.01), n))
+        (1usize..100)
+            .prop_flat_map(|n| prop::collection::vec(point(0.01), n))
             .prop_map(|mut v| {
                 let k = v.len();
                 v.extend_from_within(..k / 2);
                 v
             }),
         // on a plane (degenerate boxes)
-        (1usize..200).prop_flat_map(|n| prop::collection::vec(point(20.0).prop_map(|p| Vec3::new(p.x, p.y, -1.7)), n)),
+        (1usize..200).prop_flat_map(|n| prop::collection::vec(
+            point(20.0).prop_map(|p| Vec3::new(p.x, p.y, -1.7)),
+            n
+        )),
     ]
 }
 
@@ -76,7 +88,8 @@ fn single_point_index() {
 
 #[test]
 fn real_kitti_scan_subsample_matches_brute_force() {
-    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/real/kitti/training/velodyne");
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/data/real/kitti/training/velodyne");
     let read = |name: &str| -> Option<Vec<Vec3>> {
         let bytes = std::fs::read(dir.join(name)).ok()?;
         Some(
@@ -95,6 +108,9 @@ fn real_kitti_scan_subsample_matches_brute_force() {
     };
     let idx = PointIndex::build(&b, "000001").unwrap();
     for q in a.iter().step_by(97) {
-        assert_eq!(idx.nearest(*q).dist2, nearest_brute_force(&b, *q).unwrap().dist2);
+        assert_eq!(
+            idx.nearest(*q).dist2,
+            nearest_brute_force(&b, *q).unwrap().dist2
+        );
     }
 }

@@ -4,7 +4,9 @@ use glam::{Mat4, Vec3, Vec4};
 use veila_geom::PinholeCamera;
 use veila_metrics::{
     Error, Region,
-    crossmodal::{DepthAlignment, Map2d, ProjectionFilter, cm_depth_consistency, cm_semantic_consistency},
+    crossmodal::{
+        DepthAlignment, Map2d, ProjectionFilter, cm_depth_consistency, cm_semantic_consistency,
+    },
 };
 
 /// A 100 x 80 camera looking along LiDAR +x (camera z = x, camera x = -y, camera y = -z), f = 50 px.
@@ -15,8 +17,17 @@ fn camera() -> PinholeCamera {
         Vec4::new(0.0, -1.0, 0.0, 0.0), // lidar z -> cam -y
         Vec4::new(0.0, 0.0, 0.0, 1.0),
     );
-    PinholeCamera::new([[50.0, 0.0, 50.0, 0.0], [0.0, 50.0, 40.0, 0.0], [0.0, 0.0, 1.0, 0.0]], cam_from_lidar, 100, 80)
-        .unwrap()
+    PinholeCamera::new(
+        [
+            [50.0, 0.0, 50.0, 0.0],
+            [0.0, 50.0, 40.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+        ],
+        cam_from_lidar,
+        100,
+        80,
+    )
+    .unwrap()
 }
 
 /// Points on a grid in front of the camera at depth `x`, each landing on its own pixel.
@@ -28,7 +39,11 @@ fn points() -> Vec<Vec3> {
             // pixel (10 + 8i, 5 + 9j): u = 50 - 50 y / x, v = 40 - 50 z / x
             let u = 10.0 + 8.0 * i as f32;
             let vv = 5.0 + 9.0 * j as f32;
-            v.push(Vec3::new(depth, -(u - 50.0) * depth / 50.0, -(vv - 40.0) * depth / 50.0));
+            v.push(Vec3::new(
+                depth,
+                -(u - 50.0) * depth / 50.0,
+                -(vv - 40.0) * depth / 50.0,
+            ));
         }
     }
     v.push(Vec3::new(-10.0, 0.0, 0.0)); // behind the camera
@@ -51,14 +66,26 @@ fn depth_map(f: impl Fn(f32) -> f32) -> Vec<f32> {
 fn median_alignment_removes_scale() {
     let m = depth_map(|d| 0.25 * d);
     let map = Map2d::new(100, 80, &m).unwrap();
-    let r = cm_depth_consistency(&points(), &camera(), &map, DepthAlignment::Median, &ProjectionFilter::default())
-        .unwrap();
+    let r = cm_depth_consistency(
+        &points(),
+        &camera(),
+        &map,
+        DepthAlignment::Median,
+        &ProjectionFilter::default(),
+    )
+    .unwrap();
     assert_eq!(r.points, 80);
     assert!((r.scale - 4.0).abs() < 1e-6, "{r:?}");
     assert!(r.abs_rel < 1e-6, "{r:?}");
     // without alignment: |0.25 d - d| / d = 0.75
-    let r = cm_depth_consistency(&points(), &camera(), &map, DepthAlignment::None, &ProjectionFilter::default())
-        .unwrap();
+    let r = cm_depth_consistency(
+        &points(),
+        &camera(),
+        &map,
+        DepthAlignment::None,
+        &ProjectionFilter::default(),
+    )
+    .unwrap();
     assert!((r.abs_rel - 0.75).abs() < 1e-6);
 }
 
@@ -66,13 +93,28 @@ fn median_alignment_removes_scale() {
 fn least_squares_alignment_removes_scale_and_shift() {
     let m = depth_map(|d| 0.5 * d + 3.0);
     let map = Map2d::new(100, 80, &m).unwrap();
-    let r = cm_depth_consistency(&points(), &camera(), &map, DepthAlignment::LeastSquares, &ProjectionFilter::default())
-        .unwrap();
-    assert!((r.scale - 2.0).abs() < 1e-4 && (r.shift + 6.0).abs() < 1e-3, "{r:?}");
+    let r = cm_depth_consistency(
+        &points(),
+        &camera(),
+        &map,
+        DepthAlignment::LeastSquares,
+        &ProjectionFilter::default(),
+    )
+    .unwrap();
+    assert!(
+        (r.scale - 2.0).abs() < 1e-4 && (r.shift + 6.0).abs() < 1e-3,
+        "{r:?}"
+    );
     assert!(r.abs_rel < 1e-5, "{r:?}");
     // median scaling cannot remove a shift: known non-zero error
-    let r = cm_depth_consistency(&points(), &camera(), &map, DepthAlignment::Median, &ProjectionFilter::default())
-        .unwrap();
+    let r = cm_depth_consistency(
+        &points(),
+        &camera(),
+        &map,
+        DepthAlignment::Median,
+        &ProjectionFilter::default(),
+    )
+    .unwrap();
     assert!(r.abs_rel > 0.01);
 }
 
@@ -81,10 +123,20 @@ fn half_resolution_map_is_sampled_at_rescaled_pixels() {
     // a constant map at half resolution: every point compares against 2.0
     let m = vec![2.0f32; 50 * 40];
     let map = Map2d::new(50, 40, &m).unwrap();
-    let r = cm_depth_consistency(&points(), &camera(), &map, DepthAlignment::None, &ProjectionFilter::default())
-        .unwrap();
+    let r = cm_depth_consistency(
+        &points(),
+        &camera(),
+        &map,
+        DepthAlignment::None,
+        &ProjectionFilter::default(),
+    )
+    .unwrap();
     let pts = points();
-    let want: f64 = pts[..80].iter().map(|p| (2.0 - p.x as f64).abs() / p.x as f64).sum::<f64>() / 80.0;
+    let want: f64 = pts[..80]
+        .iter()
+        .map(|p| (2.0 - p.x as f64).abs() / p.x as f64)
+        .sum::<f64>()
+        / 80.0;
     assert!((r.abs_rel - want).abs() < 1e-6);
 }
 
@@ -103,7 +155,8 @@ fn semantic_agreement_percentage_and_zbuffer() {
         }
     }
     let map = Map2d::new(100, 80, &sem).unwrap();
-    let r = cm_semantic_consistency(&pts, &labels, &cam, &map, &ProjectionFilter::default()).unwrap();
+    let r =
+        cm_semantic_consistency(&pts, &labels, &cam, &map, &ProjectionFilter::default()).unwrap();
     assert_eq!(r.points, 80);
     assert!((r.percent - 75.0).abs() < 1e-12);
 
@@ -112,16 +165,31 @@ fn semantic_agreement_percentage_and_zbuffer() {
     pts2.push(pts[0] * 2.0);
     let mut labels2 = labels.clone();
     labels2.push(7);
-    let r = cm_semantic_consistency(&pts2, &labels2, &cam, &map, &ProjectionFilter::default()).unwrap();
+    let r =
+        cm_semantic_consistency(&pts2, &labels2, &cam, &map, &ProjectionFilter::default()).unwrap();
     assert_eq!(r.points, 80);
-    let no_z = ProjectionFilter { zbuffer: false, ..ProjectionFilter::default() };
+    let no_z = ProjectionFilter {
+        zbuffer: false,
+        ..ProjectionFilter::default()
+    };
     let r = cm_semantic_consistency(&pts2, &labels2, &cam, &map, &no_z).unwrap();
     assert_eq!(r.points, 81);
 
     // ignore label and regions
-    let ign = ProjectionFilter { ignore_label: Some(1), ..ProjectionFilter::default() };
-    assert_eq!(cm_semantic_consistency(&pts, &labels, &cam, &map, &ign).unwrap().points, 60);
-    let rear = ProjectionFilter { region: Region::Rear, ..ProjectionFilter::default() };
+    let ign = ProjectionFilter {
+        ignore_label: Some(1),
+        ..ProjectionFilter::default()
+    };
+    assert_eq!(
+        cm_semantic_consistency(&pts, &labels, &cam, &map, &ign)
+            .unwrap()
+            .points,
+        60
+    );
+    let rear = ProjectionFilter {
+        region: Region::Rear,
+        ..ProjectionFilter::default()
+    };
     assert!(matches!(
         cm_semantic_consistency(&pts, &labels, &cam, &map, &rear),
         Err(Error::NoPointsInWindow { .. })

@@ -20,7 +20,11 @@ fn points(v: &Value) -> Vec<Vec3> {
         .iter()
         .map(|p| {
             let a = p.as_array().unwrap();
-            Vec3::new(a[0].as_f64().unwrap() as f32, a[1].as_f64().unwrap() as f32, a[2].as_f64().unwrap() as f32)
+            Vec3::new(
+                a[0].as_f64().unwrap() as f32,
+                a[1].as_f64().unwrap() as f32,
+                a[2].as_f64().unwrap() as f32,
+            )
         })
         .collect()
 }
@@ -30,12 +34,19 @@ fn scans(v: &Value) -> Vec<Vec<Vec3>> {
 }
 
 fn f64s(v: &Value) -> Vec<f64> {
-    v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect()
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap())
+        .collect()
 }
 
 fn assert_rel(got: f64, want: f64, tol: f64, what: &str) {
     let err = (got - want).abs() / want.abs().max(1e-300);
-    assert!(err <= tol, "{what}: got {got:.17e}, want {want:.17e}, rel err {err:.3e} > {tol:.0e}");
+    assert!(
+        err <= tol,
+        "{what}: got {got:.17e}, want {want:.17e}, rel err {err:.3e} > {tol:.0e}"
+    );
 }
 
 #[test]
@@ -47,10 +58,14 @@ fn bev_histograms_and_distribution_metrics_match_numpy_scipy() {
     let cfg = BevConfig::r2dm();
     for region in Region::ALL {
         let want = &bev["regions"][region.name()];
-        let hg: Vec<BevHistogram> =
-            gen_scans.iter().map(|s| bev_histogram(s, &cfg, region, "generated").unwrap()).collect();
-        let hr: Vec<BevHistogram> =
-            ref_scans.iter().map(|s| bev_histogram(s, &cfg, region, "reference").unwrap()).collect();
+        let hg: Vec<BevHistogram> = gen_scans
+            .iter()
+            .map(|s| bev_histogram(s, &cfg, region, "generated").unwrap())
+            .collect();
+        let hr: Vec<BevHistogram> = ref_scans
+            .iter()
+            .map(|s| bev_histogram(s, &cfg, region, "reference").unwrap())
+            .collect();
         // histograms: exact integer equality with numpy.histogramdd
         for (set, hs) in [("hist_generated", &hg), ("hist_reference", &hr)] {
             for (i, h) in hs.iter().enumerate() {
@@ -61,26 +76,73 @@ fn bev_histograms_and_distribution_metrics_match_numpy_scipy() {
                     .map(|c| (c[0].as_u64().unwrap() as u32, c[1].as_u64().unwrap() as u32))
                     .collect();
                 let sparse = h.to_sparse();
-                let got: Vec<(u32, u32)> = sparse.cells.iter().copied().zip(sparse.counts.iter().copied()).collect();
+                let got: Vec<(u32, u32)> = sparse
+                    .cells
+                    .iter()
+                    .copied()
+                    .zip(sparse.counts.iter().copied())
+                    .collect();
                 assert_eq!(got, want_cells, "{region} {set} {i}");
             }
         }
-        let sg: Vec<_> = gen_scans.iter().map(|s| bev_histogram_sparse(s, &cfg, region, "g").unwrap()).collect();
-        let sr: Vec<_> = ref_scans.iter().map(|s| bev_histogram_sparse(s, &cfg, region, "r").unwrap()).collect();
+        let sg: Vec<_> = gen_scans
+            .iter()
+            .map(|s| bev_histogram_sparse(s, &cfg, region, "g").unwrap())
+            .collect();
+        let sr: Vec<_> = ref_scans
+            .iter()
+            .map(|s| bev_histogram_sparse(s, &cfg, region, "r").unwrap())
+            .collect();
         assert_eq!(sg[0].to_dense(), hg[0]);
 
-        assert_rel(dist::jsd(&hg, &hr).unwrap(), want["jsd"].as_f64().unwrap(), 1e-12, "jsd");
-        assert_rel(dist::jsd(&sg, &sr).unwrap(), want["jsd"].as_f64().unwrap(), 1e-12, "jsd sparse");
+        assert_rel(
+            dist::jsd(&hg, &hr).unwrap(),
+            want["jsd"].as_f64().unwrap(),
+            1e-12,
+            "jsd",
+        );
+        assert_rel(
+            dist::jsd(&sg, &sr).unwrap(),
+            want["jsd"].as_f64().unwrap(),
+            1e-12,
+            "jsd sparse",
+        );
         let mmd = want["mmd_r2dm"].as_f64().unwrap();
-        assert_rel(dist::mmd_r2dm_dense(&hg, &hr, 0.5).unwrap(), mmd, 1e-9, "mmd r2dm dense");
-        assert_rel(dist::mmd_r2dm_sparse(&sg, &sr, 0.5).unwrap(), mmd, 1e-9, "mmd r2dm sparse");
+        assert_rel(
+            dist::mmd_r2dm_dense(&hg, &hr, 0.5).unwrap(),
+            mmd,
+            1e-9,
+            "mmd r2dm dense",
+        );
+        assert_rel(
+            dist::mmd_r2dm_sparse(&sg, &sr, 0.5).unwrap(),
+            mmd,
+            1e-9,
+            "mmd r2dm sparse",
+        );
         let mmd_lg = want["mmd_lidargen"].as_f64().unwrap();
-        assert_rel(dist::mmd_lidargen(&hg, &hr, 0.5).unwrap(), mmd_lg, 1e-9, "mmd lidargen");
+        assert_rel(
+            dist::mmd_lidargen(&hg, &hr, 0.5).unwrap(),
+            mmd_lg,
+            1e-9,
+            "mmd lidargen",
+        );
 
         let lcfg = LidmBevConfig::kitti();
-        let og: Vec<_> = gen_scans.iter().map(|s| lidm_bev_occupancy(s, &lcfg, region, "g").unwrap()).collect();
-        let or: Vec<_> = ref_scans.iter().map(|s| lidm_bev_occupancy(s, &lcfg, region, "r").unwrap()).collect();
-        assert_rel(mmd_lidm(&og, &or).unwrap(), want["mmd_lidm"].as_f64().unwrap(), 1e-12, "mmd lidm");
+        let og: Vec<_> = gen_scans
+            .iter()
+            .map(|s| lidm_bev_occupancy(s, &lcfg, region, "g").unwrap())
+            .collect();
+        let or: Vec<_> = ref_scans
+            .iter()
+            .map(|s| lidm_bev_occupancy(s, &lcfg, region, "r").unwrap())
+            .collect();
+        assert_rel(
+            mmd_lidm(&og, &or).unwrap(),
+            want["mmd_lidm"].as_f64().unwrap(),
+            1e-12,
+            "mmd lidm",
+        );
     }
 }
 
@@ -110,7 +172,10 @@ fn frechet_matches_mpmath_numpy_and_scipy() {
         // covariance equals numpy.cov
         let stats = fd::FeatureStats::from_rows(&a, dim, "a").unwrap();
         for (x, y) in stats.covariance().unwrap().iter().zip(f64s(&case["cov_a"])) {
-            assert!((x - y).abs() <= 1e-12 * y.abs().max(1.0), "{name} cov {x} vs {y}");
+            assert!(
+                (x - y).abs() <= 1e-12 * y.abs().max(1.0),
+                "{name} cov {x} vs {y}"
+            );
         }
         // streaming in uneven shards and merging gives the same distance
         let mut s1 = fd::FeatureStats::new(dim);
@@ -124,7 +189,12 @@ fn frechet_matches_mpmath_numpy_and_scipy() {
             s1.merge(p).unwrap();
         }
         let s2 = fd::FeatureStats::from_rows(&b, dim, "b").unwrap();
-        assert_rel(fd::frechet_distance(&s1, &s2).unwrap(), want, 1e-10, "merged shards");
+        assert_rel(
+            fd::frechet_distance(&s1, &s2).unwrap(),
+            want,
+            1e-10,
+            "merged shards",
+        );
     }
 }
 

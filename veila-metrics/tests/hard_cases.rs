@@ -22,7 +22,10 @@ fn random_scan(rng: &mut ChaCha8Rng, n: usize) -> Vec<Vec3> {
 }
 
 fn hists(scans: &[Vec<Vec3>]) -> Vec<BevHistogram> {
-    scans.iter().map(|s| bev_histogram(s, &BevConfig::r2dm(), Region::All, "scan").unwrap()).collect()
+    scans
+        .iter()
+        .map(|s| bev_histogram(s, &BevConfig::r2dm(), Region::All, "scan").unwrap())
+        .collect()
 }
 
 #[test]
@@ -35,14 +38,29 @@ fn identical_sets_give_exactly_zero_everywhere() {
     assert_eq!(dist::mmd_r2dm_dense(&h, &h, 0.5).unwrap(), 0.0);
     assert_eq!(dist::mmd_r2dm_sparse(&s, &s, 0.5).unwrap(), 0.0);
     assert_eq!(dist::mmd_lidargen(&h, &h, 0.5).unwrap(), 0.0);
-    let occ: Vec<_> =
-        scans.iter().map(|p| lidm_bev_occupancy(p, &LidmBevConfig::kitti(), Region::All, "s").unwrap()).collect();
+    let occ: Vec<_> = scans
+        .iter()
+        .map(|p| lidm_bev_occupancy(p, &LidmBevConfig::kitti(), Region::All, "s").unwrap())
+        .collect();
     assert_eq!(mmd_lidm(&occ, &occ).unwrap(), 0.0);
-    assert_eq!(chamfer::chamfer_distance(&scans[0], &scans[0]).unwrap().value(), 0.0);
+    assert_eq!(
+        chamfer::chamfer_distance(&scans[0], &scans[0])
+            .unwrap()
+            .value(),
+        0.0
+    );
     let feats: Vec<f32> = (0..40 * 6).map(|_| rng.random_range(-1.0..1.0)).collect();
-    assert_eq!(fd::frechet_distance_rows(&feats, &feats, 6, fd::SqrtMethod::Eigen).unwrap(), 0.0);
+    assert_eq!(
+        fd::frechet_distance_rows(&feats, &feats, 6, fd::SqrtMethod::Eigen).unwrap(),
+        0.0
+    );
     // same distribution, different row order: not bitwise identical statistics, still >= 0 and tiny
-    let mut rev = feats.chunks(6).rev().flatten().copied().collect::<Vec<f32>>();
+    let mut rev = feats
+        .chunks(6)
+        .rev()
+        .flatten()
+        .copied()
+        .collect::<Vec<f32>>();
     let v = fd::frechet_distance_rows(&feats, &rev, 6, fd::SqrtMethod::Eigen).unwrap();
     assert!((0.0..1e-12).contains(&v), "{v}");
     rev.clear();
@@ -59,7 +77,11 @@ fn disjoint_supports_give_sqrt_ln2() {
 #[test]
 fn single_scan_mmd_matches_closed_form() {
     // one scan per set: MMD = 2 - 2 exp(-||p - q||^2 / (2 sigma^2))
-    let a = vec![Vec3::new(10.0, 10.0, 0.0), Vec3::new(10.0, 10.0, 0.0), Vec3::new(-20.0, 5.0, 0.0)];
+    let a = vec![
+        Vec3::new(10.0, 10.0, 0.0),
+        Vec3::new(10.0, 10.0, 0.0),
+        Vec3::new(-20.0, 5.0, 0.0),
+    ];
     let b = vec![Vec3::new(10.0, 10.0, 0.0), Vec3::new(40.0, 5.0, 0.0)];
     let (ha, hb) = (hists(&[a]), hists(&[b]));
     // p = (2/3 at c1, 1/3 at c2), q = (1/2 at c1, 1/2 at c3)
@@ -78,8 +100,14 @@ fn dense_and_sparse_mmd_agree_on_random_scans() {
     let g: Vec<Vec<Vec3>> = (0..6).map(|_| random_scan(&mut rng, 800)).collect();
     let r: Vec<Vec<Vec3>> = (0..5).map(|_| random_scan(&mut rng, 600)).collect();
     let (hg, hr) = (hists(&g), hists(&r));
-    let sg: Vec<_> = g.iter().map(|s| bev_histogram_sparse(s, &BevConfig::r2dm(), Region::All, "g").unwrap()).collect();
-    let sr: Vec<_> = r.iter().map(|s| bev_histogram_sparse(s, &BevConfig::r2dm(), Region::All, "r").unwrap()).collect();
+    let sg: Vec<_> = g
+        .iter()
+        .map(|s| bev_histogram_sparse(s, &BevConfig::r2dm(), Region::All, "g").unwrap())
+        .collect();
+    let sr: Vec<_> = r
+        .iter()
+        .map(|s| bev_histogram_sparse(s, &BevConfig::r2dm(), Region::All, "r").unwrap())
+        .collect();
     let d = dist::mmd_r2dm_dense(&hg, &hr, 0.5).unwrap();
     let s = dist::mmd_r2dm_sparse(&sg, &sr, 0.5).unwrap();
     assert!(d > 0.0 && ((d - s) / d).abs() < 1e-10, "{d} vs {s}");
@@ -88,9 +116,16 @@ fn dense_and_sparse_mmd_agree_on_random_scans() {
 #[test]
 fn scans_without_points_in_the_window() {
     // everything closer than 3 m or farther than 70 m
-    let empty = vec![Vec3::new(1.0, 0.0, 0.0), Vec3::new(100.0, 0.0, 0.0), Vec3::new(0.0, 0.0, 2.9)];
+    let empty = vec![
+        Vec3::new(1.0, 0.0, 0.0),
+        Vec3::new(100.0, 0.0, 0.0),
+        Vec3::new(0.0, 0.0, 2.9),
+    ];
     let ok = vec![Vec3::new(10.0, 0.0, 0.0)];
-    let (he, ho) = (hists(std::slice::from_ref(&empty)), hists(std::slice::from_ref(&ok)));
+    let (he, ho) = (
+        hists(std::slice::from_ref(&empty)),
+        hists(std::slice::from_ref(&ok)),
+    );
     assert_eq!(he[0].total, 0);
     // MMD normalises per scan: a scan without points is an error naming it
     match dist::mmd_r2dm_dense(&ho, &[ho[0].clone(), he[0].clone()], 0.5) {
@@ -99,16 +134,26 @@ fn scans_without_points_in_the_window() {
     }
     // JSD sums first: one empty scan is fine, an all-empty set is an error
     assert!(dist::jsd(&[ho[0].clone(), he[0].clone()], &ho).unwrap() == 0.0);
-    assert!(matches!(dist::jsd(&he, &ho), Err(Error::NoPointsInWindow { .. })));
+    assert!(matches!(
+        dist::jsd(&he, &ho),
+        Err(Error::NoPointsInWindow { .. })
+    ));
     // LiDM window is |x|, |y| < 50 m
     let far = vec![Vec3::new(60.0, 0.0, 0.0)];
     let o = lidm_bev_occupancy(&far, &LidmBevConfig::kitti(), Region::All, "far").unwrap();
-    assert!(matches!(mmd_lidm(&[o.clone()], &[o]), Err(Error::NoPointsInWindow { .. })));
+    assert!(matches!(
+        mmd_lidm(&[o.clone()], &[o]),
+        Err(Error::NoPointsInWindow { .. })
+    ));
 }
 
 #[test]
 fn regions_split_at_x_zero() {
-    let pts = vec![Vec3::new(10.0, 0.0, 0.0), Vec3::new(0.0, 10.0, 0.0), Vec3::new(-10.0, 0.0, 0.0)];
+    let pts = vec![
+        Vec3::new(10.0, 0.0, 0.0),
+        Vec3::new(0.0, 10.0, 0.0),
+        Vec3::new(-10.0, 0.0, 0.0),
+    ];
     let f = bev_histogram(&pts, &BevConfig::r2dm(), Region::Front, "s").unwrap();
     let r = bev_histogram(&pts, &BevConfig::r2dm(), Region::Rear, "s").unwrap();
     let a = bev_histogram(&pts, &BevConfig::r2dm(), Region::All, "s").unwrap();
@@ -120,29 +165,57 @@ fn empty_and_non_finite_inputs_are_typed_errors() {
     let none: Vec<BevHistogram> = vec![];
     let one = hists(&[vec![Vec3::new(10.0, 0.0, 0.0)]]);
     assert!(matches!(dist::jsd(&none, &one), Err(Error::Empty { .. })));
-    assert!(matches!(dist::mmd_r2dm_dense(&one, &none, 0.5), Err(Error::Empty { .. })));
-    assert!(matches!(dist::mmd_r2dm_dense(&one, &one, 0.0), Err(Error::InvalidParameter { .. })));
+    assert!(matches!(
+        dist::mmd_r2dm_dense(&one, &none, 0.5),
+        Err(Error::Empty { .. })
+    ));
+    assert!(matches!(
+        dist::mmd_r2dm_dense(&one, &one, 0.0),
+        Err(Error::InvalidParameter { .. })
+    ));
     let empty: Vec<Vec3> = vec![];
-    assert!(matches!(chamfer::chamfer_distance(&empty, &[Vec3::ONE]), Err(Error::Empty { .. })));
+    assert!(matches!(
+        chamfer::chamfer_distance(&empty, &[Vec3::ONE]),
+        Err(Error::Empty { .. })
+    ));
     let nan = [Vec3::ONE, Vec3::new(f32::NAN, 0.0, 0.0)];
     match chamfer::chamfer_distance(&nan, &[Vec3::ONE]) {
         Err(Error::NonFinite { index, .. }) => assert_eq!(index, 1),
         other => panic!("{other:?}"),
     }
     assert!(matches!(
-        bev_histogram(&[Vec3::new(f32::INFINITY, 0.0, 0.0)], &BevConfig::r2dm(), Region::All, "s"),
+        bev_histogram(
+            &[Vec3::new(f32::INFINITY, 0.0, 0.0)],
+            &BevConfig::r2dm(),
+            Region::All,
+            "s"
+        ),
         Err(Error::NonFinite { .. })
     ));
     // Fréchet: one row has no covariance; mismatched dimensions; NaN features
     assert!(matches!(
-        fd::frechet_distance_rows(&[1.0f64, 2.0], &[1.0, 2.0, 3.0, 4.0], 2, fd::SqrtMethod::Eigen),
+        fd::frechet_distance_rows(
+            &[1.0f64, 2.0],
+            &[1.0, 2.0, 3.0, 4.0],
+            2,
+            fd::SqrtMethod::Eigen
+        ),
         Err(Error::TooFewSamples { .. })
     ));
     let a = fd::FeatureStats::from_rows(&[1.0f64, 2.0, 3.0, 4.0], 2, "a").unwrap();
     let b = fd::FeatureStats::from_rows(&[1.0f64, 2.0, 3.0, 4.0, 5.0, 6.0], 3, "b").unwrap();
-    assert!(matches!(fd::frechet_distance(&a, &b), Err(Error::ShapeMismatch { .. })));
-    assert!(matches!(fd::FeatureStats::from_rows(&[1.0f64, f64::NAN], 2, "a"), Err(Error::NonFinite { index: 1, .. })));
-    assert!(matches!(fd::FeatureStats::from_rows(&[1.0f64, 2.0, 3.0], 2, "a"), Err(Error::ShapeMismatch { .. })));
+    assert!(matches!(
+        fd::frechet_distance(&a, &b),
+        Err(Error::ShapeMismatch { .. })
+    ));
+    assert!(matches!(
+        fd::FeatureStats::from_rows(&[1.0f64, f64::NAN], 2, "a"),
+        Err(Error::NonFinite { index: 1, .. })
+    ));
+    assert!(matches!(
+        fd::FeatureStats::from_rows(&[1.0f64, 2.0, 3.0], 2, "a"),
+        Err(Error::ShapeMismatch { .. })
+    ));
 }
 
 #[test]
@@ -157,11 +230,21 @@ fn huge_coordinates() {
     // BVH with box distances that overflow f32 still finds the exact neighbour
     let mut rng = ChaCha8Rng::seed_from_u64(3);
     let pts: Vec<Vec3> = (0..200)
-        .map(|_| Vec3::new(rng.random_range(-3e30..3e30), rng.random_range(-3e30..3e30), rng.random_range(-1.0..1.0)))
+        .map(|_| {
+            Vec3::new(
+                rng.random_range(-3e30..3e30),
+                rng.random_range(-3e30..3e30),
+                rng.random_range(-1.0..1.0),
+            )
+        })
         .collect();
     let idx = veila_metrics::nn::PointIndex::build(&pts, "huge").unwrap();
     for _ in 0..50 {
-        let q = Vec3::new(rng.random_range(-3e30..3e30), rng.random_range(-3e30..3e30), 0.0);
+        let q = Vec3::new(
+            rng.random_range(-3e30..3e30),
+            rng.random_range(-3e30..3e30),
+            0.0,
+        );
         let got = idx.nearest(q);
         let want = veila_metrics::nn::nearest_brute_force(&pts, q).unwrap();
         assert_eq!(got.dist2, want.dist2);
@@ -175,7 +258,10 @@ fn huge_coordinates() {
     let fa2: Vec<f64> = fa.iter().map(|v| v * c).collect();
     let fb2: Vec<f64> = fb.iter().map(|v| v * c).collect();
     let big = fd::frechet_distance_rows(&fa2, &fb2, 4, fd::SqrtMethod::Eigen).unwrap();
-    assert!(((big / (c * c)) - base).abs() / base < 1e-10, "{big} vs {base}");
+    assert!(
+        ((big / (c * c)) - base).abs() / base < 1e-10,
+        "{big} vs {base}"
+    );
     // Large offset: streaming statistics stay accurate (naive sum of outer products would not)
     let off = 1e9;
     let fa3: Vec<f64> = fa.iter().map(|v| v + off).collect();
@@ -198,7 +284,11 @@ fn singular_covariance_and_more_dims_than_samples() {
     let rows = 6; // fewer samples than dimensions
     let mut a = vec![0.0f64; rows * dim];
     for i in 0..rows {
-        let c: [f64; 3] = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)];
+        let c: [f64; 3] = [
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+        ];
         for j in 0..dim {
             a[i * dim + j] = (0..3).map(|k| c[k] * basis[k * dim + j]).sum();
         }
@@ -207,20 +297,34 @@ fn singular_covariance_and_more_dims_than_samples() {
     let b: Vec<f64> = a.iter().enumerate().map(|(k, v)| v + t[k % dim]).collect();
     let want: f64 = t.iter().map(|x| x * x).sum();
     let got = fd::frechet_distance_rows(&a, &b, dim, fd::SqrtMethod::Eigen).unwrap();
-    assert!((got - want).abs() < 1e-12 * want.max(1.0), "{got} vs {want}");
+    assert!(
+        (got - want).abs() < 1e-12 * want.max(1.0),
+        "{got} vs {want}"
+    );
 }
 
 #[test]
 fn newton_schulz_converges_on_a_well_conditioned_problem() {
     let mut rng = ChaCha8Rng::seed_from_u64(6);
     let dim = 8;
-    let a: Vec<f64> = (0..200 * dim).map(|_| rng.random_range(-1.0..1.0)).collect();
-    let b: Vec<f64> = (0..150 * dim).map(|_| rng.random_range(-0.8..1.3)).collect();
+    let a: Vec<f64> = (0..200 * dim)
+        .map(|_| rng.random_range(-1.0..1.0))
+        .collect();
+    let b: Vec<f64> = (0..150 * dim)
+        .map(|_| rng.random_range(-0.8..1.3))
+        .collect();
     let exact = fd::frechet_distance_rows(&a, &b, dim, fd::SqrtMethod::Eigen).unwrap();
-    let ns = fd::frechet_distance_rows(&a, &b, dim, fd::SqrtMethod::NewtonSchulz { iterations: 30 }).unwrap();
-    let few = fd::frechet_distance_rows(&a, &b, dim, fd::SqrtMethod::NewtonSchulz { iterations: 2 }).unwrap();
+    let ns =
+        fd::frechet_distance_rows(&a, &b, dim, fd::SqrtMethod::NewtonSchulz { iterations: 30 })
+            .unwrap();
+    let few =
+        fd::frechet_distance_rows(&a, &b, dim, fd::SqrtMethod::NewtonSchulz { iterations: 2 })
+            .unwrap();
     assert!(((ns - exact) / exact).abs() < 1e-9, "{ns} vs {exact}");
-    assert!(((few - exact) / exact).abs() > 1e-6, "two iterations should not be converged");
+    assert!(
+        ((few - exact) / exact).abs() > 1e-6,
+        "two iterations should not be converged"
+    );
 }
 
 #[test]

@@ -90,6 +90,10 @@ impl LevelGeometry {
 
 /// The sampling geometry of every GCMA level for one camera rig (one [`EpipolarTable`] per view and
 /// level), precomputed once and shared by every denoising step and every sample of a batch.
+///
+/// All samples of a batch share the rig: batch scenes by calibration (KITTI has one per sequence) or run
+/// differently calibrated samples in separate forward passes. Building costs one projection per sample
+/// point (`H W K` per level and view) and is meant to happen once per rig, outside the denoising loop.
 #[derive(Debug, Clone)]
 pub struct GcmaGeometry {
     levels: Vec<LevelGeometry>,
@@ -404,51 +408,39 @@ impl Gcma {
         if p == 0 {
             return Ok(Tensor::zeros((b, d, h, w), dtype, r.device())?);
         }
-        // keys and values of every feature pixel of every view: [B, 2d, V * Hf * Wf]
+        // keys and values of every feature pixel of every view, channels last: [B, V * Hf * Wf, 2d]
         let kv = self.kv.forward(feat)?.reshape((b, views, 2 * d, fh * fw))?;
-        let kv = kv
-            .transpose(1, 2)?
-            .contiguous()?
-            .reshape((b, 2 * d, views * fh * fw))?;
-        // bilinear gather at the samples: [B, 2d, P * S]
+        let kv = kv.permute((0, 1, 3, 2))?.contiguous()?.reshape((b, views * fh * fw, 2 * d))?;
+        // bilinear gather at the samples (whole 2d-rows per tap): [B, P * S, 2d]
         let mut g: Option<Tensor> = None;
         for corner in 0..4 {
-            let sel = kv.index_select(&geom.corner_idx[corner], 2)?;
-            let wt = geom.corner_w[corner]
-                .to_dtype(dtype)?
-                .reshape((1, 1, p * s))?;
+            let sel = kv.index_select(&geom.corner_idx[corner], 1)?;
+            let wt = geom.corner_w[corner].to_dtype(dtype)?.reshape((1, p * s, 1))?;
             let term = sel.broadcast_mul(&wt)?;
             g = Some(match g {
                 None => term,
                 Some(acc) => (acc + term)?,
             });
         }
-        let g = g.expect("four corners").reshape((b, 2, heads, dh, p, s))?;
-        let keys = g.narrow(1, 0, 1)?.squeeze(1)?;
-        let vals = g.narrow(1, 1, 1)?.squeeze(1)?;
-        // queries: W_q GN(R) at the active pixels + MLP(gamma(r_k))
-        let qr = self
-            .q
-            .forward(&self.norm.forward(r)?)?
-            .reshape((b, d, h * w))?;
-        let qr = qr
-            .index_select(&geom.active, 2)?
-            .reshape((b, heads, dh, p, 1))?;
-        let pos = self.pos2.forward(&silu(
-            &self.pos0.forward(&geom.point_features.to_dtype(dtype)?)?,
-        )?)?;
-        let pos = pos.t()?.reshape((1, heads, dh, p, s))?;
-        let q = qr.broadcast_add(&pos)?;
-        let logits = ((q * &keys)?.sum(2)? / (dh as f64).sqrt())?; // [B, heads, P, S]
-        let log_w = geom.log_w.to_dtype(dtype)?.reshape((1, 1, p, s))?;
-        let a = masked_softmax_last_dim(&logits, &log_w, &geom.valid.reshape((1, 1, p, s))?)?;
-        let out = a.unsqueeze(2)?.broadcast_mul(&vals)?.sum(D::Minus1)?; // [B, heads, dh, P]
-        let out = out.reshape((b, d, p))?;
-        let full = Tensor::zeros((b, d, h * w), dtype, r.device())?.index_add(
-            &geom.active,
-            &out.contiguous()?,
-            2,
-        )?;
+        let g = g.ok_or_else(|| Error::Config("internal: no bilinear taps".into()))?;
+        let g = g.reshape((b, p, s, 2, heads, dh))?;
+        let keys = g.narrow(3, 0, 1)?.squeeze(3)?; // [B, P, S, heads, dh]
+        let vals = g.narrow(3, 1, 1)?.squeeze(3)?;
+        // queries: W_q GN(R) at the active pixels + MLP(gamma(r_k)), [B, P, S, heads, dh]
+        let qr = self.q.forward(&self.norm.forward(r)?)?.reshape((b, d, h * w))?;
+        let qr = qr.index_select(&geom.active, 2)?.transpose(1, 2)?.reshape((b, p, 1, heads, dh))?;
+        let pos = self.pos2.forward(&silu(&self.pos0.forward(&geom.point_features.to_dtype(dtype)?)?)?)?;
+        let q = qr.broadcast_add(&pos.reshape((1, p, s, heads, dh))?)?;
+        let logits = ((q * &keys)?.sum(D::Minus1)? / (dh as f64).sqrt())?; // [B, P, S, heads]
+        let logits = logits.transpose(2, 3)?; // [B, P, heads, S]
+        let log_w = geom.log_w.to_dtype(dtype)?.reshape((1, p, 1, s))?;
+        let a = masked_softmax_last_dim(&logits, &log_w, &geom.valid.reshape((1, p, 1, s))?)?;
+        // [B, P, heads, 1, S] x [B, P, heads, S, dh] -> [B, P, heads, 1, dh]
+        let a = a.contiguous()?.reshape((b * p * heads, 1, s))?;
+        let vals = vals.permute((0, 1, 3, 2, 4))?.contiguous()?.reshape((b * p * heads, s, dh))?;
+        let out = a.matmul(&vals)?;
+        let out = out.reshape((b, p, d))?.transpose(1, 2)?.contiguous()?; // [B, d, P]
+        let full = Tensor::zeros((b, d, h * w), dtype, r.device())?.index_add(&geom.active, &out, 2)?;
         Ok(full.reshape((b, d, h, w))?)
     }
 

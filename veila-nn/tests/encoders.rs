@@ -13,7 +13,9 @@ use veila_nn::encoders::dinov2::{
     bicubic_resize,
 };
 use veila_nn::encoders::losses::{log_depth_l1, pixel_accuracy, semantic_cross_entropy, silog};
-use veila_nn::encoders::mit::{MitAttention, MitConfig, MitEncoder, OverlapPatchEmbed};
+use veila_nn::encoders::mit::{
+    MitAttention, MitConfig, MitEncoder, OverlapPatchEmbed, SegFormer, SegFormerConfig,
+};
 use veila_nn::encoders::small_cnn::{DepthLoss, SmallCnn, SmallCnnConfig, SmallCnnLossConfig};
 use veila_nn::encoders::{
     Frozen, ImageEncoder, Normalization, depthwise_conv2d, freeze_varmap, record_tensor_specs,
@@ -332,6 +334,138 @@ fn checked_loading_reports_by_name_and_file() {
     );
 }
 
+/// PyTorch bilinear, align_corners = false, on one [h, w] plane.
+fn bilinear_ref(src: &[f32], h: usize, w: usize, oh: usize, ow: usize) -> Vec<f32> {
+    let coord = |o: usize, i: usize, out: usize| -> (usize, usize, f32) {
+        let s = ((o as f32 + 0.5) * i as f32 / out as f32 - 0.5).max(0.0);
+        let i0 = (s.floor() as usize).min(i - 1);
+        let i1 = (i0 + 1).min(i - 1);
+        (i0, i1, s - i0 as f32)
+    };
+    let mut out = vec![0f32; oh * ow];
+    for y in 0..oh {
+        let (y0, y1, ty) = coord(y, h, oh);
+        for x in 0..ow {
+            let (x0, x1, tx) = coord(x, w, ow);
+            let top = src[y0 * w + x0] * (1.0 - tx) + src[y0 * w + x1] * tx;
+            let bot = src[y1 * w + x0] * (1.0 - tx) + src[y1 * w + x1] * tx;
+            out[y * ow + x] = top * (1.0 - ty) + bot * ty;
+        }
+    }
+    out
+}
+
+#[test]
+fn segformer_head_matches_plain_reference_and_loads() {
+    let mut rng = ChaCha8Rng::seed_from_u64(15);
+    let cfg = SegFormerConfig {
+        encoder: tiny_mit("segformer.encoder"),
+        decoder_hidden_size: 6,
+        num_labels: 5,
+        ..SegFormerConfig::b0_cityscapes()
+    };
+    let mut ckpt = mit_checkpoint(&cfg.encoder, "segformer.encoder.", &mut rng);
+    let d = 6;
+    for (i, c) in cfg.encoder.hidden_sizes.iter().enumerate() {
+        ckpt.insert(
+            format!("decode_head.linear_c.{i}.proj.weight"),
+            rand_t(&mut rng, &[d, *c], 0.5),
+        );
+        ckpt.insert(
+            format!("decode_head.linear_c.{i}.proj.bias"),
+            rand_t(&mut rng, &[d], 0.5),
+        );
+    }
+    ckpt.insert(
+        "decode_head.linear_fuse.weight".into(),
+        rand_t(&mut rng, &[d, 4 * d, 1, 1], 0.5),
+    );
+    ckpt.insert(
+        "decode_head.batch_norm.weight".into(),
+        rand_t(&mut rng, &[d], 1.0),
+    );
+    ckpt.insert(
+        "decode_head.batch_norm.bias".into(),
+        rand_t(&mut rng, &[d], 1.0),
+    );
+    ckpt.insert(
+        "decode_head.batch_norm.running_mean".into(),
+        rand_t(&mut rng, &[d], 1.0),
+    );
+    let var: Vec<f32> = (0..d).map(|_| rng.random_range(0.5f32..2.0)).collect();
+    ckpt.insert(
+        "decode_head.batch_norm.running_var".into(),
+        Tensor::from_vec(var, d, &DEV).unwrap(),
+    );
+    ckpt.insert(
+        "decode_head.batch_norm.num_batches_tracked".into(),
+        Tensor::new(100i64, &DEV).unwrap(),
+    );
+    ckpt.insert(
+        "decode_head.classifier.weight".into(),
+        rand_t(&mut rng, &[5, d, 1, 1], 0.5),
+    );
+    ckpt.insert(
+        "decode_head.classifier.bias".into(),
+        rand_t(&mut rng, &[5], 0.5),
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let path = save(dir.path(), "segformer.safetensors", &ckpt);
+    let model = SegFormer::load(&cfg, &path, DType::F32, &DEV).unwrap();
+
+    let (h, w) = (64, 96);
+    let image = rand_t(&mut rng, &[1, 3, h, w], 1.5);
+    let logits = model.logits(&image).unwrap();
+    assert_eq!(logits.dims(), &[1, 5, 16, 24]);
+    // reference head on the encoder's features
+    let feats = model.encoder().forward(&image).unwrap();
+    let (h0, w0) = (16, 24);
+    let mut cat: Vec<Vec<f32>> = Vec::new(); // channel planes, deepest scale first
+    for i in (0..4).rev() {
+        let f = &feats[i];
+        let (_, c, fh, fw) = f.dims4().unwrap();
+        let fv = flat(f);
+        let wt = flat(&ckpt[&format!("decode_head.linear_c.{i}.proj.weight")]);
+        let bs = flat(&ckpt[&format!("decode_head.linear_c.{i}.proj.bias")]);
+        for o in 0..d {
+            let plane: Vec<f32> = (0..fh * fw)
+                .map(|p| {
+                    bs[o]
+                        + (0..c)
+                            .map(|ci| wt[o * c + ci] * fv[ci * fh * fw + p])
+                            .sum::<f32>()
+                })
+                .collect();
+            cat.push(bilinear_ref(&plane, fh, fw, h0, w0));
+        }
+    }
+    let fw_ = flat(&ckpt["decode_head.linear_fuse.weight"]);
+    let g = flat(&ckpt["decode_head.batch_norm.weight"]);
+    let bb = flat(&ckpt["decode_head.batch_norm.bias"]);
+    let rm = flat(&ckpt["decode_head.batch_norm.running_mean"]);
+    let rv = flat(&ckpt["decode_head.batch_norm.running_var"]);
+    let cw = flat(&ckpt["decode_head.classifier.weight"]);
+    let cb = flat(&ckpt["decode_head.classifier.bias"]);
+    let mut expect = vec![0f32; 5 * h0 * w0];
+    for p in 0..h0 * w0 {
+        let hid: Vec<f32> = (0..d)
+            .map(|o| {
+                let z: f32 = (0..4 * d).map(|k| fw_[o * 4 * d + k] * cat[k][p]).sum();
+                ((z - rm[o]) / (rv[o] + 1e-5).sqrt() * g[o] + bb[o]).max(0.0)
+            })
+            .collect();
+        for k in 0..5 {
+            expect[k * h0 * w0 + p] = cb[k] + (0..d).map(|o| cw[k * d + o] * hid[o]).sum::<f32>();
+        }
+    }
+    let diff = max_abs_diff(&flat(&logits), &expect);
+    assert!(diff < 1e-3, "max diff {diff}");
+    let labels = model.predict_labels(&image).unwrap();
+    assert_eq!(labels.len(), 1);
+    assert_eq!(labels[0].len(), h * w);
+    assert!(labels[0].iter().all(|&l| l < 5));
+}
+
 #[test]
 fn mit_b0_random_weights_shapes_and_size() {
     let varmap = VarMap::new();
@@ -350,6 +484,14 @@ fn mit_b0_random_weights_shapes_and_size() {
                 feats[i].dims(),
                 &[1, cfg.hidden_sizes[i], sizes[i].0, sizes[i].1]
             );
+        }
+    }
+    // degenerate and extreme inputs stay finite (LayerNorm of constant tokens, softmax of large
+    // scores)
+    for scale in [0.0f64, 1e3] {
+        let img = (Tensor::ones((1, 3, 64, 64), DType::F32, &DEV).unwrap() * scale).unwrap();
+        for f in enc.forward(&img).unwrap() {
+            assert!(flat(&f).iter().all(|v| v.is_finite()), "scale {scale}");
         }
     }
     assert_eq!(
@@ -612,6 +754,36 @@ fn depthwise_conv_matches_grouped_conv_and_brute_force() {
     let (expect, _, _) = conv_ref(&xs, (1, h, w), &ws, &[bs], 1, 3, 1, 1);
     let g = flat(&got.get(1).unwrap().get(3).unwrap());
     assert!(max_abs_diff(&g, &expect) < 1e-5);
+}
+
+#[test]
+fn mix_ffn_fast_path_matches_differentiable_path() {
+    let mut rng = ChaCha8Rng::seed_from_u64(16);
+    let (c, m, h, w) = (6, 12, 5, 7);
+    let mut ts = HashMap::new();
+    for (name, shape) in [
+        ("f.dense1.weight", vec![m, c]),
+        ("f.dense1.bias", vec![m]),
+        ("f.dwconv.dwconv.weight", vec![m, 1, 3, 3]),
+        ("f.dwconv.dwconv.bias", vec![m]),
+        ("f.dense2.weight", vec![c, m]),
+        ("f.dense2.bias", vec![c]),
+    ] {
+        ts.insert(name.to_string(), rand_t(&mut rng, &shape, 0.5));
+    }
+    let ffn = veila_nn::encoders::mit::MixFfn::new(
+        c,
+        m,
+        VarBuilder::from_tensors(ts, DType::F32, &DEV).pp("f"),
+    )
+    .unwrap();
+    let x = rand_t(&mut rng, &[2, h * w, c], 1.0);
+    let fast = ffn.forward(&x, h, w).unwrap(); // plain tensors: channels-last CPU loop
+    let xv = candle_core::Var::from_tensor(&x).unwrap();
+    let slow = ffn.forward(xv.as_tensor(), h, w).unwrap(); // tracked: tensor ops on the map
+    assert_eq!(fast.dims(), &[2, h * w, c]);
+    let d = max_abs_diff(&flat(&fast), &flat(&slow));
+    assert!(d < 1e-5, "max diff {d}");
 }
 
 // ---------------------------------------------------------------------------------------------

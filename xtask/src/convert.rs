@@ -12,6 +12,9 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use veila_data::convert::{ConvertOptions, Progress, convert, open_dataset};
+use veila_data::dataset::Dataset;
+use veila_data::nuscenes::NuScenesDataset;
+use veila_data::semantic_kitti::{LabelMap, SemanticKittiDataset, Sequences, SplitPart};
 
 /// Convert a dataset into training shards (safetensors + manifest.json).
 #[derive(Debug, Args)]
@@ -38,6 +41,18 @@ pub struct ConvertArgs {
     /// Frames per shard file; peak memory is about this many frames (~4 MiB each for KITTI with images).
     #[arg(long, default_value_t = 32)]
     frames_per_shard: usize,
+    /// SemanticKITTI label map (default: ROOT/semantic-kitti.yaml or ROOT/../semantic-kitti.yaml).
+    #[arg(long)]
+    label_map: Option<PathBuf>,
+    /// SemanticKITTI: convert one part of the official split only (needs the label map).
+    #[arg(long, value_parser = ["train", "valid", "test"], conflicts_with = "sequences")]
+    split: Option<String>,
+    /// SemanticKITTI: convert these sequences only (comma separated, e.g. 0,1,8).
+    #[arg(long, value_delimiter = ',')]
+    sequences: Option<Vec<u32>>,
+    /// nuScenes: the camera channel paired with each sweep.
+    #[arg(long, default_value = "CAM_FRONT")]
+    camera: String,
     /// Leave camera images out of the shards (matrices are still stored).
     #[arg(long)]
     no_images: bool,
@@ -96,18 +111,56 @@ fn check(i: usize, n: usize, from: &str) -> Result<(usize, usize)> {
     Ok((i, n))
 }
 
+type Opened = (Box<dyn Dataset>, Option<LabelMap>);
+
+fn open(args: &ConvertArgs) -> Result<Opened> {
+    let images = !args.no_images;
+    match args.dataset.as_str() {
+        "semantickitti" => {
+            let map = args.label_map.as_deref().map(LabelMap::read).transpose()?;
+            let sequences = match (&args.split, &args.sequences) {
+                (Some(part), _) => Sequences::Split(match part.as_str() {
+                    "train" => SplitPart::Train,
+                    "valid" => SplitPart::Valid,
+                    _ => SplitPart::Test,
+                }),
+                (None, Some(list)) => Sequences::List(list.clone()),
+                (None, None) => Sequences::All,
+            };
+            let ds = match map {
+                Some(m) => {
+                    SemanticKittiDataset::open_with_label_map(&args.root, sequences, Some(m))?
+                }
+                None => SemanticKittiDataset::open(&args.root, sequences)?,
+            }
+            .with_images(images);
+            let map = ds.label_map().cloned();
+            Ok((Box::new(ds), map))
+        }
+        "nuscenes" => Ok((
+            Box::new(NuScenesDataset::open(&args.root, &args.camera)?.with_images(images)),
+            None,
+        )),
+        other => Ok(open_dataset(other, &args.root, images)?),
+    }
+}
+
 pub fn run(args: ConvertArgs) -> Result<()> {
     let (index, count) = worker(args.shard_index, args.shard_count, &|k| {
         std::env::var(k).ok()
     })?;
-    let (dataset, label_map) = open_dataset(&args.dataset, &args.root, !args.no_images)
-        .with_context(|| {
-            format!(
-                "cannot open {} dataset at {}",
-                args.dataset,
-                args.root.display()
-            )
-        })?;
+    let (dataset, label_map) = open(&args).with_context(|| {
+        format!(
+            "cannot open {} dataset at {}",
+            args.dataset,
+            args.root.display()
+        )
+    })?;
+    if args.dataset == "semantickitti" && label_map.is_none() {
+        eprintln!(
+            "warning: no semantic-kitti.yaml found (pass --label-map): shards get raw labels only"
+        );
+    }
     let sensor = match &args.sensor {
         Some(s) => veila_data::spec::sensor_from_spec(s)?,
         None => dataset.default_sensor(),

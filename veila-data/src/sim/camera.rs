@@ -46,10 +46,20 @@ pub struct SimImage {
 }
 
 impl SimImage {
-    /// The RGB buffer as an [`image::RgbImage`].
-    pub fn to_rgb_image(&self) -> image::RgbImage {
-        image::RgbImage::from_raw(self.width, self.height, self.rgb.clone())
-            .unwrap_or_else(|| image::RgbImage::new(self.width, self.height))
+    /// The RGB buffer as an [`image::RgbImage`]; an error if the buffer does not hold
+    /// `width x height x 3` bytes.
+    pub fn to_rgb_image(&self) -> Result<image::RgbImage> {
+        image::RgbImage::from_raw(self.width, self.height, self.rgb.clone()).ok_or_else(|| {
+            Error::Mismatch {
+                context: "simulated image".into(),
+                message: format!(
+                    "{} RGB bytes for a {}x{} image",
+                    self.rgb.len(),
+                    self.width,
+                    self.height
+                ),
+            }
+        })
     }
 }
 

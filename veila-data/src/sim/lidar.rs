@@ -95,7 +95,11 @@ pub(crate) fn hash_unit(seed: u64, pixel: u64, stream: u64) -> f32 {
 /// `c0 = 0` gives 1 everywhere).
 pub fn incidence_gain(cos: f32, knee: f32) -> f32 {
     let (c2, k2) = (cos * cos, knee * knee);
-    if c2 + k2 <= 0.0 { 1.0 } else { (1.0 + k2) * c2 / (c2 + k2) }
+    if c2 + k2 <= 0.0 {
+        1.0
+    } else {
+        (1.0 + k2) * c2 / (c2 + k2)
+    }
 }
 
 fn smoothstep(x: f32) -> f32 {

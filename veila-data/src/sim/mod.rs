@@ -9,7 +9,8 @@
 //!   reflectivity) and a SemanticKITTI raw class ([`class`]).
 //! - [`Scene::snapshot`]: the world at one frame with its BVH ([`Accel`]) and the ego's LiDAR pose;
 //!   [`SceneSnapshot::render_lidar`] gives a [`SimScan`] (points with intensity, ring and label, range
-//!   image, per-ray outcome), [`SceneSnapshot::render_camera`] a [`SimImage`] (RGB, depth, semantics).
+//!   image, per-ray outcome), [`SceneSnapshot::render_camera`] a [`SimImage`] (RGB, depth, semantics);
+//!   [`Scene::render_frame`] both with the scene's own sensors ([`SimFrame`]).
 //! - [`simulate_to_dir`]: frames in the KITTI layout (see [`output`]); [`SceneList`]: train / test
 //!   splits of scene files and seeds (`scenes/train.txt`, `scenes/test.txt`).
 //!
@@ -56,5 +57,5 @@ pub use material::{Material, class};
 pub use mesh::{Mesh, Surface};
 pub use output::{FramePaths, SimSummary, simulate_to_dir, write_frame};
 pub use raycast::{Accel, Hit};
-pub use scene::{Actor, Scene, SceneSnapshot};
+pub use scene::{Actor, Scene, SceneSnapshot, SimFrame};
 pub use split::{SceneList, SceneListEntry};

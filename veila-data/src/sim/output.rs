@@ -123,7 +123,7 @@ pub fn write_frame(
         });
     }
     crate::semantic_kitti::write_labels(&paths.labels, labels)?;
-    crate::image_io::write_png(&paths.image, &image.to_rgb_image())?;
+    crate::image_io::write_png(&paths.image, &image.to_rgb_image()?)?;
     write_atomic(&paths.calib, calib.to_kitti_text().as_bytes())?;
     let depth = encode_png_u16(
         &paths.depth,

@@ -9,7 +9,11 @@ use glam::{Affine3A, Mat3, Vec3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+use veila_geom::{LidarSensor, PinholeCamera};
+
+use super::camera::{CameraRenderOptions, SimCalib, SimImage};
 use super::config::{Layout, RoadParams, SceneConfig};
+use super::lidar::SimScan;
 use super::material::{class, stock};
 use super::mesh::Mesh;
 use super::objects::{self, VehicleKind, yaw};
@@ -167,6 +171,48 @@ impl Scene {
             noise_seed: splitmix(self.seed ^ splitmix(u64::from(index).wrapping_add(0x5eed))),
         }
     }
+
+    /// Render frame `index` with the scene's own sensors (the config's LiDAR, return model and
+    /// camera): the paired scan and image without touching files, for training and demo code.
+    pub fn render_frame(&self, index: u32) -> Result<SimFrame> {
+        let sensor = self.config.lidar.sensor()?;
+        let calib = SimCalib::from_config(&self.config.camera);
+        let camera = calib.camera()?;
+        let snap = self.snapshot(index);
+        let scan = snap.render_lidar(&sensor, &self.config.lidar.returns)?;
+        let image = snap.render_camera(&camera, &CameraRenderOptions::from(&self.config.camera))?;
+        Ok(SimFrame {
+            index,
+            time_s: snap.time_s,
+            world_from_lidar: snap.world_from_lidar,
+            sensor,
+            camera,
+            calib,
+            scan,
+            image,
+        })
+    }
+}
+
+/// One rendered frame: a LiDAR scan and the paired camera image with their sensors.
+#[derive(Debug, Clone)]
+pub struct SimFrame {
+    /// Frame index.
+    pub index: u32,
+    /// Time since frame 0, seconds.
+    pub time_s: f32,
+    /// LiDAR pose (world from LiDAR).
+    pub world_from_lidar: Affine3A,
+    /// The LiDAR that took the scan.
+    pub sensor: LidarSensor,
+    /// The camera that took the image (`cam_from_lidar`, intrinsics).
+    pub camera: PinholeCamera,
+    /// KITTI-style calibration of the rig.
+    pub calib: SimCalib,
+    /// The scan.
+    pub scan: SimScan,
+    /// The image with depth and semantics.
+    pub image: SimImage,
 }
 
 /// SplitMix64: a well-mixed 64-bit hash, used for per-ray deterministic random numbers.

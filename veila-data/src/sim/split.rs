@@ -36,16 +36,39 @@ impl SceneList {
             }
             let fields: Vec<&str> = line.split_whitespace().collect();
             let [file, first, last] = fields[..] else {
-                return Err(Error::format(path, format!("line {}: expected `SCENE_FILE FIRST_SEED LAST_SEED`, got `{line}`", i + 1)));
+                return Err(Error::format(
+                    path,
+                    format!(
+                        "line {}: expected `SCENE_FILE FIRST_SEED LAST_SEED`, got `{line}`",
+                        i + 1
+                    ),
+                ));
             };
             let seed = |s: &str| {
-                s.parse::<u64>().map_err(|_| Error::format(path, format!("line {}: `{s}` is not a seed (a non-negative integer)", i + 1)))
+                s.parse::<u64>().map_err(|_| {
+                    Error::format(
+                        path,
+                        format!(
+                            "line {}: `{s}` is not a seed (a non-negative integer)",
+                            i + 1
+                        ),
+                    )
+                })
             };
             let (a, b) = (seed(first)?, seed(last)?);
             if a > b {
-                return Err(Error::format(path, format!("line {}: first seed {a} is greater than last seed {b}", i + 1)));
+                return Err(Error::format(
+                    path,
+                    format!(
+                        "line {}: first seed {a} is greater than last seed {b}",
+                        i + 1
+                    ),
+                ));
             }
-            entries.push(SceneListEntry { scene: base.join(file), seeds: a..=b });
+            entries.push(SceneListEntry {
+                scene: base.join(file),
+                seeds: a..=b,
+            });
         }
         Ok(SceneList { entries })
     }
@@ -58,7 +81,10 @@ impl SceneList {
 
     /// Total number of (scene, seed) pairs.
     pub fn len(&self) -> u64 {
-        self.entries.iter().map(|e| e.seeds.end() - e.seeds.start() + 1).sum()
+        self.entries
+            .iter()
+            .map(|e| e.seeds.end() - e.seeds.start() + 1)
+            .sum()
     }
 
     /// True when the list has no entry.
@@ -68,6 +94,8 @@ impl SceneList {
 
     /// Every (scene file, seed) pair, in order.
     pub fn iter(&self) -> impl Iterator<Item = (&Path, u64)> + '_ {
-        self.entries.iter().flat_map(|e| e.seeds.clone().map(move |s| (e.scene.as_path(), s)))
+        self.entries
+            .iter()
+            .flat_map(|e| e.seeds.clone().map(move |s| (e.scene.as_path(), s)))
     }
 }

@@ -261,7 +261,6 @@ impl SnowField {
         let bins = self.bins as i64;
         let lo = Self::bin_of(self.bins, azimuth - half_width);
         let hi = Self::bin_of(self.bins, azimuth + half_width).min(lo + bins - 1);
-        let mut seen: Vec<u32> = Vec::new();
         for b in lo..=hi {
             let b = b.rem_euclid(bins) as usize;
             let (s, e) = (layer.offsets[b] as usize, layer.offsets[b + 1] as usize);
@@ -271,10 +270,6 @@ impl SnowField {
                 if !(d > r) || d >= range_m {
                     continue; // sensor inside the flake (skipped), or behind the target
                 }
-                if seen.contains(&id) {
-                    continue;
-                }
-                seen.push(id);
                 let c = wrap_angle(f.azimuth_rad as f64 - azimuth);
                 let half = layer.half[id as usize];
                 let a = (c - half).max(-half_width);
@@ -284,7 +279,9 @@ impl SnowField {
                 }
             }
         }
-        out.sort_by(|x, y| x.0.total_cmp(&y.0));
+        // a flake spanning two buckets appears twice, as identical tuples: sort fully, then dedup
+        out.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.total_cmp(&y.1)).then(x.2.total_cmp(&y.2)));
+        out.dedup();
     }
 }
 
@@ -293,10 +290,12 @@ impl SnowField {
 pub fn occlusion_ratios(half_width: f64, intervals: &[(f64, f64, f64)], ratios: &mut Vec<f64>) -> f64 {
     ratios.clear();
     let total = 2.0 * half_width;
-    let mut free: Vec<(f64, f64)> = vec![(-half_width, half_width)];
+    let mut free: Vec<(f64, f64)> = Vec::with_capacity(intervals.len() + 1);
+    free.push((-half_width, half_width));
+    let mut next: Vec<(f64, f64)> = Vec::with_capacity(intervals.len() + 1);
     for &(_, a, b) in intervals {
         let mut got = 0.0;
-        let mut next = Vec::with_capacity(free.len() + 1);
+        next.clear();
         for &(fa, fb) in &free {
             let (oa, ob) = (fa.max(a), fb.min(b));
             if ob > oa {
@@ -311,7 +310,7 @@ pub fn occlusion_ratios(half_width: f64, intervals: &[(f64, f64, f64)], ratios: 
                 next.push((fa, fb));
             }
         }
-        free = next;
+        std::mem::swap(&mut free, &mut next);
         ratios.push(got / total);
     }
     free.iter().map(|(a, b)| b - a).sum::<f64>() / total

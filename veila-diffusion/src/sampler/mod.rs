@@ -213,6 +213,7 @@ impl<'a> Sampler<'a> {
         rng: &mut R,
         mut on_step: impl FnMut(&StepInfo<'_>),
     ) -> Result<Tensor> {
+        let _span = tracing::debug_span!("sample", steps = self.levels.len()).entered();
         let b = x_t.dim(0)?;
         let uncond = self.uncond_for(cond, b)?;
         let mut x = x_t;

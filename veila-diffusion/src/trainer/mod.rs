@@ -10,6 +10,39 @@
 //! stream (which draws timesteps, noise and condition-dropout masks). Data sources get the step
 //! number, so a source that is a function of the step (a seeded shuffle per epoch, say) resumes
 //! exactly too.
+//!
+//! # Example
+//!
+//! A one-parameter "network" trained for a few steps on a step-indexed data source:
+//!
+//! ```
+//! use candle_core::{DType, Device, Tensor};
+//! use candle_nn::{VarBuilder, VarMap};
+//! use veila_diffusion::{Batch, Denoiser, Diffusion, DiffusionConfig, TrainConfig, Trainer};
+//!
+//! struct Scale(Tensor);
+//! impl Denoiser for Scale {
+//!     type Cond = ();
+//!     fn forward(&self, x: &Tensor, _t: &Tensor, _c: Option<&()>) -> candle_core::Result<Tensor> {
+//!         x.broadcast_mul(&self.0)
+//!     }
+//! }
+//!
+//! # fn main() -> veila_diffusion::Result<()> {
+//! let varmap = VarMap::new();
+//! let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
+//! let model = Scale(vb.get_with_hints(1, "scale", candle_nn::Init::Const(0.0))?);
+//! let config = TrainConfig { total_steps: 5, warmup_steps: 1, checkpoint_every: None, ..TrainConfig::default() };
+//! let mut trainer = Trainer::new(model, varmap, Diffusion::new(DiffusionConfig::default())?, config)?;
+//! let mut data = |_step: u64| -> veila_diffusion::Result<Batch<()>> {
+//!     Ok(Batch { x0: Tensor::zeros((4, 1, 2, 8), DType::F32, &Device::Cpu)?, cond: None })
+//! };
+//! let summary = trainer.fit(&mut data, None, &mut ())?;
+//! assert_eq!((summary.steps_run, trainer.step()), (5, 5));
+//! assert!(summary.mean_loss.is_finite());
+//! # Ok(())
+//! # }
+//! ```
 
 mod checkpoint;
 mod lr;
@@ -416,6 +449,7 @@ impl<M: Denoiser> Trainer<M> {
     /// One update on `batch`.
     pub fn train_step(&mut self, batch: &Batch<M::Cond>) -> Result<StepStats> {
         let started = Instant::now();
+        let _span = tracing::debug_span!("train_step", step = self.step).entered();
         let b = batch.x0.dim(0)?;
         let lr = self.config.lr_schedule().lr_at(self.step);
         let dropout = (self.config.cond_drop_prob > 0.0).then_some(CondDropout {
@@ -445,17 +479,18 @@ impl<M: Denoiser> Trainer<M> {
         };
         if loss.is_finite() {
             let grads = out.loss.backward()?;
-            let mut sq = 0f64;
+            // one device sync for the global norm, not one per parameter
+            let mut sums = Vec::with_capacity(self.vars.len());
             for v in &self.vars {
                 if let Some(g) = grads.get(v.as_tensor()) {
-                    sq += g
-                        .to_dtype(candle_core::DType::F32)?
-                        .sqr()?
-                        .sum_all()?
-                        .to_scalar::<f32>()? as f64;
+                    sums.push(g.to_dtype(candle_core::DType::F32)?.sqr()?.sum_all()?);
                 }
             }
-            let norm = sq.sqrt();
+            let norm = if sums.is_empty() {
+                0.0
+            } else {
+                (Tensor::stack(&sums, 0)?.sum_all()?.to_scalar::<f32>()? as f64).sqrt()
+            };
             stats.grad_norm = norm;
             if norm.is_finite() {
                 let scale = match self.config.grad_clip_norm {

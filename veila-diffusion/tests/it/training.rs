@@ -270,6 +270,15 @@ fn checkpoints_are_atomic_complete_and_pruned() {
     ] {
         assert!(last.join(f).is_file(), "{f}");
     }
+    // leftovers of an interrupted save are never taken for a checkpoint
+    let tmp = dir.path().join(".step-0000000099.tmp-1");
+    std::fs::create_dir(&tmp).unwrap();
+    std::fs::write(tmp.join("state.json"), b"{}").unwrap();
+    std::fs::create_dir(dir.path().join("step-0000000098")).unwrap();
+    assert_eq!(
+        find_latest_checkpoint(dir.path()).unwrap(),
+        Some(last.clone())
+    );
     // the EMA file loads straight into a VarMap of the same model
     let (_net2, mut vm2) = TinyNet::build(CFG, "net");
     vm2.load(last.join("ema.safetensors")).unwrap();
@@ -287,11 +296,6 @@ fn checkpoints_are_atomic_complete_and_pruned() {
     // a model of another shape: mis-shaped tensors are named
     let (net3, vm3) = TinyNet::build(TinyConfig { hidden: 5, ..CFG }, "net");
     let mut t3 = Trainer::new(net3, vm3, diffusion(Prediction::V), config(7)).unwrap();
-    std::fs::write(
-        six.join("state.json"),
-        std::fs::read_to_string(dir.path().join("step-0000000006/state.json")).unwrap_or_default(),
-    )
-    .unwrap();
     let t_good = {
         let (n, v) = TinyNet::build(CFG, "net");
         Trainer::new(n, v, diffusion(Prediction::V), config(7)).unwrap()

@@ -23,7 +23,7 @@ use candle_core::{Module, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, LayerNorm, Linear, VarBuilder};
 
 use super::{
-    ImageEncoder, InputSpec, Normalization, conv_out, depthwise_conv2d, map_to_tokens,
+    ImageEncoder, InputSpec, Normalization, conv_out, depthwise_conv2d_tokens, map_to_tokens,
     tokens_to_map,
 };
 
@@ -311,9 +311,8 @@ impl MixFfn {
     /// Tokens `[B, h*w, C]` -> `[B, h*w, C]`.
     pub fn forward(&self, x: &Tensor, h: usize, w: usize) -> crate::Result<Tensor> {
         let y = self.dense1.forward(x)?;
-        let map = tokens_to_map(&y, h, w)?;
-        let map = depthwise_conv2d(&map, &self.dw_weight, Some(&self.dw_bias), 1)?;
-        let y = map_to_tokens(&map)?.gelu_erf()?;
+        let y =
+            depthwise_conv2d_tokens(&y, (h, w), &self.dw_weight, &self.dw_bias, 1)?.gelu_erf()?;
         Ok(self.dense2.forward(&y)?)
     }
 }

@@ -10,6 +10,13 @@
 //! | [`dinov2::DepthAnythingV2Encoder`] (DINOv2 ViT-S/14 + DPT reassemble) | HuggingFace `depth-anything/Depth-Anything-V2-Small(-hf)` | 48, 96, 192, 384 | 3.5, 7, 14, 28 |
 //! | [`small_cnn::SmallCnn`] (GroupNorm + SiLU CNN with semantic and depth heads) | trained by this project | 16, 32, 64, 96 (default) | 4, 8, 16, 32 |
 //!
+//! The dense maps the cross-modal metrics need come from the heads: [`mit::SegFormer`] (MiT + the
+//! SegFormer decode head, label maps), [`dinov2::DepthAnythingV2`] (encoder + DPT fusion + depth
+//! head, relative or metric depth) and [`small_cnn::SmallCnn::predict_maps`] (labels and metric
+//! depth). These wrappers implement [`ImageEncoder`] too, returning their encoder's features.
+//! Losses for training the small CNN are in [`losses`] ([`small_cnn::SmallCnn::loss`] combines
+//! them).
+//!
 //! # Input convention
 //!
 //! Every encoder takes a `[B, 3, H, W]` float tensor holding RGB in `[0, 1]` normalised with the
@@ -22,7 +29,7 @@
 //!
 //! # Loading pretrained weights
 //!
-//! [`mit::MitEncoder::load`], [`dinov2::DepthAnythingV2Encoder::load`],
+//! [`mit::MitEncoder::load`], [`mit::SegFormer::load`], [`dinov2::DepthAnythingV2Encoder::load`],
 //! [`dinov2::DepthAnythingV2::load`] and [`small_cnn::SmallCnn::load`] read a `.safetensors` file
 //! and verify it against the model before building it ([`load_checked`]): missing, mis-shaped and
 //! (within the encoder's namespace) unexpected tensors are reported together, by name, in
@@ -600,4 +607,68 @@ fn depthwise_conv2d_host(
         }
     }
     Ok(Tensor::from_vec(out, (b, c, out_h, out_w), x.device())?)
+}
+
+/// Depthwise `k x k` convolution (stride 1, zero padding `padding`, output size = input size for
+/// `padding = k / 2`) on channels-last tokens `[B, h*w, C]`, returning tokens. On the CPU without
+/// gradient tracking it runs directly on the token layout (no transposes); otherwise it goes
+/// through [`depthwise_conv2d`] on the `[B, C, h, w]` map.
+pub(crate) fn depthwise_conv2d_tokens(
+    x: &Tensor,
+    (h, w): (usize, usize),
+    weight: &Tensor,
+    bias: &Tensor,
+    padding: usize,
+) -> crate::Result<Tensor> {
+    let (b, n, c) = x.dims3()?;
+    let (wc, _, kh, kw) = weight.dims4()?;
+    let no_grad = !x.track_op() && !weight.track_op() && !bias.track_op();
+    let same = kh == 2 * padding + 1 && kw == 2 * padding + 1;
+    if !(no_grad && same && x.device().is_cpu() && x.dtype() == DType::F32) {
+        let map = depthwise_conv2d(&tokens_to_map(x, h, w)?, weight, Some(bias), padding)?;
+        return map_to_tokens(&map);
+    }
+    if n != h * w || wc != c {
+        input_bail!(
+            "depthwise_conv2d_tokens: {n} tokens of {c} channels do not match a {h}x{w} grid and weight {:?}",
+            weight.dims()
+        );
+    }
+    let xs = x.flatten_all()?.to_vec1::<f32>()?;
+    // weights as [k*k, C] so that the inner loop runs over contiguous channels
+    let wt = weight
+        .reshape((c, kh * kw))?
+        .t()?
+        .contiguous()?
+        .flatten_all()?
+        .to_vec1::<f32>()?;
+    let bs = bias.flatten_all()?.to_vec1::<f32>()?;
+    let mut out = vec![0f32; b * n * c];
+    for bi in 0..b {
+        for y in 0..h {
+            for xx in 0..w {
+                let o = &mut out[((bi * n) + y * w + xx) * c..((bi * n) + y * w + xx + 1) * c];
+                o.copy_from_slice(&bs);
+                for ky in 0..kh {
+                    let iy = y as isize + ky as isize - padding as isize;
+                    if iy < 0 || iy >= h as isize {
+                        continue;
+                    }
+                    for kx in 0..kw {
+                        let ix = xx as isize + kx as isize - padding as isize;
+                        if ix < 0 || ix >= w as isize {
+                            continue;
+                        }
+                        let src = ((bi * n) + iy as usize * w + ix as usize) * c;
+                        let src = &xs[src..src + c];
+                        let wk = &wt[(ky * kw + kx) * c..(ky * kw + kx + 1) * c];
+                        for ((d, s), k) in o.iter_mut().zip(src).zip(wk) {
+                            *d += k * s;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Ok(Tensor::from_vec(out, (b, n, c), x.device())?)
 }

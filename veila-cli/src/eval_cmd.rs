@@ -1,0 +1,566 @@
+//! `veila eval` (distribution and point metrics between two folders of scans) and `veila fd` (Fréchet
+//! distance between two feature matrices stored as `.npy`). Both print a table and optionally write JSON
+//! `{"metrics": [...]}` atomically.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Subcommand, ValueEnum};
+use glam::Vec3;
+use rayon::prelude::*;
+use veila_metrics::{
+    MetricReport, MetricValue, Protocol, Region,
+    bev::{BevConfig, BevHistogram, bev_histogram},
+    chamfer, dist,
+    fd::{self, FeatureStats, SqrtMethod},
+    lidm::{self, LidmBevConfig},
+    nn::PointIndex,
+};
+
+/// Evaluation commands.
+#[derive(Debug, Subcommand)]
+pub(crate) enum EvalCmd {
+    /// Score generated scans against reference scans (JSD, MMD, MMD-CD, Chamfer), each metric named by
+    /// its protocol, for the whole panorama and its front (x > 0) and rear (x <= 0) halves.
+    Eval(EvalArgs),
+    /// Fréchet distance between two feature matrices (.npy, f32 or f64, one row per sample).
+    Fd(FdArgs),
+}
+
+/// Metrics `veila eval` can compute.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, ValueEnum)]
+pub(crate) enum MetricName {
+    /// Jensen-Shannon distance of summed BEV histograms (R2DM / LiDARGen protocol).
+    Jsd,
+    /// Gaussian-kernel BEV MMD, Frobenius distance, sigma 0.5 (R2DM protocol; papers print x 1e4).
+    Mmd,
+    /// Gaussian-kernel BEV MMD with the spectral-norm distance (LiDARGen protocol; O(N^2) SVDs).
+    MmdLidargen,
+    /// Minimum matching distance, 2-D Chamfer over 0.5 m BEV occupancy (LiDM protocol; printed x 1e4).
+    MmdLidm,
+    /// Minimum matching distance with the 3-D Chamfer distance (PyTorch3D convention).
+    MmdCd,
+    /// Chamfer distance of scans paired by file name, averaged over pairs (PyTorch3D convention).
+    Chamfer,
+}
+
+/// Regions to report.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub(crate) enum RegionArg {
+    /// The whole panorama.
+    All,
+    /// x > 0.
+    Front,
+    /// x <= 0.
+    Rear,
+}
+
+impl From<RegionArg> for Region {
+    fn from(r: RegionArg) -> Self {
+        match r {
+            RegionArg::All => Region::All,
+            RegionArg::Front => Region::Front,
+            RegionArg::Rear => Region::Rear,
+        }
+    }
+}
+
+#[derive(Debug, Args)]
+pub(crate) struct EvalArgs {
+    /// Folder of generated scans (.bin, .pcd.bin, .ply or range .exr; format detected per file).
+    #[arg(long)]
+    generated: PathBuf,
+    /// Folder of reference scans (same formats).
+    #[arg(long)]
+    reference: PathBuf,
+    /// Comma-separated metrics.
+    #[arg(long, value_delimiter = ',', default_value = "jsd,mmd")]
+    metrics: Vec<MetricName>,
+    /// Comma-separated regions.
+    #[arg(long, value_delimiter = ',', default_value = "all,front,rear")]
+    regions: Vec<RegionArg>,
+    /// Also write the results as JSON `{"metrics": [...]}` (written atomically).
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
+#[derive(Debug, Args)]
+pub(crate) struct FdArgs {
+    /// First feature matrix (.npy, 2-D, f32 or f64, C or Fortran order), e.g. reference features.
+    a: PathBuf,
+    /// Second feature matrix (same number of columns), e.g. generated features.
+    b: PathBuf,
+    /// Also write the result as JSON `{"metrics": [...]}` (written atomically).
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// Newton-Schulz iterations instead of the exact eigendecomposition (approximate; for comparison).
+    #[arg(long)]
+    newton_schulz: Option<usize>,
+}
+
+pub(crate) fn run(cmd: EvalCmd) -> Result<()> {
+    match cmd {
+        EvalCmd::Eval(a) => run_eval(a),
+        EvalCmd::Fd(a) => run_fd(a),
+    }
+}
+
+fn is_scan_file(path: &Path) -> bool {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().to_lowercase())
+        .unwrap_or_default();
+    name.ends_with(".bin") || name.ends_with(".ply") || name.ends_with(".exr")
+}
+
+/// Scan files of a folder, sorted by name.
+fn list_scans(dir: &Path, what: &str) -> Result<Vec<PathBuf>> {
+    let entries = std::fs::read_dir(dir)
+        .with_context(|| format!("{what} folder {}: cannot read", dir.display()))?;
+    let mut files = Vec::new();
+    for e in entries {
+        let e = e.with_context(|| format!("{what} folder {}: cannot list", dir.display()))?;
+        let p = e.path();
+        if p.is_file() && is_scan_file(&p) {
+            files.push(p);
+        }
+    }
+    files.sort();
+    if files.is_empty() {
+        bail!(
+            "{what} folder {} has no scans (.bin, .pcd.bin, .ply, .exr)",
+            dir.display()
+        );
+    }
+    Ok(files)
+}
+
+fn load_scans(files: &[PathBuf], what: &str) -> Result<Vec<Vec<Vec3>>> {
+    let pb = crate::progress::bar(files.len() as u64, what);
+    let out: Result<Vec<Vec<Vec3>>> = files
+        .par_iter()
+        .map(|f| {
+            let loaded = veila_data::scan::read_points(f)
+                .with_context(|| format!("reading {}", f.display()))?;
+            pb.inc(1);
+            if loaded.cloud.xyz.is_empty() {
+                bail!("{}: the scan has no (finite) points", f.display());
+            }
+            Ok(loaded.cloud.xyz)
+        })
+        .collect();
+    pb.finish_and_clear();
+    out
+}
+
+fn file_label(files: &[PathBuf], i: usize) -> String {
+    files
+        .get(i)
+        .map(|f| f.display().to_string())
+        .unwrap_or_else(|| format!("scan {i}"))
+}
+
+/// Turns the library's "generated scan 3" into the file name.
+fn explain(
+    err: veila_metrics::Error,
+    gen_files: &[PathBuf],
+    ref_files: &[PathBuf],
+) -> anyhow::Error {
+    if let veila_metrics::Error::NoPointsInWindow { what, window } = &err {
+        for (prefix, files) in [
+            ("generated scan ", gen_files),
+            ("reference scan ", ref_files),
+        ] {
+            if let Some(i) = what
+                .strip_prefix(prefix)
+                .and_then(|s| s.parse::<usize>().ok())
+            {
+                return anyhow::anyhow!(
+                    "{}: no point inside the {window} window (this metric normalises every scan on its own)",
+                    file_label(files, i)
+                );
+            }
+        }
+    }
+    anyhow::Error::new(err)
+}
+
+struct Sets<'a> {
+    gen_files: &'a [PathBuf],
+    ref_files: &'a [PathBuf],
+    generated: Vec<Vec<Vec3>>,
+    reference: Vec<Vec<Vec3>>,
+}
+
+fn run_eval(a: EvalArgs) -> Result<()> {
+    let gen_files = list_scans(&a.generated, "generated")?;
+    let ref_files = list_scans(&a.reference, "reference")?;
+    let mut metrics = a.metrics.clone();
+    metrics.sort();
+    metrics.dedup();
+    if metrics.is_empty() {
+        bail!("--metrics is empty");
+    }
+    if metrics.contains(&MetricName::Chamfer) {
+        check_pairing(&gen_files, &ref_files, &a.generated, &a.reference)?;
+    }
+    let generated = load_scans(&gen_files, "generated")?;
+    let reference = load_scans(&ref_files, "reference")?;
+    let sets = Sets {
+        gen_files: &gen_files,
+        ref_files: &ref_files,
+        generated,
+        reference,
+    };
+
+    let mut report = MetricReport::default();
+    let (ng, nr) = (gen_files.len(), ref_files.len());
+    let value =
+        |name: &str, protocol: Protocol, region: Region, v: f64, scale: Option<f64>| MetricValue {
+            name: name.to_string(),
+            protocol,
+            region,
+            value: v,
+            generated: ng,
+            reference: nr,
+            paper_scale: scale,
+        };
+    let pb = crate::progress::bar((metrics.len() * a.regions.len()) as u64, "metrics");
+    for &region in &a.regions {
+        let region = Region::from(region);
+        let needs_hist = metrics.iter().any(|m| {
+            matches!(
+                m,
+                MetricName::Jsd | MetricName::Mmd | MetricName::MmdLidargen
+            )
+        });
+        let (hg, hr) = if needs_hist {
+            histograms(&sets, region)?
+        } else {
+            (vec![], vec![])
+        };
+        for &m in &metrics {
+            pb.set_message(format!("{m:?} {region}"));
+            let ex = |e| explain(e, sets.gen_files, sets.ref_files);
+            let v = match m {
+                MetricName::Jsd => value(
+                    "jsd",
+                    Protocol::R2dm,
+                    region,
+                    dist::jsd(&hg, &hr).map_err(ex)?,
+                    None,
+                ),
+                MetricName::Mmd => value(
+                    "mmd",
+                    Protocol::R2dm,
+                    region,
+                    dist::mmd_r2dm_dense(&hg, &hr, dist::MMD_SIGMA).map_err(ex)?,
+                    Some(dist::MMD_PAPER_SCALE),
+                ),
+                MetricName::MmdLidargen => value(
+                    "mmd",
+                    Protocol::Lidargen,
+                    region,
+                    dist::mmd_lidargen(&hg, &hr, dist::MMD_SIGMA).map_err(ex)?,
+                    None,
+                ),
+                MetricName::MmdLidm => {
+                    let cfg = LidmBevConfig::kitti();
+                    let occ = |scans: &[Vec<Vec3>],
+                               what: &str,
+                               files: &[PathBuf]|
+                     -> Result<Vec<lidm::BevOccupancy>> {
+                        scans
+                            .par_iter()
+                            .enumerate()
+                            .map(|(i, s)| {
+                                lidm::lidm_bev_occupancy(s, &cfg, region, what)
+                                    .with_context(|| format!("{}", file_label(files, i)))
+                            })
+                            .collect()
+                    };
+                    let og = occ(&sets.generated, "generated", sets.gen_files)?;
+                    let or = occ(&sets.reference, "reference", sets.ref_files)?;
+                    value(
+                        "mmd",
+                        Protocol::Lidm,
+                        region,
+                        lidm::mmd_lidm(&og, &or).map_err(ex)?,
+                        Some(lidm::LIDM_PAPER_SCALE),
+                    )
+                }
+                MetricName::MmdCd => {
+                    let ig = indexes(&sets.generated, sets.gen_files, region)?;
+                    let ir = indexes(&sets.reference, sets.ref_files, region)?;
+                    value(
+                        "mmd-cd",
+                        Protocol::Pytorch3d,
+                        region,
+                        chamfer::minimum_matching_distance(&ig, &ir)?,
+                        None,
+                    )
+                }
+                MetricName::Chamfer => {
+                    let mut sum = 0.0;
+                    for (i, (g, r)) in sets.generated.iter().zip(&sets.reference).enumerate() {
+                        let (g, r) = (
+                            veila_metrics::filter_region(g, region),
+                            veila_metrics::filter_region(r, region),
+                        );
+                        if g.is_empty() || r.is_empty() {
+                            bail!(
+                                "{} / {}: no points in region {region}; the Chamfer distance needs points on both sides",
+                                file_label(sets.gen_files, i),
+                                file_label(sets.ref_files, i)
+                            );
+                        }
+                        sum += chamfer::chamfer_distance(&g, &r)?.value();
+                    }
+                    value(
+                        "chamfer",
+                        Protocol::Pytorch3d,
+                        region,
+                        sum / sets.generated.len() as f64,
+                        None,
+                    )
+                }
+            };
+            report.metrics.push(v);
+            pb.inc(1);
+        }
+    }
+    pb.finish_and_clear();
+    print_table(&report);
+    if let Some(path) = &a.json {
+        write_json(path, &report)?;
+    }
+    Ok(())
+}
+
+fn histograms(sets: &Sets<'_>, region: Region) -> Result<(Vec<BevHistogram>, Vec<BevHistogram>)> {
+    let cfg = BevConfig::r2dm();
+    let make = |scans: &[Vec<Vec3>], files: &[PathBuf]| -> Result<Vec<BevHistogram>> {
+        scans
+            .par_iter()
+            .enumerate()
+            .map(|(i, s)| {
+                bev_histogram(s, &cfg, region, "scan").with_context(|| file_label(files, i))
+            })
+            .collect()
+    };
+    Ok((
+        make(&sets.generated, sets.gen_files)?,
+        make(&sets.reference, sets.ref_files)?,
+    ))
+}
+
+fn indexes(scans: &[Vec<Vec3>], files: &[PathBuf], region: Region) -> Result<Vec<PointIndex>> {
+    scans
+        .par_iter()
+        .enumerate()
+        .map(|(i, s)| {
+            let pts = veila_metrics::filter_region(s, region);
+            if pts.is_empty() {
+                bail!("{}: no points in region {region}", file_label(files, i));
+            }
+            PointIndex::build(&pts, "scan").with_context(|| file_label(files, i))
+        })
+        .collect()
+}
+
+fn check_pairing(
+    gen_files: &[PathBuf],
+    ref_files: &[PathBuf],
+    gdir: &Path,
+    rdir: &Path,
+) -> Result<()> {
+    let names = |files: &[PathBuf]| -> BTreeMap<String, ()> {
+        files
+            .iter()
+            .map(|f| {
+                (
+                    f.file_name()
+                        .map(|n| n.to_string_lossy().into_owned())
+                        .unwrap_or_default(),
+                    (),
+                )
+            })
+            .collect()
+    };
+    let (g, r) = (names(gen_files), names(ref_files));
+    if let Some(missing) = g.keys().find(|k| !r.contains_key(*k)) {
+        bail!(
+            "chamfer pairs scans by file name: {} has {missing} but {} does not ({} vs {} scans)",
+            gdir.display(),
+            rdir.display(),
+            gen_files.len(),
+            ref_files.len()
+        );
+    }
+    if let Some(missing) = r.keys().find(|k| !g.contains_key(*k)) {
+        bail!(
+            "chamfer pairs scans by file name: {} has {missing} but {} does not ({} vs {} scans)",
+            rdir.display(),
+            gdir.display(),
+            ref_files.len(),
+            gen_files.len()
+        );
+    }
+    Ok(())
+}
+
+fn print_table(report: &MetricReport) {
+    println!(
+        "{:<10} {:<10} {:<6} {:>16} {:>14} {:>6} {:>6}",
+        "metric", "protocol", "region", "value", "paper scale", "gen", "ref"
+    );
+    for m in &report.metrics {
+        let scaled = m
+            .paper_scale
+            .map(|s| format!("{:.4} (x{s:.0e})", m.value * s))
+            .unwrap_or_default();
+        println!(
+            "{:<10} {:<10} {:<6} {:>16.8e} {:>14} {:>6} {:>6}",
+            m.name,
+            m.protocol.name(),
+            m.region.name(),
+            m.value,
+            scaled,
+            m.generated,
+            m.reference
+        );
+    }
+}
+
+fn write_json(path: &Path, report: &MetricReport) -> Result<()> {
+    let mut text = serde_json::to_string_pretty(report)?;
+    text.push('\n');
+    veila_data::atomic::write_atomic(path, text.as_bytes())
+        .with_context(|| format!("writing {}", path.display()))?;
+    Ok(())
+}
+
+/// A 2-D `.npy` feature matrix as `f64`, row-major.
+fn read_npy_matrix(path: &Path) -> Result<(Vec<f64>, usize, usize)> {
+    let file =
+        std::fs::File::open(path).with_context(|| format!("{}: cannot open", path.display()))?;
+    let npy = npyz::NpyFile::new(std::io::BufReader::new(file))
+        .with_context(|| format!("{}: not a valid .npy file", path.display()))?;
+    let shape = npy.shape().to_vec();
+    if shape.len() != 2 {
+        bail!(
+            "{}: expected a 2-D array (samples x features), got shape {shape:?}",
+            path.display()
+        );
+    }
+    let (rows, cols) = (shape[0] as usize, shape[1] as usize);
+    if rows == 0 || cols == 0 {
+        bail!(
+            "{}: the feature matrix is empty (shape {shape:?})",
+            path.display()
+        );
+    }
+    let order = npy.order();
+    let dtype = npy.dtype();
+    let data: Vec<f64> = match &dtype {
+        npyz::DType::Plain(ts)
+            if ts.type_char() == npyz::TypeChar::Float && ts.size_field() == 4 =>
+        {
+            npy.into_vec::<f32>()
+                .with_context(|| format!("{}: reading f32 data", path.display()))?
+                .into_iter()
+                .map(f64::from)
+                .collect()
+        }
+        npyz::DType::Plain(ts)
+            if ts.type_char() == npyz::TypeChar::Float && ts.size_field() == 8 =>
+        {
+            npy.into_vec::<f64>()
+                .with_context(|| format!("{}: reading f64 data", path.display()))?
+        }
+        other => bail!(
+            "{}: unsupported dtype {}; expected float32 or float64",
+            path.display(),
+            other.descr()
+        ),
+    };
+    if data.len() != rows * cols {
+        bail!(
+            "{}: expected {} values for shape {shape:?}, found {}",
+            path.display(),
+            rows * cols,
+            data.len()
+        );
+    }
+    let data = match order {
+        npyz::Order::C => data,
+        npyz::Order::Fortran => {
+            let mut c = vec![0.0; rows * cols];
+            for j in 0..cols {
+                for i in 0..rows {
+                    c[i * cols + j] = data[j * rows + i];
+                }
+            }
+            c
+        }
+    };
+    if let Some(k) = data.iter().position(|v| !v.is_finite()) {
+        bail!(
+            "{}: non-finite value at row {}, column {}",
+            path.display(),
+            k / cols,
+            k % cols
+        );
+    }
+    Ok((data, rows, cols))
+}
+
+fn run_fd(a: FdArgs) -> Result<()> {
+    let (fa, ra, ca) = read_npy_matrix(&a.a)?;
+    let (fb, rb, cb) = read_npy_matrix(&a.b)?;
+    if ca != cb {
+        bail!(
+            "{} has {ca} feature columns but {} has {cb}",
+            a.a.display(),
+            a.b.display()
+        );
+    }
+    for (rows, p) in [(ra, &a.a), (rb, &a.b)] {
+        if rows < 2 {
+            bail!(
+                "{}: a covariance needs at least 2 rows (samples), got {rows}",
+                p.display()
+            );
+        }
+    }
+    let (sa, sb) = rayon::join(
+        || FeatureStats::from_rows(&fa, ca, "a"),
+        || FeatureStats::from_rows(&fb, cb, "b"),
+    );
+    let (sa, sb) = (
+        sa.with_context(|| a.a.display().to_string())?,
+        sb.with_context(|| a.b.display().to_string())?,
+    );
+    let method = match a.newton_schulz {
+        Some(iterations) => SqrtMethod::NewtonSchulz { iterations },
+        None => SqrtMethod::Eigen,
+    };
+    let v = fd::frechet_distance_with(&sa, &sb, method)?;
+    let report = MetricReport {
+        metrics: vec![MetricValue {
+            name: "fd".into(),
+            protocol: Protocol::Frechet,
+            region: Region::All,
+            value: v,
+            generated: rb,
+            reference: ra,
+            paper_scale: None,
+        }],
+    };
+    print_table(&report);
+    if let Some(path) = &a.json {
+        write_json(path, &report)?;
+    }
+    Ok(())
+}
