@@ -5,7 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use clap::{Args, Subcommand};
 use veila_data::image_io::{encode_png, read_rgb_image};
 use veila_data::range_exr::{encode_range_exr, read_range_exr};
@@ -108,7 +108,8 @@ pub(crate) fn run(cmd: DataCmd) -> Result<()> {
 }
 
 fn load(scan: &Path) -> Result<LoadedPoints> {
-    let l = read_points(scan).with_context(|| format!("cannot read scan {}", scan.display()))?;
+    // the error already names the file and the problem
+    let l = read_points(scan)?;
     println!(
         "{}: {} points ({}), {} non-finite dropped",
         scan.display(),

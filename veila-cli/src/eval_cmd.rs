@@ -276,7 +276,7 @@ fn run_eval(a: EvalArgs) -> Result<()> {
                             .enumerate()
                             .map(|(i, s)| {
                                 lidm::lidm_bev_occupancy(s, &cfg, region, what)
-                                    .with_context(|| format!("{}", file_label(files, i)))
+                                    .with_context(|| file_label(files, i))
                             })
                             .collect()
                     };

@@ -16,7 +16,7 @@ use veila_data::weather::{
 pub enum WeatherCmd {
     /// Apply physical weather (fog, rain, snow, wet road, night) to a LiDAR scan and optionally its
     /// camera image. Only the effects asked for run; with none, the outputs are byte-identical copies.
-    /// Writes OUT/<scan name> (input format), OUT/<image stem>.png and OUT/effects.json.
+    /// Writes `OUT/<scan name>` (input format), `OUT/<image stem>.png` and `OUT/effects.json`.
     Weather(WeatherArgs),
 }
 

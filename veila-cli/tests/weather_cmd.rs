@@ -22,7 +22,12 @@ fn effects(dir: &Path) -> serde_json::Value {
 }
 
 fn names(v: &serde_json::Value, sensor: &str) -> Vec<String> {
-    v[sensor].as_array().unwrap().iter().map(|r| r["effect"].as_str().unwrap().to_string()).collect()
+    v[sensor]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["effect"].as_str().unwrap().to_string())
+        .collect()
 }
 
 #[test]
@@ -41,8 +46,14 @@ fn no_effect_gives_byte_identical_copies() {
         .status()
         .unwrap();
     assert!(st.success());
-    assert_eq!(std::fs::read(out.path().join("000001.bin")).unwrap(), std::fs::read(k.join("velodyne/000001.bin")).unwrap());
-    assert_eq!(std::fs::read(out.path().join("000001.png")).unwrap(), std::fs::read(k.join("image_2/000001.png")).unwrap());
+    assert_eq!(
+        std::fs::read(out.path().join("000001.bin")).unwrap(),
+        std::fs::read(k.join("velodyne/000001.bin")).unwrap()
+    );
+    assert_eq!(
+        std::fs::read(out.path().join("000001.png")).unwrap(),
+        std::fs::read(k.join("image_2/000001.png")).unwrap()
+    );
     let e = effects(out.path());
     assert!(names(&e, "lidar").is_empty() && names(&e, "camera").is_empty());
 }
@@ -75,7 +86,12 @@ fn fog_changes_both_sensors_and_night_only_the_camera() {
     let orig = std::fs::read(k.join("velodyne/000000.bin")).unwrap();
     assert_eq!(bin.len(), orig.len(), "fog never deletes points");
     assert_ne!(bin, orig);
-    assert!(e["lidar"][0]["counts"]["replaced_by_fog_return"].as_u64().unwrap() > 0);
+    assert!(
+        e["lidar"][0]["counts"]["replaced_by_fog_return"]
+            .as_u64()
+            .unwrap()
+            > 0
+    );
     let img = veila_data::image_io::read_rgb_image(&fog.join("000000.png")).unwrap();
     assert_eq!((img.width(), img.height()), (1224, 370));
 
@@ -84,7 +100,11 @@ fn fog_changes_both_sensors_and_night_only_the_camera() {
     let e = effects(&night);
     assert!(names(&e, "lidar").is_empty());
     assert_eq!(names(&e, "camera"), ["darken", "sensor_noise"]);
-    assert_eq!(std::fs::read(night.join("000000.bin")).unwrap(), orig, "night leaves the LiDAR untouched");
+    assert_eq!(
+        std::fs::read(night.join("000000.bin")).unwrap(),
+        orig,
+        "night leaves the LiDAR untouched"
+    );
 }
 
 #[test]
@@ -95,7 +115,13 @@ fn bad_input_fails_without_partial_output() {
     let bad = tmp.path().join("bad.bin");
     std::fs::write(&bad, [0u8; 18]).unwrap();
     let out = tmp.path().join("out");
-    let o = veila().arg("weather").arg(&bad).args(["--rain-rate", "5", "--out"]).arg(&out).output().unwrap();
+    let o = veila()
+        .arg("weather")
+        .arg(&bad)
+        .args(["--rain-rate", "5", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("bad.bin"), "{err}");
@@ -114,7 +140,13 @@ fn bad_input_fails_without_partial_output() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("calibration"));
     assert!(!out.join("000001.bin").exists(), "no partial output");
     // invalid weather
-    let o = veila().arg("weather").arg(k.join("velodyne/000001.bin")).args(["--fog-visibility", "3", "--out"]).arg(&out).output().unwrap();
+    let o = veila()
+        .arg("weather")
+        .arg(k.join("velodyne/000001.bin"))
+        .args(["--fog-visibility", "3", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("fog_visibility_m"));
 }

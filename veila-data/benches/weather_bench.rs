@@ -186,12 +186,19 @@ pub fn bench_snow_density(c: &mut Criterion) {
         let t = Instant::now();
         let out = sim.apply_lidar(input).expect("apply");
         let ms = t.elapsed().as_secs_f64() * 1e3;
-        let scfg = veila_data::weather::snow::SnowConfig { density_scale: scale, ..Default::default() };
+        let scfg = veila_data::weather::snow::SnowConfig {
+            density_scale: scale,
+            ..Default::default()
+        };
         let t = Instant::now();
         let field = veila_data::weather::snow::SnowField::sample(&w, 64, &scfg).expect("field");
         let field_ms = t.elapsed().as_secs_f64() * 1e3;
         drop(field);
-        let r = out.records.iter().find(|r| r.effect == "snow").expect("snow record");
+        let r = out
+            .records
+            .iter()
+            .find(|r| r.effect == "snow")
+            .expect("snow record");
         eprintln!(
             "  {scale:>7} {:>17} {:>14} {:>18} {ms:>8.1} {field_ms:>9.1}",
             r.counts["flakes"], r.counts["flake_returns"], r.counts["intensity_changed"]

@@ -38,9 +38,10 @@ pub trait Dataset: Send + Sync + std::fmt::Debug {
     fn is_empty(&self) -> bool {
         self.len() == 0
     }
-    /// Id of frame `index` (no file is read).
+    /// Id of frame `index` (no file is read). Panics if `index >= len()`, like slice indexing.
     fn frame_id(&self, index: usize) -> String;
-    /// Read frame `index` from disk.
+    /// Read frame `index` from disk; any problem with its files is an error naming the file. Panics if
+    /// `index >= len()`, like slice indexing.
     fn load(&self, index: usize) -> Result<Frame>;
     /// The sensor that recorded the dataset (the preset used when none is given).
     fn default_sensor(&self) -> LidarSensor;

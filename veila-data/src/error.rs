@@ -42,6 +42,14 @@ pub enum Error {
         /// Why.
         message: String,
     },
+    /// An active weather effect lacks an input it needs and has no fallback for it.
+    #[error("weather effect '{effect}' needs {input}, which was not given")]
+    MissingInput {
+        /// The effect (or effects) that need it.
+        effect: String,
+        /// The missing input, in words.
+        input: String,
+    },
     /// A geometry error from `veila-geom`.
     #[error(transparent)]
     Geom(#[from] veila_geom::GeomError),

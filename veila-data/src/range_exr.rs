@@ -42,7 +42,7 @@ pub struct RangeExr {
 
 impl RangeExr {
     /// Unproject to points (pixel centres along the sensor's rays at the stored range), carrying
-    /// intensity and labels.
+    /// intensity, labels and, for per-beam sensors, the ring of each row.
     pub fn to_points(&self) -> Result<PointCloud> {
         let rays = RayTable::new(&self.sensor)?;
         let u = rays.unproject(&self.image)?;
@@ -52,10 +52,17 @@ impl RangeExr {
                 .map(|(r, c)| l[self.image.idx(*r, *c)])
                 .collect::<Vec<u32>>()
         });
+        // per-beam sensors know which ring feeds each row: keep it, so the points re-project exactly
+        let ring = matches!(self.sensor.beams, veila_geom::BeamLayout::PerBeam { .. }).then(|| {
+            u.pixels
+                .iter()
+                .map(|(r, _)| self.sensor.ring_of_row(*r).min(u32::from(u16::MAX)) as u16)
+                .collect()
+        });
         Ok(PointCloud {
             xyz: u.points,
             intensity: u.intensity,
-            ring: None,
+            ring,
             label,
         })
     }
@@ -291,6 +298,40 @@ mod tests {
             let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&back.image.range_m), bits(&img.range_m));
             assert_eq!(bits(&back.image.intensity), bits(&img.intensity));
+        }
+    }
+
+    #[test]
+    fn per_beam_points_keep_rings_and_reproject_to_their_pixels() {
+        let sensor = LidarSensor::hdl32e_per_beam();
+        let mut img = random_image(&sensor, 11, false);
+        img.point_index.iter_mut().for_each(|p| *p = NO_POINT);
+        let exr = RangeExr {
+            sensor: sensor.clone(),
+            image: img.clone(),
+        };
+        let pts = exr.to_points().unwrap();
+        let rings = pts.ring.as_ref().unwrap();
+        let proj =
+            veila_geom::Projector::new(&sensor, veila_geom::ProjectionOptions::default()).unwrap();
+        let (back, _) = proj
+            .project(&pts.xyz, Some(&pts.intensity), Some(rings))
+            .unwrap();
+        // ranges outside the sensor's interval are rejected on the way back; all else returns home
+        let expected: Vec<bool> = img
+            .mask
+            .iter()
+            .zip(&img.range_m)
+            .map(|(m, r)| *m && *r >= sensor.min_range_m && *r <= sensor.max_range_m)
+            .collect();
+        assert_eq!(back.mask, expected);
+        for k in 0..back.num_pixels() {
+            if back.mask[k] {
+                assert!(
+                    (back.range_m[k] - img.range_m[k]).abs() <= 1e-4 * img.range_m[k],
+                    "pixel {k}"
+                );
+            }
         }
     }
 

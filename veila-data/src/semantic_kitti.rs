@@ -480,10 +480,16 @@ impl SemanticKittiDataset {
             }
             seqs.push(SeqInfo { dir, calib });
         }
-        if seqs.is_empty() && wanted.is_some() {
+        if seqs.is_empty()
+            && let Some(w) = &wanted
+        {
+            let list: Vec<String> = w.iter().map(|n| format!("{n:02}")).collect();
             return Err(Error::format(
                 &seq_root,
-                format!("none of the selected sequences {wanted:?} is present"),
+                format!(
+                    "none of the selected sequences ({}) is present",
+                    list.join(", ")
+                ),
             ));
         }
         Ok(SemanticKittiDataset {

@@ -618,7 +618,7 @@ fn same_seed_gives_byte_identical_kitti_output() {
     let (fa, fb, fc) = (read_dir_bytes(&a), read_dir_bytes(&b), read_dir_bytes(&c));
     assert_eq!(
         fa.len(),
-        6 * 3 + 3,
+        6 * 3 + 5,
         "{:?}",
         fa.iter().map(|f| &f.0).collect::<Vec<_>>()
     );
@@ -993,4 +993,86 @@ fn render_frame_pairs_the_scene_sensors() {
     let scan = snap.render_lidar(&f.sensor, &cfg.lidar.returns).unwrap();
     assert_eq!(scan.points, f.scan.points);
     assert_eq!(f.world_from_lidar, scene.world_from_lidar(0.2));
+}
+
+#[test]
+fn simulated_output_loads_as_a_semantic_kitti_sequence() {
+    use veila_data::dataset::Dataset;
+    use veila_data::semantic_kitti::{SemanticKittiDataset, Sequences};
+    let cfg = tiny_config();
+    let tmp = tempfile::tempdir().unwrap();
+    let seq = tmp.path().join("sequences").join("00");
+    std::fs::create_dir_all(seq.parent().unwrap()).unwrap();
+    simulate_to_dir(&cfg, 4, 3, &seq, |_| {}).unwrap();
+    let ds = SemanticKittiDataset::open(tmp.path(), Sequences::All).unwrap();
+    assert_eq!(ds.len(), 3);
+    let frame = ds.load(2).unwrap();
+    let scene = Scene::generate(&cfg, 4).unwrap();
+    let scan = scene.render_frame(2).unwrap().scan;
+    assert_eq!(frame.points.xyz, scan.points.xyz);
+    assert_eq!(frame.points.label, scan.points.label);
+    let cam = frame.camera.unwrap();
+    let sim_cam = SimCalib::from_config(&cfg.camera).camera().unwrap();
+    let p = Vec3::new(15.0, -2.0, 0.5);
+    let (a, b) = (cam.try_project(p).unwrap(), sim_cam.try_project(p).unwrap());
+    assert!((a.u_px - b.u_px).abs() < 1e-3 && (a.depth_m - b.depth_m).abs() < 1e-5);
+    // poses.txt: camera 0 moves straight ahead (+z in camera coordinates) at the ego speed
+    let poses = std::fs::read_to_string(seq.join("poses.txt")).unwrap();
+    for (i, line) in poses.lines().enumerate() {
+        let v: Vec<f32> = line
+            .split_whitespace()
+            .map(|x| x.parse().unwrap())
+            .collect();
+        assert_eq!(v.len(), 12);
+        let expected_z = i as f32 * cfg.frames.interval_s * cfg.ego.speed_mps;
+        assert!(
+            (v[11] - expected_z).abs() < 1e-4 && v[3].abs() < 1e-5 && v[7].abs() < 1e-5,
+            "{line}"
+        );
+        assert!(
+            (v[0] - 1.0).abs() < 1e-6 && (v[5] - 1.0).abs() < 1e-6 && (v[10] - 1.0).abs() < 1e-6
+        );
+    }
+}
+
+#[test]
+fn random_valid_configs_generate_and_render_without_panicking() {
+    let mut rng = ChaCha8Rng::seed_from_u64(99);
+    let mut generated = 0;
+    for i in 0..40 {
+        let mut cfg = tiny_config();
+        cfg.lidar.sensor = Some(LidarSensor {
+            rows: 8,
+            cols: 64,
+            ..LidarSensor::hdl64e()
+        });
+        cfg.layout = [Layout::Straight, Layout::Junction, Layout::NarrowStreet][i % 3];
+        cfg.road = RoadConfig {
+            length_m: Some(rng.random_range(5.0..300.0)),
+            lanes_per_direction: Some(rng.random_range(1..=4)),
+            lane_width_m: Some(rng.random_range(2.0..4.5)),
+            parking_lane: Some(rng.random_bool(0.5)),
+            sidewalk_width_m: Some(rng.random_range(0.3..6.0)),
+            setback_m: Some(rng.random_range(0.0..8.0)),
+            building_frontage: Some(rng.random_range(0.0..=1.0)),
+            building_height_m: Some([3.0, rng.random_range(3.0..40.0)]),
+            lane_markings: Some(rng.random_bool(0.5)),
+            ..RoadConfig::default()
+        };
+        cfg.population.parked_vehicles_per_100m = rng.random_range(0.0..40.0);
+        cfg.population.moving_vehicles = rng.random_range(0..30);
+        cfg.population.pedestrians = rng.random_range(0..30);
+        cfg.population.cyclists = rng.random_range(0..10);
+        cfg.population.trees_per_100m = rng.random_range(0.0..40.0);
+        cfg.ego.start_x_m = 0.0;
+        if cfg.validate().is_err() {
+            continue; // e.g. a junction too short for its cross-section: rejected, not generated
+        }
+        let scene = Scene::generate(&cfg, i as u64).unwrap();
+        let f = scene.render_frame(1).unwrap();
+        assert!(f.scan.points.xyz.iter().all(|p| p.is_finite()));
+        assert!(f.image.depth_m.iter().all(|d| d.is_finite() && *d >= 0.0));
+        generated += 1;
+    }
+    assert!(generated >= 25, "{generated}");
 }

@@ -8,7 +8,8 @@ use image::RgbImage;
 use proptest::prelude::*;
 use veila_data::PointCloud;
 use veila_data::weather::{
-    CameraInput, DepthMap, Intrinsics, LidarInput, Weather, WeatherConfig, WeatherSim, rng_streams_created,
+    CameraInput, DepthMap, Intrinsics, LidarInput, Weather, WeatherConfig, WeatherSim,
+    rng_streams_created,
 };
 
 fn cloud_strategy() -> impl Strategy<Value = PointCloud> {

@@ -9,8 +9,8 @@ use veila_data::weather::snow::{Flake, SnowConfig, SnowField, SnowOutcome, snow_
 use veila_data::weather::spec::{fog_alpha_per_m, fog_backscatter_per_m};
 use veila_data::weather::wet::{film_reflectivity, fresnel};
 use veila_data::weather::{
-    BeamTable, CameraInput, DepthMap, Intrinsics, LidarInput, Preset, TimeOfDay, Weather, WeatherConfig, WeatherSim,
-    rng_streams_created,
+    BeamTable, CameraInput, DepthMap, Intrinsics, LidarInput, Preset, TimeOfDay, Weather,
+    WeatherConfig, WeatherSim, rng_streams_created,
 };
 
 fn cloud(points: &[(Vec3, f32)]) -> PointCloud {
@@ -24,7 +24,9 @@ fn cloud(points: &[(Vec3, f32)]) -> PointCloud {
 
 fn all_finite(c: &PointCloud) -> bool {
     c.xyz.iter().all(|p| p.is_finite())
-        && c.intensity.iter().all(|i| i.is_finite() && *i >= 0.0 && (*i == 0.0 || i.is_normal()))
+        && c.intensity
+            .iter()
+            .all(|i| i.is_finite() && *i >= 0.0 && (*i == 0.0 || i.is_normal()))
 }
 
 /// A synthetic 64-ring scan: ground at -1.73 m out to 60 m, a wall at 25 m ahead, some far points.
@@ -49,7 +51,12 @@ fn synthetic_scan(n_cols: usize) -> PointCloud {
             ring.push(r as u16);
         }
     }
-    PointCloud { xyz, intensity, ring: Some(ring), label: None }
+    PointCloud {
+        xyz,
+        intensity,
+        ring: Some(ring),
+        label: None,
+    }
 }
 
 #[test]
@@ -58,7 +65,10 @@ fn visibility_to_infinity_is_the_identity_and_alpha_zero_is_never_used() {
     assert_eq!(fog_backscatter_per_m(f64::INFINITY), 0.0);
     // +inf and huge visibilities plan nothing
     for v in [f64::INFINITY, 1e12, 4e9] {
-        let w = Weather { fog_visibility_m: Some(v), ..Weather::clear() };
+        let w = Weather {
+            fog_visibility_m: Some(v),
+            ..Weather::clear()
+        };
         let sim = WeatherSim::new(&w, &WeatherConfig::default()).unwrap();
         assert!(sim.plan().is_identity(), "visibility {v}");
         assert!(sim.fog_table().is_none());
@@ -69,7 +79,10 @@ fn visibility_to_infinity_is_the_identity_and_alpha_zero_is_never_used() {
     // as visibility grows, fog converges to the identity: at 100 km the intensities change by
     // exp(-2 alpha R) only, no point is replaced
     let c = synthetic_scan(64);
-    let w = Weather { fog_visibility_m: Some(1e5), ..Weather::clear() };
+    let w = Weather {
+        fog_visibility_m: Some(1e5),
+        ..Weather::clear()
+    };
     let sim = WeatherSim::new(&w, &WeatherConfig::default()).unwrap();
     let out = sim.apply_lidar(LidarInput::new(&c)).unwrap();
     assert_eq!(out.cloud.xyz, c.xyz);
@@ -81,8 +94,14 @@ fn visibility_to_infinity_is_the_identity_and_alpha_zero_is_never_used() {
     }
     // NaN and tiny visibilities are rejected, not clamped silently
     for v in [f64::NAN, 0.0, -5.0, 9.99] {
-        let w = Weather { fog_visibility_m: Some(v), ..Weather::clear() };
-        assert!(WeatherSim::new(&w, &WeatherConfig::default()).is_err(), "visibility {v}");
+        let w = Weather {
+            fog_visibility_m: Some(v),
+            ..Weather::clear()
+        };
+        assert!(
+            WeatherSim::new(&w, &WeatherConfig::default()).is_err(),
+            "visibility {v}"
+        );
     }
 }
 
@@ -101,7 +120,13 @@ fn points_at_zero_range_stay_finite_and_unchanged() {
         Preset::FogHeavy.weather(),
         Preset::RainHeavy.weather(),
         Preset::SnowHeavy.weather(),
-        Weather { fog_visibility_m: Some(10.0), rain_rate_mm_h: 100.0, snowfall_rate_mm_h: 5.0, water_depth_mm: 2.0, ..Weather::clear() },
+        Weather {
+            fog_visibility_m: Some(10.0),
+            rain_rate_mm_h: 100.0,
+            snowfall_rate_mm_h: 5.0,
+            water_depth_mm: 2.0,
+            ..Weather::clear()
+        },
     ] {
         let sim = WeatherSim::new(&w.clone().with_seed(5), &WeatherConfig::default()).unwrap();
         let out = sim.apply_lidar(LidarInput::new(&c)).unwrap();
@@ -112,7 +137,10 @@ fn points_at_zero_range_stay_finite_and_unchanged() {
     }
     // the fog decision itself
     let t = FogTable::new(0.06, &FogTableConfig::default()).unwrap();
-    assert_eq!(fog_point(&t, 1e-3, 0.0, 0.7), FogOutcome::Hard { intensity: 0.7 });
+    assert_eq!(
+        fog_point(&t, 1e-3, 0.0, 0.7),
+        FogOutcome::Hard { intensity: 0.7 }
+    );
     assert_eq!(t.lookup(0.0), (0.0, 0.0));
     assert_eq!(t.lookup(f64::NAN), (0.0, 0.0));
 }
@@ -125,23 +153,42 @@ fn dense_fog_at_long_range_does_not_underflow() {
         match fog_point(&t, beta, r, 0.5) {
             FogOutcome::Fog { range_m, intensity } => {
                 assert!(range_m > 0.0 && range_m < 6.0);
-                assert!(intensity.is_finite() && intensity > 0.0, "r {r}: {intensity}");
+                assert!(
+                    intensity.is_finite() && intensity > 0.0,
+                    "r {r}: {intensity}"
+                );
             }
             o => panic!("r {r}: expected a fog return, got {o:?}"),
         }
     }
     // attenuation alone (rain + snow, no fog) at absurd ranges: exactly 0, never NaN or denormal
-    let far = cloud(&[(Vec3::new(1e6, 0.0, 0.0), 1.0), (Vec3::new(3e4, 0.0, 0.0), 1e-30), (Vec3::new(3.0e38, 0.0, 0.0), 1.0)]);
-    let w = Weather { rain_rate_mm_h: 300.0, ..Weather::clear() };
-    let out = WeatherSim::new(&w, &WeatherConfig::default()).unwrap().apply_lidar(LidarInput::new(&far)).unwrap();
+    let far = cloud(&[
+        (Vec3::new(1e6, 0.0, 0.0), 1.0),
+        (Vec3::new(3e4, 0.0, 0.0), 1e-30),
+        (Vec3::new(3.0e38, 0.0, 0.0), 1.0),
+    ]);
+    let w = Weather {
+        rain_rate_mm_h: 300.0,
+        ..Weather::clear()
+    };
+    let out = WeatherSim::new(&w, &WeatherConfig::default())
+        .unwrap()
+        .apply_lidar(LidarInput::new(&far))
+        .unwrap();
     assert!(all_finite(&out.cloud), "{:?}", out.cloud);
     // dense fog on a whole scan placed far away
     let mut c = synthetic_scan(32);
     for p in &mut c.xyz {
         *p *= 100.0;
     }
-    let w = Weather { fog_visibility_m: Some(10.0), ..Weather::clear() };
-    let out = WeatherSim::new(&w, &WeatherConfig::default()).unwrap().apply_lidar(LidarInput::new(&c)).unwrap();
+    let w = Weather {
+        fog_visibility_m: Some(10.0),
+        ..Weather::clear()
+    };
+    let out = WeatherSim::new(&w, &WeatherConfig::default())
+        .unwrap()
+        .apply_lidar(LidarInput::new(&c))
+        .unwrap();
     assert!(all_finite(&out.cloud));
 }
 
@@ -151,18 +198,35 @@ fn grazing_incidence_on_wet_ground_is_finite_and_only_dims() {
     let (rs, rp, ts, tp) = fresnel(1.0003, 1.33, std::f64::consts::FRAC_PI_2);
     assert!((rs - 1.0).abs() < 1e-12 && (rp - 1.0).abs() < 1e-12 && ts < 1e-12 && tp < 1e-12);
     assert_eq!(fresnel(1.33, 1.0003, 1.2), (1.0, 1.0, 0.0, 0.0)); // total internal reflection
-    for th in [0.0, 1.0, 1.5, 1.5707, std::f64::consts::FRAC_PI_2] {
+    for th in [
+        0.0,
+        1.0,
+        1.5,
+        std::f64::consts::FRAC_PI_2 - 1e-4,
+        std::f64::consts::FRAC_PI_2,
+    ] {
         let t = film_reflectivity(0.07, th);
         assert!(t.is_finite() && t >= 0.0, "theta {th}: {t}");
     }
     // ground points out to 2 km (incidence -> 90 deg) plus one exactly at grazing (z = 0, in the mask)
-    let mut pts: Vec<(Vec3, f32)> = (1..400).map(|k| (Vec3::new(k as f32 * 5.0, 0.5, -1.73), 0.3)).collect();
+    let mut pts: Vec<(Vec3, f32)> = (1..400)
+        .map(|k| (Vec3::new(k as f32 * 5.0, 0.5, -1.73), 0.3))
+        .collect();
     pts.push((Vec3::new(30.0, 0.0, 0.0), 0.3));
     let c = cloud(&pts);
     let mask = vec![true; c.len()];
-    let w = Weather { water_depth_mm: 1.2, ..Weather::clear() };
+    let w = Weather {
+        water_depth_mm: 1.2,
+        ..Weather::clear()
+    };
     let sim = WeatherSim::new(&w, &WeatherConfig::default()).unwrap();
-    let out = sim.apply_lidar(LidarInput { cloud: &c, ground_mask: Some(&mask), beams: None }).unwrap();
+    let out = sim
+        .apply_lidar(LidarInput {
+            cloud: &c,
+            ground_mask: Some(&mask),
+            beams: None,
+        })
+        .unwrap();
     assert!(all_finite(&out.cloud));
     assert!(out.cloud.len() <= c.len());
     for (p, i) in out.cloud.xyz.iter().zip(&out.cloud.intensity) {
@@ -170,7 +234,11 @@ fn grazing_incidence_on_wet_ground_is_finite_and_only_dims() {
     }
     // grazing returns are dimmed more than steep ones
     let ratio = |x: f32| {
-        out.cloud.xyz.iter().position(|p| (p.x - x).abs() < 1e-3 && p.z < -1.0).map(|k| out.cloud.intensity[k] / 0.3)
+        out.cloud
+            .xyz
+            .iter()
+            .position(|p| (p.x - x).abs() < 1e-3 && p.z < -1.0)
+            .map(|k| out.cloud.intensity[k] / 0.3)
     };
     if let (Some(near), Some(far)) = (ratio(10.0), ratio(60.0)) {
         assert!(far < near, "near {near} far {far}");
@@ -180,9 +248,21 @@ fn grazing_incidence_on_wet_ground_is_finite_and_only_dims() {
 #[test]
 fn sensor_inside_a_snow_particle_is_skipped_without_nan() {
     let flakes = vec![
-        Flake { range_m: 0.001, azimuth_rad: 0.0, radius_m: 0.01 }, // contains the sensor
-        Flake { range_m: 0.5, azimuth_rad: 0.0, radius_m: 0.5 },    // touches it (d == r)
-        Flake { range_m: 0.0, azimuth_rad: 0.0, radius_m: 0.002 },  // centred on it
+        Flake {
+            range_m: 0.001,
+            azimuth_rad: 0.0,
+            radius_m: 0.01,
+        }, // contains the sensor
+        Flake {
+            range_m: 0.5,
+            azimuth_rad: 0.0,
+            radius_m: 0.5,
+        }, // touches it (d == r)
+        Flake {
+            range_m: 0.0,
+            azimuth_rad: 0.0,
+            radius_m: 0.002,
+        }, // centred on it
     ];
     let field = SnowField::from_flakes(vec![flakes], 64);
     let cfg = SnowConfig::default();
@@ -193,10 +273,32 @@ fn sensor_inside_a_snow_particle_is_skipped_without_nan() {
     }
     // with a real flake in front the outcome is finite
     let field = SnowField::from_flakes(
-        vec![vec![Flake { range_m: 0.001, azimuth_rad: 0.0, radius_m: 0.01 }, Flake { range_m: 2.0, azimuth_rad: 0.0, radius_m: 0.003 }]],
+        vec![vec![
+            Flake {
+                range_m: 0.001,
+                azimuth_rad: 0.0,
+                radius_m: 0.01,
+            },
+            Flake {
+                range_m: 2.0,
+                azimuth_rad: 0.0,
+                radius_m: 0.003,
+            },
+        ]],
         64,
     );
-    match snow_point(&field, &cfg, 0.01, 3e-3, 1.0, 0, 0.0, 30.0, 0.0, &mut scratch) {
+    match snow_point(
+        &field,
+        &cfg,
+        0.01,
+        3e-3,
+        1.0,
+        0,
+        0.0,
+        30.0,
+        0.0,
+        &mut scratch,
+    ) {
         SnowOutcome::Flake { range_m, intensity } => {
             assert!((range_m - 2.0).abs() < 1e-9 && intensity.is_finite() && intensity > 0.0)
         }
@@ -207,19 +309,39 @@ fn sensor_inside_a_snow_particle_is_skipped_without_nan() {
 #[test]
 fn sky_pixels_under_camera_fog_are_pure_airlight() {
     let (w, h) = (8u32, 6u32);
-    let img = RgbImage::from_fn(w, h, |x, y| image::Rgb([(x * 30) as u8, (y * 40) as u8, 100]));
+    let img = RgbImage::from_fn(w, h, |x, y| {
+        image::Rgb([(x * 30) as u8, (y * 40) as u8, 100])
+    });
     let mut z = vec![20.0f32; (w * h) as usize];
     for v in z.iter_mut().take(w as usize * 2) {
         *v = f32::INFINITY; // the two top rows are sky
     }
-    let depth = DepthMap { width: w, height: h, z_m: z };
-    let k = Intrinsics { fx: 50.0, fy: 50.0, cx: 3.5, cy: 2.5 };
+    let depth = DepthMap {
+        width: w,
+        height: h,
+        z_m: z,
+    };
+    let k = Intrinsics {
+        fx: 50.0,
+        fy: 50.0,
+        cx: 3.5,
+        cy: 2.5,
+    };
     let air = [0.6f32, 0.7, 0.8];
     let mut cfg = WeatherConfig::default();
     cfg.camera.airlight = Some(air);
-    let weather = Weather { fog_visibility_m: Some(30.0), ..Weather::clear() };
+    let weather = Weather {
+        fog_visibility_m: Some(30.0),
+        ..Weather::clear()
+    };
     let sim = WeatherSim::new(&weather, &cfg).unwrap();
-    let out = sim.apply_camera(CameraInput { image: &img, depth: Some(&depth), intrinsics: Some(k) }).unwrap();
+    let out = sim
+        .apply_camera(CameraInput {
+            image: &img,
+            depth: Some(&depth),
+            intrinsics: Some(k),
+        })
+        .unwrap();
     let want = air.map(linear_to_srgb);
     for y in 0..2 {
         for x in 0..w {
@@ -231,7 +353,13 @@ fn sky_pixels_under_camera_fog_are_pure_airlight() {
     for bad in [f32::NAN, 0.0, -1.0] {
         let mut d = depth.clone();
         d.z_m[13] = bad;
-        let err = sim.apply_camera(CameraInput { image: &img, depth: Some(&d), intrinsics: Some(k) }).unwrap_err();
+        let err = sim
+            .apply_camera(CameraInput {
+                image: &img,
+                depth: Some(&d),
+                intrinsics: Some(k),
+            })
+            .unwrap_err();
         assert!(err.to_string().contains("pixel (5, 1)"), "{err}");
     }
     // sRGB round trip is exact, so untouched pixels would survive the linear pipeline
@@ -260,19 +388,51 @@ fn run_everything(seed: u64) -> (PointCloud, Vec<u8>) {
     let depth = DepthMap {
         width: w,
         height: h,
-        z_m: (0..w * h).map(|i| if i < w * 8 { f32::INFINITY } else { 3.0 + (i % 50) as f32 }).collect(),
+        z_m: (0..w * h)
+            .map(|i| {
+                if i < w * 8 {
+                    f32::INFINITY
+                } else {
+                    3.0 + (i % 50) as f32
+                }
+            })
+            .collect(),
     };
-    let k = Intrinsics { fx: 60.0, fy: 60.0, cx: 47.5, cy: 19.5 };
-    let cam = sim.apply_camera(CameraInput { image: &img, depth: Some(&depth), intrinsics: Some(k) }).unwrap();
+    let k = Intrinsics {
+        fx: 60.0,
+        fy: 60.0,
+        cx: 47.5,
+        cy: 19.5,
+    };
+    let cam = sim
+        .apply_camera(CameraInput {
+            image: &img,
+            depth: Some(&depth),
+            intrinsics: Some(k),
+        })
+        .unwrap();
     (lid.cloud, cam.image.into_raw())
 }
 
 #[test]
 fn results_do_not_depend_on_the_thread_count() {
-    let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap().install(|| run_everything(11));
-    let two = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap().install(|| run_everything(11));
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| run_everything(11));
+    let two = rayon::ThreadPoolBuilder::new()
+        .num_threads(2)
+        .build()
+        .unwrap()
+        .install(|| run_everything(11));
     let bits = |c: &PointCloud| -> Vec<u32> {
-        c.xyz.iter().flat_map(|p| p.to_array()).chain(c.intensity.iter().copied()).map(f32::to_bits).collect()
+        c.xyz
+            .iter()
+            .flat_map(|p| p.to_array())
+            .chain(c.intensity.iter().copied())
+            .map(f32::to_bits)
+            .collect()
     };
     assert_eq!(bits(&one.0), bits(&two.0));
     assert_eq!(one.1, two.1);
@@ -294,8 +454,19 @@ fn active_weather_constructs_random_streams() {
 
 #[test]
 fn zero_intensity_points_in_rain_keep_a_finite_range() {
-    let c = cloud(&(1..200).map(|k| (Vec3::new(k as f32 * 0.7, 0.0, 0.0), 0.0)).collect::<Vec<_>>());
-    let sim = WeatherSim::new(&Weather { rain_rate_mm_h: 50.0, ..Weather::clear() }, &WeatherConfig::default()).unwrap();
+    let c = cloud(
+        &(1..200)
+            .map(|k| (Vec3::new(k as f32 * 0.7, 0.0, 0.0), 0.0))
+            .collect::<Vec<_>>(),
+    );
+    let sim = WeatherSim::new(
+        &Weather {
+            rain_rate_mm_h: 50.0,
+            ..Weather::clear()
+        },
+        &WeatherConfig::default(),
+    )
+    .unwrap();
     let out = sim.apply_lidar(LidarInput::new(&c)).unwrap();
     assert!(all_finite(&out.cloud));
     for p in &out.cloud.xyz {

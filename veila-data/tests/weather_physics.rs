@@ -7,16 +7,19 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use veila_data::PointCloud;
 use veila_data::weather::camera::{linear_to_srgb, srgb_to_linear};
-use veila_data::weather::fog::{FogTable, FogTableConfig, PulseModel, SPEED_OF_LIGHT_M_S, backscatter_integral_direct};
+use veila_data::weather::fog::{
+    FogTable, FogTableConfig, PulseModel, SPEED_OF_LIGHT_M_S, backscatter_integral_direct,
+};
 use veila_data::weather::rain::{RainConfig, RainOutcome, rain_point};
 use veila_data::weather::snow::{SnowConfig, SnowField, occlusion_ratios, waveform_peak};
 use veila_data::weather::spec::{
-    exponential_dsd_alpha_per_m, marshall_gunn, marshall_palmer, snow_equivalent_rain_rate_mm_h, snow_occupancy,
+    exponential_dsd_alpha_per_m, marshall_gunn, marshall_palmer, snow_equivalent_rain_rate_mm_h,
+    snow_occupancy,
 };
 use veila_data::weather::wet::{GroundPlane, fit_ground_plane, fresnel};
 use veila_data::weather::{
-    BeamTable, CameraEffect, CameraInput, DepthMap, Intrinsics, LidarEffect, LidarInput, PointOrigin, Preset, Sensor,
-    TimeOfDay, Weather, WeatherConfig, WeatherSim,
+    BeamTable, CameraEffect, CameraInput, DepthMap, Intrinsics, LidarEffect, LidarInput,
+    PointOrigin, Preset, Sensor, TimeOfDay, Weather, WeatherConfig, WeatherSim,
 };
 
 /// Brute-force backscatter integral (midpoint rule in t, written independently of the library).
@@ -64,14 +67,24 @@ fn fog_table_matches_direct_integration() {
             // value itself away from the steep onset just above r1 = 0.9 m
             let rel_sat = (it - ib).abs() / t.saturated().1;
             worst = worst.max(rel_sat);
-            assert!(rel_sat < 1e-3, "alpha {alpha} r0 {r0}: table {it:e} brute {ib:e}");
+            assert!(
+                rel_sat < 1e-3,
+                "alpha {alpha} r0 {r0}: table {it:e} brute {ib:e}"
+            );
             if r0 >= 1.5 {
-                assert!((it - ib).abs() / ib < 2e-3, "alpha {alpha} r0 {r0}: table {it:e} brute {ib:e}");
+                assert!(
+                    (it - ib).abs() / ib < 2e-3,
+                    "alpha {alpha} r0 {r0}: table {it:e} brute {ib:e}"
+                );
             }
-            assert!((rt - rb).abs() < 0.03, "alpha {alpha} r0 {r0}: R_fog table {rt} brute {rb}");
+            assert!(
+                (rt - rb).abs() < 0.03,
+                "alpha {alpha} r0 {r0}: R_fog table {rt} brute {rb}"
+            );
         }
         // the library's Simpson reference agrees with the midpoint brute force
-        let a = backscatter_integral_direct(alpha, 4.6, f64::INFINITY, &PulseModel::default(), 20000);
+        let a =
+            backscatter_integral_direct(alpha, 4.6, f64::INFINITY, &PulseModel::default(), 20000);
         let b = brute_integral(alpha, 4.6, f64::INFINITY, 20000);
         assert!((a - b).abs() / b < 1e-5);
         eprintln!("alpha {alpha}: worst table error / I_sat {worst:.2e}");
@@ -96,7 +109,10 @@ fn fog_table_reproduces_the_published_lookup_tables() {
         let t = FogTable::new(alpha, &FogTableConfig::default()).unwrap();
         let (r, i) = t.lookup(30.0);
         // the pickles searched R on a 0.1 m grid, so they can only be at or below the true peak
-        assert!(i >= want * 0.999 && i <= want * 1.004, "alpha {alpha}: {i:e} vs {want:e}");
+        assert!(
+            i >= want * 0.999 && i <= want * 1.004,
+            "alpha {alpha}: {i:e} vs {want:e}"
+        );
         assert!((4.4..4.8).contains(&r), "alpha {alpha}: R_fog {r}");
     }
     let v = brute_integral(0.06, 4.602, 30.0, 20000);
@@ -112,10 +128,24 @@ fn fog_table_reproduces_the_published_lookup_tables() {
 fn fog_hard_returns_follow_exp_minus_two_alpha_r_exactly() {
     let vis = 80.0;
     let alpha = 20f64.ln() / vis;
-    let pts: Vec<Vec3> = (0..200).map(|k| Vec3::new(2.0 + k as f32 * 0.5, 0.3, -0.5)).collect();
-    let c = PointCloud { xyz: pts.clone(), intensity: vec![0.37; pts.len()], ring: None, label: None };
-    let w = Weather { fog_visibility_m: Some(vis), seed: 1, ..Weather::clear() };
-    let out = WeatherSim::new(&w, &WeatherConfig::default()).unwrap().apply_lidar(LidarInput::new(&c)).unwrap();
+    let pts: Vec<Vec3> = (0..200)
+        .map(|k| Vec3::new(2.0 + k as f32 * 0.5, 0.3, -0.5))
+        .collect();
+    let c = PointCloud {
+        xyz: pts.clone(),
+        intensity: vec![0.37; pts.len()],
+        ring: None,
+        label: None,
+    };
+    let w = Weather {
+        fog_visibility_m: Some(vis),
+        seed: 1,
+        ..Weather::clear()
+    };
+    let out = WeatherSim::new(&w, &WeatherConfig::default())
+        .unwrap()
+        .apply_lidar(LidarInput::new(&c))
+        .unwrap();
     let mut hard = 0;
     let mut fog = 0;
     for k in 0..pts.len() {
@@ -124,7 +154,10 @@ fn fog_hard_returns_follow_exp_minus_two_alpha_r_exactly() {
             PointOrigin::Target => {
                 hard += 1;
                 assert_eq!(out.cloud.xyz[k], pts[k]);
-                assert_eq!(out.cloud.intensity[k], (0.37f32 as f64 * (-2.0 * alpha * r).exp()) as f32);
+                assert_eq!(
+                    out.cloud.intensity[k],
+                    (0.37f32 as f64 * (-2.0 * alpha * r).exp()) as f32
+                );
             }
             PointOrigin::Fog => {
                 fog += 1;
@@ -157,11 +190,22 @@ fn hydrometeor_extinction_matches_integrals_and_fits() {
         let (n0, l) = marshall_palmer(rate);
         let closed = exponential_dsd_alpha_per_m(n0, l);
         // (pi/4) 1e-6 * int D^2 Q_ext N(D) dD with Q_ext = 2, D in mm
-        let numeric = simpson(|d| std::f64::consts::FRAC_PI_4 * 1e-6 * d * d * 2.0 * n0 * (-l * d).exp(), 0.0, 40.0, 20000);
+        let numeric = simpson(
+            |d| std::f64::consts::FRAC_PI_4 * 1e-6 * d * d * 2.0 * n0 * (-l * d).exp(),
+            0.0,
+            40.0,
+            20000,
+        );
         assert!((closed - numeric).abs() / numeric < 1e-6);
         let fit = 3.65e-4 * rate.powf(0.63);
-        assert!((closed - fit).abs() / fit < 0.01, "rain {rate}: {closed} vs {fit}");
-        let w = Weather { rain_rate_mm_h: rate, ..Weather::clear() };
+        assert!(
+            (closed - fit).abs() / fit < 0.01,
+            "rain {rate}: {closed} vs {fit}"
+        );
+        let w = Weather {
+            rain_rate_mm_h: rate,
+            ..Weather::clear()
+        };
         assert_eq!(w.extinction().rain_per_m, closed);
     }
     for r in [0.5, 2.0, 8.0] {
@@ -171,7 +215,12 @@ fn hydrometeor_extinction_matches_integrals_and_fits() {
         assert!((a - fit).abs() / fit < 0.01, "snow {r}: {a} vs {fit}");
     }
     // one alpha: fog + rain + snow add up
-    let w = Weather { fog_visibility_m: Some(200.0), rain_rate_mm_h: 5.0, snowfall_rate_mm_h: 1.0, ..Weather::clear() };
+    let w = Weather {
+        fog_visibility_m: Some(200.0),
+        rain_rate_mm_h: 5.0,
+        snowfall_rate_mm_h: 1.0,
+        ..Weather::clear()
+    };
     let e = w.extinction();
     assert_eq!(e.total_per_m(), e.fog_per_m + e.rain_per_m + e.snow_per_m);
     assert!((e.fog_per_m - 2.995_732 / 200.0).abs() < 1e-8);
@@ -187,10 +236,18 @@ fn snowfall_parameters_match_the_published_particle_files() {
     ] {
         assert!((snow_equivalent_rain_rate_mm_h(s, vt) - r_eq).abs() / r_eq < 1e-3);
         assert!((snow_occupancy(s, vt) - occ).abs() / occ < 3e-3);
-        let w = Weather { snowfall_rate_mm_h: s, snow_terminal_velocity_m_s: vt, seed: 4, ..Weather::clear() };
+        let w = Weather {
+            snowfall_rate_mm_h: s,
+            snow_terminal_velocity_m_s: vt,
+            seed: 4,
+            ..Weather::clear()
+        };
         let field = SnowField::sample(&w, 4, &SnowConfig::default()).unwrap();
         let got = field.num_flakes() as f64 / 4.0;
-        assert!((got - per_channel).abs() / per_channel < 0.04, "S {s}: {got} flakes per channel vs {per_channel}");
+        assert!(
+            (got - per_channel).abs() / per_channel < 0.04,
+            "S {s}: {got} flakes per channel vs {per_channel}"
+        );
     }
 }
 
@@ -203,9 +260,15 @@ fn fresnel_conserves_energy_and_has_brewster_angle() {
     for k in 0..89 {
         let th = (k as f64).to_radians();
         let (rs, rp, ts, tp) = fresnel(n1, n2, th);
-        assert!((rs + ts - 1.0).abs() < 1e-12 && (rp + tp - 1.0).abs() < 1e-12, "theta {k}");
+        assert!(
+            (rs + ts - 1.0).abs() < 1e-12 && (rp + tp - 1.0).abs() < 1e-12,
+            "theta {k}"
+        );
         let (rs, rp, ts, tp) = fresnel(n2, n1, th.min(0.84));
-        assert!((rs + ts - 1.0).abs() < 1e-12 && (rp + tp - 1.0).abs() < 1e-12, "theta {k} (water to air)");
+        assert!(
+            (rs + ts - 1.0).abs() < 1e-12 && (rp + tp - 1.0).abs() < 1e-12,
+            "theta {k} (water to air)"
+        );
     }
     let brewster = (n2 / n1).atan();
     assert!(fresnel(n1, n2, brewster).1 < 1e-20);
@@ -216,18 +279,31 @@ fn fresnel_conserves_energy_and_has_brewster_angle() {
 fn snow_occlusion_and_waveform_match_brute_force() {
     let w = 1.5e-3;
     // (distance, a, b) sorted nearest first, overlapping
-    let iv = [(1.0, -2e-3, -1e-3), (2.0, -1.2e-3, 0.2e-3), (3.0, -0.5e-3, 1.0e-3), (4.0, 0.9e-3, 2e-3)];
+    let iv = [
+        (1.0, -2e-3, -1e-3),
+        (2.0, -1.2e-3, 0.2e-3),
+        (3.0, -0.5e-3, 1.0e-3),
+        (4.0, 0.9e-3, 2e-3),
+    ];
     let mut ratios = Vec::new();
     let rest = occlusion_ratios(w, &iv, &mut ratios);
     let n = 200_000;
     let mut brute = [0.0f64; 5];
     for k in 0..n {
         let x = -w + (k as f64 + 0.5) / n as f64 * 2.0 * w;
-        let j = iv.iter().position(|&(_, a, b)| x >= a && x < b).unwrap_or(4);
+        let j = iv
+            .iter()
+            .position(|&(_, a, b)| x >= a && x < b)
+            .unwrap_or(4);
         brute[j] += 1.0 / n as f64;
     }
     for j in 0..4 {
-        assert!((ratios[j] - brute[j]).abs() < 1e-4, "{j}: {} vs {}", ratios[j], brute[j]);
+        assert!(
+            (ratios[j] - brute[j]).abs() < 1e-4,
+            "{j}: {} vs {}",
+            ratios[j],
+            brute[j]
+        );
     }
     assert!((rest - brute[4]).abs() < 1e-4);
     assert!((ratios.iter().sum::<f64>() + rest - 1.0).abs() < 1e-12);
@@ -237,8 +313,9 @@ fn snow_occlusion_and_waveform_match_brute_force() {
     use rand::Rng;
     for _ in 0..50 {
         let k = rng.random_range(1..6);
-        let contrib: Vec<(f64, f64)> =
-            (0..k).map(|_| (rng.random_range(1.0..8.0), rng.random_range(0.01..1.0))).collect();
+        let contrib: Vec<(f64, f64)> = (0..k)
+            .map(|_| (rng.random_range(1.0..8.0), rng.random_range(0.01..1.0)))
+            .collect();
         let (r, v) = waveform_peak(&contrib, len);
         let eval = |x: f64| -> f64 {
             contrib
@@ -279,12 +356,22 @@ fn lisa_range_noise_has_the_documented_sigma() {
     // a weak far target in heavy rain is lost, a strong near one never is
     let mut lost = 0;
     for _ in 0..200 {
-        if rain_point(&mut rng, &cfg, 50.0, 0.0043, 3e-3, 150.0, 0.9 * (-2.0 * 0.0043 * 150.0f64).exp())
-            == RainOutcome::Lost
+        if rain_point(
+            &mut rng,
+            &cfg,
+            50.0,
+            0.0043,
+            3e-3,
+            150.0,
+            0.9 * (-2.0 * 0.0043 * 150.0f64).exp(),
+        ) == RainOutcome::Lost
         {
             lost += 1;
         }
-        assert_ne!(rain_point(&mut rng, &cfg, 50.0, 0.0043, 3e-3, 5.0, 0.5), RainOutcome::Lost);
+        assert_ne!(
+            rain_point(&mut rng, &cfg, 50.0, 0.0043, 3e-3, 5.0, 0.5),
+            RainOutcome::Lost
+        );
     }
     assert!(lost > 150, "{lost}");
 }
@@ -295,15 +382,37 @@ fn camera_fog_uses_the_distance_along_the_ray_not_z() {
     let grey = 60u8;
     let img = RgbImage::from_pixel(w, h, image::Rgb([grey; 3]));
     let z = 40.0f32;
-    let depth = DepthMap { width: w, height: h, z_m: vec![z; (w * h) as usize] };
-    let k = Intrinsics { fx: 20.0, fy: 20.0, cx: 20.0, cy: 10.0 };
+    let depth = DepthMap {
+        width: w,
+        height: h,
+        z_m: vec![z; (w * h) as usize],
+    };
+    let k = Intrinsics {
+        fx: 20.0,
+        fy: 20.0,
+        cx: 20.0,
+        cy: 10.0,
+    };
     let vis = 60.0;
     let alpha = 20f64.ln() / vis;
     let air = 0.9f32;
     let mut cfg = WeatherConfig::default();
     cfg.camera.airlight = Some([air; 3]);
-    let sim = WeatherSim::new(&Weather { fog_visibility_m: Some(vis), ..Weather::clear() }, &cfg).unwrap();
-    let out = sim.apply_camera(CameraInput { image: &img, depth: Some(&depth), intrinsics: Some(k) }).unwrap();
+    let sim = WeatherSim::new(
+        &Weather {
+            fog_visibility_m: Some(vis),
+            ..Weather::clear()
+        },
+        &cfg,
+    )
+    .unwrap();
+    let out = sim
+        .apply_camera(CameraInput {
+            image: &img,
+            depth: Some(&depth),
+            intrinsics: Some(k),
+        })
+        .unwrap();
     let j = srgb_to_linear(grey) as f64;
     let expect = |u: f64, v: f64| {
         let l = z as f64 * (((u - 20.0) / 20.0).powi(2) + ((v - 10.0) / 20.0).powi(2) + 1.0).sqrt();
@@ -311,10 +420,17 @@ fn camera_fog_uses_the_distance_along_the_ray_not_z() {
         linear_to_srgb((j * t + air as f64 * (1.0 - t)) as f32)
     };
     for (u, v) in [(0u32, 0u32), (20, 10), (40, 20), (5, 15)] {
-        assert_eq!(out.image.get_pixel(u, v).0[0], expect(u as f64, v as f64), "pixel ({u}, {v})");
+        assert_eq!(
+            out.image.get_pixel(u, v).0[0],
+            expect(u as f64, v as f64),
+            "pixel ({u}, {v})"
+        );
     }
     // z alone would give the corner the centre's value: the test can tell the two apart
-    assert_ne!(out.image.get_pixel(0, 0).0[0], out.image.get_pixel(20, 10).0[0]);
+    assert_ne!(
+        out.image.get_pixel(0, 0).0[0],
+        out.image.get_pixel(20, 10).0[0]
+    );
 }
 
 #[test]
@@ -323,17 +439,40 @@ fn planner_routes_each_effect_to_its_sensors() {
     let plan = |p: Preset| veila_data::weather::Plan::new(&p.weather(), &cam).unwrap();
     let night = plan(Preset::KittiNight);
     assert!(night.lidar.is_empty(), "a LiDAR makes its own light");
-    assert_eq!(night.camera, vec![CameraEffect::Darken, CameraEffect::SensorNoise]);
+    assert_eq!(
+        night.camera,
+        vec![CameraEffect::Darken, CameraEffect::SensorNoise]
+    );
     let fog = plan(Preset::KittiFog);
     assert_eq!(fog.lidar, vec![LidarEffect::Fog]);
     assert_eq!(fog.camera, vec![CameraEffect::Veil]);
     let snow = plan(Preset::KittiSnow);
     assert_eq!(snow.lidar, vec![LidarEffect::Extinction, LidarEffect::Snow]);
-    assert_eq!(snow.camera, vec![CameraEffect::Veil, CameraEffect::Snowflakes]);
+    assert_eq!(
+        snow.camera,
+        vec![CameraEffect::Veil, CameraEffect::Snowflakes]
+    );
     let rain = plan(Preset::RainModerate);
-    assert_eq!(rain.lidar, vec![LidarEffect::WetGround, LidarEffect::Extinction, LidarEffect::Rain]);
-    assert_eq!(rain.camera, vec![CameraEffect::Veil, CameraEffect::RainStreaks]);
-    let wet = veila_data::weather::Plan::new(&Weather { water_depth_mm: 0.5, ..Weather::clear() }, &cam).unwrap();
+    assert_eq!(
+        rain.lidar,
+        vec![
+            LidarEffect::WetGround,
+            LidarEffect::Extinction,
+            LidarEffect::Rain
+        ]
+    );
+    assert_eq!(
+        rain.camera,
+        vec![CameraEffect::Veil, CameraEffect::RainStreaks]
+    );
+    let wet = veila_data::weather::Plan::new(
+        &Weather {
+            water_depth_mm: 0.5,
+            ..Weather::clear()
+        },
+        &cam,
+    )
+    .unwrap();
     assert_eq!(wet.lidar, vec![LidarEffect::WetGround]);
     assert!(wet.camera.is_empty());
     assert!(plan(Preset::KittiClean).is_identity());
@@ -350,37 +489,100 @@ fn planner_routes_each_effect_to_its_sensors() {
 
 #[test]
 fn missing_inputs_fail_loudly_or_use_the_documented_fallback() {
-    let pts: Vec<Vec3> = (0..500).map(|k| Vec3::new(3.0 + (k % 50) as f32, (k / 50) as f32 - 5.0, -1.73)).collect();
-    let c = PointCloud { xyz: pts, intensity: vec![0.2; 500], ring: None, label: None };
+    let pts: Vec<Vec3> = (0..500)
+        .map(|k| Vec3::new(3.0 + (k % 50) as f32, (k / 50) as f32 - 5.0, -1.73))
+        .collect();
+    let c = PointCloud {
+        xyz: pts,
+        intensity: vec![0.2; 500],
+        ring: None,
+        label: None,
+    };
     let sim = WeatherSim::new(&Preset::SnowModerate.weather(), &WeatherConfig::default()).unwrap();
-    let err = sim.apply_lidar(LidarInput::new(&c)).unwrap_err().to_string();
-    assert!(err.contains("ring"), "{err}");
+    let err = sim.apply_lidar(LidarInput::new(&c)).unwrap_err();
+    assert!(
+        matches!(&err, veila_data::Error::MissingInput { effect, input } if effect == "snow" && input.contains("ring")),
+        "{err}"
+    );
     let beams = BeamTable::hdl64e();
-    let out = sim.apply_lidar(LidarInput { cloud: &c, ground_mask: None, beams: Some(&beams) }).unwrap();
+    let out = sim
+        .apply_lidar(LidarInput {
+            cloud: &c,
+            ground_mask: None,
+            beams: Some(&beams),
+        })
+        .unwrap();
     let snow = out.records.iter().find(|r| r.effect == "snow").unwrap();
-    assert!(snow.notes.iter().any(|n| n.contains("beam elevations")), "{:?}", snow.notes);
+    assert!(
+        snow.notes.iter().any(|n| n.contains("beam elevations")),
+        "{:?}",
+        snow.notes
+    );
 
     // camera fog without depth / intrinsics
     let img = RgbImage::new(4, 3);
     let sim = WeatherSim::new(&Preset::FogModerate.weather(), &WeatherConfig::default()).unwrap();
-    let err = sim.apply_camera(CameraInput { image: &img, depth: None, intrinsics: None }).unwrap_err().to_string();
-    assert!(err.contains("veil") && err.contains("depth map"), "{err}");
-    let depth = DepthMap { width: 3, height: 3, z_m: vec![1.0; 9] };
-    let k = Intrinsics { fx: 1.0, fy: 1.0, cx: 1.0, cy: 1.0 };
-    let err = sim.apply_camera(CameraInput { image: &img, depth: Some(&depth), intrinsics: Some(k) }).unwrap_err();
+    let err = sim
+        .apply_camera(CameraInput {
+            image: &img,
+            depth: None,
+            intrinsics: None,
+        })
+        .unwrap_err();
+    assert!(
+        matches!(&err, veila_data::Error::MissingInput { effect, .. } if effect == "veil"),
+        "{err}"
+    );
+    assert!(err.to_string().contains("depth map"), "{err}");
+    let depth = DepthMap {
+        width: 3,
+        height: 3,
+        z_m: vec![1.0; 9],
+    };
+    let k = Intrinsics {
+        fx: 1.0,
+        fy: 1.0,
+        cx: 1.0,
+        cy: 1.0,
+    };
+    let err = sim
+        .apply_camera(CameraInput {
+            image: &img,
+            depth: Some(&depth),
+            intrinsics: Some(k),
+        })
+        .unwrap_err();
     assert!(err.to_string().contains("4x3"), "{err}");
 
     // wet ground: mask of the wrong length is an error; labels are used when present; else a plane fit
-    let wet = WeatherSim::new(&Weather { water_depth_mm: 1.0, ..Weather::clear() }, &WeatherConfig::default()).unwrap();
+    let wet = WeatherSim::new(
+        &Weather {
+            water_depth_mm: 1.0,
+            ..Weather::clear()
+        },
+        &WeatherConfig::default(),
+    )
+    .unwrap();
     let bad = vec![true; 3];
-    assert!(wet.apply_lidar(LidarInput { cloud: &c, ground_mask: Some(&bad), beams: None }).is_err());
+    assert!(
+        wet.apply_lidar(LidarInput {
+            cloud: &c,
+            ground_mask: Some(&bad),
+            beams: None
+        })
+        .is_err()
+    );
     let mut labelled = c.clone();
     labelled.label = Some((0..500).map(|k| if k % 2 == 0 { 40 } else { 50 }).collect());
     let out = wet.apply_lidar(LidarInput::new(&labelled)).unwrap();
     assert!(out.records[0].notes.iter().any(|n| n.contains("labels")));
     assert_eq!(out.records[0].counts["ground_points"], 250);
     let out = wet.apply_lidar(LidarInput::new(&c)).unwrap();
-    assert!(out.records[0].notes.iter().any(|n| n.contains("plane fit")), "{:?}", out.records[0].notes);
+    assert!(
+        out.records[0].notes.iter().any(|n| n.contains("plane fit")),
+        "{:?}",
+        out.records[0].notes
+    );
 }
 
 #[test]
@@ -394,15 +596,25 @@ fn ground_plane_fit_recovers_a_tilted_road() {
         }
     }
     for i in 0..200 {
-        pts.push(Vec3::new(5.0 + (i % 40) as f32, 3.0, -1.2 + (i / 40) as f32 * 0.05));
+        pts.push(Vec3::new(
+            5.0 + (i % 40) as f32,
+            3.0,
+            -1.2 + (i / 40) as f32 * 0.05,
+        ));
     }
     let pl = fit_ground_plane(&pts, 1.73, 0).unwrap();
     let n = glam::DVec3::new(-0.02, 0.01, 1.0).normalize();
     assert!((pl.normal - n).length() < 1e-5, "{:?}", pl.normal);
     assert!((pl.d - 1.7 * n.z).abs() < 1e-4, "{}", pl.d);
-    assert!(pl.normal.z > 0.0, "the normal points up (the reference's fallback had it upside down)");
+    assert!(
+        pl.normal.z > 0.0,
+        "the normal points up (the reference's fallback had it upside down)"
+    );
     assert!(fit_ground_plane(&pts[..10], 1.73, 0).is_none());
-    assert_eq!(GroundPlane::flat(1.73).distance(glam::DVec3::new(5.0, 0.0, -1.73)), 0.0);
+    assert_eq!(
+        GroundPlane::flat(1.73).distance(glam::DVec3::new(5.0, 0.0, -1.73)),
+        0.0
+    );
 }
 
 #[test]
@@ -412,29 +624,62 @@ fn night_darkens_only_the_camera_and_headlights_light_the_near_road() {
     let depth = DepthMap {
         width: w,
         height: h,
-        z_m: (0..w * h).map(|i| if i / w < 10 { f32::INFINITY } else { 4.0 + (h - i / w) as f32 }).collect(),
+        z_m: (0..w * h)
+            .map(|i| {
+                if i / w < 10 {
+                    f32::INFINITY
+                } else {
+                    4.0 + (h - i / w) as f32
+                }
+            })
+            .collect(),
     };
-    let k = Intrinsics { fx: 40.0, fy: 40.0, cx: 31.5, cy: 12.0 };
-    let input = CameraInput { image: &img, depth: Some(&depth), intrinsics: Some(k) };
-    let night = Weather { time_of_day: TimeOfDay::Night, seed: 2, ..Weather::clear() };
+    let k = Intrinsics {
+        fx: 40.0,
+        fy: 40.0,
+        cx: 31.5,
+        cy: 12.0,
+    };
+    let input = CameraInput {
+        image: &img,
+        depth: Some(&depth),
+        intrinsics: Some(k),
+    };
+    let night = Weather {
+        time_of_day: TimeOfDay::Night,
+        seed: 2,
+        ..Weather::clear()
+    };
     let sim = WeatherSim::new(&night, &WeatherConfig::default()).unwrap();
     assert!(sim.plan().lidar.is_empty());
     let dark = sim.apply_camera(input).unwrap();
     let mean_lin = |im: &RgbImage| {
-        im.as_raw().iter().map(|&v| srgb_to_linear(v) as f64).sum::<f64>() / im.as_raw().len() as f64
+        im.as_raw()
+            .iter()
+            .map(|&v| srgb_to_linear(v) as f64)
+            .sum::<f64>()
+            / im.as_raw().len() as f64
     };
     let m0 = mean_lin(&img);
     let m1 = mean_lin(&dark.image);
     assert!((m1 / m0 - 0.05).abs() < 0.01, "{m1} / {m0}");
     let mut cfg = WeatherConfig::default();
     cfg.camera.headlights = Some(Default::default());
-    let lit = WeatherSim::new(&night, &cfg).unwrap().apply_camera(input).unwrap();
+    let lit = WeatherSim::new(&night, &cfg)
+        .unwrap()
+        .apply_camera(input)
+        .unwrap();
     assert_eq!(
-        lit.records.iter().map(|r| r.effect.as_str()).collect::<Vec<_>>(),
+        lit.records
+            .iter()
+            .map(|r| r.effect.as_str())
+            .collect::<Vec<_>>(),
         ["darken", "headlights", "sensor_noise"]
     );
     // bottom rows (near road) brighter with headlights; sky rows unchanged up to noise
-    let row_mean = |im: &RgbImage, r: u32| (0..w).map(|c| im.get_pixel(c, r).0[0] as f64).sum::<f64>() / w as f64;
+    let row_mean = |im: &RgbImage, r: u32| {
+        (0..w).map(|c| im.get_pixel(c, r).0[0] as f64).sum::<f64>() / w as f64
+    };
     assert!(row_mean(&lit.image, h - 1) > row_mean(&dark.image, h - 1) + 5.0);
     assert!((row_mean(&lit.image, 0) - row_mean(&dark.image, 0)).abs() < 1e-9);
     let _ = Sensor::Camera;

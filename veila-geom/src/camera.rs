@@ -24,7 +24,8 @@ impl ImagePoint {
     pub fn pixel(&self, width: u32, height: u32) -> Option<(u32, u32)> {
         let c = (self.u_px + 0.5).floor();
         let r = (self.v_px + 0.5).floor();
-        (c >= 0.0 && r >= 0.0 && c < width as f32 && r < height as f32).then_some((c as u32, r as u32))
+        (c >= 0.0 && r >= 0.0 && c < width as f32 && r < height as f32)
+            .then_some((c as u32, r as u32))
     }
 }
 
@@ -123,16 +124,25 @@ impl PinholeCamera {
     pub fn validate(&self) -> Result<(), GeomError> {
         let bad = |m: String| Err(GeomError::InvalidCamera(m));
         if self.width == 0 || self.height == 0 {
-            return bad(format!("image size must be positive, got {}x{}", self.width, self.height));
+            return bad(format!(
+                "image size must be positive, got {}x{}",
+                self.width, self.height
+            ));
         }
         if !self.intrinsics.is_finite() || !self.cam_from_lidar.is_finite() {
             return bad("matrices must be finite".into());
         }
         if !(self.near_m.is_finite() && self.near_m > 0.0) {
-            return bad(format!("near plane must be finite and positive, got {}", self.near_m));
+            return bad(format!(
+                "near plane must be finite and positive, got {}",
+                self.near_m
+            ));
         }
         let k3 = Mat3::from_mat4(self.intrinsics);
-        let scale = k3.to_cols_array().iter().fold(0.0f32, |a, v| a.max(v.abs()));
+        let scale = k3
+            .to_cols_array()
+            .iter()
+            .fold(0.0f32, |a, v| a.max(v.abs()));
         let det = k3.determinant();
         if !(scale > 0.0) || det.abs() <= 1e-9 * scale * scale * scale {
             return bad(format!("the 3x3 part of K is singular (det {det})"));
@@ -163,19 +173,27 @@ impl PinholeCamera {
         if !(w > self.near_m && p_cam.z > 0.0) {
             return None;
         }
-        let ip = ImagePoint { u_px: q.x / w, v_px: q.y / w, depth_m: p_cam.z };
+        let ip = ImagePoint {
+            u_px: q.x / w,
+            v_px: q.y / w,
+            depth_m: p_cam.z,
+        };
         (ip.u_px.is_finite() && ip.v_px.is_finite()).then_some(ip)
     }
 
     /// Whether pixel coordinates lie inside the image (`[-0.5, W - 0.5) x [-0.5, H - 0.5)`).
     #[inline]
     pub fn contains(&self, u_px: f32, v_px: f32) -> bool {
-        u_px >= -0.5 && v_px >= -0.5 && u_px < self.width as f32 - 0.5 && v_px < self.height as f32 - 0.5
+        u_px >= -0.5
+            && v_px >= -0.5
+            && u_px < self.width as f32 - 0.5
+            && v_px < self.height as f32 - 0.5
     }
 
     /// [`PinholeCamera::try_project`], and `None` outside the image too.
     pub fn try_project_in_image(&self, p_lidar: Vec3) -> Option<ImagePoint> {
-        self.try_project(p_lidar).filter(|ip| self.contains(ip.u_px, ip.v_px))
+        self.try_project(p_lidar)
+            .filter(|ip| self.contains(ip.u_px, ip.v_px))
     }
 
     /// The LiDAR-frame point seen at pixel `(u_px, v_px)` with camera-frame depth `depth_m`; `None` if

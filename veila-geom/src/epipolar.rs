@@ -43,23 +43,46 @@ pub struct EpipolarConfig {
 
 impl Default for EpipolarConfig {
     fn default() -> Self {
-        EpipolarConfig { num_samples: 8, near_m: 2.0, far_m: 80.0, spacing: DepthSpacing::Log, tau_m: 40.0 }
+        EpipolarConfig {
+            num_samples: 8,
+            near_m: 2.0,
+            far_m: 80.0,
+            spacing: DepthSpacing::Log,
+            tau_m: 40.0,
+        }
     }
 }
 
 impl EpipolarConfig {
     /// Check the configuration.
     pub fn validate(&self) -> Result<(), GeomError> {
-        let bad = |m: String| Err(GeomError::InvalidConfig { what: "epipolar table", message: m });
+        let bad = |m: String| {
+            Err(GeomError::InvalidConfig {
+                what: "epipolar table",
+                message: m,
+            })
+        };
         if self.num_samples == 0 || self.num_samples > 1024 {
-            return bad(format!("num_samples must be in 1..=1024, got {}", self.num_samples));
+            return bad(format!(
+                "num_samples must be in 1..=1024, got {}",
+                self.num_samples
+            ));
         }
-        if !(self.near_m.is_finite() && self.far_m.is_finite() && self.near_m > 0.0 && self.far_m > self.near_m)
+        if !(self.near_m.is_finite()
+            && self.far_m.is_finite()
+            && self.near_m > 0.0
+            && self.far_m > self.near_m)
         {
-            return bad(format!("need 0 < near_m < far_m (finite), got {} and {}", self.near_m, self.far_m));
+            return bad(format!(
+                "need 0 < near_m < far_m (finite), got {} and {}",
+                self.near_m, self.far_m
+            ));
         }
         if !(self.tau_m.is_finite() && self.tau_m > 0.0) {
-            return bad(format!("tau_m must be finite and positive, got {}", self.tau_m));
+            return bad(format!(
+                "tau_m must be finite and positive, got {}",
+                self.tau_m
+            ));
         }
         Ok(())
     }
@@ -70,7 +93,11 @@ impl EpipolarConfig {
         let (n, f) = (f64::from(self.near_m), f64::from(self.far_m));
         (0..k)
             .map(|i| {
-                let t = if k == 1 { 0.0 } else { i as f64 / (k - 1) as f64 };
+                let t = if k == 1 {
+                    0.0
+                } else {
+                    i as f64 / (k - 1) as f64
+                };
                 let d = match self.spacing {
                     DepthSpacing::Uniform => n + (f - n) * t,
                     DepthSpacing::Log => (n.ln() + (f.ln() - n.ln()) * t).exp(),
@@ -116,7 +143,11 @@ pub struct BilinearGather {
 
 impl EpipolarTable {
     /// Build the table. Cost is `O(rows * cols * K)`; done once per camera.
-    pub fn build(rays: &RayTable, camera: &PinholeCamera, cfg: &EpipolarConfig) -> Result<Self, GeomError> {
+    pub fn build(
+        rays: &RayTable,
+        camera: &PinholeCamera,
+        cfg: &EpipolarConfig,
+    ) -> Result<Self, GeomError> {
         cfg.validate()?;
         camera.validate()?;
         let depths_m = cfg.depths_m();
@@ -125,13 +156,19 @@ impl EpipolarTable {
         let mut grid = Vec::with_capacity(n);
         let mut valid = Vec::with_capacity(n);
         let mut weight = Vec::with_capacity(n);
-        let decay: Vec<f32> = depths_m.iter().map(|d| (-f64::from(*d) / f64::from(cfg.tau_m)).exp() as f32).collect();
+        let decay: Vec<f32> = depths_m
+            .iter()
+            .map(|d| (-f64::from(*d) / f64::from(cfg.tau_m)).exp() as f32)
+            .collect();
         let (w, h) = (camera.width as f32, camera.height as f32);
         for dir in rays.dirs() {
             for (d, dec) in depths_m.iter().zip(&decay) {
                 match camera.try_project_in_image(*dir * *d) {
                     Some(ip) => {
-                        grid.push([(2.0 * ip.u_px + 1.0) / w - 1.0, (2.0 * ip.v_px + 1.0) / h - 1.0]);
+                        grid.push([
+                            (2.0 * ip.u_px + 1.0) / w - 1.0,
+                            (2.0 * ip.v_px + 1.0) / h - 1.0,
+                        ]);
                         valid.push(true);
                         weight.push(*dec);
                     }
@@ -172,7 +209,10 @@ impl EpipolarTable {
 
     /// Per pixel: whether any sample is valid (the pixel's ray crosses the image within the depth range).
     pub fn any_valid_mask(&self) -> Vec<bool> {
-        self.valid.chunks(self.num_samples()).map(|c| c.iter().any(|v| *v)).collect()
+        self.valid
+            .chunks(self.num_samples())
+            .map(|c| c.iter().any(|v| *v))
+            .collect()
     }
 
     /// Bilinear taps of every sample on a `feat_h x feat_w` feature map (align_corners = false, zero
@@ -191,7 +231,12 @@ impl EpipolarTable {
             let y = ((g[1] + 1.0) * feat_h as f32 - 1.0) * 0.5;
             let (x0, y0) = (x.floor(), y.floor());
             let (fx, fy) = (x - x0, y - y0);
-            let taps = [(x0, y0, (1.0 - fx) * (1.0 - fy)), (x0 + 1.0, y0, fx * (1.0 - fy)), (x0, y0 + 1.0, (1.0 - fx) * fy), (x0 + 1.0, y0 + 1.0, fx * fy)];
+            let taps = [
+                (x0, y0, (1.0 - fx) * (1.0 - fy)),
+                (x0 + 1.0, y0, fx * (1.0 - fy)),
+                (x0, y0 + 1.0, (1.0 - fx) * fy),
+                (x0 + 1.0, y0 + 1.0, fx * fy),
+            ];
             let mut idx = [0u32; 4];
             let mut wts = [0.0f32; 4];
             for (t, (tx, ty, tw)) in taps.into_iter().enumerate() {
@@ -203,6 +248,11 @@ impl EpipolarTable {
             indices.push(idx);
             weights.push(wts);
         }
-        BilinearGather { feat_h, feat_w, indices, weights }
+        BilinearGather {
+            feat_h,
+            feat_w,
+            indices,
+            weights,
+        }
     }
 }

@@ -38,7 +38,8 @@ pub fn atan2_approx(y: f32, x: f32) -> f32 {
 pub fn asin_approx(x: f32) -> f32 {
     let ax = x.abs().min(1.0);
     // fitted by tools/fit_fastmath.py (max error 6.4e-7 rad)
-    let p = ((((-0.004_910_084 * ax + 0.020_617_373) * ax - 0.045_924_86) * ax + 0.088_170_16) * ax
+    let p = ((((-0.004_910_084 * ax + 0.020_617_373) * ax - 0.045_924_86) * ax + 0.088_170_16)
+        * ax
         - 0.214_542_69)
         * ax
         + 1.570_795_7;
@@ -69,7 +70,14 @@ mod tests {
 
     #[test]
     fn atan2_signs_on_axes_match_std() {
-        for (y, x) in [(0.0f32, -1.0f32), (-0.0, -1.0), (0.0, 1.0), (-0.0, 1.0), (1.0, 0.0), (-1.0, 0.0)] {
+        for (y, x) in [
+            (0.0f32, -1.0f32),
+            (-0.0, -1.0),
+            (0.0, 1.0),
+            (-0.0, 1.0),
+            (1.0, 0.0),
+            (-1.0, 0.0),
+        ] {
             assert_eq!(atan2_approx(y, x), y.atan2(x), "atan2({y}, {x})");
         }
         assert_eq!(atan2_approx(0.0, 0.0), 0.0);

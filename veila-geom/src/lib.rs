@@ -54,8 +54,8 @@ pub use epipolar::{BilinearGather, DepthSpacing, EpipolarConfig, EpipolarTable};
 pub use error::GeomError;
 pub use fourier::FourierEncoding;
 pub use projection::{
-    AngleMethod, NO_POINT, OutOfFov, PixelOutcome, ProjectionOptions, ProjectionStats, Projector, RangeImage,
-    Rejections, project,
+    AngleMethod, NO_POINT, OutOfFov, PixelOutcome, ProjectionOptions, ProjectionStats, Projector,
+    RangeImage, Rejections, project,
 };
 pub use rays::{RayTable, Unprojected};
 pub use region::Region;

@@ -129,7 +129,15 @@ impl RangeImage {
     pub fn validate(&self) -> Result<(), GeomError> {
         let n = self.num_pixels();
         let check = |what, got| {
-            if got == n { Ok(()) } else { Err(GeomError::LengthMismatch { what, expected: n, got }) }
+            if got == n {
+                Ok(())
+            } else {
+                Err(GeomError::LengthMismatch {
+                    what,
+                    expected: n,
+                    got,
+                })
+            }
         };
         check("range_m", self.range_m.len())?;
         check("intensity", self.intensity.len())?;
@@ -372,6 +380,18 @@ fn clear_of_integers(x: f32, delta: f32) -> bool {
     (x - nearest).abs() >= delta
 }
 
+/// `2^23`: adding it to an integer-valued `0 <= x < 2^23` puts `x` into the low mantissa bits.
+const MANTISSA_ONE: f32 = 8_388_608.0;
+
+/// `floor(x)` for `0 <= x < 2^22` without a float-to-int conversion (vectorises); any value for
+/// other inputs (they are never used).
+#[inline(always)]
+fn floor_small(x: f32) -> f32 {
+    const MAGIC: f32 = 12_582_912.0;
+    let nearest = (x + MAGIC) - MAGIC;
+    if nearest > x { nearest - 1.0 } else { nearest }
+}
+
 /// The `f32` estimates of one point: squared range (`f64`, exact products), `sin(elevation)`, `u` and
 /// (when the row mode uses it) `v` of equation 1.
 #[derive(Debug, Clone, Copy, Default)]
@@ -399,12 +419,26 @@ struct EstimateBlock {
 
 impl EstimateBlock {
     fn new() -> Self {
-        EstimateBlock { d2: [0.0; BLOCK], s: [0.0; BLOCK], u: [0.0; BLOCK], v: [0.0; BLOCK], clear: [false; BLOCK], pixel: [0; BLOCK] }
+        EstimateBlock {
+            d2: [0.0; BLOCK],
+            s: [0.0; BLOCK],
+            u: [0.0; BLOCK],
+            v: [0.0; BLOCK],
+            clear: [false; BLOCK],
+            pixel: [0; BLOCK],
+        }
     }
 
     #[inline(always)]
     fn get(&self, j: usize) -> Estimate {
-        Estimate { d2: self.d2[j], s: self.s[j], u: self.u[j], v: self.v[j], clear: self.clear[j], pixel: self.pixel[j] }
+        Estimate {
+            d2: self.d2[j],
+            s: self.s[j],
+            u: self.u[j],
+            v: self.v[j],
+            clear: self.clear[j],
+            pixel: self.pixel[j],
+        }
     }
 }
 
@@ -415,7 +449,10 @@ impl Projector {
         if !(opts.edge_tolerance_rad.is_finite() && opts.edge_tolerance_rad >= 0.0) {
             return Err(GeomError::InvalidConfig {
                 what: "projection options",
-                message: format!("edge_tolerance_rad must be finite and >= 0, got {}", opts.edge_tolerance_rad),
+                message: format!(
+                    "edge_tolerance_rad must be finite and >= 0, got {}",
+                    opts.edge_tolerance_rad
+                ),
             });
         }
         let h = sensor.rows as usize;
@@ -443,8 +480,16 @@ impl Projector {
         }
         row_bound[0] = (up_deg.to_radians() + tol).min(half_pi);
         row_bound[h] = (down_deg.to_radians() - tol).max(-half_pi);
-        let row_bound_sin: Vec<f64> =
-            row_bound.iter().map(|b| if b.abs() == half_pi { b.signum() } else { b.sin() }).collect();
+        let row_bound_sin: Vec<f64> = row_bound
+            .iter()
+            .map(|b| {
+                if b.abs() == half_pi {
+                    b.signum()
+                } else {
+                    b.sin()
+                }
+            })
+            .collect();
         let row_bound_sq = row_bound_sin.iter().map(|s| signed_sq(*s)).collect();
 
         // candidate table over sin(elevation): the row of each bin's lower end
@@ -463,8 +508,20 @@ impl Projector {
         let col_bound_dir = (0..=w).map(|c| boundary_dir(w - 2 * c, w)).collect();
 
         let row_mode = match (&sensor.beams, opts.angles) {
-            (BeamLayout::PerBeam { row_source: RowSource::Ring, .. }, _) => RowMode::Ring,
-            (BeamLayout::PerBeam { row_source: RowSource::NearestElevation, .. }, _) => RowMode::Nearest,
+            (
+                BeamLayout::PerBeam {
+                    row_source: RowSource::Ring,
+                    ..
+                },
+                _,
+            ) => RowMode::Ring,
+            (
+                BeamLayout::PerBeam {
+                    row_source: RowSource::NearestElevation,
+                    ..
+                },
+                _,
+            ) => RowMode::Nearest,
             (BeamLayout::Uniform, AngleMethod::Exact) => RowMode::UniformExact,
             (BeamLayout::Uniform, AngleMethod::Fast) => RowMode::UniformFast,
         };
@@ -475,7 +532,7 @@ impl Projector {
         let col_delta = wf * (ATAN2_ERR_BOUND / std::f64::consts::TAU + 4e-7);
         let row_delta = hf * (ELEV_ERR_BOUND / fov + 4e-7);
         let row_filter = matches!(row_mode, RowMode::UniformExact | RowMode::UniformFast)
-            && sensor.num_pixels() < (1 << 31)
+            && sensor.num_pixels() < (1 << 23)
             && sensor.fov_up_deg.abs().max(sensor.fov_down_deg.abs()) <= ROW_FILTER_MAX_ELEV_DEG;
         let min_range_sq = f64::from(sensor.min_range_m) * f64::from(sensor.min_range_m);
         let max_range_sq = f64::from(sensor.max_range_m) * f64::from(sensor.max_range_m);
@@ -580,7 +637,11 @@ impl Projector {
     /// [`Projector::estimate`] over a block, into structure-of-arrays form. The body is spelled out
     /// with every constant hoisted, so that the compiler vectorises it.
     #[inline(always)]
-    fn estimate_block<const WITH_V: bool, const CLEAR_UV: bool>(&self, block: &[Vec3], out: &mut EstimateBlock) {
+    fn estimate_block<const WITH_V: bool, const CLEAR_UV: bool>(
+        &self,
+        block: &[Vec3],
+        out: &mut EstimateBlock,
+    ) {
         let n = block.len().min(BLOCK);
         let (d2o, so, uo, vo, co, po) = (
             &mut out.d2[..n],
@@ -590,11 +651,15 @@ impl Projector {
             &mut out.clear[..n],
             &mut out.pixel[..n],
         );
-        let wi = self.sensor.cols as i32;
         let block = &block[..n];
         let w = self.sensor.cols as f32;
         let h = self.sensor.rows as f32;
-        let (up, v_scale, dv, du) = (self.fov_up_rad, self.v_scale, self.row_delta, self.col_delta);
+        let (up, v_scale, dv, du) = (
+            self.fov_up_rad,
+            self.v_scale,
+            self.row_delta,
+            self.col_delta,
+        );
         let row_filter = self.row_filter;
         for j in 0..n {
             let p = block[j];
@@ -617,12 +682,14 @@ impl Projector {
                         & (u <= w - du)
                         & clear_of_integers(u, du);
                 }
-                // i32 arithmetic (the filter is off for images of 2^31 pixels or more)
-                let c = u as i32; // for the fast path: u = w wraps to column 0
-                let c = if c >= wi { c - wi } else { c };
+                // the pixel in f32 arithmetic (exact: the filter is off for images of 2^23 pixels
+                // or more), read out of the mantissa: no float-to-int conversion, so it vectorises
+                let c = floor_small(u);
+                let c = if c >= w { c - w } else { c }; // fast path: u = w wraps to column 0
+                let pixel = floor_small(v) * w + c;
                 vo[j] = v;
                 co[j] = clear & row_filter;
-                po[j] = ((v as i32) * wi + c) as u32;
+                po[j] = (pixel + MANTISSA_ONE).to_bits() & 0x007F_FFFF;
             } else {
                 vo[j] = 0.0;
                 co[j] = false;
@@ -647,7 +714,12 @@ impl Projector {
         self.estimate_any(block, est);
         for (j, &p) in block.iter().enumerate() {
             let i = start + j;
-            let (code, d2) = self.finish(p, intensity.map_or(0.0, |v| v[i]), rings.map(|r| r[i]), est.get(j));
+            let (code, d2) = self.finish(
+                p,
+                intensity.map_or(0.0, |v| v[i]),
+                rings.map(|r| r[i]),
+                est.get(j),
+            );
             out(i, code, d2);
         }
     }
@@ -711,7 +783,10 @@ impl Projector {
             AngleMethod::Exact => self.col_exact(e.u, p.x, p.y),
             AngleMethod::Fast => self.col_fast(e.u),
         };
-        ((row * self.sensor.cols as usize + col) as Code | clamp_bit, d2)
+        (
+            (row * self.sensor.cols as usize + col) as Code | clamp_bit,
+            d2,
+        )
     }
 
     /// Exact row inside the field of view: a candidate from the table, then boundary tests.
@@ -791,17 +866,28 @@ impl Projector {
         if let Some(i) = intensity
             && i.len() != n
         {
-            return Err(GeomError::LengthMismatch { what: "intensity", expected: n, got: i.len() });
+            return Err(GeomError::LengthMismatch {
+                what: "intensity",
+                expected: n,
+                got: i.len(),
+            });
         }
         if let Some(r) = rings
             && r.len() != n
         {
-            return Err(GeomError::LengthMismatch { what: "rings", expected: n, got: r.len() });
+            return Err(GeomError::LengthMismatch {
+                what: "rings",
+                expected: n,
+                got: r.len(),
+            });
         }
         if n >= NO_POINT as usize {
             return Err(GeomError::InvalidConfig {
                 what: "point cloud",
-                message: format!("{n} points exceed the supported maximum of {}", NO_POINT - 1),
+                message: format!(
+                    "{n} points exceed the supported maximum of {}",
+                    NO_POINT - 1
+                ),
             });
         }
         let np = self.sensor.num_pixels();
@@ -841,9 +927,16 @@ impl Projector {
                         for (b, out) in out.chunks_mut(BLOCK).enumerate() {
                             let start = t * chunk + b * BLOCK;
                             let block = &points[start..start + out.len()];
-                            self.locate_block(block, start, intensity, rings, &mut est, |i, code, d2| {
-                                out[i - start] = (code, d2);
-                            });
+                            self.locate_block(
+                                block,
+                                start,
+                                intensity,
+                                rings,
+                                &mut est,
+                                |i, code, d2| {
+                                    out[i - start] = (code, d2);
+                                },
+                            );
                         }
                     });
                 }
@@ -862,14 +955,30 @@ impl Projector {
                 img.point_index[k] = i;
             }
         }
-        let [non_finite, zero_range, too_near, too_far, above_fov, below_fov, bad_ring] = counts;
+        let [
+            non_finite,
+            zero_range,
+            too_near,
+            too_far,
+            above_fov,
+            below_fov,
+            bad_ring,
+        ] = counts;
         let written = img.num_valid();
         let stats = ProjectionStats {
             input: n,
             written,
             occluded: candidates - written,
             clamped,
-            rejected: Rejections { non_finite, zero_range, too_near, too_far, above_fov, below_fov, bad_ring },
+            rejected: Rejections {
+                non_finite,
+                zero_range,
+                too_near,
+                too_far,
+                above_fov,
+                below_fov,
+                bad_ring,
+            },
         };
         Ok((img, stats))
     }

@@ -46,7 +46,11 @@ impl RayTable {
                 dirs.push(Vec3::new((ce * ca) as f32, (ce * sa) as f32, se as f32));
             }
         }
-        Ok(RayTable { rows: sensor.rows, cols: sensor.cols, dirs })
+        Ok(RayTable {
+            rows: sensor.rows,
+            cols: sensor.cols,
+            dirs,
+        })
     }
 
     /// Height.
@@ -91,7 +95,10 @@ impl RayTable {
             if image.mask[k] && r.is_finite() && r > 0.0 {
                 out.points.push(*dir * r);
                 out.intensity.push(image.intensity[k]);
-                out.pixels.push(((k / self.cols as usize) as u32, (k % self.cols as usize) as u32));
+                out.pixels.push((
+                    (k / self.cols as usize) as u32,
+                    (k % self.cols as usize) as u32,
+                ));
             }
         }
         Ok(out)

@@ -99,7 +99,10 @@ impl LidarSensor {
         LidarSensor {
             fov_up_deg: elevations_deg[31] + half_step,
             fov_down_deg: elevations_deg[0] - half_step,
-            beams: BeamLayout::PerBeam { elevations_deg, row_source: RowSource::Ring },
+            beams: BeamLayout::PerBeam {
+                elevations_deg,
+                row_source: RowSource::Ring,
+            },
             ..Self::hdl32e()
         }
     }
@@ -108,10 +111,16 @@ impl LidarSensor {
     pub fn validate(&self) -> Result<(), GeomError> {
         let bad = |m: String| Err(GeomError::InvalidSensor(m));
         if self.rows == 0 || self.cols == 0 {
-            return bad(format!("size must be positive, got {}x{}", self.rows, self.cols));
+            return bad(format!(
+                "size must be positive, got {}x{}",
+                self.rows, self.cols
+            ));
         }
         if self.rows > 1 << 16 || self.cols > 1 << 20 {
-            return bad(format!("size {}x{} is unreasonably large", self.rows, self.cols));
+            return bad(format!(
+                "size {}x{} is unreasonably large",
+                self.rows, self.cols
+            ));
         }
         if !self.fov_up_deg.is_finite() || !self.fov_down_deg.is_finite() {
             return bad("field of view must be finite".into());
@@ -142,7 +151,11 @@ impl LidarSensor {
                     self.rows
                 ));
             }
-            if let Some((i, e)) = elevations_deg.iter().enumerate().find(|(_, e)| !e.is_finite()) {
+            if let Some((i, e)) = elevations_deg
+                .iter()
+                .enumerate()
+                .find(|(_, e)| !e.is_finite())
+            {
                 return bad(format!("beam {i} elevation {e} is not finite"));
             }
             if let Some((i, e)) = elevations_deg
@@ -190,7 +203,9 @@ impl LidarSensor {
     /// The beam (ring) that feeds `row`, in per-beam mode; `row` itself in uniform mode.
     pub fn ring_of_row(&self, row: u32) -> u32 {
         match &self.beams {
-            BeamLayout::PerBeam { elevations_deg, .. } if self.rows > 1 && elevations_deg[1] > elevations_deg[0] => {
+            BeamLayout::PerBeam { elevations_deg, .. }
+                if self.rows > 1 && elevations_deg[1] > elevations_deg[0] =>
+            {
                 self.rows - 1 - row
             }
             _ => row,

@@ -10,7 +10,8 @@ use proptest::prelude::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use veila_geom::{
-    AngleMethod, BeamLayout, LidarSensor, NO_POINT, OutOfFov, PixelOutcome, ProjectionOptions, Projector, RowSource,
+    AngleMethod, BeamLayout, LidarSensor, NO_POINT, OutOfFov, PixelOutcome, ProjectionOptions,
+    Projector, RowSource,
 };
 
 /// A disagreement between the exact path and the `f64` reference is acceptable only where `f64`
@@ -31,7 +32,20 @@ fn compare_point(
     let got = pr.locate(p, ring);
     let r = reference_pixel(sensor, p, ring, tol, clamp);
     let same = match (got, r.outcome) {
-        (PixelOutcome::Pixel { row, col, clamped, range_m }, RefOutcome::Pixel { row: rr, col: rc, range, clamped: rcl }) => {
+        (
+            PixelOutcome::Pixel {
+                row,
+                col,
+                clamped,
+                range_m,
+            },
+            RefOutcome::Pixel {
+                row: rr,
+                col: rc,
+                range,
+                clamped: rcl,
+            },
+        ) => {
             assert_eq!(range_m, range as f32, "range of {p:?}");
             (row, col, clamped) == (rr, rc, rcl)
         }
@@ -53,7 +67,10 @@ fn compare_point(
     if near_u || near_v {
         Ok(false)
     } else {
-        Err(format!("{p:?} (ring {ring:?}): projector {got:?}, reference {:?} (u {}, v {})", r.outcome, r.u, r.v))
+        Err(format!(
+            "{p:?} (ring {ring:?}): projector {got:?}, reference {:?} (u {}, v {})",
+            r.outcome, r.u, r.v
+        ))
     }
 }
 
@@ -66,7 +83,11 @@ fn random_points(n: usize, seed: u64) -> Vec<Vec3> {
             let az = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
             let el = rng.random_range(-0.7f64..0.25);
             let r = 10f64.powf(rng.random_range(-0.5..2.2));
-            Vec3::new((r * el.cos() * az.cos()) as f32, (r * el.cos() * az.sin()) as f32, (r * el.sin()) as f32)
+            Vec3::new(
+                (r * el.cos() * az.cos()) as f32,
+                (r * el.cos() * az.sin()) as f32,
+                (r * el.sin()) as f32,
+            )
         })
         .collect()
 }
@@ -94,17 +115,33 @@ fn boundary_points(sensor: &LidarSensor, n: usize, seed: u64) -> Vec<Vec3> {
                 rng.random_range(down..up)
             };
             let d = rng.random_range(1.0..100.0);
-            Vec3::new((d * el.cos() * az.cos()) as f32, (d * el.cos() * az.sin()) as f32, (d * el.sin()) as f32)
+            Vec3::new(
+                (d * el.cos() * az.cos()) as f32,
+                (d * el.cos() * az.sin()) as f32,
+                (d * el.sin()) as f32,
+            )
         })
         .collect()
 }
 
-fn check_all(sensor: &LidarSensor, opts: ProjectionOptions, pts: &[Vec3], rings: Option<&[u16]>) -> (usize, usize) {
+fn check_all(
+    sensor: &LidarSensor,
+    opts: ProjectionOptions,
+    pts: &[Vec3],
+    rings: Option<&[u16]>,
+) -> (usize, usize) {
     let pr = Projector::new(sensor, opts).unwrap();
     let clamp = opts.out_of_fov == OutOfFov::ClampToEdgeRows;
     let mut ambiguous = 0;
     for (i, p) in pts.iter().enumerate() {
-        match compare_point(&pr, sensor, *p, rings.map(|r| r[i]), opts.edge_tolerance_rad as f64, clamp) {
+        match compare_point(
+            &pr,
+            sensor,
+            *p,
+            rings.map(|r| r[i]),
+            opts.edge_tolerance_rad as f64,
+            clamp,
+        ) {
             Ok(true) => {}
             Ok(false) => ambiguous += 1,
             Err(e) => panic!("{e}"),
@@ -117,10 +154,18 @@ fn check_all(sensor: &LidarSensor, opts: ProjectionOptions, pts: &[Vec3], rings:
 fn exact_matches_reference_on_random_points_every_mode() {
     let pts = random_points(60_000, 1);
     let nearest = per_beam_nearest_sensor();
-    for sensor in [LidarSensor::hdl64e(), LidarSensor::hdl32e(), nearest.clone()] {
+    for sensor in [
+        LidarSensor::hdl64e(),
+        LidarSensor::hdl32e(),
+        nearest.clone(),
+    ] {
         for out_of_fov in [OutOfFov::Reject, OutOfFov::ClampToEdgeRows] {
             for tol in [0.0f32, 1e-6] {
-                let opts = ProjectionOptions { out_of_fov, angles: AngleMethod::Exact, edge_tolerance_rad: tol };
+                let opts = ProjectionOptions {
+                    out_of_fov,
+                    angles: AngleMethod::Exact,
+                    edge_tolerance_rad: tol,
+                };
                 let (n, amb) = check_all(&sensor, opts, &pts, None);
                 // random points essentially never sit within 1e-9 px of a boundary
                 assert_eq!(amb, 0, "{n} points, {amb} ambiguous ({sensor:?})");
@@ -134,7 +179,10 @@ fn exact_matches_reference_near_boundaries() {
     for sensor in [LidarSensor::hdl64e(), LidarSensor::hdl32e()] {
         let pts = boundary_points(&sensor, 60_000, 2);
         let (n, amb) = check_all(&sensor, ProjectionOptions::default(), &pts, None);
-        println!("{}x{}: {n} boundary points, {amb} within {AMBIGUOUS_PX} px of a boundary in f64", sensor.rows, sensor.cols);
+        println!(
+            "{}x{}: {n} boundary points, {amb} within {AMBIGUOUS_PX} px of a boundary in f64",
+            sensor.rows, sensor.cols
+        );
         assert!(amb * 1000 < n, "too many ambiguous points: {amb}");
     }
 }
@@ -152,8 +200,14 @@ fn ring_mode_matches_reference() {
     let pr = Projector::new(&sensor, ProjectionOptions::default()).unwrap();
     let (img, stats) = pr.project(&pts, None, None).unwrap();
     assert_eq!(img.num_valid(), 0);
-    let refs: Vec<RefPoint> = pts.iter().map(|p| reference_pixel(&sensor, *p, None, 1e-6, false)).collect();
-    assert_eq!(rejections_array(&stats.rejected), reference_rejections(&refs));
+    let refs: Vec<RefPoint> = pts
+        .iter()
+        .map(|p| reference_pixel(&sensor, *p, None, 1e-6, false))
+        .collect();
+    assert_eq!(
+        rejections_array(&stats.rejected),
+        reference_rejections(&refs)
+    );
 }
 
 proptest! {
@@ -183,17 +237,33 @@ fn check_real_scan(rel: &str) {
     let pr = Projector::new(&sensor, ProjectionOptions::default()).unwrap();
     let (img, stats) = pr.project(&pts, Some(&refl), None).unwrap();
 
-    let refs: Vec<RefPoint> = pts.iter().map(|p| reference_pixel(&sensor, *p, None, 1e-6, false)).collect();
+    let refs: Vec<RefPoint> = pts
+        .iter()
+        .map(|p| reference_pixel(&sensor, *p, None, 1e-6, false))
+        .collect();
     let ref_img = reference_image(&refs, sensor.cols);
-    assert_eq!(rejections_array(&stats.rejected), reference_rejections(&refs), "{rel}: rejections");
+    assert_eq!(
+        rejections_array(&stats.rejected),
+        reference_rejections(&refs),
+        "{rel}: rejections"
+    );
     assert_eq!(img.num_valid(), ref_img.len(), "{rel}: occupied pixels");
     assert_eq!(stats.written, ref_img.len());
-    let candidates = refs.iter().filter(|r| matches!(r.outcome, RefOutcome::Pixel { .. })).count();
+    let candidates = refs
+        .iter()
+        .filter(|r| matches!(r.outcome, RefOutcome::Pixel { .. }))
+        .count();
     assert_eq!(stats.occluded, candidates - ref_img.len());
-    assert_eq!(stats.input, stats.written + stats.occluded + stats.rejected.total());
+    assert_eq!(
+        stats.input,
+        stats.written + stats.occluded + stats.rejected.total()
+    );
     for (k, (range, idx)) in &ref_img {
         assert!(img.mask[*k]);
-        assert_eq!(img.point_index[*k], *idx as u32, "{rel}: winner of pixel {k}");
+        assert_eq!(
+            img.point_index[*k], *idx as u32,
+            "{rel}: winner of pixel {k}"
+        );
         assert_eq!(img.range_m[*k], *range as f32);
         assert_eq!(img.intensity[*k], refl[*idx]);
     }
@@ -210,10 +280,26 @@ fn check_real_scan(rel: &str) {
     );
 
     // the fast path: count the points in a different pixel (the benchmark prints the same figure)
-    let fast = Projector::new(&sensor, ProjectionOptions { angles: AngleMethod::Fast, ..Default::default() }).unwrap();
-    let moved = pts.iter().filter(|p| fast.try_pixel(**p, None) != pr.try_pixel(**p, None)).count();
-    println!("{rel}: fast path puts {moved} of {} points into another pixel", pts.len());
-    assert!(moved * 200 < pts.len(), "fast path misplaces {moved} points");
+    let fast = Projector::new(
+        &sensor,
+        ProjectionOptions {
+            angles: AngleMethod::Fast,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let moved = pts
+        .iter()
+        .filter(|p| fast.try_pixel(**p, None) != pr.try_pixel(**p, None))
+        .count();
+    println!(
+        "{rel}: fast path puts {moved} of {} points into another pixel",
+        pts.len()
+    );
+    assert!(
+        moved * 200 < pts.len(),
+        "fast path misplaces {moved} points"
+    );
 }
 
 #[test]
@@ -256,10 +342,21 @@ fn threads_give_bit_identical_results() {
     let inten: Vec<f32> = (0..pts.len()).map(|i| (i % 97) as f32).collect();
     for angles in [AngleMethod::Exact, AngleMethod::Fast] {
         for sensor in [LidarSensor::hdl64e(), per_beam_nearest_sensor()] {
-            let pr = Projector::new(&sensor, ProjectionOptions { angles, ..Default::default() }).unwrap();
+            let pr = Projector::new(
+                &sensor,
+                ProjectionOptions {
+                    angles,
+                    ..Default::default()
+                },
+            )
+            .unwrap();
             let serial = pr.project(&pts, Some(&inten), None).unwrap();
             for t in [2, 3, 8] {
-                let par = pr.clone().with_threads(t).project(&pts, Some(&inten), None).unwrap();
+                let par = pr
+                    .clone()
+                    .with_threads(t)
+                    .project(&pts, Some(&inten), None)
+                    .unwrap();
                 assert_eq!(serial, par, "{t} threads, {angles:?}");
             }
             // and locate() agrees with project() point by point
@@ -284,7 +381,11 @@ fn ring_sensor_keeps_edge_rings_of_real_nuscenes_like_elevations() {
         let el = el_deg.to_radians();
         let p = Vec3::new((10.0 * el.cos()) as f32, 0.3, (10.0 * el.sin()) as f32);
         let expected_row = if ring == 31 { 0 } else { 31 };
-        assert_eq!(pr.try_pixel(p, Some(ring)).map(|x| x.0), Some(expected_row), "{el_deg} deg");
+        assert_eq!(
+            pr.try_pixel(p, Some(ring)).map(|x| x.0),
+            Some(expected_row),
+            "{el_deg} deg"
+        );
     }
     match &sensor.beams {
         BeamLayout::PerBeam { row_source, .. } => assert_eq!(*row_source, RowSource::Ring),

@@ -226,8 +226,8 @@ fn bench_frechet(c: &mut Criterion) {
         .measurement_time(Duration::from_secs(5))
         .warm_up_time(Duration::from_millis(200));
     for d in dims {
-        let n = d * 3 / 2;
-        let (fa, fb) = (features(1, n, d, 0.75), features(2, n, d, 0.70));
+        let n = 2 * d;
+        let (fa, fb) = (features(1, n, d, 0.25), features(2, n, d, 0.20));
         let t = Instant::now();
         let sa = FeatureStats::from_rows(&fa, d, "a").expect("stats");
         let sb = FeatureStats::from_rows(&fb, d, "b").expect("stats");

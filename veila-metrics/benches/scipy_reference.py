@@ -83,9 +83,9 @@ def main():
 
     out["frechet"] = []
     for d in [int(x) for x in args.dims.split(",")]:
-        n = d * 3 // 2
-        a = features(1, n, d, 0.75)
-        b = features(2, n, d, 0.70)
+        n = 2 * d
+        a = features(1, n, d, 0.25)
+        b = features(2, n, d, 0.20)
         fd, secs = fd_scipy(a, b)
         out["frechet"].append({"dim": d, "samples": n, "value": fd, "seconds": secs})
         print(f"frechet d={d} n={n}: {fd:.17g}  (sqrtm + trace {secs:.2f} s)")

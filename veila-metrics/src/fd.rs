@@ -94,7 +94,7 @@ impl FeatureStats {
                 reason: "feature dimension must be > 0".into(),
             });
         }
-        if rows.len() % d != 0 {
+        if !rows.len().is_multiple_of(d) {
             return Err(Error::ShapeMismatch {
                 what: what.to_string(),
                 expected: format!("a multiple of {d} values"),

@@ -282,7 +282,7 @@ mod tests {
                 state = state
                     .wrapping_mul(6364136223846793005)
                     .wrapping_add(1442695040888963407);
-                if (state >> 33) % 7 == 0 || c == (trial * 13) % (n * n) {
+                if (state >> 33).is_multiple_of(7) || c == (trial * 13) % (n * n) {
                     cells.push(c as u32);
                 }
             }

@@ -142,7 +142,7 @@ fn scans_without_points_in_the_window() {
     let far = vec![Vec3::new(60.0, 0.0, 0.0)];
     let o = lidm_bev_occupancy(&far, &LidmBevConfig::kitti(), Region::All, "far").unwrap();
     assert!(matches!(
-        mmd_lidm(&[o.clone()], &[o]),
+        mmd_lidm(std::slice::from_ref(&o), std::slice::from_ref(&o)),
         Err(Error::NoPointsInWindow { .. })
     ));
 }

@@ -14,7 +14,9 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use veila_geom::{DepthSpacing, EpipolarConfig, LidarSensor, PinholeCamera};
-use veila_nn::{ConditionInput, Cues, Denoiser, DenoiserConfig, Gcma, GcmaGeometry, seeded_var_builder};
+use veila_nn::{
+    ConditionInput, Cues, Denoiser, DenoiserConfig, Gcma, GcmaGeometry, seeded_var_builder,
+};
 
 fn kitti_camera(w: u32, h: u32) -> PinholeCamera {
     let (sx, sy) = (w as f32 / 1241.0, h as f32 / 376.0);
@@ -32,18 +34,34 @@ fn kitti_camera(w: u32, h: u32) -> PinholeCamera {
 }
 
 fn epi(k: usize) -> EpipolarConfig {
-    EpipolarConfig { num_samples: k, near_m: 2.0, far_m: 80.0, spacing: DepthSpacing::Log, tau_m: 40.0 }
+    EpipolarConfig {
+        num_samples: k,
+        near_m: 2.0,
+        far_m: 80.0,
+        spacing: DepthSpacing::Log,
+        tau_m: 40.0,
+    }
 }
 
 fn rand_t(rng: &mut ChaCha8Rng, shape: &[usize]) -> Tensor {
     let n: usize = shape.iter().product();
-    Tensor::from_vec((0..n).map(|_| rng.random_range(-1.0f32..1.0)).collect::<Vec<_>>(), shape, &Device::Cpu)
-        .expect("tensor")
+    Tensor::from_vec(
+        (0..n)
+            .map(|_| rng.random_range(-1.0f32..1.0))
+            .collect::<Vec<_>>(),
+        shape,
+        &Device::Cpu,
+    )
+    .expect("tensor")
 }
 
 /// Image size whose pyramid is `cfg`'s feature sizes (stride-4 level times 4).
 fn image_size(cfg: &DenoiserConfig) -> (u32, u32) {
-    let [h, w] = cfg.conditioning.as_ref().expect("conditional").feature_sizes[0];
+    let [h, w] = cfg
+        .conditioning
+        .as_ref()
+        .expect("conditional")
+        .feature_sizes[0];
     ((w * 4) as u32, (h * 4) as u32)
 }
 
@@ -66,12 +84,34 @@ fn setup(cfg: &DenoiserConfig, k: usize) -> Setup {
         None => (None, None),
         Some(cc) => {
             let (w, h) = image_size(cfg);
-            let geom = cc.gcma.as_ref().map(|_| GcmaGeometry::new(cfg, &[kitti_camera(w, h)], &epi(k), &dev).expect("geom"));
+            let geom = cc.gcma.as_ref().map(|_| {
+                GcmaGeometry::new(cfg, &[kitti_camera(w, h)], &epi(k), &dev).expect("geom")
+            });
             let sem = (0..cc.num_scales())
-                .map(|i| rand_t(&mut rng, &[1, cc.semantic_channels[i], cc.feature_sizes[i][0], cc.feature_sizes[i][1]]))
+                .map(|i| {
+                    rand_t(
+                        &mut rng,
+                        &[
+                            1,
+                            cc.semantic_channels[i],
+                            cc.feature_sizes[i][0],
+                            cc.feature_sizes[i][1],
+                        ],
+                    )
+                })
                 .collect();
             let dep = (0..cc.num_scales())
-                .map(|i| rand_t(&mut rng, &[1, cc.depth_channels[i], cc.feature_sizes[i][0], cc.feature_sizes[i][1]]))
+                .map(|i| {
+                    rand_t(
+                        &mut rng,
+                        &[
+                            1,
+                            cc.depth_channels[i],
+                            cc.feature_sizes[i][0],
+                            cc.feature_sizes[i][1],
+                        ],
+                    )
+                })
                 .collect();
             let input = ConditionInput {
                 semantic: (cc.cues != Cues::DepthOnly).then_some(sem),
@@ -81,34 +121,66 @@ fn setup(cfg: &DenoiserConfig, k: usize) -> Setup {
             (geom, Some(input))
         }
     };
-    Setup { net, geom, input, x, t }
+    Setup {
+        net,
+        geom,
+        input,
+        x,
+        t,
+    }
 }
 
 fn at_resolution(mut cfg: DenoiserConfig, rows: u32, cols: u32) -> DenoiserConfig {
-    cfg.sensor = LidarSensor { rows, cols, ..cfg.sensor };
+    cfg.sensor = LidarSensor {
+        rows,
+        cols,
+        ..cfg.sensor
+    };
     cfg
 }
 
 fn bench_forward(c: &mut Criterion) {
     let mut group = c.benchmark_group("denoiser_forward");
-    group.sample_size(10).warm_up_time(Duration::from_millis(500)).measurement_time(Duration::from_secs(3));
+    group
+        .sample_size(10)
+        .warm_up_time(Duration::from_millis(500))
+        .measurement_time(Duration::from_secs(3));
     let mut cases = vec![];
     for (rows, cols) in [(32u32, 512u32), (64, 1024)] {
-        cases.push((format!("tiny_uncond_{rows}x{cols}"), at_resolution(DenoiserConfig::tiny().unconditional(), rows, cols)));
-        cases.push((format!("tiny_full_{rows}x{cols}"), at_resolution(DenoiserConfig::tiny(), rows, cols)));
+        cases.push((
+            format!("tiny_uncond_{rows}x{cols}"),
+            at_resolution(DenoiserConfig::tiny().unconditional(), rows, cols),
+        ));
+        cases.push((
+            format!("tiny_full_{rows}x{cols}"),
+            at_resolution(DenoiserConfig::tiny(), rows, cols),
+        ));
     }
     if std::env::var("VEILA_BENCH_PAPER").is_ok() {
-        cases.push(("paper_uncond_64x1024".into(), DenoiserConfig::paper().unconditional()));
+        cases.push((
+            "paper_uncond_64x1024".into(),
+            DenoiserConfig::paper().unconditional(),
+        ));
         cases.push(("paper_full_64x1024".into(), DenoiserConfig::paper()));
     }
     for (name, cfg) in cases {
         let k = 16;
         let s = setup(&cfg, k);
-        let prepared = s.input.as_ref().map(|i| s.net.prepare_condition(i, s.geom.as_ref()).expect("prepare"));
+        let prepared = s.input.as_ref().map(|i| {
+            s.net
+                .prepare_condition(i, s.geom.as_ref())
+                .expect("prepare")
+        });
         let params = veila_nn::checkpoint::parameter_count(&cfg).expect("count");
         eprintln!("{name}: {:.2} M parameters, K = {k}", params as f64 / 1e6);
         group.bench_function(&name, |b| {
-            b.iter(|| black_box(s.net.forward(&s.x, &s.t, prepared.as_ref()).expect("forward")))
+            b.iter(|| {
+                black_box(
+                    s.net
+                        .forward(&s.x, &s.t, prepared.as_ref())
+                        .expect("forward"),
+                )
+            })
         });
     }
     group.finish();
@@ -124,29 +196,58 @@ fn bench_gcma_k(c: &mut Criterion) {
     let fc = cc.cond_channels[0];
     let [fh, fw] = cc.feature_sizes[0];
     let (w, h) = image_size(&cfg);
-    let gcma = Gcma::new(&g, ch, fc, cfg.norm_groups, seeded_var_builder(&VarMap::new(), 3, DType::F32, &dev)).expect("gcma");
+    let gcma = Gcma::new(
+        &g,
+        ch,
+        fc,
+        cfg.norm_groups,
+        seeded_var_builder(&VarMap::new(), 3, DType::F32, &dev),
+    )
+    .expect("gcma");
     let mut rng = ChaCha8Rng::seed_from_u64(5);
     let r = rand_t(&mut rng, &[1, ch, cfg.height(), cfg.width()]);
     // smooth image features (a few low-frequency waves), so the K-dependence is a discretisation error
     let mut f = vec![0f32; fc * fh * fw];
     for c in 0..fc {
-        let (a, b, p) = (rng.random_range(0.5f32..3.0), rng.random_range(0.5f32..3.0), rng.random_range(0.0f32..std::f32::consts::TAU));
+        let (a, b, p) = (
+            rng.random_range(0.5f32..3.0),
+            rng.random_range(0.5f32..3.0),
+            rng.random_range(0.0f32..std::f32::consts::TAU),
+        );
         for y in 0..fh {
             for x in 0..fw {
-                f[(c * fh + y) * fw + x] = (a * x as f32 / fw as f32 * std::f32::consts::TAU + b * y as f32 / fh as f32 * std::f32::consts::TAU + p).sin();
+                f[(c * fh + y) * fw + x] = (a * x as f32 / fw as f32 * std::f32::consts::TAU
+                    + b * y as f32 / fh as f32 * std::f32::consts::TAU
+                    + p)
+                    .sin();
             }
         }
     }
     let feat = Tensor::from_vec(f, (1, fc, fh, fw), &dev).expect("feat");
     let reference = {
         let geom = GcmaGeometry::new(&cfg, &[kitti_camera(w, h)], &epi(32), &dev).expect("geom");
-        gcma.attend(&r, &feat, geom.level(level).expect("level")).expect("attend")
+        gcma.attend(&r, &feat, geom.level(level).expect("level"))
+            .expect("attend")
     };
-    let ref_norm = reference.sqr().and_then(|t| t.sum_all()).and_then(|t| t.to_scalar::<f32>()).expect("norm").sqrt();
+    let ref_norm = reference
+        .sqr()
+        .and_then(|t| t.sum_all())
+        .and_then(|t| t.to_scalar::<f32>())
+        .expect("norm")
+        .sqrt();
     let mut group = c.benchmark_group("gcma_level0_32x512");
-    group.sample_size(10).warm_up_time(Duration::from_millis(300)).measurement_time(Duration::from_secs(2));
-    eprintln!("\nGCMA at level 0 of tiny (32x512 range, {fh}x{fw} features, d = {}):", g.attn_dim);
-    eprintln!("{:>4} {:>10} {:>14} {:>24}", "K", "active px", "ms/call", "rel. L2 diff vs K=32");
+    group
+        .sample_size(10)
+        .warm_up_time(Duration::from_millis(300))
+        .measurement_time(Duration::from_secs(2));
+    eprintln!(
+        "\nGCMA at level 0 of tiny (32x512 range, {fh}x{fw} features, d = {}):",
+        g.attn_dim
+    );
+    eprintln!(
+        "{:>4} {:>10} {:>14} {:>24}",
+        "K", "active px", "ms/call", "rel. L2 diff vs K=32"
+    );
     for k in [8usize, 16, 32] {
         let geom = GcmaGeometry::new(&cfg, &[kitti_camera(w, h)], &epi(k), &dev).expect("geom");
         let lg = geom.level(level).expect("level");
@@ -163,8 +264,14 @@ fn bench_gcma_k(c: &mut Criterion) {
             black_box(gcma.attend(&r, &feat, lg).expect("attend"));
         }
         let ms = t0.elapsed().as_secs_f64() * 1e3 / n as f64;
-        eprintln!("{k:>4} {:>10} {ms:>14.2} {:>24.4}", lg.num_active(), diff / ref_norm);
-        group.bench_function(format!("K{k}"), |b| b.iter(|| black_box(gcma.attend(&r, &feat, lg).expect("attend"))));
+        eprintln!(
+            "{k:>4} {:>10} {ms:>14.2} {:>24.4}",
+            lg.num_active(),
+            diff / ref_norm
+        );
+        group.bench_function(format!("K{k}"), |b| {
+            b.iter(|| black_box(gcma.attend(&r, &feat, lg).expect("attend")))
+        });
     }
     group.finish();
 }

@@ -410,12 +410,17 @@ impl Gcma {
         }
         // keys and values of every feature pixel of every view, channels last: [B, V * Hf * Wf, 2d]
         let kv = self.kv.forward(feat)?.reshape((b, views, 2 * d, fh * fw))?;
-        let kv = kv.permute((0, 1, 3, 2))?.contiguous()?.reshape((b, views * fh * fw, 2 * d))?;
+        let kv = kv
+            .permute((0, 1, 3, 2))?
+            .contiguous()?
+            .reshape((b, views * fh * fw, 2 * d))?;
         // bilinear gather at the samples (whole 2d-rows per tap): [B, P * S, 2d]
         let mut g: Option<Tensor> = None;
         for corner in 0..4 {
             let sel = kv.index_select(&geom.corner_idx[corner], 1)?;
-            let wt = geom.corner_w[corner].to_dtype(dtype)?.reshape((1, p * s, 1))?;
+            let wt = geom.corner_w[corner]
+                .to_dtype(dtype)?
+                .reshape((1, p * s, 1))?;
             let term = sel.broadcast_mul(&wt)?;
             g = Some(match g {
                 None => term,
@@ -427,9 +432,17 @@ impl Gcma {
         let keys = g.narrow(3, 0, 1)?.squeeze(3)?; // [B, P, S, heads, dh]
         let vals = g.narrow(3, 1, 1)?.squeeze(3)?;
         // queries: W_q GN(R) at the active pixels + MLP(gamma(r_k)), [B, P, S, heads, dh]
-        let qr = self.q.forward(&self.norm.forward(r)?)?.reshape((b, d, h * w))?;
-        let qr = qr.index_select(&geom.active, 2)?.transpose(1, 2)?.reshape((b, p, 1, heads, dh))?;
-        let pos = self.pos2.forward(&silu(&self.pos0.forward(&geom.point_features.to_dtype(dtype)?)?)?)?;
+        let qr = self
+            .q
+            .forward(&self.norm.forward(r)?)?
+            .reshape((b, d, h * w))?;
+        let qr = qr
+            .index_select(&geom.active, 2)?
+            .transpose(1, 2)?
+            .reshape((b, p, 1, heads, dh))?;
+        let pos = self.pos2.forward(&silu(
+            &self.pos0.forward(&geom.point_features.to_dtype(dtype)?)?,
+        )?)?;
         let q = qr.broadcast_add(&pos.reshape((1, p, s, heads, dh))?)?;
         let logits = ((q * &keys)?.sum(D::Minus1)? / (dh as f64).sqrt())?; // [B, P, S, heads]
         let logits = logits.transpose(2, 3)?; // [B, P, heads, S]
@@ -437,10 +450,14 @@ impl Gcma {
         let a = masked_softmax_last_dim(&logits, &log_w, &geom.valid.reshape((1, p, 1, s))?)?;
         // [B, P, heads, 1, S] x [B, P, heads, S, dh] -> [B, P, heads, 1, dh]
         let a = a.contiguous()?.reshape((b * p * heads, 1, s))?;
-        let vals = vals.permute((0, 1, 3, 2, 4))?.contiguous()?.reshape((b * p * heads, s, dh))?;
+        let vals = vals
+            .permute((0, 1, 3, 2, 4))?
+            .contiguous()?
+            .reshape((b * p * heads, s, dh))?;
         let out = a.matmul(&vals)?;
         let out = out.reshape((b, p, d))?.transpose(1, 2)?.contiguous()?; // [B, d, P]
-        let full = Tensor::zeros((b, d, h * w), dtype, r.device())?.index_add(&geom.active, &out, 2)?;
+        let full =
+            Tensor::zeros((b, d, h * w), dtype, r.device())?.index_add(&geom.active, &out, 2)?;
         Ok(full.reshape((b, d, h, w))?)
     }
 

@@ -115,7 +115,10 @@ impl RingConv2d {
             // [B, k*k*C, H*W], channel index (ky * k + kx) * C + c
             let col = Tensor::cat(&cols, 1)?.reshape((b, k * k * c, h * w))?;
             // weight [out, C, k, k] -> [out, k, k, C] -> [1, out, k*k*C]
-            let wm = self.weight.permute((0, 2, 3, 1))?.reshape((1, out_c, k * k * c))?;
+            let wm = self
+                .weight
+                .permute((0, 2, 3, 1))?
+                .reshape((1, out_c, k * k * c))?;
             wm.broadcast_matmul(&col)?.reshape((b, out_c, h, w))?
         } else {
             xp.conv2d(&self.weight, 0, self.stride, 1, 1)?

@@ -7,13 +7,18 @@ use std::collections::HashMap;
 use candle_core::{DType, Device, Tensor};
 use common::*;
 use veila_nn::checkpoint::{
-    CONFIG_FILE, WEIGHTS_FILE, expected_tensors, load_denoiser, load_into_varmap, parameter_count, save_checkpoint,
-    save_varmap,
+    CONFIG_FILE, WEIGHTS_FILE, expected_tensors, load_denoiser, load_into_varmap, parameter_count,
+    save_checkpoint, save_varmap,
 };
 use veila_nn::{Error, seeded_var_builder};
 
 fn tensors_of(vm: &candle_nn::VarMap) -> HashMap<String, Tensor> {
-    vm.data().lock().unwrap().iter().map(|(k, v)| (k.clone(), v.as_tensor().clone())).collect()
+    vm.data()
+        .lock()
+        .unwrap()
+        .iter()
+        .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
+        .collect()
 }
 
 #[test]
@@ -36,7 +41,9 @@ fn round_trip_gives_identical_outputs() {
 
     // resume into a differently-seeded trainable VarMap
     let mut vm2 = candle_nn::VarMap::new();
-    let net2 = veila_nn::Denoiser::new(&cfg, seeded_var_builder(&vm2, 99, DType::F32, &Device::Cpu)).unwrap();
+    let net2 =
+        veila_nn::Denoiser::new(&cfg, seeded_var_builder(&vm2, 99, DType::F32, &Device::Cpu))
+            .unwrap();
     assert!(max_abs_diff(&net2.forward(&x, &t, None).unwrap(), &a) > 1e-4);
     load_into_varmap(&ck, &cfg, &mut vm2, &Device::Cpu).unwrap();
     assert_eq!(max_abs_diff(&net2.forward(&x, &t, None).unwrap(), &a), 0.0);
@@ -58,8 +65,14 @@ fn mismatched_checkpoint_reports_every_tensor_by_name() {
 
     // tamper with the weights file: one missing, one unexpected, one mis-shaped
     tensors.remove("mid.pfc.proj.bias");
-    tensors.insert("extra.weight".into(), Tensor::zeros(3, DType::F32, &Device::Cpu).unwrap());
-    tensors.insert("in_conv.bias".into(), Tensor::zeros(7, DType::F32, &Device::Cpu).unwrap());
+    tensors.insert(
+        "extra.weight".into(),
+        Tensor::zeros(3, DType::F32, &Device::Cpu).unwrap(),
+    );
+    tensors.insert(
+        "in_conv.bias".into(),
+        Tensor::zeros(7, DType::F32, &Device::Cpu).unwrap(),
+    );
     candle_core::safetensors::save(&tensors, ck.join(WEIGHTS_FILE)).unwrap();
 
     match load_denoiser(&ck, DType::F32, &Device::Cpu) {
@@ -67,9 +80,16 @@ fn mismatched_checkpoint_reports_every_tensor_by_name() {
             assert_eq!(path, ck.join(WEIGHTS_FILE));
             assert_eq!(report.missing, vec!["mid.pfc.proj.bias".to_string()]);
             assert_eq!(report.unexpected, vec!["extra.weight".to_string()]);
-            assert_eq!(report.mis_shaped, vec![("in_conv.bias".to_string(), vec![16], vec![7])]);
+            assert_eq!(
+                report.mis_shaped,
+                vec![("in_conv.bias".to_string(), vec![16], vec![7])]
+            );
             let msg = Error::CheckpointMismatch { path, report }.to_string();
-            assert!(msg.contains("mid.pfc.proj.bias") && msg.contains("extra.weight") && msg.contains("in_conv.bias"));
+            assert!(
+                msg.contains("mid.pfc.proj.bias")
+                    && msg.contains("extra.weight")
+                    && msg.contains("in_conv.bias")
+            );
             assert!(msg.contains("model.safetensors"), "{msg}");
         }
         Err(other) => panic!("wrong error: {other}"),
@@ -78,7 +98,10 @@ fn mismatched_checkpoint_reports_every_tensor_by_name() {
 
     // saving refuses tensors that do not fit the config, and writes nothing
     let other = dir.path().join("other");
-    assert!(matches!(save_checkpoint(&other, &cfg, &tensors), Err(Error::CheckpointMismatch { .. })));
+    assert!(matches!(
+        save_checkpoint(&other, &cfg, &tensors),
+        Err(Error::CheckpointMismatch { .. })
+    ));
     assert!(!other.exists());
 }
 
@@ -91,10 +114,16 @@ fn corrupt_files_are_errors_naming_the_file() {
     save_varmap(&ck, &cfg, &vm).unwrap();
     std::fs::write(ck.join(WEIGHTS_FILE), b"not a safetensors file").unwrap();
     let err = load_denoiser(&ck, DType::F32, &Device::Cpu).unwrap_err();
-    assert!(matches!(err, Error::SafeTensors { .. }) && err.to_string().contains(WEIGHTS_FILE), "{err}");
+    assert!(
+        matches!(err, Error::SafeTensors { .. }) && err.to_string().contains(WEIGHTS_FILE),
+        "{err}"
+    );
     std::fs::write(ck.join(CONFIG_FILE), b"{\"sensor\": 3}").unwrap();
     let err = load_denoiser(&ck, DType::F32, &Device::Cpu).unwrap_err();
-    assert!(matches!(err, Error::Json { .. }) && err.to_string().contains(CONFIG_FILE), "{err}");
+    assert!(
+        matches!(err, Error::Json { .. }) && err.to_string().contains(CONFIG_FILE),
+        "{err}"
+    );
     let err = load_denoiser(&dir.path().join("missing"), DType::F32, &Device::Cpu).unwrap_err();
     assert!(matches!(err, Error::Io { .. }), "{err}");
 }

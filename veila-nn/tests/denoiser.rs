@@ -66,7 +66,14 @@ fn every_ablation_runs_with_the_right_shapes() {
 
 fn roll_w(t: &Tensor, k: usize) -> Tensor {
     let w = t.dim(3).unwrap();
-    Tensor::cat(&[t.narrow(3, w - k, k).unwrap(), t.narrow(3, 0, w - k).unwrap()], 3).unwrap()
+    Tensor::cat(
+        &[
+            t.narrow(3, w - k, k).unwrap(),
+            t.narrow(3, 0, w - k).unwrap(),
+        ],
+        3,
+    )
+    .unwrap()
 }
 
 /// Rolling the input by `k` columns (a multiple of the total stride 2^(levels-1) = 8) rolls the output
@@ -82,7 +89,13 @@ fn unconditional_network_is_equivariant_to_azimuth_rolls() {
     let x = rand_tensor(&mut r, &[2, 3, 16, 128]);
     let t = Tensor::new(&[0.2f32, 0.7], &Device::Cpu).unwrap();
     let y = net.forward(&x, &t, None).unwrap();
-    let scale = y.abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap();
+    let scale = y
+        .abs()
+        .unwrap()
+        .max_all()
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap();
     for k in [8usize, 40, 120] {
         let y_rolled_in = net.forward(&roll_w(&x, k), &t, None).unwrap();
         let d = max_abs_diff(&y_rolled_in, &roll_w(&y, k));
@@ -96,11 +109,22 @@ fn unconditional_network_is_equivariant_to_azimuth_rolls() {
     let (_, net_rf) = varmap_model(&cfg_rf, 4);
     let y = net_rf.forward(&x, &t, None).unwrap();
     let k = 40;
-    let broken = max_abs_diff(&net_rf.forward(&roll_w(&x, k), &t, None).unwrap(), &roll_w(&y, k));
-    assert!(broken > 1e-3, "ray features should break pure input-roll equivariance ({broken})");
+    let broken = max_abs_diff(
+        &net_rf.forward(&roll_w(&x, k), &t, None).unwrap(),
+        &roll_w(&y, k),
+    );
+    assert!(
+        broken > 1e-3,
+        "ray features should break pure input-roll equivariance ({broken})"
+    );
     let mut net_rolled = net_rf.clone();
-    net_rolled.set_ray_features(roll_w(net_rf.ray_features().unwrap(), k)).unwrap();
-    let d = max_abs_diff(&net_rolled.forward(&roll_w(&x, k), &t, None).unwrap(), &roll_w(&y, k));
+    net_rolled
+        .set_ray_features(roll_w(net_rf.ray_features().unwrap(), k))
+        .unwrap();
+    let d = max_abs_diff(
+        &net_rolled.forward(&roll_w(&x, k), &t, None).unwrap(),
+        &roll_w(&y, k),
+    );
     assert!(d <= 1e-5 * scale.max(1.0), "rolled ray features: {d}");
     drop(vm);
 }
@@ -118,10 +142,26 @@ fn zero_initialised_gcma_leaves_the_network_unchanged_bit_exactly() {
     let x = rand_tensor(&mut r, &[2, 3, 16, 128]);
     let t = Tensor::new(&[0.1f32, 0.6], &dev).unwrap();
     let (sem, dep) = rand_pyramids(&mut r, &cfg, 2);
-    let input = ConditionInput { semantic: Some(sem), depth: Some(dep), keep: None };
+    let input = ConditionInput {
+        semantic: Some(sem),
+        depth: Some(dep),
+        keep: None,
+    };
     let prepared = net.prepare_condition(&input, Some(&geom)).unwrap();
-    let with = net.forward(&x, &t, Some(&prepared)).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap();
-    let without = net.forward(&x, &t, None).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    let with = net
+        .forward(&x, &t, Some(&prepared))
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap();
+    let without = net
+        .forward(&x, &t, None)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap();
     // the same weights in a network whose config has no GCMA (and no conditioning at all)
     let mut plain_cfg = cfg.clone();
     plain_cfg.conditioning = None;
@@ -133,11 +173,29 @@ fn zero_initialised_gcma_leaves_the_network_unchanged_bit_exactly() {
         .filter(|(k, _)| !k.contains("gcma") && !k.starts_with("cond."))
         .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
         .collect();
-    let plain = veila_nn::Denoiser::new(&plain_cfg, candle_nn::VarBuilder::from_tensors(tensors, DType::F32, &dev)).unwrap();
-    let plain_out = plain.forward(&x, &t, None).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    let plain = veila_nn::Denoiser::new(
+        &plain_cfg,
+        candle_nn::VarBuilder::from_tensors(tensors, DType::F32, &dev),
+    )
+    .unwrap();
+    let plain_out = plain
+        .forward(&x, &t, None)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap();
     assert!(with.iter().all(|v| v.is_finite()));
-    assert!(with.iter().zip(&without).all(|(a, b)| a.to_bits() == b.to_bits()));
-    assert!(with.iter().zip(&plain_out).all(|(a, b)| a.to_bits() == b.to_bits()));
+    assert!(
+        with.iter()
+            .zip(&without)
+            .all(|(a, b)| a.to_bits() == b.to_bits())
+    );
+    assert!(
+        with.iter()
+            .zip(&plain_out)
+            .all(|(a, b)| a.to_bits() == b.to_bits())
+    );
 
     // control: once GCMA's output conv is non-zero the condition does change the output
     {
@@ -150,7 +208,9 @@ fn zero_initialised_gcma_leaves_the_network_unchanged_bit_exactly() {
     let unchanged = net.forward(&x, &t, None).unwrap();
     assert!(max_abs_diff(&changed, &unchanged) > 1e-4);
     // and keep = 0 (classifier-free-guidance dropout) restores the unconditional output exactly
-    let dropped = prepared.clone().with_keep(Some(Tensor::new(&[0f32, 0.0], &dev).unwrap()));
+    let dropped = prepared
+        .clone()
+        .with_keep(Some(Tensor::new(&[0f32, 0.0], &dev).unwrap()));
     let d = net.forward(&x, &t, Some(&dropped)).unwrap();
     assert_eq!(max_abs_diff(&d, &unchanged), 0.0);
 }
@@ -158,7 +218,13 @@ fn zero_initialised_gcma_leaves_the_network_unchanged_bit_exactly() {
 #[test]
 fn gradients_reach_every_conditioning_branch() {
     let mut cfg = small_config();
-    cfg.conditioning.as_mut().unwrap().gcma.as_mut().unwrap().decoder = false;
+    cfg.conditioning
+        .as_mut()
+        .unwrap()
+        .gcma
+        .as_mut()
+        .unwrap()
+        .decoder = false;
     let (vm, net) = varmap_model(&cfg, 9);
     // make GCMA's output conv non-zero so that gradients flow into its inner weights as well
     let mut r = rng(13);
@@ -167,7 +233,9 @@ fn gradients_reach_every_conditioning_branch() {
         for l in 0..4 {
             let name = format!("down.{l}.gcma.out.weight");
             let shape = data[&name].as_tensor().dims().to_vec();
-            data[&name].set(&rand_tensor(&mut r, &shape).affine(0.1, 0.0).unwrap()).unwrap();
+            data[&name]
+                .set(&rand_tensor(&mut r, &shape).affine(0.1, 0.0).unwrap())
+                .unwrap();
         }
     }
     let dev = Device::Cpu;
@@ -176,9 +244,22 @@ fn gradients_reach_every_conditioning_branch() {
     let t = Tensor::new(&[0.5f32], &dev).unwrap();
     let (sem, dep) = rand_pyramids(&mut r, &cfg, 1);
     let prepared = net
-        .prepare_condition(&ConditionInput { semantic: Some(sem), depth: Some(dep), keep: None }, Some(&geom))
+        .prepare_condition(
+            &ConditionInput {
+                semantic: Some(sem),
+                depth: Some(dep),
+                keep: None,
+            },
+            Some(&geom),
+        )
         .unwrap();
-    let loss = net.forward(&x, &t, Some(&prepared)).unwrap().sqr().unwrap().mean_all().unwrap();
+    let loss = net
+        .forward(&x, &t, Some(&prepared))
+        .unwrap()
+        .sqr()
+        .unwrap()
+        .mean_all()
+        .unwrap();
     let grads = loss.backward().unwrap();
     let data = vm.data().lock().unwrap();
     for name in [
@@ -193,8 +274,16 @@ fn gradients_reach_every_conditioning_branch() {
         "cond.fuse.3.proj_d.weight",
         "time.0.weight",
     ] {
-        let g = grads.get(data[name].as_tensor()).unwrap_or_else(|| panic!("no gradient for {name}"));
-        let n = g.abs().unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap();
+        let g = grads
+            .get(data[name].as_tensor())
+            .unwrap_or_else(|| panic!("no gradient for {name}"));
+        let n = g
+            .abs()
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
         assert!(n > 0.0 && n.is_finite(), "{name}: {n}");
     }
 }
@@ -218,28 +307,52 @@ fn bad_inputs_are_errors_not_panics() {
     let dev = Device::Cpu;
     let t = Tensor::new(&[0.4f32], &dev).unwrap();
     let x = Tensor::zeros((1, 3, 16, 64), DType::F32, &dev).unwrap();
-    assert!(net.forward(&x, &t, None).unwrap_err().to_string().contains("bad shape for x"));
+    assert!(
+        net.forward(&x, &t, None)
+            .unwrap_err()
+            .to_string()
+            .contains("bad shape for x")
+    );
     let x = Tensor::zeros((1, 3, 16, 128), DType::F32, &dev).unwrap();
     let t2 = Tensor::new(&[0.4f32, 0.1], &dev).unwrap();
     assert!(net.forward(&x, &t2, None).is_err());
     // GCMA model without geometry
     let (sem, dep) = rand_pyramids(&mut rng(1), &cfg, 1);
-    let input = ConditionInput { semantic: Some(sem), depth: None, keep: None };
+    let input = ConditionInput {
+        semantic: Some(sem),
+        depth: None,
+        keep: None,
+    };
     assert!(net.prepare_condition(&input, None).is_err());
-    let input = ConditionInput { semantic: None, depth: Some(dep), keep: None };
+    let input = ConditionInput {
+        semantic: None,
+        depth: Some(dep),
+        keep: None,
+    };
     assert!(net.prepare_condition(&input, None).is_err());
     // invalid configs
     let mut bad = cfg.clone();
     bad.channel_mults = vec![1, 2, 2, 2, 2, 2, 2, 2]; // 16 rows not divisible by 2^7
     assert!(bad.validate().is_err());
     let mut bad = cfg.clone();
-    bad.conditioning.as_mut().unwrap().gcma.as_mut().unwrap().num_heads = 3;
+    bad.conditioning
+        .as_mut()
+        .unwrap()
+        .gcma
+        .as_mut()
+        .unwrap()
+        .num_heads = 3;
     assert!(bad.validate().is_err());
 }
 
 #[test]
 fn presets_validate_and_round_trip_through_json() {
-    for cfg in [DenoiserConfig::tiny(), DenoiserConfig::paper(), DenoiserConfig::tiny().unconditional(), small_config()] {
+    for cfg in [
+        DenoiserConfig::tiny(),
+        DenoiserConfig::paper(),
+        DenoiserConfig::tiny().unconditional(),
+        small_config(),
+    ] {
         cfg.validate().unwrap();
         let json = serde_json::to_string(&cfg).unwrap();
         assert_eq!(DenoiserConfig::from_json(&json).unwrap(), cfg);

@@ -13,7 +13,14 @@ use veila_nn::{DenoiserConfig, Gcma, GcmaGeometry, seeded_var_builder};
 fn get(vm: &VarMap, name: &str) -> Vec<f64> {
     let data = vm.data().lock().unwrap();
     let t = data.get(name).unwrap_or_else(|| panic!("no {name}"));
-    t.as_tensor().flatten_all().unwrap().to_vec1::<f32>().unwrap().into_iter().map(f64::from).collect()
+    t.as_tensor()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap()
+        .into_iter()
+        .map(f64::from)
+        .collect()
 }
 
 /// `grid_sample(..., mode="bilinear", padding_mode="zeros", align_corners=False)` of a `[C, H, W]` map.
@@ -35,16 +42,26 @@ fn grid_sample(feat: &[f32], c: usize, h: usize, w: usize, gx: f32, gy: f32) -> 
     out
 }
 
-fn group_norm_ref(x: &[f32], c: usize, hw: usize, groups: usize, gamma: &[f64], beta: &[f64]) -> Vec<f64> {
+fn group_norm_ref(
+    x: &[f32],
+    c: usize,
+    hw: usize,
+    groups: usize,
+    gamma: &[f64],
+    beta: &[f64],
+) -> Vec<f64> {
     let cg = c / groups;
     let mut out = vec![0.0; c * hw];
     for g in 0..groups {
-        let vals: Vec<f64> = (g * cg * hw..(g + 1) * cg * hw).map(|i| f64::from(x[i])).collect();
+        let vals: Vec<f64> = (g * cg * hw..(g + 1) * cg * hw)
+            .map(|i| f64::from(x[i]))
+            .collect();
         let mean = vals.iter().sum::<f64>() / vals.len() as f64;
         let var = vals.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / vals.len() as f64;
         for ch in g * cg..(g + 1) * cg {
             for p in 0..hw {
-                out[ch * hw + p] = (f64::from(x[ch * hw + p]) - mean) / (var + 1e-5).sqrt() * gamma[ch] + beta[ch];
+                out[ch * hw + p] =
+                    (f64::from(x[ch * hw + p]) - mean) / (var + 1e-5).sqrt() * gamma[ch] + beta[ch];
             }
         }
     }
@@ -54,7 +71,9 @@ fn group_norm_ref(x: &[f32], c: usize, hw: usize, groups: usize, gamma: &[f64], 
 fn matvec(wm: &[f64], bias: Option<&[f64]>, x: &[f64], out_n: usize) -> Vec<f64> {
     let in_n = x.len();
     (0..out_n)
-        .map(|o| (0..in_n).map(|i| wm[o * in_n + i] * x[i]).sum::<f64>() + bias.map_or(0.0, |b| b[o]))
+        .map(|o| {
+            (0..in_n).map(|i| wm[o * in_n + i] * x[i]).sum::<f64>() + bias.map_or(0.0, |b| b[o])
+        })
         .collect()
 }
 
@@ -77,7 +96,14 @@ fn check_against_reference(cameras: &[PinholeCamera], level: usize, feature_scal
     let groups = veila_nn::ops::groups_for(c, cfg.norm_groups);
 
     let vm = VarMap::new();
-    let gcma = Gcma::new(&g, c, fc, cfg.norm_groups, seeded_var_builder(&vm, 11, DType::F32, &dev).pp("gcma")).unwrap();
+    let gcma = Gcma::new(
+        &g,
+        c,
+        fc,
+        cfg.norm_groups,
+        seeded_var_builder(&vm, 11, DType::F32, &dev).pp("gcma"),
+    )
+    .unwrap();
     // give the (otherwise identity) GroupNorm affine parameters non-trivial values
     {
         let mut r = rng(5);
@@ -90,7 +116,9 @@ fn check_against_reference(cameras: &[PinholeCamera], level: usize, feature_scal
     let b = 2;
     let views = cameras.len();
     let rin = rand_tensor(&mut r, &[b, c, h, w]);
-    let feat = rand_tensor(&mut r, &[b * views, fc, fh, fw]).affine(f64::from(feature_scale), 0.0).unwrap();
+    let feat = rand_tensor(&mut r, &[b * views, fc, fh, fw])
+        .affine(f64::from(feature_scale), 0.0)
+        .unwrap();
     let out = gcma.attend(&rin, &feat, lg).unwrap();
     let d = g.attn_dim;
     assert_eq!(out.dims(), &[b, d, h, w]);
@@ -103,8 +131,10 @@ fn check_against_reference(cameras: &[PinholeCamera], level: usize, feature_scal
     let (gamma, beta) = (get(&vm, "gcma.norm.weight"), get(&vm, "gcma.norm.bias"));
     let sensor = sensor_at_level(&cfg.sensor, level).unwrap();
     let rays = RayTable::new(&sensor).unwrap();
-    let tables: Vec<EpipolarTable> =
-        cameras.iter().map(|cam| EpipolarTable::build(&rays, cam, &common::epipolar(k)).unwrap()).collect();
+    let tables: Vec<EpipolarTable> = cameras
+        .iter()
+        .map(|cam| EpipolarTable::build(&rays, cam, &common::epipolar(k)).unwrap())
+        .collect();
     let rin_v = rin.flatten_all().unwrap().to_vec1::<f32>().unwrap();
     let feat_v = feat.flatten_all().unwrap().to_vec1::<f32>().unwrap();
     let heads = g.num_heads;
@@ -113,7 +143,14 @@ fn check_against_reference(cameras: &[PinholeCamera], level: usize, feature_scal
     let mut max_err = 0f64;
     let mut max_mag = 0f64;
     for bi in 0..b {
-        let gn = group_norm_ref(&rin_v[bi * c * h * w..(bi + 1) * c * h * w], c, h * w, groups, &gamma, &beta);
+        let gn = group_norm_ref(
+            &rin_v[bi * c * h * w..(bi + 1) * c * h * w],
+            c,
+            h * w,
+            groups,
+            &gamma,
+            &beta,
+        );
         for p in 0..h * w {
             let (row, col) = ((p / w) as u32, (p % w) as u32);
             let x: Vec<f64> = (0..c).map(|ch| gn[ch * h * w + p]).collect();
@@ -126,17 +163,24 @@ fn check_against_reference(cameras: &[PinholeCamera], level: usize, feature_scal
                     if !t.valid[i] || t.weight[i] <= 0.0 {
                         continue;
                     }
-                    let fmap = &feat_v[(bi * views + v) * fc * fh * fw..(bi * views + v + 1) * fc * fh * fw];
+                    let fmap = &feat_v
+                        [(bi * views + v) * fc * fh * fw..(bi * views + v + 1) * fc * fh * fw];
                     let f = grid_sample(fmap, fc, fh, fw, t.grid[i][0], t.grid[i][1]);
                     let kv = matvec(&wkv, None, &f, 2 * d);
                     let mut gam = Vec::new();
-                    g.point_encoding.encode(t.sample_point_lidar(row, col, kk), &mut gam);
+                    g.point_encoding
+                        .encode(t.sample_point_lidar(row, col, kk), &mut gam);
                     let gam: Vec<f64> = gam.into_iter().map(f64::from).collect();
-                    let hid: Vec<f64> = matvec(&w0, Some(&b0), &gam, d).into_iter().map(|z| z / (1.0 + (-z).exp())).collect();
+                    let hid: Vec<f64> = matvec(&w0, Some(&b0), &gam, d)
+                        .into_iter()
+                        .map(|z| z / (1.0 + (-z).exp()))
+                        .collect();
                     let pos = matvec(&w2, Some(&b2), &hid, d);
                     let logits: Vec<f64> = (0..heads)
                         .map(|hh| {
-                            (0..dh).map(|j| (q[hh * dh + j] + pos[hh * dh + j]) * kv[hh * dh + j]).sum::<f64>()
+                            (0..dh)
+                                .map(|j| (q[hh * dh + j] + pos[hh * dh + j]) * kv[hh * dh + j])
+                                .sum::<f64>()
                                 / (dh as f64).sqrt()
                         })
                         .collect();
@@ -147,7 +191,10 @@ fn check_against_reference(cameras: &[PinholeCamera], level: usize, feature_scal
             if !samples.is_empty() {
                 active += 1;
                 for hh in 0..heads {
-                    let m = samples.iter().map(|s| s.1[hh]).fold(f64::NEG_INFINITY, f64::max);
+                    let m = samples
+                        .iter()
+                        .map(|s| s.1[hh])
+                        .fold(f64::NEG_INFINITY, f64::max);
                     let z: f64 = samples.iter().map(|s| s.0 * (s.1[hh] - m).exp()).sum();
                     for s in &samples {
                         let a = s.0 * (s.1[hh] - m).exp() / z;
@@ -169,8 +216,14 @@ fn check_against_reference(cameras: &[PinholeCamera], level: usize, feature_scal
         }
     }
     assert_eq!(active, b * lg.num_active(), "active pixel count");
-    assert!(lg.num_active() > 0 && lg.num_active() < h * w, "the camera sees part of the panorama");
-    assert!(max_err <= 1e-4 * max_mag.max(1.0), "max error {max_err} (magnitude {max_mag})");
+    assert!(
+        lg.num_active() > 0 && lg.num_active() < h * w,
+        "the camera sees part of the panorama"
+    );
+    assert!(
+        max_err <= 1e-4 * max_mag.max(1.0),
+        "max error {max_err} (magnitude {max_mag})"
+    );
 }
 
 #[test]
@@ -194,8 +247,12 @@ fn gcma_stays_finite_with_huge_features() {
     let vm = VarMap::new();
     let gcma = Gcma::new(&g, 16, 8, 4, seeded_var_builder(&vm, 3, DType::F32, &dev)).unwrap();
     let mut r = rng(9);
-    let rin = rand_tensor(&mut r, &[1, 16, 16, 128]).affine(1e18, 0.0).unwrap();
-    let feat = rand_tensor(&mut r, &[1, 8, 12, 40]).affine(1e18, 0.0).unwrap();
+    let rin = rand_tensor(&mut r, &[1, 16, 16, 128])
+        .affine(1e18, 0.0)
+        .unwrap();
+    let feat = rand_tensor(&mut r, &[1, 8, 12, 40])
+        .affine(1e18, 0.0)
+        .unwrap();
     let out = gcma.attend(&rin, &feat, geom.level(0).unwrap()).unwrap();
     assert!(all_finite(&out));
 }
@@ -215,17 +272,25 @@ fn untrained_gcma_is_exactly_the_identity_and_keep_zero_drops_it() {
     let out = gcma.forward(&rin, &feat, lg, None).unwrap();
     let a = out.flatten_all().unwrap().to_vec1::<f32>().unwrap();
     let b = rin.flatten_all().unwrap().to_vec1::<f32>().unwrap();
-    assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()), "zero-init GCMA changed its input");
+    assert!(
+        a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()),
+        "zero-init GCMA changed its input"
+    );
     // trained (non-zero) output conv: the branch is active, and keep = 0 removes it per sample
     {
         let data = vm.data().lock().unwrap();
-        data["out.weight"].set(&rand_tensor(&mut r, &[16, 8, 1, 1])).unwrap();
+        data["out.weight"]
+            .set(&rand_tensor(&mut r, &[16, 8, 1, 1]))
+            .unwrap();
     }
     let keep = Tensor::new(&[1f32, 0.0], &dev).unwrap();
     let out = gcma.forward(&rin, &feat, lg, Some(&keep)).unwrap();
     let d0 = max_abs_diff(&out.narrow(0, 0, 1).unwrap(), &rin.narrow(0, 0, 1).unwrap());
     let d1 = max_abs_diff(&out.narrow(0, 1, 1).unwrap(), &rin.narrow(0, 1, 1).unwrap());
-    assert!(d0 > 1e-3, "a trained GCMA changes the conditioned sample ({d0})");
+    assert!(
+        d0 > 1e-3,
+        "a trained GCMA changes the conditioned sample ({d0})"
+    );
     assert_eq!(d1, 0.0, "keep = 0 leaves the sample unchanged");
 }
 
@@ -233,12 +298,30 @@ fn untrained_gcma_is_exactly_the_identity_and_keep_zero_drops_it() {
 fn geometry_rejects_wrong_view_count_and_feature_shapes() {
     let cfg = small_config();
     let dev = Device::Cpu;
-    assert!(GcmaGeometry::new(&cfg, &[kitti_camera(), rear_camera()], &common::epipolar(4), &dev).is_err());
+    assert!(
+        GcmaGeometry::new(
+            &cfg,
+            &[kitti_camera(), rear_camera()],
+            &common::epipolar(4),
+            &dev
+        )
+        .is_err()
+    );
     let geom = GcmaGeometry::new(&cfg, &[kitti_camera()], &common::epipolar(4), &dev).unwrap();
     let g = cfg.conditioning.as_ref().unwrap().gcma.clone().unwrap();
-    let gcma = Gcma::new(&g, 16, 8, 4, seeded_var_builder(&VarMap::new(), 3, DType::F32, &dev)).unwrap();
+    let gcma = Gcma::new(
+        &g,
+        16,
+        8,
+        4,
+        seeded_var_builder(&VarMap::new(), 3, DType::F32, &dev),
+    )
+    .unwrap();
     let rin = Tensor::zeros((1, 16, 16, 128), DType::F32, &dev).unwrap();
     let bad = Tensor::zeros((1, 8, 13, 40), DType::F32, &dev).unwrap();
-    let err = gcma.attend(&rin, &bad, geom.level(0).unwrap()).unwrap_err().to_string();
+    let err = gcma
+        .attend(&rin, &bad, geom.level(0).unwrap())
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("conditioning map"), "{err}");
 }

@@ -4,7 +4,9 @@ mod common;
 
 use candle_core::{DType, Device, Tensor};
 use common::{rand_tensor, rng};
-use veila_nn::ops::{RingConv2d, bilinear_resize, masked_softmax_last_dim, ring_pad, sinusoidal_embedding};
+use veila_nn::ops::{
+    RingConv2d, bilinear_resize, masked_softmax_last_dim, ring_pad, sinusoidal_embedding,
+};
 
 /// PyTorch `F.interpolate(mode="bilinear", align_corners=False)` for one output pixel, written directly
 /// from the documented formula (half-pixel centres, source clamped at 0, upper neighbour clamped).
@@ -210,7 +212,17 @@ fn sinusoidal_embedding_closed_form() {
 }
 
 /// Direct convolution with circular azimuth and zero vertical padding, written as nested loops.
-fn ring_conv_ref(x: &[f32], c: usize, h: usize, w: usize, wt: &[f32], bias: &[f32], out_c: usize, k: usize, stride: usize) -> Vec<f64> {
+fn ring_conv_ref(
+    x: &[f32],
+    c: usize,
+    h: usize,
+    w: usize,
+    wt: &[f32],
+    bias: &[f32],
+    out_c: usize,
+    k: usize,
+    stride: usize,
+) -> Vec<f64> {
     let p = (k / 2) as i64;
     let (oh, ow) = (h.div_ceil(stride), w.div_ceil(stride));
     let mut out = vec![0.0; out_c * oh * ow];
@@ -226,7 +238,8 @@ fn ring_conv_ref(x: &[f32], c: usize, h: usize, w: usize, wt: &[f32], bias: &[f3
                                 continue; // zero padding in elevation
                             }
                             let xx = ((xo * stride) as i64 + kx as i64 - p).rem_euclid(w as i64); // wraps in azimuth
-                            s += f64::from(wt[((o * c + ci) * k + ky) * k + kx]) * f64::from(x[(ci * h + yy as usize) * w + xx as usize]);
+                            s += f64::from(wt[((o * c + ci) * k + ky) * k + kx])
+                                * f64::from(x[(ci * h + yy as usize) * w + xx as usize]);
                         }
                     }
                 }
@@ -240,7 +253,12 @@ fn ring_conv_ref(x: &[f32], c: usize, h: usize, w: usize, wt: &[f32], bias: &[f3
 #[test]
 fn ring_conv_matches_direct_circular_convolution() {
     let mut r = rng(4);
-    for &(c, out_c, h, w, k, stride) in &[(3usize, 5usize, 6usize, 10usize, 3usize, 1usize), (4, 2, 8, 12, 3, 2), (2, 3, 5, 9, 5, 1), (3, 4, 4, 8, 1, 1)] {
+    for &(c, out_c, h, w, k, stride) in &[
+        (3usize, 5usize, 6usize, 10usize, 3usize, 1usize),
+        (4, 2, 8, 12, 3, 2),
+        (2, 3, 5, 9, 5, 1),
+        (3, 4, 4, 8, 1, 1),
+    ] {
         let x = rand_tensor(&mut r, &[2, c, h, w]);
         let wt = rand_tensor(&mut r, &[out_c, c, k, k]);
         let b = rand_tensor(&mut r, &[out_c]);
@@ -251,11 +269,26 @@ fn ring_conv_matches_direct_circular_convolution() {
         let wv = wt.flatten_all().unwrap().to_vec1::<f32>().unwrap();
         let bv = b.to_vec1::<f32>().unwrap();
         for bi in 0..2 {
-            let xb = x.get(bi).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap();
-            let yb = y.get(bi).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let xb = x
+                .get(bi)
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap();
+            let yb = y
+                .get(bi)
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap();
             let reference = ring_conv_ref(&xb, c, h, w, &wv, &bv, out_c, k, stride);
             for (a, e) in yb.iter().zip(&reference) {
-                assert!((f64::from(*a) - e).abs() < 1e-4, "c{c} o{out_c} {h}x{w} k{k} s{stride}: {a} vs {e}");
+                assert!(
+                    (f64::from(*a) - e).abs() < 1e-4,
+                    "c{c} o{out_c} {h}x{w} k{k} s{stride}: {a} vs {e}"
+                );
             }
         }
     }

@@ -39,7 +39,9 @@ fn preset_of(name: &str) -> Result<Preset> {
         "night" => Preset::KittiNight,
         "fog" => Preset::KittiFog,
         "snow" => Preset::KittiSnow,
-        other => bail!("unknown KITTI-Weather variant '{other}' (expected clean, night, fog, snow)"),
+        other => {
+            bail!("unknown KITTI-Weather variant '{other}' (expected clean, night, fog, snow)")
+        }
     })
 }
 
@@ -47,32 +49,47 @@ fn preset_of(name: &str) -> Result<Preset> {
 pub fn run(a: KittiWeatherArgs) -> Result<()> {
     let ds = KittiObjectDataset::open(&a.root)?;
     let base = ds.base().to_path_buf();
-    let ids: Vec<String> = ds.ids().iter().take(a.limit.unwrap_or(usize::MAX)).cloned().collect();
+    let ids: Vec<String> = ds
+        .ids()
+        .iter()
+        .take(a.limit.unwrap_or(usize::MAX))
+        .cloned()
+        .collect();
     if ids.is_empty() {
         bail!("{}: no scans in velodyne/", base.display());
     }
-    let presets = a.variants.iter().map(|v| Ok((v.clone(), preset_of(v)?))).collect::<Result<Vec<_>>>()?;
+    let presets = a
+        .variants
+        .iter()
+        .map(|v| Ok((v.clone(), preset_of(v)?)))
+        .collect::<Result<Vec<_>>>()?;
     // every input must exist before anything is written
     for id in &ids {
         for (dir, ext) in [("image_2", "png"), ("calib", "txt")] {
             let p = base.join(dir).join(format!("{id}.{ext}"));
             if !p.is_file() {
-                bail!("{}: missing (every frame needs velodyne/, image_2/ and calib/)", p.display());
+                bail!(
+                    "{}: missing (every frame needs velodyne/, image_2/ and calib/)",
+                    p.display()
+                );
             }
         }
     }
     let cfg = WeatherConfig::default();
     let bar = ProgressBar::new((ids.len() * presets.len()) as u64);
     bar.set_style(
-        ProgressStyle::with_template("{prefix:>8.bold} [{bar:30}] {pos}/{len} {per_sec} eta {eta} {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
+        ProgressStyle::with_template(
+            "{prefix:>8.bold} [{bar:30}] {pos}/{len} {per_sec} eta {eta} {msg}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .progress_chars("=> "),
     );
     bar.set_prefix("weather");
     for (name, preset) in &presets {
         let vdir = a.out.join(name);
         for sub in ["velodyne", "image_2", "calib", "effects"] {
-            std::fs::create_dir_all(vdir.join(sub)).with_context(|| format!("cannot create {}", vdir.display()))?;
+            std::fs::create_dir_all(vdir.join(sub))
+                .with_context(|| format!("cannot create {}", vdir.display()))?;
         }
         let sim = WeatherSim::new(&preset.weather(), &cfg)?;
         let json = serde_json::to_string_pretty(&preset.weather())?;
@@ -90,10 +107,15 @@ pub fn run(a: KittiWeatherArgs) -> Result<()> {
                 scan: vdir.join("velodyne").join(format!("{id}.bin")),
                 image: Some(vdir.join("image_2").join(format!("{id}.png"))),
             };
-            let report = process_frame(&frame_sim, &files, &outs).with_context(|| format!("frame {id} ({name})"))?;
+            let report = process_frame(&frame_sim, &files, &outs)
+                .with_context(|| format!("frame {id} ({name})"))?;
             let calib_src = files.calib.as_ref().expect("set above");
-            let calib = std::fs::read(calib_src).with_context(|| format!("cannot read {}", calib_src.display()))?;
-            veila_data::atomic::write_atomic(&vdir.join("calib").join(format!("{id}.txt")), &calib)?;
+            let calib = std::fs::read(calib_src)
+                .with_context(|| format!("cannot read {}", calib_src.display()))?;
+            veila_data::atomic::write_atomic(
+                &vdir.join("calib").join(format!("{id}.txt")),
+                &calib,
+            )?;
             veila_data::atomic::write_atomic(
                 &vdir.join("effects").join(format!("{id}.json")),
                 report.to_json()?.as_bytes(),
@@ -102,6 +124,47 @@ pub fn run(a: KittiWeatherArgs) -> Result<()> {
         }
     }
     bar.finish_with_message("done");
-    eprintln!("wrote {} frames x {} variants to {}", ids.len(), presets.len(), a.out.display());
+    eprintln!(
+        "wrote {} frames x {} variants to {}",
+        ids.len(),
+        presets.len(),
+        a.out.display()
+    );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn builds_variants_of_the_real_kitti_frames() {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/real/kitti");
+        if !root.join("training/velodyne/000000.bin").is_file() {
+            eprintln!("skipping: {} not found", root.display());
+            return;
+        }
+        let out = std::env::temp_dir().join(format!("veila-kitti-weather-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&out);
+        run(KittiWeatherArgs {
+            root: root.clone(),
+            out: out.clone(),
+            variants: vec!["clean".into(), "night".into()],
+            seed: 0,
+            limit: Some(1),
+        })
+        .unwrap();
+        let src = root.join("training");
+        let read = |p: std::path::PathBuf| std::fs::read(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+        assert_eq!(read(out.join("clean/velodyne/000000.bin")), read(src.join("velodyne/000000.bin")));
+        assert_eq!(read(out.join("clean/image_2/000000.png")), read(src.join("image_2/000000.png")));
+        assert_eq!(read(out.join("night/velodyne/000000.bin")), read(src.join("velodyne/000000.bin")));
+        assert_ne!(read(out.join("night/image_2/000000.png")), read(src.join("image_2/000000.png")));
+        assert_eq!(read(out.join("night/calib/000000.txt")), read(src.join("calib/000000.txt")));
+        let fx: serde_json::Value = serde_json::from_slice(&read(out.join("night/effects/000000.json"))).unwrap();
+        assert_eq!(fx["camera"][0]["effect"], "darken");
+        assert!(!out.join("clean/velodyne/000001.bin").exists(), "--limit 1");
+        assert!(run(KittiWeatherArgs { root, out: out.clone(), variants: vec!["rainbow".into()], seed: 0, limit: None }).is_err());
+        let _ = std::fs::remove_dir_all(&out);
+    }
 }

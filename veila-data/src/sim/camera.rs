@@ -171,6 +171,51 @@ impl SimCalib {
         )?)
     }
 
+    /// `Tr = R0_rect Tr_velo_to_cam`: LiDAR to rectified camera 0, as a rigid transform.
+    pub fn rect_cam0_from_lidar(&self) -> Affine3A {
+        let r0 = Mat3::from_cols_array_2d(&self.r0_rect).transpose();
+        let t = &self.tr_velo_to_cam;
+        let rot = Mat3::from_cols_array_2d(&[
+            [t[0][0], t[1][0], t[2][0]],
+            [t[0][1], t[1][1], t[2][1]],
+            [t[0][2], t[1][2], t[2][2]],
+        ]);
+        Affine3A::from_mat3_translation(r0 * rot, r0 * Vec3::new(t[0][3], t[1][3], t[2][3]))
+    }
+
+    /// The calibration as KITTI odometry text (`sequences/NN/calib.txt`: `P0..P3` and
+    /// `Tr = R0_rect Tr_velo_to_cam`).
+    pub fn to_odometry_text(&self) -> String {
+        let tr = self.rect_cam0_from_lidar();
+        let (m, t) = (tr.matrix3, tr.translation);
+        let rows = [
+            [m.x_axis.x, m.y_axis.x, m.z_axis.x, t.x],
+            [m.x_axis.y, m.y_axis.y, m.z_axis.y, t.y],
+            [m.x_axis.z, m.y_axis.z, m.z_axis.z, t.z],
+        ];
+        let mut s = String::new();
+        for (key, vals) in (0..4)
+            .map(|i| {
+                (
+                    format!("P{i}"),
+                    self.p[i].iter().flatten().copied().collect::<Vec<_>>(),
+                )
+            })
+            .chain(std::iter::once((
+                "Tr".to_string(),
+                rows.iter().flatten().copied().collect(),
+            )))
+        {
+            s.push_str(&key);
+            s.push(':');
+            for v in vals {
+                s.push_str(&format!(" {v:.12e}"));
+            }
+            s.push('\n');
+        }
+        s
+    }
+
     /// The calibration as KITTI object-benchmark text (`calib/NNNNNN.txt`).
     pub fn to_kitti_text(&self) -> String {
         let mut s = String::new();

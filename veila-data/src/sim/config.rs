@@ -556,6 +556,21 @@ impl SceneConfig {
             "road.building_frontage",
             format!("{} not in [0, 1]", r.building_frontage),
         )?;
+        let min_len = match self.layout {
+            // the junction's four arms need room beyond the crossing street's sidewalks
+            Layout::Junction => {
+                2.0 * (r.half_carriageway_m() + r.sidewalk_width_m + r.setback_m + 10.0)
+            }
+            _ => 20.0,
+        };
+        check(
+            r.length_m >= min_len,
+            "road.length_m",
+            format!(
+                "{} is too short for this layout and cross-section (at least {min_len} m)",
+                r.length_m
+            ),
+        )?;
         let [h0, h1] = r.building_height_m;
         check(
             pos(h0) && h1 >= h0 && h1 <= 300.0,

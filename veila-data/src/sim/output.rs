@@ -9,8 +9,13 @@
 //! DIR/semantic_2/NNNNNN.png   16-bit, SemanticKITTI raw class id per pixel, 0 = sky
 //! DIR/scene.json              the scene configuration, seed, frame count and per-frame statistics
 //! DIR/lidar_poses.txt         per frame: world_from_lidar as 12 numbers (row-major 3x4)
+//! DIR/calib.txt              KITTI odometry calibration (P0..P3, Tr), for the SemanticKITTI reader
+//! DIR/poses.txt              KITTI odometry poses: camera 0 of frame i in camera 0 of frame 0 (3x4)
 //! DIR/times.txt               per frame: time in seconds
 //! ```
+//!
+//! DIR itself is laid out like a KITTI object split (`KittiObjectDataset::open(DIR)`) and like one
+//! SemanticKITTI sequence (place it at `ROOT/sequences/NN` for `SemanticKittiDataset`).
 //!
 //! Every file is written atomically (temporary file in the same directory, then rename).
 
@@ -220,6 +225,9 @@ pub fn simulate_to_dir(
         frame_stats: Vec::new(),
     };
     let mut poses = String::new();
+    let mut odo_poses = String::new();
+    let mut first_pose: Option<Affine3A> = None;
+    let cam_from_lidar = calib.rect_cam0_from_lidar();
     let mut times = String::new();
     for i in 0..frames {
         let snap = scene.snapshot(i);
@@ -246,10 +254,17 @@ pub fn simulate_to_dir(
         });
         poses.push_str(&pose_line(&snap.world_from_lidar));
         poses.push('\n');
+        let first = *first_pose.get_or_insert(snap.world_from_lidar);
+        let cam0_pose =
+            cam_from_lidar * first.inverse() * snap.world_from_lidar * cam_from_lidar.inverse();
+        odo_poses.push_str(&pose_line(&cam0_pose));
+        odo_poses.push('\n');
         times.push_str(&format!("{:.6e}\n", snap.time_s));
         progress(i + 1);
     }
     write_atomic(&dir.join("lidar_poses.txt"), poses.as_bytes())?;
+    write_atomic(&dir.join("poses.txt"), odo_poses.as_bytes())?;
+    write_atomic(&dir.join("calib.txt"), calib.to_odometry_text().as_bytes())?;
     write_atomic(&dir.join("times.txt"), times.as_bytes())?;
     let json = SceneJson {
         generator: concat!("veila-data ", env!("CARGO_PKG_VERSION")),

@@ -67,7 +67,10 @@ impl Intrinsics {
         {
             Ok(())
         } else {
-            Err(Error::Invalid { what: "camera intrinsics".into(), message: format!("{self:?}") })
+            Err(Error::Invalid {
+                what: "camera intrinsics".into(),
+                message: format!("{self:?}"),
+            })
         }
     }
 
@@ -93,7 +96,9 @@ pub struct DepthMap {
 impl DepthMap {
     /// Check the size and that every value is > 0 or +inf (NaN, 0 and negatives are errors).
     pub fn validate(&self, width: u32, height: u32) -> Result<()> {
-        if self.width != width || self.height != height || self.z_m.len() != (width as usize) * (height as usize)
+        if self.width != width
+            || self.height != height
+            || self.z_m.len() != (width as usize) * (height as usize)
         {
             return Err(Error::Mismatch {
                 context: "camera depth map".into(),
@@ -180,22 +185,34 @@ impl DepthMap {
         // soften the column structure of the fill: box filter (radius 4 px) on inverse depth, so sky
         // (inverse depth 0) blends without infinities
         let rad = 4usize;
-        let inv: Vec<f64> = out.iter().map(|z| if z.is_finite() { 1.0 / *z as f64 } else { 0.0 }).collect();
+        let inv: Vec<f64> = out
+            .iter()
+            .map(|z| if z.is_finite() { 1.0 / *z as f64 } else { 0.0 })
+            .collect();
         let mut tmp = vec![0f64; w * h];
         for r in 0..h {
             for c in 0..w {
                 let (a, b) = (c.saturating_sub(rad), (c + rad).min(w - 1));
-                tmp[r * w + c] = inv[r * w + a..=r * w + b].iter().sum::<f64>() / (b - a + 1) as f64;
+                tmp[r * w + c] =
+                    inv[r * w + a..=r * w + b].iter().sum::<f64>() / (b - a + 1) as f64;
             }
         }
         for c in 0..w {
             for r in 0..h {
                 let (a, b) = (r.saturating_sub(rad), (r + rad).min(h - 1));
                 let m = (a..=b).map(|k| tmp[k * w + c]).sum::<f64>() / (b - a + 1) as f64;
-                out[r * w + c] = if m > 0.0 { (1.0 / m) as f32 } else { f32::INFINITY };
+                out[r * w + c] = if m > 0.0 {
+                    (1.0 / m) as f32
+                } else {
+                    f32::INFINITY
+                };
             }
         }
-        DepthMap { width, height, z_m: out }
+        DepthMap {
+            width,
+            height,
+            z_m: out,
+        }
     }
 }
 
@@ -217,7 +234,13 @@ pub struct Headlights {
 
 impl Default for Headlights {
     fn default() -> Self {
-        Headlights { intensity: 40.0, exponent: 8.0, position_m: [0.0, 0.95, 0.0], tilt_down_deg: 2.0, cutoff_above_horizontal_deg: 0.5 }
+        Headlights {
+            intensity: 40.0,
+            exponent: 8.0,
+            position_m: [0.0, 0.95, 0.0],
+            tilt_down_deg: 2.0,
+            cutoff_above_horizontal_deg: 0.5,
+        }
     }
 }
 
@@ -239,7 +262,13 @@ pub struct CameraConfig {
 
 impl Default for CameraConfig {
     fn default() -> Self {
-        CameraConfig { exposure_s: 0.008, airlight: None, headlights: None, adc_bits: 10, max_particles: 200_000 }
+        CameraConfig {
+            exposure_s: 0.008,
+            airlight: None,
+            headlights: None,
+            adc_bits: 10,
+            max_particles: 200_000,
+        }
     }
 }
 
@@ -266,13 +295,21 @@ pub struct CameraOutput {
 /// sRGB decode of one 8-bit value.
 pub fn srgb_to_linear(v: u8) -> f32 {
     let c = v as f32 / 255.0;
-    if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
+    if c <= 0.04045 {
+        c / 12.92
+    } else {
+        ((c + 0.055) / 1.055).powf(2.4)
+    }
 }
 
 /// The sRGB encoding formula (slow path; [`linear_to_srgb`] reproduces it exactly with a table).
 fn linear_to_srgb_formula(x: f32) -> u8 {
     let x = if x.is_nan() { 0.0 } else { x.clamp(0.0, 1.0) };
-    let c = if x <= 0.003_130_8 { 12.92 * x } else { 1.055 * x.powf(1.0 / 2.4) - 0.055 };
+    let c = if x <= 0.003_130_8 {
+        12.92 * x
+    } else {
+        1.055 * x.powf(1.0 / 2.4) - 0.055
+    };
     (c * 255.0).round().clamp(0.0, 255.0) as u8
 }
 
@@ -313,25 +350,33 @@ pub fn estimate_airlight(lin: &[f32], width: usize, height: usize) -> [f32; 3] {
     if width == 0 || height == 0 {
         return [1.0; 3];
     }
-    let dark: Vec<f32> = lin.chunks_exact(3).map(|p| p[0].min(p[1]).min(p[2])).collect();
+    let dark: Vec<f32> = lin
+        .chunks_exact(3)
+        .map(|p| p[0].min(p[1]).min(p[2]))
+        .collect();
     let rad = 7usize;
     let mut tmp = vec![0f32; width * height];
     for r in 0..height {
         for c in 0..width {
             let (a, b) = (c.saturating_sub(rad), (c + rad).min(width - 1));
-            tmp[r * width + c] = dark[r * width + a..=r * width + b].iter().copied().fold(f32::INFINITY, f32::min);
+            tmp[r * width + c] = dark[r * width + a..=r * width + b]
+                .iter()
+                .copied()
+                .fold(f32::INFINITY, f32::min);
         }
     }
     let mut dc = vec![0f32; width * height];
     for r in 0..height {
         let (a, b) = (r.saturating_sub(rad), (r + rad).min(height - 1));
         for c in 0..width {
-            dc[r * width + c] = (a..=b).map(|k| tmp[k * width + c]).fold(f32::INFINITY, f32::min);
+            dc[r * width + c] = (a..=b)
+                .map(|k| tmp[k * width + c])
+                .fold(f32::INFINITY, f32::min);
         }
     }
     let mut idx: Vec<usize> = (0..dc.len()).collect();
     let mut n = ((dc.len() as f64 * 0.001).ceil() as usize).max(1);
-    if n % 2 == 0 {
+    if n.is_multiple_of(2) {
         n += 1;
     }
     let n = n.min(dc.len());
@@ -419,12 +464,27 @@ fn draw_particles(
     let (n0, lambda, speed_const, tag, name) = match kind {
         Particles::Rain => {
             let (n0, l) = marshall_palmer(weather.rain_rate_mm_h);
-            (n0, l, None, rng::tag::CAMERA_RAIN, CameraEffect::RainStreaks.name())
+            (
+                n0,
+                l,
+                None,
+                rng::tag::CAMERA_RAIN,
+                CameraEffect::RainStreaks.name(),
+            )
         }
         Particles::Snow => {
-            let r = snow_equivalent_rain_rate_mm_h(weather.snowfall_rate_mm_h, weather.snow_terminal_velocity_m_s);
+            let r = snow_equivalent_rain_rate_mm_h(
+                weather.snowfall_rate_mm_h,
+                weather.snow_terminal_velocity_m_s,
+            );
             let (n0, l) = marshall_gunn(r);
-            (n0, l, Some(weather.snow_terminal_velocity_m_s), rng::tag::CAMERA_SNOW, CameraEffect::Snowflakes.name())
+            (
+                n0,
+                l,
+                Some(weather.snow_terminal_velocity_m_s),
+                rng::tag::CAMERA_SNOW,
+                CameraEffect::Snowflakes.name(),
+            )
         }
     };
     let d_vis = 1.0; // mm
@@ -439,7 +499,10 @@ fn draw_particles(
     }
     let capped = count > cfg.max_particles;
     let count = count.min(cfg.max_particles);
-    let exp = Exp::new(lambda).map_err(|e| Error::Invalid { what: "particle sizes".into(), message: e.to_string() })?;
+    let exp = Exp::new(lambda).map_err(|e| Error::Invalid {
+        what: "particle sizes".into(),
+        message: e.to_string(),
+    })?;
     // one wind slant per image: +-15 deg for rain, +-30 deg for snow
     let max_slant: f64 = if kind == Particles::Rain { 15.0 } else { 30.0 };
     let slant = (rng.random::<f64>() * 2.0 - 1.0) * max_slant.to_radians();
@@ -463,15 +526,18 @@ fn draw_particles(
         .param("slant_rad", slant)
         .count("particles_drawn", drawn);
     if capped {
-        rec = rec.note(format!("particle count {expected:.0} capped at max_particles = {}", cfg.max_particles));
+        rec = rec.note(format!(
+            "particle count {expected:.0} capped at max_particles = {}",
+            cfg.max_particles
+        ));
     }
     Ok(rec)
 }
 
 fn missing(effect: CameraEffect, what: &str) -> Error {
-    Error::Invalid {
-        what: "camera weather input".into(),
-        message: format!("the '{}' effect needs {what}, which was not given", effect.name()),
+    Error::MissingInput {
+        effect: effect.name().to_string(),
+        input: what.to_string(),
     }
 }
 
@@ -484,7 +550,10 @@ pub fn apply_camera(
 ) -> Result<CameraOutput> {
     let img = input.image;
     if plan.camera.is_empty() {
-        return Ok(CameraOutput { image: img.clone(), records: Vec::new() });
+        return Ok(CameraOutput {
+            image: img.clone(),
+            records: Vec::new(),
+        });
     }
     let (w, h) = (img.width() as usize, img.height() as usize);
     // check every input first: fail before doing any work
@@ -496,7 +565,10 @@ pub fn apply_camera(
                     d.validate(img.width(), img.height())?;
                 }
                 super::plan::Input::Intrinsics => {
-                    input.intrinsics.ok_or_else(|| missing(e, "camera intrinsics"))?.validate()?;
+                    input
+                        .intrinsics
+                        .ok_or_else(|| missing(e, "camera intrinsics"))?
+                        .validate()?;
                 }
                 _ => {}
             }
@@ -507,11 +579,17 @@ pub fn apply_camera(
     let mut lin = clean.clone();
     let ambient = weather.time_of_day.ambient_scale() as f32;
     let needs_airlight = plan.camera.iter().any(|e| {
-        matches!(e, CameraEffect::Veil | CameraEffect::RainStreaks | CameraEffect::Snowflakes)
+        matches!(
+            e,
+            CameraEffect::Veil | CameraEffect::RainStreaks | CameraEffect::Snowflakes
+        )
     });
     let (air_day, air_note) = match (cfg.airlight, needs_airlight) {
         (Some(a), _) => (a, "airlight: configured"),
-        (None, true) => (estimate_airlight(&clean, w, h), "airlight: dark-channel estimate"),
+        (None, true) => (
+            estimate_airlight(&clean, w, h),
+            "airlight: dark-channel estimate",
+        ),
         (None, false) => ([1.0; 3], ""),
     };
     let air = air_day.map(|a| a * ambient);
@@ -532,27 +610,36 @@ pub fn apply_camera(
                 let axis = glam::DVec3::new(0.0, tilt.sin(), tilt.cos());
                 let pos = glam::DVec3::from_array(hl.position_m);
                 let cutoff_sin = hl.cutoff_above_horizontal_deg.to_radians().sin();
-                lin.par_chunks_mut(3 * w).zip(clean.par_chunks(3 * w)).enumerate().for_each(|(r, (row, cl))| {
-                    for c in 0..w {
-                        let z = depth.z_m[r * w + c] as f64;
-                        if !z.is_finite() {
-                            continue;
+                lin.par_chunks_mut(3 * w)
+                    .zip(clean.par_chunks(3 * w))
+                    .enumerate()
+                    .for_each(|(r, (row, cl))| {
+                        for c in 0..w {
+                            let z = depth.z_m[r * w + c] as f64;
+                            if !z.is_finite() {
+                                continue;
+                            }
+                            let p = glam::DVec3::new(
+                                (c as f64 - k.cx) / k.fx * z,
+                                (r as f64 - k.cy) / k.fy * z,
+                                z,
+                            );
+                            let v = p - pos;
+                            let d2 = v.length_squared().max(1e-4);
+                            // low-beam cut-off: no light above the lamp's horizontal plane (+ cut-off angle)
+                            if v.y < -cutoff_sin * d2.sqrt() {
+                                continue;
+                            }
+                            let cosphi = (v.dot(axis) / d2.sqrt()).max(0.0);
+                            let e_irr = (hl.intensity * cosphi.powf(hl.exponent) / d2) as f32;
+                            for ch in 0..3 {
+                                row[3 * c + ch] += cl[3 * c + ch] * e_irr;
+                            }
                         }
-                        let p = glam::DVec3::new((c as f64 - k.cx) / k.fx * z, (r as f64 - k.cy) / k.fy * z, z);
-                        let v = p - pos;
-                        let d2 = v.length_squared().max(1e-4);
-                        // low-beam cut-off: no light above the lamp's horizontal plane (+ cut-off angle)
-                        if v.y < -cutoff_sin * d2.sqrt() {
-                            continue;
-                        }
-                        let cosphi = (v.dot(axis) / d2.sqrt()).max(0.0);
-                        let e_irr = (hl.intensity * cosphi.powf(hl.exponent) / d2) as f32;
-                        for ch in 0..3 {
-                            row[3 * c + ch] += cl[3 * c + ch] * e_irr;
-                        }
-                    }
-                });
-                EffectRecord::new(e.name()).param("intensity", hl.intensity).param("exponent", hl.exponent)
+                    });
+                EffectRecord::new(e.name())
+                    .param("intensity", hl.intensity)
+                    .param("exponent", hl.exponent)
             }
             CameraEffect::Veil => {
                 let (Some(depth), Some(k)) = (input.depth, input.intrinsics) else {
@@ -590,9 +677,19 @@ pub fn apply_camera(
                 rec
             }
             CameraEffect::RainStreaks | CameraEffect::Snowflakes => {
-                let k = input.intrinsics.ok_or_else(|| missing(e, "camera intrinsics"))?;
-                let kind = if e == CameraEffect::RainStreaks { Particles::Rain } else { Particles::Snow };
-                let colour = if kind == Particles::Snow { air.map(|a| 0.9 * a) } else { air };
+                let k = input
+                    .intrinsics
+                    .ok_or_else(|| missing(e, "camera intrinsics"))?;
+                let kind = if e == CameraEffect::RainStreaks {
+                    Particles::Rain
+                } else {
+                    Particles::Snow
+                };
+                let colour = if kind == Particles::Snow {
+                    air.map(|a| 0.9 * a)
+                } else {
+                    air
+                };
                 draw_particles(&mut lin, w, h, &k, weather, cfg, kind, colour)?
             }
             CameraEffect::SensorNoise => {
@@ -618,10 +715,11 @@ pub fn apply_camera(
         records.push(rec);
     }
     let raw: Vec<u8> = lin.par_iter().map(|&x| linear_to_srgb(x)).collect();
-    let image = RgbImage::from_raw(img.width(), img.height(), raw).ok_or_else(|| Error::Invalid {
-        what: "camera output".into(),
-        message: "buffer size mismatch".into(),
-    })?;
+    let image =
+        RgbImage::from_raw(img.width(), img.height(), raw).ok_or_else(|| Error::Invalid {
+            what: "camera output".into(),
+            message: "buffer size mismatch".into(),
+        })?;
     Ok(CameraOutput { image, records })
 }
 

@@ -93,14 +93,21 @@ fn is_png(path: &Path) -> bool {
 
 /// Apply `sim` to one frame and write its outputs. Returns the report of what ran (the caller writes
 /// it, e.g. as `effects.json`).
-pub fn process_frame(sim: &WeatherSim, files: &FrameFiles, out: &FrameOutputs) -> Result<EffectsReport> {
+pub fn process_frame(
+    sim: &WeatherSim,
+    files: &FrameFiles,
+    out: &FrameOutputs,
+) -> Result<EffectsReport> {
     let plan = sim.plan();
     // ---- LiDAR
     let scan_bytes: Vec<u8>;
     let mut lidar_records = Vec::new();
     let mut clean_cloud: Option<PointCloud> = None;
     let need_cloud_for_depth = !plan.camera.is_empty()
-        && plan.camera.iter().any(|e| e.required_inputs().contains(&Input::DepthMap))
+        && plan
+            .camera
+            .iter()
+            .any(|e| e.required_inputs().contains(&Input::DepthMap))
         && files.image.is_some();
     if plan.lidar.is_empty() {
         scan_bytes = std::fs::read(&files.scan).map_err(|e| Error::io(&files.scan, e))?;
@@ -146,19 +153,25 @@ pub fn process_frame(sim: &WeatherSim, files: &FrameFiles, out: &FrameOutputs) -
         cfg.lidar.intensity_max = imax;
         let local = WeatherSim::new(sim.weather(), &cfg)?;
         let beams = BeamTable::hdl64e();
-        let res = local.apply_lidar(LidarInput { cloud: &cloud, ground_mask: None, beams: Some(&beams) })?;
+        let res = local.apply_lidar(LidarInput {
+            cloud: &cloud,
+            ground_mask: None,
+            beams: Some(&beams),
+        })?;
         lidar_records = res.records;
-        if loaded.dropped_non_finite > 0 {
-            if let Some(first) = lidar_records.first_mut() {
-                first.notes.push(format!("{} non-finite input points dropped", loaded.dropped_non_finite));
-            }
+        if let (true, Some(first)) = (loaded.dropped_non_finite > 0, lidar_records.first_mut()) {
+            first.notes.push(format!(
+                "{} non-finite input points dropped",
+                loaded.dropped_non_finite
+            ));
         }
         scan_bytes = match loaded.format {
             PointFormat::KittiBin => crate::scan::encode_kitti_bin(&res.cloud),
             PointFormat::NuScenesPcdBin => encode_nuscenes(&res.cloud),
             _ => {
                 let mut buf = Vec::new();
-                crate::ply::encode_ply(&res.cloud, &mut buf).map_err(|e| Error::io(&out.scan, e))?;
+                crate::ply::encode_ply(&res.cloud, &mut buf)
+                    .map_err(|e| Error::io(&out.scan, e))?;
                 buf
             }
         };
@@ -169,7 +182,10 @@ pub fn process_frame(sim: &WeatherSim, files: &FrameFiles, out: &FrameOutputs) -
     let mut image_bytes: Option<Vec<u8>> = None;
     if let Some(img_path) = &files.image {
         if out.image.is_none() {
-            return Err(Error::Invalid { what: "weather outputs".into(), message: "no output image path".into() });
+            return Err(Error::Invalid {
+                what: "weather outputs".into(),
+                message: "no output image path".into(),
+            });
         }
         if plan.camera.is_empty() && is_png(img_path) {
             image_bytes = Some(std::fs::read(img_path).map_err(|e| Error::io(img_path, e))?);
@@ -178,13 +194,15 @@ pub fn process_frame(sim: &WeatherSim, files: &FrameFiles, out: &FrameOutputs) -
             let needs = |i: Input| plan.camera.iter().any(|e| e.required_inputs().contains(&i));
             let (mut depth, mut intr, mut note) = (None, None, None);
             if needs(Input::DepthMap) || needs(Input::Intrinsics) {
-                let calib = files.calib.as_ref().ok_or_else(|| Error::Invalid {
-                    what: "weather input".into(),
-                    message: format!(
-                        "the camera effects {:?} need a calibration file (to get intrinsics and a depth map \
-                         from the scan)",
-                        plan.camera.iter().map(|e| e.name()).collect::<Vec<_>>()
-                    ),
+                let calib = files.calib.as_ref().ok_or_else(|| Error::MissingInput {
+                    effect: plan
+                        .camera
+                        .iter()
+                        .map(|e| e.name())
+                        .collect::<Vec<_>>()
+                        .join(", "),
+                    input: "a calibration file (for the intrinsics and a depth map from the scan)"
+                        .into(),
                 })?;
                 let cam = read_camera(calib, img.width(), img.height())?;
                 intr = Some(Intrinsics::from_camera(&cam));
@@ -204,7 +222,11 @@ pub fn process_frame(sim: &WeatherSim, files: &FrameFiles, out: &FrameOutputs) -
                     ));
                 }
             }
-            let res = sim.apply_camera(CameraInput { image: &img, depth: depth.as_ref(), intrinsics: intr })?;
+            let res = sim.apply_camera(CameraInput {
+                image: &img,
+                depth: depth.as_ref(),
+                intrinsics: intr,
+            })?;
             camera_records = res.records;
             if let (Some(n), Some(first)) = (note, camera_records.first_mut()) {
                 first.notes.push(n);
@@ -222,16 +244,21 @@ pub fn process_frame(sim: &WeatherSim, files: &FrameFiles, out: &FrameOutputs) -
 
 /// The output file name of a scan: the input's file name (`000000.bin`, `x.pcd.bin`, `x.ply`).
 pub fn output_scan_name(scan: &Path) -> Result<String> {
-    scan.file_name().map(|n| n.to_string_lossy().into_owned()).ok_or_else(|| Error::Invalid {
-        what: "scan path".into(),
-        message: format!("{} has no file name", scan.display()),
-    })
+    scan.file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .ok_or_else(|| Error::Invalid {
+            what: "scan path".into(),
+            message: format!("{} has no file name", scan.display()),
+        })
 }
 
 /// The output PNG name of an image: `<stem>.png`.
 pub fn output_image_name(image: &Path) -> Result<String> {
-    image.file_stem().map(|n| format!("{}.png", n.to_string_lossy())).ok_or_else(|| Error::Invalid {
-        what: "image path".into(),
-        message: format!("{} has no file name", image.display()),
-    })
+    image
+        .file_stem()
+        .map(|n| format!("{}.png", n.to_string_lossy()))
+        .ok_or_else(|| Error::Invalid {
+            what: "image path".into(),
+            message: format!("{} has no file name", image.display()),
+        })
 }

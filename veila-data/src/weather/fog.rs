@@ -54,7 +54,11 @@ pub struct PulseModel {
 
 impl Default for PulseModel {
     fn default() -> Self {
-        PulseModel { tau_h_s: 20e-9, r1_m: 0.9, r2_m: 1.0 }
+        PulseModel {
+            tau_h_s: 20e-9,
+            r1_m: 0.9,
+            r2_m: 1.0,
+        }
     }
 }
 
@@ -89,7 +93,11 @@ pub struct FogTableConfig {
 
 impl Default for FogTableConfig {
     fn default() -> Self {
-        FogTableConfig { r0_step_m: 0.02, r_step_m: 0.01, quad_step_m: 1e-3 }
+        FogTableConfig {
+            r0_step_m: 0.02,
+            r_step_m: 0.01,
+            quad_step_m: 1e-3,
+        }
     }
 }
 
@@ -143,11 +151,23 @@ impl RunningIntegrals {
             f.push(fk);
             cum.push(acc);
         }
-        RunningIntegrals { r_start: pulse.r1_m, h, f, cum, omega, alpha, pulse }
+        RunningIntegrals {
+            r_start: pulse.r1_m,
+            h,
+            f,
+            cum,
+            omega,
+            alpha,
+            pulse,
+        }
     }
 
     fn integrand(alpha: f64, pulse: &PulseModel, omega: f64, r: f64) -> [f64; 3] {
-        let g = if r <= pulse.r1_m { 0.0 } else { (-2.0 * alpha * r).exp() * pulse.xi(r) / (r * r) };
+        let g = if r <= pulse.r1_m {
+            0.0
+        } else {
+            (-2.0 * alpha * r).exp() * pulse.xi(r) / (r * r)
+        };
         let (s, c) = (omega * r).sin_cos();
         [g, g * c, g * s]
     }
@@ -234,7 +254,11 @@ impl RunningIntegrals {
             }
         }
         let (r, v) = if f1 > f2 { (x1, f1) } else { (x2, f2) };
-        if v >= best.1 { (r, v) } else { (best.0, best.1) }
+        if v >= best.1 {
+            (r, v)
+        } else {
+            (best.0, best.1)
+        }
     }
 }
 
@@ -291,7 +315,13 @@ impl FogTable {
                 }
             })
             .collect();
-        Ok(FogTable { alpha_per_m, pulse, r0_step_m: cfg.r0_step_m, entries, saturated })
+        Ok(FogTable {
+            alpha_per_m,
+            pulse,
+            r0_step_m: cfg.r0_step_m,
+            entries,
+            saturated,
+        })
     }
 
     /// The extinction coefficient this table was built for (m^-1).
@@ -379,7 +409,11 @@ pub fn backscatter_peak_direct(
     r_step_m: f64,
     n: usize,
 ) -> (f64, f64) {
-    let hi = if r0_m.is_finite() { r0_m } else { pulse.r2_m + 3.0 * pulse.length_m() };
+    let hi = if r0_m.is_finite() {
+        r0_m
+    } else {
+        pulse.r2_m + 3.0 * pulse.length_m()
+    };
     let mut best = (0.0, 0.0);
     let mut r = pulse.r1_m;
     while r <= hi {
@@ -429,7 +463,10 @@ pub fn fog_point(table: &FogTable, beta_per_m: f64, r0_m: f64, intensity: f64) -
     }
     let ln_gain = i_int.ln() + 2.0 * r0_m.ln() + (beta_per_m / BETA0).ln();
     if ln_gain > ln_att {
-        FogOutcome::Fog { range_m: r_fog, intensity: (ln_gain + intensity.ln()).exp() }
+        FogOutcome::Fog {
+            range_m: r_fog,
+            intensity: (ln_gain + intensity.ln()).exp(),
+        }
     } else {
         FogOutcome::Hard { intensity: hard }
     }

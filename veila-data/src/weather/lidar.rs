@@ -58,8 +58,23 @@ impl BeamTable {
     /// The Velodyne HDL-64E as used by KITTI: 64 beams from -24.9 deg to +2.0 deg (uniform approximation,
     /// the same binning Robo3D uses for KITTI rings).
     pub fn hdl64e() -> Self {
-        let elevations_rad =
-            (0..64).map(|k| (-24.9f32 + 26.9 * k as f32 / 63.0).to_radians()).collect();
+        let elevations_rad = (0..64)
+            .map(|k| (-24.9f32 + 26.9 * k as f32 / 63.0).to_radians())
+            .collect();
+        BeamTable { elevations_rad }
+    }
+
+    /// The beam elevations of a `veila_geom::LidarSensor` (row r -> ring r, top row first as in its
+    /// range images; per-beam tables keep their own ring order).
+    pub fn from_sensor(sensor: &veila_geom::LidarSensor) -> Self {
+        let elevations_rad = match &sensor.beams {
+            veila_geom::BeamLayout::PerBeam { elevations_deg, .. } => {
+                elevations_deg.iter().map(|e| e.to_radians()).collect()
+            }
+            veila_geom::BeamLayout::Uniform => (0..sensor.rows)
+                .map(|r| sensor.row_elevation_rad(r))
+                .collect(),
+        };
         BeamTable { elevations_rad }
     }
 
@@ -91,7 +106,11 @@ pub struct LidarInput<'a> {
 impl<'a> LidarInput<'a> {
     /// Just the cloud, no extra inputs.
     pub fn new(cloud: &'a PointCloud) -> Self {
-        LidarInput { cloud, ground_mask: None, beams: None }
+        LidarInput {
+            cloud,
+            ground_mask: None,
+            beams: None,
+        }
     }
 }
 
@@ -206,28 +225,43 @@ impl LidarState {
                 dst.push(src[i]);
             }
             if let (Some(dst), Some(src)) = (out.label.as_mut(), cloud.label.as_ref()) {
-                dst.push(if self.origin[i] == PointOrigin::Target { src[i] } else { 0 });
+                dst.push(if self.origin[i] == PointOrigin::Target {
+                    src[i]
+                } else {
+                    0
+                });
             }
             origin.push(self.origin[i]);
         }
-        LidarOutput { cloud: out, origin, records }
+        LidarOutput {
+            cloud: out,
+            origin,
+            records,
+        }
     }
 }
 
 /// Flush values too small for f32 (denormals) to zero and keep the result finite and non-negative.
 pub(crate) fn to_f32_intensity(x: f64, max: f32) -> f32 {
     let v = x.min(max as f64);
-    if !(v >= f32::MIN_POSITIVE as f64) { 0.0 } else { v as f32 }
+    if !(v >= f32::MIN_POSITIVE as f64) {
+        0.0
+    } else {
+        v as f32
+    }
 }
 
 /// Two-way attenuation `i exp(-2 alpha R)` of every point (f64; no denormals).
 pub(crate) fn apply_extinction(st: &mut LidarState, alpha: f64, imax: f32) -> EffectRecord {
-    st.xyz.par_iter().zip(st.intensity.par_iter_mut()).for_each(|(p, i)| {
-        let r = p.as_dvec3().length();
-        if r > 0.0 && r.is_finite() {
-            *i = to_f32_intensity(*i as f64 * (-2.0 * alpha * r).exp(), imax);
-        }
-    });
+    st.xyz
+        .par_iter()
+        .zip(st.intensity.par_iter_mut())
+        .for_each(|(p, i)| {
+            let r = p.as_dvec3().length();
+            if r > 0.0 && r.is_finite() {
+                *i = to_f32_intensity(*i as f64 * (-2.0 * alpha * r).exp(), imax);
+            }
+        });
     EffectRecord::new(LidarEffect::Extinction.name())
         .param("alpha_per_m", alpha)
         .count("points_attenuated", st.xyz.len() as u64)

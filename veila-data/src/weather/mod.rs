@@ -46,6 +46,9 @@
 //! # Ok::<(), veila_data::Error>(())
 //! ```
 
+// `!(x > 0.0)` is used on purpose throughout: it rejects NaN together with the out-of-range values.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 pub mod camera;
 pub mod files;
 pub mod fog;
@@ -93,11 +96,19 @@ impl WeatherSim {
         cfg.lidar.validate()?;
         let plan = Plan::new(weather, &cfg.camera)?;
         let fog_table = if plan.lidar.contains(&LidarEffect::Fog) {
-            Some(FogTable::new(plan.extinction.total_per_m(), &cfg.lidar.fog_table)?)
+            Some(FogTable::new(
+                plan.extinction.total_per_m(),
+                &cfg.lidar.fog_table,
+            )?)
         } else {
             None
         };
-        Ok(WeatherSim { weather: weather.clone(), cfg: cfg.clone(), plan, fog_table })
+        Ok(WeatherSim {
+            weather: weather.clone(),
+            cfg: cfg.clone(),
+            plan,
+            fog_table,
+        })
     }
 
     /// The weather.
@@ -140,11 +151,13 @@ impl WeatherSim {
             });
         }
         // fail before any work when an input is missing
-        if self.plan.lidar.contains(&LidarEffect::Snow) && cloud.ring.is_none() && input.beams.is_none() {
-            return Err(Error::Invalid {
-                what: "snow input".into(),
-                message: "the snow effect needs a ring index per point or a beam elevation table \
-                          (LidarInput::beams)"
+        if self.plan.lidar.contains(&LidarEffect::Snow)
+            && cloud.ring.is_none()
+            && input.beams.is_none()
+        {
+            return Err(Error::MissingInput {
+                effect: "snow".into(),
+                input: "a ring index per point or a beam elevation table (LidarInput::beams)"
                     .into(),
             });
         }
@@ -154,9 +167,14 @@ impl WeatherSim {
         let mut records = Vec::new();
         for &e in &self.plan.lidar {
             let rec = match e {
-                LidarEffect::WetGround => {
-                    wet::apply_wet_ground(&mut st, cloud, input.ground_mask, &self.weather, lc.intensity_max, &lc.wet_ground)?
-                }
+                LidarEffect::WetGround => wet::apply_wet_ground(
+                    &mut st,
+                    cloud,
+                    input.ground_mask,
+                    &self.weather,
+                    lc.intensity_max,
+                    &lc.wet_ground,
+                )?,
                 LidarEffect::Fog => {
                     let table = self.fog_table.as_ref().ok_or_else(|| Error::Invalid {
                         what: "weather simulator".into(),
@@ -164,10 +182,17 @@ impl WeatherSim {
                     })?;
                     lidar::apply_fog(&mut st, table, &self.weather, lc)?
                 }
-                LidarEffect::Extinction => lidar::apply_extinction(&mut st, alpha, lc.intensity_max),
-                LidarEffect::Rain => {
-                    rain::apply_rain(&mut st, &self.weather, alpha, lc.beam_divergence_rad, lc.intensity_max, &lc.rain)
+                LidarEffect::Extinction => {
+                    lidar::apply_extinction(&mut st, alpha, lc.intensity_max)
                 }
+                LidarEffect::Rain => rain::apply_rain(
+                    &mut st,
+                    &self.weather,
+                    alpha,
+                    lc.beam_divergence_rad,
+                    lc.intensity_max,
+                    &lc.rain,
+                ),
                 LidarEffect::Snow => snow::apply_snow(
                     &mut st,
                     cloud.ring.as_deref(),

@@ -170,7 +170,11 @@ impl Plan {
         if dark {
             cam.push(CameraEffect::SensorNoise);
         }
-        Ok(Plan { lidar, camera: cam, extinction })
+        Ok(Plan {
+            lidar,
+            camera: cam,
+            extinction,
+        })
     }
 
     /// True when neither sensor changes.
@@ -194,7 +198,10 @@ pub struct EffectRecord {
 
 impl EffectRecord {
     pub(crate) fn new(effect: &str) -> Self {
-        EffectRecord { effect: effect.to_string(), ..Default::default() }
+        EffectRecord {
+            effect: effect.to_string(),
+            ..Default::default()
+        }
     }
     pub(crate) fn param(mut self, k: &str, v: f64) -> Self {
         self.params.insert(k.to_string(), v);

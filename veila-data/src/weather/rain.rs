@@ -80,11 +80,21 @@ impl RainConfig {
             && self.d_min_mm > 0.0
             && self.d_max_mm > self.d_min_mm
             && self.refractive_index > 1.0
-            && [self.r_max_m, self.r_min_m, self.range_accuracy_m, self.d_max_mm].iter().all(|v| v.is_finite());
+            && [
+                self.r_max_m,
+                self.r_min_m,
+                self.range_accuracy_m,
+                self.d_max_mm,
+            ]
+            .iter()
+            .all(|v| v.is_finite());
         if ok {
             Ok(())
         } else {
-            Err(Error::Invalid { what: "rain config".into(), message: format!("{self:?}") })
+            Err(Error::Invalid {
+                what: "rain config".into(),
+                message: format!("{self:?}"),
+            })
         }
     }
 
@@ -132,7 +142,11 @@ pub fn rain_point<R: Rng>(
     rho_att: f64,
 ) -> RainOutcome {
     let p_min = cfg.p_min();
-    let p0 = if r_m > 0.0 { rho_att.max(0.0) / (r_m * r_m) } else { 0.0 };
+    let p0 = if r_m > 0.0 {
+        rho_att.max(0.0) / (r_m * r_m)
+    } else {
+        0.0
+    };
     let (n0, lambda) = marshall_palmer(rate_mm_h);
     let n = cfg.refractive_index;
     let rho_f = ((n - 1.0) / (n + 1.0)).powi(2);
@@ -162,7 +176,8 @@ pub fn rain_point<R: Rng>(
                     continue;
                 }
                 let db = 1000.0 * tan_t * r;
-                let p = rho_f * (-2.0 * alpha_per_m * r).exp() * (d / db).powi(2).min(1.0) / (r * r);
+                let p =
+                    rho_f * (-2.0 * alpha_per_m * r).exp() * (d / db).powi(2).min(1.0) / (r * r);
                 if p > best.1 {
                     best = (r, p);
                 }
@@ -174,12 +189,17 @@ pub fn rain_point<R: Rng>(
     if p0 < p_min && p0_clear >= p_min && best.1 < p_min {
         RainOutcome::Lost
     } else if best.1 > p0 && best.1 >= p_min {
-        RainOutcome::Drop { range_m: best.0, reflectance: best.1 * best.0 * best.0 }
+        RainOutcome::Drop {
+            range_m: best.0,
+            reflectance: best.1 * best.0 * best.0,
+        }
     } else {
         // sigma is bounded by dR / sqrt(2) for targets at or below the threshold (no division by 0)
         let sigma = cfg.range_accuracy_m / (2.0 * p0.max(p_min) / p_min).sqrt();
         let z: f64 = StandardNormal.sample(rng);
-        RainOutcome::Target { range_m: (r_m + sigma * z).max(0.0) }
+        RainOutcome::Target {
+            range_m: (r_m + sigma * z).max(0.0),
+        }
     }
 }
 
@@ -219,7 +239,10 @@ pub(crate) fn apply_rain(
                         keep[k] = false;
                         cnt[0] += 1;
                     }
-                    RainOutcome::Drop { range_m, reflectance } => {
+                    RainOutcome::Drop {
+                        range_m,
+                        reflectance,
+                    } => {
                         xyz[k] = (p * (range_m / r)).as_vec3();
                         inten[k] = to_f32_intensity(reflectance * imax as f64, imax);
                         origin[k] = PointOrigin::Rain;

@@ -91,7 +91,14 @@ impl SnowConfig {
             && self.same_return_tolerance_m >= 0.0
             && (16..=1 << 20).contains(&self.azimuth_bins)
             && self.max_diameter_mm > 0.0;
-        if ok { Ok(()) } else { Err(Error::Invalid { what: "snow config".into(), message: format!("{self:?}") }) }
+        if ok {
+            Ok(())
+        } else {
+            Err(Error::Invalid {
+                what: "snow config".into(),
+                message: format!("{self:?}"),
+            })
+        }
     }
 }
 
@@ -186,7 +193,12 @@ impl SnowField {
                 fill[b] += 1;
             }
         }
-        Layer { flakes, half, offsets, ids }
+        Layer {
+            flakes,
+            half,
+            offsets,
+            ids,
+        }
     }
 
     /// Sample `rings` layers for `weather` (deterministic in the seed and the ring index).
@@ -228,7 +240,11 @@ impl SnowField {
                         continue;
                     }
                     area += std::f64::consts::PI * r * r;
-                    out.push(Flake { range_m: d as f32, azimuth_rad: az as f32, radius_m: r as f32 });
+                    out.push(Flake {
+                        range_m: d as f32,
+                        azimuth_rad: az as f32,
+                        radius_m: r as f32,
+                    });
                 }
                 out
             })
@@ -257,7 +273,9 @@ impl SnowField {
         out: &mut Vec<(f64, f64, f64)>,
     ) {
         out.clear();
-        let Some(layer) = self.layers.get(ring) else { return };
+        let Some(layer) = self.layers.get(ring) else {
+            return;
+        };
         let bins = self.bins as i64;
         let lo = Self::bin_of(self.bins, azimuth - half_width);
         let hi = Self::bin_of(self.bins, azimuth + half_width).min(lo + bins - 1);
@@ -280,14 +298,22 @@ impl SnowField {
             }
         }
         // a flake spanning two buckets appears twice, as identical tuples: sort fully, then dedup
-        out.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.total_cmp(&y.1)).then(x.2.total_cmp(&y.2)));
+        out.sort_by(|x, y| {
+            x.0.total_cmp(&y.0)
+                .then(x.1.total_cmp(&y.1))
+                .then(x.2.total_cmp(&y.2))
+        });
         out.dedup();
     }
 }
 
 /// Occlusion ratios of the wedge `[-w, w]` by intervals sorted nearest first: each sub-interval goes
 /// to the nearest covering interval. Returns the ratio per interval and the uncovered remainder.
-pub fn occlusion_ratios(half_width: f64, intervals: &[(f64, f64, f64)], ratios: &mut Vec<f64>) -> f64 {
+pub fn occlusion_ratios(
+    half_width: f64,
+    intervals: &[(f64, f64, f64)],
+    ratios: &mut Vec<f64>,
+) -> f64 {
     ratios.clear();
     let total = 2.0 * half_width;
     let mut free: Vec<(f64, f64)> = Vec::with_capacity(intervals.len() + 1);
@@ -319,7 +345,10 @@ pub fn occlusion_ratios(half_width: f64, intervals: &[(f64, f64, f64)], ratios: 
 /// Exact peak `(R, value)` of `sum_j a_j sin^2(pi (R - r_j) / L)` on `[r_j, r_j + L]`.
 pub fn waveform_peak(contrib: &[(f64, f64)], pulse_len_m: f64) -> (f64, f64) {
     let omega = std::f64::consts::TAU / pulse_len_m;
-    let mut br: Vec<f64> = contrib.iter().flat_map(|&(r, _)| [r, r + pulse_len_m]).collect();
+    let mut br: Vec<f64> = contrib
+        .iter()
+        .flat_map(|&(r, _)| [r, r + pulse_len_m])
+        .collect();
     br.sort_by(f64::total_cmp);
     let eval = |x: f64| -> f64 {
         contrib
@@ -366,6 +395,10 @@ pub fn waveform_peak(contrib: &[(f64, f64)], pulse_len_m: f64) -> (f64, f64) {
     if best.1 < 0.0 { (0.0, 0.0) } else { best }
 }
 
+/// Reusable buffers of [`snow_point`]: candidate flakes `(distance, a, b)`, their occlusion ratios, and
+/// the waveform contributors `(range, amplitude)`. Start with `Default::default()`.
+pub type SnowScratch = (Vec<(f64, f64, f64)>, Vec<f64>, Vec<(f64, f64)>);
+
 /// Per-point snow model result.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum SnowOutcome {
@@ -393,7 +426,7 @@ pub fn snow_point(
     azimuth_rad: f64,
     r_m: f64,
     intensity: f64,
-    scratch: &mut (Vec<(f64, f64, f64)>, Vec<f64>, Vec<(f64, f64)>),
+    scratch: &mut SnowScratch,
 ) -> SnowOutcome {
     let half = divergence_rad / 2.0;
     let (cands, ratios, contrib) = scratch;
@@ -407,7 +440,8 @@ pub fn snow_point(
     for (c, rho) in cands.iter().zip(ratios.iter()) {
         if *rho > 0.0 {
             let r = c.0;
-            let a = cfg.flake_reflectivity * imax * rho * xi(r) * (-2.0 * alpha_per_m * r).exp() / (r * r);
+            let a = cfg.flake_reflectivity * imax * rho * xi(r) * (-2.0 * alpha_per_m * r).exp()
+                / (r * r);
             contrib.push((r, a));
         }
     }
@@ -418,7 +452,10 @@ pub fn snow_point(
     if (d_max - r_m).abs() < cfg.same_return_tolerance_m || !(d_max > 0.0) {
         SnowOutcome::Intensity(v)
     } else {
-        SnowOutcome::Flake { range_m: d_max, intensity: v }
+        SnowOutcome::Flake {
+            range_m: d_max,
+            intensity: v,
+        }
     }
 }
 
@@ -444,10 +481,9 @@ pub(crate) fn apply_snow(
             st.xyz.par_iter().map(|p| b.ring_of(*p)).collect()
         }
         (None, None) => {
-            return Err(Error::Invalid {
-                what: "snow input".into(),
-                message: "the snow effect needs a ring index per point or a beam elevation table \
-                          (LidarInput::beams)"
+            return Err(Error::MissingInput {
+                effect: "snow".into(),
+                input: "a ring index per point or a beam elevation table (LidarInput::beams)"
                     .into(),
             });
         }
@@ -507,7 +543,10 @@ pub(crate) fn apply_snow(
     let mut rec = EffectRecord::new(LidarEffect::Snow.name())
         .param("snowfall_rate_mm_h", s)
         .param("terminal_velocity_m_s", vt)
-        .param("equivalent_rain_rate_mm_h", snow_equivalent_rain_rate_mm_h(s, vt))
+        .param(
+            "equivalent_rain_rate_mm_h",
+            snow_equivalent_rain_rate_mm_h(s, vt),
+        )
         .param("occupancy", snow_occupancy(s, vt))
         .param("density_scale", cfg.density_scale)
         .param("alpha_per_m", alpha)

@@ -193,7 +193,10 @@ impl Preset {
     /// The weather of this preset (seed 0).
     pub fn weather(self) -> Weather {
         let clear = Weather::default();
-        let fog = |v: f64| Weather { fog_visibility_m: Some(v), ..Weather::default() };
+        let fog = |v: f64| Weather {
+            fog_visibility_m: Some(v),
+            ..Weather::default()
+        };
         let rain = |r: f64, w: f64| Weather {
             rain_rate_mm_h: r,
             water_depth_mm: w,
@@ -215,7 +218,10 @@ impl Preset {
             Preset::SnowLight => snow(0.5, 2.0),
             Preset::SnowModerate | Preset::KittiSnow => snow(1.0, 1.6),
             Preset::SnowHeavy => snow(2.5, 1.6),
-            Preset::KittiNight => Weather { time_of_day: TimeOfDay::Night, ..clear },
+            Preset::KittiNight => Weather {
+                time_of_day: TimeOfDay::Night,
+                ..clear
+            },
         }
     }
 }
@@ -224,13 +230,16 @@ impl FromStr for Preset {
     type Err = Error;
     fn from_str(s: &str) -> Result<Self> {
         let want = s.to_ascii_lowercase().replace('_', "-");
-        Preset::ALL.into_iter().find(|p| p.name() == want).ok_or_else(|| Error::Invalid {
-            what: "weather preset".into(),
-            message: format!(
-                "'{s}' (expected one of: {})",
-                Preset::ALL.map(|p| p.name()).join(", ")
-            ),
-        })
+        Preset::ALL
+            .into_iter()
+            .find(|p| p.name() == want)
+            .ok_or_else(|| Error::Invalid {
+                what: "weather preset".into(),
+                message: format!(
+                    "'{s}' (expected one of: {})",
+                    Preset::ALL.map(|p| p.name()).join(", ")
+                ),
+            })
     }
 }
 
@@ -262,12 +271,20 @@ impl Extinction {
 /// Fog extinction from MOR visibility: alpha = ln(20) / V (5 % contrast threshold, WMO).
 /// Returns 0 for infinite visibility.
 pub fn fog_alpha_per_m(visibility_m: f64) -> f64 {
-    if visibility_m.is_infinite() { 0.0 } else { 20f64.ln() / visibility_m }
+    if visibility_m.is_infinite() {
+        0.0
+    } else {
+        20f64.ln() / visibility_m
+    }
 }
 
 /// Fog backscatter coefficient tied to visibility as in Hahner et al. 2021: beta = 0.046 / MOR (m^-1 sr^-1).
 pub fn fog_backscatter_per_m(visibility_m: f64) -> f64 {
-    if visibility_m.is_infinite() { 0.0 } else { 0.046 / visibility_m }
+    if visibility_m.is_infinite() {
+        0.0
+    } else {
+        0.046 / visibility_m
+    }
 }
 
 /// Marshall-Palmer rain drop-size distribution: `(N0 [m^-3 mm^-1], Lambda [mm^-1])` at rate `r` mm/h.
@@ -277,7 +294,10 @@ pub fn marshall_palmer(rate_mm_h: f64) -> (f64, f64) {
 
 /// Marshall-Gunn snow size distribution: `(N0 [m^-3 mm^-1], Lambda [mm^-1])` at the equivalent rain rate.
 pub fn marshall_gunn(rate_eq_mm_h: f64) -> (f64, f64) {
-    (7.6e3 * rate_eq_mm_h.powf(-0.87), 2.55 * rate_eq_mm_h.powf(-0.48))
+    (
+        7.6e3 * rate_eq_mm_h.powf(-0.87),
+        2.55 * rate_eq_mm_h.powf(-0.48),
+    )
 }
 
 /// Extinction of an exponential size distribution `N0 exp(-Lambda D)` with extinction efficiency 2:
@@ -320,15 +340,20 @@ impl Weather {
     /// Check every field's domain (finite, non-negative, within physical limits).
     pub fn validate(&self) -> Result<()> {
         let bad = |what: &str, message: String| {
-            Err(Error::Invalid { what: format!("weather {what}"), message })
+            Err(Error::Invalid {
+                what: format!("weather {what}"),
+                message,
+            })
         };
-        if let Some(v) = self.fog_visibility_m {
-            if v.is_nan() || v < MIN_VISIBILITY_M {
-                return bad(
-                    "fog_visibility_m",
-                    format!("{v} m (must be at least {MIN_VISIBILITY_M} m, or absent / inf for no fog)"),
-                );
-            }
+        if let Some(v) = self.fog_visibility_m
+            && (v.is_nan() || v < MIN_VISIBILITY_M)
+        {
+            return bad(
+                "fog_visibility_m",
+                format!(
+                    "{v} m (must be at least {MIN_VISIBILITY_M} m, or absent / inf for no fog)"
+                ),
+            );
         }
         let check = |what: &str, x: f64, max: f64| -> Result<()> {
             if !(x.is_finite() && (0.0..=max).contains(&x)) {
@@ -337,11 +362,18 @@ impl Weather {
             Ok(())
         };
         check("rain_rate_mm_h", self.rain_rate_mm_h, MAX_RAIN_RATE_MM_H)?;
-        check("snowfall_rate_mm_h", self.snowfall_rate_mm_h, MAX_SNOWFALL_RATE_MM_H)?;
+        check(
+            "snowfall_rate_mm_h",
+            self.snowfall_rate_mm_h,
+            MAX_SNOWFALL_RATE_MM_H,
+        )?;
         check("water_depth_mm", self.water_depth_mm, MAX_WATER_DEPTH_MM)?;
         let vt = self.snow_terminal_velocity_m_s;
         if self.snowfall_rate_mm_h > 0.0 && !(vt.is_finite() && (0.05..=20.0).contains(&vt)) {
-            return bad("snow_terminal_velocity_m_s", format!("{vt} m/s (must be in [0.05, 20])"));
+            return bad(
+                "snow_terminal_velocity_m_s",
+                format!("{vt} m/s (must be in [0.05, 20])"),
+            );
         }
         Ok(())
     }
@@ -388,6 +420,10 @@ impl Weather {
         } else {
             0.0
         };
-        Extinction { fog_per_m, rain_per_m, snow_per_m }
+        Extinction {
+            fog_per_m,
+            rain_per_m,
+            snow_per_m,
+        }
     }
 }

@@ -85,7 +85,10 @@ impl WetGroundConfig {
         if ok {
             Ok(())
         } else {
-            Err(Error::Invalid { what: "wet ground config".into(), message: format!("{self:?}") })
+            Err(Error::Invalid {
+                what: "wet ground config".into(),
+                message: format!("{self:?}"),
+            })
         }
     }
 }
@@ -102,7 +105,10 @@ pub struct GroundPlane {
 impl GroundPlane {
     /// The flat-earth plane `z = -height`.
     pub fn flat(height_m: f64) -> Self {
-        GroundPlane { normal: DVec3::Z, d: height_m }
+        GroundPlane {
+            normal: DVec3::Z,
+            d: height_m,
+        }
     }
 
     /// Signed distance of `p` above the plane.
@@ -123,7 +129,10 @@ impl GroundPlane {
         if n.z < 0.8 {
             return None; // steeper than ~37 deg: not a road
         }
-        Some(GroundPlane { normal: n, d: -n.dot(a) })
+        Some(GroundPlane {
+            normal: n,
+            d: -n.dot(a),
+        })
     }
 }
 
@@ -156,7 +165,9 @@ pub fn fit_ground_plane(xyz: &[Vec3], sensor_height_m: f64, seed: u64) -> Option
         let i = rng.random_range(0..cand.len());
         let j = rng.random_range(0..cand.len());
         let k = rng.random_range(0..cand.len());
-        let Some(pl) = GroundPlane::from_points(cand[i], cand[j], cand[k]) else { continue };
+        let Some(pl) = GroundPlane::from_points(cand[i], cand[j], cand[k]) else {
+            continue;
+        };
         let inl = cand.iter().filter(|p| pl.distance(**p).abs() < tol).count();
         if best.is_none_or(|(b, _)| inl > b) {
             best = Some((inl, pl));
@@ -176,7 +187,8 @@ pub fn fit_ground_plane(xyz: &[Vec3], sensor_height_m: f64, seed: u64) -> Option
         }
     }
     let det = |m: &[[f64; 3]; 3]| {
-        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
             + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
     };
     let d0 = det(&m);
@@ -194,7 +206,10 @@ pub fn fit_ground_plane(xyz: &[Vec3], sensor_height_m: f64, seed: u64) -> Option
     // z = a x + b y + c  <=>  (-a, -b, 1) . p - c = 0
     let n = DVec3::new(-sol[0], -sol[1], 1.0);
     let len = n.length();
-    Some(GroundPlane { normal: n / len, d: -sol[2] / len })
+    Some(GroundPlane {
+        normal: n / len,
+        d: -sol[2] / len,
+    })
 }
 
 /// Fresnel power reflectance and transmittance `(R_s, R_p, T_s, T_p)` from medium `n1` into `n2` at
@@ -284,14 +299,20 @@ pub(crate) fn apply_wet_ground(
         }
         (None, Some(labels)) => {
             rec = rec.note("ground from SemanticKITTI labels (road, parking, sidewalk, other-ground, lane marking)");
-            labels.iter().map(|l| ROAD_LIKE_LABELS.contains(&(l & 0xFFFF))).collect()
+            labels
+                .iter()
+                .map(|l| ROAD_LIKE_LABELS.contains(&(l & 0xFFFF)))
+                .collect()
         }
         (None, None) => {
             rec = rec.note(format!(
                 "ground from a plane fit (normal {:.4} {:.4} {:.4}, offset {:.3} m, tolerance {} m)",
                 plane.normal.x, plane.normal.y, plane.normal.z, plane.d, cfg.plane_tolerance_m
             ));
-            st.xyz.iter().map(|p| plane.distance(p.as_dvec3()).abs() < cfg.plane_tolerance_m).collect()
+            st.xyz
+                .iter()
+                .map(|p| plane.distance(p.as_dvec3()).abs() < cfg.plane_tolerance_m)
+                .collect()
         }
     };
     // 2. incidence and power fits
@@ -301,7 +322,10 @@ pub(crate) fn apply_wet_ground(
         if !(r > 0.0) {
             return 0.0;
         }
-        (plane.normal.dot(p).abs() / r).clamp(-1.0, 1.0).acos().min(max_theta)
+        (plane.normal.dot(p).abs() / r)
+            .clamp(-1.0, 1.0)
+            .acos()
+            .min(max_theta)
     };
     let ground: Vec<usize> = (0..n).filter(|&i| mask[i] && st.keep[i]).collect();
     let mut xs = Vec::new();
@@ -322,7 +346,11 @@ pub(crate) fn apply_wet_ground(
                 .map(|&i| st.intensity[i] as f64 / incidence(st.xyz[i].as_dvec3()).cos())
                 .filter(|v| v.is_finite())
                 .collect();
-            let med = if all.is_empty() { imax as f64 * 0.1 } else { percentile(&mut all, 0.5) };
+            let med = if all.is_empty() {
+                imax as f64 * 0.1
+            } else {
+                percentile(&mut all, 0.5)
+            };
             rec = rec.note(format!(
                 "{} ground points within 10-70 m (< 200): constant laser power from the median",
                 xs.len()

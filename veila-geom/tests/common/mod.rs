@@ -27,9 +27,19 @@ pub fn real_file(rel: &str) -> Option<PathBuf> {
 /// A KITTI velodyne scan: little-endian f32 x, y, z, reflectance.
 pub fn read_kitti_bin(path: &Path) -> (Vec<Vec3>, Vec<f32>) {
     let bytes = std::fs::read(path).expect("readable scan");
-    assert_eq!(bytes.len() % 16, 0, "{}: not a multiple of 16 bytes", path.display());
-    let f = |c: &[u8], i: usize| f32::from_le_bytes([c[4 * i], c[4 * i + 1], c[4 * i + 2], c[4 * i + 3]]);
-    let pts = bytes.chunks_exact(16).map(|c| Vec3::new(f(c, 0), f(c, 1), f(c, 2))).collect();
+    assert_eq!(
+        bytes.len() % 16,
+        0,
+        "{}: not a multiple of 16 bytes",
+        path.display()
+    );
+    let f = |c: &[u8], i: usize| {
+        f32::from_le_bytes([c[4 * i], c[4 * i + 1], c[4 * i + 2], c[4 * i + 3]])
+    };
+    let pts = bytes
+        .chunks_exact(16)
+        .map(|c| Vec3::new(f(c, 0), f(c, 1), f(c, 2)))
+        .collect();
     let refl = bytes.chunks_exact(16).map(|c| f(c, 3)).collect();
     (pts, refl)
 }
@@ -37,7 +47,12 @@ pub fn read_kitti_bin(path: &Path) -> (Vec<Vec3>, Vec<f32>) {
 /// Outcome of the reference for one point.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum RefOutcome {
-    Pixel { row: u32, col: u32, range: f64, clamped: bool },
+    Pixel {
+        row: u32,
+        col: u32,
+        range: f64,
+        clamped: bool,
+    },
     NonFinite,
     ZeroRange,
     TooNear,
@@ -68,13 +83,21 @@ pub fn reference_pixel(
     tol_rad: f64,
     clamp: bool,
 ) -> RefPoint {
-    let nan = RefPoint { outcome: RefOutcome::NonFinite, u: f64::NAN, v: f64::NAN };
+    let nan = RefPoint {
+        outcome: RefOutcome::NonFinite,
+        u: f64::NAN,
+        v: f64::NAN,
+    };
     if !(p.x.is_finite() && p.y.is_finite() && p.z.is_finite()) {
         return nan;
     }
     let (x, y, z) = (p.x as f64, p.y as f64, p.z as f64);
     let d = (x * x + y * y + z * z).sqrt();
-    let mk = |o| RefPoint { outcome: o, u: f64::NAN, v: f64::NAN };
+    let mk = |o| RefPoint {
+        outcome: o,
+        u: f64::NAN,
+        v: f64::NAN,
+    };
     if d == 0.0 {
         return mk(RefOutcome::ZeroRange);
     }
@@ -111,12 +134,20 @@ pub fn reference_pixel(
             let row = edge_row.unwrap_or_else(|| (v.floor().max(0.0) as u32).min(sensor.rows - 1));
             (row, v)
         }
-        BeamLayout::PerBeam { elevations_deg, row_source } => match row_source {
+        BeamLayout::PerBeam {
+            elevations_deg,
+            row_source,
+        } => match row_source {
             RowSource::Ring => match ring {
                 Some(r) if (r as u32) < sensor.rows => {
                     // ring i is beam i; rows run top (highest elevation) to bottom
-                    let increasing = elevations_deg.len() > 1 && elevations_deg[1] > elevations_deg[0];
-                    let row = if increasing { sensor.rows - 1 - r as u32 } else { r as u32 };
+                    let increasing =
+                        elevations_deg.len() > 1 && elevations_deg[1] > elevations_deg[0];
+                    let row = if increasing {
+                        sensor.rows - 1 - r as u32
+                    } else {
+                        r as u32
+                    };
                     (row, el)
                 }
                 _ => return mk(RefOutcome::BadRing),
@@ -133,13 +164,25 @@ pub fn reference_pixel(
                         }
                     }
                     // row of beam best.2: rows sorted by decreasing elevation
-                    elevations_deg.iter().filter(|e| (**e as f64).to_radians() > best.1).count() as u32
+                    elevations_deg
+                        .iter()
+                        .filter(|e| (**e as f64).to_radians() > best.1)
+                        .count() as u32
                 });
                 (row, el)
             }
         },
     };
-    RefPoint { outcome: RefOutcome::Pixel { row, col, range: d, clamped }, u, v }
+    RefPoint {
+        outcome: RefOutcome::Pixel {
+            row,
+            col,
+            range: d,
+            clamped,
+        },
+        u,
+        v,
+    }
 }
 
 /// Nearest-wins image from the reference: pixel -> (range, point index), by sorting.
@@ -148,7 +191,9 @@ pub fn reference_image(outcomes: &[RefPoint], cols: u32) -> HashMap<usize, (f64,
         .iter()
         .enumerate()
         .filter_map(|(i, r)| match r.outcome {
-            RefOutcome::Pixel { row, col, range, .. } => Some((row as usize * cols as usize + col as usize, range, i)),
+            RefOutcome::Pixel {
+                row, col, range, ..
+            } => Some((row as usize * cols as usize + col as usize, range, i)),
             _ => None,
         })
         .collect();
@@ -181,7 +226,15 @@ pub fn reference_rejections(outcomes: &[RefPoint]) -> [usize; 7] {
 }
 
 pub fn rejections_array(r: &veila_geom::Rejections) -> [usize; 7] {
-    [r.non_finite, r.zero_range, r.too_near, r.too_far, r.above_fov, r.below_fov, r.bad_ring]
+    [
+        r.non_finite,
+        r.zero_range,
+        r.too_near,
+        r.too_far,
+        r.above_fov,
+        r.below_fov,
+        r.bad_ring,
+    ]
 }
 
 /// Distance of `x` to the nearest integer.
@@ -196,7 +249,13 @@ pub fn per_beam_nearest_sensor() -> LidarSensor {
     let mut e = 10.0f32;
     for i in 0..32 {
         el.push(e);
-        e -= if i < 8 { 2.0 } else if i < 24 { 0.8 } else { 1.6 };
+        e -= if i < 8 {
+            2.0
+        } else if i < 24 {
+            0.8
+        } else {
+            1.6
+        };
     }
     LidarSensor {
         rows: 32,
@@ -205,7 +264,10 @@ pub fn per_beam_nearest_sensor() -> LidarSensor {
         fov_down_deg: el[31] - 1.0,
         min_range_m: 0.5,
         max_range_m: 120.0,
-        beams: BeamLayout::PerBeam { elevations_deg: el, row_source: RowSource::NearestElevation },
+        beams: BeamLayout::PerBeam {
+            elevations_deg: el,
+            row_source: RowSource::NearestElevation,
+        },
     }
 }
 
@@ -220,16 +282,32 @@ pub struct KittiCalib {
 pub fn read_kitti_calib(path: &Path) -> KittiCalib {
     let text = std::fs::read_to_string(path).expect("readable calib");
     let row = |key: &str, n: usize| -> Vec<f64> {
-        let line = text.lines().find(|l| l.starts_with(key)).unwrap_or_else(|| panic!("{key} missing"));
-        let v: Vec<f64> = line[key.len()..].split_whitespace().map(|t| t.parse().expect("number")).collect();
+        let line = text
+            .lines()
+            .find(|l| l.starts_with(key))
+            .unwrap_or_else(|| panic!("{key} missing"));
+        let v: Vec<f64> = line[key.len()..]
+            .split_whitespace()
+            .map(|t| t.parse().expect("number"))
+            .collect();
         assert_eq!(v.len(), n, "{key}");
         v
     };
     let p = row("P2:", 12);
     let r = row("R0_rect:", 9);
     let t = row("Tr_velo_to_cam:", 12);
-    let m34 = |v: &[f64]| [[v[0], v[1], v[2], v[3]], [v[4], v[5], v[6], v[7]], [v[8], v[9], v[10], v[11]]];
-    KittiCalib { p2: m34(&p), r0: [[r[0], r[1], r[2]], [r[3], r[4], r[5]], [r[6], r[7], r[8]]], tr: m34(&t) }
+    let m34 = |v: &[f64]| {
+        [
+            [v[0], v[1], v[2], v[3]],
+            [v[4], v[5], v[6], v[7]],
+            [v[8], v[9], v[10], v[11]],
+        ]
+    };
+    KittiCalib {
+        p2: m34(&p),
+        r0: [[r[0], r[1], r[2]], [r[3], r[4], r[5]], [r[6], r[7], r[8]]],
+        tr: m34(&t),
+    }
 }
 
 impl KittiCalib {
