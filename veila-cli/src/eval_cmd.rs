@@ -11,7 +11,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 use veila_metrics::{
     MetricReport, MetricValue, Protocol, Region,
-    bev::{BevConfig, BevHistogram, bev_histogram},
+    bev::{BevConfig, BevHistogram, SparseBevHistogram, bev_histogram_sparse},
     chamfer, dist,
     fd::{self, FeatureStats, SqrtMethod},
     lidm::{self, LidmBevConfig},
@@ -136,18 +136,62 @@ fn list_scans(dir: &Path, what: &str) -> Result<Vec<PathBuf>> {
     Ok(files)
 }
 
-fn load_scans(files: &[PathBuf], what: &str) -> Result<Vec<Vec<Vec3>>> {
+/// What `veila eval` keeps of each scan: per-region summaries are computed while loading, and the points
+/// themselves only when a point metric (mmd-cd, chamfer) needs them, so memory stays small for large sets.
+struct ScanSummary {
+    points: Option<Vec<Vec3>>,
+    /// Sparse R2DM BEV histogram per requested region (empty when no histogram metric is requested).
+    hist: Vec<SparseBevHistogram>,
+    /// LiDM occupancy per requested region (empty when mmd-lidm is not requested).
+    occ: Vec<lidm::BevOccupancy>,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Needs {
+    points: bool,
+    hist: bool,
+    occ: bool,
+}
+
+fn load_scans(
+    files: &[PathBuf],
+    what: &str,
+    regions: &[Region],
+    needs: Needs,
+) -> Result<Vec<ScanSummary>> {
     let pb = crate::progress::bar(files.len() as u64, what);
-    let out: Result<Vec<Vec<Vec3>>> = files
+    let (bev, lcfg) = (BevConfig::r2dm(), LidmBevConfig::kitti());
+    let out: Result<Vec<ScanSummary>> = files
         .par_iter()
         .map(|f| {
             let loaded = veila_data::scan::read_points(f)
                 .with_context(|| format!("reading {}", f.display()))?;
-            pb.inc(1);
             if loaded.cloud.xyz.is_empty() {
                 bail!("{}: the scan has no (finite) points", f.display());
             }
-            Ok(loaded.cloud.xyz)
+            let xyz = loaded.cloud.xyz;
+            let mut hist = Vec::new();
+            let mut occ = Vec::new();
+            for &r in regions {
+                if needs.hist {
+                    hist.push(
+                        bev_histogram_sparse(&xyz, &bev, r, "scan")
+                            .with_context(|| f.display().to_string())?,
+                    );
+                }
+                if needs.occ {
+                    occ.push(
+                        lidm::lidm_bev_occupancy(&xyz, &lcfg, r, "scan")
+                            .with_context(|| f.display().to_string())?,
+                    );
+                }
+            }
+            pb.inc(1);
+            Ok(ScanSummary {
+                points: needs.points.then_some(xyz),
+                hist,
+                occ,
+            })
         })
         .collect();
     pb.finish_and_clear();
@@ -189,8 +233,16 @@ fn explain(
 struct Sets<'a> {
     gen_files: &'a [PathBuf],
     ref_files: &'a [PathBuf],
-    generated: Vec<Vec<Vec3>>,
-    reference: Vec<Vec<Vec3>>,
+    generated: Vec<ScanSummary>,
+    reference: Vec<ScanSummary>,
+}
+
+/// Up to this many scans per set the R2DM MMD uses dense histograms (GEMM, faster); above, sparse ones
+/// (the same value up to rounding, ~9x less memory).
+const DENSE_MMD_MAX_SCANS: usize = 2000;
+
+fn points_of(s: &ScanSummary) -> &[Vec3] {
+    s.points.as_deref().unwrap_or(&[])
 }
 
 fn run_eval(a: EvalArgs) -> Result<()> {
@@ -205,8 +257,21 @@ fn run_eval(a: EvalArgs) -> Result<()> {
     if metrics.contains(&MetricName::Chamfer) {
         check_pairing(&gen_files, &ref_files, &a.generated, &a.reference)?;
     }
-    let generated = load_scans(&gen_files, "generated")?;
-    let reference = load_scans(&ref_files, "reference")?;
+    let regions: Vec<Region> = a.regions.iter().map(|&r| Region::from(r)).collect();
+    let needs = Needs {
+        points: metrics
+            .iter()
+            .any(|m| matches!(m, MetricName::MmdCd | MetricName::Chamfer)),
+        hist: metrics.iter().any(|m| {
+            matches!(
+                m,
+                MetricName::Jsd | MetricName::Mmd | MetricName::MmdLidargen
+            )
+        }),
+        occ: metrics.contains(&MetricName::MmdLidm),
+    };
+    let generated = load_scans(&gen_files, "generated", &regions, needs)?;
+    let reference = load_scans(&ref_files, "reference", &regions, needs)?;
     let sets = Sets {
         gen_files: &gen_files,
         ref_files: &ref_files,
@@ -227,61 +292,64 @@ fn run_eval(a: EvalArgs) -> Result<()> {
             paper_scale: scale,
         };
     let pb = crate::progress::bar((metrics.len() * a.regions.len()) as u64, "metrics");
-    for &region in &a.regions {
-        let region = Region::from(region);
-        let needs_hist = metrics.iter().any(|m| {
-            matches!(
-                m,
-                MetricName::Jsd | MetricName::Mmd | MetricName::MmdLidargen
-            )
-        });
-        let (hg, hr) = if needs_hist {
-            histograms(&sets, region)?
-        } else {
-            (vec![], vec![])
+    for (ri, &region) in regions.iter().enumerate() {
+        let sparse = |set: &[ScanSummary]| -> Vec<SparseBevHistogram> {
+            set.iter().map(|s| s.hist[ri].clone()).collect()
+        };
+        let dense = |set: &[ScanSummary]| -> Vec<BevHistogram> {
+            set.iter().map(|s| s.hist[ri].to_dense()).collect()
         };
         for &m in &metrics {
             pb.set_message(format!("{m:?} {region}"));
             let ex = |e| explain(e, sets.gen_files, sets.ref_files);
             let v = match m {
-                MetricName::Jsd => value(
-                    "jsd",
-                    Protocol::R2dm,
-                    region,
-                    dist::jsd(&hg, &hr).map_err(ex)?,
-                    None,
-                ),
-                MetricName::Mmd => value(
-                    "mmd",
-                    Protocol::R2dm,
-                    region,
-                    dist::mmd_r2dm_dense(&hg, &hr, dist::MMD_SIGMA).map_err(ex)?,
-                    Some(dist::MMD_PAPER_SCALE),
-                ),
+                MetricName::Jsd => {
+                    let (hg, hr) = (sparse(&sets.generated), sparse(&sets.reference));
+                    value(
+                        "jsd",
+                        Protocol::R2dm,
+                        region,
+                        dist::jsd(&hg, &hr).map_err(ex)?,
+                        None,
+                    )
+                }
+                MetricName::Mmd => {
+                    let mmd = if ng.max(nr) <= DENSE_MMD_MAX_SCANS {
+                        dist::mmd_r2dm_dense(
+                            &dense(&sets.generated),
+                            &dense(&sets.reference),
+                            dist::MMD_SIGMA,
+                        )
+                    } else {
+                        dist::mmd_r2dm_sparse(
+                            &sparse(&sets.generated),
+                            &sparse(&sets.reference),
+                            dist::MMD_SIGMA,
+                        )
+                    };
+                    value(
+                        "mmd",
+                        Protocol::R2dm,
+                        region,
+                        mmd.map_err(ex)?,
+                        Some(dist::MMD_PAPER_SCALE),
+                    )
+                }
                 MetricName::MmdLidargen => value(
                     "mmd",
                     Protocol::Lidargen,
                     region,
-                    dist::mmd_lidargen(&hg, &hr, dist::MMD_SIGMA).map_err(ex)?,
+                    dist::mmd_lidargen(
+                        &dense(&sets.generated),
+                        &dense(&sets.reference),
+                        dist::MMD_SIGMA,
+                    )
+                    .map_err(ex)?,
                     None,
                 ),
                 MetricName::MmdLidm => {
-                    let cfg = LidmBevConfig::kitti();
-                    let occ = |scans: &[Vec<Vec3>],
-                               what: &str,
-                               files: &[PathBuf]|
-                     -> Result<Vec<lidm::BevOccupancy>> {
-                        scans
-                            .par_iter()
-                            .enumerate()
-                            .map(|(i, s)| {
-                                lidm::lidm_bev_occupancy(s, &cfg, region, what)
-                                    .with_context(|| file_label(files, i))
-                            })
-                            .collect()
-                    };
-                    let og = occ(&sets.generated, "generated", sets.gen_files)?;
-                    let or = occ(&sets.reference, "reference", sets.ref_files)?;
+                    let og: Vec<_> = sets.generated.iter().map(|s| s.occ[ri].clone()).collect();
+                    let or: Vec<_> = sets.reference.iter().map(|s| s.occ[ri].clone()).collect();
                     value(
                         "mmd",
                         Protocol::Lidm,
@@ -304,10 +372,8 @@ fn run_eval(a: EvalArgs) -> Result<()> {
                 MetricName::Chamfer => {
                     let mut sum = 0.0;
                     for (i, (g, r)) in sets.generated.iter().zip(&sets.reference).enumerate() {
-                        let (g, r) = (
-                            veila_metrics::filter_region(g, region),
-                            veila_metrics::filter_region(r, region),
-                        );
+                        let g = veila_metrics::filter_region(points_of(g), region);
+                        let r = veila_metrics::filter_region(points_of(r), region);
                         if g.is_empty() || r.is_empty() {
                             bail!(
                                 "{} / {}: no points in region {region}; the Chamfer distance needs points on both sides",
@@ -338,29 +404,12 @@ fn run_eval(a: EvalArgs) -> Result<()> {
     Ok(())
 }
 
-fn histograms(sets: &Sets<'_>, region: Region) -> Result<(Vec<BevHistogram>, Vec<BevHistogram>)> {
-    let cfg = BevConfig::r2dm();
-    let make = |scans: &[Vec<Vec3>], files: &[PathBuf]| -> Result<Vec<BevHistogram>> {
-        scans
-            .par_iter()
-            .enumerate()
-            .map(|(i, s)| {
-                bev_histogram(s, &cfg, region, "scan").with_context(|| file_label(files, i))
-            })
-            .collect()
-    };
-    Ok((
-        make(&sets.generated, sets.gen_files)?,
-        make(&sets.reference, sets.ref_files)?,
-    ))
-}
-
-fn indexes(scans: &[Vec<Vec3>], files: &[PathBuf], region: Region) -> Result<Vec<PointIndex>> {
+fn indexes(scans: &[ScanSummary], files: &[PathBuf], region: Region) -> Result<Vec<PointIndex>> {
     scans
         .par_iter()
         .enumerate()
         .map(|(i, s)| {
-            let pts = veila_metrics::filter_region(s, region);
+            let pts = veila_metrics::filter_region(points_of(s), region);
             if pts.is_empty() {
                 bail!("{}: no points in region {region}", file_label(files, i));
             }

@@ -8,8 +8,10 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 
 mod progress;
+mod staging;
 // command modules (one per family):
 mod data_cmd; // project, unproject, render           (veila-data)
+mod demo_cmd; // demo (the README's main job)
 mod eval_cmd; // eval, fd                               (veila-metrics)
 mod sim_cmd; // simulate                               (veila-data::sim)
 mod weather_cmd; // weather                                (veila-data::weather)
@@ -35,6 +37,9 @@ enum Command {
     Sim(sim_cmd::SimCmd),
     #[command(flatten)]
     Weather(weather_cmd::WeatherCmd),
+    /// The main job on the bundled default: simulate a test-split scene, project its scan, run the
+    /// weather simulator on camera and LiDAR, and write every view, file and metric to one folder.
+    Demo(demo_cmd::DemoArgs),
     /// Print the built-in sensor presets as TOML (a starting point for `--sensor FILE.toml`).
     Sensors,
 }
@@ -54,6 +59,7 @@ fn run(command: Command) -> Result<()> {
         Command::Eval(c) => eval_cmd::run(c),
         Command::Sim(c) => sim_cmd::run(c),
         Command::Weather(c) => weather_cmd::run(c),
+        Command::Demo(a) => demo_cmd::run(a),
         Command::Sensors => {
             for (name, sensor) in [
                 ("hdl64e", veila_geom::LidarSensor::hdl64e()),

@@ -349,6 +349,27 @@ fn sky_pixels_under_camera_fog_are_pure_airlight() {
         }
     }
     assert_eq!(out.records[0].counts["sky_pixels"], 2 * w as u64);
+    // finite but huge distances in the densest fog underflow cleanly to the same pure airlight
+    let mut far = depth.clone();
+    for z in far.z_m.iter_mut().skip(2 * w as usize) {
+        *z = 1e30;
+    }
+    let dense = WeatherSim::new(
+        &Weather {
+            fog_visibility_m: Some(10.0),
+            ..Weather::clear()
+        },
+        &cfg,
+    )
+    .unwrap();
+    let out = dense
+        .apply_camera(CameraInput {
+            image: &img,
+            depth: Some(&far),
+            intrinsics: Some(k),
+        })
+        .unwrap();
+    assert!(out.image.pixels().all(|p| p.0 == want));
     // a depth map with NaN or 0 is an error naming the pixel, not a NaN image
     for bad in [f32::NAN, 0.0, -1.0] {
         let mut d = depth.clone();

@@ -144,7 +144,7 @@ impl PinholeCamera {
             .iter()
             .fold(0.0f32, |a, v| a.max(v.abs()));
         let det = k3.determinant();
-        if !(scale > 0.0) || det.abs() <= 1e-9 * scale * scale * scale {
+        if scale.is_nan() || scale <= 0.0 || det.abs() <= 1e-9 * scale * scale * scale {
             return bad(format!("the 3x3 part of K is singular (det {det})"));
         }
         if self.cam_from_lidar.row(3) != Vec4::new(0.0, 0.0, 0.0, 1.0) {

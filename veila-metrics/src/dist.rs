@@ -197,8 +197,32 @@ fn kernel_sum_from_gram(g: &Mat<f64>, na: &[f64], nb: &[f64], gamma: f64) -> f64
     rows.iter().sum()
 }
 
+/// Kernel sum over all row pairs of `a` and `b`, the Gram matrix formed in blocks of rows of `a` so that
+/// memory stays `O(BLOCK · rows(b))` however many scans there are.
+fn kernel_sum_dense(a: &Mat<f64>, na: &[f64], b: &Mat<f64>, nb: &[f64], gamma: f64) -> f64 {
+    const BLOCK: usize = 512;
+    let mut total = 0.0;
+    let mut start = 0;
+    while start < a.nrows() {
+        let rows = BLOCK.min(a.nrows() - start);
+        let mut g = Mat::<f64>::zeros(rows, b.nrows());
+        faer::linalg::matmul::matmul(
+            g.as_mut(),
+            Accum::Replace,
+            a.as_ref().subrows(start, rows),
+            b.transpose(),
+            1.0,
+            Par::rayon(0),
+        );
+        total += kernel_sum_from_gram(&g, &na[start..start + rows], nb, gamma);
+        start += rows;
+    }
+    total
+}
+
 /// R2DM's BEV MMD (raw, not scaled) on dense histograms, through Gram matrices (`‖a-b‖² = ‖a‖² + ‖b‖² - 2a·b`
-/// in `f64`, negatives from rounding clamped to 0) computed with a dense matrix product.
+/// in `f64`, negatives from rounding clamped to 0) computed with dense matrix products in blocks of 512 scans.
+/// Memory: the normalised histograms in `f64` (`8 · bins²` bytes per scan) plus one Gram block.
 pub fn mmd_r2dm_dense(
     generated: &[BevHistogram],
     reference: &[BevHistogram],
@@ -212,21 +236,9 @@ pub fn mmd_r2dm_dense(
     let y = normalized_matrix(reference);
     let (nx, ny) = (row_norms(&x), row_norms(&y));
     let gamma = 1.0 / (2.0 * sigma * sigma);
-    let gram = |a: &Mat<f64>, b: &Mat<f64>| {
-        let mut g = Mat::<f64>::zeros(a.nrows(), b.nrows());
-        faer::linalg::matmul::matmul(
-            g.as_mut(),
-            Accum::Replace,
-            a.as_ref(),
-            b.transpose(),
-            1.0,
-            Par::rayon(0),
-        );
-        g
-    };
-    let kxx = kernel_sum_from_gram(&gram(&x, &x), &nx, &nx, gamma);
-    let kyy = kernel_sum_from_gram(&gram(&y, &y), &ny, &ny, gamma);
-    let kxy = kernel_sum_from_gram(&gram(&x, &y), &nx, &ny, gamma);
+    let kxx = kernel_sum_dense(&x, &nx, &x, &nx, gamma);
+    let kyy = kernel_sum_dense(&y, &ny, &y, &ny, gamma);
+    let kxy = kernel_sum_dense(&x, &nx, &y, &ny, gamma);
     Ok(combine(kxx, x.nrows(), kyy, y.nrows(), kxy))
 }
 

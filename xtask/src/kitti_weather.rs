@@ -139,7 +139,8 @@ mod tests {
 
     #[test]
     fn builds_variants_of_the_real_kitti_frames() {
-        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/real/kitti");
+        let root =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/real/kitti");
         if !root.join("training/velodyne/000000.bin").is_file() {
             eprintln!("skipping: {} not found", root.display());
             return;
@@ -155,16 +156,43 @@ mod tests {
         })
         .unwrap();
         let src = root.join("training");
-        let read = |p: std::path::PathBuf| std::fs::read(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
-        assert_eq!(read(out.join("clean/velodyne/000000.bin")), read(src.join("velodyne/000000.bin")));
-        assert_eq!(read(out.join("clean/image_2/000000.png")), read(src.join("image_2/000000.png")));
-        assert_eq!(read(out.join("night/velodyne/000000.bin")), read(src.join("velodyne/000000.bin")));
-        assert_ne!(read(out.join("night/image_2/000000.png")), read(src.join("image_2/000000.png")));
-        assert_eq!(read(out.join("night/calib/000000.txt")), read(src.join("calib/000000.txt")));
-        let fx: serde_json::Value = serde_json::from_slice(&read(out.join("night/effects/000000.json"))).unwrap();
+        let read = |p: std::path::PathBuf| {
+            std::fs::read(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
+        };
+        assert_eq!(
+            read(out.join("clean/velodyne/000000.bin")),
+            read(src.join("velodyne/000000.bin"))
+        );
+        assert_eq!(
+            read(out.join("clean/image_2/000000.png")),
+            read(src.join("image_2/000000.png"))
+        );
+        assert_eq!(
+            read(out.join("night/velodyne/000000.bin")),
+            read(src.join("velodyne/000000.bin"))
+        );
+        assert_ne!(
+            read(out.join("night/image_2/000000.png")),
+            read(src.join("image_2/000000.png"))
+        );
+        assert_eq!(
+            read(out.join("night/calib/000000.txt")),
+            read(src.join("calib/000000.txt"))
+        );
+        let fx: serde_json::Value =
+            serde_json::from_slice(&read(out.join("night/effects/000000.json"))).unwrap();
         assert_eq!(fx["camera"][0]["effect"], "darken");
         assert!(!out.join("clean/velodyne/000001.bin").exists(), "--limit 1");
-        assert!(run(KittiWeatherArgs { root, out: out.clone(), variants: vec!["rainbow".into()], seed: 0, limit: None }).is_err());
+        assert!(
+            run(KittiWeatherArgs {
+                root,
+                out: out.clone(),
+                variants: vec!["rainbow".into()],
+                seed: 0,
+                limit: None
+            })
+            .is_err()
+        );
         let _ = std::fs::remove_dir_all(&out);
     }
 }

@@ -13,8 +13,26 @@ const INTERNAL_ALLOWED: &[(&str, &[&str])] = &[
     ("veila-nn", &["veila-geom"]),
     ("veila-diffusion", &["veila-geom", "veila-nn"]),
     ("veila-metrics", &["veila-geom"]),
-    ("veila-cli", &["veila-geom", "veila-data", "veila-nn", "veila-diffusion", "veila-metrics"]),
-    ("xtask", &["veila-geom", "veila-data", "veila-nn", "veila-diffusion", "veila-metrics"]),
+    (
+        "veila-cli",
+        &[
+            "veila-geom",
+            "veila-data",
+            "veila-nn",
+            "veila-diffusion",
+            "veila-metrics",
+        ],
+    ),
+    (
+        "xtask",
+        &[
+            "veila-geom",
+            "veila-data",
+            "veila-nn",
+            "veila-diffusion",
+            "veila-metrics",
+        ],
+    ),
 ];
 
 /// The only normal (non-dev) external dependencies veila-geom may have.
@@ -22,19 +40,65 @@ const GEOM_EXTERNAL: &[&str] = &["glam", "serde", "thiserror"];
 
 /// External crates a library must not depend on (normal dependencies), with the reason.
 const FORBIDDEN: &[(&str, &str, &str)] = &[
-    ("veila-metrics", "candle-core", "metrics take points and feature vectors, not networks"),
-    ("veila-metrics", "candle-nn", "metrics take points and feature vectors, not networks"),
-    ("veila-data", "candle-core", "data IO must not pull in the model stack"),
-    ("veila-data", "candle-nn", "data IO must not pull in the model stack"),
-    ("veila-nn", "exr", "dataset and image formats live in veila-data"),
-    ("veila-nn", "image", "dataset and image formats live in veila-data"),
-    ("veila-diffusion", "exr", "dataset and image formats live in veila-data"),
-    ("veila-diffusion", "image", "dataset and image formats live in veila-data"),
-    ("veila-metrics", "exr", "dataset and image formats live in veila-data"),
-    ("veila-metrics", "image", "dataset and image formats live in veila-data"),
+    (
+        "veila-metrics",
+        "candle-core",
+        "metrics take points and feature vectors, not networks",
+    ),
+    (
+        "veila-metrics",
+        "candle-nn",
+        "metrics take points and feature vectors, not networks",
+    ),
+    (
+        "veila-data",
+        "candle-core",
+        "data IO must not pull in the model stack",
+    ),
+    (
+        "veila-data",
+        "candle-nn",
+        "data IO must not pull in the model stack",
+    ),
+    (
+        "veila-nn",
+        "exr",
+        "dataset and image formats live in veila-data",
+    ),
+    (
+        "veila-nn",
+        "image",
+        "dataset and image formats live in veila-data",
+    ),
+    (
+        "veila-diffusion",
+        "exr",
+        "dataset and image formats live in veila-data",
+    ),
+    (
+        "veila-diffusion",
+        "image",
+        "dataset and image formats live in veila-data",
+    ),
+    (
+        "veila-metrics",
+        "exr",
+        "dataset and image formats live in veila-data",
+    ),
+    (
+        "veila-metrics",
+        "image",
+        "dataset and image formats live in veila-data",
+    ),
 ];
 
-const LIBRARIES: &[&str] = &["veila-geom", "veila-data", "veila-nn", "veila-diffusion", "veila-metrics"];
+const LIBRARIES: &[&str] = &[
+    "veila-geom",
+    "veila-data",
+    "veila-nn",
+    "veila-diffusion",
+    "veila-metrics",
+];
 
 struct Dep {
     name: String,
@@ -42,18 +106,32 @@ struct Dep {
 }
 
 fn workspace_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("xtask sits in the workspace").to_path_buf()
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("xtask sits in the workspace")
+        .to_path_buf()
 }
 
 fn metadata() -> BTreeMap<String, Vec<Dep>> {
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
     let out = Command::new(cargo)
-        .args(["metadata", "--format-version", "1", "--no-deps", "--offline"])
+        .args([
+            "metadata",
+            "--format-version",
+            "1",
+            "--no-deps",
+            "--offline",
+        ])
         .current_dir(workspace_root())
         .output()
         .expect("cargo metadata runs");
-    assert!(out.status.success(), "cargo metadata failed: {}", String::from_utf8_lossy(&out.stderr));
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("cargo metadata prints JSON");
+    assert!(
+        out.status.success(),
+        "cargo metadata failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value =
+        serde_json::from_slice(&out.stdout).expect("cargo metadata prints JSON");
     let mut map = BTreeMap::new();
     for pkg in v["packages"].as_array().expect("packages array") {
         let name = pkg["name"].as_str().expect("package name").to_string();
@@ -73,8 +151,10 @@ fn metadata() -> BTreeMap<String, Vec<Dep>> {
 
 /// The pure check, separated from `cargo metadata` so that it can be tested on made-up graphs.
 fn layering_violations(graph: &BTreeMap<String, Vec<Dep>>) -> Vec<String> {
-    let allowed: BTreeMap<&str, BTreeSet<&str>> =
-        INTERNAL_ALLOWED.iter().map(|(k, v)| (*k, v.iter().copied().collect())).collect();
+    let allowed: BTreeMap<&str, BTreeSet<&str>> = INTERNAL_ALLOWED
+        .iter()
+        .map(|(k, v)| (*k, v.iter().copied().collect()))
+        .collect();
     let mut problems = Vec::new();
     for (krate, deps) in graph {
         let Some(ok) = allowed.get(krate.as_str()) else {
@@ -83,14 +163,22 @@ fn layering_violations(graph: &BTreeMap<String, Vec<Dep>>) -> Vec<String> {
         };
         for d in deps {
             if allowed.contains_key(d.name.as_str()) && !ok.contains(d.name.as_str()) {
-                problems.push(format!("{krate} depends on {} ({}): breaks the layering", d.name, d.kind));
+                problems.push(format!(
+                    "{krate} depends on {} ({}): breaks the layering",
+                    d.name, d.kind
+                ));
             }
             if d.kind == "normal" {
                 if krate == "veila-geom" && !GEOM_EXTERNAL.contains(&d.name.as_str()) {
-                    problems.push(format!("veila-geom depends on {}: only {GEOM_EXTERNAL:?} are allowed", d.name));
+                    problems.push(format!(
+                        "veila-geom depends on {}: only {GEOM_EXTERNAL:?} are allowed",
+                        d.name
+                    ));
                 }
                 if LIBRARIES.contains(&krate.as_str()) && d.name == "anyhow" {
-                    problems.push(format!("{krate} depends on anyhow: libraries use their own thiserror enum"));
+                    problems.push(format!(
+                        "{krate} depends on anyhow: libraries use their own thiserror enum"
+                    ));
                 }
                 for (k, forbidden, why) in FORBIDDEN {
                     if krate == k && d.name == *forbidden {
@@ -107,21 +195,49 @@ fn layering_violations(graph: &BTreeMap<String, Vec<Dep>>) -> Vec<String> {
 fn workspace_layering_holds() {
     let graph = metadata();
     for krate in INTERNAL_ALLOWED.iter().map(|(k, _)| k) {
-        assert!(graph.contains_key(*krate), "workspace member {krate} is missing");
+        assert!(
+            graph.contains_key(*krate),
+            "workspace member {krate} is missing"
+        );
     }
     let problems = layering_violations(&graph);
-    assert!(problems.is_empty(), "layering violations:\n{}", problems.join("\n"));
+    assert!(
+        problems.is_empty(),
+        "layering violations:\n{}",
+        problems.join("\n")
+    );
 }
 
 #[test]
 fn layering_check_catches_an_upward_dependency() {
     let mut graph = BTreeMap::new();
-    graph.insert("veila-geom".to_string(), vec![Dep { name: "veila-data".into(), kind: "dev".into() }]);
+    graph.insert(
+        "veila-geom".to_string(),
+        vec![Dep {
+            name: "veila-data".into(),
+            kind: "dev".into(),
+        }],
+    );
     graph.insert(
         "veila-metrics".to_string(),
-        vec![Dep { name: "candle-core".into(), kind: "normal".into() }, Dep { name: "veila-geom".into(), kind: "normal".into() }],
+        vec![
+            Dep {
+                name: "candle-core".into(),
+                kind: "normal".into(),
+            },
+            Dep {
+                name: "veila-geom".into(),
+                kind: "normal".into(),
+            },
+        ],
     );
-    graph.insert("veila-data".to_string(), vec![Dep { name: "anyhow".into(), kind: "normal".into() }]);
+    graph.insert(
+        "veila-data".to_string(),
+        vec![Dep {
+            name: "anyhow".into(),
+            kind: "normal".into(),
+        }],
+    );
     let problems = layering_violations(&graph);
     assert_eq!(problems.len(), 3, "{problems:#?}");
     assert!(problems[0].contains("veila-data depends on anyhow"));
@@ -154,10 +270,20 @@ fn grep(dir: &Path, needles: &[&str]) -> Vec<String> {
 #[test]
 fn no_file_io_in_pure_crates() {
     let root = workspace_root();
-    let needles = ["std::fs", "File::open", "File::create", "fs::read", "fs::write"];
+    let needles = [
+        "std::fs",
+        "File::open",
+        "File::create",
+        "fs::read",
+        "fs::write",
+    ];
     for krate in ["veila-geom", "veila-metrics"] {
         let hits = grep(&root.join(krate).join("src"), &needles);
-        assert!(hits.is_empty(), "{krate} must not do file IO (that is veila-data's job):\n{}", hits.join("\n"));
+        assert!(
+            hits.is_empty(),
+            "{krate} must not do file IO (that is veila-data's job):\n{}",
+            hits.join("\n")
+        );
     }
 }
 
@@ -165,8 +291,15 @@ fn no_file_io_in_pure_crates() {
 fn every_library_has_crate_docs_with_an_example() {
     let root = workspace_root();
     for krate in LIBRARIES {
-        let lib = std::fs::read_to_string(root.join(krate).join("src/lib.rs")).expect("lib.rs exists");
-        assert!(lib.trim_start().starts_with("//!"), "{krate}/src/lib.rs must open with crate docs");
-        assert!(lib.contains("//! ```"), "{krate}/src/lib.rs crate docs need a runnable example");
+        let lib =
+            std::fs::read_to_string(root.join(krate).join("src/lib.rs")).expect("lib.rs exists");
+        assert!(
+            lib.trim_start().starts_with("//!"),
+            "{krate}/src/lib.rs must open with crate docs"
+        );
+        assert!(
+            lib.contains("//! ```"),
+            "{krate}/src/lib.rs crate docs need a runnable example"
+        );
     }
 }

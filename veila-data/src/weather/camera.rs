@@ -658,6 +658,8 @@ pub fn apply_camera(
                         } else {
                             (-alpha * z * k.ray_factor(c as f64, r as f64)).exp()
                         } as f32;
+                        // flush f32 denormals (dense fog, far pixels) to an exact 0
+                        let t = if t < f32::MIN_POSITIVE { 0.0 } else { t };
                         for ch in 0..3 {
                             let x = &mut row[3 * c + ch];
                             *x = *x * t + air[ch] * (1.0 - t);

@@ -1,0 +1,241 @@
+//! `veila eval` and `veila fd` end to end: values against the library, JSON shape, and clean failures.
+
+use std::path::Path;
+use std::process::Command;
+
+use glam::Vec3;
+use veila_metrics::{
+    Region,
+    bev::{BevConfig, bev_histogram},
+    chamfer, dist, fd,
+};
+
+fn veila() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_veila"))
+}
+
+fn write_bin(path: &Path, pts: &[Vec3]) {
+    let mut bytes = Vec::new();
+    for p in pts {
+        for v in [p.x, p.y, p.z, 0.5] {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    std::fs::write(path, bytes).unwrap();
+}
+
+fn scan(seed: u32, n: usize) -> Vec<Vec3> {
+    let mut s = seed.wrapping_mul(2_654_435_761).wrapping_add(1);
+    let mut next = || {
+        s ^= s << 13;
+        s ^= s >> 17;
+        s ^= s << 5;
+        s as f32 / u32::MAX as f32
+    };
+    (0..n)
+        .map(|_| {
+            let r = 4.0 + 60.0 * next();
+            let t = std::f32::consts::TAU * next();
+            Vec3::new(r * t.cos(), r * t.sin(), -1.5 + next())
+        })
+        .collect()
+}
+
+/// A minimal little-endian .npy (v1.0) of a C-order 2-D f64 array.
+fn write_npy_f64(path: &Path, rows: usize, cols: usize, data: &[f64]) {
+    let mut header =
+        format!("{{'descr': '<f8', 'fortran_order': False, 'shape': ({rows}, {cols}), }}");
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+    bytes.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    bytes.extend_from_slice(header.as_bytes());
+    for v in data {
+        bytes.extend_from_slice(&v.to_le_bytes());
+    }
+    std::fs::write(path, bytes).unwrap();
+}
+
+#[test]
+fn eval_matches_the_library_and_writes_json() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, r) = (dir.path().join("gen"), dir.path().join("ref"));
+    std::fs::create_dir_all(&g).unwrap();
+    std::fs::create_dir_all(&r).unwrap();
+    let gs: Vec<Vec<Vec3>> = (0..3).map(|i| scan(i, 400)).collect();
+    let rs: Vec<Vec<Vec3>> = (0..3).map(|i| scan(100 + i, 500)).collect();
+    for (i, (a, b)) in gs.iter().zip(&rs).enumerate() {
+        write_bin(&g.join(format!("{i:06}.bin")), a);
+        write_bin(&r.join(format!("{i:06}.bin")), b);
+    }
+    let json = dir.path().join("out.json");
+    let out = veila()
+        .args([
+            "--quiet",
+            "eval",
+            "--metrics",
+            "jsd,mmd,chamfer",
+            "--regions",
+            "all,front",
+            "--json",
+        ])
+        .arg(&json)
+        .arg("--generated")
+        .arg(&g)
+        .arg("--reference")
+        .arg(&r)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let metrics = v["metrics"].as_array().unwrap();
+    assert_eq!(metrics.len(), 6);
+    let get = |name: &str, region: &str| {
+        metrics
+            .iter()
+            .find(|m| m["name"] == name && m["region"] == region)
+            .unwrap_or_else(|| panic!("{name} {region} missing"))
+    };
+    let cfg = BevConfig::r2dm();
+    let hg: Vec<_> = gs
+        .iter()
+        .map(|s| bev_histogram(s, &cfg, Region::All, "g").unwrap())
+        .collect();
+    let hr: Vec<_> = rs
+        .iter()
+        .map(|s| bev_histogram(s, &cfg, Region::All, "r").unwrap())
+        .collect();
+    let jsd = get("jsd", "all");
+    assert_eq!(jsd["protocol"], "r2dm");
+    assert_eq!(
+        (jsd["generated"].as_u64(), jsd["reference"].as_u64()),
+        (Some(3), Some(3))
+    );
+    assert_eq!(jsd["value"].as_f64().unwrap(), dist::jsd(&hg, &hr).unwrap());
+    let mmd = get("mmd", "all");
+    assert_eq!(
+        mmd["value"].as_f64().unwrap(),
+        dist::mmd_r2dm_dense(&hg, &hr, 0.5).unwrap()
+    );
+    assert_eq!(mmd["paper_scale"].as_f64(), Some(1e4));
+    let cd: f64 = gs
+        .iter()
+        .zip(&rs)
+        .map(|(a, b)| chamfer::chamfer_distance(a, b).unwrap().value())
+        .sum::<f64>()
+        / 3.0;
+    assert!((get("chamfer", "all")["value"].as_f64().unwrap() - cd).abs() <= 1e-12 * cd);
+    assert_eq!(get("chamfer", "front")["protocol"], "pytorch3d");
+}
+
+#[test]
+fn eval_fails_cleanly_on_bad_folders() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, r, e) = (
+        dir.path().join("gen"),
+        dir.path().join("ref"),
+        dir.path().join("empty"),
+    );
+    for d in [&g, &r, &e] {
+        std::fs::create_dir_all(d).unwrap();
+    }
+    write_bin(&g.join("a.bin"), &scan(1, 100));
+    write_bin(&r.join("b.bin"), &scan(2, 100));
+    let json = dir.path().join("out.json");
+    // empty folder
+    let out = veila()
+        .args(["--quiet", "eval", "--generated"])
+        .arg(&e)
+        .arg("--reference")
+        .arg(&r)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no scans"));
+    // chamfer pairs by name
+    let out = veila()
+        .args(["--quiet", "eval", "--metrics", "chamfer", "--json"])
+        .arg(&json)
+        .arg("--generated")
+        .arg(&g)
+        .arg("--reference")
+        .arg(&r)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("a.bin"));
+    assert!(!json.exists(), "no partial output");
+    // a scan with no point in the BEV window: MMD names the file
+    write_bin(&g.join("c.bin"), &[Vec3::new(1.0, 0.0, 0.0)]);
+    let out = veila()
+        .args(["--quiet", "eval", "--metrics", "mmd", "--generated"])
+        .arg(&g)
+        .arg("--reference")
+        .arg(&r)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("c.bin"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+#[test]
+fn fd_reads_npy_and_matches_the_library() {
+    let dir = tempfile::tempdir().unwrap();
+    let (rows_a, rows_b, cols) = (40, 30, 5);
+    let a: Vec<f64> = (0..rows_a * cols)
+        .map(|k| ((k * 37 % 101) as f64 / 101.0).sin())
+        .collect();
+    let b: Vec<f64> = (0..rows_b * cols)
+        .map(|k| ((k * 53 % 97) as f64 / 97.0).cos() + 0.1)
+        .collect();
+    let (pa, pb) = (dir.path().join("a.npy"), dir.path().join("b.npy"));
+    write_npy_f64(&pa, rows_a, cols, &a);
+    write_npy_f64(&pb, rows_b, cols, &b);
+    let json = dir.path().join("fd.json");
+    let out = veila()
+        .args(["fd"])
+        .arg(&pa)
+        .arg(&pb)
+        .arg("--json")
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let want = fd::frechet_distance_rows(&a, &b, cols, fd::SqrtMethod::Eigen).unwrap();
+    assert_eq!(v["metrics"][0]["name"], "fd");
+    // same algorithm; the matrix products may split work differently across threads (last-ulp differences)
+    assert!((v["metrics"][0]["value"].as_f64().unwrap() - want).abs() <= 1e-12 * want);
+    // mismatched columns
+    let pc = dir.path().join("c.npy");
+    write_npy_f64(&pc, 10, 4, &[0.5; 40]);
+    let out = veila().args(["fd"]).arg(&pa).arg(&pc).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("columns"));
+    // not an npy file
+    std::fs::write(dir.path().join("bad.npy"), b"hello").unwrap();
+    let out = veila()
+        .args(["fd"])
+        .arg(&pa)
+        .arg(dir.path().join("bad.npy"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("bad.npy"));
+}
