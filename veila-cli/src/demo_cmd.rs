@@ -47,7 +47,8 @@ pub(crate) struct DemoArgs {
     /// snow-*, kitti-night, kitti-fog, kitti-snow, ...).
     #[arg(long, value_name = "PRESET", default_value = "kitti-fog")]
     weather: String,
-    /// Write into an existing, non-empty output folder.
+    /// Write into an existing, non-empty output folder. Not needed to refresh a folder that holds
+    /// only an earlier demo's output: that is replaced.
     #[arg(long)]
     force: bool,
 }
@@ -79,7 +80,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         .parse()
         .map_err(|e| anyhow::anyhow!("--weather {}: {e}", args.weather))?;
     let weather = Weather::preset(preset).with_seed(args.seed);
-    let staging = staging::stage(&args.out, args.force)?;
+    let staging = staging::stage(&args.out, args.force || is_earlier_demo_output(&args.out))?;
     let out = staging.path().to_path_buf();
     for sub in ["clear", "weather"] {
         std::fs::create_dir_all(out.join(sub))
@@ -178,6 +179,27 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
     print_table(&metrics.metrics);
     println!("wrote {}", args.out.display());
     Ok(())
+}
+
+/// Whether `dir` holds nothing but the files an earlier `veila demo` wrote (so running the README's
+/// command twice refreshes its output instead of failing, and nothing else can be overwritten).
+fn is_earlier_demo_output(dir: &Path) -> bool {
+    const DEMO_FILES: &[&str] = &[
+        "metrics.json",
+        "clear",
+        "weather",
+        "range_clear_vs_weather.png",
+        "bev_clear_vs_weather.png",
+        "camera_clear_vs_weather.png",
+    ];
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return false;
+    };
+    let names: Vec<String> = entries
+        .filter_map(|e| e.ok().map(|e| e.file_name().to_string_lossy().into_owned()))
+        .collect();
+    names.iter().any(|n| n == "metrics.json")
+        && names.iter().all(|n| DEMO_FILES.contains(&n.as_str()))
 }
 
 fn project(projector: &Projector, cloud: &PointCloud) -> Result<RangeImage> {

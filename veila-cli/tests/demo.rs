@@ -134,3 +134,26 @@ fn bad_arguments_fail_cleanly_without_output() {
     // nothing left behind beside the output either (no staging folders)
     assert_eq!(std::fs::read_dir(tmp.path()).unwrap().count(), 0);
 }
+
+#[test]
+fn rerunning_the_demo_refreshes_its_own_output_but_protects_other_folders() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("demo");
+    let args = ["demo", "--weather", "clear", "--out", out.to_str().unwrap()];
+    assert!(veila(&args).status.success());
+    let o = veila(&args);
+    assert!(
+        o.status.success(),
+        "second run: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    // a folder with a file of the user's is not touched without --force
+    std::fs::write(out.join("notes.txt"), "mine").unwrap();
+    let o = veila(&args);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("not empty"));
+    assert_eq!(
+        std::fs::read_to_string(out.join("notes.txt")).unwrap(),
+        "mine"
+    );
+}

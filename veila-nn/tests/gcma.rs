@@ -325,3 +325,71 @@ fn geometry_rejects_wrong_view_count_and_feature_shapes() {
         .to_string();
     assert!(err.contains("conditioning map"), "{err}");
 }
+
+/// Tables in which no sample of any pixel is valid (e.g. a camera that sees none of the sampled depths):
+/// GCMA attends to nothing, its output is exactly zero (no NaN from an empty softmax), and a denoiser with
+/// such a geometry equals the unconditioned one.
+#[test]
+fn every_sample_invalid_gives_zero_attention_and_no_nan() {
+    let cfg = small_config();
+    let dev = Device::Cpu;
+    let epi = common::epipolar(3);
+    let mut tables = Vec::new();
+    for level in 0..4 {
+        let rays = RayTable::new(&sensor_at_level(&cfg.sensor, level).unwrap()).unwrap();
+        let mut t = EpipolarTable::build(&rays, &kitti_camera(), &epi).unwrap();
+        assert!(
+            t.valid.iter().any(|v| *v),
+            "the camera sees something before invalidation"
+        );
+        t.valid.iter_mut().for_each(|v| *v = false);
+        t.weight.iter_mut().for_each(|w| *w = 0.0);
+        tables.push((level, vec![t]));
+    }
+    let geom = GcmaGeometry::from_tables(&cfg, &tables, &dev).unwrap();
+    assert!(geom.levels().iter().all(|l| l.num_active() == 0));
+    let g = cfg.conditioning.as_ref().unwrap().gcma.clone().unwrap();
+    let vm = VarMap::new();
+    let gcma = Gcma::new(&g, 16, 8, 4, seeded_var_builder(&vm, 3, DType::F32, &dev)).unwrap();
+    {
+        // a "trained" output conv, so that a NaN or non-zero attention would show in the output
+        let data = vm.data().lock().unwrap();
+        data["out.weight"]
+            .set(&rand_tensor(&mut rng(1), &[16, 8, 1, 1]))
+            .unwrap();
+    }
+    let rin = rand_tensor(&mut rng(2), &[1, 16, 16, 128]);
+    let feat = rand_tensor(&mut rng(3), &[1, 8, 12, 40]);
+    let att = gcma.attend(&rin, &feat, geom.level(0).unwrap()).unwrap();
+    assert_eq!(
+        att.abs()
+            .unwrap()
+            .max_all()
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap(),
+        0.0
+    );
+    let out = gcma
+        .forward(&rin, &feat, geom.level(0).unwrap(), None)
+        .unwrap();
+    assert_eq!(max_abs_diff(&out, &rin), 0.0);
+    // the whole network: conditioned with the empty geometry == unconditioned
+    let (_, net) = varmap_model(&cfg, 5);
+    let (sem, dep) = rand_pyramids(&mut rng(4), &cfg, 1);
+    let prepared = net
+        .prepare_condition(
+            &veila_nn::ConditionInput {
+                semantic: Some(sem),
+                depth: Some(dep),
+                keep: None,
+            },
+            Some(&geom),
+        )
+        .unwrap();
+    let x = rand_tensor(&mut rng(6), &[1, 3, 16, 128]);
+    let t = Tensor::new(&[0.5f32], &dev).unwrap();
+    let a = net.forward(&x, &t, Some(&prepared)).unwrap();
+    assert!(all_finite(&a));
+    assert_eq!(max_abs_diff(&a, &net.forward(&x, &t, None).unwrap()), 0.0);
+}
