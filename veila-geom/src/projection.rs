@@ -1103,7 +1103,11 @@ mod dispatch_tests {
         for i in 0..BLOCK * 7 + 5 {
             let t = i as f32 * 0.0137;
             let r = (i % 97) as f32 * 1.31;
-            pts.push(Vec3::new(r * t.cos(), r * t.sin(), (i % 23) as f32 * 0.4 - 5.0));
+            pts.push(Vec3::new(
+                r * t.cos(),
+                r * t.sin(),
+                (i % 23) as f32 * 0.4 - 5.0,
+            ));
         }
         pts.extend([
             Vec3::ZERO,
@@ -1114,9 +1118,16 @@ mod dispatch_tests {
             Vec3::new(1e-40, 1e-40, 1e-40),
             Vec3::new(1e6, -1e6, 1e6),
         ]);
-        for sensor in [LidarSensor::hdl64e(), LidarSensor::hdl32e(), LidarSensor::hdl32e_per_beam()] {
+        for sensor in [
+            LidarSensor::hdl64e(),
+            LidarSensor::hdl32e(),
+            LidarSensor::hdl32e_per_beam(),
+        ] {
             for angles in [AngleMethod::Exact, AngleMethod::Fast] {
-                let opts = ProjectionOptions { angles, ..Default::default() };
+                let opts = ProjectionOptions {
+                    angles,
+                    ..Default::default()
+                };
                 let p = Projector::new(&sensor, opts).unwrap();
                 for block in pts.chunks(BLOCK) {
                     let mut base = EstimateBlock::new();
