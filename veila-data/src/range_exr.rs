@@ -13,8 +13,10 @@
 //!
 //! Labels are stored as u32 rather than f32 because a raw SemanticKITTI label (instance in the high 16
 //! bits) does not survive a trip through f32. The sensor ([`LidarSensor`]) is stored as JSON in the
-//! string attribute `veila_sensor`, and `veila_format` holds [`FORMAT_TAG`]; reading checks both, so a
-//! file is never unprojected with the wrong geometry. Round trips are bit-exact (tested).
+//! string attribute `veila_sensor`, and the layer is named [`FORMAT_TAG`] (a `veila_format` attribute with
+//! the tag is accepted too); reading checks both, so a file is never unprojected with the wrong
+//! geometry. Round trips are bit-exact, and encoding is deterministic: the same image gives the same
+//! bytes (tested).
 
 use std::io::Cursor;
 use std::path::Path;
@@ -110,14 +112,13 @@ pub fn encode_range_exr(sensor: &LidarSensor, image: &RangeImage) -> Result<Vec<
             FlatSamples::U32(image.point_index.clone()),
         ));
     }
-    let mut attrs = LayerAttributes::named("veila_range");
+    // The format tag is the layer's name and the sensor the only custom attribute: exr keeps custom
+    // attributes in a hash map and writes them in its random iteration order, so two custom attributes
+    // would make the bytes of identical images differ from run to run.
+    let mut attrs = LayerAttributes::named(FORMAT_TAG);
     attrs
         .other
         .insert(Text::from(ATTR_SENSOR), AttributeValue::Text(sensor_text));
-    attrs.other.insert(
-        Text::from(ATTR_FORMAT),
-        AttributeValue::Text(Text::from(FORMAT_TAG)),
-    );
     let layer = Layer::new(
         size,
         attrs,
@@ -167,7 +168,10 @@ pub fn decode_range_exr(bytes: &[u8], path: &Path) -> Result<RangeExr> {
             _ => None,
         }
     };
-    match text_attr(ATTR_FORMAT) {
+    let layer_name = layer.attributes.layer_name.as_ref().map(|t| t.to_string());
+    let format_tag = text_attr(ATTR_FORMAT)
+        .or_else(|| layer_name.filter(|n| n.starts_with("veila-range-image/")));
+    match format_tag {
         Some(tag) if tag == FORMAT_TAG => {}
         Some(tag) => {
             return Err(fmt(format!(
@@ -176,7 +180,7 @@ pub fn decode_range_exr(bytes: &[u8], path: &Path) -> Result<RangeExr> {
         }
         None => {
             return Err(fmt(format!(
-                "EXR has no `{ATTR_FORMAT}` attribute: not a Veila range image"
+                "EXR has neither a `{ATTR_FORMAT}` attribute nor a layer named `{FORMAT_TAG}`: not a Veila range image"
             )));
         }
     }
@@ -278,6 +282,22 @@ mod tests {
             img.label = Some((0..img.num_pixels()).map(|_| rng.random::<u32>()).collect());
         }
         img
+    }
+
+    #[test]
+    fn encoding_is_deterministic() {
+        // every encode builds a fresh attribute hash map with fresh random keys: with two custom
+        // attributes their order (and so the bytes) would differ about every other time
+        let sensor = LidarSensor {
+            rows: 8,
+            cols: 32,
+            ..LidarSensor::hdl64e()
+        };
+        let img = random_image(&sensor, 3, true);
+        let first = encode_range_exr(&sensor, &img).unwrap();
+        for _ in 0..24 {
+            assert_eq!(encode_range_exr(&sensor, &img).unwrap(), first);
+        }
     }
 
     #[test]
