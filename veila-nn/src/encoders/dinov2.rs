@@ -949,20 +949,4 @@ impl DepthAnythingV2 {
     }
 }
 
-impl ImageEncoder for DepthAnythingV2 {
-    fn forward(&self, image: &Tensor) -> crate::Result<Vec<Tensor>> {
-        self.encoder.forward(image)
-    }
-    fn channels(&self) -> [usize; 4] {
-        self.encoder.channels()
-    }
-    fn strides(&self) -> [f32; 4] {
-        self.encoder.strides()
-    }
-    fn feature_sizes(&self, height: usize, width: usize) -> [(usize, usize); 4] {
-        self.encoder.feature_sizes(height, width)
-    }
-    fn input_spec(&self) -> InputSpec {
-        self.encoder.input_spec()
-    }
-}
+forward_image_encoder!([] DepthAnythingV2, |s| s.encoder);

@@ -91,6 +91,38 @@ macro_rules! input_bail {
     };
 }
 
+/// Implements [`ImageEncoder`] for a wrapper by forwarding every method to the encoder the closure-like
+/// expression reaches (`|s| s.encoder` for a model that owns its encoder, `|s| (**s)` for smart pointers).
+macro_rules! forward_image_encoder {
+    ([$($generics:tt)*] $ty:ty, |$s:ident| $inner:expr) => {
+        impl<$($generics)*> $crate::encoders::ImageEncoder for $ty {
+            fn forward(
+                &self,
+                image: &candle_core::Tensor,
+            ) -> $crate::Result<Vec<candle_core::Tensor>> {
+                let $s = self;
+                $inner.forward(image)
+            }
+            fn channels(&self) -> [usize; 4] {
+                let $s = self;
+                $inner.channels()
+            }
+            fn strides(&self) -> [f32; 4] {
+                let $s = self;
+                $inner.strides()
+            }
+            fn feature_sizes(&self, height: usize, width: usize) -> [(usize, usize); 4] {
+                let $s = self;
+                $inner.feature_sizes(height, width)
+            }
+            fn input_spec(&self) -> $crate::encoders::InputSpec {
+                let $s = self;
+                $inner.input_spec()
+            }
+        }
+    };
+}
+
 pub mod dinov2;
 pub mod losses;
 pub mod mit;
@@ -157,41 +189,8 @@ pub trait ImageEncoder: std::fmt::Debug + Send + Sync {
     fn input_spec(&self) -> InputSpec;
 }
 
-impl<E: ImageEncoder + ?Sized> ImageEncoder for Box<E> {
-    fn forward(&self, image: &Tensor) -> crate::Result<Vec<Tensor>> {
-        (**self).forward(image)
-    }
-    fn channels(&self) -> [usize; 4] {
-        (**self).channels()
-    }
-    fn strides(&self) -> [f32; 4] {
-        (**self).strides()
-    }
-    fn feature_sizes(&self, height: usize, width: usize) -> [(usize, usize); 4] {
-        (**self).feature_sizes(height, width)
-    }
-    fn input_spec(&self) -> InputSpec {
-        (**self).input_spec()
-    }
-}
-
-impl<E: ImageEncoder + ?Sized> ImageEncoder for Arc<E> {
-    fn forward(&self, image: &Tensor) -> crate::Result<Vec<Tensor>> {
-        (**self).forward(image)
-    }
-    fn channels(&self) -> [usize; 4] {
-        (**self).channels()
-    }
-    fn strides(&self) -> [f32; 4] {
-        (**self).strides()
-    }
-    fn feature_sizes(&self, height: usize, width: usize) -> [(usize, usize); 4] {
-        (**self).feature_sizes(height, width)
-    }
-    fn input_spec(&self) -> InputSpec {
-        (**self).input_spec()
-    }
-}
+forward_image_encoder!([E: ImageEncoder + ?Sized] Box<E>, |s| (**s));
+forward_image_encoder!([E: ImageEncoder + ?Sized] Arc<E>, |s| (**s));
 
 /// An encoder whose outputs are detached from the autograd graph: gradients of the diffusion loss
 /// never reach the encoder's weights, whatever `VarBuilder` they came from.
