@@ -165,6 +165,8 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
     pb.inc(1);
     pb.finish_and_clear();
 
+    // files first, then the report: a reader that goes away early (`| head`) cannot cost the output
+    staging.commit()?;
     println!(
         "scene {scene_name}, seed {}: {} LiDAR points ({} range pixels); weather '{}' ran [{}] on the LiDAR and [{}] on the camera: {} points left",
         args.seed,
@@ -175,7 +177,6 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         summary.camera_effects.join(", "),
         summary.points_weather
     );
-    staging.commit()?;
     print_table(&metrics.metrics);
     println!("wrote {}", args.out.display());
     Ok(())

@@ -397,10 +397,11 @@ fn run_eval(a: EvalArgs) -> Result<()> {
         }
     }
     pb.finish_and_clear();
-    print_table(&report);
+    // the file first, then the table: a reader that goes away early (`| head`) cannot cost the JSON
     if let Some(path) = &a.json {
         write_json(path, &report)?;
     }
+    print_table(&report);
     Ok(())
 }
 
@@ -607,9 +608,10 @@ fn run_fd(a: FdArgs) -> Result<()> {
             paper_scale: None,
         }],
     };
-    print_table(&report);
+    // the file first, then the table: a reader that goes away early (`| head`) cannot cost the JSON
     if let Some(path) = &a.json {
         write_json(path, &report)?;
     }
+    print_table(&report);
     Ok(())
 }

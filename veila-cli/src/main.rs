@@ -45,6 +45,7 @@ enum Command {
 }
 
 fn main() {
+    restore_default_sigpipe();
     let cli = Cli::parse();
     progress::set_quiet(cli.quiet);
     if let Err(err) = run(cli.command) {
@@ -52,6 +53,22 @@ fn main() {
         std::process::exit(1);
     }
 }
+
+/// Rust ignores SIGPIPE, so `println!` panics when stdout is a closed pipe (`veila eval ... | head`).
+/// Restore the default disposition, as command-line tools are expected to behave: the process ends
+/// quietly when its reader goes away. Output files are unaffected (they are written atomically).
+#[cfg(unix)]
+fn restore_default_sigpipe() {
+    // SAFETY: first statement of `main`, before any other thread exists; `SIG_DFL` is a valid
+    // disposition for SIGPIPE.
+    #[allow(unsafe_code)]
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
+#[cfg(not(unix))]
+fn restore_default_sigpipe() {}
 
 fn run(command: Command) -> Result<()> {
     match command {

@@ -157,3 +157,41 @@ fn rerunning_the_demo_refreshes_its_own_output_but_protects_other_folders() {
         "mine"
     );
 }
+
+/// `veila ... | head` must end quietly when the reader goes away, not panic on the closed pipe.
+#[cfg(unix)]
+#[test]
+fn a_closed_stdout_pipe_ends_the_process_quietly() {
+    use std::os::unix::process::ExitStatusExt;
+    use std::process::Stdio;
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("demo");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_veila"))
+        .args(["demo", "--quiet", "--out", out.to_str().unwrap()])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take()); // the reader goes away before anything is printed
+    let o = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert_eq!(
+        o.status.signal(),
+        Some(libc_sigpipe()),
+        "status {:?}",
+        o.status
+    );
+    // the output folder was committed before anything was printed, and no staging folder is left
+    assert!(out.join("metrics.json").is_file());
+    let names: Vec<_> = std::fs::read_dir(tmp.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert_eq!(names, ["demo"]);
+}
+
+#[cfg(unix)]
+fn libc_sigpipe() -> i32 {
+    13 // SIGPIPE on Linux and the BSDs
+}
