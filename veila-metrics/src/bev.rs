@@ -236,6 +236,35 @@ impl SparseBevHistogram {
     }
 }
 
+/// The protocol's binning, shared by the dense and sparse histograms: calls `add(cell)` with the flat
+/// cell index (`ix * bins + iy`) of every point of `region` inside the range window and the grid.
+fn for_each_cell<P: Copy + Into<Vec3>>(
+    points: &[P],
+    cfg: &BevConfig,
+    region: Region,
+    what: &str,
+    mut add: impl FnMut(usize),
+) -> Result<()> {
+    cfg.validate()?;
+    let edges = cfg.edges();
+    for (i, &p) in points.iter().enumerate() {
+        let p: Vec3 = p.into();
+        check_finite(p, what, i)?;
+        if !region.contains(p) {
+            continue;
+        }
+        let (x, y, z) = (p.x as f64, p.y as f64, p.z as f64);
+        let r = (x * x + y * y + z * z).sqrt();
+        if !(r > cfg.min_range_m && r < cfg.max_range_m) {
+            continue;
+        }
+        if let (Some(ix), Some(iy)) = (bin_of(&edges, x), bin_of(&edges, y)) {
+            add(ix * cfg.bins + iy);
+        }
+    }
+    Ok(())
+}
+
 /// Bins the points of one scan that lie in `region` (see the [module docs](self) for the exact rules).
 ///
 /// Errors: invalid configuration, or a NaN / infinite coordinate ([`Error::NonFinite`], naming `what`).
@@ -247,25 +276,11 @@ pub fn bev_histogram<P: Copy + Into<Vec3>>(
     region: Region,
     what: &str,
 ) -> Result<BevHistogram> {
-    cfg.validate()?;
-    let edges = cfg.edges();
     let mut h = BevHistogram::zeros(cfg.bins);
-    for (i, &p) in points.iter().enumerate() {
-        let p: Vec3 = p.into();
-        check_finite(p, what, i)?;
-        if !region.contains(p) {
-            continue;
-        }
-        let (x, y, z) = (p.x as f64, p.y as f64, p.z as f64);
-        let r = (x * x + y * y + z * z).sqrt();
-        if !(r > cfg.min_range_m && r < cfg.max_range_m) {
-            continue;
-        }
-        if let (Some(ix), Some(iy)) = (bin_of(&edges, x), bin_of(&edges, y)) {
-            h.counts[ix * cfg.bins + iy] += 1;
-            h.total += 1;
-        }
-    }
+    for_each_cell(points, cfg, region, what, |cell| {
+        h.counts[cell] += 1;
+        h.total += 1;
+    })?;
     Ok(h)
 }
 
@@ -276,24 +291,8 @@ pub fn bev_histogram_sparse<P: Copy + Into<Vec3>>(
     region: Region,
     what: &str,
 ) -> Result<SparseBevHistogram> {
-    cfg.validate()?;
-    let edges = cfg.edges();
     let mut cells: Vec<u32> = Vec::new();
-    for (i, &p) in points.iter().enumerate() {
-        let p: Vec3 = p.into();
-        check_finite(p, what, i)?;
-        if !region.contains(p) {
-            continue;
-        }
-        let (x, y, z) = (p.x as f64, p.y as f64, p.z as f64);
-        let r = (x * x + y * y + z * z).sqrt();
-        if !(r > cfg.min_range_m && r < cfg.max_range_m) {
-            continue;
-        }
-        if let (Some(ix), Some(iy)) = (bin_of(&edges, x), bin_of(&edges, y)) {
-            cells.push((ix * cfg.bins + iy) as u32);
-        }
-    }
+    for_each_cell(points, cfg, region, what, |cell| cells.push(cell as u32))?;
     cells.sort_unstable();
     let mut s = SparseBevHistogram {
         bins: cfg.bins,
