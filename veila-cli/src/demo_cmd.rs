@@ -1,11 +1,15 @@
-//! `veila demo`: the main job on the bundled default scene.
+//! `veila demo`: the main job on the bundled default model.
 //!
-//! It simulates a scene of the test split (camera image + LiDAR scan with ground-truth labels and depth),
-//! projects the scan into a range image, runs the weather simulator on both sensors, and writes every
-//! view and file to one output folder together with the metrics between the clear and the adverse-weather
-//! scan. Everything runs from the binary alone: the default scene file is compiled in.
+//! It simulates a scene of the test split (camera image + LiDAR scan with ground-truth depth and
+//! semantics), generates the panoramic scan from the camera image alone with the bundled model
+//! (`models/default`, or `--checkpoint`), and writes to one folder the input image, the generated and
+//! the true range images and BEV views side by side, the generated points drawn on the image, PLY /
+//! EXR / KITTI `.bin` files, and the metrics of this scene (JSON and a printed table). `--weather`
+//! degrades the input image with a weather preset (camera effects only: the true scan stays the
+//! reference), to see how generation holds up under adverse conditions.
 
 use std::path::{Path, PathBuf};
+use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::Args;
@@ -15,16 +19,15 @@ use veila_data::image::{RgbImage, imageops};
 use veila_data::render::{self, BevOptions, OverlayOptions, RangePreview};
 use veila_data::sim::{Scene, SceneConfig, SimFrame};
 use veila_data::weather::{
-    CameraInput, DepthMap, Intrinsics, LidarInput, Preset, Weather, WeatherConfig, WeatherSim,
+    CameraInput, DepthMap, Intrinsics, Preset, Weather, WeatherConfig, WeatherSim,
 };
+use veila_diffusion::pipeline::{CameraView, GenerateOptions};
 use veila_geom::{ProjectionOptions, Projector, RangeImage, Region};
 use veila_metrics::bev::{BevConfig, bev_histogram};
-use veila_metrics::crossmodal::{
-    DepthAlignment, Map2d, ProjectionFilter, cm_depth_consistency, cm_semantic_consistency,
-};
+use veila_metrics::crossmodal::{DepthAlignment, Map2d, ProjectionFilter, cm_depth_consistency};
 use veila_metrics::{MetricReport, MetricValue, Protocol, chamfer, dist};
 
-use crate::{progress, staging};
+use crate::{model, progress, staging};
 
 /// The default scene: the first scene of the test split (`scenes/test.txt`), compiled in.
 const DEFAULT_SCENE_TOML: &str = include_str!("../../scenes/straight_road.toml");
@@ -43,9 +46,21 @@ pub(crate) struct DemoArgs {
     /// Scene seed.
     #[arg(long, value_name = "S", default_value_t = DEFAULT_SEED)]
     seed: u64,
-    /// Weather preset applied to both sensors (clear, fog-light, fog-moderate, fog-heavy, rain-*,
-    /// snow-*, kitti-night, kitti-fog, kitti-snow, ...).
-    #[arg(long, value_name = "PRESET", default_value = "kitti-fog")]
+    /// Model bundle folder (default: $VEILA_MODEL, else the bundled models/default).
+    #[arg(long, value_name = "DIR")]
+    checkpoint: Option<PathBuf>,
+    /// Sampler steps (default: the bundle's).
+    #[arg(long, value_name = "N")]
+    steps: Option<usize>,
+    /// Classifier-free guidance scale (default: the bundle's).
+    #[arg(long, value_name = "S")]
+    guidance: Option<f64>,
+    /// Seed of the generation noise.
+    #[arg(long, value_name = "S", default_value_t = 0)]
+    sample_seed: u64,
+    /// Weather preset applied to the input camera image only (clear, kitti-night, kitti-fog,
+    /// fog-moderate, rain-heavy, snow-light, ...). `clear` leaves the image untouched.
+    #[arg(long, value_name = "PRESET", default_value = "clear")]
     weather: String,
     /// Write into an existing, non-empty output folder. Not needed to refresh a folder that holds
     /// only an earlier demo's output: that is replaced.
@@ -58,12 +73,16 @@ struct DemoSummary<'a> {
     scene: &'a str,
     seed: u64,
     weather: &'a str,
-    points_clear: usize,
-    points_weather: usize,
-    range_pixels_clear: usize,
-    range_pixels_weather: usize,
-    lidar_effects: Vec<String>,
     camera_effects: Vec<String>,
+    model: String,
+    sampler: &'a veila_diffusion::SamplerConfig,
+    sample_seed: u64,
+    grid: [usize; 2],
+    points_true: usize,
+    points_generated: usize,
+    range_pixels_true: usize,
+    range_pixels_generated: usize,
+    seconds_generation: f64,
     metrics: &'a [MetricValue],
 }
 
@@ -79,83 +98,94 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         .weather
         .parse()
         .map_err(|e| anyhow::anyhow!("--weather {}: {e}", args.weather))?;
-    let weather = Weather::preset(preset).with_seed(args.seed);
+    let device = model::device()?;
+    let bundle = model::load_bundle(args.checkpoint.as_deref(), &device)?;
+    let mut sampler = bundle.config.sampler.clone();
+    if let Some(n) = args.steps {
+        sampler.steps = n;
+    }
+    if let Some(g) = args.guidance {
+        sampler.guidance_scale = g;
+    }
+    sampler.validate().context("sampler settings")?;
     let staging = staging::stage(&args.out, args.force || is_earlier_demo_output(&args.out))?;
     let out = staging.path().to_path_buf();
-    for sub in ["clear", "weather"] {
-        std::fs::create_dir_all(out.join(sub))
-            .with_context(|| format!("{}: cannot create", out.display()))?;
-    }
 
-    let pb = progress::bar(6, "demo");
+    let pb = progress::bar(sampler.steps as u64 + 3, "demo");
     pb.set_message("simulating the scene");
     let scene = Scene::generate(&config, args.seed)?;
     let frame = scene.render_frame(0)?;
+    let mut rgb = frame.image.to_rgb_image()?;
+    let mut camera_effects = Vec::new();
+    if preset != Preset::Clear {
+        let weather = Weather::preset(preset).with_seed(args.seed);
+        let sim = WeatherSim::new(&weather, &WeatherConfig::default())?;
+        let depth = depth_map(&frame);
+        let cam_out = sim.apply_camera(CameraInput {
+            image: &rgb,
+            depth: Some(&depth),
+            intrinsics: Some(Intrinsics::from_camera(&frame.camera)),
+        })?;
+        camera_effects = cam_out
+            .records
+            .iter()
+            .map(|r| r.effect.to_string())
+            .collect();
+        rgb = cam_out.image;
+    }
     pb.inc(1);
 
-    pb.set_message("projecting and rendering the clear scan");
-    let projector = Projector::new(&frame.sensor, ProjectionOptions::default())?;
-    let clear_rgb = frame.image.to_rgb_image()?;
-    let clear = &frame.scan.points;
-    let clear_range = project(&projector, clear)?;
-    write_views(&out.join("clear"), &frame, &clear_rgb, clear, &clear_range)?;
-    pb.inc(1);
+    pb.set_message("generating");
+    let t = Instant::now();
+    let (small, small_cam) = model::prepare_view(&bundle, &rgb, &frame.camera)?;
+    let options = GenerateOptions {
+        sampler: sampler.clone(),
+        samples: 1,
+        seed: args.sample_seed,
+        unconditional: false,
+    };
+    let scans = bundle.generate(
+        &[CameraView {
+            rgb: &small,
+            camera: &small_cam,
+        }],
+        &options,
+        |_, _| pb.inc(1),
+    )?;
+    let seconds_generation = t.elapsed().as_secs_f64();
+    let generated_range = model::to_range_image(&scans[0]);
+    let generated = model::to_points(&bundle, &generated_range)?;
 
-    pb.set_message(format!("weather: {}", args.weather));
-    let sim = WeatherSim::new(&weather, &WeatherConfig::default())?;
-    let lidar_out = sim.apply_lidar(LidarInput::new(clear))?;
-    let depth = depth_map(&frame);
-    let cam_out = sim.apply_camera(CameraInput {
-        image: &clear_rgb,
-        depth: Some(&depth),
-        intrinsics: Some(Intrinsics::from_camera(&frame.camera)),
-    })?;
-    let report = sim.report(lidar_out.records.clone(), cam_out.records.clone());
-    let weather_range = project(&projector, &lidar_out.cloud)?;
-    write_views(
-        &out.join("weather"),
+    pb.set_message("writing views and metrics");
+    let truth = &frame.scan.points;
+    let grid = &bundle.config.denoiser.sensor;
+    let true_range = project(&Projector::new(grid, ProjectionOptions::default())?, truth)?;
+    write_outputs(
+        &out,
         &frame,
-        &cam_out.image,
-        &lidar_out.cloud,
-        &weather_range,
+        &rgb,
+        &generated,
+        &generated_range,
+        &true_range,
+        grid,
     )?;
-    veila_data::atomic::write_atomic(
-        &out.join("weather").join("effects.json"),
-        report.to_json()?.as_bytes(),
-    )?;
-    pb.inc(1);
-
-    pb.set_message("side-by-side views");
-    let preview = RangePreview::default();
-    let stacked = stack_vertical(&[
-        render::render_range(&clear_range, &preview),
-        render::render_range(&weather_range, &preview),
-    ]);
-    veila_data::image_io::write_png(&out.join("range_clear_vs_weather.png"), &stacked)?;
-    let bev = BevOptions::default();
-    let side = stack_horizontal(&[
-        render::render_bev(clear, &bev)?,
-        render::render_bev(&lidar_out.cloud, &bev)?,
-    ]);
-    veila_data::image_io::write_png(&out.join("bev_clear_vs_weather.png"), &side)?;
-    let cams = stack_vertical(&[clear_rgb.clone(), cam_out.image.clone()]);
-    veila_data::image_io::write_png(&out.join("camera_clear_vs_weather.png"), &cams)?;
-    pb.inc(1);
-
-    pb.set_message("metrics");
-    let metrics = demo_metrics(&frame, clear, &lidar_out.cloud)?;
+    let metrics = demo_metrics(&frame, truth, &generated, &generated_range, &true_range)?;
     pb.inc(1);
 
     let summary = DemoSummary {
         scene: &scene_name,
         seed: args.seed,
         weather: &args.weather,
-        points_clear: clear.len(),
-        points_weather: lidar_out.cloud.len(),
-        range_pixels_clear: clear_range.num_valid(),
-        range_pixels_weather: weather_range.num_valid(),
-        lidar_effects: report.lidar.iter().map(|r| r.effect.to_string()).collect(),
-        camera_effects: report.camera.iter().map(|r| r.effect.to_string()).collect(),
+        camera_effects,
+        model: bundle.origin.display().to_string(),
+        sampler: &sampler,
+        sample_seed: args.sample_seed,
+        grid: [grid.rows as usize, grid.cols as usize],
+        points_true: truth.len(),
+        points_generated: generated.len(),
+        range_pixels_true: true_range.num_valid(),
+        range_pixels_generated: generated_range.num_valid(),
+        seconds_generation,
         metrics: &metrics.metrics,
     };
     veila_data::atomic::write_atomic(
@@ -168,31 +198,55 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
     // files first, then the report: a reader that goes away early (`| head`) cannot cost the output
     staging.commit()?;
     println!(
-        "scene {scene_name}, seed {}: {} LiDAR points ({} range pixels); weather '{}' ran [{}] on the LiDAR and [{}] on the camera: {} points left",
+        "scene {scene_name}, seed {}: generated a {}x{} scan ({} returns; the true scan has {} on this grid) from the camera image in {:.1} s ({} x {} steps, guidance {})",
         args.seed,
-        summary.points_clear,
-        summary.range_pixels_clear,
-        args.weather,
-        summary.lidar_effects.join(", "),
-        summary.camera_effects.join(", "),
-        summary.points_weather
+        grid.rows,
+        grid.cols,
+        summary.range_pixels_generated,
+        summary.range_pixels_true,
+        seconds_generation,
+        sampler_name(&sampler),
+        sampler.steps,
+        sampler.guidance_scale
     );
+    if !summary.camera_effects.is_empty() {
+        println!(
+            "input image degraded by '{}': [{}]",
+            args.weather,
+            summary.camera_effects.join(", ")
+        );
+    }
     print_table(&metrics.metrics);
     println!("wrote {}", args.out.display());
     Ok(())
 }
 
-/// Whether `dir` holds nothing but the files an earlier `veila demo` wrote (so running the README's
-/// command twice refreshes its output instead of failing, and nothing else can be overwritten).
+fn sampler_name(s: &veila_diffusion::SamplerConfig) -> &'static str {
+    match s.kind {
+        veila_diffusion::SamplerKind::Ddpm { .. } => "ddpm",
+        veila_diffusion::SamplerKind::Ddim { .. } => "ddim",
+        veila_diffusion::SamplerKind::DpmSolverPp2M => "dpm-solver++(2m)",
+    }
+}
+
+/// Files an earlier `veila demo` writes (so running the README's command twice refreshes its output
+/// instead of failing, and nothing else can be overwritten).
+const DEMO_FILES: &[&str] = &[
+    "metrics.json",
+    "camera.png",
+    "range_generated_vs_true.png",
+    "bev_generated_vs_true.png",
+    "overlay_generated_vs_true.png",
+    "generated.exr",
+    "generated.ply",
+    "generated.bin",
+    "true.exr",
+    "true.ply",
+    "true.bin",
+];
+
+/// Whether `dir` holds nothing but the files an earlier `veila demo` wrote.
 fn is_earlier_demo_output(dir: &Path) -> bool {
-    const DEMO_FILES: &[&str] = &[
-        "metrics.json",
-        "clear",
-        "weather",
-        "range_clear_vs_weather.png",
-        "bev_clear_vs_weather.png",
-        "camera_clear_vs_weather.png",
-    ];
     let Ok(entries) = std::fs::read_dir(dir) else {
         return false;
     };
@@ -201,6 +255,155 @@ fn is_earlier_demo_output(dir: &Path) -> bool {
         .collect();
     names.iter().any(|n| n == "metrics.json")
         && names.iter().all(|n| DEMO_FILES.contains(&n.as_str()))
+}
+
+/// Input image, side-by-side views, and both scans as EXR, PLY and KITTI `.bin`.
+fn write_outputs(
+    dir: &Path,
+    frame: &SimFrame,
+    rgb: &RgbImage,
+    generated: &PointCloud,
+    generated_range: &RangeImage,
+    true_range: &RangeImage,
+    grid: &veila_geom::LidarSensor,
+) -> Result<()> {
+    use veila_data::{image_io::write_png, range_exr::write_range_exr, scan::write_points};
+    let truth = &frame.scan.points;
+    write_png(&dir.join("camera.png"), rgb)?;
+    let preview = RangePreview::default();
+    write_png(
+        &dir.join("range_generated_vs_true.png"),
+        &stack_vertical(&[
+            render::render_range(generated_range, &preview),
+            render::render_range(true_range, &preview),
+        ]),
+    )?;
+    let bev = BevOptions::default();
+    write_png(
+        &dir.join("bev_generated_vs_true.png"),
+        &stack_horizontal(&[
+            render::render_bev(generated, &bev)?,
+            render::render_bev(truth, &bev)?,
+        ]),
+    )?;
+    let ov = OverlayOptions::default();
+    let gen_overlay = render::render_overlay(rgb, &frame.camera, &generated.xyz, &ov)?;
+    let true_overlay = render::render_overlay(rgb, &frame.camera, &truth.xyz, &ov)?;
+    write_png(
+        &dir.join("overlay_generated_vs_true.png"),
+        &stack_vertical(&[gen_overlay.image, true_overlay.image]),
+    )?;
+    write_range_exr(&dir.join("generated.exr"), grid, generated_range)?;
+    write_range_exr(&dir.join("true.exr"), grid, true_range)?;
+    write_points(&dir.join("generated.ply"), generated)?;
+    write_points(&dir.join("generated.bin"), generated)?;
+    write_points(&dir.join("true.ply"), truth)?;
+    write_points(&dir.join("true.bin"), truth)?;
+    Ok(())
+}
+
+/// Generated scan against the true one: BEV JSD / MMD (R2DM protocol) and Chamfer per region; range
+/// error on pixels where both have a return; the cross-modal depth consistency of both scans with
+/// the simulator's true depth map (the true scan's value is the floor the metric can reach).
+fn demo_metrics(
+    frame: &SimFrame,
+    truth: &PointCloud,
+    generated: &PointCloud,
+    generated_range: &RangeImage,
+    true_range: &RangeImage,
+) -> Result<MetricReport> {
+    let mut metrics = Vec::new();
+    let cfg = BevConfig::r2dm();
+    let one = |name: &str, protocol: Protocol, region: Region, value: f64| MetricValue {
+        name: name.to_string(),
+        protocol,
+        region,
+        value,
+        generated: 1,
+        reference: 1,
+        paper_scale: None,
+    };
+    for region in Region::ALL {
+        let ht = bev_histogram(&truth.xyz, &cfg, region, "true scan")?;
+        let hg = bev_histogram(&generated.xyz, &cfg, region, "generated scan")?;
+        metrics.push(one(
+            "jsd",
+            Protocol::R2dm,
+            region,
+            dist::jsd(std::slice::from_ref(&hg), std::slice::from_ref(&ht))?,
+        ));
+        let mmd = dist::mmd_r2dm_dense(&[hg], &[ht], 0.5)?;
+        metrics.push(MetricValue {
+            paper_scale: Some(1e4),
+            ..one("mmd", Protocol::R2dm, region, mmd)
+        });
+        let a = veila_metrics::filter_region(&generated.xyz, region);
+        let b = veila_metrics::filter_region(&truth.xyz, region);
+        if !a.is_empty() && !b.is_empty() {
+            metrics.push(one(
+                "chamfer",
+                Protocol::Pytorch3d,
+                region,
+                chamfer::chamfer_distance(&a, &b)?.value(),
+            ));
+        }
+        if let Some(mae) = range_mae(generated_range, true_range, region) {
+            metrics.push(one(
+                "range mae (m, both valid)",
+                Protocol::Veila,
+                region,
+                mae,
+            ));
+        }
+    }
+    let img = &frame.image;
+    let depth = Map2d::new(img.width, img.height, &img.depth_m)?;
+    let filter = ProjectionFilter::default();
+    for (which, cloud) in [("generated", generated), ("true", truth)] {
+        let dc = cm_depth_consistency(
+            &cloud.xyz,
+            &frame.camera,
+            &depth,
+            DepthAlignment::None,
+            &filter,
+        )?;
+        metrics.push(one(
+            &format!("cm-dc ({which} scan vs true depth)"),
+            Protocol::Veila,
+            Region::Front,
+            dc.abs_rel,
+        ));
+    }
+    Ok(MetricReport { metrics })
+}
+
+/// Mean absolute range difference over pixels where both range images have a return, in `region`
+/// (by the azimuth of the pixel column: front = |azimuth| < 90 degrees).
+fn range_mae(a: &RangeImage, b: &RangeImage, region: Region) -> Option<f64> {
+    if (a.rows, a.cols) != (b.rows, b.cols) {
+        return None;
+    }
+    let cols = a.cols as usize;
+    let (mut sum, mut n) = (0.0f64, 0usize);
+    for i in 0..a.range_m.len() {
+        if !(a.mask[i] && b.mask[i]) {
+            continue;
+        }
+        let col = i % cols;
+        // column 0 looks backwards (azimuth +pi), the middle column forwards
+        let az = std::f64::consts::PI * (1.0 - 2.0 * (col as f64 + 0.5) / cols as f64);
+        let front = az.cos() > 0.0;
+        let keep = match region {
+            Region::All => true,
+            Region::Front => front,
+            Region::Rear => !front,
+        };
+        if keep {
+            sum += (a.range_m[i] - b.range_m[i]).abs() as f64;
+            n += 1;
+        }
+    }
+    (n > 0).then(|| sum / n as f64)
 }
 
 fn project(projector: &Projector, cloud: &PointCloud) -> Result<RangeImage> {
@@ -225,33 +428,6 @@ fn depth_map(frame: &SimFrame) -> DepthMap {
     }
 }
 
-/// Camera image, range preview, BEV, overlay, and the scan as EXR, PLY and KITTI `.bin`.
-fn write_views(
-    dir: &Path,
-    frame: &SimFrame,
-    rgb: &RgbImage,
-    cloud: &PointCloud,
-    range: &RangeImage,
-) -> Result<()> {
-    use veila_data::{image_io::write_png, range_exr::write_range_exr, scan::write_points};
-    write_png(&dir.join("camera.png"), rgb)?;
-    write_png(
-        &dir.join("range.png"),
-        &render::render_range(range, &RangePreview::default()),
-    )?;
-    write_png(
-        &dir.join("bev.png"),
-        &render::render_bev(cloud, &BevOptions::default())?,
-    )?;
-    let overlay =
-        render::render_overlay(rgb, &frame.camera, &cloud.xyz, &OverlayOptions::default())?;
-    write_png(&dir.join("overlay.png"), &overlay.image)?;
-    write_range_exr(&dir.join("range.exr"), &frame.sensor, range)?;
-    write_points(&dir.join("points.ply"), cloud)?;
-    write_points(&dir.join("points.bin"), cloud)?;
-    Ok(())
-}
-
 fn stack_vertical(images: &[RgbImage]) -> RgbImage {
     let w = images.iter().map(|i| i.width()).max().unwrap_or(0);
     let h = images.iter().map(|i| i.height()).sum();
@@ -274,90 +450,6 @@ fn stack_horizontal(images: &[RgbImage]) -> RgbImage {
         x += img.width();
     }
     out
-}
-
-/// Clear scan as reference, adverse-weather scan as "generated": BEV JSD / MMD (R2DM), Chamfer per
-/// region; and the cross-modal consistency of both scans with the simulator's ground-truth depth and
-/// semantic maps.
-fn demo_metrics(
-    frame: &SimFrame,
-    clear: &PointCloud,
-    weather: &PointCloud,
-) -> Result<MetricReport> {
-    let mut metrics = Vec::new();
-    let cfg = BevConfig::r2dm();
-    for region in Region::ALL {
-        let hc = bev_histogram(&clear.xyz, &cfg, region, "clear scan")?;
-        let hw = bev_histogram(&weather.xyz, &cfg, region, "weather scan")?;
-        let value = |name: &str, protocol: Protocol, value: f64| MetricValue {
-            name: name.to_string(),
-            protocol,
-            region,
-            value,
-            generated: 1,
-            reference: 1,
-            paper_scale: None,
-        };
-        metrics.push(value(
-            "jsd",
-            Protocol::R2dm,
-            dist::jsd(std::slice::from_ref(&hw), std::slice::from_ref(&hc))?,
-        ));
-        let mmd = dist::mmd_r2dm_dense(&[hw], &[hc], 0.5)?;
-        metrics.push(MetricValue {
-            paper_scale: Some(1e4),
-            ..value("mmd", Protocol::R2dm, mmd)
-        });
-        let a = veila_metrics::filter_region(&weather.xyz, region);
-        let b = veila_metrics::filter_region(&clear.xyz, region);
-        if !a.is_empty() && !b.is_empty() {
-            metrics.push(value(
-                "chamfer",
-                Protocol::Pytorch3d,
-                chamfer::chamfer_distance(&a, &b)?.value(),
-            ));
-        }
-    }
-    let img = &frame.image;
-    let depth = Map2d::new(img.width, img.height, &img.depth_m)?;
-    let semantic = Map2d::new(img.width, img.height, &img.semantic)?;
-    let filter = ProjectionFilter::default();
-    for (which, cloud) in [("clear", clear), ("weather", weather)] {
-        let dc = cm_depth_consistency(
-            &cloud.xyz,
-            &frame.camera,
-            &depth,
-            DepthAlignment::None,
-            &filter,
-        )?;
-        metrics.push(MetricValue {
-            name: format!("cm-dc ({which} scan vs true depth)"),
-            protocol: Protocol::Veila,
-            region: Region::Front,
-            value: dc.abs_rel,
-            generated: 1,
-            reference: 1,
-            paper_scale: None,
-        });
-        let labels: Vec<u32> = cloud
-            .label
-            .as_ref()
-            .map_or_else(Vec::new, |l| l.iter().map(|v| v & 0xFFFF).collect());
-        if labels.len() == cloud.len() {
-            let sc =
-                cm_semantic_consistency(&cloud.xyz, &labels, &frame.camera, &semantic, &filter)?;
-            metrics.push(MetricValue {
-                name: format!("cm-sc ({which} scan vs true semantics)"),
-                protocol: Protocol::Veila,
-                region: Region::Front,
-                value: sc.percent,
-                generated: 1,
-                reference: 1,
-                paper_scale: None,
-            });
-        }
-    }
-    Ok(MetricReport { metrics })
 }
 
 fn print_table(metrics: &[MetricValue]) {

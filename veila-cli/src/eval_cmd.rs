@@ -9,6 +9,9 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand, ValueEnum};
 use glam::Vec3;
 use rayon::prelude::*;
+#[path = "eval_features.rs"]
+mod eval_features;
+
 use veila_metrics::{
     MetricReport, MetricValue, Protocol, Region,
     bev::{BevConfig, BevHistogram, SparseBevHistogram, bev_histogram_sparse},
@@ -21,8 +24,10 @@ use veila_metrics::{
 /// Evaluation commands.
 #[derive(Debug, Subcommand)]
 pub(crate) enum EvalCmd {
-    /// Score generated scans against reference scans (JSD, MMD, MMD-CD, Chamfer), each metric named by
-    /// its protocol, for the whole panorama and its front (x > 0) and rear (x <= 0) halves.
+    /// Score generated scans against reference scans (JSD, MMD, MMD-CD, Chamfer, FRD, FPD), each metric
+    /// named by its protocol, for the whole panorama and its front (x > 0) and rear (x <= 0) halves
+    /// (FRD and FPD: whole panorama only; their built-in networks are simulator-trained, so the values
+    /// are not comparable with published FRD / FPD numbers).
     Eval(EvalArgs),
     /// Fréchet distance between two feature matrices (.npy, f32 or f64, one row per sample).
     Fd(FdArgs),
@@ -43,6 +48,14 @@ pub(crate) enum MetricName {
     MmdCd,
     /// Chamfer distance of scans paired by file name, averaged over pairs (PyTorch3D convention).
     Chamfer,
+    /// Fréchet Range Distance: Fréchet distance of RangeNet features (global average of the deepest
+    /// encoder map) of each scan's range image, whole panorama only. With the built-in simulator-trained
+    /// net, NOT comparable with published FRD values (different weights and feature layer).
+    Frd,
+    /// Fréchet Point Distance: Fréchet distance of PointNet max-pooled features of each scan (points
+    /// / 80 m), whole panorama only. With the built-in simulator-trained net, NOT comparable with
+    /// published FPD values (different weights and feature layer).
+    Fpd,
 }
 
 /// Regions to report.
@@ -83,6 +96,15 @@ pub(crate) struct EvalArgs {
     /// Also write the results as JSON `{"metrics": [...]}` (written atomically).
     #[arg(long)]
     json: Option<PathBuf>,
+    /// FRD / FPD networks: a folder with rangenet.json, rangenet.safetensors, pointnet.json,
+    /// pointnet.safetensors and manifest.json (e.g. converted official weights; see the veila-nn
+    /// `feature_nets` docs). Default: the simulator-trained nets built into this binary.
+    #[arg(long)]
+    feature_nets: Option<PathBuf>,
+    /// Also write a self-contained HTML report (metric table, bird's-eye views, BEV density
+    /// difference, range and height distributions), atomically, when the evaluation succeeds.
+    #[arg(long)]
+    report: Option<PathBuf>,
 }
 
 #[derive(Debug, Args)]
@@ -246,6 +268,9 @@ fn points_of(s: &ScanSummary) -> &[Vec3] {
 }
 
 fn run_eval(a: EvalArgs) -> Result<()> {
+    if let Some(path) = &a.report {
+        crate::report::check_output_dir(path)?;
+    }
     let gen_files = list_scans(&a.generated, "generated")?;
     let ref_files = list_scans(&a.reference, "reference")?;
     let mut metrics = a.metrics.clone();
@@ -303,6 +328,11 @@ fn run_eval(a: EvalArgs) -> Result<()> {
             pb.set_message(format!("{m:?} {region}"));
             let ex = |e| explain(e, sets.gen_files, sets.ref_files);
             let v = match m {
+                // feature metrics: whole panorama, computed once below
+                MetricName::Frd | MetricName::Fpd => {
+                    pb.inc(1);
+                    continue;
+                }
                 MetricName::Jsd => {
                     let (hg, hr) = (sparse(&sets.generated), sparse(&sets.reference));
                     value(
@@ -397,11 +427,74 @@ fn run_eval(a: EvalArgs) -> Result<()> {
         }
     }
     pb.finish_and_clear();
+    feature_metrics(&a, &metrics, &gen_files, &ref_files, &mut report)?;
     // the file first, then the table: a reader that goes away early (`| head`) cannot cost the JSON
     if let Some(path) = &a.json {
         write_json(path, &report)?;
     }
+    if let Some(path) = &a.report {
+        let html = crate::report::eval_report(&crate::report::EvalReportInputs {
+            generated_dir: &a.generated,
+            reference_dir: &a.reference,
+            generated: &gen_files,
+            reference: &ref_files,
+            metrics: &report,
+            date: crate::report::report_time(),
+            command: crate::report::command_line(),
+        })?;
+        html.write(path)?;
+    }
     print_table(&report);
+    Ok(())
+}
+
+/// FRD and FPD (when requested), appended to `report` with the network protocol in the name.
+fn feature_metrics(
+    a: &EvalArgs,
+    metrics: &[MetricName],
+    gen_files: &[PathBuf],
+    ref_files: &[PathBuf],
+    report: &mut MetricReport,
+) -> Result<()> {
+    let want = eval_features::Want {
+        frd: metrics.contains(&MetricName::Frd),
+        fpd: metrics.contains(&MetricName::Fpd),
+    };
+    if !want.frd && !want.fpd {
+        return Ok(());
+    }
+    for (files, dir) in [(gen_files, &a.generated), (ref_files, &a.reference)] {
+        if files.len() < 2 {
+            bail!(
+                "frd / fpd need at least 2 scans per folder (a covariance), {} has {}",
+                dir.display(),
+                files.len()
+            );
+        }
+    }
+    let nets = eval_features::load_nets(a.feature_nets.as_deref())?;
+    let g = eval_features::set_features(&nets, gen_files, "generated", want)?;
+    let r = eval_features::set_features(&nets, ref_files, "reference", want)?;
+    let dirs = (a.generated.as_path(), a.reference.as_path());
+    let mut push = |name: String, v: f64| {
+        report.metrics.push(MetricValue {
+            name,
+            protocol: Protocol::Frechet,
+            region: Region::All,
+            value: v,
+            generated: gen_files.len(),
+            reference: ref_files.len(),
+            paper_scale: None,
+        })
+    };
+    if let (Some(gs), Some(rs)) = (&g.range, &r.range) {
+        let v = eval_features::frechet(gs, rs, "frd", dirs)?;
+        push(format!("frd ({})", nets.frd_protocol()), v);
+    }
+    if let (Some(gs), Some(rs)) = (&g.point, &r.point) {
+        let v = eval_features::frechet(gs, rs, "fpd", dirs)?;
+        push(format!("fpd ({})", nets.fpd_protocol()), v);
+    }
     Ok(())
 }
 

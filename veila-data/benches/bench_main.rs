@@ -1,6 +1,7 @@
 use criterion::{criterion_group, criterion_main};
 
 mod io_bench;
+mod plot_bench;
 mod sim_bench;
 mod weather_bench;
 
@@ -18,4 +19,5 @@ criterion_group!(
     weather_bench::bench_snow_density,
     weather_bench::bench_camera_effects
 );
-criterion_main!(io, sim, weather);
+criterion_group!(plot, plot_bench::bench_plots);
+criterion_main!(io, sim, weather, plot);

@@ -24,6 +24,8 @@
 //! - Range images as self-describing OpenEXR: [`range_exr::write_range_exr`] (bit-exact round trip).
 //! - Previews: [`render`] (range, intensity, labels, bird's-eye view, camera overlay) and
 //!   [`image_io::write_png`].
+//! - Plots: [`plot`] (line / scatter plots with log axes, error bars and legends, grouped bar charts)
+//!   rendered to PNG with a built-in bitmap font, no system fonts needed.
 //! - Training shards: [`shard::write_shard`] / [`shard::read_shard`] and [`shard::Manifest`]; whole
 //!   datasets with [`convert::convert`] (bounded memory, resumable, shardable across workers).
 //!
@@ -71,6 +73,7 @@ pub mod error;
 pub mod image_io;
 pub mod kitti;
 pub mod nuscenes;
+pub mod plot;
 pub mod ply;
 pub mod points;
 pub mod range_exr;

@@ -12,6 +12,9 @@
 //! * [`Diffusion`]: forward noising and the training loss (one random level per sample).
 //! * [`sampler`]: DDPM, DDIM (η), DPM-Solver++(2M), classifier-free guidance, RePaint inpainting.
 //! * [`nn`]: the Veila U-Net from `veila-nn` as a [`Denoiser`] ([`VeilaDenoiser`]).
+//! * [`bundle`]: model bundles (encoders + denoiser + settings) with sha256 manifests verified on load.
+//! * [`pipeline`]: camera images to scans with a bundle (generation, inpainting) and training on
+//!   in-memory examples.
 //! * [`trainer`]: AdamW, warm-up + cosine LR, EMA, gradient clipping, atomic checkpoints with exact
 //!   resume, progress and preview callbacks.
 //!
@@ -52,6 +55,7 @@
 //! # }
 //! ```
 
+pub mod bundle;
 pub mod denoiser;
 pub mod encoding;
 pub mod error;
@@ -59,6 +63,7 @@ pub mod nn;
 pub mod noise;
 pub mod objective;
 pub mod oracle;
+pub mod pipeline;
 pub mod prediction;
 pub mod sampler;
 pub mod schedule;

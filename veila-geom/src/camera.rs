@@ -114,6 +114,30 @@ impl PinholeCamera {
         Self::new(k34, lidar2cam, width, height)
     }
 
+    /// The same camera for the image resized to `width x height` pixels: `K` is scaled per axis in the
+    /// pixel-centre convention (pixel `i` covers `[i - 0.5, i + 0.5]`, so `u' = s u + (s - 1) / 2`);
+    /// the extrinsics are unchanged. `None` for a zero size.
+    pub fn resized(&self, width: u32, height: u32) -> Option<Self> {
+        if width == 0 || height == 0 {
+            return None;
+        }
+        let sx = width as f32 / self.width as f32;
+        let sy = height as f32 / self.height as f32;
+        // rows of K: u' = sx u + (sx - 1)/2 w, v' = sy v + (sy - 1)/2 w
+        let s = Mat4::from_cols_array_2d(&[
+            [sx, 0.0, 0.0, 0.0],
+            [0.0, sy, 0.0, 0.0],
+            [0.5 * (sx - 1.0), 0.5 * (sy - 1.0), 1.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ]);
+        Some(PinholeCamera {
+            intrinsics: s * self.intrinsics,
+            width,
+            height,
+            ..*self
+        })
+    }
+
     /// With another near plane.
     pub fn with_near_m(mut self, near_m: f32) -> Self {
         self.near_m = near_m;

@@ -510,3 +510,31 @@ fn invalid_sensors_are_rejected_with_a_reason() {
     per_beam(vec![2.0, 1.0, -3.0]).validate().unwrap();
     per_beam(vec![-3.0, 1.0, 2.0]).validate().unwrap();
 }
+
+#[test]
+fn resized_camera_maps_pixel_centres_like_the_image_resize() {
+    let p2 = [
+        [721.5, 0.0, 609.6, 44.9],
+        [0.0, 721.5, 172.9, 0.2],
+        [0.0, 0.0, 1.0, 0.003],
+    ];
+    let cam = PinholeCamera::new(p2, glam::Mat4::IDENTITY, 1242, 375).unwrap();
+    let small = cam.resized(320, 96).unwrap();
+    let (sx, sy) = (320.0 / 1242.0f32, 96.0 / 375.0f32);
+    for p in [
+        glam::Vec3::new(1.0, -0.5, 10.0),
+        glam::Vec3::new(-4.0, 1.5, 30.0),
+        glam::Vec3::new(0.1, 0.2, 3.0),
+    ] {
+        let a = cam.try_project(p).unwrap();
+        let b = small.try_project(p).unwrap();
+        // the centre of pixel u maps to the centre of the resized pixel: (u + 0.5) s - 0.5
+        assert!((b.u_px - ((a.u_px + 0.5) * sx - 0.5)).abs() < 1e-3, "{a:?} {b:?}");
+        assert!((b.v_px - ((a.v_px + 0.5) * sy - 0.5)).abs() < 1e-3, "{a:?} {b:?}");
+        assert!((b.depth_m - a.depth_m).abs() < 1e-5);
+    }
+    assert_eq!((small.width, small.height), (320, 96));
+    assert!(cam.resized(0, 10).is_none());
+    let same = cam.resized(1242, 375).unwrap();
+    assert!(same.intrinsics.abs_diff_eq(cam.intrinsics, 1e-4));
+}

@@ -2,7 +2,7 @@
 //! the Confidence-Aware Conditioning Mechanism (equations 4-6) and its ablations.
 
 use candle_core::Tensor;
-use candle_nn::{Conv2dConfig, Module, VarBuilder};
+use candle_nn::{Conv2dConfig, VarBuilder};
 
 use crate::config::{ConditioningConfig, Cues, Fusion};
 use crate::error::{Error, Result, shape_err};
@@ -66,8 +66,8 @@ impl Cacm {
         let (_, _, h, w) = sem.dims4()?;
         let fs = self.proj_s.forward(sem)?;
         let fd = self.proj_d.forward(&bilinear_resize(depth, h, w)?)?;
-        let cs = candle_nn::ops::sigmoid(&self.conf_s.forward(&fs)?)?;
-        let cd = candle_nn::ops::sigmoid(&self.conf_d.forward(&fd)?)?;
+        let cs = candle_nn::ops::sigmoid(&crate::ops::conv2d_module(&self.conf_s, &fs)?)?;
+        let cd = candle_nn::ops::sigmoid(&crate::ops::conv2d_module(&self.conf_d, &fd)?)?;
         let num = (fs.broadcast_mul(&cs)? + fd.broadcast_mul(&cd)?)?;
         let den = ((&cs + &cd)? + self.delta)?;
         Ok((num.broadcast_div(&den)?, cs, cd))

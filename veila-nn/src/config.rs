@@ -249,6 +249,28 @@ impl DenoiserConfig {
         }
     }
 
+    /// The bundled CPU model (`models/default`, trained by `cargo xtask train-default` in well under
+    /// two hours on two CPU cores): 32 x 256 range images (HDL-64E field of view, uniform rows), 16
+    /// base channels, 4 levels, 1 residual block per level, CACM, GCMA at the three coarser encoder
+    /// levels (the full-resolution level is left out for speed), PFC with 2 heads, 96 x 320
+    /// conditioning images encoded by two default small CNNs. About 0.8 M parameters.
+    pub fn small() -> Self {
+        let mut cfg = Self::tiny();
+        cfg.sensor.cols = 256;
+        cfg.base_channels = 16;
+        cfg.time.dim = 32;
+        cfg.pfc = Some(PfcConfig { num_heads: 2 });
+        if let Some(c) = cfg.conditioning.as_mut() {
+            c.cond_channels = vec![16, 16, 32, 32];
+            if let Some(g) = c.gcma.as_mut() {
+                g.levels = vec![1, 2, 3];
+                g.attn_dim = 16;
+                g.num_heads = 2;
+            }
+        }
+        cfg
+    }
+
     /// The paper-sized model at 64 x 1024 (HDL-64E): R2DM's Efficient-U-Net widths (base 64, multipliers
     /// 1-2-4-8, 3 residual blocks per level, 8-head attention at the 8 x 128 level), SegFormer-B0 semantic
     /// features (32/64/160/256 channels) and Depth-Anything-V2-Small DPT features (48/96/192/384) from a

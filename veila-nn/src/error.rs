@@ -67,6 +67,16 @@ pub enum Error {
         message: String,
     },
 
+    /// A file of a model bundle is missing from its manifest or its sha256 sum differs from the one
+    /// the manifest records (a corrupted download or a hand-edited file).
+    #[error("integrity check failed: {message}: {}", path.display())]
+    Integrity {
+        /// The file whose checksum is wrong (or the manifest itself).
+        path: PathBuf,
+        /// What is wrong (expected and found sums).
+        message: String,
+    },
+
     /// The tensors of a checkpoint do not match the model built from its config.
     #[error("checkpoint does not match the model: {report}: {}", path.display())]
     CheckpointMismatch {

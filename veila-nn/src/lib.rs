@@ -2,7 +2,8 @@
 //! images with the three components of the Veila paper (section 3) — the Confidence-Aware Conditioning
 //! Mechanism ([`Cacm`], eqs. 4-6), Geometric Cross-Modal Alignment ([`Gcma`], eqs. 7-10, on
 //! [`veila_geom::EpipolarTable`]s precomputed into a [`GcmaGeometry`]) and Panoramic Feature Coherence
-//! ([`Pfc`], eq. 11) — plus image encoders ([`encoders`]) and checkpoint IO ([`checkpoint`]).
+//! ([`Pfc`], eq. 11) — plus image encoders ([`encoders`]), checkpoint IO ([`checkpoint`]) and the
+//! RangeNet / PointNet feature networks of the FRD and FPD metrics ([`feature_nets`]).
 //!
 //! Every ablation of the paper is a switch in [`DenoiserConfig`]: `conditioning: None` (unconditional,
 //! R2DM-like), [`Fusion::Concat`] (w/o CACM), `gcma: None` (w/o GCMA), `pfc: None` (w/o PFC),
@@ -38,6 +39,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod encoders;
 mod error;
+pub mod feature_nets;
 pub mod gcma;
 pub mod init;
 pub mod ops;

@@ -100,34 +100,123 @@ impl RingConv2d {
     /// `conv2d` on the padded input.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let _enter = self.span.enter();
-        let k = self.kernel;
-        let p = k / 2;
+        let p = self.kernel / 2;
         let xp = ring_pad(x, p, p)?;
-        let y = if self.stride == 1 && k > 1 {
-            let (b, c, h, w) = x.dims4()?;
-            let out_c = self.weight.dim(0)?;
-            let mut cols = Vec::with_capacity(k * k);
-            for ky in 0..k {
-                for kx in 0..k {
-                    cols.push(xp.narrow(2, ky, h)?.narrow(3, kx, w)?);
-                }
-            }
-            // [B, k*k*C, H*W], channel index (ky * k + kx) * C + c
-            let col = Tensor::cat(&cols, 1)?.reshape((b, k * k * c, h * w))?;
-            // weight [out, C, k, k] -> [out, k, k, C] -> [1, out, k*k*C]
-            let wm = self
-                .weight
-                .permute((0, 2, 3, 1))?
-                .reshape((1, out_c, k * k * c))?;
-            wm.broadcast_matmul(&col)?.reshape((b, out_c, h, w))?
-        } else {
-            xp.conv2d(&self.weight, 0, self.stride, 1, 1)?
-        };
-        Ok(match &self.bias {
-            Some(b) => y.broadcast_add(&b.reshape((1, b.dim(0)?, 1, 1))?)?,
-            None => y,
-        })
+        conv2d_padded(&xp, &self.weight, self.bias.as_ref(), self.stride)
     }
+}
+
+/// Every `stride`-th of `n` entries along `dim`, starting at `start`: `t[.., start + stride * i, ..]`
+/// for `i < n` (entries past the end read as zero). Built from `narrow`, `pad_with_zeros` and
+/// `reshape`, so it backpropagates.
+fn strided_narrow(t: &Tensor, dim: usize, start: usize, n: usize, stride: usize) -> Result<Tensor> {
+    if stride == 1 {
+        return Ok(t.narrow(dim, start, n)?);
+    }
+    let len = t.dim(dim)?;
+    let want = n * stride;
+    let avail = len.saturating_sub(start).min(want);
+    let mut s = t.narrow(dim, start, avail)?;
+    if avail < want {
+        s = s.pad_with_zeros(dim, 0, want - avail)?;
+    }
+    let mut shape = s.dims().to_vec();
+    shape[dim] = n;
+    shape.insert(dim + 1, stride);
+    let s = s.reshape(shape.as_slice())?.narrow(dim + 1, 0, 1)?;
+    Ok(s.squeeze(dim + 1)?)
+}
+
+/// A `k x k` convolution with no further padding of the already padded input `xp: [B, C, Hp, Wp]`
+/// (weights `[out, C, k, k]`, bias `[out]`), output `[B, out, (Hp - k) / stride + 1, (Wp - k) / stride + 1]`.
+///
+/// Runs as an explicit im2col (`k^2` shifted, strided views concatenated along channels) and one
+/// matrix product. Its backward pass is made of slices, concatenations and matrix products, which is
+/// an order of magnitude faster on the CPU than candle's `conv2d` backward (a naive transposed
+/// convolution); the forward pass is about twice as fast as candle's CPU `conv2d` too.
+pub fn conv2d_padded(
+    xp: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    stride: usize,
+) -> Result<Tensor> {
+    let (b, c, hp, wp) = xp.dims4()?;
+    let (out_c, wc, kh, kw) = weight.dims4()?;
+    if wc != c || kh > hp || kw > wp || stride == 0 {
+        return Err(shape_err(
+            "conv2d_padded input",
+            format!("[B, {wc}, >= {kh}, >= {kw}] (stride {stride} >= 1)"),
+            xp.dims(),
+        ));
+    }
+    let ho = (hp - kh) / stride + 1;
+    let wo = (wp - kw) / stride + 1;
+    let y = if kh == 1 && kw == 1 {
+        let xs = strided_narrow(&strided_narrow(xp, 2, 0, ho, stride)?, 3, 0, wo, stride)?;
+        let wm = weight.reshape((1, out_c, c))?;
+        wm.broadcast_matmul(&xs.reshape((b, c, ho * wo))?)?
+            .reshape((b, out_c, ho, wo))?
+    } else {
+        let mut cols = Vec::with_capacity(kh * kw);
+        for ky in 0..kh {
+            let rows = strided_narrow(xp, 2, ky, ho, stride)?;
+            for kx in 0..kw {
+                cols.push(strided_narrow(&rows, 3, kx, wo, stride)?);
+            }
+        }
+        // [B, k*k*C, Ho*Wo], channel index (ky * kw + kx) * C + c
+        let col = Tensor::cat(&cols, 1)?.reshape((b, kh * kw * c, ho * wo))?;
+        // weight [out, C, kh, kw] -> [out, kh, kw, C] -> [1, out, kh*kw*C]
+        let wm = weight
+            .permute((0, 2, 3, 1))?
+            .reshape((1, out_c, kh * kw * c))?;
+        wm.broadcast_matmul(&col)?.reshape((b, out_c, ho, wo))?
+    };
+    Ok(match bias {
+        Some(bias) => y.broadcast_add(&bias.reshape((1, bias.dim(0)?, 1, 1))?)?,
+        None => y,
+    })
+}
+
+/// A zero-padded convolution through [`conv2d_padded`]: the same result as candle's
+/// `x.conv2d(weight, padding, stride, 1, 1)` (+ bias), with a fast backward pass.
+pub fn conv2d_zero_pad(
+    x: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    padding: usize,
+    stride: usize,
+) -> Result<Tensor> {
+    let xp = if padding > 0 {
+        x.pad_with_zeros(2, padding, padding)?
+            .pad_with_zeros(3, padding, padding)?
+    } else {
+        x.clone()
+    };
+    conv2d_padded(&xp, weight, bias, stride)
+}
+
+/// Runs a `candle_nn::Conv2d` through [`conv2d_zero_pad`] (same weights, padding and stride, fast
+/// backward); dilated or grouped convolutions fall back to the module's own `forward`.
+pub fn conv2d_module(conv: &candle_nn::Conv2d, x: &Tensor) -> Result<Tensor> {
+    let cfg = conv.config();
+    if cfg.dilation != 1 || cfg.groups != 1 || cfg.cudnn_fwd_algo.is_some() {
+        return Ok(candle_core::Module::forward(conv, x)?);
+    }
+    conv2d_zero_pad(x, conv.weight(), conv.bias(), cfg.padding, cfg.stride)
+}
+
+/// Nearest-neighbour upsampling by an integer `factor` (`[B, C, H, W] -> [B, C, factor H, factor W]`)
+/// through a broadcast, whose backward pass is a sum (candle's `upsample_nearest2d` backward runs a
+/// grouped convolution, one group per channel, which is slow on the CPU).
+pub fn upsample_nearest(x: &Tensor, factor: usize) -> Result<Tensor> {
+    let (b, c, h, w) = x.dims4()?;
+    if factor == 1 {
+        return Ok(x.clone());
+    }
+    Ok(x.reshape((b, c, h, 1, w, 1))?
+        .broadcast_as((b, c, h, factor, w, factor))?
+        .reshape((b, c, h * factor, w * factor))?)
 }
 
 /// A 1x1 convolution as a per-pixel linear map, weights `weight: [out, in, 1, 1]`, `bias: [out]`

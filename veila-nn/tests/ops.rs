@@ -293,3 +293,155 @@ fn ring_conv_matches_direct_circular_convolution() {
         }
     }
 }
+
+/// Direct zero-padded, strided 2-D convolution in f64 (the textbook sum), `[B, C, H, W]` row-major.
+#[allow(clippy::too_many_arguments)]
+fn conv_ref(
+    x: &[f32],
+    (b, c, h, w): (usize, usize, usize, usize),
+    wt: &[f32],
+    (oc, k): (usize, usize),
+    bias: &[f32],
+    pad: usize,
+    stride: usize,
+) -> (Vec<f64>, usize, usize) {
+    let ho = (h + 2 * pad - k) / stride + 1;
+    let wo = (w + 2 * pad - k) / stride + 1;
+    let mut out = vec![0.0f64; b * oc * ho * wo];
+    for bi in 0..b {
+        for o in 0..oc {
+            for y in 0..ho {
+                for xo in 0..wo {
+                    let mut acc = f64::from(bias[o]);
+                    for ci in 0..c {
+                        for ky in 0..k {
+                            for kx in 0..k {
+                                let iy = (y * stride + ky) as isize - pad as isize;
+                                let ix = (xo * stride + kx) as isize - pad as isize;
+                                if iy < 0 || ix < 0 || iy >= h as isize || ix >= w as isize {
+                                    continue;
+                                }
+                                let xv = x[((bi * c + ci) * h + iy as usize) * w + ix as usize];
+                                let wv = wt[((o * c + ci) * k + ky) * k + kx];
+                                acc += f64::from(xv) * f64::from(wv);
+                            }
+                        }
+                    }
+                    out[((bi * oc + o) * ho + y) * wo + xo] = acc;
+                }
+            }
+        }
+    }
+    (out, ho, wo)
+}
+
+#[test]
+fn im2col_convolution_matches_the_direct_sum_for_every_stride_and_odd_size() {
+    use veila_nn::ops::conv2d_zero_pad;
+    let mut r = rng(11);
+    for &(h, w, k, stride) in &[
+        (7usize, 9usize, 3usize, 1usize),
+        (7, 9, 3, 2),
+        (8, 10, 3, 2),
+        (5, 6, 1, 2),
+        (6, 7, 5, 3),
+    ] {
+        let (b, c, oc) = (2, 3, 4);
+        let x = rand_tensor(&mut r, &[b, c, h, w]);
+        let wt = rand_tensor(&mut r, &[oc, c, k, k]);
+        let bias = rand_tensor(&mut r, &[oc]);
+        let pad = k / 2;
+        let y = conv2d_zero_pad(&x, &wt, Some(&bias), pad, stride).unwrap();
+        let (want, ho, wo) = conv_ref(
+            &x.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+            (b, c, h, w),
+            &wt.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+            (oc, k),
+            &bias.to_vec1::<f32>().unwrap(),
+            pad,
+            stride,
+        );
+        assert_eq!(y.dims(), &[b, oc, ho, wo], "h {h} w {w} k {k} s {stride}");
+        let got = y.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        for (g, e) in got.iter().zip(&want) {
+            assert!((f64::from(*g) - e).abs() < 1e-4, "{g} vs {e}");
+        }
+    }
+}
+
+#[test]
+fn im2col_convolution_gradients_match_candles_conv2d() {
+    use candle_core::Var;
+    use veila_nn::ops::conv2d_zero_pad;
+    let mut r = rng(5);
+    for stride in [1usize, 2] {
+        // even sizes: candle's own conv2d backward mis-sizes the input gradient of strided
+        // convolutions over odd inputs (its transposed convolution drops the last row)
+        let x = Var::from_tensor(&rand_tensor(&mut r, &[2, 3, 10, 8])).unwrap();
+        let wt = Var::from_tensor(&rand_tensor(&mut r, &[4, 3, 3, 3])).unwrap();
+        let upstream = rand_tensor(&mut r, &[2, 4, 10 / stride, 8 / stride]);
+        let ours = conv2d_zero_pad(x.as_tensor(), wt.as_tensor(), None, 1, stride).unwrap();
+        let theirs = x
+            .as_tensor()
+            .conv2d(wt.as_tensor(), 1, stride, 1, 1)
+            .unwrap();
+        let g1 = (ours * &upstream)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap();
+        let g2 = (theirs * &upstream)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap();
+        for v in [x.as_tensor(), wt.as_tensor()] {
+            let a = g1
+                .get(v)
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap();
+            let b = g2
+                .get(v)
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap();
+            for (p, q) in a.iter().zip(&b) {
+                assert!((p - q).abs() < 1e-4, "stride {stride}: {p} vs {q}");
+            }
+        }
+    }
+}
+
+#[test]
+fn broadcast_upsampling_equals_nearest_neighbour_and_sums_its_gradient() {
+    use candle_core::Var;
+    use veila_nn::ops::upsample_nearest;
+    let mut r = rng(3);
+    let x = Var::from_tensor(&rand_tensor(&mut r, &[2, 3, 4, 5])).unwrap();
+    let up = upsample_nearest(x.as_tensor(), 2).unwrap();
+    let reference = x.as_tensor().upsample_nearest2d(8, 10).unwrap();
+    let d = (&up - &reference)
+        .unwrap()
+        .abs()
+        .unwrap()
+        .max_all()
+        .unwrap();
+    assert_eq!(d.to_scalar::<f32>().unwrap(), 0.0);
+    // d(sum(up))/dx = factor^2 for every input
+    let g = up.sum_all().unwrap().backward().unwrap();
+    let gx = g
+        .get(x.as_tensor())
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap();
+    assert!(gx.iter().all(|v| *v == 4.0));
+}

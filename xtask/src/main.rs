@@ -4,10 +4,17 @@
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+mod bench_report; // cargo xtask bench-report
 mod convert; // cargo xtask convert       (veila-data shards)
+mod feature_nets; // cargo xtask train-feature-nets (veila-nn feature_nets)
 mod kitti_weather; // cargo xtask kitti-weather (veila-data weather)
+mod simdata; // simulated examples for training and benchmarks
 #[cfg(test)]
 mod tidy;
+mod train_default; // cargo xtask train-default (the bundled model)
 
 #[derive(Debug, Parser)]
 #[command(name = "xtask", about = "Veila project automation")]
@@ -21,6 +28,12 @@ enum Command {
     Convert(convert::ConvertArgs),
     /// Build KITTI-Weather (clean, night, fog, snow variants) from a KITTI-layout dataset.
     KittiWeather(kitti_weather::KittiWeatherArgs),
+    /// Train the bundled model (models/default) from a fixed seed on the simulator's train split.
+    TrainDefault(train_default::TrainDefaultArgs),
+    /// Train the FRD / FPD feature networks (RangeNet, PointNet) on simulated scenes.
+    TrainFeatureNets(feature_nets::TrainFeatureNetsArgs),
+    /// Benchmark report: Veila vs the unconditional baseline and the ablations, and sampler speed vs quality.
+    BenchReport(bench_report::BenchReportArgs),
     /// Print the workspace's crate layering rules (checked by `cargo test -p xtask`).
     Layers,
 }
@@ -36,9 +49,24 @@ fn run(command: Command) -> Result<()> {
     match command {
         Command::Convert(a) => convert::run(a),
         Command::KittiWeather(a) => kitti_weather::run(a),
+        Command::TrainFeatureNets(a) => feature_nets::run(a),
+        Command::BenchReport(a) => bench_report::run(a),
+        Command::TrainDefault(a) => train_default::run(a).map(|_| ()),
         Command::Layers => {
             println!("see ARCHITECTURE.md, section 'Layering'");
             Ok(())
         }
     }
+}
+
+/// A progress bar on stderr (hidden when stderr is not a terminal).
+pub(crate) fn progress_bar(len: u64, label: &str) -> indicatif::ProgressBar {
+    let bar = indicatif::ProgressBar::new(len);
+    if let Ok(style) = indicatif::ProgressStyle::with_template(
+        "{prefix:>24} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta} {msg}",
+    ) {
+        bar.set_style(style.progress_chars("=> "));
+    }
+    bar.set_prefix(label.to_string());
+    bar
 }

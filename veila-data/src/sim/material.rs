@@ -72,6 +72,38 @@ pub mod class {
         }
     }
 
+    /// Number of classes of SemanticKITTI's learning map (0 = unlabelled / ignored, 1..=19 the
+    /// evaluated classes).
+    pub const NUM_LEARNING_CLASSES: usize = 20;
+
+    /// SemanticKITTI's `learning_map` (raw id -> train id in `0..20`, `semantic-kitti.yaml`): moving
+    /// classes fold into their static class, lane marking into road, bus into other-vehicle, ids
+    /// without a train class (outliers, other-structure, other-object, unknown ids) into 0.
+    pub fn learning_id(raw: u16) -> u8 {
+        match raw {
+            10 | 252 => 1,
+            11 => 2,
+            15 => 3,
+            18 | 258 => 4,
+            13 | 16 | 20 | 256 | 257 | 259 => 5,
+            30 | 254 => 6,
+            31 | 253 => 7,
+            32 | 255 => 8,
+            40 | 60 => 9,
+            44 => 10,
+            48 => 11,
+            49 => 12,
+            50 => 13,
+            51 => 14,
+            70 => 15,
+            71 => 16,
+            72 => 17,
+            80 => 18,
+            81 => 19,
+            _ => 0,
+        }
+    }
+
     /// The class name used in `semantic-kitti.yaml`, or `None` for ids the simulator never emits.
     pub fn name(class: u16) -> Option<&'static str> {
         Some(match class {

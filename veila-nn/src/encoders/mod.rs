@@ -432,7 +432,20 @@ pub fn load_checked<T>(
         path: path.to_path_buf(),
         source,
     })?;
-    let tensors = candle_core::safetensors::load_buffer(&bytes, device).map_err(|e| {
+    load_checked_bytes(&bytes, path, dtype, device, in_scope, build)
+}
+
+/// [`load_checked`] on the bytes of a safetensors file already in memory (e.g. embedded in a
+/// binary); `path` names the source in errors.
+pub fn load_checked_bytes<T>(
+    bytes: &[u8],
+    path: &std::path::Path,
+    dtype: DType,
+    device: &Device,
+    in_scope: impl Fn(&str) -> bool,
+    build: impl Fn(VarBuilder<'static>) -> crate::Result<T>,
+) -> crate::Result<T> {
+    let tensors = candle_core::safetensors::load_buffer(bytes, device).map_err(|e| {
         crate::Error::SafeTensors {
             path: path.to_path_buf(),
             message: e.to_string(),

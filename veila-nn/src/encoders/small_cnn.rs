@@ -151,7 +151,9 @@ impl ConvNorm {
         })
     }
     fn forward(&self, x: &Tensor) -> crate::Result<Tensor> {
-        Ok(self.norm.forward(&self.conv.forward(x)?)?)
+        Ok(self
+            .norm
+            .forward(&crate::ops::conv2d_module(&self.conv, x)?)?)
     }
     fn forward_act(&self, x: &Tensor) -> crate::Result<Tensor> {
         Ok(self.forward(x)?.silu()?)
@@ -347,7 +349,7 @@ impl DenseHead {
         let (_, _, h0, w0) = features[0].dims4()?;
         let mut acc: Option<Tensor> = None;
         for (f, lat) in features.iter().zip(&self.lateral) {
-            let y = lat.forward(f)?;
+            let y = crate::ops::conv2d_module(lat, f)?;
             let (_, _, h, w) = y.dims4()?;
             let y = if (h, w) != (h0, w0) {
                 resize_bilinear_differentiable(&y, h0, w0)?
@@ -363,7 +365,7 @@ impl DenseHead {
             Some(a) => a,
             None => input_bail!("DenseHead: no features"),
         };
-        let x = self.out.forward(&self.fuse.forward_act(&x)?)?;
+        let x = crate::ops::conv2d_module(&self.out, &self.fuse.forward_act(&x)?)?;
         if (h0, w0) == (height, width) {
             Ok(x)
         } else {

@@ -1,0 +1,458 @@
+//! `veila edit`: scene editing by inpainting (RePaint). A scan is projected onto the bundle's grid,
+//! the pixels chosen by a mask image or a 3D box are regenerated consistent with the rest of the scan
+//! and the camera views, and every other pixel is kept.
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use clap::{ArgGroup, Args};
+use glam::Vec3;
+use serde::Serialize;
+use veila_data::image::{GrayImage, ImageReader, RgbImage, imageops};
+use veila_data::image_io::write_png;
+use veila_data::range_exr::read_range_exr;
+use veila_data::render::render_range;
+use veila_data::scan::{PointFormat, read_points};
+use veila_diffusion::bundle::Bundle;
+use veila_diffusion::pipeline::GenerateOptions;
+use veila_diffusion::{DecodedScan, RepaintConfig, SamplerConfig, SamplerKind};
+use veila_geom::{ProjectionOptions, Projector, RangeImage, RayTable};
+
+use crate::generate_cmd::{
+    InputInfo, ModelInfo, RigArgs, SamplerName, ScanRecord, Seconds, camera_views, input_info,
+    load_rig, model_info, prepare_views, range_preview, resolve_sampler, sampler_label, write_scan,
+};
+use crate::{model, progress, staging};
+
+/// Arguments of `veila edit`.
+#[derive(Debug, Args)]
+#[command(group(ArgGroup::new("region").required(true).args(["mask", "remove_box"])))]
+pub(crate) struct EditArgs {
+    #[command(flatten)]
+    rig: RigArgs,
+    /// The scan to edit: KITTI .bin, nuScenes .pcd.bin, .ply or a range .exr; projected onto the
+    /// model's range-image grid (an .exr on that grid is taken as is).
+    #[arg(long, value_name = "SCAN")]
+    scan: PathBuf,
+    /// Region to regenerate as an image (white = regenerate, black = keep), rows x cols of the model
+    /// grid or any size (resized with nearest neighbour).
+    #[arg(long, value_name = "MASK.png")]
+    mask: Option<PathBuf>,
+    /// Region to regenerate as a box in the LiDAR frame, metres: the pixels whose points fall inside
+    /// are regenerated (e.g. to remove a car: "5,-2,-2,10,2,1").
+    #[arg(
+        long,
+        value_name = "XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX",
+        allow_hyphen_values = true
+    )]
+    remove_box: Option<String>,
+    /// Model bundle folder (default: $VEILA_MODEL, else the bundled models/default).
+    #[arg(long, value_name = "DIR")]
+    checkpoint: Option<PathBuf>,
+    /// Sampler: ddpm or ddim (inpainting cannot use the multistep dpm solver; default ddim).
+    #[arg(long, value_enum)]
+    sampler: Option<SamplerName>,
+    /// Sampler steps (default: the bundle's).
+    #[arg(long, value_name = "N")]
+    steps: Option<usize>,
+    /// Classifier-free guidance scale (default: the bundle's).
+    #[arg(long, value_name = "S")]
+    guidance: Option<f64>,
+    /// Seed.
+    #[arg(long, value_name = "S", default_value_t = 0)]
+    seed: u64,
+    /// Number of edited versions to draw.
+    #[arg(long, value_name = "N", default_value_t = 1)]
+    samples: usize,
+    /// RePaint: levels each resampling jump goes back up.
+    #[arg(long, value_name = "N", default_value_t = 10)]
+    jump_length: usize,
+    /// RePaint: times each jump segment is traversed (1 = no resampling; 10 in the paper, slower).
+    #[arg(long, value_name = "N", default_value_t = 1)]
+    jump_n_sample: usize,
+    /// Output folder (created; must be absent or empty unless --force).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Write into an existing, non-empty output folder.
+    #[arg(long)]
+    force: bool,
+}
+
+/// A box in the LiDAR frame.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+struct Aabb {
+    min_m: [f32; 3],
+    max_m: [f32; 3],
+}
+
+impl Aabb {
+    fn contains(&self, p: Vec3) -> bool {
+        (0..3).all(|k| p[k] >= self.min_m[k] && p[k] <= self.max_m[k])
+    }
+}
+
+fn parse_box(s: &str) -> Result<Aabb> {
+    let vals: Vec<f32> = s
+        .split(',')
+        .map(|t| {
+            t.trim()
+                .parse::<f32>()
+                .ok()
+                .filter(|v| v.is_finite())
+                .with_context(|| format!("--remove-box {s}: `{}` is not a finite number", t.trim()))
+        })
+        .collect::<Result<_>>()?;
+    if vals.len() != 6 {
+        bail!(
+            "--remove-box {s}: expected 6 numbers xmin,ymin,zmin,xmax,ymax,zmax, got {}",
+            vals.len()
+        );
+    }
+    let b = Aabb {
+        min_m: [vals[0], vals[1], vals[2]],
+        max_m: [vals[3], vals[4], vals[5]],
+    };
+    if (0..3).any(|k| b.min_m[k] > b.max_m[k]) {
+        bail!("--remove-box {s}: every minimum must be <= its maximum");
+    }
+    Ok(b)
+}
+
+/// The scan on the bundle's grid.
+fn scan_on_grid(bundle: &Bundle, path: &Path) -> Result<RangeImage> {
+    let sensor = &bundle.config.denoiser.sensor;
+    let loaded = read_points(path)?;
+    if loaded.format == PointFormat::RangeExr && loaded.sensor.as_ref() == Some(sensor) {
+        return Ok(read_range_exr(path)?.image);
+    }
+    let mut cloud = loaded.cloud;
+    if loaded.format == PointFormat::NuScenesPcdBin && bundle.config.encoding.intensity_max <= 1.0 {
+        // nuScenes stores 0..255; the model's intensity is 0..1
+        for i in &mut cloud.intensity {
+            *i /= 255.0;
+        }
+    }
+    // returns nearer than the encoding's minimum range cannot be represented (they decode as
+    // dropped rays) and would occlude the real returns behind them (nuScenes' ego-vehicle points)
+    let min_r = bundle.config.encoding.min_range_m;
+    let (xyz, intensity): (Vec<Vec3>, Vec<f32>) = cloud
+        .xyz
+        .iter()
+        .zip(&cloud.intensity)
+        .filter(|(p, _)| p.length() >= min_r)
+        .map(|(p, i)| (*p, *i))
+        .unzip();
+    let projector = Projector::new(sensor, ProjectionOptions::default())?;
+    let (img, _) = projector
+        .project(&xyz, Some(&intensity), None)
+        .with_context(|| format!("{}: projecting onto the model grid", path.display()))?;
+    Ok(img)
+}
+
+/// `true` = regenerate, from a mask image (white = regenerate).
+fn mask_from_image(path: &Path, rows: usize, cols: usize) -> Result<Vec<bool>> {
+    let img: GrayImage = ImageReader::open(path)
+        .with_context(|| format!("{}: cannot open", path.display()))?
+        .with_guessed_format()
+        .with_context(|| format!("{}: cannot read", path.display()))?
+        .decode()
+        .with_context(|| format!("{}: not a readable mask image", path.display()))?
+        .into_luma8();
+    let img = if img.dimensions() == (cols as u32, rows as u32) {
+        img
+    } else {
+        imageops::resize(
+            &img,
+            cols as u32,
+            rows as u32,
+            imageops::FilterType::Nearest,
+        )
+    };
+    Ok(img.pixels().map(|p| p.0[0] >= 128).collect())
+}
+
+/// `true` = regenerate: the returns whose points lie in the box.
+fn mask_from_box(bundle: &Bundle, known: &RangeImage, b: &Aabb) -> Result<Vec<bool>> {
+    let rays = RayTable::new(&bundle.config.denoiser.sensor)?;
+    let cols = known.cols;
+    Ok((0..known.range_m.len())
+        .map(|k| {
+            let (row, col) = (k as u32 / cols, k as u32 % cols);
+            known.mask[k] && b.contains(rays.dir(row, col) * known.range_m[k])
+        })
+        .collect())
+}
+
+fn stack_vertical(images: &[RgbImage]) -> RgbImage {
+    let w = images.iter().map(|i| i.width()).max().unwrap_or(0);
+    let h = images.iter().map(|i| i.height()).sum();
+    let mut out = RgbImage::new(w, h);
+    let mut y = 0;
+    for img in images {
+        imageops::replace(&mut out, img, 0, i64::from(y));
+        y += img.height();
+    }
+    out
+}
+
+/// The range preview of `before` with the regenerated region tinted red.
+fn region_preview(bundle: &Bundle, before: &RangeImage, regen: &[bool]) -> RgbImage {
+    let mut img = render_range(before, &range_preview(bundle));
+    let cols = before.cols;
+    let scale = (img.height() / before.rows.max(1)).max(1);
+    for (x, y, p) in img.enumerate_pixels_mut() {
+        let k = (y / scale) as usize * cols as usize + x as usize;
+        if regen.get(k).copied().unwrap_or(false) {
+            p.0 = [(p.0[0] as u16 / 2 + 128) as u8, p.0[1] / 2, p.0[2] / 2];
+        }
+    }
+    img
+}
+
+#[derive(Debug, Serialize)]
+struct EditScan {
+    #[serde(flatten)]
+    record: ScanRecord,
+    /// Returns inside the regenerated region after the edit.
+    region_returns_after: usize,
+    /// Regenerated pixels whose return or range changed (> 1 mm).
+    region_changed_pixels: usize,
+    /// Largest range change over the kept pixels (encode/decode round-off), metres.
+    kept_max_range_change_m: f32,
+}
+
+#[derive(Debug, Serialize)]
+struct EditReport {
+    command: &'static str,
+    veila_version: &'static str,
+    inputs: Vec<InputInfo>,
+    scan: String,
+    region: serde_json::Value,
+    model: ModelInfo,
+    sampler: SamplerConfig,
+    sampler_name: String,
+    repaint: RepaintConfig,
+    seed: u64,
+    samples: usize,
+    regenerated_pixels: usize,
+    kept_pixels: usize,
+    region_returns_before: usize,
+    seconds: Seconds,
+    scans: Vec<EditScan>,
+}
+
+pub(crate) fn run(args: EditArgs) -> Result<()> {
+    if args.samples == 0 {
+        bail!("--samples must be at least 1");
+    }
+    if args.steps == Some(0) {
+        bail!("--steps must be at least 1");
+    }
+    if args.sampler == Some(SamplerName::Dpm) {
+        bail!(
+            "--sampler dpm: inpainting needs ddpm or ddim (a multistep solver cannot follow RePaint's jumps)"
+        );
+    }
+    if args.jump_length == 0 || args.jump_n_sample == 0 {
+        bail!("--jump-length and --jump-n-sample must be at least 1");
+    }
+    let region_box = args.remove_box.as_deref().map(parse_box).transpose()?;
+    let t0 = Instant::now();
+    let views = load_rig(&args.rig)?;
+    let device = model::device()?;
+    let bundle = model::load_bundle(args.checkpoint.as_deref(), &device)?;
+    let mut sampler = resolve_sampler(&bundle, args.sampler, args.steps, args.guidance)?;
+    if matches!(sampler.kind, SamplerKind::DpmSolverPp2M) {
+        // the bundle's default: keep steps and guidance, switch to deterministic DDIM
+        sampler = SamplerConfig {
+            kind: SamplerKind::Ddim { eta: 0.0 },
+            ..sampler
+        };
+    }
+    let (rows, cols) = bundle.grid();
+    let before = scan_on_grid(&bundle, &args.scan)?;
+    let regen = match (&args.mask, &region_box) {
+        (Some(p), _) => mask_from_image(p, rows, cols)?,
+        (None, Some(b)) => mask_from_box(&bundle, &before, b)?,
+        (None, None) => bail!("give --mask or --remove-box"),
+    };
+    let regenerated = regen.iter().filter(|&&r| r).count();
+    if regenerated == 0 {
+        match (&args.mask, &args.remove_box) {
+            (Some(p), _) => bail!(
+                "{}: the mask selects no pixel (white = regenerate)",
+                p.display()
+            ),
+            (_, Some(b)) => bail!(
+                "--remove-box {b}: no return of {} falls inside the box (LiDAR frame: x forward, y left, z up)",
+                args.scan.display()
+            ),
+            _ => bail!("nothing to regenerate"),
+        }
+    }
+    let prepared = prepare_views(&bundle, &views)?;
+    let staging = staging::stage(&args.out, args.force)?;
+    let load_secs = t0.elapsed().as_secs_f64();
+
+    let known = DecodedScan {
+        rows,
+        cols,
+        range_m: before.range_m.clone(),
+        intensity: before.intensity.clone(),
+        mask: before.mask.clone(),
+    };
+    let keep: Vec<bool> = regen.iter().map(|r| !r).collect();
+    let repaint = RepaintConfig {
+        jump_length: args.jump_length,
+        jump_n_sample: args.jump_n_sample,
+    };
+    let t = Instant::now();
+    let pb = progress::bar(args.samples as u64, "edit");
+    pb.set_message(format!(
+        "inpainting {regenerated} pixels, {} x {} steps",
+        sampler_label(&sampler),
+        sampler.steps
+    ));
+    pb.enable_steady_tick(Duration::from_millis(250));
+    let options = GenerateOptions {
+        sampler: sampler.clone(),
+        samples: args.samples,
+        seed: args.seed,
+        unconditional: false,
+    };
+    let scans = bundle
+        .inpaint(&camera_views(&prepared), &known, &keep, &options, &repaint)
+        .context("inpainting")?;
+    pb.finish_and_clear();
+    let sampling_secs = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let out = staging.path();
+    let preview = range_preview(&bundle);
+    let marked = region_preview(&bundle, &before, &regen);
+    let mask_png = GrayImage::from_fn(cols as u32, rows as u32, |x, y| {
+        veila_data::image::Luma([if regen[y as usize * cols + x as usize] {
+            255
+        } else {
+            0
+        }])
+    });
+    mask_png
+        .save_with_format(out.join("mask.png"), veila_data::image::ImageFormat::Png)
+        .with_context(|| format!("{}: cannot write", out.join("mask.png").display()))?;
+    write_png(
+        &out.join("before_range.png"),
+        &render_range(&before, &preview),
+    )?;
+    let enc = &bundle.config.encoding;
+    let mut records = Vec::with_capacity(scans.len());
+    for (i, scan) in scans.iter().enumerate() {
+        let stem = format!("scan_{i:03}");
+        let (record, after, _) = write_scan(out, &stem, &bundle, scan, &views[0])?;
+        write_png(
+            &out.join(format!("{stem}_before_after.png")),
+            &stack_vertical(&[
+                render_range(&before, &preview),
+                marked.clone(),
+                render_range(&after, &preview),
+            ]),
+        )?;
+        let mut changed = 0;
+        let mut returns_after = 0;
+        let mut kept_max = 0.0f32;
+        for k in 0..regen.len() {
+            if regen[k] {
+                returns_after += usize::from(after.mask[k]);
+                if after.mask[k] != before.mask[k]
+                    || (after.range_m[k] - before.range_m[k]).abs() > 1e-3
+                {
+                    changed += 1;
+                }
+            } else if before.mask[k]
+                && (enc.min_range_m..=enc.max_range_m).contains(&before.range_m[k])
+            {
+                let d = if after.mask[k] {
+                    (after.range_m[k] - before.range_m[k]).abs()
+                } else {
+                    f32::INFINITY
+                };
+                kept_max = kept_max.max(d);
+            }
+        }
+        records.push(EditScan {
+            record,
+            region_returns_after: returns_after,
+            region_changed_pixels: changed,
+            kept_max_range_change_m: kept_max,
+        });
+    }
+    let writing_secs = t.elapsed().as_secs_f64();
+    let region = match (&args.mask, &region_box) {
+        (Some(p), _) => serde_json::json!({ "mask": p.display().to_string() }),
+        (_, Some(b)) => serde_json::json!({ "remove_box": b }),
+        _ => serde_json::Value::Null,
+    };
+    let round3 = |x: f64| (x * 1000.0).round() / 1000.0;
+    let report = EditReport {
+        command: "edit",
+        veila_version: env!("CARGO_PKG_VERSION"),
+        inputs: input_info(&views),
+        scan: args.scan.display().to_string(),
+        region,
+        model: model_info(&bundle, args.checkpoint.as_deref()),
+        sampler_name: sampler_label(&sampler),
+        sampler,
+        repaint,
+        seed: args.seed,
+        samples: args.samples,
+        regenerated_pixels: regenerated,
+        kept_pixels: regen.len() - regenerated,
+        region_returns_before: regen
+            .iter()
+            .zip(&before.mask)
+            .filter(|(r, m)| **r && **m)
+            .count(),
+        seconds: Seconds {
+            load: round3(load_secs),
+            sampling: round3(sampling_secs),
+            per_scan: round3(sampling_secs / args.samples as f64),
+            writing: round3(writing_secs),
+        },
+        scans: records,
+    };
+    veila_data::atomic::write_atomic(
+        &out.join("edit.json"),
+        serde_json::to_string_pretty(&report)?.as_bytes(),
+    )?;
+    staging.commit()?;
+
+    println!(
+        "edited {}: regenerated {} of {} pixels ({} returns before) with {} x {} steps (RePaint jumps {} x {}), seed {}",
+        args.scan.display(),
+        report.regenerated_pixels,
+        regen.len(),
+        report.region_returns_before,
+        report.sampler_name,
+        report.sampler.steps,
+        repaint.jump_length,
+        repaint.jump_n_sample,
+        args.seed
+    );
+    for s in &report.scans {
+        println!(
+            "  {}: {} points, {} returns in the region, {} region pixels changed, kept pixels within {:.1e} m",
+            s.record.file,
+            s.record.points,
+            s.region_returns_after,
+            s.region_changed_pixels,
+            s.kept_max_range_change_m
+        );
+    }
+    println!(
+        "{:.2} s per scan; wrote {}",
+        sampling_secs / args.samples as f64,
+        args.out.display()
+    );
+    Ok(())
+}

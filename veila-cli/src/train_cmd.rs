@@ -1,0 +1,850 @@
+//! `veila train --config CONFIG.toml`: trains a model bundle on converted training shards
+//! (`cargo xtask convert`).
+//!
+//! The image encoders are trained first (or taken from another bundle), with sparse supervision
+//! from the LiDAR: each return of a shard's range image is projected into the camera image, giving
+//! a metric depth and, when the shards carry train ids, a semantic class at that pixel. Then the
+//! denoiser is trained on the frozen encoder features. The run is resumable: the trained encoders
+//! and the denoiser checkpoints live in `OUTPUT/checkpoints`, and rerunning the same config picks
+//! up the newest checkpoint (the result is bit-identical to an uninterrupted run). The finished
+//! bundle is written to `OUTPUT/bundle` (verified by reading it back).
+//!
+//! ```toml
+//! [data]
+//! shards = "data/kitti-shards"     # folder with manifest.json (relative to this file)
+//! # max_frames = 2000              # use the first N samples only
+//! # verify = true                  # check every shard's sha256 against the manifest
+//! # unify_cameras = false          # true: train every sample with the first sample's camera
+//!
+//! [model]
+//! variant = "full"                 # full, unconditional, no-cacm, no-gcma, no-pfc, semantic-only, depth-only
+//! # bundle = "models/default/bundle.json"  # start from a bundle config instead of the CPU default
+//! # encoders_from = "models/default"       # reuse trained encoders instead of training them
+//! # image_height = 96              # camera input size of the encoders
+//! # image_width = 320
+//!
+//! [train]
+//! steps = 1000                     # denoiser steps
+//! batch = 4
+//! lr = 1e-3
+//! seed = 0
+//! encoder_steps = 250
+//! checkpoint_every = 250
+//!
+//! [output]
+//! dir = "runs/my-model"            # OUTPUT/checkpoints, OUTPUT/bundle
+//! ```
+
+use std::collections::HashMap;
+use std::ops::ControlFlow;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarMap;
+use clap::Args;
+use serde::{Deserialize, Serialize};
+use veila_data::image::imageops;
+use veila_data::shard::{Manifest, ShardSample, read_shard};
+use veila_diffusion::bundle::{
+    Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, SEMANTIC_FILE, Variant, safetensors_bytes,
+    sha256_hex,
+};
+use veila_diffusion::encoding::ScanView;
+use veila_diffusion::pipeline::{DenoiserTraining, TrainExample, train_small_cnn, varmap_tensors};
+use veila_diffusion::{Diffusion, StepStats, TrainConfig, TrainObserver, Trainer, VeilaDenoiser};
+use veila_geom::{
+    LidarSensor, NO_POINT, PinholeCamera, ProjectionOptions, Projector, RangeImage, RayTable,
+};
+use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
+
+use crate::{model, progress};
+
+/// Arguments of `veila train`.
+#[derive(Debug, Args)]
+pub(crate) struct TrainArgs {
+    /// Training config (TOML: `[data]` shards, `[model]` variant, `[train]` steps, batch, lr, seed,
+    /// encoder_steps, checkpoint_every, `[output]` dir); relative paths are relative to this file.
+    #[arg(long, value_name = "CONFIG.toml")]
+    config: PathBuf,
+    /// Stop after this many denoiser steps of this run (a checkpoint is written; rerun the same
+    /// command to continue).
+    #[arg(long, value_name = "N")]
+    stop_after: Option<u64>,
+}
+
+/// The config file.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct TrainFile {
+    data: DataSection,
+    #[serde(default)]
+    model: ModelSection,
+    #[serde(default)]
+    train: TrainSection,
+    output: OutputSection,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct DataSection {
+    /// Folder with `manifest.json` and the shards.
+    shards: PathBuf,
+    /// Use only the first this many samples.
+    #[serde(default)]
+    max_frames: Option<usize>,
+    /// Check every shard against the manifest's sha256 before training.
+    #[serde(default = "yes")]
+    verify: bool,
+    /// Train every sample with the first sample's camera (the denoiser's geometric attention takes
+    /// one camera rig per run); otherwise differing cameras are an error.
+    #[serde(default)]
+    unify_cameras: bool,
+}
+
+fn yes() -> bool {
+    true
+}
+
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ModelSection {
+    /// Model variant of `BundleConfig::cpu_default` (default `full`).
+    #[serde(default)]
+    variant: Option<String>,
+    /// A `bundle.json` to start from instead of the CPU default.
+    #[serde(default)]
+    bundle: Option<PathBuf>,
+    /// Reuse the encoders of this bundle folder.
+    #[serde(default)]
+    encoders_from: Option<PathBuf>,
+    /// Name written into the bundle.
+    #[serde(default)]
+    name: Option<String>,
+    /// Camera input height of the encoders.
+    #[serde(default)]
+    image_height: Option<usize>,
+    /// Camera input width of the encoders.
+    #[serde(default)]
+    image_width: Option<usize>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct TrainSection {
+    #[serde(default = "d_steps")]
+    steps: u64,
+    #[serde(default = "d_batch")]
+    batch: usize,
+    #[serde(default = "d_lr")]
+    lr: f64,
+    #[serde(default)]
+    seed: u64,
+    #[serde(default = "d_encoder_steps")]
+    encoder_steps: usize,
+    #[serde(default = "d_encoder_batch")]
+    encoder_batch: usize,
+    #[serde(default = "d_encoder_lr")]
+    encoder_lr: f64,
+    #[serde(default = "d_checkpoint_every")]
+    checkpoint_every: u64,
+    #[serde(default = "d_keep")]
+    keep_checkpoints: usize,
+    #[serde(default = "d_ema")]
+    ema_decay: f64,
+    /// Condition dropout for classifier-free guidance (default 0.1 for conditional models).
+    #[serde(default)]
+    cond_drop_prob: Option<f64>,
+}
+
+fn d_steps() -> u64 {
+    1000
+}
+fn d_batch() -> usize {
+    4
+}
+fn d_lr() -> f64 {
+    1e-3
+}
+fn d_encoder_steps() -> usize {
+    250
+}
+fn d_encoder_batch() -> usize {
+    8
+}
+fn d_encoder_lr() -> f64 {
+    2e-3
+}
+fn d_checkpoint_every() -> u64 {
+    250
+}
+fn d_keep() -> usize {
+    2
+}
+fn d_ema() -> f64 {
+    0.995
+}
+
+impl Default for TrainSection {
+    fn default() -> Self {
+        TrainSection {
+            steps: d_steps(),
+            batch: d_batch(),
+            lr: d_lr(),
+            seed: 0,
+            encoder_steps: d_encoder_steps(),
+            encoder_batch: d_encoder_batch(),
+            encoder_lr: d_encoder_lr(),
+            checkpoint_every: d_checkpoint_every(),
+            keep_checkpoints: d_keep(),
+            ema_decay: d_ema(),
+            cond_drop_prob: None,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct OutputSection {
+    /// Output folder: `checkpoints/` and `bundle/` go inside.
+    dir: PathBuf,
+}
+
+/// Written to `OUTPUT/checkpoints/run.json`: a rerun resumes only with the same settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct RunFingerprint {
+    bundle: BundleConfig,
+    train: serde_json::Value,
+    data_manifest_sha256: String,
+    samples: usize,
+    encoders_from: Option<String>,
+}
+
+const RUN_FILE: &str = "run.json";
+const ENCODER_DIR: &str = "encoders";
+
+fn read_config(path: &Path) -> Result<TrainFile> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("{}: cannot read", path.display()))?;
+    let mut cfg: TrainFile = toml::from_str(&text)
+        .map_err(|e| anyhow::anyhow!("{}: not a valid training config: {e}", path.display()))?;
+    let base = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let resolve = |p: &Path| {
+        if p.is_absolute() {
+            p.to_path_buf()
+        } else {
+            base.join(p)
+        }
+    };
+    cfg.data.shards = resolve(&cfg.data.shards);
+    cfg.output.dir = resolve(&cfg.output.dir);
+    cfg.model.bundle = cfg.model.bundle.as_deref().map(resolve);
+    cfg.model.encoders_from = cfg.model.encoders_from.as_deref().map(resolve);
+    let t = &cfg.train;
+    let bad = |what: &str| anyhow::anyhow!("{}: [train] {what}", path.display());
+    if t.steps == 0 {
+        return Err(bad("steps must be at least 1"));
+    }
+    if t.batch == 0 || t.encoder_batch == 0 {
+        return Err(bad("batch and encoder_batch must be at least 1"));
+    }
+    if !(t.lr.is_finite() && t.lr > 0.0 && t.encoder_lr.is_finite() && t.encoder_lr > 0.0) {
+        return Err(bad("lr and encoder_lr must be finite and > 0"));
+    }
+    if t.checkpoint_every == 0 {
+        return Err(bad("checkpoint_every must be at least 1"));
+    }
+    if !(0.0..1.0).contains(&t.ema_decay) {
+        return Err(bad("ema_decay must be in [0, 1)"));
+    }
+    if let Some(p) = t.cond_drop_prob
+        && !(0.0..=1.0).contains(&p)
+    {
+        return Err(bad("cond_drop_prob must be in [0, 1]"));
+    }
+    if cfg.data.max_frames == Some(0) {
+        return Err(anyhow::anyhow!(
+            "{}: [data] max_frames must be at least 1",
+            path.display()
+        ));
+    }
+    Ok(cfg)
+}
+
+/// The bundle config the run trains.
+fn bundle_config(file: &TrainFile, config_path: &Path) -> Result<BundleConfig> {
+    let m = &file.model;
+    let mut cfg = match (&m.bundle, &m.variant) {
+        (Some(_), Some(_)) => bail!(
+            "{}: [model] give either `variant` or `bundle`, not both",
+            config_path.display()
+        ),
+        (Some(p), None) => {
+            let text = std::fs::read(p).with_context(|| format!("{}: cannot read", p.display()))?;
+            let mut c: BundleConfig = serde_json::from_slice(&text)
+                .with_context(|| format!("{}: not a bundle.json", p.display()))?;
+            c.provenance = serde_json::Value::Null;
+            c
+        }
+        (None, v) => {
+            let variant: Variant = v
+                .as_deref()
+                .unwrap_or("full")
+                .parse()
+                .map_err(|e: String| anyhow::anyhow!("{}: [model] {e}", config_path.display()))?;
+            BundleConfig::cpu_default(variant)
+        }
+    };
+    if let Some(name) = &m.name {
+        cfg.name = name.clone();
+    }
+    if m.image_height.is_some() || m.image_width.is_some() {
+        cfg.image_height = m.image_height.unwrap_or(cfg.image_height);
+        cfg.image_width = m.image_width.unwrap_or(cfg.image_width);
+        if cfg.image_height < 32 || cfg.image_width < 32 {
+            bail!(
+                "{}: [model] image_height and image_width must be at least 32",
+                config_path.display()
+            );
+        }
+        if let Some(c) = cfg.denoiser.conditioning.as_mut() {
+            c.feature_sizes =
+                veila_nn::ConditioningConfig::pyramid_sizes(cfg.image_height, cfg.image_width);
+        }
+    }
+    cfg.denoiser.validate().with_context(|| {
+        format!(
+            "{}: [model] gives an invalid denoiser",
+            config_path.display()
+        )
+    })?;
+    Ok(cfg)
+}
+
+/// One shard sample reduced to what training uses.
+struct Prepared {
+    rgb: Vec<u8>,
+    camera: PinholeCamera,
+    x0: Vec<f32>,
+    /// Sparse camera depth at the bundle image size (0 = no return).
+    depth_m: Vec<f32>,
+    /// Sparse train ids at the bundle image size (0 = ignored), when the shard has labels.
+    labels: Option<Vec<u32>>,
+}
+
+fn prepare_sample(
+    s: &ShardSample,
+    shard_sensor: &LidarSensor,
+    shard_rays: &RayTable,
+    cfg: &BundleConfig,
+    projector: &Projector,
+    shard_path: &Path,
+    needs_camera: bool,
+) -> Result<Prepared> {
+    let at = || format!("{}: sample {}", shard_path.display(), s.id);
+    let (iw, ih) = (cfg.image_width as u32, cfg.image_height as u32);
+    let n = s.range_m.len();
+    let src = RangeImage {
+        rows: shard_sensor.rows,
+        cols: shard_sensor.cols,
+        range_m: s.range_m.clone(),
+        intensity: s.intensity.clone(),
+        point_index: vec![NO_POINT; n],
+        mask: s.mask.iter().map(|m| *m != 0).collect(),
+        label: None,
+    };
+    let un = shard_rays.unproject(&src)?;
+    let on_grid = if shard_sensor == &cfg.denoiser.sensor {
+        src
+    } else {
+        projector.project(&un.points, Some(&un.intensity), None)?.0
+    };
+    let x0 = cfg
+        .encoding
+        .encode_to_vec(&ScanView::from_range_image(&on_grid))?;
+    if !needs_camera {
+        // an unconditional model without encoders to train never looks at the camera
+        let k = [
+            [1.0, 0.0, 0.5 * iw as f32, 0.0],
+            [0.0, 1.0, 0.5 * ih as f32, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+        ];
+        return Ok(Prepared {
+            rgb: Vec::new(),
+            camera: PinholeCamera::new(k, glam::Mat4::IDENTITY, iw, ih)?,
+            x0,
+            depth_m: Vec::new(),
+            labels: None,
+        });
+    }
+    let Some(image) = &s.image else {
+        bail!(
+            "{}: has no camera image (convert the dataset with images: `cargo xtask convert` without --no-images)",
+            at()
+        );
+    };
+    let Some(matrices) = &s.camera else {
+        bail!(
+            "{}: has no camera matrices (intrinsics / cam_from_lidar); the dataset needs a calibrated camera",
+            at()
+        );
+    };
+    let (w, h) = image.dimensions();
+    let full = matrices
+        .to_camera(w, h)
+        .with_context(|| format!("{}: invalid camera", at()))?;
+    let camera = full
+        .resized(iw, ih)
+        .context("the model's image size has a zero dimension")?;
+    let rgb = imageops::resize(image, iw, ih, imageops::FilterType::Triangle).into_raw();
+    // sparse supervision: returns projected into the resized image, nearest wins
+    let npx = (iw * ih) as usize;
+    let mut depth_m = vec![0f32; npx];
+    let mut labels = s.label.as_ref().map(|_| vec![0u32; npx]);
+    for (p, (r, c)) in un.points.iter().zip(&un.pixels) {
+        let Some(ip) = camera.try_project_in_image(*p) else {
+            continue;
+        };
+        let (u, v) = ((ip.u_px + 0.5).floor(), (ip.v_px + 0.5).floor());
+        if u < 0.0 || v < 0.0 || u >= iw as f32 || v >= ih as f32 {
+            continue;
+        }
+        let k = v as usize * iw as usize + u as usize;
+        if depth_m[k] == 0.0 || ip.depth_m < depth_m[k] {
+            depth_m[k] = ip.depth_m;
+            if let (Some(l), Some(src_l)) = (labels.as_mut(), s.label.as_ref()) {
+                l[k] = u32::from(src_l[(*r * shard_sensor.cols + *c) as usize]);
+            }
+        }
+    }
+    Ok(Prepared {
+        rgb,
+        camera,
+        x0,
+        depth_m,
+        labels,
+    })
+}
+
+struct Progress {
+    bar: indicatif::ProgressBar,
+    ema_loss: Option<f64>,
+    stop_after: Option<u64>,
+    run: u64,
+}
+
+impl<M: veila_diffusion::Denoiser> TrainObserver<M> for Progress {
+    fn on_step(&mut self, s: &StepStats) -> ControlFlow<()> {
+        if s.loss.is_finite() {
+            self.ema_loss = Some(match self.ema_loss {
+                None => s.loss,
+                Some(e) => 0.98 * e + 0.02 * s.loss,
+            });
+        }
+        self.run += 1;
+        self.bar.set_position(s.step);
+        self.bar.set_message(format!(
+            "loss {:.4} (avg {:.4}) lr {:.2e} {:.2} s/step",
+            s.loss,
+            self.ema_loss.unwrap_or(f64::NAN),
+            s.lr,
+            s.step_secs
+        ));
+        match self.stop_after {
+            Some(n) if self.run >= n => ControlFlow::Break(()),
+            _ => ControlFlow::Continue(()),
+        }
+    }
+}
+
+fn load_tensors(path: &Path) -> Result<HashMap<String, Tensor>> {
+    candle_core::safetensors::load(path, &Device::Cpu)
+        .with_context(|| format!("{}: cannot read tensors", path.display()))
+}
+
+fn load_cnn(c: &SmallCnnConfig, path: &Path, device: &Device) -> Result<SmallCnn> {
+    let bytes = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
+    Ok(veila_nn::encoders::load_checked_bytes(
+        &bytes,
+        path,
+        DType::F32,
+        device,
+        |_| true,
+        |vb| SmallCnn::new(c, vb),
+    )?)
+}
+
+type Weights = HashMap<&'static str, HashMap<String, Tensor>>;
+
+pub(crate) fn run(args: TrainArgs) -> Result<()> {
+    let t_all = Instant::now();
+    let file = read_config(&args.config)?;
+    let mut cfg = bundle_config(&file, &args.config)?;
+    let device = model::device()?;
+    let t = &file.train;
+
+    // 1. data
+    let shards = &file.data.shards;
+    let manifest_path = shards.join("manifest.json");
+    if !manifest_path.exists() {
+        bail!(
+            "{}: no manifest.json: [data] shards must be a folder written by `cargo xtask convert`",
+            shards.display()
+        );
+    }
+    let manifest = Manifest::read(&manifest_path)?;
+    if manifest.count == 0 {
+        bail!("{}: the manifest lists no samples", manifest_path.display());
+    }
+    if file.data.verify {
+        manifest.verify(shards)?;
+    }
+    let want = file
+        .data
+        .max_frames
+        .unwrap_or(manifest.count)
+        .min(manifest.count);
+    let projector = Projector::new(&cfg.denoiser.sensor, ProjectionOptions::default())?;
+    let shard_rays = RayTable::new(&manifest.sensor)?;
+    // the camera is needed by conditional models and to train encoders
+    let needs_camera = cfg.denoiser.conditioning.is_some()
+        || (file.model.encoders_from.is_none()
+            && (cfg.semantic_encoder.is_some() || cfg.depth_encoder.is_some()));
+    let bar = progress::bar(want as u64, "loading");
+    let mut prepared: Vec<Prepared> = Vec::with_capacity(want);
+    'outer: for entry in &manifest.shards {
+        let path = shards.join(&entry.file);
+        let shard = read_shard(&path)?;
+        if shard.sensor != manifest.sensor {
+            bail!(
+                "{}: the shard's sensor differs from the manifest's",
+                path.display()
+            );
+        }
+        for s in &shard.samples {
+            if prepared.len() == want {
+                break 'outer;
+            }
+            prepared.push(prepare_sample(
+                s,
+                &shard.sensor,
+                &shard_rays,
+                &cfg,
+                &projector,
+                &path,
+                needs_camera,
+            )?);
+            bar.inc(1);
+        }
+    }
+    bar.finish_and_clear();
+    let conditional = cfg.denoiser.conditioning.is_some();
+    if conditional {
+        let first = prepared[0].camera;
+        let differing = prepared.iter().filter(|p| p.camera != first).count();
+        if differing > 0 {
+            if !file.data.unify_cameras {
+                bail!(
+                    "{}: {differing} of {} samples have another camera than the first; one run trains one camera rig \
+                     (set [data] unify_cameras = true to train all with the first sample's camera, an approximation)",
+                    shards.display(),
+                    prepared.len()
+                );
+            }
+            for p in &mut prepared {
+                p.camera = first;
+            }
+        }
+    }
+    println!(
+        "train: {} samples from {} ({} sensor {}x{} -> model grid {}x{}), model `{}`",
+        prepared.len(),
+        shards.display(),
+        manifest.dataset,
+        manifest.sensor.rows,
+        manifest.sensor.cols,
+        cfg.denoiser.sensor.rows,
+        cfg.denoiser.sensor.cols,
+        cfg.name
+    );
+
+    // 2. resumability: the run's fingerprint
+    let out = &file.output.dir;
+    let ck_dir = out.join("checkpoints");
+    std::fs::create_dir_all(&ck_dir)
+        .with_context(|| format!("{}: cannot create", ck_dir.display()))?;
+    let manifest_bytes = std::fs::read(&manifest_path)
+        .with_context(|| format!("{}: cannot read", manifest_path.display()))?;
+    let fingerprint = RunFingerprint {
+        bundle: cfg.clone(),
+        train: serde_json::to_value(t)?,
+        data_manifest_sha256: sha256_hex(&manifest_bytes),
+        samples: prepared.len(),
+        encoders_from: file
+            .model
+            .encoders_from
+            .as_ref()
+            .map(|p| p.display().to_string()),
+    };
+    let run_path = ck_dir.join(RUN_FILE);
+    if run_path.exists() {
+        let text = std::fs::read(&run_path)
+            .with_context(|| format!("{}: cannot read", run_path.display()))?;
+        let old: RunFingerprint = serde_json::from_slice(&text)
+            .with_context(|| format!("{}: not a run record", run_path.display()))?;
+        if old != fingerprint {
+            bail!(
+                "{}: the checkpoints there were made with other settings (model, [train] or data changed); \
+                 use another [output] dir or delete {}",
+                out.display(),
+                ck_dir.display()
+            );
+        }
+    } else {
+        veila_data::atomic::write_atomic(
+            &run_path,
+            serde_json::to_string_pretty(&fingerprint)?.as_bytes(),
+        )?;
+    }
+
+    // 3. encoders
+    let t_enc = Instant::now();
+    let mut weights: Weights = HashMap::new();
+    let mut semantic: Option<SmallCnn> = None;
+    let mut depth: Option<SmallCnn> = None;
+    let enc_dir = ck_dir.join(ENCODER_DIR);
+    let mut encoder_note = String::new();
+    if let Some(dir) = &file.model.encoders_from {
+        let b = Bundle::from_dir(dir, &device)
+            .with_context(|| format!("[model] encoders_from: loading {}", dir.display()))?;
+        if b.config.image_height != cfg.image_height || b.config.image_width != cfg.image_width {
+            bail!(
+                "[model] encoders_from {}: its encoders take {}x{} images, this model {}x{}",
+                dir.display(),
+                b.config.image_width,
+                b.config.image_height,
+                cfg.image_width,
+                cfg.image_height
+            );
+        }
+        for (want, have, file_name, slot) in [
+            (
+                &cfg.semantic_encoder,
+                &b.config.semantic_encoder,
+                SEMANTIC_FILE,
+                &mut semantic,
+            ),
+            (
+                &cfg.depth_encoder,
+                &b.config.depth_encoder,
+                DEPTH_FILE,
+                &mut depth,
+            ),
+        ] {
+            let Some(c) = want else { continue };
+            if have.as_ref() != Some(c) {
+                bail!(
+                    "[model] encoders_from {}: its {file_name} does not match this model's encoder config",
+                    dir.display()
+                );
+            }
+            weights.insert(file_name, load_tensors(&dir.join(file_name))?);
+            *slot = Some(load_cnn(c, &dir.join(file_name), &device)?);
+        }
+        encoder_note = format!("from {}", dir.display());
+    } else if cfg.semantic_encoder.is_some() || cfg.depth_encoder.is_some() {
+        let images: Vec<Vec<u8>> = prepared.iter().map(|p| p.rgb.clone()).collect();
+        let depths: Vec<Vec<f32>> = prepared.iter().map(|p| p.depth_m.clone()).collect();
+        let labels: Option<Vec<Vec<u32>>> = prepared.iter().map(|p| p.labels.clone()).collect();
+        if cfg.semantic_encoder.is_some() && labels.is_none() {
+            bail!(
+                "{}: the shards carry no semantic train ids (`label`), so the semantic encoder cannot be trained: \
+                 convert with a label map (SemanticKITTI) or set [model] encoders_from = \"models/default\"",
+                shards.display()
+            );
+        }
+        let hw = (cfg.image_height, cfg.image_width);
+        let specs: [(&str, Option<SmallCnnConfig>, &'static str, u64); 2] = [
+            (
+                "semantic",
+                cfg.semantic_encoder.clone(),
+                SEMANTIC_FILE,
+                0x5e,
+            ),
+            ("depth", cfg.depth_encoder.clone(), DEPTH_FILE, 0xde),
+        ];
+        for (which, c, file_name, salt) in specs {
+            let Some(c) = c else { continue };
+            let saved = enc_dir.join(file_name);
+            let net = if saved.exists() {
+                encoder_note.push_str(&format!("{which} resumed; "));
+                load_cnn(&c, &saved, &device)?
+            } else {
+                let bar = progress::bar(t.encoder_steps as u64, which);
+                let mut last = f32::NAN;
+                let (net, vm) = train_small_cnn(
+                    &c,
+                    &images,
+                    if c.semantic_head {
+                        labels.as_deref()
+                    } else {
+                        None
+                    },
+                    c.depth_head.then_some(depths.as_slice()),
+                    hw,
+                    t.encoder_steps,
+                    t.encoder_batch,
+                    t.encoder_lr,
+                    t.seed ^ salt,
+                    &device,
+                    |s| {
+                        last = s.loss;
+                        bar.set_position(s.step as u64);
+                        bar.set_message(format!("loss {:.4}", s.loss));
+                    },
+                )
+                .with_context(|| format!("training the {which} encoder"))?;
+                bar.finish_and_clear();
+                let bytes = safetensors_bytes(&varmap_tensors(&vm)?)?;
+                std::fs::create_dir_all(&enc_dir)
+                    .with_context(|| format!("{}: cannot create", enc_dir.display()))?;
+                veila_data::atomic::write_atomic(&saved, &bytes)?;
+                encoder_note.push_str(&format!("{which}: final batch loss {last:.4}; "));
+                net
+            };
+            weights.insert(file_name, load_tensors(&saved)?);
+            match which {
+                "semantic" => semantic = Some(net),
+                _ => depth = Some(net),
+            }
+        }
+    }
+    let enc_secs = t_enc.elapsed().as_secs_f64();
+    if !encoder_note.is_empty() {
+        println!("  encoders: {}", encoder_note.trim_end_matches("; "));
+    }
+
+    // 4. denoiser
+    let t_den = Instant::now();
+    let varmap = VarMap::new();
+    let net = veila_nn::Denoiser::new(
+        &cfg.denoiser,
+        veila_nn::seeded_var_builder(&varmap, t.seed, DType::F32, &device),
+    )?;
+    let examples: Vec<TrainExample> = prepared
+        .into_iter()
+        .map(|p| TrainExample {
+            rgb: p.rgb,
+            camera: p.camera,
+            x0: p.x0,
+        })
+        .collect();
+    let data = DenoiserTraining::new(
+        &cfg,
+        semantic.as_ref(),
+        depth.as_ref(),
+        &net,
+        &examples,
+        t.batch,
+        t.seed,
+        &device,
+    )?;
+    let tc = TrainConfig {
+        seed: t.seed,
+        lr: t.lr,
+        min_lr: t.lr * 0.05,
+        warmup_steps: (t.steps / 20).max(1),
+        total_steps: t.steps,
+        ema_decay: t.ema_decay,
+        cond_drop_prob: if conditional {
+            t.cond_drop_prob.unwrap_or(0.1)
+        } else {
+            0.0
+        },
+        checkpoint_every: Some(t.checkpoint_every),
+        keep_checkpoints: Some(t.keep_checkpoints.max(1)),
+        ..TrainConfig::default()
+    };
+    let batch_net = net.clone();
+    let mut trainer = Trainer::new(
+        VeilaDenoiser::new(net),
+        varmap,
+        Diffusion::new(cfg.diffusion.clone())?,
+        tc.clone(),
+    )?;
+    if let Some(p) = trainer
+        .resume_latest(&ck_dir)
+        .with_context(|| format!("resuming from {}", ck_dir.display()))?
+    {
+        println!(
+            "  resumed from {} (step {} of {})",
+            p.display(),
+            trainer.step(),
+            t.steps
+        );
+    }
+    let mut observer = Progress {
+        bar: progress::bar(t.steps, "denoiser"),
+        ema_loss: None,
+        stop_after: args.stop_after,
+        run: 0,
+    };
+    observer.bar.set_position(trainer.step());
+    let mut source = |step: u64| data.batch(&batch_net, step);
+    let summary = trainer.fit(&mut source, Some(&ck_dir), &mut observer)?;
+    observer.bar.finish_and_clear();
+    let den_secs = t_den.elapsed().as_secs_f64();
+    println!(
+        "  denoiser: {} steps this run (now at {} of {}), mean loss {:.4}, {} skipped, {:.1} s",
+        summary.steps_run,
+        summary.final_step,
+        t.steps,
+        summary.mean_loss,
+        summary.skipped,
+        den_secs
+    );
+    if trainer.step() < t.steps {
+        println!(
+            "stopped at step {} of {}; checkpoint in {}: rerun `veila train --config {}` to continue",
+            trainer.step(),
+            t.steps,
+            ck_dir.display(),
+            args.config.display()
+        );
+        return Ok(());
+    }
+
+    // 5. the bundle
+    weights.insert(DENOISER_FILE, trainer.ema_weights());
+    cfg.provenance = serde_json::json!({
+        "trained_by": "veila train",
+        "config": args.config.display().to_string(),
+        "data": shards.display().to_string(),
+        "dataset": manifest.dataset,
+        "data_manifest_sha256": fingerprint.data_manifest_sha256,
+        "samples": fingerprint.samples,
+        "encoders_from": fingerprint.encoders_from,
+        "train": fingerprint.train,
+        "final_mean_loss_this_run": summary.mean_loss,
+        "seconds_this_run": {
+            "encoders": enc_secs.round(),
+            "denoiser": den_secs.round(),
+        },
+    });
+    let bundle_dir = out.join("bundle");
+    Bundle::save(&bundle_dir, &cfg, &weights)?;
+    Bundle::from_dir(&bundle_dir, &device)
+        .with_context(|| format!("re-reading {}", bundle_dir.display()))?;
+    println!(
+        "wrote {} in {:.0} s ({} denoiser parameters); generate with `veila generate --checkpoint {} ...`",
+        bundle_dir.display(),
+        t_all.elapsed().as_secs_f64(),
+        veila_nn::checkpoint::parameter_count(&cfg.denoiser)?,
+        bundle_dir.display()
+    );
+    Ok(())
+}

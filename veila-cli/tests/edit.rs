@@ -1,0 +1,307 @@
+//! `veila edit`: the kept pixels of the scan come back exactly (up to the range encoding's
+//! round-off), the regenerated ones change, and bad requests fail without output.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use veila_data::range_exr::read_range_exr;
+use veila_data::scan::read_kitti_bin;
+use veila_diffusion::bundle::BundleConfig;
+use veila_geom::{LidarSensor, ProjectionOptions, Projector, RangeImage, RayTable};
+
+const TINY_SCENE: &str = r#"
+name = "tiny"
+layout = "straight"
+[lidar.sensor]
+rows = 32
+cols = 512
+fov_up_deg = 3.0
+fov_down_deg = -25.0
+min_range_m = 0.5
+max_range_m = 120.0
+[camera]
+width = 124
+height = 38
+fx = 72.15
+fy = 72.15
+cx = 61.0
+cy = 17.3
+[frames]
+count = 1
+"#;
+
+fn veila() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_veila"));
+    c.env_remove("VEILA_MODEL");
+    c
+}
+
+fn model_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/default")
+}
+
+fn model_sensor() -> LidarSensor {
+    let cfg: BundleConfig =
+        serde_json::from_slice(&std::fs::read(model_dir().join("bundle.json")).unwrap()).unwrap();
+    cfg.denoiser.sensor
+}
+
+/// (image, calib, scan)
+fn simulate(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
+    let scene = dir.join("tiny.toml");
+    std::fs::write(&scene, TINY_SCENE).unwrap();
+    let out = dir.join("sim");
+    let st = veila()
+        .args(["simulate", "--quiet", "--seed", "5", "--scene"])
+        .arg(&scene)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    (
+        out.join("image_2/000000.png"),
+        out.join("calib/000000.txt"),
+        out.join("velodyne/000000.bin"),
+    )
+}
+
+fn edit(image: &Path, calib: &Path, scan: &Path, out: &Path, extra: &[&str]) -> Output {
+    veila()
+        .args(["edit", "--quiet", "--image"])
+        .arg(image)
+        .arg("--calib")
+        .arg(calib)
+        .arg("--scan")
+        .arg(scan)
+        .arg("--checkpoint")
+        .arg(model_dir())
+        .arg("--out")
+        .arg(out)
+        .args(extra)
+        .output()
+        .unwrap()
+}
+
+fn ok(o: &Output) {
+    assert!(
+        o.status.success(),
+        "stdout:\n{}\nstderr:\n{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+/// The scan on the model grid, projected here independently of the command (returns nearer than
+/// the encoding's minimum range are left out: the model cannot represent them).
+fn before(scan: &Path) -> RangeImage {
+    let pts = read_kitti_bin(scan).unwrap().cloud;
+    let cfg: BundleConfig =
+        serde_json::from_slice(&std::fs::read(model_dir().join("bundle.json")).unwrap()).unwrap();
+    let keep: Vec<usize> = (0..pts.xyz.len())
+        .filter(|&i| pts.xyz[i].length() >= cfg.encoding.min_range_m)
+        .collect();
+    let xyz: Vec<_> = keep.iter().map(|&i| pts.xyz[i]).collect();
+    let intensity: Vec<f32> = keep.iter().map(|&i| pts.intensity[i]).collect();
+    let projector = Projector::new(&model_sensor(), ProjectionOptions::default()).unwrap();
+    projector.project(&xyz, Some(&intensity), None).unwrap().0
+}
+
+/// Checks kept pixels are kept and regenerated pixels changed; returns the changed fraction.
+fn check_edit(before: &RangeImage, out: &Path, regen: &[bool]) -> f64 {
+    let mask_png = veila_data::image::open(out.join("mask.png"))
+        .unwrap()
+        .into_luma8();
+    let written: Vec<bool> = mask_png.pixels().map(|p| p.0[0] > 127).collect();
+    assert_eq!(written, regen, "mask.png differs from the expected region");
+    let after = read_range_exr(&out.join("scan_000.exr")).unwrap().image;
+    assert_eq!((after.rows, after.cols), (before.rows, before.cols));
+    let mut kept = 0;
+    let (mut changed, mut total) = (0usize, 0usize);
+    for k in 0..regen.len() {
+        if regen[k] {
+            total += 1;
+            if after.mask[k] != before.mask[k]
+                || (after.range_m[k] - before.range_m[k]).abs() > 1e-3
+            {
+                changed += 1;
+            }
+            continue;
+        }
+        assert_eq!(
+            after.mask[k], before.mask[k],
+            "kept pixel {k}: return flag changed"
+        );
+        if before.mask[k] {
+            // the model encodes ranges up to 80 m (log scale, f32): round-off only
+            let want = before.range_m[k].min(80.0);
+            let got = after.range_m[k];
+            assert!(
+                (got - want).abs() <= 1e-5 * want + 1e-5,
+                "kept pixel {k}: range {want} became {got}"
+            );
+            let (wi, gi) = (before.intensity[k].clamp(0.0, 1.0), after.intensity[k]);
+            assert!(
+                (gi - wi).abs() <= 1e-5,
+                "kept pixel {k}: intensity {wi} became {gi}"
+            );
+            kept += 1;
+        }
+    }
+    assert!(kept > 100, "too few kept returns to test ({kept})");
+    assert!(total > 0);
+    changed as f64 / total as f64
+}
+
+#[test]
+fn remove_box_keeps_the_rest_exactly_and_regenerates_the_box() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (image, calib, scan) = simulate(tmp.path());
+    let out = tmp.path().join("edit");
+    let b = [2.0f32, -6.0, -3.0, 25.0, 6.0, 3.0];
+    let spec = "2,-6,-3,25,6,3";
+    ok(&edit(
+        &image,
+        &calib,
+        &scan,
+        &out,
+        &["--remove-box", spec, "--steps", "2", "--seed", "1"],
+    ));
+    let before = before(&scan);
+    // the expected region, brute force: returns whose point lies in the box
+    let rays = RayTable::new(&model_sensor()).unwrap();
+    let regen: Vec<bool> = (0..before.range_m.len())
+        .map(|k| {
+            let (r, c) = (k as u32 / before.cols, k as u32 % before.cols);
+            let p = rays.dir(r, c) * before.range_m[k];
+            before.mask[k]
+                && p.x >= b[0]
+                && p.y >= b[1]
+                && p.z >= b[2]
+                && p.x <= b[3]
+                && p.y <= b[4]
+                && p.z <= b[5]
+        })
+        .collect();
+    assert!(
+        regen.iter().filter(|r| **r).count() > 50,
+        "box holds too few returns"
+    );
+    let frac = check_edit(&before, &out, &regen);
+    assert!(
+        frac > 0.5,
+        "only {frac:.2} of the regenerated pixels changed"
+    );
+    for f in [
+        "scan_000.bin",
+        "scan_000_range.png",
+        "scan_000_bev.png",
+        "scan_000_overlay.png",
+        "scan_000_before_after.png",
+        "before_range.png",
+        "edit.json",
+    ] {
+        assert!(out.join(f).is_file(), "{f} missing");
+    }
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("edit.json")).unwrap()).unwrap();
+    assert_eq!(
+        json["regenerated_pixels"],
+        regen.iter().filter(|r| **r).count()
+    );
+    // the bundle's default sampler is DPM-Solver++: edit switches to deterministic DDIM
+    assert_eq!(json["sampler"]["kind"]["kind"], "ddim");
+}
+
+#[test]
+fn mask_image_of_any_size_is_resized_nearest() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (image, calib, scan) = simulate(tmp.path());
+    let sensor = model_sensor();
+    let (rows, cols) = (sensor.rows, sensor.cols);
+    // a mask at 2x the grid: white block over columns [cols/4, cols/2) and rows [rows/2, rows)
+    let mask = veila_data::image::GrayImage::from_fn(cols * 2, rows * 2, |x, y| {
+        let (c, r) = (x / 2, y / 2);
+        veila_data::image::Luma([if c >= cols / 4 && c < cols / 2 && r >= rows / 2 {
+            255
+        } else {
+            0
+        }])
+    });
+    let mask_path = tmp.path().join("mask_2x.png");
+    mask.save(&mask_path).unwrap();
+    let out = tmp.path().join("edit");
+    ok(&edit(
+        &image,
+        &calib,
+        &scan,
+        &out,
+        &[
+            "--mask",
+            mask_path.to_str().unwrap(),
+            "--steps",
+            "2",
+            "--sampler",
+            "ddpm",
+        ],
+    ));
+    let regen: Vec<bool> = (0..rows * cols)
+        .map(|k| {
+            let (r, c) = (k / cols, k % cols);
+            c >= cols / 4 && c < cols / 2 && r >= rows / 2
+        })
+        .collect();
+    let frac = check_edit(&before(&scan), &out, &regen);
+    assert!(
+        frac > 0.5,
+        "only {frac:.2} of the regenerated pixels changed"
+    );
+}
+
+#[test]
+fn bad_edits_fail_without_output() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (image, calib, scan) = simulate(tmp.path());
+    let out = tmp.path().join("edit");
+    let cases: [(&[&str], &[&str]); 5] = [
+        (
+            &["--remove-box", "2,-6,-3,25,6,3", "--sampler", "dpm"],
+            &["dpm", "ddim"],
+        ),
+        (
+            &["--remove-box", "500,500,500,600,600,600"],
+            &["no return", "000000.bin"],
+        ),
+        (&["--remove-box", "1,2,3"], &["6 numbers"]),
+        (&["--remove-box", "5,0,0,1,1,1"], &["minimum"]),
+        (&[], &["--mask", "--remove-box"]),
+    ];
+    for (args, needles) in cases {
+        let o = edit(&image, &calib, &scan, &out, args);
+        assert!(!o.status.success(), "{args:?} should fail");
+        let err = String::from_utf8_lossy(&o.stderr);
+        for n in needles {
+            assert!(err.contains(n), "{args:?}: stderr lacks `{n}`:\n{err}");
+        }
+        assert!(!out.exists(), "{args:?}: output left behind");
+    }
+    // an all-black mask selects nothing
+    let black = tmp.path().join("black.png");
+    veila_data::image::GrayImage::new(16, 4)
+        .save(&black)
+        .unwrap();
+    let o = edit(
+        &image,
+        &calib,
+        &scan,
+        &out,
+        &["--mask", black.to_str().unwrap()],
+    );
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("black.png"));
+    assert!(!out.exists());
+}

@@ -1,0 +1,313 @@
+//! `veila train`: a run interrupted and resumed gives bit-identical weights to an uninterrupted one;
+//! encoders train from sparse LiDAR supervision; shards without what training needs fail clearly.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use veila_data::shard::{CameraMatrices, MANIFEST_FORMAT, Manifest, ShardSample, write_shard};
+use veila_data::sim::{Scene, SceneConfig, class};
+use veila_geom::{ProjectionOptions, Projector};
+
+/// 16 x 128 LiDAR (not the model's grid: training re-projects), 124 x 38 camera.
+const TINY_SCENE: &str = r#"
+name = "tiny"
+layout = "straight"
+[lidar.sensor]
+rows = 16
+cols = 128
+fov_up_deg = 3.0
+fov_down_deg = -25.0
+min_range_m = 0.5
+max_range_m = 120.0
+[camera]
+width = 124
+height = 38
+fx = 72.15
+fy = 72.15
+cx = 61.0
+cy = 17.3
+[frames]
+count = 3
+"#;
+
+fn veila() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_veila"));
+    c.env_remove("VEILA_MODEL");
+    c
+}
+
+fn model_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../models/default")
+        .canonicalize()
+        .unwrap()
+}
+
+/// Writes `frames` simulated frames as shards (2 per shard) with a manifest, like `cargo xtask convert`.
+fn make_shards(dir: &Path, frames: u32, labels: bool, images: bool) {
+    let cfg = SceneConfig::from_toml_str(TINY_SCENE, Path::new("tiny.toml")).unwrap();
+    let scene = Scene::generate(&cfg, 11).unwrap();
+    let mut samples = Vec::new();
+    let mut sensor = None;
+    for i in 0..frames {
+        let f = scene.render_frame(i).unwrap();
+        let projector = Projector::new(&f.sensor, ProjectionOptions::default()).unwrap();
+        let pts = &f.scan.points;
+        let (mut img, _) = projector
+            .project(&pts.xyz, Some(&pts.intensity), None)
+            .unwrap();
+        img.gather_labels(pts.label.as_ref().unwrap()).unwrap();
+        let raw = img.label.clone().unwrap();
+        samples.push(ShardSample {
+            id: format!("{i:06}"),
+            mask: img.mask.iter().map(|m| u8::from(*m)).collect(),
+            range_m: img.range_m,
+            intensity: img.intensity,
+            label: labels.then(|| {
+                raw.iter()
+                    .map(|r| class::learning_id((r & 0xFFFF) as u16))
+                    .collect()
+            }),
+            label_raw: None,
+            image: images.then(|| f.image.to_rgb_image().unwrap()),
+            camera: Some(CameraMatrices::from_camera(&f.camera)),
+        });
+        sensor = Some(f.sensor.clone());
+    }
+    let sensor = sensor.unwrap();
+    std::fs::create_dir_all(dir).unwrap();
+    let mut entries = Vec::new();
+    for (k, chunk) in samples.chunks(2).enumerate() {
+        let p = dir.join(format!("shard-{k:05}.safetensors"));
+        entries.push(write_shard(&p, &sensor, "sim", chunk).unwrap());
+    }
+    Manifest {
+        format: MANIFEST_FORMAT.into(),
+        dataset: "sim".into(),
+        sensor,
+        frames_per_shard: 2,
+        count: samples.len(),
+        shards: entries,
+    }
+    .write(&dir.join("manifest.json"))
+    .unwrap();
+}
+
+/// A bundle config with a 4x cheaper denoiser than the default's (base width 8, 32 x 128 grid),
+/// whose encoders are the default model's (so `encoders_from = models/default` fits).
+fn write_small_bundle_config(path: &Path) {
+    let mut v: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(model_dir().join("bundle.json")).unwrap()).unwrap();
+    v["denoiser"]["base_channels"] = 8.into();
+    v["denoiser"]["sensor"]["cols"] = 128.into();
+    v["name"] = "test-small".into();
+    v["provenance"] = serde_json::Value::Null;
+    std::fs::write(path, serde_json::to_vec_pretty(&v).unwrap()).unwrap();
+}
+
+fn write_config(path: &Path, shards: &str, out: &str, model: &str, train: &str) {
+    std::fs::write(
+        path,
+        format!(
+            "[data]\nshards = \"{shards}\"\n\n[model]\n{model}\n\n[train]\n{train}\n\n[output]\ndir = \"{out}\"\n"
+        ),
+    )
+    .unwrap();
+}
+
+fn train(config: &Path, extra: &[&str]) -> Output {
+    veila()
+        .args(["train", "--quiet", "--config"])
+        .arg(config)
+        .args(extra)
+        .output()
+        .unwrap()
+}
+
+fn ok(o: &Output) {
+    assert!(
+        o.status.success(),
+        "stdout:\n{}\nstderr:\n{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+const SMALL: &str = "steps = 4\nbatch = 1\nlr = 1e-3\nseed = 3\ncheckpoint_every = 2";
+
+#[test]
+fn interrupted_and_resumed_run_matches_an_uninterrupted_one_bit_for_bit() {
+    let tmp = tempfile::tempdir().unwrap();
+    make_shards(&tmp.path().join("shards"), 3, false, true);
+    write_small_bundle_config(&tmp.path().join("small.json"));
+    let model = format!(
+        "bundle = \"small.json\"\nencoders_from = \"{}\"",
+        model_dir().display()
+    );
+    // relative paths resolve against the config file's folder
+    let a = tmp.path().join("a.toml");
+    write_config(&a, "shards", "run-a", &model, SMALL);
+    ok(&train(&a, &[]));
+    let bundle_a = tmp.path().join("run-a/bundle");
+    assert!(bundle_a.join("manifest.json").is_file());
+
+    let b = tmp.path().join("b.toml");
+    write_config(&b, "shards", "run-b", &model, SMALL);
+    let o = train(&b, &["--stop-after", "2"]);
+    ok(&o);
+    assert!(
+        String::from_utf8_lossy(&o.stdout).contains("stopped at step 2 of 4"),
+        "{}",
+        String::from_utf8_lossy(&o.stdout)
+    );
+    assert!(
+        !tmp.path().join("run-b/bundle").exists(),
+        "bundle written before the end"
+    );
+    let o = train(&b, &[]);
+    ok(&o);
+    assert!(String::from_utf8_lossy(&o.stdout).contains("resumed"));
+    let bundle_b = tmp.path().join("run-b/bundle");
+    let wa = std::fs::read(bundle_a.join("denoiser.safetensors")).unwrap();
+    let wb = std::fs::read(bundle_b.join("denoiser.safetensors")).unwrap();
+    assert!(
+        wa == wb,
+        "resumed weights differ from the uninterrupted run's"
+    );
+    // the encoders are the reused ones, byte for byte
+    for f in ["semantic_encoder.safetensors", "depth_encoder.safetensors"] {
+        assert_eq!(
+            std::fs::read(bundle_a.join(f)).unwrap(),
+            std::fs::read(model_dir().join(f)).unwrap(),
+            "{f}"
+        );
+    }
+    // steps 3 and 4 changed the weights (so the equality above is not trivial): the EMA weights
+    // of the step-2 checkpoint differ from the final ones
+    let dev = candle_core::Device::Cpu;
+    let mid = candle_core::safetensors::load(
+        tmp.path()
+            .join("run-b/checkpoints/step-0000000002/ema.safetensors"),
+        &dev,
+    )
+    .unwrap();
+    let fin = candle_core::safetensors::load(bundle_b.join("denoiser.safetensors"), &dev).unwrap();
+    assert_eq!(mid.len(), fin.len());
+    let moved = fin.iter().any(|(k, v)| {
+        let a = v.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        let b = mid[k].flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        a != b
+    });
+    assert!(moved, "training steps 3-4 did not change the weights");
+
+    // a changed config does not silently resume the old checkpoints
+    write_config(
+        &b,
+        "shards",
+        "run-b",
+        &model,
+        &SMALL.replace("lr = 1e-3", "lr = 2e-3"),
+    );
+    let o = train(&b, &[]);
+    assert!(!o.status.success());
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("other settings"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+
+    // the trained bundle generates
+    let sim = tmp.path().join("sim");
+    let scene = tmp.path().join("tiny.toml");
+    std::fs::write(&scene, TINY_SCENE).unwrap();
+    ok(&veila()
+        .args(["simulate", "--quiet", "--frames", "1", "--scene"])
+        .arg(&scene)
+        .arg("--out")
+        .arg(&sim)
+        .output()
+        .unwrap());
+    ok(&veila()
+        .args(["generate", "--quiet", "--steps", "1", "--image"])
+        .arg(sim.join("image_2/000000.png"))
+        .arg("--calib")
+        .arg(sim.join("calib/000000.txt"))
+        .arg("--checkpoint")
+        .arg(&bundle_a)
+        .arg("--out")
+        .arg(tmp.path().join("gen"))
+        .output()
+        .unwrap());
+    assert!(tmp.path().join("gen/scan_000.bin").is_file());
+}
+
+#[test]
+fn encoders_train_from_sparse_lidar_supervision() {
+    let tmp = tempfile::tempdir().unwrap();
+    make_shards(&tmp.path().join("shards"), 2, true, true);
+    write_small_bundle_config(&tmp.path().join("small.json"));
+    let cfg = tmp.path().join("t.toml");
+    write_config(
+        &cfg,
+        "shards",
+        "run",
+        "bundle = \"small.json\"",
+        "steps = 1\nbatch = 1\nencoder_steps = 2\nencoder_batch = 2",
+    );
+    ok(&train(&cfg, &[]));
+    let bundle = tmp.path().join("run/bundle");
+    for f in ["semantic_encoder.safetensors", "depth_encoder.safetensors"] {
+        let trained = std::fs::read(bundle.join(f)).unwrap();
+        assert_eq!(
+            trained,
+            std::fs::read(tmp.path().join("run/checkpoints/encoders").join(f)).unwrap()
+        );
+        assert_ne!(trained, std::fs::read(model_dir().join(f)).unwrap(), "{f}");
+    }
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(bundle.join("bundle.json")).unwrap()).unwrap();
+    assert_eq!(json["provenance"]["trained_by"], "veila train");
+    assert_eq!(json["provenance"]["samples"], 2);
+}
+
+#[test]
+fn shards_without_what_training_needs_fail_clearly() {
+    let tmp = tempfile::tempdir().unwrap();
+    // no images
+    make_shards(&tmp.path().join("noimg"), 1, true, false);
+    let cfg = tmp.path().join("a.toml");
+    write_config(&cfg, "noimg", "run-a", "variant = \"full\"", "steps = 1");
+    let o = train(&cfg, &[]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("shard-00000.safetensors") && err.contains("no camera image"),
+        "{err}"
+    );
+    assert!(!tmp.path().join("run-a/bundle").exists());
+
+    // no labels and no encoders to reuse
+    make_shards(&tmp.path().join("nolabel"), 1, false, true);
+    write_config(&cfg, "nolabel", "run-b", "variant = \"full\"", "steps = 1");
+    let o = train(&cfg, &[]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("nolabel") && err.contains("encoders_from"),
+        "{err}"
+    );
+
+    // not a shard folder; a broken config
+    write_config(&cfg, "nowhere", "run-c", "variant = \"full\"", "steps = 1");
+    let o = train(&cfg, &[]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("nowhere"));
+    std::fs::write(&cfg, "[data]\nshards = 3\n").unwrap();
+    let o = train(&cfg, &[]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("a.toml"));
+    write_config(&cfg, "nolabel", "run-d", "variant = \"huge\"", "steps = 1");
+    let o = train(&cfg, &[]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("huge"));
+}

@@ -1,0 +1,584 @@
+use super::*;
+
+fn close(a: &[f64], b: &[f64]) -> bool {
+    a.len() == b.len()
+        && a.iter()
+            .zip(b)
+            .all(|(x, y)| (x - y).abs() <= 1e-12 * x.abs().max(1.0))
+}
+
+#[test]
+fn linear_ticks_hand_computed() {
+    // exact decimals, not accumulated floating-point sums
+    assert_eq!(linear_ticks(0.0, 1.0, 6), [0.0, 0.2, 0.4, 0.6, 0.8, 1.0]);
+    assert_eq!(linear_ticks(0.0, 1.0, 11).len(), 11);
+    assert_eq!(linear_ticks(0.0, 1.0, 11)[3], 0.3);
+    // 6 ticks of 0.2 exceed 5: the next step, 0.5
+    assert_eq!(linear_ticks(0.0, 1.0, 5), [0.0, 0.5, 1.0]);
+    // range -3.7..12.1 with at most 8: raw step 1.975 -> 2 -> -2, 0, ..., 12 (8 ticks)
+    assert_eq!(
+        linear_ticks(-3.7, 12.1, 8),
+        [-2.0, 0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 12.0]
+    );
+    // 0.013..0.087, at most 5: raw 0.0148 -> 0.02
+    assert_eq!(linear_ticks(0.013, 0.087, 5), [0.02, 0.04, 0.06, 0.08]);
+    // large magnitudes: 0..2.4e6, at most 6: raw 4e5 -> 5e5
+    assert_eq!(linear_ticks(0.0, 2.4e6, 6), [0.0, 5e5, 1e6, 1.5e6, 2e6]);
+    // tiny magnitudes
+    assert_eq!(linear_ticks(1e-9, 9.9e-9, 5), [2e-9, 4e-9, 6e-9, 8e-9]);
+    // ticks at the exact ends are kept despite rounding of lo / step
+    assert_eq!(linear_ticks(0.1, 0.3, 3), [0.1, 0.2, 0.3]);
+    // degenerate and invalid bounds
+    assert_eq!(linear_ticks(2.5, 2.5, 5), [2.5]);
+    assert!(linear_ticks(1.0, 0.0, 5).is_empty());
+    assert!(linear_ticks(f64::NAN, 1.0, 5).is_empty());
+    assert!(linear_ticks(0.0, f64::INFINITY, 5).is_empty());
+    assert!(linear_ticks(-f64::MAX, f64::MAX, 5).is_empty()); // span overflows
+    assert!(linear_ticks(5e-324, 1e-323, 5).is_empty()); // step underflows
+    assert!(log_ticks(5e-324, 1e-323, 5).len() <= 5);
+    // max_ticks below 2 is taken as 2
+    assert_eq!(linear_ticks(0.0, 10.0, 0), [0.0, 10.0]);
+}
+
+#[test]
+fn nice_steps_are_the_smallest_1_2_5_step() {
+    for (raw, want) in [
+        (0.2, 0.2),
+        (0.21, 0.5),
+        (1.0, 1.0),
+        (1.000001, 2.0),
+        (3.0, 5.0),
+        (7.0, 10.0),
+        (1000.0, 1000.0),
+        (0.001, 0.001),
+        (4.5e-7, 5e-7),
+    ] {
+        let s = Step::at_least(raw).value();
+        assert!((s - want).abs() <= 1e-12 * want, "{raw}: {s} vs {want}");
+    }
+}
+
+#[test]
+fn log_ticks_hand_computed() {
+    assert_eq!(log_ticks(0.5, 2000.0, 10), [1.0, 10.0, 100.0, 1000.0]);
+    // exact decades at the ends are included
+    assert_eq!(log_ticks(1.0, 1000.0, 10), [1.0, 10.0, 100.0, 1000.0]);
+    assert_eq!(log_ticks(1e-3, 1e-1, 10), [1e-3, 1e-2, 1e-1]);
+    // fewer than two decades: 1-2-5 multiples
+    assert_eq!(log_ticks(2.0, 60.0, 10), [2.0, 5.0, 10.0, 20.0, 50.0]);
+    assert_eq!(log_ticks(0.3, 3.0, 10), [0.5, 1.0, 2.0]);
+    // too many decades: every third decade of 1e-6..1e6 (13 decades, at most 5 ticks)
+    assert_eq!(log_ticks(1e-6, 1e6, 5), [1e-6, 1e-3, 1.0, 1e3, 1e6]);
+    // within one 1-2-5 gap: linear ticks
+    assert!(close(
+        &log_ticks(3.0, 4.0, 6),
+        &[3.0, 3.2, 3.4, 3.6, 3.8, 4.0]
+    ));
+    assert!(log_ticks(0.0, 10.0, 5).is_empty());
+    assert!(log_ticks(-1.0, 10.0, 5).is_empty());
+    assert!(log_ticks(1.0, f64::NAN, 5).is_empty());
+}
+
+#[test]
+fn tick_labels_hand_computed() {
+    let (t, s) = linear_ticks_step(0.0, 1.0, 6).unwrap();
+    assert_eq!(
+        linear_labels(&t, s),
+        ["0.0", "0.2", "0.4", "0.6", "0.8", "1.0"]
+    );
+    let (t, s) = linear_ticks_step(-3.7, 12.1, 8).unwrap();
+    assert_eq!(
+        linear_labels(&t, s),
+        ["-2", "0", "2", "4", "6", "8", "10", "12"]
+    );
+    let (t, s) = linear_ticks_step(0.0, 2.4e6, 6).unwrap();
+    assert_eq!(linear_labels(&t, s), ["0", "5e5", "1e6", "1.5e6", "2e6"]);
+    let (t, s) = linear_ticks_step(1e-9, 9.9e-9, 5).unwrap();
+    assert_eq!(linear_labels(&t, s), ["2e-9", "4e-9", "6e-9", "8e-9"]);
+    let (t, s) = linear_ticks_step(0.013, 0.087, 5).unwrap();
+    assert_eq!(linear_labels(&t, s), ["0.02", "0.04", "0.06", "0.08"]);
+    assert_eq!(
+        log_labels(&[1e-6, 1e-3, 0.5, 1.0, 20.0, 1e4, 1e5]),
+        ["1e-6", "0.001", "0.5", "1", "20", "10000", "1e5"]
+    );
+}
+
+#[test]
+fn glyph_table_is_complete_and_distinct() {
+    let mut seen = std::collections::HashMap::new();
+    for code in 32u8..=126 {
+        let c = code as char;
+        let g = font::glyph(c);
+        assert!(
+            g.iter().all(|row| *row < 32),
+            "{c:?}: bits beyond 5 columns"
+        );
+        let lit: u32 = g.iter().map(|r| r.count_ones()).sum();
+        if c == ' ' {
+            assert_eq!(lit, 0);
+        } else {
+            assert!(lit >= 2, "{c:?} has no visible glyph");
+        }
+        // descenders only where the letter has one
+        if g[7] != 0 || g[8] != 0 {
+            assert!("gjpqy,;_|".contains(c), "{c:?} uses the descender rows");
+        }
+        if let Some(prev) = seen.insert(g, c) {
+            panic!("{c:?} and {prev:?} share a glyph");
+        }
+    }
+    assert_eq!(seen.len(), 95);
+    // characters that tick labels and axis names rely on look like themselves
+    assert_eq!(font::glyph('-')[3], 0b01110); // a bar at mid height, nothing else
+    assert_eq!(
+        font::glyph('-').iter().map(|r| r.count_ones()).sum::<u32>(),
+        3
+    );
+    assert_eq!(font::glyph('.')[5..7], [0b01100, 0b01100]);
+    assert_eq!(font::glyph('+')[3], 0b11111);
+    assert_eq!(font::glyph('+')[1], 0b00100);
+    assert_eq!(font::glyph('1')[6], 0b01110);
+    // folding of non-ASCII text
+    assert_eq!(font::glyph('é'), font::glyph('e'));
+    assert_eq!(font::glyph('×'), font::glyph('x'));
+    assert_eq!(font::glyph('中'), font::glyph('?'));
+    assert_eq!(font::text_width("", 2), 0);
+    assert_eq!(font::text_width("ab", 2), 22);
+}
+
+#[test]
+fn drawn_text_matches_the_glyph_bits() {
+    let mut img = RgbImage::from_pixel(40, 30, Rgb([255, 255, 255]));
+    draw_text(&mut img, 3, 4, "7e", 2, Rgb([0, 0, 0]));
+    for (i, c) in ['7', 'e'].into_iter().enumerate() {
+        let g = font::glyph(c);
+        for row in 0..9u32 {
+            for col in 0..5u32 {
+                let on = g[row as usize] >> (4 - col) & 1 == 1;
+                for (dx, dy) in [(0, 0), (1, 1)] {
+                    let x = 3 + i as u32 * 12 + col * 2 + dx;
+                    let y = 4 + row * 2 + dy;
+                    assert_eq!(img.get_pixel(x, y).0 == [0, 0, 0], on, "{c} {row} {col}");
+                }
+            }
+        }
+    }
+    // off-image text is clipped, not a panic
+    draw_text(&mut img, -100, 25, "clipped text", 3, Rgb([0, 0, 0]));
+}
+
+fn unnamed_line(points: Vec<(f64, f64)>, style: SeriesStyle) -> Series {
+    Series::new("", points, style)
+}
+
+#[test]
+fn horizontal_line_colours_the_predicted_row() {
+    let plot = Plot {
+        title: "Constant".into(),
+        x_label: "x".into(),
+        y_label: "y".into(),
+        series: vec![
+            unnamed_line(vec![(0.0, 1.0), (1.0, 1.0)], SeriesStyle::Line),
+            unnamed_line(vec![(0.25, 0.5), (0.75, 0.5)], SeriesStyle::Markers),
+        ],
+        ..Plot::default()
+    };
+    let (w, h) = (640, 400);
+    let img = plot.render(w, h);
+    let layout = plot.layout(w, h);
+    // y from 0.5 to 1.0 with the 4 % margin
+    assert!((layout.y.lo - 0.48).abs() < 1e-12 && (layout.y.hi - 1.02).abs() < 1e-12);
+    assert!((layout.x.lo + 0.04).abs() < 1e-12 && (layout.x.hi - 1.04).abs() < 1e-12);
+    let c0 = series_color(0);
+    let c1 = series_color(1);
+    let row = layout.y_to_px(1.0).unwrap().floor() as u32;
+    for xv in [0.05, 0.3, 0.5, 0.77, 0.95] {
+        let col = layout.x_to_px(xv).unwrap().floor() as u32;
+        assert_eq!(*img.get_pixel(col, row), c0, "x = {xv}");
+        // well above and below the line: no series colour
+        assert_ne!(*img.get_pixel(col, row - 12), c0);
+        assert_ne!(*img.get_pixel(col, row + 12), c0);
+    }
+    // the line stops at its ends (x = 0 and 1), inside the margins
+    let left_of = layout.x_to_px(-0.03).unwrap().floor() as u32;
+    assert_ne!(*img.get_pixel(left_of, row), c0);
+    // markers at their predicted centres, in the second colour
+    for xv in [0.25, 0.75] {
+        let (px, py) = layout.to_px((xv, 0.5)).unwrap();
+        assert_eq!(*img.get_pixel(px as u32, py as u32), c1);
+    }
+    assert_ne!(c0, c1);
+    // the whole row between the two ends is the line's colour
+    let (a, b) = (
+        layout.x_to_px(0.0).unwrap().ceil() as u32 + 2,
+        layout.x_to_px(1.0).unwrap().floor() as u32 - 2,
+    );
+    assert!((a..b).all(|x| *img.get_pixel(x, row) == c0));
+}
+
+#[test]
+fn every_series_gets_its_own_colour_and_legend() {
+    let series: Vec<Series> = (0..4)
+        .map(|i| {
+            Series::new(
+                format!("model {i}"),
+                (0..20)
+                    .map(|k| (k as f64, (k as f64 * 0.3 + i as f64).sin() + 3.0 * i as f64))
+                    .collect(),
+                SeriesStyle::LineMarkers,
+            )
+        })
+        .collect();
+    let plot = Plot {
+        title: "Four series".into(),
+        series,
+        ..Plot::default()
+    };
+    let img = plot.render(800, 500);
+    let layout = plot.layout(800, 500);
+    for i in 0..4 {
+        let c = series_color(i);
+        let n = img.pixels().filter(|p| **p == c).count();
+        assert!(n > 200, "series {i}: only {n} pixels of its colour");
+        // a vertex of the series is drawn in its colour
+        let (px, py) = layout.to_px(plot.series[i].points[10]).unwrap();
+        assert_eq!(*img.get_pixel(px as u32, py as u32), c, "series {i}");
+    }
+    // palette colours are pairwise distinct
+    for i in 0..PALETTE.len() {
+        for j in 0..i {
+            assert_ne!(PALETTE[i], PALETTE[j]);
+        }
+    }
+    // the series cover every corner: the legend goes into a band above the plot area
+    let mut nameless = plot.clone();
+    for s in &mut nameless.series {
+        s.name.clear();
+    }
+    let text_pixels = |img: &RgbImage| img.pixels().filter(|p| p.0 == TEXT).count();
+    let plain = nameless.render(800, 500);
+    assert!(
+        text_pixels(&img) > text_pixels(&plain) + 200,
+        "no legend text"
+    );
+    let l0 = nameless.layout(800, 500);
+    let band = layout.area.top - l0.area.top;
+    assert!(
+        band >= text_h(layout.scale) as f64,
+        "no legend band: {band}"
+    );
+    let band_text = (l0.area.top as u32..layout.area.top as u32)
+        .flat_map(|y| (0..800).map(move |x| (x, y)))
+        .filter(|&(x, y)| img.get_pixel(x, y).0 == TEXT)
+        .count();
+    assert!(band_text > 100, "legend text not in the band: {band_text}");
+}
+
+#[test]
+fn legend_goes_into_a_free_corner() {
+    // data in the lower half only: the legend sits inside, top right, and the area keeps its size
+    let plot = Plot {
+        y_range: Some((0.0, 2.0)),
+        series: vec![Series::new(
+            "lower half",
+            (0..50)
+                .map(|k| (k as f64, 0.5 + 0.3 * (k as f64 * 0.4).sin()))
+                .collect(),
+            SeriesStyle::Line,
+        )],
+        ..Plot::default()
+    };
+    let mut nameless = plot.clone();
+    nameless.series[0].name.clear();
+    let (l, l0) = (plot.layout(600, 400), nameless.layout(600, 400));
+    assert_eq!(l.area, l0.area);
+    let img = plot.render(600, 400);
+    let a = l.area;
+    let in_quadrant = |x0: f64, x1: f64| {
+        (a.top as u32..(a.top + 0.3 * a.height()) as u32)
+            .flat_map(|y| (x0 as u32..x1 as u32).map(move |x| (x, y)))
+            .filter(|&(x, y)| img.get_pixel(x, y).0 == TEXT)
+            .count()
+    };
+    let mid = a.left + 0.5 * a.width();
+    assert!(in_quadrant(mid, a.right) > 50, "legend not top right");
+    assert_eq!(in_quadrant(a.left, mid), 0);
+}
+
+#[test]
+fn non_finite_points_are_skipped_and_break_the_line() {
+    let plot = Plot {
+        series: vec![unnamed_line(
+            vec![
+                (0.0, 0.0),
+                (1.0, f64::NAN),
+                (2.0, 0.0),
+                (3.0, 0.0),
+                (f64::INFINITY, 5.0),
+                (4.0, 1.0),
+            ],
+            SeriesStyle::Line,
+        )],
+        ..Plot::default()
+    };
+    let img = plot.render(500, 300);
+    let l = plot.layout(500, 300);
+    // x from 0 to 4 and y from 0 to 1: the infinite and NaN points did not stretch the axes
+    assert!(
+        (l.x.lo + 0.16).abs() < 1e-12 && (l.x.hi - 4.16).abs() < 1e-12,
+        "{:?}",
+        l.x
+    );
+    assert!((l.y.hi - 1.04).abs() < 1e-12, "{:?}", l.y);
+    let c = series_color(0);
+    let row = l.y_to_px(0.0).unwrap() as u32;
+    // gap between x = 0 and x = 2 (the NaN point breaks the line) ...
+    assert_ne!(*img.get_pixel(l.x_to_px(1.0).unwrap() as u32, row), c);
+    // ... a segment from x = 2 to x = 3
+    assert_eq!(*img.get_pixel(l.x_to_px(2.5).unwrap() as u32, row), c);
+    // ... and no segment from 3 to 4 across the infinite point
+    let mid = l.to_px((3.5, 0.5)).unwrap();
+    assert_ne!(*img.get_pixel(mid.0 as u32, mid.1 as u32), c);
+}
+
+#[test]
+fn degenerate_inputs_render_without_panicking() {
+    let cases: Vec<Vec<(f64, f64)>> = vec![
+        vec![],
+        vec![(f64::NAN, f64::NAN)],
+        vec![(1.0, 1.0)],
+        vec![(0.0, 0.0)],
+        vec![(2.0, 5.0), (2.0, 5.0), (2.0, 5.0)],
+        vec![(-1e308, 1e308), (1e308, -1e308)],
+        vec![
+            (f64::MIN_POSITIVE, 1.0),
+            (2.0 * f64::MIN_POSITIVE, 1.0 + 1e-15),
+        ],
+        vec![(5e-324, 5e-324), (1e-323, 1.5e-323)], // subnormal values and ranges
+        vec![(1e300, -1e300), (1.0000001e300, -1.0000001e300)],
+        vec![(f64::INFINITY, f64::NEG_INFINITY)],
+        vec![(-5.0, -2.0), (-1.0, 0.0)], // nothing positive for the log axes
+    ];
+    for pts in cases {
+        for (x_log, y_log) in [(false, false), (true, true), (false, true)] {
+            for style in [
+                SeriesStyle::Line,
+                SeriesStyle::Markers,
+                SeriesStyle::LineMarkers,
+            ] {
+                let plot = Plot {
+                    title: "t".into(),
+                    x_label: "x".into(),
+                    y_label: "y".into(),
+                    x_log,
+                    y_log,
+                    series: vec![
+                        Series::new("s", pts.clone(), style)
+                            .with_error_bars(vec![f64::NAN; pts.len()]),
+                    ],
+                    ..Plot::default()
+                };
+                for (w, h) in [(0, 0), (1, 1), (7, 300), (40, 20), (320, 200)] {
+                    let img = plot.render(w, h);
+                    assert_eq!(img.dimensions(), (w, h));
+                }
+                let l = plot.layout(320, 200);
+                assert!(l.x.lo < l.x.hi && l.y.lo < l.y.hi, "{pts:?}: {l:?}");
+                assert!(l.x.lo.is_finite() && l.y.hi.is_finite());
+            }
+        }
+    }
+    // unusable fixed ranges fall back to the data
+    let plot = Plot {
+        x_range: Some((1.0, 1.0)),
+        y_range: Some((f64::NAN, 2.0)),
+        series: vec![unnamed_line(
+            vec![(0.0, 0.0), (1.0, 1.0)],
+            SeriesStyle::Line,
+        )],
+        ..Plot::default()
+    };
+    let l = plot.layout(300, 200);
+    assert!((l.x.lo + 0.04).abs() < 1e-12 && (l.y.hi - 1.04).abs() < 1e-12);
+    plot.render(300, 200);
+}
+
+#[test]
+fn log_axes_map_decades_evenly() {
+    let plot = Plot {
+        x_log: true,
+        y_log: true,
+        x_range: Some((1.0, 1000.0)),
+        y_range: Some((1e-4, 1.0)),
+        series: vec![unnamed_line(
+            vec![
+                (1.0, 1.0),
+                (10.0, 0.1),
+                (100.0, 0.01),
+                (1000.0, 1e-3),
+                (-1.0, 5.0),
+            ],
+            SeriesStyle::LineMarkers,
+        )],
+        ..Plot::default()
+    };
+    let l = plot.layout(600, 400);
+    let xs: Vec<f64> = [1.0, 10.0, 100.0, 1000.0]
+        .iter()
+        .map(|&v| l.x_to_px(v).unwrap())
+        .collect();
+    assert!((xs[1] - xs[0] - (xs[3] - xs[2])).abs() < 1e-9);
+    assert!((xs[0] - l.area.left).abs() < 1e-9 && (xs[3] - l.area.right).abs() < 1e-9);
+    assert_eq!(l.x_to_px(-1.0), None);
+    assert_eq!(l.x_to_px(0.0), None);
+    let labels: Vec<&str> = l.x_ticks.iter().map(|(_, s)| s.as_str()).collect();
+    assert_eq!(labels, ["1", "10", "100", "1000"]);
+    let ylabels: Vec<&str> = l.y_ticks.iter().map(|(_, s)| s.as_str()).collect();
+    assert_eq!(ylabels, ["1e-4", "0.001", "0.01", "0.1", "1"]);
+    let img = plot.render(600, 400);
+    let (px, py) = l.to_px((10.0, 0.1)).unwrap();
+    assert_eq!(*img.get_pixel(px as u32, py as u32), series_color(0));
+}
+
+#[test]
+fn error_bars_extend_the_range_and_are_drawn() {
+    let plot = Plot {
+        series: vec![
+            unnamed_line(vec![(0.0, 1.0), (1.0, 2.0)], SeriesStyle::Markers)
+                .with_error_bars(vec![0.5, 1.0]),
+        ],
+        ..Plot::default()
+    };
+    let l = plot.layout(400, 300);
+    // y from 0.5 to 3.0 plus the 4 % margin
+    assert!(
+        (l.y.lo - 0.4).abs() < 1e-12 && (l.y.hi - 3.1).abs() < 1e-12,
+        "{:?}",
+        l.y
+    );
+    let img = plot.render(400, 300);
+    // the bar above the second point, beyond the marker
+    let (px, _) = l.to_px((1.0, 2.0)).unwrap();
+    let py = l.y_to_px(2.8).unwrap();
+    assert_eq!(img.get_pixel(px as u32, py as u32).0, ERROR_BAR);
+    // and its cap at y + e
+    let cap_y = l.y_to_px(3.0).unwrap();
+    assert_eq!(img.get_pixel(px as u32 + 3, cap_y as u32).0, ERROR_BAR);
+
+    let bad = Plot {
+        series: vec![Series::new("a", vec![(0.0, 1.0)], SeriesStyle::Line).with_error_bars(vec![])],
+        ..Plot::default()
+    };
+    let e = bad.validate().unwrap_err().to_string();
+    assert!(
+        e.contains("0 error bars for 1 points") && e.contains("'a'"),
+        "{e}"
+    );
+    assert!(bad.to_png(100, 100).is_err());
+    let neg = Plot {
+        series: vec![
+            Series::new("b", vec![(0.0, 1.0)], SeriesStyle::Line).with_error_bars(vec![-1.0]),
+        ],
+        ..Plot::default()
+    };
+    assert!(neg.validate().unwrap_err().to_string().contains("negative"));
+    bad.render(100, 100); // rendering tolerates it
+}
+
+#[test]
+fn bar_chart_bars_land_where_the_layout_says() {
+    let chart = BarChart {
+        title: "Variants".into(),
+        y_label: "JSD".into(),
+        categories: vec!["all".into(), "front".into(), "rear".into()],
+        groups: vec![
+            BarGroup {
+                name: "full".into(),
+                values: vec![0.1, 0.2, 0.3],
+                errors: Some(vec![0.01, 0.02, 0.03]),
+            },
+            BarGroup {
+                name: "no CACM".into(),
+                values: vec![0.15, f64::NAN, -0.1],
+                errors: None,
+            },
+        ],
+    };
+    chart.validate().unwrap();
+    let (w, h) = (600, 400);
+    let img = chart.render(w, h);
+    let l = chart.layout(w, h);
+    // the axis spans the negative bar and the top error bar
+    assert!(l.y.lo < -0.1 && l.y.hi > 0.33, "{:?}", l.y);
+    let slot = l.area.width() / 3.0;
+    let bar_w = 0.8 * slot / 2.0;
+    for (gi, g) in chart.groups.iter().enumerate() {
+        for (ci, &v) in g.values.iter().enumerate() {
+            let cx = l.area.left + ci as f64 * slot + 0.1 * slot + (gi as f64 + 0.25) * bar_w;
+            let cy = 0.5
+                * (l.y_to_px(0.0).unwrap()
+                    + l.y_to_px(if v.is_finite() { v } else { 0.1 }).unwrap());
+            let p = *img.get_pixel(cx as u32, cy as u32);
+            if v.is_finite() {
+                assert_eq!(p, series_color(gi), "group {gi} category {ci}");
+            } else {
+                assert_ne!(p, series_color(gi), "NaN bar drawn");
+            }
+        }
+    }
+    let bad = BarChart {
+        categories: vec!["a".into()],
+        groups: vec![BarGroup {
+            name: "g".into(),
+            values: vec![1.0, 2.0],
+            errors: None,
+        }],
+        ..BarChart::default()
+    };
+    assert!(
+        bad.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("2 values for 1 categories")
+    );
+    bad.render(200, 100);
+    BarChart::default().render(200, 100);
+    BarChart {
+        categories: vec!["x".into()],
+        groups: vec![BarGroup {
+            name: "zero".into(),
+            values: vec![0.0],
+            errors: Some(vec![f64::INFINITY]),
+        }],
+        ..BarChart::default()
+    }
+    .render(120, 80);
+}
+
+#[test]
+fn png_output_round_trips() {
+    let dir = tempfile::tempdir().unwrap();
+    let plot = Plot {
+        title: "Range (m) / density: 1e-3 + 5%".into(),
+        series: vec![Series::new(
+            "a",
+            vec![(0.0, 0.0), (1.0, 2.0)],
+            SeriesStyle::Line,
+        )],
+        ..Plot::default()
+    };
+    let path = dir.path().join("p.png");
+    plot.write_png(&path, 320, 200).unwrap();
+    let back = crate::image_io::read_rgb_image(&path).unwrap();
+    assert_eq!(back, plot.render(320, 200));
+    assert_eq!(
+        plot.to_png(320, 200).unwrap(),
+        std::fs::read(&path).unwrap()
+    );
+    assert!(plot.write_png(&path, 0, 10).is_err());
+    let e = plot
+        .write_png(&dir.path().join("missing/p.png"), 10, 10)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("missing"), "{e}");
+}

@@ -1,0 +1,534 @@
+//! Model bundles: everything generation needs (image encoders, denoiser, diffusion and sampler
+//! settings, range encoding, image size) in one folder, with a manifest of sha256 sums that is
+//! verified on every load.
+//!
+//! Layout of a bundle folder:
+//!
+//! | file | content |
+//! |---|---|
+//! | `bundle.json` | [`BundleConfig`] |
+//! | `semantic_encoder.safetensors` | `E_s` weights (when the config has a semantic encoder) |
+//! | `depth_encoder.safetensors` | `E_d` weights (when the config has a depth encoder) |
+//! | `denoiser.safetensors` | the U-Net (EMA weights for trained bundles) |
+//! | `manifest.json` | `{"format": "veila-manifest/1", "files": {"NAME": "SHA256_HEX", ...}}` |
+//!
+//! [`Bundle::from_dir`] reads a folder, [`Bundle::from_files`] takes the same files from memory (a
+//! binary can embed its default model with `include_bytes!`); both check that every file the config
+//! needs is listed in the manifest with a matching sum before anything is parsed, and that every
+//! tensor of every network is present with the right shape.
+
+use std::collections::{BTreeMap, HashMap};
+use std::fs;
+use std::path::{Path, PathBuf};
+
+use candle_core::{DType, Device, Tensor};
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use veila_geom::EpipolarConfig;
+use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
+use veila_nn::{Denoiser as Net, DenoiserConfig};
+
+use crate::encoding::RangeEncoding;
+use crate::error::{Error, Result};
+use crate::objective::DiffusionConfig;
+use crate::sampler::SamplerConfig;
+
+/// Format tag of `bundle.json`.
+pub const BUNDLE_FORMAT: &str = "veila-bundle/1";
+/// Format tag of `manifest.json`.
+pub const MANIFEST_FORMAT: &str = "veila-manifest/1";
+/// Name of the config file.
+pub const CONFIG_FILE: &str = "bundle.json";
+/// Name of the manifest.
+pub const MANIFEST_FILE: &str = "manifest.json";
+/// Semantic encoder weights.
+pub const SEMANTIC_FILE: &str = "semantic_encoder.safetensors";
+/// Depth encoder weights.
+pub const DEPTH_FILE: &str = "depth_encoder.safetensors";
+/// Denoiser weights.
+pub const DENOISER_FILE: &str = "denoiser.safetensors";
+
+/// Everything about a bundle except its weights.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BundleConfig {
+    /// [`BUNDLE_FORMAT`].
+    pub format: String,
+    /// A short name (`default`, `ablation-no-gcma`, ...).
+    pub name: String,
+    /// Height the camera image is resized to before the encoders, pixels.
+    pub image_height: usize,
+    /// Width the camera image is resized to, pixels.
+    pub image_width: usize,
+    /// The semantic encoder `E_s` (`None` for unconditional and depth-only models).
+    pub semantic_encoder: Option<SmallCnnConfig>,
+    /// The depth encoder `E_d` (`None` for unconditional and semantic-only models).
+    pub depth_encoder: Option<SmallCnnConfig>,
+    /// The U-Net; its sensor is the range-image grid.
+    pub denoiser: DenoiserConfig,
+    /// Schedule, prediction target, time input.
+    pub diffusion: DiffusionConfig,
+    /// How range images map to network channels.
+    pub encoding: RangeEncoding,
+    /// Epipolar sampling of GCMA.
+    pub epipolar: EpipolarConfig,
+    /// The sampler (and guidance scale) generation uses unless told otherwise.
+    pub sampler: SamplerConfig,
+    /// How the bundle was made (seed, steps, data, timings); informational.
+    #[serde(default)]
+    pub provenance: serde_json::Value,
+}
+
+impl BundleConfig {
+    /// The weight files this config needs, in a fixed order.
+    pub fn weight_files(&self) -> Vec<&'static str> {
+        let mut v = Vec::new();
+        if self.semantic_encoder.is_some() {
+            v.push(SEMANTIC_FILE);
+        }
+        if self.depth_encoder.is_some() {
+            v.push(DEPTH_FILE);
+        }
+        v.push(DENOISER_FILE);
+        v
+    }
+
+    fn check(&self, origin: &Path) -> Result<()> {
+        let bad = |reason: String| Error::Checkpoint {
+            reason,
+            path: origin.join(CONFIG_FILE),
+        };
+        if self.format != BUNDLE_FORMAT {
+            return Err(bad(format!(
+                "format `{}`, this build reads `{BUNDLE_FORMAT}`",
+                self.format
+            )));
+        }
+        if self.image_height == 0 || self.image_width == 0 {
+            return Err(bad("image size has a zero dimension".into()));
+        }
+        let conditional = self.denoiser.conditioning.is_some();
+        let has_encoder = self.semantic_encoder.is_some() || self.depth_encoder.is_some();
+        if conditional != has_encoder {
+            return Err(bad(format!(
+                "the denoiser is {}conditional but the bundle has {} image encoder",
+                if conditional { "" } else { "un" },
+                if has_encoder { "an" } else { "no" }
+            )));
+        }
+        if self.encoding.num_channels() != self.denoiser.in_channels {
+            return Err(bad(format!(
+                "the range encoding has {} channels, the denoiser {}",
+                self.encoding.num_channels(),
+                self.denoiser.in_channels
+            )));
+        }
+        self.encoding.validate()?;
+        self.sampler.validate()?;
+        Ok(())
+    }
+}
+
+/// `manifest.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Manifest {
+    /// [`MANIFEST_FORMAT`].
+    pub format: String,
+    /// File name → lowercase hex sha256.
+    pub files: BTreeMap<String, String>,
+}
+
+/// Lowercase hex sha256 of `bytes`.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    let digest = Sha256::digest(bytes);
+    let mut s = String::with_capacity(64);
+    for b in digest {
+        s.push(char::from_digit((b >> 4) as u32, 16).unwrap_or('0'));
+        s.push(char::from_digit((b & 15) as u32, 16).unwrap_or('0'));
+    }
+    s
+}
+
+/// A loaded bundle: config, networks (on one device, `f32`).
+#[derive(Debug, Clone)]
+pub struct Bundle {
+    /// The config.
+    pub config: BundleConfig,
+    /// `E_s`.
+    pub semantic: Option<SmallCnn>,
+    /// `E_d`.
+    pub depth: Option<SmallCnn>,
+    /// The denoiser.
+    pub denoiser: Net,
+    /// The denoiser's weights by name (to rebuild it for another number of views).
+    pub weights: HashMap<String, Tensor>,
+    /// Where it was loaded from (a folder, or a label for embedded bundles).
+    pub origin: PathBuf,
+}
+
+impl Bundle {
+    /// Reads and verifies a bundle folder.
+    pub fn from_dir(dir: &Path, device: &Device) -> Result<Self> {
+        let read = |name: &str| -> Result<Vec<u8>> {
+            let p = dir.join(name);
+            fs::read(&p).map_err(|source| Error::Io {
+                action: "reading bundle file",
+                path: p,
+                source,
+            })
+        };
+        let manifest = read(MANIFEST_FILE)?;
+        let config = read(CONFIG_FILE)?;
+        let cfg: BundleConfig = serde_json::from_slice(&config).map_err(|source| Error::Json {
+            path: dir.join(CONFIG_FILE),
+            source,
+        })?;
+        let mut files: Vec<(String, Vec<u8>)> = vec![
+            (MANIFEST_FILE.into(), manifest),
+            (CONFIG_FILE.into(), config),
+        ];
+        for name in cfg.weight_files() {
+            files.push((name.into(), read(name)?));
+        }
+        let refs: Vec<(&str, &[u8])> = files
+            .iter()
+            .map(|(n, b)| (n.as_str(), b.as_slice()))
+            .collect();
+        Self::from_files(&refs, dir, device)
+    }
+
+    /// Builds a bundle from its files in memory (`(file name, bytes)`); `origin` names the source in
+    /// errors. Every file is checked against `manifest.json` first.
+    pub fn from_files(files: &[(&str, &[u8])], origin: &Path, device: &Device) -> Result<Self> {
+        let get = |name: &str| -> Result<&[u8]> {
+            files
+                .iter()
+                .find(|(n, _)| *n == name)
+                .map(|(_, b)| *b)
+                .ok_or_else(|| Error::Checkpoint {
+                    reason: format!("missing file `{name}`"),
+                    path: origin.to_path_buf(),
+                })
+        };
+        let manifest: Manifest =
+            serde_json::from_slice(get(MANIFEST_FILE)?).map_err(|source| Error::Json {
+                path: origin.join(MANIFEST_FILE),
+                source,
+            })?;
+        if manifest.format != MANIFEST_FORMAT {
+            return Err(Error::Checkpoint {
+                reason: format!(
+                    "manifest format `{}`, expected `{MANIFEST_FORMAT}`",
+                    manifest.format
+                ),
+                path: origin.join(MANIFEST_FILE),
+            });
+        }
+        let verified = |name: &str| -> Result<&[u8]> {
+            let bytes = get(name)?;
+            let want = manifest.files.get(name).ok_or_else(|| Error::Checkpoint {
+                reason: format!("`{name}` is not listed in the manifest"),
+                path: origin.join(MANIFEST_FILE),
+            })?;
+            let got = sha256_hex(bytes);
+            if !want.eq_ignore_ascii_case(&got) {
+                return Err(Error::Checkpoint {
+                    reason: format!(
+                        "sha256 mismatch: the manifest says {want}, the file hashes to {got} (corrupted or replaced)"
+                    ),
+                    path: origin.join(name),
+                });
+            }
+            Ok(bytes)
+        };
+        let cfg: BundleConfig =
+            serde_json::from_slice(verified(CONFIG_FILE)?).map_err(|source| Error::Json {
+                path: origin.join(CONFIG_FILE),
+                source,
+            })?;
+        cfg.check(origin)?;
+        let load_cnn = |c: &SmallCnnConfig, name: &str| -> Result<SmallCnn> {
+            let bytes = verified(name)?;
+            Ok(veila_nn::encoders::load_checked_bytes(
+                bytes,
+                &origin.join(name),
+                DType::F32,
+                device,
+                |_| true,
+                |vb| SmallCnn::new(c, vb),
+            )?)
+        };
+        let semantic = cfg
+            .semantic_encoder
+            .as_ref()
+            .map(|c| load_cnn(c, SEMANTIC_FILE))
+            .transpose()?;
+        let depth = cfg
+            .depth_encoder
+            .as_ref()
+            .map(|c| load_cnn(c, DEPTH_FILE))
+            .transpose()?;
+        let path = origin.join(DENOISER_FILE);
+        let weights = candle_core::safetensors::load_buffer(verified(DENOISER_FILE)?, device)
+            .map_err(|e| Error::Checkpoint {
+                reason: format!("not a readable safetensors file: {e}"),
+                path: path.clone(),
+            })?;
+        let expected = veila_nn::checkpoint::expected_tensors(&cfg.denoiser)?;
+        let found: BTreeMap<String, Vec<usize>> = weights
+            .iter()
+            .map(|(k, v)| (k.clone(), v.dims().to_vec()))
+            .collect();
+        let report = veila_nn::checkpoint::compare_tensors(&expected, &found);
+        if !report.is_clean() {
+            return Err(veila_nn::Error::CheckpointMismatch { path, report }.into());
+        }
+        let weights: HashMap<String, Tensor> = weights
+            .into_iter()
+            .map(|(k, v)| Ok((k, v.to_dtype(DType::F32)?)))
+            .collect::<Result<_>>()?;
+        let denoiser = Net::new(
+            &cfg.denoiser,
+            candle_nn::VarBuilder::from_tensors(weights.clone(), DType::F32, device),
+        )?;
+        Ok(Self {
+            config: cfg,
+            semantic,
+            depth,
+            denoiser,
+            weights,
+            origin: origin.to_path_buf(),
+        })
+    }
+
+    /// Writes a bundle folder: every file into a hidden temporary folder beside `dir`, the manifest
+    /// last, then one rename (an existing `dir` is replaced only after the new one is complete).
+    /// `weights` maps each of [`BundleConfig::weight_files`] to its tensors.
+    pub fn save(
+        dir: &Path,
+        config: &BundleConfig,
+        weights: &HashMap<&str, HashMap<String, Tensor>>,
+    ) -> Result<()> {
+        config.check(dir)?;
+        let parent = dir
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        fs::create_dir_all(parent).map_err(|source| Error::Io {
+            action: "creating bundle parent folder",
+            path: parent.to_path_buf(),
+            source,
+        })?;
+        let name = dir
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "bundle".into());
+        let tmp = parent.join(format!(".{name}.tmp-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&tmp);
+        let io = |action: &'static str, path: &Path| {
+            let path = path.to_path_buf();
+            move |source| Error::Io {
+                action,
+                path,
+                source,
+            }
+        };
+        fs::create_dir_all(&tmp).map_err(io("creating bundle folder", &tmp))?;
+        let mut manifest = Manifest {
+            format: MANIFEST_FORMAT.into(),
+            files: BTreeMap::new(),
+        };
+        let mut put = |file: &str, bytes: &[u8]| -> Result<()> {
+            let p = tmp.join(file);
+            fs::write(&p, bytes).map_err(io("writing bundle file", &p))?;
+            manifest.files.insert(file.into(), sha256_hex(bytes));
+            Ok(())
+        };
+        let json = serde_json::to_vec_pretty(config).map_err(|source| Error::Json {
+            path: dir.join(CONFIG_FILE),
+            source,
+        })?;
+        put(CONFIG_FILE, &json)?;
+        for file in config.weight_files() {
+            let tensors = weights.get(file).ok_or_else(|| Error::Checkpoint {
+                reason: format!("no weights given for `{file}`"),
+                path: dir.to_path_buf(),
+            })?;
+            let bytes = safetensors_bytes(tensors)?;
+            put(file, &bytes)?;
+        }
+        let json = serde_json::to_vec_pretty(&manifest).map_err(|source| Error::Json {
+            path: dir.join(MANIFEST_FILE),
+            source,
+        })?;
+        let p = tmp.join(MANIFEST_FILE);
+        fs::write(&p, json).map_err(io("writing bundle file", &p))?;
+        if dir.exists() {
+            let old = parent.join(format!(".{name}.old-{}", std::process::id()));
+            let _ = fs::remove_dir_all(&old);
+            fs::rename(dir, &old).map_err(io("replacing bundle", dir))?;
+            fs::rename(&tmp, dir).map_err(io("replacing bundle", dir))?;
+            let _ = fs::remove_dir_all(&old);
+        } else {
+            fs::rename(&tmp, dir).map_err(io("writing bundle", dir))?;
+        }
+        Ok(())
+    }
+}
+
+/// Serialises tensors (sorted by name, so the bytes are reproducible) as safetensors.
+pub fn safetensors_bytes(tensors: &HashMap<String, Tensor>) -> Result<Vec<u8>> {
+    let mut sorted: Vec<(&String, &Tensor)> = tensors.iter().collect();
+    sorted.sort_by(|a, b| a.0.cmp(b.0));
+    let cpu: Vec<(String, Tensor)> = sorted
+        .into_iter()
+        .map(|(k, v)| Ok((k.clone(), v.to_device(&Device::Cpu)?.contiguous()?)))
+        .collect::<Result<_>>()?;
+    let bytes = safetensors::tensor::serialize(cpu.iter().map(|(k, v)| (k.as_str(), v)), None)
+        .map_err(|e| Error::Data(format!("serialising safetensors: {e}")))?;
+    Ok(bytes)
+}
+
+/// The model variants of the paper's ablation study (Table 4), as switches on a bundle config.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Variant {
+    /// The full model: CACM + GCMA + PFC, semantic and depth cues.
+    Full,
+    /// No image conditioning (an R2DM-like baseline).
+    Unconditional,
+    /// Plain concatenation instead of CACM.
+    NoCacm,
+    /// No geometric alignment: the image enters only globally.
+    NoGcma,
+    /// No global self-attention at the bottleneck.
+    NoPfc,
+    /// Semantic cue (`E_s`) only.
+    SemanticOnly,
+    /// Depth cue (`E_d`) only.
+    DepthOnly,
+}
+
+impl Variant {
+    /// Every variant, the full model first.
+    pub const ALL: [Variant; 7] = [
+        Variant::Full,
+        Variant::Unconditional,
+        Variant::NoCacm,
+        Variant::NoGcma,
+        Variant::NoPfc,
+        Variant::SemanticOnly,
+        Variant::DepthOnly,
+    ];
+
+    /// Kebab-case name (`no-gcma`, ...).
+    pub fn name(self) -> &'static str {
+        match self {
+            Variant::Full => "full",
+            Variant::Unconditional => "unconditional",
+            Variant::NoCacm => "no-cacm",
+            Variant::NoGcma => "no-gcma",
+            Variant::NoPfc => "no-pfc",
+            Variant::SemanticOnly => "semantic-only",
+            Variant::DepthOnly => "depth-only",
+        }
+    }
+
+    /// The label the paper's tables use.
+    pub fn label(self) -> &'static str {
+        match self {
+            Variant::Full => "Veila",
+            Variant::Unconditional => "unconditional (R2DM-like)",
+            Variant::NoCacm => "w/o CACM",
+            Variant::NoGcma => "w/o GCMA",
+            Variant::NoPfc => "w/o PFC",
+            Variant::SemanticOnly => "E_s only",
+            Variant::DepthOnly => "E_d only",
+        }
+    }
+}
+
+impl std::str::FromStr for Variant {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        Variant::ALL
+            .into_iter()
+            .find(|v| v.name() == s)
+            .ok_or_else(|| {
+                let names: Vec<&str> = Variant::ALL.iter().map(|v| v.name()).collect();
+                format!("unknown variant `{s}` (one of: {})", names.join(", "))
+            })
+    }
+}
+
+impl BundleConfig {
+    /// The bundled CPU model's config ([`DenoiserConfig::small`], two default small CNN encoders
+    /// at 96 x 320, KITTI range encoding, cosine log-SNR schedule with ε-prediction, DPM-Solver++(2M)
+    /// with 16 steps and guidance 1.5 by default), turned into `variant`.
+    pub fn cpu_default(variant: Variant) -> Self {
+        let mut denoiser = DenoiserConfig::small();
+        let sem = SmallCnnConfig {
+            depth_head: false,
+            ..SmallCnnConfig::default()
+        };
+        let dep = SmallCnnConfig {
+            semantic_head: false,
+            ..SmallCnnConfig::default()
+        };
+        let (mut semantic, mut depth) = (Some(sem), Some(dep));
+        match variant {
+            Variant::Full => {}
+            Variant::Unconditional => {
+                denoiser.conditioning = None;
+                semantic = None;
+                depth = None;
+            }
+            Variant::NoCacm => {
+                if let Some(c) = denoiser.conditioning.as_mut() {
+                    c.fusion = veila_nn::Fusion::Concat;
+                }
+            }
+            Variant::NoGcma => {
+                if let Some(c) = denoiser.conditioning.as_mut() {
+                    c.gcma = None;
+                }
+            }
+            Variant::NoPfc => denoiser.pfc = None,
+            Variant::SemanticOnly => {
+                if let Some(c) = denoiser.conditioning.as_mut() {
+                    c.cues = veila_nn::Cues::SemanticOnly;
+                }
+                depth = None;
+            }
+            Variant::DepthOnly => {
+                if let Some(c) = denoiser.conditioning.as_mut() {
+                    c.cues = veila_nn::Cues::DepthOnly;
+                }
+                semantic = None;
+            }
+        }
+        let mut sampler = SamplerConfig::dpm_solver_pp_2m(16);
+        if denoiser.conditioning.is_some() {
+            sampler.guidance_scale = 1.5;
+        }
+        BundleConfig {
+            format: BUNDLE_FORMAT.into(),
+            name: if variant == Variant::Full {
+                "default".into()
+            } else {
+                format!("default-{}", variant.name())
+            },
+            image_height: 96,
+            image_width: 320,
+            semantic_encoder: semantic,
+            depth_encoder: depth,
+            denoiser,
+            diffusion: DiffusionConfig::default(),
+            encoding: RangeEncoding::kitti(),
+            epipolar: EpipolarConfig::default(),
+            sampler,
+            provenance: serde_json::Value::Null,
+        }
+    }
+}

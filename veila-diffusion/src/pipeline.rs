@@ -1,0 +1,576 @@
+//! Image-to-LiDAR generation and training with a [`Bundle`]: camera images in, panoramic range
+//! images out.
+//!
+//! * [`Bundle::encode_views`] runs the frozen encoders on images already resized to the bundle's
+//!   `image_width x image_height` (resize with an antialiasing filter, e.g. `image`'s triangle filter,
+//!   and adapt the camera with [`veila_geom::PinholeCamera::resized`]).
+//! * [`Bundle::generate`] samples scans for one camera rig (one or more views); `samples > 1` draws
+//!   several scans in one batch.
+//! * [`Bundle::inpaint`] regenerates the pixels a mask marks unknown and keeps the rest (RePaint).
+//! * [`DenoiserTraining`] trains the denoiser of a bundle on [`TrainExample`]s with frozen encoder
+//!   features computed once per example; [`train_small_cnn`] trains an encoder.
+//!
+//! Everything is seeded: the same bundle, inputs and seed give the same scans.
+
+use std::collections::HashMap;
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{VarBuilder, VarMap};
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use veila_geom::PinholeCamera;
+use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig, SmallCnnLossConfig};
+use veila_nn::encoders::{ImageEncoder, Normalization, rgb8_to_tensor};
+use veila_nn::{ConditionInput, Denoiser as Net, GcmaGeometry};
+
+use crate::bundle::{Bundle, BundleConfig};
+use crate::encoding::DecodedScan;
+use crate::error::{Error, Result};
+use crate::nn::VeilaDenoiser;
+use crate::noise::randn;
+use crate::objective::Diffusion;
+use crate::sampler::{RepaintConfig, Sampler, SamplerConfig, inpaint};
+use crate::trainer::{AdamW, Batch, ParamsAdamW};
+
+/// One camera view at the bundle's image size.
+#[derive(Debug, Clone, Copy)]
+pub struct CameraView<'a> {
+    /// `image_width * image_height * 3` bytes, RGB, row-major.
+    pub rgb: &'a [u8],
+    /// The camera of this (resized) image, LiDAR frame to pixels.
+    pub camera: &'a PinholeCamera,
+}
+
+/// Frozen encoder features of a set of views: per scale `[views, C_i, H_i, W_i]`.
+#[derive(Debug, Clone)]
+pub struct ViewFeatures {
+    /// `E_s` pyramid.
+    pub semantic: Option<Vec<Tensor>>,
+    /// `E_d` pyramid.
+    pub depth: Option<Vec<Tensor>>,
+}
+
+impl ViewFeatures {
+    fn repeat(&self, n: usize) -> Result<ConditionInput> {
+        let rep = |v: &Option<Vec<Tensor>>| -> Result<Option<Vec<Tensor>>> {
+            v.as_ref()
+                .map(|list| {
+                    list.iter()
+                        .map(|t| {
+                            let parts = vec![t.clone(); n];
+                            Ok(Tensor::cat(&parts, 0)?)
+                        })
+                        .collect()
+                })
+                .transpose()
+        };
+        Ok(ConditionInput {
+            semantic: rep(&self.semantic)?,
+            depth: rep(&self.depth)?,
+            keep: None,
+        })
+    }
+
+    /// Concatenates the features of several examples (same number of views each) along the batch.
+    pub fn cat(items: &[&ViewFeatures]) -> Result<ConditionInput> {
+        let join =
+            |pick: &dyn Fn(&ViewFeatures) -> &Option<Vec<Tensor>>| -> Result<Option<Vec<Tensor>>> {
+                let Some(first) = items.first().and_then(|f| pick(f).as_ref()) else {
+                    return Ok(None);
+                };
+                (0..first.len())
+                    .map(|s| {
+                        let parts = items
+                            .iter()
+                            .map(|f| {
+                                pick(f).as_ref().map(|v| v[s].clone()).ok_or_else(|| {
+                                    Error::Data("examples disagree on which cues they have".into())
+                                })
+                            })
+                            .collect::<Result<Vec<_>>>()?;
+                        Ok(Tensor::cat(&parts, 0)?)
+                    })
+                    .collect::<Result<Vec<_>>>()
+                    .map(Some)
+            };
+        Ok(ConditionInput {
+            semantic: join(&|f| &f.semantic)?,
+            depth: join(&|f| &f.depth)?,
+            keep: None,
+        })
+    }
+}
+
+/// Generation settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GenerateOptions {
+    /// Sampler, steps and guidance scale.
+    pub sampler: SamplerConfig,
+    /// Number of scans to draw for the rig.
+    pub samples: usize,
+    /// Seed of the initial noise and of stochastic samplers.
+    pub seed: u64,
+    /// Ignore the views and run the denoiser's unconditional branch (the one classifier-free
+    /// guidance trains by condition dropout): the image-free baseline of the same network.
+    pub unconditional: bool,
+}
+
+fn image_tensor(rgb: &[u8], h: usize, w: usize, device: &Device) -> Result<Tensor> {
+    Ok(rgb8_to_tensor(rgb, h, w, &Normalization::IMAGENET, device)?)
+}
+
+impl Bundle {
+    /// The range-image grid `(rows, cols)`.
+    pub fn grid(&self) -> (usize, usize) {
+        (self.config.denoiser.height(), self.config.denoiser.width())
+    }
+
+    /// Whether the denoiser uses the image.
+    pub fn is_conditional(&self) -> bool {
+        self.config.denoiser.conditioning.is_some()
+    }
+
+    /// Runs the frozen encoders on views at the bundle's image size.
+    pub fn encode_views(&self, views: &[CameraView<'_>]) -> Result<ViewFeatures> {
+        encode_views(
+            &self.config,
+            self.semantic.as_ref(),
+            self.depth.as_ref(),
+            views,
+            self.denoiser_device(),
+        )
+    }
+
+    fn denoiser_device(&self) -> &Device {
+        self.denoiser
+            .ray_features()
+            .map(|t| t.device())
+            .unwrap_or(&Device::Cpu)
+    }
+
+    /// The denoiser for `views` camera views (a model trained with one view runs on several: no
+    /// weight depends on the number of views).
+    fn net_for_views(&self, views: usize) -> Result<Net> {
+        let Some(cc) = &self.config.denoiser.conditioning else {
+            return Ok(self.denoiser.clone());
+        };
+        if cc.num_views == views {
+            return Ok(self.denoiser.clone());
+        }
+        let mut cfg = self.config.denoiser.clone();
+        if let Some(c) = cfg.conditioning.as_mut() {
+            c.num_views = views;
+        }
+        Ok(Net::new(
+            &cfg,
+            VarBuilder::from_tensors(self.weights.clone(), DType::F32, self.denoiser_device()),
+        )?)
+    }
+
+    /// Draws `options.samples` scans for one camera rig. `on_step(done, total)` is called after each
+    /// sampler step. Views are ignored by unconditional bundles.
+    pub fn generate(
+        &self,
+        views: &[CameraView<'_>],
+        options: &GenerateOptions,
+        on_step: impl FnMut(usize, usize),
+    ) -> Result<Vec<DecodedScan>> {
+        self.sample_impl(views, options, None, on_step)
+    }
+
+    /// Keeps the pixels where `known_mask` (`rows * cols`, row-major) is true at the values of
+    /// `known` and regenerates the rest, consistent with the kept part and the views (RePaint; the
+    /// sampler must be DDPM or DDIM).
+    pub fn inpaint(
+        &self,
+        views: &[CameraView<'_>],
+        known: &DecodedScan,
+        known_mask: &[bool],
+        options: &GenerateOptions,
+        repaint: &RepaintConfig,
+    ) -> Result<Vec<DecodedScan>> {
+        let (h, w) = self.grid();
+        if (known.rows, known.cols) != (h, w) || known_mask.len() != h * w {
+            return Err(Error::Shape {
+                what: "inpainting input",
+                expected: format!("a {h} x {w} scan and {} mask values", h * w),
+                got: format!(
+                    "a {} x {} scan and {} mask values",
+                    known.rows,
+                    known.cols,
+                    known_mask.len()
+                ),
+            });
+        }
+        self.sample_impl(
+            views,
+            options,
+            Some((known, known_mask, repaint)),
+            |_, _| {},
+        )
+    }
+
+    fn sample_impl(
+        &self,
+        views: &[CameraView<'_>],
+        options: &GenerateOptions,
+        inpainting: Option<(&DecodedScan, &[bool], &RepaintConfig)>,
+        mut on_step: impl FnMut(usize, usize),
+    ) -> Result<Vec<DecodedScan>> {
+        if options.samples == 0 {
+            return Err(Error::InvalidConfig {
+                field: "samples",
+                reason: "must be at least 1".into(),
+            });
+        }
+        let device = self.denoiser_device().clone();
+        let diffusion = Diffusion::new(self.config.diffusion.clone())?;
+        let sampler = Sampler::new(&diffusion, options.sampler.clone())?;
+        let (h, w) = self.grid();
+        let c = self.config.denoiser.in_channels;
+        let n = options.samples;
+        let mut rng = ChaCha8Rng::seed_from_u64(options.seed);
+        let conditional = self.is_conditional() && !options.unconditional;
+        if conditional && views.is_empty() {
+            return Err(Error::InvalidConfig {
+                field: "views",
+                reason: "this bundle is image-conditioned: give at least one camera view".into(),
+            });
+        }
+        let net = self.net_for_views(if conditional { views.len() } else { 1 })?;
+        let geometry: Option<GcmaGeometry> = match &self.config.denoiser.conditioning {
+            Some(cc) if cc.gcma.is_some() && conditional => {
+                let cams: Vec<PinholeCamera> = views.iter().map(|v| *v.camera).collect();
+                Some(net.geometry(&cams, &self.config.epipolar, &device)?)
+            }
+            _ => None,
+        };
+        let cond = if conditional {
+            let feats = self.encode_views(views)?;
+            Some(net.prepare_condition(&feats.repeat(n)?, geometry.as_ref())?)
+        } else {
+            None
+        };
+        let model = VeilaDenoiser::new(net);
+        let x = match inpainting {
+            None => {
+                let x_t = randn(&mut rng, &[n, c, h, w], &device)?;
+                sampler.sample_from(&model, x_t, cond.as_ref(), &mut rng, |info| {
+                    on_step(info.index + 1, info.total)
+                })?
+            }
+            Some((known, mask, repaint)) => {
+                let enc = &self.config.encoding;
+                let known_view = crate::encoding::ScanView {
+                    rows: h,
+                    cols: w,
+                    range_m: &known.range_m,
+                    intensity: Some(&known.intensity),
+                    mask: Some(&known.mask),
+                };
+                let x0 = enc.encode_batch(&vec![known_view; n], &device)?;
+                let m: Vec<f32> = mask.iter().map(|&k| if k { 1.0 } else { 0.0 }).collect();
+                let m = Tensor::from_vec(m, (1, 1, h, w), &device)?;
+                inpaint(&sampler, &model, &x0, &m, cond.as_ref(), repaint, &mut rng)?
+            }
+        };
+        self.config.encoding.decode_batch(&x)
+    }
+}
+
+fn encode_views(
+    cfg: &BundleConfig,
+    semantic: Option<&SmallCnn>,
+    depth: Option<&SmallCnn>,
+    views: &[CameraView<'_>],
+    device: &Device,
+) -> Result<ViewFeatures> {
+    let (ih, iw) = (cfg.image_height, cfg.image_width);
+    let mut images = Vec::with_capacity(views.len());
+    for (i, v) in views.iter().enumerate() {
+        if v.rgb.len() != ih * iw * 3
+            || (v.camera.width as usize, v.camera.height as usize) != (iw, ih)
+        {
+            return Err(Error::Shape {
+                what: "camera view",
+                expected: format!("a {iw} x {ih} RGB image and a camera of that size"),
+                got: format!(
+                    "view {i}: {} bytes, camera {} x {}",
+                    v.rgb.len(),
+                    v.camera.width,
+                    v.camera.height
+                ),
+            });
+        }
+        images.push(image_tensor(v.rgb, ih, iw, device)?);
+    }
+    let batch = Tensor::cat(&images, 0)?;
+    let run = |e: Option<&SmallCnn>| -> Result<Option<Vec<Tensor>>> {
+        e.map(|e| {
+            Ok(ImageEncoder::forward(e, &batch)?
+                .into_iter()
+                .map(|t| t.detach())
+                .collect())
+        })
+        .transpose()
+    };
+    Ok(ViewFeatures {
+        semantic: run(semantic)?,
+        depth: run(depth)?,
+    })
+}
+
+/// One training example: a camera image at the bundle's size, its camera, and the encoded clean
+/// range image (`in_channels * rows * cols` values, row-major per channel).
+#[derive(Debug, Clone)]
+pub struct TrainExample {
+    /// RGB bytes at the bundle image size.
+    pub rgb: Vec<u8>,
+    /// The camera of that image.
+    pub camera: PinholeCamera,
+    /// Encoded range image.
+    pub x0: Vec<f32>,
+}
+
+/// Training state of a bundle's denoiser on in-memory examples: frozen encoder features computed
+/// once, one GCMA geometry for the rig (all examples must share the camera), batches drawn by a
+/// seeded shuffle that is a pure function of the step (so resumed runs match uninterrupted ones).
+#[derive(Debug)]
+pub struct DenoiserTraining {
+    features: Vec<ViewFeatures>,
+    x0: Vec<Tensor>,
+    geometry: Option<GcmaGeometry>,
+    batch_size: usize,
+    seed: u64,
+}
+
+impl DenoiserTraining {
+    /// Computes the frozen features of every example. `net` is the denoiser being trained (its
+    /// config decides the cues and the geometry).
+    pub fn new(
+        config: &BundleConfig,
+        semantic: Option<&SmallCnn>,
+        depth: Option<&SmallCnn>,
+        net: &Net,
+        examples: &[TrainExample],
+        batch_size: usize,
+        seed: u64,
+        device: &Device,
+    ) -> Result<Self> {
+        if examples.is_empty() || batch_size == 0 {
+            return Err(Error::Data(
+                "training needs at least one example and a batch size of at least 1".into(),
+            ));
+        }
+        let (h, w) = (config.denoiser.height(), config.denoiser.width());
+        let c = config.denoiser.in_channels;
+        let camera = examples[0].camera;
+        let conditional = config.denoiser.conditioning.is_some();
+        let mut features = Vec::with_capacity(examples.len());
+        let mut x0 = Vec::with_capacity(examples.len());
+        for (i, ex) in examples.iter().enumerate() {
+            if ex.x0.len() != c * h * w {
+                return Err(Error::Shape {
+                    what: "training example",
+                    expected: format!("{c} x {h} x {w} values"),
+                    got: format!("example {i}: {} values", ex.x0.len()),
+                });
+            }
+            if ex.camera != camera && conditional {
+                return Err(Error::Data(format!(
+                    "example {i} has another camera than example 0; one training run takes one camera rig"
+                )));
+            }
+            x0.push(Tensor::from_slice(&ex.x0, (1, c, h, w), device)?);
+            if conditional {
+                let view = CameraView {
+                    rgb: &ex.rgb,
+                    camera: &ex.camera,
+                };
+                features.push(encode_views(config, semantic, depth, &[view], device)?);
+            }
+        }
+        let geometry = match &config.denoiser.conditioning {
+            Some(cc) if cc.gcma.is_some() => {
+                Some(net.geometry(&[camera], &config.epipolar, device)?)
+            }
+            _ => None,
+        };
+        Ok(Self {
+            features,
+            x0,
+            geometry,
+            batch_size,
+            seed,
+        })
+    }
+
+    /// Number of examples.
+    pub fn len(&self) -> usize {
+        self.x0.len()
+    }
+
+    /// Whether there are no examples.
+    pub fn is_empty(&self) -> bool {
+        self.x0.is_empty()
+    }
+
+    /// The GCMA geometry of the rig.
+    pub fn geometry(&self) -> Option<&GcmaGeometry> {
+        self.geometry.as_ref()
+    }
+
+    /// Indices of the examples of update `step`: epoch-wise seeded shuffles.
+    pub fn indices(&self, step: u64) -> Vec<usize> {
+        let n = self.x0.len();
+        let b = self.batch_size;
+        let start = step as usize * b;
+        (start..start + b)
+            .map(|k| {
+                let epoch = (k / n) as u64;
+                let mut perm: Vec<usize> = (0..n).collect();
+                let mut rng =
+                    ChaCha8Rng::seed_from_u64(self.seed ^ epoch.wrapping_mul(0x9E37_79B9));
+                perm.shuffle(&mut rng);
+                perm[k % n]
+            })
+            .collect()
+    }
+
+    /// The batch of update `step` for `net` (the condition fusion runs here, inside the graph, so
+    /// CACM is trained).
+    pub fn batch<'g>(
+        &'g self,
+        net: &Net,
+        step: u64,
+    ) -> Result<Batch<veila_nn::PreparedCondition<'g>>> {
+        let idx = self.indices(step);
+        let x0 = Tensor::cat(
+            &idx.iter().map(|&i| self.x0[i].clone()).collect::<Vec<_>>(),
+            0,
+        )?;
+        let cond = if self.features.is_empty() {
+            None
+        } else {
+            let items: Vec<&ViewFeatures> = idx.iter().map(|&i| &self.features[i]).collect();
+            let input = ViewFeatures::cat(&items)?;
+            Some(net.prepare_condition(&input, self.geometry.as_ref())?)
+        };
+        Ok(Batch { x0, cond })
+    }
+}
+
+/// What one encoder training step did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EncoderStep {
+    /// Steps done.
+    pub step: usize,
+    /// Total loss of the batch.
+    pub loss: f32,
+}
+
+/// Trains a [`SmallCnn`] on images with per-pixel targets: `images[i]` is `h * w * 3` RGB bytes,
+/// `labels[i]` (class ids of the learning map) and/or `depth_m[i]` (metres, 0 = no ground truth)
+/// `h * w` values. AdamW with a cosine learning rate, seeded batches; returns the network and its
+/// `VarMap`.
+#[allow(clippy::too_many_arguments)]
+pub fn train_small_cnn(
+    cfg: &SmallCnnConfig,
+    images: &[Vec<u8>],
+    labels: Option<&[Vec<u32>]>,
+    depth_m: Option<&[Vec<f32>]>,
+    (h, w): (usize, usize),
+    steps: usize,
+    batch_size: usize,
+    lr: f64,
+    seed: u64,
+    device: &Device,
+    mut on_step: impl FnMut(EncoderStep),
+) -> Result<(SmallCnn, VarMap)> {
+    let n = images.len();
+    if n == 0 || batch_size == 0 {
+        return Err(Error::Data(
+            "encoder training needs images and a batch size".into(),
+        ));
+    }
+    let varmap = VarMap::new();
+    let net = SmallCnn::new(
+        cfg,
+        veila_nn::seeded_var_builder(&varmap, seed, DType::F32, device),
+    )?;
+    let vars: Vec<(String, candle_core::Var)> = {
+        let data = varmap
+            .data()
+            .lock()
+            .map_err(|_| Error::Data("the VarMap lock is poisoned".into()))?;
+        let mut v: Vec<_> = data.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+        v.sort_by(|a, b| a.0.cmp(&b.0));
+        v
+    };
+    let mut opt = AdamW::new(
+        vars,
+        ParamsAdamW {
+            lr,
+            weight_decay: 1e-4,
+            ..ParamsAdamW::default()
+        },
+    )?;
+    let loss_cfg = SmallCnnLossConfig::default();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    for step in 0..steps {
+        let progress = step as f64 / steps.max(1) as f64;
+        opt.set_learning_rate(lr * 0.5 * (1.0 + (std::f64::consts::PI * progress).cos()));
+        let idx: Vec<usize> = (0..batch_size).map(|_| rng.random_range(0..n)).collect();
+        let imgs = idx
+            .iter()
+            .map(|&i| image_tensor(&images[i], h, w, device))
+            .collect::<Result<Vec<_>>>()?;
+        let image = Tensor::cat(&imgs, 0)?;
+        // random horizontal flips (targets flipped with the image)
+        let flip = rng.random_bool(0.5);
+        let image = if flip { flip_w(&image)? } else { image };
+        let lab = labels
+            .map(|l| -> Result<Tensor> {
+                let rows: Vec<u32> = idx.iter().flat_map(|&i| l[i].iter().copied()).collect();
+                let t = Tensor::from_vec(rows, (batch_size, h, w), device)?;
+                if flip { flip_w(&t) } else { Ok(t) }
+            })
+            .transpose()?;
+        let dep = depth_m
+            .map(|d| -> Result<Tensor> {
+                let rows: Vec<f32> = idx.iter().flat_map(|&i| d[i].iter().copied()).collect();
+                let t = Tensor::from_vec(rows, (batch_size, h, w), device)?;
+                if flip { flip_w(&t) } else { Ok(t) }
+            })
+            .transpose()?;
+        let loss = net.loss(&image, lab.as_ref(), dep.as_ref(), &loss_cfg)?;
+        let grads = loss.total.backward()?;
+        opt.step(&grads, 1.0)?;
+        on_step(EncoderStep {
+            step: step + 1,
+            loss: loss.total.to_dtype(DType::F32)?.to_scalar::<f32>()?,
+        });
+    }
+    Ok((net, varmap))
+}
+
+/// Reverses the last axis.
+fn flip_w(t: &Tensor) -> Result<Tensor> {
+    let w = t.dim(t.rank() - 1)?;
+    let idx: Vec<u32> = (0..w as u32).rev().collect();
+    let idx = Tensor::from_vec(idx, w, t.device())?;
+    Ok(t.index_select(&idx, t.rank() - 1)?)
+}
+
+/// The tensors of a `VarMap` by name (for [`Bundle::save`]).
+pub fn varmap_tensors(varmap: &VarMap) -> Result<HashMap<String, Tensor>> {
+    let data = varmap
+        .data()
+        .lock()
+        .map_err(|_| Error::Data("the VarMap lock is poisoned".into()))?;
+    Ok(data
+        .iter()
+        .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
+        .collect())
+}

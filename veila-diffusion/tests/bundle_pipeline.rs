@@ -1,0 +1,322 @@
+//! Model bundles (save, verified load, tamper detection) and the generation pipeline (seeding,
+//! inpainting keeps what it is told to keep, multi-view runs) on a small randomly initialised bundle.
+
+use std::collections::HashMap;
+
+use candle_core::{DType, Device};
+use candle_nn::VarMap;
+use veila_diffusion::SamplerConfig;
+use veila_diffusion::bundle::{
+    Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, MANIFEST_FILE, SEMANTIC_FILE, Variant,
+};
+use veila_diffusion::pipeline::{
+    CameraView, DenoiserTraining, GenerateOptions, TrainExample, varmap_tensors,
+};
+use veila_diffusion::{RepaintConfig, encoding::ScanView};
+use veila_geom::PinholeCamera;
+use veila_nn::ConditioningConfig;
+use veila_nn::encoders::small_cnn::SmallCnn;
+
+const IH: usize = 64;
+const IW: usize = 96;
+
+fn small_config(variant: Variant) -> BundleConfig {
+    let mut cfg = BundleConfig::cpu_default(variant);
+    cfg.image_height = IH;
+    cfg.image_width = IW;
+    cfg.denoiser.sensor.rows = 8;
+    cfg.denoiser.sensor.cols = 64;
+    if let Some(c) = cfg.denoiser.conditioning.as_mut() {
+        c.feature_sizes = ConditioningConfig::pyramid_sizes(IH, IW);
+    }
+    for e in [&mut cfg.semantic_encoder, &mut cfg.depth_encoder]
+        .into_iter()
+        .flatten()
+    {
+        e.channels = [8, 8, 16, 16];
+        e.head_channels = 8;
+    }
+    if let Some(c) = cfg.denoiser.conditioning.as_mut() {
+        c.semantic_channels = vec![8, 8, 16, 16];
+        c.depth_channels = vec![8, 8, 16, 16];
+    }
+    cfg.sampler = SamplerConfig::ddim(3, 0.0);
+    cfg.sampler.guidance_scale = 1.5;
+    cfg
+}
+
+fn save_random_bundle(dir: &std::path::Path, cfg: &BundleConfig, seed: u64) {
+    let dev = Device::Cpu;
+    let mut weights: HashMap<&str, HashMap<String, candle_core::Tensor>> = HashMap::new();
+    for (file, c) in [
+        (SEMANTIC_FILE, &cfg.semantic_encoder),
+        (DEPTH_FILE, &cfg.depth_encoder),
+    ] {
+        if let Some(c) = c {
+            let vm = VarMap::new();
+            SmallCnn::new(c, veila_nn::seeded_var_builder(&vm, seed, DType::F32, &dev)).unwrap();
+            weights.insert(file, varmap_tensors(&vm).unwrap());
+        }
+    }
+    let vm = VarMap::new();
+    veila_nn::Denoiser::new(
+        &cfg.denoiser,
+        veila_nn::seeded_var_builder(&vm, seed, DType::F32, &dev),
+    )
+    .unwrap();
+    weights.insert(DENOISER_FILE, varmap_tensors(&vm).unwrap());
+    Bundle::save(dir, cfg, &weights).unwrap();
+}
+
+fn camera() -> PinholeCamera {
+    let k = [
+        [60.0, 0.0, IW as f32 / 2.0, 0.0],
+        [0.0, 60.0, IH as f32 / 2.0, 0.0],
+        [0.0, 0.0, 1.0, 0.0],
+    ];
+    // LiDAR x forward, y left, z up -> camera x right, y down, z forward
+    let cam_from_lidar = glam::Mat4::from_cols_array_2d(&[
+        [0.0, 0.0, 1.0, 0.0],
+        [-1.0, 0.0, 0.0, 0.0],
+        [0.0, -1.0, 0.0, 0.0],
+        [0.0, 0.0, 0.0, 1.0],
+    ]);
+    PinholeCamera::new(k, cam_from_lidar, IW as u32, IH as u32).unwrap()
+}
+
+fn image(seed: u8) -> Vec<u8> {
+    (0..IH * IW * 3)
+        .map(|i| ((i * 37 + seed as usize * 11) % 251) as u8)
+        .collect()
+}
+
+fn opts(seed: u64, samples: usize) -> GenerateOptions {
+    let mut sampler = SamplerConfig::ddim(3, 0.0);
+    sampler.guidance_scale = 1.5;
+    GenerateOptions {
+        sampler,
+        samples,
+        seed,
+        unconditional: false,
+    }
+}
+
+#[test]
+fn bundle_round_trips_and_generation_is_seeded() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("b");
+    let cfg = small_config(Variant::Full);
+    save_random_bundle(&dir, &cfg, 3);
+    let b = Bundle::from_dir(&dir, &Device::Cpu).unwrap();
+    assert_eq!(b.config, cfg);
+    let cam = camera();
+    let img = image(1);
+    let view = [CameraView {
+        rgb: &img,
+        camera: &cam,
+    }];
+    let a = b.generate(&view, &opts(7, 2), |_, _| {}).unwrap();
+    let again = b.generate(&view, &opts(7, 2), |_, _| {}).unwrap();
+    let other = b.generate(&view, &opts(8, 2), |_, _| {}).unwrap();
+    assert_eq!(a.len(), 2);
+    assert_eq!(a, again, "same seed, same scans");
+    assert_ne!(a, other, "another seed, other scans");
+    assert_ne!(a[0], a[1], "the samples of one call differ");
+    assert!(a[0].range_m.iter().all(|r| r.is_finite() && *r >= 0.0));
+    // a different image changes the encoder features (the conditioning branches of a freshly
+    // initialised denoiser are zero-initialised, so its output does not depend on them yet)
+    let img2 = image(9);
+    let f1 = b.encode_views(&view).unwrap();
+    let f2 = b
+        .encode_views(&[CameraView {
+            rgb: &img2,
+            camera: &cam,
+        }])
+        .unwrap();
+    let diff = (&f1.semantic.as_ref().unwrap()[0] - &f2.semantic.as_ref().unwrap()[0])
+        .unwrap()
+        .abs()
+        .unwrap()
+        .sum_all()
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap();
+    assert!(diff > 0.0);
+    // two views run on a model trained with one (no weight depends on the number of views)
+    let two = [view[0], view[0]];
+    let mv = b.generate(&two, &opts(7, 1), |_, _| {}).unwrap();
+    assert_eq!(mv.len(), 1);
+}
+
+#[test]
+fn tampered_or_incomplete_bundles_are_rejected_naming_the_file() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("b");
+    save_random_bundle(&dir, &small_config(Variant::Full), 1);
+    // flip one byte of the denoiser weights
+    let p = dir.join(DENOISER_FILE);
+    let mut bytes = std::fs::read(&p).unwrap();
+    let last = bytes.len() - 1;
+    bytes[last] ^= 1;
+    std::fs::write(&p, bytes).unwrap();
+    let e = Bundle::from_dir(&dir, &Device::Cpu)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("sha256 mismatch") && e.contains(DENOISER_FILE),
+        "{e}"
+    );
+
+    let dir2 = tmp.path().join("c");
+    save_random_bundle(&dir2, &small_config(Variant::Full), 1);
+    std::fs::remove_file(dir2.join(SEMANTIC_FILE)).unwrap();
+    let e = Bundle::from_dir(&dir2, &Device::Cpu)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains(SEMANTIC_FILE), "{e}");
+
+    // a manifest that does not list a weight file
+    let dir3 = tmp.path().join("d");
+    save_random_bundle(&dir3, &small_config(Variant::Full), 1);
+    let mp = dir3.join(MANIFEST_FILE);
+    let text = std::fs::read_to_string(&mp).unwrap();
+    let mut m: serde_json::Value = serde_json::from_str(&text).unwrap();
+    m["files"].as_object_mut().unwrap().remove(DEPTH_FILE);
+    std::fs::write(&mp, serde_json::to_string(&m).unwrap()).unwrap();
+    let e = Bundle::from_dir(&dir3, &Device::Cpu)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("not listed in the manifest"), "{e}");
+}
+
+#[test]
+fn inpainting_keeps_the_known_pixels_and_regenerates_the_rest() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("b");
+    save_random_bundle(&dir, &small_config(Variant::Full), 5);
+    let b = Bundle::from_dir(&dir, &Device::Cpu).unwrap();
+    let (h, w) = b.grid();
+    // a known scan: a 20 m cylinder with intensity 0.3, every pixel a return
+    let known = veila_diffusion::DecodedScan {
+        rows: h,
+        cols: w,
+        range_m: vec![20.0; h * w],
+        intensity: vec![0.3; h * w],
+        mask: vec![true; h * w],
+    };
+    let mask: Vec<bool> = (0..h * w).map(|i| i % w < w / 2).collect();
+    let cam = camera();
+    let img = image(2);
+    let out = b
+        .inpaint(
+            &[CameraView {
+                rgb: &img,
+                camera: &cam,
+            }],
+            &known,
+            &mask,
+            &opts(3, 1),
+            &RepaintConfig::default(),
+        )
+        .unwrap();
+    let s = &out[0];
+    let enc = &b.config.encoding;
+    let round_trip = enc.decode_range(enc.encode_range(20.0));
+    let mut changed = 0;
+    for i in 0..h * w {
+        if mask[i] {
+            assert!(s.mask[i], "kept pixel {i} lost its return");
+            assert!(
+                (s.range_m[i] - round_trip).abs() < 1e-3,
+                "pixel {i}: {}",
+                s.range_m[i]
+            );
+        } else if !s.mask[i] || (s.range_m[i] - 20.0).abs() > 0.5 {
+            changed += 1;
+        }
+    }
+    assert!(
+        changed > (h * w) / 4,
+        "only {changed} regenerated pixels differ"
+    );
+    // wrong mask size is an error, not a panic
+    assert!(
+        b.inpaint(
+            &[CameraView {
+                rgb: &img,
+                camera: &cam
+            }],
+            &known,
+            &mask[1..],
+            &opts(3, 1),
+            &RepaintConfig::default()
+        )
+        .is_err()
+    );
+}
+
+#[test]
+fn training_batches_are_a_pure_function_of_the_step_and_cover_each_epoch() {
+    let cfg = small_config(Variant::Full);
+    let dev = Device::Cpu;
+    let vm = VarMap::new();
+    let net = veila_nn::Denoiser::new(
+        &cfg.denoiser,
+        veila_nn::seeded_var_builder(&vm, 0, DType::F32, &dev),
+    )
+    .unwrap();
+    let sem_vm = VarMap::new();
+    let sem = SmallCnn::new(
+        cfg.semantic_encoder.as_ref().unwrap(),
+        veila_nn::seeded_var_builder(&sem_vm, 0, DType::F32, &dev),
+    )
+    .unwrap();
+    let dep = SmallCnn::new(
+        cfg.depth_encoder.as_ref().unwrap(),
+        veila_nn::seeded_var_builder(&sem_vm, 1, DType::F32, &dev),
+    )
+    .unwrap();
+    let (h, w) = (cfg.denoiser.height(), cfg.denoiser.width());
+    let scan = veila_diffusion::DecodedScan {
+        rows: h,
+        cols: w,
+        range_m: vec![10.0; h * w],
+        intensity: vec![0.1; h * w],
+        mask: vec![true; h * w],
+    };
+    let x0 = cfg
+        .encoding
+        .encode_to_vec(&ScanView {
+            rows: h,
+            cols: w,
+            range_m: &scan.range_m,
+            intensity: Some(&scan.intensity),
+            mask: Some(&scan.mask),
+        })
+        .unwrap();
+    let examples: Vec<TrainExample> = (0..5)
+        .map(|i| TrainExample {
+            rgb: image(i),
+            camera: camera(),
+            x0: x0.clone(),
+        })
+        .collect();
+    let data =
+        DenoiserTraining::new(&cfg, Some(&sem), Some(&dep), &net, &examples, 2, 9, &dev).unwrap();
+    let a: Vec<usize> = (0..5).flat_map(|s| data.indices(s)).collect();
+    let b: Vec<usize> = (0..5).flat_map(|s| data.indices(s)).collect();
+    assert_eq!(a, b);
+    // steps 0..5 with batch 2 = 10 draws = two epochs of 5: each a permutation
+    for epoch in a.chunks(5) {
+        let mut e = epoch.to_vec();
+        e.sort_unstable();
+        assert_eq!(e, vec![0, 1, 2, 3, 4]);
+    }
+    let batch = data.batch(&net, 3).unwrap();
+    assert_eq!(batch.x0.dims(), &[2, 3, h, w]);
+    assert_eq!(batch.cond.unwrap().batch(), 2);
+    // a different camera in one run is refused
+    let mut bad = examples.clone();
+    bad[1].camera = camera().resized(IW as u32 / 2, IH as u32 / 2).unwrap();
+    assert!(DenoiserTraining::new(&cfg, Some(&sem), Some(&dep), &net, &bad, 2, 9, &dev).is_err());
+}

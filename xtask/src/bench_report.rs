@@ -1,0 +1,784 @@
+//! `cargo xtask bench-report`: Veila against the unconditional baseline and every ablation on a
+//! held-out simulator test split, and what generation quality costs in time (sampler x steps).
+//!
+//! Writes `report.md`, `report.json` and PNG plots to `--out`. Every variant's denoiser is trained
+//! here with the same budget, data, seed and the same (frozen) encoders of the bundled model, so the
+//! variants differ only in the switch under test. Metrics are computed per sample seed; the report
+//! gives the mean and the standard deviation over seeds, and the number of scans behind each value.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use candle_core::Device;
+use clap::Args;
+use glam::Vec3;
+use serde::Serialize;
+use veila_data::plot::{BarChart, BarGroup, Plot, Series, SeriesStyle};
+use veila_diffusion::SamplerConfig;
+use veila_diffusion::bundle::{Bundle, Variant};
+use veila_diffusion::pipeline::{CameraView, GenerateOptions};
+use veila_geom::{RangeImage, RayTable, Region};
+use veila_metrics::bev::{BevConfig, bev_histogram};
+use veila_metrics::crossmodal::{
+    DepthAlignment, Map2d, ProjectionFilter, cm_depth_consistency, cm_semantic_consistency,
+};
+use veila_metrics::dist;
+use veila_nn::encoders::{Normalization, rgb8_to_tensor};
+
+use crate::simdata::{SimExample, render_split, workspace_root};
+use crate::train_default::{self, TrainDefaultArgs};
+
+/// Arguments of `cargo xtask bench-report`.
+#[derive(Debug, Args)]
+pub struct BenchReportArgs {
+    /// Output folder (report.md, report.json, *.png).
+    #[arg(long, default_value = "docs/bench-report")]
+    out: PathBuf,
+    /// The bundle whose encoders every variant shares (and whose denoiser the sampler sweep uses).
+    #[arg(long, default_value = "models/default")]
+    model: PathBuf,
+    /// Held-out test frames (scenes/test.txt).
+    #[arg(long, default_value_t = 48)]
+    test_frames: usize,
+    /// Sample seeds per variant (the spread is over seeds).
+    #[arg(long, default_value_t = 3)]
+    seeds: u64,
+    /// How the variants are trained: `finetune` starts every variant from the bundled model's
+    /// denoiser (weights whose names and shapes still match) and trains it `--train-steps` more with
+    /// its switch flipped, the full model included as the control; `scratch` trains every variant
+    /// from a seeded initialisation (the paper's protocol; as long as `cargo xtask train-default`
+    /// per variant).
+    #[arg(long, value_enum, default_value = "finetune")]
+    protocol: Protocol,
+    /// Denoiser training steps of every variant.
+    #[arg(long, default_value_t = 300)]
+    train_steps: u64,
+    /// Training frames of every variant.
+    #[arg(long, default_value_t = 480)]
+    train_frames: usize,
+    /// Sampler steps for the variant comparison.
+    #[arg(long, default_value_t = 16)]
+    steps: usize,
+    /// Variants to compare (comma-separated; default all).
+    #[arg(long, value_delimiter = ',')]
+    variants: Option<Vec<Variant>>,
+    /// Test frames for the sampler sweep.
+    #[arg(long, default_value_t = 8)]
+    sweep_frames: usize,
+    /// Step counts of the sampler sweep.
+    #[arg(long, value_delimiter = ',', default_value = "4,8,16,32")]
+    sweep_steps: Vec<usize>,
+    /// Where trained variants are kept between runs.
+    #[arg(long, default_value = "target/bench-report")]
+    work: PathBuf,
+    /// A small, fast configuration (12 test frames, 2 seeds, 40 training steps, sweep on 3 frames
+    /// with 4/8/16 steps): a smoke run whose numbers show the pipeline, not converged models.
+    #[arg(long)]
+    quick: bool,
+}
+
+/// How ablation variants are trained.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "kebab-case")]
+enum Protocol {
+    /// From the bundled model's weights.
+    Finetune,
+    /// From a seeded initialisation.
+    Scratch,
+}
+
+#[derive(Debug, Clone, Serialize)]
+struct Stat {
+    mean: f64,
+    std: f64,
+    seeds: usize,
+    scans_per_seed: usize,
+}
+
+fn stat(values: &[f64], scans_per_seed: usize) -> Stat {
+    let finite: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
+    let n = finite.len().max(1) as f64;
+    let mean = finite.iter().sum::<f64>() / n;
+    let var = if finite.len() > 1 {
+        finite.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0)
+    } else {
+        0.0
+    };
+    Stat {
+        mean: if finite.is_empty() { f64::NAN } else { mean },
+        std: var.sqrt(),
+        seeds: values.len(),
+        scans_per_seed,
+    }
+}
+
+#[derive(Debug, Serialize)]
+struct VariantResult {
+    variant: String,
+    label: String,
+    model: String,
+    train_steps: u64,
+    seconds_per_scan: f64,
+    /// metric name -> region -> stat
+    metrics: BTreeMap<String, BTreeMap<String, Stat>>,
+}
+
+#[derive(Debug, Serialize)]
+struct SweepPoint {
+    sampler: String,
+    steps: usize,
+    seconds_per_scan: f64,
+    jsd_all: f64,
+    range_mae_front_m: f64,
+    scans: usize,
+}
+
+#[derive(Debug, Serialize)]
+struct Report {
+    command: String,
+    date_utc: String,
+    machine: String,
+    test_split: String,
+    test_frames: usize,
+    seeds: u64,
+    train_steps: u64,
+    train_frames: usize,
+    protocol: Protocol,
+    sampler_steps: usize,
+    quick: bool,
+    variants: Vec<VariantResult>,
+    sweep: Vec<SweepPoint>,
+    notes: Vec<String>,
+}
+
+/// Judges shared by every variant: the bundled model's encoder heads (depth for CM-DC, semantics
+/// for CM-SC) and the ground truth of the test frames.
+struct Judges {
+    depth_pred: Vec<Vec<f32>>,
+    label_pred: Vec<Vec<u32>>,
+    reference_points: Vec<Vec<Vec3>>,
+}
+
+fn judges(bundle: &Bundle, tests: &[SimExample], device: &Device) -> Result<Judges> {
+    let (h, w) = (bundle.config.image_height, bundle.config.image_width);
+    let mut depth_pred = Vec::new();
+    let mut label_pred = Vec::new();
+    let rays = RayTable::new(&bundle.config.denoiser.sensor)?;
+    let mut reference_points = Vec::new();
+    for ex in tests {
+        let img = rgb8_to_tensor(&ex.rgb, h, w, &Normalization::IMAGENET, device)?;
+        let d = match &bundle.depth {
+            Some(net) => net.predict_maps(&img)?[0].depth_m.clone(),
+            None => None,
+        };
+        depth_pred.push(d.context("the judge bundle has no depth head")?);
+        let l = match &bundle.semantic {
+            Some(net) => net.predict_maps(&img)?[0].labels.clone(),
+            None => None,
+        };
+        label_pred.push(l.context("the judge bundle has no semantic head")?);
+        reference_points.push(rays.unproject(&ex.range)?.points);
+    }
+    Ok(Judges {
+        depth_pred,
+        label_pred,
+        reference_points,
+    })
+}
+
+/// Generates one scan per test frame with `bundle` and `sampler` and seed; returns range images and
+/// the seconds spent.
+fn generate_all(
+    bundle: &Bundle,
+    tests: &[SimExample],
+    sampler: &SamplerConfig,
+    unconditional: bool,
+    seed: u64,
+    label: &str,
+) -> Result<(Vec<RangeImage>, f64)> {
+    let bar = crate::progress_bar(tests.len() as u64, label);
+    let t = Instant::now();
+    let mut out = Vec::with_capacity(tests.len());
+    for (i, ex) in tests.iter().enumerate() {
+        let opts = GenerateOptions {
+            sampler: sampler.clone(),
+            samples: 1,
+            seed: seed.wrapping_mul(1_000_003).wrapping_add(i as u64),
+            unconditional,
+        };
+        let scans = bundle.generate(
+            &[CameraView {
+                rgb: &ex.rgb,
+                camera: &ex.camera,
+            }],
+            &opts,
+            |_, _| {},
+        )?;
+        out.push(scans[0].clone().into_range_image());
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    Ok((out, t.elapsed().as_secs_f64()))
+}
+
+fn region_name(r: Region) -> &'static str {
+    r.name()
+}
+
+/// Per-seed metric values: name -> region -> value.
+fn seed_metrics(
+    bundle: &Bundle,
+    generated: &[RangeImage],
+    tests: &[SimExample],
+    judges: &Judges,
+) -> Result<BTreeMap<String, BTreeMap<String, f64>>> {
+    let rays = RayTable::new(&bundle.config.denoiser.sensor)?;
+    let gen_points: Vec<Vec<Vec3>> = generated
+        .iter()
+        .map(|r| Ok(rays.unproject(r)?.points))
+        .collect::<Result<_>>()?;
+    let mut m: BTreeMap<String, BTreeMap<String, f64>> = BTreeMap::new();
+    let cfg = BevConfig::r2dm();
+    for region in Region::ALL {
+        let hg = gen_points
+            .iter()
+            .map(|p| bev_histogram(p, &cfg, region, "generated scan"))
+            .collect::<std::result::Result<Vec<_>, _>>()?;
+        let hr = judges
+            .reference_points
+            .iter()
+            .map(|p| bev_histogram(p, &cfg, region, "reference scan"))
+            .collect::<std::result::Result<Vec<_>, _>>()?;
+        let rn = region_name(region).to_string();
+        m.entry("jsd".into())
+            .or_default()
+            .insert(rn.clone(), dist::jsd(&hg, &hr)?);
+        m.entry("mmd (x1e4)".into())
+            .or_default()
+            .insert(rn.clone(), 1e4 * dist::mmd_r2dm_dense(&hg, &hr, 0.5)?);
+        let mut sum = 0.0;
+        let mut n = 0usize;
+        for (g, ex) in generated.iter().zip(tests) {
+            if let Some(v) = range_mae(g, &ex.range, region) {
+                sum += v;
+                n += 1;
+            }
+        }
+        m.entry("range mae (m)".into())
+            .or_default()
+            .insert(rn, if n > 0 { sum / n as f64 } else { f64::NAN });
+    }
+    // cross-modal consistency in the camera's field of view, against the encoder heads
+    let filter = ProjectionFilter::default();
+    let (mut dc, mut sc, mut nd, mut ns) = (0.0, 0.0, 0usize, 0usize);
+    for (i, ex) in tests.iter().enumerate() {
+        let (w, h) = (ex.camera.width, ex.camera.height);
+        let depth = Map2d::new(w, h, &judges.depth_pred[i])?;
+        if let Ok(c) = cm_depth_consistency(
+            &gen_points[i],
+            &ex.camera,
+            &depth,
+            DepthAlignment::None,
+            &filter,
+        ) && c.abs_rel.is_finite()
+        {
+            dc += c.abs_rel;
+            nd += 1;
+        }
+        // semantic labels of the generated points: the true label of the nearest true return on
+        // the same range pixel is not available for generated scans, so label each generated
+        // point with the class of the image pixel's ground truth at its projection (`labels`) and
+        // compare with the semantic head's prediction there
+        let truth = Map2d::new(w, h, &ex.labels)?;
+        let labels = point_labels(&gen_points[i], &ex.camera, &truth);
+        let pred = Map2d::new(w, h, &judges.label_pred[i])?;
+        if let Ok(c) = cm_semantic_consistency(&gen_points[i], &labels, &ex.camera, &pred, &filter)
+            && c.percent.is_finite()
+        {
+            sc += c.percent;
+            ns += 1;
+        }
+    }
+    let front = region_name(Region::Front).to_string();
+    m.entry("cm-dc (abs rel)".into()).or_default().insert(
+        front.clone(),
+        if nd > 0 { dc / nd as f64 } else { f64::NAN },
+    );
+    m.entry("cm-sc (%)".into())
+        .or_default()
+        .insert(front, if ns > 0 { sc / ns as f64 } else { f64::NAN });
+    Ok(m)
+}
+
+/// The ground-truth image class at each point's projection (0 where it does not project).
+fn point_labels(
+    points: &[Vec3],
+    camera: &veila_geom::PinholeCamera,
+    truth: &Map2d<'_, u32>,
+) -> Vec<u32> {
+    points
+        .iter()
+        .map(|p| {
+            camera
+                .try_project_in_image(*p)
+                .and_then(|ip| ip.pixel(camera.width, camera.height))
+                .and_then(|(u, v)| {
+                    truth
+                        .data
+                        .get(v as usize * truth.width as usize + u as usize)
+                        .copied()
+                })
+                .unwrap_or(0)
+        })
+        .collect()
+}
+
+/// Mean absolute range difference over pixels where both have a return, in `region`.
+fn range_mae(a: &RangeImage, b: &RangeImage, region: Region) -> Option<f64> {
+    if (a.rows, a.cols) != (b.rows, b.cols) {
+        return None;
+    }
+    let cols = a.cols as usize;
+    let (mut sum, mut n) = (0.0f64, 0usize);
+    for i in 0..a.range_m.len() {
+        if !(a.mask[i] && b.mask[i]) {
+            continue;
+        }
+        let col = i % cols;
+        let az = std::f64::consts::PI * (1.0 - 2.0 * (col as f64 + 0.5) / cols as f64);
+        let front = az.cos() > 0.0;
+        let keep = match region {
+            Region::All => true,
+            Region::Front => front,
+            Region::Rear => !front,
+        };
+        if keep {
+            sum += (a.range_m[i] - b.range_m[i]).abs() as f64;
+            n += 1;
+        }
+    }
+    (n > 0).then(|| sum / n as f64)
+}
+
+fn sampler_for(name: &str, steps: usize, guidance: f64) -> Result<SamplerConfig> {
+    let mut s = match name {
+        "ddpm" => SamplerConfig::ddpm(steps),
+        "ddim" => SamplerConfig::ddim(steps, 0.0),
+        "dpm" => SamplerConfig::dpm_solver_pp_2m(steps),
+        other => bail!("unknown sampler {other}"),
+    };
+    s.guidance_scale = guidance;
+    Ok(s)
+}
+
+/// Runs the benchmark and writes the report.
+pub fn run(mut args: BenchReportArgs) -> Result<()> {
+    if args.quick {
+        args.test_frames = 12;
+        args.seeds = 2;
+        args.train_steps = 40;
+        args.train_frames = 96;
+        args.steps = 8;
+        args.sweep_frames = 3;
+        args.sweep_steps = vec![4, 8, 16];
+    }
+    let t_all = Instant::now();
+    let root = workspace_root();
+    let device = Device::Cpu;
+    let abs = |p: &Path| {
+        if p.is_absolute() {
+            p.to_path_buf()
+        } else {
+            root.join(p)
+        }
+    };
+    let model_dir = abs(&args.model);
+    let out = abs(&args.out);
+    let work = abs(&args.work);
+    let base = Bundle::from_dir(&model_dir, &device)
+        .with_context(|| format!("loading {}", model_dir.display()))?;
+    let tests = render_split(
+        &root.join("scenes/test.txt"),
+        args.test_frames,
+        &base.config,
+        "simulating test frames",
+    )?;
+    let judges = judges(&base, &tests, &device)?;
+    let variants = args
+        .variants
+        .clone()
+        .unwrap_or_else(|| Variant::ALL.to_vec());
+    let needs_training = variants
+        .iter()
+        .any(|v| !(args.protocol == Protocol::Finetune && *v == Variant::Unconditional));
+    let train_frames = if needs_training {
+        render_split(
+            &root.join("scenes/train.txt"),
+            args.train_frames,
+            &base.config,
+            "simulating train frames",
+        )?
+    } else {
+        Vec::new()
+    };
+    let mut results = Vec::new();
+    for v in variants {
+        // under fine-tuning the unconditional baseline is the bundled network's own unconditional
+        // branch (trained by condition dropout): no extra training
+        let drop_condition = args.protocol == Protocol::Finetune && v == Variant::Unconditional;
+        let tag = match args.protocol {
+            Protocol::Finetune => "ft",
+            Protocol::Scratch => "scratch",
+        };
+        let dir = if drop_condition {
+            model_dir.clone()
+        } else {
+            work.join(format!("{}-{tag}-{}steps", v.name(), args.train_steps))
+        };
+        if !drop_condition && Bundle::from_dir(&dir, &device).is_err() {
+            println!(
+                "training variant {} ({} steps, {tag})",
+                v.name(),
+                args.train_steps
+            );
+            train_default::run_with(
+                TrainDefaultArgs {
+                    out: dir.clone(),
+                    variant: v,
+                    frames: args.train_frames,
+                    encoder_steps: 0,
+                    steps: args.train_steps,
+                    batch: 2,
+                    lr: match args.protocol {
+                        Protocol::Finetune => 2e-4,
+                        Protocol::Scratch => 1e-3,
+                    },
+                    seed: 0,
+                    work: Some(work.join(format!("ckpt-{}-{tag}-{}", v.name(), args.train_steps))),
+                    encoders_from: Some(model_dir.clone()),
+                    init_from: (args.protocol == Protocol::Finetune).then(|| model_dir.clone()),
+                },
+                Some(&train_frames),
+            )?;
+        }
+        let bundle = Bundle::from_dir(&dir, &device)?;
+        let guidance = if bundle.is_conditional() && !drop_condition {
+            base.config.sampler.guidance_scale
+        } else {
+            1.0
+        };
+        let sampler = sampler_for("dpm", args.steps, guidance)?;
+        let mut per_seed: Vec<BTreeMap<String, BTreeMap<String, f64>>> = Vec::new();
+        let mut secs = 0.0;
+        for seed in 0..args.seeds {
+            let (generated, s) = generate_all(
+                &bundle,
+                &tests,
+                &sampler,
+                drop_condition,
+                seed,
+                &format!("{} seed {seed}", v.name()),
+            )?;
+            secs += s;
+            per_seed.push(seed_metrics(&bundle, &generated, &tests, &judges)?);
+        }
+        let mut metrics: BTreeMap<String, BTreeMap<String, Stat>> = BTreeMap::new();
+        if let Some(first) = per_seed.first() {
+            for (name, regions) in first {
+                for region in regions.keys() {
+                    let vals: Vec<f64> = per_seed.iter().map(|m| m[name][region]).collect();
+                    metrics
+                        .entry(name.clone())
+                        .or_default()
+                        .insert(region.clone(), stat(&vals, tests.len()));
+                }
+            }
+        }
+        println!(
+            "  {}: {:.2} s/scan",
+            v.label(),
+            secs / (args.seeds as f64 * tests.len() as f64)
+        );
+        results.push(VariantResult {
+            variant: v.name().into(),
+            label: v.label().into(),
+            model: dir.display().to_string(),
+            train_steps: args.train_steps,
+            seconds_per_scan: secs / (args.seeds as f64 * tests.len() as f64),
+            metrics,
+        });
+    }
+
+    // sampler sweep on the bundled model
+    let sweep_tests = &tests[..args.sweep_frames.min(tests.len())];
+    let sweep_judges = Judges {
+        depth_pred: judges.depth_pred[..sweep_tests.len()].to_vec(),
+        label_pred: judges.label_pred[..sweep_tests.len()].to_vec(),
+        reference_points: judges.reference_points[..sweep_tests.len()].to_vec(),
+    };
+    let mut sweep = Vec::new();
+    for name in ["ddpm", "ddim", "dpm"] {
+        for &steps in &args.sweep_steps {
+            let sampler = sampler_for(name, steps, base.config.sampler.guidance_scale)?;
+            let (generated, secs) = generate_all(
+                &base,
+                sweep_tests,
+                &sampler,
+                false,
+                0,
+                &format!("{name} x {steps}"),
+            )?;
+            let m = seed_metrics(&base, &generated, sweep_tests, &sweep_judges)?;
+            let p = SweepPoint {
+                sampler: name.into(),
+                steps,
+                seconds_per_scan: secs / sweep_tests.len() as f64,
+                jsd_all: m["jsd"]["all"],
+                range_mae_front_m: m["range mae (m)"]["front"],
+                scans: sweep_tests.len(),
+            };
+            println!(
+                "  {name:>4} x {steps:>3}: {:.2} s/scan, jsd {:.4}, range mae front {:.2} m",
+                p.seconds_per_scan, p.jsd_all, p.range_mae_front_m
+            );
+            sweep.push(p);
+        }
+    }
+
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    let report = Report {
+        command: std::iter::once("cargo xtask".to_string())
+            .chain(std::env::args().skip(1))
+            .collect::<Vec<_>>()
+            .join(" "),
+        date_utc: utc_now(),
+        machine: format!("{} CPU cores (CPU only)", std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)),
+        test_split: "scenes/test.txt".into(),
+        test_frames: tests.len(),
+        seeds: args.seeds,
+        train_steps: args.train_steps,
+        train_frames: args.train_frames,
+        protocol: args.protocol,
+        sampler_steps: args.steps,
+        quick: args.quick,
+        variants: results,
+        sweep,
+        notes: vec![
+            match args.protocol {
+                Protocol::Finetune => format!("Protocol `finetune`: every variant starts from the bundled model's denoiser and is trained {} more steps with its switch flipped (weights that no longer fit are freshly initialised); `Veila` is the bundled model fine-tuned the same way (the control). The unconditional row is the bundled network's own unconditional branch (trained by 10% condition dropout), not a separately trained model.", args.train_steps),
+                Protocol::Scratch => format!("Protocol `scratch`: every variant is trained from the same seeded initialisation for {} steps.", args.train_steps),
+            },
+            "All variants share the data, seed, step budget and the frozen encoders of the bundled model; differences smaller than the spread over seeds are not significant.".into(),
+            "Reference scans are the true simulated scans projected onto the same range-image grid as the generated ones.".into(),
+            "CM-DC compares generated points with the depth head of the bundled depth encoder; CM-SC compares the ground-truth class at each generated point's projection with the semantic head's prediction (so it measures whether points land on the right image regions).".into(),
+        ],
+    };
+    write_report(&out, &report)?;
+    println!(
+        "wrote {} in {:.0} s",
+        out.display(),
+        t_all.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+fn utc_now() -> String {
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0);
+    let days = secs / 86_400;
+    let (y, m, d) = civil_from_days(days as i64);
+    let rem = secs % 86_400;
+    format!(
+        "{y:04}-{m:02}-{d:02} {:02}:{:02} UTC",
+        rem / 3600,
+        (rem % 3600) / 60
+    )
+}
+
+/// Days since 1970-01-01 to (year, month, day) (H. Hinnant's algorithm).
+fn civil_from_days(z: i64) -> (i64, u32, u32) {
+    let z = z + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let y = yoe + era * 400;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = (doy - (153 * mp + 2) / 5 + 1) as u32;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 } as u32;
+    (if m <= 2 { y + 1 } else { y }, m, d)
+}
+
+fn fmt_stat(s: &Stat) -> String {
+    if !s.mean.is_finite() {
+        return "n/a".into();
+    }
+    let digits = if s.mean.abs() >= 100.0 {
+        1
+    } else if s.mean.abs() >= 1.0 {
+        2
+    } else {
+        4
+    };
+    format!("{:.*} ± {:.*}", digits, s.mean, digits, s.std)
+}
+
+fn write_report(out: &Path, r: &Report) -> Result<()> {
+    use std::fmt::Write as _;
+    let json = serde_json::to_string_pretty(r)?;
+    veila_data::atomic::write_atomic(&out.join("report.json"), json.as_bytes())?;
+    let mut md = String::new();
+    writeln!(md, "# Veila benchmark report")?;
+    writeln!(md)?;
+    writeln!(
+        md,
+        "Generated by `{}` on {} ({}). Held-out split: `{}` ({} frames); {} sample seeds per variant; every variant's denoiser trained for {} steps on {} training frames; sampler DPM-Solver++(2M) with {} steps.",
+        r.command,
+        r.date_utc,
+        r.machine,
+        r.test_split,
+        r.test_frames,
+        r.seeds,
+        r.train_steps,
+        r.train_frames,
+        r.sampler_steps
+    )?;
+    if r.quick {
+        writeln!(md)?;
+        writeln!(
+            md,
+            "**Quick run:** the variants are trained for only {} steps, so this report shows that the benchmark runs end to end and how large the spread is, not converged differences between the variants.",
+            r.train_steps
+        )?;
+    }
+    writeln!(md)?;
+    writeln!(
+        md,
+        "Values are mean ± standard deviation over sample seeds. Lower is better except CM-SC."
+    )?;
+    let metric_names: Vec<String> = r
+        .variants
+        .first()
+        .map(|v| v.metrics.keys().cloned().collect())
+        .unwrap_or_default();
+    for region in ["all", "front", "rear"] {
+        let names: Vec<&String> = metric_names
+            .iter()
+            .filter(|n| r.variants[0].metrics[*n].contains_key(region))
+            .collect();
+        if names.is_empty() {
+            continue;
+        }
+        writeln!(md)?;
+        writeln!(md, "## Region: {region}")?;
+        writeln!(md)?;
+        write!(md, "| variant |")?;
+        for n in &names {
+            write!(md, " {n} |")?;
+        }
+        writeln!(md)?;
+        write!(md, "|---|")?;
+        for _ in &names {
+            write!(md, "---|")?;
+        }
+        writeln!(md)?;
+        for v in &r.variants {
+            write!(md, "| {} |", v.label)?;
+            for n in &names {
+                write!(md, " {} |", fmt_stat(&v.metrics[*n][region]))?;
+            }
+            writeln!(md)?;
+        }
+    }
+    writeln!(md)?;
+    writeln!(md, "![variants](variants.png)")?;
+    writeln!(md)?;
+    writeln!(md, "## What accuracy costs in time (bundled model)")?;
+    writeln!(md)?;
+    writeln!(
+        md,
+        "| sampler | steps | s / scan | JSD (all) | range MAE front (m) |"
+    )?;
+    writeln!(md, "|---|---|---|---|---|")?;
+    for p in &r.sweep {
+        writeln!(
+            md,
+            "| {} | {} | {:.2} | {:.4} | {:.2} |",
+            p.sampler, p.steps, p.seconds_per_scan, p.jsd_all, p.range_mae_front_m
+        )?;
+    }
+    writeln!(md)?;
+    writeln!(md, "![sampler trade-off](sampler_tradeoff.png)")?;
+    writeln!(md)?;
+    writeln!(md, "## Notes")?;
+    writeln!(md)?;
+    for n in &r.notes {
+        writeln!(md, "- {n}")?;
+    }
+    veila_data::atomic::write_atomic(&out.join("report.md"), md.as_bytes())?;
+
+    // plots
+    let jsd_key = "jsd".to_string();
+    let categories: Vec<String> = ["all", "front", "rear"]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+    let groups: Vec<BarGroup> = r
+        .variants
+        .iter()
+        .map(|v| BarGroup {
+            name: v.label.clone(),
+            values: categories
+                .iter()
+                .map(|c| {
+                    v.metrics
+                        .get(&jsd_key)
+                        .and_then(|m| m.get(c))
+                        .map_or(f64::NAN, |s| s.mean)
+                })
+                .collect(),
+            errors: Some(
+                categories
+                    .iter()
+                    .map(|c| {
+                        v.metrics
+                            .get(&jsd_key)
+                            .and_then(|m| m.get(c))
+                            .map_or(f64::NAN, |s| s.std)
+                    })
+                    .collect(),
+            ),
+        })
+        .collect();
+    BarChart {
+        title: "BEV JSD by region (lower is better; bars: seed std)".into(),
+        y_label: "JSD".into(),
+        categories,
+        groups,
+    }
+    .write_png(&out.join("variants.png"), 960, 480)?;
+    let mut series = Vec::new();
+    for name in ["ddpm", "ddim", "dpm"] {
+        let pts: Vec<(f64, f64)> = r
+            .sweep
+            .iter()
+            .filter(|p| p.sampler == name)
+            .map(|p| (p.seconds_per_scan, p.jsd_all))
+            .collect();
+        series.push(Series::new(name, pts, SeriesStyle::LineMarkers));
+    }
+    Plot {
+        title: "Generation: quality vs time per scan (points: step counts)".into(),
+        x_label: "seconds per scan (log)".into(),
+        y_label: "BEV JSD (all)".into(),
+        x_log: true,
+        series,
+        ..Plot::default()
+    }
+    .write_png(&out.join("sampler_tradeoff.png"), 800, 500)?;
+    Ok(())
+}

@@ -1,0 +1,153 @@
+//! Simulated examples for training and benchmarking: camera image, ground-truth semantics and depth
+//! at the bundle's image size, the LiDAR scan and its range image on the bundle's grid.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use rayon::prelude::*;
+use veila_data::image::{RgbImage, imageops};
+use veila_data::sim::{Scene, SceneConfig, SceneList, SimFrame, class};
+use veila_diffusion::bundle::BundleConfig;
+use veila_diffusion::encoding::ScanView;
+use veila_diffusion::pipeline::TrainExample;
+use veila_geom::{LidarSensor, PinholeCamera, ProjectionOptions, Projector, RangeImage};
+
+/// The workspace root (xtask lives one level below it).
+pub fn workspace_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .map(Path::to_path_buf)
+        .unwrap_or_else(|| PathBuf::from("."))
+}
+
+/// One simulated frame, reduced to what training and evaluation use.
+#[derive(Debug, Clone)]
+pub struct SimExample {
+    /// RGB at the bundle image size.
+    pub rgb: Vec<u8>,
+    /// Learning-map class ids at the bundle image size (nearest).
+    pub labels: Vec<u32>,
+    /// Ground-truth depth at the bundle image size (nearest; 0 = sky).
+    pub depth_m: Vec<f32>,
+    /// The camera of the resized image.
+    pub camera: PinholeCamera,
+    /// The scan projected on the bundle's grid.
+    pub range: RangeImage,
+}
+
+impl SimExample {
+    /// The training example (encoded range image).
+    pub fn train_example(&self, cfg: &BundleConfig) -> Result<TrainExample> {
+        let x0 = cfg
+            .encoding
+            .encode_to_vec(&ScanView::from_range_image(&self.range))?;
+        Ok(TrainExample {
+            rgb: self.rgb.clone(),
+            camera: self.camera,
+            x0,
+        })
+    }
+}
+
+/// Resizes RGB bytes with a triangle (antialiasing) filter.
+pub fn resize_rgb(rgb: &[u8], w: u32, h: u32, new_w: u32, new_h: u32) -> Result<Vec<u8>> {
+    let img = RgbImage::from_raw(w, h, rgb.to_vec()).context("RGB buffer of the wrong size")?;
+    Ok(imageops::resize(&img, new_w, new_h, imageops::FilterType::Triangle).into_raw())
+}
+
+fn nearest<T: Copy>(src: &[T], w: usize, h: usize, new_w: usize, new_h: usize) -> Vec<T> {
+    let mut out = Vec::with_capacity(new_w * new_h);
+    for y in 0..new_h {
+        let sy = (((y as f64 + 0.5) * h as f64 / new_h as f64) as usize).min(h - 1);
+        for x in 0..new_w {
+            let sx = (((x as f64 + 0.5) * w as f64 / new_w as f64) as usize).min(w - 1);
+            out.push(src[sy * w + sx]);
+        }
+    }
+    out
+}
+
+/// Reduces a rendered frame to a [`SimExample`] for `cfg`'s image size and range grid.
+pub fn example_from_frame(frame: &SimFrame, cfg: &BundleConfig) -> Result<SimExample> {
+    let img = &frame.image;
+    let (w, h) = (img.width as usize, img.height as usize);
+    let (nw, nh) = (cfg.image_width, cfg.image_height);
+    let rgb = resize_rgb(&img.rgb, img.width, img.height, nw as u32, nh as u32)?;
+    let labels: Vec<u32> = nearest(&img.semantic, w, h, nw, nh)
+        .into_iter()
+        .map(|r| class::learning_id(r) as u32)
+        .collect();
+    let depth_m = nearest(&img.depth_m, w, h, nw, nh);
+    let camera = frame
+        .camera
+        .resized(nw as u32, nh as u32)
+        .context("zero image size")?;
+    let sensor: &LidarSensor = &cfg.denoiser.sensor;
+    let projector = Projector::new(sensor, ProjectionOptions::default())?;
+    let cloud = &frame.scan.points;
+    let (range, _) = projector.project(&cloud.xyz, Some(&cloud.intensity), None)?;
+    Ok(SimExample {
+        rgb,
+        labels,
+        depth_m,
+        camera,
+        range,
+    })
+}
+
+/// The first `n` frames of a split list, interleaving its scene files (scene 0 seed 0, scene 1
+/// seed 0, ..., scene 0 seed 1, ...); frame `seed % frames` of each scene.
+pub fn split_items(list: &Path, n: usize) -> Result<Vec<(PathBuf, u64)>> {
+    let scenes = SceneList::read(list)?;
+    let mut per_file: Vec<(PathBuf, Vec<u64>)> = Vec::new();
+    for (path, seed) in scenes.iter() {
+        match per_file.iter_mut().find(|(p, _)| p == path) {
+            Some((_, v)) => v.push(seed),
+            None => per_file.push((path.to_path_buf(), vec![seed])),
+        }
+    }
+    let mut out = Vec::with_capacity(n);
+    let mut k = 0;
+    while out.len() < n {
+        let mut any = false;
+        for (p, seeds) in &per_file {
+            if let Some(s) = seeds.get(k) {
+                any = true;
+                if out.len() < n {
+                    out.push((p.clone(), *s));
+                }
+            }
+        }
+        if !any {
+            break;
+        }
+        k += 1;
+    }
+    Ok(out)
+}
+
+/// Renders the first `n` frames of a split for `cfg` in parallel (`label` names the progress bar).
+pub fn render_split(
+    list: &Path,
+    n: usize,
+    cfg: &BundleConfig,
+    label: &str,
+) -> Result<Vec<SimExample>> {
+    let items = split_items(list, n)?;
+    let bar = crate::progress_bar(items.len() as u64, label);
+    let out: Result<Vec<SimExample>> = items
+        .par_iter()
+        .map(|(path, seed)| {
+            let scene_cfg = SceneConfig::from_file(path)?;
+            let scene = Scene::generate(&scene_cfg, *seed)?;
+            let frames = scene_cfg.frames.count.max(1) as u64;
+            let frame = scene.render_frame((*seed % frames) as u32)?;
+            let ex = example_from_frame(&frame, cfg)
+                .with_context(|| format!("{} seed {seed}", path.display()))?;
+            bar.inc(1);
+            Ok(ex)
+        })
+        .collect();
+    bar.finish_and_clear();
+    out
+}
