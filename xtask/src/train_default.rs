@@ -82,7 +82,7 @@ impl<M: veila_diffusion::Denoiser> TrainObserver<M> for Progress {
             s.lr,
             s.step_secs
         ));
-        if self.bar.is_hidden() && (s.step % 50 == 0 || s.step == 1) {
+        if self.bar.is_hidden() && (s.step.is_multiple_of(50) || s.step == 1) {
             eprintln!(
                 "  step {} loss {:.4} (avg {:.4}) lr {:.2e} {:.2} s/step",
                 s.step,
@@ -325,6 +325,6 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
 }
 
 fn load_tensors(path: &std::path::Path) -> Result<HashMap<String, candle_core::Tensor>> {
-    Ok(candle_core::safetensors::load(path, &Device::Cpu)
-        .with_context(|| format!("reading {}", path.display()))?)
+    candle_core::safetensors::load(path, &Device::Cpu)
+        .with_context(|| format!("reading {}", path.display()))
 }
