@@ -9,8 +9,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand, ValueEnum};
 use glam::Vec3;
 use rayon::prelude::*;
-#[path = "eval_features.rs"]
-mod eval_features;
+use crate::eval_features;
 
 use veila_metrics::{
     MetricReport, MetricValue, Protocol, Region,

@@ -21,6 +21,7 @@ mod data_cmd; // project, unproject, render           (veila-data)
 mod demo_cmd; // demo (the README's main job)
 mod edit_cmd; // edit (RePaint scene editing)         (veila-diffusion::pipeline)
 mod eval_cmd; // eval, fd                               (veila-metrics)
+mod eval_features; // FRD / FPD features for eval          (veila-nn::feature_nets)
 mod generate_cmd; // generate                           (veila-diffusion::pipeline)
 mod sim_cmd; // simulate                               (veila-data::sim)
 mod train_cmd; // train (bundles from converted shards) (veila-diffusion::trainer)
@@ -47,8 +48,9 @@ enum Command {
     Sim(sim_cmd::SimCmd),
     #[command(flatten)]
     Weather(weather_cmd::WeatherCmd),
-    /// The main job on the bundled default: simulate a test-split scene, project its scan, run the
-    /// weather simulator on camera and LiDAR, and write every view, file and metric to one folder.
+    /// The main job on the bundled default model: simulate a test-split scene, generate its 360°
+    /// scan from the camera image alone, and write the generated and true scans, side-by-side
+    /// views and the metrics to one folder.
     Demo(demo_cmd::DemoArgs),
     /// Generate panoramic LiDAR scans (KITTI .bin, range EXR, previews) from camera images and
     /// their calibration with a model bundle.

@@ -23,7 +23,6 @@ use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor};
 use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
 use veila_geom::EpipolarConfig;
 use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
 use veila_nn::{Denoiser as Net, DenoiserConfig};
@@ -139,16 +138,7 @@ pub struct Manifest {
     pub files: BTreeMap<String, String>,
 }
 
-/// Lowercase hex sha256 of `bytes`.
-pub fn sha256_hex(bytes: &[u8]) -> String {
-    let digest = Sha256::digest(bytes);
-    let mut s = String::with_capacity(64);
-    for b in digest {
-        s.push(char::from_digit((b >> 4) as u32, 16).unwrap_or('0'));
-        s.push(char::from_digit((b & 15) as u32, 16).unwrap_or('0'));
-    }
-    s
-}
+pub use veila_nn::checkpoint::sha256_hex;
 
 /// A loaded bundle: config, networks (on one device, `f32`).
 #[derive(Debug, Clone)]
@@ -270,24 +260,13 @@ impl Bundle {
             .map(|c| load_cnn(c, DEPTH_FILE))
             .transpose()?;
         let path = origin.join(DENOISER_FILE);
-        let weights = candle_core::safetensors::load_buffer(verified(DENOISER_FILE)?, device)
-            .map_err(|e| Error::Checkpoint {
-                reason: format!("not a readable safetensors file: {e}"),
-                path: path.clone(),
-            })?;
         let expected = veila_nn::checkpoint::expected_tensors(&cfg.denoiser)?;
-        let found: BTreeMap<String, Vec<usize>> = weights
-            .iter()
-            .map(|(k, v)| (k.clone(), v.dims().to_vec()))
-            .collect();
-        let report = veila_nn::checkpoint::compare_tensors(&expected, &found);
-        if !report.is_clean() {
-            return Err(veila_nn::Error::CheckpointMismatch { path, report }.into());
-        }
-        let weights: HashMap<String, Tensor> = weights
-            .into_iter()
-            .map(|(k, v)| Ok((k, v.to_dtype(DType::F32)?)))
-            .collect::<Result<_>>()?;
+        let weights = veila_nn::checkpoint::read_checked_bytes(
+            verified(DENOISER_FILE)?,
+            &path,
+            &expected,
+            device,
+        )?;
         let denoiser = Net::new(
             &cfg.denoiser,
             candle_nn::VarBuilder::from_tensors(weights.clone(), DType::F32, device),
@@ -464,7 +443,8 @@ impl std::str::FromStr for Variant {
 
 impl BundleConfig {
     /// The bundled CPU model's config ([`DenoiserConfig::small`], two default small CNN encoders
-    /// at 96 x 320, KITTI range encoding, cosine log-SNR schedule with ε-prediction, DPM-Solver++(2M)
+    /// at 96 x 320, KITTI range encoding, cosine log-SNR schedule with v-prediction and min-SNR-5
+    /// weighting, DPM-Solver++(2M)
     /// with 16 steps and guidance 1.5 by default), turned into `variant`.
     pub fn cpu_default(variant: Variant) -> Self {
         let mut denoiser = DenoiserConfig::small();
@@ -524,7 +504,13 @@ impl BundleConfig {
             semantic_encoder: semantic,
             depth_encoder: depth,
             denoiser,
-            diffusion: DiffusionConfig::default(),
+            // v-prediction: with ε-prediction a short training run leaves the noisiest levels
+            // (where x̂₀ = (x_t − σ ε̂) / α amplifies every error of ε̂ by σ / α > 10) unusable, and
+            // samples drawn from pure noise come out as noise
+            diffusion: DiffusionConfig {
+                prediction: crate::prediction::Prediction::V,
+                ..DiffusionConfig::default()
+            },
             encoding: RangeEncoding::kitti(),
             epipolar: EpipolarConfig::default(),
             sampler,

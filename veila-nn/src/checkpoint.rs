@@ -7,11 +7,9 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
 
-use candle_core::{DType, Device, Shape, Tensor};
-use candle_nn::var_builder::SimpleBackend;
-use candle_nn::{Init, VarBuilder, VarMap};
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{VarBuilder, VarMap};
 
 use crate::config::DenoiserConfig;
 use crate::error::{Error, Result, TensorReport};
@@ -22,70 +20,59 @@ pub const CONFIG_FILE: &str = "config.json";
 /// File name of the weights inside a checkpoint directory.
 pub const WEIGHTS_FILE: &str = "model.safetensors";
 
-/// Records every tensor a model asks for (name and shape) and hands out zeros.
-struct RecordingBackend {
-    seen: Mutex<BTreeMap<String, Vec<usize>>>,
-}
-
-impl SimpleBackend for RecordingBackend {
-    fn get(
-        &self,
-        s: Shape,
-        name: &str,
-        _h: Init,
-        dtype: DType,
-        dev: &Device,
-    ) -> candle_core::Result<Tensor> {
-        if let Ok(mut seen) = self.seen.lock() {
-            seen.insert(name.to_string(), s.dims().to_vec());
-        }
-        Tensor::zeros(s, dtype, dev)
-    }
-    fn get_unchecked(
-        &self,
-        name: &str,
-        _dtype: DType,
-        _dev: &Device,
-    ) -> candle_core::Result<Tensor> {
-        candle_core::bail!("recording backend cannot serve {name} without a shape")
-    }
-    fn contains_tensor(&self, _name: &str) -> bool {
-        true
-    }
+/// The tensors (name -> shape) a model builder asks its `VarBuilder` for, found by running it on a
+/// recording builder that hands out zeros (see [`crate::encoders::record_tensor_specs`]).
+pub fn record_tensors(
+    build: impl FnOnce(VarBuilder<'static>) -> Result<()>,
+) -> Result<BTreeMap<String, Vec<usize>>> {
+    Ok(crate::encoders::record_tensor_specs(build)?
+        .into_iter()
+        .map(|s| (s.name, s.shape))
+        .collect())
 }
 
 /// Every parameter tensor the model of `cfg` has, by name, with its shape (sorted by name).
 pub fn expected_tensors(cfg: &DenoiserConfig) -> Result<BTreeMap<String, Vec<usize>>> {
-    let backend = std::sync::Arc::new(RecordingBackend {
-        seen: Mutex::new(BTreeMap::new()),
-    });
-    struct Shared(std::sync::Arc<RecordingBackend>);
-    impl SimpleBackend for Shared {
-        fn get(
-            &self,
-            s: Shape,
-            n: &str,
-            h: Init,
-            d: DType,
-            dev: &Device,
-        ) -> candle_core::Result<Tensor> {
-            self.0.get(s, n, h, d, dev)
-        }
-        fn get_unchecked(&self, n: &str, d: DType, dev: &Device) -> candle_core::Result<Tensor> {
-            self.0.get_unchecked(n, d, dev)
-        }
-        fn contains_tensor(&self, n: &str) -> bool {
-            self.0.contains_tensor(n)
-        }
+    record_tensors(|vb| Denoiser::new(cfg, vb).map(|_| ()))
+}
+
+/// Parses safetensors bytes (`path` names them in errors), checks them against `expected` (every
+/// tensor present with its shape, nothing else) and converts them to `f32`.
+pub fn read_checked_bytes(
+    bytes: &[u8],
+    path: &Path,
+    expected: &BTreeMap<String, Vec<usize>>,
+    device: &Device,
+) -> Result<HashMap<String, Tensor>> {
+    let tensors =
+        candle_core::safetensors::load_buffer(bytes, device).map_err(|e| Error::SafeTensors {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
+    let found: BTreeMap<String, Vec<usize>> = tensors
+        .iter()
+        .map(|(k, v)| (k.clone(), v.dims().to_vec()))
+        .collect();
+    let report = compare_tensors(expected, &found);
+    if !report.is_clean() {
+        return Err(Error::CheckpointMismatch {
+            path: path.to_path_buf(),
+            report,
+        });
     }
-    // Build on a tiny-memory dtype: only shapes matter.
-    let vb = VarBuilder::from_backend(Box::new(Shared(backend.clone())), DType::F32, Device::Cpu);
-    Denoiser::new(cfg, vb)?;
-    let seen = backend
-        .seen
-        .lock()
-        .map_err(|_| Error::Config("poisoned lock".into()))?;
-    Ok(seen.clone())
+    tensors
+        .into_iter()
+        .map(|(k, v)| Ok((k, v.to_dtype(DType::F32)?)))
+        .collect()
+}
+
+/// Lower-case hex sha256 of `bytes` (the sums of the weight manifests).
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    use sha2::Digest;
+    sha2::Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
 }
 
 /// Compares what a model needs with what a file holds.
@@ -211,20 +198,7 @@ pub fn read_checkpoint(
     let cfg = read_config(dir)?;
     let path = dir.join(WEIGHTS_FILE);
     let bytes = std::fs::read(&path).map_err(io_err(&path))?;
-    let tensors =
-        candle_core::safetensors::load_buffer(&bytes, device).map_err(|e| Error::SafeTensors {
-            path: path.clone(),
-            message: e.to_string(),
-        })?;
-    let found: BTreeMap<String, Vec<usize>> = tensors
-        .iter()
-        .map(|(k, v)| (k.clone(), v.dims().to_vec()))
-        .collect();
-    let report = compare_tensors(&expected_tensors(&cfg)?, &found);
-    if !report.is_clean() {
-        return Err(Error::CheckpointMismatch { path, report });
-    }
-    let tensors = tensors
+    let tensors = read_checked_bytes(&bytes, &path, &expected_tensors(&cfg)?, device)?
         .into_iter()
         .map(|(k, v)| Ok((k, v.to_dtype(dtype)?)))
         .collect::<candle_core::Result<HashMap<_, _>>>()?;

@@ -25,6 +25,8 @@ use veila_metrics::crossmodal::{
     DepthAlignment, Map2d, ProjectionFilter, cm_depth_consistency, cm_semantic_consistency,
 };
 use veila_metrics::dist;
+use veila_metrics::fd::{self, FeatureStats};
+use veila_nn::feature_nets::{FeatureNets, RangeNetInput};
 use veila_nn::encoders::{Normalization, rgb8_to_tensor};
 
 use crate::simdata::{SimExample, render_split, workspace_root};
@@ -159,6 +161,7 @@ struct Judges {
     depth_pred: Vec<Vec<f32>>,
     label_pred: Vec<Vec<u32>>,
     reference_points: Vec<Vec<Vec3>>,
+    reference_intensity: Vec<Vec<f32>>,
 }
 
 fn judges(bundle: &Bundle, tests: &[SimExample], device: &Device) -> Result<Judges> {
@@ -167,6 +170,7 @@ fn judges(bundle: &Bundle, tests: &[SimExample], device: &Device) -> Result<Judg
     let mut label_pred = Vec::new();
     let rays = RayTable::new(&bundle.config.denoiser.sensor)?;
     let mut reference_points = Vec::new();
+    let mut reference_intensity = Vec::new();
     for ex in tests {
         let img = rgb8_to_tensor(&ex.rgb, h, w, &Normalization::IMAGENET, device)?;
         let d = match &bundle.depth {
@@ -179,12 +183,15 @@ fn judges(bundle: &Bundle, tests: &[SimExample], device: &Device) -> Result<Judg
             None => None,
         };
         label_pred.push(l.context("the judge bundle has no semantic head")?);
-        reference_points.push(rays.unproject(&ex.range)?.points);
+        let un = rays.unproject(&ex.range)?;
+        reference_points.push(un.points);
+        reference_intensity.push(un.intensity);
     }
     Ok(Judges {
         depth_pred,
         label_pred,
         reference_points,
+        reference_intensity,
     })
 }
 
@@ -233,12 +240,15 @@ fn seed_metrics(
     generated: &[RangeImage],
     tests: &[SimExample],
     judges: &Judges,
+    nets: Option<&FeatureNets>,
 ) -> Result<BTreeMap<String, BTreeMap<String, f64>>> {
     let rays = RayTable::new(&bundle.config.denoiser.sensor)?;
-    let gen_points: Vec<Vec<Vec3>> = generated
+    let unprojected = generated
         .iter()
-        .map(|r| Ok(rays.unproject(r)?.points))
-        .collect::<Result<_>>()?;
+        .map(|r| Ok(rays.unproject(r)?))
+        .collect::<Result<Vec<_>>>()?;
+    let gen_points: Vec<Vec<Vec3>> = unprojected.iter().map(|u| u.points.clone()).collect();
+    let gen_intensity: Vec<Vec<f32>> = unprojected.iter().map(|u| u.intensity.clone()).collect();
     let mut m: BTreeMap<String, BTreeMap<String, f64>> = BTreeMap::new();
     let cfg = BevConfig::r2dm();
     for region in Region::ALL {
@@ -254,10 +264,25 @@ fn seed_metrics(
         let rn = region_name(region).to_string();
         m.entry("jsd".into())
             .or_default()
-            .insert(rn.clone(), dist::jsd(&hg, &hr)?);
-        m.entry("mmd (x1e4)".into())
-            .or_default()
-            .insert(rn.clone(), 1e4 * dist::mmd_r2dm_dense(&hg, &hr, 0.5)?);
+            .insert(rn.clone(), or_nan("jsd", dist::jsd(&hg, &hr)));
+        m.entry("mmd (x1e4)".into()).or_default().insert(
+            rn.clone(),
+            1e4 * or_nan("mmd", dist::mmd_r2dm_dense(&hg, &hr, 0.5)),
+        );
+        if let Some(nets) = nets {
+            let (frd, fpd) = frd_fpd(
+                nets,
+                (&gen_points, &gen_intensity),
+                (&judges.reference_points, &judges.reference_intensity),
+                region,
+            )
+            .unwrap_or_else(|e| {
+                eprintln!("  frd / fpd ({rn}): {e:#}; reported as n/a");
+                (f64::NAN, f64::NAN)
+            });
+            m.entry("frd".into()).or_default().insert(rn.clone(), frd);
+            m.entry("fpd".into()).or_default().insert(rn.clone(), fpd);
+        }
         let mut sum = 0.0;
         let mut n = 0usize;
         for (g, ex) in generated.iter().zip(tests) {
@@ -287,18 +312,21 @@ fn seed_metrics(
             dc += c.abs_rel;
             nd += 1;
         }
-        // semantic labels of the generated points: the true label of the nearest true return on
-        // the same range pixel is not available for generated scans, so label each generated
-        // point with the class of the image pixel's ground truth at its projection (`labels`) and
-        // compare with the semantic head's prediction there
-        let truth = Map2d::new(w, h, &ex.labels)?;
-        let labels = point_labels(&gen_points[i], &ex.camera, &truth);
-        let pred = Map2d::new(w, h, &judges.label_pred[i])?;
-        if let Ok(c) = cm_semantic_consistency(&gen_points[i], &labels, &ex.camera, &pred, &filter)
-            && c.percent.is_finite()
-        {
-            sc += c.percent;
-            ns += 1;
+        // CM-SC: the classes the range segmentation net gives the generated points against the
+        // image semantic head's classes where they project
+        if let Some(nets) = nets {
+            let (pts, labels) = segment_points(nets, &gen_points[i], &gen_intensity[i])?;
+            let pred = Map2d::new(w, h, &judges.label_pred[i])?;
+            let filter = ProjectionFilter {
+                ignore_label: Some(0),
+                ..ProjectionFilter::default()
+            };
+            if let Ok(c) = cm_semantic_consistency(&pts, &labels, &ex.camera, &pred, &filter)
+                && c.percent.is_finite()
+            {
+                sc += c.percent;
+                ns += 1;
+            }
         }
     }
     let front = region_name(Region::Front).to_string();
@@ -312,27 +340,91 @@ fn seed_metrics(
     Ok(m)
 }
 
-/// The ground-truth image class at each point's projection (0 where it does not project).
-fn point_labels(
-    points: &[Vec3],
-    camera: &veila_geom::PinholeCamera,
-    truth: &Map2d<'_, u32>,
-) -> Vec<u32> {
+/// A metric's value, or NaN (reported as n/a) when it cannot be computed for this set, e.g. when a
+/// poorly trained variant generates no return inside the BEV window.
+fn or_nan<E: std::fmt::Display>(what: &str, r: std::result::Result<f64, E>) -> f64 {
+    r.unwrap_or_else(|e| {
+        eprintln!("  {what}: {e}; reported as n/a");
+        f64::NAN
+    })
+}
+
+/// Points of `region` (and their intensities).
+fn in_region(points: &[Vec3], intensity: &[f32], region: Region) -> (Vec<Vec3>, Vec<f32>) {
     points
         .iter()
-        .map(|p| {
-            camera
-                .try_project_in_image(*p)
-                .and_then(|ip| ip.pixel(camera.width, camera.height))
-                .and_then(|(u, v)| {
-                    truth
-                        .data
-                        .get(v as usize * truth.width as usize + u as usize)
-                        .copied()
-                })
-                .unwrap_or(0)
-        })
-        .collect()
+        .zip(intensity)
+        .filter(|(p, _)| region.contains(**p))
+        .map(|(p, i)| (*p, *i))
+        .unzip()
+}
+
+/// FRD and FPD between generated and reference scans restricted to `region`, with the shipped
+/// feature networks.
+fn frd_fpd(
+    nets: &FeatureNets,
+    (gp, gi): (&[Vec<Vec3>], &[Vec<f32>]),
+    (rp, ri): (&[Vec<Vec3>], &[Vec<f32>]),
+    region: Region,
+) -> Result<(f64, f64)> {
+    let side = |p: &[Vec<Vec3>], i: &[Vec<f32>]| -> Result<(Vec<f32>, Vec<f32>)> {
+        let scans: Vec<(Vec<Vec3>, Vec<f32>)> = p
+            .iter()
+            .zip(i)
+            .map(|(p, i)| in_region(p, i, region))
+            .filter(|(p, _)| !p.is_empty())
+            .collect();
+        let range_in: Vec<(&[Vec3], Option<&[f32]>)> = scans
+            .iter()
+            .map(|(p, i)| (p.as_slice(), Some(i.as_slice())))
+            .collect();
+        let rf = nets.scan_range_features(&range_in)?;
+        let point_in: Vec<&[Vec3]> = scans.iter().map(|(p, _)| p.as_slice()).collect();
+        let pf = nets.point_features(&point_in)?;
+        Ok((rf.concat(), pf.concat()))
+    };
+    let (gr, gpf) = side(gp, gi)?;
+    let (rr, rpf) = side(rp, ri)?;
+    let rd = nets.rangenet().config().feature_dim();
+    let pd = nets.pointnet().config().feature_dim();
+    let fd = |a: &[f32], b: &[f32], d: usize| -> Result<f64> {
+        if a.len() < 2 * d || b.len() < 2 * d {
+            return Ok(f64::NAN);
+        }
+        Ok(fd::frechet_distance(
+            &FeatureStats::from_rows(a, d, "generated features")?,
+            &FeatureStats::from_rows(b, d, "reference features")?,
+        )?)
+    };
+    Ok((fd(&gr, &rr, rd)?, fd(&gpf, &rpf, pd)?))
+}
+
+/// Segments a scan with the range net's semantic head: the points that won a range pixel and the
+/// class (learning map, 0 = unlabelled) of their pixel.
+fn segment_points(
+    nets: &FeatureNets,
+    points: &[Vec3],
+    intensity: &[f32],
+) -> Result<(Vec<Vec3>, Vec<u32>)> {
+    let cfg = nets.rangenet().config();
+    let input = RangeNetInput::from_points(points, Some(intensity), &cfg.sensor)?;
+    let x = RangeNetInput::batch(&[&input], cfg, &Device::Cpu)?;
+    let logits = nets.rangenet().forward(&x)?;
+    // never predict class 0 (unlabelled)
+    let labels = logits
+        .narrow(1, 1, logits.dim(1)? - 1)?
+        .argmax(1)?
+        .flatten_all()?
+        .to_vec1::<u32>()?;
+    let mut pts = Vec::new();
+    let mut out = Vec::new();
+    for (k, &pi) in input.point_index.iter().enumerate() {
+        if input.mask[k] && (pi as usize) < points.len() {
+            pts.push(points[pi as usize]);
+            out.push(labels[k] + 1);
+        }
+    }
+    Ok((pts, out))
 }
 
 /// Mean absolute range difference over pixels where both have a return, in `region`.
@@ -406,6 +498,14 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         "simulating test frames",
     )?;
     let judges = judges(&base, &tests, &device)?;
+    let nets_dir = root.join("models/feature-nets");
+    let nets = match FeatureNets::from_dir(&nets_dir, &device) {
+        Ok(n) => Some(n),
+        Err(e) => {
+            println!("FRD / FPD / CM-SC skipped: {e}");
+            None
+        }
+    };
     let variants = args
         .variants
         .clone()
@@ -482,7 +582,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                 &format!("{} seed {seed}", v.name()),
             )?;
             secs += s;
-            per_seed.push(seed_metrics(&bundle, &generated, &tests, &judges)?);
+            per_seed.push(seed_metrics(&bundle, &generated, &tests, &judges, nets.as_ref())?);
         }
         let mut metrics: BTreeMap<String, BTreeMap<String, Stat>> = BTreeMap::new();
         if let Some(first) = per_seed.first() {
@@ -517,6 +617,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         depth_pred: judges.depth_pred[..sweep_tests.len()].to_vec(),
         label_pred: judges.label_pred[..sweep_tests.len()].to_vec(),
         reference_points: judges.reference_points[..sweep_tests.len()].to_vec(),
+        reference_intensity: judges.reference_intensity[..sweep_tests.len()].to_vec(),
     };
     let mut sweep = Vec::new();
     for name in ["ddpm", "ddim", "dpm"] {
@@ -530,7 +631,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                 0,
                 &format!("{name} x {steps}"),
             )?;
-            let m = seed_metrics(&base, &generated, sweep_tests, &sweep_judges)?;
+            let m = seed_metrics(&base, &generated, sweep_tests, &sweep_judges, nets.as_ref())?;
             let p = SweepPoint {
                 sampler: name.into(),
                 steps,
@@ -572,7 +673,8 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
             },
             "All variants share the data, seed, step budget and the frozen encoders of the bundled model; differences smaller than the spread over seeds are not significant.".into(),
             "Reference scans are the true simulated scans projected onto the same range-image grid as the generated ones.".into(),
-            "CM-DC compares generated points with the depth head of the bundled depth encoder; CM-SC compares the ground-truth class at each generated point's projection with the semantic head's prediction (so it measures whether points land on the right image regions).".into(),
+            "CM-DC: mean absolute relative difference between each generated point's camera depth and the bundled depth encoder's depth head where it projects. CM-SC: percentage of generated points whose class from the shipped range segmentation net (rangenet-small) agrees with the bundled semantic encoder's head where they project (unlabelled excluded). Both over the camera's field of view.".into(),
+            "FRD / FPD use the shipped feature networks trained on simulator data (models/feature-nets), per region on the points of that region; with a dozen scans per side the covariances are rank-deficient, so read them as relative numbers between rows, not as converged distances or as comparable to published values.".into(),
         ],
     };
     write_report(&out, &report)?;
@@ -705,10 +807,21 @@ fn write_report(out: &Path, r: &Report) -> Result<()> {
     )?;
     writeln!(md, "|---|---|---|---|---|")?;
     for p in &r.sweep {
+        let num = |v: f64, d: usize| {
+            if v.is_finite() {
+                format!("{v:.d$}")
+            } else {
+                "n/a".to_string()
+            }
+        };
         writeln!(
             md,
-            "| {} | {} | {:.2} | {:.4} | {:.2} |",
-            p.sampler, p.steps, p.seconds_per_scan, p.jsd_all, p.range_mae_front_m
+            "| {} | {} | {:.2} | {} | {} |",
+            p.sampler,
+            p.steps,
+            p.seconds_per_scan,
+            num(p.jsd_all, 4),
+            num(p.range_mae_front_m, 2)
         )?;
     }
     writeln!(md)?;

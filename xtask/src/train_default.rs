@@ -273,6 +273,39 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         .work
         .clone()
         .unwrap_or_else(|| root.join("target/train-default").join(args.variant.name()));
+    // a work folder resumes only the run it was made for: same model, diffusion and training
+    // settings, same data
+    let run_key = serde_json::json!({
+        "denoiser": cfg.denoiser,
+        "diffusion": cfg.diffusion,
+        "encoding": cfg.encoding,
+        "train": tc,
+        "frames": examples.len(),
+        "batch": args.batch,
+        "encoders_from": args.encoders_from,
+        "init_from": args.init_from,
+    });
+    let key_path = work.join("run.json");
+    match std::fs::read(&key_path) {
+        Ok(bytes) => {
+            let old: serde_json::Value = serde_json::from_slice(&bytes)
+                .with_context(|| format!("reading {}", key_path.display()))?;
+            if old != run_key {
+                anyhow::bail!(
+                    "{} holds checkpoints of a run with other settings; delete the folder or pass another --work",
+                    work.display()
+                );
+            }
+        }
+        Err(_) => {
+            std::fs::create_dir_all(&work)
+                .with_context(|| format!("creating {}", work.display()))?;
+            veila_data::atomic::write_atomic(
+                &key_path,
+                serde_json::to_string_pretty(&run_key)?.as_bytes(),
+            )?;
+        }
+    }
     if let Some(p) = trainer.resume_latest(&work)? {
         println!("  resumed from {} (step {})", p.display(), trainer.step());
     }

@@ -87,14 +87,10 @@ pub mod rangenet;
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex};
 
-use candle_core::{DType, Device, Shape, Tensor};
-use candle_nn::var_builder::SimpleBackend;
-use candle_nn::{Init, VarBuilder};
+use candle_core::{DType, Device, Tensor};
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
 
 pub use pointnet::{PointNet, PointNetConfig, PointNetOutput};
 pub use rangenet::{RangeNet, RangeNetConfig, RangeNetInput, RangeStage};
@@ -135,86 +131,7 @@ pub struct Manifest {
     pub files: BTreeMap<String, String>,
 }
 
-/// Lower-case hex sha256 of `bytes`.
-pub fn sha256_hex(bytes: &[u8]) -> String {
-    Sha256::digest(bytes)
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect()
-}
-
-/// Records every tensor a model asks for (name and shape) and hands out zeros.
-struct Recorder(Arc<Mutex<BTreeMap<String, Vec<usize>>>>);
-
-impl SimpleBackend for Recorder {
-    fn get(
-        &self,
-        s: Shape,
-        name: &str,
-        _h: Init,
-        dtype: DType,
-        dev: &Device,
-    ) -> candle_core::Result<Tensor> {
-        if let Ok(mut seen) = self.0.lock() {
-            seen.insert(name.to_string(), s.dims().to_vec());
-        }
-        Tensor::zeros(s, dtype, dev)
-    }
-    fn get_unchecked(
-        &self,
-        name: &str,
-        _dtype: DType,
-        _dev: &Device,
-    ) -> candle_core::Result<Tensor> {
-        candle_core::bail!("recording backend cannot serve {name} without a shape")
-    }
-    fn contains_tensor(&self, _name: &str) -> bool {
-        true
-    }
-}
-
-/// The tensors (name → shape) a model builder asks its `VarBuilder` for.
-pub(crate) fn record_tensors(
-    build: impl FnOnce(VarBuilder<'static>) -> Result<()>,
-) -> Result<BTreeMap<String, Vec<usize>>> {
-    let seen = Arc::new(Mutex::new(BTreeMap::new()));
-    let vb = VarBuilder::from_backend(Box::new(Recorder(seen.clone())), DType::F32, Device::Cpu);
-    build(vb)?;
-    let out = seen
-        .lock()
-        .map_err(|_| Error::Config("poisoned lock".into()))?
-        .clone();
-    Ok(out)
-}
-
-/// Parses safetensors bytes and checks them against `expected`, converting to f32.
-pub(crate) fn read_checked(
-    bytes: &[u8],
-    path: &Path,
-    expected: &BTreeMap<String, Vec<usize>>,
-    device: &Device,
-) -> Result<HashMap<String, Tensor>> {
-    let tensors =
-        candle_core::safetensors::load_buffer(bytes, device).map_err(|e| Error::SafeTensors {
-            path: path.to_path_buf(),
-            message: e.to_string(),
-        })?;
-    let found: BTreeMap<String, Vec<usize>> = tensors
-        .iter()
-        .map(|(k, v)| (k.clone(), v.dims().to_vec()))
-        .collect();
-    let report = crate::checkpoint::compare_tensors(expected, &found);
-    if !report.is_clean() {
-        return Err(Error::CheckpointMismatch {
-            path: path.to_path_buf(),
-            report,
-        });
-    }
-    tensors
-        .into_iter()
-        .map(|(k, v)| Ok((k, v.to_dtype(DType::F32)?)))
-        .collect()
-}
+pub use crate::checkpoint::sha256_hex;
 
 fn parse_json<T: serde::de::DeserializeOwned>(bytes: &[u8], path: &Path) -> Result<T> {
     serde_json::from_slice(bytes).map_err(|source| Error::Json {

@@ -460,7 +460,7 @@ impl PointNet {
 
     /// Every tensor the net of `cfg` has, by name, with its shape.
     pub fn expected_tensors(cfg: &PointNetConfig) -> Result<BTreeMap<String, Vec<usize>>> {
-        super::record_tensors(|vb| PointNet::new(cfg, vb).map(|_| ()))
+        crate::checkpoint::record_tensors(|vb| PointNet::new(cfg, vb).map(|_| ()))
     }
 
     /// Number of scalar parameters (BatchNorm running statistics included).
@@ -489,7 +489,7 @@ impl PointNet {
         device: &Device,
     ) -> Result<Self> {
         cfg.validate()?;
-        let tensors = super::read_checked(bytes, path, &Self::expected_tensors(cfg)?, device)?;
+        let tensors = crate::checkpoint::read_checked_bytes(bytes, path, &Self::expected_tensors(cfg)?, device)?;
         Self::new(cfg, VarBuilder::from_tensors(tensors, DType::F32, device))
     }
 }

@@ -599,7 +599,7 @@ impl RangeNet {
 
     /// Every tensor the net of `cfg` has, by name, with its shape.
     pub fn expected_tensors(cfg: &RangeNetConfig) -> Result<BTreeMap<String, Vec<usize>>> {
-        super::record_tensors(|vb| RangeNet::new(cfg, vb).map(|_| ()))
+        crate::checkpoint::record_tensors(|vb| RangeNet::new(cfg, vb).map(|_| ()))
     }
 
     /// Number of scalar parameters (BatchNorm running statistics included).
@@ -629,7 +629,7 @@ impl RangeNet {
         device: &Device,
     ) -> Result<Self> {
         cfg.validate()?;
-        let tensors = super::read_checked(bytes, path, &Self::expected_tensors(cfg)?, device)?;
+        let tensors = crate::checkpoint::read_checked_bytes(bytes, path, &Self::expected_tensors(cfg)?, device)?;
         Self::new(cfg, VarBuilder::from_tensors(tensors, DType::F32, device))
     }
 }
