@@ -5,11 +5,11 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use crate::eval_features;
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand, ValueEnum};
 use glam::Vec3;
 use rayon::prelude::*;
-use crate::eval_features;
 
 use veila_metrics::{
     MetricReport, MetricValue, Protocol, Region,

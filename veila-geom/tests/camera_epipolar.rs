@@ -529,8 +529,14 @@ fn resized_camera_maps_pixel_centres_like_the_image_resize() {
         let a = cam.try_project(p).unwrap();
         let b = small.try_project(p).unwrap();
         // the centre of pixel u maps to the centre of the resized pixel: (u + 0.5) s - 0.5
-        assert!((b.u_px - ((a.u_px + 0.5) * sx - 0.5)).abs() < 1e-3, "{a:?} {b:?}");
-        assert!((b.v_px - ((a.v_px + 0.5) * sy - 0.5)).abs() < 1e-3, "{a:?} {b:?}");
+        assert!(
+            (b.u_px - ((a.u_px + 0.5) * sx - 0.5)).abs() < 1e-3,
+            "{a:?} {b:?}"
+        );
+        assert!(
+            (b.v_px - ((a.v_px + 0.5) * sy - 0.5)).abs() < 1e-3,
+            "{a:?} {b:?}"
+        );
         assert!((b.depth_m - a.depth_m).abs() < 1e-5);
     }
     assert_eq!((small.width, small.height), (320, 96));

@@ -26,8 +26,8 @@ use veila_metrics::crossmodal::{
 };
 use veila_metrics::dist;
 use veila_metrics::fd::{self, FeatureStats};
-use veila_nn::feature_nets::{FeatureNets, RangeNetInput};
 use veila_nn::encoders::{Normalization, rgb8_to_tensor};
+use veila_nn::feature_nets::{FeatureNets, RangeNetInput};
 
 use crate::simdata::{SimExample, render_split, workspace_root};
 use crate::train_default::{self, TrainDefaultArgs};
@@ -582,7 +582,13 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                 &format!("{} seed {seed}", v.name()),
             )?;
             secs += s;
-            per_seed.push(seed_metrics(&bundle, &generated, &tests, &judges, nets.as_ref())?);
+            per_seed.push(seed_metrics(
+                &bundle,
+                &generated,
+                &tests,
+                &judges,
+                nets.as_ref(),
+            )?);
         }
         let mut metrics: BTreeMap<String, BTreeMap<String, Stat>> = BTreeMap::new();
         if let Some(first) = per_seed.first() {

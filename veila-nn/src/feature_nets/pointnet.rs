@@ -489,7 +489,12 @@ impl PointNet {
         device: &Device,
     ) -> Result<Self> {
         cfg.validate()?;
-        let tensors = crate::checkpoint::read_checked_bytes(bytes, path, &Self::expected_tensors(cfg)?, device)?;
+        let tensors = crate::checkpoint::read_checked_bytes(
+            bytes,
+            path,
+            &Self::expected_tensors(cfg)?,
+            device,
+        )?;
         Self::new(cfg, VarBuilder::from_tensors(tensors, DType::F32, device))
     }
 }
