@@ -347,7 +347,7 @@ fn demo_metrics(
                 chamfer::chamfer_distance(&a, &b)?.value(),
             ));
         }
-        if let Some(mae) = range_mae(generated_range, true_range, region) {
+        if let Some(mae) = veila_metrics::range::range_mae(generated_range, true_range, region) {
             metrics.push(one(
                 "range mae (m, both valid)",
                 Protocol::Veila,
@@ -375,35 +375,6 @@ fn demo_metrics(
         ));
     }
     Ok(MetricReport { metrics })
-}
-
-/// Mean absolute range difference over pixels where both range images have a return, in `region`
-/// (by the azimuth of the pixel column: front = |azimuth| < 90 degrees).
-fn range_mae(a: &RangeImage, b: &RangeImage, region: Region) -> Option<f64> {
-    if (a.rows, a.cols) != (b.rows, b.cols) {
-        return None;
-    }
-    let cols = a.cols as usize;
-    let (mut sum, mut n) = (0.0f64, 0usize);
-    for i in 0..a.range_m.len() {
-        if !(a.mask[i] && b.mask[i]) {
-            continue;
-        }
-        let col = i % cols;
-        // column 0 looks backwards (azimuth +pi), the middle column forwards
-        let az = std::f64::consts::PI * (1.0 - 2.0 * (col as f64 + 0.5) / cols as f64);
-        let front = az.cos() > 0.0;
-        let keep = match region {
-            Region::All => true,
-            Region::Front => front,
-            Region::Rear => !front,
-        };
-        if keep {
-            sum += (a.range_m[i] - b.range_m[i]).abs() as f64;
-            n += 1;
-        }
-    }
-    (n > 0).then(|| sum / n as f64)
 }
 
 fn project(projector: &Projector, cloud: &PointCloud) -> Result<RangeImage> {

@@ -13,6 +13,7 @@
 //! | Fréchet distance (FRD, FPD) from streaming, mergeable statistics | numpy/scipy | [`fd`] |
 //! | Chamfer distance (squared, means summed) and MMD-CD | PyTorch3D | [`chamfer`], BVH in [`nn`] |
 //! | CM-DC / CM-SC cross-modal consistency | Veila paper | [`crossmodal`] |
+//! | Range MAE of two range images on one grid, over pixels valid in both | — | [`range`] |
 //!
 //! Every point-based metric can be restricted to the paper's front (`x > 0`) or rear (`x <= 0`) half with
 //! [`Region`] (re-exported from `veila-geom`). Results are collected as [`MetricValue`]s whose JSON form is
@@ -54,6 +55,7 @@ pub mod fd;
 pub mod lidm;
 pub mod metric;
 pub mod nn;
+pub mod range;
 
 pub use error::{Error, Result};
 pub use metric::{MetricReport, MetricValue, Protocol};

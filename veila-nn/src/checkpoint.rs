@@ -44,6 +44,19 @@ pub fn read_checked_bytes(
     expected: &BTreeMap<String, Vec<usize>>,
     device: &Device,
 ) -> Result<HashMap<String, Tensor>> {
+    read_checked_scoped(bytes, path, expected, |_| true, DType::F32, device)
+}
+
+/// [`read_checked_bytes`] where tensors of the file that `expected` lacks are reported only when
+/// `in_scope(name)` is true (and otherwise dropped), converted to `dtype`.
+pub(crate) fn read_checked_scoped(
+    bytes: &[u8],
+    path: &Path,
+    expected: &BTreeMap<String, Vec<usize>>,
+    in_scope: impl Fn(&str) -> bool,
+    dtype: DType,
+    device: &Device,
+) -> Result<HashMap<String, Tensor>> {
     let tensors =
         candle_core::safetensors::load_buffer(bytes, device).map_err(|e| Error::SafeTensors {
             path: path.to_path_buf(),
@@ -53,7 +66,8 @@ pub fn read_checked_bytes(
         .iter()
         .map(|(k, v)| (k.clone(), v.dims().to_vec()))
         .collect();
-    let report = compare_tensors(expected, &found);
+    let mut report = compare_tensors(expected, &found);
+    report.unexpected.retain(|n| in_scope(n));
     if !report.is_clean() {
         return Err(Error::CheckpointMismatch {
             path: path.to_path_buf(),
@@ -62,7 +76,8 @@ pub fn read_checked_bytes(
     }
     tensors
         .into_iter()
-        .map(|(k, v)| Ok((k, v.to_dtype(DType::F32)?)))
+        .filter(|(k, _)| expected.contains_key(k))
+        .map(|(k, v)| Ok((k, v.to_dtype(dtype)?)))
         .collect()
 }
 

@@ -286,7 +286,7 @@ fn seed_metrics(
         let mut sum = 0.0;
         let mut n = 0usize;
         for (g, ex) in generated.iter().zip(tests) {
-            if let Some(v) = range_mae(g, &ex.range, region) {
+            if let Some(v) = veila_metrics::range::range_mae(g, &ex.range, region) {
                 sum += v;
                 n += 1;
             }
@@ -425,33 +425,6 @@ fn segment_points(
         }
     }
     Ok((pts, out))
-}
-
-/// Mean absolute range difference over pixels where both have a return, in `region`.
-fn range_mae(a: &RangeImage, b: &RangeImage, region: Region) -> Option<f64> {
-    if (a.rows, a.cols) != (b.rows, b.cols) {
-        return None;
-    }
-    let cols = a.cols as usize;
-    let (mut sum, mut n) = (0.0f64, 0usize);
-    for i in 0..a.range_m.len() {
-        if !(a.mask[i] && b.mask[i]) {
-            continue;
-        }
-        let col = i % cols;
-        let az = std::f64::consts::PI * (1.0 - 2.0 * (col as f64 + 0.5) / cols as f64);
-        let front = az.cos() > 0.0;
-        let keep = match region {
-            Region::All => true,
-            Region::Front => front,
-            Region::Rear => !front,
-        };
-        if keep {
-            sum += (a.range_m[i] - b.range_m[i]).abs() as f64;
-            n += 1;
-        }
-    }
-    (n > 0).then(|| sum / n as f64)
 }
 
 fn sampler_for(name: &str, steps: usize, guidance: f64) -> Result<SamplerConfig> {

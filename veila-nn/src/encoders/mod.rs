@@ -445,33 +445,9 @@ pub fn load_checked_bytes<T>(
     in_scope: impl Fn(&str) -> bool,
     build: impl Fn(VarBuilder<'static>) -> crate::Result<T>,
 ) -> crate::Result<T> {
-    let tensors = candle_core::safetensors::load_buffer(bytes, device).map_err(|e| {
-        crate::Error::SafeTensors {
-            path: path.to_path_buf(),
-            message: e.to_string(),
-        }
-    })?;
-    let expected: std::collections::BTreeMap<String, Vec<usize>> = record_tensor_specs(&build)?
-        .into_iter()
-        .map(|s| (s.name, s.shape))
-        .collect();
-    let found: std::collections::BTreeMap<String, Vec<usize>> = tensors
-        .iter()
-        .map(|(k, v)| (k.clone(), v.dims().to_vec()))
-        .collect();
-    let mut report = crate::checkpoint::compare_tensors(&expected, &found);
-    report.unexpected.retain(|n| in_scope(n));
-    if !report.is_clean() {
-        return Err(crate::Error::CheckpointMismatch {
-            path: path.to_path_buf(),
-            report,
-        });
-    }
-    let tensors = tensors
-        .into_iter()
-        .filter(|(k, _)| expected.contains_key(k))
-        .map(|(k, v)| Ok((k, v.to_dtype(dtype)?)))
-        .collect::<crate::Result<HashMap<_, _>>>()?;
+    let expected = crate::checkpoint::record_tensors(|vb| build(vb).map(|_| ()))?;
+    let tensors =
+        crate::checkpoint::read_checked_scoped(bytes, path, &expected, in_scope, dtype, device)?;
     build(VarBuilder::from_tensors(tensors, dtype, device))
 }
 

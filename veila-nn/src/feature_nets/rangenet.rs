@@ -614,11 +614,8 @@ impl RangeNet {
     /// the names); a mismatch fails with [`Error::CheckpointMismatch`] listing missing, unexpected and
     /// mis-shaped tensors.
     pub fn load(path: &Path, cfg: &RangeNetConfig, device: &Device) -> Result<Self> {
-        let bytes = std::fs::read(path).map_err(|source| Error::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
-        Self::from_safetensors(&bytes, path, cfg, device)
+        cfg.validate()?;
+        crate::encoders::load_checked(path, DType::F32, device, |_| true, |vb| Self::new(cfg, vb))
     }
 
     /// [`RangeNet::load`] from the bytes of a safetensors file (`path` names it in errors).
@@ -629,13 +626,14 @@ impl RangeNet {
         device: &Device,
     ) -> Result<Self> {
         cfg.validate()?;
-        let tensors = crate::checkpoint::read_checked_bytes(
+        crate::encoders::load_checked_bytes(
             bytes,
             path,
-            &Self::expected_tensors(cfg)?,
+            DType::F32,
             device,
-        )?;
-        Self::new(cfg, VarBuilder::from_tensors(tensors, DType::F32, device))
+            |_| true,
+            |vb| Self::new(cfg, vb),
+        )
     }
 }
 
