@@ -2,72 +2,30 @@
 //! round-off), the regenerated ones change, and bad requests fail without output.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 use veila_data::range_exr::read_range_exr;
 use veila_data::scan::read_kitti_bin;
 use veila_diffusion::bundle::BundleConfig;
 use veila_geom::{LidarSensor, ProjectionOptions, Projector, RangeImage, RayTable};
 
-const TINY_SCENE: &str = r#"
-name = "tiny"
-layout = "straight"
-[lidar.sensor]
-rows = 32
-cols = 512
-fov_up_deg = 3.0
-fov_down_deg = -25.0
-min_range_m = 0.5
-max_range_m = 120.0
-[camera]
-width = 124
-height = 38
-fx = 72.15
-fy = 72.15
-cx = 61.0
-cy = 17.3
-[frames]
-count = 1
-"#;
+mod common;
+use common::*;
 
-fn veila() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_veila"));
-    c.env_remove("VEILA_MODEL");
-    c
-}
-
-fn model_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/default")
+/// (image, calib, scan)
+fn simulate(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
+    let sim = common::simulate(dir, &tiny_scene(32, 512, 1), 5);
+    (
+        sim.join("image_2/000000.png"),
+        sim.join("calib/000000.txt"),
+        sim.join("velodyne/000000.bin"),
+    )
 }
 
 fn model_sensor() -> LidarSensor {
     let cfg: BundleConfig =
         serde_json::from_slice(&std::fs::read(model_dir().join("bundle.json")).unwrap()).unwrap();
     cfg.denoiser.sensor
-}
-
-/// (image, calib, scan)
-fn simulate(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
-    let scene = dir.join("tiny.toml");
-    std::fs::write(&scene, TINY_SCENE).unwrap();
-    let out = dir.join("sim");
-    let st = veila()
-        .args(["simulate", "--quiet", "--seed", "5", "--scene"])
-        .arg(&scene)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
-    (
-        out.join("image_2/000000.png"),
-        out.join("calib/000000.txt"),
-        out.join("velodyne/000000.bin"),
-    )
 }
 
 fn edit(image: &Path, calib: &Path, scan: &Path, out: &Path, extra: &[&str]) -> Output {
@@ -85,15 +43,6 @@ fn edit(image: &Path, calib: &Path, scan: &Path, out: &Path, extra: &[&str]) -> 
         .args(extra)
         .output()
         .unwrap()
-}
-
-fn ok(o: &Output) {
-    assert!(
-        o.status.success(),
-        "stdout:\n{}\nstderr:\n{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    );
 }
 
 /// The scan on the model grid, projected here independently of the command (returns nearer than

@@ -3,63 +3,21 @@
 //! without output.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 use veila_data::range_exr::read_range_exr;
 use veila_data::scan::read_kitti_bin;
 
-/// A small scene (16 x 128 LiDAR, 124 x 38 camera with KITTI-like intrinsics) keeps simulation fast.
-const TINY_SCENE: &str = r#"
-name = "tiny"
-layout = "straight"
-[lidar.sensor]
-rows = 16
-cols = 128
-fov_up_deg = 3.0
-fov_down_deg = -25.0
-min_range_m = 0.5
-max_range_m = 120.0
-[camera]
-width = 124
-height = 38
-fx = 72.15
-fy = 72.15
-cx = 61.0
-cy = 17.3
-[frames]
-count = 1
-"#;
-
-fn veila() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_veila"));
-    c.env_remove("VEILA_MODEL");
-    c
-}
-
-fn model_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/default")
-}
+mod common;
+use common::*;
 
 /// Simulates one frame into `dir/sim` (KITTI layout) and returns (image, calib).
 fn simulate(dir: &Path) -> (PathBuf, PathBuf) {
-    let scene = dir.join("tiny.toml");
-    std::fs::write(&scene, TINY_SCENE).unwrap();
-    let out = dir.join("sim");
-    let st = veila()
-        .args(["simulate", "--quiet", "--seed", "3", "--scene"])
-        .arg(&scene)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
-    (out.join("image_2/000000.png"), out.join("calib/000000.txt"))
+    let sim = common::simulate(dir, &tiny_scene(16, 128, 1), 3);
+    (sim.join("image_2/000000.png"), sim.join("calib/000000.txt"))
 }
 
+/// A small scene (16 x 128 LiDAR, 124 x 38 camera with KITTI-like intrinsics) keeps simulation fast.
 fn generate(image: &Path, calib: &Path, out: &Path, extra: &[&str]) -> Output {
     veila()
         .args(["generate", "--quiet", "--image"])
@@ -73,15 +31,6 @@ fn generate(image: &Path, calib: &Path, out: &Path, extra: &[&str]) -> Output {
         .args(extra)
         .output()
         .unwrap()
-}
-
-fn ok(o: &Output) {
-    assert!(
-        o.status.success(),
-        "stdout:\n{}\nstderr:\n{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    );
 }
 
 fn read(p: &Path) -> Vec<u8> {

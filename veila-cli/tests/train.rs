@@ -1,51 +1,20 @@
 //! `veila train`: a run interrupted and resumed gives bit-identical weights to an uninterrupted one;
 //! encoders train from sparse LiDAR supervision; shards without what training needs fail clearly.
 
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::path::Path;
+use std::process::Output;
 
 use veila_data::shard::{CameraMatrices, MANIFEST_FORMAT, Manifest, ShardSample, write_shard};
 use veila_data::sim::{Scene, SceneConfig, class};
 use veila_geom::{ProjectionOptions, Projector};
 
+mod common;
+use common::*;
+
 /// 16 x 128 LiDAR (not the model's grid: training re-projects), 124 x 38 camera.
-const TINY_SCENE: &str = r#"
-name = "tiny"
-layout = "straight"
-[lidar.sensor]
-rows = 16
-cols = 128
-fov_up_deg = 3.0
-fov_down_deg = -25.0
-min_range_m = 0.5
-max_range_m = 120.0
-[camera]
-width = 124
-height = 38
-fx = 72.15
-fy = 72.15
-cx = 61.0
-cy = 17.3
-[frames]
-count = 3
-"#;
-
-fn veila() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_veila"));
-    c.env_remove("VEILA_MODEL");
-    c
-}
-
-fn model_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../models/default")
-        .canonicalize()
-        .unwrap()
-}
-
 /// Writes `frames` simulated frames as shards (2 per shard) with a manifest, like `cargo xtask convert`.
 fn make_shards(dir: &Path, frames: u32, labels: bool, images: bool) {
-    let cfg = SceneConfig::from_toml_str(TINY_SCENE, Path::new("tiny.toml")).unwrap();
+    let cfg = SceneConfig::from_toml_str(&tiny_scene(16, 128, 3), Path::new("tiny.toml")).unwrap();
     let scene = Scene::generate(&cfg, 11).unwrap();
     let mut samples = Vec::new();
     let mut sensor = None;
@@ -122,15 +91,6 @@ fn train(config: &Path, extra: &[&str]) -> Output {
         .args(extra)
         .output()
         .unwrap()
-}
-
-fn ok(o: &Output) {
-    assert!(
-        o.status.success(),
-        "stdout:\n{}\nstderr:\n{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    );
 }
 
 const SMALL: &str = "steps = 4\nbatch = 1\nlr = 1e-3\nseed = 3\ncheckpoint_every = 2";
@@ -217,16 +177,7 @@ fn interrupted_and_resumed_run_matches_an_uninterrupted_one_bit_for_bit() {
     );
 
     // the trained bundle generates
-    let sim = tmp.path().join("sim");
-    let scene = tmp.path().join("tiny.toml");
-    std::fs::write(&scene, TINY_SCENE).unwrap();
-    ok(&veila()
-        .args(["simulate", "--quiet", "--frames", "1", "--scene"])
-        .arg(&scene)
-        .arg("--out")
-        .arg(&sim)
-        .output()
-        .unwrap());
+    let sim = common::simulate(tmp.path(), &tiny_scene(16, 128, 3), 0);
     ok(&veila()
         .args(["generate", "--quiet", "--steps", "1", "--image"])
         .arg(sim.join("image_2/000000.png"))
