@@ -20,7 +20,7 @@ use veila_diffusion::SamplerConfig;
 use veila_diffusion::bundle::{Bundle, Variant};
 use veila_diffusion::pipeline::{CameraView, GenerateOptions};
 use veila_geom::{RangeImage, RayTable, Region};
-use veila_metrics::bev::{BevConfig, bev_histogram};
+use veila_metrics::bev::{BevConfig, BevHistogram, bev_histogram};
 use veila_metrics::crossmodal::{
     DepthAlignment, Map2d, ProjectionFilter, cm_depth_consistency, cm_semantic_consistency,
 };
@@ -156,15 +156,27 @@ struct Report {
 }
 
 /// Judges shared by every variant: the bundled model's encoder heads (depth for CM-DC, semantics
-/// for CM-SC) and the ground truth of the test frames.
+/// for CM-SC) and everything about the reference scans, computed once for all variants and seeds.
 struct Judges {
     depth_pred: Vec<Vec<f32>>,
     label_pred: Vec<Vec<u32>>,
-    reference_points: Vec<Vec<Vec3>>,
-    reference_intensity: Vec<Vec<f32>>,
+    /// Per region, in `Region::ALL` order.
+    reference: Vec<RegionReference>,
 }
 
-fn judges(bundle: &Bundle, tests: &[SimExample], device: &Device) -> Result<Judges> {
+/// The reference side of the set metrics of one region.
+struct RegionReference {
+    histograms: Vec<BevHistogram>,
+    /// FRD and FPD feature rows (flattened), when the feature networks are present.
+    features: Option<(Vec<f32>, Vec<f32>)>,
+}
+
+fn make_judges(
+    bundle: &Bundle,
+    tests: &[SimExample],
+    nets: Option<&FeatureNets>,
+    device: &Device,
+) -> Result<Judges> {
     let (h, w) = (bundle.config.image_height, bundle.config.image_width);
     let mut depth_pred = Vec::new();
     let mut label_pred = Vec::new();
@@ -187,11 +199,27 @@ fn judges(bundle: &Bundle, tests: &[SimExample], device: &Device) -> Result<Judg
         reference_points.push(un.points);
         reference_intensity.push(un.intensity);
     }
+    let cfg = BevConfig::r2dm();
+    let reference = Region::ALL
+        .into_iter()
+        .map(|region| {
+            let histograms = reference_points
+                .iter()
+                .map(|p| bev_histogram(p, &cfg, region, "reference scan"))
+                .collect::<std::result::Result<Vec<_>, _>>()?;
+            let features = nets
+                .map(|n| region_features(n, &reference_points, &reference_intensity, region))
+                .transpose()?;
+            Ok(RegionReference {
+                histograms,
+                features,
+            })
+        })
+        .collect::<Result<Vec<_>>>()?;
     Ok(Judges {
         depth_pred,
         label_pred,
-        reference_points,
-        reference_intensity,
+        reference,
     })
 }
 
@@ -251,35 +279,26 @@ fn seed_metrics(
     let gen_intensity: Vec<Vec<f32>> = unprojected.iter().map(|u| u.intensity.clone()).collect();
     let mut m: BTreeMap<String, BTreeMap<String, f64>> = BTreeMap::new();
     let cfg = BevConfig::r2dm();
-    for region in Region::ALL {
+    for (region, reference) in Region::ALL.into_iter().zip(&judges.reference) {
         let hg = gen_points
             .iter()
             .map(|p| bev_histogram(p, &cfg, region, "generated scan"))
             .collect::<std::result::Result<Vec<_>, _>>()?;
-        let hr = judges
-            .reference_points
-            .iter()
-            .map(|p| bev_histogram(p, &cfg, region, "reference scan"))
-            .collect::<std::result::Result<Vec<_>, _>>()?;
+        let hr = &reference.histograms;
         let rn = region_name(region).to_string();
         m.entry("jsd".into())
             .or_default()
-            .insert(rn.clone(), or_nan("jsd", dist::jsd(&hg, &hr)));
+            .insert(rn.clone(), or_nan("jsd", dist::jsd(&hg, hr)));
         m.entry("mmd (x1e4)".into()).or_default().insert(
             rn.clone(),
-            1e4 * or_nan("mmd", dist::mmd_r2dm_dense(&hg, &hr, 0.5)),
+            1e4 * or_nan("mmd", dist::mmd_r2dm_dense(&hg, hr, 0.5)),
         );
-        if let Some(nets) = nets {
-            let (frd, fpd) = frd_fpd(
-                nets,
-                (&gen_points, &gen_intensity),
-                (&judges.reference_points, &judges.reference_intensity),
-                region,
-            )
-            .unwrap_or_else(|e| {
-                eprintln!("  frd / fpd ({rn}): {e:#}; reported as n/a");
-                (f64::NAN, f64::NAN)
-            });
+        if let (Some(nets), Some(reference)) = (nets, &reference.features) {
+            let (frd, fpd) = frd_fpd(nets, &gen_points, &gen_intensity, reference, region)
+                .unwrap_or_else(|e| {
+                    eprintln!("  frd / fpd ({rn}): {e:#}; reported as n/a");
+                    (f64::NAN, f64::NAN)
+                });
             m.entry("frd".into()).or_default().insert(rn.clone(), frd);
             m.entry("fpd".into()).or_default().insert(rn.clone(), fpd);
         }
@@ -359,32 +378,39 @@ fn in_region(points: &[Vec3], intensity: &[f32], region: Region) -> (Vec<Vec3>, 
         .unzip()
 }
 
-/// FRD and FPD between generated and reference scans restricted to `region`, with the shipped
-/// feature networks.
+/// FRD and FPD feature rows (flattened) of the scans' points in `region`.
+fn region_features(
+    nets: &FeatureNets,
+    points: &[Vec<Vec3>],
+    intensity: &[Vec<f32>],
+    region: Region,
+) -> Result<(Vec<f32>, Vec<f32>)> {
+    let scans: Vec<(Vec<Vec3>, Vec<f32>)> = points
+        .iter()
+        .zip(intensity)
+        .map(|(p, i)| in_region(p, i, region))
+        .filter(|(p, _)| !p.is_empty())
+        .collect();
+    let range_in: Vec<(&[Vec3], Option<&[f32]>)> = scans
+        .iter()
+        .map(|(p, i)| (p.as_slice(), Some(i.as_slice())))
+        .collect();
+    let rf = nets.scan_range_features(&range_in)?;
+    let point_in: Vec<&[Vec3]> = scans.iter().map(|(p, _)| p.as_slice()).collect();
+    let pf = nets.point_features(&point_in)?;
+    Ok((rf.concat(), pf.concat()))
+}
+
+/// FRD and FPD of generated scans in `region` against the reference features of that region, with
+/// the shipped feature networks.
 fn frd_fpd(
     nets: &FeatureNets,
-    (gp, gi): (&[Vec<Vec3>], &[Vec<f32>]),
-    (rp, ri): (&[Vec<Vec3>], &[Vec<f32>]),
+    points: &[Vec<Vec3>],
+    intensity: &[Vec<f32>],
+    (rr, rpf): &(Vec<f32>, Vec<f32>),
     region: Region,
 ) -> Result<(f64, f64)> {
-    let side = |p: &[Vec<Vec3>], i: &[Vec<f32>]| -> Result<(Vec<f32>, Vec<f32>)> {
-        let scans: Vec<(Vec<Vec3>, Vec<f32>)> = p
-            .iter()
-            .zip(i)
-            .map(|(p, i)| in_region(p, i, region))
-            .filter(|(p, _)| !p.is_empty())
-            .collect();
-        let range_in: Vec<(&[Vec3], Option<&[f32]>)> = scans
-            .iter()
-            .map(|(p, i)| (p.as_slice(), Some(i.as_slice())))
-            .collect();
-        let rf = nets.scan_range_features(&range_in)?;
-        let point_in: Vec<&[Vec3]> = scans.iter().map(|(p, _)| p.as_slice()).collect();
-        let pf = nets.point_features(&point_in)?;
-        Ok((rf.concat(), pf.concat()))
-    };
-    let (gr, gpf) = side(gp, gi)?;
-    let (rr, rpf) = side(rp, ri)?;
+    let (gr, gpf) = region_features(nets, points, intensity, region)?;
     let rd = nets.rangenet().config().feature_dim();
     let pd = nets.pointnet().config().feature_dim();
     let fd = |a: &[f32], b: &[f32], d: usize| -> Result<f64> {
@@ -396,7 +422,7 @@ fn frd_fpd(
             &FeatureStats::from_rows(b, d, "reference features")?,
         )?)
     };
-    Ok((fd(&gr, &rr, rd)?, fd(&gpf, &rpf, pd)?))
+    Ok((fd(&gr, rr, rd)?, fd(&gpf, rpf, pd)?))
 }
 
 /// Segments a scan with the range net's semantic head: the points that won a range pixel and the
@@ -470,7 +496,6 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         &base.config,
         "simulating test frames",
     )?;
-    let judges = judges(&base, &tests, &device)?;
     let nets_dir = root.join("models/feature-nets");
     let nets = match FeatureNets::from_dir(&nets_dir, &device) {
         Ok(n) => Some(n),
@@ -479,6 +504,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
             None
         }
     };
+    let judges = make_judges(&base, &tests, nets.as_ref(), &device)?;
     let variants = args
         .variants
         .clone()
@@ -592,12 +618,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
 
     // sampler sweep on the bundled model
     let sweep_tests = &tests[..args.sweep_frames.min(tests.len())];
-    let sweep_judges = Judges {
-        depth_pred: judges.depth_pred[..sweep_tests.len()].to_vec(),
-        label_pred: judges.label_pred[..sweep_tests.len()].to_vec(),
-        reference_points: judges.reference_points[..sweep_tests.len()].to_vec(),
-        reference_intensity: judges.reference_intensity[..sweep_tests.len()].to_vec(),
-    };
+    let sweep_judges = make_judges(&base, sweep_tests, nets.as_ref(), &device)?;
     let mut sweep = Vec::new();
     for name in ["ddpm", "ddim", "dpm"] {
         for &steps in &args.sweep_steps {
