@@ -426,14 +426,20 @@ impl DenoiserTraining {
         let n = self.x0.len();
         let b = self.batch_size;
         let start = step as usize * b;
+        // one seeded shuffle per epoch, built once for the (at most a few) epochs the batch spans
+        let mut perm: Option<(usize, Vec<usize>)> = None;
         (start..start + b)
             .map(|k| {
-                let epoch = (k / n) as u64;
-                let mut perm: Vec<usize> = (0..n).collect();
-                let mut rng =
-                    ChaCha8Rng::seed_from_u64(self.seed ^ epoch.wrapping_mul(0x9E37_79B9));
-                perm.shuffle(&mut rng);
-                perm[k % n]
+                let epoch = k / n;
+                if perm.as_ref().is_none_or(|(e, _)| *e != epoch) {
+                    let mut p: Vec<usize> = (0..n).collect();
+                    let mut rng = ChaCha8Rng::seed_from_u64(
+                        self.seed ^ (epoch as u64).wrapping_mul(0x9E37_79B9),
+                    );
+                    p.shuffle(&mut rng);
+                    perm = Some((epoch, p));
+                }
+                perm.as_ref().map_or(0, |(_, p)| p[k % n])
             })
             .collect()
     }
