@@ -438,7 +438,7 @@ fn run_eval(a: EvalArgs) -> Result<()> {
             generated: &gen_files,
             reference: &ref_files,
             metrics: &report,
-            date: crate::report::report_time(),
+            date: veila_data::stamp::report_time(),
             command: crate::report::command_line(),
         })?;
         html.write(path)?;

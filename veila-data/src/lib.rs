@@ -25,7 +25,8 @@
 //! - Previews: [`render`] (range, intensity, labels, bird's-eye view, camera overlay) and
 //!   [`image_io::write_png`].
 //! - Plots: [`plot`] (line / scatter plots with log axes, error bars and legends, grouped bar charts)
-//!   rendered to PNG with a built-in bitmap font, no system fonts needed.
+//!   rendered to PNG with a built-in bitmap font, no system fonts needed; report time stamps in
+//!   [`stamp`].
 //! - Training shards: [`shard::write_shard`] / [`shard::read_shard`] and [`shard::Manifest`]; whole
 //!   datasets with [`convert::convert`] (bounded memory, resumable, shardable across workers).
 //!
@@ -83,6 +84,7 @@ pub mod semantic_kitti;
 pub mod shard;
 pub mod sim;
 pub mod spec;
+pub mod stamp;
 pub mod weather;
 mod yaml_lite;
 
