@@ -140,28 +140,40 @@ pub fn conv2d_padded(
     bias: Option<&Tensor>,
     stride: usize,
 ) -> Result<Tensor> {
+    conv2d_padded_hw(xp, weight, bias, stride, stride)
+}
+
+/// [`conv2d_padded`] with separate row and column strides (RangeNet++ downsamples columns only),
+/// output `[B, out, (Hp - k) / stride_h + 1, (Wp - k) / stride_w + 1]`.
+pub fn conv2d_padded_hw(
+    xp: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    stride_h: usize,
+    stride_w: usize,
+) -> Result<Tensor> {
     let (b, c, hp, wp) = xp.dims4()?;
     let (out_c, wc, kh, kw) = weight.dims4()?;
-    if wc != c || kh > hp || kw > wp || stride == 0 {
+    if wc != c || kh > hp || kw > wp || stride_h == 0 || stride_w == 0 {
         return Err(shape_err(
             "conv2d_padded input",
-            format!("[B, {wc}, >= {kh}, >= {kw}] (stride {stride} >= 1)"),
+            format!("[B, {wc}, >= {kh}, >= {kw}] (strides {stride_h} x {stride_w} >= 1)"),
             xp.dims(),
         ));
     }
-    let ho = (hp - kh) / stride + 1;
-    let wo = (wp - kw) / stride + 1;
+    let ho = (hp - kh) / stride_h + 1;
+    let wo = (wp - kw) / stride_w + 1;
     let y = if kh == 1 && kw == 1 {
-        let xs = strided_narrow(&strided_narrow(xp, 2, 0, ho, stride)?, 3, 0, wo, stride)?;
+        let xs = strided_narrow(&strided_narrow(xp, 2, 0, ho, stride_h)?, 3, 0, wo, stride_w)?;
         let wm = weight.reshape((1, out_c, c))?;
         wm.broadcast_matmul(&xs.reshape((b, c, ho * wo))?)?
             .reshape((b, out_c, ho, wo))?
     } else {
         let mut cols = Vec::with_capacity(kh * kw);
         for ky in 0..kh {
-            let rows = strided_narrow(xp, 2, ky, ho, stride)?;
+            let rows = strided_narrow(xp, 2, ky, ho, stride_h)?;
             for kx in 0..kw {
-                cols.push(strided_narrow(&rows, 3, kx, wo, stride)?);
+                cols.push(strided_narrow(&rows, 3, kx, wo, stride_w)?);
             }
         }
         // [B, k*k*C, Ho*Wo], channel index (ky * kw + kx) * C + c

@@ -224,33 +224,12 @@ impl RangeNetConfig {
     }
 }
 
-/// Every `stride`-th of `n` entries along `dim` starting at `start` (entries past the end read as
-/// zero), from `narrow` / `pad_with_zeros` / `reshape`, so it backpropagates.
-fn strided_narrow(t: &Tensor, dim: usize, start: usize, n: usize, stride: usize) -> Result<Tensor> {
-    if stride == 1 {
-        return Ok(t.narrow(dim, start, n)?);
-    }
-    let len = t.dim(dim)?;
-    let want = n * stride;
-    let avail = len.saturating_sub(start).min(want);
-    let mut s = t.narrow(dim, start, avail)?;
-    if avail < want {
-        s = s.pad_with_zeros(dim, 0, want - avail)?;
-    }
-    let mut shape = s.dims().to_vec();
-    shape[dim] = n;
-    shape.insert(dim + 1, stride);
-    Ok(s.reshape(shape.as_slice())?
-        .narrow(dim + 1, 0, 1)?
-        .squeeze(dim + 1)?)
-}
-
 /// A zero-padded `k x k` convolution without bias with separate row and column strides
 /// (`x: [B, C, H, W]`, `weight: [out, C, k, k]`), output
 /// `[B, out, (H + 2 pad - k) / stride_h + 1, (W + 2 pad - k) / stride_w + 1]`.
 ///
-/// Equal strides go through [`crate::ops::conv2d_zero_pad`]; others through an explicit im2col whose
-/// backward pass is slices and matrix products (fast on the CPU).
+/// Runs as [`crate::ops::conv2d_padded_hw`]: an explicit im2col whose backward pass is slices and
+/// matrix products (fast on the CPU).
 pub fn conv2d_strided(
     x: &Tensor,
     weight: &Tensor,
@@ -258,38 +237,12 @@ pub fn conv2d_strided(
     stride_h: usize,
     stride_w: usize,
 ) -> Result<Tensor> {
-    if stride_h == stride_w {
-        return crate::ops::conv2d_zero_pad(x, weight, None, pad, stride_h);
-    }
-    let (b, c, h, w) = x.dims4()?;
-    let (out_c, wc, kh, kw) = weight.dims4()?;
-    let (hp, wp) = (h + 2 * pad, w + 2 * pad);
-    if wc != c || kh > hp || kw > wp || stride_h == 0 || stride_w == 0 {
-        return Err(shape_err(
-            "conv2d_strided input",
-            format!("[B, {wc}, H, W] with H, W + 2 pad >= {kh} and strides >= 1"),
-            x.dims(),
-        ));
-    }
     let xp = if pad > 0 {
         x.pad_with_zeros(2, pad, pad)?.pad_with_zeros(3, pad, pad)?
     } else {
         x.clone()
     };
-    let ho = (hp - kh) / stride_h + 1;
-    let wo = (wp - kw) / stride_w + 1;
-    let mut cols = Vec::with_capacity(kh * kw);
-    for ky in 0..kh {
-        let rows = strided_narrow(&xp, 2, ky, ho, stride_h)?;
-        for kx in 0..kw {
-            cols.push(strided_narrow(&rows, 3, kx, wo, stride_w)?);
-        }
-    }
-    let col = Tensor::cat(&cols, 1)?.reshape((b, kh * kw * c, ho * wo))?;
-    let wm = weight
-        .permute((0, 2, 3, 1))?
-        .reshape((1, out_c, kh * kw * c))?;
-    Ok(wm.broadcast_matmul(&col)?.reshape((b, out_c, ho, wo))?)
+    crate::ops::conv2d_padded_hw(&xp, weight, None, stride_h, stride_w)
 }
 
 /// `max(x, slope x)`.
