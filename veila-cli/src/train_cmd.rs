@@ -42,7 +42,6 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use candle_core::{DType, Device, Tensor};
-use candle_nn::VarMap;
 use clap::Args;
 use serde::{Deserialize, Serialize};
 use veila_data::image::imageops;
@@ -52,8 +51,10 @@ use veila_diffusion::bundle::{
     sha256_hex,
 };
 use veila_diffusion::encoding::ScanView;
-use veila_diffusion::pipeline::{DenoiserTraining, TrainExample, train_small_cnn, varmap_tensors};
-use veila_diffusion::{Diffusion, StepStats, TrainConfig, TrainObserver, Trainer, VeilaDenoiser};
+use veila_diffusion::pipeline::{
+    DenoiserFit, TrainExample, fit_denoiser, train_small_cnn, varmap_tensors,
+};
+use veila_diffusion::{StepStats, TrainConfig, TrainObserver};
 use veila_geom::{
     LidarSensor, NO_POINT, PinholeCamera, ProjectionOptions, Projector, RangeImage, RayTable,
 };
@@ -212,7 +213,7 @@ struct OutputSection {
 }
 
 /// Written to `OUTPUT/checkpoints/run.json`: a rerun resumes only with the same settings.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize)]
 struct RunFingerprint {
     bundle: BundleConfig,
     train: serde_json::Value,
@@ -221,7 +222,6 @@ struct RunFingerprint {
     encoders_from: Option<String>,
 }
 
-const RUN_FILE: &str = "run.json";
 const ENCODER_DIR: &str = "encoders";
 
 fn read_config(path: &Path) -> Result<TrainFile> {
@@ -590,26 +590,12 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
             .as_ref()
             .map(|p| p.display().to_string()),
     };
-    let run_path = ck_dir.join(RUN_FILE);
-    if run_path.exists() {
-        let text = std::fs::read(&run_path)
-            .with_context(|| format!("{}: cannot read", run_path.display()))?;
-        let old: RunFingerprint = serde_json::from_slice(&text)
-            .with_context(|| format!("{}: not a run record", run_path.display()))?;
-        if old != fingerprint {
-            bail!(
-                "{}: the checkpoints there were made with other settings (model, [train] or data changed); \
-                 use another [output] dir or delete {}",
-                out.display(),
-                ck_dir.display()
-            );
-        }
-    } else {
-        veila_data::atomic::write_atomic(
-            &run_path,
-            serde_json::to_string_pretty(&fingerprint)?.as_bytes(),
-        )?;
-    }
+    veila_diffusion::claim_checkpoint_dir(&ck_dir, &fingerprint).with_context(|| {
+        format!(
+            "{}: model, [train] or data changed since these checkpoints; use another [output] dir",
+            out.display()
+        )
+    })?;
 
     // 3. encoders
     let t_enc = Instant::now();
@@ -730,11 +716,6 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
 
     // 4. denoiser
     let t_den = Instant::now();
-    let varmap = VarMap::new();
-    let net = veila_nn::Denoiser::new(
-        &cfg.denoiser,
-        veila_nn::seeded_var_builder(&varmap, t.seed, DType::F32, &device),
-    )?;
     let examples: Vec<TrainExample> = prepared
         .into_iter()
         .map(|p| TrainExample {
@@ -743,16 +724,6 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
             x0: p.x0,
         })
         .collect();
-    let data = DenoiserTraining::new(
-        &cfg,
-        semantic.as_ref(),
-        depth.as_ref(),
-        &net,
-        &examples,
-        t.batch,
-        t.seed,
-        &device,
-    )?;
     let tc = TrainConfig {
         seed: t.seed,
         lr: t.lr,
@@ -769,34 +740,38 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         keep_checkpoints: Some(t.keep_checkpoints.max(1)),
         ..TrainConfig::default()
     };
-    let batch_net = net.clone();
-    let mut trainer = Trainer::new(
-        VeilaDenoiser::new(net),
-        varmap,
-        Diffusion::new(cfg.diffusion.clone())?,
-        tc.clone(),
-    )?;
-    if let Some(p) = trainer
-        .resume_latest(&ck_dir)
-        .with_context(|| format!("resuming from {}", ck_dir.display()))?
-    {
-        println!(
-            "  resumed from {} (step {} of {})",
-            p.display(),
-            trainer.step(),
-            t.steps
-        );
-    }
     let mut observer = Progress {
         bar: progress::bar(t.steps, "denoiser"),
         ema_loss: None,
         stop_after: args.stop_after,
         run: 0,
     };
-    observer.bar.set_position(trainer.step());
-    let mut source = |step: u64| data.batch(&batch_net, step);
-    let summary = trainer.fit(&mut source, Some(&ck_dir), &mut observer)?;
+    let bar = observer.bar.clone();
+    let outcome = fit_denoiser(
+        &cfg,
+        DenoiserFit {
+            semantic: semantic.as_ref(),
+            depth: depth.as_ref(),
+            examples: &examples,
+            batch_size: t.batch,
+            train: &tc,
+            checkpoint_dir: &ck_dir,
+            init: None,
+        },
+        &device,
+        |p, step| {
+            println!(
+                "  resumed from {} (step {step} of {})",
+                p.display(),
+                t.steps
+            );
+            bar.set_position(step);
+        },
+        &mut observer,
+    )
+    .with_context(|| format!("training with checkpoints in {}", ck_dir.display()))?;
     observer.bar.finish_and_clear();
+    let summary = outcome.summary;
     let den_secs = t_den.elapsed().as_secs_f64();
     println!(
         "  denoiser: {} steps this run (now at {} of {}), mean loss {:.4}, {} skipped, {:.1} s",
@@ -807,10 +782,10 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         summary.skipped,
         den_secs
     );
-    if trainer.step() < t.steps {
+    if outcome.step < t.steps {
         println!(
             "stopped at step {} of {}; checkpoint in {}: rerun `veila train --config {}` to continue",
-            trainer.step(),
+            outcome.step,
             t.steps,
             ck_dir.display(),
             args.config.display()
@@ -819,7 +794,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
     }
 
     // 5. the bundle
-    weights.insert(DENOISER_FILE, trainer.ema_weights());
+    weights.insert(DENOISER_FILE, outcome.ema_weights);
     cfg.provenance = serde_json::json!({
         "trained_by": "veila train",
         "config": args.config.display().to_string(),

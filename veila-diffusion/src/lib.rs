@@ -84,4 +84,5 @@ pub use schedule::{
 };
 pub use trainer::{
     Batch, BatchSource, FitSummary, LrSchedule, StepStats, TrainConfig, TrainObserver, Trainer,
+    claim_checkpoint_dir,
 };

@@ -7,12 +7,14 @@
 //! * [`Bundle::generate`] samples scans for one camera rig (one or more views); `samples > 1` draws
 //!   several scans in one batch.
 //! * [`Bundle::inpaint`] regenerates the pixels a mask marks unknown and keeps the rest (RePaint).
-//! * [`DenoiserTraining`] trains the denoiser of a bundle on [`TrainExample`]s with frozen encoder
-//!   features computed once per example; [`train_small_cnn`] trains an encoder.
+//! * [`fit_denoiser`] trains the denoiser of a bundle on [`TrainExample`]s (resumable checkpoints),
+//!   with [`DenoiserTraining`] computing the frozen encoder features once per example;
+//!   [`train_small_cnn`] trains an encoder.
 //!
 //! Everything is seeded: the same bundle, inputs and seed give the same scans.
 
 use std::collections::HashMap;
+use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
@@ -31,7 +33,7 @@ use crate::nn::VeilaDenoiser;
 use crate::noise::randn;
 use crate::objective::Diffusion;
 use crate::sampler::{RepaintConfig, Sampler, SamplerConfig, inpaint};
-use crate::trainer::{AdamW, Batch, ParamsAdamW};
+use crate::trainer::{AdamW, Batch, FitSummary, ParamsAdamW, TrainConfig, TrainObserver, Trainer};
 
 /// One camera view at the bundle's image size.
 #[derive(Debug, Clone, Copy)]
@@ -465,6 +467,106 @@ impl DenoiserTraining {
         };
         Ok(Batch { x0, cond })
     }
+}
+
+/// What [`fit_denoiser`] trains on and how.
+#[derive(Debug, Clone, Copy)]
+pub struct DenoiserFit<'a> {
+    /// Frozen `E_s` (when the config uses semantic cues).
+    pub semantic: Option<&'a SmallCnn>,
+    /// Frozen `E_d` (when the config uses depth cues).
+    pub depth: Option<&'a SmallCnn>,
+    /// The training examples (one camera rig).
+    pub examples: &'a [TrainExample],
+    /// Examples per update.
+    pub batch_size: usize,
+    /// Optimiser, schedule, EMA, dropout and checkpoint settings; its seed also seeds the
+    /// initialisation and the batch order.
+    pub train: &'a TrainConfig,
+    /// Where checkpoints go; the newest one there is resumed.
+    pub checkpoint_dir: &'a Path,
+    /// Start from these weights wherever names and shapes match (fine-tuning); the rest keeps its
+    /// seeded initialisation.
+    pub init: Option<&'a HashMap<String, Tensor>>,
+}
+
+/// What [`fit_denoiser`] did.
+#[derive(Debug)]
+pub struct DenoiserFitOutcome {
+    /// The `fit` call's summary (steps run in this call, mean loss, ...).
+    pub summary: FitSummary,
+    /// The trainer's step afterwards (less than `total_steps` when the observer stopped early).
+    pub step: u64,
+    /// Number of tensors taken from [`DenoiserFit::init`].
+    pub initialised: usize,
+    /// The EMA weights, by name (what a bundle ships).
+    pub ema_weights: HashMap<String, Tensor>,
+}
+
+/// Trains the denoiser of `config` on in-memory examples: a seeded network (optionally started from
+/// `fit.init`), frozen encoder features via [`DenoiserTraining`], the [`Trainer`] with its
+/// checkpoints in `fit.checkpoint_dir`. A checkpoint already there is resumed first (`on_resume`
+/// gets its path and step), so an interrupted run continues exactly.
+pub fn fit_denoiser<O>(
+    config: &BundleConfig,
+    fit: DenoiserFit<'_>,
+    device: &Device,
+    on_resume: impl FnOnce(&Path, u64),
+    observer: &mut O,
+) -> Result<DenoiserFitOutcome>
+where
+    O: for<'g> TrainObserver<VeilaDenoiser<'g>>,
+{
+    let varmap = VarMap::new();
+    let net = Net::new(
+        &config.denoiser,
+        veila_nn::seeded_var_builder(&varmap, fit.train.seed, DType::F32, device),
+    )?;
+    let mut initialised = 0;
+    if let Some(init) = fit.init {
+        let data = varmap
+            .data()
+            .lock()
+            .map_err(|_| Error::Data("the VarMap lock is poisoned".into()))?;
+        for (name, var) in data.iter() {
+            if let Some(t) = init.get(name)
+                && t.dims() == var.dims()
+            {
+                var.set(t)?;
+                initialised += 1;
+            }
+        }
+    }
+    let data = DenoiserTraining::new(
+        config,
+        fit.semantic,
+        fit.depth,
+        &net,
+        fit.examples,
+        fit.batch_size,
+        fit.train.seed,
+        device,
+    )?;
+    // the batches run the condition fusion through a clone that shares the trained variables
+    let batch_net = net.clone();
+    let mut trainer = Trainer::new(
+        VeilaDenoiser::new(net),
+        varmap,
+        Diffusion::new(config.diffusion.clone())?,
+        fit.train.clone(),
+    )?;
+    let resumed: Option<PathBuf> = trainer.resume_latest(fit.checkpoint_dir)?;
+    if let Some(p) = &resumed {
+        on_resume(p, trainer.step());
+    }
+    let mut source = |step: u64| data.batch(&batch_net, step);
+    let summary = trainer.fit(&mut source, Some(fit.checkpoint_dir), observer)?;
+    Ok(DenoiserFitOutcome {
+        summary,
+        step: trainer.step(),
+        initialised,
+        ema_weights: trainer.ema_weights(),
+    })
 }
 
 /// What one encoder training step did.

@@ -9,14 +9,16 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use candle_core::{DType, Device};
+use candle_core::Device;
 use candle_nn::VarMap;
 use clap::Args;
 use veila_diffusion::bundle::{
     Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, SEMANTIC_FILE, Variant,
 };
-use veila_diffusion::pipeline::{DenoiserTraining, TrainExample, train_small_cnn, varmap_tensors};
-use veila_diffusion::{Diffusion, StepStats, TrainConfig, TrainObserver, Trainer, VeilaDenoiser};
+use veila_diffusion::pipeline::{
+    DenoiserFit, TrainExample, fit_denoiser, train_small_cnn, varmap_tensors,
+};
+use veila_diffusion::{StepStats, TrainConfig, TrainObserver};
 use veila_nn::encoders::small_cnn::SmallCnn;
 
 use crate::simdata::{SimExample, render_split, workspace_root};
@@ -205,47 +207,19 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
 
     // 2. denoiser
     let t = Instant::now();
-    let varmap = VarMap::new();
-    let net = veila_nn::Denoiser::new(
-        &cfg.denoiser,
-        veila_nn::seeded_var_builder(&varmap, args.seed, DType::F32, &device),
-    )?;
-    if let Some(dir) = &args.init_from {
-        let b = Bundle::from_dir(dir, &device)
-            .with_context(|| format!("loading initial weights from {}", dir.display()))?;
-        let data = varmap
-            .data()
-            .lock()
-            .map_err(|_| anyhow::anyhow!("VarMap lock poisoned"))?;
-        let mut copied = 0;
-        for (name, var) in data.iter() {
-            if let Some(t) = b.weights.get(name)
-                && t.dims() == var.dims()
-            {
-                var.set(t)?;
-                copied += 1;
-            }
-        }
-        println!(
-            "  initialised {copied} of {} denoiser tensors from {}",
-            data.len(),
-            dir.display()
-        );
-    }
+    let init = args
+        .init_from
+        .as_ref()
+        .map(|dir| {
+            Bundle::from_dir(dir, &device)
+                .map(|b| b.weights)
+                .with_context(|| format!("loading initial weights from {}", dir.display()))
+        })
+        .transpose()?;
     let train_examples: Vec<TrainExample> = examples
         .iter()
         .map(|e| e.train_example(&cfg))
         .collect::<Result<_>>()?;
-    let data = DenoiserTraining::new(
-        &cfg,
-        semantic.as_ref(),
-        depth.as_ref(),
-        &net,
-        &train_examples,
-        args.batch,
-        args.seed,
-        &device,
-    )?;
     let tc = TrainConfig {
         seed: args.seed,
         lr: args.lr,
@@ -262,13 +236,6 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         keep_checkpoints: Some(2),
         ..TrainConfig::default()
     };
-    let batch_net = net.clone();
-    let mut trainer = Trainer::new(
-        VeilaDenoiser::new(net),
-        varmap,
-        Diffusion::new(cfg.diffusion.clone())?,
-        tc.clone(),
-    )?;
     let work = args
         .work
         .clone()
@@ -285,44 +252,47 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         "encoders_from": args.encoders_from,
         "init_from": args.init_from,
     });
-    let key_path = work.join("run.json");
-    match std::fs::read(&key_path) {
-        Ok(bytes) => {
-            let old: serde_json::Value = serde_json::from_slice(&bytes)
-                .with_context(|| format!("reading {}", key_path.display()))?;
-            if old != run_key {
-                anyhow::bail!(
-                    "{} holds checkpoints of a run with other settings; delete the folder or pass another --work",
-                    work.display()
-                );
-            }
-        }
-        Err(_) => {
-            std::fs::create_dir_all(&work)
-                .with_context(|| format!("creating {}", work.display()))?;
-            veila_data::atomic::write_atomic(
-                &key_path,
-                serde_json::to_string_pretty(&run_key)?.as_bytes(),
-            )?;
-        }
-    }
-    if let Some(p) = trainer.resume_latest(&work)? {
-        println!("  resumed from {} (step {})", p.display(), trainer.step());
-    }
+    veila_diffusion::claim_checkpoint_dir(&work, &run_key)
+        .with_context(|| "pass another --work to start a separate run")?;
     let mut progress = Progress {
         bar: crate::progress_bar(args.steps, "denoiser"),
         ema_loss: None,
     };
-    progress.bar.set_position(trainer.step());
-    let mut source = |step: u64| data.batch(&batch_net, step);
-    let summary = trainer.fit(&mut source, Some(&work), &mut progress)?;
+    let bar = progress.bar.clone();
+    let outcome = fit_denoiser(
+        &cfg,
+        DenoiserFit {
+            semantic: semantic.as_ref(),
+            depth: depth.as_ref(),
+            examples: &train_examples,
+            batch_size: args.batch,
+            train: &tc,
+            checkpoint_dir: &work,
+            init: init.as_ref(),
+        },
+        &device,
+        |p, step| {
+            println!("  resumed from {} (step {step})", p.display());
+            bar.set_position(step);
+        },
+        &mut progress,
+    )?;
     progress.bar.finish_and_clear();
+    if let Some(dir) = &args.init_from {
+        println!(
+            "  initialised {} of {} denoiser tensors from {}",
+            outcome.initialised,
+            outcome.ema_weights.len(),
+            dir.display()
+        );
+    }
+    let summary = outcome.summary;
     let den_secs = t.elapsed().as_secs_f64();
     println!(
         "  denoiser: {} steps this run, mean loss {:.4}, {} skipped, {:.0} s",
         summary.steps_run, summary.mean_loss, summary.skipped, den_secs
     );
-    weights.insert(DENOISER_FILE, trainer.ema_weights());
+    weights.insert(DENOISER_FILE, outcome.ema_weights);
 
     cfg.provenance = serde_json::json!({
         "trained_by": "cargo xtask train-default",

@@ -118,6 +118,37 @@ fn load_tensors(path: &Path, device: &candle_core::Device) -> Result<HashMap<Str
 }
 
 /// The checkpoint directory name for `step`.
+/// Name of the run record [`claim_checkpoint_dir`] keeps in a checkpoint folder.
+pub const RUN_RECORD_FILE: &str = "run.json";
+
+/// Ties a checkpoint folder to one run: the first call writes `settings` (pretty JSON) to
+/// `dir/run.json`; later calls succeed only with the same settings, so resuming never mixes
+/// checkpoints of different models, data or schedules. Compared as text (the same serializer on
+/// both sides), since JSON parsing does not round-trip every float exactly.
+pub fn claim_checkpoint_dir<T: Serialize>(dir: &Path, settings: &T) -> Result<()> {
+    let path = dir.join(RUN_RECORD_FILE);
+    let text = serde_json::to_string_pretty(settings).map_err(|source| Error::Json {
+        path: path.clone(),
+        source,
+    })?;
+    match fs::read_to_string(&path) {
+        Ok(old) if old == text => Ok(()),
+        Ok(_) => Err(bad(
+            dir,
+            format!(
+                "its checkpoints were made with other settings (see {RUN_RECORD_FILE}); use another folder or delete this one"
+            ),
+        )),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            fs::create_dir_all(dir).map_err(io("creating checkpoint folder", dir))?;
+            let tmp = dir.join(format!(".{RUN_RECORD_FILE}.tmp-{}", std::process::id()));
+            fs::write(&tmp, text).map_err(io("writing run record", &tmp))?;
+            fs::rename(&tmp, &path).map_err(io("writing run record", &path))
+        }
+        Err(e) => Err(io("reading run record", &path)(e)),
+    }
+}
+
 pub(crate) fn checkpoint_name(step: u64) -> String {
     format!("step-{step:010}")
 }

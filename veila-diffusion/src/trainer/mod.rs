@@ -48,7 +48,9 @@ mod checkpoint;
 mod lr;
 mod optim;
 
-pub use checkpoint::{CheckpointState, RngState, find_latest_checkpoint};
+pub use checkpoint::{
+    CheckpointState, RUN_RECORD_FILE, RngState, claim_checkpoint_dir, find_latest_checkpoint,
+};
 pub use lr::LrSchedule;
 pub use optim::{AdamW, ParamsAdamW};
 

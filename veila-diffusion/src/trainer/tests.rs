@@ -197,3 +197,20 @@ fn train_config_validation() {
     }
     let _ = DType::F32;
 }
+
+#[test]
+fn a_checkpoint_folder_belongs_to_one_run() {
+    use crate::trainer::{RUN_RECORD_FILE, claim_checkpoint_dir};
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ck");
+    // values whose JSON text does not parse back to the same float bits must still match
+    let settings = serde_json::json!({ "lr": 1e-3, "delta": 1e-6f32, "steps": 7 });
+    claim_checkpoint_dir(&dir, &settings).unwrap();
+    assert!(dir.join(RUN_RECORD_FILE).is_file());
+    claim_checkpoint_dir(&dir, &settings).unwrap();
+    let other = serde_json::json!({ "lr": 1e-3, "delta": 1e-6f32, "steps": 8 });
+    let e = claim_checkpoint_dir(&dir, &other).unwrap_err().to_string();
+    assert!(e.contains("other settings"), "{e}");
+    // the record is not replaced by the refused settings
+    claim_checkpoint_dir(&dir, &settings).unwrap();
+}
