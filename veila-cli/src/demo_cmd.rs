@@ -11,11 +11,11 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::Args;
 use serde::Serialize;
 use veila_data::PointCloud;
-use veila_data::image::{RgbImage, imageops};
+use veila_data::image::RgbImage;
 use veila_data::render::{self, BevOptions, OverlayOptions, RangePreview};
 use veila_data::sim::{Scene, SceneConfig, SimFrame};
 use veila_data::weather::{
@@ -27,7 +27,7 @@ use veila_metrics::bev::{BevConfig, bev_histogram};
 use veila_metrics::crossmodal::{DepthAlignment, Map2d, ProjectionFilter, cm_depth_consistency};
 use veila_metrics::{MetricReport, MetricValue, Protocol, chamfer, dist};
 
-use crate::{model, progress, staging};
+use crate::{generate_cmd, model, progress, staging};
 
 /// The default scene: the first scene of the test split (`scenes/test.txt`), compiled in.
 const DEFAULT_SCENE_TOML: &str = include_str!("../../scenes/straight_road.toml");
@@ -100,14 +100,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         .map_err(|e| anyhow::anyhow!("--weather {}: {e}", args.weather))?;
     let device = model::device()?;
     let bundle = model::load_bundle(args.checkpoint.as_deref(), &device)?;
-    let mut sampler = bundle.config.sampler.clone();
-    if let Some(n) = args.steps {
-        sampler.steps = n;
-    }
-    if let Some(g) = args.guidance {
-        sampler.guidance_scale = g;
-    }
-    sampler.validate().context("sampler settings")?;
+    let sampler = generate_cmd::resolve_sampler(&bundle, None, args.steps, args.guidance)?;
     let staging = staging::stage(&args.out, args.force || is_earlier_demo_output(&args.out))?;
     let out = staging.path().to_path_buf();
 
@@ -205,7 +198,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         summary.range_pixels_generated,
         summary.range_pixels_true,
         seconds_generation,
-        sampler_name(&sampler),
+        generate_cmd::sampler_label(&sampler),
         sampler.steps,
         sampler.guidance_scale
     );
@@ -219,14 +212,6 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
     print_table(&metrics.metrics);
     println!("wrote {}", args.out.display());
     Ok(())
-}
-
-fn sampler_name(s: &veila_diffusion::SamplerConfig) -> &'static str {
-    match s.kind {
-        veila_diffusion::SamplerKind::Ddpm { .. } => "ddpm",
-        veila_diffusion::SamplerKind::Ddim { .. } => "ddim",
-        veila_diffusion::SamplerKind::DpmSolverPp2M => "dpm-solver++(2m)",
-    }
 }
 
 /// Files an earlier `veila demo` writes (so running the README's command twice refreshes its output
@@ -273,7 +258,7 @@ fn write_outputs(
     let preview = RangePreview::default();
     write_png(
         &dir.join("range_generated_vs_true.png"),
-        &stack_vertical(&[
+        &render::stack_vertical(&[
             render::render_range(generated_range, &preview),
             render::render_range(true_range, &preview),
         ]),
@@ -281,7 +266,7 @@ fn write_outputs(
     let bev = BevOptions::default();
     write_png(
         &dir.join("bev_generated_vs_true.png"),
-        &stack_horizontal(&[
+        &render::stack_horizontal(&[
             render::render_bev(generated, &bev)?,
             render::render_bev(truth, &bev)?,
         ]),
@@ -291,7 +276,7 @@ fn write_outputs(
     let true_overlay = render::render_overlay(rgb, &frame.camera, &truth.xyz, &ov)?;
     write_png(
         &dir.join("overlay_generated_vs_true.png"),
-        &stack_vertical(&[gen_overlay.image, true_overlay.image]),
+        &render::stack_vertical(&[gen_overlay.image, true_overlay.image]),
     )?;
     write_range_exr(&dir.join("generated.exr"), grid, generated_range)?;
     write_range_exr(&dir.join("true.exr"), grid, true_range)?;
@@ -397,30 +382,6 @@ fn depth_map(frame: &SimFrame) -> DepthMap {
             .map(|z| if *z > 0.0 { *z } else { f32::INFINITY })
             .collect(),
     }
-}
-
-fn stack_vertical(images: &[RgbImage]) -> RgbImage {
-    let w = images.iter().map(|i| i.width()).max().unwrap_or(0);
-    let h = images.iter().map(|i| i.height()).sum();
-    let mut out = RgbImage::new(w, h);
-    let mut y = 0;
-    for img in images {
-        imageops::replace(&mut out, img, 0, i64::from(y));
-        y += img.height();
-    }
-    out
-}
-
-fn stack_horizontal(images: &[RgbImage]) -> RgbImage {
-    let w = images.iter().map(|i| i.width()).sum();
-    let h = images.iter().map(|i| i.height()).max().unwrap_or(0);
-    let mut out = RgbImage::new(w, h);
-    let mut x = 0;
-    for img in images {
-        imageops::replace(&mut out, img, i64::from(x), 0);
-        x += img.width();
-    }
-    out
 }
 
 fn print_table(metrics: &[MetricValue]) {

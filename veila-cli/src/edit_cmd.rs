@@ -12,7 +12,7 @@ use serde::Serialize;
 use veila_data::image::{GrayImage, ImageReader, RgbImage, imageops};
 use veila_data::image_io::write_png;
 use veila_data::range_exr::read_range_exr;
-use veila_data::render::render_range;
+use veila_data::render::{self, render_range};
 use veila_data::scan::{PointFormat, read_points};
 use veila_diffusion::bundle::Bundle;
 use veila_diffusion::pipeline::GenerateOptions;
@@ -184,18 +184,6 @@ fn mask_from_box(bundle: &Bundle, known: &RangeImage, b: &Aabb) -> Result<Vec<bo
         .collect())
 }
 
-fn stack_vertical(images: &[RgbImage]) -> RgbImage {
-    let w = images.iter().map(|i| i.width()).max().unwrap_or(0);
-    let h = images.iter().map(|i| i.height()).sum();
-    let mut out = RgbImage::new(w, h);
-    let mut y = 0;
-    for img in images {
-        imageops::replace(&mut out, img, 0, i64::from(y));
-        y += img.height();
-    }
-    out
-}
-
 /// The range preview of `before` with the regenerated region tinted red.
 fn region_preview(bundle: &Bundle, before: &RangeImage, regen: &[bool]) -> RgbImage {
     let mut img = render_range(before, &range_preview(bundle));
@@ -352,7 +340,7 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
         let (record, after, _) = write_scan(out, &stem, &bundle, scan, &views[0])?;
         write_png(
             &out.join(format!("{stem}_before_after.png")),
-            &stack_vertical(&[
+            &render::stack_vertical(&[
                 render_range(&before, &preview),
                 marked.clone(),
                 render_range(&after, &preview),

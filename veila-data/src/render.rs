@@ -331,6 +331,31 @@ mod tests {
     }
 
     #[test]
+    fn stacking_places_each_image_at_its_offset() {
+        let a = RgbImage::from_pixel(3, 2, Rgb([1, 0, 0]));
+        let b = RgbImage::from_pixel(2, 4, Rgb([0, 2, 0]));
+        let v = stack_vertical(&[a.clone(), b.clone()]);
+        assert_eq!(v.dimensions(), (3, 6));
+        assert_eq!(v.get_pixel(2, 1), &Rgb([1, 0, 0]));
+        assert_eq!(v.get_pixel(1, 5), &Rgb([0, 2, 0]));
+        assert_eq!(
+            v.get_pixel(2, 5),
+            &Rgb([0, 0, 0]),
+            "gap right of the narrower image"
+        );
+        let h = stack_horizontal(&[a, b]);
+        assert_eq!(h.dimensions(), (5, 4));
+        assert_eq!(h.get_pixel(0, 1), &Rgb([1, 0, 0]));
+        assert_eq!(h.get_pixel(4, 3), &Rgb([0, 2, 0]));
+        assert_eq!(
+            h.get_pixel(0, 3),
+            &Rgb([0, 0, 0]),
+            "gap below the shorter image"
+        );
+        assert_eq!(stack_vertical(&[]).dimensions(), (0, 0));
+    }
+
+    #[test]
     fn colormaps_are_monotone_in_luminance() {
         for cm in [Colormap::Viridis, Colormap::Magma] {
             let mut prev = -1.0;
@@ -389,4 +414,30 @@ mod tests {
         let lit = img.pixels().filter(|p| p.0 != [0, 0, 0]).count();
         assert_eq!(lit, 2);
     }
+}
+
+/// Images stacked top to bottom (left-aligned; the canvas is as wide as the widest, gaps black).
+pub fn stack_vertical(images: &[RgbImage]) -> RgbImage {
+    let w = images.iter().map(|i| i.width()).max().unwrap_or(0);
+    let h = images.iter().map(|i| i.height()).sum();
+    let mut out = RgbImage::new(w, h);
+    let mut y = 0;
+    for img in images {
+        image::imageops::replace(&mut out, img, 0, i64::from(y));
+        y += img.height();
+    }
+    out
+}
+
+/// Images side by side, left to right (top-aligned; the canvas is as tall as the tallest).
+pub fn stack_horizontal(images: &[RgbImage]) -> RgbImage {
+    let w = images.iter().map(|i| i.width()).sum();
+    let h = images.iter().map(|i| i.height()).max().unwrap_or(0);
+    let mut out = RgbImage::new(w, h);
+    let mut x = 0;
+    for img in images {
+        image::imageops::replace(&mut out, img, i64::from(x), 0);
+        x += img.width();
+    }
+    out
 }
