@@ -695,7 +695,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
                 )
                 .with_context(|| format!("training the {which} encoder"))?;
                 bar.finish_and_clear();
-                let bytes = safetensors_bytes(&varmap_tensors(&vm)?)?;
+                let bytes = safetensors_bytes(&varmap_tensors(&vm)?, &saved)?;
                 std::fs::create_dir_all(&enc_dir)
                     .with_context(|| format!("{}: cannot create", enc_dir.display()))?;
                 veila_data::atomic::write_atomic(&saved, &bytes)?;

@@ -138,7 +138,7 @@ pub struct Manifest {
     pub files: BTreeMap<String, String>,
 }
 
-pub use veila_nn::checkpoint::sha256_hex;
+pub use veila_nn::checkpoint::{safetensors_bytes, sha256_hex};
 
 /// A loaded bundle: config, networks (on one device, `f32`).
 #[derive(Debug, Clone)]
@@ -334,7 +334,7 @@ impl Bundle {
                 reason: format!("no weights given for `{file}`"),
                 path: dir.to_path_buf(),
             })?;
-            let bytes = safetensors_bytes(tensors)?;
+            let bytes = safetensors_bytes(tensors, &dir.join(file))?;
             put(file, &bytes)?;
         }
         let json = serde_json::to_vec_pretty(&manifest).map_err(|source| Error::Json {
@@ -354,19 +354,6 @@ impl Bundle {
         }
         Ok(())
     }
-}
-
-/// Serialises tensors (sorted by name, so the bytes are reproducible) as safetensors.
-pub fn safetensors_bytes(tensors: &HashMap<String, Tensor>) -> Result<Vec<u8>> {
-    let mut sorted: Vec<(&String, &Tensor)> = tensors.iter().collect();
-    sorted.sort_by(|a, b| a.0.cmp(b.0));
-    let cpu: Vec<(String, Tensor)> = sorted
-        .into_iter()
-        .map(|(k, v)| Ok((k.clone(), v.to_device(&Device::Cpu)?.contiguous()?)))
-        .collect::<Result<_>>()?;
-    let bytes = safetensors::tensor::serialize(cpu.iter().map(|(k, v)| (k.as_str(), v)), None)
-        .map_err(|e| Error::Data(format!("serialising safetensors: {e}")))?;
-    Ok(bytes)
 }
 
 /// The model variants of the paper's ablation study (Table 4), as switches on a bundle config.

@@ -81,6 +81,28 @@ pub(crate) fn read_checked_scoped(
         .collect()
 }
 
+/// Serialises tensors as safetensors bytes, sorted by name and as contiguous `f32` on the CPU, so
+/// the same weights always give the same bytes (and the same sha256). `path` names the file in
+/// errors.
+pub fn safetensors_bytes(tensors: &HashMap<String, Tensor>, path: &Path) -> Result<Vec<u8>> {
+    let mut sorted: Vec<(String, Tensor)> = tensors
+        .iter()
+        .map(|(k, v)| {
+            Ok((
+                k.clone(),
+                v.to_device(&Device::Cpu)?
+                    .to_dtype(DType::F32)?
+                    .contiguous()?,
+            ))
+        })
+        .collect::<candle_core::Result<_>>()?;
+    sorted.sort_by(|a, b| a.0.cmp(&b.0));
+    safetensors::serialize(sorted, None).map_err(|e| Error::SafeTensors {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    })
+}
+
 /// Lower-case hex sha256 of `bytes` (the sums of the weight manifests).
 pub fn sha256_hex(bytes: &[u8]) -> String {
     use sha2::Digest;
@@ -126,7 +148,7 @@ fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> Error + '_ {
     }
 }
 
-fn tmp_path(path: &Path) -> PathBuf {
+pub(crate) fn tmp_path(path: &Path) -> PathBuf {
     let mut name = path
         .file_name()
         .map(|n| n.to_os_string())

@@ -329,27 +329,6 @@ impl FeatureNets {
     }
 }
 
-fn tmp_name(path: &Path) -> PathBuf {
-    let mut name = path
-        .file_name()
-        .map(|n| n.to_os_string())
-        .unwrap_or_default();
-    name.push(format!(".tmp{}", std::process::id()));
-    path.with_file_name(name)
-}
-
-fn serialize_tensors(tensors: &HashMap<String, Tensor>, path: &Path) -> Result<Vec<u8>> {
-    let mut sorted: Vec<(String, Tensor)> = tensors
-        .iter()
-        .map(|(k, v)| Ok((k.clone(), v.to_dtype(DType::F32)?.contiguous()?)))
-        .collect::<candle_core::Result<_>>()?;
-    sorted.sort_by(|a, b| a.0.cmp(&b.0));
-    safetensors::serialize(sorted, None).map_err(|e| Error::SafeTensors {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    })
-}
-
 fn json_bytes<T: Serialize>(v: &T, path: &Path) -> Result<Vec<u8>> {
     let mut s = serde_json::to_string_pretty(v).map_err(|source| Error::Json {
         path: path.to_path_buf(),
@@ -408,7 +387,7 @@ pub fn save_bundle(
         ),
         (
             RANGENET_WEIGHTS,
-            serialize_tensors(rangenet.1, &dir.join(RANGENET_WEIGHTS))?,
+            crate::checkpoint::safetensors_bytes(rangenet.1, &dir.join(RANGENET_WEIGHTS))?,
         ),
         (
             POINTNET_CONFIG,
@@ -416,7 +395,7 @@ pub fn save_bundle(
         ),
         (
             POINTNET_WEIGHTS,
-            serialize_tensors(pointnet.1, &dir.join(POINTNET_WEIGHTS))?,
+            crate::checkpoint::safetensors_bytes(pointnet.1, &dir.join(POINTNET_WEIGHTS))?,
         ),
     ];
     let manifest = Manifest {
@@ -435,7 +414,7 @@ pub fn save_bundle(
         .chain([(MANIFEST, manifest_bytes.as_slice())])
     {
         let path = dir.join(file);
-        let tmp = tmp_name(&path);
+        let tmp = crate::checkpoint::tmp_path(&path);
         std::fs::write(&tmp, bytes).map_err(|source| Error::Io {
             path: path.clone(),
             source,
