@@ -313,6 +313,32 @@ pub fn render_overlay(
     })
 }
 
+/// Images stacked top to bottom (left-aligned; the canvas is as wide as the widest, gaps black).
+pub fn stack_vertical(images: &[RgbImage]) -> RgbImage {
+    let w = images.iter().map(|i| i.width()).max().unwrap_or(0);
+    let h = images.iter().map(|i| i.height()).sum();
+    let mut out = RgbImage::new(w, h);
+    let mut y = 0;
+    for img in images {
+        image::imageops::replace(&mut out, img, 0, i64::from(y));
+        y += img.height();
+    }
+    out
+}
+
+/// Images side by side, left to right (top-aligned; the canvas is as tall as the tallest).
+pub fn stack_horizontal(images: &[RgbImage]) -> RgbImage {
+    let w = images.iter().map(|i| i.width()).sum();
+    let h = images.iter().map(|i| i.height()).max().unwrap_or(0);
+    let mut out = RgbImage::new(w, h);
+    let mut x = 0;
+    for img in images {
+        image::imageops::replace(&mut out, img, i64::from(x), 0);
+        x += img.width();
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -414,30 +440,4 @@ mod tests {
         let lit = img.pixels().filter(|p| p.0 != [0, 0, 0]).count();
         assert_eq!(lit, 2);
     }
-}
-
-/// Images stacked top to bottom (left-aligned; the canvas is as wide as the widest, gaps black).
-pub fn stack_vertical(images: &[RgbImage]) -> RgbImage {
-    let w = images.iter().map(|i| i.width()).max().unwrap_or(0);
-    let h = images.iter().map(|i| i.height()).sum();
-    let mut out = RgbImage::new(w, h);
-    let mut y = 0;
-    for img in images {
-        image::imageops::replace(&mut out, img, 0, i64::from(y));
-        y += img.height();
-    }
-    out
-}
-
-/// Images side by side, left to right (top-aligned; the canvas is as tall as the tallest).
-pub fn stack_horizontal(images: &[RgbImage]) -> RgbImage {
-    let w = images.iter().map(|i| i.width()).sum();
-    let h = images.iter().map(|i| i.height()).max().unwrap_or(0);
-    let mut out = RgbImage::new(w, h);
-    let mut x = 0;
-    for img in images {
-        image::imageops::replace(&mut out, img, i64::from(x), 0);
-        x += img.width();
-    }
-    out
 }
