@@ -8,6 +8,7 @@
 //! degrades the input image with a weather preset (camera effects only: the true scan stays the
 //! reference), to see how generation holds up under adverse conditions.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -62,6 +63,11 @@ pub(crate) struct DemoArgs {
     /// fog-moderate, rain-heavy, snow-light, ...). `clear` leaves the image untouched.
     #[arg(long, value_name = "PRESET", default_value = "clear")]
     weather: String,
+    /// Training frames of the same scene file behind the zero-skill baselines printed next to the
+    /// model (their per-pixel median scan, and the one whose image is nearest to the input in the
+    /// frozen encoders' feature space); 0 leaves the baselines out.
+    #[arg(long, value_name = "N", default_value_t = 24)]
+    baseline_frames: usize,
     /// Write into an existing, non-empty output folder. Not needed to refresh a folder that holds
     /// only an earlier demo's output: that is replaced.
     #[arg(long)]
@@ -84,6 +90,17 @@ struct DemoSummary<'a> {
     range_pixels_generated: usize,
     seconds_generation: f64,
     metrics: &'a [MetricValue],
+    /// Ring spread (median IQR of range in 0.5° bands below −15°, m) of each scan.
+    ring_spread_m: BTreeMap<&'static str, Option<f64>>,
+    /// The zero-skill baselines' metrics against the same true scan.
+    baselines: Vec<BaselineSummary>,
+}
+
+#[derive(Debug, Serialize)]
+struct BaselineSummary {
+    name: &'static str,
+    description: String,
+    metrics: Vec<MetricValue>,
 }
 
 pub(crate) fn run(args: DemoArgs) -> Result<()> {
@@ -163,6 +180,31 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         grid,
     )?;
     let metrics = demo_metrics(&frame, truth, &generated, &generated_range, &true_range)?;
+    pb.set_message("baselines");
+    let baselines = baseline_scans(
+        &bundle,
+        &config,
+        args.baseline_frames,
+        CameraView {
+            rgb: &small,
+            camera: &small_cam,
+        },
+    )?;
+    let mut baseline_rows = Vec::new();
+    let mut ring_spread_m = BTreeMap::new();
+    let spread = |r: &RangeImage| veila_metrics::baseline::ring_spread(r, grid, -15.0, 0.5);
+    ring_spread_m.insert("generated", spread(&generated_range));
+    ring_spread_m.insert("true", spread(&true_range));
+    for (name, description, range) in &baselines {
+        let points = model::to_points(&bundle, range)?;
+        let m = demo_metrics(&frame, truth, &points, range, &true_range)?;
+        ring_spread_m.insert(name, spread(range));
+        baseline_rows.push(BaselineSummary {
+            name,
+            description: description.clone(),
+            metrics: m.metrics,
+        });
+    }
     pb.inc(1);
 
     let summary = DemoSummary {
@@ -180,6 +222,8 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         range_pixels_generated: generated_range.num_valid(),
         seconds_generation,
         metrics: &metrics.metrics,
+        ring_spread_m,
+        baselines: baseline_rows,
     };
     veila_data::atomic::write_atomic(
         &out.join("metrics.json"),
@@ -209,7 +253,10 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
             summary.camera_effects.join(", ")
         );
     }
-    print_table(&metrics.metrics);
+    print_table(&metrics.metrics, &summary.baselines, &summary.ring_spread_m);
+    for b in &summary.baselines {
+        println!("  {}: {}", b.name, b.description);
+    }
     println!("wrote {}", args.out.display());
     Ok(())
 }
@@ -384,18 +431,111 @@ fn depth_map(frame: &SimFrame) -> DepthMap {
     }
 }
 
-fn print_table(metrics: &[MetricValue]) {
-    println!(
-        "{:<38} {:<10} {:<6} {:>14}",
-        "metric", "protocol", "region", "value"
+/// The metrics table: one column for the generated scan and one per baseline (lower is better
+/// for every row; the cm-dc rows of the true scan are the floor), then the ring spread.
+fn print_table(
+    metrics: &[MetricValue],
+    baselines: &[BaselineSummary],
+    ring_spread: &BTreeMap<&'static str, Option<f64>>,
+) {
+    print!(
+        "{:<38} {:<10} {:<6} {:>12}",
+        "metric", "protocol", "region", "generated"
     );
+    for b in baselines {
+        print!(" {:>12}", b.name);
+    }
+    println!();
     for m in metrics {
-        println!(
-            "{:<38} {:<10} {:<6} {:>14.6}",
+        print!(
+            "{:<38} {:<10} {:<6} {:>12.4}",
             m.name,
             m.protocol.name(),
             m.region.name(),
             m.value
         );
+        for b in baselines {
+            match b
+                .metrics
+                .iter()
+                .find(|x| x.name == m.name && x.region == m.region)
+            {
+                Some(x) if !m.name.contains("true scan") => print!(" {:>12.4}", x.value),
+                _ => print!(" {:>12}", "-"),
+            }
+        }
+        println!();
     }
+    let fmt = |v: Option<&Option<f64>>| match v {
+        Some(Some(x)) => format!("{x:.3}"),
+        _ => "n/a".to_string(),
+    };
+    print!(
+        "{:<38} {:<10} {:<6} {:>12}",
+        "ring spread (m)",
+        "veila",
+        "all",
+        fmt(ring_spread.get("generated"))
+    );
+    for b in baselines {
+        print!(" {:>12}", fmt(ring_spread.get(b.name)));
+    }
+    println!("   (true scan: {})", fmt(ring_spread.get("true")));
+}
+
+/// The zero-skill baselines of the demo scene, from `k` training frames of the same scene file
+/// (seeds `0..k` of the train split, rendered in parallel): their per-pixel median scan, and the
+/// frame whose image is nearest to the input's in the bundle's frozen encoder features
+/// (conditional bundles only).
+fn baseline_scans(
+    bundle: &veila_diffusion::bundle::Bundle,
+    config: &SceneConfig,
+    k: usize,
+    query: CameraView<'_>,
+) -> Result<Vec<(&'static str, String, RangeImage)>> {
+    use rayon::prelude::*;
+    if k == 0 {
+        return Ok(Vec::new());
+    }
+    let grid = &bundle.config.denoiser.sensor;
+    let projector = Projector::new(grid, ProjectionOptions::default())?;
+    let frames = config.frames.count.max(1) as u64;
+    let rendered: Vec<(RangeImage, RgbImage, veila_geom::PinholeCamera)> = (0..k as u64)
+        .into_par_iter()
+        .map(|seed| -> Result<_> {
+            let scene = Scene::generate(config, seed)?;
+            let f = scene.render_frame((seed % frames) as u32)?;
+            let range = project(&projector, &f.scan.points)?;
+            Ok((range, f.image.to_rgb_image()?, f.camera))
+        })
+        .collect::<Result<_>>()?;
+    let refs: Vec<&RangeImage> = rendered.iter().map(|(r, _, _)| r).collect();
+    let median = veila_metrics::baseline::median_scan(&refs)?;
+    let mut out = vec![(
+        "mean scan",
+        format!(
+            "per-pixel median range and majority ray drop of {k} training frames of this scene file (no image used)"
+        ),
+        median,
+    )];
+    let q = bundle.image_descriptor(query)?;
+    if !q.is_empty() {
+        let keys = rendered
+            .iter()
+            .map(|(_, img, cam)| {
+                let (small, small_cam) = model::prepare_view(bundle, img, cam)?;
+                Ok(bundle.image_descriptor(CameraView {
+                    rgb: &small,
+                    camera: &small_cam,
+                })?)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let i = veila_metrics::baseline::nearest(&q, &keys)?;
+        out.push((
+            "retrieval",
+            format!("the scan of training seed {i} of those {k}, whose image is nearest to the input in the frozen encoders' features"),
+            rendered[i].0.clone(),
+        ));
+    }
+    Ok(out)
 }

@@ -221,8 +221,10 @@ pub(crate) fn resolve_sampler(
 ) -> Result<SamplerConfig> {
     let base = &bundle.config.sampler;
     let steps = steps.unwrap_or(base.steps);
-    if steps == 0 {
-        bail!("--steps must be at least 1");
+    if steps == 0 && bundle.config.residual.is_none() {
+        bail!(
+            "--steps must be at least 1 (0 steps, the mean network alone, needs a residual-diffusion bundle)"
+        );
     }
     let mut cfg = match name {
         None => SamplerConfig {
@@ -426,9 +428,6 @@ fn round3(x: f64) -> f64 {
 pub(crate) fn run(args: GenerateArgs) -> Result<()> {
     if args.samples == 0 {
         bail!("--samples must be at least 1");
-    }
-    if args.steps == Some(0) {
-        bail!("--steps must be at least 1");
     }
     let t0 = Instant::now();
     let views = load_rig(&args.rig)?;

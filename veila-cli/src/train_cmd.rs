@@ -18,6 +18,7 @@
 //!
 //! [model]
 //! variant = "full"                 # full, unconditional, no-cacm, no-gcma, no-pfc, semantic-only, depth-only
+//! # method = "residual"            # eps, v, residual (default), flow, regression
 //! # bundle = "models/default/bundle.json"  # start from a bundle config instead of the CPU default
 //! # encoders_from = "models/default"       # reuse trained encoders instead of training them
 //! # image_height = 96              # camera input size of the encoders
@@ -25,6 +26,7 @@
 //!
 //! [train]
 //! steps = 1000                     # denoiser steps
+//! # mean_steps = 1000              # mean-network steps of the residual method (default: steps)
 //! batch = 4
 //! lr = 1e-3
 //! seed = 0
@@ -47,12 +49,12 @@ use serde::{Deserialize, Serialize};
 use veila_data::image::imageops;
 use veila_data::shard::{Manifest, ShardSample, read_shard};
 use veila_diffusion::bundle::{
-    Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, SEMANTIC_FILE, Variant, safetensors_bytes,
-    sha256_hex,
+    Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, MEAN_FILE, SEMANTIC_FILE, Variant,
+    safetensors_bytes, sha256_hex,
 };
 use veila_diffusion::encoding::ScanView;
 use veila_diffusion::pipeline::{
-    DenoiserFit, TrainExample, fit_denoiser, train_small_cnn, varmap_tensors,
+    BundleFit, Stage, TrainExample, fit_bundle, train_small_cnn, varmap_tensors,
 };
 use veila_diffusion::{StepStats, TrainConfig, TrainObserver};
 use veila_geom::{
@@ -114,6 +116,10 @@ struct ModelSection {
     /// Model variant of `BundleConfig::cpu_default` (default `full`).
     #[serde(default)]
     variant: Option<String>,
+    /// Generative method (`eps`, `v`, `residual`, `flow`, `regression`; default: the CPU
+    /// default's).
+    #[serde(default)]
+    method: Option<String>,
     /// A `bundle.json` to start from instead of the CPU default.
     #[serde(default)]
     bundle: Option<PathBuf>,
@@ -157,6 +163,9 @@ struct TrainSection {
     /// Condition dropout for classifier-free guidance (default 0.1 for conditional models).
     #[serde(default)]
     cond_drop_prob: Option<f64>,
+    /// Steps of the residual method's mean network (default: `steps`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    mean_steps: Option<u64>,
 }
 
 fn d_steps() -> u64 {
@@ -201,6 +210,7 @@ impl Default for TrainSection {
             keep_checkpoints: d_keep(),
             ema_decay: d_ema(),
             cond_drop_prob: None,
+            mean_steps: None,
         }
     }
 }
@@ -299,6 +309,19 @@ fn bundle_config(file: &TrainFile, config_path: &Path) -> Result<BundleConfig> {
             BundleConfig::cpu_default(variant)
         }
     };
+    // a bundle.json keeps its own method unless one is named; the CPU default takes the
+    // default method
+    let method = match (&m.method, &m.bundle) {
+        (Some(name), _) => Some(
+            name.parse::<veila_diffusion::bundle::Method>()
+                .map_err(|e: String| anyhow::anyhow!("{}: [model] {e}", config_path.display()))?,
+        ),
+        (None, None) => Some(veila_diffusion::bundle::Method::DEFAULT),
+        (None, Some(_)) => None,
+    };
+    if let Some(method) = method {
+        cfg = cfg.with_method(method);
+    }
     if let Some(name) = &m.name {
         cfg.name = name.clone();
     }
@@ -434,7 +457,14 @@ struct Progress {
     bar: indicatif::ProgressBar,
     ema_loss: Option<f64>,
     stop_after: Option<u64>,
-    run: u64,
+    /// Steps run by this invocation, over all stages.
+    run: std::rc::Rc<std::cell::Cell<u64>>,
+}
+
+impl Drop for Progress {
+    fn drop(&mut self) {
+        self.bar.finish_and_clear();
+    }
 }
 
 impl<M: veila_diffusion::Denoiser> TrainObserver<M> for Progress {
@@ -445,7 +475,7 @@ impl<M: veila_diffusion::Denoiser> TrainObserver<M> for Progress {
                 Some(e) => 0.98 * e + 0.02 * s.loss,
             });
         }
-        self.run += 1;
+        self.run.set(self.run.get() + 1);
         self.bar.set_position(s.step);
         self.bar.set_message(format!(
             "loss {:.4} (avg {:.4}) lr {:.2e} {:.2} s/step",
@@ -455,10 +485,29 @@ impl<M: veila_diffusion::Denoiser> TrainObserver<M> for Progress {
             s.step_secs
         ));
         match self.stop_after {
-            Some(n) if self.run >= n => ControlFlow::Break(()),
+            Some(n) if self.run.get() >= n => ControlFlow::Break(()),
             _ => ControlFlow::Continue(()),
         }
     }
+}
+
+fn stage_name(stage: Stage) -> &'static str {
+    match stage {
+        Stage::Mean => "mean network",
+        Stage::Denoiser => "denoiser",
+    }
+}
+
+fn print_denoiser_summary(
+    d: &veila_diffusion::pipeline::DenoiserFitOutcome,
+    steps: u64,
+    secs: f64,
+) {
+    let s = &d.summary;
+    println!(
+        "  denoiser: {} steps this run (now at {} of {steps}), mean loss {:.4}, {} skipped, {secs:.1} s",
+        s.steps_run, s.final_step, s.mean_loss, s.skipped
+    );
 }
 
 fn load_tensors(path: &Path) -> Result<HashMap<String, Tensor>> {
@@ -740,61 +789,73 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         keep_checkpoints: Some(t.keep_checkpoints.max(1)),
         ..TrainConfig::default()
     };
-    let mut observer = Progress {
-        bar: progress::bar(t.steps, "denoiser"),
-        ema_loss: None,
-        stop_after: args.stop_after,
-        run: 0,
+    let mean_steps = t.mean_steps.unwrap_or(t.steps);
+    let mean_tc = TrainConfig {
+        seed: t.seed ^ 0x3ea,
+        total_steps: mean_steps,
+        warmup_steps: (mean_steps / 20).max(1),
+        ..tc.clone()
     };
-    let bar = observer.bar.clone();
-    let outcome = fit_denoiser(
-        &cfg,
-        DenoiserFit {
+    let run = std::rc::Rc::new(std::cell::Cell::new(0u64));
+    let outcome = fit_bundle(
+        &mut cfg,
+        BundleFit {
             semantic: semantic.as_ref(),
             depth: depth.as_ref(),
             examples: &examples,
             batch_size: t.batch,
             train: &tc,
-            checkpoint_dir: &ck_dir,
+            mean_train: Some(&mean_tc),
+            work_dir: &ck_dir,
             init: None,
         },
         &device,
-        |p, step| {
+        |stage, p, step| {
             println!(
-                "  resumed from {} (step {step} of {})",
-                p.display(),
-                t.steps
-            );
-            bar.set_position(step);
+                "  {}: resumed from {} (step {step})",
+                stage_name(stage),
+                p.display()
+            )
         },
-        &mut observer,
+        |stage, total| Progress {
+            bar: progress::bar(total, stage_name(stage)),
+            ema_loss: None,
+            stop_after: args.stop_after,
+            run: run.clone(),
+        },
     )
     .with_context(|| format!("training with checkpoints in {}", ck_dir.display()))?;
-    observer.bar.finish_and_clear();
-    let summary = outcome.summary;
     let den_secs = t_den.elapsed().as_secs_f64();
-    println!(
-        "  denoiser: {} steps this run (now at {} of {}), mean loss {:.4}, {} skipped, {:.1} s",
-        summary.steps_run,
-        summary.final_step,
-        t.steps,
-        summary.mean_loss,
-        summary.skipped,
-        den_secs
-    );
-    if outcome.step < t.steps {
+    if let Some(m) = &outcome.mean {
         println!(
-            "stopped at step {} of {}; checkpoint in {}: rerun `veila train --config {}` to continue",
-            outcome.step,
-            t.steps,
+            "  mean network: {} steps this run (now at {} of {mean_steps}), mean loss {:.4}, {:.1} s",
+            m.summary.steps_run, m.summary.final_step, m.summary.mean_loss, outcome.seconds[0]
+        );
+    }
+    let finished = match outcome.denoiser {
+        Some(d) if d.step >= t.steps => Some(d),
+        Some(d) => {
+            print_denoiser_summary(&d, t.steps, outcome.seconds[1]);
+            None
+        }
+        None => None,
+    };
+    let Some(den) = finished else {
+        println!(
+            "stopped early; checkpoints in {}: rerun `veila train --config {}` to continue",
             ck_dir.display(),
             args.config.display()
         );
         return Ok(());
+    };
+    print_denoiser_summary(&den, t.steps, outcome.seconds[1]);
+    let summary = den.summary;
+    if let Some(m) = outcome.mean {
+        weights.insert(MEAN_FILE, m.ema_weights);
     }
+    weights.insert(DENOISER_FILE, den.ema_weights);
 
     // 5. the bundle
-    weights.insert(DENOISER_FILE, outcome.ema_weights);
     cfg.provenance = serde_json::json!({
         "trained_by": "veila train",
         "config": args.config.display().to_string(),

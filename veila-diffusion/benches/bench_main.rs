@@ -34,6 +34,7 @@ fn diffusion() -> Diffusion {
         prediction: Prediction::Epsilon,
         time_input: TimeInput::default(),
         loss_weighting: LossWeighting::Uniform,
+        objective: Default::default(),
     })
     .unwrap()
 }

@@ -10,6 +10,7 @@
 //! | `semantic_encoder.safetensors` | `E_s` weights (when the config has a semantic encoder) |
 //! | `depth_encoder.safetensors` | `E_d` weights (when the config has a depth encoder) |
 //! | `denoiser.safetensors` | the U-Net (EMA weights for trained bundles) |
+//! | `mean.safetensors` | the mean network of residual diffusion (when the config has `residual`) |
 //! | `manifest.json` | `{"format": "veila-manifest/1", "files": {"NAME": "SHA256_HEX", ...}}` |
 //!
 //! [`Bundle::from_dir`] reads a folder, [`Bundle::from_files`] takes the same files from memory (a
@@ -46,6 +47,8 @@ pub const SEMANTIC_FILE: &str = "semantic_encoder.safetensors";
 pub const DEPTH_FILE: &str = "depth_encoder.safetensors";
 /// Denoiser weights.
 pub const DENOISER_FILE: &str = "denoiser.safetensors";
+/// File name of the residual-diffusion mean network's weights.
+pub const MEAN_FILE: &str = "mean.safetensors";
 
 /// Everything about a bundle except its weights.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -73,6 +76,11 @@ pub struct BundleConfig {
     pub epipolar: EpipolarConfig,
     /// The sampler (and guidance scale) generation uses unless told otherwise.
     pub sampler: SamplerConfig,
+    /// Residual ("corrective") diffusion: a one-pass mean network predicts the conditional median
+    /// scan and the denoiser models only what is left, `(x₀ − μ) / scale`; zero sampler steps give
+    /// `μ`. `None`: the denoiser models `x₀` directly.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub residual: Option<ResidualConfig>,
     /// How the bundle was made (seed, steps, data, timings); informational.
     #[serde(default)]
     pub provenance: serde_json::Value,
@@ -89,7 +97,15 @@ impl BundleConfig {
             v.push(DEPTH_FILE);
         }
         v.push(DENOISER_FILE);
+        if self.residual.is_some() {
+            v.push(MEAN_FILE);
+        }
         v
+    }
+
+    /// Channels of the encoded range image (what the bundle generates).
+    pub fn channels(&self) -> usize {
+        self.encoding.num_channels()
     }
 
     fn check(&self, origin: &Path) -> Result<()> {
@@ -115,12 +131,45 @@ impl BundleConfig {
                 if has_encoder { "an" } else { "no" }
             )));
         }
-        if self.encoding.num_channels() != self.denoiser.in_channels {
+        let c = self.encoding.num_channels();
+        let want_in = if self.residual.is_some() { 2 * c } else { c };
+        if self.denoiser.in_channels != want_in || self.denoiser.out_channels != c {
             return Err(bad(format!(
-                "the range encoding has {} channels, the denoiser {}",
-                self.encoding.num_channels(),
-                self.denoiser.in_channels
+                "the range encoding has {c} channels: the {}denoiser needs {want_in} in and {c} out, it has {} and {}",
+                if self.residual.is_some() {
+                    "residual "
+                } else {
+                    ""
+                },
+                self.denoiser.in_channels,
+                self.denoiser.out_channels
             )));
+        }
+        if let Some(r) = &self.residual {
+            if r.mean_net.in_channels != c || r.mean_net.out_channels != c {
+                return Err(bad(format!(
+                    "the mean network needs {c} input and output channels, it has {} and {}",
+                    r.mean_net.in_channels, r.mean_net.out_channels
+                )));
+            }
+            if r.mean_net.conditioning.is_some() != conditional {
+                return Err(bad(
+                    "the mean network and the denoiser must both be conditional or both not".into(),
+                ));
+            }
+            if r.mean_net.height() != self.denoiser.height()
+                || r.mean_net.width() != self.denoiser.width()
+            {
+                return Err(bad(
+                    "the mean network's grid differs from the denoiser's".into()
+                ));
+            }
+            if r.scale.len() != c || r.scale.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+                return Err(bad(format!(
+                    "residual.scale needs {c} finite values > 0, got {:?}",
+                    r.scale
+                )));
+            }
         }
         self.encoding.validate()?;
         self.sampler.validate()?;
@@ -153,6 +202,8 @@ pub struct Bundle {
     pub denoiser: Net,
     /// The denoiser's weights by name (to rebuild it for another number of views).
     pub weights: HashMap<String, Tensor>,
+    /// The mean network of residual diffusion and its weights by name.
+    pub mean: Option<(Net, HashMap<String, Tensor>)>,
     /// Where it was loaded from (a folder, or a label for embedded bundles).
     pub origin: PathBuf,
 }
@@ -271,12 +322,31 @@ impl Bundle {
             &cfg.denoiser,
             candle_nn::VarBuilder::from_tensors(weights.clone(), DType::F32, device),
         )?;
+        let mean = match &cfg.residual {
+            Some(r) => {
+                let path = origin.join(MEAN_FILE);
+                let expected = veila_nn::checkpoint::expected_tensors(&r.mean_net)?;
+                let w = veila_nn::checkpoint::read_checked_bytes(
+                    verified(MEAN_FILE)?,
+                    &path,
+                    &expected,
+                    device,
+                )?;
+                let net = Net::new(
+                    &r.mean_net,
+                    candle_nn::VarBuilder::from_tensors(w.clone(), DType::F32, device),
+                )?;
+                Some((net, w))
+            }
+            None => None,
+        };
         Ok(Self {
             config: cfg,
             semantic,
             depth,
             denoiser,
             weights,
+            mean,
             origin: origin.to_path_buf(),
         })
     }
@@ -357,6 +427,28 @@ impl Bundle {
 }
 
 /// The model variants of the paper's ablation study (Table 4), as switches on a bundle config.
+/// Residual diffusion settings of a bundle (see [`BundleConfig::residual`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ResidualConfig {
+    /// The mean network: a U-Net of the denoiser's family trained with
+    /// [`Objective::Regression`](crate::Objective::Regression) (same encoders, own weights).
+    pub mean_net: DenoiserConfig,
+    /// Per-channel divisor of the residual (its standard deviation on the training set), so
+    /// that the diffusion sees unit-scale data.
+    pub scale: Vec<f32>,
+}
+
+impl ResidualConfig {
+    /// The process the mean network runs: one regression pass.
+    pub fn mean_diffusion() -> DiffusionConfig {
+        DiffusionConfig {
+            objective: crate::objective::Objective::Regression,
+            ..DiffusionConfig::default()
+        }
+    }
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Variant {
@@ -425,6 +517,119 @@ impl std::str::FromStr for Variant {
                 let names: Vec<&str> = Variant::ALL.iter().map(|v| v.name()).collect();
                 format!("unknown variant `{s}` (one of: {})", names.join(", "))
             })
+    }
+}
+
+/// How a bundle turns noise into a scan: the methods the benchmark compares at equal training
+/// compute (see `BENCHMARKS.md`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    /// The paper's direct diffusion with ε-prediction.
+    Eps,
+    /// Direct diffusion with v-prediction.
+    V,
+    /// Residual ("corrective") diffusion: mean network + v-prediction diffusion of the residual.
+    Residual,
+    /// Rectified flow with Euler sampling (R2Flow-style).
+    Flow,
+    /// The one-pass regression network alone (the conditional median; no sampling).
+    Regression,
+}
+
+impl Method {
+    /// The method of the bundled model and of `veila train` / `cargo xtask train-default` unless
+    /// told otherwise: the one that measured best at equal training compute (`BENCHMARKS.md`).
+    pub const DEFAULT: Method = Method::Residual;
+
+    /// Every method, in benchmark order.
+    pub const ALL: [Method; 5] = [
+        Method::Eps,
+        Method::V,
+        Method::Residual,
+        Method::Flow,
+        Method::Regression,
+    ];
+
+    /// The name used on the command line and in files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Method::Eps => "eps",
+            Method::V => "v",
+            Method::Residual => "residual",
+            Method::Flow => "flow",
+            Method::Regression => "regression",
+        }
+    }
+
+    /// A human-readable label.
+    pub fn label(self) -> &'static str {
+        match self {
+            Method::Eps => "direct diffusion, ε-prediction",
+            Method::V => "direct diffusion, v-prediction",
+            Method::Residual => "residual diffusion (mean net + v-diffusion)",
+            Method::Flow => "rectified flow (Euler)",
+            Method::Regression => "one-pass regression (conditional median)",
+        }
+    }
+}
+
+impl std::str::FromStr for Method {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        Method::ALL
+            .into_iter()
+            .find(|m| m.name() == s)
+            .ok_or_else(|| {
+                let names: Vec<&str> = Method::ALL.iter().map(|m| m.name()).collect();
+                format!("unknown method `{s}` (one of: {})", names.join(", "))
+            })
+    }
+}
+
+impl BundleConfig {
+    /// This config switched to `method` (denoiser channels, objective, residual settings and
+    /// sampler); the residual scale starts at 1 and is set by training.
+    pub fn with_method(mut self, method: Method) -> Self {
+        use crate::objective::Objective;
+        use crate::prediction::Prediction;
+        let c = self.encoding.num_channels();
+        self.residual = None;
+        self.denoiser.in_channels = c;
+        self.diffusion.objective = Objective::Diffusion;
+        match method {
+            Method::Eps => self.diffusion.prediction = Prediction::Epsilon,
+            Method::V => self.diffusion.prediction = Prediction::V,
+            Method::Residual => {
+                self.diffusion.prediction = Prediction::V;
+                self.residual = Some(ResidualConfig {
+                    mean_net: self.denoiser.clone(),
+                    scale: vec![1.0; c],
+                });
+                self.denoiser.in_channels = 2 * c;
+            }
+            Method::Flow => self.diffusion.objective = Objective::rectified_flow(),
+            Method::Regression => {
+                self.diffusion.objective = Objective::Regression;
+                self.sampler.steps = 1;
+                self.sampler.guidance_scale = 1.0;
+            }
+        }
+        self
+    }
+
+    /// The method this config describes.
+    pub fn method(&self) -> Method {
+        use crate::objective::Objective;
+        match (self.diffusion.objective, &self.residual) {
+            (Objective::Regression, _) => Method::Regression,
+            (Objective::RectifiedFlow { .. }, _) => Method::Flow,
+            (Objective::Diffusion, Some(_)) => Method::Residual,
+            (Objective::Diffusion, None) => match self.diffusion.prediction {
+                crate::prediction::Prediction::Epsilon => Method::Eps,
+                _ => Method::V,
+            },
+        }
     }
 }
 
@@ -501,6 +706,7 @@ impl BundleConfig {
             encoding: RangeEncoding::kitti(),
             epipolar: EpipolarConfig::default(),
             sampler,
+            residual: None,
             provenance: serde_json::Value::Null,
         }
     }

@@ -72,8 +72,8 @@ pub mod trainer;
 pub use denoiser::{CondDropout, Conditioning, Denoiser, guide};
 pub use encoding::{DecodedScan, RangeEncoding, ScanView};
 pub use error::{Error, Result};
-pub use nn::VeilaDenoiser;
-pub use objective::{Denoised, Diffusion, DiffusionConfig, LossOutput};
+pub use nn::{NetCond, VeilaDenoiser};
+pub use objective::{Denoised, Diffusion, DiffusionConfig, LossOutput, Objective};
 pub use prediction::{LossWeighting, Prediction, TimeInput};
 pub use sampler::{
     DdpmVariance, DpmSolverPp2M, RepaintConfig, Sampler, SamplerConfig, SamplerKind, StepInfo,

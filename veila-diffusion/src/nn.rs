@@ -7,6 +7,10 @@
 //! condition's per-sample `keep` factor (0 = drop), which the network defines to give exactly its
 //! unconditional output.
 //!
+//! For residual ("corrective") diffusion the condition also carries the mean network's prediction
+//! ([`NetCond::mean`]), which is concatenated to the noisy input as extra channels and is never
+//! dropped: guidance and condition dropout act on the image only.
+//!
 //! The network multiplies its time input by `TimeEmbeddingConfig::input_scale` (1000 in the
 //! presets), so pair the presets with [`TimeInput::Unit`](crate::TimeInput::Unit) (the default).
 
@@ -52,8 +56,27 @@ fn to_candle(e: veila_nn::Error) -> candle_core::Error {
     }
 }
 
+/// What [`VeilaDenoiser`] is conditioned on: the prepared image condition and, for residual
+/// diffusion, the mean network's prediction `[B, C, H, W]` (concatenated to the input channels).
+#[derive(Debug, Clone)]
+pub struct NetCond<'g> {
+    /// The image condition (`None`: the network's unconditional branch).
+    pub image: Option<PreparedCondition<'g>>,
+    /// The mean prediction of residual diffusion (`None` for direct diffusion).
+    pub mean: Option<Tensor>,
+}
+
+impl<'g> From<PreparedCondition<'g>> for NetCond<'g> {
+    fn from(image: PreparedCondition<'g>) -> Self {
+        Self {
+            image: Some(image),
+            mean: None,
+        }
+    }
+}
+
 impl<'g> Denoiser for VeilaDenoiser<'g> {
-    type Cond = PreparedCondition<'g>;
+    type Cond = NetCond<'g>;
 
     fn forward(
         &self,
@@ -61,11 +84,33 @@ impl<'g> Denoiser for VeilaDenoiser<'g> {
         t: &Tensor,
         cond: Option<&Self::Cond>,
     ) -> candle_core::Result<Tensor> {
-        self.net.forward(x_t, t, cond).map_err(to_candle)
+        let (image, mean) = match cond {
+            Some(c) => (c.image.as_ref(), c.mean.as_ref()),
+            None => (None, None),
+        };
+        match mean {
+            Some(m) => {
+                let x = Tensor::cat(&[x_t, m], 1)?;
+                self.net.forward(&x, t, image).map_err(to_candle)
+            }
+            None => self.net.forward(x_t, t, image).map_err(to_candle),
+        }
     }
 }
 
-/// Dropping a sample multiplies its `keep` factor by 0.
+impl Conditioning for NetCond<'_> {
+    fn drop_samples(&self, drop: &[bool]) -> candle_core::Result<Self> {
+        Ok(Self {
+            image: self
+                .image
+                .as_ref()
+                .map(|c| c.drop_samples(drop))
+                .transpose()?,
+            mean: self.mean.clone(),
+        })
+    }
+}
+
 impl Conditioning for PreparedCondition<'_> {
     fn drop_samples(&self, drop: &[bool]) -> candle_core::Result<Self> {
         let b = self.batch();

@@ -29,7 +29,7 @@ use veila_nn::{ConditionInput, Denoiser as Net, GcmaGeometry};
 use crate::bundle::{Bundle, BundleConfig};
 use crate::encoding::DecodedScan;
 use crate::error::{Error, Result};
-use crate::nn::VeilaDenoiser;
+use crate::nn::{NetCond, VeilaDenoiser};
 use crate::noise::randn;
 use crate::objective::Diffusion;
 use crate::sampler::{RepaintConfig, Sampler, SamplerConfig, inpaint};
@@ -144,6 +144,22 @@ impl Bundle {
         )
     }
 
+    /// A retrieval descriptor of one view: the coarsest feature map of each frozen encoder,
+    /// flattened (the spatial layout stays: where things are matters), each scaled to unit norm.
+    /// Images whose descriptors are near by cosine look alike to the model (the retrieval baseline
+    /// picks the training scan of the nearest image).
+    pub fn image_descriptor(&self, view: CameraView<'_>) -> Result<Vec<f32>> {
+        let f = self.encode_views(&[view])?;
+        let mut out = Vec::new();
+        for pyramid in [&f.semantic, &f.depth].into_iter().flatten() {
+            let Some(last) = pyramid.last() else { continue };
+            let v = last.flatten_all()?.to_vec1::<f32>()?;
+            let n = v.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-12);
+            out.extend(v.iter().map(|x| x / n));
+        }
+        Ok(out)
+    }
+
     fn denoiser_device(&self) -> &Device {
         self.denoiser
             .ray_features()
@@ -154,20 +170,27 @@ impl Bundle {
     /// The denoiser for `views` camera views (a model trained with one view runs on several: no
     /// weight depends on the number of views).
     fn net_for_views(&self, views: usize) -> Result<Net> {
-        let Some(cc) = &self.config.denoiser.conditioning else {
-            return Ok(self.denoiser.clone());
-        };
-        if cc.num_views == views {
-            return Ok(self.denoiser.clone());
+        rebuild_for_views(
+            &self.denoiser,
+            &self.config.denoiser,
+            &self.weights,
+            views,
+            self.denoiser_device(),
+        )
+    }
+
+    /// The mean network of a residual bundle for `views` camera views.
+    fn mean_for_views(&self, views: usize) -> Result<Option<Net>> {
+        match (&self.mean, &self.config.residual) {
+            (Some((net, weights)), Some(r)) => Ok(Some(rebuild_for_views(
+                net,
+                &r.mean_net,
+                weights,
+                views,
+                self.denoiser_device(),
+            )?)),
+            _ => Ok(None),
         }
-        let mut cfg = self.config.denoiser.clone();
-        if let Some(c) = cfg.conditioning.as_mut() {
-            c.num_views = views;
-        }
-        Ok(Net::new(
-            &cfg,
-            VarBuilder::from_tensors(self.weights.clone(), DType::F32, self.denoiser_device()),
-        )?)
     }
 
     /// Draws `options.samples` scans for one camera rig. `on_step(done, total)` is called after each
@@ -227,10 +250,8 @@ impl Bundle {
             });
         }
         let device = self.denoiser_device().clone();
-        let diffusion = Diffusion::new(self.config.diffusion.clone())?;
-        let sampler = Sampler::new(&diffusion, options.sampler.clone())?;
         let (h, w) = self.grid();
-        let c = self.config.denoiser.in_channels;
+        let c = self.config.channels();
         let n = options.samples;
         let mut rng = ChaCha8Rng::seed_from_u64(options.seed);
         let conditional = self.is_conditional() && !options.unconditional;
@@ -240,45 +261,143 @@ impl Bundle {
                 reason: "this bundle is image-conditioned: give at least one camera view".into(),
             });
         }
-        let net = self.net_for_views(if conditional { views.len() } else { 1 })?;
-        let geometry: Option<GcmaGeometry> = match &self.config.denoiser.conditioning {
-            Some(cc) if cc.gcma.is_some() && conditional => {
-                let cams: Vec<PinholeCamera> = views.iter().map(|v| *v.camera).collect();
-                Some(net.geometry(&cams, &self.config.epipolar, &device)?)
-            }
-            _ => None,
-        };
-        let cond = if conditional {
-            let feats = self.encode_views(views)?;
-            Some(net.prepare_condition(&feats.repeat(n)?, geometry.as_ref())?)
+        let nv = if conditional { views.len() } else { 1 };
+        let residual = self.config.residual.as_ref();
+        if options.sampler.steps == 0 && residual.is_none() {
+            return Err(Error::InvalidConfig {
+                field: "steps",
+                reason: "0 sampler steps work only for residual bundles (their mean network alone)"
+                    .into(),
+            });
+        }
+        if inpainting.is_some() && residual.is_some() {
+            return Err(Error::InvalidConfig {
+                field: "bundle",
+                reason: "inpainting with a residual-diffusion bundle is not supported".into(),
+            });
+        }
+        let feats = if conditional {
+            Some(self.encode_views(views)?.repeat(n)?)
         } else {
             None
         };
-        let model = VeilaDenoiser::new(net);
-        let x = match inpainting {
-            None => {
-                let x_t = randn(&mut rng, &[n, c, h, w], &device)?;
-                sampler.sample_from(&model, x_t, cond.as_ref(), &mut rng, |info| {
-                    on_step(info.index + 1, info.total)
-                })?
-            }
-            Some((known, mask, repaint)) => {
-                let enc = &self.config.encoding;
-                let known_view = crate::encoding::ScanView {
-                    rows: h,
-                    cols: w,
-                    range_m: &known.range_m,
-                    intensity: Some(&known.intensity),
-                    mask: Some(&known.mask),
+        let cams: Vec<PinholeCamera> = views.iter().map(|v| *v.camera).collect();
+        // the image condition of one network (its own CACM weights; GCMA geometry when it has it)
+        let condition = |net: &Net| -> Result<Option<(Option<GcmaGeometry>, ConditionInput)>> {
+            let Some(f) = &feats else { return Ok(None) };
+            let geometry = match &net.config().conditioning {
+                Some(cc) if cc.gcma.is_some() => {
+                    Some(net.geometry(&cams, &self.config.epipolar, &device)?)
+                }
+                _ => None,
+            };
+            Ok(Some((geometry, f.clone())))
+        };
+        // residual diffusion: the mean network's one pass first
+        let mean = match self.mean_for_views(nv)? {
+            Some(mnet) => {
+                let prep = condition(&mnet)?;
+                let image = match &prep {
+                    Some((g, f)) => Some(mnet.prepare_condition(f, g.as_ref())?),
+                    None => None,
                 };
-                let x0 = enc.encode_batch(&vec![known_view; n], &device)?;
-                let m: Vec<f32> = mask.iter().map(|&k| if k { 1.0 } else { 0.0 }).collect();
-                let m = Tensor::from_vec(m, (1, 1, h, w), &device)?;
-                inpaint(&sampler, &model, &x0, &m, cond.as_ref(), repaint, &mut rng)?
+                let mdiff = Diffusion::new(crate::bundle::ResidualConfig::mean_diffusion())?;
+                let msampler = Sampler::new(
+                    &mdiff,
+                    SamplerConfig {
+                        steps: 1,
+                        guidance_scale: 1.0,
+                        ..options.sampler.clone()
+                    },
+                )?;
+                let zeros = Tensor::zeros((n, c, h, w), DType::F32, &device)?;
+                let cond = NetCond { image, mean: None };
+                Some(msampler.sample_from(
+                    &VeilaDenoiser::new(mnet),
+                    zeros,
+                    Some(&cond),
+                    &mut rng,
+                    |_| {},
+                )?)
+            }
+            None => None,
+        };
+        let x = match (&mean, residual) {
+            (Some(mu), Some(_)) if options.sampler.steps == 0 => {
+                on_step(0, 0);
+                mu.clone()
+            }
+            _ => {
+                let diffusion = Diffusion::new(self.config.diffusion.clone())?;
+                let sampler = Sampler::new(&diffusion, options.sampler.clone())?;
+                let net = self.net_for_views(nv)?;
+                let prep = condition(&net)?;
+                let image = match &prep {
+                    Some((g, f)) => Some(net.prepare_condition(f, g.as_ref())?),
+                    None => None,
+                };
+                let cond = NetCond {
+                    image,
+                    mean: mean.clone(),
+                };
+                let cond = (cond.image.is_some() || cond.mean.is_some()).then_some(cond);
+                let model = VeilaDenoiser::new(net);
+                let x = match inpainting {
+                    None => {
+                        let x_t = randn(&mut rng, &[n, c, h, w], &device)?;
+                        sampler.sample_from(&model, x_t, cond.as_ref(), &mut rng, |info| {
+                            on_step(info.index + 1, info.total)
+                        })?
+                    }
+                    Some((known, mask, repaint)) => {
+                        let enc = &self.config.encoding;
+                        let known_view = crate::encoding::ScanView {
+                            rows: h,
+                            cols: w,
+                            range_m: &known.range_m,
+                            intensity: Some(&known.intensity),
+                            mask: Some(&known.mask),
+                        };
+                        let x0 = enc.encode_batch(&vec![known_view; n], &device)?;
+                        let m: Vec<f32> = mask.iter().map(|&k| if k { 1.0 } else { 0.0 }).collect();
+                        let m = Tensor::from_vec(m, (1, 1, h, w), &device)?;
+                        inpaint(&sampler, &model, &x0, &m, cond.as_ref(), repaint, &mut rng)?
+                    }
+                };
+                match (&mean, residual) {
+                    (Some(mu), Some(r)) => {
+                        let s = Tensor::from_slice(&r.scale, (1, c, 1, 1), &device)?;
+                        (mu + x.broadcast_mul(&s)?)?
+                    }
+                    _ => x,
+                }
             }
         };
         self.config.encoding.decode_batch(&x)
     }
+}
+
+fn rebuild_for_views(
+    net: &Net,
+    cfg: &veila_nn::DenoiserConfig,
+    weights: &HashMap<String, Tensor>,
+    views: usize,
+    device: &Device,
+) -> Result<Net> {
+    let Some(cc) = &cfg.conditioning else {
+        return Ok(net.clone());
+    };
+    if cc.num_views == views {
+        return Ok(net.clone());
+    }
+    let mut cfg = cfg.clone();
+    if let Some(c) = cfg.conditioning.as_mut() {
+        c.num_views = views;
+    }
+    Ok(Net::new(
+        &cfg,
+        VarBuilder::from_tensors(weights.clone(), DType::F32, device),
+    )?)
 }
 
 fn encode_views(
@@ -335,27 +454,124 @@ pub struct TrainExample {
     pub x0: Vec<f32>,
 }
 
-/// Training state of a bundle's denoiser on in-memory examples: frozen encoder features computed
-/// once, one GCMA geometry for the rig (all examples must share the camera), batches drawn by a
-/// seeded shuffle that is a pure function of the step (so resumed runs match uninterrupted ones).
+/// Which network of a bundle a training run fits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    /// The denoiser (`config.denoiser` with `config.diffusion`). For a residual bundle every
+    /// example needs its mean prediction ([`DenoiserFit::means`]) and the targets become the
+    /// scaled residuals ([`residual_target`]).
+    Denoiser,
+    /// The mean network of a residual bundle (`residual.mean_net`, one-pass regression), with
+    /// the range and intensity of dropped rays left out of the loss ([`regression_weight`]).
+    Mean,
+}
+
+/// Per-element loss weights of a regression target: 1 on the ray-drop channel everywhere, and on
+/// the range and intensity channels only where the target has a return (a dropped ray has no
+/// range to predict).
+pub fn regression_weight(enc: &crate::RangeEncoding, x0: &[f32], hw: usize) -> Vec<f32> {
+    let c = enc.num_channels();
+    let mut w = vec![1.0f32; c * hw];
+    if let Some(dc) = enc.raydrop_channel() {
+        for p in 0..hw {
+            if x0[dc * hw + p] <= enc.raydrop_threshold {
+                for ch in 0..c {
+                    if ch != dc {
+                        w[ch * hw + p] = 0.0;
+                    }
+                }
+            }
+        }
+    }
+    w
+}
+
+/// The raw residual `x₀ − μ` of residual diffusion: where the target has no return, its range and
+/// intensity are taken to be the mean's (they are not decoded), so only the ray-drop channel
+/// carries a residual there.
+pub fn raw_residual(enc: &crate::RangeEncoding, x0: &[f32], mean: &[f32], hw: usize) -> Vec<f32> {
+    let w = regression_weight(enc, x0, hw);
+    x0.iter()
+        .zip(mean)
+        .zip(&w)
+        .map(|((x, m), w)| if *w > 0.0 { x - m } else { 0.0 })
+        .collect()
+}
+
+/// The training target of a residual denoiser: [`raw_residual`] divided by the per-channel scale.
+pub fn residual_target(
+    enc: &crate::RangeEncoding,
+    x0: &[f32],
+    mean: &[f32],
+    scale: &[f32],
+    hw: usize,
+) -> Vec<f32> {
+    let mut r = raw_residual(enc, x0, mean, hw);
+    for (ch, s) in scale.iter().enumerate() {
+        for v in &mut r[ch * hw..(ch + 1) * hw] {
+            *v /= s;
+        }
+    }
+    r
+}
+
+/// The per-channel residual scale: the root mean square of [`raw_residual`] over the examples,
+/// counted on returns for range and intensity and everywhere for ray drop (at least 1e-3).
+pub fn residual_scale(
+    enc: &crate::RangeEncoding,
+    x0: &[Vec<f32>],
+    means: &[Vec<f32>],
+    hw: usize,
+) -> Vec<f32> {
+    let c = enc.num_channels();
+    let mut sum = vec![0f64; c];
+    let mut count = vec![0f64; c];
+    for (x, m) in x0.iter().zip(means) {
+        let w = regression_weight(enc, x, hw);
+        let r = raw_residual(enc, x, m, hw);
+        for ch in 0..c {
+            for p in ch * hw..(ch + 1) * hw {
+                if w[p] > 0.0 {
+                    sum[ch] += f64::from(r[p]) * f64::from(r[p]);
+                    count[ch] += 1.0;
+                }
+            }
+        }
+    }
+    (0..c)
+        .map(|ch| ((sum[ch] / count[ch].max(1.0)).sqrt() as f32).max(1e-3))
+        .collect()
+}
+
+/// Training state of one network of a bundle on in-memory examples: frozen encoder features
+/// computed once, one GCMA geometry for the rig (all examples must share the camera), the targets
+/// (and for residual diffusion the mean predictions and for regression the loss weights) as
+/// tensors, batches drawn by a seeded shuffle that is a pure function of the step (so resumed
+/// runs match uninterrupted ones).
 #[derive(Debug)]
 pub struct DenoiserTraining {
     features: Vec<ViewFeatures>,
     x0: Vec<Tensor>,
+    means: Option<Vec<Tensor>>,
+    weights: Option<Vec<Tensor>>,
     geometry: Option<GcmaGeometry>,
     batch_size: usize,
     seed: u64,
 }
 
 impl DenoiserTraining {
-    /// Computes the frozen features of every example. `net` is the denoiser being trained (its
-    /// config decides the cues and the geometry).
+    /// Computes the frozen features of every example. `net` is the network being trained (its
+    /// config decides the cues and the geometry); `stage` and `means` decide the targets (see
+    /// [`Stage`]).
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         config: &BundleConfig,
         semantic: Option<&SmallCnn>,
         depth: Option<&SmallCnn>,
         net: &Net,
         examples: &[TrainExample],
+        stage: Stage,
+        means: Option<&[Vec<f32>]>,
         batch_size: usize,
         seed: u64,
         device: &Device,
@@ -366,11 +582,37 @@ impl DenoiserTraining {
             ));
         }
         let (h, w) = (config.denoiser.height(), config.denoiser.width());
-        let c = config.denoiser.in_channels;
+        let c = config.channels();
         let camera = examples[0].camera;
-        let conditional = config.denoiser.conditioning.is_some();
+        let conditional = net.is_conditional();
+        let residual = match (stage, &config.residual) {
+            (Stage::Denoiser, Some(r)) => {
+                let m = means.ok_or_else(|| {
+                    Error::Data(
+                        "a residual denoiser trains on the mean network's predictions: pass them"
+                            .into(),
+                    )
+                })?;
+                if m.len() != examples.len() {
+                    return Err(Error::Data(format!(
+                        "{} mean predictions for {} examples",
+                        m.len(),
+                        examples.len()
+                    )));
+                }
+                Some((m, r.scale.clone()))
+            }
+            (Stage::Mean, None) => {
+                return Err(Error::Data(
+                    "this bundle has no mean network (not residual diffusion)".into(),
+                ));
+            }
+            _ => None,
+        };
         let mut features = Vec::with_capacity(examples.len());
         let mut x0 = Vec::with_capacity(examples.len());
+        let mut mean_t = Vec::new();
+        let mut weights = Vec::new();
         for (i, ex) in examples.iter().enumerate() {
             if ex.x0.len() != c * h * w {
                 return Err(Error::Shape {
@@ -384,7 +626,26 @@ impl DenoiserTraining {
                     "example {i} has another camera than example 0; one training run takes one camera rig"
                 )));
             }
-            x0.push(Tensor::from_slice(&ex.x0, (1, c, h, w), device)?);
+            match &residual {
+                Some((m, scale)) => {
+                    let mi = &m[i];
+                    if mi.len() != c * h * w {
+                        return Err(Error::Shape {
+                            what: "mean prediction",
+                            expected: format!("{c} x {h} x {w} values"),
+                            got: format!("example {i}: {} values", mi.len()),
+                        });
+                    }
+                    let r = residual_target(&config.encoding, &ex.x0, mi, scale, h * w);
+                    x0.push(Tensor::from_vec(r, (1, c, h, w), device)?);
+                    mean_t.push(Tensor::from_slice(mi, (1, c, h, w), device)?);
+                }
+                None => x0.push(Tensor::from_slice(&ex.x0, (1, c, h, w), device)?),
+            }
+            if stage == Stage::Mean {
+                let wt = regression_weight(&config.encoding, &ex.x0, h * w);
+                weights.push(Tensor::from_vec(wt, (1, c, h, w), device)?);
+            }
             if conditional {
                 let view = CameraView {
                     rgb: &ex.rgb,
@@ -393,7 +654,7 @@ impl DenoiserTraining {
                 features.push(encode_views(config, semantic, depth, &[view], device)?);
             }
         }
-        let geometry = match &config.denoiser.conditioning {
+        let geometry = match &net.config().conditioning {
             Some(cc) if cc.gcma.is_some() => {
                 Some(net.geometry(&[camera], &config.epipolar, device)?)
             }
@@ -402,6 +663,8 @@ impl DenoiserTraining {
         Ok(Self {
             features,
             x0,
+            means: residual.is_some().then_some(mean_t),
+            weights: (stage == Stage::Mean).then_some(weights),
             geometry,
             batch_size,
             seed,
@@ -448,24 +711,26 @@ impl DenoiserTraining {
 
     /// The batch of update `step` for `net` (the condition fusion runs here, inside the graph, so
     /// CACM is trained).
-    pub fn batch<'g>(
-        &'g self,
-        net: &Net,
-        step: u64,
-    ) -> Result<Batch<veila_nn::PreparedCondition<'g>>> {
+    pub fn batch<'g>(&'g self, net: &Net, step: u64) -> Result<Batch<NetCond<'g>>> {
         let idx = self.indices(step);
-        let x0 = Tensor::cat(
-            &idx.iter().map(|&i| self.x0[i].clone()).collect::<Vec<_>>(),
-            0,
-        )?;
-        let cond = if self.features.is_empty() {
+        let pick = |v: &[Tensor]| -> Result<Tensor> {
+            Ok(Tensor::cat(
+                &idx.iter().map(|&i| v[i].clone()).collect::<Vec<_>>(),
+                0,
+            )?)
+        };
+        let x0 = pick(&self.x0)?;
+        let image = if self.features.is_empty() {
             None
         } else {
             let items: Vec<&ViewFeatures> = idx.iter().map(|&i| &self.features[i]).collect();
             let input = ViewFeatures::cat(&items)?;
             Some(net.prepare_condition(&input, self.geometry.as_ref())?)
         };
-        Ok(Batch { x0, cond })
+        let mean = self.means.as_deref().map(pick).transpose()?;
+        let weight = self.weights.as_deref().map(pick).transpose()?;
+        let cond = (image.is_some() || mean.is_some()).then_some(NetCond { image, mean });
+        Ok(Batch { x0, cond, weight })
     }
 }
 
@@ -478,6 +743,11 @@ pub struct DenoiserFit<'a> {
     pub depth: Option<&'a SmallCnn>,
     /// The training examples (one camera rig).
     pub examples: &'a [TrainExample],
+    /// Which network of the bundle is trained.
+    pub stage: Stage,
+    /// For the residual denoiser: the mean network's prediction of every example
+    /// ([`predict_means`]).
+    pub means: Option<&'a [Vec<f32>]>,
     /// Examples per update.
     pub batch_size: usize,
     /// Optimiser, schedule, EMA, dropout and checkpoint settings; its seed also seeds the
@@ -503,8 +773,27 @@ pub struct DenoiserFitOutcome {
     pub ema_weights: HashMap<String, Tensor>,
 }
 
-/// Trains the denoiser of `config` on in-memory examples: a seeded network (optionally started from
-/// `fit.init`), frozen encoder features via [`DenoiserTraining`], the [`Trainer`] with its
+/// The network config and process of one training stage of `config`.
+pub fn stage_config(
+    config: &BundleConfig,
+    stage: Stage,
+) -> Result<(veila_nn::DenoiserConfig, crate::DiffusionConfig)> {
+    match stage {
+        Stage::Denoiser => Ok((config.denoiser.clone(), config.diffusion.clone())),
+        Stage::Mean => {
+            let r = config.residual.as_ref().ok_or_else(|| {
+                Error::Data("this bundle has no mean network (not residual diffusion)".into())
+            })?;
+            Ok((
+                r.mean_net.clone(),
+                crate::bundle::ResidualConfig::mean_diffusion(),
+            ))
+        }
+    }
+}
+
+/// Trains one network of `config` on in-memory examples: a seeded network (optionally started
+/// from `fit.init`), frozen encoder features via [`DenoiserTraining`], the [`Trainer`] with its
 /// checkpoints in `fit.checkpoint_dir`. A checkpoint already there is resumed first (`on_resume`
 /// gets its path and step), so an interrupted run continues exactly.
 pub fn fit_denoiser<O>(
@@ -517,9 +806,10 @@ pub fn fit_denoiser<O>(
 where
     O: for<'g> TrainObserver<VeilaDenoiser<'g>>,
 {
+    let (net_cfg, diffusion) = stage_config(config, fit.stage)?;
     let varmap = VarMap::new();
     let net = Net::new(
-        &config.denoiser,
+        &net_cfg,
         veila_nn::seeded_var_builder(&varmap, fit.train.seed, DType::F32, device),
     )?;
     let mut initialised = 0;
@@ -543,6 +833,8 @@ where
         fit.depth,
         &net,
         fit.examples,
+        fit.stage,
+        fit.means,
         fit.batch_size,
         fit.train.seed,
         device,
@@ -552,7 +844,7 @@ where
     let mut trainer = Trainer::new(
         VeilaDenoiser::new(net),
         varmap,
-        Diffusion::new(config.diffusion.clone())?,
+        Diffusion::new(diffusion)?,
         fit.train.clone(),
     )?;
     let resumed: Option<PathBuf> = trainer.resume_latest(fit.checkpoint_dir)?;
@@ -567,6 +859,200 @@ where
         initialised,
         ema_weights: trainer.ema_weights(),
     })
+}
+
+/// What [`fit_bundle`] trains: the whole training recipe of a bundle's generative part.
+#[derive(Debug, Clone, Copy)]
+pub struct BundleFit<'a> {
+    /// Frozen `E_s` (when the config uses semantic cues).
+    pub semantic: Option<&'a SmallCnn>,
+    /// Frozen `E_d` (when the config uses depth cues).
+    pub depth: Option<&'a SmallCnn>,
+    /// The training examples (one camera rig).
+    pub examples: &'a [TrainExample],
+    /// Examples per update.
+    pub batch_size: usize,
+    /// Settings of the denoiser's run.
+    pub train: &'a TrainConfig,
+    /// Settings of the mean network's run (residual bundles; `None`: the denoiser's).
+    pub mean_train: Option<&'a TrainConfig>,
+    /// Checkpoints: the denoiser's go here, the mean network's into its `mean/` subfolder.
+    pub work_dir: &'a Path,
+    /// Initial denoiser weights wherever names and shapes match (fine-tuning).
+    pub init: Option<&'a HashMap<String, Tensor>>,
+}
+
+/// What [`fit_bundle`] did.
+#[derive(Debug)]
+pub struct BundleFitOutcome {
+    /// The denoiser's run (`None` when an observer stopped the mean network's run early: the
+    /// denoiser needs the finished mean network).
+    pub denoiser: Option<DenoiserFitOutcome>,
+    /// The mean network's run (residual bundles).
+    pub mean: Option<DenoiserFitOutcome>,
+    /// Seconds spent in each run, mean network first (0 when absent).
+    pub seconds: [f64; 2],
+}
+
+/// The training recipe every command shares: for a residual bundle the mean network first
+/// (one-pass regression), then its predictions of every example, the residual scale (written
+/// into `config.residual`), then the denoiser on the residuals; otherwise the denoiser alone.
+/// Every run resumes from its checkpoints in `fit.work_dir`. `observer(stage, total_steps)` makes
+/// the observer of each run; `on_resume` hears of every resumed checkpoint.
+pub fn fit_bundle<O>(
+    config: &mut BundleConfig,
+    fit: BundleFit<'_>,
+    device: &Device,
+    mut on_resume: impl FnMut(Stage, &Path, u64),
+    mut observer: impl FnMut(Stage, u64) -> O,
+) -> Result<BundleFitOutcome>
+where
+    O: for<'g> TrainObserver<VeilaDenoiser<'g>>,
+{
+    let mut seconds = [0.0; 2];
+    let (mean, means) = if config.residual.is_some() {
+        let t = std::time::Instant::now();
+        let tc = fit.mean_train.unwrap_or(fit.train);
+        let dir = fit.work_dir.join("mean");
+        let mut obs = observer(Stage::Mean, tc.total_steps);
+        let out = fit_denoiser(
+            config,
+            DenoiserFit {
+                semantic: fit.semantic,
+                depth: fit.depth,
+                examples: fit.examples,
+                stage: Stage::Mean,
+                means: None,
+                batch_size: fit.batch_size,
+                train: tc,
+                checkpoint_dir: &dir,
+                init: None,
+            },
+            device,
+            |p, s| on_resume(Stage::Mean, p, s),
+            &mut obs,
+        )?;
+        if out.step < tc.total_steps {
+            seconds[0] = t.elapsed().as_secs_f64();
+            return Ok(BundleFitOutcome {
+                denoiser: None,
+                mean: Some(out),
+                seconds,
+            });
+        }
+        let means = predict_means(
+            config,
+            fit.semantic,
+            fit.depth,
+            &out.ema_weights,
+            fit.examples,
+            16,
+            device,
+        )?;
+        let (h, w) = (config.denoiser.height(), config.denoiser.width());
+        let x0: Vec<Vec<f32>> = fit.examples.iter().map(|e| e.x0.clone()).collect();
+        let scale = residual_scale(&config.encoding, &x0, &means, h * w);
+        if let Some(r) = config.residual.as_mut() {
+            r.scale = scale;
+        }
+        seconds[0] = t.elapsed().as_secs_f64();
+        (Some(out), Some(means))
+    } else {
+        (None, None)
+    };
+    let t = std::time::Instant::now();
+    let mut obs = observer(Stage::Denoiser, fit.train.total_steps);
+    let denoiser = fit_denoiser(
+        config,
+        DenoiserFit {
+            semantic: fit.semantic,
+            depth: fit.depth,
+            examples: fit.examples,
+            stage: Stage::Denoiser,
+            means: means.as_deref(),
+            batch_size: fit.batch_size,
+            train: fit.train,
+            checkpoint_dir: fit.work_dir,
+            init: fit.init,
+        },
+        device,
+        |p, s| on_resume(Stage::Denoiser, p, s),
+        &mut obs,
+    )?;
+    seconds[1] = t.elapsed().as_secs_f64();
+    Ok(BundleFitOutcome {
+        denoiser: Some(denoiser),
+        mean,
+        seconds,
+    })
+}
+
+/// The mean network's one-pass prediction (encoded, `channels * rows * cols` values) for every
+/// example, in batches of `batch_size`: what a residual denoiser trains on.
+pub fn predict_means(
+    config: &BundleConfig,
+    semantic: Option<&SmallCnn>,
+    depth: Option<&SmallCnn>,
+    mean_weights: &HashMap<String, Tensor>,
+    examples: &[TrainExample],
+    batch_size: usize,
+    device: &Device,
+) -> Result<Vec<Vec<f32>>> {
+    let (cfg, diffusion) = stage_config(config, Stage::Mean)?;
+    let net = Net::new(
+        &cfg,
+        VarBuilder::from_tensors(mean_weights.clone(), DType::F32, device),
+    )?;
+    let (h, w) = (cfg.height(), cfg.width());
+    let c = config.channels();
+    let diffusion = Diffusion::new(diffusion)?;
+    let sampler = Sampler::new(
+        &diffusion,
+        SamplerConfig {
+            steps: 1,
+            guidance_scale: 1.0,
+            ..config.sampler.clone()
+        },
+    )?;
+    let geometry = match &cfg.conditioning {
+        Some(cc) if cc.gcma.is_some() && !examples.is_empty() => {
+            Some(net.geometry(&[examples[0].camera], &config.epipolar, device)?)
+        }
+        _ => None,
+    };
+    let model = VeilaDenoiser::new(net.clone());
+    let mut out = Vec::with_capacity(examples.len());
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    for chunk in examples.chunks(batch_size.max(1)) {
+        let image = if net.is_conditional() {
+            let feats = chunk
+                .iter()
+                .map(|ex| {
+                    encode_views(
+                        config,
+                        semantic,
+                        depth,
+                        &[CameraView {
+                            rgb: &ex.rgb,
+                            camera: &ex.camera,
+                        }],
+                        device,
+                    )
+                })
+                .collect::<Result<Vec<_>>>()?;
+            let refs: Vec<&ViewFeatures> = feats.iter().collect();
+            Some(net.prepare_condition(&ViewFeatures::cat(&refs)?, geometry.as_ref())?)
+        } else {
+            None
+        };
+        let cond = NetCond { image, mean: None };
+        let zeros = Tensor::zeros((chunk.len(), c, h, w), DType::F32, device)?;
+        let mu = sampler.sample_from(&model, zeros, Some(&cond), &mut rng, |_| {})?;
+        for i in 0..chunk.len() {
+            out.push(mu.get(i)?.flatten_all()?.to_vec1::<f32>()?);
+        }
+    }
+    Ok(out)
 }
 
 /// What one encoder training step did.

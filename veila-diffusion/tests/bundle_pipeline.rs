@@ -7,10 +7,12 @@ use candle_core::{DType, Device};
 use candle_nn::VarMap;
 use veila_diffusion::SamplerConfig;
 use veila_diffusion::bundle::{
-    Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, MANIFEST_FILE, SEMANTIC_FILE, Variant,
+    Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, MANIFEST_FILE, MEAN_FILE, Method,
+    SEMANTIC_FILE, Variant,
 };
 use veila_diffusion::pipeline::{
-    CameraView, DenoiserTraining, GenerateOptions, TrainExample, varmap_tensors,
+    BundleFit, CameraView, DenoiserTraining, GenerateOptions, Stage, TrainExample, fit_bundle,
+    varmap_tensors,
 };
 use veila_diffusion::{RepaintConfig, encoding::ScanView};
 use veila_geom::PinholeCamera;
@@ -301,8 +303,19 @@ fn training_batches_are_a_pure_function_of_the_step_and_cover_each_epoch() {
             x0: x0.clone(),
         })
         .collect();
-    let data =
-        DenoiserTraining::new(&cfg, Some(&sem), Some(&dep), &net, &examples, 2, 9, &dev).unwrap();
+    let data = DenoiserTraining::new(
+        &cfg,
+        Some(&sem),
+        Some(&dep),
+        &net,
+        &examples,
+        Stage::Denoiser,
+        None,
+        2,
+        9,
+        &dev,
+    )
+    .unwrap();
     let a: Vec<usize> = (0..5).flat_map(|s| data.indices(s)).collect();
     let b: Vec<usize> = (0..5).flat_map(|s| data.indices(s)).collect();
     assert_eq!(a, b);
@@ -314,9 +327,237 @@ fn training_batches_are_a_pure_function_of_the_step_and_cover_each_epoch() {
     }
     let batch = data.batch(&net, 3).unwrap();
     assert_eq!(batch.x0.dims(), &[2, 3, h, w]);
-    assert_eq!(batch.cond.unwrap().batch(), 2);
+    assert_eq!(batch.cond.unwrap().image.unwrap().batch(), 2);
     // a different camera in one run is refused
     let mut bad = examples.clone();
     bad[1].camera = camera().resized(IW as u32 / 2, IH as u32 / 2).unwrap();
-    assert!(DenoiserTraining::new(&cfg, Some(&sem), Some(&dep), &net, &bad, 2, 9, &dev).is_err());
+    assert!(
+        DenoiserTraining::new(
+            &cfg,
+            Some(&sem),
+            Some(&dep),
+            &net,
+            &bad,
+            Stage::Denoiser,
+            None,
+            2,
+            9,
+            &dev
+        )
+        .is_err()
+    );
+}
+
+/// A structured scan of `h x w` pixels: ground rings (range growing towards the top rows), a
+/// 6 m "car" over a quarter of the columns, a dropped band in the top row, intensity by range.
+fn structured_scan(h: usize, w: usize) -> veila_diffusion::DecodedScan {
+    let mut range_m = vec![0.0; h * w];
+    let mut intensity = vec![0.0; h * w];
+    let mut mask = vec![true; h * w];
+    for r in 0..h {
+        for c in 0..w {
+            let i = r * w + c;
+            let ground = 4.0 + 40.0 / (1.0 + r as f32);
+            let car = (w / 8..w / 8 + w / 4).contains(&c) && r >= h / 2;
+            range_m[i] = if car { 6.0 } else { ground };
+            intensity[i] = if car { 0.8 } else { 0.2 };
+            if r == 0 && c % 3 == 0 {
+                mask[i] = false;
+                range_m[i] = 0.0;
+                intensity[i] = 0.0;
+            }
+        }
+    }
+    veila_diffusion::DecodedScan {
+        rows: h,
+        cols: w,
+        range_m,
+        intensity,
+        mask,
+    }
+}
+
+/// Mean absolute range error over the pixels where both scans have a return, and the share of
+/// pixels whose return/drop decision differs.
+fn range_mae(a: &veila_diffusion::DecodedScan, b: &veila_diffusion::DecodedScan) -> (f64, f64) {
+    let (mut sum, mut n, mut flips) = (0.0, 0usize, 0usize);
+    for i in 0..a.range_m.len() {
+        if a.mask[i] && b.mask[i] {
+            sum += f64::from((a.range_m[i] - b.range_m[i]).abs());
+            n += 1;
+        }
+        if a.mask[i] != b.mask[i] {
+            flips += 1;
+        }
+    }
+    (sum / n.max(1) as f64, flips as f64 / a.range_m.len() as f64)
+}
+
+struct Quiet;
+impl<M: veila_diffusion::Denoiser> veila_diffusion::TrainObserver<M> for Quiet {}
+
+/// Trains `cfg` (with random frozen encoders) on one example for `steps` updates and returns the
+/// bundle, read back through the verifying loader.
+fn overfit_one(
+    cfg: BundleConfig,
+    scan: &veila_diffusion::DecodedScan,
+    steps: u64,
+    dir: &std::path::Path,
+) -> Bundle {
+    let dev = Device::Cpu;
+    let mut cfg = cfg;
+    let (h, w) = (cfg.denoiser.height(), cfg.denoiser.width());
+    let x0 = cfg
+        .encoding
+        .encode_to_vec(&ScanView {
+            rows: h,
+            cols: w,
+            range_m: &scan.range_m,
+            intensity: Some(&scan.intensity),
+            mask: Some(&scan.mask),
+        })
+        .unwrap();
+    let examples = vec![TrainExample {
+        rgb: image(4),
+        camera: camera(),
+        x0,
+    }];
+    let mut weights: HashMap<&str, HashMap<String, candle_core::Tensor>> = HashMap::new();
+    let mut encoders = Vec::new();
+    for (file, c) in [
+        (SEMANTIC_FILE, cfg.semantic_encoder.clone()),
+        (DEPTH_FILE, cfg.depth_encoder.clone()),
+    ] {
+        let Some(c) = c else {
+            encoders.push(None);
+            continue;
+        };
+        let vm = VarMap::new();
+        let net =
+            SmallCnn::new(&c, veila_nn::seeded_var_builder(&vm, 1, DType::F32, &dev)).unwrap();
+        weights.insert(file, varmap_tensors(&vm).unwrap());
+        encoders.push(Some(net));
+    }
+    let tc = veila_diffusion::TrainConfig {
+        seed: 0,
+        lr: 3e-3,
+        min_lr: 3e-4,
+        warmup_steps: 10,
+        total_steps: steps,
+        ema_decay: 0.9,
+        cond_drop_prob: 0.0,
+        checkpoint_every: None,
+        ..veila_diffusion::TrainConfig::default()
+    };
+    let out = fit_bundle(
+        &mut cfg,
+        BundleFit {
+            semantic: encoders[0].as_ref(),
+            depth: encoders[1].as_ref(),
+            examples: &examples,
+            batch_size: 4,
+            train: &tc,
+            mean_train: None,
+            work_dir: &dir.join("work"),
+            init: None,
+        },
+        &dev,
+        |_, _, _| {},
+        |_, _| Quiet,
+    )
+    .unwrap();
+    if let Some(m) = out.mean {
+        weights.insert(MEAN_FILE, m.ema_weights);
+    }
+    weights.insert(DENOISER_FILE, out.denoiser.unwrap().ema_weights);
+    let bdir = dir.join("bundle");
+    Bundle::save(&bdir, &cfg, &weights).unwrap();
+    Bundle::from_dir(&bdir, &dev).unwrap()
+}
+
+fn generate_one(b: &Bundle, sampler: SamplerConfig, seed: u64) -> veila_diffusion::DecodedScan {
+    let cam = camera();
+    let img = image(4);
+    let view = [CameraView {
+        rgb: &img,
+        camera: &cam,
+    }];
+    let o = GenerateOptions {
+        sampler,
+        samples: 1,
+        seed,
+        unconditional: false,
+    };
+    b.generate(&view, &o, |_, _| {}).unwrap().remove(0)
+}
+
+/// The small, fast version of the overfit check (the bundled-size one, for every method, is
+/// `cargo xtask overfit`): a residual bundle trained on one scan gives that scan back, from its
+/// mean network alone (0 steps) and with the residual diffusion on top. A defect anywhere in
+/// encoding, loss weights, residual scaling, sampler or decoding shows up here as noise.
+#[test]
+fn a_residual_bundle_trained_on_one_scan_generates_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cfg = small_config(Variant::Full).with_method(Method::Residual);
+    let (h, w) = (cfg.denoiser.height(), cfg.denoiser.width());
+    let scan = structured_scan(h, w);
+    let b = overfit_one(cfg, &scan, 200, tmp.path());
+    let r = b.config.residual.as_ref().unwrap();
+    assert!(
+        r.scale.iter().all(|s| *s > 0.0 && s.is_finite()),
+        "{:?}",
+        r.scale
+    );
+    assert!(b.mean.is_some());
+    let mean = generate_one(&b, SamplerConfig::ddim(0, 0.0), 1);
+    let mean_again = generate_one(&b, SamplerConfig::ddim(0, 0.0), 2);
+    assert_eq!(mean, mean_again, "0 steps: the noise seed plays no part");
+    let (mae, flips) = range_mae(&mean, &scan);
+    eprintln!("mean network: range MAE {mae:.3} m, {flips:.3} ray-drop flips");
+    assert!(mae < 0.6 && flips < 0.06, "mean: {mae} m, {flips} flips");
+    let full = generate_one(&b, SamplerConfig::ddim(8, 0.0), 1);
+    let (mae_full, flips_full) = range_mae(&full, &scan);
+    eprintln!("mean + residual: range MAE {mae_full:.3} m, {flips_full:.3} ray-drop flips");
+    assert!(
+        mae_full < 1.0 && flips_full < 0.08,
+        "mean + residual: {mae_full} m, {flips_full} flips"
+    );
+    assert_ne!(full, mean, "the residual diffusion adds something");
+    // a residual bundle without its mean network is refused, naming the file
+    std::fs::remove_file(tmp.path().join("bundle").join(MEAN_FILE)).unwrap();
+    let err = Bundle::from_dir(&tmp.path().join("bundle"), &Device::Cpu).unwrap_err();
+    assert!(err.to_string().contains(MEAN_FILE), "{err}");
+}
+
+/// Every method trains and samples through the same bundle pipeline (a few steps each: this
+/// checks the plumbing, shapes and seeding; quality is `cargo xtask method-sweep`'s job).
+#[test]
+fn every_method_trains_and_generates_through_the_bundle_pipeline() {
+    for method in [Method::Eps, Method::Flow, Method::Regression] {
+        let tmp = tempfile::tempdir().unwrap();
+        let cfg = small_config(Variant::Full).with_method(method);
+        assert_eq!(cfg.method(), method);
+        let (h, w) = (cfg.denoiser.height(), cfg.denoiser.width());
+        let b = overfit_one(cfg, &structured_scan(h, w), 3, tmp.path());
+        assert_eq!(b.config.method(), method);
+        let a = generate_one(&b, SamplerConfig::ddim(3, 0.0), 1);
+        let again = generate_one(&b, SamplerConfig::ddim(3, 0.0), 1);
+        assert_eq!(a, again, "{method:?}: seeded");
+        assert!(a.range_m.iter().all(|r| r.is_finite()), "{method:?}");
+        assert_eq!((a.rows, a.cols), (h, w));
+        // only residual bundles sample with 0 steps
+        let o = GenerateOptions {
+            sampler: SamplerConfig::ddim(0, 0.0),
+            samples: 1,
+            seed: 0,
+            unconditional: false,
+        };
+        let cam = camera();
+        let img = image(4);
+        let view = [CameraView {
+            rgb: &img,
+            camera: &cam,
+        }];
+        assert!(b.generate(&view, &o, |_, _| {}).is_err(), "{method:?}");
+    }
 }

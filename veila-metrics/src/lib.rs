@@ -46,6 +46,7 @@
 //! # Ok::<(), veila_metrics::Error>(())
 //! ```
 
+pub mod baseline;
 pub mod bev;
 pub mod chamfer;
 pub mod crossmodal;

@@ -41,9 +41,18 @@ pub struct BenchReportArgs {
     /// The bundle whose encoders every variant shares (and whose denoiser the sampler sweep uses).
     #[arg(long, default_value = "models/default")]
     model: PathBuf,
-    /// Held-out test frames (scenes/test.txt).
-    #[arg(long, default_value_t = 48)]
+    /// Held-out test frames (scenes/test.txt, interleaving its scene files), split into
+    /// `--folds` disjoint folds: every metric is computed per fold (and seed), and the spread is
+    /// over folds and seeds.
+    #[arg(long, default_value_t = 120)]
     test_frames: usize,
+    /// Disjoint folds of the test frames.
+    #[arg(long, default_value_t = 3)]
+    folds: usize,
+    /// Training frames (scenes/train.txt) behind the baselines: their per-pixel median scan, and
+    /// the retrieval database.
+    #[arg(long, default_value_t = 480)]
+    baseline_frames: usize,
     /// Sample seeds per variant (the spread is over seeds).
     #[arg(long, default_value_t = 3)]
     seeds: u64,
@@ -91,15 +100,17 @@ enum Protocol {
     Scratch,
 }
 
+/// A metric over several sets of scans (folds of the test frames, times sample seeds for a
+/// model): mean and standard deviation over the sets.
 #[derive(Debug, Clone, Serialize)]
 struct Stat {
     mean: f64,
     std: f64,
-    seeds: usize,
-    scans_per_seed: usize,
+    sets: usize,
+    scans_per_set: usize,
 }
 
-fn stat(values: &[f64], scans_per_seed: usize) -> Stat {
+fn stat(values: &[f64], scans_per_set: usize) -> Stat {
     let finite: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
     let n = finite.len().max(1) as f64;
     let mean = finite.iter().sum::<f64>() / n;
@@ -111,13 +122,15 @@ fn stat(values: &[f64], scans_per_seed: usize) -> Stat {
     Stat {
         mean: if finite.is_empty() { f64::NAN } else { mean },
         std: var.sqrt(),
-        seeds: values.len(),
-        scans_per_seed,
+        sets: values.len(),
+        scans_per_set,
     }
 }
 
 #[derive(Debug, Serialize)]
 struct VariantResult {
+    /// `model`, `baseline` or `floor`.
+    kind: String,
     variant: String,
     label: String,
     model: String,
@@ -144,6 +157,8 @@ struct Report {
     machine: String,
     test_split: String,
     test_frames: usize,
+    folds: usize,
+    baseline_frames: usize,
     seeds: u64,
     train_steps: u64,
     train_frames: usize,
@@ -453,6 +468,76 @@ fn segment_points(
     Ok((pts, out))
 }
 
+/// A result row from per-set metric values (name -> region -> value per set).
+fn row(
+    kind: &str,
+    name: &str,
+    label: &str,
+    model: &str,
+    per_set: &[BTreeMap<String, BTreeMap<String, f64>>],
+    scans_per_set: usize,
+) -> VariantResult {
+    let mut metrics: BTreeMap<String, BTreeMap<String, Stat>> = BTreeMap::new();
+    if let Some(first) = per_set.first() {
+        for (m, regions) in first {
+            for region in regions.keys() {
+                let vals: Vec<f64> = per_set.iter().map(|x| x[m][region]).collect();
+                metrics
+                    .entry(m.clone())
+                    .or_default()
+                    .insert(region.clone(), stat(&vals, scans_per_set));
+            }
+        }
+    }
+    VariantResult {
+        kind: kind.into(),
+        variant: name.into(),
+        label: label.into(),
+        model: model.into(),
+        train_steps: 0,
+        seconds_per_scan: 0.0,
+        metrics,
+    }
+}
+
+/// The data floor: the set metrics between the true scans of two disjoint folds (fold `f`
+/// against fold `f + 1`), what a perfect generator of this many scans would score.
+fn data_floor(folds: &[std::ops::Range<usize>], judges: &[Judges]) -> VariantResult {
+    let k = judges.len();
+    let per_set: Vec<BTreeMap<String, BTreeMap<String, f64>>> = (0..k)
+        .map(|f| {
+            let (a, b) = (&judges[f], &judges[(f + 1) % k]);
+            let mut m: BTreeMap<String, BTreeMap<String, f64>> = BTreeMap::new();
+            for (region, (ra, rb)) in Region::ALL
+                .into_iter()
+                .zip(a.reference.iter().zip(&b.reference))
+            {
+                let rn = region_name(region).to_string();
+                m.entry("jsd".into()).or_default().insert(
+                    rn.clone(),
+                    or_nan("jsd", dist::jsd(&ra.histograms, &rb.histograms)),
+                );
+                m.entry("mmd (x1e4)".into()).or_default().insert(
+                    rn,
+                    1e4 * or_nan(
+                        "mmd",
+                        dist::mmd_r2dm_dense(&ra.histograms, &rb.histograms, 0.5),
+                    ),
+                );
+            }
+            m
+        })
+        .collect();
+    row(
+        "floor",
+        "data-floor",
+        "data floor (true scans of one fold vs another)",
+        "-",
+        &per_set,
+        folds.first().map_or(0, |r| r.len()),
+    )
+}
+
 fn sampler_for(name: &str, steps: usize, guidance: f64) -> Result<SamplerConfig> {
     let mut s = match name {
         "ddpm" => SamplerConfig::ddpm(steps),
@@ -468,6 +553,8 @@ fn sampler_for(name: &str, steps: usize, guidance: f64) -> Result<SamplerConfig>
 pub fn run(mut args: BenchReportArgs) -> Result<()> {
     if args.quick {
         args.test_frames = 12;
+        args.folds = 2;
+        args.baseline_frames = 48;
         args.seeds = 2;
         args.train_steps = 40;
         args.train_frames = 96;
@@ -504,7 +591,90 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
             None
         }
     };
-    let judges = make_judges(&base, &tests, nets.as_ref(), &device)?;
+    if args.folds == 0 || tests.len() < 2 * args.folds {
+        bail!(
+            "{} test frames cannot make {} folds of at least 2 frames",
+            tests.len(),
+            args.folds
+        );
+    }
+    // contiguous folds: the test list interleaves its scene files, so every fold holds all of them
+    let folds: Vec<std::ops::Range<usize>> = (0..args.folds)
+        .map(|f| f * tests.len() / args.folds..(f + 1) * tests.len() / args.folds)
+        .collect();
+    let fold_judges = folds
+        .iter()
+        .map(|r| make_judges(&base, &tests[r.clone()], nets.as_ref(), &device))
+        .collect::<Result<Vec<_>>>()?;
+    let fold_size = folds[0].len();
+    let per_fold = |bundle: &Bundle,
+                    generated: &[RangeImage]|
+     -> Result<Vec<BTreeMap<String, BTreeMap<String, f64>>>> {
+        folds
+            .iter()
+            .zip(&fold_judges)
+            .map(|(r, j)| {
+                seed_metrics(
+                    bundle,
+                    &generated[r.clone()],
+                    &tests[r.clone()],
+                    j,
+                    nets.as_ref(),
+                )
+            })
+            .collect()
+    };
+    let mut results = Vec::new();
+
+    // the zero-skill baselines and the data floor
+    let baseline_train = render_split(
+        &root.join("scenes/train.txt"),
+        args.baseline_frames,
+        &base.config,
+        "simulating baseline train frames",
+    )?;
+    let refs: Vec<&RangeImage> = baseline_train.iter().map(|e| &e.range).collect();
+    let median = veila_metrics::baseline::median_scan(&refs)?;
+    results.push(row(
+        "baseline",
+        "mean-scan",
+        &format!(
+            "mean training scan (per-pixel median of {} train frames)",
+            baseline_train.len()
+        ),
+        "-",
+        &per_fold(&base, &vec![median; tests.len()])?,
+        fold_size,
+    ));
+    if base.is_conditional() {
+        let descriptor = |ex: &SimExample| {
+            base.image_descriptor(CameraView {
+                rgb: &ex.rgb,
+                camera: &ex.camera,
+            })
+        };
+        let keys = baseline_train
+            .iter()
+            .map(descriptor)
+            .collect::<std::result::Result<Vec<_>, _>>()?;
+        let retrieved = tests
+            .iter()
+            .map(|ex| {
+                let i = veila_metrics::baseline::nearest(&descriptor(ex)?, &keys)?;
+                Ok(baseline_train[i].range.clone())
+            })
+            .collect::<Result<Vec<_>>>()?;
+        results.push(row(
+            "baseline",
+            "retrieval",
+            "retrieval (train scan with the nearest image in the frozen encoders' features)",
+            "-",
+            &per_fold(&base, &retrieved)?,
+            fold_size,
+        ));
+    }
+    results.push(data_floor(&folds, &fold_judges));
+
     let variants = args
         .variants
         .clone()
@@ -522,7 +692,6 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
     } else {
         Vec::new()
     };
-    let mut results = Vec::new();
     for v in variants {
         // under fine-tuning the unconditional baseline is the bundled network's own unconditional
         // branch (trained by condition dropout): no extra training
@@ -546,6 +715,8 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                 TrainDefaultArgs {
                     out: dir.clone(),
                     variant: v,
+                    method: base.config.method(),
+                    mean_steps: None,
                     frames: args.train_frames,
                     encoder_steps: 0,
                     steps: args.train_steps,
@@ -569,7 +740,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
             1.0
         };
         let sampler = sampler_for("dpm", args.steps, guidance)?;
-        let mut per_seed: Vec<BTreeMap<String, BTreeMap<String, f64>>> = Vec::new();
+        let mut per_set: Vec<BTreeMap<String, BTreeMap<String, f64>>> = Vec::new();
         let mut secs = 0.0;
         for seed in 0..args.seeds {
             let (generated, s) = generate_all(
@@ -581,38 +752,25 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                 &format!("{} seed {seed}", v.name()),
             )?;
             secs += s;
-            per_seed.push(seed_metrics(
-                &bundle,
-                &generated,
-                &tests,
-                &judges,
-                nets.as_ref(),
-            )?);
+            per_set.extend(per_fold(&bundle, &generated)?);
         }
-        let mut metrics: BTreeMap<String, BTreeMap<String, Stat>> = BTreeMap::new();
-        if let Some(first) = per_seed.first() {
-            for (name, regions) in first {
-                for region in regions.keys() {
-                    let vals: Vec<f64> = per_seed.iter().map(|m| m[name][region]).collect();
-                    metrics
-                        .entry(name.clone())
-                        .or_default()
-                        .insert(region.clone(), stat(&vals, tests.len()));
-                }
-            }
-        }
+        let r = row(
+            "model",
+            v.name(),
+            v.label(),
+            &dir.display().to_string(),
+            &per_set,
+            fold_size,
+        );
         println!(
             "  {}: {:.2} s/scan",
             v.label(),
             secs / (args.seeds as f64 * tests.len() as f64)
         );
         results.push(VariantResult {
-            variant: v.name().into(),
-            label: v.label().into(),
-            model: dir.display().to_string(),
             train_steps: args.train_steps,
             seconds_per_scan: secs / (args.seeds as f64 * tests.len() as f64),
-            metrics,
+            ..r
         });
     }
 
@@ -658,6 +816,8 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         machine: format!("{} CPU cores (CPU only)", std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)),
         test_split: "scenes/test.txt".into(),
         test_frames: tests.len(),
+        folds: args.folds,
+        baseline_frames: baseline_train.len(),
         seeds: args.seeds,
         train_steps: args.train_steps,
         train_frames: args.train_frames,
@@ -731,7 +891,8 @@ fn write_report(out: &Path, r: &Report) -> Result<()> {
     writeln!(md)?;
     writeln!(
         md,
-        "Values are mean ± standard deviation over sample seeds. Lower is better except CM-SC."
+        "Values are mean ± standard deviation over {} disjoint folds of the test frames (times {} sample seeds for the models). Lower is better except CM-SC. Rows in italics need no camera image (the mean training scan) or no model (retrieval from {} training frames; the data floor compares true scans of two folds: what a perfect generator would score).",
+        r.folds, r.seeds, r.baseline_frames
     )?;
     let metric_names: Vec<String> = r
         .variants
@@ -741,7 +902,12 @@ fn write_report(out: &Path, r: &Report) -> Result<()> {
     for region in ["all", "front", "rear"] {
         let names: Vec<&String> = metric_names
             .iter()
-            .filter(|n| r.variants[0].metrics[*n].contains_key(region))
+            .filter(|n| {
+                r.variants[0]
+                    .metrics
+                    .get(*n)
+                    .is_some_and(|m| m.contains_key(region))
+            })
             .collect();
         if names.is_empty() {
             continue;
@@ -749,7 +915,7 @@ fn write_report(out: &Path, r: &Report) -> Result<()> {
         writeln!(md)?;
         writeln!(md, "## Region: {region}")?;
         writeln!(md)?;
-        write!(md, "| variant |")?;
+        write!(md, "| row |")?;
         for n in &names {
             write!(md, " {n} |")?;
         }
@@ -760,9 +926,16 @@ fn write_report(out: &Path, r: &Report) -> Result<()> {
         }
         writeln!(md)?;
         for v in &r.variants {
-            write!(md, "| {} |", v.label)?;
+            let label = match v.kind.as_str() {
+                "model" => v.label.clone(),
+                _ => format!("*{}*", v.label),
+            };
+            write!(md, "| {label} |")?;
             for n in &names {
-                write!(md, " {} |", fmt_stat(&v.metrics[*n][region]))?;
+                match v.metrics.get(*n).and_then(|m| m.get(region)) {
+                    Some(st) => write!(md, " {} |", fmt_stat(st))?,
+                    None => write!(md, " – |")?,
+                }
             }
             writeln!(md)?;
         }

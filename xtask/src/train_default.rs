@@ -13,10 +13,10 @@ use candle_core::Device;
 use candle_nn::VarMap;
 use clap::Args;
 use veila_diffusion::bundle::{
-    Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, SEMANTIC_FILE, Variant,
+    Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, MEAN_FILE, Method, SEMANTIC_FILE, Variant,
 };
 use veila_diffusion::pipeline::{
-    DenoiserFit, TrainExample, fit_denoiser, train_small_cnn, varmap_tensors,
+    BundleFit, Stage, TrainExample, fit_bundle, train_small_cnn, varmap_tensors,
 };
 use veila_diffusion::{StepStats, TrainConfig, TrainObserver};
 use veila_nn::encoders::small_cnn::SmallCnn;
@@ -32,6 +32,12 @@ pub struct TrainDefaultArgs {
     /// Model variant (the ablations of the paper; `full` is the bundled model).
     #[arg(long, default_value = "full")]
     pub variant: Variant,
+    /// Generative method: eps, v, residual, flow or regression.
+    #[arg(long, default_value = "residual")]
+    pub method: Method,
+    /// Training steps of the mean network (residual method; default: --steps).
+    #[arg(long)]
+    pub mean_steps: Option<u64>,
     /// Simulated training frames (from scenes/train.txt).
     #[arg(long, default_value_t = 480)]
     pub frames: usize,
@@ -66,6 +72,12 @@ pub struct TrainDefaultArgs {
 struct Progress {
     bar: indicatif::ProgressBar,
     ema_loss: Option<f64>,
+}
+
+impl Drop for Progress {
+    fn drop(&mut self) {
+        self.bar.finish_and_clear();
+    }
 }
 
 impl<M: veila_diffusion::Denoiser> TrainObserver<M> for Progress {
@@ -109,10 +121,14 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     let device = Device::Cpu;
     let root = workspace_root();
     let mut cfg = BundleConfig::cpu_default(args.variant);
+    cfg = cfg.with_method(args.method);
+    let method = cfg.method();
     println!(
-        "train-default: variant {} ({}), {} frames, encoders {} steps, denoiser {} steps x batch {}, seed {}",
+        "train-default: variant {} ({}), method {} ({}), {} frames, encoders {} steps, denoiser {} steps x batch {}, seed {}",
         args.variant.name(),
         args.variant.label(),
+        method.name(),
+        method.label(),
         args.frames,
         args.encoder_steps,
         args.steps,
@@ -135,6 +151,11 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     };
     let sim_secs = t.elapsed().as_secs_f64();
     println!("  simulated {} frames in {sim_secs:.1} s", examples.len());
+
+    let work = args.work.clone().unwrap_or_else(|| {
+        root.join("target/train-default")
+            .join(format!("{}-{}", args.variant.name(), method.name()))
+    });
 
     // 1. encoders
     let hw = (cfg.image_height, cfg.image_width);
@@ -192,15 +213,51 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             println!("  {which}: final batch loss {last:.4}");
             Ok(r)
         };
-        if let Some(c) = cfg.semantic_encoder.clone() {
-            let (net, vm) = train_cnn("semantic encoder", &c, args.seed ^ 0x5e)?;
-            weights.insert(SEMANTIC_FILE, varmap_tensors(&vm)?);
-            semantic = Some(net);
-        }
-        if let Some(c) = cfg.depth_encoder.clone() {
-            let (net, vm) = train_cnn("depth encoder", &c, args.seed ^ 0xde)?;
-            weights.insert(DEPTH_FILE, varmap_tensors(&vm)?);
-            depth = Some(net);
+        // trained encoders are kept in the work folder, so a resumed run does not train them
+        // again (their training is deterministic: the same seed gives the same weights)
+        let enc_dir = work.join(format!(
+            "encoders-seed{}-steps{}-frames{}",
+            args.seed,
+            args.encoder_steps,
+            examples.len()
+        ));
+        for (which, c, file, salt) in [
+            (
+                "semantic encoder",
+                cfg.semantic_encoder.clone(),
+                SEMANTIC_FILE,
+                0x5e,
+            ),
+            ("depth encoder", cfg.depth_encoder.clone(), DEPTH_FILE, 0xde),
+        ] {
+            let Some(c) = c else { continue };
+            let saved = enc_dir.join(file);
+            let tensors = if saved.is_file() {
+                println!("  {which}: reusing {}", saved.display());
+                load_tensors(&saved)?
+            } else {
+                let (_, vm) = train_cnn(which, &c, args.seed ^ salt)?;
+                let tensors = varmap_tensors(&vm)?;
+                std::fs::create_dir_all(&enc_dir)
+                    .with_context(|| format!("creating {}", enc_dir.display()))?;
+                let bytes = veila_nn::checkpoint::safetensors_bytes(&tensors, &saved)?;
+                veila_data::atomic::write_atomic(&saved, &bytes)?;
+                tensors
+            };
+            let net = SmallCnn::new(
+                &c,
+                candle_nn::VarBuilder::from_tensors(
+                    tensors.clone(),
+                    candle_core::DType::F32,
+                    &device,
+                ),
+            )?;
+            weights.insert(file, tensors);
+            if file == SEMANTIC_FILE {
+                semantic = Some(net);
+            } else {
+                depth = Some(net);
+            }
         }
     }
     let enc_secs = t.elapsed().as_secs_f64();
@@ -236,17 +293,22 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         keep_checkpoints: Some(2),
         ..TrainConfig::default()
     };
-    let work = args
-        .work
-        .clone()
-        .unwrap_or_else(|| root.join("target/train-default").join(args.variant.name()));
+    let mean_steps = args.mean_steps.unwrap_or(args.steps);
+    let mean_tc = TrainConfig {
+        seed: args.seed ^ 0x3ea,
+        total_steps: mean_steps,
+        warmup_steps: (mean_steps / 20).max(1),
+        ..tc.clone()
+    };
     // a work folder resumes only the run it was made for: same model, diffusion and training
     // settings, same data
     let run_key = serde_json::json!({
         "denoiser": cfg.denoiser,
         "diffusion": cfg.diffusion,
+        "residual": cfg.residual.as_ref().map(|r| &r.mean_net),
         "encoding": cfg.encoding,
         "train": tc,
+        "mean_train": cfg.residual.as_ref().map(|_| &mean_tc),
         "frames": examples.len(),
         "batch": args.batch,
         "encoders_from": args.encoders_from,
@@ -254,55 +316,74 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     });
     veila_diffusion::claim_checkpoint_dir(&work, &run_key)
         .with_context(|| "pass another --work to start a separate run")?;
-    let mut progress = Progress {
-        bar: crate::progress_bar(args.steps, "denoiser"),
-        ema_loss: None,
-    };
-    let bar = progress.bar.clone();
-    let outcome = fit_denoiser(
-        &cfg,
-        DenoiserFit {
+    let outcome = fit_bundle(
+        &mut cfg,
+        BundleFit {
             semantic: semantic.as_ref(),
             depth: depth.as_ref(),
             examples: &train_examples,
             batch_size: args.batch,
             train: &tc,
-            checkpoint_dir: &work,
+            mean_train: Some(&mean_tc),
+            work_dir: &work,
             init: init.as_ref(),
         },
         &device,
-        |p, step| {
-            println!("  resumed from {} (step {step})", p.display());
-            bar.set_position(step);
+        |stage, p, step| println!("  {stage:?}: resumed from {} (step {step})", p.display()),
+        |stage, total| Progress {
+            bar: crate::progress_bar(
+                total,
+                match stage {
+                    Stage::Mean => "mean network",
+                    Stage::Denoiser => "denoiser",
+                },
+            ),
+            ema_loss: None,
         },
-        &mut progress,
     )?;
-    progress.bar.finish_and_clear();
+    let den = outcome
+        .denoiser
+        .context("the mean network's run stopped early")?;
     if let Some(dir) = &args.init_from {
         println!(
             "  initialised {} of {} denoiser tensors from {}",
-            outcome.initialised,
-            outcome.ema_weights.len(),
+            den.initialised,
+            den.ema_weights.len(),
             dir.display()
         );
     }
-    let summary = outcome.summary;
+    let summary = den.summary;
     let den_secs = t.elapsed().as_secs_f64();
+    if let Some(m) = &outcome.mean {
+        println!(
+            "  mean network: {} steps this run, mean loss {:.4}, {:.0} s; residual scale {:?}",
+            m.summary.steps_run,
+            m.summary.mean_loss,
+            outcome.seconds[0],
+            cfg.residual.as_ref().map(|r| &r.scale)
+        );
+    }
     println!(
         "  denoiser: {} steps this run, mean loss {:.4}, {} skipped, {:.0} s",
-        summary.steps_run, summary.mean_loss, summary.skipped, den_secs
+        summary.steps_run, summary.mean_loss, summary.skipped, outcome.seconds[1]
     );
-    weights.insert(DENOISER_FILE, outcome.ema_weights);
+    if let Some(m) = outcome.mean {
+        weights.insert(MEAN_FILE, m.ema_weights);
+    }
+    weights.insert(DENOISER_FILE, den.ema_weights);
 
     cfg.provenance = serde_json::json!({
         "trained_by": "cargo xtask train-default",
         "variant": args.variant.name(),
+        "method": method.name(),
         "seed": args.seed,
         "train_split": "scenes/train.txt",
         "frames": examples.len(),
         "encoder_steps": if args.encoders_from.is_some() { 0 } else { args.encoder_steps },
         "encoders_from": args.encoders_from.as_ref().map(|p| p.display().to_string()),
         "denoiser_steps": args.steps,
+        "mean_steps": cfg.residual.as_ref().map(|_| mean_steps),
+        "training_samples": (args.steps + cfg.residual.as_ref().map_or(0, |_| mean_steps)) * args.batch as u64,
         "batch": args.batch,
         "lr": args.lr,
         "ema_decay": tc.ema_decay,
@@ -311,7 +392,9 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         "seconds": {
             "simulation": sim_secs.round(),
             "encoders": enc_secs.round(),
-            "denoiser": den_secs.round(),
+            "mean": outcome.seconds[0].round(),
+            "denoiser": outcome.seconds[1].round(),
+            "total": (sim_secs + enc_secs + den_secs).round(),
         },
     });
     Bundle::save(&args.out, &cfg, &weights)?;

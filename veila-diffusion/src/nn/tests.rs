@@ -93,10 +93,20 @@ fn dropped_samples_get_the_unconditional_output() {
     )
     .unwrap();
     let t = Tensor::new(&[0.3f32, 0.7], &Device::Cpu).unwrap();
-    let with = model.forward(&x, &t, Some(&cond)).unwrap();
+    let with = model
+        .forward(&x, &t, Some(&NetCond::from(cond.clone())))
+        .unwrap();
     let without = model.forward(&x, &t, None).unwrap();
     let mixed = model
-        .forward(&x, &t, Some(&cond.drop_samples(&[true, false]).unwrap()))
+        .forward(
+            &x,
+            &t,
+            Some(
+                &NetCond::from(cond.clone())
+                    .drop_samples(&[true, false])
+                    .unwrap(),
+            ),
+        )
         .unwrap();
     assert!(
         max_abs(&(&with - &without).unwrap()) > 1e-4,
@@ -125,10 +135,12 @@ fn trains_and_samples_through_the_generic_api() {
         ..DiffusionConfig::default()
     })
     .unwrap();
-    let cond = model
-        .net()
-        .prepare_condition(&features(2, 5), None)
-        .unwrap();
+    let cond = NetCond::from(
+        model
+            .net()
+            .prepare_condition(&features(2, 5), None)
+            .unwrap(),
+    );
     let x0 = (randn(
         &mut ChaCha8Rng::seed_from_u64(6),
         &[2, 3, 8, 32],
@@ -156,6 +168,7 @@ fn trains_and_samples_through_the_generic_api() {
     let batch = Batch {
         x0,
         cond: Some(cond.clone()),
+        weight: None,
     };
     for _ in 0..2 {
         let s = trainer.train_step(&batch).unwrap();

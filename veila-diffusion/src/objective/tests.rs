@@ -29,6 +29,7 @@ fn diffusion(pred: Prediction, w: LossWeighting) -> Diffusion {
         prediction: pred,
         time_input: TimeInput::default(),
         loss_weighting: w,
+        objective: Default::default(),
     })
     .unwrap()
 }

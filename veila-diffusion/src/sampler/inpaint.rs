@@ -89,6 +89,12 @@ pub fn inpaint<D: Denoiser, R: Rng + ?Sized>(
     if matches!(sampler.config().kind, SamplerKind::DpmSolverPp2M) {
         return Err(invalid("kind", "inpainting needs the ddpm or ddim sampler"));
     }
+    if !sampler.diffusion().config().objective.is_diffusion() {
+        return Err(invalid(
+            "objective",
+            "RePaint inpainting needs a Gaussian-diffusion model (not rectified flow or regression)",
+        ));
+    }
     let mask = known_mask
         .broadcast_as(known_x0.shape())
         .map_err(|_| Error::Shape {

@@ -19,7 +19,7 @@ use serde::{Deserialize, Serialize};
 use crate::denoiser::{Conditioning, Denoiser};
 use crate::error::{Result, invalid};
 use crate::noise::{randn, randn_like};
-use crate::objective::{Denoised, Diffusion};
+use crate::objective::{Denoised, Diffusion, Objective, flow_level};
 use crate::schedule::{NoiseLevel, Spacing};
 
 /// Variance of DDPM's ancestral step from level `t` to the less noisy level `s`.
@@ -116,9 +116,6 @@ impl SamplerConfig {
 
     /// Checks the settings.
     pub fn validate(&self) -> Result<()> {
-        if self.steps == 0 {
-            return Err(invalid("steps", "must be at least 1"));
-        }
         if !self.guidance_scale.is_finite() {
             return Err(invalid("guidance_scale", "must be finite"));
         }
@@ -165,25 +162,50 @@ pub struct Sampler<'a> {
     diffusion: &'a Diffusion,
     config: SamplerConfig,
     levels: Vec<NoiseLevel>,
+    /// Rectified flow / regression: the times `t` of the steps (1 first).
+    flow_times: Vec<f64>,
 }
 
 impl<'a> Sampler<'a> {
     /// Validates `config` and precomputes the levels.
     pub fn new(diffusion: &'a Diffusion, config: SamplerConfig) -> Result<Self> {
         config.validate()?;
-        let levels = diffusion
-            .schedule()
-            .sampling_levels(config.steps, config.spacing)?;
+        if config.steps == 0 {
+            return Err(invalid(
+                "steps",
+                "must be at least 1 (0 steps: only a residual bundle's mean network)",
+            ));
+        }
+        let (levels, flow_times) = match diffusion.config().objective {
+            Objective::Diffusion => (
+                diffusion
+                    .schedule()
+                    .sampling_levels(config.steps, config.spacing)?,
+                Vec::new(),
+            ),
+            Objective::RectifiedFlow { .. } => {
+                let n = config.steps;
+                let times: Vec<f64> = (0..n).map(|i| 1.0 - i as f64 / n as f64).collect();
+                (times.iter().map(|&t| flow_level(t)).collect(), times)
+            }
+            Objective::Regression => (vec![flow_level(1.0)], vec![1.0]),
+        };
         Ok(Self {
             diffusion,
             config,
             levels,
+            flow_times,
         })
     }
 
     /// The settings.
     pub fn config(&self) -> &SamplerConfig {
         &self.config
+    }
+
+    /// The process this sampler runs.
+    pub fn diffusion(&self) -> &Diffusion {
+        self.diffusion
     }
 
     /// The levels the network is evaluated at, noisiest first (clean data follows the last one).
@@ -216,6 +238,9 @@ impl<'a> Sampler<'a> {
         let _span = tracing::debug_span!("sample", steps = self.levels.len()).entered();
         let b = x_t.dim(0)?;
         let uncond = self.uncond_for(cond, b)?;
+        if !self.diffusion.config().objective.is_diffusion() {
+            return self.sample_flow(model, x_t, cond, uncond.as_ref(), on_step);
+        }
         let mut x = x_t;
         let mut solver = DpmSolverPp2M::default();
         let n = self.levels.len();
@@ -255,6 +280,70 @@ impl<'a> Sampler<'a> {
     }
 
     /// The null conditioning used for the unconditional branch, when guidance is on.
+    /// Rectified flow: Euler steps of the ODE `dx/dt = v` from `t = 1` to `0` (every sampler kind;
+    /// no noise is drawn). With `clip_x0` the step goes through the clamped `x̂₀ = x − t·v`:
+    /// `x' = (1 − t')·x̂₀ + t'·ε̂` with `ε̂ = (x − (1 − t)·x̂₀)/t`, which is the plain Euler step when
+    /// nothing is clamped. Regression: one pass on zeros at `t = 1`, the output is the result.
+    fn sample_flow<D: Denoiser>(
+        &self,
+        model: &D,
+        x_t: Tensor,
+        cond: Option<&D::Cond>,
+        uncond: Option<&D::Cond>,
+        mut on_step: impl FnMut(&StepInfo<'_>),
+    ) -> Result<Tensor> {
+        let b = x_t.dim(0)?;
+        let regression = matches!(self.diffusion.config().objective, Objective::Regression);
+        let mut x = if regression { x_t.zeros_like()? } else { x_t };
+        let n = self.flow_times.len();
+        for i in 0..n {
+            let t = self.flow_times[i];
+            let t_next = self.flow_times.get(i + 1).copied().unwrap_or(0.0);
+            let tt = self.diffusion.flow_time(&vec![t; b], x.device())?;
+            let mut out = model.forward(&x, &tt, cond)?;
+            if let Some(u) = uncond {
+                let out_u = model.forward(&x, &tt, Some(u))?;
+                out = crate::denoiser::guide(&out_u, &out, self.config.guidance_scale)?;
+            }
+            if out.shape() != x.shape() {
+                return Err(crate::error::Error::Shape {
+                    what: "denoiser output",
+                    expected: format!("{:?}", x.dims()),
+                    got: format!("{:?}", out.dims()),
+                });
+            }
+            let x0 = if regression { out } else { (&x - (&out * t)?)? };
+            let (x0, clipped) = match self.config.clip_x0 {
+                Some(c) => (x0.clamp(-c as f32, c as f32)?, true),
+                None => (x0, false),
+            };
+            x = if regression || t_next == 0.0 {
+                x0.clone()
+            } else {
+                let eps = if clipped {
+                    ((&x - (&x0 * (1.0 - t))?)? / t)?
+                } else {
+                    (&x + (&out_velocity(&x, &x0, t)? * (1.0 - t))?)?
+                };
+                ((&x0 * (1.0 - t_next))? + (eps * t_next)?)?
+            };
+            let to = if t_next == 0.0 {
+                NoiseLevel::CLEAN
+            } else {
+                flow_level(t_next)
+            };
+            on_step(&StepInfo {
+                index: i,
+                total: n,
+                from: flow_level(t),
+                to,
+                x: &x,
+                x0: &x0,
+            });
+        }
+        Ok(x)
+    }
+
     pub(crate) fn uncond_for<C: Conditioning>(
         &self,
         cond: Option<&C>,
@@ -280,6 +369,11 @@ impl<'a> Sampler<'a> {
         self.diffusion
             .denoise(model, x, level, cond, guidance, self.config.clip_x0)
     }
+}
+
+/// The velocity `v = (x − x̂₀)/t` that produced `x̂₀` from `x` at flow time `t > 0`.
+fn out_velocity(x: &Tensor, x0: &Tensor, t: f64) -> Result<Tensor> {
+    Ok(((x - x0)? / t)?)
 }
 
 #[cfg(test)]

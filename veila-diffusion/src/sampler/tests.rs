@@ -187,6 +187,7 @@ fn oracle_setup(schedule: ScheduleConfig, pred: Prediction) -> (Diffusion, Gauss
         prediction: pred,
         time_input: TimeInput::default(),
         loss_weighting: LossWeighting::Uniform,
+        objective: Default::default(),
     })
     .unwrap();
     let oracle = GaussianOracle::new(0.2, 0.5, diffusion.clone()).unwrap();

@@ -35,7 +35,7 @@
 //! let config = TrainConfig { total_steps: 5, warmup_steps: 1, checkpoint_every: None, ..TrainConfig::default() };
 //! let mut trainer = Trainer::new(model, varmap, Diffusion::new(DiffusionConfig::default())?, config)?;
 //! let mut data = |_step: u64| -> veila_diffusion::Result<Batch<()>> {
-//!     Ok(Batch { x0: Tensor::zeros((4, 1, 2, 8), DType::F32, &Device::Cpu)?, cond: None })
+//!     Ok(Batch { x0: Tensor::zeros((4, 1, 2, 8), DType::F32, &Device::Cpu)?, cond: None, weight: None })
 //! };
 //! let summary = trainer.fit(&mut data, None, &mut ())?;
 //! assert_eq!((summary.steps_run, trainer.step()), (5, 5));
@@ -207,6 +207,9 @@ pub struct Batch<C> {
     pub x0: Tensor,
     /// Conditioning for the batch (`None` for unconditional training).
     pub cond: Option<C>,
+    /// Per-element loss weights broadcastable to `x0` (`None`: all 1); see
+    /// [`Diffusion::training_loss_weighted`].
+    pub weight: Option<Tensor>,
 }
 
 /// Where batches come from. `step` is the 0-based index of the update the batch is for; a source
@@ -457,9 +460,10 @@ impl<M: Denoiser> Trainer<M> {
         let dropout = (self.config.cond_drop_prob > 0.0).then_some(CondDropout {
             prob: self.config.cond_drop_prob,
         });
-        let out = self.diffusion.training_loss(
+        let out = self.diffusion.training_loss_weighted(
             &self.model,
             &batch.x0,
+            batch.weight.as_ref(),
             batch.cond.as_ref(),
             dropout,
             &mut self.rng,

@@ -2,5 +2,6 @@
 
 mod common;
 mod device;
+mod methods;
 mod samplers;
 mod training;

@@ -21,6 +21,7 @@ fn diffusion(schedule: ScheduleConfig, prediction: Prediction) -> Diffusion {
         prediction,
         time_input: TimeInput::default(),
         loss_weighting: LossWeighting::Uniform,
+        objective: Default::default(),
     })
     .unwrap()
 }

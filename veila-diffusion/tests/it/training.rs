@@ -58,6 +58,7 @@ fn source(step: u64) -> veila_diffusion::Result<Batch<Tensor>> {
     Ok(Batch {
         x0,
         cond: Some(cond),
+        weight: None,
     })
 }
 
@@ -162,6 +163,7 @@ fn tiny_model_overfits_one_sample() {
         Ok(Batch {
             x0: x0.clone(),
             cond: None,
+            weight: None,
         })
     };
     let summary = t.fit(&mut src, None, &mut rec).unwrap();
@@ -370,6 +372,7 @@ fn non_finite_steps_are_skipped_or_fail_and_early_stop_works() {
     let nan = Batch {
         x0: Tensor::full(f32::NAN, (2, 2, 4, 8), &Device::Cpu).unwrap(),
         cond: None,
+        weight: None,
     };
     let s = t.train_step(&nan).unwrap();
     assert!(s.skipped && !s.loss.is_finite());
