@@ -473,7 +473,7 @@ impl GroupNormAct {
         l2: &Layout,
         l3: &Layout,
     ) -> candle_core::Result<()> {
-        if self.groups == 0 || c % self.groups != 0 {
+        if self.groups == 0 || !c.is_multiple_of(self.groups) {
             candle_core::bail!("group norm: {c} channels in {} groups", self.groups)
         }
         if l2.shape().dims() != [b, c] || l3.shape().dims() != [b, c] {
@@ -622,7 +622,7 @@ pub fn group_norm_act(
     silu: bool,
 ) -> Result<Tensor> {
     let dims = x.dims();
-    if dims.len() < 2 || groups == 0 || dims[1] % groups != 0 {
+    if dims.len() < 2 || groups == 0 || !dims[1].is_multiple_of(groups) {
         return Err(shape_err(
             "group norm input",
             format!("[B, C, ...] with C divisible by {groups}"),
@@ -856,7 +856,7 @@ impl CustomOp1 for DownsampleSum {
         let g = slice_f32(storage, layout, "block-sum input")?;
         let (b, c, ho, wo) = layout.shape().dims4()?;
         let f = self.factor;
-        if ho % f != 0 || wo % f != 0 {
+        if !ho.is_multiple_of(f) || !wo.is_multiple_of(f) {
             candle_core::bail!("block sum: {ho}x{wo} is not divisible by {f}")
         }
         let (h, w) = (ho / f, wo / f);
