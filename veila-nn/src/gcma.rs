@@ -331,7 +331,7 @@ fn build_level(
 /// `d -> C`). See the module docs for the equations.
 #[derive(Debug, Clone)]
 pub struct Gcma {
-    norm: candle_nn::GroupNorm,
+    norm: crate::ops::GroupNorm,
     q: Conv1x1,
     kv: Conv1x1,
     pos0: Linear,

@@ -40,6 +40,7 @@ pub mod config;
 pub mod encoders;
 mod error;
 pub mod feature_nets;
+pub mod fused;
 pub mod gcma;
 pub mod init;
 pub mod ops;

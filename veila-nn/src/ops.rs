@@ -7,6 +7,8 @@ use candle_core::{D, DType, Device, Tensor};
 use candle_nn::{Init, VarBuilder};
 
 use crate::error::{Result, shape_err};
+use crate::fused::group_norm_act;
+pub use crate::fused::{Im2ColSpec, im2col};
 
 /// Pads `[B, C, H, W]` by `pad_w` columns on each side *circularly* (the azimuth axis wraps around a
 /// spinning LiDAR) and by `pad_h` rows of zeros on top and bottom (the vertical field of view does not
@@ -95,14 +97,23 @@ impl RingConv2d {
 
     /// `[B, in, H, W] -> [B, out, ceil(H/stride), ceil(W/stride)]` (for odd kernels).
     ///
-    /// Stride 1 runs as an explicit im2col (`k^2` shifted views of the padded input concatenated along
-    /// channels) and one matrix product, about twice as fast as candle's CPU `conv2d`; other strides use
-    /// `conv2d` on the padded input.
+    /// Runs as one im2col ([`crate::fused::im2col`], padding included) and one matrix product.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let _enter = self.span.enter();
         let p = self.kernel / 2;
-        let xp = ring_pad(x, p, p)?;
-        conv2d_padded(&xp, &self.weight, self.bias.as_ref(), self.stride)
+        conv2d_im2col(
+            x,
+            &self.weight,
+            self.bias.as_ref(),
+            Im2ColSpec {
+                kernel: (self.kernel, self.kernel),
+                stride: (self.stride, self.stride),
+                pad_h: p,
+                pad_w: p,
+                ring: true,
+                ones_row: false,
+            },
+        )
     }
 }
 
@@ -169,20 +180,19 @@ pub fn conv2d_padded_hw(
         wm.broadcast_matmul(&xs.reshape((b, c, ho * wo))?)?
             .reshape((b, out_c, ho, wo))?
     } else {
-        let mut cols = Vec::with_capacity(kh * kw);
-        for ky in 0..kh {
-            let rows = strided_narrow(xp, 2, ky, ho, stride_h)?;
-            for kx in 0..kw {
-                cols.push(strided_narrow(&rows, 3, kx, wo, stride_w)?);
-            }
-        }
-        // [B, k*k*C, Ho*Wo], channel index (ky * kw + kx) * C + c
-        let col = Tensor::cat(&cols, 1)?.reshape((b, kh * kw * c, ho * wo))?;
-        // weight [out, C, kh, kw] -> [out, kh, kw, C] -> [1, out, kh*kw*C]
-        let wm = weight
-            .permute((0, 2, 3, 1))?
-            .reshape((1, out_c, kh * kw * c))?;
-        wm.broadcast_matmul(&col)?.reshape((b, out_c, ho, wo))?
+        return conv2d_im2col(
+            xp,
+            weight,
+            bias,
+            Im2ColSpec {
+                kernel: (kh, kw),
+                stride: (stride_h, stride_w),
+                pad_h: 0,
+                pad_w: 0,
+                ring: false,
+                ones_row: false,
+            },
+        );
     };
     Ok(match bias {
         Some(bias) => y.broadcast_add(&bias.reshape((1, bias.dim(0)?, 1, 1))?)?,
@@ -199,13 +209,65 @@ pub fn conv2d_zero_pad(
     padding: usize,
     stride: usize,
 ) -> Result<Tensor> {
-    let xp = if padding > 0 {
-        x.pad_with_zeros(2, padding, padding)?
-            .pad_with_zeros(3, padding, padding)?
-    } else {
-        x.clone()
+    let (_, _, kh, kw) = weight.dims4()?;
+    if kh == 1 && kw == 1 && padding == 0 {
+        return conv2d_padded(x, weight, bias, stride);
+    }
+    conv2d_im2col(
+        x,
+        weight,
+        bias,
+        Im2ColSpec {
+            kernel: (kh, kw),
+            stride: (stride, stride),
+            pad_h: padding,
+            pad_w: padding,
+            ring: false,
+            ones_row: false,
+        },
+    )
+}
+
+/// A `kh x kw` convolution of `x: [B, C, H, W]` (weights `[out, C, kh, kw]`, bias `[out]`) as one
+/// im2col with the padding of `spec` ([`crate::fused::im2col`], multi-threaded on the CPU, `col2im`
+/// backward) and one matrix product; the bias rides in the product as an extra row of ones.
+/// `spec.kernel` and `spec.ones_row` are taken from the weights and the bias.
+pub fn conv2d_im2col(
+    x: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    spec: Im2ColSpec,
+) -> Result<Tensor> {
+    let (b, c, h, w) = x.dims4()?;
+    let (out_c, wc, kh, kw) = weight.dims4()?;
+    let spec = Im2ColSpec {
+        kernel: (kh, kw),
+        ones_row: bias.is_some(),
+        ..spec
     };
-    conv2d_padded(&xp, weight, bias, stride)
+    let Some((ho, wo)) = spec.out_size(h, w) else {
+        return Err(shape_err(
+            "convolution input",
+            format!("[B, {wc}, H, W] that a {kh}x{kw} kernel with {spec:?} fits"),
+            x.dims(),
+        ));
+    };
+    if wc != c {
+        return Err(shape_err(
+            "convolution input",
+            format!("[B, {wc}, H, W]"),
+            x.dims(),
+        ));
+    }
+    let col = im2col(x, spec)?;
+    let mut wm = weight.reshape((out_c, c * kh * kw))?;
+    if let Some(bias) = bias {
+        wm = Tensor::cat(&[&wm, &bias.reshape((out_c, 1))?], 1)?;
+    }
+    Ok(wm
+        .unsqueeze(0)?
+        .broadcast_matmul(&col)?
+        .reshape((b, out_c, ho, wo))?)
 }
 
 /// Runs a `candle_nn::Conv2d` through [`conv2d_zero_pad`] (same weights, padding and stride, fast
@@ -222,13 +284,7 @@ pub fn conv2d_module(conv: &candle_nn::Conv2d, x: &Tensor) -> Result<Tensor> {
 /// through a broadcast, whose backward pass is a sum (candle's `upsample_nearest2d` backward runs a
 /// grouped convolution, one group per channel, which is slow on the CPU).
 pub fn upsample_nearest(x: &Tensor, factor: usize) -> Result<Tensor> {
-    let (b, c, h, w) = x.dims4()?;
-    if factor == 1 {
-        return Ok(x.clone());
-    }
-    Ok(x.reshape((b, c, h, 1, w, 1))?
-        .broadcast_as((b, c, h, factor, w, factor))?
-        .reshape((b, c, h * factor, w * factor))?)
+    crate::fused::upsample_nearest(x, factor)
 }
 
 /// A 1x1 convolution as a per-pixel linear map, weights `weight: [out, in, 1, 1]`, `bias: [out]`
@@ -430,18 +486,76 @@ pub fn silu(x: &Tensor) -> Result<Tensor> {
 }
 
 /// Group normalisation `[B, C, ...]` with learned `weight`/`bias` (`vb`), PyTorch `nn.GroupNorm` names.
-pub fn group_norm(
-    groups: usize,
-    channels: usize,
-    vb: VarBuilder<'_>,
-) -> Result<candle_nn::GroupNorm> {
+pub fn group_norm(groups: usize, channels: usize, vb: VarBuilder<'_>) -> Result<GroupNorm> {
     if groups == 0 || !channels.is_multiple_of(groups) {
         return Err(crate::Error::Config(format!(
             "group norm: {channels} channels are not divisible into {groups} groups (at {})",
             vb.prefix()
         )));
     }
-    Ok(candle_nn::group_norm(groups, channels, 1e-5, vb)?)
+    let weight = vb.get_with_hints(channels, "weight", Init::Const(1.0))?;
+    let bias = vb.get_with_hints(channels, "bias", Init::Const(0.0))?;
+    Ok(GroupNorm {
+        weight,
+        bias,
+        groups,
+        eps: 1e-5,
+    })
+}
+
+/// GroupNorm (PyTorch `nn.GroupNorm` semantics and weight names, epsilon 1e-5), with fused variants
+/// that apply SiLU and a per-sample modulation in the same pass ([`crate::fused::group_norm_act`]).
+#[derive(Debug, Clone)]
+pub struct GroupNorm {
+    weight: Tensor,
+    bias: Tensor,
+    groups: usize,
+    eps: f64,
+}
+
+impl GroupNorm {
+    /// Number of groups.
+    pub fn groups(&self) -> usize {
+        self.groups
+    }
+
+    /// The affine weights broadcast to `[B, C]` (scale, shift).
+    fn affine(&self, b: usize) -> Result<(Tensor, Tensor)> {
+        let c = self.weight.dim(0)?;
+        Ok((
+            self.weight
+                .unsqueeze(0)?
+                .broadcast_as((b, c))?
+                .contiguous()?,
+            self.bias.unsqueeze(0)?.broadcast_as((b, c))?.contiguous()?,
+        ))
+    }
+
+    /// `GroupNorm(x)` for `x: [B, C, ...]`.
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let (sc, sh) = self.affine(x.dim(0)?)?;
+        group_norm_act(x, &sc, &sh, self.groups, self.eps, false)
+    }
+
+    /// `SiLU(GroupNorm(x))`.
+    pub fn forward_silu(&self, x: &Tensor) -> Result<Tensor> {
+        let (sc, sh) = self.affine(x.dim(0)?)?;
+        group_norm_act(x, &sc, &sh, self.groups, self.eps, true)
+    }
+
+    /// `SiLU(GroupNorm(x) * (1 + scale) + shift)` with per-sample `scale`, `shift: [B, C]` (AdaGN / FiLM).
+    pub fn forward_modulated_silu(
+        &self,
+        x: &Tensor,
+        scale: &Tensor,
+        shift: &Tensor,
+    ) -> Result<Tensor> {
+        // (xhat w + b)(1 + s) + t = xhat [w (1 + s)] + [b (1 + s) + t]
+        let one_s = (scale + 1.0)?;
+        let sc = one_s.broadcast_mul(&self.weight.unsqueeze(0)?)?;
+        let sh = (one_s.broadcast_mul(&self.bias.unsqueeze(0)?)? + shift)?;
+        group_norm_act(x, &sc, &sh, self.groups, self.eps, true)
+    }
 }
 
 /// Largest group count `<= max_groups` that divides `channels` (at least 1).

@@ -2,7 +2,7 @@
 //! U-Net level, with GroupNorm before it and a residual around it (equation 11).
 
 use candle_core::{D, Tensor};
-use candle_nn::{Module, VarBuilder};
+use candle_nn::VarBuilder;
 
 use crate::config::PfcConfig;
 use crate::error::{Error, Result};
@@ -15,7 +15,7 @@ use crate::ops::{Conv1x1, group_norm, groups_for};
 /// the block is equivariant to any permutation of positions (in particular azimuth rolls).
 #[derive(Debug, Clone)]
 pub struct Pfc {
-    norm: candle_nn::GroupNorm,
+    norm: crate::ops::GroupNorm,
     qkv: Conv1x1,
     proj: Conv1x1,
     num_heads: usize,

@@ -6,8 +6,11 @@ use candle_nn::{Linear, Module, VarBuilder};
 use crate::cacm::ConditionFusion;
 use crate::config::DenoiserConfig;
 use crate::error::{Error, Result, shape_err};
+use crate::fused::add_scaled;
 use crate::gcma::{Gcma, GcmaGeometry};
-use crate::ops::{Conv1x1, RingConv2d, group_norm, groups_for, silu, sinusoidal_embedding};
+use crate::ops::{
+    Conv1x1, GroupNorm, RingConv2d, group_norm, groups_for, silu, sinusoidal_embedding,
+};
 use crate::pfc::Pfc;
 
 /// Residual block: `GN -> SiLU -> conv3x3 -> AdaGN(t) -> SiLU -> conv3x3`, plus a (1x1-projected) skip,
@@ -17,10 +20,10 @@ use crate::pfc::Pfc;
 /// (only when the channel count changes).
 #[derive(Debug, Clone)]
 pub struct ResBlock {
-    norm1: candle_nn::GroupNorm,
+    norm1: GroupNorm,
     conv1: RingConv2d,
     emb: Linear,
-    norm2: candle_nn::GroupNorm,
+    norm2: GroupNorm,
     conv2: RingConv2d,
     skip: Option<Conv1x1>,
     out_c: usize,
@@ -58,23 +61,19 @@ impl ResBlock {
     /// `x: [B, in, H, W]`, `emb: [B, T]` (already through SiLU) `-> [B, out, H, W]`.
     pub fn forward(&self, x: &Tensor, emb: &Tensor) -> Result<Tensor> {
         let _enter = self.span.enter();
-        let h = self.conv1.forward(&silu(&self.norm1.forward(x)?)?)?;
-        let e = self.emb.forward(emb)?.unsqueeze(2)?.unsqueeze(3)?;
+        let h = self.conv1.forward(&self.norm1.forward_silu(x)?)?;
+        let e = self.emb.forward(emb)?;
         let (sc, sh) = (
             e.narrow(1, 0, self.out_c)?,
             e.narrow(1, self.out_c, self.out_c)?,
         );
-        let h = self
-            .norm2
-            .forward(&h)?
-            .broadcast_mul(&(sc + 1.0)?)?
-            .broadcast_add(&sh)?;
-        let h = self.conv2.forward(&silu(&h)?)?;
+        let h = self.norm2.forward_modulated_silu(&h, &sc, &sh)?;
+        let h = self.conv2.forward(&h)?;
         let skip = match &self.skip {
             Some(s) => s.forward(x)?,
             None => x.clone(),
         };
-        Ok(((skip + h)? * self.scale)?)
+        add_scaled(&skip, &h, self.scale)
     }
 }
 
@@ -148,7 +147,7 @@ pub struct Denoiser {
     pfc: Option<Pfc>,
     mid1: ResBlock,
     up: Vec<Level>,
-    out_norm: candle_nn::GroupNorm,
+    out_norm: GroupNorm,
     out_conv: RingConv2d,
     fusion: Option<ConditionFusion>,
     pool: Option<Linear>,
@@ -554,9 +553,7 @@ impl Denoiser {
                 hcur = us.forward(&crate::ops::upsample_nearest(&hcur, 2)?)?;
             }
         }
-        let out = self
-            .out_conv
-            .forward(&silu(&self.out_norm.forward(&hcur)?)?)?;
+        let out = self.out_conv.forward(&self.out_norm.forward_silu(&hcur)?)?;
         Ok(out)
     }
 }

@@ -7,6 +7,7 @@ use clap::{Parser, Subcommand};
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
+mod bench_model; // cargo xtask bench-model
 mod bench_report; // cargo xtask bench-report
 mod convert; // cargo xtask convert       (veila-data shards)
 mod feature_nets; // cargo xtask train-feature-nets (veila-nn feature_nets)
@@ -34,6 +35,8 @@ enum Command {
     TrainFeatureNets(feature_nets::TrainFeatureNetsArgs),
     /// Benchmark report: Veila vs the unconditional baseline and the ablations, and sampler speed vs quality.
     BenchReport(bench_report::BenchReportArgs),
+    /// CPU engine speed: forward b1/b8 and a b8 training step of the small denoiser (medians, JSON).
+    BenchModel(bench_model::BenchModelArgs),
     /// Print the workspace's crate layering rules (checked by `cargo test -p xtask`).
     Layers,
 }
@@ -51,6 +54,7 @@ fn run(command: Command) -> Result<()> {
         Command::KittiWeather(a) => kitti_weather::run(a),
         Command::TrainFeatureNets(a) => feature_nets::run(a),
         Command::BenchReport(a) => bench_report::run(a),
+        Command::BenchModel(a) => bench_model::run(a),
         Command::TrainDefault(a) => train_default::run(a).map(|_| ()),
         Command::Layers => {
             println!("see ARCHITECTURE.md, section 'Layering'");

@@ -1,0 +1,894 @@
+//! Multi-threaded CPU kernels for the denoiser's hot spots, as candle custom ops.
+//!
+//! candle's CPU backend runs elementwise ops, reductions, `cat` and `conv2d` backward on one thread and
+//! builds GroupNorm out of a dozen of them; the training step spent most of its time there (issue 19).
+//! The ops here do the same arithmetic in one pass each, spread over the rayon pool:
+//!
+//! * [`im2col`]: padding (circular or zero in width, zero in height), strides and the im2col of a
+//!   `k x k` convolution in one copy, with a `col2im` backward, so a convolution is this op and one
+//!   matrix product (the matrix product and its backward stay candle's, multi-threaded in `gemm`);
+//! * [`group_norm_act`]: GroupNorm with a per-sample, per-channel scale and shift (the affine weights,
+//!   and the FiLM / AdaGN modulation of the time embedding folded in) and an optional SiLU, forward and
+//!   backward;
+//! * [`add_scaled`]: the scaled residual sum `(a + b) * s`.
+//!
+//! Each public function dispatches: F32 tensors on the CPU take the kernels, every other device or dtype
+//! runs the plain candle composition (the `*_reference` functions), which is also what the tests compare
+//! against, gradients included.
+
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, DType, Layout, Shape, Tensor};
+use rayon::prelude::*;
+
+use crate::error::{Result, shape_err};
+
+/// Environment variable that, when set to `1`, turns the kernels off (every op runs its candle
+/// composition): for before/after measurements in one binary (`cargo xtask bench-model`).
+pub const REFERENCE_OPS_ENV: &str = "VEILA_NN_REFERENCE_OPS";
+
+/// Whether the CPU kernels are on (they are unless [`REFERENCE_OPS_ENV`] is `1`; read once).
+pub fn kernels_enabled() -> bool {
+    static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *ON.get_or_init(|| std::env::var(REFERENCE_OPS_ENV).map_or(true, |v| v != "1"))
+}
+
+/// Whether `t` takes the CPU kernels of this module.
+fn on_cpu_f32(t: &Tensor) -> bool {
+    t.device().is_cpu() && t.dtype() == DType::F32 && kernels_enabled()
+}
+
+/// The contiguous `f32` slice of a CPU storage.
+fn slice_f32<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> candle_core::Result<&'a [f32]> {
+    let CpuStorage::F32(v) = s else {
+        candle_core::bail!("{what}: expected an f32 tensor")
+    };
+    match l.contiguous_offsets() {
+        Some((a, b)) => Ok(&v[a..b]),
+        None => candle_core::bail!("{what}: expected a contiguous tensor"),
+    }
+}
+
+/// A fresh contiguous copy of a CPU f32 tensor's data (only used in backward passes).
+fn tensor_f32(t: &Tensor, what: &str) -> candle_core::Result<Vec<f32>> {
+    let t = t.contiguous()?;
+    let (s, l) = t.storage_and_layout();
+    match &*s {
+        candle_core::Storage::Cpu(c) => Ok(slice_f32(c, l, what)?.to_vec()),
+        _ => candle_core::bail!("{what}: the fused kernels run on the CPU only"),
+    }
+}
+
+/// Runs `f` on the contiguous `f32` data of the CPU tensor `t`.
+fn with_f32<R>(
+    t: &Tensor,
+    what: &str,
+    f: impl FnOnce(&[f32]) -> candle_core::Result<R>,
+) -> candle_core::Result<R> {
+    let t = t.contiguous()?;
+    let (s, l) = t.storage_and_layout();
+    match &*s {
+        candle_core::Storage::Cpu(c) => f(slice_f32(c, l, what)?),
+        _ => candle_core::bail!("{what}: the fused kernels run on the CPU only"),
+    }
+}
+
+/// Minimum elements per rayon task: below this the split costs more than it saves.
+const GRAIN: usize = 16 * 1024;
+
+fn min_len(chunk: usize) -> usize {
+    (GRAIN / chunk.max(1)).max(1)
+}
+
+// ---------------------------------------------------------------------------------------------
+// im2col
+
+/// Geometry of an [`im2col`]: kernel, strides, padding and how the width is padded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Im2ColSpec {
+    /// Kernel height and width.
+    pub kernel: (usize, usize),
+    /// Row and column strides (>= 1).
+    pub stride: (usize, usize),
+    /// Rows of zeros added on top and bottom.
+    pub pad_h: usize,
+    /// Columns added left and right: copies of the opposite border when `ring`, zeros otherwise.
+    pub pad_w: usize,
+    /// Circular padding in width (the azimuth of a spinning LiDAR).
+    pub ring: bool,
+    /// Append one row of ones (so a bias can ride in the matrix product).
+    pub ones_row: bool,
+}
+
+impl Im2ColSpec {
+    /// Output `(H_o, W_o)` for an input of `h x w`.
+    pub fn out_size(&self, h: usize, w: usize) -> Option<(usize, usize)> {
+        let (kh, kw) = self.kernel;
+        let (sh, sw) = self.stride;
+        let hp = h + 2 * self.pad_h;
+        let wp = w + 2 * self.pad_w;
+        if kh == 0 || kw == 0 || sh == 0 || sw == 0 || kh > hp || kw > wp {
+            return None;
+        }
+        if self.ring && self.pad_w > w {
+            return None;
+        }
+        Some(((hp - kh) / sh + 1, (wp - kw) / sw + 1))
+    }
+
+    fn rows(&self, c: usize) -> usize {
+        c * self.kernel.0 * self.kernel.1 + usize::from(self.ones_row)
+    }
+}
+
+/// For output columns `0..wo` at kernel column `kx`: the source column of each output column in
+/// stride-1 runs, as `(out_start, len, Some(src_start) | None for zeros)` segments.
+fn col_segments(
+    wo: usize,
+    w: usize,
+    kx: usize,
+    pad_w: usize,
+    ring: bool,
+) -> [(usize, usize, Option<usize>); 3] {
+    // stride-1 source column of output column ox is ox + kx - pad_w, in [-pad_w, w + pad_w)
+    let off = kx as isize - pad_w as isize;
+    let left = if off < 0 { (-off) as usize } else { 0 }.min(wo);
+    let mid_end = ((w as isize - off).max(0) as usize).min(wo).max(left);
+    let right = wo - mid_end;
+    let src = |ix: isize| -> Option<usize> {
+        if ring {
+            Some(ix.rem_euclid(w as isize) as usize)
+        } else {
+            None
+        }
+    };
+    [
+        (0, left, src(off)),
+        (left, mid_end - left, Some((left as isize + off) as usize)),
+        (mid_end, right, src(mid_end as isize + off)),
+    ]
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Im2Col {
+    spec: Im2ColSpec,
+}
+
+impl Im2Col {
+    /// Fills one output row (`ho * wo` values) for channel plane `plane` (`h * w`) at kernel tap
+    /// `(ky, kx)`.
+    fn fill_row(&self, row: &mut [f32], plane: &[f32], h: usize, w: usize, ky: usize, kx: usize) {
+        let s = &self.spec;
+        let (sh, sw) = s.stride;
+        let (ho, wo) = s.out_size(h, w).unwrap_or((0, 0));
+        for oy in 0..ho {
+            let out = &mut row[oy * wo..(oy + 1) * wo];
+            let iy = (oy * sh + ky) as isize - s.pad_h as isize;
+            if iy < 0 || iy >= h as isize {
+                out.fill(0.0);
+                continue;
+            }
+            let src = &plane[iy as usize * w..(iy as usize + 1) * w];
+            if sw == 1 {
+                for (o0, len, from) in col_segments(wo, w, kx, s.pad_w, s.ring) {
+                    if len == 0 {
+                        continue;
+                    }
+                    match from {
+                        Some(f) => out[o0..o0 + len].copy_from_slice(&src[f..f + len]),
+                        None => out[o0..o0 + len].fill(0.0),
+                    }
+                }
+            } else {
+                for (ox, o) in out.iter_mut().enumerate() {
+                    let ix = (ox * sw + kx) as isize - s.pad_w as isize;
+                    *o = if ix >= 0 && ix < w as isize {
+                        src[ix as usize]
+                    } else if s.ring {
+                        src[ix.rem_euclid(w as isize) as usize]
+                    } else {
+                        0.0
+                    };
+                }
+            }
+        }
+    }
+
+    /// Adds one gradient row back into the channel plane (the transpose of [`Im2Col::fill_row`]).
+    fn scatter_row(
+        &self,
+        row: &[f32],
+        plane: &mut [f32],
+        h: usize,
+        w: usize,
+        ky: usize,
+        kx: usize,
+    ) {
+        let s = &self.spec;
+        let (sh, sw) = s.stride;
+        let (ho, wo) = s.out_size(h, w).unwrap_or((0, 0));
+        for oy in 0..ho {
+            let g = &row[oy * wo..(oy + 1) * wo];
+            let iy = (oy * sh + ky) as isize - s.pad_h as isize;
+            if iy < 0 || iy >= h as isize {
+                continue;
+            }
+            let dst = &mut plane[iy as usize * w..(iy as usize + 1) * w];
+            if sw == 1 {
+                for (o0, len, from) in col_segments(wo, w, kx, s.pad_w, s.ring) {
+                    if let Some(f) = from {
+                        for (d, v) in dst[f..f + len].iter_mut().zip(&g[o0..o0 + len]) {
+                            *d += v;
+                        }
+                    }
+                }
+            } else {
+                for (ox, v) in g.iter().enumerate() {
+                    let ix = (ox * sw + kx) as isize - s.pad_w as isize;
+                    if ix >= 0 && ix < w as isize {
+                        dst[ix as usize] += v;
+                    } else if s.ring {
+                        dst[ix.rem_euclid(w as isize) as usize] += v;
+                    }
+                }
+            }
+        }
+    }
+}
+
+impl CustomOp1 for Im2Col {
+    fn name(&self) -> &'static str {
+        "veila-im2col"
+    }
+
+    fn cpu_fwd(
+        &self,
+        storage: &CpuStorage,
+        layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let x = slice_f32(storage, layout, "im2col input")?;
+        let (b, c, h, w) = layout.shape().dims4()?;
+        let Some((ho, wo)) = self.spec.out_size(h, w) else {
+            candle_core::bail!("im2col: {:?} does not fit a {h}x{w} input", self.spec)
+        };
+        let (kh, kw) = self.spec.kernel;
+        let kk = kh * kw;
+        let rows = self.spec.rows(c);
+        let n = ho * wo;
+        let mut dst = vec![0f32; b * rows * n];
+        if n > 0 {
+            dst.par_chunks_mut(n)
+                .with_min_len(min_len(n))
+                .enumerate()
+                .for_each(|(i, row)| {
+                    let (bi, r) = (i / rows, i % rows);
+                    if r >= c * kk {
+                        row.fill(1.0);
+                        return;
+                    }
+                    let (ci, tap) = (r / kk, r % kk);
+                    let plane = &x[(bi * c + ci) * h * w..(bi * c + ci + 1) * h * w];
+                    self.fill_row(row, plane, h, w, tap / kw, tap % kw);
+                });
+        }
+        Ok((CpuStorage::F32(dst), Shape::from((b, rows, n))))
+    }
+
+    fn bwd(
+        &self,
+        arg: &Tensor,
+        _res: &Tensor,
+        grad_res: &Tensor,
+    ) -> candle_core::Result<Option<Tensor>> {
+        let (b, c, h, w) = arg.dims4()?;
+        let op = Col2Im {
+            inner: *self,
+            in_shape: (b, c, h, w),
+        };
+        Ok(Some(grad_res.contiguous()?.apply_op1_no_bwd(&op)?))
+    }
+}
+
+/// The transpose of [`Im2Col`] (its backward pass).
+#[derive(Debug, Clone, Copy)]
+struct Col2Im {
+    inner: Im2Col,
+    in_shape: (usize, usize, usize, usize),
+}
+
+impl CustomOp1 for Col2Im {
+    fn name(&self) -> &'static str {
+        "veila-col2im"
+    }
+
+    fn cpu_fwd(
+        &self,
+        storage: &CpuStorage,
+        layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let g = slice_f32(storage, layout, "col2im input")?;
+        let (b, c, h, w) = self.in_shape;
+        let spec = self.inner.spec;
+        let (kh, kw) = spec.kernel;
+        let kk = kh * kw;
+        let rows = spec.rows(c);
+        let Some((ho, wo)) = spec.out_size(h, w) else {
+            candle_core::bail!("col2im: {spec:?} does not fit a {h}x{w} input")
+        };
+        let n = ho * wo;
+        if layout.shape().dims() != [b, rows, n] {
+            candle_core::bail!(
+                "col2im: gradient {:?}, expected {:?}",
+                layout.shape(),
+                [b, rows, n]
+            );
+        }
+        let mut dst = vec![0f32; b * c * h * w];
+        if h * w > 0 {
+            dst.par_chunks_mut(h * w)
+                .with_min_len(min_len(h * w * kk))
+                .enumerate()
+                .for_each(|(i, plane)| {
+                    let (bi, ci) = (i / c, i % c);
+                    for tap in 0..kk {
+                        let r = bi * rows + ci * kk + tap;
+                        self.inner.scatter_row(
+                            &g[r * n..(r + 1) * n],
+                            plane,
+                            h,
+                            w,
+                            tap / kw,
+                            tap % kw,
+                        );
+                    }
+                });
+        }
+        Ok((CpuStorage::F32(dst), Shape::from((b, c, h, w))))
+    }
+}
+
+/// The im2col of `x: [B, C, H, W]`: `[B, C kh kw (+1), H_o W_o]`, row `c kh kw + ky kw + kx` holding
+/// the input at `(oy sh + ky - pad_h, ox sw + kx - pad_w)` (wrapped in width when `ring`, zero outside),
+/// and a last row of ones when `spec.ones_row`. The row order matches a `[out, C, kh, kw]` weight
+/// reshaped to `[out, C kh kw]`.
+pub fn im2col(x: &Tensor, spec: Im2ColSpec) -> Result<Tensor> {
+    let (b, c, h, w) = x.dims4()?;
+    let Some((ho, wo)) = spec.out_size(h, w) else {
+        return Err(shape_err(
+            "im2col input",
+            format!("a plane the {spec:?} fits"),
+            x.dims(),
+        ));
+    };
+    if on_cpu_f32(x) {
+        return Ok(x.contiguous()?.apply_op1(Im2Col { spec })?);
+    }
+    im2col_reference(x, spec, (b, c, ho, wo))
+}
+
+/// [`im2col`] from candle ops (narrow, cat, pad, reshape): any device, differentiable.
+pub fn im2col_reference(
+    x: &Tensor,
+    spec: Im2ColSpec,
+    (b, c, ho, wo): (usize, usize, usize, usize),
+) -> Result<Tensor> {
+    let (kh, kw) = spec.kernel;
+    let (sh, sw) = spec.stride;
+    let (_, _, _, w) = x.dims4()?;
+    let xw = if spec.pad_w > 0 {
+        if spec.ring {
+            let left = x.narrow(3, w - spec.pad_w, spec.pad_w)?;
+            let right = x.narrow(3, 0, spec.pad_w)?;
+            Tensor::cat(&[&left, x, &right], 3)?
+        } else {
+            x.pad_with_zeros(3, spec.pad_w, spec.pad_w)?
+        }
+    } else {
+        x.clone()
+    };
+    let xp = if spec.pad_h > 0 {
+        xw.pad_with_zeros(2, spec.pad_h, spec.pad_h)?
+    } else {
+        xw
+    };
+    let mut taps = Vec::with_capacity(kh * kw);
+    for ky in 0..kh {
+        let rows = strided(&xp, 2, ky, ho, sh)?;
+        for kx in 0..kw {
+            taps.push(strided(&rows, 3, kx, wo, sw)?.unsqueeze(2)?);
+        }
+    }
+    // [B, C, kh*kw, Ho, Wo] -> [B, C*kh*kw, Ho*Wo]
+    let col = Tensor::stack(&taps, 2)?
+        .squeeze(3)?
+        .reshape((b, c * kh * kw, ho * wo))?;
+    Ok(if spec.ones_row {
+        let ones = Tensor::ones((b, 1, ho * wo), x.dtype(), x.device())?;
+        Tensor::cat(&[&col, &ones], 1)?
+    } else {
+        col
+    })
+}
+
+/// `t[.., start + stride * i, ..]` for `i < n` along `dim` (entries past the end read as zero).
+fn strided(t: &Tensor, dim: usize, start: usize, n: usize, stride: usize) -> Result<Tensor> {
+    if stride == 1 {
+        return Ok(t.narrow(dim, start, n)?);
+    }
+    let len = t.dim(dim)?;
+    let want = n * stride;
+    let avail = len.saturating_sub(start).min(want);
+    let mut s = t.narrow(dim, start, avail)?;
+    if avail < want {
+        s = s.pad_with_zeros(dim, 0, want - avail)?;
+    }
+    let mut shape = s.dims().to_vec();
+    shape[dim] = n;
+    shape.insert(dim + 1, stride);
+    let s = s.reshape(shape.as_slice())?.narrow(dim + 1, 0, 1)?;
+    Ok(s.squeeze(dim + 1)?)
+}
+
+// ---------------------------------------------------------------------------------------------
+// GroupNorm + scale/shift + SiLU
+
+#[derive(Debug, Clone, Copy)]
+struct GroupNormAct {
+    groups: usize,
+    eps: f64,
+    silu: bool,
+}
+
+/// `(B, C, N)` of a `[B, C, ...]` shape.
+fn bcn(shape: &Shape) -> candle_core::Result<(usize, usize, usize)> {
+    let d = shape.dims();
+    if d.len() < 2 {
+        candle_core::bail!("group norm: expected [B, C, ...], got {d:?}")
+    }
+    Ok((d[0], d[1], d[2..].iter().product()))
+}
+
+/// Mean and `1 / sqrt(var + eps)` of a group (accumulated in f64).
+fn group_stats(x: &[f32], eps: f64) -> (f32, f32) {
+    let n = x.len().max(1) as f64;
+    let mean = x.iter().map(|v| f64::from(*v)).sum::<f64>() / n;
+    let var = x
+        .iter()
+        .map(|v| {
+            let d = f64::from(*v) - mean;
+            d * d
+        })
+        .sum::<f64>()
+        / n;
+    (mean as f32, (1.0 / (var + eps).sqrt()) as f32)
+}
+
+#[inline]
+fn sigmoid(z: f32) -> f32 {
+    1.0 / (1.0 + (-z).exp())
+}
+
+impl GroupNormAct {
+    fn check(
+        &self,
+        (b, c, _): (usize, usize, usize),
+        l2: &Layout,
+        l3: &Layout,
+    ) -> candle_core::Result<()> {
+        if self.groups == 0 || !c.is_multiple_of(self.groups) {
+            candle_core::bail!("group norm: {c} channels in {} groups", self.groups)
+        }
+        if l2.shape().dims() != [b, c] || l3.shape().dims() != [b, c] {
+            candle_core::bail!(
+                "group norm: scale {:?} and shift {:?} must be [{b}, {c}]",
+                l2.shape(),
+                l3.shape()
+            )
+        }
+        Ok(())
+    }
+}
+
+impl CustomOp3 for GroupNormAct {
+    fn name(&self) -> &'static str {
+        "veila-group-norm-act"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (b, c, n) = bcn(l1.shape())?;
+        self.check((b, c, n), l2, l3)?;
+        let x = slice_f32(s1, l1, "group norm input")?;
+        let scale = slice_f32(s2, l2, "group norm scale")?;
+        let shift = slice_f32(s3, l3, "group norm shift")?;
+        let cg = c / self.groups;
+        let mut dst = vec![0f32; x.len()];
+        if cg * n > 0 {
+            dst.par_chunks_mut(cg * n)
+                .zip(x.par_chunks(cg * n))
+                .zip(scale.par_chunks(cg).zip(shift.par_chunks(cg)))
+                .for_each(|((out, xs), (sc, sh))| {
+                    let (mean, rstd) = group_stats(xs, self.eps);
+                    for ci in 0..cg {
+                        let a = sc[ci] * rstd;
+                        let bb = sh[ci] - mean * a;
+                        let (o, xi) = (&mut out[ci * n..(ci + 1) * n], &xs[ci * n..(ci + 1) * n]);
+                        if self.silu {
+                            for (o, v) in o.iter_mut().zip(xi) {
+                                let z = v * a + bb;
+                                *o = z * sigmoid(z);
+                            }
+                        } else {
+                            for (o, v) in o.iter_mut().zip(xi) {
+                                *o = v * a + bb;
+                            }
+                        }
+                    }
+                });
+        }
+        Ok((CpuStorage::F32(dst), l1.shape().clone()))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        scale: &Tensor,
+        shift: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let (b, c, n) = bcn(x.shape())?;
+        let cg = c / self.groups;
+        let sc = tensor_f32(scale, "group norm scale")?;
+        let sh = tensor_f32(shift, "group norm shift")?;
+        let mut dx = vec![0f32; b * c * n];
+        let mut dscale = vec![0f32; b * c];
+        let mut dshift = vec![0f32; b * c];
+        with_f32(x, "group norm input", |xv| {
+            with_f32(grad, "group norm gradient", |gv| {
+                if cg * n == 0 {
+                    return Ok(());
+                }
+                dx.par_chunks_mut(cg * n)
+                    .zip(xv.par_chunks(cg * n).zip(gv.par_chunks(cg * n)))
+                    .zip(dscale.par_chunks_mut(cg).zip(dshift.par_chunks_mut(cg)))
+                    .zip(sc.par_chunks(cg).zip(sh.par_chunks(cg)))
+                    .for_each(|(((dxs, (xs, gs)), (dsc, dsh)), (scs, shs))| {
+                        let (mean, rstd) = group_stats(xs, self.eps);
+                        // pass 1: dxhat into dx, the scale/shift gradients, the two group sums
+                        let (mut sum_d, mut sum_dx) = (0f64, 0f64);
+                        for ci in 0..cg {
+                            let (s, t) = (scs[ci], shs[ci]);
+                            let r = ci * n..(ci + 1) * n;
+                            let (mut ds, mut dt) = (0f64, 0f64);
+                            let (mut sd, mut sdx) = (0f32, 0f32);
+                            for ((d, v), g) in
+                                dxs[r.clone()].iter_mut().zip(&xs[r.clone()]).zip(&gs[r])
+                            {
+                                let xh = (v - mean) * rstd;
+                                let dz = if self.silu {
+                                    let z = xh * s + t;
+                                    let sg = sigmoid(z);
+                                    g * sg * (1.0 + z * (1.0 - sg))
+                                } else {
+                                    *g
+                                };
+                                ds += f64::from(dz * xh);
+                                dt += f64::from(dz);
+                                let dxh = dz * s;
+                                sd += dxh;
+                                sdx += dxh * xh;
+                                *d = dxh;
+                            }
+                            dsc[ci] = ds as f32;
+                            dsh[ci] = dt as f32;
+                            sum_d += f64::from(sd);
+                            sum_dx += f64::from(sdx);
+                        }
+                        // pass 2: dx = rstd (dxhat - mean(dxhat) - xhat mean(dxhat xhat))
+                        let m = (cg * n) as f64;
+                        let (md, mdx) = ((sum_d / m) as f32, (sum_dx / m) as f32);
+                        for (d, v) in dxs.iter_mut().zip(xs) {
+                            let xh = (v - mean) * rstd;
+                            *d = rstd * (*d - md - xh * mdx);
+                        }
+                    });
+                Ok(())
+            })
+        })?;
+        let dev = x.device();
+        Ok((
+            Some(Tensor::from_vec(dx, x.shape(), dev)?),
+            Some(Tensor::from_vec(dscale, (b, c), dev)?),
+            Some(Tensor::from_vec(dshift, (b, c), dev)?),
+        ))
+    }
+}
+
+/// `act(GroupNorm(x) * scale + shift)` for `x: [B, C, ...]`, per-sample, per-channel `scale` and
+/// `shift` (`[B, C]`), `groups` groups, variance epsilon `eps`, `act` SiLU when `silu` (identity
+/// otherwise). GroupNorm itself has no affine weights here: fold them into `scale` and `shift`.
+pub fn group_norm_act(
+    x: &Tensor,
+    scale: &Tensor,
+    shift: &Tensor,
+    groups: usize,
+    eps: f64,
+    silu: bool,
+) -> Result<Tensor> {
+    let dims = x.dims();
+    if dims.len() < 2 || groups == 0 || !dims[1].is_multiple_of(groups) {
+        return Err(shape_err(
+            "group norm input",
+            format!("[B, C, ...] with C divisible by {groups}"),
+            dims,
+        ));
+    }
+    let bc = [dims[0], dims[1]];
+    if scale.dims() != bc || shift.dims() != bc {
+        return Err(shape_err(
+            "group norm scale/shift",
+            format!("{bc:?}"),
+            scale.dims(),
+        ));
+    }
+    if on_cpu_f32(x) && on_cpu_f32(scale) && on_cpu_f32(shift) {
+        return Ok(x.contiguous()?.apply_op3(
+            &scale.contiguous()?,
+            &shift.contiguous()?,
+            GroupNormAct { groups, eps, silu },
+        )?);
+    }
+    group_norm_act_reference(x, scale, shift, groups, eps, silu)
+}
+
+/// [`group_norm_act`] from candle ops (the formula of `candle_nn::GroupNorm`): any device.
+pub fn group_norm_act_reference(
+    x: &Tensor,
+    scale: &Tensor,
+    shift: &Tensor,
+    groups: usize,
+    eps: f64,
+    silu: bool,
+) -> Result<Tensor> {
+    let dims = x.dims().to_vec();
+    let (b, c) = (dims[0], dims[1]);
+    let xr = x.reshape((b, groups, ()))?;
+    let m = xr.dim(2)? as f64;
+    let mean = (xr.sum_keepdim(2)? / m)?;
+    let xc = xr.broadcast_sub(&mean)?;
+    let var = (xc.sqr()?.sum_keepdim(2)? / m)?;
+    let xn = xc
+        .broadcast_div(&(var + eps)?.sqrt()?)?
+        .reshape(dims.as_slice())?;
+    let mut bshape = vec![1; dims.len()];
+    bshape[0] = b;
+    bshape[1] = c;
+    let y = xn
+        .broadcast_mul(&scale.reshape(bshape.as_slice())?)?
+        .broadcast_add(&shift.reshape(bshape.as_slice())?)?;
+    Ok(if silu { candle_nn::ops::silu(&y)? } else { y })
+}
+
+// ---------------------------------------------------------------------------------------------
+// scaled residual sum
+
+#[derive(Debug, Clone, Copy)]
+struct AddScaled {
+    scale: f32,
+}
+
+impl CustomOp2 for AddScaled {
+    fn name(&self) -> &'static str {
+        "veila-add-scaled"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let a = slice_f32(s1, l1, "add_scaled lhs")?;
+        let b = slice_f32(s2, l2, "add_scaled rhs")?;
+        if l1.shape() != l2.shape() {
+            candle_core::bail!(
+                "add_scaled: shapes {:?} and {:?} differ",
+                l1.shape(),
+                l2.shape()
+            )
+        }
+        let mut dst = vec![0f32; a.len()];
+        let s = self.scale;
+        dst.par_chunks_mut(GRAIN)
+            .zip(a.par_chunks(GRAIN).zip(b.par_chunks(GRAIN)))
+            .for_each(|(d, (a, b))| {
+                for ((d, a), b) in d.iter_mut().zip(a).zip(b) {
+                    *d = (a + b) * s;
+                }
+            });
+        Ok((CpuStorage::F32(dst), l1.shape().clone()))
+    }
+
+    fn bwd(
+        &self,
+        _a: &Tensor,
+        _b: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let g = grad
+            .contiguous()?
+            .apply_op1_no_bwd(&Scale { scale: self.scale })?;
+        Ok((Some(g.clone()), Some(g)))
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Scale {
+    scale: f32,
+}
+
+impl CustomOp1 for Scale {
+    fn name(&self) -> &'static str {
+        "veila-scale"
+    }
+
+    fn cpu_fwd(
+        &self,
+        storage: &CpuStorage,
+        layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let a = slice_f32(storage, layout, "scale input")?;
+        let mut dst = vec![0f32; a.len()];
+        let s = self.scale;
+        dst.par_chunks_mut(GRAIN)
+            .zip(a.par_chunks(GRAIN))
+            .for_each(|(d, a)| {
+                for (d, a) in d.iter_mut().zip(a) {
+                    *d = a * s;
+                }
+            });
+        Ok((CpuStorage::F32(dst), layout.shape().clone()))
+    }
+}
+
+/// `(a + b) * scale` (same shapes): the scaled residual connection.
+pub fn add_scaled(a: &Tensor, b: &Tensor, scale: f64) -> Result<Tensor> {
+    if a.dims() != b.dims() {
+        return Err(shape_err(
+            "add_scaled rhs",
+            format!("{:?}", a.dims()),
+            b.dims(),
+        ));
+    }
+    if on_cpu_f32(a) && on_cpu_f32(b) {
+        return Ok(a.contiguous()?.apply_op2(
+            &b.contiguous()?,
+            AddScaled {
+                scale: scale as f32,
+            },
+        )?);
+    }
+    Ok(((a + b)? * scale)?)
+}
+
+// ---------------------------------------------------------------------------------------------
+// nearest-neighbour upsampling
+
+#[derive(Debug, Clone, Copy)]
+struct UpsampleNearest {
+    factor: usize,
+}
+
+impl CustomOp1 for UpsampleNearest {
+    fn name(&self) -> &'static str {
+        "veila-upsample-nearest"
+    }
+
+    fn cpu_fwd(
+        &self,
+        storage: &CpuStorage,
+        layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let x = slice_f32(storage, layout, "upsample input")?;
+        let (b, c, h, w) = layout.shape().dims4()?;
+        let f = self.factor;
+        let (ho, wo) = (h * f, w * f);
+        let mut dst = vec![0f32; b * c * ho * wo];
+        if h * w > 0 {
+            dst.par_chunks_mut(ho * wo)
+                .zip(x.par_chunks(h * w))
+                .with_min_len(min_len(ho * wo))
+                .for_each(|(out, plane)| {
+                    for y in 0..h {
+                        let src = &plane[y * w..(y + 1) * w];
+                        let row = &mut out[y * f * wo..(y * f + 1) * wo];
+                        for (o, v) in row.chunks_exact_mut(f).zip(src) {
+                            o.fill(*v);
+                        }
+                        for k in 1..f {
+                            let (done, rest) = out.split_at_mut((y * f + k) * wo);
+                            rest[..wo].copy_from_slice(&done[y * f * wo..(y * f + 1) * wo]);
+                        }
+                    }
+                });
+        }
+        Ok((CpuStorage::F32(dst), Shape::from((b, c, ho, wo))))
+    }
+
+    fn bwd(
+        &self,
+        _arg: &Tensor,
+        _res: &Tensor,
+        grad_res: &Tensor,
+    ) -> candle_core::Result<Option<Tensor>> {
+        Ok(Some(grad_res.contiguous()?.apply_op1_no_bwd(
+            &DownsampleSum {
+                factor: self.factor,
+            },
+        )?))
+    }
+}
+
+/// Sum over `factor x factor` blocks (the backward pass of [`UpsampleNearest`]).
+#[derive(Debug, Clone, Copy)]
+struct DownsampleSum {
+    factor: usize,
+}
+
+impl CustomOp1 for DownsampleSum {
+    fn name(&self) -> &'static str {
+        "veila-block-sum"
+    }
+
+    fn cpu_fwd(
+        &self,
+        storage: &CpuStorage,
+        layout: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let g = slice_f32(storage, layout, "block-sum input")?;
+        let (b, c, ho, wo) = layout.shape().dims4()?;
+        let f = self.factor;
+        if !ho.is_multiple_of(f) || !wo.is_multiple_of(f) {
+            candle_core::bail!("block sum: {ho}x{wo} is not divisible by {f}")
+        }
+        let (h, w) = (ho / f, wo / f);
+        let mut dst = vec![0f32; b * c * h * w];
+        if h * w > 0 {
+            dst.par_chunks_mut(h * w)
+                .zip(g.par_chunks(ho * wo))
+                .with_min_len(min_len(ho * wo))
+                .for_each(|(out, plane)| {
+                    for yo in 0..ho {
+                        let row = &plane[yo * wo..(yo + 1) * wo];
+                        let o = &mut out[(yo / f) * w..(yo / f + 1) * w];
+                        for (d, blk) in o.iter_mut().zip(row.chunks_exact(f)) {
+                            *d += blk.iter().sum::<f32>();
+                        }
+                    }
+                });
+        }
+        Ok((CpuStorage::F32(dst), Shape::from((b, c, h, w))))
+    }
+}
+
+/// Nearest-neighbour upsampling of `[B, C, H, W]` by an integer `factor` (`>= 1`).
+pub fn upsample_nearest(x: &Tensor, factor: usize) -> Result<Tensor> {
+    let (b, c, h, w) = x.dims4()?;
+    if factor <= 1 {
+        return Ok(x.clone());
+    }
+    if on_cpu_f32(x) {
+        return Ok(x.contiguous()?.apply_op1(UpsampleNearest { factor })?);
+    }
+    Ok(x.reshape((b, c, h, 1, w, 1))?
+        .broadcast_as((b, c, h, factor, w, factor))?
+        .reshape((b, c, h * factor, w * factor))?)
+}

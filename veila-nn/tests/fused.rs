@@ -1,0 +1,254 @@
+//! The CPU kernels of `veila_nn::fused` against candle's own composition of the same formula (and, for
+//! the convolution, candle's `conv2d`): outputs and gradients within 1e-5 relative.
+
+use std::collections::HashMap;
+
+use candle_core::{DType, Device, Tensor, Var};
+use candle_nn::VarBuilder;
+use veila_nn::fused::{
+    Im2ColSpec, add_scaled, group_norm_act, group_norm_act_reference, im2col, im2col_reference,
+};
+use veila_nn::ops::{RingConv2d, conv2d_zero_pad, group_norm, ring_pad};
+
+fn seeded(shape: &[usize], seed: u64) -> Tensor {
+    // a fixed pseudo-random pattern (no RNG dependency): values in about [-2, 2]
+    let n: usize = shape.iter().product();
+    let v: Vec<f32> = (0..n)
+        .map(|i| {
+            let k = (i as u64 + 1)
+                .wrapping_mul(0x9E37_79B9_7F4A_7C15 ^ seed.wrapping_mul(0xBF58_476D_1CE4_E5B9));
+            ((k >> 40) as f32 / (1u64 << 24) as f32) * 4.0 - 2.0
+        })
+        .collect();
+    Tensor::from_vec(v, shape, &Device::Cpu).unwrap()
+}
+
+/// max |a - b| / max |b| (0 when both are 0).
+fn rel_err(a: &Tensor, b: &Tensor) -> f32 {
+    assert_eq!(a.dims(), b.dims());
+    let a = a.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    let b = b.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    let scale = b.iter().fold(0f32, |m, v| m.max(v.abs()));
+    let diff = a
+        .iter()
+        .zip(&b)
+        .fold(0f32, |m, (x, y)| m.max((x - y).abs()));
+    if scale == 0.0 { diff } else { diff / scale }
+}
+
+fn assert_close(a: &Tensor, b: &Tensor, what: &str) {
+    let e = rel_err(a, b);
+    assert!(e <= 1e-5, "{what}: relative error {e}");
+}
+
+fn specs() -> Vec<Im2ColSpec> {
+    let s =
+        |k: usize, st: (usize, usize), ph: usize, pw: usize, ring: bool, ones: bool| Im2ColSpec {
+            kernel: (k, k),
+            stride: st,
+            pad_h: ph,
+            pad_w: pw,
+            ring,
+            ones_row: ones,
+        };
+    vec![
+        s(3, (1, 1), 1, 1, true, false),
+        s(3, (2, 2), 1, 1, true, true),
+        s(3, (1, 1), 1, 1, false, true),
+        s(5, (2, 2), 2, 2, false, false),
+        s(3, (1, 2), 0, 0, false, false),
+        s(1, (1, 1), 0, 0, false, true),
+        s(5, (1, 1), 2, 2, true, false),
+    ]
+}
+
+#[test]
+fn im2col_matches_the_composition_forward_and_backward() {
+    for (i, spec) in specs().into_iter().enumerate() {
+        let x = Var::from_tensor(&seeded(&[2, 3, 6, 7], 1)).unwrap();
+        let (ho, wo) = spec.out_size(6, 7).unwrap();
+        let fast = im2col(x.as_tensor(), spec).unwrap();
+        let slow = im2col_reference(x.as_tensor(), spec, (2, 3, ho, wo)).unwrap();
+        assert_close(&fast, &slow, &format!("im2col {i} {spec:?}"));
+        let r = seeded(fast.dims(), 7);
+        let gf = (&fast * &r).unwrap().sum_all().unwrap().backward().unwrap();
+        let gs = (&slow * &r).unwrap().sum_all().unwrap().backward().unwrap();
+        assert_close(
+            gf.get(&x).unwrap(),
+            gs.get(&x).unwrap(),
+            &format!("col2im {i} {spec:?}"),
+        );
+    }
+}
+
+#[test]
+fn im2col_rejects_kernels_that_do_not_fit() {
+    let x = seeded(&[1, 2, 2, 2], 3);
+    let spec = Im2ColSpec {
+        kernel: (5, 5),
+        stride: (1, 1),
+        pad_h: 0,
+        pad_w: 0,
+        ring: false,
+        ones_row: false,
+    };
+    assert!(im2col(&x, spec).is_err());
+}
+
+fn conv_grads(y: &Tensor, vars: &[&Var]) -> Vec<Tensor> {
+    let r = seeded(y.dims(), 11);
+    let g = (y * &r).unwrap().sum_all().unwrap().backward().unwrap();
+    vars.iter().map(|v| g.get(v).unwrap().clone()).collect()
+}
+
+#[test]
+fn ring_conv_matches_candle_conv2d_with_gradients() {
+    for stride in [1, 2] {
+        let x = Var::from_tensor(&seeded(&[2, 4, 8, 12], 2)).unwrap();
+        let w = Var::from_tensor(&(seeded(&[5, 4, 3, 3], 3) * 0.3).unwrap()).unwrap();
+        let b = Var::from_tensor(&seeded(&[5], 4)).unwrap();
+        let conv =
+            RingConv2d::from_weights(w.as_tensor().clone(), Some(b.as_tensor().clone()), stride)
+                .unwrap();
+        let fast = conv.forward(x.as_tensor()).unwrap();
+        let slow = ring_pad(x.as_tensor(), 1, 1)
+            .unwrap()
+            .conv2d(w.as_tensor(), 0, stride, 1, 1)
+            .unwrap()
+            .broadcast_add(&b.as_tensor().reshape((1, 5, 1, 1)).unwrap())
+            .unwrap();
+        assert_close(&fast, &slow, &format!("ring conv stride {stride}"));
+        let gf = conv_grads(&fast, &[&x, &w, &b]);
+        let gs = conv_grads(&slow, &[&x, &w, &b]);
+        for (k, (a, e)) in gf.iter().zip(&gs).enumerate() {
+            assert_close(a, e, &format!("ring conv stride {stride} gradient {k}"));
+        }
+    }
+}
+
+#[test]
+fn zero_padded_conv_matches_candle_conv2d_with_gradients() {
+    // sizes with (size + 2 padding - 3) divisible by the stride: candle's conv2d backward (the
+    // reference) has no output padding for the others
+    let x = Var::from_tensor(&seeded(&[2, 3, 9, 11], 5)).unwrap();
+    let w = Var::from_tensor(&(seeded(&[4, 3, 3, 3], 6) * 0.3).unwrap()).unwrap();
+    let b = Var::from_tensor(&seeded(&[4], 8)).unwrap();
+    for (padding, stride) in [(1, 1), (1, 2), (0, 1)] {
+        let fast = conv2d_zero_pad(
+            x.as_tensor(),
+            w.as_tensor(),
+            Some(b.as_tensor()),
+            padding,
+            stride,
+        )
+        .unwrap();
+        let slow = x
+            .as_tensor()
+            .conv2d(w.as_tensor(), padding, stride, 1, 1)
+            .unwrap()
+            .broadcast_add(&b.as_tensor().reshape((1, 4, 1, 1)).unwrap())
+            .unwrap();
+        assert_close(&fast, &slow, &format!("conv p{padding} s{stride}"));
+        let gf = conv_grads(&fast, &[&x, &w, &b]);
+        let gs = conv_grads(&slow, &[&x, &w, &b]);
+        for (k, (a, e)) in gf.iter().zip(&gs).enumerate() {
+            assert_close(a, e, &format!("conv p{padding} s{stride} gradient {k}"));
+        }
+    }
+}
+
+#[test]
+fn group_norm_act_matches_the_composition_with_gradients() {
+    for silu in [false, true] {
+        for (shape, groups) in [
+            (vec![2, 8, 5, 6], 4),
+            (vec![3, 6, 17], 3),
+            (vec![1, 4, 2, 2], 1),
+        ] {
+            let (b, c) = (shape[0], shape[1]);
+            let x = Var::from_tensor(&seeded(&shape, 21).affine(3.0, 0.5).unwrap()).unwrap();
+            let sc = Var::from_tensor(&seeded(&[b, c], 22)).unwrap();
+            let sh = Var::from_tensor(&seeded(&[b, c], 23)).unwrap();
+            let args = (x.as_tensor(), sc.as_tensor(), sh.as_tensor());
+            let fast = group_norm_act(args.0, args.1, args.2, groups, 1e-5, silu).unwrap();
+            let slow =
+                group_norm_act_reference(args.0, args.1, args.2, groups, 1e-5, silu).unwrap();
+            let what = format!("group norm {shape:?} / {groups}, silu {silu}");
+            assert_close(&fast, &slow, &what);
+            let gf = conv_grads(&fast, &[&x, &sc, &sh]);
+            let gs = conv_grads(&slow, &[&x, &sc, &sh]);
+            for (k, (a, e)) in gf.iter().zip(&gs).enumerate() {
+                assert_close(a, e, &format!("{what}: gradient {k}"));
+            }
+        }
+    }
+}
+
+#[test]
+fn group_norm_layer_matches_candle_nn_group_norm() {
+    let (c, groups) = (8, 4);
+    let weight = seeded(&[c], 31);
+    let bias = seeded(&[c], 32);
+    let mut map = HashMap::new();
+    map.insert("weight".to_string(), weight.clone());
+    map.insert("bias".to_string(), bias.clone());
+    let ours = group_norm(
+        groups,
+        c,
+        VarBuilder::from_tensors(map, DType::F32, &Device::Cpu),
+    )
+    .unwrap();
+    let theirs = candle_nn::GroupNorm::new(weight, bias, c, groups, 1e-5).unwrap();
+    let x = (seeded(&[2, c, 4, 9], 33) * 2.0).unwrap();
+    let want = candle_core::Module::forward(&theirs, &x).unwrap();
+    assert_close(&ours.forward(&x).unwrap(), &want, "group norm");
+    assert_close(
+        &ours.forward_silu(&x).unwrap(),
+        &candle_nn::ops::silu(&want).unwrap(),
+        "group norm + silu",
+    );
+    let s = seeded(&[2, c], 34);
+    let t = seeded(&[2, c], 35);
+    let modulated = want
+        .broadcast_mul(&(s.reshape((2, c, 1, 1)).unwrap() + 1.0).unwrap())
+        .unwrap()
+        .broadcast_add(&t.reshape((2, c, 1, 1)).unwrap())
+        .unwrap();
+    assert_close(
+        &ours.forward_modulated_silu(&x, &s, &t).unwrap(),
+        &candle_nn::ops::silu(&modulated).unwrap(),
+        "group norm + FiLM + silu",
+    );
+}
+
+#[test]
+fn add_scaled_matches_the_composition_with_gradients() {
+    let a = Var::from_tensor(&seeded(&[3, 5, 7, 11], 41)).unwrap();
+    let b = Var::from_tensor(&seeded(&[3, 5, 7, 11], 42)).unwrap();
+    let fast = add_scaled(a.as_tensor(), b.as_tensor(), 0.7).unwrap();
+    let slow = ((a.as_tensor() + b.as_tensor()).unwrap() * 0.7).unwrap();
+    assert_close(&fast, &slow, "add_scaled");
+    let gf = conv_grads(&fast, &[&a, &b]);
+    let gs = conv_grads(&slow, &[&a, &b]);
+    for (k, (x, e)) in gf.iter().zip(&gs).enumerate() {
+        assert_close(x, e, &format!("add_scaled gradient {k}"));
+    }
+}
+
+#[test]
+fn upsample_nearest_matches_the_broadcast_with_gradients() {
+    let x = Var::from_tensor(&seeded(&[2, 3, 4, 5], 51)).unwrap();
+    let fast = veila_nn::fused::upsample_nearest(x.as_tensor(), 2).unwrap();
+    let slow = x
+        .as_tensor()
+        .reshape((2, 3, 4, 1, 5, 1))
+        .unwrap()
+        .broadcast_as((2, 3, 4, 2, 5, 2))
+        .unwrap()
+        .reshape((2, 3, 8, 10))
+        .unwrap();
+    assert_close(&fast, &slow, "upsample");
+    let gf = conv_grads(&fast, &[&x]);
+    let gs = conv_grads(&slow, &[&x]);
+    assert_close(&gf[0], &gs[0], "upsample gradient");
+}
