@@ -12,6 +12,7 @@ mod bench_report; // cargo xtask bench-report
 mod convert; // cargo xtask convert       (veila-data shards)
 mod feature_nets; // cargo xtask train-feature-nets (veila-nn feature_nets)
 mod kitti_weather; // cargo xtask kitti-weather (veila-data weather)
+mod method_sweep; // cargo xtask method-sweep (generative methods at equal training compute)
 mod simdata; // simulated examples for training and benchmarks
 #[cfg(test)]
 mod tidy;
@@ -37,6 +38,9 @@ enum Command {
     BenchReport(bench_report::BenchReportArgs),
     /// CPU engine speed: forward b1/b8 and a b8 training step of the small denoiser (medians, JSON).
     BenchModel(bench_model::BenchModelArgs),
+    /// Generative methods (ε / v diffusion, residual diffusion, rectified flow, regression) at
+    /// equal training compute: quality against training seconds.
+    MethodSweep(method_sweep::MethodSweepArgs),
     /// Print the workspace's crate layering rules (checked by `cargo test -p xtask`).
     Layers,
 }
@@ -54,6 +58,7 @@ fn run(command: Command) -> Result<()> {
         Command::KittiWeather(a) => kitti_weather::run(a),
         Command::TrainFeatureNets(a) => feature_nets::run(a),
         Command::BenchReport(a) => bench_report::run(a),
+        Command::MethodSweep(a) => method_sweep::run(a),
         Command::BenchModel(a) => bench_model::run(a),
         Command::TrainDefault(a) => train_default::run(a).map(|_| ()),
         Command::Layers => {
