@@ -11,7 +11,9 @@ use veila_data::weather::fog::{
     FogTable, FogTableConfig, PulseModel, SPEED_OF_LIGHT_M_S, backscatter_integral_direct,
 };
 use veila_data::weather::rain::{RainConfig, RainOutcome, rain_point};
-use veila_data::weather::snow::{SnowConfig, SnowField, occlusion_ratios, waveform_peak};
+use veila_data::weather::snow::{
+    Flake, SnowConfig, SnowField, SnowOutcome, occlusion_ratios, snow_point, waveform_peak,
+};
 use veila_data::weather::spec::{
     exponential_dsd_alpha_per_m, marshall_gunn, marshall_palmer, snow_equivalent_rain_rate_mm_h,
     snow_occupancy,
@@ -683,4 +685,122 @@ fn night_darkens_only_the_camera_and_headlights_light_the_near_road() {
     assert!(row_mean(&lit.image, h - 1) > row_mean(&dark.image, h - 1) + 5.0);
     assert!((row_mean(&lit.image, 0) - row_mean(&dark.image, 0)).abs() < 1e-9);
     let _ = Sensor::Camera;
+}
+
+/// The LiDAR leaves the snow's extinction to the sampled flakes (issue 20) unless `lidar_extinction` is
+/// set; fog and rain keep theirs, and the camera keeps the full alpha.
+#[test]
+fn snow_extinction_on_the_lidar_is_carried_by_the_flakes_unless_asked() {
+    let w = Preset::SnowModerate.weather().with_seed(5);
+    let e = w.extinction();
+    assert!(e.snow_per_m > 4e-3, "{e:?}");
+    let off = WeatherSim::new(&w, &WeatherConfig::default()).unwrap();
+    assert_eq!(off.plan().lidar, vec![LidarEffect::Snow]);
+    assert_eq!(off.lidar_alpha_per_m(), 0.0);
+    assert!(off.plan().camera.contains(&CameraEffect::Veil));
+    let mut cfg = WeatherConfig::default();
+    cfg.lidar.snow.lidar_extinction = true;
+    let on = WeatherSim::new(&w, &cfg).unwrap();
+    assert_eq!(
+        on.plan().lidar,
+        vec![LidarEffect::Extinction, LidarEffect::Snow]
+    );
+    assert_eq!(on.lidar_alpha_per_m(), e.total_per_m());
+    let wet = Weather {
+        rain_rate_mm_h: 10.0,
+        ..w.clone()
+    };
+    let rain = WeatherSim::new(&wet, &WeatherConfig::default()).unwrap();
+    assert_eq!(rain.lidar_alpha_per_m(), wet.extinction().rain_per_m);
+    assert_eq!(rain.plan().lidar[0], LidarEffect::Extinction);
+
+    // 4,000 points at 2..12 m: most beams meet no flake and keep their intensity bit for bit without the
+    // snow extinction, and lose exactly exp(-2 alpha R) with it
+    let n = 4000;
+    let cloud = PointCloud {
+        xyz: (0..n)
+            .map(|k| {
+                let az = k as f32 * 0.0157;
+                let r = 2.0 + (k % 11) as f32;
+                Vec3::new(r * az.cos(), r * az.sin(), 0.0)
+            })
+            .collect(),
+        intensity: vec![0.5; n],
+        ring: Some((0..n).map(|k| (k % 4) as u16).collect()),
+        label: None,
+    };
+    let a = off.apply_lidar(LidarInput::new(&cloud)).unwrap();
+    let b = on.apply_lidar(LidarInput::new(&cloud)).unwrap();
+    let same = |out: &veila_data::weather::LidarOutput| {
+        out.cloud.intensity.iter().filter(|i| **i == 0.5).count()
+    };
+    assert!(same(&a) > n * 7 / 10, "{}", same(&a));
+    assert_eq!(same(&b), 0);
+    let alpha = e.total_per_m();
+    let mut checked = 0;
+    for (k, (p, i)) in b.cloud.xyz.iter().zip(&b.cloud.intensity).enumerate() {
+        if a.cloud.intensity[k] == 0.5 {
+            let want = 0.5 * (-2.0 * alpha * p.as_dvec3().length()).exp();
+            assert!((*i as f64 - want).abs() < 1e-6, "{i} vs {want}");
+            checked += 1;
+        }
+    }
+    assert!(checked > n / 2);
+}
+
+/// `reference_power_quirk` scales the hard target like a flake (`0.9 i_max rho / R^2`) once a flake is
+/// in the beam, as the reference's never-reset power constant does.
+#[test]
+fn reference_power_quirk_lets_a_small_flake_beat_a_bright_target() {
+    // a 1 mm flake at 5 m covers 2 * 0.001 / 5 / 3e-3 = 13.3 % of the beam
+    let field = SnowField::from_flakes(
+        vec![vec![Flake {
+            range_m: 5.0,
+            azimuth_rad: 0.0,
+            radius_m: 0.001,
+        }]],
+        64,
+    );
+    let mut scratch = Default::default();
+    let cfg = SnowConfig::default();
+    let rho = 2.0 * (0.001f64 / 5.0).asin() / 3e-3;
+    match snow_point(
+        &field,
+        &cfg,
+        0.0,
+        3e-3,
+        1.0,
+        0,
+        0.0,
+        30.0,
+        0.5,
+        &mut scratch,
+    ) {
+        // the target, 0.5 * (1 - rho), beats the flake, 0.9 * rho / 25
+        SnowOutcome::Intensity(v) => assert!((v - 0.5 * (1.0 - rho)).abs() < 1e-6, "{v}"),
+        o => panic!("{o:?}"),
+    }
+    let quirk = SnowConfig {
+        reference_power_quirk: true,
+        ..cfg
+    };
+    match snow_point(
+        &field,
+        &quirk,
+        0.0,
+        3e-3,
+        1.0,
+        0,
+        0.0,
+        30.0,
+        0.5,
+        &mut scratch,
+    ) {
+        // the target becomes 0.9 * (1 - rho) / 900 and the flake wins
+        SnowOutcome::Flake { range_m, intensity } => {
+            assert!((range_m - 5.0).abs() < 1e-6, "{range_m}");
+            assert!((intensity - 0.9 * rho / 25.0).abs() < 1e-6, "{intensity}");
+        }
+        o => panic!("{o:?}"),
+    }
 }

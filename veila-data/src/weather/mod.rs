@@ -9,6 +9,8 @@
 //!   `alpha = alpha_fog + alpha_rain + alpha_snow` (LiDAR two-way `exp(-2 alpha R)`, camera one-way
 //!   `exp(-alpha l)` with `l` along the pixel ray); wet ground changes the LiDAR. Clear daylight plans two
 //!   empty pipelines: outputs are the inputs bit for bit and no random stream is ever constructed.
+//!   Exception: the LiDAR leaves `alpha_snow` out by default, because its sampled snowflakes already
+//!   occlude the beams ([`WeatherSim::lidar_alpha_per_m`], [`snow::SnowConfig::lidar_extinction`]).
 //! * [`WeatherSim`]: the plan plus start-up work (the fog look-up table for the alpha in use), then
 //!   [`WeatherSim::apply_lidar`] and [`WeatherSim::apply_camera`]; [`EffectsReport`] records what ran
 //!   (`effects.json`).
@@ -87,6 +89,7 @@ pub struct WeatherSim {
     weather: Weather,
     cfg: WeatherConfig,
     plan: Plan,
+    lidar_alpha: f64,
     fog_table: Option<FogTable>,
 }
 
@@ -94,12 +97,14 @@ impl WeatherSim {
     /// Validate, plan, and do the start-up work of the active effects (the fog table).
     pub fn new(weather: &Weather, cfg: &WeatherConfig) -> Result<Self> {
         cfg.lidar.validate()?;
-        let plan = Plan::new(weather, &cfg.camera)?;
+        let mut plan = Plan::new(weather, &cfg.camera)?;
+        let lidar_alpha = lidar_alpha_per_m(&plan.extinction, weather, &cfg.lidar);
+        if !(lidar_alpha > 0.0) {
+            // snow alone, with its extinction carried by the flakes themselves
+            plan.lidar.retain(|e| *e != LidarEffect::Extinction);
+        }
         let fog_table = if plan.lidar.contains(&LidarEffect::Fog) {
-            Some(FogTable::new(
-                plan.extinction.total_per_m(),
-                &cfg.lidar.fog_table,
-            )?)
+            Some(FogTable::new(lidar_alpha, &cfg.lidar.fog_table)?)
         } else {
             None
         };
@@ -107,8 +112,16 @@ impl WeatherSim {
             weather: weather.clone(),
             cfg: cfg.clone(),
             plan,
+            lidar_alpha,
             fog_table,
         })
+    }
+
+    /// The extinction coefficient the LiDAR effects apply (m^-1): fog + rain, plus snow only when
+    /// [`snow::SnowConfig::lidar_extinction`] is set (the sampled flakes carry the snow's extinction).
+    /// The camera uses the plan's full total.
+    pub fn lidar_alpha_per_m(&self) -> f64 {
+        self.lidar_alpha
     }
 
     /// The weather.
@@ -162,7 +175,7 @@ impl WeatherSim {
             });
         }
         let lc = &self.cfg.lidar;
-        let alpha = self.plan.extinction.total_per_m();
+        let alpha = self.lidar_alpha;
         let mut st = lidar::LidarState::new(cloud);
         let mut records = Vec::new();
         for &e in &self.plan.lidar {
@@ -220,5 +233,15 @@ impl WeatherSim {
         r.lidar = lidar;
         r.camera = camera;
         r
+    }
+}
+
+/// See [`WeatherSim::lidar_alpha_per_m`]; the sum is formed from the parts, so it equals the plan's
+/// total exactly whenever the snow share is included (or zero).
+fn lidar_alpha_per_m(e: &Extinction, weather: &Weather, cfg: &LidarConfig) -> f64 {
+    if weather.snow_active() && !cfg.snow.lidar_extinction {
+        e.fog_per_m + e.rain_per_m
+    } else {
+        e.total_per_m()
     }
 }

@@ -42,7 +42,9 @@ pub enum LidarEffect {
     /// Hahner et al. 2021 fog: two-way attenuation `exp(-2 alpha R)` with the total alpha, and the fog
     /// backscatter return that replaces the hard return when stronger.
     Fog,
-    /// Two-way attenuation `exp(-2 alpha R)` alone (rain and/or snow without fog).
+    /// Two-way attenuation `exp(-2 alpha R)` alone (rain and/or snow without fog). [`super::WeatherSim`]
+    /// drops it when only snow is active and its extinction is left to the flakes
+    /// ([`super::snow::SnowConfig::lidar_extinction`]).
     Extinction,
     /// LISA rain: near-drop returns, range noise, lost points.
     Rain,
