@@ -832,21 +832,28 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
             m.summary.steps_run, m.summary.final_step, m.summary.mean_loss, outcome.seconds[0]
         );
     }
-    let finished = match outcome.denoiser {
-        Some(d) if d.step >= t.steps => Some(d),
+    let den = match outcome.denoiser {
+        Some(d) if d.step >= t.steps => d,
         Some(d) => {
             print_denoiser_summary(&d, t.steps, outcome.seconds[1]);
-            None
+            println!(
+                "stopped at step {} of {}; checkpoint in {}: rerun `veila train --config {}` to continue",
+                d.step,
+                t.steps,
+                ck_dir.display(),
+                args.config.display()
+            );
+            return Ok(());
         }
-        None => None,
-    };
-    let Some(den) = finished else {
-        println!(
-            "stopped early; checkpoints in {}: rerun `veila train --config {}` to continue",
-            ck_dir.display(),
-            args.config.display()
-        );
-        return Ok(());
+        None => {
+            let at = outcome.mean.as_ref().map_or(0, |m| m.step);
+            println!(
+                "stopped the mean network at step {at} of {mean_steps}; checkpoint in {}: rerun `veila train --config {}` to continue",
+                ck_dir.join("mean").display(),
+                args.config.display()
+            );
+            return Ok(());
+        }
     };
     print_denoiser_summary(&den, t.steps, outcome.seconds[1]);
     let summary = den.summary;

@@ -717,6 +717,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                     variant: v,
                     method: base.config.method(),
                     mean_steps: None,
+                    checkpoint_every: 250,
                     frames: args.train_frames,
                     encoder_steps: 0,
                     steps: args.train_steps,

@@ -13,6 +13,7 @@ mod convert; // cargo xtask convert       (veila-data shards)
 mod feature_nets; // cargo xtask train-feature-nets (veila-nn feature_nets)
 mod kitti_weather; // cargo xtask kitti-weather (veila-data weather)
 mod method_sweep; // cargo xtask method-sweep (generative methods at equal training compute)
+mod overfit; // the bundled-size overfit check (an ignored test, run by hand)
 mod simdata; // simulated examples for training and benchmarks
 #[cfg(test)]
 mod tidy;

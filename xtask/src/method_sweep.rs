@@ -71,9 +71,12 @@ pub struct MethodSweepArgs {
     /// Seed of everything.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Rewrite report.md and the plots from an existing report.json (no training).
+    #[arg(long)]
+    replot: bool,
 }
 
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
 struct Point {
     method: String,
     step: u64,
@@ -220,6 +223,8 @@ struct Observer<'e, 'a> {
     next_eval: usize,
     eval_at: Vec<f64>,
     step: u64,
+    /// Updates already spent before this run (the residual method's mean network).
+    offset_steps: u64,
     batch: usize,
 }
 
@@ -258,7 +263,8 @@ impl<'g> TrainObserver<veila_diffusion::VeilaDenoiser<'g>> for Observer<'_, '_> 
                 origin: PathBuf::from("(training)"),
             };
             let (method, batch) = (self.method, self.batch);
-            self.eval.run(&bundle, method, step, t, batch);
+            self.eval
+                .run(&bundle, method, self.offset_steps + step, t, batch);
         }
         Ok(())
     }
@@ -267,6 +273,14 @@ impl<'g> TrainObserver<veila_diffusion::VeilaDenoiser<'g>> for Observer<'_, '_> 
 /// Runs the sweep.
 pub fn run(args: MethodSweepArgs) -> Result<()> {
     let root = workspace_root();
+    if args.replot {
+        let p = root.join(&args.out).join("report.json");
+        let v: serde_json::Value = serde_json::from_slice(
+            &std::fs::read(&p).with_context(|| format!("reading {}", p.display()))?,
+        )?;
+        let points: Vec<Point> = serde_json::from_value(v["points"].clone())?;
+        return write(&args, &points, &root.join(&args.out));
+    }
     let device = Device::Cpu;
     let enc_dir = if args.encoders_from.is_absolute() {
         args.encoders_from.clone()
@@ -319,6 +333,7 @@ pub fn run(args: MethodSweepArgs) -> Result<()> {
     // residual reuses the regression run: run regression first
     methods.sort_by_key(|m| (*m == Method::Residual, *m != Method::Regression));
     let mut mean_snapshot: Option<HashMap<String, Tensor>> = None;
+    let mut mean_steps = 0u64;
     for method in methods {
         println!("method {} ({})", method.name(), method.label());
         let mut cfg = proto.clone().with_method(method);
@@ -367,6 +382,7 @@ pub fn run(args: MethodSweepArgs) -> Result<()> {
                     next_eval: eval_at.iter().filter(|&&t| t < half + 1e-9).count(),
                     eval_at: eval_at.clone(),
                     step: 0,
+                    offset_steps: mean_steps,
                     batch: args.batch,
                 };
                 fit_denoiser(
@@ -408,6 +424,7 @@ pub fn run(args: MethodSweepArgs) -> Result<()> {
                         next_eval,
                         eval_at: eval_at.clone(),
                         step: 0,
+                        offset_steps: 0,
                         batch: args.batch,
                     };
                     let out = fit_denoiser(
@@ -430,6 +447,7 @@ pub fn run(args: MethodSweepArgs) -> Result<()> {
                     offset += obs.secs;
                     next_eval = obs.next_eval;
                     if method == Method::Regression && mean_snapshot.is_none() {
+                        mean_steps = out.step;
                         mean_snapshot = Some(out.ema_weights);
                     }
                 }
@@ -439,13 +457,11 @@ pub fn run(args: MethodSweepArgs) -> Result<()> {
                         .points
                         .iter()
                         .filter(|p| {
-                            p.method == "regression"
-                                && p.train_secs <= args.budget_secs / 2.0 + 1e-6
+                            p.method == "regression" && p.train_secs <= args.budget_secs / 2.0 + 1e-6
                         })
-                        .cloned()
                         .map(|p| Point {
                             method: "residual".into(),
-                            ..p
+                            ..p.clone()
                         })
                         .collect();
                     eval.points.extend(half);
@@ -512,32 +528,45 @@ fn write(args: &MethodSweepArgs, points: &[Point], out: &std::path::Path) -> Res
         )?;
     }
     writeln!(md)?;
-    writeln!(md, "![quality against training time](methods.png)")?;
+    writeln!(md, "![range MAE against training time](methods.png)")?;
+    writeln!(md)?;
+    writeln!(md, "![JSD against training time](methods_jsd.png)")?;
     veila_data::atomic::write_atomic(&out.join("report.md"), md.as_bytes())?;
     let mut names: Vec<&str> = points.iter().map(|p| p.method.as_str()).collect();
     names.dedup();
     names.sort_unstable();
     names.dedup();
-    let series: Vec<Series> = names
-        .iter()
-        .map(|n| {
-            let mut pts: Vec<(f64, f64)> = points
-                .iter()
-                .filter(|p| p.method == *n)
-                .map(|p| (p.train_secs, p.range_mae_front_m))
-                .collect();
-            pts.sort_by(|a, b| a.0.total_cmp(&b.0));
-            Series::new(*n, pts, SeriesStyle::LineMarkers)
-        })
-        .collect();
+    let curve = |pick: &dyn Fn(&Point) -> f64| -> Vec<Series> {
+        names
+            .iter()
+            .map(|n| {
+                let mut pts: Vec<(f64, f64)> = points
+                    .iter()
+                    .filter(|p| p.method == *n)
+                    .map(|p| (p.train_secs, pick(p)))
+                    .collect();
+                pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+                Series::new(*n, pts, SeriesStyle::LineMarkers)
+            })
+            .collect()
+    };
     Plot {
         title: "Front range MAE against training time (lower is better)".into(),
         x_label: "training seconds (2 CPU cores)".into(),
-        y_label: "range MAE front (m)".into(),
-        series,
+        y_label: "range MAE front (m, log)".into(),
+        y_log: true,
+        series: curve(&|p| p.range_mae_front_m),
         ..Plot::default()
     }
     .write_png(&out.join("methods.png"), 800, 500)?;
+    Plot {
+        title: "BEV JSD against training time (lower is better)".into(),
+        x_label: "training seconds (2 CPU cores)".into(),
+        y_label: "JSD (all)".into(),
+        series: curve(&|p| p.jsd_all),
+        ..Plot::default()
+    }
+    .write_png(&out.join("methods_jsd.png"), 800, 500)?;
     println!("wrote {}", out.display());
     Ok(())
 }

@@ -56,7 +56,10 @@ pub struct TrainDefaultArgs {
     /// Seed of everything.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Folder for resumable denoiser checkpoints (default: target/train-default/VARIANT).
+    /// Updates between checkpoints (both networks).
+    #[arg(long, default_value_t = 250)]
+    pub checkpoint_every: u64,
+    /// Folder for resumable checkpoints (default: target/train-default/VARIANT-METHOD).
     #[arg(long)]
     pub work: Option<PathBuf>,
     /// Reuse the encoders of this bundle instead of training them (bench-report uses the default
@@ -289,7 +292,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         } else {
             0.0
         },
-        checkpoint_every: Some(250),
+        checkpoint_every: Some(args.checkpoint_every.max(1)),
         keep_checkpoints: Some(2),
         ..TrainConfig::default()
     };
