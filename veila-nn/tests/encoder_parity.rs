@@ -16,9 +16,9 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor};
-use veila_nn::encoders::ImageEncoder;
 use veila_nn::encoders::dinov2::{DepthAnythingV2, DepthAnythingV2Config, DepthKind, DinoV2Config};
 use veila_nn::encoders::mit::{MitConfig, SegFormer, SegFormerConfig};
+use veila_nn::encoders::{ImageEncoder, depth_anything_resize_size};
 
 const DEV: Device = Device::Cpu;
 const REL_TOL: f32 = 1e-4;
@@ -190,4 +190,30 @@ fn real_architectures_match_transformers() {
         ..SegFormerConfig::b0_cityscapes()
     };
     segformer_parity(&dir, "segformer_b2", &b2);
+}
+
+/// The resize rule of the Depth-Anything-V2 `-hf` processor settings, against the output sizes
+/// transformers' `DPTImageProcessorPil` produced (KITTI, nuScenes, ties rounded half to even).
+#[test]
+fn depth_anything_resize_size_matches_the_processor() {
+    let path = data_dir().join("depth_anything_processor_sizes.json");
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let rows: Vec<serde_json::Value> = serde_json::from_str(&text).unwrap();
+    assert!(rows.len() >= 10, "{}: too few rows", path.display());
+    let pair = |v: &serde_json::Value| -> (usize, usize) {
+        let a = v.as_array().unwrap();
+        (
+            a[0].as_u64().unwrap() as usize,
+            a[1].as_u64().unwrap() as usize,
+        )
+    };
+    for row in &rows {
+        let (h, w) = pair(&row["input"]);
+        let want = pair(&row["output"]);
+        assert_eq!(
+            depth_anything_resize_size(h, w, (518, 518), 14, true),
+            want,
+            "input {h}x{w}"
+        );
+    }
 }

@@ -6,7 +6,7 @@ Setup (CPU wheels into a venv under the worktree's target/):
 
     python3 -m venv target/pyvenv
     target/pyvenv/bin/pip install torch --index-url https://download.pytorch.org/whl/cpu
-    target/pyvenv/bin/pip install transformers safetensors numpy
+    target/pyvenv/bin/pip install transformers safetensors numpy pillow
 
 Small random configs (committed, a few hundred kB; the Rust tests read these):
 
@@ -106,8 +106,41 @@ def depth_anything(name, cfg, height, width, out_dir, seed):
     return {k: list(v.shape) for k, v in io.items()}
 
 
+# Input sizes (height, width) for the processor's output-size rule: KITTI, nuScenes, exact and
+# non-integer scales, and widths that land on a tie (x.5 multiples of 14, rounded half to even).
+PROCESSOR_SIZES = [
+    (375, 1242), (376, 1241), (370, 1226), (900, 1600), (518, 518), (100, 50), (1000, 3000),
+    (64, 64), (259, 259), (7, 7), (518, 21), (518, 35), (518, 49), (600, 20), (1242, 375),
+]
+
+
+def processor_sizes(out_dir):
+    """Output sizes of the Depth-Anything-V2 `-hf` processor settings (DPTImageProcessor, 518 x 518,
+    keep_aspect_ratio, ensure_multiple_of 14, bicubic) for PROCESSOR_SIZES."""
+    import numpy as np
+    from transformers import DPTImageProcessorPil as DPTImageProcessor
+
+    proc = DPTImageProcessor(
+        do_resize=True,
+        size={"height": 518, "width": 518},
+        keep_aspect_ratio=True,
+        ensure_multiple_of=14,
+        resample=3,
+        do_pad=False,
+    )
+    rows = []
+    for h, w in PROCESSOR_SIZES:
+        out = proc(images=np.zeros((h, w, 3), dtype=np.uint8), return_tensors="pt").pixel_values
+        rows.append({"input": [h, w], "output": list(out.shape[-2:])})
+    with open(os.path.join(out_dir, "depth_anything_processor_sizes.json"), "w") as f:
+        json.dump(rows, f, indent=1)
+        f.write("\n")
+    return rows
+
+
 def small(out_dir):
     info = {}
+    info["depth_anything_processor_sizes"] = processor_sizes(out_dir)
     seg = SegformerConfig(
         num_channels=3,
         num_encoder_blocks=4,
