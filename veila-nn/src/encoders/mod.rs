@@ -356,6 +356,33 @@ pub fn size_for_multiple(height: usize, width: usize, multiple: usize) -> (usize
     (round(height), round(width))
 }
 
+/// Output size of Hugging Face's Depth-Anything image processor (`DPTImageProcessor` with
+/// `keep_aspect_ratio` and `ensure_multiple_of`; the `-hf` checkpoints use target `(518, 518)` and
+/// multiple 14): with aspect kept, the side whose scale is closer to 1 sets one scale for both;
+/// each scaled side is rounded to the nearest multiple, ties to even as Python's `round`. As in the
+/// reference, a side can round to 0 for inputs far below the target; callers must reject that.
+pub fn depth_anything_resize_size(
+    height: usize,
+    width: usize,
+    target: (usize, usize),
+    multiple: usize,
+    keep_aspect_ratio: bool,
+) -> (usize, usize) {
+    let (h, w) = (height.max(1) as f64, width.max(1) as f64);
+    let mut scale_h = target.0 as f64 / h;
+    let mut scale_w = target.1 as f64 / w;
+    if keep_aspect_ratio {
+        if (1.0 - scale_w).abs() < (1.0 - scale_h).abs() {
+            scale_h = scale_w;
+        } else {
+            scale_w = scale_h;
+        }
+    }
+    let m = multiple.max(1) as f64;
+    let constrain = |v: f64| ((v / m).round_ties_even() * m) as usize;
+    (constrain(scale_h * h), constrain(scale_w * w))
+}
+
 /// Name and shape of one tensor a model reads from its `VarBuilder`.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct TensorSpec {
