@@ -192,7 +192,7 @@ impl Im2Col {
         }
     }
 
-    /// Adds one gradient row back into the channel plane (the transpose of [`Im2Col::fill_row`]).
+    /// Adds one gradient row back into the channel plane (the transpose of `Im2Col::fill_row`).
     fn scatter_row(
         &self,
         row: &[f32],
@@ -287,7 +287,7 @@ impl CustomOp1 for Im2Col {
     }
 }
 
-/// The transpose of [`Im2Col`] (its backward pass).
+/// The transpose of `Im2Col` (its backward pass).
 #[derive(Debug, Clone, Copy)]
 struct Col2Im {
     inner: Im2Col,
@@ -837,7 +837,7 @@ impl CustomOp1 for UpsampleNearest {
     }
 }
 
-/// Sum over `factor x factor` blocks (the backward pass of [`UpsampleNearest`]).
+/// Sum over `factor x factor` blocks (the backward pass of `UpsampleNearest`).
 #[derive(Debug, Clone, Copy)]
 struct DownsampleSum {
     factor: usize,
