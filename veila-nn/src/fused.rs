@@ -1,7 +1,8 @@
 //! Multi-threaded CPU kernels for the denoiser's hot spots, as candle custom ops.
 //!
-//! candle's CPU backend runs elementwise ops, reductions, `cat` and `conv2d` backward on one thread and
-//! builds GroupNorm out of a dozen of them; the training step spent most of its time there (issue 19).
+//! candle's CPU backend builds GroupNorm out of about a dozen separate passes over memory (twice that
+//! backward), and an im2col convolution out of `cat`s of shifted views whose backward adds up
+//! zero-padded copies; the training step spent most of its time there (issue 19).
 //! The ops here do the same arithmetic in one pass each, spread over the rayon pool:
 //!
 //! * [`im2col`]: padding (circular or zero in width, zero in height), strides and the im2col of a
@@ -192,7 +193,7 @@ impl Im2Col {
         }
     }
 
-    /// Adds one gradient row back into the channel plane (the transpose of [`Im2Col::fill_row`]).
+    /// Adds one gradient row back into the channel plane (the transpose of `Im2Col::fill_row`).
     fn scatter_row(
         &self,
         row: &[f32],
@@ -287,7 +288,7 @@ impl CustomOp1 for Im2Col {
     }
 }
 
-/// The transpose of [`Im2Col`] (its backward pass).
+/// The transpose of `Im2Col` (its backward pass).
 #[derive(Debug, Clone, Copy)]
 struct Col2Im {
     inner: Im2Col,
@@ -837,7 +838,7 @@ impl CustomOp1 for UpsampleNearest {
     }
 }
 
-/// Sum over `factor x factor` blocks (the backward pass of [`UpsampleNearest`]).
+/// Sum over `factor x factor` blocks (the backward pass of `UpsampleNearest`).
 #[derive(Debug, Clone, Copy)]
 struct DownsampleSum {
     factor: usize,

@@ -22,7 +22,7 @@ const BENCH_CONFIG: &str = include_str!("bench_model_small.json");
 /// Arguments of `cargo xtask bench-model`.
 #[derive(Debug, Args)]
 pub struct BenchModelArgs {
-    /// Print only the JSON object on stdout (the human-readable lines go to stderr either way).
+    /// Print only the JSON object (on stdout), without the human-readable lines on stderr.
     #[arg(long)]
     json: bool,
     /// Timed repetitions of each forward measurement (after 2 warm-up runs).
