@@ -491,7 +491,7 @@ pub fn trace_sqrt_product_newton_schulz(
         }
     }
     let end = residual(&y, &pn);
-    if !(end <= start.max(f64::EPSILON)) {
+    if end.is_nan() || end > start.max(f64::EPSILON) {
         return Err(Error::Linalg(format!(
             "Newton–Schulz diverged: residual ‖Y² − P‖/‖P‖ grew from {start:.3e} to {end:.3e} in \
              {iterations} iterations (rank-deficient covariances? use the exact eigendecomposition)"

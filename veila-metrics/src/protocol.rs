@@ -430,10 +430,10 @@ impl PeerProtocol {
             if r == 0.0 {
                 continue;
             }
-            if let Some((lo, hi)) = keep {
-                if !(r > lo && r < hi) {
-                    continue;
-                }
+            if let Some((lo, hi)) = keep
+                && !(r > lo && r < hi)
+            {
+                continue;
             }
             let (row, col) = match self {
                 PeerProtocol::R2dm | PeerProtocol::Text2lidar => {
@@ -483,10 +483,8 @@ impl PeerProtocol {
         self.nearest_per_pixel(pts, &depth, None)
             .into_iter()
             .filter(|&w| w != usize::MAX)
-            .filter(|&w| {
-                let r = depth[w];
-                (1.45..=80.0).contains(&r) && r > 0.5 && r < 63.0
-            })
+            // dataset mask 1.45 <= r <= 80 and evaluation mask 0.5 < r < 63: together 1.45 <= r < 63
+            .filter(|&w| (1.45..63.0).contains(&depth[w]))
             .map(|w| [pts[w].x as f64, pts[w].y as f64, pts[w].z as f64])
             .collect()
     }
@@ -594,7 +592,8 @@ fn lidargen_points(norm: &[f32], rows: usize, cols: usize) -> PreparedScan {
 fn r2dm_unproject(depth: &[f32], rows: usize, cols: usize) -> PreparedScan {
     let mut out = Vec::new();
     for (i, &d) in depth.iter().enumerate() {
-        if !(d > 1.45 && d < 80.0 && d > 0.5 && d < 63.0) {
+        // to_xyz's 1.45 < r < 80 and evaluate.py's 0.5 < r < 63: together 1.45 < r < 63
+        if !(d > 1.45 && d < 63.0) {
             continue;
         }
         let (r, c) = (i / cols, i % cols);
