@@ -250,19 +250,76 @@ fn for_each_cell<P: Copy + Into<Vec3>>(
     for (i, &p) in points.iter().enumerate() {
         let p: Vec3 = p.into();
         check_finite(p, what, i)?;
-        if !region.contains(p) {
-            continue;
-        }
-        let (x, y, z) = (p.x as f64, p.y as f64, p.z as f64);
-        let r = (x * x + y * y + z * z).sqrt();
-        if !(r > cfg.min_range_m && r < cfg.max_range_m) {
-            continue;
-        }
-        if let (Some(ix), Some(iy)) = (bin_of(&edges, x), bin_of(&edges, y)) {
-            add(ix * cfg.bins + iy);
+        if let Some(cell) = cell_of([p.x as f64, p.y as f64, p.z as f64], cfg, &edges, region) {
+            add(cell);
         }
     }
     Ok(())
+}
+
+/// The cell of one finite point, `None` when it is outside `region`, the range window or the grid.
+#[inline]
+fn cell_of(p: [f64; 3], cfg: &BevConfig, edges: &[f64], region: Region) -> Option<usize> {
+    let [x, y, z] = p;
+    let inside = match region {
+        Region::All => true,
+        Region::Front => x > 0.0,
+        Region::Rear => x <= 0.0,
+    };
+    if !inside {
+        return None;
+    }
+    let r = (x * x + y * y + z * z).sqrt();
+    if !(r > cfg.min_range_m && r < cfg.max_range_m) {
+        return None;
+    }
+    match (bin_of(edges, x), bin_of(edges, y)) {
+        (Some(ix), Some(iy)) => Some(ix * cfg.bins + iy),
+        _ => None,
+    }
+}
+
+fn sparse_from_cells(mut cells: Vec<u32>, bins: usize) -> SparseBevHistogram {
+    cells.sort_unstable();
+    let mut s = SparseBevHistogram {
+        bins,
+        total: cells.len() as u64,
+        ..Default::default()
+    };
+    for c in cells {
+        if s.cells.last() == Some(&c) {
+            *s.counts.last_mut().expect("non-empty") += 1;
+        } else {
+            s.cells.push(c);
+            s.counts.push(1);
+        }
+    }
+    s
+}
+
+/// [`bev_histogram_sparse`] for `f64` points (e.g. the LiDARGen protocol's unprojected points, which the
+/// peer bins in `float64`).
+pub fn bev_histogram_sparse_f64(
+    points: &[[f64; 3]],
+    cfg: &BevConfig,
+    region: Region,
+    what: &str,
+) -> Result<SparseBevHistogram> {
+    cfg.validate()?;
+    let edges = cfg.edges();
+    let mut cells = Vec::new();
+    for (i, &p) in points.iter().enumerate() {
+        if !p.iter().all(|v| v.is_finite()) {
+            return Err(Error::NonFinite {
+                what: what.to_string(),
+                index: i,
+            });
+        }
+        if let Some(c) = cell_of(p, cfg, &edges, region) {
+            cells.push(c as u32);
+        }
+    }
+    Ok(sparse_from_cells(cells, cfg.bins))
 }
 
 /// Bins the points of one scan that lie in `region` (see the [module docs](self) for the exact rules).
@@ -293,21 +350,7 @@ pub fn bev_histogram_sparse<P: Copy + Into<Vec3>>(
 ) -> Result<SparseBevHistogram> {
     let mut cells: Vec<u32> = Vec::new();
     for_each_cell(points, cfg, region, what, |cell| cells.push(cell as u32))?;
-    cells.sort_unstable();
-    let mut s = SparseBevHistogram {
-        bins: cfg.bins,
-        total: cells.len() as u64,
-        ..Default::default()
-    };
-    for c in cells {
-        if s.cells.last() == Some(&c) {
-            *s.counts.last_mut().expect("non-empty") += 1;
-        } else {
-            s.cells.push(c);
-            s.counts.push(1);
-        }
-    }
-    Ok(s)
+    Ok(sparse_from_cells(cells, cfg.bins))
 }
 
 #[cfg(test)]

@@ -313,10 +313,17 @@ fn fd_impl(
     let tr_sqrt = match method {
         SqrtMethod::Eigen => trace_sqrt_product_eigen(s1, s2)?,
         SqrtMethod::NewtonSchulz { iterations } => {
-            trace_sqrt_product_newton_schulz(s1, s2, iterations)
+            trace_sqrt_product_newton_schulz(s1, s2, iterations)?
         }
     };
-    Ok((mean_term + tr1 + tr2 - 2.0 * tr_sqrt).max(0.0))
+    let fd = mean_term + tr1 + tr2 - 2.0 * tr_sqrt;
+    // `f64::max` would turn a NaN into 0, a perfect score: a non-finite result is an error instead
+    if !fd.is_finite() {
+        return Err(Error::Linalg(format!(
+            "the Fréchet distance is not finite ({fd}); the trace term was {tr_sqrt}"
+        )));
+    }
+    Ok(fd.max(0.0))
 }
 
 /// `Tr (S1 S2)^{1/2}` for symmetric positive semi-definite `S1`, `S2`, exactly (see the module docs).
@@ -404,24 +411,47 @@ pub fn trace_sqrt_product_eigen(s1: MatRef<'_, f64>, s2: MatRef<'_, f64>) -> Res
 }
 
 /// `Tr (S1 S2)^{1/2}` approximated with `iterations` coupled Newton–Schulz steps (see the module docs).
+///
+/// Errors ([`Error::Linalg`]) when the iteration diverges: a non-finite iterate (it stops at the first
+/// one), or a final residual `‖Y² − P‖_F / ‖P‖_F` (`P = S1 S2 / ‖S1 S2‖_F`) larger than the starting
+/// one. Rank-deficient covariances (fewer samples than features) make it diverge; use the exact
+/// [`trace_sqrt_product_eigen`] there.
 pub fn trace_sqrt_product_newton_schulz(
     s1: MatRef<'_, f64>,
     s2: MatRef<'_, f64>,
     iterations: usize,
-) -> f64 {
+) -> Result<f64> {
     let d = s1.nrows();
     let par = Par::rayon(0);
     let mut p = Mat::<f64>::zeros(d, d);
     faer::linalg::matmul::matmul(p.as_mut(), Accum::Replace, s1, s2, 1.0, par);
     let norm = p.norm_l2();
-    if norm == 0.0 || !norm.is_finite() {
-        return 0.0;
+    if norm == 0.0 {
+        return Ok(0.0);
     }
+    if !norm.is_finite() {
+        return Err(Error::Linalg(format!("Newton–Schulz: ‖Σ₁Σ₂‖_F is {norm}")));
+    }
+    let residual = |y: &Mat<f64>, pn: &Mat<f64>| -> f64 {
+        let mut yy = Mat::<f64>::zeros(d, d);
+        faer::linalg::matmul::matmul(
+            yy.as_mut(),
+            Accum::Replace,
+            y.as_ref(),
+            y.as_ref(),
+            1.0,
+            par,
+        );
+        let diff = Mat::<f64>::from_fn(d, d, |i, j| yy[(i, j)] - pn[(i, j)]);
+        diff.norm_l2() / pn.norm_l2()
+    };
     let mut y = Mat::<f64>::from_fn(d, d, |i, j| p[(i, j)] / norm);
+    let pn = y.clone();
+    let start = residual(&y, &pn);
     let mut z = Mat::<f64>::identity(d, d);
     let mut t = Mat::<f64>::zeros(d, d);
     let mut tmp = Mat::<f64>::zeros(d, d);
-    for _ in 0..iterations {
+    for k in 0..iterations {
         // t = (3 I - z y) / 2
         faer::linalg::matmul::matmul(
             t.as_mut(),
@@ -452,7 +482,21 @@ pub fn trace_sqrt_product_newton_schulz(
             par,
         );
         std::mem::swap(&mut z, &mut tmp);
+        if !(y.norm_l2().is_finite() && z.norm_l2().is_finite()) {
+            return Err(Error::Linalg(format!(
+                "Newton–Schulz diverged: non-finite iterate after {} of {iterations} iterations \
+                 (rank-deficient covariances? use the exact eigendecomposition)",
+                k + 1
+            )));
+        }
+    }
+    let end = residual(&y, &pn);
+    if end.is_nan() || end > start.max(f64::EPSILON) {
+        return Err(Error::Linalg(format!(
+            "Newton–Schulz diverged: residual ‖Y² − P‖/‖P‖ grew from {start:.3e} to {end:.3e} in \
+             {iterations} iterations (rank-deficient covariances? use the exact eigendecomposition)"
+        )));
     }
     let tr: f64 = (0..d).map(|i| y[(i, i)]).sum();
-    tr * norm.sqrt()
+    Ok(tr * norm.sqrt())
 }

@@ -56,6 +56,7 @@ pub mod fd;
 pub mod lidm;
 pub mod metric;
 pub mod nn;
+pub mod protocol;
 pub mod range;
 
 pub use error::{Error, Result};

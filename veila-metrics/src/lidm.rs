@@ -57,6 +57,22 @@ impl LidmBevConfig {
         }
     }
 
+    /// The 64-beam grid of LiDM's JSD: ±50 m, 0.05 m cells (2000 x 2000).
+    pub const fn kitti_jsd() -> Self {
+        Self {
+            half_extent_m: 50.0,
+            cell_m: 0.05,
+        }
+    }
+
+    /// The 32-beam grid of LiDM's JSD: ±30 m, 0.05 m cells (1200 x 1200).
+    pub const fn nuscenes_jsd() -> Self {
+        Self {
+            half_extent_m: 30.0,
+            cell_m: 0.05,
+        }
+    }
+
     fn grid(&self) -> Result<(i64, i64)> {
         if !(self.half_extent_m.is_finite()
             && self.half_extent_m > 0.0
@@ -124,6 +140,93 @@ pub fn lidm_bev_occupancy<P: Copy + Into<Vec3>>(
         size: size as usize,
         cells,
     })
+}
+
+/// The LiDM occupancy in LiDM's own `float32` arithmetic: the window test and `floor(x / cell)` are done
+/// on `float32` coordinates with a `float32` cell size, as `lidm/eval/metric_utils.py` does on its
+/// `float32` point clouds. For the 0.5 m cells of the MMD this equals [`lidm_bev_occupancy`]; for the
+/// 0.05 m cells of the JSD (`0.05` is not a binary fraction) it can differ for points within one
+/// `float32` ulp of a cell edge, so the protocol pipelines use this one.
+pub fn lidm_bev_occupancy_f32<P: Copy + Into<Vec3>>(
+    points: &[P],
+    cfg: &LidmBevConfig,
+    region: Region,
+    what: &str,
+) -> Result<BevOccupancy> {
+    let (size, min_bound) = cfg.grid()?;
+    let h = cfg.half_extent_m as f32;
+    let cell = cfg.cell_m as f32;
+    let mut cells = Vec::new();
+    for (i, &p) in points.iter().enumerate() {
+        let p: Vec3 = p.into();
+        check_finite(p, what, i)?;
+        if !region.contains(p) {
+            continue;
+        }
+        if !(p.x > -h && p.x < h && p.y > -h && p.y < h) {
+            continue;
+        }
+        let ix = (p.x / cell).floor() as i64 - min_bound;
+        let iy = (p.y / cell).floor() as i64 - min_bound;
+        if (0..size).contains(&ix) && (0..size).contains(&iy) {
+            cells.push((ix * size + iy) as u32);
+        }
+    }
+    cells.sort_unstable();
+    cells.dedup();
+    Ok(BevOccupancy {
+        size: size as usize,
+        cells,
+    })
+}
+
+/// LiDM's JSD: every scan adds 1 to each cell it occupies (0.05 m cells in LiDM, see
+/// [`LidmBevConfig::kitti_jsd`]), the counts are summed over each set, normalised, and compared with
+/// [`crate::dist::jensen_shannon_distance`] (the JS **distance**, `scipy` semantics).
+pub fn jsd_lidm(generated: &[BevOccupancy], reference: &[BevOccupancy]) -> Result<f64> {
+    let size = generated.first().map(|o| o.size).unwrap_or(0);
+    for (set, what) in [(generated, "generated"), (reference, "reference")] {
+        if set.is_empty() {
+            return Err(Error::empty(format!("{what} set")));
+        }
+        if let Some(i) = set.iter().position(|o| o.size != size) {
+            return Err(Error::ShapeMismatch {
+                what: format!("{what} occupancy {i}"),
+                expected: format!("{size} cells per axis"),
+                got: format!("{}", set[i].size),
+            });
+        }
+        if set.iter().all(|o| o.cells.is_empty()) {
+            return Err(Error::NoPointsInWindow {
+                what: format!("every {what} scan"),
+                window: "LiDM BEV".into(),
+            });
+        }
+    }
+    // the two summed volumes over the union of occupied cells (cells empty in both add nothing)
+    let mut all: Vec<(u32, bool)> = Vec::new();
+    for (set, is_gen) in [(generated, true), (reference, false)] {
+        for o in set {
+            all.extend(o.cells.iter().map(|&c| (c, is_gen)));
+        }
+    }
+    all.sort_unstable();
+    let (mut p, mut q) = (Vec::new(), Vec::new());
+    let mut last = None;
+    for (c, is_gen) in all {
+        if last != Some(c) {
+            p.push(0.0);
+            q.push(0.0);
+            last = Some(c);
+        }
+        let k = p.len() - 1;
+        if is_gen {
+            p[k] += 1.0;
+        } else {
+            q[k] += 1.0;
+        }
+    }
+    crate::dist::jensen_shannon_distance(&p, &q)
 }
 
 /// "No occupied cell in this line": larger than any squared distance on a grid of at most 8192 cells per

@@ -11,8 +11,13 @@ pub enum Protocol {
     R2dm,
     /// LiDARGen (spectral-norm MMD).
     Lidargen,
-    /// LiDAR-Diffusion (minimum matching distance over 0.5 m BEV occupancy).
+    /// LiDAR-Diffusion (minimum matching distance over 0.5 m BEV occupancy), 64-beam setting.
     Lidm,
+    /// LiDAR-Diffusion's 32-beam (nuScenes) setting: ±30 m grids.
+    #[serde(rename = "lidm-nuscenes")]
+    LidmNuscenes,
+    /// Text2LiDAR (R2DM's evaluation code at 32 x 1024).
+    Text2lidar,
     /// PyTorch3D's Chamfer convention (squared distances, means summed).
     Pytorch3d,
     /// The Veila paper's cross-modal consistency metrics.
@@ -28,6 +33,8 @@ impl Protocol {
             Protocol::R2dm => "r2dm",
             Protocol::Lidargen => "lidargen",
             Protocol::Lidm => "lidm",
+            Protocol::LidmNuscenes => "lidm-nuscenes",
+            Protocol::Text2lidar => "text2lidar",
             Protocol::Pytorch3d => "pytorch3d",
             Protocol::Veila => "veila",
             Protocol::Frechet => "frechet",

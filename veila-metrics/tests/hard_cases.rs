@@ -348,3 +348,26 @@ fn metric_json_shape() {
     let back: MetricReport = serde_json::from_str(&s).unwrap();
     assert_eq!(back, report);
 }
+
+#[test]
+fn newton_schulz_divergence_is_an_error_not_a_perfect_score() {
+    // 5 samples in 16 dimensions: both covariances have rank 4, Σ₁Σ₂ is singular and the coupled
+    // iteration blows up; the exact method still gives the right, positive value
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let dim = 16;
+    let a: Vec<f64> = (0..5 * dim).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let b: Vec<f64> = (0..5 * dim).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let exact = fd::frechet_distance_rows(&a, &b, dim, fd::SqrtMethod::Eigen).unwrap();
+    assert!(exact > 0.1, "{exact}");
+    let err = fd::frechet_distance_rows(
+        &a,
+        &b,
+        dim,
+        fd::SqrtMethod::NewtonSchulz { iterations: 100 },
+    )
+    .unwrap_err();
+    assert!(
+        matches!(&err, veila_metrics::Error::Linalg(m) if m.contains("Newton–Schulz diverged")),
+        "{err}"
+    );
+}
