@@ -1,7 +1,8 @@
 //! `veila project`, `veila unproject`, `veila render`: point files <-> range images, and previews.
 //!
-//! Every command renders all of its outputs in memory first and writes them together
-//! (`write_atomic_all`), so a failure never leaves part of the output behind.
+//! Every command checks its outputs first (not an input, named for the format written, absent unless
+//! `--force`), renders all of them in memory and publishes them together
+//! ([`staging::publish_files`]), so a failure never leaves part of the output behind.
 
 use std::path::{Path, PathBuf};
 
@@ -17,6 +18,8 @@ use veila_data::scan::{LoadedPoints, PointFormat, read_points};
 use veila_data::semantic_kitti::{LabelMap, read_labels};
 use veila_data::spec::{camera_from_calib_file, sensor_from_spec};
 use veila_geom::{BeamLayout, LidarSensor, ProjectionOptions, Projector, RangeImage, RowSource};
+
+use crate::staging::{self, Inputs, check_ext};
 
 /// Data commands.
 #[derive(Debug, Subcommand)]
@@ -55,6 +58,9 @@ pub(crate) struct ProjectArgs {
     /// Also write a label preview PNG (SemanticKITTI colours).
     #[arg(long, requires = "label_map")]
     label_png: Option<PathBuf>,
+    /// Replace output files that exist.
+    #[arg(long)]
+    force: bool,
 }
 
 #[derive(Debug, Args)]
@@ -64,6 +70,9 @@ pub(crate) struct UnprojectArgs {
     /// Output points: .ply (x, y, z, intensity, label) or .bin (KITTI records).
     #[arg(long)]
     out: PathBuf,
+    /// Replace the output file if it exists.
+    #[arg(long)]
+    force: bool,
 }
 
 #[derive(Debug, Args)]
@@ -97,6 +106,9 @@ pub(crate) struct RenderArgs {
     /// Bird's-eye-view resolution, metres per pixel.
     #[arg(long, default_value_t = 0.1)]
     bev_resolution_m: f32,
+    /// Replace output files that exist.
+    #[arg(long)]
+    force: bool,
 }
 
 pub(crate) fn run(cmd: DataCmd) -> Result<()> {
@@ -129,7 +141,7 @@ fn pick_sensor(spec: Option<&str>, loaded: &LoadedPoints) -> Result<LidarSensor>
     })
 }
 
-fn project_points(loaded: &LoadedPoints, sensor: &LidarSensor) -> Result<RangeImage> {
+fn project_points(scan: &Path, loaded: &LoadedPoints, sensor: &LidarSensor) -> Result<RangeImage> {
     let projector = Projector::new(sensor, ProjectionOptions::default())?;
     let ring_mode = matches!(
         sensor.beams,
@@ -141,7 +153,8 @@ fn project_points(loaded: &LoadedPoints, sensor: &LidarSensor) -> Result<RangeIm
     let rings = loaded.cloud.ring.as_deref();
     if ring_mode && rings.is_none() {
         bail!(
-            "the sensor takes rows from ring indices, but this scan has none (use a uniform sensor)"
+            "{}: the sensor takes rows from ring indices, but this scan has none (use a uniform sensor)",
+            scan.display()
         );
     }
     let (mut img, stats) = projector.project(
@@ -171,7 +184,33 @@ fn intensity_max(loaded: &LoadedPoints) -> f32 {
     }
 }
 
+/// Check a command's outputs before any work: names, inputs, existing files.
+fn preflight(outputs: &[(&Path, &str, &[&str])], inputs: &Inputs, force: bool) -> Result<()> {
+    for (p, what, exts) in outputs {
+        check_ext(p, what, exts)?;
+    }
+    let dests: Vec<&Path> = outputs.iter().map(|(p, _, _)| *p).collect();
+    staging::check_outputs(&dests, inputs, force, false)
+}
+
 fn project(a: ProjectArgs) -> Result<()> {
+    let mut inputs = Inputs::new();
+    inputs
+        .add(&a.scan)
+        .add_opt(a.labels.as_ref())
+        .add_opt(a.label_map.as_ref());
+    if let Some(s) = &a.sensor {
+        inputs.add(Path::new(s));
+    }
+    let mut outs: Vec<(&Path, &str, &[&str])> =
+        vec![(a.out.as_path(), "--out (a range image)", &["exr"][..])];
+    for p in [&a.png, &a.intensity_png, &a.label_png]
+        .into_iter()
+        .flatten()
+    {
+        outs.push((p.as_path(), "a preview", &["png"][..]));
+    }
+    preflight(&outs, &inputs, a.force)?;
     let mut loaded = load(&a.scan)?;
     if let Some(lp) = &a.labels {
         // labels index the file's records: only valid when no record was dropped
@@ -186,7 +225,7 @@ fn project(a: ProjectArgs) -> Result<()> {
         loaded.cloud.label = Some(read_labels(lp, Some(loaded.cloud.len()))?);
     }
     let sensor = pick_sensor(a.sensor.as_deref(), &loaded)?;
-    let img = project_points(&loaded, &sensor)?;
+    let img = project_points(&a.scan, &loaded, &sensor)?;
     let mut outputs: Vec<(PathBuf, Vec<u8>)> =
         vec![(a.out.clone(), encode_range_exr(&sensor, &img)?)];
     if let Some(p) = &a.png {
@@ -211,15 +250,11 @@ fn project(a: ProjectArgs) -> Result<()> {
         };
         outputs.push((p.clone(), encode_png(&png)?));
     }
-    write_all(&outputs)
+    write_all(&outputs, &inputs, a.force)
 }
 
-fn write_all(outputs: &[(PathBuf, Vec<u8>)]) -> Result<()> {
-    let refs: Vec<(&Path, &[u8])> = outputs
-        .iter()
-        .map(|(p, b)| (p.as_path(), b.as_slice()))
-        .collect();
-    veila_data::atomic::write_atomic_all(&refs)?;
+fn write_all(outputs: &[(PathBuf, Vec<u8>)], inputs: &Inputs, force: bool) -> Result<()> {
+    staging::publish_files(outputs, inputs, force, false)?;
     for (p, _) in outputs {
         println!("wrote {}", p.display());
     }
@@ -227,6 +262,13 @@ fn write_all(outputs: &[(PathBuf, Vec<u8>)]) -> Result<()> {
 }
 
 fn unproject(a: UnprojectArgs) -> Result<()> {
+    let mut inputs = Inputs::new();
+    inputs.add(&a.input);
+    preflight(
+        &[(a.out.as_path(), "--out (points)", &["ply", "bin"][..])],
+        &inputs,
+        a.force,
+    )?;
     let exr = read_range_exr(&a.input)?;
     let cloud = exr.to_points()?;
     let name = a
@@ -250,13 +292,27 @@ fn unproject(a: UnprojectArgs) -> Result<()> {
         exr.sensor.rows,
         exr.sensor.cols
     );
-    write_all(&[(a.out, bytes)])
+    write_all(&[(a.out, bytes)], &inputs, a.force)
 }
 
 fn render(a: RenderArgs) -> Result<()> {
     if a.bev.is_none() && a.range.is_none() && a.overlay.is_none() {
         bail!("nothing to render: give --bev, --range and/or --overlay");
     }
+    let mut inputs = Inputs::new();
+    inputs
+        .add(&a.scan)
+        .add_opt(a.image.as_ref())
+        .add_opt(a.calib.as_ref());
+    if let Some(s) = &a.sensor {
+        inputs.add(Path::new(s));
+    }
+    let outs: Vec<(&Path, &str, &[&str])> = [&a.bev, &a.range, &a.overlay]
+        .into_iter()
+        .flatten()
+        .map(|p| (p.as_path(), "a preview", &["png"][..]))
+        .collect();
+    preflight(&outs, &inputs, a.force)?;
     let loaded = load(&a.scan)?;
     let mut outputs: Vec<(PathBuf, Vec<u8>)> = Vec::new();
     if let Some(p) = &a.bev {
@@ -272,7 +328,7 @@ fn render(a: RenderArgs) -> Result<()> {
             read_range_exr(&a.scan)?.image
         } else {
             let sensor = pick_sensor(a.sensor.as_deref(), &loaded)?;
-            project_points(&loaded, &sensor)?
+            project_points(&a.scan, &loaded, &sensor)?
         };
         outputs.push((
             p.clone(),
@@ -304,5 +360,5 @@ fn render(a: RenderArgs) -> Result<()> {
         );
         outputs.push((op.clone(), encode_png(&ov.image)?));
     }
-    write_all(&outputs)
+    write_all(&outputs, &inputs, a.force)
 }

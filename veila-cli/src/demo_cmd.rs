@@ -53,8 +53,8 @@ pub(crate) struct DemoArgs {
     /// Sampler steps (default: the bundle's).
     #[arg(long, value_name = "N")]
     steps: Option<usize>,
-    /// Classifier-free guidance scale (default: the bundle's).
-    #[arg(long, value_name = "S")]
+    /// Classifier-free guidance scale, 0 to 20 (default: the bundle's).
+    #[arg(long, value_name = "S", allow_negative_numbers = true)]
     guidance: Option<f64>,
     /// Seed of the generation noise.
     #[arg(long, value_name = "S", default_value_t = 0)]
@@ -88,7 +88,6 @@ struct DemoSummary<'a> {
     points_generated: usize,
     range_pixels_true: usize,
     range_pixels_generated: usize,
-    seconds_generation: f64,
     metrics: &'a [MetricValue],
     /// Ring spread (median IQR of range in 0.5° bands below −15°, m) of each scan.
     ring_spread_m: BTreeMap<&'static str, Option<f64>>,
@@ -118,7 +117,13 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
     let device = model::device()?;
     let bundle = model::load_bundle(args.checkpoint.as_deref(), &device)?;
     let sampler = generate_cmd::resolve_sampler(&bundle, None, args.steps, args.guidance)?;
-    let staging = staging::stage(&args.out, args.force || is_earlier_demo_output(&args.out))?;
+    let mut inputs = staging::Inputs::new();
+    inputs.add_opt(args.scene.as_ref());
+    let staging = staging::stage_checked(
+        &args.out,
+        args.force || is_earlier_demo_output(&args.out),
+        &inputs,
+    )?;
     let out = staging.path().to_path_buf();
 
     let pb = progress::bar(sampler.steps as u64 + 3, "demo");
@@ -220,7 +225,6 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         points_generated: generated.len(),
         range_pixels_true: true_range.num_valid(),
         range_pixels_generated: generated_range.num_valid(),
-        seconds_generation,
         metrics: &metrics.metrics,
         ring_spread_m,
         baselines: baseline_rows,
@@ -228,6 +232,13 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
     veila_data::atomic::write_atomic(
         &out.join("metrics.json"),
         serde_json::to_string_pretty(&summary)?.as_bytes(),
+    )?;
+    // wall-clock time apart, so metrics.json of identical runs is byte-identical
+    veila_data::atomic::write_atomic(
+        &out.join("timings.json"),
+        serde_json::json!({ "seconds_generation": (seconds_generation * 1000.0).round() / 1000.0 })
+            .to_string()
+            .as_bytes(),
     )?;
     pb.inc(1);
     pb.finish_and_clear();
@@ -265,6 +276,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
 /// instead of failing, and nothing else can be overwritten).
 const DEMO_FILES: &[&str] = &[
     "metrics.json",
+    "timings.json",
     "camera.png",
     "range_generated_vs_true.png",
     "bev_generated_vs_true.png",

@@ -20,8 +20,9 @@ use veila_diffusion::{DecodedScan, RepaintConfig, SamplerConfig, SamplerKind};
 use veila_geom::{ProjectionOptions, Projector, RangeImage, RayTable};
 
 use crate::generate_cmd::{
-    InputInfo, ModelInfo, RigArgs, SamplerName, ScanRecord, Seconds, camera_views, input_info,
-    load_rig, model_info, prepare_views, range_preview, resolve_sampler, sampler_label, write_scan,
+    InputInfo, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerName, ScanRecord, Seconds, camera_views,
+    check_guidance, check_steps, input_info, is_generate_output, load_rig, model_info,
+    prepare_views, range_preview, resolve_sampler, sampler_label, write_scan,
 };
 use crate::{model, progress, staging};
 
@@ -56,13 +57,13 @@ pub(crate) struct EditArgs {
     /// Sampler steps (default: the bundle's).
     #[arg(long, value_name = "N")]
     steps: Option<usize>,
-    /// Classifier-free guidance scale (default: the bundle's).
-    #[arg(long, value_name = "S")]
+    /// Classifier-free guidance scale, 0 to 20 (default: the bundle's).
+    #[arg(long, value_name = "S", allow_negative_numbers = true)]
     guidance: Option<f64>,
     /// Seed.
     #[arg(long, value_name = "S", default_value_t = 0)]
     seed: u64,
-    /// Number of edited versions to draw.
+    /// Number of edited versions to draw (at most 8, drawn in one batch).
     #[arg(long, value_name = "N", default_value_t = 1)]
     samples: usize,
     /// RePaint: levels each resampling jump goes back up.
@@ -226,16 +227,21 @@ struct EditReport {
     regenerated_pixels: usize,
     kept_pixels: usize,
     region_returns_before: usize,
-    seconds: Seconds,
     scans: Vec<EditScan>,
 }
 
 pub(crate) fn run(args: EditArgs) -> Result<()> {
-    if args.samples == 0 {
-        bail!("--samples must be at least 1");
+    if !(1..=SAMPLE_BATCH).contains(&args.samples) {
+        bail!(
+            "--samples {}: must be between 1 and {SAMPLE_BATCH} (they are drawn in one batch; run again with another --seed for more)",
+            args.samples
+        );
     }
-    if args.steps == Some(0) {
-        bail!("--steps must be at least 1");
+    if let Some(steps) = args.steps {
+        check_steps(steps)?;
+    }
+    if let Some(g) = args.guidance {
+        check_guidance(g)?;
     }
     if args.sampler == Some(SamplerName::Dpm) {
         bail!(
@@ -247,6 +253,12 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
     }
     let region_box = args.remove_box.as_deref().map(parse_box).transpose()?;
     let t0 = Instant::now();
+    let mut inputs = staging::Inputs::new();
+    inputs
+        .extend(&args.rig.images)
+        .extend(&args.rig.calibs)
+        .add(&args.scan)
+        .add_opt(args.mask.as_ref());
     let views = load_rig(&args.rig)?;
     let device = model::device()?;
     let bundle = model::load_bundle(args.checkpoint.as_deref(), &device)?;
@@ -280,7 +292,7 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
         }
     }
     let prepared = prepare_views(&bundle, &views)?;
-    let staging = staging::stage(&args.out, args.force)?;
+    let staging = staging::stage_checked(&args.out, args.force, &inputs)?;
     let load_secs = t0.elapsed().as_secs_f64();
 
     let known = DecodedScan {
@@ -401,19 +413,26 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
             .zip(&before.mask)
             .filter(|(r, m)| **r && **m)
             .count(),
-        seconds: Seconds {
-            load: round3(load_secs),
-            sampling: round3(sampling_secs),
-            per_scan: round3(sampling_secs / args.samples as f64),
-            writing: round3(writing_secs),
-        },
         scans: records,
+    };
+    // wall-clock times apart, so edit.json of identical runs is byte-identical
+    let timings = Seconds {
+        load: round3(load_secs),
+        sampling: round3(sampling_secs),
+        per_scan: round3(sampling_secs / args.samples as f64),
+        writing: round3(writing_secs),
     };
     veila_data::atomic::write_atomic(
         &out.join("edit.json"),
         serde_json::to_string_pretty(&report)?.as_bytes(),
     )?;
-    staging.commit()?;
+    veila_data::atomic::write_atomic(
+        &out.join("timings.json"),
+        serde_json::to_string_pretty(&timings)?.as_bytes(),
+    )?;
+    staging.commit_owning(|n| {
+        matches!(n, "edit.json" | "mask.png" | "before_range.png") || is_generate_output(n)
+    })?;
 
     println!(
         "edited {}: regenerated {} of {} pixels ({} returns before) with {} x {} steps (RePaint jumps {} x {}), seed {}",

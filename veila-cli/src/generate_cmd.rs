@@ -46,16 +46,18 @@ pub(crate) struct GenerateArgs {
     /// Sampler (default: the bundle's, DPM-Solver++(2M) for the bundled model).
     #[arg(long, value_enum)]
     pub(crate) sampler: Option<SamplerName>,
-    /// Sampler steps (network evaluations per conditioning branch; default: the bundle's).
+    /// Sampler steps (network evaluations per conditioning branch, 1 to 1000; default: the
+    /// bundle's).
     #[arg(long, value_name = "N")]
     pub(crate) steps: Option<usize>,
-    /// Classifier-free guidance scale (1 = none; default: the bundle's).
-    #[arg(long, value_name = "S")]
+    /// Classifier-free guidance scale, 0 to 20 (1 = none; default: the bundle's).
+    #[arg(long, value_name = "S", allow_negative_numbers = true)]
     pub(crate) guidance: Option<f64>,
     /// Seed of the initial noise (same inputs, model and seed give identical files).
     #[arg(long, value_name = "S", default_value_t = 0)]
     pub(crate) seed: u64,
-    /// Number of scans to draw for the rig.
+    /// Number of scans to draw for the rig (drawn in batches of at most 8: memory does not grow
+    /// with N).
     #[arg(long, value_name = "N", default_value_t = 1)]
     pub(crate) samples: usize,
     /// Output folder (created; must be absent or empty unless --force).
@@ -226,6 +228,9 @@ pub(crate) fn resolve_sampler(
             "--steps must be at least 1 (0 steps, the mean network alone, needs a residual-diffusion bundle)"
         );
     }
+    if steps != 0 {
+        check_steps(steps)?;
+    }
     let mut cfg = match name {
         None => SamplerConfig {
             steps,
@@ -237,9 +242,7 @@ pub(crate) fn resolve_sampler(
     };
     cfg.guidance_scale = base.guidance_scale;
     if let Some(g) = guidance {
-        if !g.is_finite() {
-            bail!("--guidance must be a finite number, got {g}");
-        }
+        check_guidance(g)?;
         cfg.guidance_scale = g;
     }
     if !bundle.is_conditional() && cfg.guidance_scale != 1.0 {
@@ -253,6 +256,63 @@ pub(crate) fn resolve_sampler(
     }
     cfg.validate().context("sampler settings")?;
     Ok(cfg)
+}
+
+/// The most sampler steps a command accepts: far beyond any useful count (samplers converge in
+/// 10-50), and it bounds the time a typo can cost.
+pub(crate) const MAX_STEPS: usize = 1000;
+
+/// The largest classifier-free guidance scale accepted. Scales beyond ~10 only amplify the
+/// difference of the two branches into saturated garbage (1e300 gave a 633-point scan).
+pub(crate) const MAX_GUIDANCE: f64 = 20.0;
+
+/// Refuse a step count outside 1..=[`MAX_STEPS`].
+pub(crate) fn check_steps(steps: usize) -> Result<()> {
+    if !(1..=MAX_STEPS).contains(&steps) {
+        bail!("--steps {steps}: must be between 1 and {MAX_STEPS}");
+    }
+    Ok(())
+}
+
+/// Refuse a guidance scale outside 0..=[`MAX_GUIDANCE`] (0 = the unconditional branch only,
+/// 1 = no guidance; negative scales push away from the image).
+pub(crate) fn check_guidance(g: f64) -> Result<()> {
+    if !(g.is_finite() && (0.0..=MAX_GUIDANCE).contains(&g)) {
+        bail!("--guidance {g}: must be a number between 0 and {MAX_GUIDANCE} (1 = no guidance)");
+    }
+    Ok(())
+}
+
+/// The largest number of scans sampled at once by `generate` (about 45 MB each on the bundled
+/// model): more are drawn in further batches, so memory does not grow with `--samples`.
+pub(crate) const SAMPLE_BATCH: usize = 8;
+
+/// The most scans one `generate` run draws (memory stays bounded either way; this bounds the
+/// record and the time a typo can cost).
+pub(crate) const MAX_SAMPLES: usize = 100_000;
+
+/// The noise seed of batch `b` of a `--samples` run: batch 0 keeps `seed` (a run of up to
+/// [`SAMPLE_BATCH`] samples draws exactly what one batch of all samples drew before batching), later
+/// batches a SplitMix64 mix of the seed and the batch index.
+pub(crate) fn batch_seed(seed: u64, batch: usize) -> u64 {
+    if batch == 0 {
+        return seed;
+    }
+    let mut z = seed ^ (batch as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Whether `name` is a file `generate` writes into its output folder (for `--force` reruns).
+pub(crate) fn is_generate_output(name: &str) -> bool {
+    if name == "generate.json" || name == "timings.json" {
+        return true;
+    }
+    name.strip_prefix("scan_").is_some_and(|rest| {
+        let digits = rest.bytes().take_while(u8::is_ascii_digit).count();
+        digits >= 3 && rest[digits..].starts_with(['.', '_'])
+    })
 }
 
 /// Short name of a sampler kind.
@@ -409,10 +469,12 @@ struct GenerateReport<'a> {
     guidance: f64,
     seed: u64,
     samples: usize,
-    seconds: Seconds,
+    sample_batch: usize,
     scans: Vec<ScanRecord>,
 }
 
+/// Wall-clock times of a run: in their own `timings.json`, so that every other output of two
+/// identical runs is byte-identical.
 #[derive(Debug, Serialize)]
 pub(crate) struct Seconds {
     pub(crate) load: f64,
@@ -426,54 +488,72 @@ fn round3(x: f64) -> f64 {
 }
 
 pub(crate) fn run(args: GenerateArgs) -> Result<()> {
-    if args.samples == 0 {
-        bail!("--samples must be at least 1");
+    if !(1..=MAX_SAMPLES).contains(&args.samples) {
+        bail!(
+            "--samples {}: must be between 1 and {MAX_SAMPLES}",
+            args.samples
+        );
+    }
+    // 0 steps is checked against the bundle (residual bundles only) once it is loaded
+    if let Some(steps) = args.steps.filter(|&s| s != 0) {
+        check_steps(steps)?;
+    }
+    if let Some(g) = args.guidance {
+        check_guidance(g)?;
     }
     let t0 = Instant::now();
+    let mut inputs = staging::Inputs::new();
+    inputs.extend(&args.rig.images).extend(&args.rig.calibs);
     let views = load_rig(&args.rig)?;
     let device = model::device()?;
     let bundle = model::load_bundle(args.checkpoint.as_deref(), &device)?;
     let sampler = resolve_sampler(&bundle, args.sampler, args.steps, args.guidance)?;
     let prepared = prepare_views(&bundle, &views)?;
     // inputs are good: only now does the output folder get a staging directory
-    let staging = staging::stage(&args.out, args.force)?;
+    let staging = staging::stage_checked(&args.out, args.force, &inputs)?;
     let load_secs = t0.elapsed().as_secs_f64();
 
-    let t = Instant::now();
-    let pb = progress::bar(sampler.steps as u64, "generate");
+    let batches = args.samples.div_ceil(SAMPLE_BATCH);
+    let pb = progress::bar((sampler.steps * batches) as u64, "generate"); // <= 1000 * 12500
     pb.set_message(format!(
         "{} scan(s), {}",
         args.samples,
         sampler_label(&sampler)
     ));
-    let options = GenerateOptions {
-        sampler: sampler.clone(),
-        samples: args.samples,
-        seed: args.seed,
-        unconditional: false,
-    };
-    let scans = bundle
-        .generate(&camera_views(&prepared), &options, |done, total| {
-            pb.set_length(total as u64);
-            pb.set_position(done as u64);
-        })
-        .context("sampling")?;
-    pb.finish_and_clear();
-    let sampling_secs = t.elapsed().as_secs_f64();
-
-    let t = Instant::now();
-    let mut records = Vec::with_capacity(scans.len());
-    for (i, scan) in scans.iter().enumerate() {
-        let (rec, _, _) = write_scan(
-            staging.path(),
-            &format!("scan_{i:03}"),
-            &bundle,
-            scan,
-            &views[0],
-        )?;
-        records.push(rec);
+    let (mut sampling_secs, mut writing_secs) = (0.0, 0.0);
+    let mut records = Vec::new();
+    for b in 0..batches {
+        let first = b * SAMPLE_BATCH;
+        let count = SAMPLE_BATCH.min(args.samples - first);
+        let options = GenerateOptions {
+            sampler: sampler.clone(),
+            samples: count,
+            seed: batch_seed(args.seed, b),
+            unconditional: false,
+        };
+        let t = Instant::now();
+        let scans = bundle
+            .generate(&camera_views(&prepared), &options, |done, total| {
+                pb.set_length((total * batches) as u64);
+                pb.set_position((b * total + done) as u64);
+            })
+            .context("sampling")?;
+        sampling_secs += t.elapsed().as_secs_f64();
+        // each batch is written and dropped before the next is drawn
+        let t = Instant::now();
+        for (j, scan) in scans.iter().enumerate() {
+            let (rec, _, _) = write_scan(
+                staging.path(),
+                &format!("scan_{:03}", first + j),
+                &bundle,
+                scan,
+                &views[0],
+            )?;
+            records.push(rec);
+        }
+        writing_secs += t.elapsed().as_secs_f64();
     }
-    let writing_secs = t.elapsed().as_secs_f64();
+    pb.finish_and_clear();
     let report = GenerateReport {
         command: "generate",
         veila_version: env!("CARGO_PKG_VERSION"),
@@ -485,19 +565,24 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
         guidance: sampler.guidance_scale,
         seed: args.seed,
         samples: args.samples,
-        seconds: Seconds {
-            load: round3(load_secs),
-            sampling: round3(sampling_secs),
-            per_scan: round3(sampling_secs / args.samples as f64),
-            writing: round3(writing_secs),
-        },
+        sample_batch: SAMPLE_BATCH,
         scans: records,
+    };
+    let timings = Seconds {
+        load: round3(load_secs),
+        sampling: round3(sampling_secs),
+        per_scan: round3(sampling_secs / args.samples as f64),
+        writing: round3(writing_secs),
     };
     veila_data::atomic::write_atomic(
         &staging.path().join("generate.json"),
         serde_json::to_string_pretty(&report)?.as_bytes(),
     )?;
-    staging.commit()?;
+    veila_data::atomic::write_atomic(
+        &staging.path().join("timings.json"),
+        serde_json::to_string_pretty(&timings)?.as_bytes(),
+    )?;
+    staging.commit_owning(is_generate_output)?;
 
     println!(
         "generated {} scan(s) on the {}x{} grid of model `{}` from {} view(s): {} x {} steps, guidance {}, seed {}",

@@ -15,7 +15,7 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 mod model;
 mod progress;
 mod report; // self-contained HTML reports (veila eval --report)
-mod staging;
+mod staging; // the output discipline of every command
 // command modules (one per family):
 mod data_cmd; // project, unproject, render           (veila-data)
 mod demo_cmd; // demo (the README's main job)
@@ -67,9 +67,11 @@ enum Command {
 
 fn main() {
     restore_default_sigpipe();
+    staging::install_signal_cleanup();
     let cli = Cli::parse();
     progress::set_quiet(cli.quiet);
     if let Err(err) = run(cli.command) {
+        let err = staging::explain(err);
         eprintln!("error: {err:#}");
         std::process::exit(1);
     }

@@ -51,7 +51,9 @@ fn simulate(args: SimulateArgs) -> Result<()> {
         bail!("--frames must be at least 1");
     }
     let out = &args.out;
-    let staging = staging::stage(out, args.force)?;
+    let mut inputs = staging::Inputs::new();
+    inputs.add(&args.scene);
+    let staging = staging::stage_checked(out, args.force, &inputs)?;
 
     let pb = progress::bar(u64::from(frames), "simulate");
     let summary = simulate_to_dir(&config, args.seed, frames, staging.path(), |done| {

@@ -3,10 +3,10 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
+
+use crate::staging::{self, Inputs};
 use clap::{Args, Subcommand};
-use veila_data::weather::files::{
-    FrameFiles, FrameOutputs, output_image_name, output_scan_name, process_frame,
-};
+use veila_data::weather::files::{FrameFiles, compute_frame, output_image_name, output_scan_name};
 use veila_data::weather::{
     Headlights, Preset, Sensor, TimeOfDay, Weather, WeatherConfig, WeatherSim,
 };
@@ -63,9 +63,12 @@ pub struct WeatherArgs {
     /// Seed of every random draw.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Output folder (created if missing).
+    /// Output folder (created if missing; may hold other files).
     #[arg(long)]
     pub out: PathBuf,
+    /// Replace output files that exist in the output folder.
+    #[arg(long)]
+    pub force: bool,
 }
 
 fn parse_preset(s: &str) -> Result<Preset, String> {
@@ -118,34 +121,45 @@ fn run_weather(a: &WeatherArgs) -> Result<()> {
     if a.image.is_none() && a.calib.is_some() {
         bail!("--calib is only used with --image");
     }
-    std::fs::create_dir_all(&a.out)
-        .with_context(|| format!("cannot create {}", a.out.display()))?;
-    let outputs = FrameOutputs {
-        scan: a.out.join(output_scan_name(&a.scan)?),
-        image: a
-            .image
-            .as_deref()
-            .map(output_image_name)
-            .transpose()?
-            .map(|n| a.out.join(n)),
-    };
-    if outputs.scan == a.scan
-        || outputs
-            .image
-            .as_ref()
-            .is_some_and(|p| Some(p) == a.image.as_ref())
-    {
-        bail!("--out {} would overwrite an input file", a.out.display());
+    // every output is checked before any work: none may be an input (whatever its spelling: `.`,
+    // `./`, an absolute path, a link) and none is replaced without --force
+    let mut inputs = Inputs::new();
+    inputs
+        .add(&a.scan)
+        .add_opt(a.image.as_ref())
+        .add_opt(a.calib.as_ref())
+        .add_opt(a.labels.as_ref());
+    let scan_out = a.out.join(output_scan_name(&a.scan)?);
+    let image_out = a
+        .image
+        .as_deref()
+        .map(output_image_name)
+        .transpose()?
+        .map(|n| a.out.join(n));
+    let effects_out = a.out.join("effects.json");
+    if a.out.exists() && !a.out.is_dir() {
+        bail!("--out {}: exists and is not a directory", a.out.display());
     }
+    let mut dests = vec![scan_out.as_path(), effects_out.as_path()];
+    dests.extend(image_out.as_deref());
+    staging::check_outputs(&dests, &inputs, a.force, true)?;
     let files = FrameFiles {
         scan: a.scan.clone(),
         image: a.image.clone(),
         calib: a.calib.clone(),
         labels: a.labels.clone(),
     };
-    let report = process_frame(&sim, &files, &outputs)?;
+    // all inputs read and every output computed before anything is created
+    let frame = compute_frame(&sim, &files, &scan_out)?;
+    let report = frame.report;
     let json = report.to_json()?;
-    veila_data::atomic::write_atomic(&a.out.join("effects.json"), json.as_bytes())?;
+    let mut outputs = vec![(scan_out, frame.scan)];
+    if let (Some(p), Some(bytes)) = (image_out, frame.image) {
+        outputs.push((p, bytes));
+    }
+    outputs.push((effects_out, json.into_bytes()));
+    // scan, image and effects.json appear together or not at all
+    staging::publish_files(&outputs, &inputs, a.force, true)?;
     let show = |s: Sensor| {
         let n = report.names(s);
         if n.is_empty() {

@@ -262,3 +262,75 @@ fn shards_without_what_training_needs_fail_clearly() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("huge"));
 }
+
+/// SIGKILL at seeded random points of a run (not the clean `--stop-after`), resumed each time, ends
+/// with the uninterrupted run's weights byte for byte; shards that change under the run (a frame
+/// converted again with other contents) are noticed through the manifest and not resumed over.
+#[cfg(unix)]
+#[test]
+#[ignore = "kill-and-resume (several training runs): cargo test -p veila-cli --test train -- --ignored"]
+fn killed_runs_resume_to_the_uninterrupted_weights() {
+    use rand::{Rng, SeedableRng};
+    use std::process::{Command, Stdio};
+    use std::time::{Duration, Instant};
+
+    let tmp = tempfile::tempdir().unwrap();
+    make_shards(&tmp.path().join("shards"), 3, false, true);
+    write_small_bundle_config(&tmp.path().join("small.json"));
+    let model = format!(
+        "bundle = \"small.json\"\nencoders_from = \"{}\"",
+        model_dir().display()
+    );
+    let steps = "steps = 6\nbatch = 1\nlr = 1e-3\nseed = 5\ncheckpoint_every = 1";
+    let a = tmp.path().join("a.toml");
+    write_config(&a, "shards", "run-a", &model, steps);
+    let t = Instant::now();
+    ok(&train(&a, &[]));
+    let full = t.elapsed();
+
+    let b = tmp.path().join("b.toml");
+    write_config(&b, "shards", "run-b", &model, steps);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(23);
+    for _ in 0..4 {
+        let mut child = veila()
+            .args(["train", "--quiet", "--config"])
+            .arg(&b)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(Duration::from_secs_f64(
+            full.as_secs_f64() * rng.random_range(0.1..0.9),
+        ));
+        let _ = Command::new("kill")
+            .args(["-KILL", &child.id().to_string()])
+            .status();
+        child.wait().unwrap();
+    }
+    ok(&train(&b, &[]));
+    let wa = std::fs::read(tmp.path().join("run-a/bundle/denoiser.safetensors")).unwrap();
+    let wb = std::fs::read(tmp.path().join("run-b/bundle/denoiser.safetensors")).unwrap();
+    assert!(
+        wa == wb,
+        "killed and resumed weights differ from the uninterrupted run's"
+    );
+
+    // a shard converted again with other contents under the same ids: the run does not resume
+    let c = tmp.path().join("c.toml");
+    write_config(&c, "shards", "run-c", &model, steps);
+    ok(&train(&c, &["--stop-after", "2"]));
+    let m = tmp.path().join("shards/manifest.json");
+    let mut manifest = Manifest::read(&m).unwrap();
+    let shard0 = tmp.path().join("shards").join(&manifest.shards[0].file);
+    let mut s = veila_data::shard::read_shard(&shard0).unwrap().samples;
+    s[0].range_m.iter_mut().for_each(|r| *r *= 1.01);
+    manifest.shards[0] = write_shard(&shard0, &manifest.sensor, "sim", &s).unwrap();
+    manifest.write(&m).unwrap();
+    let o = train(&c, &[]);
+    assert!(!o.status.success());
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("other settings"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+}

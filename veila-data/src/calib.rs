@@ -5,6 +5,49 @@ use std::path::Path;
 
 use crate::{Error, Result};
 
+/// Largest deviation of `R^T R` from the identity accepted for the rotation of a rigid transform
+/// (calibration files print 7 significant digits: real ones deviate by ~1e-6).
+pub(crate) const ROTATION_TOLERANCE: f64 = 1e-3;
+
+/// Refuse a 3x3 block (row-major `rows`) that is not a rotation: `R^T R = I` within
+/// [`ROTATION_TOLERANCE`] and `det R = +1` (no scaling, shearing or mirroring).
+pub(crate) fn check_rotation(path: &Path, key: &str, rows: [[f64; 3]; 3]) -> Result<()> {
+    let mut worst = 0.0f64;
+    for i in 0..3 {
+        for j in 0..3 {
+            let dot: f64 = (0..3).map(|k| rows[k][i] * rows[k][j]).sum();
+            let want = if i == j { 1.0 } else { 0.0 };
+            worst = worst.max((dot - want).abs());
+        }
+    }
+    let r = rows;
+    let det = r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1])
+        - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
+        + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);
+    if worst.is_nan() || worst > ROTATION_TOLERANCE || det <= 0.0 {
+        return Err(Error::format(
+            path,
+            format!(
+                "{key} is not a rigid transform: its rotation part deviates from orthonormal by \
+                 {worst:.2e} (tolerance {ROTATION_TOLERANCE:.0e}) with determinant {det:.4} \
+                 (must be +1: no scaling, shearing or mirroring)"
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// The rotation block of a row-major 3x4 transform.
+pub(crate) fn rotation_of(m: &[[f32; 4]; 3]) -> [[f64; 3]; 3] {
+    let mut r = [[0.0; 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            r[i][j] = f64::from(m[i][j]);
+        }
+    }
+    r
+}
+
 /// Key -> (line number, values).
 #[derive(Debug, Clone)]
 pub(crate) struct CalibEntries {

@@ -7,8 +7,11 @@
 //!   frames) at a time; nothing is kept across shards but small manifest entries.
 //! - **Atomic**: every shard and its sidecar (`shard-NNNNN.safetensors.json`) are written to a
 //!   temporary file and renamed; killing the process at any moment leaves complete files only.
-//! - **Resumable**: a shard whose sidecar exists, was made with the same settings and matches the
-//!   shard file's size and SHA-256 is skipped; anything else is rebuilt.
+//! - **Resumable**: a shard whose sidecar exists, was made with the same settings, from source files
+//!   with the same contents (SHA-256 of every file of every frame, [`Dataset::source_files`]: a frame
+//!   changed under the same id is noticed) and matches the shard file's size and SHA-256 is skipped;
+//!   anything else is rebuilt. Temporary files of a killed run (`.veila-PID-*.tmp`) are removed
+//!   when the next run starts.
 //! - **Shardable**: worker `i` of `n` converts the shards `k` with `k % n == i`, so the same command
 //!   runs as a Slurm array or a Kubernetes Indexed Job. Whichever worker finds every shard complete
 //!   writes `manifest.json`.
@@ -106,7 +109,36 @@ pub enum Progress {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 struct Sidecar {
     fingerprint: String,
+    /// SHA-256 of the shard's source files (ids, names and contents); empty in old sidecars.
+    #[serde(default)]
+    sources: String,
     entry: ShardEntry,
+}
+
+/// SHA-256 over the ids of `frames` and the names and contents of their source files.
+fn sources_digest(dataset: &dyn Dataset, frames: std::ops::Range<usize>) -> Result<String> {
+    use sha2::Digest;
+    let mut h = sha2::Sha256::new();
+    for i in frames {
+        h.update(dataset.frame_id(i).as_bytes());
+        h.update([0]);
+        for f in dataset.source_files(i)? {
+            let name = f
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            h.update(name.as_bytes());
+            h.update([0]);
+            if f.is_file() {
+                let (sha, bytes) = sha256_file(&f)?;
+                h.update(sha.as_bytes());
+                h.update(bytes.to_le_bytes());
+            } else {
+                h.update(b"absent");
+            }
+        }
+    }
+    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
 }
 
 /// Project one frame into a training sample. Intensity is divided by `intensity_max`; labels become
@@ -192,11 +224,12 @@ fn sidecar_path(out: &Path, k: usize) -> PathBuf {
     out.join(format!("{}.json", shard_file_name(k)))
 }
 
-/// The sidecar's entry when shard `k` is complete and was made with these settings.
-fn complete_entry(out: &Path, k: usize, fp: &str) -> Option<ShardEntry> {
+/// The sidecar's entry when shard `k` is complete and was made with these settings (and from
+/// these sources, when `sources` is given).
+fn complete_entry(out: &Path, k: usize, fp: &str, sources: Option<&str>) -> Option<ShardEntry> {
     let text = std::fs::read_to_string(sidecar_path(out, k)).ok()?;
     let sc: Sidecar = serde_json::from_str(&text).ok()?;
-    if sc.fingerprint != fp {
+    if sc.fingerprint != fp || sources.is_some_and(|s| s != sc.sources) {
         return None;
     }
     let (sha, bytes) = sha256_file(&out.join(&sc.entry.file)).ok()?;
@@ -231,6 +264,8 @@ pub fn convert(
     // probe writability up front, so a read-only folder fails before any work
     crate::atomic::write_atomic(&out.join(".veila-write-probe"), b"")?;
     let _ = std::fs::remove_file(out.join(".veila-write-probe"));
+    // temporary shards of a killed run (up to one shard each)
+    crate::atomic::sweep_stale(out);
 
     let fp = fingerprint(dataset, opts)?;
     let n = dataset.len();
@@ -251,7 +286,8 @@ pub fn convert(
     for &k in &mine {
         let range = k * fps..((k + 1) * fps).min(n);
         let count = range.len();
-        if complete_entry(out, k, &fp).is_some() {
+        let sources = sources_digest(dataset, range.clone())?;
+        if complete_entry(out, k, &fp, Some(&sources)).is_some() {
             summary.skipped_shards += 1;
             progress(Progress::Frames(count));
             continue;
@@ -287,6 +323,7 @@ pub fn convert(
         drop(samples);
         let sc = Sidecar {
             fingerprint: fp.clone(),
+            sources,
             entry,
         };
         let text = serde_json::to_string_pretty(&sc).map_err(|e| Error::Invalid {
@@ -309,7 +346,7 @@ pub fn convert(
                 .filter(|s| s.fingerprint == fp)
                 .map(|s| s.entry)
         } else {
-            complete_entry(out, k, &fp)
+            complete_entry(out, k, &fp, None)
         };
         match entry {
             Some(e) => entries.push(e),

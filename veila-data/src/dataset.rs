@@ -48,6 +48,12 @@ pub trait Dataset: Send + Sync + std::fmt::Debug {
     /// The largest intensity value of the dataset's scale (1 for KITTI, 255 for nuScenes); divide by it
     /// to get intensities in `[0, 1]`.
     fn intensity_max(&self) -> f32;
+    /// The files frame `index` is made of (scan, labels, image, calibration), for change detection:
+    /// a resumed conversion compares their contents with those it converted. Default: none known.
+    fn source_files(&self, index: usize) -> Result<Vec<PathBuf>> {
+        let _ = index;
+        Ok(Vec::new())
+    }
 }
 
 /// Iterator over the frames of a dataset, reading each on demand.

@@ -49,7 +49,17 @@ impl KittiCalib {
             r[5] as f32,
             r[8] as f32,
         ]);
+        crate::calib::check_rotation(
+            path,
+            "R0_rect",
+            [[r[0], r[1], r[2]], [r[3], r[4], r[5]], [r[6], r[7], r[8]]],
+        )?;
         let tr_velo_to_cam = e.require_3x4(&["Tr_velo_to_cam", "Tr_velo_cam"], path)?;
+        crate::calib::check_rotation(
+            path,
+            "Tr_velo_to_cam",
+            crate::calib::rotation_of(&tr_velo_to_cam),
+        )?;
         let tr_imu_to_velo = e.get_3x4(&["Tr_imu_to_velo", "Tr_imu_velo"], path)?;
         Ok(KittiCalib {
             p,
@@ -289,6 +299,14 @@ impl Dataset for KittiObjectDataset {
     }
     fn intensity_max(&self) -> f32 {
         1.0
+    }
+    fn source_files(&self, index: usize) -> Result<Vec<PathBuf>> {
+        let id = &self.ids[index];
+        Ok(vec![
+            self.file("velodyne", id, ".bin"),
+            self.file("image_2", id, ".png"),
+            self.file("calib", id, ".txt"),
+        ])
     }
 }
 

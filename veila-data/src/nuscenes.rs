@@ -132,6 +132,12 @@ impl JsonTransform {
                 format!("{what}: last row must be 0 0 0 1, found {:?}", m[3]),
             ));
         }
+        let rot = [
+            [m[0][0], m[0][1], m[0][2]],
+            [m[1][0], m[1][1], m[1][2]],
+            [m[2][0], m[2][1], m[2][2]],
+        ];
+        crate::calib::check_rotation(path, what, rot)?;
         Ok(DMat4::from_cols_array_2d(m).transpose())
     }
 }
@@ -284,11 +290,18 @@ impl NuScenesSample {
     pub fn camera(&self, channel: &str, width: u32, height: u32) -> Result<PinholeCamera> {
         let c = self.cameras.get(channel).ok_or_else(|| Error::Invalid {
             what: "nuScenes camera channel".into(),
-            message: format!(
-                "sample {} has no camera {channel} (has {})",
-                self.token,
-                self.cameras.keys().cloned().collect::<Vec<_>>().join(", ")
-            ),
+            message: if self.cameras.is_empty() {
+                format!(
+                    "sample {} has no camera {channel}: it lists no camera at all",
+                    self.token
+                )
+            } else {
+                format!(
+                    "sample {} has no camera {channel} (has {})",
+                    self.token,
+                    self.cameras.keys().cloned().collect::<Vec<_>>().join(", ")
+                )
+            },
         })?;
         Ok(PinholeCamera::from_nuscenes(
             c.intrinsic,
@@ -794,6 +807,17 @@ impl Dataset for NuScenesDataset {
     }
     fn intensity_max(&self) -> f32 {
         255.0
+    }
+    fn source_files(&self, index: usize) -> Result<Vec<PathBuf>> {
+        let sample = self.sample(index)?;
+        let mut files = vec![self.dataroot.join(&sample.lidar_file)];
+        if let Some(cam) = sample.cameras.get(&self.channel) {
+            files.push(self.dataroot.join(&cam.file));
+        }
+        if let Source::SampleJson(jsons) = &self.source {
+            files.push(jsons[index].clone());
+        }
+        Ok(files)
     }
 }
 

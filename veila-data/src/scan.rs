@@ -13,7 +13,14 @@
 //!    naming the file.
 //!
 //! Every reader drops points with a non-finite coordinate or intensity and reports how many
-//! ([`LoadedPoints::dropped_non_finite`]); they never reach a projection or a metric.
+//! ([`LoadedPoints::dropped_non_finite`]); they never reach a projection or a metric. A file whose
+//! every point is non-finite is an error of [`read_points`].
+//!
+//! # Bounded memory
+//!
+//! Raw float records are read in chunks of at most [`READ_CHUNK_BYTES`] straight into the cloud,
+//! and a file longer than [`MAX_SCAN_POINTS`] records is rejected from its length before anything
+//! is allocated (a 2 GiB garbage `.bin` costs nothing).
 
 use std::io::Read;
 use std::path::Path;
@@ -28,6 +35,11 @@ use crate::{Error, PointCloud, Result};
 pub const KITTI_RECORD_BYTES: usize = 16;
 /// Bytes per nuScenes LIDAR_TOP record (x, y, z, intensity, ring as f32).
 pub const NUSCENES_RECORD_BYTES: usize = 20;
+/// The most points a raw point file may hold: 16 Mi, 50x a 128-beam scan (a KITTI file of this many
+/// points is 256 MiB). Longer files are rejected before they are read.
+pub const MAX_SCAN_POINTS: usize = 1 << 24;
+/// Raw point files are read in chunks of this many bytes (a whole number of both record sizes).
+pub const READ_CHUNK_BYTES: usize = 80 * 16 * 1024;
 /// The OpenEXR magic number as the first four bytes of a file.
 pub const EXR_MAGIC: [u8; 4] = [0x76, 0x2f, 0x31, 0x01];
 
@@ -120,6 +132,20 @@ fn detect_from(head: &[u8], path: &Path) -> Result<PointFormat> {
 /// Read any supported point file (format detected; see the module docs). Non-finite points are dropped
 /// and counted.
 pub fn read_points(path: &Path) -> Result<LoadedPoints> {
+    let loaded = read_points_any(path)?;
+    if loaded.cloud.is_empty() && loaded.dropped_non_finite > 0 {
+        return Err(Error::format(
+            path,
+            format!(
+                "all {} points are non-finite (NaN or infinite coordinates or intensity)",
+                loaded.dropped_non_finite
+            ),
+        ));
+    }
+    Ok(loaded)
+}
+
+fn read_points_any(path: &Path) -> Result<LoadedPoints> {
     match detect_point_format(path)? {
         PointFormat::KittiBin => read_kitti_bin(path),
         PointFormat::NuScenesPcdBin => read_nuscenes_pcd_bin(path),
@@ -146,12 +172,49 @@ pub fn read_points(path: &Path) -> Result<LoadedPoints> {
     }
 }
 
-fn read_all(path: &Path) -> Result<Vec<u8>> {
-    std::fs::read(path).map_err(|e| Error::io(path, e))
+/// Read a raw file of `record`-byte records in bounded chunks, after checking its length (a whole
+/// number of records, at most [`MAX_SCAN_POINTS`]). `each(chunk, first, n)` sees every chunk of
+/// whole records, the index of its first record and the file's record count. Returns the count.
+fn read_records(
+    path: &Path,
+    record: usize,
+    mut each: impl FnMut(&[u8], usize, usize) -> Result<()>,
+) -> Result<usize> {
+    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let len = f.metadata().map_err(|e| Error::io(path, e))?.len();
+    let len = usize::try_from(len).unwrap_or(usize::MAX);
+    check_records(len, record, path)?;
+    let n = len / record;
+    if n > MAX_SCAN_POINTS {
+        return Err(Error::format(
+            path,
+            format!(
+                "{len} bytes is {n} points, more than the {MAX_SCAN_POINTS} a scan may hold \
+                 (not a single LiDAR scan?)"
+            ),
+        ));
+    }
+    let chunk_records = READ_CHUNK_BYTES / record;
+    let mut buf = vec![0u8; chunk_records.min(n).max(1) * record];
+    let mut done = 0;
+    while done < n {
+        let k = chunk_records.min(n - done);
+        let b = &mut buf[..k * record];
+        f.read_exact(b).map_err(|e| {
+            if e.kind() == std::io::ErrorKind::UnexpectedEof {
+                Error::format(path, "the file became shorter while it was read")
+            } else {
+                Error::io(path, e)
+            }
+        })?;
+        each(b, done, n)?;
+        done += k;
+    }
+    Ok(n)
 }
 
-fn check_records(bytes: &[u8], record: usize, path: &Path) -> Result<()> {
-    if bytes.len().is_multiple_of(record) {
+fn check_records(len: usize, record: usize, path: &Path) -> Result<()> {
+    if len.is_multiple_of(record) {
         return Ok(());
     }
     let other = if record == KITTI_RECORD_BYTES {
@@ -159,7 +222,7 @@ fn check_records(bytes: &[u8], record: usize, path: &Path) -> Result<()> {
     } else {
         KITTI_RECORD_BYTES
     };
-    let hint = if bytes.len().is_multiple_of(other) {
+    let hint = if len.is_multiple_of(other) {
         if other == NUSCENES_RECORD_BYTES {
             " (it is a multiple of 20: a nuScenes scan should be named *.pcd.bin)"
         } else {
@@ -172,7 +235,7 @@ fn check_records(bytes: &[u8], record: usize, path: &Path) -> Result<()> {
         path,
         format!(
             "length {} bytes is not a multiple of the {record}-byte record ({} f32 per point){hint}",
-            bytes.len(),
+            len,
             record / 4
         ),
     ))
@@ -185,20 +248,41 @@ fn f32_at(b: &[u8], i: usize) -> f32 {
 
 /// Decode KITTI records without dropping anything (callers attach labels first, then drop).
 pub(crate) fn decode_kitti_records(bytes: &[u8], path: &Path) -> Result<PointCloud> {
-    check_records(bytes, KITTI_RECORD_BYTES, path)?;
-    let n = bytes.len() / KITTI_RECORD_BYTES;
-    let mut cloud = PointCloud {
+    check_records(bytes.len(), KITTI_RECORD_BYTES, path)?;
+    let mut cloud = kitti_cloud(bytes.len() / KITTI_RECORD_BYTES);
+    push_kitti(&mut cloud, bytes);
+    Ok(cloud)
+}
+
+fn kitti_cloud(n: usize) -> PointCloud {
+    PointCloud {
         xyz: Vec::with_capacity(n),
         intensity: Vec::with_capacity(n),
         ring: None,
         label: None,
-    };
+    }
+}
+
+fn push_kitti(cloud: &mut PointCloud, bytes: &[u8]) {
     for rec in bytes.chunks_exact(KITTI_RECORD_BYTES) {
         cloud
             .xyz
             .push(Vec3::new(f32_at(rec, 0), f32_at(rec, 1), f32_at(rec, 2)));
         cloud.intensity.push(f32_at(rec, 3));
     }
+}
+
+/// Read the KITTI records of `path` without dropping anything, in bounded chunks.
+pub(crate) fn read_kitti_records(path: &Path) -> Result<PointCloud> {
+    let mut cloud = kitti_cloud(0);
+    read_records(path, KITTI_RECORD_BYTES, |chunk, done, n| {
+        if done == 0 {
+            cloud.xyz.reserve_exact(n);
+            cloud.intensity.reserve_exact(n);
+        }
+        push_kitti(&mut cloud, chunk);
+        Ok(())
+    })?;
     Ok(cloud)
 }
 
@@ -216,59 +300,98 @@ pub fn parse_kitti_bin(bytes: &[u8], path: &Path) -> Result<LoadedPoints> {
 
 /// Read a KITTI velodyne `.bin` (also SemanticKITTI / KITTI odometry scans).
 pub fn read_kitti_bin(path: &Path) -> Result<LoadedPoints> {
-    parse_kitti_bin(&read_all(path)?, path)
-}
-
-/// Decode nuScenes LIDAR_TOP bytes (x, y, z, intensity, ring f32 records). A ring that is not an
-/// integer in 0..=65535 is a format error.
-pub fn parse_nuscenes_pcd_bin(bytes: &[u8], path: &Path) -> Result<LoadedPoints> {
-    check_records(bytes, NUSCENES_RECORD_BYTES, path)?;
-    let n = bytes.len() / NUSCENES_RECORD_BYTES;
-    let mut cloud = PointCloud {
-        xyz: Vec::with_capacity(n),
-        intensity: Vec::with_capacity(n),
-        ring: Some(Vec::with_capacity(n)),
-        label: None,
-    };
-    let mut rings = Vec::with_capacity(n);
-    let mut non_finite_ring = 0usize;
-    for (i, rec) in bytes.chunks_exact(NUSCENES_RECORD_BYTES).enumerate() {
-        let ring = f32_at(rec, 4);
-        if !ring.is_finite() {
-            non_finite_ring += 1;
-            cloud.xyz.push(Vec3::NAN);
-            cloud.intensity.push(f32::NAN);
-            rings.push(0);
-            continue;
-        }
-        if !(0.0..=65535.0).contains(&ring) || ring.fract() != 0.0 {
-            return Err(Error::format(
-                path,
-                format!(
-                    "record {i}: ring {ring} is not an integer in 0..=65535 (is this a nuScenes scan?)"
-                ),
-            ));
-        }
-        cloud
-            .xyz
-            .push(Vec3::new(f32_at(rec, 0), f32_at(rec, 1), f32_at(rec, 2)));
-        cloud.intensity.push(f32_at(rec, 3));
-        rings.push(ring as u16);
-    }
-    cloud.ring = Some(rings);
+    let mut cloud = read_kitti_records(path)?;
     let dropped = cloud.retain_finite();
-    debug_assert!(dropped >= non_finite_ring);
     Ok(LoadedPoints {
         cloud,
-        format: PointFormat::NuScenesPcdBin,
+        format: PointFormat::KittiBin,
         dropped_non_finite: dropped,
         sensor: None,
     })
 }
 
+/// Decode nuScenes LIDAR_TOP bytes (x, y, z, intensity, ring f32 records). A ring that is not an
+/// integer in 0..=65535 is a format error.
+pub fn parse_nuscenes_pcd_bin(bytes: &[u8], path: &Path) -> Result<LoadedPoints> {
+    check_records(bytes.len(), NUSCENES_RECORD_BYTES, path)?;
+    let mut acc = NuScenesAcc::new(bytes.len() / NUSCENES_RECORD_BYTES);
+    acc.push(bytes, 0, path)?;
+    Ok(acc.finish())
+}
+
+/// nuScenes records decoded so far.
+struct NuScenesAcc {
+    cloud: PointCloud,
+    rings: Vec<u16>,
+    non_finite_ring: usize,
+}
+
+impl NuScenesAcc {
+    fn new(n: usize) -> Self {
+        NuScenesAcc {
+            cloud: PointCloud {
+                xyz: Vec::with_capacity(n),
+                intensity: Vec::with_capacity(n),
+                ring: None,
+                label: None,
+            },
+            rings: Vec::with_capacity(n),
+            non_finite_ring: 0,
+        }
+    }
+
+    /// Decode the records of `bytes`, the first being record `first` of the file.
+    fn push(&mut self, bytes: &[u8], first: usize, path: &Path) -> Result<()> {
+        for (i, rec) in bytes.chunks_exact(NUSCENES_RECORD_BYTES).enumerate() {
+            let ring = f32_at(rec, 4);
+            if !ring.is_finite() {
+                self.non_finite_ring += 1;
+                self.cloud.xyz.push(Vec3::NAN);
+                self.cloud.intensity.push(f32::NAN);
+                self.rings.push(0);
+                continue;
+            }
+            if !(0.0..=65535.0).contains(&ring) || ring.fract() != 0.0 {
+                return Err(Error::format(
+                    path,
+                    format!(
+                        "record {}: ring {ring} is not an integer in 0..=65535 (is this a nuScenes scan?)",
+                        first + i
+                    ),
+                ));
+            }
+            self.cloud
+                .xyz
+                .push(Vec3::new(f32_at(rec, 0), f32_at(rec, 1), f32_at(rec, 2)));
+            self.cloud.intensity.push(f32_at(rec, 3));
+            self.rings.push(ring as u16);
+        }
+        Ok(())
+    }
+
+    fn finish(mut self) -> LoadedPoints {
+        self.cloud.ring = Some(self.rings);
+        let dropped = self.cloud.retain_finite();
+        debug_assert!(dropped >= self.non_finite_ring);
+        LoadedPoints {
+            cloud: self.cloud,
+            format: PointFormat::NuScenesPcdBin,
+            dropped_non_finite: dropped,
+            sensor: None,
+        }
+    }
+}
+
 /// Read a nuScenes `.pcd.bin` (5 f32 per point, ring kept in [`PointCloud::ring`]).
 pub fn read_nuscenes_pcd_bin(path: &Path) -> Result<LoadedPoints> {
-    parse_nuscenes_pcd_bin(&read_all(path)?, path)
+    let mut acc = NuScenesAcc::new(0);
+    read_records(path, NUSCENES_RECORD_BYTES, |chunk, done, n| {
+        if done == 0 {
+            acc = NuScenesAcc::new(n);
+        }
+        acc.push(chunk, done, path)
+    })?;
+    Ok(acc.finish())
 }
 
 /// Encode a cloud as KITTI `.bin` records (x, y, z, intensity). Rings and labels are not part of the

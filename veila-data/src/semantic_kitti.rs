@@ -14,7 +14,7 @@ use crate::calib::CalibEntries;
 use crate::dataset::{Dataset, Frame};
 use crate::image_io::{image_dimensions, read_rgb_image};
 use crate::kitti::list_stems;
-use crate::scan::decode_kitti_records;
+use crate::scan::read_kitti_records;
 use crate::yaml_lite::{self, Yaml};
 use crate::{Error, Result};
 
@@ -36,6 +36,7 @@ impl OdometryCalib {
             *pi = e.require_3x4(&[&format!("P{i}")], path)?;
         }
         let tr = e.require_3x4(&["Tr", "Tr_velo_to_cam"], path)?;
+        crate::calib::check_rotation(path, "Tr", crate::calib::rotation_of(&tr))?;
         Ok(OdometryCalib { p, tr })
     }
 
@@ -557,9 +558,7 @@ impl Dataset for SemanticKittiDataset {
     fn load(&self, index: usize) -> Result<Frame> {
         let (scan_path, label_path, image_path) = self.paths(index);
         // labels are aligned with the raw records, so attach them before non-finite points are dropped
-        let bytes = std::fs::read(&scan_path).map_err(|e| Error::io(&scan_path, e))?;
-        let mut cloud = decode_kitti_records(&bytes, &scan_path)?;
-        drop(bytes);
+        let mut cloud = read_kitti_records(&scan_path)?;
         if label_path.is_file() {
             cloud.label = Some(read_labels(&label_path, Some(cloud.len()))?);
         } else if self.require_labels {
@@ -601,6 +600,11 @@ impl Dataset for SemanticKittiDataset {
     }
     fn intensity_max(&self) -> f32 {
         1.0
+    }
+    fn source_files(&self, index: usize) -> Result<Vec<PathBuf>> {
+        let (scan, label, image) = self.paths(index);
+        let calib = self.seqs[self.frames[index].0].dir.join("calib.txt");
+        Ok(vec![scan, label, image, calib])
     }
 }
 

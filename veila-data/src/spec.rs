@@ -108,6 +108,8 @@ pub fn camera_from_calib_file(
     };
     cam.map_err(|e| match e {
         Error::Geom(g) => Error::format(path, format!("calibration gives an invalid camera: {g}")),
+        // name the file in every error (the sample's own errors know only its token)
+        Error::Invalid { message, .. } => Error::format(path, message),
         other => other,
     })
 }

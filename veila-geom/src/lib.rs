@@ -59,4 +59,4 @@ pub use projection::{
 };
 pub use rays::{RayTable, Unprojected};
 pub use region::Region;
-pub use sensor::{BeamLayout, LidarSensor, RowSource};
+pub use sensor::{BeamLayout, LidarSensor, MAX_SENSOR_PIXELS, RowSource};

@@ -32,6 +32,11 @@ pub enum RowSource {
     NearestElevation,
 }
 
+/// The most pixels (`rows * cols`) a sensor may have: 4 Mi, 8x a 128-beam sensor at 4096 columns.
+/// Every range image, projection buffer and ray table of a sensor grows with its pixel count, so the
+/// bound keeps a sensor file from asking for gigabytes (4096 x 262144 would be 1 Gi pixels).
+pub const MAX_SENSOR_PIXELS: u64 = 1 << 22;
+
 /// A spinning LiDAR: `rows` beams by `cols` azimuth steps, a vertical field of view and a valid range.
 ///
 /// Row 0 is the top beam; column 0 starts at azimuth +pi (behind the sensor, on the left-hand side of
@@ -119,6 +124,14 @@ impl LidarSensor {
         if self.rows > 1 << 16 || self.cols > 1 << 20 {
             return bad(format!(
                 "size {}x{} is unreasonably large",
+                self.rows, self.cols
+            ));
+        }
+        let pixels = u64::from(self.rows) * u64::from(self.cols);
+        if pixels > MAX_SENSOR_PIXELS {
+            return bad(format!(
+                "size {}x{} is {pixels} pixels, more than the limit of {MAX_SENSOR_PIXELS} \
+                 (every range image of the sensor is held in memory, ~24 bytes per pixel)",
                 self.rows, self.cols
             ));
         }

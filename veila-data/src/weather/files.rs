@@ -91,6 +91,17 @@ fn is_png(path: &Path) -> bool {
         .unwrap_or(false)
 }
 
+/// One frame with its weather applied, in memory: the bytes of every output.
+#[derive(Debug)]
+pub struct FrameResult {
+    /// The scan, in the input's format.
+    pub scan: Vec<u8>,
+    /// The image as PNG, when an image was given.
+    pub image: Option<Vec<u8>>,
+    /// What ran.
+    pub report: EffectsReport,
+}
+
 /// Apply `sim` to one frame and write its outputs. Returns the report of what ran (the caller writes
 /// it, e.g. as `effects.json`).
 pub fn process_frame(
@@ -98,6 +109,24 @@ pub fn process_frame(
     files: &FrameFiles,
     out: &FrameOutputs,
 ) -> Result<EffectsReport> {
+    if files.image.is_some() && out.image.is_none() {
+        return Err(Error::Invalid {
+            what: "weather outputs".into(),
+            message: "no output image path".into(),
+        });
+    }
+    let r = compute_frame(sim, files, &out.scan)?;
+    write_atomic(&out.scan, &r.scan)?;
+    if let (Some(bytes), Some(p)) = (r.image, &out.image) {
+        write_atomic(p, &bytes)?;
+    }
+    Ok(r.report)
+}
+
+/// Apply `sim` to one frame in memory; nothing is written. Every input is read and checked, even
+/// when no effect runs and its bytes are passed through unchanged (a truncated scan or an image bomb
+/// is an error either way). `out_scan` names the scan output in encoding errors.
+pub fn compute_frame(sim: &WeatherSim, files: &FrameFiles, out_scan: &Path) -> Result<FrameResult> {
     let plan = sim.plan();
     // ---- LiDAR
     let scan_bytes: Vec<u8>;
@@ -110,9 +139,11 @@ pub fn process_frame(
             .any(|e| e.required_inputs().contains(&Input::DepthMap))
         && files.image.is_some();
     if plan.lidar.is_empty() {
+        // checked like any input (the pass-through must not copy garbage), then copied verbatim
+        let loaded = read_points(&files.scan)?;
         scan_bytes = std::fs::read(&files.scan).map_err(|e| Error::io(&files.scan, e))?;
         if need_cloud_for_depth {
-            clean_cloud = Some(read_points(&files.scan)?.cloud);
+            clean_cloud = Some(loaded.cloud);
         }
     } else {
         let loaded = read_points(&files.scan)?;
@@ -127,15 +158,7 @@ pub fn process_frame(
                     1.0
                 }
             }
-            PointFormat::RangeExr => {
-                return Err(Error::Invalid {
-                    what: "weather input".into(),
-                    message: format!(
-                        "{}: range-image EXR input is not supported; unproject it to .ply first",
-                        files.scan.display()
-                    ),
-                });
-            }
+            PointFormat::RangeExr => return Err(exr_unsupported(&files.scan)),
         };
         if let Some(lp) = &files.labels {
             if loaded.dropped_non_finite > 0 {
@@ -170,8 +193,7 @@ pub fn process_frame(
             PointFormat::NuScenesPcdBin => encode_nuscenes(&res.cloud),
             _ => {
                 let mut buf = Vec::new();
-                crate::ply::encode_ply(&res.cloud, &mut buf)
-                    .map_err(|e| Error::io(&out.scan, e))?;
+                crate::ply::encode_ply(&res.cloud, &mut buf).map_err(|e| Error::io(out_scan, e))?;
                 buf
             }
         };
@@ -181,13 +203,9 @@ pub fn process_frame(
     let mut camera_records: Vec<EffectRecord> = Vec::new();
     let mut image_bytes: Option<Vec<u8>> = None;
     if let Some(img_path) = &files.image {
-        if out.image.is_none() {
-            return Err(Error::Invalid {
-                what: "weather outputs".into(),
-                message: "no output image path".into(),
-            });
-        }
         if plan.camera.is_empty() && is_png(img_path) {
+            // decoded once to check it (size limits stop decompression bombs), then copied verbatim
+            crate::image_io::read_rgb_image(img_path)?;
             image_bytes = Some(std::fs::read(img_path).map_err(|e| Error::io(img_path, e))?);
         } else {
             let img: RgbImage = crate::image_io::read_rgb_image(img_path)?;
@@ -234,12 +252,21 @@ pub fn process_frame(
             image_bytes = Some(crate::image_io::encode_png(&res.image)?);
         }
     }
-    // ---- write (all computed first)
-    write_atomic(&out.scan, &scan_bytes)?;
-    if let (Some(bytes), Some(p)) = (image_bytes, &out.image) {
-        write_atomic(p, &bytes)?;
+    Ok(FrameResult {
+        scan: scan_bytes,
+        image: image_bytes,
+        report: sim.report(lidar_records, camera_records),
+    })
+}
+
+fn exr_unsupported(scan: &Path) -> Error {
+    Error::Invalid {
+        what: "weather input".into(),
+        message: format!(
+            "{}: range-image EXR input is not supported; unproject it to .ply first",
+            scan.display()
+        ),
     }
-    Ok(sim.report(lidar_records, camera_records))
 }
 
 /// The output file name of a scan: the input's file name (`000000.bin`, `x.pcd.bin`, `x.ply`).
