@@ -85,9 +85,8 @@ fn apply(seed: &[u8], muts: &[Mutation]) -> Vec<u8> {
             Mutation::Set { at, width, value } if n > 0 => {
                 let bytes = value.to_le_bytes();
                 let at = at % n;
-                for k in 0..(*width as usize).min(n - at) {
-                    b[at + k] = bytes[k];
-                }
+                let len = (*width as usize).min(n - at);
+                b[at..at + len].copy_from_slice(&bytes[..len]);
             }
             Mutation::Truncate { keep } => b.truncate(keep % (n + 1)),
             Mutation::Insert { at, bytes } => {

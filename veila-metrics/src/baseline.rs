@@ -116,7 +116,8 @@ pub fn ring_spread(
     below_deg: f32,
     band_deg: f32,
 ) -> Option<f64> {
-    if (scan.rows, scan.cols) != (sensor.rows, sensor.cols) || band_deg.is_nan() || band_deg <= 0.0 {
+    if (scan.rows, scan.cols) != (sensor.rows, sensor.cols) || band_deg.is_nan() || band_deg <= 0.0
+    {
         return None;
     }
     let cols = scan.cols as usize;

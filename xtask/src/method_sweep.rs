@@ -457,7 +457,8 @@ pub fn run(args: MethodSweepArgs) -> Result<()> {
                         .points
                         .iter()
                         .filter(|p| {
-                            p.method == "regression" && p.train_secs <= args.budget_secs / 2.0 + 1e-6
+                            p.method == "regression"
+                                && p.train_secs <= args.budget_secs / 2.0 + 1e-6
                         })
                         .map(|p| Point {
                             method: "residual".into(),
