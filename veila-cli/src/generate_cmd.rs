@@ -504,10 +504,11 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
     let t0 = Instant::now();
     let mut inputs = staging::Inputs::new();
     inputs.extend(&args.rig.images).extend(&args.rig.calibs);
-    let views = load_rig(&args.rig)?;
+    // the model first: whether 0 sampler steps are allowed depends on it
     let device = model::device()?;
     let bundle = model::load_bundle(args.checkpoint.as_deref(), &device)?;
     let sampler = resolve_sampler(&bundle, args.sampler, args.steps, args.guidance)?;
+    let views = load_rig(&args.rig)?;
     let prepared = prepare_views(&bundle, &views)?;
     // inputs are good: only now does the output folder get a staging directory
     let staging = staging::stage_checked(&args.out, args.force, &inputs)?;
