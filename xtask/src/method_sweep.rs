@@ -328,6 +328,8 @@ pub fn run(args: MethodSweepArgs) -> Result<()> {
         preview_every: Some(1),
         ..TrainConfig::default()
     };
+    // every run: the same frames, frozen encoders, batch and (constant) learning rate
+    let train_cfg = tc(1_000_000);
     let work = root.join("target/method-sweep");
     let mut methods = args.methods.clone();
     // residual reuses the regression run: run regression first
@@ -339,6 +341,17 @@ pub fn run(args: MethodSweepArgs) -> Result<()> {
         let mut cfg = proto.clone().with_method(method);
         let dir = work.join(method.name());
         let _ = std::fs::remove_dir_all(&dir);
+        let fit = DenoiserFit {
+            semantic: base.semantic.as_ref(),
+            depth: base.depth.as_ref(),
+            examples: &examples,
+            stage: Stage::Denoiser,
+            means: None,
+            batch_size: args.batch,
+            train: &train_cfg,
+            checkpoint_dir: &dir,
+            init: None,
+        };
         match method {
             Method::Residual => {
                 let Some(mean_w) = mean_snapshot.clone() else {
@@ -388,15 +401,8 @@ pub fn run(args: MethodSweepArgs) -> Result<()> {
                 fit_denoiser(
                     &cfg,
                     DenoiserFit {
-                        semantic: base.semantic.as_ref(),
-                        depth: base.depth.as_ref(),
-                        examples: &examples,
-                        stage: Stage::Denoiser,
                         means: Some(&means),
-                        batch_size: args.batch,
-                        train: &tc(1_000_000),
-                        checkpoint_dir: &dir,
-                        init: None,
+                        ..fit
                     },
                     &device,
                     |_, _| {},
@@ -427,23 +433,7 @@ pub fn run(args: MethodSweepArgs) -> Result<()> {
                         offset_steps: 0,
                         batch: args.batch,
                     };
-                    let out = fit_denoiser(
-                        &cfg,
-                        DenoiserFit {
-                            semantic: base.semantic.as_ref(),
-                            depth: base.depth.as_ref(),
-                            examples: &examples,
-                            stage: Stage::Denoiser,
-                            means: None,
-                            batch_size: args.batch,
-                            train: &tc(1_000_000),
-                            checkpoint_dir: &dir,
-                            init: None,
-                        },
-                        &device,
-                        |_, _| {},
-                        &mut obs,
-                    )?;
+                    let out = fit_denoiser(&cfg, fit, &device, |_, _| {}, &mut obs)?;
                     offset += obs.secs;
                     next_eval = obs.next_eval;
                     if method == Method::Regression && mean_snapshot.is_none() {
