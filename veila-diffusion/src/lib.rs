@@ -83,6 +83,6 @@ pub use schedule::{
     CosineLogSnr, DiscreteSchedule, NoiseLevel, NoiseSchedule, ScheduleConfig, Spacing,
 };
 pub use trainer::{
-    Batch, BatchSource, FitSummary, LrSchedule, StepStats, TrainConfig, TrainObserver, Trainer,
-    claim_checkpoint_dir,
+    Batch, BatchSource, Clock, FitSummary, LrSchedule, StepStats, TrainConfig, TrainObserver,
+    Trainer, claim_checkpoint_dir,
 };

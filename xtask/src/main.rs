@@ -18,6 +18,7 @@ mod simdata; // simulated examples for training and benchmarks
 #[cfg(test)]
 mod tidy;
 mod train_default; // cargo xtask train-default (the bundled model)
+mod train_probe; // cargo xtask train-probe (a run's checkpoints against the baselines)
 
 #[derive(Debug, Parser)]
 #[command(name = "xtask", about = "Veila project automation")]
@@ -33,6 +34,8 @@ enum Command {
     KittiWeather(kitti_weather::KittiWeatherArgs),
     /// Train the bundled model (models/default) from a fixed seed on the simulator's train split.
     TrainDefault(train_default::TrainDefaultArgs),
+    /// Score a train-default run's newest checkpoints against the baselines (beside the run).
+    TrainProbe(train_probe::TrainProbeArgs),
     /// Train the FRD / FPD feature networks (RangeNet, PointNet) on simulated scenes.
     TrainFeatureNets(feature_nets::TrainFeatureNetsArgs),
     /// Benchmark report: Veila vs the unconditional baseline and the ablations, and sampler speed vs quality.
@@ -62,6 +65,7 @@ fn run(command: Command) -> Result<()> {
         Command::MethodSweep(a) => method_sweep::run(a),
         Command::BenchModel(a) => bench_model::run(a),
         Command::TrainDefault(a) => train_default::run(a).map(|_| ()),
+        Command::TrainProbe(a) => train_probe::run(a),
         Command::Layers => {
             println!("see ARCHITECTURE.md, section 'Layering'");
             Ok(())

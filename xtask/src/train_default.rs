@@ -357,6 +357,12 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     }
     let summary = den.summary;
     let den_secs = t.elapsed().as_secs_f64();
+    // the runs' own clocks, summed over every resumed session (this process's seconds are below)
+    let clock = |c: veila_diffusion::Clock| serde_json::json!({ "seconds": c.seconds.round(), "from_step": c.from_step });
+    let train_clock = serde_json::json!({
+        "mean": outcome.mean.as_ref().map(|m| clock(m.summary.clock)),
+        "denoiser": clock(summary.clock),
+    });
     if let Some(m) = &outcome.mean {
         println!(
             "  mean network: {} steps this run, mean loss {:.4}, {:.0} s; residual scale {:?}",
@@ -392,6 +398,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         "ema_decay": tc.ema_decay,
         "cond_drop_prob": tc.cond_drop_prob,
         "final_mean_loss": summary.mean_loss,
+        "train_wall_seconds": train_clock,
         "seconds": {
             "simulation": sim_secs.round(),
             "encoders": enc_secs.round(),

@@ -84,6 +84,14 @@ pub struct CheckpointState {
     pub train_config: TrainConfig,
     /// The diffusion process (must match on resume).
     pub diffusion_config: DiffusionConfig,
+    /// Wall seconds spent in [`Trainer::fit`] since step [`Self::clock_from_step`], summed over
+    /// every run that resumed this one (checkpoint writing and batch assembly included).
+    #[serde(default)]
+    pub train_seconds: f64,
+    /// The step the clock started at: 0 for a run timed from its start, later for a run
+    /// begun by a build that kept no clock.
+    #[serde(default)]
+    pub clock_from_step: Option<u64>,
 }
 
 fn io<'a>(action: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> Error + 'a {
@@ -209,6 +217,8 @@ impl<M: Denoiser> Trainer<M> {
                 rng: RngState::capture(&self.rng),
                 train_config: self.config.clone(),
                 diffusion_config: self.diffusion.config().clone(),
+                train_seconds: self.clock.seconds,
+                clock_from_step: Some(self.clock.from_step),
             };
             let json_path = tmp.join(STATE_FILE);
             let json = serde_json::to_vec_pretty(&state).map_err(|source| Error::Json {
@@ -311,6 +321,16 @@ impl<M: Denoiser> Trainer<M> {
         self.step = state.step;
         self.skipped = state.skipped_steps;
         self.rng = rng;
+        self.clock = match state.clock_from_step {
+            Some(from_step) => super::Clock {
+                seconds: state.train_seconds,
+                from_step,
+            },
+            None => super::Clock {
+                seconds: 0.0,
+                from_step: state.step,
+            },
+        };
         Ok(())
     }
 

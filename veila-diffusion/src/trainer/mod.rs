@@ -282,6 +282,17 @@ pub struct FitSummary {
     pub stopped_early: bool,
     /// Checkpoints written in this call.
     pub checkpoints: Vec<PathBuf>,
+    /// The run's training clock afterwards (all resumed runs together).
+    pub clock: Clock,
+}
+
+/// Wall time a training run has spent in [`Trainer::fit`], carried through its checkpoints.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Clock {
+    /// Seconds counted.
+    pub seconds: f64,
+    /// The step counting began at (0 unless the run began in a build that kept no clock).
+    pub from_step: u64,
 }
 
 /// The trainer. Owns the model, its `VarMap`, the optimizer, the EMA weights and the RNG.
@@ -297,6 +308,7 @@ pub struct Trainer<M: Denoiser> {
     step: u64,
     skipped: u64,
     rng: ChaCha8Rng,
+    clock: Clock,
 }
 
 impl<M: Denoiser> std::fmt::Debug for Trainer<M> {
@@ -365,6 +377,7 @@ impl<M: Denoiser> Trainer<M> {
             step: 0,
             skipped: 0,
             rng,
+            clock: Clock::default(),
         })
     }
 
@@ -403,6 +416,11 @@ impl<M: Denoiser> Trainer<M> {
     /// Updates skipped so far (non-finite loss or gradient).
     pub fn skipped_steps(&self) -> u64 {
         self.skipped
+    }
+
+    /// The run's training clock: wall seconds spent in [`Self::fit`], over every resumed run.
+    pub fn clock(&self) -> Clock {
+        self.clock
     }
 
     /// The learning rate the next update will use.
@@ -568,7 +586,9 @@ impl<M: Denoiser> Trainer<M> {
             skipped: 0,
             stopped_early: false,
             checkpoints: Vec::new(),
+            clock: self.clock,
         };
+        let mut tick = std::time::Instant::now();
         let mut loss_sum = 0.0;
         let mut loss_n = 0u64;
         let mut last_saved = None;
@@ -582,6 +602,7 @@ impl<M: Denoiser> Trainer<M> {
                 loss_sum += stats.loss;
                 loss_n += 1;
             }
+            self.clock.seconds += tick.elapsed().as_secs_f64();
             let flow = observer.on_step(&stats);
             if let Some(every) = self.config.preview_every
                 && self.step.is_multiple_of(every)
@@ -593,11 +614,16 @@ impl<M: Denoiser> Trainer<M> {
             if let (Some(dir), Some(every)) = (checkpoint_dir, self.config.checkpoint_every)
                 && self.step.is_multiple_of(every)
             {
+                // the checkpoint carries the clock up to its own writing, counted after it
+                let t = std::time::Instant::now();
                 let p = self.save_checkpoint(dir)?;
+                self.clock.seconds += t.elapsed().as_secs_f64();
                 observer.on_checkpoint(self.step, &p);
                 summary.checkpoints.push(p);
                 last_saved = Some(self.step);
             }
+            // what observers and previews do (progress, evaluations) is not training time
+            tick = std::time::Instant::now();
             if flow.is_break() {
                 summary.stopped_early = true;
                 break;
@@ -612,6 +638,7 @@ impl<M: Denoiser> Trainer<M> {
             summary.checkpoints.push(p);
         }
         summary.final_step = self.step;
+        summary.clock = self.clock;
         if loss_n > 0 {
             summary.mean_loss = loss_sum / loss_n as f64;
         }

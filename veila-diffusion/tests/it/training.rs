@@ -232,6 +232,66 @@ fn resume_is_exact() {
     assert_ne!(flat(&a.weights().unwrap()), flat(&a.ema_weights()));
 }
 
+/// The training clock counts batch assembly and updates (not what observers do), travels in
+/// the checkpoints, and after a checkpoint from a build without a clock counts from that step.
+#[test]
+fn the_training_clock_survives_resume_and_skips_observer_time() {
+    struct Slow(u64);
+    impl<M: Denoiser> TrainObserver<M> for Slow {
+        fn on_step(&mut self, s: &StepStats) -> ControlFlow<()> {
+            std::thread::sleep(std::time::Duration::from_millis(400));
+            if s.step == self.0 {
+                ControlFlow::Break(())
+            } else {
+                ControlFlow::Continue(())
+            }
+        }
+    }
+    let nap = std::time::Duration::from_millis(30);
+    let mut slow_source = |step: u64| {
+        std::thread::sleep(nap);
+        source(step)
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let mut b = trainer(4, "net");
+    let s = b
+        .fit(&mut slow_source, Some(dir.path()), &mut Slow(2))
+        .unwrap();
+    assert_eq!(s.clock.from_step, 0);
+    // two batches took at least 2 naps; the observer's 2 x 400 ms are not training time
+    assert!(s.clock.seconds >= 0.06, "{:?}", s.clock);
+    assert!(
+        s.clock.seconds < 0.8,
+        "observer time counted: {:?}",
+        s.clock
+    );
+    let ckpt = find_latest_checkpoint(dir.path()).unwrap().unwrap();
+    let state: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(ckpt.join("state.json")).unwrap()).unwrap();
+    assert_eq!(state["train_seconds"].as_f64(), Some(s.clock.seconds));
+
+    let mut c = trainer(4, "net");
+    c.resume_latest(dir.path()).unwrap();
+    assert_eq!(c.clock(), s.clock, "the clock is restored");
+    let s2 = c.fit(&mut slow_source, None, &mut ()).unwrap();
+    assert!(s2.clock.seconds >= s.clock.seconds + 0.06, "{:?}", s2.clock);
+    assert_eq!(s2.clock.from_step, 0);
+
+    // a checkpoint without the clock fields (an older build): counting starts at its step
+    let mut state = state;
+    let obj = state.as_object_mut().unwrap();
+    obj.remove("train_seconds");
+    obj.remove("clock_from_step");
+    std::fs::write(ckpt.join("state.json"), serde_json::to_vec(&state).unwrap()).unwrap();
+    let mut d = trainer(4, "net");
+    d.resume_latest(dir.path()).unwrap();
+    assert_eq!(d.clock().from_step, 2);
+    assert_eq!(d.clock().seconds, 0.0);
+    let s3 = d.fit(&mut slow_source, None, &mut ()).unwrap();
+    assert_eq!(s3.clock.from_step, 2);
+    assert!(s3.clock.seconds >= 0.06, "{:?}", s3.clock);
+}
+
 #[test]
 fn checkpoints_are_atomic_complete_and_pruned() {
     let dir = tempfile::tempdir().unwrap();
