@@ -15,7 +15,9 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use candle_core::{DType, Device, Tensor};
 use clap::Args;
-use veila_diffusion::bundle::{Bundle, BundleConfig, DEPTH_FILE, Method, SEMANTIC_FILE, Variant};
+use veila_diffusion::bundle::{
+    Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, MEAN_FILE, Method, SEMANTIC_FILE, Variant,
+};
 use veila_diffusion::pipeline::{
     CameraView, GenerateOptions, Stage, TrainExample, predict_means, residual_scale, stage_config,
 };
@@ -49,6 +51,11 @@ pub struct TrainProbeArgs {
     /// Seed of the samples.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Also write the probed state as a bundle here (for `veila demo --model`). Before the
+    /// denoiser has a checkpoint its denoiser is untrained and the bundle's sampler defaults to
+    /// 0 steps: the mean network alone.
+    #[arg(long)]
+    bundle_out: Option<PathBuf>,
 }
 
 /// Mean and sample standard deviation over frames.
@@ -171,17 +178,20 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
                 .is_some_and(|n| n.to_string_lossy().starts_with("encoders-"))
         })
         .with_context(|| format!("no encoders-* folder in {}", work.display()))?;
-    let encoder = |file: &str, c: &Option<veila_nn::encoders::small_cnn::SmallCnnConfig>| {
-        c.as_ref()
-            .map(|c| -> Result<SmallCnn> {
-                let w = load_tensors(&enc_dir.join(file))?;
-                Ok(SmallCnn::new(
-                    c,
-                    candle_nn::VarBuilder::from_tensors(w, DType::F32, &device),
-                )?)
-            })
-            .transpose()
-    };
+    let mut files: HashMap<&str, HashMap<String, Tensor>> = HashMap::new();
+    let mut encoder =
+        |file: &'static str, c: &Option<veila_nn::encoders::small_cnn::SmallCnnConfig>| {
+            c.as_ref()
+                .map(|c| -> Result<SmallCnn> {
+                    let w = load_tensors(&enc_dir.join(file))?;
+                    files.insert(file, w.clone());
+                    Ok(SmallCnn::new(
+                        c,
+                        candle_nn::VarBuilder::from_tensors(w, DType::F32, &device),
+                    )?)
+                })
+                .transpose()
+        };
     let semantic = encoder(SEMANTIC_FILE, &cfg.semantic_encoder)?;
     let depth = encoder(DEPTH_FILE, &cfg.depth_encoder)?;
 
@@ -222,19 +232,21 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
             candle_nn::VarBuilder::from_tensors(w.clone(), DType::F32, &device),
         )?)
     };
-    // the denoiser of a mean-only probe is never run (0 steps): zeros stand in for it
-    let (den_net, den_w) = match &den_ckpt {
-        Some((w, _)) if cfg.residual.is_none() || mean_ckpt.is_some() => {
-            (net(w, Stage::Denoiser)?, w.clone())
-        }
-        _ => (
+    // the denoiser of a mean-only probe is never run (0 steps): its seeded initialisation
+    // stands in for it
+    let denoiser_trained = den_ckpt.is_some() && (cfg.residual.is_none() || mean_ckpt.is_some());
+    let den_w = match &den_ckpt {
+        Some((w, _)) if denoiser_trained => w.clone(),
+        _ => {
+            let vm = candle_nn::VarMap::new();
             veila_nn::Denoiser::new(
-                &cfg.denoiser,
-                candle_nn::VarBuilder::zeros(DType::F32, &device),
-            )?,
-            HashMap::new(),
-        ),
+                &den_cfg,
+                veila_nn::seeded_var_builder(&vm, args.seed, DType::F32, &device),
+            )?;
+            veila_diffusion::pipeline::varmap_tensors(&vm)?
+        }
     };
+    let den_net = net(&den_w, Stage::Denoiser)?;
     if let (Some((mw, _)), Some(_)) = (&mean_ckpt, &den_ckpt) {
         let examples: Vec<TrainExample> = train
             .iter()
@@ -265,7 +277,7 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
         semantic,
         depth,
         denoiser: den_net,
-        weights: den_w,
+        weights: den_w.clone(),
         mean,
         origin: work.clone(),
     };
@@ -351,7 +363,7 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
             (t.elapsed().as_secs_f64() / tests.len().max(1) as f64).into();
     }
     if let Some((_, s)) = &den_ckpt
-        && (cfg.residual.is_none() || mean_ckpt.is_some())
+        && denoiser_trained
     {
         let t = Instant::now();
         let scans = generate(args.steps)?;
@@ -359,6 +371,26 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
         line["model"] = score(&name, &scans, &tests, &cfg);
         line["model"]["seconds_per_scan"] =
             (t.elapsed().as_secs_f64() / tests.len().max(1) as f64).into();
+    }
+    if let Some(out) = &args.bundle_out {
+        let mut config = cfg.clone();
+        if !denoiser_trained {
+            config.sampler.steps = 0;
+        }
+        config.provenance = serde_json::json!({
+            "trained_by": "cargo xtask train-probe (an unfinished run)",
+            "work": work.display().to_string(),
+            "probe": line.clone(),
+            "denoiser": if denoiser_trained { "the newest checkpoint's EMA weights" }
+                else { "untrained (the mean network alone: 0 sampler steps)" },
+        });
+        files.insert(DENOISER_FILE, den_w.clone());
+        if let Some((w, _)) = &mean_ckpt {
+            files.insert(MEAN_FILE, w.clone());
+        }
+        Bundle::save(out, &config, &files)?;
+        Bundle::from_dir(out, &device).with_context(|| format!("re-reading {}", out.display()))?;
+        println!("wrote the probed bundle to {}", out.display());
     }
     let log = work.join("probe.jsonl");
     let mut text = std::fs::read_to_string(&log).unwrap_or_default();
