@@ -142,7 +142,14 @@ mod tests {
                     Some(1.0),
                 )
                 .unwrap();
-            let x0 = den.x0.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let mut x0 = den.x0.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            // a residual denoiser predicts the scaled residual: x̂₀ = mean + scale ⊙ r̂
+            if let (Some(r), Some(m)) = (cfg.residual.as_ref(), cond.mean.as_ref()) {
+                let m = m.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+                for (i, v) in x0.iter_mut().enumerate() {
+                    *v = m[i] + *v * r.scale[i / (h * w)];
+                }
+            }
             let target = &examples[0].x0;
             let diff: f32 = x0
                 .iter()
@@ -153,6 +160,28 @@ mod tests {
             eprintln!("x̂₀ at the largest noise level: mean |error| {diff:.4} (encoded units)");
         }
         let mut worst: f64 = 0.0;
+        if bundle.mean.is_some() {
+            // what the mean network alone gives (0 sampler steps)
+            let scan = bundle
+                .generate(
+                    &view,
+                    &GenerateOptions {
+                        sampler: SamplerConfig {
+                            steps: 0,
+                            ..cfg.sampler.clone()
+                        },
+                        samples: 1,
+                        seed: 1,
+                        unconditional: false,
+                    },
+                    |_, _| {},
+                )
+                .unwrap()
+                .remove(0)
+                .into_range_image();
+            let mae = veila_metrics::range::range_mae(&scan, &frame.range, Region::All).unwrap();
+            eprintln!("the mean network alone: range MAE {mae:.3} m");
+        }
         for seed in [1, 2] {
             let scan = bundle
                 .generate(
