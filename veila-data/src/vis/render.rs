@@ -9,7 +9,7 @@ use glam::Vec3;
 use image::{Rgb, RgbImage};
 use veila_geom::{PinholeCamera, RangeImage};
 
-use crate::colormap_data::{MAGMA, VIRIDIS};
+use super::colormap_data::{MAGMA, VIRIDIS};
 use crate::semantic_kitti::LabelMap;
 use crate::{Error, PointCloud, Result};
 
