@@ -298,24 +298,10 @@ pub(crate) fn escape(text: &str) -> String {
     out
 }
 
-/// Standard base64 (RFC 4648, with padding).
+/// Standard base64 (RFC 4648, with padding), for `data:` URLs.
 pub(crate) fn base64_encode(bytes: &[u8]) -> String {
-    const ALPHABET: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-    let mut out = String::with_capacity(bytes.len().div_ceil(3) * 4);
-    for chunk in bytes.chunks(3) {
-        let b = [
-            chunk[0],
-            chunk.get(1).copied().unwrap_or(0),
-            chunk.get(2).copied().unwrap_or(0),
-        ];
-        let n = (b[0] as u32) << 16 | (b[1] as u32) << 8 | b[2] as u32;
-        let sextets = [n >> 18, n >> 12, n >> 6, n].map(|v| ALPHABET[(v & 63) as usize] as char);
-        out.push(sextets[0]);
-        out.push(sextets[1]);
-        out.push(if chunk.len() > 1 { sextets[2] } else { '=' });
-        out.push(if chunk.len() > 2 { sextets[3] } else { '=' });
-    }
-    out
+    use base64::Engine as _;
+    base64::engine::general_purpose::STANDARD.encode(bytes)
 }
 
 /// A metric value with sensible precision: four significant digits, scientific notation outside

@@ -91,7 +91,7 @@ pub mod stamp;
 pub mod vis;
 #[cfg(feature = "weather")]
 pub mod weather;
-mod yaml_lite;
+mod yaml;
 
 pub use error::{Error, Result};
 /// The `image` crate, whose `RgbImage` appears in this crate's API.

@@ -126,14 +126,12 @@ impl BevGrid {
     }
 }
 
-/// Diverging colour: blue (-1) through white (0) to red (+1), linear in each half; out-of-range
-/// values are clamped.
+/// Diverging colour: blue (-1) through near-white (0) to red (+1), ColorBrewer's RdBu (from
+/// colorous); out-of-range values are clamped, NaN is the middle.
 pub fn diverging(t: f64) -> [u8; 3] {
-    let t = t.clamp(-1.0, 1.0);
-    let (blue, red) = ([33.0, 102.0, 172.0], [178.0, 24.0, 43.0]);
-    let end = if t < 0.0 { blue } else { red };
-    let a = t.abs();
-    [0, 1, 2].map(|k| (255.0 * (1.0 - a) + end[k] * a).round() as u8)
+    let t = if t.is_nan() { 0.0 } else { t.clamp(-1.0, 1.0) };
+    let c = colorous::RED_BLUE.eval_continuous((1.0 - t) / 2.0);
+    [c.r, c.g, c.b]
 }
 
 /// Normalised histogram (density per unit) of `values` over `[lo, hi)` in `bins` bins, as points at
@@ -208,12 +206,20 @@ mod tests {
 
     #[test]
     fn diverging_ends_and_middle() {
-        assert_eq!(diverging(0.0), [255, 255, 255]);
-        assert_eq!(diverging(-1.0), [33, 102, 172]);
-        assert_eq!(diverging(1.0), [178, 24, 43]);
+        // ColorBrewer RdBu: #053061 (blue end), #f7f7f7 (middle), #67001f (red end)
+        let near = |a: [u8; 3], b: [u8; 3]| (0..3).all(|k| (a[k] as i32 - b[k] as i32).abs() <= 3);
+        assert!(
+            near(diverging(0.0), [247, 247, 247]),
+            "{:?}",
+            diverging(0.0)
+        );
+        assert!(near(diverging(-1.0), [5, 48, 97]), "{:?}", diverging(-1.0));
+        assert!(near(diverging(1.0), [103, 0, 31]), "{:?}", diverging(1.0));
         assert_eq!(diverging(7.0), diverging(1.0));
-        // halfway to red: the mean of white and red, rounded
-        assert_eq!(diverging(0.5), [217, 140, 149]);
+        assert_eq!(diverging(f64::NAN), diverging(0.0));
+        // red half is red-dominant, blue half blue-dominant
+        let (r, b) = (diverging(0.5), diverging(-0.5));
+        assert!(r[0] > r[2] && b[2] > b[0], "{r:?} {b:?}");
     }
 
     #[test]

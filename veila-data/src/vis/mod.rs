@@ -7,7 +7,6 @@
 //! - [`density`]: the building blocks of the HTML reports: BEV point-density grids and their
 //!   signed-difference image, a diverging colour map, and normalised histograms.
 
-mod colormap_data;
 pub mod density;
 pub mod plot;
 pub mod render;
