@@ -70,7 +70,7 @@ pub(crate) fn parse(text: &str, path: &Path) -> Result<Yaml> {
                     Yaml::Scalar(value)
                 }
             }
-            Event::SequenceStart(anchor, tag) | Event::MappingStart(anchor, tag) => {
+            Event::SequenceStart(anchor, ref tag) | Event::MappingStart(anchor, ref tag) => {
                 if anchor != 0 || tag.is_some() {
                     return Err(at("anchors and tags are not supported"));
                 }
