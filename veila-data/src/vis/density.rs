@@ -206,8 +206,9 @@ mod tests {
 
     #[test]
     fn diverging_ends_and_middle() {
-        // ColorBrewer RdBu: #053061 (blue end), #f7f7f7 (middle), #67001f (red end)
-        let near = |a: [u8; 3], b: [u8; 3]| (0..3).all(|k| (a[k] as i32 - b[k] as i32).abs() <= 3);
+        // ColorBrewer RdBu: #053061 (blue end), #f7f7f7 (middle), #67001f (red end); colorous
+        // interpolates the 11 classes with a B-spline, so the knots are met only approximately
+        let near = |a: [u8; 3], b: [u8; 3]| (0..3).all(|k| (a[k] as i32 - b[k] as i32).abs() <= 10);
         assert!(
             near(diverging(0.0), [247, 247, 247]),
             "{:?}",
