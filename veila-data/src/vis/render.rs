@@ -386,7 +386,7 @@ mod tests {
             assert_eq!(cm.rgb(f32::NAN), [0, 0, 0]);
             // the ends of matplotlib's tables (viridis #440154 .. #fde725, magma #000004 .. #fcfdbf)
             let ends = match cm {
-                Colormap::Viridis => [[68, 1, 84], [253, 231, 37]],
+                Colormap::Viridis => [[68u8, 1, 84], [253, 231, 37]],
                 Colormap::Magma => [[0, 0, 4], [252, 253, 191]],
             };
             for (t, want) in [(0.0, ends[0]), (1.0, ends[1])] {
