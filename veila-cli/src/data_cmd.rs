@@ -10,13 +10,13 @@ use anyhow::{Result, bail};
 use clap::{Args, Subcommand};
 use veila_data::image_io::{encode_png, read_rgb_image};
 use veila_data::range_exr::{encode_range_exr, read_range_exr};
-use veila_data::render::{
-    BevOptions, OverlayOptions, RangePreview, render_bev, render_intensity, render_labels,
-    render_overlay, render_range,
-};
 use veila_data::scan::{LoadedPoints, PointFormat, read_points};
 use veila_data::semantic_kitti::{LabelMap, read_labels};
 use veila_data::spec::{camera_from_calib_file, sensor_from_spec};
+use veila_data::vis::render::{
+    BevOptions, OverlayOptions, RangePreview, render_bev, render_intensity, render_labels,
+    render_overlay, render_range,
+};
 use veila_geom::{BeamLayout, LidarSensor, ProjectionOptions, Projector, RangeImage, RowSource};
 
 use crate::staging::{self, Inputs, check_ext};

@@ -17,8 +17,8 @@ use clap::Args;
 use serde::Serialize;
 use veila_data::PointCloud;
 use veila_data::image::RgbImage;
-use veila_data::render::{self, BevOptions, OverlayOptions, RangePreview};
 use veila_data::sim::{Scene, SceneConfig, SimFrame};
+use veila_data::vis::render::{self, BevOptions, OverlayOptions, RangePreview};
 use veila_data::weather::{
     CameraInput, DepthMap, Intrinsics, Preset, Weather, WeatherConfig, WeatherSim,
 };

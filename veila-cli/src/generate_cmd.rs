@@ -22,12 +22,12 @@ use veila_data::image_io::{read_rgb_image, write_png};
 use veila_data::kitti::KittiCalib;
 use veila_data::nuscenes::NuScenesSample;
 use veila_data::range_exr::write_range_exr;
-use veila_data::render::{
-    BevOptions, OverlayOptions, RangePreview, render_bev, render_overlay, render_range,
-};
 use veila_data::scan::write_kitti_bin;
 use veila_data::semantic_kitti::OdometryCalib;
 use veila_data::spec::{CalibKind, detect_calib_kind};
+use veila_data::vis::render::{
+    BevOptions, OverlayOptions, RangePreview, render_bev, render_overlay, render_range,
+};
 use veila_diffusion::bundle::{Bundle, DENOISER_FILE, MANIFEST_FILE, Manifest, sha256_hex};
 use veila_diffusion::pipeline::{CameraView, GenerateOptions};
 use veila_diffusion::{DecodedScan, SamplerConfig, SamplerKind};

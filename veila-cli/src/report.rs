@@ -10,9 +10,10 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
-use veila_data::image::{Rgb, RgbImage};
-use veila_data::plot::{Plot, Series, SeriesStyle};
-use veila_data::render::{BevOptions, render_bev};
+use veila_data::image::RgbImage;
+use veila_data::vis::density::{BevGrid, histogram};
+use veila_data::vis::plot::{Plot, Series, SeriesStyle};
+use veila_data::vis::render::{BevOptions, render_bev};
 use veila_metrics::{MetricReport, Region};
 
 /// One table cell.
@@ -297,24 +298,10 @@ pub(crate) fn escape(text: &str) -> String {
     out
 }
 
-/// Standard base64 (RFC 4648, with padding).
+/// Standard base64 (RFC 4648, with padding), for `data:` URLs.
 pub(crate) fn base64_encode(bytes: &[u8]) -> String {
-    const ALPHABET: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-    let mut out = String::with_capacity(bytes.len().div_ceil(3) * 4);
-    for chunk in bytes.chunks(3) {
-        let b = [
-            chunk[0],
-            chunk.get(1).copied().unwrap_or(0),
-            chunk.get(2).copied().unwrap_or(0),
-        ];
-        let n = (b[0] as u32) << 16 | (b[1] as u32) << 8 | b[2] as u32;
-        let sextets = [n >> 18, n >> 12, n >> 6, n].map(|v| ALPHABET[(v & 63) as usize] as char);
-        out.push(sextets[0]);
-        out.push(sextets[1]);
-        out.push(if chunk.len() > 1 { sextets[2] } else { '=' });
-        out.push(if chunk.len() > 2 { sextets[3] } else { '=' });
-    }
-    out
+    use base64::Engine as _;
+    base64::engine::general_purpose::STANDARD.encode(bytes)
 }
 
 /// A metric value with sensible precision: four significant digits, scientific notation outside
@@ -426,6 +413,10 @@ pub(crate) const FIGURE_SAMPLE: usize = 64;
 /// Cell size (m) of the BEV density-difference image and its half extent.
 const DIFF_CELL_M: f64 = 0.5;
 const DIFF_HALF_EXTENT_M: f64 = 50.0;
+const DIFF_GRID: BevGrid = BevGrid {
+    half_extent_m: DIFF_HALF_EXTENT_M,
+    cell_m: DIFF_CELL_M,
+};
 
 /// Inputs of the `veila eval` report.
 pub(crate) struct EvalReportInputs<'a> {
@@ -450,126 +441,6 @@ fn read_cloud(path: &Path) -> Result<veila_data::PointCloud> {
     Ok(veila_data::scan::read_points(path)
         .with_context(|| format!("reading {} for the report", path.display()))?
         .cloud)
-}
-
-/// Point density on the BEV grid, normalised to sum 1 over the points inside the window.
-fn bev_density(clouds: &[veila_data::PointCloud]) -> Vec<f64> {
-    let n = (2.0 * DIFF_HALF_EXTENT_M / DIFF_CELL_M) as usize;
-    let mut grid = vec![0.0; n * n];
-    let mut total = 0.0;
-    for c in clouds {
-        for p in &c.xyz {
-            let (x, y) = (p.x as f64, p.y as f64);
-            if !(x.is_finite() && y.is_finite()) {
-                continue;
-            }
-            // image convention of the BEV previews: forward (+x) up, left (+y) left
-            let row = ((DIFF_HALF_EXTENT_M - x) / DIFF_CELL_M).floor();
-            let col = ((DIFF_HALF_EXTENT_M - y) / DIFF_CELL_M).floor();
-            if row >= 0.0 && col >= 0.0 && (row as usize) < n && (col as usize) < n {
-                grid[row as usize * n + col as usize] += 1.0;
-                total += 1.0;
-            }
-        }
-    }
-    if total > 0.0 {
-        grid.iter_mut().for_each(|v| *v /= total);
-    }
-    grid
-}
-
-/// Diverging colour: blue (-1) through white (0) to red (+1).
-fn diverging(t: f64) -> [u8; 3] {
-    let t = t.clamp(-1.0, 1.0);
-    let (blue, red) = ([33.0, 102.0, 172.0], [178.0, 24.0, 43.0]);
-    let end = if t < 0.0 { blue } else { red };
-    let a = t.abs();
-    [0, 1, 2].map(|k| (255.0 * (1.0 - a) + end[k] * a).round() as u8)
-}
-
-/// The generated-minus-reference BEV density image with a colour bar, and the largest |difference|.
-fn density_difference_image(gen_d: &[f64], ref_d: &[f64]) -> (RgbImage, f64) {
-    let n = (2.0 * DIFF_HALF_EXTENT_M / DIFF_CELL_M) as usize;
-    let max = gen_d
-        .iter()
-        .zip(ref_d)
-        .map(|(g, r)| (g - r).abs())
-        .fold(0.0f64, f64::max);
-    let zoom = 2;
-    let side = (n * zoom) as u32;
-    let bar_h = 44u32;
-    let mut img = RgbImage::from_pixel(side, side + bar_h, Rgb([255, 255, 255]));
-    for y in 0..side {
-        for x in 0..side {
-            let k = (y as usize / zoom) * n + x as usize / zoom;
-            let d = gen_d[k] - ref_d[k];
-            // signed square root: small differences stay visible next to the largest
-            let t = if max > 0.0 {
-                d.signum() * (d.abs() / max).sqrt()
-            } else {
-                0.0
-            };
-            img.put_pixel(x, y, Rgb(diverging(t)));
-        }
-    }
-    // the sensor position
-    let c = side / 2;
-    for d in 0..5u32 {
-        for (x, y) in [(c - 2 + d, c), (c, c - 2 + d)] {
-            img.put_pixel(x, y, Rgb([0, 0, 0]));
-        }
-    }
-    // colour bar: -max .. 0 .. +max (signed square-root scale)
-    let (x0, x1) = (20u32, side - 20);
-    for x in x0..x1 {
-        let t = 2.0 * (x - x0) as f64 / (x1 - x0 - 1) as f64 - 1.0;
-        for y in side + 6..side + 18 {
-            img.put_pixel(x, y, Rgb(diverging(t)));
-        }
-    }
-    let dark = Rgb([34, 34, 34]);
-    let lo = format!("-{max:.1e}");
-    let hi = format!("+{max:.1e}");
-    veila_data::plot::draw_text(&mut img, x0 as i64, side as i64 + 22, &lo, 1, dark);
-    let mid = veila_data::plot::font::text_width("0", 1) as i64;
-    veila_data::plot::draw_text(
-        &mut img,
-        (side / 2) as i64 - mid / 2,
-        side as i64 + 22,
-        "0",
-        1,
-        dark,
-    );
-    let w = veila_data::plot::font::text_width(&hi, 1) as i64;
-    veila_data::plot::draw_text(&mut img, x1 as i64 - w, side as i64 + 22, &hi, 1, dark);
-    (img, max)
-}
-
-/// Normalised histogram (density per unit) of `values` over `[lo, hi)` in `bins` bins, as points at
-/// the bin centres.
-fn histogram(values: impl Iterator<Item = f64>, lo: f64, hi: f64, bins: usize) -> Vec<(f64, f64)> {
-    let mut counts = vec![0.0; bins];
-    let width = (hi - lo) / bins as f64;
-    let mut total = 0.0;
-    for v in values {
-        if v.is_finite() && v >= lo && v < hi {
-            let b = (((v - lo) / width) as usize).min(bins - 1);
-            counts[b] += 1.0;
-            total += 1.0;
-        }
-    }
-    counts
-        .iter()
-        .enumerate()
-        .map(|(i, c)| {
-            let density = if total > 0.0 {
-                c / (total * width)
-            } else {
-                0.0
-            };
-            (lo + (i as f64 + 0.5) * width, density)
-        })
-        .collect()
 }
 
 /// Build the report of a `veila eval` run.
@@ -678,8 +549,11 @@ pub(crate) fn eval_report(inp: &EvalReportInputs<'_>) -> Result<HtmlReport> {
         sample_note(gen_sample.len(), inp.generated.len()),
         sample_note(ref_sample.len(), inp.reference.len()),
     );
-    let (gd, rd) = (bev_density(&gen_clouds), bev_density(&ref_clouds));
-    let (diff, max) = density_difference_image(&gd, &rd);
+    let (gd, rd) = (
+        DIFF_GRID.density(&gen_clouds),
+        DIFF_GRID.density(&ref_clouds),
+    );
+    let (diff, max) = DIFF_GRID.difference_image(&gd, &rd);
     rep.image(
         format!(
             "BEV point density, generated minus reference ({gs} / {rs}; {DIFF_CELL_M} m cells, \

@@ -7,7 +7,7 @@ use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use glam::Vec3;
-use veila_data::render::{BevOptions, render_bev};
+use veila_data::vis::render::{BevOptions, render_bev};
 
 fn veila() -> Command {
     Command::new(env!("CARGO_BIN_EXE_veila"))

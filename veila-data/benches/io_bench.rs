@@ -11,10 +11,10 @@ use veila_data::dataset::Dataset;
 use veila_data::image::RgbImage;
 use veila_data::image_io::encode_png;
 use veila_data::kitti::KittiObjectDataset;
-use veila_data::render::{
+use veila_data::shard::write_shard;
+use veila_data::vis::render::{
     BevOptions, OverlayOptions, RangePreview, render_bev, render_overlay, render_range,
 };
-use veila_data::shard::write_shard;
 use veila_geom::{LidarSensor, ProjectionOptions, Projector};
 
 const FRAMES_PER_SHARD: usize = 8;

@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use criterion::Criterion;
 use veila_data::image_io::encode_png;
-use veila_data::plot::{BarChart, BarGroup, Plot, Series, SeriesStyle};
+use veila_data::vis::plot::{BarChart, BarGroup, Plot, Series, SeriesStyle};
 
 fn line_plot() -> Plot {
     let series = (0..3)

@@ -1,9 +1,10 @@
-//! Renders the kinds of plots `veila_data::plot` draws into a folder, as PNG:
-//! `cargo run -p veila-data --example plot_gallery -- OUT_DIR`.
+//! Renders the kinds of pictures `veila_data::vis` draws (plots, the font, range and intensity
+//! previews, the BEV density-difference image of the reports) into a folder, as PNG:
+//! `cargo run -p veila-data --features vis --example plot_gallery -- OUT_DIR`.
 
 use std::path::PathBuf;
 
-use veila_data::plot::{BarChart, BarGroup, Plot, Series, SeriesStyle};
+use veila_data::vis::plot::{BarChart, BarGroup, Plot, Series, SeriesStyle};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let out = PathBuf::from(std::env::args().nth(1).unwrap_or_else(|| ".".into()));
@@ -102,7 +103,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let chars: String = (32u8..=126).map(char::from).collect();
     for (i, line) in chars.as_bytes().chunks(32).enumerate() {
         let line = std::str::from_utf8(line)?;
-        veila_data::plot::draw_text(
+        veila_data::vis::plot::draw_text(
             &mut img,
             8,
             8 + 36 * i as i64,
@@ -112,8 +113,45 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         );
     }
     veila_data::image_io::write_png(&out.join("font.png"), &img)?;
+    // range and intensity previews (viridis, magma) of a synthetic 32 x 512 scan: a ring of walls
+    let (rows, cols) = (32usize, 512usize);
+    let mut scan = veila_geom::RangeImage::new_empty(rows as u32, cols as u32);
+    for r in 0..rows {
+        for c in 0..cols {
+            let k = r * cols + c;
+            let az = c as f32 / cols as f32 * std::f32::consts::TAU;
+            scan.mask[k] = (r + c) % 17 != 0;
+            scan.range_m[k] = 3.0 + 40.0 * (0.5 + 0.5 * (3.0 * az).sin()) + r as f32;
+            scan.intensity[k] = (0.5 + 0.5 * (7.0 * az).cos()) * (1.0 - r as f32 / rows as f32);
+        }
+    }
+    let range = veila_data::vis::render::render_range(&scan, &Default::default());
+    veila_data::image_io::write_png(&out.join("range.png"), &range)?;
+    let intensity = veila_data::vis::render::render_intensity(&scan, 1.0, 4);
+    veila_data::image_io::write_png(&out.join("intensity.png"), &intensity)?;
+
+    // the reports' BEV density difference: a generated set shifted 2 m forward of the reference
+    let ring = |dx: f32| veila_data::PointCloud {
+        xyz: (0..20_000)
+            .map(|i| {
+                let a = i as f32 * 0.01;
+                let r = 5.0 + (i % 40) as f32;
+                glam::Vec3::new(r * a.cos() + dx, r * a.sin(), -1.5)
+            })
+            .collect(),
+        intensity: vec![0.5; 20_000],
+        ring: None,
+        label: None,
+    };
+    let grid = veila_data::vis::density::BevGrid {
+        half_extent_m: 50.0,
+        cell_m: 0.5,
+    };
+    let (diff, _) = grid.difference_image(&grid.density(&[ring(2.0)]), &grid.density(&[ring(0.0)]));
+    veila_data::image_io::write_png(&out.join("bev_difference.png"), &diff)?;
     eprintln!(
-        "wrote loss.png, scatter.png, bars.png, font.png to {}",
+        "wrote loss.png, scatter.png, bars.png, font.png, range.png, intensity.png, \
+         bev_difference.png to {}",
         out.display()
     );
     Ok(())

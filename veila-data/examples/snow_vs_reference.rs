@@ -1,6 +1,6 @@
 //! Snowflake returns of veila's LiDAR snowfall on a real KITTI scan, per modelling switch, over seeds:
 //! the veila side of `veila-data/tests/data/snow_reference/` (issue 20). Run by hand:
-//! `cargo run --release -p veila-data --example snow_vs_reference -- [SCAN] [SEEDS]`
+//! `cargo run --release -p veila-data --features weather --example snow_vs_reference -- [SCAN] [SEEDS]`
 //! (default: KITTI object 000000 from ../shared/data/real, seeds 0..5). Prints one JSON line per
 //! (snowfall rate, variant) with the mean and sample standard deviation of flake returns.
 

@@ -22,16 +22,20 @@
 //! - Points: [`scan::write_points`] (`.ply` or `.bin` by name), [`ply::write_ply`],
 //!   [`scan::write_kitti_bin`], [`semantic_kitti::write_labels`].
 //! - Range images as self-describing OpenEXR: [`range_exr::write_range_exr`] (bit-exact round trip).
-//! - Previews: [`render`] (range, intensity, labels, bird's-eye view, camera overlay) and
-//!   [`image_io::write_png`].
-//! - Plots: [`plot`] (line / scatter plots with log axes, error bars and legends, grouped bar charts)
-//!   rendered to PNG with a built-in bitmap font, no system fonts needed; report time stamps in
-//!   [`stamp`].
+//! - Images: [`image_io::write_png`]; report time stamps in [`stamp`].
 //! - Training shards: [`shard::write_shard`] / [`shard::read_shard`] and [`shard::Manifest`]; whole
 //!   datasets with [`convert::convert`] (bounded memory, resumable, shardable across workers).
 //!
-//! The procedural scene simulator ([`sim`]) and the weather simulator ([`weather`]) build on these
-//! readers and writers.
+//! # Features
+//!
+//! The readers and writers above are the core and always built. Three rooms build on them, each
+//! behind a cargo feature (all off by default, so a reader alone compiles no ray tracer, random
+//! number stack or plotting):
+//!
+//! - `sim`: the procedural scene simulator (module `sim`: scenes from TOML + seed, ray cast through
+//!   an `obvhs` BVH into LiDAR scans and camera images with ground truth);
+//! - `weather`: the weather simulator (module `weather`: fog, rain, snow, wet ground, night);
+//! - `vis`: visualisation (module `vis`: previews, plots, and the HTML reports' building blocks).
 //!
 //! # Example
 //!
@@ -67,26 +71,27 @@
 
 pub mod atomic;
 mod calib;
-mod colormap_data;
 pub mod convert;
 pub mod dataset;
 pub mod error;
 pub mod image_io;
 pub mod kitti;
 pub mod nuscenes;
-pub mod plot;
 pub mod ply;
 pub mod points;
 pub mod range_exr;
-pub mod render;
 pub mod scan;
 pub mod semantic_kitti;
 pub mod shard;
+#[cfg(feature = "sim")]
 pub mod sim;
 pub mod spec;
 pub mod stamp;
+#[cfg(feature = "vis")]
+pub mod vis;
+#[cfg(feature = "weather")]
 pub mod weather;
-mod yaml_lite;
+mod yaml;
 
 pub use error::{Error, Result};
 /// The `image` crate, whose `RgbImage` appears in this crate's API.

@@ -27,6 +27,8 @@ use veila_geom::{LidarSensor, NO_POINT, RangeImage, RayTable};
 use crate::atomic::write_atomic_with;
 use crate::{Error, PointCloud, Result};
 
+/// The OpenEXR magic number as the first four bytes of a file (what [`crate::scan`] detects EXR by).
+pub const EXR_MAGIC: [u8; 4] = [0x76, 0x2f, 0x31, 0x01];
 /// The value of the `veila_format` attribute.
 pub const FORMAT_TAG: &str = "veila-range-image/1";
 const ATTR_SENSOR: &str = "veila_sensor";
@@ -145,7 +147,7 @@ pub fn write_range_exr(path: &Path, sensor: &LidarSensor, image: &RangeImage) ->
 /// Decode EXR bytes written by [`encode_range_exr`] (`path` names the source in errors).
 pub fn decode_range_exr(bytes: &[u8], path: &Path) -> Result<RangeExr> {
     let fmt = |m: String| Error::format(path, m);
-    if !bytes.starts_with(&crate::scan::EXR_MAGIC) {
+    if !bytes.starts_with(&EXR_MAGIC) {
         return Err(fmt("not an OpenEXR file (bad magic number)".into()));
     }
     let img = read()

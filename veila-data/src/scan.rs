@@ -40,8 +40,6 @@ pub const NUSCENES_RECORD_BYTES: usize = 20;
 pub const MAX_SCAN_POINTS: usize = 1 << 24;
 /// Raw point files are read in chunks of this many bytes (a whole number of both record sizes).
 pub const READ_CHUNK_BYTES: usize = 80 * 16 * 1024;
-/// The OpenEXR magic number as the first four bytes of a file.
-pub const EXR_MAGIC: [u8; 4] = [0x76, 0x2f, 0x31, 0x01];
 
 /// The on-disk format of a point file.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -107,7 +105,7 @@ fn detect_from(head: &[u8], path: &Path) -> Result<PointFormat> {
     if head.starts_with(b"ply\n") || head.starts_with(b"ply\r\n") {
         return Ok(PointFormat::Ply);
     }
-    if head.starts_with(&EXR_MAGIC) {
+    if head.starts_with(&crate::range_exr::EXR_MAGIC) {
         return Ok(PointFormat::RangeExr);
     }
     let name = name_of(path);

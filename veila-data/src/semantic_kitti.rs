@@ -15,7 +15,7 @@ use crate::dataset::{Dataset, Frame};
 use crate::image_io::{image_dimensions, read_rgb_image};
 use crate::kitti::list_stems;
 use crate::scan::read_kitti_records;
-use crate::yaml_lite::{self, Yaml};
+use crate::yaml::{self, Yaml};
 use crate::{Error, Result};
 
 /// Calibration of a KITTI odometry sequence (`sequences/NN/calib.txt`).
@@ -198,7 +198,7 @@ fn scalar_int(v: &Yaml, what: &str, max: u64, path: &Path) -> Result<u64> {
 impl LabelMap {
     /// Parse the text of `semantic-kitti.yaml` (`path` names the source in errors).
     pub fn parse(text: &str, path: &Path) -> Result<Self> {
-        let root = yaml_lite::parse(text, path)?;
+        let root = yaml::parse(text, path)?;
         let key16 = |k: u64, what: &str| -> Result<u16> {
             u16::try_from(k)
                 .map_err(|_| Error::format(path, format!("{what}: id {k} exceeds 65535")))

@@ -325,6 +325,7 @@ fn shard() {
     );
 }
 
+#[cfg(feature = "sim")]
 #[test]
 fn scene_file() {
     let text = "name = \"tiny\"\nlayout = \"straight\"\n[lidar.sensor]\nrows = 8\ncols = 64\nfov_up_deg = 3.0\nfov_down_deg = -25.0\nmin_range_m = 0.5\nmax_range_m = 120.0\n[camera]\nwidth = 40\nheight = 12\nfx = 30.0\nfy = 30.0\ncx = 20.0\ncy = 6.0\n[frames]\ncount = 1\n";

@@ -6,131 +6,27 @@
 //! a half-written checkpoint under the final names.
 
 use std::collections::{BTreeMap, HashMap};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 
 use crate::config::DenoiserConfig;
-use crate::error::{Error, Result, TensorReport};
+use crate::error::{Error, Result};
 use crate::unet::Denoiser;
+use crate::weights::tmp_path;
+pub use crate::weights::{
+    compare_tensors, read_checked_bytes, record_tensors, safetensors_bytes, sha256_hex,
+};
 
 /// File name of the config inside a checkpoint directory.
 pub const CONFIG_FILE: &str = "config.json";
 /// File name of the weights inside a checkpoint directory.
 pub const WEIGHTS_FILE: &str = "model.safetensors";
 
-/// The tensors (name -> shape) a model builder asks its `VarBuilder` for, found by running it on a
-/// recording builder that hands out zeros (see [`crate::encoders::record_tensor_specs`]).
-pub fn record_tensors(
-    build: impl FnOnce(VarBuilder<'static>) -> Result<()>,
-) -> Result<BTreeMap<String, Vec<usize>>> {
-    Ok(crate::encoders::record_tensor_specs(build)?
-        .into_iter()
-        .map(|s| (s.name, s.shape))
-        .collect())
-}
-
 /// Every parameter tensor the model of `cfg` has, by name, with its shape (sorted by name).
 pub fn expected_tensors(cfg: &DenoiserConfig) -> Result<BTreeMap<String, Vec<usize>>> {
     record_tensors(|vb| Denoiser::new(cfg, vb).map(|_| ()))
-}
-
-/// Parses safetensors bytes (`path` names them in errors), checks them against `expected` (every
-/// tensor present with its shape, nothing else) and converts them to `f32`.
-pub fn read_checked_bytes(
-    bytes: &[u8],
-    path: &Path,
-    expected: &BTreeMap<String, Vec<usize>>,
-    device: &Device,
-) -> Result<HashMap<String, Tensor>> {
-    read_checked_scoped(bytes, path, expected, |_| true, DType::F32, device)
-}
-
-/// [`read_checked_bytes`] where tensors of the file that `expected` lacks are reported only when
-/// `in_scope(name)` is true (and otherwise dropped), converted to `dtype`.
-pub(crate) fn read_checked_scoped(
-    bytes: &[u8],
-    path: &Path,
-    expected: &BTreeMap<String, Vec<usize>>,
-    in_scope: impl Fn(&str) -> bool,
-    dtype: DType,
-    device: &Device,
-) -> Result<HashMap<String, Tensor>> {
-    let tensors =
-        candle_core::safetensors::load_buffer(bytes, device).map_err(|e| Error::SafeTensors {
-            path: path.to_path_buf(),
-            message: e.to_string(),
-        })?;
-    let found: BTreeMap<String, Vec<usize>> = tensors
-        .iter()
-        .map(|(k, v)| (k.clone(), v.dims().to_vec()))
-        .collect();
-    let mut report = compare_tensors(expected, &found);
-    report.unexpected.retain(|n| in_scope(n));
-    if !report.is_clean() {
-        return Err(Error::CheckpointMismatch {
-            path: path.to_path_buf(),
-            report,
-        });
-    }
-    tensors
-        .into_iter()
-        .filter(|(k, _)| expected.contains_key(k))
-        .map(|(k, v)| Ok((k, v.to_dtype(dtype)?)))
-        .collect()
-}
-
-/// Serialises tensors as safetensors bytes, sorted by name and as contiguous `f32` on the CPU, so
-/// the same weights always give the same bytes (and the same sha256). `path` names the file in
-/// errors.
-pub fn safetensors_bytes(tensors: &HashMap<String, Tensor>, path: &Path) -> Result<Vec<u8>> {
-    let mut sorted: Vec<(String, Tensor)> = tensors
-        .iter()
-        .map(|(k, v)| {
-            Ok((
-                k.clone(),
-                v.to_device(&Device::Cpu)?
-                    .to_dtype(DType::F32)?
-                    .contiguous()?,
-            ))
-        })
-        .collect::<candle_core::Result<_>>()?;
-    sorted.sort_by(|a, b| a.0.cmp(&b.0));
-    safetensors::serialize(sorted, None).map_err(|e| Error::SafeTensors {
-        path: path.to_path_buf(),
-        message: e.to_string(),
-    })
-}
-
-/// Lower-case hex sha256 of `bytes` (the sums of the weight manifests).
-pub fn sha256_hex(bytes: &[u8]) -> String {
-    use sha2::Digest;
-    sha2::Sha256::digest(bytes)
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect()
-}
-
-/// Compares what a model needs with what a file holds.
-pub fn compare_tensors(
-    expected: &BTreeMap<String, Vec<usize>>,
-    found: &BTreeMap<String, Vec<usize>>,
-) -> TensorReport {
-    let mut r = TensorReport::default();
-    for (name, shape) in expected {
-        match found.get(name) {
-            None => r.missing.push(name.clone()),
-            Some(s) if s != shape => r.mis_shaped.push((name.clone(), shape.clone(), s.clone())),
-            Some(_) => {}
-        }
-    }
-    r.unexpected = found
-        .keys()
-        .filter(|k| !expected.contains_key(*k))
-        .cloned()
-        .collect();
-    r
 }
 
 /// Number of scalar parameters of the model of `cfg`.
@@ -146,15 +42,6 @@ fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> Error + '_ {
         path: path.to_path_buf(),
         source,
     }
-}
-
-pub(crate) fn tmp_path(path: &Path) -> PathBuf {
-    let mut name = path
-        .file_name()
-        .map(|n| n.to_os_string())
-        .unwrap_or_default();
-    name.push(format!(".tmp{}", std::process::id()));
-    path.with_file_name(name)
 }
 
 /// Writes `cfg` and `tensors` into the checkpoint directory `dir` (created if needed), atomically per

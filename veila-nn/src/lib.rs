@@ -46,6 +46,7 @@ pub mod init;
 pub mod ops;
 pub mod pfc;
 pub mod unet;
+pub mod weights;
 
 pub use cacm::{Cacm, ConditionFusion};
 pub use config::{

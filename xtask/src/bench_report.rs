@@ -15,7 +15,7 @@ use candle_core::Device;
 use clap::Args;
 use glam::Vec3;
 use serde::Serialize;
-use veila_data::plot::{BarChart, BarGroup, Plot, Series, SeriesStyle};
+use veila_data::vis::plot::{BarChart, BarGroup, Plot, Series, SeriesStyle};
 use veila_diffusion::SamplerConfig;
 use veila_diffusion::bundle::{Bundle, Variant};
 use veila_diffusion::pipeline::{CameraView, GenerateOptions};
@@ -248,7 +248,7 @@ fn generate_all(
     seed: u64,
     label: &str,
 ) -> Result<(Vec<RangeImage>, f64)> {
-    let bar = crate::progress_bar(tests.len() as u64, label);
+    let bar = crate::progress::progress_bar(tests.len() as u64, label);
     let t = Instant::now();
     let mut out = Vec::with_capacity(tests.len());
     for (i, ex) in tests.iter().enumerate() {

@@ -14,6 +14,7 @@ mod feature_nets; // cargo xtask train-feature-nets (veila-nn feature_nets)
 mod kitti_weather; // cargo xtask kitti-weather (veila-data weather)
 mod method_sweep; // cargo xtask method-sweep (generative methods at equal training compute)
 mod overfit; // the bundled-size overfit check (an ignored test, run by hand)
+mod progress; // progress bars of the long commands
 mod simdata; // simulated examples for training and benchmarks
 #[cfg(test)]
 mod tidy;
@@ -71,16 +72,4 @@ fn run(command: Command) -> Result<()> {
             Ok(())
         }
     }
-}
-
-/// A progress bar on stderr (hidden when stderr is not a terminal).
-pub(crate) fn progress_bar(len: u64, label: &str) -> indicatif::ProgressBar {
-    let bar = indicatif::ProgressBar::new(len);
-    if let Ok(style) = indicatif::ProgressStyle::with_template(
-        "{prefix:>24} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta} {msg}",
-    ) {
-        bar.set_style(style.progress_chars("=> "));
-    }
-    bar.set_prefix(label.to_string());
-    bar
 }

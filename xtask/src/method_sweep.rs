@@ -19,7 +19,7 @@ use anyhow::{Context, Result};
 use candle_core::{Device, Tensor};
 use clap::Args;
 use serde::Serialize;
-use veila_data::plot::{Plot, Series, SeriesStyle};
+use veila_data::vis::plot::{Plot, Series, SeriesStyle};
 use veila_diffusion::bundle::{Bundle, BundleConfig, Method, Variant};
 use veila_diffusion::pipeline::{
     CameraView, DenoiserFit, GenerateOptions, Stage, TrainExample, fit_denoiser, predict_means,

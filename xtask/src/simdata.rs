@@ -134,7 +134,7 @@ pub fn render_split(
     label: &str,
 ) -> Result<Vec<SimExample>> {
     let items = split_items(list, n)?;
-    let bar = crate::progress_bar(items.len() as u64, label);
+    let bar = crate::progress::progress_bar(items.len() as u64, label);
     let out: Result<Vec<SimExample>> = items
         .par_iter()
         .map(|(path, seed)| {

@@ -6,6 +6,9 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+mod import_cycles;
+mod lean;
+
 /// Workspace crates each crate may depend on (any dependency kind). Anything above is a layering break.
 const INTERNAL_ALLOWED: &[(&str, &[&str])] = &[
     ("veila-geom", &[]),

@@ -193,7 +193,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
                          c: &veila_nn::encoders::small_cnn::SmallCnnConfig,
                          seed: u64|
          -> Result<(SmallCnn, VarMap)> {
-            let bar = crate::progress_bar(args.encoder_steps as u64, which);
+            let bar = crate::progress::progress_bar(args.encoder_steps as u64, which);
             let mut last = f32::NAN;
             let r = train_small_cnn(
                 c,
@@ -334,7 +334,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         &device,
         |stage, p, step| println!("  {stage:?}: resumed from {} (step {step})", p.display()),
         |stage, total| Progress {
-            bar: crate::progress_bar(
+            bar: crate::progress::progress_bar(
                 total,
                 match stage {
                     Stage::Mean => "mean network",

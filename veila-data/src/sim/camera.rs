@@ -23,9 +23,9 @@ use rayon::prelude::*;
 use veila_geom::PinholeCamera;
 
 use super::config::CameraConfig;
-use super::lidar::hash_unit;
+use super::frame::SceneSnapshot;
+use super::hash::{hash_unit, splitmix};
 use super::raycast::Hit;
-use super::scene::{SceneSnapshot, splitmix};
 use crate::{Error, Result};
 
 /// A rendered camera frame.

@@ -34,7 +34,8 @@ use rayon::prelude::*;
 use veila_geom::{LidarSensor, NO_POINT, RangeImage, RayTable};
 
 use super::config::LidarReturnModel;
-use super::scene::{SceneSnapshot, splitmix};
+use super::frame::SceneSnapshot;
+use super::hash::hash_unit;
 use crate::{PointCloud, Result};
 
 /// What happened to one LiDAR ray.
@@ -82,13 +83,6 @@ impl SimScan {
         }
         c
     }
-}
-
-/// A uniform number in `[0, 1)` from a hash of (seed, pixel, stream).
-#[inline]
-pub(crate) fn hash_unit(seed: u64, pixel: u64, stream: u64) -> f32 {
-    let h = splitmix(seed ^ splitmix(pixel.wrapping_mul(0x2545_F491_4F6C_DD1D) ^ stream));
-    (h >> 40) as f32 / (1u64 << 24) as f32
 }
 
 /// The incidence term `g(c) = (1 + c0^2) c^2 / (c^2 + c0^2)` of the intensity (`g(1) = 1`, `g(0) = 0`;

@@ -38,6 +38,8 @@
 
 pub mod camera;
 pub mod config;
+pub mod frame;
+mod hash;
 pub mod lidar;
 pub mod material;
 pub mod mesh;
@@ -52,10 +54,11 @@ pub use config::{
     CameraConfig, EgoConfig, FramesConfig, Layout, LidarConfig, LidarReturnModel, LightingConfig,
     PopulationConfig, RoadConfig, RoadParams, SceneConfig,
 };
+pub use frame::SceneSnapshot;
 pub use lidar::{RayOutcome, SimScan};
 pub use material::{Material, class};
 pub use mesh::{Mesh, Surface};
 pub use output::{FramePaths, SimSummary, simulate_to_dir, write_frame};
 pub use raycast::{Accel, Hit};
-pub use scene::{Actor, Scene, SceneSnapshot, SimFrame};
+pub use scene::{Actor, Scene, SimFrame};
 pub use split::{SceneList, SceneListEntry};

@@ -13,6 +13,8 @@ use veila_geom::{LidarSensor, PinholeCamera};
 
 use super::camera::{CameraRenderOptions, SimCalib, SimImage};
 use super::config::{Layout, RoadParams, SceneConfig};
+use super::frame::SceneSnapshot;
+use super::hash::splitmix;
 use super::lidar::SimScan;
 use super::material::{class, stock};
 use super::mesh::Mesh;
@@ -56,22 +58,6 @@ pub struct Scene {
     /// LiDAR pose at time 0.
     ego_pose0: Affine3A,
     ego_velocity: Vec3,
-}
-
-/// One frame of a scene: the world at one instant with its ray-casting accelerator and the pose of
-/// the LiDAR.
-#[derive(Debug)]
-pub struct SceneSnapshot {
-    /// Ray-casting accelerator over every triangle at this instant.
-    pub accel: Accel,
-    /// Time since frame 0, seconds.
-    pub time_s: f32,
-    /// Pose of the LiDAR (world from LiDAR frame) at this instant.
-    pub world_from_lidar: Affine3A,
-    /// Lighting of the scene.
-    pub lighting: super::config::LightingConfig,
-    /// Random stream of this frame (ray drop, range noise).
-    pub noise_seed: u64,
 }
 
 impl Scene {
@@ -213,14 +199,6 @@ pub struct SimFrame {
     pub scan: SimScan,
     /// The image with depth and semantics.
     pub image: SimImage,
-}
-
-/// SplitMix64: a well-mixed 64-bit hash, used for per-ray deterministic random numbers.
-pub(crate) fn splitmix(mut x: u64) -> u64 {
-    x = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    x = (x ^ (x >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    x = (x ^ (x >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    x ^ (x >> 31)
 }
 
 /// A street in its own frame: `s` along the street, `d` across (left positive), z up.

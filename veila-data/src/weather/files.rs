@@ -16,8 +16,9 @@ use image::RgbImage;
 use veila_geom::PinholeCamera;
 
 use super::camera::{CameraInput, DepthMap, Intrinsics};
-use super::lidar::{BeamTable, LidarInput};
+use super::lidar::LidarInput;
 use super::plan::{EffectRecord, EffectsReport, Input};
+use super::points::BeamTable;
 use super::{WeatherConfig, WeatherSim};
 use crate::atomic::write_atomic;
 use crate::scan::{PointFormat, read_points};

@@ -52,10 +52,12 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod camera;
+pub mod camera_config;
 pub mod files;
 pub mod fog;
 pub mod lidar;
 pub mod plan;
+pub mod points;
 pub mod rain;
 mod rng;
 pub mod snow;
@@ -64,10 +66,12 @@ pub mod wet;
 
 use serde::{Deserialize, Serialize};
 
-pub use camera::{CameraConfig, CameraInput, CameraOutput, DepthMap, Headlights, Intrinsics};
+pub use camera::{CameraInput, CameraOutput, DepthMap, Intrinsics};
+pub use camera_config::{CameraConfig, Headlights};
 pub use fog::{FogTable, FogTableConfig};
-pub use lidar::{BeamTable, LidarConfig, LidarInput, LidarOutput, PointOrigin};
+pub use lidar::{LidarConfig, LidarInput};
 pub use plan::{CameraEffect, EffectRecord, EffectsReport, Input, LidarEffect, Plan, Sensor};
+pub use points::{BeamTable, LidarOutput, PointOrigin};
 pub use rng::rng_streams_created;
 pub use spec::{Extinction, Preset, TimeOfDay, Weather};
 
@@ -176,7 +180,7 @@ impl WeatherSim {
         }
         let lc = &self.cfg.lidar;
         let alpha = self.lidar_alpha;
-        let mut st = lidar::LidarState::new(cloud);
+        let mut st = points::LidarState::new(cloud);
         let mut records = Vec::new();
         for &e in &self.plan.lidar {
             let rec = match e {

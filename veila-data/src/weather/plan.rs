@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
-use super::camera::CameraConfig;
+use super::camera_config::CameraConfig;
 use super::spec::{Extinction, TimeOfDay, Weather};
 use crate::Result;
 

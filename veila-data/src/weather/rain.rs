@@ -35,8 +35,8 @@ use rand_distr::{Distribution, Exp, StandardNormal};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::lidar::{LidarState, PointOrigin, to_f32_intensity};
 use super::plan::{EffectRecord, LidarEffect};
+use super::points::{LidarState, PointOrigin, to_f32_intensity};
 use super::rng::{self, CHUNK};
 use super::spec::{Weather, marshall_palmer};
 use crate::{Error, Result};

@@ -67,8 +67,8 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::fog::SPEED_OF_LIGHT_M_S;
-use super::lidar::{BeamTable, LidarState, PointOrigin, to_f32_intensity};
 use super::plan::{EffectRecord, LidarEffect};
+use super::points::{BeamTable, LidarState, PointOrigin, to_f32_intensity};
 use super::rng::{self, CHUNK};
 use super::spec::{Weather, marshall_gunn, snow_equivalent_rain_rate_mm_h, snow_occupancy};
 use crate::{Error, Result};

@@ -32,8 +32,8 @@ use glam::{DVec3, Vec3};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
-use super::lidar::{LidarState, to_f32_intensity};
 use super::plan::{EffectRecord, LidarEffect};
+use super::points::{LidarState, to_f32_intensity};
 use super::rng;
 use super::spec::Weather;
 use crate::{Error, PointCloud, Result};

@@ -129,9 +129,11 @@ pub mod mit;
 pub mod small_cnn;
 
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
-use candle_core::{DType, Device, Shape, Tensor};
+use candle_core::{DType, Device, Tensor};
+
+pub use crate::weights::{TensorSpec, load_checked, load_checked_bytes, record_tensor_specs};
 use candle_nn::{VarBuilder, VarMap};
 
 /// Per-channel normalisation applied to RGB values in `[0, 1]`: `x = (v - mean) / std`.
@@ -381,101 +383,6 @@ pub fn depth_anything_resize_size(
     let m = multiple.max(1) as f64;
     let constrain = |v: f64| ((v / m).round_ties_even() * m) as usize;
     (constrain(scale_h * h), constrain(scale_w * w))
-}
-
-/// Name and shape of one tensor a model reads from its `VarBuilder`.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct TensorSpec {
-    /// Full tensor name, e.g. `segformer.encoder.block.0.0.attention.self.query.weight`.
-    pub name: String,
-    /// Expected shape.
-    pub shape: Vec<usize>,
-}
-
-#[derive(Debug, Default)]
-struct RecordingBackend {
-    seen: Arc<Mutex<Vec<TensorSpec>>>,
-}
-
-impl candle_nn::var_builder::SimpleBackend for RecordingBackend {
-    fn get(
-        &self,
-        s: Shape,
-        name: &str,
-        _: candle_nn::Init,
-        dtype: DType,
-        dev: &Device,
-    ) -> candle_core::Result<Tensor> {
-        if let Ok(mut seen) = self.seen.lock() {
-            seen.push(TensorSpec {
-                name: name.to_string(),
-                shape: s.dims().to_vec(),
-            });
-        }
-        Tensor::zeros(s, dtype, dev)
-    }
-    fn get_unchecked(&self, name: &str, _: DType, _: &Device) -> candle_core::Result<Tensor> {
-        candle_core::bail!("record_tensor_specs: tensor {name} requested without a shape")
-    }
-    fn contains_tensor(&self, _: &str) -> bool {
-        true
-    }
-}
-
-/// Lists every tensor (name and shape) that `build` reads, in request order, by running it on a
-/// recording `VarBuilder` that hands out zeros. Use it to compare a checkpoint's keys against a model
-/// (missing, unexpected and mis-shaped tensors) before loading, e.g.
-/// `record_tensor_specs(|vb| MitEncoder::new(&cfg, vb))`.
-pub fn record_tensor_specs<T>(
-    build: impl FnOnce(VarBuilder<'static>) -> crate::Result<T>,
-) -> crate::Result<Vec<TensorSpec>> {
-    let seen = Arc::new(Mutex::new(Vec::new()));
-    let backend = RecordingBackend { seen: seen.clone() };
-    let vb = VarBuilder::from_backend(Box::new(backend), DType::F32, Device::Cpu);
-    build(vb)?;
-    let specs = seen
-        .lock()
-        .map_err(|_| candle_core::Error::Msg("record_tensor_specs: lock poisoned".into()))?
-        .clone();
-    Ok(specs)
-}
-
-/// Loads the weights of a model from a safetensors file, verifying them first.
-///
-/// `build` constructs the model from a `VarBuilder` (it is run once on a recording builder to learn
-/// the expected names and shapes, then on the file's tensors). Tensors the model needs but the file
-/// lacks, and tensors with the wrong shape, fail with [`crate::Error::CheckpointMismatch`] naming
-/// them and the file; tensors of the file that the model does not read are reported as unexpected
-/// only when `in_scope(name)` is true (pretrained files carry heads the encoder ignores, e.g.
-/// `classifier.*` or `decode_head.*`). IO and parse errors name the file.
-pub fn load_checked<T>(
-    path: &std::path::Path,
-    dtype: DType,
-    device: &Device,
-    in_scope: impl Fn(&str) -> bool,
-    build: impl Fn(VarBuilder<'static>) -> crate::Result<T>,
-) -> crate::Result<T> {
-    let bytes = std::fs::read(path).map_err(|source| crate::Error::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    load_checked_bytes(&bytes, path, dtype, device, in_scope, build)
-}
-
-/// [`load_checked`] on the bytes of a safetensors file already in memory (e.g. embedded in a
-/// binary); `path` names the source in errors.
-pub fn load_checked_bytes<T>(
-    bytes: &[u8],
-    path: &std::path::Path,
-    dtype: DType,
-    device: &Device,
-    in_scope: impl Fn(&str) -> bool,
-    build: impl Fn(VarBuilder<'static>) -> crate::Result<T>,
-) -> crate::Result<T> {
-    let expected = crate::checkpoint::record_tensors(|vb| build(vb).map(|_| ()))?;
-    let tensors =
-        crate::checkpoint::read_checked_scoped(bytes, path, &expected, in_scope, dtype, device)?;
-    build(VarBuilder::from_tensors(tensors, dtype, device))
 }
 
 /// Checks that `image` is `[B, 3, H, W]` with `H, W >= min_size`; returns `(B, H, W)`.

@@ -131,7 +131,7 @@ pub struct Manifest {
     pub files: BTreeMap<String, String>,
 }
 
-pub use crate::checkpoint::sha256_hex;
+pub use crate::weights::sha256_hex;
 
 fn parse_json<T: serde::de::DeserializeOwned>(bytes: &[u8], path: &Path) -> Result<T> {
     serde_json::from_slice(bytes).map_err(|source| Error::Json {
@@ -356,7 +356,7 @@ pub fn save_bundle(
             .iter()
             .map(|(k, v)| (k.clone(), v.dims().to_vec()))
             .collect();
-        let report = crate::checkpoint::compare_tensors(&expected, &found);
+        let report = crate::weights::compare_tensors(&expected, &found);
         if report.is_clean() {
             Ok(())
         } else {
@@ -387,7 +387,7 @@ pub fn save_bundle(
         ),
         (
             RANGENET_WEIGHTS,
-            crate::checkpoint::safetensors_bytes(rangenet.1, &dir.join(RANGENET_WEIGHTS))?,
+            crate::weights::safetensors_bytes(rangenet.1, &dir.join(RANGENET_WEIGHTS))?,
         ),
         (
             POINTNET_CONFIG,
@@ -395,7 +395,7 @@ pub fn save_bundle(
         ),
         (
             POINTNET_WEIGHTS,
-            crate::checkpoint::safetensors_bytes(pointnet.1, &dir.join(POINTNET_WEIGHTS))?,
+            crate::weights::safetensors_bytes(pointnet.1, &dir.join(POINTNET_WEIGHTS))?,
         ),
     ];
     let manifest = Manifest {
@@ -414,7 +414,7 @@ pub fn save_bundle(
         .chain([(MANIFEST, manifest_bytes.as_slice())])
     {
         let path = dir.join(file);
-        let tmp = crate::checkpoint::tmp_path(&path);
+        let tmp = crate::weights::tmp_path(&path);
         std::fs::write(&tmp, bytes).map_err(|source| Error::Io {
             path: path.clone(),
             source,

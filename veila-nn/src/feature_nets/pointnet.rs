@@ -460,7 +460,7 @@ impl PointNet {
 
     /// Every tensor the net of `cfg` has, by name, with its shape.
     pub fn expected_tensors(cfg: &PointNetConfig) -> Result<BTreeMap<String, Vec<usize>>> {
-        crate::checkpoint::record_tensors(|vb| PointNet::new(cfg, vb).map(|_| ()))
+        crate::weights::record_tensors(|vb| PointNet::new(cfg, vb).map(|_| ()))
     }
 
     /// Number of scalar parameters (BatchNorm running statistics included).
@@ -475,7 +475,7 @@ impl PointNet {
     /// [`Error::CheckpointMismatch`].
     pub fn load(path: &Path, cfg: &PointNetConfig, device: &Device) -> Result<Self> {
         cfg.validate()?;
-        crate::encoders::load_checked(path, DType::F32, device, |_| true, |vb| Self::new(cfg, vb))
+        crate::weights::load_checked(path, DType::F32, device, |_| true, |vb| Self::new(cfg, vb))
     }
 
     /// [`PointNet::load`] from the bytes of a safetensors file (`path` names it in errors).
@@ -486,7 +486,7 @@ impl PointNet {
         device: &Device,
     ) -> Result<Self> {
         cfg.validate()?;
-        crate::encoders::load_checked_bytes(
+        crate::weights::load_checked_bytes(
             bytes,
             path,
             DType::F32,

@@ -552,7 +552,7 @@ impl RangeNet {
 
     /// Every tensor the net of `cfg` has, by name, with its shape.
     pub fn expected_tensors(cfg: &RangeNetConfig) -> Result<BTreeMap<String, Vec<usize>>> {
-        crate::checkpoint::record_tensors(|vb| RangeNet::new(cfg, vb).map(|_| ()))
+        crate::weights::record_tensors(|vb| RangeNet::new(cfg, vb).map(|_| ()))
     }
 
     /// Number of scalar parameters (BatchNorm running statistics included).
@@ -568,7 +568,7 @@ impl RangeNet {
     /// mis-shaped tensors.
     pub fn load(path: &Path, cfg: &RangeNetConfig, device: &Device) -> Result<Self> {
         cfg.validate()?;
-        crate::encoders::load_checked(path, DType::F32, device, |_| true, |vb| Self::new(cfg, vb))
+        crate::weights::load_checked(path, DType::F32, device, |_| true, |vb| Self::new(cfg, vb))
     }
 
     /// [`RangeNet::load`] from the bytes of a safetensors file (`path` names it in errors).
@@ -579,7 +579,7 @@ impl RangeNet {
         device: &Device,
     ) -> Result<Self> {
         cfg.validate()?;
-        crate::encoders::load_checked_bytes(
+        crate::weights::load_checked_bytes(
             bytes,
             path,
             DType::F32,

@@ -9,7 +9,7 @@
 //! render an ordinary frame rather than failing.
 //!
 //! ```
-//! use veila_data::plot::{Plot, Series, SeriesStyle};
+//! use veila_data::vis::plot::{Plot, Series, SeriesStyle};
 //!
 //! let plot = Plot {
 //!     title: "Denoiser loss".into(),
@@ -219,7 +219,7 @@ fn pow10(e: i32) -> f64 {
 /// nothing for non-finite or reversed bounds.
 ///
 /// ```
-/// use veila_data::plot::linear_ticks;
+/// use veila_data::vis::plot::linear_ticks;
 /// assert_eq!(linear_ticks(0.0, 1.0, 6), [0.0, 0.2, 0.4, 0.6, 0.8, 1.0]);
 /// assert_eq!(linear_ticks(0.0, 1.0, 5), [0.0, 0.5, 1.0]);
 /// ```
@@ -266,7 +266,7 @@ fn linear_ticks_step(lo: f64, hi: f64, max_ticks: usize) -> Option<(Vec<f64>, St
 /// range, 1-2-5 multiples of powers of ten; when even those are fewer than two, linear ticks.
 ///
 /// ```
-/// use veila_data::plot::log_ticks;
+/// use veila_data::vis::plot::log_ticks;
 /// assert_eq!(log_ticks(0.5, 2000.0, 10), [1.0, 10.0, 100.0, 1000.0]);
 /// assert_eq!(log_ticks(2.0, 60.0, 10), [2.0, 5.0, 10.0, 20.0, 50.0]);
 /// ```

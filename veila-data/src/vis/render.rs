@@ -2,14 +2,13 @@
 //! image coloured by depth (the paper's Figure 6 view).
 //!
 //! Colour maps are matplotlib's perceptually uniform `viridis` (range, depth, height) and `magma`
-//! (intensity), sampled to 256 entries and interpolated linearly; empty pixels are black. Label
+//! (intensity), from the `colorous` crate; empty pixels are black. Label
 //! previews use the SemanticKITTI colours of the label map (stored BGR in the yaml, converted to RGB).
 
 use glam::Vec3;
 use image::{Rgb, RgbImage};
 use veila_geom::{PinholeCamera, RangeImage};
 
-use crate::colormap_data::{MAGMA, VIRIDIS};
 use crate::semantic_kitti::LabelMap;
 use crate::{Error, PointCloud, Result};
 
@@ -23,24 +22,18 @@ pub enum Colormap {
 }
 
 impl Colormap {
-    fn table(self) -> &'static [[u8; 3]; 256] {
-        match self {
-            Colormap::Viridis => &VIRIDIS,
-            Colormap::Magma => &MAGMA,
-        }
-    }
-
-    /// Colour of `t` in `[0, 1]` (clamped; NaN gives black), linearly interpolated between entries.
+    /// Colour of `t` in `[0, 1]` (clamped; NaN gives black), from colorous' copy of matplotlib's
+    /// 256-entry table.
     pub fn rgb(self, t: f32) -> [u8; 3] {
         if t.is_nan() {
             return [0, 0, 0];
         }
-        let x = t.clamp(0.0, 1.0) * 255.0;
-        let i = (x.floor() as usize).min(254);
-        let f = x - i as f32;
-        let (a, b) = (self.table()[i], self.table()[i + 1]);
-        let mix = |k: usize| (a[k] as f32 + (b[k] as f32 - a[k] as f32) * f).round() as u8;
-        [mix(0), mix(1), mix(2)]
+        let gradient = match self {
+            Colormap::Viridis => colorous::VIRIDIS,
+            Colormap::Magma => colorous::MAGMA,
+        };
+        let c = gradient.eval_continuous(f64::from(t.clamp(0.0, 1.0)));
+        [c.r, c.g, c.b]
     }
 }
 
@@ -391,6 +384,18 @@ mod tests {
                 prev = l;
             }
             assert_eq!(cm.rgb(f32::NAN), [0, 0, 0]);
+            // the ends of matplotlib's tables (viridis #440154 .. #fde725, magma #000004 .. #fcfdbf)
+            let ends = match cm {
+                Colormap::Viridis => [[68u8, 1, 84], [253, 231, 37]],
+                Colormap::Magma => [[0, 0, 4], [252, 253, 191]],
+            };
+            for (t, want) in [(0.0, ends[0]), (1.0, ends[1])] {
+                let got = cm.rgb(t);
+                assert!(
+                    (0..3).all(|k| (got[k] as i32 - want[k] as i32).abs() <= 3),
+                    "{cm:?}({t}) = {got:?}, matplotlib {want:?}"
+                );
+            }
             assert_eq!(cm.rgb(-3.0), cm.rgb(0.0));
             assert_eq!(cm.rgb(7.0), cm.rgb(1.0));
         }

@@ -1,0 +1,226 @@
+//! Weights IO, the bottom of the crate: which tensors a model reads (found by running its builder on
+//! a recording `VarBuilder`), reading safetensors bytes checked against that list, deterministic
+//! safetensors serialisation and sha256 sums. Models, encoders, feature networks and checkpoints all
+//! build on it; it builds on nothing of this crate but the error type.
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+
+use candle_core::{DType, Device, Shape, Tensor};
+use candle_nn::VarBuilder;
+
+use crate::error::{Error, Result, TensorReport};
+
+/// Name and shape of one tensor a model reads from its `VarBuilder`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TensorSpec {
+    /// Full tensor name, e.g. `segformer.encoder.block.0.0.attention.self.query.weight`.
+    pub name: String,
+    /// Expected shape.
+    pub shape: Vec<usize>,
+}
+
+#[derive(Debug, Default)]
+struct RecordingBackend {
+    seen: Arc<Mutex<Vec<TensorSpec>>>,
+}
+
+impl candle_nn::var_builder::SimpleBackend for RecordingBackend {
+    fn get(
+        &self,
+        s: Shape,
+        name: &str,
+        _: candle_nn::Init,
+        dtype: DType,
+        dev: &Device,
+    ) -> candle_core::Result<Tensor> {
+        if let Ok(mut seen) = self.seen.lock() {
+            seen.push(TensorSpec {
+                name: name.to_string(),
+                shape: s.dims().to_vec(),
+            });
+        }
+        Tensor::zeros(s, dtype, dev)
+    }
+    fn get_unchecked(&self, name: &str, _: DType, _: &Device) -> candle_core::Result<Tensor> {
+        candle_core::bail!("record_tensor_specs: tensor {name} requested without a shape")
+    }
+    fn contains_tensor(&self, _: &str) -> bool {
+        true
+    }
+}
+
+/// Lists every tensor (name and shape) that `build` reads, in request order, by running it on a
+/// recording `VarBuilder` that hands out zeros. Use it to compare a checkpoint's keys against a model
+/// (missing, unexpected and mis-shaped tensors) before loading, e.g.
+/// `record_tensor_specs(|vb| MitEncoder::new(&cfg, vb))`.
+pub fn record_tensor_specs<T>(
+    build: impl FnOnce(VarBuilder<'static>) -> crate::Result<T>,
+) -> crate::Result<Vec<TensorSpec>> {
+    let seen = Arc::new(Mutex::new(Vec::new()));
+    let backend = RecordingBackend { seen: seen.clone() };
+    let vb = VarBuilder::from_backend(Box::new(backend), DType::F32, Device::Cpu);
+    build(vb)?;
+    let specs = seen
+        .lock()
+        .map_err(|_| candle_core::Error::Msg("record_tensor_specs: lock poisoned".into()))?
+        .clone();
+    Ok(specs)
+}
+
+/// Loads the weights of a model from a safetensors file, verifying them first.
+///
+/// `build` constructs the model from a `VarBuilder` (it is run once on a recording builder to learn
+/// the expected names and shapes, then on the file's tensors). Tensors the model needs but the file
+/// lacks, and tensors with the wrong shape, fail with [`crate::Error::CheckpointMismatch`] naming
+/// them and the file; tensors of the file that the model does not read are reported as unexpected
+/// only when `in_scope(name)` is true (pretrained files carry heads the encoder ignores, e.g.
+/// `classifier.*` or `decode_head.*`). IO and parse errors name the file.
+pub fn load_checked<T>(
+    path: &std::path::Path,
+    dtype: DType,
+    device: &Device,
+    in_scope: impl Fn(&str) -> bool,
+    build: impl Fn(VarBuilder<'static>) -> crate::Result<T>,
+) -> crate::Result<T> {
+    let bytes = std::fs::read(path).map_err(|source| crate::Error::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    load_checked_bytes(&bytes, path, dtype, device, in_scope, build)
+}
+
+/// [`load_checked`] on the bytes of a safetensors file already in memory (e.g. embedded in a
+/// binary); `path` names the source in errors.
+pub fn load_checked_bytes<T>(
+    bytes: &[u8],
+    path: &std::path::Path,
+    dtype: DType,
+    device: &Device,
+    in_scope: impl Fn(&str) -> bool,
+    build: impl Fn(VarBuilder<'static>) -> crate::Result<T>,
+) -> crate::Result<T> {
+    let expected = record_tensors(|vb| build(vb).map(|_| ()))?;
+    let tensors = read_checked_scoped(bytes, path, &expected, in_scope, dtype, device)?;
+    build(VarBuilder::from_tensors(tensors, dtype, device))
+}
+
+/// The tensors (name -> shape) a model builder asks its `VarBuilder` for, found by running it on a
+/// recording builder that hands out zeros (see [`record_tensor_specs`]).
+pub fn record_tensors(
+    build: impl FnOnce(VarBuilder<'static>) -> Result<()>,
+) -> Result<BTreeMap<String, Vec<usize>>> {
+    Ok(record_tensor_specs(build)?
+        .into_iter()
+        .map(|s| (s.name, s.shape))
+        .collect())
+}
+
+/// Parses safetensors bytes (`path` names them in errors), checks them against `expected` (every
+/// tensor present with its shape, nothing else) and converts them to `f32`.
+pub fn read_checked_bytes(
+    bytes: &[u8],
+    path: &Path,
+    expected: &BTreeMap<String, Vec<usize>>,
+    device: &Device,
+) -> Result<HashMap<String, Tensor>> {
+    read_checked_scoped(bytes, path, expected, |_| true, DType::F32, device)
+}
+
+/// [`read_checked_bytes`] where tensors of the file that `expected` lacks are reported only when
+/// `in_scope(name)` is true (and otherwise dropped), converted to `dtype`.
+pub(crate) fn read_checked_scoped(
+    bytes: &[u8],
+    path: &Path,
+    expected: &BTreeMap<String, Vec<usize>>,
+    in_scope: impl Fn(&str) -> bool,
+    dtype: DType,
+    device: &Device,
+) -> Result<HashMap<String, Tensor>> {
+    let tensors =
+        candle_core::safetensors::load_buffer(bytes, device).map_err(|e| Error::SafeTensors {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
+    let found: BTreeMap<String, Vec<usize>> = tensors
+        .iter()
+        .map(|(k, v)| (k.clone(), v.dims().to_vec()))
+        .collect();
+    let mut report = compare_tensors(expected, &found);
+    report.unexpected.retain(|n| in_scope(n));
+    if !report.is_clean() {
+        return Err(Error::CheckpointMismatch {
+            path: path.to_path_buf(),
+            report,
+        });
+    }
+    tensors
+        .into_iter()
+        .filter(|(k, _)| expected.contains_key(k))
+        .map(|(k, v)| Ok((k, v.to_dtype(dtype)?)))
+        .collect()
+}
+
+/// Serialises tensors as safetensors bytes, sorted by name and as contiguous `f32` on the CPU, so
+/// the same weights always give the same bytes (and the same sha256). `path` names the file in
+/// errors. A few lines over `safetensors::serialize` rather than candle's `save` on purpose: the
+/// bytes, and so the manifests' sums, must not depend on the device or dtype the weights live in.
+pub fn safetensors_bytes(tensors: &HashMap<String, Tensor>, path: &Path) -> Result<Vec<u8>> {
+    let mut sorted: Vec<(String, Tensor)> = tensors
+        .iter()
+        .map(|(k, v)| {
+            Ok((
+                k.clone(),
+                v.to_device(&Device::Cpu)?
+                    .to_dtype(DType::F32)?
+                    .contiguous()?,
+            ))
+        })
+        .collect::<candle_core::Result<_>>()?;
+    sorted.sort_by(|a, b| a.0.cmp(&b.0));
+    safetensors::serialize(sorted, None).map_err(|e| Error::SafeTensors {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    })
+}
+
+/// Lower-case hex sha256 of `bytes` (the sums of the weight manifests).
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    use sha2::Digest;
+    sha2::Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// Compares what a model needs with what a file holds.
+pub fn compare_tensors(
+    expected: &BTreeMap<String, Vec<usize>>,
+    found: &BTreeMap<String, Vec<usize>>,
+) -> TensorReport {
+    let mut r = TensorReport::default();
+    for (name, shape) in expected {
+        match found.get(name) {
+            None => r.missing.push(name.clone()),
+            Some(s) if s != shape => r.mis_shaped.push((name.clone(), shape.clone(), s.clone())),
+            Some(_) => {}
+        }
+    }
+    r.unexpected = found
+        .keys()
+        .filter(|k| !expected.contains_key(*k))
+        .cloned()
+        .collect();
+    r
+}
+
+/// A temporary name beside `path` (same folder, so a rename publishes it atomically).
+pub(crate) fn tmp_path(path: &Path) -> PathBuf {
+    let mut name = path
+        .file_name()
+        .map(|n| n.to_os_string())
+        .unwrap_or_default();
+    name.push(format!(".tmp{}", std::process::id()));
+    path.with_file_name(name)
+}
