@@ -13,7 +13,9 @@
 //!    naming the file.
 //!
 //! Every reader drops points with a non-finite coordinate or intensity and reports how many
-//! ([`LoadedPoints::dropped_non_finite`]); they never reach a projection or a metric.
+//! ([`LoadedPoints::dropped_non_finite`]); they never reach a projection. Geometry consumers (the
+//! metrics) read with [`read_points_with`]`(path, `[`Keep::FiniteXyz`]`)`, which keeps a point whose
+//! intensity alone is NaN, as the peers' metric scripts do.
 
 use std::io::Read;
 use std::path::Path;
@@ -117,15 +119,39 @@ fn detect_from(head: &[u8], path: &Path) -> Result<PointFormat> {
     ))
 }
 
+/// Which points a reader keeps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Keep {
+    /// Points whose coordinates and intensity are all finite (what projections need).
+    #[default]
+    FiniteRecords,
+    /// Points whose coordinates are finite, whatever their intensity (what geometry metrics need).
+    FiniteXyz,
+}
+
+impl Keep {
+    fn apply(self, cloud: &mut PointCloud) -> usize {
+        match self {
+            Keep::FiniteRecords => cloud.retain_finite(),
+            Keep::FiniteXyz => cloud.retain_finite_xyz(),
+        }
+    }
+}
+
 /// Read any supported point file (format detected; see the module docs). Non-finite points are dropped
 /// and counted.
 pub fn read_points(path: &Path) -> Result<LoadedPoints> {
+    read_points_with(path, Keep::FiniteRecords)
+}
+
+/// [`read_points`] with a choice of which points to keep ([`Keep`]).
+pub fn read_points_with(path: &Path, keep: Keep) -> Result<LoadedPoints> {
     match detect_point_format(path)? {
-        PointFormat::KittiBin => read_kitti_bin(path),
-        PointFormat::NuScenesPcdBin => read_nuscenes_pcd_bin(path),
+        PointFormat::KittiBin => parse_kitti_bin_with(&read_all(path)?, path, keep),
+        PointFormat::NuScenesPcdBin => parse_nuscenes_pcd_bin_with(&read_all(path)?, path, keep),
         PointFormat::Ply => {
             let mut cloud = crate::ply::read_ply(path)?;
-            let dropped = cloud.retain_finite();
+            let dropped = keep.apply(&mut cloud);
             Ok(LoadedPoints {
                 cloud,
                 format: PointFormat::Ply,
@@ -204,8 +230,12 @@ pub(crate) fn decode_kitti_records(bytes: &[u8], path: &Path) -> Result<PointClo
 
 /// Decode KITTI velodyne bytes (x, y, z, reflectance f32 records). `path` names the source in errors.
 pub fn parse_kitti_bin(bytes: &[u8], path: &Path) -> Result<LoadedPoints> {
+    parse_kitti_bin_with(bytes, path, Keep::FiniteRecords)
+}
+
+fn parse_kitti_bin_with(bytes: &[u8], path: &Path, keep: Keep) -> Result<LoadedPoints> {
     let mut cloud = decode_kitti_records(bytes, path)?;
-    let dropped = cloud.retain_finite();
+    let dropped = keep.apply(&mut cloud);
     Ok(LoadedPoints {
         cloud,
         format: PointFormat::KittiBin,
@@ -222,6 +252,10 @@ pub fn read_kitti_bin(path: &Path) -> Result<LoadedPoints> {
 /// Decode nuScenes LIDAR_TOP bytes (x, y, z, intensity, ring f32 records). A ring that is not an
 /// integer in 0..=65535 is a format error.
 pub fn parse_nuscenes_pcd_bin(bytes: &[u8], path: &Path) -> Result<LoadedPoints> {
+    parse_nuscenes_pcd_bin_with(bytes, path, Keep::FiniteRecords)
+}
+
+fn parse_nuscenes_pcd_bin_with(bytes: &[u8], path: &Path, keep: Keep) -> Result<LoadedPoints> {
     check_records(bytes, NUSCENES_RECORD_BYTES, path)?;
     let n = bytes.len() / NUSCENES_RECORD_BYTES;
     let mut cloud = PointCloud {
@@ -256,7 +290,7 @@ pub fn parse_nuscenes_pcd_bin(bytes: &[u8], path: &Path) -> Result<LoadedPoints>
         rings.push(ring as u16);
     }
     cloud.ring = Some(rings);
-    let dropped = cloud.retain_finite();
+    let dropped = keep.apply(&mut cloud);
     debug_assert!(dropped >= non_finite_ring);
     Ok(LoadedPoints {
         cloud,
@@ -320,6 +354,39 @@ mod tests {
 
     fn rec(v: &[f32]) -> Vec<u8> {
         v.iter().flat_map(|x| x.to_le_bytes()).collect()
+    }
+
+    #[test]
+    fn finite_xyz_keeps_a_point_whose_intensity_alone_is_nan() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.bin");
+        std::fs::write(
+            &p,
+            rec(&[
+                1.0,
+                2.0,
+                3.0,
+                f32::NAN,
+                f32::NAN,
+                0.0,
+                0.0,
+                0.1,
+                4.0,
+                5.0,
+                6.0,
+                0.2,
+            ]),
+        )
+        .unwrap();
+        let records = read_points(&p).unwrap();
+        assert_eq!(records.cloud.xyz, vec![Vec3::new(4.0, 5.0, 6.0)]);
+        let geometry = read_points_with(&p, Keep::FiniteXyz).unwrap();
+        assert_eq!(
+            geometry.cloud.xyz,
+            vec![Vec3::new(1.0, 2.0, 3.0), Vec3::new(4.0, 5.0, 6.0)]
+        );
+        assert!(geometry.cloud.intensity[0].is_nan());
+        assert_eq!(geometry.dropped_non_finite, 1);
     }
 
     #[test]
