@@ -74,6 +74,7 @@ pub mod error;
 pub mod image_io;
 pub mod kitti;
 pub mod nuscenes;
+pub mod peer_samples;
 pub mod plot;
 pub mod ply;
 pub mod points;
