@@ -474,16 +474,15 @@ static DEFAULT_MODEL: &[(&str, &[u8])] = &[
     ),
 ];
 
-fn load_bundle(model_dir: Option<&Path>) -> PyResult<Bundle> {
+fn load_bundle(model_dir: Option<&Path>) -> Result<Bundle, String> {
     match model_dir {
-        Some(d) => Bundle::from_dir(d, &Device::Cpu)
-            .map_err(|e| value_err(format!("{}: {e}", d.display()))),
+        Some(d) => Bundle::from_dir(d, &Device::Cpu).map_err(|e| format!("{}: {e}", d.display())),
         None => Bundle::from_files(
             DEFAULT_MODEL,
             Path::new("<bundled models/default>"),
             &Device::Cpu,
         )
-        .map_err(runtime_err),
+        .map_err(|e| e.to_string()),
     }
 }
 
