@@ -18,15 +18,20 @@ use veila_metrics::{
     fd::{self, FeatureStats, SqrtMethod},
     lidm::{self, LidmBevConfig},
     nn::PointIndex,
+    protocol::{PeerProtocol, PeerSummary},
 };
 
 /// Evaluation commands.
 #[derive(Debug, Subcommand)]
 pub(crate) enum EvalCmd {
-    /// Score generated scans against reference scans (JSD, MMD, MMD-CD, Chamfer, FRD, FPD), each metric
-    /// named by its protocol, for the whole panorama and its front (x > 0) and rear (x <= 0) halves
-    /// (FRD and FPD: whole panorama only; their built-in networks are simulator-trained, so the values
-    /// are not comparable with published FRD / FPD numbers).
+    /// Score generated scans against reference scans, each metric named by its protocol, for the whole
+    /// panorama and its front (x > 0) and rear (x <= 0) halves. `jsd` and `mmd` run a peer's whole
+    /// pipeline (`--protocol`: its range-image projection, range caps, then its metric), so raw scans
+    /// give the number the peer's scripts report; the `*-raw` metrics score the raw points instead.
+    /// Generated folders may also hold the peers' own sample sets (.npy / .npz range images, read as
+    /// the protocol's layout; pickles are refused). FRD and FPD: whole panorama only; their built-in
+    /// networks are simulator-trained, so the values are not comparable with published FRD / FPD
+    /// numbers.
     Eval(EvalArgs),
     /// Fréchet distance between two feature matrices (.npy, f32 or f64, one row per sample).
     Fd(FdArgs),
@@ -35,14 +40,22 @@ pub(crate) enum EvalCmd {
 /// Metrics `veila eval` can compute.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, ValueEnum)]
 pub(crate) enum MetricName {
-    /// Jensen-Shannon distance of summed BEV histograms (R2DM / LiDARGen protocol).
+    /// The --protocol's JSD after its whole pipeline (R2DM / Text2LiDAR / LiDARGen: summed 100 x 100
+    /// BEV histograms; LiDM: summed 0.05 m occupancy).
     Jsd,
-    /// Gaussian-kernel BEV MMD, Frobenius distance, sigma 0.5 (R2DM protocol; papers print x 1e4).
+    /// The --protocol's MMD after its whole pipeline (R2DM / Text2LiDAR: Gaussian kernel, Frobenius,
+    /// printed x 1e4; LiDARGen: spectral norm; LiDM: minimum matching 2-D Chamfer, printed x 1e4).
     Mmd,
-    /// Gaussian-kernel BEV MMD with the spectral-norm distance (LiDARGen protocol; O(N^2) SVDs).
-    MmdLidargen,
-    /// Minimum matching distance, 2-D Chamfer over 0.5 m BEV occupancy (LiDM protocol; printed x 1e4).
-    MmdLidm,
+    /// R2DM's BEV JSD on the raw points (no projection, no range caps).
+    JsdRaw,
+    /// R2DM's BEV MMD on the raw points (no projection, no range caps).
+    MmdRaw,
+    /// LiDARGen's spectral-norm BEV MMD on the raw points (O(N^2) SVDs).
+    MmdLidargenRaw,
+    /// LiDM's minimum matching distance on the raw points, 64-beam grid (+-50 m).
+    MmdLidmRaw,
+    /// LiDM's minimum matching distance on the raw points, 32-beam nuScenes grid (+-30 m).
+    MmdLidmNuscenesRaw,
     /// Minimum matching distance with the 3-D Chamfer distance (PyTorch3D convention).
     MmdCd,
     /// Chamfer distance of scans paired by file name, averaged over pairs (PyTorch3D convention).
@@ -55,6 +68,33 @@ pub(crate) enum MetricName {
     /// / 80 m), whole panorama only. With the built-in simulator-trained net, NOT comparable with
     /// published FPD values (different weights and feature layer).
     Fpd,
+}
+
+/// The peer pipelines `jsd` and `mmd` follow.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub(crate) enum ProtocolArg {
+    /// R2DM: 64 x 1024 grid (+3..-25 deg), nearest point per pixel, 1.45 <= r <= 80 and 0.5 < r < 63 m.
+    R2dm,
+    /// Text2LiDAR (R2DM's code): 32 x 1024 grid with the same +3..-25 deg rows.
+    Text2lidar,
+    /// LiDARGen: 64 x 1024, log-range clipped at 63 m, unprojected, 3 < r < 70 m; spectral-norm MMD.
+    Lidargen,
+    /// LiDM, 64-beam: 1 < r < 56 m, 64 x 1024 round trip; occupancy JSD and MMD over +-50 m.
+    Lidm,
+    /// LiDM, 32-beam nuScenes: 1 < r < 45 m, 32 x 1024 (+10..-30 deg) round trip; grids over +-30 m.
+    LidmNuscenes,
+}
+
+impl From<ProtocolArg> for PeerProtocol {
+    fn from(p: ProtocolArg) -> Self {
+        match p {
+            ProtocolArg::R2dm => PeerProtocol::R2dm,
+            ProtocolArg::Text2lidar => PeerProtocol::Text2lidar,
+            ProtocolArg::Lidargen => PeerProtocol::Lidargen,
+            ProtocolArg::Lidm => PeerProtocol::Lidm,
+            ProtocolArg::LidmNuscenes => PeerProtocol::LidmNuscenes,
+        }
+    }
 }
 
 /// Regions to report.
@@ -80,7 +120,8 @@ impl From<RegionArg> for Region {
 
 #[derive(Debug, Args)]
 pub(crate) struct EvalArgs {
-    /// Folder of generated scans (.bin, .pcd.bin, .ply or range .exr; format detected per file).
+    /// Folder of generated scans (.bin, .pcd.bin, .ply or range .exr; format detected per file), or of
+    /// the peer's own sample sets (.npy / .npz range images in the --protocol's layout).
     #[arg(long)]
     generated: PathBuf,
     /// Folder of reference scans (same formats).
@@ -89,6 +130,9 @@ pub(crate) struct EvalArgs {
     /// Comma-separated metrics.
     #[arg(long, value_delimiter = ',', default_value = "jsd,mmd")]
     metrics: Vec<MetricName>,
+    /// The peer pipeline of `jsd` and `mmd` (projection to its range-image grid, range caps, metric).
+    #[arg(long, value_enum, default_value = "r2dm")]
+    protocol: ProtocolArg,
     /// Comma-separated regions.
     #[arg(long, value_delimiter = ',', default_value = "all,front,rear")]
     regions: Vec<RegionArg>,
@@ -135,7 +179,7 @@ fn is_scan_file(path: &Path) -> bool {
     name.ends_with(".bin") || name.ends_with(".ply") || name.ends_with(".exr")
 }
 
-/// Scan files of a folder, sorted by name.
+/// Scan and sample files of a folder, sorted by name. A pickle in the folder is an error naming it.
 fn list_scans(dir: &Path, what: &str) -> Result<Vec<PathBuf>> {
     let entries = std::fs::read_dir(dir)
         .with_context(|| format!("{what} folder {}: cannot read", dir.display()))?;
@@ -143,14 +187,18 @@ fn list_scans(dir: &Path, what: &str) -> Result<Vec<PathBuf>> {
     for e in entries {
         let e = e.with_context(|| format!("{what} folder {}: cannot list", dir.display()))?;
         let p = e.path();
-        if p.is_file() && is_scan_file(&p) {
+        if !p.is_file() {
+            continue;
+        }
+        veila_data::peer_samples::refuse_pickle(&p)?;
+        if is_scan_file(&p) || veila_data::peer_samples::is_sample_file(&p) {
             files.push(p);
         }
     }
     files.sort();
     if files.is_empty() {
         bail!(
-            "{what} folder {} has no scans (.bin, .pcd.bin, .ply, .exr)",
+            "{what} folder {} has no scans (.bin, .pcd.bin, .ply, .exr) or sample sets (.npy, .npz)",
             dir.display()
         );
     }
@@ -160,11 +208,17 @@ fn list_scans(dir: &Path, what: &str) -> Result<Vec<PathBuf>> {
 /// What `veila eval` keeps of each scan: per-region summaries are computed while loading, and the points
 /// themselves only when a point metric (mmd-cd, chamfer) needs them, so memory stays small for large sets.
 struct ScanSummary {
+    /// `file` or `file[i]` for the i-th sample of a sample set.
+    label: String,
     points: Option<Vec<Vec3>>,
-    /// Sparse R2DM BEV histogram per requested region (empty when no histogram metric is requested).
+    /// Sparse R2DM BEV histogram of the raw points per requested region.
     hist: Vec<SparseBevHistogram>,
-    /// LiDM occupancy per requested region (empty when mmd-lidm is not requested).
+    /// LiDM occupancy of the raw points per requested region (64-beam grid).
     occ: Vec<lidm::BevOccupancy>,
+    /// LiDM occupancy of the raw points per requested region (32-beam grid).
+    occ_nus: Vec<lidm::BevOccupancy>,
+    /// The --protocol's summary after its pipeline, per requested region.
+    peer: Vec<PeerSummary>,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -172,6 +226,118 @@ struct Needs {
     points: bool,
     hist: bool,
     occ: bool,
+    occ_nus: bool,
+    peer: bool,
+}
+
+impl Needs {
+    /// Whether anything but the protocol pipeline is asked for (sample sets have no raw points).
+    fn raw(&self) -> bool {
+        self.points || self.hist || self.occ || self.occ_nus
+    }
+}
+
+fn summarise_raw(
+    xyz: Vec<Vec3>,
+    label: String,
+    regions: &[Region],
+    needs: Needs,
+    protocol: PeerProtocol,
+) -> Result<ScanSummary> {
+    let (bev, lcfg, lnus) = (
+        BevConfig::r2dm(),
+        LidmBevConfig::kitti(),
+        LidmBevConfig::nuscenes(),
+    );
+    let prepared = if needs.peer {
+        Some(
+            protocol
+                .prepare_scan(&xyz, "scan")
+                .with_context(|| label.clone())?,
+        )
+    } else {
+        None
+    };
+    let mut s = ScanSummary {
+        label,
+        points: None,
+        hist: Vec::new(),
+        occ: Vec::new(),
+        occ_nus: Vec::new(),
+        peer: Vec::new(),
+    };
+    for &r in regions {
+        if needs.hist {
+            s.hist.push(
+                bev_histogram_sparse(&xyz, &bev, r, "scan").with_context(|| s.label.clone())?,
+            );
+        }
+        if needs.occ {
+            s.occ.push(
+                lidm::lidm_bev_occupancy(&xyz, &lcfg, r, "scan")
+                    .with_context(|| s.label.clone())?,
+            );
+        }
+        if needs.occ_nus {
+            s.occ_nus.push(
+                lidm::lidm_bev_occupancy(&xyz, &lnus, r, "scan")
+                    .with_context(|| s.label.clone())?,
+            );
+        }
+        if let Some(p) = &prepared {
+            s.peer.push(
+                protocol
+                    .summarise(p, r, "scan")
+                    .with_context(|| s.label.clone())?,
+            );
+        }
+    }
+    s.points = needs.points.then_some(xyz);
+    Ok(s)
+}
+
+/// The samples of one peer sample set (.npy / .npz), each reduced by the protocol's pipeline.
+fn summarise_samples(
+    f: &Path,
+    regions: &[Region],
+    protocol: PeerProtocol,
+) -> Result<Vec<ScanSummary>> {
+    let arrays = veila_data::peer_samples::read_sample_arrays(f)?;
+    let many = arrays.len() > 1;
+    let mut out = Vec::new();
+    for a in arrays {
+        let (n, c, h, w) = protocol
+            .split_samples(&a.shape)
+            .with_context(|| format!("{}: array {}", f.display(), a.name))?;
+        let per = c * h * w;
+        for i in 0..n {
+            let label = if many {
+                format!("{}[{}][{i}]", f.display(), a.name)
+            } else {
+                format!("{}[{i}]", f.display())
+            };
+            let pts = protocol
+                .points_from_image(&a.data[i * per..(i + 1) * per], c, h, w, "sample")
+                .with_context(|| label.clone())?;
+            let peer = regions
+                .iter()
+                .map(|&r| protocol.summarise(&pts, r, "sample"))
+                .collect::<std::result::Result<Vec<_>, _>>()
+                .with_context(|| label.clone())?;
+            out.push(ScanSummary {
+                label,
+                points: None,
+                hist: Vec::new(),
+                occ: Vec::new(),
+                occ_nus: Vec::new(),
+                peer,
+            });
+        }
+    }
+    if out.is_empty() {
+        bail!("{}: the sample set holds no sample", f.display());
+    }
+    Ok(out)
 }
 
 fn load_scans(
@@ -179,63 +345,54 @@ fn load_scans(
     what: &str,
     regions: &[Region],
     needs: Needs,
+    protocol: PeerProtocol,
 ) -> Result<Vec<ScanSummary>> {
     let pb = crate::progress::bar(files.len() as u64, what);
-    let (bev, lcfg) = (BevConfig::r2dm(), LidmBevConfig::kitti());
-    let out: Result<Vec<ScanSummary>> = files
+    let out: Result<Vec<Vec<ScanSummary>>> = files
         .par_iter()
         .map(|f| {
-            let loaded = veila_data::scan::read_points(f)
-                .with_context(|| format!("reading {}", f.display()))?;
-            if loaded.cloud.xyz.is_empty() {
-                bail!("{}: the scan has no (finite) points", f.display());
-            }
-            let xyz = loaded.cloud.xyz;
-            let mut hist = Vec::new();
-            let mut occ = Vec::new();
-            for &r in regions {
-                if needs.hist {
-                    hist.push(
-                        bev_histogram_sparse(&xyz, &bev, r, "scan")
-                            .with_context(|| f.display().to_string())?,
+            let label = f.display().to_string();
+            let s = if veila_data::peer_samples::is_sample_file(f) {
+                if needs.raw() {
+                    bail!(
+                        "{}: a peer sample set has no raw points; only `jsd` and `mmd` (the --protocol \
+                         pipeline) read it",
+                        f.display()
                     );
                 }
-                if needs.occ {
-                    occ.push(
-                        lidm::lidm_bev_occupancy(&xyz, &lcfg, r, "scan")
-                            .with_context(|| f.display().to_string())?,
-                    );
+                summarise_samples(f, regions, protocol)?
+            } else {
+                let loaded = veila_data::scan::read_points_with(f, veila_data::scan::Keep::FiniteXyz)
+                    .with_context(|| format!("reading {}", f.display()))?;
+                if loaded.cloud.xyz.is_empty() {
+                    bail!("{}: the scan has no (finite) points", f.display());
                 }
-            }
+                vec![summarise_raw(loaded.cloud.xyz, label, regions, needs, protocol)?]
+            };
             pb.inc(1);
-            Ok(ScanSummary {
-                points: needs.points.then_some(xyz),
-                hist,
-                occ,
-            })
+            Ok(s)
         })
         .collect();
     pb.finish_and_clear();
-    out
+    Ok(out?.into_iter().flatten().collect())
 }
 
-fn file_label(files: &[PathBuf], i: usize) -> String {
-    files
-        .get(i)
-        .map(|f| f.display().to_string())
+fn label_of(set: &[ScanSummary], i: usize) -> String {
+    set.get(i)
+        .map(|s| s.label.clone())
         .unwrap_or_else(|| format!("scan {i}"))
 }
 
 /// Turns the library's "generated scan 3" into the file name.
 fn explain(
     err: veila_metrics::Error,
-    gen_files: &[PathBuf],
-    ref_files: &[PathBuf],
+    generated: &[ScanSummary],
+    reference: &[ScanSummary],
 ) -> anyhow::Error {
     if let veila_metrics::Error::NoPointsInWindow { what, window } = &err {
-        for (prefix, files) in [
-            ("generated scan ", gen_files),
-            ("reference scan ", ref_files),
+        for (prefix, set) in [
+            ("generated scan ", generated),
+            ("reference scan ", reference),
         ] {
             if let Some(i) = what
                 .strip_prefix(prefix)
@@ -243,19 +400,12 @@ fn explain(
             {
                 return anyhow::anyhow!(
                     "{}: no point inside the {window} window (this metric normalises every scan on its own)",
-                    file_label(files, i)
+                    label_of(set, i)
                 );
             }
         }
     }
     anyhow::Error::new(err)
-}
-
-struct Sets<'a> {
-    gen_files: &'a [PathBuf],
-    ref_files: &'a [PathBuf],
-    generated: Vec<ScanSummary>,
-    reference: Vec<ScanSummary>,
 }
 
 /// Up to this many scans per set the R2DM MMD uses dense histograms (GEMM, faster); above, sparse ones
@@ -278,6 +428,31 @@ fn run_eval(a: EvalArgs) -> Result<()> {
     if metrics.is_empty() {
         bail!("--metrics is empty");
     }
+    let protocol = PeerProtocol::from(a.protocol);
+    let has_samples = |files: &[PathBuf]| {
+        files
+            .iter()
+            .find(|f| veila_data::peer_samples::is_sample_file(f))
+            .cloned()
+    };
+    if let Some(f) = has_samples(&gen_files).or_else(|| has_samples(&ref_files)) {
+        if a.report.is_some() {
+            bail!(
+                "{}: --report draws scans, not peer sample sets; leave it out for sample sets",
+                f.display()
+            );
+        }
+        if metrics
+            .iter()
+            .any(|m| matches!(m, MetricName::Frd | MetricName::Fpd))
+        {
+            bail!(
+                "{}: frd / fpd read scans, not peer sample sets; only `jsd` and `mmd` (the --protocol \
+                 pipeline) read sample sets",
+                f.display()
+            );
+        }
+    }
     if metrics.contains(&MetricName::Chamfer) {
         check_pairing(&gen_files, &ref_files, &a.generated, &a.reference)?;
     }
@@ -289,22 +464,20 @@ fn run_eval(a: EvalArgs) -> Result<()> {
         hist: metrics.iter().any(|m| {
             matches!(
                 m,
-                MetricName::Jsd | MetricName::Mmd | MetricName::MmdLidargen
+                MetricName::JsdRaw | MetricName::MmdRaw | MetricName::MmdLidargenRaw
             )
         }),
-        occ: metrics.contains(&MetricName::MmdLidm),
+        occ: metrics.contains(&MetricName::MmdLidmRaw),
+        occ_nus: metrics.contains(&MetricName::MmdLidmNuscenesRaw),
+        peer: metrics
+            .iter()
+            .any(|m| matches!(m, MetricName::Jsd | MetricName::Mmd)),
     };
-    let generated = load_scans(&gen_files, "generated", &regions, needs)?;
-    let reference = load_scans(&ref_files, "reference", &regions, needs)?;
-    let sets = Sets {
-        gen_files: &gen_files,
-        ref_files: &ref_files,
-        generated,
-        reference,
-    };
+    let generated = load_scans(&gen_files, "generated", &regions, needs, protocol)?;
+    let reference = load_scans(&ref_files, "reference", &regions, needs, protocol)?;
 
     let mut report = MetricReport::default();
-    let (ng, nr) = (gen_files.len(), ref_files.len());
+    let (ng, nr) = (generated.len(), reference.len());
     let value =
         |name: &str, protocol: Protocol, region: Region, v: f64, scale: Option<f64>| MetricValue {
             name: name.to_string(),
@@ -323,73 +496,110 @@ fn run_eval(a: EvalArgs) -> Result<()> {
         let dense = |set: &[ScanSummary]| -> Vec<BevHistogram> {
             set.iter().map(|s| s.hist[ri].to_dense()).collect()
         };
+        // the protocol's two metrics are computed together
+        let peer_scores = if needs.peer {
+            let pg: Vec<PeerSummary> = generated.iter().map(|s| s.peer[ri].clone()).collect();
+            let pr: Vec<PeerSummary> = reference.iter().map(|s| s.peer[ri].clone()).collect();
+            Some(
+                protocol
+                    .score(&pg, &pr)
+                    .map_err(|e| explain(e, &generated, &reference))
+                    .with_context(|| format!("protocol {protocol}, region {region}"))?,
+            )
+        } else {
+            None
+        };
         for &m in &metrics {
             pb.set_message(format!("{m:?} {region}"));
-            let ex = |e| explain(e, sets.gen_files, sets.ref_files);
+            let ex = |e| explain(e, &generated, &reference);
             let v = match m {
                 // feature metrics: whole panorama, computed once below
                 MetricName::Frd | MetricName::Fpd => {
                     pb.inc(1);
                     continue;
                 }
-                MetricName::Jsd => {
-                    let (hg, hr) = (sparse(&sets.generated), sparse(&sets.reference));
+                MetricName::Jsd | MetricName::Mmd => {
+                    let want = if m == MetricName::Jsd { "jsd" } else { "mmd" };
+                    let pm = peer_scores
+                        .iter()
+                        .flatten()
+                        .find(|p| p.name == want)
+                        .expect("the protocol computes jsd and mmd");
                     value(
-                        "jsd",
-                        Protocol::R2dm,
+                        want,
+                        protocol.metric_protocol(),
                         region,
-                        dist::jsd(&hg, &hr).map_err(ex)?,
-                        None,
+                        pm.value,
+                        pm.paper_scale,
                     )
                 }
-                MetricName::Mmd => {
+                MetricName::JsdRaw => value(
+                    "jsd-raw",
+                    Protocol::R2dm,
+                    region,
+                    dist::jsd(&sparse(&generated), &sparse(&reference)).map_err(ex)?,
+                    None,
+                ),
+                MetricName::MmdRaw => {
                     let mmd = if ng.max(nr) <= DENSE_MMD_MAX_SCANS {
                         dist::mmd_r2dm_dense(
-                            &dense(&sets.generated),
-                            &dense(&sets.reference),
+                            &dense(&generated),
+                            &dense(&reference),
                             dist::MMD_SIGMA,
                         )
                     } else {
                         dist::mmd_r2dm_sparse(
-                            &sparse(&sets.generated),
-                            &sparse(&sets.reference),
+                            &sparse(&generated),
+                            &sparse(&reference),
                             dist::MMD_SIGMA,
                         )
                     };
                     value(
-                        "mmd",
+                        "mmd-raw",
                         Protocol::R2dm,
                         region,
                         mmd.map_err(ex)?,
                         Some(dist::MMD_PAPER_SCALE),
                     )
                 }
-                MetricName::MmdLidargen => value(
-                    "mmd",
+                MetricName::MmdLidargenRaw => value(
+                    "mmd-lidargen-raw",
                     Protocol::Lidargen,
                     region,
-                    dist::mmd_lidargen(
-                        &dense(&sets.generated),
-                        &dense(&sets.reference),
-                        dist::MMD_SIGMA,
-                    )
-                    .map_err(ex)?,
+                    dist::mmd_lidargen(&dense(&generated), &dense(&reference), dist::MMD_SIGMA)
+                        .map_err(ex)?,
                     None,
                 ),
-                MetricName::MmdLidm => {
-                    let og: Vec<_> = sets.generated.iter().map(|s| s.occ[ri].clone()).collect();
-                    let or: Vec<_> = sets.reference.iter().map(|s| s.occ[ri].clone()).collect();
+                MetricName::MmdLidmRaw | MetricName::MmdLidmNuscenesRaw => {
+                    let nus = m == MetricName::MmdLidmNuscenesRaw;
+                    let pick = |s: &ScanSummary| {
+                        if nus {
+                            s.occ_nus[ri].clone()
+                        } else {
+                            s.occ[ri].clone()
+                        }
+                    };
+                    let og: Vec<_> = generated.iter().map(pick).collect();
+                    let or: Vec<_> = reference.iter().map(pick).collect();
                     value(
-                        "mmd",
-                        Protocol::Lidm,
+                        if nus {
+                            "mmd-lidm-nuscenes-raw"
+                        } else {
+                            "mmd-lidm-raw"
+                        },
+                        if nus {
+                            Protocol::LidmNuscenes
+                        } else {
+                            Protocol::Lidm
+                        },
                         region,
                         lidm::mmd_lidm(&og, &or).map_err(ex)?,
                         Some(lidm::LIDM_PAPER_SCALE),
                     )
                 }
                 MetricName::MmdCd => {
-                    let ig = indexes(&sets.generated, sets.gen_files, region)?;
-                    let ir = indexes(&sets.reference, sets.ref_files, region)?;
+                    let ig = indexes(&generated, region)?;
+                    let ir = indexes(&reference, region)?;
                     value(
                         "mmd-cd",
                         Protocol::Pytorch3d,
@@ -400,23 +610,23 @@ fn run_eval(a: EvalArgs) -> Result<()> {
                 }
                 MetricName::Chamfer => {
                     let mut sum = 0.0;
-                    for (i, (g, r)) in sets.generated.iter().zip(&sets.reference).enumerate() {
-                        let g = veila_metrics::filter_region(points_of(g), region);
-                        let r = veila_metrics::filter_region(points_of(r), region);
-                        if g.is_empty() || r.is_empty() {
+                    for (g, r) in generated.iter().zip(&reference) {
+                        let gp = veila_metrics::filter_region(points_of(g), region);
+                        let rp = veila_metrics::filter_region(points_of(r), region);
+                        if gp.is_empty() || rp.is_empty() {
                             bail!(
                                 "{} / {}: no points in region {region}; the Chamfer distance needs points on both sides",
-                                file_label(sets.gen_files, i),
-                                file_label(sets.ref_files, i)
+                                g.label,
+                                r.label
                             );
                         }
-                        sum += chamfer::chamfer_distance(&g, &r)?.value();
+                        sum += chamfer::chamfer_distance(&gp, &rp)?.value();
                     }
                     value(
                         "chamfer",
                         Protocol::Pytorch3d,
                         region,
-                        sum / sets.generated.len() as f64,
+                        sum / generated.len() as f64,
                         None,
                     )
                 }
@@ -497,16 +707,15 @@ fn feature_metrics(
     Ok(())
 }
 
-fn indexes(scans: &[ScanSummary], files: &[PathBuf], region: Region) -> Result<Vec<PointIndex>> {
+fn indexes(scans: &[ScanSummary], region: Region) -> Result<Vec<PointIndex>> {
     scans
         .par_iter()
-        .enumerate()
-        .map(|(i, s)| {
+        .map(|s| {
             let pts = veila_metrics::filter_region(points_of(s), region);
             if pts.is_empty() {
-                bail!("{}: no points in region {region}", file_label(files, i));
+                bail!("{}: no points in region {region}", s.label);
             }
-            PointIndex::build(&pts, "scan").with_context(|| file_label(files, i))
+            PointIndex::build(&pts, "scan").with_context(|| s.label.clone())
         })
         .collect()
 }
@@ -554,7 +763,7 @@ fn check_pairing(
 
 fn print_table(report: &MetricReport) {
     println!(
-        "{:<10} {:<10} {:<6} {:>16} {:>14} {:>6} {:>6}",
+        "{:<10} {:<13} {:<6} {:>16} {:>14} {:>6} {:>6}",
         "metric", "protocol", "region", "value", "paper scale", "gen", "ref"
     );
     for m in &report.metrics {
@@ -563,7 +772,7 @@ fn print_table(report: &MetricReport) {
             .map(|s| format!("{:.4} (x{s:.0e})", m.value * s))
             .unwrap_or_default();
         println!(
-            "{:<10} {:<10} {:<6} {:>16.8e} {:>14} {:>6} {:>6}",
+            "{:<10} {:<13} {:<6} {:>16.8e} {:>14} {:>6} {:>6}",
             m.name,
             m.protocol.name(),
             m.region.name(),

@@ -8,6 +8,7 @@ use veila_metrics::{
     Region,
     bev::{BevConfig, bev_histogram},
     chamfer, dist, fd,
+    protocol::PeerProtocol,
 };
 
 fn veila() -> Command {
@@ -76,7 +77,7 @@ fn eval_matches_the_library_and_writes_json() {
             "--quiet",
             "eval",
             "--metrics",
-            "jsd,mmd,chamfer",
+            "jsd-raw,mmd-raw,jsd,chamfer",
             "--regions",
             "all,front",
             "--json",
@@ -96,7 +97,7 @@ fn eval_matches_the_library_and_writes_json() {
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     let metrics = v["metrics"].as_array().unwrap();
-    assert_eq!(metrics.len(), 6);
+    assert_eq!(metrics.len(), 8);
     let get = |name: &str, region: &str| {
         metrics
             .iter()
@@ -112,19 +113,34 @@ fn eval_matches_the_library_and_writes_json() {
         .iter()
         .map(|s| bev_histogram(s, &cfg, Region::All, "r").unwrap())
         .collect();
-    let jsd = get("jsd", "all");
+    let jsd = get("jsd-raw", "all");
     assert_eq!(jsd["protocol"], "r2dm");
     assert_eq!(
         (jsd["generated"].as_u64(), jsd["reference"].as_u64()),
         (Some(3), Some(3))
     );
     assert_eq!(jsd["value"].as_f64().unwrap(), dist::jsd(&hg, &hr).unwrap());
-    let mmd = get("mmd", "all");
+    let mmd = get("mmd-raw", "all");
     assert_eq!(
         mmd["value"].as_f64().unwrap(),
         dist::mmd_r2dm_dense(&hg, &hr, 0.5).unwrap()
     );
     assert_eq!(mmd["paper_scale"].as_f64(), Some(1e4));
+    // `jsd` runs R2DM's whole pipeline (64 x 1024 projection, range caps) before the metric
+    let peer = PeerProtocol::R2dm;
+    let summ = |set: &[Vec<Vec3>]| -> Vec<_> {
+        set.iter()
+            .map(|s| {
+                let p = peer.prepare_scan(s, "s").unwrap();
+                peer.summarise(&p, Region::All, "s").unwrap()
+            })
+            .collect()
+    };
+    let want = peer.score(&summ(&gs), &summ(&rs)).unwrap()[0].value;
+    let pj = get("jsd", "all");
+    assert_eq!(pj["protocol"], "r2dm");
+    assert_eq!(pj["value"].as_f64().unwrap(), want);
+    assert_ne!(want, dist::jsd(&hg, &hr).unwrap());
     let cd: f64 = gs
         .iter()
         .zip(&rs)
@@ -133,6 +149,104 @@ fn eval_matches_the_library_and_writes_json() {
         / 3.0;
     assert!((get("chamfer", "all")["value"].as_f64().unwrap() - cd).abs() <= 1e-12 * cd);
     assert_eq!(get("chamfer", "front")["protocol"], "pytorch3d");
+}
+
+#[test]
+fn a_nan_intensity_does_not_drop_the_point_from_the_geometry_metrics() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, r) = (dir.path().join("gen"), dir.path().join("ref"));
+    std::fs::create_dir_all(&g).unwrap();
+    std::fs::create_dir_all(&r).unwrap();
+    let gs = scan(7, 300);
+    let rs = scan(8, 300);
+    // the generated scan's first 50 points have a NaN intensity but valid coordinates
+    let mut bytes = Vec::new();
+    for (i, p) in gs.iter().enumerate() {
+        let inten = if i < 50 { f32::NAN } else { 0.5 };
+        for v in [p.x, p.y, p.z, inten] {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    std::fs::write(g.join("000000.bin"), bytes).unwrap();
+    write_bin(&r.join("000000.bin"), &rs);
+    let json = dir.path().join("out.json");
+    let out = veila()
+        .args([
+            "--quiet",
+            "eval",
+            "--metrics",
+            "jsd-raw",
+            "--regions",
+            "all",
+            "--json",
+        ])
+        .arg(&json)
+        .arg("--generated")
+        .arg(&g)
+        .arg("--reference")
+        .arg(&r)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let got = v["metrics"][0]["value"].as_f64().unwrap();
+    let cfg = BevConfig::r2dm();
+    let hr = [bev_histogram(&rs, &cfg, Region::All, "r").unwrap()];
+    let all = dist::jsd(&[bev_histogram(&gs, &cfg, Region::All, "g").unwrap()], &hr).unwrap();
+    let dropped = dist::jsd(
+        &[bev_histogram(&gs[50..], &cfg, Region::All, "g").unwrap()],
+        &hr,
+    )
+    .unwrap();
+    assert_ne!(all, dropped);
+    assert_eq!(got, all, "the NaN-intensity points must be kept");
+}
+
+#[test]
+fn fd_newton_schulz_divergence_fails_instead_of_printing_zero() {
+    let dir = tempfile::tempdir().unwrap();
+    // 5 samples in 16 dimensions: rank-deficient covariances
+    let mut s = 12345u64;
+    let mut next = || {
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (s >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+    };
+    let a: Vec<f64> = (0..5 * 16).map(|_| next()).collect();
+    let b: Vec<f64> = (0..5 * 16).map(|_| next()).collect();
+    write_npy_f64(&dir.path().join("a.npy"), 5, 16, &a);
+    write_npy_f64(&dir.path().join("b.npy"), 5, 16, &b);
+    let json = dir.path().join("fd.json");
+    let out = veila()
+        .args(["--quiet", "fd"])
+        .arg(dir.path().join("a.npy"))
+        .arg(dir.path().join("b.npy"))
+        .args(["--newton-schulz", "100", "--json"])
+        .arg(&json)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("Newton–Schulz diverged"), "{err}");
+    assert!(!json.exists());
+    // the exact method works on the same input
+    let ok = veila()
+        .args(["--quiet", "fd"])
+        .arg(dir.path().join("a.npy"))
+        .arg(dir.path().join("b.npy"))
+        .output()
+        .unwrap();
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
 }
 
 #[test]

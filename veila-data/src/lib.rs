@@ -77,6 +77,7 @@ pub mod error;
 pub mod image_io;
 pub mod kitti;
 pub mod nuscenes;
+pub mod peer_samples;
 pub mod ply;
 pub mod points;
 pub mod range_exr;

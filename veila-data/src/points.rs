@@ -59,6 +59,18 @@ impl PointCloud {
             .zip(&self.intensity)
             .map(|(p, i)| p.is_finite() && i.is_finite())
             .collect();
+        self.retain_mask(&keep)
+    }
+
+    /// Drop points with a non-finite coordinate only: a point whose intensity alone is NaN keeps its
+    /// place (and its NaN intensity), as geometry consumers (the metrics) need. Returns how many were
+    /// dropped.
+    pub fn retain_finite_xyz(&mut self) -> usize {
+        let keep: Vec<bool> = self.xyz.iter().map(|p| p.is_finite()).collect();
+        self.retain_mask(&keep)
+    }
+
+    fn retain_mask(&mut self, keep: &[bool]) -> usize {
         let dropped = keep.iter().filter(|k| !**k).count();
         if dropped == 0 {
             return 0;
@@ -70,13 +82,13 @@ impl PointCloud {
                 .map(|(x, _)| *x)
                 .collect()
         }
-        self.xyz = filter(&self.xyz, &keep);
-        self.intensity = filter(&self.intensity, &keep);
+        self.xyz = filter(&self.xyz, keep);
+        self.intensity = filter(&self.intensity, keep);
         if let Some(r) = &self.ring {
-            self.ring = Some(filter(r, &keep));
+            self.ring = Some(filter(r, keep));
         }
         if let Some(l) = &self.label {
-            self.label = Some(filter(l, &keep));
+            self.label = Some(filter(l, keep));
         }
         dropped
     }

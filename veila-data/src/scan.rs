@@ -13,8 +13,10 @@
 //!    naming the file.
 //!
 //! Every reader drops points with a non-finite coordinate or intensity and reports how many
-//! ([`LoadedPoints::dropped_non_finite`]); they never reach a projection or a metric. A file whose
-//! every point is non-finite is an error of [`read_points`].
+//! ([`LoadedPoints::dropped_non_finite`]); they never reach a projection. Geometry consumers (the
+//! metrics) read with [`read_points_with`]`(path, `[`Keep::FiniteXyz`]`)`, which keeps a point whose
+//! intensity alone is NaN, as the peers' metric scripts do. A file where no point is kept is an
+//! error of [`read_points`] and [`read_points_with`].
 //!
 //! # Bounded memory
 //!
@@ -127,15 +129,43 @@ fn detect_from(head: &[u8], path: &Path) -> Result<PointFormat> {
     ))
 }
 
+/// Which points a reader keeps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Keep {
+    /// Points whose coordinates and intensity are all finite (what projections need).
+    #[default]
+    FiniteRecords,
+    /// Points whose coordinates are finite, whatever their intensity (what geometry metrics need).
+    FiniteXyz,
+}
+
+impl Keep {
+    fn apply(self, cloud: &mut PointCloud) -> usize {
+        match self {
+            Keep::FiniteRecords => cloud.retain_finite(),
+            Keep::FiniteXyz => cloud.retain_finite_xyz(),
+        }
+    }
+}
+
 /// Read any supported point file (format detected; see the module docs). Non-finite points are dropped
 /// and counted.
 pub fn read_points(path: &Path) -> Result<LoadedPoints> {
-    let loaded = read_points_any(path)?;
+    read_points_with(path, Keep::FiniteRecords)
+}
+
+/// [`read_points`] with a choice of which points to keep ([`Keep`]).
+pub fn read_points_with(path: &Path, keep: Keep) -> Result<LoadedPoints> {
+    let loaded = read_points_any(path, keep)?;
     if loaded.cloud.is_empty() && loaded.dropped_non_finite > 0 {
+        let what = match keep {
+            Keep::FiniteRecords => "NaN or infinite coordinates or intensity",
+            Keep::FiniteXyz => "NaN or infinite coordinates",
+        };
         return Err(Error::format(
             path,
             format!(
-                "all {} points are non-finite (NaN or infinite coordinates or intensity)",
+                "all {} points are non-finite ({what})",
                 loaded.dropped_non_finite
             ),
         ));
@@ -143,13 +173,13 @@ pub fn read_points(path: &Path) -> Result<LoadedPoints> {
     Ok(loaded)
 }
 
-fn read_points_any(path: &Path) -> Result<LoadedPoints> {
+fn read_points_any(path: &Path, keep: Keep) -> Result<LoadedPoints> {
     match detect_point_format(path)? {
-        PointFormat::KittiBin => read_kitti_bin(path),
-        PointFormat::NuScenesPcdBin => read_nuscenes_pcd_bin(path),
+        PointFormat::KittiBin => read_kitti_bin_with(path, keep),
+        PointFormat::NuScenesPcdBin => read_nuscenes_pcd_bin_with(path, keep),
         PointFormat::Ply => {
             let mut cloud = crate::ply::read_ply(path)?;
-            let dropped = cloud.retain_finite();
+            let dropped = keep.apply(&mut cloud);
             Ok(LoadedPoints {
                 cloud,
                 format: PointFormat::Ply,
@@ -298,8 +328,12 @@ pub fn parse_kitti_bin(bytes: &[u8], path: &Path) -> Result<LoadedPoints> {
 
 /// Read a KITTI velodyne `.bin` (also SemanticKITTI / KITTI odometry scans).
 pub fn read_kitti_bin(path: &Path) -> Result<LoadedPoints> {
+    read_kitti_bin_with(path, Keep::FiniteRecords)
+}
+
+fn read_kitti_bin_with(path: &Path, keep: Keep) -> Result<LoadedPoints> {
     let mut cloud = read_kitti_records(path)?;
-    let dropped = cloud.retain_finite();
+    let dropped = keep.apply(&mut cloud);
     Ok(LoadedPoints {
         cloud,
         format: PointFormat::KittiBin,
@@ -314,7 +348,7 @@ pub fn parse_nuscenes_pcd_bin(bytes: &[u8], path: &Path) -> Result<LoadedPoints>
     check_records(bytes.len(), NUSCENES_RECORD_BYTES, path)?;
     let mut acc = NuScenesAcc::new(bytes.len() / NUSCENES_RECORD_BYTES);
     acc.push(bytes, 0, path)?;
-    Ok(acc.finish())
+    Ok(acc.finish(Keep::FiniteRecords))
 }
 
 /// nuScenes records decoded so far.
@@ -367,9 +401,9 @@ impl NuScenesAcc {
         Ok(())
     }
 
-    fn finish(mut self) -> LoadedPoints {
+    fn finish(mut self, keep: Keep) -> LoadedPoints {
         self.cloud.ring = Some(self.rings);
-        let dropped = self.cloud.retain_finite();
+        let dropped = keep.apply(&mut self.cloud);
         debug_assert!(dropped >= self.non_finite_ring);
         LoadedPoints {
             cloud: self.cloud,
@@ -382,6 +416,10 @@ impl NuScenesAcc {
 
 /// Read a nuScenes `.pcd.bin` (5 f32 per point, ring kept in [`PointCloud::ring`]).
 pub fn read_nuscenes_pcd_bin(path: &Path) -> Result<LoadedPoints> {
+    read_nuscenes_pcd_bin_with(path, Keep::FiniteRecords)
+}
+
+fn read_nuscenes_pcd_bin_with(path: &Path, keep: Keep) -> Result<LoadedPoints> {
     let mut acc = NuScenesAcc::new(0);
     read_records(path, NUSCENES_RECORD_BYTES, |chunk, done, n| {
         if done == 0 {
@@ -389,7 +427,7 @@ pub fn read_nuscenes_pcd_bin(path: &Path) -> Result<LoadedPoints> {
         }
         acc.push(chunk, done, path)
     })?;
-    Ok(acc.finish())
+    Ok(acc.finish(keep))
 }
 
 /// Encode a cloud as KITTI `.bin` records (x, y, z, intensity). Rings and labels are not part of the
@@ -474,6 +512,39 @@ mod tests {
             vec![Vec3::new(1.0, 2.0, 3.0), Vec3::new(-1.0, -2.0, -3.0)]
         );
         assert_eq!(l.cloud.intensity, vec![0.5, 0.9]);
+    }
+
+    #[test]
+    fn finite_xyz_keeps_a_point_whose_intensity_alone_is_nan() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("a.bin");
+        std::fs::write(
+            &p,
+            rec(&[
+                1.0,
+                2.0,
+                3.0,
+                f32::NAN,
+                f32::NAN,
+                0.0,
+                0.0,
+                0.1,
+                4.0,
+                5.0,
+                6.0,
+                0.2,
+            ]),
+        )
+        .unwrap();
+        let records = read_points(&p).unwrap();
+        assert_eq!(records.cloud.xyz, vec![Vec3::new(4.0, 5.0, 6.0)]);
+        let geometry = read_points_with(&p, Keep::FiniteXyz).unwrap();
+        assert_eq!(
+            geometry.cloud.xyz,
+            vec![Vec3::new(1.0, 2.0, 3.0), Vec3::new(4.0, 5.0, 6.0)]
+        );
+        assert!(geometry.cloud.intensity[0].is_nan());
+        assert_eq!(geometry.dropped_non_finite, 1);
     }
 
     #[test]
