@@ -15,8 +15,8 @@ use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use veila_diffusion::bundle::Bundle;
-use veila_diffusion::pipeline::{CameraView, GenerateOptions};
+use veila_diffusion::app::bundle::Bundle;
+use veila_diffusion::app::{CameraView, GenerateOptions};
 use veila_geom::{LidarSensor, PinholeCamera, RangeImage, RayTable, Region};
 use veila_metrics::protocol::{PeerProtocol, PeerSummary};
 

@@ -22,13 +22,13 @@ use veila_data::vis::render::{self, BevOptions, OverlayOptions, RangePreview};
 use veila_data::weather::{
     CameraInput, DepthMap, Intrinsics, Preset, Weather, WeatherConfig, WeatherSim,
 };
-use veila_diffusion::pipeline::{CameraView, GenerateOptions};
+use veila_diffusion::app::{CameraView, GenerateOptions};
 use veila_geom::{ProjectionOptions, Projector, RangeImage, Region};
 use veila_metrics::bev::{BevConfig, bev_histogram};
 use veila_metrics::crossmodal::{DepthAlignment, Map2d, ProjectionFilter, cm_depth_consistency};
 use veila_metrics::{MetricReport, MetricValue, Protocol, chamfer, dist};
 
-use crate::{generate_cmd, model, progress, staging};
+use crate::{generation, model, progress, staging};
 
 /// The default scene: the first scene of the test split (`scenes/test.txt`), compiled in.
 const DEFAULT_SCENE_TOML: &str = include_str!("../../scenes/straight_road.toml");
@@ -48,7 +48,7 @@ pub(crate) struct DemoArgs {
     #[arg(long, value_name = "S", default_value_t = DEFAULT_SEED)]
     seed: u64,
     /// Model bundle folder (default: $VEILA_MODEL, else the bundled models/default).
-    #[arg(long, value_name = "DIR")]
+    #[arg(long, value_name = "DIR", env = "VEILA_MODEL")]
     checkpoint: Option<PathBuf>,
     /// Sampler steps (default: the bundle's).
     #[arg(long, value_name = "N")]
@@ -116,7 +116,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         .map_err(|e| anyhow::anyhow!("--weather {}: {e}", args.weather))?;
     let device = model::device()?;
     let bundle = model::load_bundle(args.checkpoint.as_deref(), &device)?;
-    let sampler = generate_cmd::resolve_sampler(&bundle, None, args.steps, args.guidance)?;
+    let sampler = generation::resolve_sampler(&bundle, None, args.steps, args.guidance)?;
     let mut inputs = staging::Inputs::new();
     inputs.add_opt(args.scene.as_ref());
     let staging = staging::stage_checked(
@@ -253,7 +253,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         summary.range_pixels_generated,
         summary.range_pixels_true,
         seconds_generation,
-        generate_cmd::sampler_label(&sampler),
+        generation::sampler_label(&sampler),
         sampler.steps,
         sampler.guidance_scale
     );
@@ -500,7 +500,7 @@ fn print_table(
 /// frame whose image is nearest to the input's in the bundle's frozen encoder features
 /// (conditional bundles only).
 fn baseline_scans(
-    bundle: &veila_diffusion::bundle::Bundle,
+    bundle: &veila_diffusion::app::bundle::Bundle,
     config: &SceneConfig,
     k: usize,
     query: CameraView<'_>,

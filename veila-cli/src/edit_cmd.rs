@@ -14,12 +14,12 @@ use veila_data::image_io::write_png;
 use veila_data::range_exr::read_range_exr;
 use veila_data::scan::{PointFormat, read_points};
 use veila_data::vis::render::{self, render_range};
-use veila_diffusion::bundle::Bundle;
-use veila_diffusion::pipeline::GenerateOptions;
+use veila_diffusion::app::GenerateOptions;
+use veila_diffusion::app::bundle::Bundle;
 use veila_diffusion::{DecodedScan, RepaintConfig, SamplerConfig, SamplerKind};
 use veila_geom::{ProjectionOptions, Projector, RangeImage, RayTable};
 
-use crate::generate_cmd::{
+use crate::generation::{
     InputInfo, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerName, ScanRecord, Seconds, camera_views,
     check_guidance, check_steps, input_info, is_generate_output, load_rig, model_info,
     prepare_views, range_preview, resolve_sampler, sampler_label, write_scan,
@@ -49,7 +49,7 @@ pub(crate) struct EditArgs {
     )]
     remove_box: Option<String>,
     /// Model bundle folder (default: $VEILA_MODEL, else the bundled models/default).
-    #[arg(long, value_name = "DIR")]
+    #[arg(long, value_name = "DIR", env = "VEILA_MODEL")]
     checkpoint: Option<PathBuf>,
     /// Sampler: ddpm or ddim (inpainting cannot use the multistep dpm solver; default ddim).
     #[arg(long, value_enum)]

@@ -5,13 +5,14 @@
 //! exits non-zero and never leaves partial output behind.
 
 use anyhow::Result;
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
 /// mimalloc keeps freed blocks for reuse; with glibc's allocator every large tensor of a
 /// sampling step is a fresh `mmap` and page-faults in again (measured: ~30% of a training step).
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
+mod generation; // what generate and edit share (rig and sampler arguments, scan files)
 mod model;
 mod progress;
 mod report; // self-contained HTML reports (veila eval --report)
@@ -31,9 +32,12 @@ mod weather_cmd; // weather                                (veila-data::weather)
 #[derive(Debug, Parser)]
 #[command(name = "veila", version, about, long_about = None)]
 struct Cli {
-    /// Suppress progress bars (they are also hidden when stderr is not a terminal).
-    #[arg(long, global = true)]
+    /// Suppress progress bars and progress lines, and log errors only.
+    #[arg(short, long, global = true)]
     quiet: bool,
+    /// Log more: -v debug, -vv trace (RUST_LOG, when set, decides instead).
+    #[arg(short, long, global = true, action = clap::ArgAction::Count)]
+    verbose: u8,
     #[command(subcommand)]
     command: Command,
 }
@@ -63,13 +67,72 @@ enum Command {
     Train(train_cmd::TrainArgs),
     /// Print the built-in sensor presets as TOML (a starting point for `--sensor FILE.toml`).
     Sensors,
+    /// Print a shell completion script (e.g. `veila completions bash > ~/.local/share/bash-completion/completions/veila`).
+    Completions {
+        /// The shell.
+        shell: clap_complete::Shell,
+    },
+}
+
+/// One example per command, shown at the end of its `--help`.
+const EXAMPLES: &[(&str, &str)] = &[
+    ("demo", "veila demo --out out/demo --weather fog"),
+    (
+        "generate",
+        "veila generate --image 000008.png --calib calib/000008.txt --samples 2 --out out/gen",
+    ),
+    (
+        "edit",
+        "veila edit --image 000008.png --calib calib/000008.txt --scan out/gen/scan_000.bin \\\n    --remove-box \"5,-2,-2,15,2,1\" --out out/edit",
+    ),
+    (
+        "train",
+        "veila train --config runs/my-model.toml --stop-after 500",
+    ),
+    (
+        "eval",
+        "veila eval --generated out/gen --reference data/velodyne --metrics jsd,mmd --json eval.json",
+    ),
+    ("fd", "veila fd generated.npy reference.npy --json fd.json"),
+    ("sensors", "veila sensors > my-sensor.toml"),
+    (
+        "project",
+        "veila project 000008.bin --sensor hdl64e --out 000008.exr --png 000008_range.png",
+    ),
+    ("unproject", "veila unproject 000008.exr --out 000008.ply"),
+    (
+        "render",
+        "veila render 000008.bin --bev bev.png --range range.png --image 000008.png --calib calib/000008.txt --overlay overlay.png",
+    ),
+    (
+        "simulate",
+        "veila simulate --scene scenes/straight_road.toml --out out/sim --frames 4 --seed 1",
+    ),
+    (
+        "weather",
+        "veila weather 000008.bin --image 000008.png --calib calib/000008.txt --preset fog --out out/fog",
+    ),
+    ("completions", "veila completions zsh > ~/.zfunc/_veila"),
+];
+
+/// The clap command with every subcommand's example appended to its help.
+fn cli_command() -> clap::Command {
+    let mut cmd = Cli::command();
+    for (name, example) in EXAMPLES {
+        cmd = cmd.mut_subcommand(*name, |c| c.after_help(format!("Example:\n  {example}")));
+    }
+    cmd
 }
 
 fn main() {
     restore_default_sigpipe();
     staging::install_signal_cleanup();
-    let cli = Cli::parse();
+    let cli = match Cli::from_arg_matches(&cli_command().get_matches()) {
+        Ok(cli) => cli,
+        Err(e) => e.exit(),
+    };
     progress::set_quiet(cli.quiet);
+    progress::init_logging(cli.verbose, cli.quiet);
     if let Err(err) = run(cli.command) {
         let err = staging::explain(err);
         eprintln!("error: {err:#}");
@@ -103,6 +166,10 @@ fn run(command: Command) -> Result<()> {
         Command::Generate(a) => generate_cmd::run(a),
         Command::Edit(a) => edit_cmd::run(a),
         Command::Train(a) => train_cmd::run(a),
+        Command::Completions { shell } => {
+            clap_complete::generate(shell, &mut cli_command(), "veila", &mut std::io::stdout());
+            Ok(())
+        }
         Command::Sensors => {
             for (name, sensor) in [
                 ("hdl64e", veila_geom::LidarSensor::hdl64e()),
@@ -112,5 +179,62 @@ fn run(command: Command) -> Result<()> {
             }
             Ok(())
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_command_has_one_example_that_parses() {
+        let cmd = cli_command();
+        let names: Vec<&str> = cmd.get_subcommands().map(|c| c.get_name()).collect();
+        for name in &names {
+            let n = EXAMPLES.iter().filter(|(c, _)| c == name).count();
+            assert_eq!(n, 1, "command `{name}` needs exactly one entry in EXAMPLES");
+        }
+        for (name, example) in EXAMPLES {
+            assert!(
+                names.contains(name),
+                "EXAMPLES names an unknown command `{name}`"
+            );
+            // the example parses (shell quoting, line continuations and redirections removed)
+            let words: Vec<String> = example
+                .split(" > ")
+                .next()
+                .unwrap_or(example)
+                .replace("\\\n", " ")
+                .split_whitespace()
+                .map(|w| w.trim_matches('"').to_string())
+                .collect();
+            if let Err(e) = cli_command().try_get_matches_from(&words) {
+                panic!("the example of `{name}` does not parse: {e}");
+            }
+        }
+    }
+
+    #[test]
+    fn completions_name_every_command() {
+        for shell in [clap_complete::Shell::Bash, clap_complete::Shell::Zsh] {
+            let mut out = Vec::new();
+            clap_complete::generate(shell, &mut cli_command(), "veila", &mut out);
+            let text = String::from_utf8(out).unwrap();
+            for (name, _) in EXAMPLES {
+                assert!(text.contains(name), "{shell}: no `{name}`");
+            }
+            assert!(text.contains("--checkpoint"), "{shell}: no flags");
+        }
+    }
+
+    #[test]
+    fn help_shows_the_example() {
+        let mut cmd = cli_command();
+        let sub = cmd.find_subcommand_mut("generate").unwrap();
+        let help = sub.render_long_help().to_string();
+        assert!(
+            help.contains("Example:\n  veila generate --image"),
+            "{help}"
+        );
     }
 }

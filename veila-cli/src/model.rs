@@ -1,33 +1,70 @@
 //! Finding and loading model bundles, and the glue between images / scans on disk and the
-//! generation pipeline (`veila_diffusion::pipeline`).
+//! generation pipeline (`veila_diffusion::app`).
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use candle_core::Device;
 use veila_data::PointCloud;
-use veila_data::image::{RgbImage, imageops};
+use veila_data::image::RgbImage;
 use veila_diffusion::DecodedScan;
-use veila_diffusion::bundle::Bundle;
-use veila_geom::{PinholeCamera, RangeImage, RayTable};
+use veila_diffusion::app::bundle::{Bundle, MANIFEST_FILE};
+use veila_geom::{PinholeCamera, RangeImage};
 
 /// Environment variable naming the default bundle folder.
 pub(crate) const MODEL_ENV: &str = "VEILA_MODEL";
+
+mod embedded {
+    // written by build.rs: the files of models/default at build time (empty without the folder)
+    include!(concat!(env!("OUT_DIR"), "/embedded_model.rs"));
+}
 
 /// The bundled default model in the source tree this binary was built from.
 pub(crate) fn bundled_model_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/default")
 }
 
-/// Where the model comes from: `--checkpoint`, else `$VEILA_MODEL`, else the bundled default.
-pub(crate) fn model_dir(checkpoint: Option<&Path>) -> PathBuf {
+/// The label of the embedded default model (its `origin`).
+const EMBEDDED_ORIGIN: &str = "<embedded models/default>";
+
+/// Where a model comes from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) enum ModelSource {
+    /// A bundle folder.
+    Dir(PathBuf),
+    /// The default bundle embedded in the binary at build time.
+    Embedded,
+}
+
+/// Where the model comes from: `--checkpoint` (which clap also fills from `$VEILA_MODEL`), else
+/// `$VEILA_MODEL`, else the source tree's `models/default` while it exists (a retrained model is
+/// used at once), else the copy embedded in the binary (an installed `veila` works anywhere).
+/// Embedding was chosen over a folder beside the binary because `cargo install` copies only the
+/// binary; the model is a few MiB.
+pub(crate) fn model_source(checkpoint: Option<&Path>) -> ModelSource {
     if let Some(p) = checkpoint {
-        return p.to_path_buf();
+        return ModelSource::Dir(p.to_path_buf());
     }
     if let Some(p) = std::env::var_os(MODEL_ENV).filter(|v| !v.is_empty()) {
-        return PathBuf::from(p);
+        return ModelSource::Dir(PathBuf::from(p));
     }
-    bundled_model_dir()
+    let dir = bundled_model_dir();
+    if dir.join(MANIFEST_FILE).is_file() || embedded::EMBEDDED_MODEL.is_empty() {
+        ModelSource::Dir(dir)
+    } else {
+        ModelSource::Embedded
+    }
+}
+
+/// The bytes of the model's `manifest.json`, when it has one.
+pub(crate) fn manifest_bytes(checkpoint: Option<&Path>) -> Option<Vec<u8>> {
+    match model_source(checkpoint) {
+        ModelSource::Dir(dir) => std::fs::read(dir.join(MANIFEST_FILE)).ok(),
+        ModelSource::Embedded => embedded::EMBEDDED_MODEL
+            .iter()
+            .find(|(n, _)| *n == MANIFEST_FILE)
+            .map(|(_, b)| b.to_vec()),
+    }
 }
 
 /// The compute device: CUDA 0 when built with `--features cuda` and a GPU is present, else the CPU.
@@ -43,8 +80,25 @@ pub(crate) fn device() -> Result<Device> {
 
 /// Loads and verifies (sha256 manifest, tensor names and shapes) a bundle.
 pub(crate) fn load_bundle(checkpoint: Option<&Path>, device: &Device) -> Result<Bundle> {
-    let dir = model_dir(checkpoint);
-    if !dir.join(veila_diffusion::bundle::MANIFEST_FILE).exists() {
+    let dir = match model_source(checkpoint) {
+        ModelSource::Embedded => {
+            return Bundle::from_files(
+                embedded::EMBEDDED_MODEL,
+                Path::new(EMBEDDED_ORIGIN),
+                device,
+            )
+            .context("loading the embedded default model");
+        }
+        ModelSource::Dir(dir) => dir,
+    };
+    if !dir.join(MANIFEST_FILE).exists() {
+        if checkpoint.is_none() && std::env::var_os(MODEL_ENV).is_none_or(|v| v.is_empty()) {
+            bail!(
+                "no model: this veila was built without models/default embedded and {} does not exist; \
+                 pass --checkpoint DIR or set {MODEL_ENV} to a bundle folder (bundle.json, manifest.json, weights)",
+                dir.display()
+            );
+        }
         bail!(
             "no model bundle at {} (expected bundle.json, manifest.json and weights; pass --checkpoint DIR or set {MODEL_ENV})",
             dir.display()
@@ -59,24 +113,11 @@ pub(crate) fn prepare_view(
     image: &RgbImage,
     camera: &PinholeCamera,
 ) -> Result<(Vec<u8>, PinholeCamera)> {
-    let (w, h) = (
-        bundle.config.image_width as u32,
-        bundle.config.image_height as u32,
-    );
-    if (image.width(), image.height()) != (camera.width, camera.height) {
-        bail!(
-            "the image is {}x{} but the calibration's camera is {}x{}",
-            image.width(),
-            image.height(),
-            camera.width,
-            camera.height
-        );
-    }
-    let small = imageops::resize(image, w, h, imageops::FilterType::Triangle);
-    let cam = camera
-        .resized(w, h)
-        .context("the model's image size has a zero dimension")?;
-    Ok((small.into_raw(), cam))
+    Ok(veila_diffusion::app::prepare_view(
+        &bundle.config,
+        image,
+        camera,
+    )?)
 }
 
 /// A decoded scan as a range image on the bundle's grid.
@@ -86,12 +127,42 @@ pub(crate) fn to_range_image(scan: &DecodedScan) -> RangeImage {
 
 /// The points of a generated range image in the LiDAR frame (one per return).
 pub(crate) fn to_points(bundle: &Bundle, range: &RangeImage) -> Result<PointCloud> {
-    let rays = RayTable::new(&bundle.config.denoiser.sensor)?;
-    let un = rays.unproject(range)?;
-    Ok(PointCloud {
-        xyz: un.points,
-        intensity: un.intensity,
-        ring: None,
-        label: None,
-    })
+    Ok(veila_diffusion::app::scan_points(&bundle.config, range)?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_embedded_model_is_the_source_trees_default() {
+        let dir = bundled_model_dir();
+        if !dir.join(MANIFEST_FILE).is_file() {
+            assert!(embedded::EMBEDDED_MODEL.is_empty());
+            return;
+        }
+        // every file of the folder is embedded byte for byte (build.rs reran on changes)
+        let manifest: veila_diffusion::app::bundle::Manifest =
+            serde_json::from_slice(&std::fs::read(dir.join(MANIFEST_FILE)).unwrap()).unwrap();
+        for name in manifest
+            .files
+            .keys()
+            .map(String::as_str)
+            .chain([MANIFEST_FILE])
+        {
+            let (_, bytes) = embedded::EMBEDDED_MODEL
+                .iter()
+                .find(|(n, _)| *n == name)
+                .unwrap_or_else(|| panic!("{name} is not embedded"));
+            assert_eq!(*bytes, std::fs::read(dir.join(name)).unwrap(), "{name}");
+        }
+        let b = Bundle::from_files(
+            embedded::EMBEDDED_MODEL,
+            Path::new(EMBEDDED_ORIGIN),
+            &Device::Cpu,
+        )
+        .unwrap();
+        assert_eq!(b.config.name, "default");
+        assert_eq!(manifest_bytes(Some(&dir)), manifest_bytes(None));
+    }
 }

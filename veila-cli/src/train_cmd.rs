@@ -7,7 +7,8 @@
 //! denoiser is trained on the frozen encoder features. The run is resumable: the trained encoders
 //! and the denoiser checkpoints live in `OUTPUT/checkpoints`, and rerunning the same config picks
 //! up the newest checkpoint (the result is bit-identical to an uninterrupted run). The finished
-//! bundle is written to `OUTPUT/bundle` (verified by reading it back).
+//! bundle is written to `OUTPUT/bundle` (verified by reading it back). Every update appends a line
+//! to `OUTPUT/train_log.jsonl` (stage, step, loss, learning rate, samples/s).
 //!
 //! ```toml
 //! [data]
@@ -37,30 +38,25 @@
 //! dir = "runs/my-model"            # OUTPUT/checkpoints, OUTPUT/bundle
 //! ```
 
-use std::collections::HashMap;
 use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use candle_core::{DType, Device, Tensor};
 use clap::Args;
 use serde::{Deserialize, Serialize};
 use veila_data::image::imageops;
 use veila_data::shard::{Manifest, ShardSample, read_shard};
-use veila_diffusion::bundle::{
-    Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, MEAN_FILE, SEMANTIC_FILE, Variant,
-    safetensors_bytes, sha256_hex,
+use veila_diffusion::app::bundle::{Bundle, BundleConfig, Variant, sha256_hex};
+use veila_diffusion::app::{
+    Encoder, EncoderData, EncoderEvent, EncoderSource, RecipeInput, RecipeSettings, Stage,
+    TrainExample, run_recipe,
 };
 use veila_diffusion::encoding::ScanView;
-use veila_diffusion::pipeline::{
-    BundleFit, Stage, TrainExample, fit_bundle, train_small_cnn, varmap_tensors,
-};
-use veila_diffusion::{StepStats, TrainConfig, TrainObserver};
+use veila_diffusion::{StepStats, TrainObserver};
 use veila_geom::{
     LidarSensor, NO_POINT, PinholeCamera, ProjectionOptions, Projector, RangeImage, RayTable,
 };
-use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
 
 use crate::{model, progress};
 
@@ -313,10 +309,10 @@ fn bundle_config(file: &TrainFile, config_path: &Path) -> Result<BundleConfig> {
     // default method
     let method = match (&m.method, &m.bundle) {
         (Some(name), _) => Some(
-            name.parse::<veila_diffusion::bundle::Method>()
+            name.parse::<veila_diffusion::app::bundle::Method>()
                 .map_err(|e: String| anyhow::anyhow!("{}: [model] {e}", config_path.display()))?,
         ),
-        (None, None) => Some(veila_diffusion::bundle::Method::DEFAULT),
+        (None, None) => Some(veila_diffusion::app::bundle::Method::DEFAULT),
         (None, Some(_)) => None,
     };
     if let Some(method) = method {
@@ -459,6 +455,53 @@ struct Progress {
     stop_after: Option<u64>,
     /// Steps run by this invocation, over all stages.
     run: std::rc::Rc<std::cell::Cell<u64>>,
+    stage: Stage,
+    /// `OUTPUT/train_log.jsonl`, appended to (a resumed run continues it).
+    log: std::rc::Rc<TrainLog>,
+}
+
+/// `OUTPUT/train_log.jsonl`: one JSON object per update (stage, step, loss, learning rate,
+/// samples/s), flushed per line, so a killed run keeps every step it logged.
+struct TrainLog {
+    path: PathBuf,
+    file: std::cell::RefCell<std::io::LineWriter<std::fs::File>>,
+    failed: std::cell::Cell<bool>,
+}
+
+/// The log file's name inside `[output] dir`.
+const TRAIN_LOG: &str = "train_log.jsonl";
+
+impl TrainLog {
+    fn open(path: PathBuf) -> Result<Self> {
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&path)
+            .with_context(|| format!("{}: cannot open the training log", path.display()))?;
+        Ok(TrainLog {
+            path,
+            file: std::cell::RefCell::new(std::io::LineWriter::new(file)),
+            failed: std::cell::Cell::new(false),
+        })
+    }
+
+    fn step(&self, stage: Stage, s: &StepStats) {
+        use std::io::Write;
+        let line = serde_json::json!({
+            "stage": match stage {
+                Stage::Mean => "mean",
+                Stage::Denoiser => "denoiser",
+            },
+            "step": s.step,
+            "loss": s.loss.is_finite().then_some(s.loss),
+            "lr": s.lr,
+            "samples_per_s": s.samples_per_sec,
+            "step_s": s.step_secs,
+        });
+        if writeln!(self.file.borrow_mut(), "{line}").is_err() && !self.failed.replace(true) {
+            tracing::warn!("{}: cannot write the training log", self.path.display());
+        }
+    }
 }
 
 impl Drop for Progress {
@@ -476,6 +519,7 @@ impl<M: veila_diffusion::Denoiser> TrainObserver<M> for Progress {
             });
         }
         self.run.set(self.run.get() + 1);
+        self.log.step(self.stage, s);
         self.bar.set_position(s.step);
         self.bar.set_message(format!(
             "loss {:.4} (avg {:.4}) lr {:.2e} {:.2} s/step",
@@ -498,11 +542,7 @@ fn stage_name(stage: Stage) -> &'static str {
     }
 }
 
-fn print_denoiser_summary(
-    d: &veila_diffusion::pipeline::DenoiserFitOutcome,
-    steps: u64,
-    secs: f64,
-) {
+fn print_denoiser_summary(d: &veila_diffusion::app::DenoiserFitOutcome, steps: u64, secs: f64) {
     let s = &d.summary;
     println!(
         "  denoiser: {} steps this run (now at {} of {steps}), mean loss {:.4}, {} skipped, {secs:.1} s",
@@ -510,24 +550,12 @@ fn print_denoiser_summary(
     );
 }
 
-fn load_tensors(path: &Path) -> Result<HashMap<String, Tensor>> {
-    candle_core::safetensors::load(path, &Device::Cpu)
-        .with_context(|| format!("{}: cannot read tensors", path.display()))
+fn encoder_name(which: Encoder) -> &'static str {
+    match which {
+        Encoder::Semantic => "semantic",
+        Encoder::Depth => "depth",
+    }
 }
-
-fn load_cnn(c: &SmallCnnConfig, path: &Path, device: &Device) -> Result<SmallCnn> {
-    let bytes = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
-    Ok(veila_nn::encoders::load_checked_bytes(
-        &bytes,
-        path,
-        DType::F32,
-        device,
-        |_| true,
-        |vb| SmallCnn::new(c, vb),
-    )?)
-}
-
-type Weights = HashMap<&'static str, HashMap<String, Tensor>>;
 
 pub(crate) fn run(args: TrainArgs) -> Result<()> {
     let t_all = Instant::now();
@@ -646,125 +674,46 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         )
     })?;
 
-    // 3. encoders
-    let t_enc = Instant::now();
-    let mut weights: Weights = HashMap::new();
-    let mut semantic: Option<SmallCnn> = None;
-    let mut depth: Option<SmallCnn> = None;
+    // 3. encoders and 4. networks: the shared recipe
+    let settings = RecipeSettings {
+        seed: t.seed,
+        steps: t.steps,
+        mean_steps: t.mean_steps,
+        batch: t.batch,
+        lr: t.lr,
+        ema_decay: t.ema_decay,
+        cond_drop_prob: t.cond_drop_prob.unwrap_or(0.1),
+        checkpoint_every: t.checkpoint_every,
+        keep_checkpoints: t.keep_checkpoints,
+        encoder_steps: t.encoder_steps,
+        encoder_batch: t.encoder_batch,
+        encoder_lr: t.encoder_lr,
+    };
+    let mean_steps = settings.mean_steps();
     let enc_dir = ck_dir.join(ENCODER_DIR);
-    let mut encoder_note = String::new();
-    if let Some(dir) = &file.model.encoders_from {
-        let b = Bundle::from_dir(dir, &device)
-            .with_context(|| format!("[model] encoders_from: loading {}", dir.display()))?;
-        if b.config.image_height != cfg.image_height || b.config.image_width != cfg.image_width {
-            bail!(
-                "[model] encoders_from {}: its encoders take {}x{} images, this model {}x{}",
-                dir.display(),
-                b.config.image_width,
-                b.config.image_height,
-                cfg.image_width,
-                cfg.image_height
-            );
-        }
-        for (want, have, file_name, slot) in [
-            (
-                &cfg.semantic_encoder,
-                &b.config.semantic_encoder,
-                SEMANTIC_FILE,
-                &mut semantic,
-            ),
-            (
-                &cfg.depth_encoder,
-                &b.config.depth_encoder,
-                DEPTH_FILE,
-                &mut depth,
-            ),
-        ] {
-            let Some(c) = want else { continue };
-            if have.as_ref() != Some(c) {
+    let images: Vec<Vec<u8>> = prepared.iter().map(|p| p.rgb.clone()).collect();
+    let depths: Vec<Vec<f32>> = prepared.iter().map(|p| p.depth_m.clone()).collect();
+    let labels: Option<Vec<Vec<u32>>> = prepared.iter().map(|p| p.labels.clone()).collect();
+    let encoders = match &file.model.encoders_from {
+        Some(dir) => EncoderSource::Bundle(dir),
+        None => {
+            if cfg.semantic_encoder.is_some() && labels.is_none() {
                 bail!(
-                    "[model] encoders_from {}: its {file_name} does not match this model's encoder config",
-                    dir.display()
+                    "{}: the shards carry no semantic train ids (`label`), so the semantic encoder cannot be trained: \
+                     convert with a label map (SemanticKITTI) or set [model] encoders_from = \"models/default\"",
+                    shards.display()
                 );
             }
-            weights.insert(file_name, load_tensors(&dir.join(file_name))?);
-            *slot = Some(load_cnn(c, &dir.join(file_name), &device)?);
-        }
-        encoder_note = format!("from {}", dir.display());
-    } else if cfg.semantic_encoder.is_some() || cfg.depth_encoder.is_some() {
-        let images: Vec<Vec<u8>> = prepared.iter().map(|p| p.rgb.clone()).collect();
-        let depths: Vec<Vec<f32>> = prepared.iter().map(|p| p.depth_m.clone()).collect();
-        let labels: Option<Vec<Vec<u32>>> = prepared.iter().map(|p| p.labels.clone()).collect();
-        if cfg.semantic_encoder.is_some() && labels.is_none() {
-            bail!(
-                "{}: the shards carry no semantic train ids (`label`), so the semantic encoder cannot be trained: \
-                 convert with a label map (SemanticKITTI) or set [model] encoders_from = \"models/default\"",
-                shards.display()
-            );
-        }
-        let hw = (cfg.image_height, cfg.image_width);
-        let specs: [(&str, Option<SmallCnnConfig>, &'static str, u64); 2] = [
-            (
-                "semantic",
-                cfg.semantic_encoder.clone(),
-                SEMANTIC_FILE,
-                0x5e,
-            ),
-            ("depth", cfg.depth_encoder.clone(), DEPTH_FILE, 0xde),
-        ];
-        for (which, c, file_name, salt) in specs {
-            let Some(c) = c else { continue };
-            let saved = enc_dir.join(file_name);
-            let net = if saved.exists() {
-                encoder_note.push_str(&format!("{which} resumed; "));
-                load_cnn(&c, &saved, &device)?
-            } else {
-                let bar = progress::bar(t.encoder_steps as u64, which);
-                let mut last = f32::NAN;
-                let (net, vm) = train_small_cnn(
-                    &c,
-                    &images,
-                    if c.semantic_head {
-                        labels.as_deref()
-                    } else {
-                        None
-                    },
-                    c.depth_head.then_some(depths.as_slice()),
-                    hw,
-                    t.encoder_steps,
-                    t.encoder_batch,
-                    t.encoder_lr,
-                    t.seed ^ salt,
-                    &device,
-                    |s| {
-                        last = s.loss;
-                        bar.set_position(s.step as u64);
-                        bar.set_message(format!("loss {:.4}", s.loss));
-                    },
-                )
-                .with_context(|| format!("training the {which} encoder"))?;
-                bar.finish_and_clear();
-                let bytes = safetensors_bytes(&varmap_tensors(&vm)?, &saved)?;
-                std::fs::create_dir_all(&enc_dir)
-                    .with_context(|| format!("{}: cannot create", enc_dir.display()))?;
-                veila_data::atomic::write_atomic(&saved, &bytes)?;
-                encoder_note.push_str(&format!("{which}: final batch loss {last:.4}; "));
-                net
-            };
-            weights.insert(file_name, load_tensors(&saved)?);
-            match which {
-                "semantic" => semantic = Some(net),
-                _ => depth = Some(net),
+            EncoderSource::Train {
+                data: EncoderData {
+                    images: &images,
+                    labels: labels.as_deref(),
+                    depth_m: &depths,
+                },
+                dir: &enc_dir,
             }
         }
-    }
-    let enc_secs = t_enc.elapsed().as_secs_f64();
-    if !encoder_note.is_empty() {
-        println!("  encoders: {}", encoder_note.trim_end_matches("; "));
-    }
-
-    // 4. denoiser
-    let t_den = Instant::now();
+    };
     let examples: Vec<TrainExample> = prepared
         .into_iter()
         .map(|p| TrainExample {
@@ -773,43 +722,41 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
             x0: p.x0,
         })
         .collect();
-    let tc = TrainConfig {
-        seed: t.seed,
-        lr: t.lr,
-        min_lr: t.lr * 0.05,
-        warmup_steps: (t.steps / 20).max(1),
-        total_steps: t.steps,
-        ema_decay: t.ema_decay,
-        cond_drop_prob: if conditional {
-            t.cond_drop_prob.unwrap_or(0.1)
-        } else {
-            0.0
-        },
-        checkpoint_every: Some(t.checkpoint_every),
-        keep_checkpoints: Some(t.keep_checkpoints.max(1)),
-        ..TrainConfig::default()
-    };
-    let mean_steps = t.mean_steps.unwrap_or(t.steps);
-    let mean_tc = TrainConfig {
-        seed: t.seed ^ 0x3ea,
-        total_steps: mean_steps,
-        warmup_steps: (mean_steps / 20).max(1),
-        ..tc.clone()
-    };
+    let t_den = Instant::now();
+    let mut encoder_note = String::new();
+    let mut enc_bar: Option<indicatif::ProgressBar> = None;
     let run = std::rc::Rc::new(std::cell::Cell::new(0u64));
-    let outcome = fit_bundle(
+    let log = std::rc::Rc::new(TrainLog::open(out.join(TRAIN_LOG))?);
+    let outcome = run_recipe(
         &mut cfg,
-        BundleFit {
-            semantic: semantic.as_ref(),
-            depth: depth.as_ref(),
+        RecipeInput {
+            encoders,
             examples: &examples,
-            batch_size: t.batch,
-            train: &tc,
-            mean_train: Some(&mean_tc),
             work_dir: &ck_dir,
             init: None,
         },
+        &settings,
         &device,
+        |event| match event {
+            EncoderEvent::Reused(which, _) => {
+                encoder_note.push_str(&format!("{} resumed; ", encoder_name(which)))
+            }
+            EncoderEvent::Step(which, s, total) => {
+                let bar =
+                    enc_bar.get_or_insert_with(|| progress::bar(total as u64, encoder_name(which)));
+                bar.set_position(s.step as u64);
+                bar.set_message(format!("loss {:.4}", s.loss));
+            }
+            EncoderEvent::Trained(which, last) => {
+                if let Some(bar) = enc_bar.take() {
+                    bar.finish_and_clear();
+                }
+                encoder_note.push_str(&format!(
+                    "{}: final batch loss {last:.4}; ",
+                    encoder_name(which)
+                ));
+            }
+        },
         |stage, p, step| {
             println!(
                 "  {}: resumed from {} (step {step})",
@@ -822,20 +769,32 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
             ema_loss: None,
             stop_after: args.stop_after,
             run: run.clone(),
+            stage,
+            log: log.clone(),
         },
     )
-    .with_context(|| format!("training with checkpoints in {}", ck_dir.display()))?;
-    let den_secs = t_den.elapsed().as_secs_f64();
-    if let Some(m) = &outcome.mean {
+    .with_context(|| match &file.model.encoders_from {
+        Some(dir) => format!("[model] encoders_from: loading {}", dir.display()),
+        None => format!("training with checkpoints in {}", ck_dir.display()),
+    })?;
+    if let Some(dir) = &file.model.encoders_from {
+        encoder_note = format!("from {}", dir.display());
+    }
+    let enc_secs = outcome.encoder_seconds;
+    if !encoder_note.is_empty() {
+        println!("  encoders: {}", encoder_note.trim_end_matches("; "));
+    }
+    let den_secs = t_den.elapsed().as_secs_f64() - enc_secs;
+    if let Some(m) = &outcome.fit.mean {
         println!(
             "  mean network: {} steps this run (now at {} of {mean_steps}), mean loss {:.4}, {:.1} s",
-            m.summary.steps_run, m.summary.final_step, m.summary.mean_loss, outcome.seconds[0]
+            m.summary.steps_run, m.summary.final_step, m.summary.mean_loss, outcome.fit.seconds[0]
         );
     }
-    let den = match outcome.denoiser {
+    let den = match &outcome.fit.denoiser {
         Some(d) if d.step >= t.steps => d,
         Some(d) => {
-            print_denoiser_summary(&d, t.steps, outcome.seconds[1]);
+            print_denoiser_summary(d, t.steps, outcome.fit.seconds[1]);
             println!(
                 "stopped at step {} of {}; checkpoint in {}: rerun `veila train --config {}` to continue",
                 d.step,
@@ -846,7 +805,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
             return Ok(());
         }
         None => {
-            let at = outcome.mean.as_ref().map_or(0, |m| m.step);
+            let at = outcome.fit.mean.as_ref().map_or(0, |m| m.step);
             println!(
                 "stopped the mean network at step {at} of {mean_steps}; checkpoint in {}: rerun `veila train --config {}` to continue",
                 ck_dir.join("mean").display(),
@@ -855,12 +814,9 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
             return Ok(());
         }
     };
-    print_denoiser_summary(&den, t.steps, outcome.seconds[1]);
-    let summary = den.summary;
-    if let Some(m) = outcome.mean {
-        weights.insert(MEAN_FILE, m.ema_weights);
-    }
-    weights.insert(DENOISER_FILE, den.ema_weights);
+    print_denoiser_summary(den, t.steps, outcome.fit.seconds[1]);
+    let summary = den.summary.clone();
+    let weights = outcome.into_weights();
 
     // 5. the bundle
     cfg.provenance = serde_json::json!({

@@ -6,7 +6,7 @@ use std::process::Output;
 
 use veila_data::range_exr::read_range_exr;
 use veila_data::scan::read_kitti_bin;
-use veila_diffusion::bundle::BundleConfig;
+use veila_diffusion::app::bundle::BundleConfig;
 use veila_geom::{LidarSensor, ProjectionOptions, Projector, RangeImage, RayTable};
 
 mod common;

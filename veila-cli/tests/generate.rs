@@ -66,7 +66,14 @@ fn generated_scans_parse_agree_and_are_seeded() {
 
     for i in 0..2 {
         let stem = format!("scan_{i:03}");
-        for suffix in [".bin", ".exr", "_range.png", "_bev.png", "_overlay.png"] {
+        for suffix in [
+            ".bin",
+            ".ply",
+            ".exr",
+            "_range.png",
+            "_bev.png",
+            "_overlay.png",
+        ] {
             assert!(
                 a.join(format!("{stem}{suffix}")).is_file(),
                 "{stem}{suffix} missing"
@@ -78,6 +85,25 @@ fn generated_scans_parse_agree_and_are_seeded() {
         assert!(!bin.cloud.is_empty(), "{stem}: no points");
         assert_eq!(bin.cloud.len(), valid, "{stem}: points vs EXR returns");
         assert_eq!(bin.dropped_non_finite, 0);
+        // the PLY holds the same points with intensity and a colour per point
+        let ply_bytes = read(&a.join(format!("{stem}.ply")));
+        let header_end = ply_bytes
+            .windows(11)
+            .position(|w| w == b"end_header\n")
+            .unwrap();
+        let header = String::from_utf8_lossy(&ply_bytes[..header_end]);
+        assert!(
+            header.contains("format binary_little_endian 1.0"),
+            "{header}"
+        );
+        assert!(
+            header.contains("property float intensity\nproperty uchar red\nproperty uchar green\nproperty uchar blue"),
+            "{header}"
+        );
+        assert_eq!(ply_bytes.len(), header_end + 11 + bin.cloud.len() * 19);
+        let ply = veila_data::ply::read_ply(&a.join(format!("{stem}.ply"))).unwrap();
+        assert_eq!(ply.xyz, bin.cloud.xyz);
+        assert_eq!(ply.intensity, bin.cloud.intensity);
         // the model's grid is stored in the EXR and every point lies on a ray of that grid at the
         // EXR's range (brute-force comparison of the .bin with the EXR unprojection)
         let from_exr = exr.to_points().unwrap();
@@ -125,6 +151,47 @@ fn generated_scans_parse_agree_and_are_seeded() {
     );
     let bin0 = read_kitti_bin(&a.join("scan_000.bin")).unwrap();
     assert_eq!(json["scans"][0]["points"], bin0.cloud.len());
+
+    // $VEILA_MODEL names the model; stderr is a pipe here, not a terminal, so instead of a bar
+    // the run prints plain progress lines (the first at once)
+    let d = tmp.path().join("d");
+    let o = common::veila()
+        .env("VEILA_MODEL", model_dir())
+        .args(["generate", "--steps", "2", "--image"])
+        .arg(&image)
+        .arg("--calib")
+        .arg(&calib)
+        .arg("--out")
+        .arg(&d)
+        .output()
+        .unwrap();
+    ok(&o);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        stderr
+            .lines()
+            .any(|l| l.trim_start().starts_with("generate ") && l.contains("/2 (")),
+        "no progress line on a non-terminal stderr:\n{stderr}"
+    );
+    assert!(
+        !stderr.contains('\r') && !stderr.contains("\x1b["),
+        "{stderr:?}"
+    );
+    assert!(d.join("scan_000.bin").is_file());
+    // -q: no progress lines
+    let e = tmp.path().join("e");
+    let o = common::veila()
+        .env("VEILA_MODEL", model_dir())
+        .args(["generate", "-q", "--steps", "2", "--image"])
+        .arg(&image)
+        .arg("--calib")
+        .arg(&calib)
+        .arg("--out")
+        .arg(&e)
+        .output()
+        .unwrap();
+    ok(&o);
+    assert_eq!(String::from_utf8_lossy(&o.stderr), "");
 }
 
 #[test]

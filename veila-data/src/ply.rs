@@ -365,6 +365,23 @@ pub fn read_ply(path: &Path) -> Result<PointCloud> {
 
 /// Encode a point cloud as binary little-endian PLY (see the module docs for the layout).
 pub fn encode_ply(cloud: &PointCloud, w: &mut impl Write) -> std::io::Result<()> {
+    encode_ply_rgb(cloud, None, w)
+}
+
+/// [`encode_ply`] with a colour per point: `uchar red, green, blue` after the other properties,
+/// the names Open3D, CloudCompare and MeshLab read as vertex colours (`rgb.len()` must be
+/// `cloud.len()`).
+pub fn encode_ply_rgb(
+    cloud: &PointCloud,
+    rgb: Option<&[[u8; 3]]>,
+    w: &mut impl Write,
+) -> std::io::Result<()> {
+    if rgb.is_some_and(|c| c.len() != cloud.len()) {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            "one colour per point",
+        ));
+    }
     write!(
         w,
         "ply\nformat binary_little_endian 1.0\ncomment written by veila-data (LiDAR frame, metres)\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nproperty float intensity\n",
@@ -375,6 +392,12 @@ pub fn encode_ply(cloud: &PointCloud, w: &mut impl Write) -> std::io::Result<()>
     }
     if cloud.label.is_some() {
         writeln!(w, "property uint label")?;
+    }
+    if rgb.is_some() {
+        writeln!(
+            w,
+            "property uchar red\nproperty uchar green\nproperty uchar blue"
+        )?;
     }
     writeln!(w, "end_header")?;
     for i in 0..cloud.len() {
@@ -389,6 +412,9 @@ pub fn encode_ply(cloud: &PointCloud, w: &mut impl Write) -> std::io::Result<()>
         if let Some(l) = &cloud.label {
             w.write_all(&l[i].to_le_bytes())?;
         }
+        if let Some(c) = rgb {
+            w.write_all(&c[i])?;
+        }
     }
     Ok(())
 }
@@ -397,6 +423,18 @@ pub fn encode_ply(cloud: &PointCloud, w: &mut impl Write) -> std::io::Result<()>
 pub fn write_ply(path: &Path, cloud: &PointCloud) -> Result<()> {
     cloud.validate()?;
     write_atomic_with(path, |w| encode_ply(cloud, w))
+}
+
+/// Write a point cloud with a colour per point ([`encode_ply_rgb`]), atomically.
+pub fn write_ply_rgb(path: &Path, cloud: &PointCloud, rgb: &[[u8; 3]]) -> Result<()> {
+    cloud.validate()?;
+    if rgb.len() != cloud.len() {
+        return Err(Error::Invalid {
+            what: format!("colours of {}", path.display()),
+            message: format!("{} colours for {} points", rgb.len(), cloud.len()),
+        });
+    }
+    write_atomic_with(path, |w| encode_ply_rgb(cloud, Some(rgb), w))
 }
 
 #[cfg(test)]
@@ -410,6 +448,29 @@ mod tests {
             ring: Some(vec![3, 31]),
             label: Some(vec![40, (7 << 16) | 10]),
         }
+    }
+
+    #[test]
+    fn colours_follow_the_other_properties_and_readers_skip_them() {
+        let c = cloud();
+        let rgb = [[255u8, 0, 7], [1, 128, 254]];
+        let mut buf = Vec::new();
+        encode_ply_rgb(&c, Some(&rgb), &mut buf).unwrap();
+        let text = String::from_utf8_lossy(&buf);
+        let header_end = text.find("end_header\n").unwrap() + "end_header\n".len();
+        assert!(text[..header_end].contains(
+            "property uint label\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nend_header"
+        ));
+        // x y z intensity (4 x f32), ring (u16), label (u32), red green blue (3 x u8)
+        let stride = 16 + 2 + 4 + 3;
+        assert_eq!(buf.len(), header_end + 2 * stride);
+        assert_eq!(&buf[header_end + stride - 3..header_end + stride], &rgb[0]);
+        assert_eq!(&buf[header_end + 2 * stride - 3..], &rgb[1]);
+        let back = parse_ply(&buf, Path::new("mem.ply")).unwrap();
+        assert_eq!(back.xyz, c.xyz);
+        assert_eq!(back.intensity, c.intensity);
+        assert_eq!(back.label, c.label);
+        assert!(encode_ply_rgb(&c, Some(&rgb[..1]), &mut Vec::new()).is_err());
     }
 
     #[test]

@@ -73,6 +73,23 @@ pub enum Error {
     #[error(transparent)]
     Model(#[from] veila_nn::Error),
 
+    /// A sensor or camera is invalid.
+    #[error(transparent)]
+    Geom(#[from] veila_geom::GeomError),
+
+    /// An input file (an image, a calibration) is unusable; the reason names what is wrong.
+    #[error("{}: {reason}", path.display())]
+    Input {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong with it.
+        reason: String,
+    },
+
+    /// Reading or writing a file of `veila-data`'s formats failed (the error names the file).
+    #[error(transparent)]
+    Files(#[from] veila_data::Error),
+
     /// The training data source ran out or failed.
     #[error("data source: {0}")]
     Data(String),

@@ -11,12 +11,12 @@
 //! * [`prediction`]: ε-, v- and x₀-prediction with conversions, the network's time input, min-SNR-γ.
 //! * [`Diffusion`]: forward noising and the training loss (one random level per sample).
 //! * [`sampler`]: DDPM, DDIM (η), DPM-Solver++(2M), classifier-free guidance, RePaint inpainting.
-//! * [`nn`]: the Veila U-Net from `veila-nn` as a [`Denoiser`] ([`VeilaDenoiser`]).
-//! * [`bundle`]: model bundles (encoders + denoiser + settings) with sha256 manifests verified on load.
-//! * [`pipeline`]: camera images to scans with a bundle (generation, inpainting) and training on
-//!   in-memory examples.
 //! * [`trainer`]: AdamW, warm-up + cosine LR, EMA, gradient clipping, atomic checkpoints with exact
 //!   resume, progress and preview callbacks.
+//!
+//! Everything above is the generic diffusion core: it never names `veila-nn`. The [`app`] module
+//! beside it is the application: model bundles, the generate and inpaint pipeline, rig and
+//! calibration loading, and the one training recipe the binaries share.
 //!
 //! All randomness comes from caller-provided RNGs (use `rand_chacha::ChaCha8Rng` with a fixed seed);
 //! noise is drawn on the CPU, so a seed gives the same samples on every device.
@@ -55,24 +55,22 @@
 //! # }
 //! ```
 
-pub mod bundle;
+pub mod app;
 pub mod denoiser;
 pub mod encoding;
 pub mod error;
-pub mod nn;
 pub mod noise;
 pub mod objective;
 pub mod oracle;
-pub mod pipeline;
 pub mod prediction;
 pub mod sampler;
 pub mod schedule;
 pub mod trainer;
 
+pub use app::nn::{NetCond, VeilaDenoiser};
 pub use denoiser::{CondDropout, Conditioning, Denoiser, guide};
 pub use encoding::{DecodedScan, RangeEncoding, ScanView};
 pub use error::{Error, Result};
-pub use nn::{NetCond, VeilaDenoiser};
 pub use objective::{Denoised, Diffusion, DiffusionConfig, LossOutput, Objective};
 pub use prediction::{LossWeighting, Prediction, TimeInput};
 pub use sampler::{

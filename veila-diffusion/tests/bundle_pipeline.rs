@@ -6,11 +6,11 @@ use std::collections::HashMap;
 use candle_core::{DType, Device};
 use candle_nn::VarMap;
 use veila_diffusion::SamplerConfig;
-use veila_diffusion::bundle::{
+use veila_diffusion::app::bundle::{
     Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, MANIFEST_FILE, MEAN_FILE, Method,
     SEMANTIC_FILE, Variant,
 };
-use veila_diffusion::pipeline::{
+use veila_diffusion::app::{
     BundleFit, CameraView, DenoiserTraining, GenerateOptions, Stage, TrainExample, fit_bundle,
     varmap_tensors,
 };

@@ -17,8 +17,8 @@ use glam::Vec3;
 use serde::Serialize;
 use veila_data::vis::plot::{BarChart, BarGroup, Plot, Series, SeriesStyle};
 use veila_diffusion::SamplerConfig;
-use veila_diffusion::bundle::{Bundle, Variant};
-use veila_diffusion::pipeline::{CameraView, GenerateOptions};
+use veila_diffusion::app::bundle::{Bundle, Variant};
+use veila_diffusion::app::{CameraView, GenerateOptions};
 use veila_geom::{RangeImage, RayTable, Region};
 use veila_metrics::bev::{BevConfig, BevHistogram, bev_histogram};
 use veila_metrics::crossmodal::{

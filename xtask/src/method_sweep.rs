@@ -20,8 +20,8 @@ use candle_core::{Device, Tensor};
 use clap::Args;
 use serde::Serialize;
 use veila_data::vis::plot::{Plot, Series, SeriesStyle};
-use veila_diffusion::bundle::{Bundle, BundleConfig, Method, Variant};
-use veila_diffusion::pipeline::{
+use veila_diffusion::app::bundle::{Bundle, BundleConfig, Method, Variant};
+use veila_diffusion::app::{
     CameraView, DenoiserFit, GenerateOptions, Stage, TrainExample, fit_denoiser, predict_means,
     residual_scale,
 };

@@ -14,8 +14,8 @@ mod tests {
     use std::collections::HashMap;
 
     use candle_core::{Device, Tensor};
-    use veila_diffusion::bundle::{Bundle, BundleConfig, Method, Variant};
-    use veila_diffusion::pipeline::{BundleFit, CameraView, GenerateOptions, fit_bundle};
+    use veila_diffusion::app::bundle::{Bundle, BundleConfig, Method, Variant};
+    use veila_diffusion::app::{BundleFit, CameraView, GenerateOptions, fit_bundle};
     use veila_diffusion::{Diffusion, NetCond, SamplerConfig, TrainConfig, VeilaDenoiser};
     use veila_geom::Region;
 
@@ -108,7 +108,7 @@ mod tests {
                 .denoiser
                 .geometry(&[frame.camera], &cfg.epipolar, &dev)
                 .unwrap();
-            let input = veila_diffusion::pipeline::ViewFeatures::cat(&[&feats]).unwrap();
+            let input = veila_diffusion::app::ViewFeatures::cat(&[&feats]).unwrap();
             let image = bundle
                 .denoiser
                 .prepare_condition(&input, Some(&geom))

@@ -7,9 +7,9 @@ use anyhow::{Context, Result};
 use rayon::prelude::*;
 use veila_data::image::{RgbImage, imageops};
 use veila_data::sim::{Scene, SceneConfig, SceneList, SimFrame, class};
-use veila_diffusion::bundle::BundleConfig;
+use veila_diffusion::app::TrainExample;
+use veila_diffusion::app::bundle::BundleConfig;
 use veila_diffusion::encoding::ScanView;
-use veila_diffusion::pipeline::TrainExample;
 use veila_geom::{LidarSensor, PinholeCamera, ProjectionOptions, Projector, RangeImage};
 
 /// The workspace root (xtask lives one level below it).

@@ -14,7 +14,7 @@ const INTERNAL_ALLOWED: &[(&str, &[&str])] = &[
     ("veila-geom", &[]),
     ("veila-data", &["veila-geom"]),
     ("veila-nn", &["veila-geom"]),
-    ("veila-diffusion", &["veila-geom", "veila-nn"]),
+    ("veila-diffusion", &["veila-geom", "veila-data", "veila-nn"]),
     ("veila-metrics", &["veila-geom"]),
     (
         "veila-cli",
@@ -305,4 +305,106 @@ fn every_library_has_crate_docs_with_an_example() {
             "{krate}/src/lib.rs crate docs need a runnable example"
         );
     }
+}
+
+/// Files of `veila-diffusion/src` outside the application module (`src/app/`) that name
+/// `veila_nn`. The crate's one error enum (`error.rs`) is the single exception: it wraps the
+/// network crate's errors.
+fn diffusion_core_naming_nn() -> Vec<String> {
+    let src = workspace_root().join("veila-diffusion/src");
+    grep(&src, &["veila_nn"])
+        .into_iter()
+        .filter(|hit| {
+            let path = Path::new(hit.split(": ").next().unwrap_or(""));
+            !(path.starts_with(src.join("app")) || path == src.join("error.rs"))
+        })
+        .collect()
+}
+
+#[test]
+fn diffusion_core_does_not_name_veila_nn() {
+    let hits = diffusion_core_naming_nn();
+    assert!(
+        hits.is_empty(),
+        "the generic diffusion core must not name veila-nn (the network belongs in src/app/):\n{}",
+        hits.join("\n")
+    );
+    // the check looks where the network is named: the application module does
+    let app = grep(
+        &workspace_root().join("veila-diffusion/src/app"),
+        &["veila_nn"],
+    );
+    assert!(!app.is_empty(), "the grep finds no veila_nn in src/app/");
+}
+
+/// `(importer, imported)` for every command module of `dir` (`*_cmd.rs`) that names another
+/// command module (`crate::other_cmd` or `other_cmd` inside a `use crate::{..}` list).
+fn command_imports(dir: &Path) -> Vec<(String, String)> {
+    let mut commands: Vec<(String, String)> = std::fs::read_dir(dir)
+        .expect("readable source directory")
+        .filter_map(|e| {
+            let path = e.expect("directory entry").path();
+            let stem = path.file_stem()?.to_str()?.to_string();
+            stem.ends_with("_cmd").then(|| {
+                let text = std::fs::read_to_string(&path).expect("readable source file");
+                (stem, text)
+            })
+        })
+        .collect();
+    commands.sort();
+    let mut found = Vec::new();
+    for (name, text) in &commands {
+        let flat: String = text.split_whitespace().collect();
+        let uses: Vec<&str> = flat
+            .split("usecrate::")
+            .skip(1)
+            .map(|rest| rest.split(';').next().unwrap_or(""))
+            .collect();
+        for (other, _) in &commands {
+            if other == name {
+                continue;
+            }
+            let named_in_use = uses.iter().any(|u| {
+                u.split(|c: char| !(c.is_alphanumeric() || c == '_'))
+                    .any(|seg| seg == other)
+            });
+            if named_in_use || flat.contains(&format!("crate::{other}")) {
+                found.push((name.clone(), other.clone()));
+            }
+        }
+    }
+    found
+}
+
+#[test]
+fn no_command_imports_another_command() {
+    let dir = workspace_root().join("veila-cli/src");
+    let found = command_imports(&dir);
+    assert!(
+        found.is_empty(),
+        "commands import other commands (move the shared part into veila_diffusion::app or a shared CLI module): {found:?}"
+    );
+}
+
+#[test]
+fn command_import_check_catches_an_import() {
+    let dir = tempfile::tempdir().expect("temporary folder");
+    std::fs::write(
+        dir.path().join("a_cmd.rs"),
+        "use crate::{\n    b_cmd::{X, Y},\n    model,\n};\n",
+    )
+    .unwrap();
+    std::fs::write(
+        dir.path().join("b_cmd.rs"),
+        "use crate::model;\nfn f() { crate::c_cmd::g(); }\n",
+    )
+    .unwrap();
+    std::fs::write(dir.path().join("c_cmd.rs"), "use crate::progress;\n").unwrap();
+    assert_eq!(
+        command_imports(dir.path()),
+        [
+            ("a_cmd".to_string(), "b_cmd".to_string()),
+            ("b_cmd".to_string(), "c_cmd".to_string())
+        ]
+    );
 }

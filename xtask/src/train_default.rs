@@ -1,25 +1,22 @@
 //! `cargo xtask train-default`: trains the bundled model (`models/default`) from a fixed seed on
-//! the simulator's train split: the two small CNN encoders first (semantics, depth), then the
-//! denoiser on their frozen features. Resumable: denoiser checkpoints go to `--work` and a rerun
-//! picks up the newest one (the encoders are retrained, which is deterministic).
+//! the simulator's train split with the recipe `veila train` runs too
+//! (`veila_diffusion::app::recipe`): the two small CNN encoders first (semantics, depth), then the
+//! mean network and the denoiser on their frozen features. Resumable: checkpoints and the trained
+//! encoders go to `--work` and a rerun picks up the newest ones.
 
-use std::collections::HashMap;
 use std::ops::ControlFlow;
 use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
 use candle_core::Device;
-use candle_nn::VarMap;
 use clap::Args;
-use veila_diffusion::bundle::{
-    Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, MEAN_FILE, Method, SEMANTIC_FILE, Variant,
+use veila_diffusion::app::bundle::{Bundle, BundleConfig, Method, Variant};
+use veila_diffusion::app::{
+    Encoder, EncoderData, EncoderEvent, EncoderSource, RecipeInput, RecipeSettings, Stage,
+    TrainExample, run_recipe,
 };
-use veila_diffusion::pipeline::{
-    BundleFit, Stage, TrainExample, fit_bundle, train_small_cnn, varmap_tensors,
-};
-use veila_diffusion::{StepStats, TrainConfig, TrainObserver};
-use veila_nn::encoders::small_cnn::SmallCnn;
+use veila_diffusion::{StepStats, TrainObserver};
 
 use crate::simdata::{SimExample, render_split, workspace_root};
 
@@ -160,149 +157,23 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             .join(format!("{}-{}", args.variant.name(), method.name()))
     });
 
-    // 1. encoders
-    let hw = (cfg.image_height, cfg.image_width);
-    let images: Vec<Vec<u8>> = examples.iter().map(|e| e.rgb.clone()).collect();
-    let labels: Vec<Vec<u32>> = examples.iter().map(|e| e.labels.clone()).collect();
-    let depths: Vec<Vec<f32>> = examples.iter().map(|e| e.depth_m.clone()).collect();
-    let t = Instant::now();
-    let mut weights: HashMap<&str, HashMap<String, candle_core::Tensor>> = HashMap::new();
-    let mut semantic: Option<SmallCnn> = None;
-    let mut depth: Option<SmallCnn> = None;
-    if let Some(dir) = &args.encoders_from {
-        let b = Bundle::from_dir(dir, &device)
-            .with_context(|| format!("loading encoders from {}", dir.display()))?;
-        if cfg.semantic_encoder.is_some() {
-            let s = b
-                .semantic
-                .clone()
-                .context("that bundle has no semantic encoder")?;
-            weights.insert(SEMANTIC_FILE, load_tensors(&dir.join(SEMANTIC_FILE))?);
-            semantic = Some(s);
-        }
-        if cfg.depth_encoder.is_some() {
-            let d = b
-                .depth
-                .clone()
-                .context("that bundle has no depth encoder")?;
-            weights.insert(DEPTH_FILE, load_tensors(&dir.join(DEPTH_FILE))?);
-            depth = Some(d);
-        }
-    } else {
-        let train_cnn = |which: &str,
-                         c: &veila_nn::encoders::small_cnn::SmallCnnConfig,
-                         seed: u64|
-         -> Result<(SmallCnn, VarMap)> {
-            let bar = crate::progress::progress_bar(args.encoder_steps as u64, which);
-            let mut last = f32::NAN;
-            let r = train_small_cnn(
-                c,
-                &images,
-                c.semantic_head.then_some(labels.as_slice()),
-                c.depth_head.then_some(depths.as_slice()),
-                hw,
-                args.encoder_steps,
-                8,
-                2e-3,
-                seed,
-                &device,
-                |s| {
-                    last = s.loss;
-                    bar.set_position(s.step as u64);
-                    bar.set_message(format!("loss {:.4}", s.loss));
-                },
-            )?;
-            bar.finish_and_clear();
-            println!("  {which}: final batch loss {last:.4}");
-            Ok(r)
-        };
-        // trained encoders are kept in the work folder, so a resumed run does not train them
-        // again (their training is deterministic: the same seed gives the same weights)
-        let enc_dir = work.join(format!(
-            "encoders-seed{}-steps{}-frames{}",
-            args.seed,
-            args.encoder_steps,
-            examples.len()
-        ));
-        for (which, c, file, salt) in [
-            (
-                "semantic encoder",
-                cfg.semantic_encoder.clone(),
-                SEMANTIC_FILE,
-                0x5e,
-            ),
-            ("depth encoder", cfg.depth_encoder.clone(), DEPTH_FILE, 0xde),
-        ] {
-            let Some(c) = c else { continue };
-            let saved = enc_dir.join(file);
-            let tensors = if saved.is_file() {
-                println!("  {which}: reusing {}", saved.display());
-                load_tensors(&saved)?
-            } else {
-                let (_, vm) = train_cnn(which, &c, args.seed ^ salt)?;
-                let tensors = varmap_tensors(&vm)?;
-                std::fs::create_dir_all(&enc_dir)
-                    .with_context(|| format!("creating {}", enc_dir.display()))?;
-                let bytes = veila_nn::checkpoint::safetensors_bytes(&tensors, &saved)?;
-                veila_data::atomic::write_atomic(&saved, &bytes)?;
-                tensors
-            };
-            let net = SmallCnn::new(
-                &c,
-                candle_nn::VarBuilder::from_tensors(
-                    tensors.clone(),
-                    candle_core::DType::F32,
-                    &device,
-                ),
-            )?;
-            weights.insert(file, tensors);
-            if file == SEMANTIC_FILE {
-                semantic = Some(net);
-            } else {
-                depth = Some(net);
-            }
-        }
-    }
-    let enc_secs = t.elapsed().as_secs_f64();
-
-    // 2. denoiser
-    let t = Instant::now();
-    let init = args
-        .init_from
-        .as_ref()
-        .map(|dir| {
-            Bundle::from_dir(dir, &device)
-                .map(|b| b.weights)
-                .with_context(|| format!("loading initial weights from {}", dir.display()))
-        })
-        .transpose()?;
-    let train_examples: Vec<TrainExample> = examples
-        .iter()
-        .map(|e| e.train_example(&cfg))
-        .collect::<Result<_>>()?;
-    let tc = TrainConfig {
+    // the recipe's settings (the flags above; the encoders' batch and learning rate are fixed)
+    let settings = RecipeSettings {
         seed: args.seed,
+        steps: args.steps,
+        mean_steps: args.mean_steps,
+        batch: args.batch,
         lr: args.lr,
-        min_lr: args.lr * 0.05,
-        warmup_steps: (args.steps / 20).max(1),
-        total_steps: args.steps,
         ema_decay: 0.995,
-        cond_drop_prob: if cfg.denoiser.conditioning.is_some() {
-            0.1
-        } else {
-            0.0
-        },
-        checkpoint_every: Some(args.checkpoint_every.max(1)),
-        keep_checkpoints: Some(2),
-        ..TrainConfig::default()
+        cond_drop_prob: 0.1,
+        checkpoint_every: args.checkpoint_every,
+        keep_checkpoints: 2,
+        encoder_steps: args.encoder_steps,
+        encoder_batch: 8,
+        encoder_lr: 2e-3,
     };
-    let mean_steps = args.mean_steps.unwrap_or(args.steps);
-    let mean_tc = TrainConfig {
-        seed: args.seed ^ 0x3ea,
-        total_steps: mean_steps,
-        warmup_steps: (mean_steps / 20).max(1),
-        ..tc.clone()
-    };
+    let (tc, mean_tc) = settings.train_configs(cfg.denoiser.conditioning.is_some());
+    let mean_steps = settings.mean_steps();
     // a work folder resumes only the run it was made for: same model, diffusion and training
     // settings, same data
     let run_key = serde_json::json!({
@@ -319,19 +190,71 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     });
     veila_diffusion::claim_checkpoint_dir(&work, &run_key)
         .with_context(|| "pass another --work to start a separate run")?;
-    let outcome = fit_bundle(
+
+    let images: Vec<Vec<u8>> = examples.iter().map(|e| e.rgb.clone()).collect();
+    let labels: Vec<Vec<u32>> = examples.iter().map(|e| e.labels.clone()).collect();
+    let depths: Vec<Vec<f32>> = examples.iter().map(|e| e.depth_m.clone()).collect();
+    // trained encoders are kept in the work folder, so a resumed run does not train them
+    // again (their training is deterministic: the same seed gives the same weights)
+    let enc_dir = work.join(format!(
+        "encoders-seed{}-steps{}-frames{}",
+        args.seed,
+        args.encoder_steps,
+        examples.len()
+    ));
+    let encoders = match &args.encoders_from {
+        Some(dir) => EncoderSource::Bundle(dir),
+        None => EncoderSource::Train {
+            data: EncoderData {
+                images: &images,
+                labels: Some(&labels),
+                depth_m: &depths,
+            },
+            dir: &enc_dir,
+        },
+    };
+    let init = args
+        .init_from
+        .as_ref()
+        .map(|dir| {
+            Bundle::from_dir(dir, &device)
+                .map(|b| b.weights)
+                .with_context(|| format!("loading initial weights from {}", dir.display()))
+        })
+        .transpose()?;
+    let train_examples: Vec<TrainExample> = examples
+        .iter()
+        .map(|e| e.train_example(&cfg))
+        .collect::<Result<_>>()?;
+    let t = Instant::now();
+    let mut bar: Option<indicatif::ProgressBar> = None;
+    let outcome = run_recipe(
         &mut cfg,
-        BundleFit {
-            semantic: semantic.as_ref(),
-            depth: depth.as_ref(),
+        RecipeInput {
+            encoders,
             examples: &train_examples,
-            batch_size: args.batch,
-            train: &tc,
-            mean_train: Some(&mean_tc),
             work_dir: &work,
             init: init.as_ref(),
         },
+        &settings,
         &device,
+        |event| match event {
+            EncoderEvent::Reused(which, path) => {
+                println!("  {}: reusing {}", encoder_name(which), path.display())
+            }
+            EncoderEvent::Step(which, s, total) => {
+                let b = bar
+                    .get_or_insert_with(|| crate::progress_bar(total as u64, encoder_name(which)));
+                b.set_position(s.step as u64);
+                b.set_message(format!("loss {:.4}", s.loss));
+            }
+            EncoderEvent::Trained(which, last) => {
+                if let Some(b) = bar.take() {
+                    b.finish_and_clear();
+                }
+                println!("  {}: final batch loss {last:.4}", encoder_name(which));
+            }
+        },
         |stage, p, step| println!("  {stage:?}: resumed from {} (step {step})", p.display()),
         |stage, total| Progress {
             bar: crate::progress::progress_bar(
@@ -343,9 +266,17 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             ),
             ema_loss: None,
         },
-    )?;
+    )
+    .with_context(|| match &args.encoders_from {
+        Some(dir) => format!("training (encoders from {})", dir.display()),
+        None => format!("training in {}", work.display()),
+    })?;
+    let enc_secs = outcome.encoder_seconds;
+    let den_secs = t.elapsed().as_secs_f64() - enc_secs;
     let den = outcome
+        .fit
         .denoiser
+        .as_ref()
         .context("the mean network's run stopped early")?;
     if let Some(dir) = &args.init_from {
         println!(
@@ -355,31 +286,30 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             dir.display()
         );
     }
-    let summary = den.summary;
-    let den_secs = t.elapsed().as_secs_f64();
+    let summary = den.summary.clone();
     // the runs' own clocks, summed over every resumed session (this process's seconds are below)
-    let clock = |c: veila_diffusion::Clock| serde_json::json!({ "seconds": c.seconds.round(), "from_step": c.from_step });
+    let clock = |c: veila_diffusion::Clock| {
+        serde_json::json!({ "seconds": c.seconds.round(), "from_step": c.from_step })
+    };
     let train_clock = serde_json::json!({
-        "mean": outcome.mean.as_ref().map(|m| clock(m.summary.clock)),
+        "mean": outcome.fit.mean.as_ref().map(|m| clock(m.summary.clock)),
         "denoiser": clock(summary.clock),
     });
-    if let Some(m) = &outcome.mean {
+    if let Some(m) = &outcome.fit.mean {
         println!(
             "  mean network: {} steps this run, mean loss {:.4}, {:.0} s; residual scale {:?}",
             m.summary.steps_run,
             m.summary.mean_loss,
-            outcome.seconds[0],
+            outcome.fit.seconds[0],
             cfg.residual.as_ref().map(|r| &r.scale)
         );
     }
     println!(
         "  denoiser: {} steps this run, mean loss {:.4}, {} skipped, {:.0} s",
-        summary.steps_run, summary.mean_loss, summary.skipped, outcome.seconds[1]
+        summary.steps_run, summary.mean_loss, summary.skipped, outcome.fit.seconds[1]
     );
-    if let Some(m) = outcome.mean {
-        weights.insert(MEAN_FILE, m.ema_weights);
-    }
-    weights.insert(DENOISER_FILE, den.ema_weights);
+    let seconds = outcome.fit.seconds;
+    let weights = outcome.into_weights();
 
     cfg.provenance = serde_json::json!({
         "trained_by": "cargo xtask train-default",
@@ -402,8 +332,8 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         "seconds": {
             "simulation": sim_secs.round(),
             "encoders": enc_secs.round(),
-            "mean": outcome.seconds[0].round(),
-            "denoiser": outcome.seconds[1].round(),
+            "mean": seconds[0].round(),
+            "denoiser": seconds[1].round(),
             "total": (sim_secs + enc_secs + den_secs).round(),
         },
     });
@@ -420,7 +350,9 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     Ok(cfg)
 }
 
-fn load_tensors(path: &std::path::Path) -> Result<HashMap<String, candle_core::Tensor>> {
-    candle_core::safetensors::load(path, &Device::Cpu)
-        .with_context(|| format!("reading {}", path.display()))
+fn encoder_name(which: Encoder) -> &'static str {
+    match which {
+        Encoder::Semantic => "semantic encoder",
+        Encoder::Depth => "depth encoder",
+    }
 }

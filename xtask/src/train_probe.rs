@@ -15,10 +15,10 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use candle_core::{DType, Device, Tensor};
 use clap::Args;
-use veila_diffusion::bundle::{
+use veila_diffusion::app::bundle::{
     Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, MEAN_FILE, Method, SEMANTIC_FILE, Variant,
 };
-use veila_diffusion::pipeline::{
+use veila_diffusion::app::{
     CameraView, GenerateOptions, Stage, TrainExample, predict_means, residual_scale, stage_config,
 };
 use veila_diffusion::trainer::{CheckpointState, find_latest_checkpoint};
@@ -243,7 +243,7 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
                 &den_cfg,
                 veila_nn::seeded_var_builder(&vm, args.seed, DType::F32, &device),
             )?;
-            veila_diffusion::pipeline::varmap_tensors(&vm)?
+            veila_diffusion::app::varmap_tensors(&vm)?
         }
     };
     let den_net = net(&den_w, Stage::Denoiser)?;

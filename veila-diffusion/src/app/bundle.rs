@@ -23,15 +23,17 @@ use std::fs;
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor};
+use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
 use veila_geom::EpipolarConfig;
 use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
 use veila_nn::{Denoiser as Net, DenoiserConfig};
 
-use crate::encoding::RangeEncoding;
+use super::generate::{CameraView, GenerateOptions, ViewFeatures};
+use crate::encoding::{DecodedScan, RangeEncoding};
 use crate::error::{Error, Result};
 use crate::objective::DiffusionConfig;
-use crate::sampler::SamplerConfig;
+use crate::sampler::{RepaintConfig, SamplerConfig};
 
 /// Format tag of `bundle.json`.
 pub const BUNDLE_FORMAT: &str = "veila-bundle/1";
@@ -424,6 +426,146 @@ impl Bundle {
         }
         Ok(())
     }
+}
+
+/// Generation: the pipeline itself lives in [`super::generate`].
+impl Bundle {
+    /// The range-image grid `(rows, cols)`.
+    pub fn grid(&self) -> (usize, usize) {
+        (self.config.denoiser.height(), self.config.denoiser.width())
+    }
+
+    /// Whether the denoiser uses the image.
+    pub fn is_conditional(&self) -> bool {
+        self.config.denoiser.conditioning.is_some()
+    }
+
+    /// Runs the frozen encoders on views at the bundle's image size.
+    pub fn encode_views(&self, views: &[CameraView<'_>]) -> Result<ViewFeatures> {
+        super::generate::encode_views(
+            &self.config,
+            self.semantic.as_ref(),
+            self.depth.as_ref(),
+            views,
+            self.denoiser_device(),
+        )
+    }
+
+    /// A retrieval descriptor of one view: the coarsest feature map of each frozen encoder,
+    /// flattened (the spatial layout stays: where things are matters), each scaled to unit norm.
+    /// Images whose descriptors are near by cosine look alike to the model (the retrieval baseline
+    /// picks the training scan of the nearest image).
+    pub fn image_descriptor(&self, view: CameraView<'_>) -> Result<Vec<f32>> {
+        let f = self.encode_views(&[view])?;
+        let mut out = Vec::new();
+        for pyramid in [&f.semantic, &f.depth].into_iter().flatten() {
+            let Some(last) = pyramid.last() else { continue };
+            let v = last.flatten_all()?.to_vec1::<f32>()?;
+            let n = v.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-12);
+            out.extend(v.iter().map(|x| x / n));
+        }
+        Ok(out)
+    }
+
+    pub(crate) fn denoiser_device(&self) -> &Device {
+        self.denoiser
+            .ray_features()
+            .map(|t| t.device())
+            .unwrap_or(&Device::Cpu)
+    }
+
+    /// The denoiser for `views` camera views (a model trained with one view runs on several: no
+    /// weight depends on the number of views).
+    pub(crate) fn net_for_views(&self, views: usize) -> Result<Net> {
+        rebuild_for_views(
+            &self.denoiser,
+            &self.config.denoiser,
+            &self.weights,
+            views,
+            self.denoiser_device(),
+        )
+    }
+
+    /// The mean network of a residual bundle for `views` camera views.
+    pub(crate) fn mean_for_views(&self, views: usize) -> Result<Option<Net>> {
+        match (&self.mean, &self.config.residual) {
+            (Some((net, weights)), Some(r)) => Ok(Some(rebuild_for_views(
+                net,
+                &r.mean_net,
+                weights,
+                views,
+                self.denoiser_device(),
+            )?)),
+            _ => Ok(None),
+        }
+    }
+
+    /// Draws `options.samples` scans for one camera rig. `on_step(done, total)` is called after each
+    /// sampler step. Views are ignored by unconditional bundles.
+    pub fn generate(
+        &self,
+        views: &[CameraView<'_>],
+        options: &GenerateOptions,
+        on_step: impl FnMut(usize, usize),
+    ) -> Result<Vec<DecodedScan>> {
+        super::generate::sample(self, views, options, None, on_step)
+    }
+
+    /// Keeps the pixels where `known_mask` (`rows * cols`, row-major) is true at the values of
+    /// `known` and regenerates the rest, consistent with the kept part and the views (RePaint; the
+    /// sampler must be DDPM or DDIM).
+    pub fn inpaint(
+        &self,
+        views: &[CameraView<'_>],
+        known: &DecodedScan,
+        known_mask: &[bool],
+        options: &GenerateOptions,
+        repaint: &RepaintConfig,
+    ) -> Result<Vec<DecodedScan>> {
+        let (h, w) = self.grid();
+        if (known.rows, known.cols) != (h, w) || known_mask.len() != h * w {
+            return Err(Error::Shape {
+                what: "inpainting input",
+                expected: format!("a {h} x {w} scan and {} mask values", h * w),
+                got: format!(
+                    "a {} x {} scan and {} mask values",
+                    known.rows,
+                    known.cols,
+                    known_mask.len()
+                ),
+            });
+        }
+        super::generate::sample(
+            self,
+            views,
+            options,
+            Some((known, known_mask, repaint)),
+            |_, _| {},
+        )
+    }
+}
+
+fn rebuild_for_views(
+    net: &Net,
+    cfg: &veila_nn::DenoiserConfig,
+    weights: &HashMap<String, Tensor>,
+    views: usize,
+    device: &Device,
+) -> Result<Net> {
+    let Some(cc) = &cfg.conditioning else {
+        return Ok(net.clone());
+    };
+    if cc.num_views == views {
+        return Ok(net.clone());
+    }
+    let mut cfg = cfg.clone();
+    if let Some(c) = cfg.conditioning.as_mut() {
+        c.num_views = views;
+    }
+    Ok(Net::new(
+        &cfg,
+        VarBuilder::from_tensors(weights.clone(), DType::F32, device),
+    )?)
 }
 
 /// The model variants of the paper's ablation study (Table 4), as switches on a bundle config.

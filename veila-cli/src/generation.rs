@@ -1,0 +1,336 @@
+//! What `generate` and `edit` share: the camera-rig and sampler arguments, the model and input
+//! records of their JSON reports, and the files written per scan. A shared CLI module, so that no
+//! command imports another.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, ValueEnum};
+use serde::Serialize;
+use veila_data::PointCloud;
+use veila_data::image_io::write_png;
+use veila_data::ply::write_ply_rgb;
+use veila_data::range_exr::write_range_exr;
+use veila_data::vis::render::{
+    BevOptions, OverlayOptions, RangePreview, render_bev, render_overlay, render_range,
+};
+use veila_data::scan::write_kitti_bin;
+use veila_diffusion::app::bundle::{Bundle, DENOISER_FILE, Manifest, sha256_hex};
+pub(crate) use veila_diffusion::app::camera_views;
+use veila_diffusion::app::rig::PreparedViews;
+use veila_diffusion::app::rig::point_colours;
+use veila_diffusion::app::{RigView, load_view};
+use veila_diffusion::{DecodedScan, SamplerConfig, SamplerKind};
+use veila_geom::RangeImage;
+
+use crate::model;
+
+/// The camera rig: images, calibration and which camera of the calibration each image is.
+#[derive(Debug, Args)]
+pub(crate) struct RigArgs {
+    /// Camera image (PNG or JPEG); repeat once per camera of the rig.
+    #[arg(long = "image", value_name = "IMG", required = true)]
+    pub(crate) images: Vec<PathBuf>,
+    /// Calibration: KITTI object calib/NNNNNN.txt (P2, R0_rect, Tr_velo_to_cam), KITTI odometry /
+    /// SemanticKITTI calib.txt (P2, Tr) or a nuScenes per-sample JSON. Give it once for every image
+    /// or once per image. Calibrations carry no image size: each camera takes its image's size, so
+    /// give the original images (a resized image is rejected by a principal-point check).
+    #[arg(long = "calib", value_name = "CALIB", required = true)]
+    pub(crate) calibs: Vec<PathBuf>,
+    /// Which camera of the calibration each image shows: the KITTI projection matrix index (0-3,
+    /// default 2 = image_2) or the nuScenes channel (default CAM_FRONT). Once per image.
+    #[arg(long = "camera", value_name = "N")]
+    pub(crate) cameras: Vec<String>,
+}
+
+/// Sampler names on the command line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub(crate) enum SamplerName {
+    /// Ancestral DDPM (stochastic).
+    Ddpm,
+    /// DDIM with eta = 0 (deterministic).
+    Ddim,
+    /// DPM-Solver++(2M) (deterministic, good in 10-25 steps).
+    Dpm,
+}
+
+/// Reads every image and its camera (errors name the file and the problem).
+pub(crate) fn load_rig(rig: &RigArgs) -> Result<Vec<RigView>> {
+    let n = rig.images.len();
+    if rig.calibs.len() != 1 && rig.calibs.len() != n {
+        bail!(
+            "{} --image but {} --calib: give one calibration for all images or one per image",
+            n,
+            rig.calibs.len()
+        );
+    }
+    if !rig.cameras.is_empty() && rig.cameras.len() != n {
+        bail!(
+            "{} --image but {} --camera: give one --camera per image (or none for the default camera)",
+            n,
+            rig.cameras.len()
+        );
+    }
+    let mut views = Vec::with_capacity(n);
+    for (i, image_path) in rig.images.iter().enumerate() {
+        let calib_path = if rig.calibs.len() == 1 {
+            &rig.calibs[0]
+        } else {
+            &rig.calibs[i]
+        };
+        views.push(load_view(
+            image_path,
+            calib_path,
+            rig.cameras.get(i).map(String::as_str),
+        )?);
+    }
+    Ok(views)
+}
+
+/// The sampler: the bundle's unless `name` is given; `steps` and `guidance` override.
+pub(crate) fn resolve_sampler(
+    bundle: &Bundle,
+    name: Option<SamplerName>,
+    steps: Option<usize>,
+    guidance: Option<f64>,
+) -> Result<SamplerConfig> {
+    let base = &bundle.config.sampler;
+    let steps = steps.unwrap_or(base.steps);
+    if steps == 0 && bundle.config.residual.is_none() {
+        bail!(
+            "--steps must be at least 1 (0 steps, the mean network alone, needs a residual-diffusion bundle)"
+        );
+    }
+    if steps != 0 {
+        check_steps(steps)?;
+    }
+    let mut cfg = match name {
+        None => SamplerConfig {
+            steps,
+            ..base.clone()
+        },
+        Some(SamplerName::Ddpm) => SamplerConfig::ddpm(steps),
+        Some(SamplerName::Ddim) => SamplerConfig::ddim(steps, 0.0),
+        Some(SamplerName::Dpm) => SamplerConfig::dpm_solver_pp_2m(steps),
+    };
+    cfg.guidance_scale = base.guidance_scale;
+    if let Some(g) = guidance {
+        check_guidance(g)?;
+        cfg.guidance_scale = g;
+    }
+    if !bundle.is_conditional() && cfg.guidance_scale != 1.0 {
+        if guidance.is_some() {
+            eprintln!(
+                "note: the model is unconditional; --guidance {} has no effect",
+                cfg.guidance_scale
+            );
+        }
+        cfg.guidance_scale = 1.0;
+    }
+    cfg.validate().context("sampler settings")?;
+    Ok(cfg)
+}
+
+/// The most sampler steps a command accepts: far beyond any useful count (samplers converge in
+/// 10-50), and it bounds the time a typo can cost.
+pub(crate) const MAX_STEPS: usize = 1000;
+
+/// The largest classifier-free guidance scale accepted. Scales beyond ~10 only amplify the
+/// difference of the two branches into saturated garbage (1e300 gave a 633-point scan).
+pub(crate) const MAX_GUIDANCE: f64 = 20.0;
+
+/// Refuse a step count outside 1..=[`MAX_STEPS`].
+pub(crate) fn check_steps(steps: usize) -> Result<()> {
+    if !(1..=MAX_STEPS).contains(&steps) {
+        bail!("--steps {steps}: must be between 1 and {MAX_STEPS}");
+    }
+    Ok(())
+}
+
+/// Refuse a guidance scale outside 0..=[`MAX_GUIDANCE`] (0 = the unconditional branch only,
+/// 1 = no guidance; negative scales push away from the image).
+pub(crate) fn check_guidance(g: f64) -> Result<()> {
+    if !(g.is_finite() && (0.0..=MAX_GUIDANCE).contains(&g)) {
+        bail!("--guidance {g}: must be a number between 0 and {MAX_GUIDANCE} (1 = no guidance)");
+    }
+    Ok(())
+}
+
+/// The largest number of scans sampled at once by `generate` (about 45 MB each on the bundled
+/// model): more are drawn in further batches, so memory does not grow with `--samples`.
+pub(crate) const SAMPLE_BATCH: usize = 8;
+
+/// The most scans one `generate` run draws (memory stays bounded either way; this bounds the
+/// record and the time a typo can cost).
+pub(crate) const MAX_SAMPLES: usize = 100_000;
+
+/// The noise seed of batch `b` of a `--samples` run: batch 0 keeps `seed` (a run of up to
+/// [`SAMPLE_BATCH`] samples draws exactly what one batch of all samples drew before batching), later
+/// batches a SplitMix64 mix of the seed and the batch index.
+pub(crate) fn batch_seed(seed: u64, batch: usize) -> u64 {
+    if batch == 0 {
+        return seed;
+    }
+    let mut z = seed ^ (batch as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Whether `name` is a file `generate` writes into its output folder (for `--force` reruns).
+pub(crate) fn is_generate_output(name: &str) -> bool {
+    if name == "generate.json" || name == "timings.json" {
+        return true;
+    }
+    name.strip_prefix("scan_").is_some_and(|rest| {
+        let digits = rest.bytes().take_while(u8::is_ascii_digit).count();
+        digits >= 3 && rest[digits..].starts_with(['.', '_'])
+    })
+}
+
+/// Short name of a sampler kind.
+pub(crate) fn sampler_label(cfg: &SamplerConfig) -> String {
+    match cfg.kind {
+        SamplerKind::Ddpm { .. } => "ddpm".into(),
+        SamplerKind::Ddim { eta } => format!("ddim (eta {eta})"),
+        SamplerKind::DpmSolverPp2M => "dpm-solver++(2m)".into(),
+    }
+}
+
+/// Where a bundle came from and its checksums (from its manifest).
+#[derive(Debug, Clone, Serialize)]
+pub(crate) struct ModelInfo {
+    pub(crate) origin: String,
+    pub(crate) name: String,
+    pub(crate) denoiser_sha256: Option<String>,
+    pub(crate) manifest_sha256: Option<String>,
+    pub(crate) grid: [usize; 2],
+    pub(crate) image_size: [usize; 2],
+}
+
+pub(crate) fn model_info(bundle: &Bundle, checkpoint: Option<&Path>) -> ModelInfo {
+    let bytes = model::manifest_bytes(checkpoint);
+    let manifest: Option<Manifest> = bytes.as_ref().and_then(|b| serde_json::from_slice(b).ok());
+    let (rows, cols) = bundle.grid();
+    ModelInfo {
+        origin: std::fs::canonicalize(&bundle.origin)
+            .unwrap_or_else(|_| bundle.origin.clone())
+            .display()
+            .to_string(),
+        name: bundle.config.name.clone(),
+        denoiser_sha256: manifest.and_then(|m| m.files.get(DENOISER_FILE).cloned()),
+        manifest_sha256: bytes.as_deref().map(sha256_hex),
+        grid: [rows, cols],
+        image_size: [bundle.config.image_width, bundle.config.image_height],
+    }
+}
+
+/// Input record for the JSON reports.
+#[derive(Debug, Clone, Serialize)]
+pub(crate) struct InputInfo {
+    pub(crate) image: String,
+    pub(crate) image_size: [u32; 2],
+    pub(crate) calib: String,
+    pub(crate) calib_kind: &'static str,
+    pub(crate) camera: String,
+}
+
+pub(crate) fn input_info(views: &[RigView]) -> Vec<InputInfo> {
+    views
+        .iter()
+        .map(|v| InputInfo {
+            image: v.image_path.display().to_string(),
+            image_size: [v.image.width(), v.image.height()],
+            calib: v.calib_path.display().to_string(),
+            calib_kind: v.calib_kind,
+            camera: v.camera_name.clone(),
+        })
+        .collect()
+}
+
+/// The views resized to the bundle's input size (bytes and cameras; borrow them as
+/// [`veila_diffusion::app::CameraView`]s with [`camera_views`]).
+pub(crate) fn prepare_views(bundle: &Bundle, views: &[RigView]) -> Result<PreparedViews> {
+    Ok(veila_diffusion::app::prepare_views(&bundle.config, views)?)
+}
+
+/// What was written for one scan.
+#[derive(Debug, Clone, Serialize)]
+pub(crate) struct ScanRecord {
+    pub(crate) file: String,
+    pub(crate) points: usize,
+    pub(crate) range_pixels: usize,
+    pub(crate) points_in_first_image: usize,
+}
+
+/// The range preview scaled to the encoding's range.
+pub(crate) fn range_preview(bundle: &Bundle) -> RangePreview {
+    RangePreview {
+        far_m: bundle.config.encoding.max_range_m.max(2.0),
+        ..RangePreview::default()
+    }
+}
+
+/// Writes `STEM.bin`, `STEM.ply` (binary little-endian: x, y, z, intensity, and red, green, blue
+/// from the `first` view's image where a point falls in it, else a grey of its intensity),
+/// `STEM.exr`, `STEM_range.png`, `STEM_bev.png` and `STEM_overlay.png` (points on `first` view's
+/// full-resolution image) into `dir`.
+pub(crate) fn write_scan(
+    dir: &Path,
+    stem: &str,
+    bundle: &Bundle,
+    scan: &DecodedScan,
+    first: &RigView,
+) -> Result<(ScanRecord, RangeImage, PointCloud)> {
+    let range = model::to_range_image(scan);
+    let cloud = model::to_points(bundle, &range)?;
+    let sensor = &bundle.config.denoiser.sensor;
+    let bin = format!("{stem}.bin");
+    write_kitti_bin(&dir.join(&bin), &cloud)?;
+    write_ply_rgb(
+        &dir.join(format!("{stem}.ply")),
+        &cloud,
+        &point_colours(first, &cloud),
+    )?;
+    write_range_exr(&dir.join(format!("{stem}.exr")), sensor, &range)?;
+    write_png(
+        &dir.join(format!("{stem}_range.png")),
+        &render_range(&range, &range_preview(bundle)),
+    )?;
+    write_png(
+        &dir.join(format!("{stem}_bev.png")),
+        &render_bev(&cloud, &BevOptions::default())?,
+    )?;
+    let overlay = render_overlay(
+        &first.image,
+        &first.camera,
+        &cloud.xyz,
+        &OverlayOptions::default(),
+    )?;
+    write_png(&dir.join(format!("{stem}_overlay.png")), &overlay.image)?;
+    Ok((
+        ScanRecord {
+            file: bin,
+            points: cloud.len(),
+            range_pixels: range.num_valid(),
+            points_in_first_image: overlay.drawn,
+        },
+        range,
+        cloud,
+    ))
+}
+
+/// Wall-clock times of a run: in their own `timings.json`, so that every other output of two
+/// identical runs is byte-identical.
+#[derive(Debug, Serialize)]
+pub(crate) struct Seconds {
+    pub(crate) load: f64,
+    pub(crate) sampling: f64,
+    pub(crate) per_scan: f64,
+    pub(crate) writing: f64,
+}
+
+pub(crate) fn round3(x: f64) -> f64 {
+    (x * 1000.0).round() / 1000.0
+}

@@ -1,0 +1,296 @@
+//! Image-to-LiDAR generation with a [`Bundle`]: camera views in, panoramic range images out.
+//!
+//! * [`Bundle::encode_views`] runs the frozen encoders on images already resized to the bundle's
+//!   `image_width x image_height` (resize with an antialiasing filter, e.g. `image`'s triangle filter,
+//!   and adapt the camera with [`veila_geom::PinholeCamera::resized`]; [`super::rig`] does both).
+//! * [`Bundle::generate`] samples scans for one camera rig (one or more views); `samples > 1` draws
+//!   several scans in one batch.
+//! * [`Bundle::inpaint`] regenerates the pixels a mask marks unknown and keeps the rest (RePaint).
+//!
+//! Everything is seeded: the same bundle, inputs and seed give the same scans.
+
+use candle_core::{DType, Device, Tensor};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use veila_geom::PinholeCamera;
+use veila_nn::encoders::small_cnn::SmallCnn;
+use veila_nn::encoders::{ImageEncoder, Normalization, rgb8_to_tensor};
+use veila_nn::{ConditionInput, Denoiser as Net, GcmaGeometry};
+
+use super::bundle::{Bundle, BundleConfig};
+use super::nn::{NetCond, VeilaDenoiser};
+use crate::encoding::DecodedScan;
+use crate::error::{Error, Result};
+use crate::noise::randn;
+use crate::objective::Diffusion;
+use crate::sampler::{RepaintConfig, Sampler, SamplerConfig, inpaint};
+
+/// One camera view at the bundle's image size.
+#[derive(Debug, Clone, Copy)]
+pub struct CameraView<'a> {
+    /// `image_width * image_height * 3` bytes, RGB, row-major.
+    pub rgb: &'a [u8],
+    /// The camera of this (resized) image, LiDAR frame to pixels.
+    pub camera: &'a PinholeCamera,
+}
+
+/// Frozen encoder features of a set of views: per scale `[views, C_i, H_i, W_i]`.
+#[derive(Debug, Clone)]
+pub struct ViewFeatures {
+    /// `E_s` pyramid.
+    pub semantic: Option<Vec<Tensor>>,
+    /// `E_d` pyramid.
+    pub depth: Option<Vec<Tensor>>,
+}
+
+impl ViewFeatures {
+    pub(crate) fn repeat(&self, n: usize) -> Result<ConditionInput> {
+        let rep = |v: &Option<Vec<Tensor>>| -> Result<Option<Vec<Tensor>>> {
+            v.as_ref()
+                .map(|list| {
+                    list.iter()
+                        .map(|t| {
+                            let parts = vec![t.clone(); n];
+                            Ok(Tensor::cat(&parts, 0)?)
+                        })
+                        .collect()
+                })
+                .transpose()
+        };
+        Ok(ConditionInput {
+            semantic: rep(&self.semantic)?,
+            depth: rep(&self.depth)?,
+            keep: None,
+        })
+    }
+
+    /// Concatenates the features of several examples (same number of views each) along the batch.
+    pub fn cat(items: &[&ViewFeatures]) -> Result<ConditionInput> {
+        let join =
+            |pick: &dyn Fn(&ViewFeatures) -> &Option<Vec<Tensor>>| -> Result<Option<Vec<Tensor>>> {
+                let Some(first) = items.first().and_then(|f| pick(f).as_ref()) else {
+                    return Ok(None);
+                };
+                (0..first.len())
+                    .map(|s| {
+                        let parts = items
+                            .iter()
+                            .map(|f| {
+                                pick(f).as_ref().map(|v| v[s].clone()).ok_or_else(|| {
+                                    Error::Data("examples disagree on which cues they have".into())
+                                })
+                            })
+                            .collect::<Result<Vec<_>>>()?;
+                        Ok(Tensor::cat(&parts, 0)?)
+                    })
+                    .collect::<Result<Vec<_>>>()
+                    .map(Some)
+            };
+        Ok(ConditionInput {
+            semantic: join(&|f| &f.semantic)?,
+            depth: join(&|f| &f.depth)?,
+            keep: None,
+        })
+    }
+}
+
+/// Generation settings.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GenerateOptions {
+    /// Sampler, steps and guidance scale.
+    pub sampler: SamplerConfig,
+    /// Number of scans to draw for the rig.
+    pub samples: usize,
+    /// Seed of the initial noise and of stochastic samplers.
+    pub seed: u64,
+    /// Ignore the views and run the denoiser's unconditional branch (the one classifier-free
+    /// guidance trains by condition dropout): the image-free baseline of the same network.
+    pub unconditional: bool,
+}
+
+pub(crate) fn image_tensor(rgb: &[u8], h: usize, w: usize, device: &Device) -> Result<Tensor> {
+    Ok(rgb8_to_tensor(rgb, h, w, &Normalization::IMAGENET, device)?)
+}
+
+/// Draws scans for [`Bundle::generate`] and [`Bundle::inpaint`] (`inpainting`: the known scan,
+/// its mask and the RePaint settings).
+pub(crate) fn sample(
+    bundle: &Bundle,
+    views: &[CameraView<'_>],
+    options: &GenerateOptions,
+    inpainting: Option<(&DecodedScan, &[bool], &RepaintConfig)>,
+    mut on_step: impl FnMut(usize, usize),
+) -> Result<Vec<DecodedScan>> {
+    if options.samples == 0 {
+        return Err(Error::InvalidConfig {
+            field: "samples",
+            reason: "must be at least 1".into(),
+        });
+    }
+    let device = bundle.denoiser_device().clone();
+    let (h, w) = bundle.grid();
+    let c = bundle.config.channels();
+    let n = options.samples;
+    let mut rng = ChaCha8Rng::seed_from_u64(options.seed);
+    let conditional = bundle.is_conditional() && !options.unconditional;
+    if conditional && views.is_empty() {
+        return Err(Error::InvalidConfig {
+            field: "views",
+            reason: "this bundle is image-conditioned: give at least one camera view".into(),
+        });
+    }
+    let nv = if conditional { views.len() } else { 1 };
+    let residual = bundle.config.residual.as_ref();
+    if options.sampler.steps == 0 && residual.is_none() {
+        return Err(Error::InvalidConfig {
+            field: "steps",
+            reason: "0 sampler steps work only for residual bundles (their mean network alone)"
+                .into(),
+        });
+    }
+    if inpainting.is_some() && residual.is_some() {
+        return Err(Error::InvalidConfig {
+            field: "bundle",
+            reason: "inpainting with a residual-diffusion bundle is not supported".into(),
+        });
+    }
+    let feats = if conditional {
+        Some(bundle.encode_views(views)?.repeat(n)?)
+    } else {
+        None
+    };
+    let cams: Vec<PinholeCamera> = views.iter().map(|v| *v.camera).collect();
+    // the image condition of one network (its own CACM weights; GCMA geometry when it has it)
+    let condition = |net: &Net| -> Result<Option<(Option<GcmaGeometry>, ConditionInput)>> {
+        let Some(f) = &feats else { return Ok(None) };
+        let geometry = match &net.config().conditioning {
+            Some(cc) if cc.gcma.is_some() => {
+                Some(net.geometry(&cams, &bundle.config.epipolar, &device)?)
+            }
+            _ => None,
+        };
+        Ok(Some((geometry, f.clone())))
+    };
+    // residual diffusion: the mean network's one pass first
+    let mean = match bundle.mean_for_views(nv)? {
+        Some(mnet) => {
+            let prep = condition(&mnet)?;
+            let image = match &prep {
+                Some((g, f)) => Some(mnet.prepare_condition(f, g.as_ref())?),
+                None => None,
+            };
+            let mdiff = Diffusion::new(super::bundle::ResidualConfig::mean_diffusion())?;
+            let msampler = Sampler::new(
+                &mdiff,
+                SamplerConfig {
+                    steps: 1,
+                    guidance_scale: 1.0,
+                    ..options.sampler.clone()
+                },
+            )?;
+            let zeros = Tensor::zeros((n, c, h, w), DType::F32, &device)?;
+            let cond = NetCond { image, mean: None };
+            Some(msampler.sample_from(
+                &VeilaDenoiser::new(mnet),
+                zeros,
+                Some(&cond),
+                &mut rng,
+                |_| {},
+            )?)
+        }
+        None => None,
+    };
+    let x = match (&mean, residual) {
+        (Some(mu), Some(_)) if options.sampler.steps == 0 => {
+            on_step(0, 0);
+            mu.clone()
+        }
+        _ => {
+            let diffusion = Diffusion::new(bundle.config.diffusion.clone())?;
+            let sampler = Sampler::new(&diffusion, options.sampler.clone())?;
+            let net = bundle.net_for_views(nv)?;
+            let prep = condition(&net)?;
+            let image = match &prep {
+                Some((g, f)) => Some(net.prepare_condition(f, g.as_ref())?),
+                None => None,
+            };
+            let cond = NetCond {
+                image,
+                mean: mean.clone(),
+            };
+            let cond = (cond.image.is_some() || cond.mean.is_some()).then_some(cond);
+            let model = VeilaDenoiser::new(net);
+            let x = match inpainting {
+                None => {
+                    let x_t = randn(&mut rng, &[n, c, h, w], &device)?;
+                    sampler.sample_from(&model, x_t, cond.as_ref(), &mut rng, |info| {
+                        on_step(info.index + 1, info.total)
+                    })?
+                }
+                Some((known, mask, repaint)) => {
+                    let enc = &bundle.config.encoding;
+                    let known_view = crate::encoding::ScanView {
+                        rows: h,
+                        cols: w,
+                        range_m: &known.range_m,
+                        intensity: Some(&known.intensity),
+                        mask: Some(&known.mask),
+                    };
+                    let x0 = enc.encode_batch(&vec![known_view; n], &device)?;
+                    let m: Vec<f32> = mask.iter().map(|&k| if k { 1.0 } else { 0.0 }).collect();
+                    let m = Tensor::from_vec(m, (1, 1, h, w), &device)?;
+                    inpaint(&sampler, &model, &x0, &m, cond.as_ref(), repaint, &mut rng)?
+                }
+            };
+            match (&mean, residual) {
+                (Some(mu), Some(r)) => {
+                    let s = Tensor::from_slice(&r.scale, (1, c, 1, 1), &device)?;
+                    (mu + x.broadcast_mul(&s)?)?
+                }
+                _ => x,
+            }
+        }
+    };
+    bundle.config.encoding.decode_batch(&x)
+}
+pub(crate) fn encode_views(
+    cfg: &BundleConfig,
+    semantic: Option<&SmallCnn>,
+    depth: Option<&SmallCnn>,
+    views: &[CameraView<'_>],
+    device: &Device,
+) -> Result<ViewFeatures> {
+    let (ih, iw) = (cfg.image_height, cfg.image_width);
+    let mut images = Vec::with_capacity(views.len());
+    for (i, v) in views.iter().enumerate() {
+        if v.rgb.len() != ih * iw * 3
+            || (v.camera.width as usize, v.camera.height as usize) != (iw, ih)
+        {
+            return Err(Error::Shape {
+                what: "camera view",
+                expected: format!("a {iw} x {ih} RGB image and a camera of that size"),
+                got: format!(
+                    "view {i}: {} bytes, camera {} x {}",
+                    v.rgb.len(),
+                    v.camera.width,
+                    v.camera.height
+                ),
+            });
+        }
+        images.push(image_tensor(v.rgb, ih, iw, device)?);
+    }
+    let batch = Tensor::cat(&images, 0)?;
+    let run = |e: Option<&SmallCnn>| -> Result<Option<Vec<Tensor>>> {
+        e.map(|e| {
+            Ok(ImageEncoder::forward(e, &batch)?
+                .into_iter()
+                .map(|t| t.detach())
+                .collect())
+        })
+        .transpose()
+    };
+    Ok(ViewFeatures {
+        semantic: run(semantic)?,
+        depth: run(depth)?,
+    })
+}

@@ -1,0 +1,33 @@
+//! The application: what turns the generic diffusion core into Veila's image-to-LiDAR model. This
+//! is the one module of the crate that names `veila-nn` (the tidy test checks it).
+//!
+//! * [`bundle`]: model bundles (encoders + denoiser + settings in one folder, sha256 manifest
+//!   verified on load) and the ablation [`Variant`]s and generative [`Method`]s as config switches.
+//! * [`generate`]: camera views to scans with a bundle (generation, RePaint inpainting).
+//! * [`train`]: training a bundle's networks on in-memory examples.
+//! * [`recipe`]: the one training recipe (encoders, mean network, residual scale, denoiser) that
+//!   `veila train` and `cargo xtask train-default` both run.
+//! * [`rig`]: camera images and their calibration files as views of a rig, resized to a bundle's
+//!   input; generated scans as points.
+//! * [`nn`]: the Veila U-Net from `veila-nn` as a [`crate::Denoiser`] ([`VeilaDenoiser`]).
+
+pub mod bundle;
+pub mod generate;
+pub mod nn;
+pub mod recipe;
+pub mod rig;
+pub mod train;
+
+pub use bundle::{Bundle, BundleConfig, Method, ResidualConfig, Variant};
+pub use generate::{CameraView, GenerateOptions, ViewFeatures};
+pub use nn::{NetCond, VeilaDenoiser};
+pub use recipe::{
+    Encoder, EncoderData, EncoderEvent, EncoderSource, Encoders, RecipeInput, RecipeOutcome,
+    RecipeSettings, prepare_encoders, run_recipe,
+};
+pub use rig::{RigView, camera_views, load_view, prepare_view, prepare_views, scan_points};
+pub use train::{
+    BundleFit, BundleFitOutcome, DenoiserFit, DenoiserFitOutcome, DenoiserTraining, EncoderStep,
+    Stage, TrainExample, fit_bundle, fit_denoiser, predict_means, raw_residual, regression_weight,
+    residual_scale, residual_target, stage_config, train_small_cnn, varmap_tensors,
+};

@@ -1,0 +1,397 @@
+//! The one training recipe of a bundle, run by both `veila train` (on converted shards) and
+//! `cargo xtask train-default` (on simulator frames). Its five stages:
+//!
+//! 1. the semantic encoder `E_s` and 2. the depth encoder `E_d`, each trained on sparse LiDAR
+//!    supervision ([`train_small_cnn`]) or taken from another bundle ([`prepare_encoders`]);
+//! 3. for residual bundles the mean network (one-pass regression), 4. its predictions of every
+//!    example and the residual scale, 5. the denoiser on the frozen encoder features
+//!    ([`fit_bundle`]).
+//!
+//! The binaries only read their data, claim their checkpoint folder, draw progress and write the
+//! provenance; the settings ([`RecipeSettings`]) turn into the same [`TrainConfig`]s for both.
+//! Every stage is seeded and resumable: trained encoders are kept in a folder and reused, the
+//! networks resume from their newest checkpoint.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use candle_core::{DType, Device, Tensor};
+use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
+
+use super::bundle::{Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, MEAN_FILE, SEMANTIC_FILE};
+use super::nn::VeilaDenoiser;
+use super::train::{
+    BundleFit, BundleFitOutcome, EncoderStep, Stage, TrainExample, fit_bundle, train_small_cnn,
+    varmap_tensors,
+};
+use crate::error::{Error, Result};
+use crate::trainer::{TrainConfig, TrainObserver};
+
+/// The settings of one run of the recipe.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RecipeSettings {
+    /// Seed of everything (the encoders use `seed ^ 0x5e` and `seed ^ 0xde`, the mean network
+    /// `seed ^ 0x3ea`).
+    pub seed: u64,
+    /// Denoiser updates.
+    pub steps: u64,
+    /// Mean-network updates of residual bundles (`None`: `steps`).
+    pub mean_steps: Option<u64>,
+    /// Examples per update (both networks).
+    pub batch: usize,
+    /// Peak learning rate (both networks; warm-up over 5% of the steps, cosine to 5%).
+    pub lr: f64,
+    /// EMA decay of the shipped weights.
+    pub ema_decay: f64,
+    /// Condition dropout of conditional models (classifier-free guidance).
+    pub cond_drop_prob: f64,
+    /// Updates between checkpoints.
+    pub checkpoint_every: u64,
+    /// Checkpoints kept.
+    pub keep_checkpoints: usize,
+    /// Updates of each encoder.
+    pub encoder_steps: usize,
+    /// Images per encoder update.
+    pub encoder_batch: usize,
+    /// Peak learning rate of the encoders.
+    pub encoder_lr: f64,
+}
+
+impl RecipeSettings {
+    /// Mean-network updates.
+    pub fn mean_steps(&self) -> u64 {
+        self.mean_steps.unwrap_or(self.steps)
+    }
+
+    /// The trainer settings of the denoiser and of the mean network, for a conditional model or
+    /// not (unconditional models drop no condition).
+    pub fn train_configs(&self, conditional: bool) -> (TrainConfig, TrainConfig) {
+        let tc = TrainConfig {
+            seed: self.seed,
+            lr: self.lr,
+            min_lr: self.lr * 0.05,
+            warmup_steps: (self.steps / 20).max(1),
+            total_steps: self.steps,
+            ema_decay: self.ema_decay,
+            cond_drop_prob: if conditional {
+                self.cond_drop_prob
+            } else {
+                0.0
+            },
+            checkpoint_every: Some(self.checkpoint_every.max(1)),
+            keep_checkpoints: Some(self.keep_checkpoints.max(1)),
+            ..TrainConfig::default()
+        };
+        let mean_steps = self.mean_steps();
+        let mean_tc = TrainConfig {
+            seed: self.seed ^ 0x3ea,
+            total_steps: mean_steps,
+            warmup_steps: (mean_steps / 20).max(1),
+            ..tc.clone()
+        };
+        (tc, mean_tc)
+    }
+}
+
+/// One of the two image encoders.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Encoder {
+    /// `E_s`.
+    Semantic,
+    /// `E_d`.
+    Depth,
+}
+
+impl Encoder {
+    /// Its weight file in a bundle.
+    pub fn file(self) -> &'static str {
+        match self {
+            Encoder::Semantic => SEMANTIC_FILE,
+            Encoder::Depth => DEPTH_FILE,
+        }
+    }
+
+    /// What seeds its training with the recipe's seed.
+    fn salt(self) -> u64 {
+        match self {
+            Encoder::Semantic => 0x5e,
+            Encoder::Depth => 0xde,
+        }
+    }
+
+    fn config(self, config: &BundleConfig) -> Option<&SmallCnnConfig> {
+        match self {
+            Encoder::Semantic => config.semantic_encoder.as_ref(),
+            Encoder::Depth => config.depth_encoder.as_ref(),
+        }
+    }
+}
+
+/// What the encoders train on: the examples' images at the bundle's image size with sparse
+/// targets of the same size.
+#[derive(Debug, Clone, Copy)]
+pub struct EncoderData<'a> {
+    /// RGB bytes, `image_width * image_height * 3` each.
+    pub images: &'a [Vec<u8>],
+    /// Train ids (0 = ignored) per pixel; needed by a semantic encoder.
+    pub labels: Option<&'a [Vec<u32>]>,
+    /// Metric depth (0 = no ground truth) per pixel.
+    pub depth_m: &'a [Vec<f32>],
+}
+
+/// Where the encoders of a run come from.
+#[derive(Debug, Clone, Copy)]
+pub enum EncoderSource<'a> {
+    /// The encoders of this bundle folder (same image size and encoder configs).
+    Bundle(&'a Path),
+    /// Trained on `data`; the weights are kept in `dir` and a rerun reuses them (their training
+    /// is deterministic, so it would give the same weights).
+    Train {
+        /// The training data.
+        data: EncoderData<'a>,
+        /// Folder of the trained weights.
+        dir: &'a Path,
+    },
+}
+
+/// What the encoder stages report.
+#[derive(Debug, Clone, Copy)]
+pub enum EncoderEvent<'a> {
+    /// Weights trained by an earlier run were found and reused.
+    Reused(Encoder, &'a Path),
+    /// One training step of `total`.
+    Step(Encoder, EncoderStep, usize),
+    /// Training finished; the loss of the last batch.
+    Trained(Encoder, f32),
+}
+
+/// The frozen encoders of a run and their weights by bundle file name.
+#[derive(Debug, Default)]
+pub struct Encoders {
+    /// `E_s`.
+    pub semantic: Option<SmallCnn>,
+    /// `E_d`.
+    pub depth: Option<SmallCnn>,
+    /// Weights by bundle file name (what [`Bundle::save`] takes).
+    pub weights: HashMap<&'static str, HashMap<String, Tensor>>,
+}
+
+fn read_tensors(path: &Path) -> Result<HashMap<String, Tensor>> {
+    let bytes = std::fs::read(path).map_err(|source| Error::Io {
+        action: "reading encoder weights",
+        path: path.to_path_buf(),
+        source,
+    })?;
+    Ok(candle_core::safetensors::load_buffer(&bytes, &Device::Cpu)?)
+}
+
+fn load_cnn(c: &SmallCnnConfig, path: &Path, device: &Device) -> Result<SmallCnn> {
+    let bytes = std::fs::read(path).map_err(|source| Error::Io {
+        action: "reading encoder weights",
+        path: path.to_path_buf(),
+        source,
+    })?;
+    Ok(veila_nn::encoders::load_checked_bytes(
+        &bytes,
+        path,
+        DType::F32,
+        device,
+        |_| true,
+        |vb| SmallCnn::new(c, vb),
+    )?)
+}
+
+/// Stages 1 and 2: the encoders `config` asks for, semantic first.
+pub fn prepare_encoders(
+    config: &BundleConfig,
+    source: EncoderSource<'_>,
+    settings: &RecipeSettings,
+    device: &Device,
+    mut on_event: impl FnMut(EncoderEvent<'_>),
+) -> Result<Encoders> {
+    let mut out = Encoders::default();
+    if let EncoderSource::Bundle(dir) = source {
+        let b = Bundle::from_dir(dir, device)?;
+        if b.config.image_height != config.image_height
+            || b.config.image_width != config.image_width
+        {
+            return Err(Error::Checkpoint {
+                reason: format!(
+                    "its encoders take {}x{} images, this model {}x{}",
+                    b.config.image_width,
+                    b.config.image_height,
+                    config.image_width,
+                    config.image_height
+                ),
+                path: dir.to_path_buf(),
+            });
+        }
+        for which in [Encoder::Semantic, Encoder::Depth] {
+            let Some(c) = which.config(config) else {
+                continue;
+            };
+            if which.config(&b.config) != Some(c) {
+                return Err(Error::Checkpoint {
+                    reason: format!(
+                        "its {} does not match this model's encoder config",
+                        which.file()
+                    ),
+                    path: dir.to_path_buf(),
+                });
+            }
+            let path = dir.join(which.file());
+            out.weights.insert(which.file(), read_tensors(&path)?);
+            let net = load_cnn(c, &path, device)?;
+            match which {
+                Encoder::Semantic => out.semantic = Some(net),
+                Encoder::Depth => out.depth = Some(net),
+            }
+        }
+        return Ok(out);
+    }
+    let EncoderSource::Train { data, dir } = source else {
+        return Ok(out);
+    };
+    let hw = (config.image_height, config.image_width);
+    for which in [Encoder::Semantic, Encoder::Depth] {
+        let Some(c) = which.config(config) else {
+            continue;
+        };
+        let saved = dir.join(which.file());
+        let (net, tensors) = if saved.is_file() {
+            on_event(EncoderEvent::Reused(which, &saved));
+            (load_cnn(c, &saved, device)?, read_tensors(&saved)?)
+        } else {
+            let labels = if c.semantic_head {
+                Some(data.labels.ok_or_else(|| {
+                    Error::Data(
+                        "the semantic encoder needs per-pixel train ids: the data has none".into(),
+                    )
+                })?)
+            } else {
+                None
+            };
+            let mut last = f32::NAN;
+            let (net, vm) = train_small_cnn(
+                c,
+                data.images,
+                labels,
+                c.depth_head.then_some(data.depth_m),
+                hw,
+                settings.encoder_steps,
+                settings.encoder_batch,
+                settings.encoder_lr,
+                settings.seed ^ which.salt(),
+                device,
+                |s| {
+                    last = s.loss;
+                    on_event(EncoderEvent::Step(which, s, settings.encoder_steps));
+                },
+            )?;
+            on_event(EncoderEvent::Trained(which, last));
+            let tensors = varmap_tensors(&vm)?;
+            let bytes = veila_nn::checkpoint::safetensors_bytes(&tensors, &saved)?;
+            std::fs::create_dir_all(dir).map_err(|source| Error::Io {
+                action: "creating the encoder folder",
+                path: dir.to_path_buf(),
+                source,
+            })?;
+            veila_data::atomic::write_atomic(&saved, &bytes)?;
+            (net, tensors)
+        };
+        out.weights.insert(which.file(), tensors);
+        match which {
+            Encoder::Semantic => out.semantic = Some(net),
+            Encoder::Depth => out.depth = Some(net),
+        }
+    }
+    Ok(out)
+}
+
+/// What [`run_recipe`] trains on.
+#[derive(Debug, Clone, Copy)]
+pub struct RecipeInput<'a> {
+    /// Where the encoders come from.
+    pub encoders: EncoderSource<'a>,
+    /// The training examples (one camera rig).
+    pub examples: &'a [TrainExample],
+    /// The networks' checkpoints: the denoiser's here, the mean network's in `mean/`.
+    pub work_dir: &'a Path,
+    /// Initial denoiser weights wherever names and shapes match (fine-tuning).
+    pub init: Option<&'a HashMap<String, Tensor>>,
+}
+
+/// What [`run_recipe`] did.
+#[derive(Debug)]
+pub struct RecipeOutcome {
+    /// The encoders (stages 1 and 2).
+    pub encoders: Encoders,
+    /// Seconds spent on the encoders.
+    pub encoder_seconds: f64,
+    /// The networks' runs (stages 3 to 5).
+    pub fit: BundleFitOutcome,
+}
+
+impl RecipeOutcome {
+    /// Whether every stage ran to its last step (an observer may stop a run early).
+    pub fn finished(&self, settings: &RecipeSettings) -> bool {
+        self.fit
+            .denoiser
+            .as_ref()
+            .is_some_and(|d| d.step >= settings.steps)
+    }
+
+    /// Every weight file of the bundle, by file name (the EMA weights of the networks).
+    pub fn into_weights(self) -> HashMap<&'static str, HashMap<String, Tensor>> {
+        let mut w = self.encoders.weights;
+        if let Some(m) = self.fit.mean {
+            w.insert(MEAN_FILE, m.ema_weights);
+        }
+        if let Some(d) = self.fit.denoiser {
+            w.insert(DENOISER_FILE, d.ema_weights);
+        }
+        w
+    }
+}
+
+/// The whole recipe: encoders ([`prepare_encoders`]), then [`fit_bundle`] (which writes the
+/// residual scale into `config`). `on_encoder` hears the encoder stages; `on_resume` and
+/// `observer` are [`fit_bundle`]'s.
+pub fn run_recipe<O>(
+    config: &mut BundleConfig,
+    input: RecipeInput<'_>,
+    settings: &RecipeSettings,
+    device: &Device,
+    on_encoder: impl FnMut(EncoderEvent<'_>),
+    on_resume: impl FnMut(Stage, &Path, u64),
+    observer: impl FnMut(Stage, u64) -> O,
+) -> Result<RecipeOutcome>
+where
+    O: for<'g> TrainObserver<VeilaDenoiser<'g>>,
+{
+    let t = std::time::Instant::now();
+    let encoders = prepare_encoders(config, input.encoders, settings, device, on_encoder)?;
+    let encoder_seconds = t.elapsed().as_secs_f64();
+    let (tc, mean_tc) = settings.train_configs(config.denoiser.conditioning.is_some());
+    let fit = fit_bundle(
+        config,
+        BundleFit {
+            semantic: encoders.semantic.as_ref(),
+            depth: encoders.depth.as_ref(),
+            examples: input.examples,
+            batch_size: settings.batch,
+            train: &tc,
+            mean_train: Some(&mean_tc),
+            work_dir: input.work_dir,
+            init: input.init,
+        },
+        device,
+        on_resume,
+        observer,
+    )?;
+    Ok(RecipeOutcome {
+        encoders,
+        encoder_seconds,
+        fit,
+    })
+}

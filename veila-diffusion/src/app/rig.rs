@@ -1,0 +1,266 @@
+//! Camera rigs from files: an image and its calibration (KITTI object, KITTI odometry /
+//! SemanticKITTI or a nuScenes per-sample JSON) become a [`RigView`]; [`prepare_view`] resizes it to
+//! a bundle's input; [`scan_points`] turns a generated scan into LiDAR-frame points.
+//!
+//! Calibration files carry no image size, so each camera takes the size of its image. The image
+//! must be the one the calibration describes (full resolution): an image whose size puts the
+//! calibration's principal point outside the central 20-80% of the image is rejected, because a
+//! resized image needs a rescaled calibration.
+
+use std::path::{Path, PathBuf};
+
+use veila_data::PointCloud;
+use veila_data::image::{RgbImage, imageops};
+use veila_data::image_io::read_rgb_image;
+use veila_data::kitti::KittiCalib;
+use veila_data::nuscenes::NuScenesSample;
+use veila_data::semantic_kitti::OdometryCalib;
+use veila_data::spec::{CalibKind, detect_calib_kind};
+use veila_geom::{PinholeCamera, RangeImage, RayTable};
+
+use super::bundle::BundleConfig;
+use super::generate::CameraView;
+use crate::error::{Error, Result};
+
+/// One camera of a rig, read and checked.
+#[derive(Debug, Clone)]
+pub struct RigView {
+    /// The image file.
+    pub image_path: PathBuf,
+    /// The calibration file.
+    pub calib_path: PathBuf,
+    /// `kitti-object`, `kitti-odometry` or `nuscenes-json`.
+    pub calib_kind: &'static str,
+    /// Which camera of the calibration: a KITTI index or a nuScenes channel.
+    pub camera_name: String,
+    /// The image at full resolution.
+    pub image: RgbImage,
+    /// The camera at the image's full resolution.
+    pub camera: PinholeCamera,
+}
+
+fn input(path: &Path, reason: String) -> Error {
+    Error::Input {
+        path: path.to_path_buf(),
+        reason,
+    }
+}
+
+/// Reads `image` and camera `camera` of `calib` (default: KITTI camera 2 = `image_2`, nuScenes
+/// `CAM_FRONT`), and checks that the calibration is for an image of this size.
+pub fn load_view(image_path: &Path, calib_path: &Path, camera: Option<&str>) -> Result<RigView> {
+    let image = read_rgb_image(image_path)?;
+    let (w, h) = image.dimensions();
+    let kind = detect_calib_kind(calib_path)?;
+    let name = camera.map(str::to_string).unwrap_or_else(|| match kind {
+        CalibKind::NuScenesJson => "CAM_FRONT".to_string(),
+        _ => "2".to_string(),
+    });
+    let (cam, kind_name) = match kind {
+        CalibKind::KittiObject => (
+            KittiCalib::read(calib_path)?.camera(kitti_index(&name, calib_path)?, w, h),
+            "kitti-object",
+        ),
+        CalibKind::KittiOdometry => (
+            OdometryCalib::read(calib_path)?.camera(kitti_index(&name, calib_path)?, w, h),
+            "kitti-odometry",
+        ),
+        CalibKind::NuScenesJson => (
+            NuScenesSample::read_json(calib_path)?.camera(&name, w, h),
+            "nuscenes-json",
+        ),
+    };
+    let camera = cam.map_err(|e| {
+        input(
+            calib_path,
+            format!(
+                "camera {name} for the {w}x{h} image {}: {e}",
+                image_path.display()
+            ),
+        )
+    })?;
+    check_principal_point(&camera, image_path, calib_path)?;
+    Ok(RigView {
+        image_path: image_path.to_path_buf(),
+        calib_path: calib_path.to_path_buf(),
+        calib_kind: kind_name,
+        camera_name: name,
+        image,
+        camera,
+    })
+}
+
+fn kitti_index(name: &str, calib: &Path) -> Result<usize> {
+    let digits = name
+        .strip_prefix("image_")
+        .or_else(|| name.strip_prefix('P'))
+        .unwrap_or(name);
+    match digits.parse::<usize>() {
+        Ok(i) if i <= 3 => Ok(i),
+        _ => Err(input(
+            calib,
+            format!(
+                "--camera {name}: a KITTI calibration has cameras 0 to 3 (P0..P3; 2 = image_2, 3 = image_3)"
+            ),
+        )),
+    }
+}
+
+/// A calibration's principal point lies near the centre of the image it was made for (KITTI: 49% /
+/// 46% of width / height, nuScenes: 50% / 50%). Outside the central 20-80% band, the image was
+/// almost certainly resized (a 2x change moves it to ~25% or ~100%) or cropped without adapting the
+/// calibration, and the scan would be generated for the wrong rays.
+pub fn check_principal_point(camera: &PinholeCamera, image: &Path, calib: &Path) -> Result<()> {
+    let k = camera.intrinsics;
+    let (cx, cy) = (k.z_axis.x, k.z_axis.y);
+    let (w, h) = (camera.width as f32, camera.height as f32);
+    let (fx, fy) = (cx / w, cy / h);
+    if !((0.2..=0.8).contains(&fx) && (0.2..=0.8).contains(&fy)) {
+        return Err(input(
+            image,
+            format!(
+                "the image is {}x{} but the principal point of {} is at ({cx:.1}, {cy:.1}) px, \
+                 {:.0}% / {:.0}% of the width / height instead of near the centre: the calibration is for \
+                 another image size (use the original image, or rescale the calibration with the image)",
+                camera.width,
+                camera.height,
+                calib.display(),
+                100.0 * fx,
+                100.0 * fy
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// An image and its camera resized to the bundle's input size (triangle filter, antialiased).
+pub fn prepare_view(
+    config: &BundleConfig,
+    image: &RgbImage,
+    camera: &PinholeCamera,
+) -> Result<(Vec<u8>, PinholeCamera)> {
+    let (w, h) = (config.image_width as u32, config.image_height as u32);
+    if (image.width(), image.height()) != (camera.width, camera.height) {
+        return Err(Error::Shape {
+            what: "camera view",
+            expected: format!(
+                "an image of the camera's {}x{}",
+                camera.width, camera.height
+            ),
+            got: format!("{}x{}", image.width(), image.height()),
+        });
+    }
+    let small = imageops::resize(image, w, h, imageops::FilterType::Triangle);
+    let cam = camera.resized(w, h).ok_or_else(|| Error::InvalidConfig {
+        field: "image_width",
+        reason: "the model's image size has a zero dimension".into(),
+    })?;
+    Ok((small.into_raw(), cam))
+}
+
+/// Resized views of a rig, owned; borrow them with [`camera_views`].
+pub type PreparedViews = Vec<(Vec<u8>, PinholeCamera)>;
+
+/// [`prepare_view`] for every view of a rig (errors name the image).
+pub fn prepare_views(config: &BundleConfig, views: &[RigView]) -> Result<PreparedViews> {
+    views
+        .iter()
+        .map(|v| {
+            prepare_view(config, &v.image, &v.camera)
+                .map_err(|e| input(&v.image_path, e.to_string()))
+        })
+        .collect()
+}
+
+/// Borrowed [`CameraView`]s of prepared images.
+pub fn camera_views(prepared: &[(Vec<u8>, PinholeCamera)]) -> Vec<CameraView<'_>> {
+    prepared
+        .iter()
+        .map(|(rgb, camera)| CameraView { rgb, camera })
+        .collect()
+}
+
+/// The points of a generated range image in the LiDAR frame (one per return, with intensity).
+pub fn scan_points(config: &BundleConfig, range: &RangeImage) -> Result<PointCloud> {
+    let rays = RayTable::new(&config.denoiser.sensor)?;
+    let un = rays.unproject(range)?;
+    Ok(PointCloud {
+        xyz: un.points,
+        intensity: un.intensity,
+        ring: None,
+        label: None,
+    })
+}
+
+/// A colour per point of `cloud`: the colour of `view`'s image where the point projects into it
+/// (nearest pixel), elsewhere a grey of the point's intensity (0 to 1 maps to black to white).
+pub fn point_colours(view: &RigView, cloud: &PointCloud) -> Vec<[u8; 3]> {
+    let (w, h) = view.image.dimensions();
+    cloud
+        .xyz
+        .iter()
+        .zip(&cloud.intensity)
+        .map(|(p, i)| {
+            let pixel = view.camera.try_project_in_image(*p).and_then(|ip| {
+                let (u, v) = ((ip.u_px + 0.5).floor(), (ip.v_px + 0.5).floor());
+                (u >= 0.0 && v >= 0.0 && u < w as f32 && v < h as f32)
+                    .then(|| view.image.get_pixel(u as u32, v as u32).0)
+            });
+            pixel.unwrap_or_else(|| {
+                let g = (i.clamp(0.0, 1.0) * 255.0).round() as u8;
+                [g, g, g]
+            })
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::{Mat4, Vec3};
+
+    #[test]
+    fn points_in_the_image_take_its_colour_others_a_grey_of_intensity() {
+        // a camera looking along LiDAR +x (camera z), f = 10 px, principal point (4, 3), 8x6 image
+        let cam_from_lidar = Mat4::from_cols_array_2d(&[
+            [0.0, 0.0, 1.0, 0.0],
+            [-1.0, 0.0, 0.0, 0.0],
+            [0.0, -1.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ]);
+        let k = [
+            [10.0, 0.0, 4.0, 0.0],
+            [0.0, 10.0, 3.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+        ];
+        let camera = PinholeCamera::new(k, cam_from_lidar, 8, 6).unwrap();
+        let mut image = RgbImage::new(8, 6);
+        image.put_pixel(4, 3, veila_data::image::Rgb([200, 10, 30]));
+        image.put_pixel(5, 3, veila_data::image::Rgb([1, 2, 3]));
+        let view = RigView {
+            image_path: "img.png".into(),
+            calib_path: "calib.txt".into(),
+            calib_kind: "kitti-object",
+            camera_name: "2".into(),
+            image,
+            camera,
+        };
+        let cloud = PointCloud {
+            // straight ahead -> pixel (4, 3); 0.1 m to the right at 1 m -> u = 4 + 10 * 0.1 = 5;
+            // behind the camera; far to the side (outside the image)
+            xyz: vec![
+                Vec3::new(10.0, 0.0, 0.0),
+                Vec3::new(1.0, -0.1, 0.0),
+                Vec3::new(-5.0, 0.0, 0.0),
+                Vec3::new(1.0, 5.0, 0.0),
+            ],
+            intensity: vec![0.0, 0.0, 0.5, 2.0],
+            ring: None,
+            label: None,
+        };
+        assert_eq!(
+            point_colours(&view, &cloud),
+            [[200, 10, 30], [1, 2, 3], [128, 128, 128], [255, 255, 255]]
+        );
+    }
+}
