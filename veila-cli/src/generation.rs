@@ -11,10 +11,10 @@ use veila_data::PointCloud;
 use veila_data::image_io::write_png;
 use veila_data::ply::write_ply_rgb;
 use veila_data::range_exr::write_range_exr;
+use veila_data::scan::write_kitti_bin;
 use veila_data::vis::render::{
     BevOptions, OverlayOptions, RangePreview, render_bev, render_overlay, render_range,
 };
-use veila_data::scan::write_kitti_bin;
 use veila_diffusion::app::bundle::{Bundle, DENOISER_FILE, Manifest, sha256_hex};
 pub(crate) use veila_diffusion::app::camera_views;
 use veila_diffusion::app::rig::PreparedViews;

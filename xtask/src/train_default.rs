@@ -243,8 +243,9 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
                 println!("  {}: reusing {}", encoder_name(which), path.display())
             }
             EncoderEvent::Step(which, s, total) => {
-                let b = bar
-                    .get_or_insert_with(|| crate::progress_bar(total as u64, encoder_name(which)));
+                let b = bar.get_or_insert_with(|| {
+                    crate::progress::progress_bar(total as u64, encoder_name(which))
+                });
                 b.set_position(s.step as u64);
                 b.set_message(format!("loss {:.4}", s.loss));
             }
@@ -288,9 +289,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     }
     let summary = den.summary.clone();
     // the runs' own clocks, summed over every resumed session (this process's seconds are below)
-    let clock = |c: veila_diffusion::Clock| {
-        serde_json::json!({ "seconds": c.seconds.round(), "from_step": c.from_step })
-    };
+    let clock = |c: veila_diffusion::Clock| serde_json::json!({ "seconds": c.seconds.round(), "from_step": c.from_step });
     let train_clock = serde_json::json!({
         "mean": outcome.fit.mean.as_ref().map(|m| clock(m.summary.clock)),
         "denoiser": clock(summary.clock),
