@@ -738,7 +738,7 @@ fn flip_w(t: &Tensor) -> Result<Tensor> {
     Ok(t.index_select(&idx, t.rank() - 1)?)
 }
 
-/// The tensors of a `VarMap` by name (for [`Bundle::save`]).
+/// The tensors of a `VarMap` by name (for [`Bundle::save`](crate::app::Bundle::save)).
 pub fn varmap_tensors(varmap: &VarMap) -> Result<HashMap<String, Tensor>> {
     let data = varmap
         .data()
