@@ -110,7 +110,7 @@ const EXAMPLES: &[(&str, &str)] = &[
     ),
     (
         "weather",
-        "veila weather 000008.bin --image 000008.png --calib calib/000008.txt --preset fog --out out/fog",
+        "veila weather 000008.bin --image 000008.png --calib calib/000008.txt --preset fog-moderate --out out/fog",
     ),
     ("completions", "veila completions zsh > ~/.zfunc/_veila"),
 ];

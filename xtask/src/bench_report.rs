@@ -647,23 +647,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         fold_size,
     ));
     if base.is_conditional() {
-        let descriptor = |ex: &SimExample| {
-            base.image_descriptor(CameraView {
-                rgb: &ex.rgb,
-                camera: &ex.camera,
-            })
-        };
-        let keys = baseline_train
-            .iter()
-            .map(descriptor)
-            .collect::<std::result::Result<Vec<_>, _>>()?;
-        let retrieved = tests
-            .iter()
-            .map(|ex| {
-                let i = veila_metrics::baseline::nearest(&descriptor(ex)?, &keys)?;
-                Ok(baseline_train[i].range.clone())
-            })
-            .collect::<Result<Vec<_>>>()?;
+        let retrieved = crate::simdata::retrieval_baseline(&base, &baseline_train, &tests)?;
         results.push(row(
             "baseline",
             "retrieval",

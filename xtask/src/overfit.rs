@@ -159,36 +159,13 @@ mod tests {
                 / x0.len() as f32;
             eprintln!("x̂₀ at the largest noise level: mean |error| {diff:.4} (encoded units)");
         }
-        let mut worst: f64 = 0.0;
-        if bundle.mean.is_some() {
-            // what the mean network alone gives (0 sampler steps)
-            let scan = bundle
+        let sample = |steps: usize, seed: u64| {
+            bundle
                 .generate(
                     &view,
                     &GenerateOptions {
                         sampler: SamplerConfig {
-                            steps: 0,
-                            ..cfg.sampler.clone()
-                        },
-                        samples: 1,
-                        seed: 1,
-                        unconditional: false,
-                    },
-                    |_, _| {},
-                )
-                .unwrap()
-                .remove(0)
-                .into_range_image();
-            let mae = veila_metrics::range::range_mae(&scan, &frame.range, Region::All).unwrap();
-            eprintln!("the mean network alone: range MAE {mae:.3} m");
-        }
-        for seed in [1, 2] {
-            let scan = bundle
-                .generate(
-                    &view,
-                    &GenerateOptions {
-                        sampler: SamplerConfig {
-                            steps: 16,
+                            steps,
                             guidance_scale: 1.0,
                             ..cfg.sampler.clone()
                         },
@@ -200,7 +177,17 @@ mod tests {
                 )
                 .unwrap()
                 .remove(0)
-                .into_range_image();
+                .into_range_image()
+        };
+        let mut worst: f64 = 0.0;
+        if bundle.mean.is_some() {
+            // what the mean network alone gives (0 sampler steps)
+            let scan = sample(0, 1);
+            let mae = veila_metrics::range::range_mae(&scan, &frame.range, Region::All).unwrap();
+            eprintln!("the mean network alone: range MAE {mae:.3} m");
+        }
+        for seed in [1, 2] {
+            let scan = sample(16, seed);
             let mae = veila_metrics::range::range_mae(&scan, &frame.range, Region::All).unwrap();
             let flips = scan
                 .mask

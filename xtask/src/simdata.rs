@@ -151,3 +151,29 @@ pub fn render_split(
     bar.finish_and_clear();
     out
 }
+
+/// The retrieval baseline: for every test frame, the range image of the training frame whose
+/// camera image is nearest (cosine) in `bundle`'s frozen encoders' features.
+pub fn retrieval_baseline(
+    bundle: &veila_diffusion::app::Bundle,
+    train: &[SimExample],
+    tests: &[SimExample],
+) -> Result<Vec<RangeImage>> {
+    let descriptor = |ex: &SimExample| {
+        bundle.image_descriptor(veila_diffusion::app::CameraView {
+            rgb: &ex.rgb,
+            camera: &ex.camera,
+        })
+    };
+    let keys = train
+        .iter()
+        .map(descriptor)
+        .collect::<std::result::Result<Vec<_>, _>>()?;
+    tests
+        .iter()
+        .map(|ex| {
+            let i = veila_metrics::baseline::nearest(&descriptor(ex)?, &keys)?;
+            Ok(train[i].range.clone())
+        })
+        .collect()
+}

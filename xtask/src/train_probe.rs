@@ -336,23 +336,7 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
         &tests,
         &cfg,
     );
-    let descriptor = |ex: &SimExample| {
-        bundle.image_descriptor(CameraView {
-            rgb: &ex.rgb,
-            camera: &ex.camera,
-        })
-    };
-    let keys = train
-        .iter()
-        .map(descriptor)
-        .collect::<std::result::Result<Vec<_>, _>>()?;
-    let retrieved = tests
-        .iter()
-        .map(|ex| {
-            let i = veila_metrics::baseline::nearest(&descriptor(ex)?, &keys)?;
-            Ok(train[i].range.clone())
-        })
-        .collect::<Result<Vec<_>>>()?;
+    let retrieved = crate::simdata::retrieval_baseline(&bundle, &train, &tests)?;
     line["retrieval"] = score("retrieval (baseline)", &retrieved, &tests, &cfg);
     if let Some((_, s)) = &mean_ckpt {
         let t = Instant::now();

@@ -518,13 +518,30 @@ pub(super) fn import_cycles(crate_dir: &Path) -> Vec<Vec<String>> {
         .collect()
 }
 
+/// Circles known and not yet broken, each with the way out. The test fails when one of them is
+/// gone (so the list only shrinks) as well as when a new one appears.
+const KNOWN_CIRCLES: &[(&str, &str)] = &[
+    // `impl Bundle` (generate, inpaint) lives with `Bundle`, and the pipeline takes a `&Bundle`:
+    // the way out is a pipeline over the bundle's parts, or `BundleConfig` in its own file
+    (
+        "veila-diffusion",
+        "src/app/bundle.rs <-> src/app/generate.rs",
+    ),
+];
+
 #[test]
 fn no_import_cycles_between_files() {
     let root = super::workspace_root();
     let mut problems = Vec::new();
+    let mut found = Vec::new();
     for krate in super::INTERNAL_ALLOWED.iter().map(|(k, _)| k) {
         for c in import_cycles(&root.join(krate)) {
-            problems.push(format!("{krate}: {}", c.join(" <-> ")));
+            let circle = c.join(" <-> ");
+            if KNOWN_CIRCLES.contains(&(krate, circle.as_str())) {
+                found.push((*krate, circle));
+            } else {
+                problems.push(format!("{krate}: {circle}"));
+            }
         }
     }
     assert!(
@@ -532,6 +549,12 @@ fn no_import_cycles_between_files() {
         "import circles between files (move what they share into a module both use):\n{}",
         problems.join("\n")
     );
+    for (krate, circle) in KNOWN_CIRCLES {
+        assert!(
+            found.iter().any(|(k, c)| k == krate && c == circle),
+            "{krate}: {circle} is no longer a circle: remove it from KNOWN_CIRCLES"
+        );
+    }
 }
 
 #[test]
