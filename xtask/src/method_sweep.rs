@@ -170,13 +170,8 @@ impl Eval<'_> {
                 .filter_map(|(g, ex)| veila_metrics::range::range_mae(g, &ex.range, region))
                 .collect()
         };
-        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
-        let front = mae(Region::Front);
-        let rear = mae(Region::Rear);
-        let fm = mean(&front);
-        let fstd = (front.iter().map(|x| (x - fm).powi(2)).sum::<f64>()
-            / (front.len().max(2) - 1) as f64)
-            .sqrt();
+        let (fm, fstd) = crate::simdata::mean_std(&mae(Region::Front));
+        let (rear_mean, _) = crate::simdata::mean_std(&mae(Region::Rear));
         let rays = RayTable::new(sensor)?;
         let cfg = BevConfig::r2dm();
         let hist = |imgs: &mut dyn Iterator<Item = &RangeImage>| -> Result<Vec<_>> {
@@ -199,10 +194,10 @@ impl Eval<'_> {
             train_secs,
             samples: step * batch as u64,
             range_mae_front_m: fm,
-            range_mae_rear_m: mean(&rear),
+            range_mae_rear_m: rear_mean,
             range_mae_front_std_m: fstd,
             jsd_all: jsd,
-            ring_spread_m: mean(&spreads),
+            ring_spread_m: crate::simdata::mean_std(&spreads).0,
             seconds_per_scan: secs,
         })
     }

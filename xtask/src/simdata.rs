@@ -177,3 +177,11 @@ pub fn retrieval_baseline(
         })
         .collect()
 }
+
+/// Mean and sample standard deviation (0 for fewer than two values; both 0 for none).
+pub fn mean_std(v: &[f64]) -> (f64, f64) {
+    let n = v.len().max(1) as f64;
+    let m = v.iter().sum::<f64>() / n;
+    let s = (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
+    (m, s)
+}

@@ -25,7 +25,7 @@ use veila_diffusion::trainer::{CheckpointState, find_latest_checkpoint};
 use veila_geom::{RangeImage, Region};
 use veila_nn::encoders::small_cnn::SmallCnn;
 
-use crate::simdata::{SimExample, render_split, workspace_root};
+use crate::simdata::{SimExample, mean_std, render_split, workspace_root};
 
 /// Arguments of `cargo xtask train-probe`.
 #[derive(Debug, Args)]
@@ -56,14 +56,6 @@ pub struct TrainProbeArgs {
     /// 0 steps: the mean network alone.
     #[arg(long)]
     bundle_out: Option<PathBuf>,
-}
-
-/// Mean and sample standard deviation over frames.
-fn mean_std(v: &[f64]) -> (f64, f64) {
-    let n = v.len().max(1) as f64;
-    let m = v.iter().sum::<f64>() / n;
-    let s = (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
-    (m, s)
 }
 
 /// Front and rear range MAE and ring spread of `scans` against the test frames.
