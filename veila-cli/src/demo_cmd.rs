@@ -56,6 +56,16 @@ pub(crate) struct DemoArgs {
     /// Classifier-free guidance scale, 0 to 20 (default: the bundle's).
     #[arg(long, value_name = "S", allow_negative_numbers = true)]
     guidance: Option<f64>,
+    /// Residual-diffusion bundles: how much of the sampled residual goes on top of the mean
+    /// network's scan, 0 to 1. 1 is a full sample (the data's texture); 0 is the smooth
+    /// conditional mean, the smallest pixel error (same as --steps 0).
+    #[arg(
+        long,
+        value_name = "W",
+        default_value_t = 1.0,
+        allow_negative_numbers = true
+    )]
+    residual_weight: f64,
     /// Seed of the generation noise.
     #[arg(long, value_name = "S", default_value_t = 0)]
     sample_seed: u64,
@@ -117,6 +127,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
     let device = model::device()?;
     let bundle = model::load_bundle(args.checkpoint.as_deref(), &device)?;
     let sampler = generation::resolve_sampler(&bundle, None, args.steps, args.guidance)?;
+    generation::check_residual_weight(args.residual_weight, Some(&bundle))?;
     let mut inputs = staging::Inputs::new();
     inputs.add_opt(args.scene.as_ref());
     let staging = staging::stage_checked(
@@ -158,6 +169,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         samples: 1,
         seed: args.sample_seed,
         unconditional: false,
+        residual_weight: args.residual_weight,
     };
     let scans = bundle.generate(
         &[CameraView {
@@ -207,6 +219,29 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         baseline_rows.push(BaselineSummary {
             name,
             description: description.clone(),
+            metrics: m.metrics,
+        });
+    }
+    // a residual bundle's sample next to its own mean network: what the texture costs in error
+    if bundle.config.residual.is_some() && sampler.steps > 0 && args.residual_weight > 0.0 {
+        let mean_only = bundle.generate(
+            &[CameraView {
+                rgb: &small,
+                camera: &small_cam,
+            }],
+            &GenerateOptions {
+                residual_weight: 0.0,
+                ..options.clone()
+            },
+            |_, _| {},
+        )?;
+        let range = model::to_range_image(&mean_only[0]);
+        let points = model::to_points(&bundle, &range)?;
+        let m = demo_metrics(&frame, truth, &points, &range, &true_range)?;
+        ring_spread_m.insert("mean net", spread(&range));
+        baseline_rows.push(BaselineSummary {
+            name: "mean net",
+            description: "the model's own mean network alone (--residual-weight 0): the smooth conditional mean, the smallest pixel error".into(),
             metrics: m.metrics,
         });
     }

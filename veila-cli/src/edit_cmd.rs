@@ -320,6 +320,7 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
         samples: args.samples,
         seed: args.seed,
         unconditional: false,
+        residual_weight: 1.0,
     };
     let scans = bundle
         .inpaint(&camera_views(&prepared), &known, &keep, &options, &repaint)

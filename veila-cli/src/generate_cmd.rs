@@ -19,8 +19,9 @@ use veila_diffusion::app::GenerateOptions;
 
 use crate::generation::{
     InputInfo, MAX_SAMPLES, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerName, ScanRecord, Seconds,
-    batch_seed, camera_views, check_guidance, check_steps, input_info, is_generate_output,
-    load_rig, model_info, prepare_views, resolve_sampler, round3, sampler_label, write_scan,
+    batch_seed, camera_views, check_guidance, check_residual_weight, check_steps, input_info,
+    is_generate_output, load_rig, model_info, prepare_views, resolve_sampler, round3,
+    sampler_label, write_scan,
 };
 use crate::{model, progress, staging};
 
@@ -42,6 +43,16 @@ pub(crate) struct GenerateArgs {
     /// Classifier-free guidance scale, 0 to 20 (1 = none; default: the bundle's).
     #[arg(long, value_name = "S", allow_negative_numbers = true)]
     pub(crate) guidance: Option<f64>,
+    /// Residual-diffusion bundles: how much of the sampled residual goes on top of the mean
+    /// network's scan, 0 to 1. 1 is a full sample (the data's texture); 0 is the smooth
+    /// conditional mean, the smallest pixel error (same as --steps 0).
+    #[arg(
+        long,
+        value_name = "W",
+        default_value_t = 1.0,
+        allow_negative_numbers = true
+    )]
+    pub(crate) residual_weight: f64,
     /// Seed of the initial noise (same inputs, model and seed give identical files).
     #[arg(long, value_name = "S", default_value_t = 0)]
     pub(crate) seed: u64,
@@ -67,6 +78,7 @@ struct GenerateReport<'a> {
     sampler_name: String,
     steps: usize,
     guidance: f64,
+    residual_weight: f64,
     seed: u64,
     samples: usize,
     sample_batch: usize,
@@ -87,6 +99,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
     if let Some(g) = args.guidance {
         check_guidance(g)?;
     }
+    check_residual_weight(args.residual_weight, None)?;
     let t0 = Instant::now();
     let mut inputs = staging::Inputs::new();
     inputs.extend(&args.rig.images).extend(&args.rig.calibs);
@@ -94,6 +107,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
     let device = model::device()?;
     let bundle = model::load_bundle(args.checkpoint.as_deref(), &device)?;
     let sampler = resolve_sampler(&bundle, args.sampler, args.steps, args.guidance)?;
+    check_residual_weight(args.residual_weight, Some(&bundle))?;
     let views = load_rig(&args.rig)?;
     let prepared = prepare_views(&bundle, &views)?;
     // inputs are good: only now does the output folder get a staging directory
@@ -117,6 +131,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
             samples: count,
             seed: batch_seed(args.seed, b),
             unconditional: false,
+            residual_weight: args.residual_weight,
         };
         let t = Instant::now();
         let scans = bundle
@@ -150,6 +165,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
         sampler_name: sampler_label(&sampler),
         steps: sampler.steps,
         guidance: sampler.guidance_scale,
+        residual_weight: args.residual_weight,
         seed: args.seed,
         samples: args.samples,
         sample_batch: SAMPLE_BATCH,

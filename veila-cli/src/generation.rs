@@ -132,6 +132,24 @@ pub(crate) fn resolve_sampler(
     Ok(cfg)
 }
 
+/// `--residual-weight`: between 0 and 1, and other than 1 only for residual-diffusion bundles
+/// (checked against `bundle` once it is loaded).
+pub(crate) fn check_residual_weight(w: f64, bundle: Option<&Bundle>) -> Result<()> {
+    if !(0.0..=1.0).contains(&w) {
+        bail!("--residual-weight {w}: must be between 0 and 1");
+    }
+    if let Some(b) = bundle
+        && w != 1.0
+        && b.config.residual.is_none()
+    {
+        bail!(
+            "--residual-weight {w}: model `{}` is not a residual-diffusion bundle (no mean network to add a weighted residual to); leave it at 1",
+            b.origin.display()
+        );
+    }
+    Ok(())
+}
+
 /// The most sampler steps a command accepts: far beyond any useful count (samplers converge in
 /// 10-50), and it bounds the time a typo can cost.
 pub(crate) const MAX_STEPS: usize = 1000;

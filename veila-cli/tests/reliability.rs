@@ -612,7 +612,21 @@ fn sampler_settings_outside_their_sense_are_refused() {
     assert!(!stderr(&o).contains("-- -5"));
     fails_with(&gen_(&["--guidance", "1e300"]), &["between 0 and 20"]);
     fails_with(&gen_(&["--guidance", "NaN"]), &["between 0 and 20"]);
-    fails_with(&gen_(&["--steps", "0"]), &["--steps"]);
+    // 0 steps is the mean network alone: refused for bundles without one, while for a residual
+    // default model the command goes on and stops at the missing image, naming it
+    let residual_default = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/default/bundle.json"),
+    )
+    .unwrap()
+    .contains("\"residual\": {");
+    let o = gen_(&["--steps", "0"]);
+    fails_with(&o, &[if residual_default { "i.png" } else { "--steps" }]);
+    for w in ["2", "-0.5", "NaN"] {
+        fails_with(
+            &gen_(&["--residual-weight", w]),
+            &[&format!("--residual-weight {w}"), "between 0 and 1"],
+        );
+    }
     fails_with(&gen_(&["--steps", "1000000"]), &["between 1 and 1000"]);
     fails_with(&gen_(&["--samples", "0"]), &["--samples"]);
     let o = veila()

@@ -21,6 +21,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         samples: 1,
         seed: 0,
         unconditional: false,
+        residual_weight: 1.0,
     };
     let scan = bundle
         .generate(&camera_views(&prepared), &options, |_, _| {})?

@@ -100,6 +100,7 @@ fn opts(seed: u64, samples: usize) -> GenerateOptions {
         samples,
         seed,
         unconditional: false,
+        residual_weight: 1.0,
     }
 }
 
@@ -476,6 +477,15 @@ fn overfit_one(
 }
 
 fn generate_one(b: &Bundle, sampler: SamplerConfig, seed: u64) -> veila_diffusion::DecodedScan {
+    generate_weighted(b, sampler, seed, 1.0).unwrap()
+}
+
+fn generate_weighted(
+    b: &Bundle,
+    sampler: SamplerConfig,
+    seed: u64,
+    residual_weight: f64,
+) -> veila_diffusion::Result<veila_diffusion::DecodedScan> {
     let cam = camera();
     let img = image(4);
     let view = [CameraView {
@@ -487,8 +497,9 @@ fn generate_one(b: &Bundle, sampler: SamplerConfig, seed: u64) -> veila_diffusio
         samples: 1,
         seed,
         unconditional: false,
+        residual_weight,
     };
-    b.generate(&view, &o, |_, _| {}).unwrap().remove(0)
+    Ok(b.generate(&view, &o, |_, _| {})?.remove(0))
 }
 
 /// The small, fast version of the overfit check (the bundled-size one, for every method, is
@@ -523,6 +534,37 @@ fn a_residual_bundle_trained_on_one_scan_generates_it() {
         "mean + residual: {mae_full} m, {flips_full} flips"
     );
     assert_ne!(full, mean, "the residual diffusion adds something");
+    // the residual weight: 0 is the mean network alone, 1 the full sample, and in between every
+    // range lies between the two (the decoding is monotone in the range code)
+    let ddim8 = || SamplerConfig::ddim(8, 0.0);
+    assert_eq!(generate_weighted(&b, ddim8(), 1, 0.0).unwrap(), mean);
+    assert_eq!(generate_weighted(&b, ddim8(), 1, 1.0).unwrap(), full);
+    let half = generate_weighted(&b, ddim8(), 1, 0.5).unwrap();
+    let mut between = 0;
+    for i in 0..half.range_m.len() {
+        if half.mask[i] && mean.mask[i] && full.mask[i] {
+            let (lo, hi) = (
+                mean.range_m[i].min(full.range_m[i]),
+                mean.range_m[i].max(full.range_m[i]),
+            );
+            let r = half.range_m[i];
+            assert!(
+                r >= lo - 1e-3 && r <= hi + 1e-3,
+                "pixel {i}: {r} not in [{lo}, {hi}]"
+            );
+            between += 1;
+        }
+    }
+    assert!(
+        between > half.range_m.len() / 2,
+        "{between} pixels compared"
+    );
+    assert_ne!(half, mean);
+    assert_ne!(half, full);
+    for bad in [-0.1, 1.5, f64::NAN] {
+        let err = generate_weighted(&b, ddim8(), 1, bad).unwrap_err();
+        assert!(err.to_string().contains("residual_weight"), "{bad}: {err}");
+    }
     // a residual bundle without its mean network is refused, naming the file
     std::fs::remove_file(tmp.path().join("bundle").join(MEAN_FILE)).unwrap();
     let err = Bundle::from_dir(&tmp.path().join("bundle"), &Device::Cpu).unwrap_err();
@@ -551,6 +593,7 @@ fn every_method_trains_and_generates_through_the_bundle_pipeline() {
             samples: 1,
             seed: 0,
             unconditional: false,
+            residual_weight: 1.0,
         };
         let cam = camera();
         let img = image(4);
@@ -559,5 +602,11 @@ fn every_method_trains_and_generates_through_the_bundle_pipeline() {
             camera: &cam,
         }];
         assert!(b.generate(&view, &o, |_, _| {}).is_err(), "{method:?}");
+        // and only they have a residual to weight
+        let err = generate_weighted(&b, SamplerConfig::ddim(3, 0.0), 1, 0.5).unwrap_err();
+        assert!(
+            err.to_string().contains("residual_weight"),
+            "{method:?}: {err}"
+        );
     }
 }

@@ -75,6 +75,14 @@ pub struct BenchReportArgs {
     /// Variants to compare (comma-separated; default all).
     #[arg(long, value_delimiter = ',')]
     variants: Option<Vec<Variant>>,
+    /// No ablation variants: only the bundled model as shipped (and, under `finetune`, its own
+    /// unconditional branch, which needs no training) next to the baselines and the floor.
+    #[arg(long, conflicts_with = "variants")]
+    shipped_only: bool,
+    /// Residual weights of the sweep for a residual-diffusion bundle (0 = its mean network alone,
+    /// 1 = full samples), at `--steps` DPM-Solver++ steps.
+    #[arg(long, value_delimiter = ',', default_value = "0,0.25,0.5,0.75")]
+    sweep_residual_weights: Vec<f64>,
     /// Test frames for the sampler sweep.
     #[arg(long, default_value_t = 8)]
     sweep_frames: usize,
@@ -144,6 +152,8 @@ struct VariantResult {
 struct SweepPoint {
     sampler: String,
     steps: usize,
+    /// Residual bundles: the residual weight (1 = full samples).
+    residual_weight: f64,
     seconds_per_scan: f64,
     jsd_all: f64,
     range_mae_front_m: f64,
@@ -165,6 +175,7 @@ struct Report {
     protocol: Protocol,
     sampler_steps: usize,
     quick: bool,
+    shipped_only: bool,
     variants: Vec<VariantResult>,
     sweep: Vec<SweepPoint>,
     notes: Vec<String>,
@@ -245,6 +256,7 @@ fn generate_all(
     tests: &[SimExample],
     sampler: &SamplerConfig,
     unconditional: bool,
+    residual_weight: f64,
     seed: u64,
     label: &str,
 ) -> Result<(Vec<RangeImage>, f64)> {
@@ -257,6 +269,7 @@ fn generate_all(
             samples: 1,
             seed: seed.wrapping_mul(1_000_003).wrapping_add(i as u64),
             unconditional,
+            residual_weight,
         };
         let scans = bundle.generate(
             &[CameraView {
@@ -659,10 +672,69 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
     }
     results.push(data_floor(&folds, &fold_judges));
 
-    let variants = args
-        .variants
-        .clone()
-        .unwrap_or_else(|| Variant::ALL.to_vec());
+    // the bundled model as shipped: its own sampler settings, no further training
+    {
+        let sampler = sampler_for("dpm", args.steps, base.config.sampler.guidance_scale)?;
+        let mut shipped: Vec<(&str, String, f64, u64)> = vec![(
+            "shipped",
+            format!(
+                "Veila, the bundled model as shipped ({} DPM-Solver++ steps)",
+                args.steps
+            ),
+            1.0,
+            args.seeds,
+        )];
+        if base.config.residual.is_some() {
+            // deterministic: one seed
+            shipped.push((
+                "shipped-mean-net",
+                "its mean network alone (residual weight 0: the smooth conditional mean)".into(),
+                0.0,
+                1,
+            ));
+        }
+        for (name, label, weight, seeds) in shipped {
+            let mut per_set = Vec::new();
+            let mut secs = 0.0;
+            for seed in 0..seeds {
+                let (generated, s) = generate_all(
+                    &base,
+                    &tests,
+                    &sampler,
+                    false,
+                    weight,
+                    seed,
+                    &format!("{name} seed {seed}"),
+                )?;
+                secs += s;
+                per_set.extend(per_fold(&base, &generated)?);
+            }
+            let per_scan = secs / (seeds as f64 * tests.len() as f64);
+            println!("  {label}: {per_scan:.2} s/scan");
+            results.push(VariantResult {
+                seconds_per_scan: per_scan,
+                ..row(
+                    "model",
+                    name,
+                    &label,
+                    &model_dir.display().to_string(),
+                    &per_set,
+                    fold_size,
+                )
+            });
+        }
+    }
+
+    let variants = if args.shipped_only {
+        match args.protocol {
+            Protocol::Finetune if base.is_conditional() => vec![Variant::Unconditional],
+            _ => Vec::new(),
+        }
+    } else {
+        args.variants
+            .clone()
+            .unwrap_or_else(|| Variant::ALL.to_vec())
+    };
     let needs_training = variants
         .iter()
         .any(|v| !(args.protocol == Protocol::Finetune && *v == Variant::Unconditional));
@@ -733,6 +805,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                 &tests,
                 &sampler,
                 drop_condition,
+                1.0,
                 seed,
                 &format!("{} seed {seed}", v.name()),
             )?;
@@ -771,6 +844,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                 sweep_tests,
                 &sampler,
                 false,
+                1.0,
                 0,
                 &format!("{name} x {steps}"),
             )?;
@@ -778,6 +852,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
             let p = SweepPoint {
                 sampler: name.into(),
                 steps,
+                residual_weight: 1.0,
                 seconds_per_scan: secs / sweep_tests.len() as f64,
                 jsd_all: m["jsd"]["all"],
                 range_mae_front_m: m["range mae (m)"]["front"],
@@ -785,6 +860,39 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
             };
             println!(
                 "  {name:>4} x {steps:>3}: {:.2} s/scan, jsd {:.4}, range mae front {:.2} m",
+                p.seconds_per_scan, p.jsd_all, p.range_mae_front_m
+            );
+            sweep.push(p);
+        }
+    }
+    // residual bundles: the texture's price in pixel error, at the variants' step count
+    if base.config.residual.is_some() {
+        let sampler = sampler_for("dpm", args.steps, base.config.sampler.guidance_scale)?;
+        for &weight in &args.sweep_residual_weights {
+            if !(0.0..=1.0).contains(&weight) {
+                bail!("--sweep-residual-weights: {weight} is not between 0 and 1");
+            }
+            let (generated, secs) = generate_all(
+                &base,
+                sweep_tests,
+                &sampler,
+                false,
+                weight,
+                0,
+                &format!("residual weight {weight}"),
+            )?;
+            let m = seed_metrics(&base, &generated, sweep_tests, &sweep_judges, nets.as_ref())?;
+            let p = SweepPoint {
+                sampler: "dpm".into(),
+                steps: if weight == 0.0 { 0 } else { args.steps },
+                residual_weight: weight,
+                seconds_per_scan: secs / sweep_tests.len() as f64,
+                jsd_all: m["jsd"]["all"],
+                range_mae_front_m: m["range mae (m)"]["front"],
+                scans: sweep_tests.len(),
+            };
+            println!(
+                "  residual weight {weight}: {:.2} s/scan, jsd {:.4}, range mae front {:.2} m",
                 p.seconds_per_scan, p.jsd_all, p.range_mae_front_m
             );
             sweep.push(p);
@@ -809,6 +917,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         protocol: args.protocol,
         sampler_steps: args.steps,
         quick: args.quick,
+        shipped_only: args.shipped_only,
         variants: results,
         sweep,
         notes: vec![
@@ -854,15 +963,21 @@ fn write_report(out: &Path, r: &Report) -> Result<()> {
     writeln!(md)?;
     writeln!(
         md,
-        "Generated by `{}` on {} ({}). Held-out split: `{}` ({} frames); {} sample seeds per variant; every variant's denoiser trained for {} steps on {} training frames; sampler DPM-Solver++(2M) with {} steps.",
+        "Generated by `{}` on {} ({}). Held-out split: `{}` ({} frames); {} sample seeds per model; {}; sampler DPM-Solver++(2M) with {} steps.",
         r.command,
         r.date_utc,
         r.machine,
         r.test_split,
         r.test_frames,
         r.seeds,
-        r.train_steps,
-        r.train_frames,
+        if r.shipped_only {
+            "the bundled model as shipped, no ablation variants trained".to_string()
+        } else {
+            format!(
+                "every ablation variant's denoiser trained for {} steps on {} training frames",
+                r.train_steps, r.train_frames
+            )
+        },
         r.sampler_steps
     )?;
     if r.quick {
@@ -932,9 +1047,9 @@ fn write_report(out: &Path, r: &Report) -> Result<()> {
     writeln!(md)?;
     writeln!(
         md,
-        "| sampler | steps | s / scan | JSD (all) | range MAE front (m) |"
+        "| sampler | steps | residual weight | s / scan | JSD (all) | range MAE front (m) |"
     )?;
-    writeln!(md, "|---|---|---|---|---|")?;
+    writeln!(md, "|---|---|---|---|---|---|")?;
     for p in &r.sweep {
         let num = |v: f64, d: usize| {
             if v.is_finite() {
@@ -945,9 +1060,10 @@ fn write_report(out: &Path, r: &Report) -> Result<()> {
         };
         writeln!(
             md,
-            "| {} | {} | {:.2} | {} | {} |",
+            "| {} | {} | {} | {:.2} | {} | {} |",
             p.sampler,
             p.steps,
+            p.residual_weight,
             p.seconds_per_scan,
             num(p.jsd_all, 4),
             num(p.range_mae_front_m, 2)
@@ -1008,7 +1124,7 @@ fn write_report(out: &Path, r: &Report) -> Result<()> {
         let pts: Vec<(f64, f64)> = r
             .sweep
             .iter()
-            .filter(|p| p.sampler == name)
+            .filter(|p| p.sampler == name && p.residual_weight == 1.0)
             .map(|p| (p.seconds_per_scan, p.jsd_all))
             .collect();
         series.push(Series::new(name, pts, SeriesStyle::LineMarkers));

@@ -156,6 +156,7 @@ impl Eval<'_> {
                     samples: 1,
                     seed: self.seed.wrapping_add(i as u64),
                     unconditional: false,
+                    residual_weight: 1.0,
                 },
                 |_, _| {},
             )?;

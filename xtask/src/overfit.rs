@@ -172,6 +172,7 @@ mod tests {
                         samples: 1,
                         seed,
                         unconditional: false,
+                        residual_weight: 1.0,
                     },
                     |_, _| {},
                 )

@@ -48,6 +48,10 @@ pub struct TrainProbeArgs {
     /// Sampler steps for the denoiser's samples.
     #[arg(long, default_value_t = 16)]
     steps: usize,
+    /// Residual weights of the samples (0 = the mean network alone, 1 = a full sample); each
+    /// other than 1 adds a `model_w<weight>` entry.
+    #[arg(long, value_delimiter = ',', default_value = "1")]
+    residual_weights: Vec<f64>,
     /// Seed of the samples.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -273,7 +277,7 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
         mean,
         origin: work.clone(),
     };
-    let generate = |steps: usize| -> Result<Vec<RangeImage>> {
+    let generate = |steps: usize, residual_weight: f64| -> Result<Vec<RangeImage>> {
         tests
             .iter()
             .enumerate()
@@ -291,6 +295,7 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
                         samples: 1,
                         seed: args.seed.wrapping_add(i as u64),
                         unconditional: false,
+                        residual_weight,
                     },
                     |_, _| {},
                 )?;
@@ -332,7 +337,7 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
     line["retrieval"] = score("retrieval (baseline)", &retrieved, &tests, &cfg);
     if let Some((_, s)) = &mean_ckpt {
         let t = Instant::now();
-        let scans = generate(0)?;
+        let scans = generate(0, 1.0)?;
         let name = format!("mean network, step {}", s.step);
         line["mean_net"] = score(&name, &scans, &tests, &cfg);
         line["mean_net"]["seconds_per_scan"] =
@@ -341,12 +346,24 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
     if let Some((_, s)) = &den_ckpt
         && denoiser_trained
     {
-        let t = Instant::now();
-        let scans = generate(args.steps)?;
-        let name = format!("model, step {}, {} steps", s.step, args.steps);
-        line["model"] = score(&name, &scans, &tests, &cfg);
-        line["model"]["seconds_per_scan"] =
-            (t.elapsed().as_secs_f64() / tests.len().max(1) as f64).into();
+        for &w in &args.residual_weights {
+            let t = Instant::now();
+            let scans = generate(args.steps, w)?;
+            let (name, key) = if w == 1.0 {
+                (
+                    format!("model, step {}, {} steps", s.step, args.steps),
+                    "model".to_string(),
+                )
+            } else {
+                (
+                    format!("model, step {}, {} steps, w {w}", s.step, args.steps),
+                    format!("model_w{w}"),
+                )
+            };
+            line[&key] = score(&name, &scans, &tests, &cfg);
+            line[&key]["seconds_per_scan"] =
+                (t.elapsed().as_secs_f64() / tests.len().max(1) as f64).into();
+        }
     }
     if let Some(out) = &args.bundle_out {
         let mut config = cfg.clone();
