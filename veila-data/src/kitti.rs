@@ -26,6 +26,8 @@ pub struct KittiCalib {
     pub tr_velo_to_cam: [[f32; 4]; 3],
     /// `Tr_imu_to_velo` (row-major 3x4), when present.
     pub tr_imu_to_velo: Option<[[f32; 4]; 3]>,
+    /// The file it was read from, named in the errors of [`KittiCalib::camera`].
+    pub source: PathBuf,
 }
 
 impl KittiCalib {
@@ -66,6 +68,7 @@ impl KittiCalib {
             r0_rect,
             tr_velo_to_cam,
             tr_imu_to_velo,
+            source: path.to_path_buf(),
         })
     }
 
@@ -82,13 +85,14 @@ impl KittiCalib {
             what: "KITTI camera index".into(),
             message: format!("{index} is not one of 0..=3"),
         })?;
-        Ok(PinholeCamera::from_kitti(
-            p,
-            self.r0_rect,
-            self.tr_velo_to_cam,
-            width,
-            height,
-        )?)
+        PinholeCamera::from_kitti(p, self.r0_rect, self.tr_velo_to_cam, width, height).map_err(
+            |e| {
+                Error::format(
+                    &self.source,
+                    format!("P{index} gives an invalid camera: {e}"),
+                )
+            },
+        )
     }
 }
 
@@ -352,6 +356,11 @@ mod tests {
         assert!(e.contains("expected 9 numbers, found 8"), "{e}");
         let nan = CALIB.replace("P3: 1 ", "P3: nan ");
         assert!(KittiCalib::parse(&nan, Path::new("c.txt")).is_err());
+        // a camera that cannot be built (singular K) is reported with the file it came from
+        let singular = CALIB.replace("P2: 700 0 600 45 0 700 180", "P2: 0 0 600 45 0 700 180");
+        let c = KittiCalib::parse(&singular, Path::new("dir/000009.txt")).unwrap();
+        let e = c.camera(2, 1242, 375).unwrap_err().to_string();
+        assert!(e.contains("000009.txt") && e.contains("P2"), "{e}");
     }
 
     #[test]

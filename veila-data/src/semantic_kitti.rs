@@ -25,6 +25,8 @@ pub struct OdometryCalib {
     pub p: [[[f32; 4]; 3]; 4],
     /// `Tr`: velodyne to rectified camera 0 (row-major 3x4).
     pub tr: [[f32; 4]; 3],
+    /// The file it was read from, named in the errors of [`OdometryCalib::camera`].
+    pub source: PathBuf,
 }
 
 impl OdometryCalib {
@@ -37,7 +39,11 @@ impl OdometryCalib {
         }
         let tr = e.require_3x4(&["Tr", "Tr_velo_to_cam"], path)?;
         crate::calib::check_rotation(path, "Tr", crate::calib::rotation_of(&tr))?;
-        Ok(OdometryCalib { p, tr })
+        Ok(OdometryCalib {
+            p,
+            tr,
+            source: path.to_path_buf(),
+        })
     }
 
     /// Read `calib.txt`.
@@ -52,9 +58,12 @@ impl OdometryCalib {
             what: "KITTI camera index".into(),
             message: format!("{index} is not one of 0..=3"),
         })?;
-        Ok(PinholeCamera::from_kitti_odometry(
-            p, self.tr, width, height,
-        )?)
+        PinholeCamera::from_kitti_odometry(p, self.tr, width, height).map_err(|e| {
+            Error::format(
+                &self.source,
+                format!("P{index} gives an invalid camera: {e}"),
+            )
+        })
     }
 }
 
