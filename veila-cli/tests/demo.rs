@@ -222,3 +222,72 @@ fn a_closed_stdout_pipe_ends_the_process_quietly() {
 fn libc_sigpipe() -> i32 {
     13 // SIGPIPE on Linux and the BSDs
 }
+
+/// A residual-diffusion model's demo shows its own mean network next to the sample, and
+/// `--residual-weight 0` generates exactly that mean; a model without a mean network refuses the
+/// flag before writing anything.
+#[test]
+fn the_residual_weight_moves_between_the_sample_and_the_mean_network() {
+    let bundle_json = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/default/bundle.json"),
+    )
+    .unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let out = |name: &str| tmp.path().join(name);
+    if !bundle_json.contains("\"residual\": {") {
+        let o = veila(&[
+            "demo",
+            "--residual-weight",
+            "0.5",
+            "--out",
+            out("x").to_str().unwrap(),
+        ]);
+        assert!(!o.status.success());
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains("residual-diffusion"), "{err}");
+        assert!(!out("x").exists(), "no partial output");
+        return;
+    }
+    let run = |name: &str, extra: &[&str]| {
+        let mut args = vec!["demo", "--steps", "2", "--out"];
+        let dir = out(name);
+        args.push(dir.to_str().unwrap());
+        args.extend_from_slice(extra);
+        let o = veila(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        metrics(&dir)
+    };
+    let full = run("full", &[]);
+    let mean = run("mean", &["--residual-weight", "0"]);
+    let column = full["baselines"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|b| b["name"] == "mean net")
+        .expect("a mean-net column next to the sample");
+    let name = "range mae (m, both valid)";
+    for region in ["all", "front", "rear"] {
+        let col = column["metrics"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|v| v["name"] == name && v["region"] == region)
+            .unwrap()["value"]
+            .as_f64()
+            .unwrap();
+        assert_eq!(col, metric(&mean, name, region), "{region}");
+        assert_ne!(
+            col,
+            metric(&full, name, region),
+            "{region}: the sample differs"
+        );
+    }
+    assert!(
+        mean["baselines"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|b| b["name"] != "mean net"),
+        "at weight 0 the scan is the mean network's"
+    );
+}
