@@ -12,7 +12,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::Args;
 use serde::Serialize;
 use veila_data::PointCloud;
@@ -180,7 +180,10 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         |_, _| pb.inc(1),
     )?;
     let seconds_generation = t.elapsed().as_secs_f64();
-    let generated_range = model::to_range_image(&scans[0]);
+    let generated_range = scans
+        .into_iter()
+        .next()
+        .context("the model returned no scan")?;
     let generated = model::to_points(&bundle, &generated_range)?;
 
     pb.set_message("writing views and metrics");
@@ -235,7 +238,10 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
             },
             |_, _| {},
         )?;
-        let range = model::to_range_image(&mean_only[0]);
+        let range = mean_only
+            .into_iter()
+            .next()
+            .context("the model returned no scan")?;
         let points = model::to_points(&bundle, &range)?;
         let m = demo_metrics(&frame, truth, &points, &range, &true_range)?;
         ring_spread_m.insert("mean net", spread(&range));

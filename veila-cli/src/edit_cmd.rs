@@ -16,7 +16,7 @@ use veila_data::scan::{PointFormat, read_points};
 use veila_data::vis::render::{self, render_range};
 use veila_diffusion::app::GenerateOptions;
 use veila_diffusion::app::bundle::Bundle;
-use veila_diffusion::{DecodedScan, RepaintConfig, SamplerConfig, SamplerKind};
+use veila_diffusion::{RepaintConfig, SamplerConfig, SamplerKind};
 use veila_geom::{ProjectionOptions, Projector, RangeImage, RayTable};
 
 use crate::generation::{
@@ -295,13 +295,6 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
     let staging = staging::stage_checked(&args.out, args.force, &inputs)?;
     let load_secs = t0.elapsed().as_secs_f64();
 
-    let known = DecodedScan {
-        rows,
-        cols,
-        range_m: before.range_m.clone(),
-        intensity: before.intensity.clone(),
-        mask: before.mask.clone(),
-    };
     let keep: Vec<bool> = regen.iter().map(|r| !r).collect();
     let repaint = RepaintConfig {
         jump_length: args.jump_length,
@@ -323,7 +316,7 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
         residual_weight: 1.0,
     };
     let scans = bundle
-        .inpaint(&camera_views(&prepared), &known, &keep, &options, &repaint)
+        .inpaint(&camera_views(&prepared), &before, &keep, &options, &repaint)
         .context("inpainting")?;
     pb.finish_and_clear();
     let sampling_secs = t.elapsed().as_secs_f64();
@@ -348,15 +341,15 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
     )?;
     let enc = &bundle.config.encoding;
     let mut records = Vec::with_capacity(scans.len());
-    for (i, scan) in scans.iter().enumerate() {
+    for (i, after) in scans.iter().enumerate() {
         let stem = format!("scan_{i:03}");
-        let (record, after, _) = write_scan(out, &stem, &bundle, scan, &views[0])?;
+        let (record, _) = write_scan(out, &stem, &bundle, after, &views[0])?;
         write_png(
             &out.join(format!("{stem}_before_after.png")),
             &render::stack_vertical(&[
                 render_range(&before, &preview),
                 marked.clone(),
-                render_range(&after, &preview),
+                render_range(after, &preview),
             ]),
         )?;
         let mut changed = 0;

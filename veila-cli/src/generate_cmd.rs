@@ -144,7 +144,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
         // each batch is written and dropped before the next is drawn
         let t = Instant::now();
         for (j, scan) in scans.iter().enumerate() {
-            let (rec, _, _) = write_scan(
+            let (rec, _) = write_scan(
                 staging.path(),
                 &format!("scan_{:03}", first + j),
                 &bundle,

@@ -20,7 +20,7 @@ pub(crate) use veila_diffusion::app::camera_views;
 use veila_diffusion::app::rig::PreparedViews;
 use veila_diffusion::app::rig::point_colours;
 use veila_diffusion::app::{RigView, load_view};
-use veila_diffusion::{DecodedScan, SamplerConfig, SamplerKind};
+use veila_diffusion::{SamplerConfig, SamplerKind};
 use veila_geom::RangeImage;
 
 use crate::model;
@@ -298,11 +298,10 @@ pub(crate) fn write_scan(
     dir: &Path,
     stem: &str,
     bundle: &Bundle,
-    scan: &DecodedScan,
+    range: &RangeImage,
     first: &RigView,
-) -> Result<(ScanRecord, RangeImage, PointCloud)> {
-    let range = model::to_range_image(scan);
-    let cloud = model::to_points(bundle, &range)?;
+) -> Result<(ScanRecord, PointCloud)> {
+    let cloud = model::to_points(bundle, range)?;
     let sensor = &bundle.config.denoiser.sensor;
     let bin = format!("{stem}.bin");
     write_kitti_bin(&dir.join(&bin), &cloud)?;
@@ -311,10 +310,10 @@ pub(crate) fn write_scan(
         &cloud,
         &point_colours(first, &cloud),
     )?;
-    write_range_exr(&dir.join(format!("{stem}.exr")), sensor, &range)?;
+    write_range_exr(&dir.join(format!("{stem}.exr")), sensor, range)?;
     write_png(
         &dir.join(format!("{stem}_range.png")),
-        &render_range(&range, &range_preview(bundle)),
+        &render_range(range, &range_preview(bundle)),
     )?;
     write_png(
         &dir.join(format!("{stem}_bev.png")),
@@ -334,7 +333,6 @@ pub(crate) fn write_scan(
             range_pixels: range.num_valid(),
             points_in_first_image: overlay.drawn,
         },
-        range,
         cloud,
     ))
 }

@@ -7,7 +7,6 @@ use anyhow::{Context, Result, bail};
 use candle_core::Device;
 use veila_data::PointCloud;
 use veila_data::image::RgbImage;
-use veila_diffusion::DecodedScan;
 use veila_diffusion::app::bundle::{Bundle, MANIFEST_FILE};
 use veila_geom::{PinholeCamera, RangeImage};
 
@@ -118,11 +117,6 @@ pub(crate) fn prepare_view(
         image,
         camera,
     )?)
-}
-
-/// A decoded scan as a range image on the bundle's grid.
-pub(crate) fn to_range_image(scan: &DecodedScan) -> RangeImage {
-    scan.clone().into_range_image()
 }
 
 /// The points of a generated range image in the LiDAR frame (one per return).

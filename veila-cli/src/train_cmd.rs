@@ -52,11 +52,8 @@ use veila_diffusion::app::{
     Encoder, EncoderData, EncoderEvent, EncoderSource, RecipeInput, RecipeSettings, Stage,
     TrainExample, run_recipe,
 };
-use veila_diffusion::encoding::ScanView;
 use veila_diffusion::{StepStats, TrainObserver};
-use veila_geom::{
-    LidarSensor, NO_POINT, PinholeCamera, ProjectionOptions, Projector, RangeImage, RayTable,
-};
+use veila_geom::{LidarSensor, PinholeCamera, ProjectionOptions, Projector, RayTable};
 
 use crate::{model, progress};
 
@@ -366,25 +363,15 @@ fn prepare_sample(
 ) -> Result<Prepared> {
     let at = || format!("{}: sample {}", shard_path.display(), s.id);
     let (iw, ih) = (cfg.image_width as u32, cfg.image_height as u32);
-    let n = s.range_m.len();
-    let src = RangeImage {
-        rows: shard_sensor.rows,
-        cols: shard_sensor.cols,
-        range_m: s.range_m.clone(),
-        intensity: s.intensity.clone(),
-        point_index: vec![NO_POINT; n],
-        mask: s.mask.iter().map(|m| *m != 0).collect(),
-        label: None,
-    };
-    let un = shard_rays.unproject(&src)?;
+    let un = shard_rays.unproject(&s.scan)?;
+    let projected;
     let on_grid = if shard_sensor == &cfg.denoiser.sensor {
-        src
+        &s.scan
     } else {
-        projector.project(&un.points, Some(&un.intensity), None)?.0
+        projected = projector.project(&un.points, Some(&un.intensity), None)?.0;
+        &projected
     };
-    let x0 = cfg
-        .encoding
-        .encode_to_vec(&ScanView::from_range_image(&on_grid))?;
+    let x0 = cfg.encoding.encode_to_vec(on_grid)?;
     if !needs_camera {
         // an unconditional model without encoders to train never looks at the camera
         let k = [
@@ -423,7 +410,7 @@ fn prepare_sample(
     // sparse supervision: returns projected into the resized image, nearest wins
     let npx = (iw * ih) as usize;
     let mut depth_m = vec![0f32; npx];
-    let mut labels = s.label.as_ref().map(|_| vec![0u32; npx]);
+    let mut labels = s.train_ids.as_ref().map(|_| vec![0u32; npx]);
     for (p, (r, c)) in un.points.iter().zip(&un.pixels) {
         let Some(ip) = camera.try_project_in_image(*p) else {
             continue;
@@ -435,7 +422,7 @@ fn prepare_sample(
         let k = v as usize * iw as usize + u as usize;
         if depth_m[k] == 0.0 || ip.depth_m < depth_m[k] {
             depth_m[k] = ip.depth_m;
-            if let (Some(l), Some(src_l)) = (labels.as_mut(), s.label.as_ref()) {
+            if let (Some(l), Some(src_l)) = (labels.as_mut(), s.train_ids.as_ref()) {
                 l[k] = u32::from(src_l[(*r * shard_sensor.cols + *c) as usize]);
             }
         }

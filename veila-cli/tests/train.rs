@@ -29,15 +29,16 @@ fn make_shards(dir: &Path, frames: u32, labels: bool, images: bool) {
         let raw = img.label.clone().unwrap();
         samples.push(ShardSample {
             id: format!("{i:06}"),
-            mask: img.mask.iter().map(|m| u8::from(*m)).collect(),
-            range_m: img.range_m,
-            intensity: img.intensity,
-            label: labels.then(|| {
+            train_ids: labels.then(|| {
                 raw.iter()
                     .map(|r| class::learning_id((r & 0xFFFF) as u16))
                     .collect()
             }),
-            label_raw: None,
+            scan: veila_geom::RangeImage {
+                point_index: vec![veila_geom::NO_POINT; img.num_pixels()],
+                label: None,
+                ..img
+            },
             image: images.then(|| f.image.to_rgb_image().unwrap()),
             camera: Some(CameraMatrices::from_camera(&f.camera)),
         });
@@ -323,7 +324,7 @@ fn killed_runs_resume_to_the_uninterrupted_weights() {
     let mut manifest = Manifest::read(&m).unwrap();
     let shard0 = tmp.path().join("shards").join(&manifest.shards[0].file);
     let mut s = veila_data::shard::read_shard(&shard0).unwrap().samples;
-    s[0].range_m.iter_mut().for_each(|r| *r *= 1.01);
+    s[0].scan.range_m.iter_mut().for_each(|r| *r *= 1.01);
     manifest.shards[0] = write_shard(&shard0, &manifest.sensor, "sim", &s).unwrap();
     manifest.write(&m).unwrap();
     let o = train(&c, &[]);

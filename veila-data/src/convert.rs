@@ -179,17 +179,16 @@ pub fn frame_to_sample(
     if let Some(l) = &pts.label {
         img.gather_labels(l)?;
     }
-    let label = match (&img.label, label_map) {
+    let train_ids = match (&img.label, label_map) {
         (Some(raw), Some(map)) => Some(map.train_ids(raw)),
         _ => None,
     };
+    // a shard keeps no source points: the sample is what reading the shard back gives
+    img.point_index.fill(veila_geom::NO_POINT);
     let sample = ShardSample {
         id: frame.id.clone(),
-        mask: img.mask.iter().map(|m| u8::from(*m)).collect(),
-        range_m: img.range_m,
-        intensity: img.intensity,
-        label,
-        label_raw: img.label,
+        scan: img,
+        train_ids,
         image: if include_image {
             frame.image.clone()
         } else {

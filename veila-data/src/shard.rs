@@ -27,7 +27,7 @@ use image::RgbImage;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
-use veila_geom::{LidarSensor, PinholeCamera};
+use veila_geom::{LidarSensor, PinholeCamera, RangeImage};
 
 use crate::atomic::write_atomic_with;
 use crate::{Error, Result};
@@ -42,16 +42,12 @@ pub const MANIFEST_FORMAT: &str = "veila-manifest/1";
 pub struct ShardSample {
     /// Frame id in its dataset.
     pub id: String,
-    /// Range, metres, `rows x cols` row-major.
-    pub range_m: Vec<f32>,
-    /// Intensity in `[0, 1]`.
-    pub intensity: Vec<f32>,
-    /// 1 where the pixel holds a return.
-    pub mask: Vec<u8>,
-    /// Train ids (0 = ignored).
-    pub label: Option<Vec<u8>>,
-    /// Raw dataset labels.
-    pub label_raw: Option<Vec<u32>>,
+    /// The range image on the shard's sensor grid: range in metres, intensity in `[0, 1]`, the
+    /// return mask, and the raw dataset labels in `label` when the dataset has them (read back
+    /// without source points: `point_index` is [`veila_geom::NO_POINT`]).
+    pub scan: RangeImage,
+    /// Train ids per pixel (0 = ignored), when a label map is known.
+    pub train_ids: Option<Vec<u8>>,
     /// Camera image.
     pub image: Option<RgbImage>,
     /// `K` (3x4, row-major) and `cam_from_lidar` (4x4, row-major).
@@ -136,29 +132,49 @@ fn prepare_shard(
             context: format!("shard sample {} ({})", k, s.id),
             message: format!("{what} has {len} values, the {h}x{w} sensor needs {n}"),
         };
-        if s.range_m.len() != n {
-            return Err(bad("range_m", s.range_m.len()));
+        if (s.scan.rows, s.scan.cols) != (sensor.rows, sensor.cols) {
+            return Err(Error::Mismatch {
+                context: format!("shard sample {} ({})", k, s.id),
+                message: format!(
+                    "a {}x{} range image on a {h}x{w} sensor",
+                    s.scan.rows, s.scan.cols
+                ),
+            });
         }
-        if s.intensity.len() != n {
-            return Err(bad("intensity", s.intensity.len()));
-        }
-        if s.mask.len() != n {
-            return Err(bad("mask", s.mask.len()));
+        let scan = &s.scan;
+        for (what, len) in [
+            ("range_m", scan.range_m.len()),
+            ("intensity", scan.intensity.len()),
+            ("mask", scan.mask.len()),
+        ] {
+            if len != n {
+                return Err(bad(what, len));
+            }
         }
         let p = format!("{k:05}");
         let mut put = |name: &str, dtype, shape: Vec<usize>, data| {
             tensors.push((format!("{p}/{name}"), OwnedTensor { dtype, shape, data }));
         };
-        put("range_m", Dtype::F32, vec![h, w], bytes_f32(&s.range_m));
-        put("intensity", Dtype::F32, vec![h, w], bytes_f32(&s.intensity));
-        put("mask", Dtype::U8, vec![h, w], s.mask.clone());
-        if let Some(l) = &s.label {
+        put("range_m", Dtype::F32, vec![h, w], bytes_f32(&scan.range_m));
+        put(
+            "intensity",
+            Dtype::F32,
+            vec![h, w],
+            bytes_f32(&scan.intensity),
+        );
+        put(
+            "mask",
+            Dtype::U8,
+            vec![h, w],
+            scan.mask.iter().map(|&m| u8::from(m)).collect(),
+        );
+        if let Some(l) = &s.train_ids {
             if l.len() != n {
                 return Err(bad("label", l.len()));
             }
             put("label", Dtype::U8, vec![h, w], l.clone());
         }
-        if let Some(l) = &s.label_raw {
+        if let Some(l) = &scan.label {
             if l.len() != n {
                 return Err(bad("label_raw", l.len()));
             }
@@ -428,13 +444,19 @@ pub fn decode_shard(bytes: &[u8], path: &Path) -> Result<Shard> {
                 )));
             }
         };
+        let n = h * w;
         samples.push(ShardSample {
             id,
-            range_m: f32s(range.data()),
-            intensity: f32s(inten.data()),
-            mask: mask.data().to_vec(),
-            label,
-            label_raw,
+            scan: RangeImage {
+                rows: sensor.rows,
+                cols: sensor.cols,
+                range_m: f32s(range.data()),
+                intensity: f32s(inten.data()),
+                point_index: vec![veila_geom::NO_POINT; n],
+                mask: mask.data().iter().map(|&m| m != 0).collect(),
+                label: label_raw,
+            },
+            train_ids: label,
             image,
             camera,
         });
@@ -542,11 +564,14 @@ mod tests {
         let n = sensor.num_pixels();
         ShardSample {
             id: id.into(),
-            range_m: (0..n).map(|i| (i as u32 ^ seed) as f32 * 0.25).collect(),
-            intensity: (0..n).map(|i| (i % 7) as f32 / 7.0).collect(),
-            mask: (0..n).map(|i| (i % 3 != 0) as u8).collect(),
-            label: Some((0..n).map(|i| (i % 20) as u8).collect()),
-            label_raw: Some((0..n).map(|i| (i as u32) << 16 | 40).collect()),
+            scan: RangeImage {
+                range_m: (0..n).map(|i| (i as u32 ^ seed) as f32 * 0.25).collect(),
+                intensity: (0..n).map(|i| (i % 7) as f32 / 7.0).collect(),
+                mask: (0..n).map(|i| i % 3 != 0).collect(),
+                label: Some((0..n).map(|i| (i as u32) << 16 | 40).collect()),
+                ..RangeImage::new_empty(sensor.rows, sensor.cols)
+            },
+            train_ids: Some((0..n).map(|i| (i % 20) as u8).collect()),
             image: Some(RgbImage::from_fn(5, 3, |x, y| {
                 image::Rgb([x as u8, y as u8, seed as u8])
             })),
@@ -573,16 +598,14 @@ mod tests {
             cols: 8,
             ..LidarSensor::hdl64e()
         };
-        let samples = vec![
-            sample("a", &sensor, 1),
-            ShardSample {
-                label: None,
-                label_raw: None,
-                image: None,
-                camera: None,
-                ..sample("b", &sensor, 2)
-            },
-        ];
+        let samples = vec![sample("a", &sensor, 1), {
+            let mut b = sample("b", &sensor, 2);
+            b.scan.label = None;
+            b.train_ids = None;
+            b.image = None;
+            b.camera = None;
+            b
+        }];
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("shard-00000.safetensors");
         let entry = write_shard(&p, &sensor, "test", &samples).unwrap();
@@ -631,7 +654,7 @@ mod tests {
         assert_eq!(st.len(), 16);
         let t = st.tensor("00001/range_m").unwrap();
         assert_eq!(t.shape(), &[2, 4]);
-        assert_eq!(f32s(t.data()), samples[1].range_m);
+        assert_eq!(f32s(t.data()), samples[1].scan.range_m);
         let dir = tempfile::tempdir().unwrap();
         let e = write_shard(&dir.path().join("s.safetensors"), &sensor, "d", &samples).unwrap();
         assert_eq!(e.sha256, sha256_hex(&a));

@@ -92,11 +92,8 @@ fn shards_hold_exactly_the_projected_frames() {
             let (img, _) = projector
                 .project(&f.points.xyz, Some(&f.points.intensity), None)
                 .unwrap();
-            assert_eq!(sample.range_m, img.range_m);
-            assert_eq!(
-                sample.mask,
-                img.mask.iter().map(|m| *m as u8).collect::<Vec<_>>()
-            );
+            assert_eq!(sample.scan.range_m, img.range_m);
+            assert_eq!(sample.scan.mask, img.mask);
             assert_eq!(sample.image.as_ref().unwrap(), f.image.as_ref().unwrap());
             let cam = sample
                 .camera

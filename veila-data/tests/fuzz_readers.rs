@@ -307,11 +307,14 @@ fn shard() {
     .unwrap();
     let sample = ShardSample {
         id: "000000".into(),
-        range_m: (0..n).map(|i| 1.0 + i as f32 * 0.1).collect(),
-        intensity: vec![0.5; n],
-        mask: (0..n).map(|i| (i % 3 != 0) as u8).collect(),
-        label: Some(vec![1; n]),
-        label_raw: Some(vec![10; n]),
+        scan: veila_geom::RangeImage {
+            range_m: (0..n).map(|i| 1.0 + i as f32 * 0.1).collect(),
+            intensity: vec![0.5; n],
+            mask: (0..n).map(|i| i % 3 != 0).collect(),
+            label: Some(vec![10; n]),
+            ..veila_geom::RangeImage::new_empty(s.rows, s.cols)
+        },
+        train_ids: Some(vec![1; n]),
         image: Some(image()),
         camera: Some(CameraMatrices::from_camera(&cam)),
     };

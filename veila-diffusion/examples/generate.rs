@@ -16,17 +16,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let bundle = Bundle::from_dir(model.first().unwrap_or(&default_model), &Device::Cpu)?;
     let view = load_view(image, calib, None)?; // KITTI camera 2 or nuScenes CAM_FRONT
     let prepared = prepare_views(&bundle.config, &[view])?; // resized to the model's input
-    let options = GenerateOptions {
-        sampler: bundle.config.sampler.clone(),
-        samples: 1,
-        seed: 0,
-        unconditional: false,
-        residual_weight: 1.0,
-    };
+    let options = GenerateOptions::new(bundle.config.sampler.clone()); // one scan, seed 0
     let scan = bundle
         .generate(&camera_views(&prepared), &options, |_, _| {})?
         .remove(0);
-    let points = scan_points(&bundle.config, &scan.into_range_image())?;
+    let points = scan_points(&bundle.config, &scan)?;
     veila_data::scan::write_kitti_bin(out, &points)?;
     println!("{}: {} points", out.display(), points.len());
     Ok(())

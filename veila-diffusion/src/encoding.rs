@@ -16,6 +16,7 @@
 
 use candle_core::{Device, Tensor};
 use serde::{Deserialize, Serialize};
+use veila_geom::RangeImage;
 
 use crate::error::{Error, Result, invalid};
 
@@ -40,71 +41,6 @@ pub struct RangeEncoding {
 impl Default for RangeEncoding {
     fn default() -> Self {
         Self::kitti()
-    }
-}
-
-/// A borrowed range image to encode: row-major, `rows * cols` pixels, row 0 = top beam.
-#[derive(Debug, Clone, Copy)]
-pub struct ScanView<'a> {
-    /// Number of rows (beams).
-    pub rows: usize,
-    /// Number of columns (azimuth bins).
-    pub cols: usize,
-    /// Range per pixel in metres.
-    pub range_m: &'a [f32],
-    /// Intensity per pixel (ignored when the encoding has no intensity channel; zeros when `None`).
-    pub intensity: Option<&'a [f32]>,
-    /// Validity per pixel; `None` means "finite range > 0".
-    pub mask: Option<&'a [bool]>,
-}
-
-/// A decoded range image: row-major, `rows * cols` pixels.
-#[derive(Debug, Clone, PartialEq)]
-pub struct DecodedScan {
-    /// Number of rows (beams).
-    pub rows: usize,
-    /// Number of columns (azimuth bins).
-    pub cols: usize,
-    /// Range in metres; `0.0` where `mask` is false.
-    pub range_m: Vec<f32>,
-    /// Intensity in the original units; `0.0` where `mask` is false or without an intensity channel.
-    pub intensity: Vec<f32>,
-    /// `true` where the pixel holds a return.
-    pub mask: Vec<bool>,
-}
-
-impl DecodedScan {
-    /// Number of pixels with a return.
-    pub fn num_valid(&self) -> usize {
-        self.mask.iter().filter(|&&m| m).count()
-    }
-
-    /// Converts to a `veila-geom` range image (no source points: `point_index` is
-    /// [`veila_geom::NO_POINT`] everywhere, no labels), ready for `RayTable::unproject`.
-    pub fn into_range_image(self) -> veila_geom::RangeImage {
-        let n = self.range_m.len();
-        veila_geom::RangeImage {
-            rows: self.rows as u32,
-            cols: self.cols as u32,
-            range_m: self.range_m,
-            intensity: self.intensity,
-            point_index: vec![veila_geom::NO_POINT; n],
-            mask: self.mask,
-            label: None,
-        }
-    }
-}
-
-impl<'a> ScanView<'a> {
-    /// Views a `veila-geom` range image (its mask, range and intensity).
-    pub fn from_range_image(img: &'a veila_geom::RangeImage) -> Self {
-        Self {
-            rows: img.rows as usize,
-            cols: img.cols as usize,
-            range_m: &img.range_m,
-            intensity: Some(&img.intensity),
-            mask: Some(&img.mask),
-        }
     }
 }
 
@@ -204,29 +140,25 @@ impl RangeEncoding {
         (v.clamp(-1.0, 1.0) + 1.0) * 0.5 * self.intensity_max
     }
 
-    /// Encodes one scan into a `C * rows * cols` channel-major buffer.
-    pub fn encode_to_vec(&self, scan: &ScanView<'_>) -> Result<Vec<f32>> {
+    /// Encodes one scan into a `C * rows * cols` channel-major buffer (pixels without a return,
+    /// or with a range that is not finite and > 0, encode as "dropped").
+    pub fn encode_to_vec(&self, scan: &RangeImage) -> Result<Vec<f32>> {
         self.validate()?;
-        let n = scan.rows * scan.cols;
+        let n = scan.num_pixels();
         check_len("range_m", n, scan.range_m.len())?;
-        if let Some(i) = scan.intensity {
-            check_len("intensity", n, i.len())?;
-        }
-        if let Some(m) = scan.mask {
-            check_len("mask", n, m.len())?;
-        }
+        check_len("intensity", n, scan.intensity.len())?;
+        check_len("mask", n, scan.mask.len())?;
         let c = self.num_channels();
         let mut out = vec![-1.0f32; c * n];
         for p in 0..n {
             let r = scan.range_m[p];
-            let valid = scan.mask.is_none_or(|m| m[p]) && r.is_finite() && r > 0.0;
+            let valid = scan.mask[p] && r.is_finite() && r > 0.0;
             if !valid {
                 continue;
             }
             out[p] = self.encode_range(r);
             if let Some(ci) = self.intensity_channel() {
-                let i = scan.intensity.map_or(0.0, |i| i[p]);
-                out[ci * n + p] = self.encode_intensity(i);
+                out[ci * n + p] = self.encode_intensity(scan.intensity[p]);
             }
             if let Some(cd) = self.raydrop_channel() {
                 out[cd * n + p] = 1.0;
@@ -236,14 +168,14 @@ impl RangeEncoding {
     }
 
     /// Encodes a batch of equally sized scans into a `[B, C, rows, cols]` f32 tensor.
-    pub fn encode_batch(&self, scans: &[ScanView<'_>], device: &Device) -> Result<Tensor> {
+    pub fn encode_batch(&self, scans: &[&RangeImage], device: &Device) -> Result<Tensor> {
         let Some(first) = scans.first() else {
             return Err(invalid("scans", "empty batch"));
         };
-        let (rows, cols) = (first.rows, first.cols);
+        let (rows, cols) = (first.rows as usize, first.cols as usize);
         let mut data = Vec::with_capacity(scans.len() * self.num_channels() * rows * cols);
         for s in scans {
-            if (s.rows, s.cols) != (rows, cols) {
+            if (s.rows as usize, s.cols as usize) != (rows, cols) {
                 return Err(Error::Shape {
                     what: "scan in batch",
                     expected: format!("{rows}x{cols}"),
@@ -259,8 +191,9 @@ impl RangeEncoding {
         )?)
     }
 
-    /// Decodes a `[B, C, rows, cols]` tensor (any float dtype, any device) into scans.
-    pub fn decode_batch(&self, x: &Tensor) -> Result<Vec<DecodedScan>> {
+    /// Decodes a `[B, C, rows, cols]` tensor (any float dtype, any device) into scans (no source
+    /// points: `point_index` is [`veila_geom::NO_POINT`] everywhere; no labels).
+    pub fn decode_batch(&self, x: &Tensor) -> Result<Vec<RangeImage>> {
         self.validate()?;
         let (b, c, rows, cols) = x.dims4()?;
         if c != self.num_channels() {
@@ -275,23 +208,25 @@ impl RangeEncoding {
             .flatten_all()?
             .to_vec1::<f32>()?;
         let n = rows * cols;
-        Ok(data
-            .chunks_exact(c * n)
+        data.chunks_exact(c * n)
             .take(b)
             .map(|img| self.decode_slice(img, rows, cols))
-            .collect())
+            .collect()
     }
 
     /// Decodes one channel-major `C * rows * cols` buffer.
-    pub fn decode_slice(&self, img: &[f32], rows: usize, cols: usize) -> DecodedScan {
-        let n = rows * cols;
-        let mut out = DecodedScan {
-            rows,
-            cols,
-            range_m: vec![0.0; n],
-            intensity: vec![0.0; n],
-            mask: vec![false; n],
+    pub fn decode_slice(&self, img: &[f32], rows: usize, cols: usize) -> Result<RangeImage> {
+        let (r32, c32) = match (u32::try_from(rows), u32::try_from(cols)) {
+            (Ok(r), Ok(c)) => (r, c),
+            _ => {
+                return Err(invalid(
+                    "rows / cols",
+                    format!("{rows} x {cols} is too large"),
+                ));
+            }
         };
+        let n = rows * cols;
+        let mut out = RangeImage::new_empty(r32, c32);
         for p in 0..n.min(img.len()) {
             let v = img[p];
             if v.is_nan() {
@@ -315,7 +250,7 @@ impl RangeEncoding {
                     .map_or(0.0, |&i| self.decode_intensity(i));
             }
         }
-        out
+        Ok(out)
     }
 }
 

@@ -69,7 +69,7 @@ pub mod trainer;
 
 pub use app::nn::{NetCond, VeilaDenoiser};
 pub use denoiser::{CondDropout, Conditioning, Denoiser, guide};
-pub use encoding::{DecodedScan, RangeEncoding, ScanView};
+pub use encoding::RangeEncoding;
 pub use error::{Error, Result};
 pub use objective::{Denoised, Diffusion, DiffusionConfig, LossOutput, Objective};
 pub use prediction::{LossWeighting, Prediction, TimeInput};

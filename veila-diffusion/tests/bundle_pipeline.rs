@@ -5,6 +5,7 @@ use std::collections::HashMap;
 
 use candle_core::{DType, Device};
 use candle_nn::VarMap;
+use veila_diffusion::RepaintConfig;
 use veila_diffusion::SamplerConfig;
 use veila_diffusion::app::bundle::{
     Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, MANIFEST_FILE, MEAN_FILE, Method,
@@ -14,8 +15,8 @@ use veila_diffusion::app::{
     BundleFit, CameraView, DenoiserTraining, GenerateOptions, Stage, TrainExample, fit_bundle,
     varmap_tensors,
 };
-use veila_diffusion::{RepaintConfig, encoding::ScanView};
 use veila_geom::PinholeCamera;
+use veila_geom::RangeImage;
 use veila_nn::ConditioningConfig;
 use veila_nn::encoders::small_cnn::SmallCnn;
 
@@ -200,13 +201,7 @@ fn inpainting_keeps_the_known_pixels_and_regenerates_the_rest() {
     let b = Bundle::from_dir(&dir, &Device::Cpu).unwrap();
     let (h, w) = b.grid();
     // a known scan: a 20 m cylinder with intensity 0.3, every pixel a return
-    let known = veila_diffusion::DecodedScan {
-        rows: h,
-        cols: w,
-        range_m: vec![20.0; h * w],
-        intensity: vec![0.3; h * w],
-        mask: vec![true; h * w],
-    };
+    let known = full_scan(h, w, vec![20.0; h * w], vec![0.3; h * w], vec![true; h * w]);
     let mask: Vec<bool> = (0..h * w).map(|i| i % w < w / 2).collect();
     let cam = camera();
     let img = image(2);
@@ -280,23 +275,8 @@ fn training_batches_are_a_pure_function_of_the_step_and_cover_each_epoch() {
     )
     .unwrap();
     let (h, w) = (cfg.denoiser.height(), cfg.denoiser.width());
-    let scan = veila_diffusion::DecodedScan {
-        rows: h,
-        cols: w,
-        range_m: vec![10.0; h * w],
-        intensity: vec![0.1; h * w],
-        mask: vec![true; h * w],
-    };
-    let x0 = cfg
-        .encoding
-        .encode_to_vec(&ScanView {
-            rows: h,
-            cols: w,
-            range_m: &scan.range_m,
-            intensity: Some(&scan.intensity),
-            mask: Some(&scan.mask),
-        })
-        .unwrap();
+    let scan = full_scan(h, w, vec![10.0; h * w], vec![0.1; h * w], vec![true; h * w]);
+    let x0 = cfg.encoding.encode_to_vec(&scan).unwrap();
     let examples: Vec<TrainExample> = (0..5)
         .map(|i| TrainExample {
             rgb: image(i),
@@ -351,7 +331,7 @@ fn training_batches_are_a_pure_function_of_the_step_and_cover_each_epoch() {
 
 /// A structured scan of `h x w` pixels: ground rings (range growing towards the top rows), a
 /// 6 m "car" over a quarter of the columns, a dropped band in the top row, intensity by range.
-fn structured_scan(h: usize, w: usize) -> veila_diffusion::DecodedScan {
+fn structured_scan(h: usize, w: usize) -> RangeImage {
     let mut range_m = vec![0.0; h * w];
     let mut intensity = vec![0.0; h * w];
     let mut mask = vec![true; h * w];
@@ -369,18 +349,28 @@ fn structured_scan(h: usize, w: usize) -> veila_diffusion::DecodedScan {
             }
         }
     }
-    veila_diffusion::DecodedScan {
-        rows: h,
-        cols: w,
+    full_scan(h, w, range_m, intensity, mask)
+}
+
+/// A range image of given buffers (no source points).
+fn full_scan(
+    h: usize,
+    w: usize,
+    range_m: Vec<f32>,
+    intensity: Vec<f32>,
+    mask: Vec<bool>,
+) -> RangeImage {
+    RangeImage {
         range_m,
         intensity,
         mask,
+        ..RangeImage::new_empty(h as u32, w as u32)
     }
 }
 
 /// Mean absolute range error over the pixels where both scans have a return, and the share of
 /// pixels whose return/drop decision differs.
-fn range_mae(a: &veila_diffusion::DecodedScan, b: &veila_diffusion::DecodedScan) -> (f64, f64) {
+fn range_mae(a: &RangeImage, b: &RangeImage) -> (f64, f64) {
     let (mut sum, mut n, mut flips) = (0.0, 0usize, 0usize);
     for i in 0..a.range_m.len() {
         if a.mask[i] && b.mask[i] {
@@ -399,25 +389,12 @@ impl<M: veila_diffusion::Denoiser> veila_diffusion::TrainObserver<M> for Quiet {
 
 /// Trains `cfg` (with random frozen encoders) on one example for `steps` updates and returns the
 /// bundle, read back through the verifying loader.
-fn overfit_one(
-    cfg: BundleConfig,
-    scan: &veila_diffusion::DecodedScan,
-    steps: u64,
-    dir: &std::path::Path,
-) -> Bundle {
+fn overfit_one(cfg: BundleConfig, scan: &RangeImage, steps: u64, dir: &std::path::Path) -> Bundle {
     let dev = Device::Cpu;
     let mut cfg = cfg;
     let (h, w) = (cfg.denoiser.height(), cfg.denoiser.width());
-    let x0 = cfg
-        .encoding
-        .encode_to_vec(&ScanView {
-            rows: h,
-            cols: w,
-            range_m: &scan.range_m,
-            intensity: Some(&scan.intensity),
-            mask: Some(&scan.mask),
-        })
-        .unwrap();
+    assert_eq!((scan.rows as usize, scan.cols as usize), (h, w));
+    let x0 = cfg.encoding.encode_to_vec(scan).unwrap();
     let examples = vec![TrainExample {
         rgb: image(4),
         camera: camera(),
@@ -476,7 +453,7 @@ fn overfit_one(
     Bundle::from_dir(&bdir, &dev).unwrap()
 }
 
-fn generate_one(b: &Bundle, sampler: SamplerConfig, seed: u64) -> veila_diffusion::DecodedScan {
+fn generate_one(b: &Bundle, sampler: SamplerConfig, seed: u64) -> RangeImage {
     generate_weighted(b, sampler, seed, 1.0).unwrap()
 }
 
@@ -485,7 +462,7 @@ fn generate_weighted(
     sampler: SamplerConfig,
     seed: u64,
     residual_weight: f64,
-) -> veila_diffusion::Result<veila_diffusion::DecodedScan> {
+) -> veila_diffusion::Result<RangeImage> {
     let cam = camera();
     let img = image(4);
     let view = [CameraView {
@@ -586,7 +563,7 @@ fn every_method_trains_and_generates_through_the_bundle_pipeline() {
         let again = generate_one(&b, SamplerConfig::ddim(3, 0.0), 1);
         assert_eq!(a, again, "{method:?}: seeded");
         assert!(a.range_m.iter().all(|r| r.is_finite()), "{method:?}");
-        assert_eq!((a.rows, a.cols), (h, w));
+        assert_eq!((a.rows as usize, a.cols as usize), (h, w));
         // only residual bundles sample with 0 steps
         let o = GenerateOptions {
             sampler: SamplerConfig::ddim(0, 0.0),

@@ -119,6 +119,35 @@ impl RangeImage {
         }
     }
 
+    /// An image of `range_m` alone (row-major, `rows * cols` values): a pixel holds a return where
+    /// its range is finite and > 0; intensity 0, no source points, no labels. For range images
+    /// that come from elsewhere than a projection (a decoder, a file, a test).
+    pub fn try_from_range_m(rows: u32, cols: u32, range_m: Vec<f32>) -> Result<Self, GeomError> {
+        let n = rows as usize * cols as usize;
+        if range_m.len() != n {
+            return Err(GeomError::LengthMismatch {
+                what: "range_m",
+                expected: n,
+                got: range_m.len(),
+            });
+        }
+        let mask: Vec<bool> = range_m.iter().map(|r| r.is_finite() && *r > 0.0).collect();
+        let range_m = range_m
+            .iter()
+            .zip(&mask)
+            .map(|(r, m)| if *m { *r } else { 0.0 })
+            .collect();
+        Ok(RangeImage {
+            rows,
+            cols,
+            range_m,
+            intensity: vec![0.0; n],
+            point_index: vec![NO_POINT; n],
+            mask,
+            label: None,
+        })
+    }
+
     /// Flat index of `(row, col)`.
     #[inline]
     pub fn idx(&self, row: u32, col: u32) -> usize {
@@ -1145,5 +1174,34 @@ mod dispatch_tests {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod range_image_tests {
+    use super::*;
+
+    #[test]
+    fn a_range_image_from_ranges_alone_marks_returns_where_the_range_is_finite_and_positive() {
+        let r =
+            RangeImage::try_from_range_m(1, 6, vec![5.0, 0.0, -1.0, f32::NAN, f32::INFINITY, 0.5])
+                .unwrap();
+        assert_eq!(r.mask, vec![true, false, false, false, false, true]);
+        assert_eq!(r.range_m, vec![5.0, 0.0, 0.0, 0.0, 0.0, 0.5]);
+        assert_eq!(r.intensity, vec![0.0; 6]);
+        assert!(r.point_index.iter().all(|&p| p == NO_POINT));
+        r.validate().unwrap();
+        let err = RangeImage::try_from_range_m(2, 3, vec![1.0; 5]).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                GeomError::LengthMismatch {
+                    expected: 6,
+                    got: 5,
+                    ..
+                }
+            ),
+            "{err}"
+        );
     }
 }

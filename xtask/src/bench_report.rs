@@ -271,7 +271,7 @@ fn generate_all(
             unconditional,
             residual_weight,
         };
-        let scans = bundle.generate(
+        let mut scans = bundle.generate(
             &[CameraView {
                 rgb: &ex.rgb,
                 camera: &ex.camera,
@@ -279,7 +279,7 @@ fn generate_all(
             &opts,
             |_, _| {},
         )?;
-        out.push(scans[0].clone().into_range_image());
+        out.push(scans.swap_remove(0));
         bar.inc(1);
     }
     bar.finish_and_clear();

@@ -146,7 +146,7 @@ impl Eval<'_> {
         let t = Instant::now();
         let mut generated: Vec<RangeImage> = Vec::with_capacity(self.val.len());
         for (i, ex) in self.val.iter().enumerate() {
-            let scans = bundle.generate(
+            let mut scans = bundle.generate(
                 &[CameraView {
                     rgb: &ex.rgb,
                     camera: &ex.camera,
@@ -160,7 +160,7 @@ impl Eval<'_> {
                 },
                 |_, _| {},
             )?;
-            generated.push(scans[0].clone().into_range_image());
+            generated.push(scans.swap_remove(0));
         }
         let secs = t.elapsed().as_secs_f64() / self.val.len().max(1) as f64;
         let sensor = &self.base.config.denoiser.sensor;

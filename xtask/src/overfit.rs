@@ -178,7 +178,6 @@ mod tests {
                 )
                 .unwrap()
                 .remove(0)
-                .into_range_image()
         };
         let mut worst: f64 = 0.0;
         if bundle.mean.is_some() {

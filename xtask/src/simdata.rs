@@ -9,7 +9,6 @@ use veila_data::image::{RgbImage, imageops};
 use veila_data::sim::{Scene, SceneConfig, SceneList, SimFrame, class};
 use veila_diffusion::app::TrainExample;
 use veila_diffusion::app::bundle::BundleConfig;
-use veila_diffusion::encoding::ScanView;
 use veila_geom::{LidarSensor, PinholeCamera, ProjectionOptions, Projector, RangeImage};
 
 /// The workspace root (xtask lives one level below it).
@@ -38,9 +37,7 @@ pub struct SimExample {
 impl SimExample {
     /// The training example (encoded range image).
     pub fn train_example(&self, cfg: &BundleConfig) -> Result<TrainExample> {
-        let x0 = cfg
-            .encoding
-            .encode_to_vec(&ScanView::from_range_image(&self.range))?;
+        let x0 = cfg.encoding.encode_to_vec(&self.range)?;
         Ok(TrainExample {
             rgb: self.rgb.clone(),
             camera: self.camera,

@@ -282,7 +282,7 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
             .iter()
             .enumerate()
             .map(|(i, ex)| {
-                let scans = bundle.generate(
+                let mut scans = bundle.generate(
                     &[CameraView {
                         rgb: &ex.rgb,
                         camera: &ex.camera,
@@ -299,7 +299,7 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
                     },
                     |_, _| {},
                 )?;
-                Ok(scans[0].clone().into_range_image())
+                Ok(scans.swap_remove(0))
             })
             .collect()
     };

@@ -25,12 +25,12 @@ use std::path::{Path, PathBuf};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
-use veila_geom::EpipolarConfig;
+use veila_geom::{EpipolarConfig, RangeImage};
 use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
 use veila_nn::{Denoiser as Net, DenoiserConfig};
 
 use super::generate::{CameraView, GenerateOptions, ViewFeatures};
-use crate::encoding::{DecodedScan, RangeEncoding};
+use crate::encoding::RangeEncoding;
 use crate::error::{Error, Result};
 use crate::objective::DiffusionConfig;
 use crate::sampler::{RepaintConfig, SamplerConfig};
@@ -507,7 +507,7 @@ impl Bundle {
         views: &[CameraView<'_>],
         options: &GenerateOptions,
         on_step: impl FnMut(usize, usize),
-    ) -> Result<Vec<DecodedScan>> {
+    ) -> Result<Vec<RangeImage>> {
         super::generate::sample(self, views, options, None, on_step)
     }
 
@@ -517,13 +517,13 @@ impl Bundle {
     pub fn inpaint(
         &self,
         views: &[CameraView<'_>],
-        known: &DecodedScan,
+        known: &RangeImage,
         known_mask: &[bool],
         options: &GenerateOptions,
         repaint: &RepaintConfig,
-    ) -> Result<Vec<DecodedScan>> {
+    ) -> Result<Vec<RangeImage>> {
         let (h, w) = self.grid();
-        if (known.rows, known.cols) != (h, w) || known_mask.len() != h * w {
+        if (known.rows as usize, known.cols as usize) != (h, w) || known_mask.len() != h * w {
             return Err(Error::Shape {
                 what: "inpainting input",
                 expected: format!("a {h} x {w} scan and {} mask values", h * w),

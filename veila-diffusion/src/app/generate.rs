@@ -12,14 +12,13 @@
 use candle_core::{DType, Device, Tensor};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use veila_geom::PinholeCamera;
+use veila_geom::{PinholeCamera, RangeImage};
 use veila_nn::encoders::small_cnn::SmallCnn;
 use veila_nn::encoders::{ImageEncoder, Normalization, rgb8_to_tensor};
 use veila_nn::{ConditionInput, Denoiser as Net, GcmaGeometry};
 
 use super::bundle::{Bundle, BundleConfig};
 use super::nn::{NetCond, VeilaDenoiser};
-use crate::encoding::DecodedScan;
 use crate::error::{Error, Result};
 use crate::noise::randn;
 use crate::objective::Diffusion;
@@ -137,9 +136,9 @@ pub(crate) fn sample(
     bundle: &Bundle,
     views: &[CameraView<'_>],
     options: &GenerateOptions,
-    inpainting: Option<(&DecodedScan, &[bool], &RepaintConfig)>,
+    inpainting: Option<(&RangeImage, &[bool], &RepaintConfig)>,
     mut on_step: impl FnMut(usize, usize),
-) -> Result<Vec<DecodedScan>> {
+) -> Result<Vec<RangeImage>> {
     if options.samples == 0 {
         return Err(Error::InvalidConfig {
             field: "samples",
@@ -261,14 +260,8 @@ pub(crate) fn sample(
                 }
                 Some((known, mask, repaint)) => {
                     let enc = &bundle.config.encoding;
-                    let known_view = crate::encoding::ScanView {
-                        rows: h,
-                        cols: w,
-                        range_m: &known.range_m,
-                        intensity: Some(&known.intensity),
-                        mask: Some(&known.mask),
-                    };
-                    let x0 = enc.encode_batch(&vec![known_view; n], &device)?;
+                    let known_view: Vec<&RangeImage> = vec![known; n];
+                    let x0 = enc.encode_batch(&known_view, &device)?;
                     let m: Vec<f32> = mask.iter().map(|&k| if k { 1.0 } else { 0.0 }).collect();
                     let m = Tensor::from_vec(m, (1, 1, h, w), &device)?;
                     inpaint(&sampler, &model, &x0, &m, cond.as_ref(), repaint, &mut rng)?

@@ -69,6 +69,20 @@ fn random_scan(rows: usize, cols: usize, seed: u64) -> (Vec<f32>, Vec<f32>, Vec<
     (range, inten, mask)
 }
 
+fn image(
+    rows: usize,
+    cols: usize,
+    range: &[f32],
+    intensity: &[f32],
+    mask: &[bool],
+) -> veila_geom::RangeImage {
+    let mut img = veila_geom::RangeImage::new_empty(rows as u32, cols as u32);
+    img.range_m = range.to_vec();
+    img.intensity = intensity.to_vec();
+    img.mask = mask.to_vec();
+    img
+}
+
 #[test]
 fn scan_round_trip_keeps_mask_range_and_intensity() -> Result<()> {
     let (rows, cols) = (4, 16);
@@ -76,22 +90,10 @@ fn scan_round_trip_keeps_mask_range_and_intensity() -> Result<()> {
     let (range, inten, mask) = random_scan(rows, cols, 1);
     let (range2, inten2, mask2) = random_scan(rows, cols, 2);
     let scans = [
-        ScanView {
-            rows,
-            cols,
-            range_m: &range,
-            intensity: Some(&inten),
-            mask: Some(&mask),
-        },
-        ScanView {
-            rows,
-            cols,
-            range_m: &range2,
-            intensity: Some(&inten2),
-            mask: Some(&mask2),
-        },
+        image(rows, cols, &range, &inten, &mask),
+        image(rows, cols, &range2, &inten2, &mask2),
     ];
-    let x = e.encode_batch(&scans, &Device::Cpu)?;
+    let x = e.encode_batch(&[&scans[0], &scans[1]], &Device::Cpu)?;
     assert_eq!(x.dims(), &[2, 3, rows, cols]);
     let v = x.flatten_all()?.to_vec1::<f32>()?;
     assert!(v.iter().all(|x| (-1.0..=1.0).contains(x)));
@@ -118,13 +120,7 @@ fn dropped_rays_are_minus_one_everywhere() -> Result<()> {
     let e = RangeEncoding::kitti();
     let range = [10.0, f32::NAN, 0.0, 20.0];
     let mask = [false, true, true, true];
-    let v = e.encode_to_vec(&ScanView {
-        rows: 1,
-        cols: 4,
-        range_m: &range,
-        intensity: None,
-        mask: Some(&mask),
-    })?;
+    let v = e.encode_to_vec(&image(1, 4, &range, &[0.0; 4], &mask))?;
     // pixel 0: masked out; 1: NaN range; 2: zero range -> dropped; 3: valid with zero intensity
     for c in 0..3 {
         for p in 0..3 {
@@ -178,16 +174,9 @@ fn without_raydrop_channel_short_ranges_are_drops() -> Result<()> {
 #[test]
 fn bad_inputs_are_errors_not_panics() {
     let e = RangeEncoding::kitti();
-    let r = [1.0f32; 3];
-    let err = e
-        .encode_to_vec(&ScanView {
-            rows: 2,
-            cols: 2,
-            range_m: &r,
-            intensity: None,
-            mask: None,
-        })
-        .unwrap_err();
+    let mut short = veila_geom::RangeImage::new_empty(2, 2);
+    short.range_m.pop();
+    let err = e.encode_to_vec(&short).unwrap_err();
     assert!(err.to_string().contains("range_m"), "{err}");
     let x = Tensor::zeros((1, 2, 2, 2), candle_core::DType::F32, &Device::Cpu).unwrap();
     assert!(matches!(e.decode_batch(&x), Err(Error::Shape { .. })));
@@ -223,8 +212,8 @@ fn geom_range_image_round_trip() -> Result<()> {
         img.mask[p] = true;
     }
     let e = RangeEncoding::kitti();
-    let x = e.encode_batch(&[ScanView::from_range_image(&img)], &Device::Cpu)?;
-    let back = e.decode_batch(&x)?.remove(0).into_range_image();
+    let x = e.encode_batch(&[&img], &Device::Cpu)?;
+    let back = e.decode_batch(&x)?.remove(0);
     assert_eq!(back.mask, img.mask);
     assert_eq!(back.num_valid(), 4);
     assert!(back.point_index.iter().all(|&i| i == veila_geom::NO_POINT));
