@@ -953,7 +953,7 @@ fn draw_axes(chart: &mut Chart<'_, '_>, f: &Frame) -> DrawResult {
         .axis_desc_style(text_style(s, TEXT))
         .set_all_tick_mark_size(f.m.tick)
         // centre the capitals of the y tick labels on their ticks (see BASELINE)
-        .y_label_offset(((CAP / 2.0 + BASELINE - 1.0 / 2.48) * s).round() as i32);
+        .y_label_offset(((1.0 / 2.48 + CAP / 2.0 - BASELINE) * s).round() as i32);
     if !f.x_label.is_empty() {
         mesh.x_desc(f.x_label.as_str());
     }

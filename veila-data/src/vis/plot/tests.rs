@@ -640,3 +640,125 @@ fn data_outside_a_fixed_range_stays_inside_the_plot_area() {
         "{marker_px} marker pixels: not one marker"
     );
 }
+
+/// Writes sample pictures of every chart kind for looking at (not a check):
+/// `VEILA_PLOT_DIR=/tmp/plots cargo test -p veila-data --features vis --lib -- --ignored sample_pictures`.
+#[test]
+#[ignore = "writes pictures for a person to look at"]
+fn sample_pictures() {
+    let Some(dir) = std::env::var_os("VEILA_PLOT_DIR") else {
+        return;
+    };
+    let dir = std::path::PathBuf::from(dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let train = |decay: f64, floor: f64| -> Vec<(f64, f64)> {
+        (0..=200)
+            .map(|i| {
+                let step = i as f64 * 500.0;
+                let wiggle = 0.04 * ((i as f64) * 0.7).sin();
+                let y = floor + (1.0 - floor) * (-step / decay).exp() * (1.0 + wiggle);
+                (step, y)
+            })
+            .collect()
+    };
+    let val: Vec<(f64, f64)> = (1..=10)
+        .map(|k| (k as f64 * 10_000.0, 0.05 + 0.6 * (-(k as f64) / 2.5).exp()))
+        .collect();
+    Plot {
+        title: "Denoiser training (eps-prediction MSE)".into(),
+        x_label: "optimizer step".into(),
+        y_label: "loss".into(),
+        y_log: true,
+        series: vec![
+            Series::new(
+                "train, full model",
+                train(15_000.0, 0.04),
+                SeriesStyle::Line,
+            ),
+            Series::new("train, no CACM", train(22_000.0, 0.06), SeriesStyle::Line),
+            Series::new("validation", val.clone(), SeriesStyle::LineMarkers)
+                .with_error_bars(val.iter().map(|p| 0.15 * p.1).collect()),
+        ],
+        ..Plot::default()
+    }
+    .write_png(&dir.join("loss.png"), 800, 500)
+    .unwrap();
+    let scatter: Vec<(f64, f64)> = (0..150)
+        .map(|i| {
+            let r = 2.0 + 78.0 * ((i * 37 % 150) as f64 / 150.0);
+            (r, -0.02 * r + 0.3 * (((i * 91) % 101) as f64 / 101.0 - 0.5))
+        })
+        .collect();
+    Plot {
+        title: "Range error vs. range".into(),
+        x_label: "range (m)".into(),
+        y_label: "error (m)".into(),
+        series: vec![
+            Series::new("points", scatter, SeriesStyle::Markers),
+            Series::new(
+                "fit: -0.02 x",
+                vec![(0.0, 0.0), (80.0, -1.6)],
+                SeriesStyle::Line,
+            ),
+        ],
+        ..Plot::default()
+    }
+    .write_png(&dir.join("scatter.png"), 640, 400)
+    .unwrap();
+    let group = |name: &str, v: [f64; 3]| BarGroup {
+        name: name.into(),
+        values: v.to_vec(),
+        errors: Some(v.iter().map(|x| 0.05 * x).collect()),
+    };
+    BarChart {
+        title: "Ablation: JSD per region (lower is better)".into(),
+        y_label: "JSD".into(),
+        categories: vec!["all".into(), "front".into(), "rear".into()],
+        groups: vec![
+            group("Veila (full)", [0.081, 0.064, 0.097]),
+            group("w/o CACM", [0.094, 0.071, 0.118]),
+            group("w/o PFC", [0.089, 0.070, 0.108]),
+        ],
+    }
+    .write_png(&dir.join("bars.png"), 640, 400)
+    .unwrap();
+    // the CLI's sampler trade-off: log x, markers and lines, legend placed by the data
+    let sweep = |a: f64, b: f64| -> Vec<(f64, f64)> {
+        [1.0, 2.0, 5.0, 10.0, 20.0]
+            .iter()
+            .map(|&t| (a * t, b / t.sqrt() + 0.02))
+            .collect()
+    };
+    Plot {
+        title: "Generation: quality vs time per scan (points: step counts)".into(),
+        x_label: "seconds per scan (log)".into(),
+        y_label: "BEV JSD (all)".into(),
+        x_log: true,
+        series: vec![
+            Series::new("ddpm", sweep(0.8, 0.2), SeriesStyle::LineMarkers),
+            Series::new("ddim", sweep(0.1, 0.25), SeriesStyle::LineMarkers),
+            Series::new("dpm", sweep(0.05, 0.22), SeriesStyle::LineMarkers),
+        ],
+        ..Plot::default()
+    }
+    .write_png(&dir.join("sampler_tradeoff.png"), 800, 500)
+    .unwrap();
+    let mut img = RgbImage::from_pixel(560, 120, Rgb([255, 255, 255]));
+    let chars: String = (32u8..=126).map(char::from).collect();
+    for (i, line) in chars.as_bytes().chunks(32).enumerate() {
+        let line = std::str::from_utf8(line).unwrap();
+        draw_text(&mut img, 8, 12 + 36 * i as i64, line, 18.0, Rgb([0, 0, 0]));
+    }
+    crate::image_io::write_png(&dir.join("font.png"), &img).unwrap();
+    let grid = crate::vis::density::BevGrid {
+        half_extent_m: 20.0,
+        cell_m: 0.5,
+    };
+    let n = grid.side();
+    let a: Vec<f64> = (0..n * n)
+        .map(|k| ((k % n) as f64 / n as f64) * 1e-3)
+        .collect();
+    let b = vec![0.4e-3; n * n];
+    let (diff, _) = grid.difference_image(&a, &b);
+    crate::image_io::write_png(&dir.join("bev_difference.png"), &diff).unwrap();
+}
