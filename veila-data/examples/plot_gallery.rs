@@ -1,4 +1,4 @@
-//! Renders the kinds of pictures `veila_data::vis` draws (plots, the font, range and intensity
+//! Renders the kinds of pictures `veila_data::vis` draws (plots, the plot font, range and intensity
 //! previews, the BEV density-difference image of the reports) into a folder, as PNG:
 //! `cargo run -p veila-data --features vis --example plot_gallery -- OUT_DIR`.
 
@@ -97,7 +97,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     .write_png(&out.join("bars.png"), 640, 400)?;
 
-    // the whole character set
+    // the printable ASCII characters in the plot font
     let mut img =
         veila_data::image::RgbImage::from_pixel(560, 120, veila_data::image::Rgb([255, 255, 255]));
     let chars: String = (32u8..=126).map(char::from).collect();
@@ -106,9 +106,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         veila_data::vis::plot::draw_text(
             &mut img,
             8,
-            8 + 36 * i as i64,
+            12 + 36 * i as i64,
             line,
-            2,
+            18.0,
             veila_data::image::Rgb([0, 0, 0]),
         );
     }

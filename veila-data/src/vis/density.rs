@@ -20,8 +20,11 @@
 
 use image::{Rgb, RgbImage};
 
-use super::plot::{draw_text, font::text_width};
+use super::plot::{draw_text, text_width};
 use crate::PointCloud;
+
+/// Font size of the colour bar's labels, in pixels.
+const LABEL_PX: f64 = 13.0;
 
 /// A square bird's-eye-view grid centred on the sensor, in the image convention of the BEV previews:
 /// forward (+x) up, left (+y) left.
@@ -110,18 +113,12 @@ impl BevGrid {
         let dark = Rgb([34, 34, 34]);
         let lo = format!("-{max:.1e}");
         let hi = format!("+{max:.1e}");
-        draw_text(&mut img, x0 as i64, side as i64 + 22, &lo, 1, dark);
-        let mid = text_width("0", 1) as i64;
-        draw_text(
-            &mut img,
-            (side / 2) as i64 - mid / 2,
-            side as i64 + 22,
-            "0",
-            1,
-            dark,
-        );
-        let w = text_width(&hi, 1) as i64;
-        draw_text(&mut img, x1 as i64 - w, side as i64 + 22, &hi, 1, dark);
+        let (px, y) = (LABEL_PX, side as i64 + 23);
+        draw_text(&mut img, x0 as i64, y, &lo, px, dark);
+        let mid = text_width("0", px) as i64;
+        draw_text(&mut img, (side / 2) as i64 - mid / 2, y, "0", px, dark);
+        let w = text_width(&hi, px) as i64;
+        draw_text(&mut img, x1 as i64 - w, y, &hi, px, dark);
         (img, max)
     }
 }

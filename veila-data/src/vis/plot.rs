@@ -1,12 +1,16 @@
-//! Line, scatter and grouped-bar plots rendered to PNG, with no system fonts and no plotting
-//! dependency: axes with "nice" ticks (1-2-5 steps, decades on logarithmic axes), grid, tick and
-//! axis labels, a title, a legend placed in the emptiest corner, error bars, and a built-in 5 x 9
-//! bitmap font ([`font`]).
+//! Line, scatter and grouped-bar plots rendered to PNG with [`plotters`] (bitmap backend) and an
+//! embedded font, so no system fonts are needed: axes with "nice" ticks (1-2-5 steps, decades on
+//! logarithmic axes), grid, tick and axis labels, a title, a legend placed in a corner free of data
+//! (else in a band above the plot), markers and error bars.
 //!
-//! Drawing is anti-aliased (lines, markers), text is crisp pixel text scaled by an integer factor that
-//! grows with the image size. Non-finite points (and points <= 0 on a logarithmic axis) are skipped
-//! and break a line, as in common plotting libraries; a single point, equal values or no data at all
-//! render an ordinary frame rather than failing.
+//! Text is DejaVu Sans (`assets/DejaVuSans.ttf`, Bitstream Vera licence next to it), drawn by
+//! plotters' `ab_glyph` font backend at a size that grows with the image. Non-finite points (and
+//! points <= 0 on a logarithmic axis) are skipped and break a line, as in common plotting
+//! libraries; a single point, equal values or no data at all render an ordinary frame rather than
+//! failing.
+//!
+//! Plotters draws what it is given; this module chooses what: axis ranges, tick values and labels,
+//! layout, and where the legend goes.
 //!
 //! ```
 //! use veila_data::vis::plot::{Plot, Series, SeriesStyle};
@@ -30,11 +34,19 @@
 //! # Ok::<(), veila_data::Error>(())
 //! ```
 
-pub mod font;
-
+use std::ops::Range;
 use std::path::Path;
 
 use image::{Rgb, RgbImage};
+use plotters::backend::BitMapBackend;
+use plotters::chart::{ChartBuilder, ChartContext};
+use plotters::coord::Shift;
+use plotters::coord::cartesian::Cartesian2d;
+use plotters::coord::ranged1d::{KeyPointHint, NoDefaultFormatting, Ranged, ValueFormatter};
+use plotters::drawing::{DrawingArea, IntoDrawingArea};
+use plotters::element::{Circle, PathElement, Polygon, Rectangle, Text};
+use plotters::style::text_anchor::{HPos, Pos, VPos};
+use plotters::style::{Color, FontDesc, FontStyle, IntoFont, RGBColor, ShapeStyle, TextStyle};
 
 use crate::{Error, Result};
 
@@ -153,6 +165,11 @@ const MINOR_GRID: [u8; 3] = [243, 243, 243];
 const FRAME: [u8; 3] = [90, 90, 90];
 const TEXT: [u8; 3] = [34, 34, 34];
 const ERROR_BAR: [u8; 3] = [40, 40, 40];
+const LEGEND_BORDER: [u8; 3] = [200, 200, 200];
+
+fn rgb(c: [u8; 3]) -> RGBColor {
+    RGBColor(c[0], c[1], c[2])
+}
 
 // ------------------------------------------------------------------------------------------------
 // ticks
@@ -385,22 +402,20 @@ impl Axis {
         };
         f.is_finite().then_some(f)
     }
-
-    fn accepts(&self, v: f64) -> bool {
-        v.is_finite() && (!self.log || v > 0.0)
-    }
 }
 
-/// A rectangle in image pixel coordinates (continuous: pixel `(i, j)` covers `[i, i+1) x [j, j+1)`).
+/// The plot area in image pixel coordinates: `left` / `top` are the first pixel column / row inside
+/// it, `right` / `bottom` the last (`lo` of the x axis maps to `left`, `hi` to `right`; `lo` of the
+/// y axis to `bottom`, `hi` to `top`).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PixelRect {
-    /// Left edge.
+    /// First column.
     pub left: f64,
-    /// Top edge.
+    /// First row.
     pub top: f64,
-    /// Right edge.
+    /// Last column.
     pub right: f64,
-    /// Bottom edge.
+    /// Last row.
     pub bottom: f64,
 }
 
@@ -412,7 +427,7 @@ impl PixelRect {
         self.bottom - self.top
     }
     fn contains(&self, (x, y): (f64, f64)) -> bool {
-        x >= self.left && x < self.right && y >= self.top && y < self.bottom
+        x >= self.left && x <= self.right && y >= self.top && y <= self.bottom
     }
 }
 
@@ -428,12 +443,12 @@ pub struct PlotLayout {
     pub x: Axis,
     /// The y axis.
     pub y: Axis,
-    /// Major x tick values with their labels.
+    /// Major x tick values with their labels (bar charts: category centres and names).
     pub x_ticks: Vec<(f64, String)>,
     /// Major y tick values with their labels.
     pub y_ticks: Vec<(f64, String)>,
-    /// Integer text / line scale chosen for the image size.
-    pub scale: u32,
+    /// Font size of the tick labels in pixels, chosen for the image size.
+    pub text_px: f64,
 }
 
 impl PlotLayout {
@@ -457,9 +472,9 @@ impl PlotLayout {
     }
 }
 
-/// Text and line scale for an image: 1 up to ~375 px on the short side, 2 up to ~625, and so on.
-fn scale_for(width: u32, height: u32) -> u32 {
-    ((width.min(height) as f64 / 250.0).round() as u32).clamp(1, 4)
+/// Font size in pixels for an image: 3.6 % of the short side (18 px at 800 x 500), at least 9.
+fn text_px_for(width: u32, height: u32) -> f64 {
+    (0.036 * width.min(height) as f64).clamp(9.0, 64.0)
 }
 
 /// Fit a range to the given values with a 4 % margin (in log10 space on logarithmic axes); a fixed
@@ -585,192 +600,89 @@ fn log_minor_ticks(axis: &Axis, major: &[(f64, String)]) -> Vec<f64> {
         .collect()
 }
 
-/// What goes along the x axis.
-enum XSpec<'a> {
-    Numeric(Axis),
-    Categories(&'a [String]),
-}
+// ------------------------------------------------------------------------------------------------
+// text
 
-/// Shared layout of titles, margins and ticks.
-struct Frame {
-    layout: PlotLayout,
-    /// Category label slots (bar charts): centre pixel x and label.
-    categories: Vec<(f64, String)>,
-    /// Scale of the title text.
-    title_scale: u32,
-    /// Top of the band reserved for a legend above the plot area (when one was asked for).
-    legend_top: f64,
-}
+/// DejaVu Sans (Bitstream Vera licence, `assets/DejaVuSans-LICENSE.txt`), embedded so that plots
+/// render the same everywhere and need no system fonts.
+static FONT_TTF: &[u8] = include_bytes!("../../assets/DejaVuSans.ttf");
+/// The family name the font is registered under with plotters.
+const FAMILY: &str = "veila-dejavu-sans";
+/// DejaVu Sans's cap height as a fraction of the font size (plotters' size is ascent - descent:
+/// 1493 of 2384 font units).
+const CAP: f64 = 0.626;
+/// plotters' `ab_glyph` text puts the baseline of top-anchored text half a font size below the
+/// anchor, so capitals start `(CAP - BASELINE) * size` above it; text placed here compensates.
+const BASELINE: f64 = 0.5;
 
-/// Everything [`compute_frame`] needs besides the size.
-struct FrameSpec<'a> {
-    title: &'a str,
-    x_label: &'a str,
-    y_label: &'a str,
-    x: XSpec<'a>,
-    y: Axis,
-    /// Height to reserve above the plot area for the legend (0: none).
-    legend_above: f64,
-}
-
-/// The title one step larger than the other text, unless it then does not fit the width.
-fn title_scale(title: &str, width: u32, s: u32) -> u32 {
-    let room = width as f64 - 12.0 * s as f64;
-    if font::text_width(title, s + 1) as f64 <= room {
-        s + 1
-    } else {
-        s
-    }
-}
-
-fn text_h(scale: u32) -> u32 {
-    font::GLYPH_HEIGHT * scale
-}
-
-fn cap_h(scale: u32) -> u32 {
-    font::CAP_HEIGHT * scale
-}
-
-fn compute_frame(width: u32, height: u32, spec: FrameSpec<'_>) -> Frame {
-    let FrameSpec {
-        title,
-        x_label,
-        y_label,
-        x,
-        y,
-        legend_above,
-    } = spec;
-    let s = scale_for(width, height);
-    let sf = s as f64;
-    let pad = 6.0 * sf;
-    let tick_len = 4.0 * sf;
-    let title_scale = title_scale(title, width, s);
-    let mut top = pad;
-    if !title.is_empty() {
-        top += text_h(title_scale) as f64 + 4.0 * sf;
-    }
-    let legend_top = top;
-    top += legend_above + 4.0 * sf;
-    let mut bottom = pad + tick_len + 3.0 * sf + text_h(s) as f64;
-    if !x_label.is_empty() {
-        bottom += 4.0 * sf + text_h(s) as f64;
-    }
-    let plot_h = (height as f64 - top - bottom).max(1.0);
-    let y_max_ticks = ((plot_h / (28.0 * sf)) as usize).clamp(2, 10);
-    let mut y_ticks = axis_ticks(&y, y_max_ticks);
-    // thin out labels that would overlap vertically
-    while y_ticks.len() > 2 {
-        let spacing = plot_h / (y_ticks.len() as f64);
-        if spacing >= cap_h(s) as f64 * 1.8 {
-            break;
+/// The plot font at `px` pixels (registered with plotters on first use).
+fn font(px: f64) -> FontDesc<'static> {
+    static REGISTER: std::sync::Once = std::sync::Once::new();
+    REGISTER.call_once(|| {
+        if plotters::style::register_font(FAMILY, FontStyle::Normal, FONT_TTF).is_err() {
+            tracing::error!("the embedded plot font does not parse: plots will fail to render");
         }
-        let n = y_ticks.len() - 1;
-        y_ticks = axis_ticks(&y, n);
+    });
+    (FAMILY, px).into_font()
+}
+
+fn text_style(px: f64, color: [u8; 3]) -> TextStyle<'static> {
+    font(px).color(&rgb(color))
+}
+
+/// Width in pixels of `text` in the plot font at `size_px`.
+pub fn text_width(text: &str, size_px: f64) -> u32 {
+    font(size_px).box_size(text).map_or(0, |(w, _)| w)
+}
+
+type Root<'b> = DrawingArea<BitMapBackend<'b>, Shift>;
+type DrawResult<T = ()> = std::result::Result<T, Box<dyn std::error::Error + Send + Sync>>;
+
+/// Draw `text` with the top of its capitals at `y`; `x` is its left end, centre or right end as
+/// `h` says.
+fn put_text(
+    root: &Root<'_>,
+    text: &str,
+    px: f64,
+    color: [u8; 3],
+    (x, y): (f64, f64),
+    h: HPos,
+) -> DrawResult {
+    if text.is_empty() {
+        return Ok(());
     }
-    let y_label_w = y_ticks
-        .iter()
-        .map(|(_, l)| font::text_width(l, s))
-        .max()
-        .unwrap_or(0) as f64;
-    let mut left = pad + y_label_w + 3.0 * sf + tick_len;
-    if !y_label.is_empty() {
-        left += text_h(s) as f64 + 4.0 * sf;
+    let anchor = (x.round() as i32, (y + (CAP - BASELINE) * px).round() as i32);
+    let style = text_style(px, color).pos(Pos::new(h, VPos::Top));
+    root.draw(&Text::new(text.to_string(), anchor, style))?;
+    Ok(())
+}
+
+/// Draw `text` onto `img` in the plot font at `size_px`, with the top-left corner of its capital
+/// letters at `(x, y)`. Pixels outside the image are skipped.
+pub fn draw_text(img: &mut RgbImage, x: i64, y: i64, text: &str, size_px: f64, color: Rgb<u8>) {
+    let (w, h) = img.dimensions();
+    if w == 0 || h == 0 || !(size_px > 0.0 && size_px.is_finite()) {
+        return;
     }
-    let mut right = pad + 8.0 * sf;
-    let area_for = |left: f64, right: f64| PixelRect {
-        left: left.round(),
-        top: top.round(),
-        right: (width as f64 - right).round().max(left.round() + 1.0),
-        bottom: (height as f64 - bottom).round().max(top.round() + 1.0),
-    };
-    match x {
-        XSpec::Numeric(xa) => {
-            let mut x_ticks = Vec::new();
-            for _pass in 0..2 {
-                let area = area_for(left, right);
-                let mut max_ticks = ((area.width() / (40.0 * sf)) as usize).clamp(2, 12);
-                loop {
-                    x_ticks = axis_ticks(&xa, max_ticks);
-                    let widest = x_ticks
-                        .iter()
-                        .map(|(_, l)| font::text_width(l, s))
-                        .max()
-                        .unwrap_or(0) as f64;
-                    let spacing = area.width() / (x_ticks.len().max(1) as f64);
-                    if max_ticks <= 2 || widest + 6.0 * sf * 2.0 <= spacing {
-                        break;
-                    }
-                    max_ticks -= 1;
-                }
-                // the last label is centred on its tick: keep it inside the image
-                let need = x_ticks
-                    .last()
-                    .map(|(_, l)| font::text_width(l, s) as f64 / 2.0 + 2.0 * sf)
-                    .unwrap_or(0.0);
-                if need <= right {
-                    break;
-                }
-                right = need;
-            }
-            let area = area_for(left, right);
-            Frame {
-                layout: PlotLayout {
-                    area,
-                    x: xa,
-                    y,
-                    x_ticks,
-                    y_ticks,
-                    scale: s,
-                },
-                categories: Vec::new(),
-                title_scale,
-                legend_top,
-            }
-        }
-        XSpec::Categories(names) => {
-            let area = area_for(left, right);
-            let n = names.len().max(1) as f64;
-            let slot = area.width() / n;
-            let categories = names
-                .iter()
-                .enumerate()
-                .map(|(i, name)| {
-                    (
-                        area.left + (i as f64 + 0.5) * slot,
-                        fit_text(name, (slot - 4.0 * sf).max(0.0), s),
-                    )
-                })
-                .collect();
-            Frame {
-                layout: PlotLayout {
-                    area,
-                    x: Axis {
-                        lo: 0.0,
-                        hi: n,
-                        log: false,
-                    },
-                    y,
-                    x_ticks: Vec::new(),
-                    y_ticks,
-                    scale: s,
-                },
-                categories,
-                title_scale,
-                legend_top,
-            }
-        }
+    let root = BitMapBackend::with_buffer(img, (w, h)).into_drawing_area();
+    let at = (
+        x.clamp(-1 << 24, 1 << 24) as f64,
+        y.clamp(-1 << 24, 1 << 24) as f64,
+    );
+    if let Err(e) = put_text(&root, text, size_px, color.0, at, HPos::Left) {
+        tracing::warn!("drawing text {text:?}: {e}");
     }
 }
 
-/// `text` shortened with ".." so that it fits `max_w` pixels at `scale`.
-fn fit_text(text: &str, max_w: f64, scale: u32) -> String {
-    if font::text_width(text, scale) as f64 <= max_w {
+/// `text` shortened with ".." so that it fits `max_w` pixels at `px`.
+fn fit_text(text: &str, max_w: f64, px: f64) -> String {
+    if text_width(text, px) as f64 <= max_w {
         return text.to_string();
     }
     let chars: Vec<char> = text.chars().collect();
     for keep in (0..chars.len()).rev() {
         let t: String = chars[..keep].iter().chain(['.', '.'].iter()).collect();
-        if font::text_width(&t, scale) as f64 <= max_w {
+        if text_width(&t, px) as f64 <= max_w {
             return t;
         }
     }
@@ -778,166 +690,305 @@ fn fit_text(text: &str, max_w: f64, scale: u32) -> String {
 }
 
 // ------------------------------------------------------------------------------------------------
-// canvas
+// frames: sizes, ticks and the plotters chart
 
-/// Integer clip rectangle, end-exclusive.
-#[derive(Debug, Clone, Copy)]
-struct Clip {
-    x0: i64,
-    y0: i64,
-    x1: i64,
-    y1: i64,
+/// One axis as a plotters coordinate: the range mapping of [`Axis`], with our ticks and labels.
+#[derive(Debug, Clone)]
+struct AxisCoord {
+    axis: Axis,
+    ticks: Vec<(f64, String)>,
+    minor: Vec<f64>,
 }
 
-struct Canvas<'a> {
-    img: &'a mut RgbImage,
-    clip: Clip,
-}
+impl Ranged for AxisCoord {
+    type FormatOption = NoDefaultFormatting;
+    type ValueType = f64;
 
-impl Canvas<'_> {
-    fn full_clip(img: &RgbImage) -> Clip {
-        Clip {
-            x0: 0,
-            y0: 0,
-            x1: img.width() as i64,
-            y1: img.height() as i64,
-        }
+    fn map(&self, v: &f64, limit: (i32, i32)) -> i32 {
+        let f = self.axis.fraction(*v).unwrap_or(0.0);
+        let px = limit.0 as f64 + f * (limit.1 - limit.0) as f64;
+        px.floor().clamp(-1e6, 1e6) as i32
     }
 
-    fn blend(&mut self, x: i64, y: i64, c: [u8; 3], alpha: f64) {
-        let cl = self.clip;
-        let (w, h) = (self.img.width() as i64, self.img.height() as i64);
-        let outside =
-            x < cl.x0.max(0) || y < cl.y0.max(0) || x >= cl.x1.min(w) || y >= cl.y1.min(h);
-        if outside || alpha <= 0.0 {
-            return;
-        }
-        let p = self.img.get_pixel_mut(x as u32, y as u32);
-        if alpha >= 1.0 {
-            p.0 = c;
+    fn key_points<H: KeyPointHint>(&self, hint: H) -> Vec<f64> {
+        if hint.weight().allow_light_points() {
+            self.minor.clone()
         } else {
-            for k in 0..3 {
-                let v = p.0[k] as f64 * (1.0 - alpha) + c[k] as f64 * alpha;
-                p.0[k] = v.round().clamp(0.0, 255.0) as u8;
-            }
+            self.ticks.iter().map(|t| t.0).collect()
         }
     }
 
-    /// Fill whole pixels `x0..x1` x `y0..y1`.
-    fn fill(&mut self, x0: i64, y0: i64, x1: i64, y1: i64, c: [u8; 3], alpha: f64) {
-        let cl = self.clip;
-        for y in y0.max(cl.y0)..y1.min(cl.y1) {
-            for x in x0.max(cl.x0)..x1.min(cl.x1) {
-                self.blend(x, y, c, alpha);
-            }
-        }
+    fn range(&self) -> Range<f64> {
+        self.axis.lo..self.axis.hi
     }
+}
 
-    /// Anti-aliased line segment of the given width with round caps.
-    fn line(&mut self, a: (f64, f64), b: (f64, f64), width: f64, c: [u8; 3]) {
-        if !(a.0.is_finite() && a.1.is_finite() && b.0.is_finite() && b.1.is_finite()) {
-            return;
-        }
-        let hw = 0.5 * width;
-        let reach = hw + 1.0;
-        let cl = self.clip;
-        let (dx, dy) = (b.0 - a.0, b.1 - a.1);
-        let len2 = dx * dx + dy * dy;
-        let ya = (a.1.min(b.1) - reach).floor().max(cl.y0 as f64);
-        let yb = (a.1.max(b.1) + reach).ceil().min(cl.y1 as f64 - 1.0);
-        if ya > yb {
-            return;
-        }
-        for py in ya as i64..=yb as i64 {
-            let yc = py as f64 + 0.5;
-            let (xa, xb) = if dy.abs() < 1e-9 {
-                (a.0.min(b.0), a.0.max(b.0))
-            } else {
-                let t0 = ((yc - reach - a.1) / dy).clamp(0.0, 1.0);
-                let t1 = ((yc + reach - a.1) / dy).clamp(0.0, 1.0);
-                let (u, v) = (a.0 + t0 * dx, a.0 + t1 * dx);
-                (u.min(v), u.max(v))
-            };
-            let x0 = (xa - reach).floor().max(cl.x0 as f64);
-            let x1 = (xb + reach).ceil().min(cl.x1 as f64 - 1.0);
-            if x0 > x1 {
-                continue;
-            }
-            for px in x0 as i64..=x1 as i64 {
-                let p = (px as f64 + 0.5, yc);
-                let t = if len2 > 0.0 {
-                    (((p.0 - a.0) * dx + (p.1 - a.1) * dy) / len2).clamp(0.0, 1.0)
-                } else {
-                    0.0
-                };
-                let (qx, qy) = (a.0 + t * dx - p.0, a.1 + t * dy - p.1);
-                let d = (qx * qx + qy * qy).sqrt();
-                self.blend(px, py, c, (hw + 0.5 - d).clamp(0.0, 1.0));
-            }
-        }
+impl ValueFormatter<f64> for AxisCoord {
+    fn format_ext(&self, v: &f64) -> String {
+        self.ticks
+            .iter()
+            .find(|t| t.0 == *v)
+            .map(|t| t.1.clone())
+            .unwrap_or_default()
     }
+}
 
-    /// Anti-aliased filled marker of "radius" `r` centred at `p`.
-    fn marker(&mut self, p: (f64, f64), shape: Marker, r: f64, c: [u8; 3]) {
-        if !(p.0.is_finite() && p.1.is_finite()) {
-            return;
-        }
-        let reach = r * 1.3 + 1.0;
-        let cl = self.clip;
-        let x0 = (p.0 - reach).floor().max(cl.x0 as f64);
-        let x1 = (p.0 + reach).ceil().min(cl.x1 as f64 - 1.0);
-        let y0 = (p.1 - reach).floor().max(cl.y0 as f64);
-        let y1 = (p.1 + reach).ceil().min(cl.y1 as f64 - 1.0);
-        if x0 > x1 || y0 > y1 {
-            return;
-        }
-        for py in y0 as i64..=y1 as i64 {
-            for px in x0 as i64..=x1 as i64 {
-                let (dx, dy) = (px as f64 + 0.5 - p.0, py as f64 + 0.5 - p.1);
-                let sdf = shape.sdf(dx, dy, r);
-                self.blend(px, py, c, (0.5 - sdf).clamp(0.0, 1.0));
-            }
-        }
-    }
+type Chart<'a, 'b> = ChartContext<'a, BitMapBackend<'b>, Cartesian2d<AxisCoord, AxisCoord>>;
 
-    /// Pixel text with its top-left corner at `(x, y)`.
-    fn text(&mut self, x: i64, y: i64, text: &str, scale: u32, c: [u8; 3]) {
-        let s = scale as i64;
-        for (i, ch) in text.chars().enumerate() {
-            let g = font::glyph(ch);
-            let gx0 = x + i as i64 * font::ADVANCE as i64 * s;
-            for (row, bits) in g.iter().enumerate() {
-                for col in 0..font::GLYPH_WIDTH {
-                    if bits >> (font::GLYPH_WIDTH - 1 - col) & 1 == 1 {
-                        let px = gx0 + col as i64 * s;
-                        let py = y + row as i64 * s;
-                        self.fill(px, py, px + s, py + s, c, 1.0);
-                    }
-                }
-            }
-        }
-    }
+/// Sizes in pixels that follow the font size `s`.
+#[derive(Debug, Clone, Copy)]
+struct Metrics {
+    s: f64,
+    pad: f64,
+    tick: i32,
+    line_w: u32,
+    marker_r: f64,
+}
 
-    /// Pixel text rotated 90 degrees counter-clockwise (reading upwards), with the top-left corner of
-    /// its bounding box at `(x, y)`.
-    fn text_up(&mut self, x: i64, y: i64, text: &str, scale: u32, c: [u8; 3]) {
-        let s = scale as i64;
-        let total = font::text_width(text, 1) as i64;
-        for (i, ch) in text.chars().enumerate() {
-            let g = font::glyph(ch);
-            for (row, bits) in g.iter().enumerate() {
-                for col in 0..font::GLYPH_WIDTH {
-                    if bits >> (font::GLYPH_WIDTH - 1 - col) & 1 == 1 {
-                        let tx = i as i64 * font::ADVANCE as i64 + col as i64;
-                        let px = x + row as i64 * s;
-                        let py = y + (total - 1 - tx) * s;
-                        self.fill(px, py, px + s, py + s, c, 1.0);
-                    }
-                }
-            }
+impl Metrics {
+    fn new(s: f64) -> Self {
+        Metrics {
+            s,
+            pad: (0.6 * s).round(),
+            tick: (0.3 * s).round().max(2.0) as i32,
+            line_w: (s / 8.0).round().max(1.0) as u32,
+            marker_r: (0.3 * s).max(2.5),
         }
     }
 }
+
+/// What goes along the x axis.
+enum XSpec<'a> {
+    Numeric(Axis),
+    Categories(&'a [String]),
+}
+
+/// What a chart shows besides its data.
+struct ChartSpec<'a> {
+    title: &'a str,
+    x_label: &'a str,
+    y_label: &'a str,
+    x: XSpec<'a>,
+    y: Axis,
+}
+
+/// The chart's layout before plotters places it: margins, label areas, axes and (fitted) texts.
+struct Frame {
+    m: Metrics,
+    /// ChartBuilder margins (top, right, bottom, left) and label area sizes (x below, y left).
+    margins: [u32; 4],
+    x_area: u32,
+    y_area: u32,
+    x: AxisCoord,
+    y: AxisCoord,
+    title: String,
+    x_label: String,
+    y_label: String,
+    /// Top of the band reserved for a legend above the plot area (when one was asked for).
+    legend_top: f64,
+    vertical_grid: bool,
+}
+
+fn widest(ticks: &[(f64, String)], s: f64) -> f64 {
+    ticks
+        .iter()
+        .map(|(_, l)| text_width(l, s))
+        .max()
+        .unwrap_or(0) as f64
+}
+
+fn compute_frame(width: u32, height: u32, spec: &ChartSpec<'_>, legend_band: f64) -> Frame {
+    let m = Metrics::new(text_px_for(width, height));
+    let (s, pad, tick) = (m.s, m.pad, m.tick as f64);
+    let (w, h) = (width as f64, height as f64);
+    let title_px = 1.2 * s;
+    let title = fit_text(spec.title, w - 2.0 * pad, title_px);
+    let mut top = pad;
+    if !title.is_empty() {
+        top += (CAP + 0.2) * title_px + 0.6 * s;
+    }
+    let legend_top = top;
+    top += legend_band;
+    // tick labels hang from twice the tick length below the axis (plotters' spacing); the axis
+    // label sits at the bottom of the label area
+    let mut x_area = 2.0 * tick + 0.75 * s;
+    if !spec.x_label.is_empty() {
+        x_area += 1.3 * s;
+    }
+    let bottom = (0.4 * s).round();
+    let plot_h = h - top - x_area - bottom;
+    let y_axis = spec.y;
+    let mut y_ticks = axis_ticks(&y_axis, ((plot_h / (2.0 * s)) as usize).clamp(2, 10));
+    while y_ticks.len() > 2 && plot_h / (y_ticks.len() as f64) < 1.6 * s {
+        let n = y_ticks.len() - 1;
+        y_ticks = axis_ticks(&y_axis, n);
+    }
+    let mut y_area = 2.0 * tick + widest(&y_ticks, s);
+    if !spec.y_label.is_empty() {
+        y_area += 1.2 * s;
+    }
+    let mut right = pad.max(0.5 * s);
+    let (x_coord, vertical_grid) = match spec.x {
+        XSpec::Numeric(xa) => {
+            let mut x_ticks = Vec::new();
+            for _pass in 0..2 {
+                let plot_w = w - pad - y_area - right;
+                let mut max_ticks = ((plot_w / (3.0 * s)) as usize).clamp(2, 12);
+                loop {
+                    x_ticks = axis_ticks(&xa, max_ticks);
+                    let spacing = plot_w / (x_ticks.len().max(1) as f64);
+                    if max_ticks <= 2 || widest(&x_ticks, s) + 1.2 * s <= spacing {
+                        break;
+                    }
+                    max_ticks -= 1;
+                }
+                // the last label is centred on its tick: keep it inside the image
+                let need = x_ticks
+                    .last()
+                    .map_or(0.0, |(_, l)| text_width(l, s) as f64 / 2.0 + 0.2 * s);
+                if need <= right {
+                    break;
+                }
+                right = need;
+            }
+            let minor = log_minor_ticks(&xa, &x_ticks);
+            let coord = AxisCoord {
+                axis: xa,
+                ticks: x_ticks,
+                minor,
+            };
+            (coord, true)
+        }
+        XSpec::Categories(names) => {
+            let n = names.len().max(1) as f64;
+            let slot = (w - pad - y_area - right) / n;
+            let ticks = names
+                .iter()
+                .enumerate()
+                .map(|(i, name)| (i as f64 + 0.5, fit_text(name, slot - 0.3 * s, s)))
+                .collect();
+            let axis = Axis {
+                lo: 0.0,
+                hi: n,
+                log: false,
+            };
+            let coord = AxisCoord {
+                axis,
+                ticks,
+                minor: Vec::new(),
+            };
+            (coord, false)
+        }
+    };
+    let plot_w = w - pad - y_area - right;
+    let y_minor = log_minor_ticks(&y_axis, &y_ticks);
+    let mut frame = Frame {
+        m,
+        margins: [top, right, bottom, pad].map(|v| v.round().max(0.0) as u32),
+        x_area: x_area.round() as u32,
+        y_area: y_area.round() as u32,
+        x: x_coord,
+        y: AxisCoord {
+            axis: y_axis,
+            ticks: y_ticks,
+            minor: y_minor,
+        },
+        title,
+        x_label: fit_text(spec.x_label, plot_w.max(0.0), s),
+        y_label: fit_text(spec.y_label, plot_h.max(0.0), s),
+        legend_top,
+        vertical_grid,
+    };
+    if plot_w < 4.0 * s || plot_h < 3.0 * s {
+        // too small for text: the plot area fills the image
+        frame.margins = [0; 4];
+        frame.x_area = 0;
+        frame.y_area = 0;
+        frame.title.clear();
+        frame.x_label.clear();
+        frame.y_label.clear();
+        frame.x.ticks.clear();
+        frame.y.ticks.clear();
+    }
+    frame
+}
+
+fn build<'a, 'b>(root: &'a Root<'b>, f: &Frame) -> DrawResult<Chart<'a, 'b>> {
+    let [top, right, bottom, left] = f.margins;
+    let mut b = ChartBuilder::on(root);
+    b.margin_top(top)
+        .margin_right(right)
+        .margin_bottom(bottom)
+        .margin_left(left)
+        .x_label_area_size(f.x_area)
+        .y_label_area_size(f.y_area);
+    Ok(b.build_cartesian_2d(f.x.clone(), f.y.clone())?)
+}
+
+fn layout_of(chart: &Chart<'_, '_>, f: &Frame) -> PlotLayout {
+    let (xr, yr) = chart.plotting_area().get_pixel_range();
+    PlotLayout {
+        area: PixelRect {
+            left: xr.start as f64,
+            top: yr.start as f64,
+            right: (xr.end - 1).max(xr.start) as f64,
+            bottom: (yr.end - 1).max(yr.start) as f64,
+        },
+        x: f.x.axis,
+        y: f.y.axis,
+        x_ticks: f.x.ticks.clone(),
+        y_ticks: f.y.ticks.clone(),
+        text_px: f.m.s,
+    }
+}
+
+/// Grid, axes, ticks and their labels, axis labels (plotters' mesh).
+fn draw_axes(chart: &mut Chart<'_, '_>, f: &Frame) -> DrawResult {
+    let s = f.m.s;
+    let mut mesh = chart.configure_mesh();
+    mesh.bold_line_style(rgb(GRID).stroke_width(1))
+        .light_line_style(rgb(MINOR_GRID).stroke_width(1))
+        .axis_style(rgb(FRAME).stroke_width(1))
+        .label_style(text_style(s, TEXT))
+        .axis_desc_style(text_style(s, TEXT))
+        .set_all_tick_mark_size(f.m.tick)
+        // centre the capitals of the y tick labels on their ticks (see BASELINE)
+        .y_label_offset(((1.0 / 2.48 + CAP / 2.0 - BASELINE) * s).round() as i32);
+    if !f.x_label.is_empty() {
+        mesh.x_desc(f.x_label.as_str());
+    }
+    if !f.y_label.is_empty() {
+        mesh.y_desc(f.y_label.as_str());
+    }
+    if !f.vertical_grid {
+        mesh.disable_x_mesh();
+    }
+    mesh.draw()?;
+    Ok(())
+}
+
+/// The frame around the plot area, and the title.
+fn draw_frame_and_title(root: &Root<'_>, layout: &PlotLayout, f: &Frame) -> DrawResult {
+    let a = layout.area;
+    let (l, t, r, b) = (a.left as i32, a.top as i32, a.right as i32, a.bottom as i32);
+    root.draw(&Rectangle::new(
+        [(l - 1, t - 1), (r + 1, b + 1)],
+        rgb(FRAME).stroke_width(1),
+    ))?;
+    if !f.title.is_empty() {
+        let px = 1.2 * f.m.s;
+        let (w, _) = root.dim_in_pixel();
+        let tw = text_width(&f.title, px) as f64;
+        let x = (a.left + 0.5 * a.width() - 0.5 * tw)
+            .min(w as f64 - f.m.pad - tw)
+            .max(f.m.pad);
+        put_text(root, &f.title, px, TEXT, (x, f.m.pad), HPos::Left)?;
+    }
+    Ok(())
+}
+
+// ------------------------------------------------------------------------------------------------
+// marks
 
 /// Marker shapes, cycled through by series index.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -957,171 +1008,125 @@ const MARKERS: [Marker; 5] = [
     Marker::TriangleDown,
 ];
 
-impl Marker {
-    /// Signed distance (approximate for polygons) from the shape's edge; negative inside.
-    fn sdf(self, dx: f64, dy: f64, r: f64) -> f64 {
-        const C30: f64 = 0.866_025_403_784_438_6;
-        match self {
-            Marker::Circle => (dx * dx + dy * dy).sqrt() - r,
-            Marker::Square => dx.abs().max(dy.abs()) - 0.85 * r,
-            Marker::Diamond => (dx.abs() + dy.abs()) * std::f64::consts::FRAC_1_SQRT_2 - 0.85 * r,
-            Marker::TriangleUp | Marker::TriangleDown => {
-                let dy = if self == Marker::TriangleUp { dy } else { -dy };
-                let e0 = dy;
-                let e1 = C30 * dx - 0.5 * dy;
-                let e2 = -C30 * dx - 0.5 * dy;
-                e0.max(e1).max(e2) - 0.62 * r
+fn px_i((x, y): (f64, f64)) -> (i32, i32) {
+    (
+        x.floor().clamp(-1e6, 1e6) as i32,
+        y.floor().clamp(-1e6, 1e6) as i32,
+    )
+}
+
+fn draw_marker(root: &Root<'_>, p: (f64, f64), shape: Marker, r: f64, c: [u8; 3]) -> DrawResult {
+    let (x, y) = px_i(p);
+    let style = rgb(c).filled();
+    let pt = |dx: f64, dy: f64| (x + (dx * r).round() as i32, y + (dy * r).round() as i32);
+    match shape {
+        Marker::Circle => root.draw(&Circle::new((x, y), r.round() as i32, style))?,
+        Marker::Square => root.draw(&Rectangle::new([pt(-0.85, -0.85), pt(0.85, 0.85)], style))?,
+        Marker::Diamond => root.draw(&Polygon::new(
+            vec![pt(0.0, -1.2), pt(1.2, 0.0), pt(0.0, 1.2), pt(-1.2, 0.0)],
+            style,
+        ))?,
+        Marker::TriangleUp => root.draw(&Polygon::new(
+            vec![pt(0.0, -1.25), pt(1.1, 0.65), pt(-1.1, 0.65)],
+            style,
+        ))?,
+        Marker::TriangleDown => root.draw(&Polygon::new(
+            vec![pt(0.0, 1.25), pt(1.1, -0.65), pt(-1.1, -0.65)],
+            style,
+        ))?,
+    }
+    Ok(())
+}
+
+/// The part of segment `a`-`b` inside `r` (Liang-Barsky); `None` when none is.
+fn clip_segment(a: (f64, f64), b: (f64, f64), r: &PixelRect) -> Option<((f64, f64), (f64, f64))> {
+    let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+    if !(dx.is_finite() && dy.is_finite()) {
+        return None;
+    }
+    let (mut t0, mut t1) = (0.0f64, 1.0f64);
+    for (p, q) in [
+        (-dx, a.0 - r.left),
+        (dx, r.right - a.0),
+        (-dy, a.1 - r.top),
+        (dy, r.bottom - a.1),
+    ] {
+        if p == 0.0 {
+            if q < 0.0 {
+                return None;
             }
+        } else if p < 0.0 {
+            t0 = t0.max(q / p);
+        } else {
+            t1 = t1.min(q / p);
         }
     }
+    (t0 <= t1).then_some((
+        (a.0 + t0 * dx, a.1 + t0 * dy),
+        (a.0 + t1 * dx, a.1 + t1 * dy),
+    ))
 }
 
-// ------------------------------------------------------------------------------------------------
-// shared drawing of frames, grids, ticks, titles and legends
-
-struct Style {
-    s: u32,
-    sf: f64,
-    line_w: f64,
-    marker_r: f64,
+/// A polyline through the given pixel points (`None` breaks it), clipped to `area`.
+fn draw_polyline(
+    root: &Root<'_>,
+    pts: &[Option<(f64, f64)>],
+    area: &PixelRect,
+    style: ShapeStyle,
+) -> DrawResult {
+    let mut path: Vec<(i32, i32)> = Vec::new();
+    let mut last: Option<(f64, f64)> = None;
+    let flush = |path: &mut Vec<(i32, i32)>| -> DrawResult {
+        if path.len() >= 2 {
+            root.draw(&PathElement::new(std::mem::take(path), style))?;
+        }
+        path.clear();
+        Ok(())
+    };
+    for w in pts.windows(2) {
+        let (Some(a), Some(b)) = (w[0], w[1]) else {
+            continue;
+        };
+        let Some((ca, cb)) = clip_segment(a, b, area) else {
+            continue;
+        };
+        if last != Some(ca) {
+            flush(&mut path)?;
+            path.push(px_i(ca));
+        }
+        path.push(px_i(cb));
+        last = Some(cb);
+    }
+    flush(&mut path)
 }
 
-impl Style {
-    fn new(s: u32) -> Style {
-        let sf = s as f64;
-        Style {
-            s,
-            sf,
-            line_w: 1.5 * sf + 0.5,
-            marker_r: 2.5 * sf + 0.5,
+/// A vertical error bar from `top` to `bot` at `x` with caps `cap` pixels to either side, clipped
+/// to `area` (caps only where the bar ends inside).
+fn draw_error_bar(
+    root: &Root<'_>,
+    x: f64,
+    (top, bot): (f64, f64),
+    cap: f64,
+    area: &PixelRect,
+) -> DrawResult {
+    let style = rgb(ERROR_BAR).stroke_width(1);
+    if !(x >= area.left && x <= area.right) {
+        return Ok(());
+    }
+    let (t, b) = (top.max(area.top), bot.min(area.bottom));
+    if t > b {
+        return Ok(());
+    }
+    let xi = x.floor() as i32;
+    let (ti, bi) = (t.floor() as i32, b.floor() as i32);
+    root.draw(&PathElement::new(vec![(xi, ti), (xi, bi)], style))?;
+    let c = cap.round() as i32;
+    for (end, inside) in [(ti, top >= area.top), (bi, bot <= area.bottom)] {
+        if inside {
+            root.draw(&PathElement::new(vec![(xi - c, end), (xi + c, end)], style))?;
         }
     }
-}
-
-fn area_clip(a: &PixelRect) -> Clip {
-    Clip {
-        x0: a.left as i64,
-        y0: a.top as i64,
-        x1: a.right as i64,
-        y1: a.bottom as i64,
-    }
-}
-
-fn draw_grid(canvas: &mut Canvas<'_>, layout: &PlotLayout, vertical: bool) {
-    let a = layout.area;
-    let (l, t, r, b) = (a.left as i64, a.top as i64, a.right as i64, a.bottom as i64);
-    for v in log_minor_ticks(&layout.y, &layout.y_ticks) {
-        if let Some(py) = layout.y_to_px(v) {
-            let py = py.floor() as i64;
-            canvas.fill(l, py, r, py + 1, MINOR_GRID, 1.0);
-        }
-    }
-    if vertical {
-        for v in log_minor_ticks(&layout.x, &layout.x_ticks) {
-            if let Some(px) = layout.x_to_px(v) {
-                let px = px.floor() as i64;
-                canvas.fill(px, t, px + 1, b, MINOR_GRID, 1.0);
-            }
-        }
-        for (v, _) in &layout.x_ticks {
-            if let Some(px) = layout.x_to_px(*v) {
-                let px = px.floor() as i64;
-                canvas.fill(px, t, px + 1, b, GRID, 1.0);
-            }
-        }
-    }
-    for (v, _) in &layout.y_ticks {
-        if let Some(py) = layout.y_to_px(*v) {
-            let py = py.floor() as i64;
-            canvas.fill(l, py, r, py + 1, GRID, 1.0);
-        }
-    }
-}
-
-fn draw_frame_and_labels(
-    canvas: &mut Canvas<'_>,
-    frame: &Frame,
-    title: &str,
-    x_label: &str,
-    y_label: &str,
-    width: u32,
-) {
-    let layout = &frame.layout;
-    let st = Style::new(layout.scale);
-    let (s, sf) = (st.s, st.sf);
-    let a = layout.area;
-    let (l, t, r, b) = (a.left as i64, a.top as i64, a.right as i64, a.bottom as i64);
-    let lw = (s as i64 / 2).max(1);
-    // frame
-    canvas.fill(l - lw, t - lw, r + lw, t, FRAME, 1.0);
-    canvas.fill(l - lw, b, r + lw, b + lw, FRAME, 1.0);
-    canvas.fill(l - lw, t, l, b, FRAME, 1.0);
-    canvas.fill(r, t, r + lw, b, FRAME, 1.0);
-    let tick_len = (4.0 * sf) as i64;
-    // y ticks and labels
-    let minor_len = (2.0 * sf) as i64;
-    for v in log_minor_ticks(&layout.y, &layout.y_ticks) {
-        if let Some(py) = layout.y_to_px(v) {
-            let py = py.floor() as i64;
-            canvas.fill(l - lw - minor_len, py, l - lw, py + 1, FRAME, 1.0);
-        }
-    }
-    for (v, label) in &layout.y_ticks {
-        if let Some(py) = layout.y_to_px(*v) {
-            let py = py.floor() as i64;
-            canvas.fill(l - lw - tick_len, py, l - lw, py + 1, FRAME, 1.0);
-            let w = font::text_width(label, s) as i64;
-            let x = l - lw - tick_len - (3.0 * sf) as i64 - w;
-            canvas.text(x, py - cap_h(s) as i64 / 2, label, s, TEXT);
-        }
-    }
-    let label_top = b + lw + tick_len + (3.0 * sf) as i64;
-    // x ticks and labels
-    for v in log_minor_ticks(&layout.x, &layout.x_ticks) {
-        if let Some(px) = layout.x_to_px(v) {
-            let px = px.floor() as i64;
-            canvas.fill(px, b + lw, px + 1, b + lw + minor_len, FRAME, 1.0);
-        }
-    }
-    for (v, label) in &layout.x_ticks {
-        if let Some(px) = layout.x_to_px(*v) {
-            let px = px.floor() as i64;
-            canvas.fill(px, b + lw, px + 1, b + lw + tick_len, FRAME, 1.0);
-            let w = font::text_width(label, s) as i64;
-            canvas.text(px - w / 2, label_top, label, s, TEXT);
-        }
-    }
-    for (cx, label) in &frame.categories {
-        let w = font::text_width(label, s) as i64;
-        let cx = cx.floor() as i64;
-        canvas.fill(cx, b + lw, cx + 1, b + lw + tick_len / 2, FRAME, 1.0);
-        canvas.text(cx - w / 2, label_top, label, s, TEXT);
-    }
-    // axis labels
-    if !x_label.is_empty() {
-        let text = fit_text(x_label, a.width().max(0.0), s);
-        let w = font::text_width(&text, s) as f64;
-        let x = (a.left + 0.5 * (a.width() - w)).round() as i64;
-        let y = label_top + text_h(s) as i64 + (4.0 * sf) as i64;
-        canvas.text(x, y, &text, s, TEXT);
-    }
-    if !y_label.is_empty() {
-        let text = fit_text(y_label, a.height().max(0.0), s);
-        let h = font::text_width(&text, s) as f64;
-        let y = (a.top + 0.5 * (a.height() - h)).round() as i64;
-        canvas.text_up((6.0 * sf) as i64, y, &text, s, TEXT);
-    }
-    if !title.is_empty() {
-        let ts = frame.title_scale;
-        let text = fit_text(title, width as f64 - 12.0 * sf, ts);
-        let w = font::text_width(&text, ts) as f64;
-        let centre = a.left + 0.5 * a.width();
-        let x = (centre - 0.5 * w)
-            .min(width as f64 - 6.0 * sf - w)
-            .max(6.0 * sf)
-            .round() as i64;
-        canvas.text(x, (6.0 * sf) as i64, &text, ts, TEXT);
-    }
+    Ok(())
 }
 
 // ------------------------------------------------------------------------------------------------
@@ -1147,50 +1152,52 @@ enum LegendPlace {
     Above,
 }
 
-/// Sizes shared by both legend forms.
+/// Legend sizes, following the font size.
 struct LegendMetrics {
-    s: u32,
+    m: Metrics,
     key_w: f64,
     gap: f64,
     pad: f64,
     row_h: f64,
+    spacing: f64,
 }
 
 impl LegendMetrics {
-    fn new(s: u32) -> Self {
-        let sf = s as f64;
+    fn new(m: Metrics) -> Self {
+        let s = m.s;
         LegendMetrics {
-            s,
-            key_w: 22.0 * sf,
-            gap: 4.0 * sf,
-            pad: 5.0 * sf,
-            row_h: text_h(s) as f64 + 3.0 * sf,
+            m,
+            key_w: 1.8 * s,
+            gap: 0.4 * s,
+            pad: 0.5 * s,
+            row_h: 1.3 * s,
+            spacing: 1.2 * s,
         }
     }
 
     /// Width of one entry (key, gap, name).
     fn entry_w(&self, name: &str) -> f64 {
-        self.key_w + self.gap + font::text_width(name, self.s) as f64
+        self.key_w + self.gap + text_width(name, self.m.s) as f64
     }
 
     /// Size of the boxed legend.
     fn box_size(&self, names: &[String]) -> (f64, f64) {
         let w = names.iter().map(|n| self.entry_w(n)).fold(0.0, f64::max) + 2.0 * self.pad;
-        let h = 2.0 * self.pad + self.row_h * names.len() as f64 - 3.0 * self.s as f64;
+        let rows = names.len().max(1) as f64;
+        let h = 2.0 * self.pad + (rows - 1.0) * self.row_h + 0.85 * self.m.s;
         (w.round(), h.round())
     }
 
     /// Entries of the legend above the plot, wrapped into rows that fit `max_w`.
     fn rows(&self, names: &[String], max_w: f64) -> Vec<Vec<usize>> {
-        let spacing = 12.0 * self.s as f64;
         let mut rows: Vec<Vec<usize>> = Vec::new();
         let mut used = 0.0;
         for (i, n) in names.iter().enumerate() {
             let w = self.entry_w(n);
             match rows.last_mut() {
-                Some(row) if used + spacing + w <= max_w => {
+                Some(row) if used + self.spacing + w <= max_w => {
                     row.push(i);
-                    used += spacing + w;
+                    used += self.spacing + w;
                 }
                 _ => {
                     rows.push(vec![i]);
@@ -1201,23 +1208,17 @@ impl LegendMetrics {
         rows
     }
 
-    fn above_height(&self, names: &[String], width: u32) -> f64 {
-        let rows = self.rows(names, self.above_width(width)).len();
-        rows as f64 * self.row_h
-    }
-
     fn above_width(&self, width: u32) -> f64 {
-        width as f64 - 12.0 * self.s as f64
+        width as f64 - 2.0 * self.m.pad
     }
 }
 
 /// Legend names shortened to fit the image.
-fn legend_names(entries: &[(String, Key)], width: u32, s: u32) -> Vec<String> {
-    let m = LegendMetrics::new(s);
-    let max_text = (m.above_width(width) - m.key_w - m.gap - 2.0 * m.pad).max(0.0);
+fn legend_names(entries: &[(String, Key)], width: u32, lm: &LegendMetrics) -> Vec<String> {
+    let max_text = (lm.above_width(width) - lm.key_w - lm.gap - 2.0 * lm.pad).max(0.0);
     entries
         .iter()
-        .map(|(n, _)| fit_text(n, max_text, s))
+        .map(|(n, _)| fit_text(n, max_text, lm.m.s))
         .collect()
 }
 
@@ -1225,14 +1226,13 @@ fn legend_names(entries: &[(String, Key)], width: u32, s: u32) -> Vec<String> {
 /// legend covers none of the `occupied` points; `None` when every corner covers data.
 fn free_corner(
     layout: &PlotLayout,
+    lm: &LegendMetrics,
     names: &[String],
     occupied: &[(f64, f64)],
 ) -> Option<(f64, f64)> {
-    let m = LegendMetrics::new(layout.scale);
-    let sf = layout.scale as f64;
     let a = layout.area;
-    let (w, h) = m.box_size(names);
-    let inset = 6.0 * sf;
+    let (w, h) = lm.box_size(names);
+    let inset = 0.5 * lm.m.s;
     if w + 2.0 * inset > a.width() || h + 2.0 * inset > a.height() {
         return None;
     }
@@ -1242,19 +1242,28 @@ fn free_corner(
         (a.right - inset - w, a.bottom - inset - h),
         (a.left + inset, a.bottom - inset - h),
     ];
+    let margin = 0.25 * lm.m.s;
     corners.into_iter().find(|&(x, y)| {
         let r = PixelRect {
-            left: x - 3.0 * sf,
-            top: y - 3.0 * sf,
-            right: x + w + 3.0 * sf,
-            bottom: y + h + 3.0 * sf,
+            left: x - margin,
+            top: y - margin,
+            right: x + w + margin,
+            bottom: y + h + margin,
         };
         !occupied.iter().any(|p| r.contains(*p))
     })
 }
 
-fn draw_key(canvas: &mut Canvas<'_>, key: Key, kx: f64, cy: f64, m: &LegendMetrics) {
-    let st = Style::new(m.s);
+/// One entry: its key from `kx` and its name after it, capitals centred on `cy`.
+fn draw_entry(
+    root: &Root<'_>,
+    lm: &LegendMetrics,
+    key: Key,
+    name: &str,
+    kx: f64,
+    cy: f64,
+) -> DrawResult {
+    let s = lm.m.s;
     match key {
         Key::Series {
             color,
@@ -1262,100 +1271,167 @@ fn draw_key(canvas: &mut Canvas<'_>, key: Key, kx: f64, cy: f64, m: &LegendMetri
             marker,
         } => {
             if line {
-                canvas.line((kx, cy), (kx + m.key_w, cy), st.line_w, color);
+                let y = cy.floor() as i32;
+                let pts = vec![(kx.round() as i32, y), ((kx + lm.key_w).round() as i32, y)];
+                root.draw(&PathElement::new(pts, rgb(color).stroke_width(lm.m.line_w)))?;
             }
             if let Some(mk) = marker {
-                canvas.marker((kx + m.key_w / 2.0, cy), mk, st.marker_r, color);
+                draw_marker(root, (kx + lm.key_w / 2.0, cy), mk, lm.m.marker_r, color)?;
             }
         }
         Key::Bar(color) => {
-            let side = cap_h(m.s) as f64;
-            let bx = (kx + m.key_w / 2.0 - side / 2.0).round() as i64;
-            let by = (cy - side / 2.0).round() as i64;
-            canvas.fill(bx, by, bx + side as i64, by + side as i64, color, 1.0);
+            let side = CAP * s;
+            let (x0, y0) = (kx + lm.key_w / 2.0 - side / 2.0, cy - side / 2.0);
+            root.draw(&Rectangle::new(
+                [px_i((x0, y0)), px_i((x0 + side, y0 + side))],
+                rgb(color).filled(),
+            ))?;
         }
     }
+    let tx = kx + lm.key_w + lm.gap;
+    put_text(root, name, s, TEXT, (tx, cy - CAP * s / 2.0), HPos::Left)
 }
 
 fn draw_legend(
-    canvas: &mut Canvas<'_>,
+    root: &Root<'_>,
     frame: &Frame,
+    layout: &PlotLayout,
     entries: &[(String, Key)],
     place: LegendPlace,
-    width: u32,
-) {
+) -> DrawResult {
     if entries.is_empty() {
-        return;
+        return Ok(());
     }
-    let s = frame.layout.scale;
-    let m = LegendMetrics::new(s);
-    let names = legend_names(entries, width, s);
-    let cap = cap_h(s) as f64;
+    let (width, _) = root.dim_in_pixel();
+    let lm = LegendMetrics::new(frame.m);
+    let names = legend_names(entries, width, &lm);
+    // capitals of the first row: centred this far below the top of the first row
+    let first = 0.4 * lm.m.s;
     match place {
         LegendPlace::Inside(x, y) => {
-            let (w, h) = m.box_size(&names);
-            let (x0, y0) = (x.round() as i64, y.round() as i64);
-            let (x1, y1) = (x0 + w as i64, y0 + h as i64);
-            let border = [200, 200, 200];
-            canvas.fill(x0, y0, x1, y1, BACKGROUND, 0.9);
-            canvas.fill(x0, y0, x1, y0 + 1, border, 1.0);
-            canvas.fill(x0, y1 - 1, x1, y1, border, 1.0);
-            canvas.fill(x0, y0, x0 + 1, y1, border, 1.0);
-            canvas.fill(x1 - 1, y0, x1, y1, border, 1.0);
+            let (w, h) = lm.box_size(&names);
+            let (x0, y0) = (x.round() as i32, y.round() as i32);
+            let (x1, y1) = (x0 + w as i32, y0 + h as i32);
+            root.draw(&Rectangle::new(
+                [(x0, y0), (x1, y1)],
+                rgb(BACKGROUND).mix(0.9).filled(),
+            ))?;
+            root.draw(&Rectangle::new(
+                [(x0, y0), (x1, y1)],
+                rgb(LEGEND_BORDER).stroke_width(1),
+            ))?;
             for (i, ((_, key), name)) in entries.iter().zip(&names).enumerate() {
-                let ty = y0 as f64 + m.pad + i as f64 * m.row_h;
-                let kx = x0 as f64 + m.pad;
-                draw_key(canvas, *key, kx, ty + cap / 2.0, &m);
-                let tx = (kx + m.key_w + m.gap).round() as i64;
-                canvas.text(tx, ty.round() as i64, name, s, TEXT);
+                let cy = y0 as f64 + lm.pad + first + i as f64 * lm.row_h;
+                draw_entry(root, &lm, *key, name, x0 as f64 + lm.pad, cy)?;
             }
         }
         LegendPlace::Above => {
-            let spacing = 12.0 * s as f64;
-            for (r, row) in m.rows(&names, m.above_width(width)).iter().enumerate() {
-                let total: f64 = row.iter().map(|&i| m.entry_w(&names[i])).sum::<f64>()
-                    + spacing * (row.len().saturating_sub(1)) as f64;
-                let a = frame.layout.area;
+            let a = layout.area;
+            for (r, row) in lm.rows(&names, lm.above_width(width)).iter().enumerate() {
+                let total: f64 = row.iter().map(|&i| lm.entry_w(&names[i])).sum::<f64>()
+                    + lm.spacing * (row.len().saturating_sub(1)) as f64;
                 let mut x = (a.left + 0.5 * (a.width() - total))
-                    .min(width as f64 - 6.0 * s as f64 - total)
-                    .max(6.0 * s as f64);
-                let ty = frame.legend_top + r as f64 * m.row_h;
+                    .min(width as f64 - lm.m.pad - total)
+                    .max(lm.m.pad);
+                let cy = frame.legend_top + first + r as f64 * lm.row_h;
                 for &i in row {
-                    draw_key(canvas, entries[i].1, x, ty + cap / 2.0, &m);
-                    let tx = (x + m.key_w + m.gap).round() as i64;
-                    canvas.text(tx, ty.round() as i64, &names[i], s, TEXT);
-                    x += m.entry_w(&names[i]) + spacing;
+                    draw_entry(root, &lm, entries[i].1, &names[i], x, cy)?;
+                    x += lm.entry_w(&names[i]) + lm.spacing;
                 }
             }
         }
     }
+    Ok(())
 }
 
 /// Lay out a chart: the frame without a legend band when a corner of the plot area is free of
 /// data, otherwise with the legend above the plot area.
-fn plan<'a>(
-    width: u32,
-    height: u32,
-    spec: impl Fn(f64) -> FrameSpec<'a>,
+fn plan<'a, 'b>(
+    root: &'a Root<'b>,
+    spec: &ChartSpec<'_>,
     entries: &[(String, Key)],
     occupancy: impl Fn(&PlotLayout) -> Vec<(f64, f64)>,
-) -> (Frame, Option<LegendPlace>) {
-    let frame = compute_frame(width, height, spec(0.0));
-    if entries.is_empty() {
-        return (frame, None);
+) -> DrawResult<(Frame, Chart<'a, 'b>, PlotLayout, Option<LegendPlace>)> {
+    let (width, height) = root.dim_in_pixel();
+    let frame = compute_frame(width, height, spec, 0.0);
+    let chart = build(root, &frame)?;
+    let layout = layout_of(&chart, &frame);
+    if entries.is_empty() || frame.title.is_empty() && frame.x_area == 0 && frame.y_area == 0 {
+        return Ok((frame, chart, layout, None));
     }
-    let s = frame.layout.scale;
-    let names = legend_names(entries, width, s);
-    if let Some((x, y)) = free_corner(&frame.layout, &names, &occupancy(&frame.layout)) {
-        return (frame, Some(LegendPlace::Inside(x, y)));
+    let lm = LegendMetrics::new(frame.m);
+    let names = legend_names(entries, width, &lm);
+    if let Some((x, y)) = free_corner(&layout, &lm, &names, &occupancy(&layout)) {
+        return Ok((frame, chart, layout, Some(LegendPlace::Inside(x, y))));
     }
-    let band = LegendMetrics::new(s).above_height(&names, width);
-    (
-        compute_frame(width, height, spec(band)),
-        Some(LegendPlace::Above),
-    )
+    let band = lm.rows(&names, lm.above_width(width)).len() as f64 * lm.row_h;
+    let frame = compute_frame(width, height, spec, band);
+    let chart = build(root, &frame)?;
+    let layout = layout_of(&chart, &frame);
+    Ok((frame, chart, layout, Some(LegendPlace::Above)))
 }
 
+/// Render with `paint` onto a white image of the given size; drawing errors are logged and leave
+/// what was drawn (use [`try_render`] to see them).
+fn render_with(
+    width: u32,
+    height: u32,
+    paint: impl FnOnce(&Root<'_>) -> DrawResult,
+) -> std::result::Result<RgbImage, String> {
+    let mut img = RgbImage::from_pixel(width, height, Rgb(BACKGROUND));
+    if width == 0 || height == 0 {
+        return Ok(img);
+    }
+    let res = {
+        let root = BitMapBackend::with_buffer(&mut img, (width, height)).into_drawing_area();
+        paint(&root).and_then(|()| Ok(root.present()?))
+    };
+    res.map(|()| img).map_err(|e| e.to_string())
+}
+
+/// `render_with`, turning a drawing error into the crate's error.
+fn try_render(
+    width: u32,
+    height: u32,
+    paint: impl FnOnce(&Root<'_>) -> DrawResult,
+) -> Result<RgbImage> {
+    render_with(width, height, paint).map_err(|message| Error::Invalid {
+        what: "plot".into(),
+        message: format!("drawing failed: {message}"),
+    })
+}
+
+/// A layout without drawing: the chart planned on a scratch image of the size (at least 1 x 1).
+fn layout_only(
+    width: u32,
+    height: u32,
+    plan_of: impl FnOnce(&Root<'_>) -> DrawResult<PlotLayout>,
+) -> PlotLayout {
+    let (w, h) = (width.max(1), height.max(1));
+    let mut buf = vec![0u8; w as usize * h as usize * 3];
+    let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+    plan_of(&root).unwrap_or_else(|e| {
+        tracing::warn!("plot layout: {e}");
+        let unit = Axis {
+            lo: 0.0,
+            hi: 1.0,
+            log: false,
+        };
+        PlotLayout {
+            area: PixelRect {
+                left: 0.0,
+                top: 0.0,
+                right: (w - 1) as f64,
+                bottom: (h - 1) as f64,
+            },
+            x: unit,
+            y: unit,
+            x_ticks: Vec::new(),
+            y_ticks: Vec::new(),
+            text_px: text_px_for(w, h),
+        }
+    })
+}
 // ------------------------------------------------------------------------------------------------
 // line / scatter plots
 
@@ -1388,10 +1464,11 @@ impl Plot {
             .iter()
             .flat_map(|s| s.points.iter().map(|p| p.0));
         let x = fit_axis(xs, self.x_log, self.x_range);
+        let accepts = |v: f64| v.is_finite() && (!x.log || v > 0.0);
         let ys = self.series.iter().flat_map(|s| {
             s.points.iter().enumerate().flat_map(move |(i, &(px, py))| {
                 let e = error_of(s, i);
-                let keep = x.accepts(px);
+                let keep = accepts(px);
                 let lo = if self.y_log && py - e <= 0.0 {
                     py
                 } else {
@@ -1403,6 +1480,17 @@ impl Plot {
         let ys = ys.filter(|(k, _)| *k).map(|(_, v)| v);
         let y = fit_axis(ys, self.y_log, self.y_range);
         (x, y)
+    }
+
+    fn spec(&self) -> ChartSpec<'_> {
+        let (x, y) = self.axes();
+        ChartSpec {
+            title: &self.title,
+            x_label: &self.x_label,
+            y_label: &self.y_label,
+            x: XSpec::Numeric(x),
+            y,
+        }
     }
 
     fn legend_entries(&self) -> Vec<(String, Key)> {
@@ -1428,7 +1516,7 @@ impl Plot {
 
     /// Pixels the data covers (points, samples along lines and error bars), for legend placement.
     fn occupancy(&self, layout: &PlotLayout) -> Vec<(f64, f64)> {
-        let step = 6.0 * layout.scale as f64;
+        let step = 0.3 * layout.text_px;
         let mut out = Vec::new();
         let mut sample = |a: (f64, f64), b: (f64, f64)| {
             let len = ((b.0 - a.0).powi(2) + (b.1 - a.1).powi(2)).sqrt();
@@ -1462,62 +1550,39 @@ impl Plot {
         out
     }
 
-    fn plan(&self, width: u32, height: u32) -> (Frame, Option<LegendPlace>) {
-        let (x, y) = self.axes();
-        plan(
-            width,
-            height,
-            |legend_above| FrameSpec {
-                title: &self.title,
-                x_label: &self.x_label,
-                y_label: &self.y_label,
-                x: XSpec::Numeric(x),
-                y,
-                legend_above,
-            },
-            &self.legend_entries(),
-            |l| self.occupancy(l),
-        )
-    }
-
     /// The layout [`Plot::render`] uses at this size (plot area, axes, ticks).
     pub fn layout(&self, width: u32, height: u32) -> PlotLayout {
-        self.plan(width, height).0.layout
+        let entries = self.legend_entries();
+        layout_only(width, height, |root| {
+            Ok(plan(root, &self.spec(), &entries, |l| self.occupancy(l))?.2)
+        })
     }
 
     /// Render to an RGB image of the given size. Never fails: non-finite or out-of-domain points are
     /// skipped, degenerate ranges get a window around the data, and a size of 0 gives an empty image.
     pub fn render(&self, width: u32, height: u32) -> RgbImage {
-        let mut img = RgbImage::from_pixel(width, height, Rgb(BACKGROUND));
-        if width == 0 || height == 0 {
-            return img;
+        match render_with(width, height, |root| self.paint(root)) {
+            Ok(img) => img,
+            Err(e) => {
+                tracing::warn!("plot '{}': {e}", self.title);
+                RgbImage::from_pixel(width, height, Rgb(BACKGROUND))
+            }
         }
-        let (frame, place) = self.plan(width, height);
-        let layout = &frame.layout;
-        let st = Style::new(layout.scale);
-        let full = Canvas::full_clip(&img);
-        let area = area_clip(&layout.area);
-        // markers may reach a few pixels beyond the area, so that those on the edge are whole
-        let grow = (st.marker_r + 1.0).ceil() as i64;
-        let marker_clip = Clip {
-            x0: area.x0 - grow,
-            y0: area.y0 - grow,
-            x1: area.x1 + grow,
-            y1: area.y1 + grow,
-        };
-        let mut canvas = Canvas {
-            img: &mut img,
-            clip: area,
-        };
-        draw_grid(&mut canvas, layout, true);
+    }
+
+    fn paint(&self, root: &Root<'_>) -> DrawResult {
+        root.fill(&rgb(BACKGROUND))?;
+        let entries = self.legend_entries();
+        let (frame, mut chart, layout, place) =
+            plan(root, &self.spec(), &entries, |l| self.occupancy(l))?;
+        draw_axes(&mut chart, &frame)?;
+        let m = frame.m;
+        let area = layout.area;
         for (si, series) in self.series.iter().enumerate() {
             let color = series_color(si).0;
             let px: Vec<Option<(f64, f64)>> =
                 series.points.iter().map(|&p| layout.to_px(p)).collect();
-            canvas.clip = area;
-            // error bars (axis-aligned: snapped to pixel centres so that they are crisp)
-            let snap = |v: f64| v.floor() + 0.5;
-            let cap = 3.0 * st.sf;
+            let cap = 0.25 * m.s;
             for (i, p) in px.iter().enumerate() {
                 let (Some((cx, _)), e) = (*p, error_of(series, i)) else {
                     continue;
@@ -1527,70 +1592,53 @@ impl Plot {
                 }
                 let y = series.points[i].1;
                 let bot = if self.y_log && y - e <= 0.0 {
-                    Some(layout.area.bottom + 2.0 * cap)
+                    Some(area.bottom + 2.0 * cap)
                 } else {
                     layout.y_to_px(y - e)
                 };
-                let (Some(top), Some(bot)) = (layout.y_to_px(y + e), bot) else {
-                    continue;
-                };
-                let (cx, top, bot) = (snap(cx), snap(top), snap(bot));
-                canvas.line((cx, top), (cx, bot), st.sf, ERROR_BAR);
-                canvas.line((cx - cap, top), (cx + cap, top), st.sf, ERROR_BAR);
-                canvas.line((cx - cap, bot), (cx + cap, bot), st.sf, ERROR_BAR);
+                if let (Some(top), Some(bot)) = (layout.y_to_px(y + e), bot) {
+                    draw_error_bar(root, cx, (top, bot), cap, &area)?;
+                }
             }
             if matches!(series.style, SeriesStyle::Line | SeriesStyle::LineMarkers) {
-                for w in px.windows(2) {
-                    if let [Some(a), Some(b)] = w {
-                        canvas.line(*a, *b, st.line_w, color);
-                    }
-                }
+                draw_polyline(root, &px, &area, rgb(color).stroke_width(m.line_w))?;
             }
             if matches!(
                 series.style,
                 SeriesStyle::Markers | SeriesStyle::LineMarkers
             ) {
-                canvas.clip = marker_clip;
                 let marker = MARKERS[si % MARKERS.len()];
-                let a = layout.area;
                 for p in px.iter().flatten() {
-                    let inside = p.0 >= a.left - 0.5
-                        && p.0 <= a.right + 0.5
-                        && p.1 >= a.top - 0.5
-                        && p.1 <= a.bottom + 0.5;
+                    // markers on the edge of the area are drawn whole
+                    let inside = p.0 >= area.left - 0.5
+                        && p.0 <= area.right + 0.5
+                        && p.1 >= area.top - 0.5
+                        && p.1 <= area.bottom + 0.5;
                     if inside {
-                        canvas.marker(*p, marker, st.marker_r, color);
+                        draw_marker(root, *p, marker, m.marker_r, color)?;
                     }
                 }
             }
         }
-        canvas.clip = full;
-        draw_frame_and_labels(
-            &mut canvas,
-            &frame,
-            &self.title,
-            &self.x_label,
-            &self.y_label,
-            width,
-        );
+        draw_frame_and_title(root, &layout, &frame)?;
         if let Some(place) = place {
-            draw_legend(&mut canvas, &frame, &self.legend_entries(), place, width);
+            draw_legend(root, &frame, &layout, &entries, place)?;
         }
-        img
+        Ok(())
     }
 
     /// Render and encode as PNG bytes (after [`Plot::validate`]).
     pub fn to_png(&self, width: u32, height: u32) -> Result<Vec<u8>> {
         self.validate()?;
         check_size(width, height)?;
-        crate::image_io::encode_png(&self.render(width, height))
+        crate::image_io::encode_png(&try_render(width, height, |root| self.paint(root))?)
     }
 
     /// Render and write as PNG, atomically (after [`Plot::validate`]).
     pub fn write_png(&self, path: &Path, width: u32, height: u32) -> Result<()> {
         self.validate()?;
         check_size(width, height)?;
-        crate::image_io::write_png(path, &self.render(width, height))
+        crate::image_io::write_png(path, &try_render(width, height, |root| self.paint(root))?)
     }
 }
 
@@ -1700,6 +1748,16 @@ impl BarChart {
         }
     }
 
+    fn spec(&self) -> ChartSpec<'_> {
+        ChartSpec {
+            title: &self.title,
+            x_label: "",
+            y_label: &self.y_label,
+            x: XSpec::Categories(&self.categories),
+            y: self.value_axis(),
+        }
+    }
+
     fn legend_entries(&self) -> Vec<(String, Key)> {
         self.groups
             .iter()
@@ -1741,120 +1799,100 @@ impl BarChart {
         out
     }
 
-    fn plan(&self, width: u32, height: u32) -> (Frame, Option<LegendPlace>) {
-        plan(
-            width,
-            height,
-            |legend_above| FrameSpec {
-                title: &self.title,
-                x_label: "",
-                y_label: &self.y_label,
-                x: XSpec::Categories(&self.categories),
-                y: self.value_axis(),
-                legend_above,
-            },
-            &self.legend_entries(),
-            |layout| {
-                let step = 6.0 * layout.scale as f64;
-                let mut out = Vec::new();
-                for b in self.bars(layout) {
-                    let (ya, yb) = (b.value_px.min(b.zero_px), b.value_px.max(b.zero_px));
-                    let top = b.error_px.map_or(ya, |(t, _)| t.min(ya));
-                    let ny = ((yb - top) / step).ceil().clamp(1.0, 200.0) as usize;
-                    let nx = ((b.x1 - b.x0) / step).ceil().clamp(1.0, 200.0) as usize;
-                    for i in 0..=nx {
-                        for j in 0..=ny {
-                            let x = b.x0 + (b.x1 - b.x0) * i as f64 / nx as f64;
-                            out.push((x, top + (yb - top) * j as f64 / ny as f64));
-                        }
-                    }
+    fn occupancy(&self, layout: &PlotLayout) -> Vec<(f64, f64)> {
+        let step = 0.3 * layout.text_px;
+        let mut out = Vec::new();
+        for b in self.bars(layout) {
+            let (ya, yb) = (b.value_px.min(b.zero_px), b.value_px.max(b.zero_px));
+            let top = b.error_px.map_or(ya, |(t, _)| t.min(ya));
+            let ny = ((yb - top) / step).ceil().clamp(1.0, 200.0) as usize;
+            let nx = ((b.x1 - b.x0) / step).ceil().clamp(1.0, 200.0) as usize;
+            for i in 0..=nx {
+                for j in 0..=ny {
+                    let x = b.x0 + (b.x1 - b.x0) * i as f64 / nx as f64;
+                    out.push((x, top + (yb - top) * j as f64 / ny as f64));
                 }
-                out
-            },
-        )
+            }
+        }
+        out
     }
 
-    /// The layout [`BarChart::render`] uses (the x axis runs from 0 to the number of categories).
+    /// The layout [`BarChart::render`] uses (the x axis runs from 0 to the number of categories,
+    /// category `i` centred on `i + 0.5`).
     pub fn layout(&self, width: u32, height: u32) -> PlotLayout {
-        self.plan(width, height).0.layout
+        let entries = self.legend_entries();
+        layout_only(width, height, |root| {
+            Ok(plan(root, &self.spec(), &entries, |l| self.occupancy(l))?.2)
+        })
     }
 
     /// Render to an RGB image of the given size. Never fails; non-finite values draw no bar.
     pub fn render(&self, width: u32, height: u32) -> RgbImage {
-        let mut img = RgbImage::from_pixel(width, height, Rgb(BACKGROUND));
-        if width == 0 || height == 0 {
-            return img;
+        match render_with(width, height, |root| self.paint(root)) {
+            Ok(img) => img,
+            Err(e) => {
+                tracing::warn!("bar chart '{}': {e}", self.title);
+                RgbImage::from_pixel(width, height, Rgb(BACKGROUND))
+            }
         }
-        let (frame, place) = self.plan(width, height);
-        let layout = &frame.layout;
-        let st = Style::new(layout.scale);
-        let full = Canvas::full_clip(&img);
-        let mut canvas = Canvas {
-            img: &mut img,
-            clip: area_clip(&layout.area),
-        };
-        draw_grid(&mut canvas, layout, false);
-        let bars = self.bars(layout);
+    }
+
+    fn paint(&self, root: &Root<'_>) -> DrawResult {
+        root.fill(&rgb(BACKGROUND))?;
+        let entries = self.legend_entries();
+        let (frame, mut chart, layout, place) =
+            plan(root, &self.spec(), &entries, |l| self.occupancy(l))?;
+        draw_axes(&mut chart, &frame)?;
+        let area = layout.area;
+        let bars = self.bars(&layout);
         for b in &bars {
             // a hairline gap between neighbouring bars
             let gap = if b.x1 - b.x0 > 6.0 { 1.0 } else { 0.0 };
-            let (ya, yb) = (b.value_px.min(b.zero_px), b.value_px.max(b.zero_px));
-            canvas.fill(
-                b.x0.round() as i64,
-                ya.round() as i64,
-                (b.x1.round() - gap) as i64,
-                yb.round().max(ya.round() + 1.0) as i64,
-                series_color(b.group).0,
-                1.0,
-            );
+            let ya = b.value_px.min(b.zero_px).max(area.top);
+            let yb = b.value_px.max(b.zero_px).min(area.bottom);
+            let (x0, x1) = (b.x0.round(), (b.x1.round() - gap - 1.0).max(b.x0.round()));
+            root.draw(&Rectangle::new(
+                [px_i((x0, ya)), px_i((x1, yb))],
+                rgb(series_color(b.group).0).filled(),
+            ))?;
         }
         for b in &bars {
             if let Some((t, bot)) = b.error_px {
-                let snap = |v: f64| v.floor() + 0.5;
                 let gap = if b.x1 - b.x0 > 6.0 { 1.0 } else { 0.0 };
-                let (cx, t, bot) = (snap(0.5 * (b.x0 + b.x1 - gap)), snap(t), snap(bot));
-                let cap = (0.25 * (b.x1 - b.x0)).min(4.0 * st.sf);
-                canvas.line((cx, t), (cx, bot), st.sf, ERROR_BAR);
-                canvas.line((cx - cap, t), (cx + cap, t), st.sf, ERROR_BAR);
-                canvas.line((cx - cap, bot), (cx + cap, bot), st.sf, ERROR_BAR);
+                let cap = (0.25 * (b.x1 - b.x0)).min(0.3 * frame.m.s);
+                draw_error_bar(root, 0.5 * (b.x0 + b.x1 - gap), (t, bot), cap, &area)?;
             }
         }
-        canvas.clip = full;
         if layout.y.lo < 0.0 {
             // the zero line
             if let Some(zero) = layout.y_to_px(0.0) {
-                let zy = zero.floor() as i64;
-                let a = layout.area;
-                canvas.fill(a.left as i64, zy, a.right as i64, zy + 1, FRAME, 1.0);
+                let zy = zero.floor() as i32;
+                root.draw(&PathElement::new(
+                    vec![(area.left as i32, zy), (area.right as i32, zy)],
+                    rgb(FRAME).stroke_width(1),
+                ))?;
             }
         }
-        draw_frame_and_labels(&mut canvas, &frame, &self.title, "", &self.y_label, width);
+        draw_frame_and_title(root, &layout, &frame)?;
         if let Some(place) = place {
-            draw_legend(&mut canvas, &frame, &self.legend_entries(), place, width);
+            draw_legend(root, &frame, &layout, &entries, place)?;
         }
-        img
+        Ok(())
     }
 
     /// Render and encode as PNG bytes (after [`BarChart::validate`]).
     pub fn to_png(&self, width: u32, height: u32) -> Result<Vec<u8>> {
         self.validate()?;
         check_size(width, height)?;
-        crate::image_io::encode_png(&self.render(width, height))
+        crate::image_io::encode_png(&try_render(width, height, |root| self.paint(root))?)
     }
 
     /// Render and write as PNG, atomically (after [`BarChart::validate`]).
     pub fn write_png(&self, path: &Path, width: u32, height: u32) -> Result<()> {
         self.validate()?;
         check_size(width, height)?;
-        crate::image_io::write_png(path, &self.render(width, height))
+        crate::image_io::write_png(path, &try_render(width, height, |root| self.paint(root))?)
     }
-}
-
-/// Draw `text` with the built-in font onto `img`, top-left corner at `(x, y)`, at an integer scale
-/// (each font pixel becomes `scale x scale` image pixels). Pixels outside the image are skipped.
-pub fn draw_text(img: &mut RgbImage, x: i64, y: i64, text: &str, scale: u32, color: Rgb<u8>) {
-    let clip = Canvas::full_clip(img);
-    Canvas { img, clip }.text(x, y, text, scale.max(1), color.0);
 }
 
 #[cfg(test)]

@@ -103,68 +103,77 @@ fn tick_labels_hand_computed() {
     );
 }
 
-#[test]
-fn glyph_table_is_complete_and_distinct() {
-    let mut seen = std::collections::HashMap::new();
-    for code in 32u8..=126 {
-        let c = code as char;
-        let g = font::glyph(c);
-        assert!(
-            g.iter().all(|row| *row < 32),
-            "{c:?}: bits beyond 5 columns"
-        );
-        let lit: u32 = g.iter().map(|r| r.count_ones()).sum();
-        if c == ' ' {
-            assert_eq!(lit, 0);
-        } else {
-            assert!(lit >= 2, "{c:?} has no visible glyph");
-        }
-        // descenders only where the letter has one
-        if g[7] != 0 || g[8] != 0 {
-            assert!("gjpqy,;_|".contains(c), "{c:?} uses the descender rows");
-        }
-        if let Some(prev) = seen.insert(g, c) {
-            panic!("{c:?} and {prev:?} share a glyph");
+/// Pixels dark enough to be text (the frame, grey 90, is lighter).
+fn is_dark(p: &Rgb<u8>) -> bool {
+    p.0.iter().all(|&v| v < 80)
+}
+
+/// Bounding box `(x0, y0, x1, y1)` (inclusive) of the dark pixels, if any.
+fn dark_box(img: &RgbImage) -> Option<(u32, u32, u32, u32)> {
+    let mut b: Option<(u32, u32, u32, u32)> = None;
+    for (x, y, p) in img.enumerate_pixels() {
+        if is_dark(p) {
+            b = Some(match b {
+                None => (x, y, x, y),
+                Some((x0, y0, x1, y1)) => (x0.min(x), y0.min(y), x1.max(x), y1.max(y)),
+            });
         }
     }
-    assert_eq!(seen.len(), 95);
-    // characters that tick labels and axis names rely on look like themselves
-    assert_eq!(font::glyph('-')[3], 0b01110); // a bar at mid height, nothing else
-    assert_eq!(
-        font::glyph('-').iter().map(|r| r.count_ones()).sum::<u32>(),
-        3
-    );
-    assert_eq!(font::glyph('.')[5..7], [0b01100, 0b01100]);
-    assert_eq!(font::glyph('+')[3], 0b11111);
-    assert_eq!(font::glyph('+')[1], 0b00100);
-    assert_eq!(font::glyph('1')[6], 0b01110);
-    // folding of non-ASCII text
-    assert_eq!(font::glyph('é'), font::glyph('e'));
-    assert_eq!(font::glyph('×'), font::glyph('x'));
-    assert_eq!(font::glyph('中'), font::glyph('?'));
-    assert_eq!(font::text_width("", 2), 0);
-    assert_eq!(font::text_width("ab", 2), 22);
+    b
 }
 
 #[test]
-fn drawn_text_matches_the_glyph_bits() {
-    let mut img = RgbImage::from_pixel(40, 30, Rgb([255, 255, 255]));
-    draw_text(&mut img, 3, 4, "7e", 2, Rgb([0, 0, 0]));
-    for (i, c) in ['7', 'e'].into_iter().enumerate() {
-        let g = font::glyph(c);
-        for row in 0..9u32 {
-            for col in 0..5u32 {
-                let on = g[row as usize] >> (4 - col) & 1 == 1;
-                for (dx, dy) in [(0, 0), (1, 1)] {
-                    let x = 3 + i as u32 * 12 + col * 2 + dx;
-                    let y = 4 + row * 2 + dy;
-                    assert_eq!(img.get_pixel(x, y).0 == [0, 0, 0], on, "{c} {row} {col}");
-                }
-            }
-        }
+fn drawn_text_sits_where_asked() {
+    // capitals without descenders: their dark pixels start at the requested corner and are one
+    // cap height tall (DejaVu Sans: 0.626 of the font size)
+    let size = 40.0;
+    let mut img = RgbImage::from_pixel(300, 100, Rgb([255, 255, 255]));
+    draw_text(&mut img, 20, 30, "HEH", size, Rgb([0, 0, 0]));
+    let (x0, y0, x1, y1) = dark_box(&img).expect("text drawn");
+    assert!((y0 as i64 - 30).abs() <= 1, "cap top at {y0}");
+    let cap = (y1 - y0 + 1) as f64;
+    assert!((cap - CAP * size).abs() <= 1.5, "cap height {cap}");
+    // 'H' has a small left side bearing; the ink is about as wide as the advance says
+    assert!((20..=25).contains(&x0), "left edge {x0}");
+    let w = text_width("HEH", size) as f64;
+    assert!(
+        (x1 - x0) as f64 > 0.8 * w && ((x1 - x0) as f64) < w,
+        "{x0}..{x1} vs {w}"
+    );
+    // wider text measures wider; nothing measures nothing
+    assert!(text_width("HEHE", size) > text_width("HEH", size));
+    assert_eq!(text_width("", size), 0);
+    // a descender reaches below the baseline, i.e. below the capitals
+    let mut g = RgbImage::from_pixel(300, 100, Rgb([255, 255, 255]));
+    draw_text(&mut g, 20, 30, "Hg", size, Rgb([0, 0, 0]));
+    assert!(dark_box(&g).unwrap().3 > y1 + 3);
+    // off-image text is clipped, not a panic; a zero size draws nothing
+    draw_text(&mut img, -100, 95, "clipped text", 30.0, Rgb([0, 0, 0]));
+    draw_text(
+        &mut img,
+        i64::MAX,
+        i64::MIN,
+        "far away",
+        30.0,
+        Rgb([0, 0, 0]),
+    );
+    let mut blank = RgbImage::from_pixel(50, 50, Rgb([255, 255, 255]));
+    draw_text(&mut blank, 5, 5, "none", 0.0, Rgb([0, 0, 0]));
+    assert!(dark_box(&blank).is_none());
+}
+
+#[test]
+fn the_embedded_font_has_the_characters_of_plot_labels() {
+    // every printable ASCII character and the non-ASCII ones labels use draw ink of their own
+    for c in (33u8..=126)
+        .map(char::from)
+        .chain(['±', 'µ', 'é', '°', '×'])
+    {
+        let mut img = RgbImage::from_pixel(40, 40, Rgb([255, 255, 255]));
+        draw_text(&mut img, 8, 10, &c.to_string(), 20.0, Rgb([0, 0, 0]));
+        let ink = img.pixels().filter(|p| p.0[0] < 128).count();
+        assert!(ink >= 2, "{c:?} draws {ink} pixels");
     }
-    // off-image text is clipped, not a panic
-    draw_text(&mut img, -100, 25, "clipped text", 3, Rgb([0, 0, 0]));
 }
 
 fn unnamed_line(points: Vec<(f64, f64)>, style: SeriesStyle) -> Series {
@@ -255,7 +264,7 @@ fn every_series_gets_its_own_colour_and_legend() {
     for s in &mut nameless.series {
         s.name.clear();
     }
-    let text_pixels = |img: &RgbImage| img.pixels().filter(|p| p.0 == TEXT).count();
+    let text_pixels = |img: &RgbImage| img.pixels().filter(|p| is_dark(p)).count();
     let plain = nameless.render(800, 500);
     assert!(
         text_pixels(&img) > text_pixels(&plain) + 200,
@@ -263,13 +272,10 @@ fn every_series_gets_its_own_colour_and_legend() {
     );
     let l0 = nameless.layout(800, 500);
     let band = layout.area.top - l0.area.top;
-    assert!(
-        band >= text_h(layout.scale) as f64,
-        "no legend band: {band}"
-    );
+    assert!(band >= layout.text_px, "no legend band: {band}");
     let band_text = (l0.area.top as u32..layout.area.top as u32)
         .flat_map(|y| (0..800).map(move |x| (x, y)))
-        .filter(|&(x, y)| img.get_pixel(x, y).0 == TEXT)
+        .filter(|&(x, y)| is_dark(img.get_pixel(x, y)))
         .count();
     assert!(band_text > 100, "legend text not in the band: {band_text}");
 }
@@ -297,7 +303,7 @@ fn legend_goes_into_a_free_corner() {
     let in_quadrant = |x0: f64, x1: f64| {
         (a.top as u32..(a.top + 0.3 * a.height()) as u32)
             .flat_map(|y| (x0 as u32..x1 as u32).map(move |x| (x, y)))
-            .filter(|&(x, y)| img.get_pixel(x, y).0 == TEXT)
+            .filter(|&(x, y)| is_dark(img.get_pixel(x, y)))
             .count()
     };
     let mid = a.left + 0.5 * a.width();
@@ -581,4 +587,178 @@ fn png_output_round_trips() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("missing"), "{e}");
+}
+
+#[test]
+fn data_outside_a_fixed_range_stays_inside_the_plot_area() {
+    // a steep line and markers far beyond the fixed ranges: clipped at the frame, not drawn over
+    // the labels or the title
+    let plot = Plot {
+        title: "Clipped".into(),
+        x_label: "x".into(),
+        y_label: "y".into(),
+        x_range: Some((0.0, 1.0)),
+        y_range: Some((0.0, 1.0)),
+        series: vec![
+            unnamed_line(
+                vec![(-1.0, -4.0), (0.5, 0.5), (2.0, 5.0)],
+                SeriesStyle::Line,
+            ),
+            unnamed_line(
+                vec![(-0.5, 0.5), (0.5, 3.0), (0.25, 0.25)],
+                SeriesStyle::Markers,
+            ),
+        ],
+        ..Plot::default()
+    };
+    let (w, h) = (500, 400);
+    let img = plot.render(w, h);
+    let l = plot.layout(w, h);
+    let a = l.area;
+    let (c0, c1) = (series_color(0), series_color(1));
+    let mut inside = 0;
+    for (x, y, p) in img.enumerate_pixels() {
+        if *p == c0 {
+            let (x, y) = (x as f64, y as f64);
+            assert!(
+                x >= a.left && x <= a.right && y >= a.top && y <= a.bottom,
+                "line pixel ({x}, {y}) outside {a:?}"
+            );
+            inside += 1;
+        }
+    }
+    // the visible part, (0, 0)..(1, 1) on the line y = 3 x - 1 ... 0.5 -> (1/3, 0)..(2/3, 1)
+    assert!(inside > 100, "{inside} line pixels");
+    let (px, py) = l.to_px((0.5, 0.5)).unwrap();
+    assert_eq!(*img.get_pixel(px as u32, py as u32), c0);
+    // the marker inside is drawn, those outside are not
+    let (mx, my) = l.to_px((0.25, 0.25)).unwrap();
+    assert_eq!(*img.get_pixel(mx as u32, my as u32), c1);
+    let marker_px = img.pixels().filter(|p| **p == c1).count();
+    assert!(
+        (20..100).contains(&marker_px),
+        "{marker_px} marker pixels: not one marker"
+    );
+}
+
+/// Writes sample pictures of every chart kind for looking at (not a check):
+/// `VEILA_PLOT_DIR=/tmp/plots cargo test -p veila-data --features vis --lib -- --ignored sample_pictures`.
+#[test]
+#[ignore = "writes pictures for a person to look at"]
+fn sample_pictures() {
+    let Some(dir) = std::env::var_os("VEILA_PLOT_DIR") else {
+        return;
+    };
+    let dir = std::path::PathBuf::from(dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let train = |decay: f64, floor: f64| -> Vec<(f64, f64)> {
+        (0..=200)
+            .map(|i| {
+                let step = i as f64 * 500.0;
+                let wiggle = 0.04 * ((i as f64) * 0.7).sin();
+                let y = floor + (1.0 - floor) * (-step / decay).exp() * (1.0 + wiggle);
+                (step, y)
+            })
+            .collect()
+    };
+    let val: Vec<(f64, f64)> = (1..=10)
+        .map(|k| (k as f64 * 10_000.0, 0.05 + 0.6 * (-(k as f64) / 2.5).exp()))
+        .collect();
+    Plot {
+        title: "Denoiser training (eps-prediction MSE)".into(),
+        x_label: "optimizer step".into(),
+        y_label: "loss".into(),
+        y_log: true,
+        series: vec![
+            Series::new(
+                "train, full model",
+                train(15_000.0, 0.04),
+                SeriesStyle::Line,
+            ),
+            Series::new("train, no CACM", train(22_000.0, 0.06), SeriesStyle::Line),
+            Series::new("validation", val.clone(), SeriesStyle::LineMarkers)
+                .with_error_bars(val.iter().map(|p| 0.15 * p.1).collect()),
+        ],
+        ..Plot::default()
+    }
+    .write_png(&dir.join("loss.png"), 800, 500)
+    .unwrap();
+    let scatter: Vec<(f64, f64)> = (0..150)
+        .map(|i| {
+            let r = 2.0 + 78.0 * ((i * 37 % 150) as f64 / 150.0);
+            (r, -0.02 * r + 0.3 * (((i * 91) % 101) as f64 / 101.0 - 0.5))
+        })
+        .collect();
+    Plot {
+        title: "Range error vs. range".into(),
+        x_label: "range (m)".into(),
+        y_label: "error (m)".into(),
+        series: vec![
+            Series::new("points", scatter, SeriesStyle::Markers),
+            Series::new(
+                "fit: -0.02 x",
+                vec![(0.0, 0.0), (80.0, -1.6)],
+                SeriesStyle::Line,
+            ),
+        ],
+        ..Plot::default()
+    }
+    .write_png(&dir.join("scatter.png"), 640, 400)
+    .unwrap();
+    let group = |name: &str, v: [f64; 3]| BarGroup {
+        name: name.into(),
+        values: v.to_vec(),
+        errors: Some(v.iter().map(|x| 0.05 * x).collect()),
+    };
+    BarChart {
+        title: "Ablation: JSD per region (lower is better)".into(),
+        y_label: "JSD".into(),
+        categories: vec!["all".into(), "front".into(), "rear".into()],
+        groups: vec![
+            group("Veila (full)", [0.081, 0.064, 0.097]),
+            group("w/o CACM", [0.094, 0.071, 0.118]),
+            group("w/o PFC", [0.089, 0.070, 0.108]),
+        ],
+    }
+    .write_png(&dir.join("bars.png"), 640, 400)
+    .unwrap();
+    // the CLI's sampler trade-off: log x, markers and lines, legend placed by the data
+    let sweep = |a: f64, b: f64| -> Vec<(f64, f64)> {
+        [1.0, 2.0, 5.0, 10.0, 20.0]
+            .iter()
+            .map(|&t| (a * t, b / t.sqrt() + 0.02))
+            .collect()
+    };
+    Plot {
+        title: "Generation: quality vs time per scan (points: step counts)".into(),
+        x_label: "seconds per scan (log)".into(),
+        y_label: "BEV JSD (all)".into(),
+        x_log: true,
+        series: vec![
+            Series::new("ddpm", sweep(0.8, 0.2), SeriesStyle::LineMarkers),
+            Series::new("ddim", sweep(0.1, 0.25), SeriesStyle::LineMarkers),
+            Series::new("dpm", sweep(0.05, 0.22), SeriesStyle::LineMarkers),
+        ],
+        ..Plot::default()
+    }
+    .write_png(&dir.join("sampler_tradeoff.png"), 800, 500)
+    .unwrap();
+    let mut img = RgbImage::from_pixel(560, 120, Rgb([255, 255, 255]));
+    let chars: String = (32u8..=126).map(char::from).collect();
+    for (i, line) in chars.as_bytes().chunks(32).enumerate() {
+        let line = std::str::from_utf8(line).unwrap();
+        draw_text(&mut img, 8, 12 + 36 * i as i64, line, 18.0, Rgb([0, 0, 0]));
+    }
+    crate::image_io::write_png(&dir.join("font.png"), &img).unwrap();
+    let grid = crate::vis::density::BevGrid {
+        half_extent_m: 20.0,
+        cell_m: 0.5,
+    };
+    let n = grid.side();
+    let a: Vec<f64> = (0..n * n)
+        .map(|k| ((k % n) as f64 / n as f64) * 1e-3)
+        .collect();
+    let b = vec![0.4e-3; n * n];
+    let (diff, _) = grid.difference_image(&a, &b);
+    crate::image_io::write_png(&dir.join("bev_difference.png"), &diff).unwrap();
 }
