@@ -22,6 +22,7 @@ fn main() {
         .collect();
     names.push("manifest.json");
     names.sort_unstable();
+    names.dedup();
     let mut code = String::from("static DEFAULT_MODEL: &[(&str, &[u8])] = &[\n");
     for name in names {
         assert!(
