@@ -451,28 +451,8 @@ fn read_calibration(
     Ok((k34.into_pyarray(py).unbind(), t44.into_pyarray(py).unbind()))
 }
 
-static DEFAULT_MODEL: &[(&str, &[u8])] = &[
-    (
-        "bundle.json",
-        include_bytes!("../../models/default/bundle.json"),
-    ),
-    (
-        "manifest.json",
-        include_bytes!("../../models/default/manifest.json"),
-    ),
-    (
-        "denoiser.safetensors",
-        include_bytes!("../../models/default/denoiser.safetensors"),
-    ),
-    (
-        "semantic_encoder.safetensors",
-        include_bytes!("../../models/default/semantic_encoder.safetensors"),
-    ),
-    (
-        "depth_encoder.safetensors",
-        include_bytes!("../../models/default/depth_encoder.safetensors"),
-    ),
-];
+// `DEFAULT_MODEL`: `(file name, bytes)` of `models/default`, written by build.rs
+include!(concat!(env!("OUT_DIR"), "/default_model.rs"));
 
 fn load_bundle(model_dir: Option<&Path>) -> Result<Bundle, String> {
     match model_dir {
@@ -525,10 +505,15 @@ fn generate<'py>(
     }
     let t = Mat4::from_cols_array_2d(&std::array::from_fn(|j| std::array::from_fn(|i| t[[i, j]])));
     let camera = PinholeCamera::new(k34, t, w as u32, h as u32).map_err(value_err)?;
+    if steps == Some(0) {
+        return Err(value_err("steps must be at least 1"));
+    }
     let rgb: Vec<u8> = img.iter().copied().collect();
+    let bundle = py
+        .detach(|| load_bundle(model_dir.as_deref()))
+        .map_err(value_err)?;
     let out = py
         .detach(|| -> Result<_, String> {
-            let bundle = load_bundle(model_dir.as_deref())?;
             let (bw, bh) = (
                 bundle.config.image_width as u32,
                 bundle.config.image_height as u32,
@@ -546,9 +531,6 @@ fn generate<'py>(
                 .ok_or("the model's image size has a zero dimension")?;
             let mut sampler = bundle.config.sampler.clone();
             if let Some(s) = steps {
-                if s == 0 {
-                    return Err("steps must be at least 1".into());
-                }
                 sampler.steps = s;
             }
             let options = GenerateOptions {
