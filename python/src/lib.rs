@@ -538,6 +538,7 @@ fn generate<'py>(
                 samples: 1,
                 seed,
                 unconditional: false,
+                residual_weight: 1.0,
             };
             let raw = small.into_raw();
             let views = [CameraView {
@@ -547,8 +548,7 @@ fn generate<'py>(
             let scans = bundle
                 .generate(&views, &options, |_, _| {})
                 .map_err(|e| e.to_string())?;
-            let scan = scans.into_iter().next().ok_or("no scan generated")?;
-            let range = scan.into_range_image();
+            let range = scans.into_iter().next().ok_or("no scan generated")?;
             let un = RayTable::new(&bundle.config.denoiser.sensor)
                 .and_then(|r| r.unproject(&range))
                 .map_err(|e| e.to_string())?;
