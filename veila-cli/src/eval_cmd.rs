@@ -6,6 +6,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use crate::eval_features;
+use crate::staging::{self, Inputs, check_ext};
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand, ValueEnum};
 use glam::Vec3;
@@ -148,6 +149,9 @@ pub(crate) struct EvalArgs {
     /// difference, range and height distributions), atomically, when the evaluation succeeds.
     #[arg(long)]
     report: Option<PathBuf>,
+    /// Replace existing --json / --report files (never an input).
+    #[arg(long)]
+    force: bool,
 }
 
 #[derive(Debug, Args)]
@@ -162,6 +166,9 @@ pub(crate) struct FdArgs {
     /// Newton-Schulz iterations instead of the exact eigendecomposition (approximate; for comparison).
     #[arg(long)]
     newton_schulz: Option<usize>,
+    /// Replace an existing --json file (never an input).
+    #[arg(long)]
+    force: bool,
 }
 
 pub(crate) fn run(cmd: EvalCmd) -> Result<()> {
@@ -416,12 +423,37 @@ fn points_of(s: &ScanSummary) -> &[Vec3] {
     s.points.as_deref().unwrap_or(&[])
 }
 
-fn run_eval(a: EvalArgs) -> Result<()> {
-    if let Some(path) = &a.report {
-        crate::report::check_output_dir(path)?;
+/// Checks the `--json` / `--report` destinations before any work: named for their format, not an
+/// input, not existing unless `force`, in an existing folder.
+fn check_report_outputs(
+    json: Option<&Path>,
+    report: Option<&Path>,
+    inputs: &Inputs,
+    force: bool,
+) -> Result<()> {
+    if let Some(p) = json {
+        check_ext(p, "--json", &["json"])?;
     }
+    if let Some(p) = report {
+        check_ext(p, "--report", &["html", "htm"])?;
+        crate::report::check_output_dir(p)?;
+    }
+    let dests: Vec<&Path> = json.into_iter().chain(report).collect();
+    staging::check_outputs(&dests, inputs, force, false)
+}
+
+fn json_bytes(report: &MetricReport) -> Result<Vec<u8>> {
+    let mut text = serde_json::to_string_pretty(report)?;
+    text.push('\n');
+    Ok(text.into_bytes())
+}
+
+fn run_eval(a: EvalArgs) -> Result<()> {
     let gen_files = list_scans(&a.generated, "generated")?;
     let ref_files = list_scans(&a.reference, "reference")?;
+    let mut inputs = Inputs::new();
+    inputs.extend(&gen_files).extend(&ref_files);
+    check_report_outputs(a.json.as_deref(), a.report.as_deref(), &inputs, a.force)?;
     let mut metrics = a.metrics.clone();
     metrics.sort();
     metrics.dedup();
@@ -637,9 +669,11 @@ fn run_eval(a: EvalArgs) -> Result<()> {
     }
     pb.finish_and_clear();
     feature_metrics(&a, &metrics, &gen_files, &ref_files, &mut report)?;
-    // the file first, then the table: a reader that goes away early (`| head`) cannot cost the JSON
+    // the files first (all or none), then the table: a reader that goes away early (`| head`)
+    // cannot cost them
+    let mut files = Vec::new();
     if let Some(path) = &a.json {
-        write_json(path, &report)?;
+        files.push((path.clone(), json_bytes(&report)?));
     }
     if let Some(path) = &a.report {
         let html = crate::report::eval_report(&crate::report::EvalReportInputs {
@@ -651,8 +685,16 @@ fn run_eval(a: EvalArgs) -> Result<()> {
             date: veila_data::stamp::report_time(),
             command: crate::report::command_line(),
         })?;
-        html.write(path)?;
+        let bytes = html.to_html().into_bytes();
+        tracing::info!(
+            "report {}: {} images, {} bytes",
+            path.display(),
+            html.image_count(),
+            bytes.len()
+        );
+        files.push((path.clone(), bytes));
     }
+    staging::publish_files(&files, &inputs, a.force, false)?;
     print_table(&report);
     Ok(())
 }
@@ -784,14 +826,6 @@ fn print_table(report: &MetricReport) {
     }
 }
 
-fn write_json(path: &Path, report: &MetricReport) -> Result<()> {
-    let mut text = serde_json::to_string_pretty(report)?;
-    text.push('\n');
-    veila_data::atomic::write_atomic(path, text.as_bytes())
-        .with_context(|| format!("writing {}", path.display()))?;
-    Ok(())
-}
-
 /// A 2-D `.npy` feature matrix as `f64`, row-major.
 fn read_npy_matrix(path: &Path) -> Result<(Vec<f64>, usize, usize)> {
     let file =
@@ -868,6 +902,9 @@ fn read_npy_matrix(path: &Path) -> Result<(Vec<f64>, usize, usize)> {
 }
 
 fn run_fd(a: FdArgs) -> Result<()> {
+    let mut inputs = Inputs::new();
+    inputs.add(&a.a).add(&a.b);
+    check_report_outputs(a.json.as_deref(), None, &inputs, a.force)?;
     let (fa, ra, ca) = read_npy_matrix(&a.a)?;
     let (fb, rb, cb) = read_npy_matrix(&a.b)?;
     if ca != cb {
@@ -911,7 +948,12 @@ fn run_fd(a: FdArgs) -> Result<()> {
     };
     // the file first, then the table: a reader that goes away early (`| head`) cannot cost the JSON
     if let Some(path) = &a.json {
-        write_json(path, &report)?;
+        staging::publish_files(
+            &[(path.clone(), json_bytes(&report)?)],
+            &inputs,
+            a.force,
+            false,
+        )?;
     }
     print_table(&report);
     Ok(())

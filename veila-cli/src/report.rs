@@ -227,20 +227,6 @@ impl HtmlReport {
         h.push_str("</body>\n</html>\n");
         h
     }
-
-    /// Write the page atomically (temporary file beside `path`, then rename).
-    pub(crate) fn write(&self, path: &Path) -> Result<()> {
-        let html = self.to_html();
-        veila_data::atomic::write_atomic(path, html.as_bytes())
-            .with_context(|| format!("writing the report {}", path.display()))?;
-        tracing::info!(
-            "wrote {} ({} images, {} bytes)",
-            path.display(),
-            self.image_count(),
-            html.len()
-        );
-        Ok(())
-    }
 }
 
 const CSS: &str = "\

@@ -353,3 +353,81 @@ fn fd_reads_npy_and_matches_the_library() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("bad.npy"));
 }
+
+/// `eval` and `fd` follow the output discipline of every command: an output is named for its
+/// format, never an input, never an existing file without `--force`, and `--json` with
+/// `--report` appear together or not at all.
+#[test]
+fn eval_outputs_never_replace_inputs_or_existing_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let (g, r) = (dir.path().join("gen"), dir.path().join("ref"));
+    std::fs::create_dir_all(&g).unwrap();
+    std::fs::create_dir_all(&r).unwrap();
+    for i in 0..2u32 {
+        write_bin(&g.join(format!("{i:06}.bin")), &scan(i, 300));
+        write_bin(&r.join(format!("{i:06}.bin")), &scan(50 + i, 300));
+    }
+    let eval = |extra: &[&std::ffi::OsStr]| {
+        let mut c = veila();
+        c.args(["--quiet", "eval", "--metrics", "jsd", "--regions", "all"])
+            .arg("--generated")
+            .arg(&g)
+            .arg("--reference")
+            .arg(&r)
+            .args(extra);
+        c.output().unwrap()
+    };
+    let fails_naming = |o: &std::process::Output, what: &str| {
+        assert!(!o.status.success());
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains(what), "{err}");
+    };
+    let input = g.join("000000.bin");
+    let before = std::fs::read(&input).unwrap();
+    // an input as --json (even with --force) is refused and left alone
+    let o = eval(&["--json".as_ref(), input.as_os_str(), "--force".as_ref()]);
+    fails_naming(&o, "000000.bin");
+    assert_eq!(std::fs::read(&input).unwrap(), before);
+    // a name that does not say JSON / HTML
+    let txt = dir.path().join("out.txt");
+    fails_naming(&eval(&["--json".as_ref(), txt.as_os_str()]), ".json");
+    fails_naming(&eval(&["--report".as_ref(), txt.as_os_str()]), ".html");
+    assert!(!txt.exists());
+    // an existing file needs --force; with a report beside it, neither is written
+    let json = dir.path().join("m.json");
+    let html = dir.path().join("r.html");
+    std::fs::write(&json, b"keep").unwrap();
+    let o = eval(&[
+        "--json".as_ref(),
+        json.as_os_str(),
+        "--report".as_ref(),
+        html.as_os_str(),
+    ]);
+    fails_naming(&o, "--force");
+    assert_eq!(std::fs::read(&json).unwrap(), b"keep");
+    assert!(!html.exists(), "all or nothing");
+    let o = eval(&[
+        "--json".as_ref(),
+        json.as_os_str(),
+        "--report".as_ref(),
+        html.as_os_str(),
+        "--force".as_ref(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(std::fs::read_to_string(&json).unwrap().contains("\"jsd\""));
+    assert!(std::fs::read_to_string(&html).unwrap().contains("<html"));
+    // fd: its inputs are protected the same way
+    let a = dir.path().join("a.npy");
+    write_npy_f64(&a, 3, 2, &[1.0, 2.0, 3.0, 5.0, 4.0, 1.0]);
+    let o = veila()
+        .args(["--quiet", "fd"])
+        .arg(&a)
+        .arg(&a)
+        .arg("--json")
+        .arg(&a)
+        .arg("--force")
+        .output()
+        .unwrap();
+    fails_naming(&o, "a.npy");
+    assert!(std::fs::read(&a).unwrap().starts_with(b"\x93NUMPY"));
+}

@@ -53,6 +53,7 @@ fn eval(protocol: &str, g: &Path, r: &Path, json: &Path) -> (f64, f64) {
             protocol,
             "--regions",
             "all",
+            "--force",
             "--json",
         ])
         .arg(json)
