@@ -542,6 +542,36 @@ fn a_residual_bundle_trained_on_one_scan_generates_it() {
         let err = generate_weighted(&b, ddim8(), 1, bad).unwrap_err();
         assert!(err.to_string().contains("residual_weight"), "{bad}: {err}");
     }
+    // inpainting with a residual bundle: the kept pixels exactly as given, the rest regenerated
+    let known = full_scan(h, w, vec![20.0; h * w], vec![0.3; h * w], vec![true; h * w]);
+    let keep: Vec<bool> = (0..h * w).map(|i| i % w < w / 2).collect();
+    let cam = camera();
+    let img = image(4);
+    let painted = b
+        .inpaint(
+            &[CameraView {
+                rgb: &img,
+                camera: &cam,
+            }],
+            &known,
+            &keep,
+            &GenerateOptions::new(SamplerConfig::ddim(8, 0.0)),
+            &RepaintConfig::default(),
+        )
+        .unwrap()
+        .remove(0);
+    let enc = &b.config.encoding;
+    let round_trip = enc.decode_range(enc.encode_range(20.0));
+    let mut regenerated = 0;
+    for i in 0..h * w {
+        if keep[i] {
+            assert!(painted.mask[i], "kept pixel {i} lost its return");
+            assert_eq!(painted.range_m[i], round_trip, "kept pixel {i}");
+        } else if painted.mask[i] && (painted.range_m[i] - 20.0).abs() > 0.5 {
+            regenerated += 1;
+        }
+    }
+    assert!(regenerated > h * w / 8, "{regenerated} regenerated pixels");
     // a residual bundle without its mean network is refused, naming the file
     std::fs::remove_file(tmp.path().join("bundle").join(MEAN_FILE)).unwrap();
     let err = Bundle::from_dir(&tmp.path().join("bundle"), &Device::Cpu).unwrap_err();

@@ -179,12 +179,16 @@ pub(crate) fn sample(
             reason: "only residual-diffusion bundles have a residual to weight".into(),
         });
     }
-    if inpainting.is_some() && residual.is_some() {
-        return Err(Error::InvalidConfig {
-            field: "bundle",
-            reason: "inpainting with a residual-diffusion bundle is not supported".into(),
-        });
-    }
+    // inpainting: the known scan, encoded, and its mask (1 = keep)
+    let known = match inpainting {
+        Some((scan, mask, _)) => {
+            let view: Vec<&RangeImage> = vec![scan; n];
+            let x0 = bundle.config.encoding.encode_batch(&view, &device)?;
+            let m: Vec<f32> = mask.iter().map(|&k| if k { 1.0 } else { 0.0 }).collect();
+            Some((x0, Tensor::from_vec(m, (1, 1, h, w), &device)?))
+        }
+        None => None,
+    };
     let feats = if conditional {
         Some(bundle.encode_views(views)?.repeat(n)?)
     } else {
@@ -258,13 +262,17 @@ pub(crate) fn sample(
                         on_step(info.index + 1, info.total)
                     })?
                 }
-                Some((known, mask, repaint)) => {
-                    let enc = &bundle.config.encoding;
-                    let known_view: Vec<&RangeImage> = vec![known; n];
-                    let x0 = enc.encode_batch(&known_view, &device)?;
-                    let m: Vec<f32> = mask.iter().map(|&k| if k { 1.0 } else { 0.0 }).collect();
-                    let m = Tensor::from_vec(m, (1, 1, h, w), &device)?;
-                    inpaint(&sampler, &model, &x0, &m, cond.as_ref(), repaint, &mut rng)?
+                Some((_, _, repaint)) => {
+                    let (x0, m) = known.as_ref().expect("encoded above");
+                    // a residual denoiser inpaints the known scan's scaled residual
+                    let x0 = match (&mean, residual) {
+                        (Some(mu), Some(r)) => {
+                            let s = Tensor::from_slice(&r.scale, (1, c, 1, 1), &device)?;
+                            (x0 - mu)?.broadcast_div(&s)?
+                        }
+                        _ => x0.clone(),
+                    };
+                    inpaint(&sampler, &model, &x0, m, cond.as_ref(), repaint, &mut rng)?
                 }
             };
             match (&mean, residual) {
@@ -276,6 +284,14 @@ pub(crate) fn sample(
                 _ => x,
             }
         }
+    };
+    // the known pixels exactly as given (a residual bundle's sum would round them)
+    let x = match &known {
+        Some((x0, m)) => {
+            let m = m.broadcast_as(x.shape())?;
+            (x0.broadcast_mul(&m)? + x.broadcast_mul(&m.affine(-1.0, 1.0)?)?)?
+        }
+        None => x,
     };
     bundle.config.encoding.decode_batch(&x)
 }
