@@ -575,6 +575,13 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         args.sweep_frames = 3;
         args.sweep_steps = vec![4, 8, 16];
     }
+    if let Some(w) = args
+        .sweep_residual_weights
+        .iter()
+        .find(|w| !(0.0..=1.0).contains(*w))
+    {
+        bail!("--sweep-residual-weights: {w} is not between 0 and 1");
+    }
     let t_all = Instant::now();
     let root = workspace_root();
     let device = Device::Cpu;
@@ -835,68 +842,44 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
     // sampler sweep on the bundled model
     let sweep_tests = &tests[..args.sweep_frames.min(tests.len())];
     let sweep_judges = make_judges(&base, sweep_tests, nets.as_ref(), &device)?;
-    let mut sweep = Vec::new();
+    // (sampler, steps, residual weight, label): every sampler at every step count, then for a
+    // residual bundle the texture's price in pixel error at the variants' step count
+    let mut points: Vec<(&str, usize, f64, String)> = Vec::new();
     for name in ["ddpm", "ddim", "dpm"] {
         for &steps in &args.sweep_steps {
-            let sampler = sampler_for(name, steps, base.config.sampler.guidance_scale)?;
-            let (generated, secs) = generate_all(
-                &base,
-                sweep_tests,
-                &sampler,
-                false,
-                1.0,
-                0,
-                &format!("{name} x {steps}"),
-            )?;
-            let m = seed_metrics(&base, &generated, sweep_tests, &sweep_judges, nets.as_ref())?;
-            let p = SweepPoint {
-                sampler: name.into(),
-                steps,
-                residual_weight: 1.0,
-                seconds_per_scan: secs / sweep_tests.len() as f64,
-                jsd_all: m["jsd"]["all"],
-                range_mae_front_m: m["range mae (m)"]["front"],
-                scans: sweep_tests.len(),
-            };
-            println!(
-                "  {name:>4} x {steps:>3}: {:.2} s/scan, jsd {:.4}, range mae front {:.2} m",
-                p.seconds_per_scan, p.jsd_all, p.range_mae_front_m
-            );
-            sweep.push(p);
+            points.push((name, steps, 1.0, format!("{name:>4} x {steps:>3}")));
         }
     }
-    // residual bundles: the texture's price in pixel error, at the variants' step count
     if base.config.residual.is_some() {
-        let sampler = sampler_for("dpm", args.steps, base.config.sampler.guidance_scale)?;
         for &weight in &args.sweep_residual_weights {
-            if !(0.0..=1.0).contains(&weight) {
-                bail!("--sweep-residual-weights: {weight} is not between 0 and 1");
-            }
-            let (generated, secs) = generate_all(
-                &base,
-                sweep_tests,
-                &sampler,
-                false,
+            points.push((
+                "dpm",
+                args.steps,
                 weight,
-                0,
-                &format!("residual weight {weight}"),
-            )?;
-            let m = seed_metrics(&base, &generated, sweep_tests, &sweep_judges, nets.as_ref())?;
-            let p = SweepPoint {
-                sampler: "dpm".into(),
-                steps: if weight == 0.0 { 0 } else { args.steps },
-                residual_weight: weight,
-                seconds_per_scan: secs / sweep_tests.len() as f64,
-                jsd_all: m["jsd"]["all"],
-                range_mae_front_m: m["range mae (m)"]["front"],
-                scans: sweep_tests.len(),
-            };
-            println!(
-                "  residual weight {weight}: {:.2} s/scan, jsd {:.4}, range mae front {:.2} m",
-                p.seconds_per_scan, p.jsd_all, p.range_mae_front_m
-            );
-            sweep.push(p);
+                format!("residual weight {weight}"),
+            ));
         }
+    }
+    let mut sweep = Vec::new();
+    for (name, steps, weight, label) in points {
+        let sampler = sampler_for(name, steps, base.config.sampler.guidance_scale)?;
+        let (generated, secs) =
+            generate_all(&base, sweep_tests, &sampler, false, weight, 0, &label)?;
+        let m = seed_metrics(&base, &generated, sweep_tests, &sweep_judges, nets.as_ref())?;
+        let p = SweepPoint {
+            sampler: name.into(),
+            steps: if weight == 0.0 { 0 } else { steps },
+            residual_weight: weight,
+            seconds_per_scan: secs / sweep_tests.len() as f64,
+            jsd_all: m["jsd"]["all"],
+            range_mae_front_m: m["range mae (m)"]["front"],
+            scans: sweep_tests.len(),
+        };
+        println!(
+            "  {label}: {:.2} s/scan, jsd {:.4}, range mae front {:.2} m",
+            p.seconds_per_scan, p.jsd_all, p.range_mae_front_m
+        );
+        sweep.push(p);
     }
 
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
