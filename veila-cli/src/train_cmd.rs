@@ -64,8 +64,8 @@ pub(crate) struct TrainArgs {
     /// encoder_steps, checkpoint_every, `[output]` dir); relative paths are relative to this file.
     #[arg(long, value_name = "CONFIG.toml")]
     config: PathBuf,
-    /// Stop after this many denoiser steps of this run (a checkpoint is written; rerun the same
-    /// command to continue).
+    /// Stop after this many training steps of this run, the mean network's and the denoiser's
+    /// together (a checkpoint is written; rerun the same command to continue).
     #[arg(long, value_name = "N")]
     stop_after: Option<u64>,
 }

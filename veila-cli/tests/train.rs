@@ -70,6 +70,11 @@ fn write_small_bundle_config(path: &Path) {
         serde_json::from_slice(&std::fs::read(model_dir().join("bundle.json")).unwrap()).unwrap();
     v["denoiser"]["base_channels"] = 8.into();
     v["denoiser"]["sensor"]["cols"] = 128.into();
+    // a residual bundle's mean network works on the same grid
+    if let Some(mean) = v.get_mut("residual").and_then(|r| r.get_mut("mean_net")) {
+        mean["base_channels"] = 8.into();
+        mean["sensor"]["cols"] = 128.into();
+    }
     v["name"] = "test-small".into();
     v["provenance"] = serde_json::Value::Null;
     std::fs::write(path, serde_json::to_vec_pretty(&v).unwrap()).unwrap();
@@ -114,7 +119,21 @@ fn interrupted_and_resumed_run_matches_an_uninterrupted_one_bit_for_bit() {
 
     let b = tmp.path().join("b.toml");
     write_config(&b, "shards", "run-b", &model, SMALL);
-    let o = train(&b, &["--stop-after", "2"]);
+    // a residual model trains its mean network first (4 steps), then the denoiser: stop inside
+    // each stage, so that both resume
+    let residual = std::fs::read_to_string(tmp.path().join("small.json"))
+        .unwrap()
+        .contains("\"residual\": {");
+    if residual {
+        let o = train(&b, &["--stop-after", "2"]);
+        ok(&o);
+        assert!(
+            String::from_utf8_lossy(&o.stdout).contains("stopped the mean network at step 2 of 4"),
+            "{}",
+            String::from_utf8_lossy(&o.stdout)
+        );
+    }
+    let o = train(&b, &["--stop-after", if residual { "4" } else { "2" }]);
     ok(&o);
     assert!(
         String::from_utf8_lossy(&o.stdout).contains("stopped at step 2 of 4"),
@@ -129,12 +148,17 @@ fn interrupted_and_resumed_run_matches_an_uninterrupted_one_bit_for_bit() {
     ok(&o);
     assert!(String::from_utf8_lossy(&o.stdout).contains("resumed"));
     let bundle_b = tmp.path().join("run-b/bundle");
-    let wa = std::fs::read(bundle_a.join("denoiser.safetensors")).unwrap();
-    let wb = std::fs::read(bundle_b.join("denoiser.safetensors")).unwrap();
-    assert!(
-        wa == wb,
-        "resumed weights differ from the uninterrupted run's"
-    );
+    for f in ["denoiser.safetensors", "mean.safetensors"] {
+        if !residual && f == "mean.safetensors" {
+            continue;
+        }
+        let wa = std::fs::read(bundle_a.join(f)).unwrap();
+        let wb = std::fs::read(bundle_b.join(f)).unwrap();
+        assert!(
+            wa == wb,
+            "{f}: resumed weights differ from the uninterrupted run's"
+        );
+    }
     // the encoders are the reused ones, byte for byte
     for f in ["semantic_encoder.safetensors", "depth_encoder.safetensors"] {
         assert_eq!(

@@ -1,7 +1,12 @@
-//! The bundled denoiser (`models/default`) gives the same output as before the CPU kernels of
-//! `veila_nn::fused` replaced candle's composition: the reference values in
-//! `tests/data/bundled_unconditional.json` were written by `regenerate_bundled_reference` (run with
-//! `--ignored`) at commit 5ba3f61, before those kernels existed.
+//! The bundled denoiser (`models/default`) gives the same output with the CPU kernels of
+//! `veila_nn::fused` as with candle's own composition: the reference values in
+//! `tests/data/bundled_unconditional.json` were written by `regenerate_bundled_reference` with
+//! `VEILA_NN_REFERENCE_OPS=1` (candle's ops, none of the fused kernels) for the residual bundle shipped
+//! on 2026-11-24:
+//!
+//! ```text
+//! VEILA_NN_REFERENCE_OPS=1 cargo test -p veila-nn --test bundled_model -- --ignored
+//! ```
 
 use std::collections::HashMap;
 use std::path::PathBuf;
