@@ -247,7 +247,12 @@ def test_read_sample_arrays_reads_npy_and_npz_written_by_numpy(tmp_path):
 def kitti_calib(tmp_path):
     rng = np.random.default_rng(11)
     p2 = np.array([[721.5, 0, 609.6, 44.9], [0, 721.5, 172.9, 0.2], [0, 0, 1, 0.003]])
-    r0 = np.eye(3) + rng.normal(0, 1e-3, (3, 3))
+    # a small rotation (Rodrigues): the reader refuses an R0_rect that is not rigid
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    kx = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    angle = 0.01
+    r0 = np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
     tr = np.array([[0.0, -1, 0, -0.004], [0, 0, -1, -0.076], [1, 0, 0, -0.27]])
     text = "".join(
         f"{k}: " + " ".join(f"{x:.12e}" for x in m.ravel()) + "\n"

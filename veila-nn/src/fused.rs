@@ -6,8 +6,10 @@
 //! The ops here do the same arithmetic in one pass each, spread over the rayon pool:
 //!
 //! * [`im2col`]: padding (circular or zero in width, zero in height), strides and the im2col of a
-//!   `k x k` convolution in one copy, with a `col2im` backward, so a convolution is this op and one
-//!   matrix product (the matrix product and its backward stay candle's, multi-threaded in `gemm`);
+//!   `k x k` convolution in one copy, with a `col2im` backward;
+//! * [`conv2d`]: a whole convolution, the columns of one sample at a time and one `gemm` product
+//!   (candle's matrix-product crate) per sample, forward and backward, so neither the columns of the
+//!   batch nor their gradient exist as tensors;
 //! * [`group_norm_act`]: GroupNorm with a per-sample, per-channel scale and shift (the affine weights,
 //!   and the FiLM / AdaGN modulation of the time embedding folded in) and an optional SiLU, forward and
 //!   backward;
@@ -426,6 +428,432 @@ fn strided(t: &Tensor, dim: usize, start: usize, n: usize, stride: usize) -> Res
     shape.insert(dim + 1, stride);
     let s = s.reshape(shape.as_slice())?.narrow(dim + 1, 0, 1)?;
     Ok(s.squeeze(dim + 1)?)
+}
+
+// ---------------------------------------------------------------------------------------------
+// convolution: im2col + gemm, one sample at a time
+
+/// `dst (m x n) = [dst +] lhs (m x k) · rhs (k x n)` with `gemm` (candle's own matrix-product
+/// crate), every matrix given as `(slice, row stride, column stride)`; `accumulate` adds to `dst`.
+/// The strides are checked against the slices, so the call is in bounds.
+fn matmul_into(
+    dst: (&mut [f32], usize, usize),
+    (m, n, k): (usize, usize, usize),
+    accumulate: bool,
+    lhs: (&[f32], usize, usize),
+    rhs: (&[f32], usize, usize),
+) -> candle_core::Result<()> {
+    fn fits(len: usize, rows: usize, cols: usize, rs: usize, cs: usize) -> bool {
+        rows == 0 || cols == 0 || (rows - 1) * rs + (cols - 1) * cs < len
+    }
+    let (d, d_rs, d_cs) = dst;
+    if !fits(d.len(), m, n, d_rs, d_cs)
+        || !fits(lhs.0.len(), m, k, lhs.1, lhs.2)
+        || !fits(rhs.0.len(), k, n, rhs.1, rhs.2)
+    {
+        candle_core::bail!("matmul_into: a matrix does not fit its slice ({m}x{k} · {k}x{n})")
+    }
+    if m == 0 || n == 0 {
+        return Ok(());
+    }
+    if k == 0 {
+        if !accumulate {
+            for i in 0..m {
+                for j in 0..n {
+                    d[i * d_rs + j * d_cs] = 0.0;
+                }
+            }
+        }
+        return Ok(());
+    }
+    let threads = candle_core::utils::get_num_threads();
+    let parallelism = if threads > 1 {
+        gemm::Parallelism::Rayon(threads)
+    } else {
+        gemm::Parallelism::None
+    };
+    // SAFETY: `fits` checked that every element the three strided matrices address lies inside its
+    // slice; `dst` is borrowed mutably and does not alias `lhs` or `rhs`.
+    #[allow(unsafe_code)]
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            d.as_mut_ptr(),
+            d_cs as isize,
+            d_rs as isize,
+            accumulate,
+            lhs.0.as_ptr(),
+            lhs.2 as isize,
+            lhs.1 as isize,
+            rhs.0.as_ptr(),
+            rhs.2 as isize,
+            rhs.1 as isize,
+            if accumulate { 1.0 } else { 0.0 },
+            1.0,
+            false,
+            false,
+            false,
+            parallelism,
+        );
+    }
+    Ok(())
+}
+
+impl Im2Col {
+    /// The `[C kh kw, H_o W_o]` column matrix of one sample (`x`: its `C` planes of `h x w`).
+    fn fill_sample(&self, col: &mut [f32], x: &[f32], h: usize, w: usize, n: usize) {
+        let (kh, kw) = self.spec.kernel;
+        let kk = kh * kw;
+        if n == 0 {
+            return;
+        }
+        col.par_chunks_mut(n)
+            .with_min_len(min_len(n))
+            .enumerate()
+            .for_each(|(r, row)| {
+                let (ci, tap) = (r / kk, r % kk);
+                let plane = &x[ci * h * w..(ci + 1) * h * w];
+                self.fill_row(row, plane, h, w, tap / kw, tap % kw);
+            });
+    }
+
+    /// Adds the column-matrix gradient `dcol` of one sample back into its planes `dx` (zeroed).
+    fn scatter_sample(&self, dcol: &[f32], dx: &mut [f32], h: usize, w: usize, n: usize) {
+        let (kh, kw) = self.spec.kernel;
+        let kk = kh * kw;
+        if h * w == 0 {
+            return;
+        }
+        dx.par_chunks_mut(h * w)
+            .with_min_len(min_len(h * w * kk))
+            .enumerate()
+            .for_each(|(ci, plane)| {
+                for tap in 0..kk {
+                    let r = ci * kk + tap;
+                    self.scatter_row(&dcol[r * n..(r + 1) * n], plane, h, w, tap / kw, tap % kw);
+                }
+            });
+    }
+}
+
+/// A convolution as one op: for each sample, the im2col of [`Im2Col`] into one reused buffer and
+/// one matrix product (`gemm`), forward and backward (weight gradient accumulated over the batch
+/// in place). Compared with [`im2col`] followed by candle's `matmul`, the `C kh kw`-row column
+/// matrix of the whole batch never exists, nor its gradient, which candle's backward would
+/// zero-fill and add to: the backward pass rebuilds the columns one sample at a time.
+#[derive(Debug, Clone, Copy)]
+struct Conv2dGemm {
+    cols: Im2Col,
+}
+
+/// Shapes of a [`Conv2dGemm`] call.
+#[derive(Debug, Clone, Copy)]
+struct ConvDims {
+    b: usize,
+    c: usize,
+    h: usize,
+    w: usize,
+    out_c: usize,
+    /// `C kh kw`: the columns' rows.
+    k: usize,
+    /// `H_o W_o`: output pixels per channel.
+    n: usize,
+    ho: usize,
+    wo: usize,
+}
+
+impl Conv2dGemm {
+    fn dims(&self, x: &[usize], weight: &[usize]) -> candle_core::Result<ConvDims> {
+        let spec = self.cols.spec;
+        let (&[b, c, h, w], &[out_c, wc, kh, kw]) = (x, weight) else {
+            candle_core::bail!("convolution: input {x:?} or weight {weight:?} is not 4-d")
+        };
+        if wc != c || (kh, kw) != spec.kernel {
+            candle_core::bail!(
+                "convolution: weight {weight:?} does not fit input {x:?} and {spec:?}"
+            )
+        }
+        let Some((ho, wo)) = spec.out_size(h, w) else {
+            candle_core::bail!("convolution: {spec:?} does not fit a {h}x{w} input")
+        };
+        Ok(ConvDims {
+            b,
+            c,
+            h,
+            w,
+            out_c,
+            k: c * kh * kw,
+            n: ho * wo,
+            ho,
+            wo,
+        })
+    }
+
+    fn forward(
+        &self,
+        d: ConvDims,
+        x: &[f32],
+        weight: &[f32],
+        bias: Option<&[f32]>,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let ConvDims {
+            b,
+            c,
+            h,
+            w,
+            out_c,
+            k,
+            n,
+            ..
+        } = d;
+        let mut col = vec![0f32; k * n];
+        let mut out = vec![0f32; b * out_c * n];
+        for bi in 0..b {
+            self.cols
+                .fill_sample(&mut col, &x[bi * c * h * w..(bi + 1) * c * h * w], h, w, n);
+            let dst = &mut out[bi * out_c * n..(bi + 1) * out_c * n];
+            if let Some(bias) = bias {
+                for (row, &v) in dst.chunks_mut(n.max(1)).zip(bias) {
+                    row.fill(v);
+                }
+            }
+            matmul_into(
+                (dst, n, 1),
+                (out_c, n, k),
+                bias.is_some(),
+                (weight, k, 1),
+                (&col, n, 1),
+            )?;
+        }
+        Ok((CpuStorage::F32(out), Shape::from((b, out_c, d.ho, d.wo))))
+    }
+
+    /// Gradients of input, weight and (when `with_bias`) bias.
+    fn backward(
+        &self,
+        x: &Tensor,
+        weight: &Tensor,
+        grad: &Tensor,
+        with_bias: bool,
+    ) -> candle_core::Result<(Tensor, Tensor, Option<Tensor>)> {
+        let d = self.dims(x.dims(), weight.dims())?;
+        let ConvDims {
+            b,
+            c,
+            h,
+            w,
+            out_c,
+            k,
+            n,
+            ..
+        } = d;
+        let xs = tensor_f32(x, "convolution input")?;
+        let ws = tensor_f32(weight, "convolution weight")?;
+        with_f32(grad, "convolution gradient", |g| {
+            if g.len() != b * out_c * n {
+                candle_core::bail!(
+                    "convolution: gradient {:?}, expected {:?}",
+                    grad.dims(),
+                    [b, out_c, d.ho, d.wo]
+                )
+            }
+            let mut col = vec![0f32; k * n];
+            let mut dcol = vec![0f32; k * n];
+            let mut dx = vec![0f32; b * c * h * w];
+            let mut dw = vec![0f32; out_c * k];
+            let mut db = vec![0f32; if with_bias { out_c } else { 0 }];
+            for bi in 0..b {
+                let gb = &g[bi * out_c * n..(bi + 1) * out_c * n];
+                self.cols
+                    .fill_sample(&mut col, &xs[bi * c * h * w..(bi + 1) * c * h * w], h, w, n);
+                // dW (O x K) += g (O x N) · colᵀ (N x K)
+                matmul_into(
+                    (&mut dw, k, 1),
+                    (out_c, k, n),
+                    bi > 0,
+                    (gb, n, 1),
+                    (&col, 1, n),
+                )?;
+                // dcol (K x N) = Wᵀ (K x O) · g (O x N)
+                matmul_into(
+                    (&mut dcol, n, 1),
+                    (k, n, out_c),
+                    false,
+                    (&ws, 1, k),
+                    (gb, n, 1),
+                )?;
+                self.cols.scatter_sample(
+                    &dcol,
+                    &mut dx[bi * c * h * w..(bi + 1) * c * h * w],
+                    h,
+                    w,
+                    n,
+                );
+                for (acc, row) in db.iter_mut().zip(gb.chunks(n.max(1))) {
+                    *acc += row.iter().sum::<f32>();
+                }
+            }
+            let dev = x.device();
+            let dx = Tensor::from_vec(dx, (b, c, h, w), dev)?;
+            let dw = Tensor::from_vec(dw, weight.dims(), dev)?;
+            let db = if with_bias {
+                Some(Tensor::from_vec(db, out_c, dev)?)
+            } else {
+                None
+            };
+            Ok((dx, dw, db))
+        })
+    }
+}
+
+impl CustomOp2 for Conv2dGemm {
+    fn name(&self) -> &'static str {
+        "veila-conv2d"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let d = self.dims(l1.dims(), l2.dims())?;
+        let x = slice_f32(s1, l1, "convolution input")?;
+        let weight = slice_f32(s2, l2, "convolution weight")?;
+        self.forward(d, x, weight, None)
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        weight: &Tensor,
+        _res: &Tensor,
+        grad_res: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let (dx, dw, _) = self.backward(x, weight, grad_res, false)?;
+        Ok((Some(dx), Some(dw)))
+    }
+}
+
+impl CustomOp3 for Conv2dGemm {
+    fn name(&self) -> &'static str {
+        "veila-conv2d-bias"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let d = self.dims(l1.dims(), l2.dims())?;
+        if l3.dims() != [d.out_c] {
+            candle_core::bail!("convolution: bias {:?}, expected [{}]", l3.dims(), d.out_c)
+        }
+        let x = slice_f32(s1, l1, "convolution input")?;
+        let weight = slice_f32(s2, l2, "convolution weight")?;
+        let bias = slice_f32(s3, l3, "convolution bias")?;
+        self.forward(d, x, weight, Some(bias))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        weight: &Tensor,
+        _bias: &Tensor,
+        _res: &Tensor,
+        grad_res: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let (dx, dw, db) = self.backward(x, weight, grad_res, true)?;
+        Ok((Some(dx), Some(dw), db))
+    }
+}
+
+/// A `kh x kw` convolution of `x: [B, C, H, W]` with `weight: [out, C, kh, kw]` and `bias: [out]`,
+/// padded and strided as `spec` says (`spec.kernel` and `spec.ones_row` are ignored: the kernel
+/// comes from the weights), output `[B, out, H_o, W_o]`: as one op on CPU f32 tensors (the
+/// columns and one `gemm` per sample, forward and backward), as [`im2col`] and a matrix product
+/// otherwise.
+pub fn conv2d(
+    x: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    spec: Im2ColSpec,
+) -> Result<Tensor> {
+    let (b, c, h, w) = x.dims4()?;
+    let (out_c, wc, kh, kw) = weight.dims4()?;
+    let spec = Im2ColSpec {
+        kernel: (kh, kw),
+        ones_row: false,
+        ..spec
+    };
+    let Some((ho, wo)) = spec.out_size(h, w) else {
+        return Err(shape_err(
+            "convolution input",
+            format!("[B, {wc}, H, W] that a {kh}x{kw} kernel with {spec:?} fits"),
+            x.dims(),
+        ));
+    };
+    if wc != c {
+        return Err(shape_err(
+            "convolution input",
+            format!("[B, {wc}, H, W]"),
+            x.dims(),
+        ));
+    }
+    if let Some(bias) = bias
+        && bias.dims() != [out_c]
+    {
+        return Err(shape_err(
+            "convolution bias",
+            format!("[{out_c}]"),
+            bias.dims(),
+        ));
+    }
+    let fused = on_cpu_f32(x) && on_cpu_f32(weight) && bias.is_none_or(on_cpu_f32);
+    if fused {
+        let op = Conv2dGemm {
+            cols: Im2Col { spec },
+        };
+        let (x, weight) = (x.contiguous()?, weight.contiguous()?);
+        return Ok(match bias {
+            Some(bias) => x.apply_op3(&weight, &bias.contiguous()?, op)?,
+            None => x.apply_op2(&weight, op)?,
+        });
+    }
+    conv2d_reference(x, weight, bias, spec, (b, ho, wo))
+}
+
+/// [`conv2d`] from candle ops ([`im2col`], then one matrix product with the bias as an extra
+/// row of ones): any device, differentiable.
+pub fn conv2d_reference(
+    x: &Tensor,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    spec: Im2ColSpec,
+    (b, ho, wo): (usize, usize, usize),
+) -> Result<Tensor> {
+    let (out_c, c, kh, kw) = weight.dims4()?;
+    let spec = Im2ColSpec {
+        kernel: (kh, kw),
+        ones_row: bias.is_some(),
+        ..spec
+    };
+    let col = im2col(x, spec)?;
+    let mut wm = weight.reshape((out_c, c * kh * kw))?;
+    if let Some(bias) = bias {
+        wm = Tensor::cat(&[&wm, &bias.reshape((out_c, 1))?], 1)?;
+    }
+    Ok(wm
+        .unsqueeze(0)?
+        .broadcast_matmul(&col)?
+        .reshape((b, out_c, ho, wo))?)
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -228,46 +228,17 @@ pub fn conv2d_zero_pad(
     )
 }
 
-/// A `kh x kw` convolution of `x: [B, C, H, W]` (weights `[out, C, kh, kw]`, bias `[out]`) as one
-/// im2col with the padding of `spec` ([`crate::fused::im2col`], multi-threaded on the CPU, `col2im`
-/// backward) and one matrix product; the bias rides in the product as an extra row of ones.
-/// `spec.kernel` and `spec.ones_row` are taken from the weights and the bias.
+/// A `kh x kw` convolution of `x: [B, C, H, W]` (weights `[out, C, kh, kw]`, bias `[out]`) with the
+/// padding and strides of `spec`: [`crate::fused::conv2d`] (one op on the CPU: the columns of one
+/// sample at a time and one matrix product each, forward and backward; im2col and a matrix product
+/// elsewhere). `spec.kernel` and `spec.ones_row` are taken from the weights and the bias.
 pub fn conv2d_im2col(
     x: &Tensor,
     weight: &Tensor,
     bias: Option<&Tensor>,
     spec: Im2ColSpec,
 ) -> Result<Tensor> {
-    let (b, c, h, w) = x.dims4()?;
-    let (out_c, wc, kh, kw) = weight.dims4()?;
-    let spec = Im2ColSpec {
-        kernel: (kh, kw),
-        ones_row: bias.is_some(),
-        ..spec
-    };
-    let Some((ho, wo)) = spec.out_size(h, w) else {
-        return Err(shape_err(
-            "convolution input",
-            format!("[B, {wc}, H, W] that a {kh}x{kw} kernel with {spec:?} fits"),
-            x.dims(),
-        ));
-    };
-    if wc != c {
-        return Err(shape_err(
-            "convolution input",
-            format!("[B, {wc}, H, W]"),
-            x.dims(),
-        ));
-    }
-    let col = im2col(x, spec)?;
-    let mut wm = weight.reshape((out_c, c * kh * kw))?;
-    if let Some(bias) = bias {
-        wm = Tensor::cat(&[&wm, &bias.reshape((out_c, 1))?], 1)?;
-    }
-    Ok(wm
-        .unsqueeze(0)?
-        .broadcast_matmul(&col)?
-        .reshape((b, out_c, ho, wo))?)
+    crate::fused::conv2d(x, weight, bias, spec)
 }
 
 /// Runs a `candle_nn::Conv2d` through [`conv2d_zero_pad`] (same weights, padding and stride, fast

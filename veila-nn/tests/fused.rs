@@ -6,7 +6,8 @@ use std::collections::HashMap;
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarBuilder;
 use veila_nn::fused::{
-    Im2ColSpec, add_scaled, group_norm_act, group_norm_act_reference, im2col, im2col_reference,
+    Im2ColSpec, add_scaled, conv2d, conv2d_reference, group_norm_act, group_norm_act_reference,
+    im2col, im2col_reference,
 };
 use veila_nn::ops::{RingConv2d, conv2d_zero_pad, group_norm, ring_pad};
 
@@ -155,6 +156,52 @@ fn zero_padded_conv_matches_candle_conv2d_with_gradients() {
             assert_close(a, e, &format!("conv p{padding} s{stride} gradient {k}"));
         }
     }
+}
+
+#[test]
+fn fused_convolution_matches_im2col_and_matmul_with_gradients() {
+    // every padding, stride and kernel shape of `specs()`, with and without a bias, batch 3
+    for spec in specs() {
+        for with_bias in [false, true] {
+            let x = Var::from_tensor(&seeded(&[3, 4, 7, 10], 21)).unwrap();
+            let (kh, kw) = spec.kernel;
+            let w = Var::from_tensor(&(seeded(&[5, 4, kh, kw], 22) * 0.3).unwrap()).unwrap();
+            let b = Var::from_tensor(&seeded(&[5], 23)).unwrap();
+            let bias = with_bias.then(|| b.as_tensor());
+            let Some((ho, wo)) = spec.out_size(7, 10) else {
+                continue;
+            };
+            let fast = conv2d(x.as_tensor(), w.as_tensor(), bias, spec).unwrap();
+            let slow =
+                conv2d_reference(x.as_tensor(), w.as_tensor(), bias, spec, (3, ho, wo)).unwrap();
+            let what = format!("{spec:?} bias {with_bias}");
+            assert_eq!(fast.dims(), [3, 5, ho, wo], "{what}");
+            assert_close(&fast, &slow, &what);
+            let vars: Vec<&Var> = if with_bias {
+                vec![&x, &w, &b]
+            } else {
+                vec![&x, &w]
+            };
+            let gf = conv_grads(&fast, &vars);
+            let gs = conv_grads(&slow, &vars);
+            for (k, (a, e)) in gf.iter().zip(&gs).enumerate() {
+                assert_close(a, e, &format!("{what} gradient {k}"));
+            }
+        }
+    }
+}
+
+#[test]
+fn fused_convolution_rejects_mismatched_weights_and_bias() {
+    let x = seeded(&[1, 4, 6, 6], 1);
+    let spec = specs()[0];
+    // 3 input channels in the weight for a 4-channel input
+    assert!(conv2d(&x, &seeded(&[2, 3, 3, 3], 2), None, spec).is_err());
+    // a bias of the wrong length
+    let w = seeded(&[2, 4, 3, 3], 3);
+    assert!(conv2d(&x, &w, Some(&seeded(&[3], 4)), spec).is_err());
+    // a kernel taller than the padded input
+    assert!(conv2d(&x, &seeded(&[2, 4, 9, 3], 5), None, spec).is_err());
 }
 
 #[test]
