@@ -434,14 +434,17 @@ fn strided(t: &Tensor, dim: usize, start: usize, n: usize, stride: usize) -> Res
 // convolution: im2col + gemm, one sample at a time
 
 /// `dst (m x n) = [dst +] lhs (m x k) · rhs (k x n)` with `gemm` (candle's own matrix-product
-/// crate), every matrix given as `(slice, row stride, column stride)`; `accumulate` adds to `dst`.
-/// The strides are checked against the slices, so the call is in bounds.
+/// crate), every matrix given as `(slice, row stride, column stride)`; `accumulate` adds to `dst`,
+/// `threaded` spreads the product over candle's thread count (the result is the same either way:
+/// `gemm` splits the output, not the sum). The strides are checked against the slices, so the call
+/// is in bounds.
 fn matmul_into(
     dst: (&mut [f32], usize, usize),
     (m, n, k): (usize, usize, usize),
     accumulate: bool,
     lhs: (&[f32], usize, usize),
     rhs: (&[f32], usize, usize),
+    threaded: bool,
 ) -> candle_core::Result<()> {
     fn fits(len: usize, rows: usize, cols: usize, rs: usize, cs: usize) -> bool {
         rows == 0 || cols == 0 || (rows - 1) * rs + (cols - 1) * cs < len
@@ -467,7 +470,7 @@ fn matmul_into(
         return Ok(());
     }
     let threads = candle_core::utils::get_num_threads();
-    let parallelism = if threads > 1 {
+    let parallelism = if threaded && threads > 1 {
         gemm::Parallelism::Rayon(threads)
     } else {
         gemm::Parallelism::None
@@ -503,38 +506,60 @@ fn matmul_into(
 
 impl Im2Col {
     /// The `[C kh kw, H_o W_o]` column matrix of one sample (`x`: its `C` planes of `h x w`).
-    fn fill_sample(&self, col: &mut [f32], x: &[f32], h: usize, w: usize, n: usize) {
+    fn fill_sample(
+        &self,
+        col: &mut [f32],
+        x: &[f32],
+        (h, w, n): (usize, usize, usize),
+        parallel: bool,
+    ) {
         let (kh, kw) = self.spec.kernel;
         let kk = kh * kw;
         if n == 0 {
             return;
         }
-        col.par_chunks_mut(n)
-            .with_min_len(min_len(n))
-            .enumerate()
-            .for_each(|(r, row)| {
-                let (ci, tap) = (r / kk, r % kk);
-                let plane = &x[ci * h * w..(ci + 1) * h * w];
-                self.fill_row(row, plane, h, w, tap / kw, tap % kw);
-            });
+        let fill = |(r, row): (usize, &mut [f32])| {
+            let (ci, tap) = (r / kk, r % kk);
+            let plane = &x[ci * h * w..(ci + 1) * h * w];
+            self.fill_row(row, plane, h, w, tap / kw, tap % kw);
+        };
+        if parallel {
+            col.par_chunks_mut(n)
+                .with_min_len(min_len(n))
+                .enumerate()
+                .for_each(fill);
+        } else {
+            col.chunks_mut(n).enumerate().for_each(fill);
+        }
     }
 
     /// Adds the column-matrix gradient `dcol` of one sample back into its planes `dx` (zeroed).
-    fn scatter_sample(&self, dcol: &[f32], dx: &mut [f32], h: usize, w: usize, n: usize) {
+    fn scatter_sample(
+        &self,
+        dcol: &[f32],
+        dx: &mut [f32],
+        (h, w, n): (usize, usize, usize),
+        parallel: bool,
+    ) {
         let (kh, kw) = self.spec.kernel;
         let kk = kh * kw;
         if h * w == 0 {
             return;
         }
-        dx.par_chunks_mut(h * w)
-            .with_min_len(min_len(h * w * kk))
-            .enumerate()
-            .for_each(|(ci, plane)| {
-                for tap in 0..kk {
-                    let r = ci * kk + tap;
-                    self.scatter_row(&dcol[r * n..(r + 1) * n], plane, h, w, tap / kw, tap % kw);
-                }
-            });
+        let scatter = |(ci, plane): (usize, &mut [f32])| {
+            for tap in 0..kk {
+                let r = ci * kk + tap;
+                self.scatter_row(&dcol[r * n..(r + 1) * n], plane, h, w, tap / kw, tap % kw);
+            }
+        };
+        if parallel {
+            dx.par_chunks_mut(h * w)
+                .with_min_len(min_len(h * w * kk))
+                .enumerate()
+                .for_each(scatter);
+        } else {
+            dx.chunks_mut(h * w).enumerate().for_each(scatter);
+        }
     }
 }
 
@@ -591,6 +616,43 @@ impl Conv2dGemm {
         })
     }
 
+    /// Whether the samples run in parallel, each with single-threaded products (when there are
+    /// at least as many samples as threads), rather than one after another with each product
+    /// spread over the threads: measured on 2 cores at batch 8, the thread hand-offs inside every
+    /// product cost more than they gain (`cargo xtask bench-model`, BENCHMARKS.md).
+    fn samples_in_parallel(d: &ConvDims) -> bool {
+        let threads = candle_core::utils::get_num_threads();
+        threads > 1 && d.b >= threads
+    }
+
+    /// One sample's output `[out, H_o W_o]` (`col`: a scratch buffer of `k * n`).
+    fn forward_sample(
+        &self,
+        d: &ConvDims,
+        (x, weight, bias): (&[f32], &[f32], Option<&[f32]>),
+        dst: &mut [f32],
+        col: &mut [f32],
+        threaded: bool,
+    ) -> candle_core::Result<()> {
+        let ConvDims {
+            h, w, out_c, k, n, ..
+        } = *d;
+        self.cols.fill_sample(col, x, (h, w, n), threaded);
+        if let Some(bias) = bias {
+            for (row, &v) in dst.chunks_mut(n).zip(bias) {
+                row.fill(v);
+            }
+        }
+        matmul_into(
+            (dst, n, 1),
+            (out_c, n, k),
+            bias.is_some(),
+            (weight, k, 1),
+            (col, n, 1),
+            threaded,
+        )
+    }
+
     fn forward(
         &self,
         d: ConvDims,
@@ -608,29 +670,70 @@ impl Conv2dGemm {
             n,
             ..
         } = d;
-        let mut col = vec![0f32; k * n];
         let mut out = vec![0f32; b * out_c * n];
-        for bi in 0..b {
-            self.cols
-                .fill_sample(&mut col, &x[bi * c * h * w..(bi + 1) * c * h * w], h, w, n);
-            let dst = &mut out[bi * out_c * n..(bi + 1) * out_c * n];
-            if let Some(bias) = bias {
-                for (row, &v) in dst.chunks_mut(n.max(1)).zip(bias) {
-                    row.fill(v);
-                }
+        let plane = c * h * w;
+        if out.is_empty() || plane == 0 {
+            return Ok((CpuStorage::F32(out), Shape::from((b, out_c, d.ho, d.wo))));
+        }
+        if Self::samples_in_parallel(&d) {
+            out.par_chunks_mut(out_c * n)
+                .zip(x.par_chunks(plane))
+                .try_for_each_init(
+                    || vec![0f32; k * n],
+                    |col, (dst, xb)| self.forward_sample(&d, (xb, weight, bias), dst, col, false),
+                )?;
+        } else {
+            let mut col = vec![0f32; k * n];
+            for (dst, xb) in out.chunks_mut(out_c * n).zip(x.chunks(plane)) {
+                self.forward_sample(&d, (xb, weight, bias), dst, &mut col, true)?;
             }
-            matmul_into(
-                (dst, n, 1),
-                (out_c, n, k),
-                bias.is_some(),
-                (weight, k, 1),
-                (&col, n, 1),
-            )?;
         }
         Ok((CpuStorage::F32(out), Shape::from((b, out_c, d.ho, d.wo))))
     }
 
-    /// Gradients of input, weight and (when `with_bias`) bias.
+    /// One sample's share of the gradients: its input gradient `dx` (zeroed), its own weight
+    /// gradient `dw` and bias gradient `db` (summed over the batch afterwards, in batch order).
+    #[allow(clippy::too_many_arguments)]
+    fn backward_sample(
+        &self,
+        d: &ConvDims,
+        (x, weight, g): (&[f32], &[f32], &[f32]),
+        (dx, dw, db): (&mut [f32], &mut [f32], &mut [f32]),
+        col: &mut [f32],
+        dcol: &mut [f32],
+        threaded: bool,
+    ) -> candle_core::Result<()> {
+        let ConvDims {
+            h, w, out_c, k, n, ..
+        } = *d;
+        self.cols.fill_sample(col, x, (h, w, n), threaded);
+        // dW (O x K) = g (O x N) · colᵀ (N x K)
+        matmul_into(
+            (dw, k, 1),
+            (out_c, k, n),
+            false,
+            (g, n, 1),
+            (col, 1, n),
+            threaded,
+        )?;
+        // dcol (K x N) = Wᵀ (K x O) · g (O x N)
+        matmul_into(
+            (dcol, n, 1),
+            (k, n, out_c),
+            false,
+            (weight, 1, k),
+            (g, n, 1),
+            threaded,
+        )?;
+        self.cols.scatter_sample(dcol, dx, (h, w, n), threaded);
+        for (acc, row) in db.iter_mut().zip(g.chunks(n)) {
+            *acc = row.iter().sum::<f32>();
+        }
+        Ok(())
+    }
+
+    /// Gradients of input, weight and (when `with_bias`) bias. Each sample's weight and bias
+    /// gradients are summed in batch order, so the result does not depend on the thread count.
     fn backward(
         &self,
         x: &Tensor,
@@ -651,7 +754,8 @@ impl Conv2dGemm {
         } = d;
         let xs = tensor_f32(x, "convolution input")?;
         let ws = tensor_f32(weight, "convolution weight")?;
-        with_f32(grad, "convolution gradient", |g| {
+        let plane = c * h * w;
+        let (dx, dw, db) = with_f32(grad, "convolution gradient", |g| {
             if g.len() != b * out_c * n {
                 candle_core::bail!(
                     "convolution: gradient {:?}, expected {:?}",
@@ -659,52 +763,72 @@ impl Conv2dGemm {
                     [b, out_c, d.ho, d.wo]
                 )
             }
-            let mut col = vec![0f32; k * n];
-            let mut dcol = vec![0f32; k * n];
-            let mut dx = vec![0f32; b * c * h * w];
-            let mut dw = vec![0f32; out_c * k];
-            let mut db = vec![0f32; if with_bias { out_c } else { 0 }];
-            for bi in 0..b {
-                let gb = &g[bi * out_c * n..(bi + 1) * out_c * n];
-                self.cols
-                    .fill_sample(&mut col, &xs[bi * c * h * w..(bi + 1) * c * h * w], h, w, n);
-                // dW (O x K) += g (O x N) · colᵀ (N x K)
-                matmul_into(
-                    (&mut dw, k, 1),
-                    (out_c, k, n),
-                    bi > 0,
-                    (gb, n, 1),
-                    (&col, 1, n),
-                )?;
-                // dcol (K x N) = Wᵀ (K x O) · g (O x N)
-                matmul_into(
-                    (&mut dcol, n, 1),
-                    (k, n, out_c),
-                    false,
-                    (&ws, 1, k),
-                    (gb, n, 1),
-                )?;
-                self.cols.scatter_sample(
-                    &dcol,
-                    &mut dx[bi * c * h * w..(bi + 1) * c * h * w],
-                    h,
-                    w,
-                    n,
-                );
-                for (acc, row) in db.iter_mut().zip(gb.chunks(n.max(1))) {
-                    *acc += row.iter().sum::<f32>();
+            let mut dx = vec![0f32; b * plane];
+            let mut dw_parts = vec![0f32; b * out_c * k];
+            let mut db_parts = vec![0f32; b * out_c];
+            if !(dx.is_empty() || g.is_empty() || dw_parts.is_empty()) {
+                let (dws, dbs) = (out_c * k, out_c);
+                if Self::samples_in_parallel(&d) {
+                    dx.par_chunks_mut(plane)
+                        .zip(dw_parts.par_chunks_mut(dws))
+                        .zip(db_parts.par_chunks_mut(dbs))
+                        .zip(xs.par_chunks(plane).zip(g.par_chunks(out_c * n)))
+                        .try_for_each_init(
+                            || (vec![0f32; k * n], vec![0f32; k * n]),
+                            |(col, dcol), (((dxb, dwb), dbb), (xb, gb))| {
+                                self.backward_sample(
+                                    &d,
+                                    (xb, &ws, gb),
+                                    (dxb, dwb, dbb),
+                                    col,
+                                    dcol,
+                                    false,
+                                )
+                            },
+                        )?;
+                } else {
+                    let (mut col, mut dcol) = (vec![0f32; k * n], vec![0f32; k * n]);
+                    for (((dxb, dwb), dbb), (xb, gb)) in dx
+                        .chunks_mut(plane)
+                        .zip(dw_parts.chunks_mut(dws))
+                        .zip(db_parts.chunks_mut(dbs))
+                        .zip(xs.chunks(plane).zip(g.chunks(out_c * n)))
+                    {
+                        self.backward_sample(
+                            &d,
+                            (xb, &ws, gb),
+                            (dxb, dwb, dbb),
+                            &mut col,
+                            &mut dcol,
+                            true,
+                        )?;
+                    }
                 }
             }
-            let dev = x.device();
-            let dx = Tensor::from_vec(dx, (b, c, h, w), dev)?;
-            let dw = Tensor::from_vec(dw, weight.dims(), dev)?;
-            let db = if with_bias {
-                Some(Tensor::from_vec(db, out_c, dev)?)
-            } else {
-                None
+            let sum_parts = |parts: &[f32], len: usize| -> Vec<f32> {
+                let mut acc = vec![0f32; len];
+                for part in parts.chunks(len.max(1)) {
+                    for (a, v) in acc.iter_mut().zip(part) {
+                        *a += v;
+                    }
+                }
+                acc
             };
-            Ok((dx, dw, db))
-        })
+            Ok((
+                dx,
+                sum_parts(&dw_parts, out_c * k),
+                sum_parts(&db_parts, out_c),
+            ))
+        })?;
+        let dev = x.device();
+        let dx = Tensor::from_vec(dx, (b, c, h, w), dev)?;
+        let dw = Tensor::from_vec(dw, weight.dims(), dev)?;
+        let db = if with_bias {
+            Some(Tensor::from_vec(db, out_c, dev)?)
+        } else {
+            None
+        };
+        Ok((dx, dw, db))
     }
 }
 

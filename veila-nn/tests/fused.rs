@@ -192,6 +192,31 @@ fn fused_convolution_matches_im2col_and_matmul_with_gradients() {
 }
 
 #[test]
+fn fused_convolution_of_one_sample_matches_im2col_and_matmul() {
+    // a batch of one runs each product over all threads (larger batches run their samples in
+    // parallel, one thread each: the test above): the other path of the op, on a larger layer
+    let spec = specs()[0];
+    let x = Var::from_tensor(&seeded(&[1, 8, 64, 128], 31)).unwrap();
+    let w = Var::from_tensor(&(seeded(&[16, 8, 3, 3], 32) * 0.2).unwrap()).unwrap();
+    let b = Var::from_tensor(&seeded(&[16], 33)).unwrap();
+    let fast = conv2d(x.as_tensor(), w.as_tensor(), Some(b.as_tensor()), spec).unwrap();
+    let slow = conv2d_reference(
+        x.as_tensor(),
+        w.as_tensor(),
+        Some(b.as_tensor()),
+        spec,
+        (1, 64, 128),
+    )
+    .unwrap();
+    assert_close(&fast, &slow, "large layer");
+    let gf = conv_grads(&fast, &[&x, &w, &b]);
+    let gs = conv_grads(&slow, &[&x, &w, &b]);
+    for (k, (a, e)) in gf.iter().zip(&gs).enumerate() {
+        assert_close(a, e, &format!("large layer gradient {k}"));
+    }
+}
+
+#[test]
 fn fused_convolution_rejects_mismatched_weights_and_bias() {
     let x = seeded(&[1, 4, 6, 6], 1);
     let spec = specs()[0];
