@@ -35,17 +35,19 @@ pub struct TrainDefaultArgs {
     /// Training steps of the mean network (residual method; default: --steps).
     #[arg(long)]
     pub mean_steps: Option<u64>,
-    /// Simulated training frames (from scenes/train.txt).
-    #[arg(long, default_value_t = 480)]
+    /// Simulated training frames (from scenes/train.txt). The defaults are the recipe of the
+    /// shipped `models/default`.
+    #[arg(long, default_value_t = 960)]
     pub frames: usize,
     /// Training steps of each encoder.
     #[arg(long, default_value_t = 150)]
     pub encoder_steps: usize,
-    /// Denoiser training steps.
-    #[arg(long, default_value_t = 1000)]
+    /// Denoiser training steps (the mean network takes as many unless --mean-steps: 2 x 6,250
+    /// updates of batch 8 are the 100,000 training samples of the shipped model).
+    #[arg(long, default_value_t = 6250)]
     pub steps: u64,
-    /// Denoiser batch size.
-    #[arg(long, default_value_t = 2)]
+    /// Batch size of both networks.
+    #[arg(long, default_value_t = 8)]
     pub batch: usize,
     /// Peak learning rate of the denoiser.
     #[arg(long, default_value_t = 1e-3)]
@@ -54,7 +56,7 @@ pub struct TrainDefaultArgs {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Updates between checkpoints (both networks).
-    #[arg(long, default_value_t = 250)]
+    #[arg(long, default_value_t = 50)]
     pub checkpoint_every: u64,
     /// Folder for resumable checkpoints (default: target/train-default/VARIANT-METHOD).
     #[arg(long)]
