@@ -597,6 +597,8 @@ fn with_scratch<R>(len: usize, f: impl FnOnce(&mut [f32], &mut [f32]) -> R) -> R
 #[derive(Debug, Clone, Copy)]
 struct Conv2dGemm {
     cols: Im2Col,
+    /// Forces one of the two paths (tests); `None` chooses by the batch and the thread count.
+    parallel: Option<bool>,
 }
 
 /// Shapes of a [`Conv2dGemm`] call.
@@ -646,9 +648,11 @@ impl Conv2dGemm {
     /// at least as many samples as threads), rather than one after another with each product
     /// spread over the threads: measured on 2 cores at batch 8, the thread hand-offs inside every
     /// product cost more than they gain (`cargo xtask bench-model`, BENCHMARKS.md).
-    fn samples_in_parallel(d: &ConvDims) -> bool {
-        let threads = candle_core::utils::get_num_threads();
-        threads > 1 && d.b >= threads
+    fn samples_in_parallel(&self, d: &ConvDims) -> bool {
+        self.parallel.unwrap_or_else(|| {
+            let threads = candle_core::utils::get_num_threads();
+            threads > 1 && d.b >= threads
+        })
     }
 
     /// One sample's output `[out, H_o W_o]` (`col`: a scratch buffer of `k * n`).
@@ -701,7 +705,7 @@ impl Conv2dGemm {
         if out.is_empty() || plane == 0 {
             return Ok((CpuStorage::F32(out), Shape::from((b, out_c, d.ho, d.wo))));
         }
-        if Self::samples_in_parallel(&d) {
+        if self.samples_in_parallel(&d) {
             out.par_chunks_mut(out_c * n)
                 .zip(x.par_chunks(plane))
                 .try_for_each(|(dst, xb)| {
@@ -797,7 +801,7 @@ impl Conv2dGemm {
             let mut db_parts = vec![0f32; b * out_c];
             if !(dx.is_empty() || g.is_empty() || dw_parts.is_empty()) {
                 let (dws, dbs) = (out_c * k, out_c);
-                if Self::samples_in_parallel(&d) {
+                if self.samples_in_parallel(&d) {
                     dx.par_chunks_mut(plane)
                         .zip(dw_parts.par_chunks_mut(dws))
                         .zip(db_parts.par_chunks_mut(dbs))
@@ -974,6 +978,7 @@ pub fn conv2d(
     if fused {
         let op = Conv2dGemm {
             cols: Im2Col { spec },
+            parallel: None,
         };
         let (x, weight) = (x.contiguous()?, weight.contiguous()?);
         return Ok(match bias {
@@ -1474,4 +1479,58 @@ pub fn upsample_nearest(x: &Tensor, factor: usize) -> Result<Tensor> {
     Ok(x.reshape((b, c, h, 1, w, 1))?
         .broadcast_as((b, c, h, factor, w, factor))?
         .reshape((b, c, h * factor, w * factor))?)
+}
+
+#[cfg(test)]
+mod tests {
+    use candle_core::Device;
+
+    use super::*;
+
+    /// A fixed pattern of `n` values in about [-1, 1].
+    fn pattern(n: usize, f: f32) -> Vec<f32> {
+        (0..n).map(|i| (i as f32 * f).sin()).collect()
+    }
+
+    #[test]
+    fn both_convolution_paths_give_the_same_bits() {
+        // samples in parallel (single-threaded products) and one after another (threaded
+        // products): the outputs and all three gradients are bit-identical, which is what makes a
+        // training run independent of the thread count
+        let dev = Device::Cpu;
+        let spec = Im2ColSpec {
+            kernel: (3, 3),
+            stride: (1, 2),
+            pad_h: 1,
+            pad_w: 1,
+            ring: true,
+            ones_row: false,
+        };
+        let x = Tensor::from_vec(pattern(3 * 4 * 6 * 10, 0.37), (3, 4, 6, 10), &dev).unwrap();
+        let w = Tensor::from_vec(pattern(5 * 4 * 9, 0.11), (5, 4, 3, 3), &dev).unwrap();
+        let b = Tensor::from_vec(pattern(5, 0.7), 5, &dev).unwrap();
+        let run = |parallel: bool| -> Vec<Vec<f32>> {
+            let op = Conv2dGemm {
+                cols: Im2Col { spec },
+                parallel: Some(parallel),
+            };
+            let y = x.apply_op3(&w, &b, op).unwrap();
+            let g = Tensor::from_vec(pattern(y.elem_count(), 0.53), y.dims(), &dev).unwrap();
+            let (dx, dw, db) = op.backward(&x, &w, &g, true).unwrap();
+            [y, dx, dw, db.unwrap()]
+                .iter()
+                .map(|t| t.flatten_all().unwrap().to_vec1::<f32>().unwrap())
+                .collect()
+        };
+        let (a, b) = (run(true), run(false));
+        for (i, (a, b)) in a.iter().zip(&b).enumerate() {
+            let same =
+                a.len() == b.len() && a.iter().zip(b).all(|(p, q)| p.to_bits() == q.to_bits());
+            assert!(same, "output {i} differs between the two paths");
+        }
+        assert!(
+            a[2].iter().any(|v| *v != 0.0),
+            "the weight gradient is all zero"
+        );
+    }
 }
