@@ -1,5 +1,7 @@
 //! `veila demo`, the README's main job: end to end through the built binary.
 
+mod common;
+
 use std::path::Path;
 use std::process::Command;
 
@@ -228,13 +230,9 @@ fn libc_sigpipe() -> i32 {
 /// flag before writing anything.
 #[test]
 fn the_residual_weight_moves_between_the_sample_and_the_mean_network() {
-    let bundle_json = std::fs::read_to_string(
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/default/bundle.json"),
-    )
-    .unwrap();
     let tmp = tempfile::tempdir().unwrap();
     let out = |name: &str| tmp.path().join(name);
-    if !bundle_json.contains("\"residual\": {") {
+    if !common::is_residual_bundle(&common::model_dir().join("bundle.json")) {
         let o = veila(&[
             "demo",
             "--residual-weight",

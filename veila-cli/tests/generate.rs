@@ -302,10 +302,11 @@ fn bad_input_fails_with_the_file_named_and_no_output() {
     let o = generate(&image, &calib, &out, &["--samples", "0"]);
     assert_fails_cleanly(&o, &out, &["--samples"]);
     // 0 steps is the mean network alone: only a residual bundle has one
-    let residual_default = std::fs::read_to_string(model_dir().join("bundle.json"))
-        .unwrap()
-        .contains("\"residual\": {");
-    let steps = if residual_default { "1001" } else { "0" };
+    let steps = if is_residual_bundle(&model_dir().join("bundle.json")) {
+        "1001"
+    } else {
+        "0"
+    };
     let o = generate(&image, &calib, &out, &["--steps", steps]);
     assert_fails_cleanly(&o, &out, &["--steps"]);
 

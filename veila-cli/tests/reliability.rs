@@ -614,11 +614,7 @@ fn sampler_settings_outside_their_sense_are_refused() {
     fails_with(&gen_(&["--guidance", "NaN"]), &["between 0 and 20"]);
     // 0 steps is the mean network alone: refused for bundles without one, while for a residual
     // default model the command goes on and stops at the missing image, naming it
-    let residual_default = std::fs::read_to_string(
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/default/bundle.json"),
-    )
-    .unwrap()
-    .contains("\"residual\": {");
+    let residual_default = common::is_residual_bundle(&common::model_dir().join("bundle.json"));
     let o = gen_(&["--steps", "0"]);
     fails_with(&o, &[if residual_default { "i.png" } else { "--steps" }]);
     for w in ["2", "-0.5", "NaN"] {

@@ -265,11 +265,9 @@ impl CustomOp1 for Im2Col {
                     let (bi, r) = (i / rows, i % rows);
                     if r >= c * kk {
                         row.fill(1.0);
-                        return;
+                    } else {
+                        self.fill_col_row(r, row, &x[bi * c * h * w..(bi + 1) * c * h * w], h, w);
                     }
-                    let (ci, tap) = (r / kk, r % kk);
-                    let plane = &x[(bi * c + ci) * h * w..(bi * c + ci + 1) * h * w];
-                    self.fill_row(row, plane, h, w, tap / kw, tap % kw);
                 });
         }
         Ok((CpuStorage::F32(dst), Shape::from((b, rows, n))))
@@ -331,17 +329,8 @@ impl CustomOp1 for Col2Im {
                 .enumerate()
                 .for_each(|(i, plane)| {
                     let (bi, ci) = (i / c, i % c);
-                    for tap in 0..kk {
-                        let r = bi * rows + ci * kk + tap;
-                        self.inner.scatter_row(
-                            &g[r * n..(r + 1) * n],
-                            plane,
-                            h,
-                            w,
-                            tap / kw,
-                            tap % kw,
-                        );
-                    }
+                    let sample = &g[bi * rows * n..(bi + 1) * rows * n];
+                    self.inner.scatter_plane(ci, plane, sample, (h, w, n));
                 });
         }
         Ok((CpuStorage::F32(dst), Shape::from((b, c, h, w))))
@@ -506,6 +495,36 @@ fn matmul_into(
 
 impl Im2Col {
     /// The `[C kh kw, H_o W_o]` column matrix of one sample (`x`: its `C` planes of `h x w`).
+    /// Fills row `r` (below `C kh kw`) of one sample's column matrix from that sample's planes `x`.
+    fn fill_col_row(&self, r: usize, row: &mut [f32], x: &[f32], h: usize, w: usize) {
+        let (kh, kw) = self.spec.kernel;
+        let (ci, tap) = (r / (kh * kw), r % (kh * kw));
+        self.fill_row(
+            row,
+            &x[ci * h * w..(ci + 1) * h * w],
+            h,
+            w,
+            tap / kw,
+            tap % kw,
+        );
+    }
+
+    /// Adds channel `ci`'s rows of one sample's column gradient `dcol` (`n` values a row) into that
+    /// channel's plane.
+    fn scatter_plane(
+        &self,
+        ci: usize,
+        plane: &mut [f32],
+        dcol: &[f32],
+        (h, w, n): (usize, usize, usize),
+    ) {
+        let (kh, kw) = self.spec.kernel;
+        for tap in 0..kh * kw {
+            let r = ci * kh * kw + tap;
+            self.scatter_row(&dcol[r * n..(r + 1) * n], plane, h, w, tap / kw, tap % kw);
+        }
+    }
+
     fn fill_sample(
         &self,
         col: &mut [f32],
@@ -513,16 +532,10 @@ impl Im2Col {
         (h, w, n): (usize, usize, usize),
         parallel: bool,
     ) {
-        let (kh, kw) = self.spec.kernel;
-        let kk = kh * kw;
         if n == 0 {
             return;
         }
-        let fill = |(r, row): (usize, &mut [f32])| {
-            let (ci, tap) = (r / kk, r % kk);
-            let plane = &x[ci * h * w..(ci + 1) * h * w];
-            self.fill_row(row, plane, h, w, tap / kw, tap % kw);
-        };
+        let fill = |(r, row): (usize, &mut [f32])| self.fill_col_row(r, row, x, h, w);
         if parallel {
             col.par_chunks_mut(n)
                 .with_min_len(min_len(n))
@@ -541,17 +554,13 @@ impl Im2Col {
         (h, w, n): (usize, usize, usize),
         parallel: bool,
     ) {
-        let (kh, kw) = self.spec.kernel;
-        let kk = kh * kw;
         if h * w == 0 {
             return;
         }
-        let scatter = |(ci, plane): (usize, &mut [f32])| {
-            for tap in 0..kk {
-                let r = ci * kk + tap;
-                self.scatter_row(&dcol[r * n..(r + 1) * n], plane, h, w, tap / kw, tap % kw);
-            }
-        };
+        let (kh, kw) = self.spec.kernel;
+        let kk = kh * kw;
+        let scatter =
+            |(ci, plane): (usize, &mut [f32])| self.scatter_plane(ci, plane, dcol, (h, w, n));
         if parallel {
             dx.par_chunks_mut(h * w)
                 .with_min_len(min_len(h * w * kk))
@@ -785,74 +794,78 @@ impl Conv2dGemm {
             n,
             ..
         } = d;
-        let xs = tensor_f32(x, "convolution input")?;
-        let ws = tensor_f32(weight, "convolution weight")?;
         let plane = c * h * w;
-        let (dx, dw, db) = with_f32(grad, "convolution gradient", |g| {
-            if g.len() != b * out_c * n {
-                candle_core::bail!(
-                    "convolution: gradient {:?}, expected {:?}",
-                    grad.dims(),
-                    [b, out_c, d.ho, d.wo]
-                )
-            }
-            let mut dx = vec![0f32; b * plane];
-            let mut dw_parts = vec![0f32; b * out_c * k];
-            let mut db_parts = vec![0f32; b * out_c];
-            if !(dx.is_empty() || g.is_empty() || dw_parts.is_empty()) {
-                let (dws, dbs) = (out_c * k, out_c);
-                if self.samples_in_parallel(&d) {
-                    dx.par_chunks_mut(plane)
-                        .zip(dw_parts.par_chunks_mut(dws))
-                        .zip(db_parts.par_chunks_mut(dbs))
-                        .zip(xs.par_chunks(plane).zip(g.par_chunks(out_c * n)))
-                        .try_for_each(|(((dxb, dwb), dbb), (xb, gb))| {
-                            with_scratch(k * n, |col, dcol| {
-                                self.backward_sample(
-                                    &d,
-                                    (xb, &ws, gb),
-                                    (dxb, dwb, dbb),
-                                    col,
-                                    dcol,
-                                    false,
-                                )
-                            })
-                        })?;
-                } else {
-                    with_scratch(k * n, |col, dcol| {
-                        for (((dxb, dwb), dbb), (xb, gb)) in dx
-                            .chunks_mut(plane)
-                            .zip(dw_parts.chunks_mut(dws))
-                            .zip(db_parts.chunks_mut(dbs))
-                            .zip(xs.chunks(plane).zip(g.chunks(out_c * n)))
-                        {
-                            self.backward_sample(
-                                &d,
-                                (xb, &ws, gb),
-                                (dxb, dwb, dbb),
-                                col,
-                                dcol,
-                                true,
-                            )?;
-                        }
-                        Ok::<_, candle_core::Error>(())
-                    })?;
-                }
-            }
-            let sum_parts = |parts: &[f32], len: usize| -> Vec<f32> {
-                let mut acc = vec![0f32; len];
-                for part in parts.chunks(len.max(1)) {
-                    for (a, v) in acc.iter_mut().zip(part) {
-                        *a += v;
+        // the input and the weights are read in place (no copies: this runs once per convolution
+        // in every training step)
+        let (dx, dw, db) = with_f32(x, "convolution input", |xs| {
+            with_f32(weight, "convolution weight", |ws| {
+                with_f32(grad, "convolution gradient", |g| {
+                    if g.len() != b * out_c * n {
+                        candle_core::bail!(
+                            "convolution: gradient {:?}, expected {:?}",
+                            grad.dims(),
+                            [b, out_c, d.ho, d.wo]
+                        )
                     }
-                }
-                acc
-            };
-            Ok((
-                dx,
-                sum_parts(&dw_parts, out_c * k),
-                sum_parts(&db_parts, out_c),
-            ))
+                    let mut dx = vec![0f32; b * plane];
+                    let mut dw_parts = vec![0f32; b * out_c * k];
+                    let mut db_parts = vec![0f32; b * out_c];
+                    if !(dx.is_empty() || g.is_empty() || dw_parts.is_empty()) {
+                        let (dws, dbs) = (out_c * k, out_c);
+                        if self.samples_in_parallel(&d) {
+                            dx.par_chunks_mut(plane)
+                                .zip(dw_parts.par_chunks_mut(dws))
+                                .zip(db_parts.par_chunks_mut(dbs))
+                                .zip(xs.par_chunks(plane).zip(g.par_chunks(out_c * n)))
+                                .try_for_each(|(((dxb, dwb), dbb), (xb, gb))| {
+                                    with_scratch(k * n, |col, dcol| {
+                                        self.backward_sample(
+                                            &d,
+                                            (xb, ws, gb),
+                                            (dxb, dwb, dbb),
+                                            col,
+                                            dcol,
+                                            false,
+                                        )
+                                    })
+                                })?;
+                        } else {
+                            with_scratch(k * n, |col, dcol| {
+                                for (((dxb, dwb), dbb), (xb, gb)) in dx
+                                    .chunks_mut(plane)
+                                    .zip(dw_parts.chunks_mut(dws))
+                                    .zip(db_parts.chunks_mut(dbs))
+                                    .zip(xs.chunks(plane).zip(g.chunks(out_c * n)))
+                                {
+                                    self.backward_sample(
+                                        &d,
+                                        (xb, ws, gb),
+                                        (dxb, dwb, dbb),
+                                        col,
+                                        dcol,
+                                        true,
+                                    )?;
+                                }
+                                Ok::<_, candle_core::Error>(())
+                            })?;
+                        }
+                    }
+                    let sum_parts = |parts: &[f32], len: usize| -> Vec<f32> {
+                        let mut acc = vec![0f32; len];
+                        for part in parts.chunks(len.max(1)) {
+                            for (a, v) in acc.iter_mut().zip(part) {
+                                *a += v;
+                            }
+                        }
+                        acc
+                    };
+                    Ok((
+                        dx,
+                        sum_parts(&dw_parts, out_c * k),
+                        sum_parts(&db_parts, out_c),
+                    ))
+                })
+            })
         })?;
         let dev = x.device();
         let dx = Tensor::from_vec(dx, (b, c, h, w), dev)?;

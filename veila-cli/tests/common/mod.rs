@@ -45,6 +45,14 @@ pub fn model_dir() -> PathBuf {
         .unwrap()
 }
 
+/// Whether the bundle config `bundle_json` (a `bundle.json`) is residual diffusion: a mean network
+/// and a residual denoiser.
+pub fn is_residual_bundle(bundle_json: &Path) -> bool {
+    let v: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(bundle_json).unwrap()).unwrap();
+    v.get("residual").is_some_and(|r| !r.is_null())
+}
+
 /// Asserts that a command succeeded, printing its output otherwise.
 pub fn ok(o: &Output) {
     assert!(
