@@ -458,7 +458,9 @@ fn matmul_into(
         }
         return Ok(());
     }
-    let threads = candle_core::utils::get_num_threads();
+    // rayon's count, not `candle_core::utils::get_num_threads()`: candle 0.11 reads
+    // `/proc/cpuinfo` on every call of that unless RAYON_NUM_THREADS is set
+    let threads = rayon::current_num_threads();
     let parallelism = if threaded && threads > 1 {
         gemm::Parallelism::Rayon(threads)
     } else {
@@ -659,7 +661,7 @@ impl Conv2dGemm {
     /// product cost more than they gain (`cargo xtask bench-model`, BENCHMARKS.md).
     fn samples_in_parallel(&self, d: &ConvDims) -> bool {
         self.parallel.unwrap_or_else(|| {
-            let threads = candle_core::utils::get_num_threads();
+            let threads = rayon::current_num_threads();
             threads > 1 && d.b >= threads
         })
     }
@@ -682,12 +684,14 @@ impl Conv2dGemm {
                 row.fill(v);
             }
         }
+        // computed transposed, outᵀ (N x O) = colᵀ (N x K) · Wᵀ (K x O): the big operand is then
+        // column-major, which `gemm` reads in place instead of packing a copy of it
         matmul_into(
-            (dst, n, 1),
-            (out_c, n, k),
+            (dst, 1, n),
+            (n, out_c, k),
             bias.is_some(),
-            (weight, k, 1),
-            (col, n, 1),
+            (col, 1, n),
+            (weight, 1, k),
             threaded,
         )
     }
@@ -758,13 +762,14 @@ impl Conv2dGemm {
             (col, 1, n),
             threaded,
         )?;
-        // dcol (K x N) = Wᵀ (K x O) · g (O x N)
+        // dcol (K x N) = Wᵀ (K x O) · g (O x N), transposed as in the forward:
+        // dcolᵀ (N x K) = gᵀ (N x O) · W (O x K)
         matmul_into(
-            (dcol, n, 1),
-            (k, n, out_c),
+            (dcol, 1, n),
+            (n, k, out_c),
             false,
-            (weight, 1, k),
-            (g, n, 1),
+            (g, 1, n),
+            (weight, k, 1),
             threaded,
         )?;
         self.cols.scatter_sample(dcol, dx, (h, w, n), threaded);

@@ -33,6 +33,13 @@
 //! Conditioned use: build the geometry once per camera rig ([`Denoiser::geometry`]), fuse the encoder
 //! pyramids once per image ([`Denoiser::prepare_condition`]), then call [`Denoiser::forward`] with the
 //! prepared condition at every denoising step.
+//!
+//! **Speed on the CPU** (measured in BENCHMARKS.md, `cargo xtask bench-model`): the convolutions,
+//! GroupNorms and residual sums run as the multi-threaded kernels of [`fused`]. A program of its own
+//! gets the `veila` binary's speed with two process settings: a global allocator that keeps freed
+//! memory (mimalloc, with a purge delay of seconds), and `RAYON_NUM_THREADS` set before the first
+//! candle operation (candle 0.11 otherwise counts the cores from `/proc/cpuinfo` on every matrix
+//! product).
 
 pub mod cacm;
 pub mod checkpoint;

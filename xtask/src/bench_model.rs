@@ -46,6 +46,11 @@ struct BenchModelReport {
     forward_b1_ms: f64,
     forward_b8_ms: f64,
     train_b8_ms: f64,
+    /// The training step's three phases (medians, so they need not add up to `train_b8_ms`):
+    /// forward with gradient tracking and the loss, backward, AdamW.
+    train_b8_forward_ms: f64,
+    train_b8_backward_ms: f64,
+    train_b8_optimizer_ms: f64,
     /// Process CPU time over wall time during the timed training steps.
     train_cpu_over_wall: Option<f64>,
     /// Batch-8 forward per sample over batch-1 forward (<= 1: batching helps).
@@ -154,24 +159,39 @@ pub fn run(args: BenchModelArgs) -> Result<()> {
         },
     )?;
     let noise = inputs(&cfg, 8, args.seed + 2, &dev)?.0;
-    let mut step = || -> Result<()> {
+    // one step, timed by phase: [forward + loss, backward, optimizer] in ms
+    let mut step = || -> Result<[f64; 3]> {
+        let t0 = Instant::now();
         let pred = net.forward(&x8, &t8, None)?;
         let loss = (pred - &noise)?.sqr()?.mean_all()?;
+        let t1 = Instant::now();
         let grads = loss.backward()?;
+        let t2 = Instant::now();
         opt.step(&grads)?;
-        Ok(())
+        let t3 = Instant::now();
+        let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
+        Ok([ms(t0, t1), ms(t1, t2), ms(t2, t3)])
     };
     step()?;
     step()?;
     let train_runs = args.train_runs.max(1);
     let mut times = Vec::with_capacity(train_runs);
+    let mut phases: [Vec<f64>; 3] = Default::default();
     let cpu0 = process_cpu_s();
     let wall0 = Instant::now();
     for _ in 0..train_runs {
         let start = Instant::now();
-        step()?;
+        let p = step()?;
         times.push(start.elapsed().as_secs_f64() * 1e3);
+        for (all, t) in phases.iter_mut().zip(p) {
+            all.push(t);
+        }
     }
+    let [
+        train_b8_forward_ms,
+        train_b8_backward_ms,
+        train_b8_optimizer_ms,
+    ] = phases.map(median);
     let wall = wall0.elapsed().as_secs_f64();
     let train_cpu_over_wall = match (cpu0, process_cpu_s()) {
         (Some(a), Some(b)) if wall > 0.0 => Some((b - a) / wall),
@@ -182,6 +202,9 @@ pub fn run(args: BenchModelArgs) -> Result<()> {
         forward_b1_ms,
         forward_b8_ms,
         train_b8_ms,
+        train_b8_forward_ms,
+        train_b8_backward_ms,
+        train_b8_optimizer_ms,
         train_cpu_over_wall,
         forward_b8_per_sample_over_b1: forward_b8_ms / 8.0 / forward_b1_ms,
         forward_b1_mean,
@@ -204,6 +227,9 @@ pub fn run(args: BenchModelArgs) -> Result<()> {
         );
         eprintln!(
             "train b8     {train_b8_ms:8.1} ms (median of {train_runs}; forward + backward + AdamW)"
+        );
+        eprintln!(
+            "  phases     {train_b8_forward_ms:.1} ms forward + loss, {train_b8_backward_ms:.1} ms backward, {train_b8_optimizer_ms:.1} ms AdamW (medians)"
         );
         if let Some(r) = train_cpu_over_wall {
             eprintln!("train CPU time / wall time {r:.2}");
