@@ -162,8 +162,16 @@ fn remove_box_keeps_the_rest_exactly_and_regenerates_the_box() {
         json["regenerated_pixels"],
         regen.iter().filter(|r| **r).count()
     );
-    // the bundle's default sampler is DPM-Solver++: edit switches to deterministic DDIM
-    assert_eq!(json["sampler"]["kind"]["kind"], "ddim");
+    // edit keeps the bundle's default sampler where RePaint can follow it (ddpm, ddim) and
+    // switches a multistep DPM-Solver++ default to deterministic DDIM
+    let bundle: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(model_dir().join("bundle.json")).unwrap()).unwrap();
+    let expected = match bundle["sampler"]["kind"]["kind"].as_str().unwrap() {
+        "dpm_solver_pp2_m" => "ddim",
+        other => other,
+    };
+    assert_eq!(json["sampler"]["kind"]["kind"], expected);
+    assert_eq!(json["sampler"]["steps"], 2, "--steps 2 was asked");
 }
 
 #[test]
