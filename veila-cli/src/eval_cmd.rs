@@ -12,6 +12,9 @@ use clap::{Args, Subcommand, ValueEnum};
 use glam::Vec3;
 use rayon::prelude::*;
 
+use veila_metrics::crossmodal::{
+    DepthAlignment, Map2d, ProjectionFilter, cm_depth_consistency, cm_semantic_consistency,
+};
 use veila_metrics::{
     MetricReport, MetricValue, Protocol, Region,
     bev::{BevConfig, BevHistogram, SparseBevHistogram, bev_histogram_sparse},
@@ -69,6 +72,45 @@ pub(crate) enum MetricName {
     /// / 80 m), whole panorama only. With the built-in simulator-trained net, NOT comparable with
     /// published FPD values (different weights and feature layer).
     Fpd,
+    /// Cross-modal depth consistency (the paper's CM-DC): each generated scan's points projected into
+    /// its camera (--calib) against a depth map (--depth-maps), AbsRel after --depth-alignment,
+    /// averaged over the scans; the camera's field of view only.
+    CmDc,
+    /// Cross-modal semantic consistency (the paper's CM-SC): the percentage of generated points whose
+    /// class from the built-in range segmentation net (SemanticKITTI train ids) equals the class map's
+    /// (--semantic-maps) where they project; averaged over the scans.
+    CmSc,
+}
+
+/// How CM-DC aligns a depth map to the scan's depths.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub(crate) enum AlignmentArg {
+    /// Scale by median(scan depth) / median(map): relative monocular depth (the paper's protocol).
+    Median,
+    /// Scale and shift by least squares (MiDaS-style).
+    LeastSquares,
+    /// None: metric depth maps.
+    None,
+}
+
+impl From<AlignmentArg> for DepthAlignment {
+    fn from(a: AlignmentArg) -> Self {
+        match a {
+            AlignmentArg::Median => DepthAlignment::Median,
+            AlignmentArg::LeastSquares => DepthAlignment::LeastSquares,
+            AlignmentArg::None => DepthAlignment::None,
+        }
+    }
+}
+
+/// The id space of --semantic-maps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub(crate) enum SemanticIdsArg {
+    /// SemanticKITTI train ids (0 = ignored, 1..=19).
+    Train,
+    /// SemanticKITTI raw ids (10 car, 40 road, ...), mapped to train ids by its learning map (what
+    /// `veila simulate` writes to `semantic_2/`).
+    Raw,
 }
 
 /// The peer pipelines `jsd` and `mmd` follow.
@@ -152,6 +194,43 @@ pub(crate) struct EvalArgs {
     /// Replace existing --json / --report files (never an input).
     #[arg(long)]
     force: bool,
+    /// cm-dc / cm-sc: the generated scans' KITTI calibration (camera image_2): one file for every
+    /// scan, or a folder with `<scan stem>.txt` per scan (e.g. `veila simulate`'s `calib/`).
+    #[arg(long)]
+    calib: Option<PathBuf>,
+    /// cm-dc: a folder with a depth map per generated scan, `<scan stem>.png` (16-bit, metres x 256,
+    /// 0 = none: the KITTI convention, `veila simulate`'s `depth_2/`) or `<scan stem>.npy` (float
+    /// H x W, e.g. a monocular network's depth; not disparity).
+    #[arg(long)]
+    depth_maps: Option<PathBuf>,
+    /// cm-dc: how each depth map is aligned to the scan's depths before AbsRel.
+    #[arg(long, value_enum, default_value = "median")]
+    depth_alignment: AlignmentArg,
+    /// cm-sc: a folder with a class map per generated scan, `<scan stem>.png` (8- or 16-bit
+    /// greyscale class ids; e.g. a SegFormer's classes mapped to SemanticKITTI ids).
+    #[arg(long)]
+    semantic_maps: Option<PathBuf>,
+    /// cm-sc: the id space of --semantic-maps.
+    #[arg(long, value_enum, default_value = "train")]
+    semantic_ids: SemanticIdsArg,
+    /// cm-dc / cm-sc: the camera image's size, WIDTHxHEIGHT, when the maps have another resolution
+    /// (default: each map's own size).
+    #[arg(long, value_parser = parse_size)]
+    image_size: Option<(u32, u32)>,
+}
+
+fn parse_size(s: &str) -> std::result::Result<(u32, u32), String> {
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("`{s}`: expected WIDTHxHEIGHT, e.g. 1242x375"))?;
+    let parse = |v: &str| {
+        v.trim()
+            .parse::<u32>()
+            .ok()
+            .filter(|&n| (1..=65_536).contains(&n))
+            .ok_or_else(|| format!("`{s}`: sizes are whole numbers from 1 to 65536"))
+    };
+    Ok((parse(w)?, parse(h)?))
 }
 
 #[derive(Debug, Args)]
@@ -488,6 +567,7 @@ fn run_eval(a: EvalArgs) -> Result<()> {
     if metrics.contains(&MetricName::Chamfer) {
         check_pairing(&gen_files, &ref_files, &a.generated, &a.reference)?;
     }
+    check_crossmodal_args(&a, &metrics, &gen_files)?;
     let regions: Vec<Region> = a.regions.iter().map(|&r| Region::from(r)).collect();
     let needs = Needs {
         points: metrics
@@ -545,8 +625,8 @@ fn run_eval(a: EvalArgs) -> Result<()> {
             pb.set_message(format!("{m:?} {region}"));
             let ex = |e| explain(e, &generated, &reference);
             let v = match m {
-                // feature metrics: whole panorama, computed once below
-                MetricName::Frd | MetricName::Fpd => {
+                // feature and cross-modal metrics: computed once below
+                MetricName::Frd | MetricName::Fpd | MetricName::CmDc | MetricName::CmSc => {
                     pb.inc(1);
                     continue;
                 }
@@ -669,6 +749,7 @@ fn run_eval(a: EvalArgs) -> Result<()> {
     }
     pb.finish_and_clear();
     feature_metrics(&a, &metrics, &gen_files, &ref_files, &mut report)?;
+    crossmodal_metrics(&a, &metrics, &gen_files, &mut report)?;
     // the files first (all or none), then the table: a reader that goes away early (`| head`)
     // cannot cost them
     let mut files = Vec::new();
@@ -956,5 +1037,184 @@ fn run_fd(a: FdArgs) -> Result<()> {
         )?;
     }
     print_table(&report);
+    Ok(())
+}
+
+/// What the cross-modal metrics need, checked before any work: a calibration and the maps, and
+/// scans (not peer sample sets) to project.
+fn check_crossmodal_args(
+    a: &EvalArgs,
+    metrics: &[MetricName],
+    gen_files: &[PathBuf],
+) -> Result<()> {
+    let (dc, sc) = (
+        metrics.contains(&MetricName::CmDc),
+        metrics.contains(&MetricName::CmSc),
+    );
+    if !dc && !sc {
+        return Ok(());
+    }
+    if a.calib.is_none() {
+        bail!("cm-dc / cm-sc project the generated points into the camera: pass --calib FILE|DIR");
+    }
+    if dc && a.depth_maps.is_none() {
+        bail!("cm-dc compares with depth maps: pass --depth-maps DIR (<scan stem>.png or .npy)");
+    }
+    if sc && a.semantic_maps.is_none() {
+        bail!("cm-sc compares with class maps: pass --semantic-maps DIR (<scan stem>.png)");
+    }
+    if let Some(f) = gen_files
+        .iter()
+        .find(|f| veila_data::peer_samples::is_sample_file(f))
+    {
+        bail!(
+            "{}: cm-dc / cm-sc project scans into the camera; peer sample sets have no camera",
+            f.display()
+        );
+    }
+    Ok(())
+}
+
+/// A scan file's name without its point-format extension (`000001.bin`, `x.pcd.bin` -> `000001`, `x`).
+fn scan_stem(path: &Path) -> String {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let lower = name.to_lowercase();
+    for ext in [".pcd.bin", ".bin", ".ply", ".exr"] {
+        if lower.ends_with(ext) {
+            return name[..name.len() - ext.len()].to_string();
+        }
+    }
+    name
+}
+
+/// `dir/<stem>.<ext>` for the first extension that exists, or an error naming what was looked for.
+fn companion(dir: &Path, stem: &str, exts: &[&str], what: &str, scan: &Path) -> Result<PathBuf> {
+    for ext in exts {
+        let p = dir.join(format!("{stem}.{ext}"));
+        if p.is_file() {
+            return Ok(p);
+        }
+    }
+    bail!(
+        "{}: no {what} for it: expected {} in {}",
+        scan.display(),
+        exts.iter()
+            .map(|e| format!("{stem}.{e}"))
+            .collect::<Vec<_>>()
+            .join(" or "),
+        dir.display()
+    )
+}
+
+/// CM-DC and CM-SC (when requested) over the generated scans, appended to `report` (region front:
+/// the camera's field of view; the value is the mean over the scans that have points in it).
+fn crossmodal_metrics(
+    a: &EvalArgs,
+    metrics: &[MetricName],
+    gen_files: &[PathBuf],
+    report: &mut MetricReport,
+) -> Result<()> {
+    let (want_dc, want_sc) = (
+        metrics.contains(&MetricName::CmDc),
+        metrics.contains(&MetricName::CmSc),
+    );
+    if !want_dc && !want_sc {
+        return Ok(());
+    }
+    let calib = a
+        .calib
+        .as_deref()
+        .expect("checked by check_crossmodal_args");
+    let nets = if want_sc {
+        Some(eval_features::load_nets(a.feature_nets.as_deref())?)
+    } else {
+        None
+    };
+    let (mut dc, mut sc) = (Vec::new(), Vec::new());
+    let pb = crate::progress::bar(gen_files.len() as u64, "cross-modal");
+    for f in gen_files {
+        let stem = scan_stem(f);
+        let calib_file = if calib.is_dir() {
+            companion(calib, &stem, &["txt"], "calibration", f)?
+        } else {
+            calib.to_path_buf()
+        };
+        let loaded = veila_data::scan::read_points(f)?;
+        let cloud = &loaded.cloud;
+        let camera_for = |w: u32, h: u32| -> Result<veila_geom::PinholeCamera> {
+            let (w, h) = a.image_size.unwrap_or((w, h));
+            Ok(veila_data::weather::files::read_camera(&calib_file, w, h)?)
+        };
+        if want_dc {
+            let dir = a.depth_maps.as_deref().expect("checked");
+            let mp = companion(dir, &stem, &["png", "npy"], "depth map", f)?;
+            let map = veila_data::image_io::read_depth_map(&mp)?;
+            let cam = camera_for(map.width, map.height)?;
+            let m = Map2d::new(map.width, map.height, &map.data)
+                .with_context(|| mp.display().to_string())?;
+            match cm_depth_consistency(
+                &cloud.xyz,
+                &cam,
+                &m,
+                a.depth_alignment.into(),
+                &ProjectionFilter::default(),
+            ) {
+                Ok(c) if c.abs_rel.is_finite() => dc.push(c.abs_rel),
+                Ok(_) => tracing::warn!("{}: no point projects onto a depth value", f.display()),
+                Err(e) => tracing::warn!("{}: cm-dc skipped: {e}", f.display()),
+            }
+        }
+        if let Some(nets) = &nets {
+            let dir = a.semantic_maps.as_deref().expect("checked");
+            let mp = companion(dir, &stem, &["png"], "class map", f)?;
+            let mut map = veila_data::image_io::read_label_map(&mp)?;
+            if a.semantic_ids == SemanticIdsArg::Raw {
+                for v in &mut map.data {
+                    *v = u32::from(veila_data::sim::class::learning_id(
+                        u16::try_from(*v).unwrap_or(0),
+                    ));
+                }
+            }
+            let cam = camera_for(map.width, map.height)?;
+            let (pts, labels) = nets.segment_points(&cloud.xyz, Some(&cloud.intensity))?;
+            let m = Map2d::new(map.width, map.height, &map.data)
+                .with_context(|| mp.display().to_string())?;
+            let filter = ProjectionFilter {
+                ignore_label: Some(0),
+                ..ProjectionFilter::default()
+            };
+            match cm_semantic_consistency(&pts, &labels, &cam, &m, &filter) {
+                Ok(c) if c.percent.is_finite() => sc.push(c.percent),
+                Ok(_) => tracing::warn!("{}: no point projects onto a labelled pixel", f.display()),
+                Err(e) => tracing::warn!("{}: cm-sc skipped: {e}", f.display()),
+            }
+        }
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    for (want, name, vals) in [(want_dc, "cm-dc", &dc), (want_sc, "cm-sc (%)", &sc)] {
+        if !want {
+            continue;
+        }
+        if vals.is_empty() {
+            bail!(
+                "{name}: no generated scan has points in the camera's view with a map value there \
+                 (check --calib and the maps)"
+            );
+        }
+        report.metrics.push(MetricValue {
+            name: name.into(),
+            protocol: Protocol::Veila,
+            region: Region::Front,
+            value: mean(vals),
+            generated: vals.len(),
+            reference: 0,
+            paper_scale: None,
+        });
+    }
     Ok(())
 }

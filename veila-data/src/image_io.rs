@@ -1,4 +1,5 @@
-//! Camera images (PNG, JPEG) in and PNG out, with errors that name the file.
+//! Camera images (PNG, JPEG) in and PNG out, and image-aligned maps (depth, class ids) in, with
+//! errors that name the file.
 
 use std::path::Path;
 
@@ -63,9 +64,201 @@ pub fn write_png(path: &Path, img: &RgbImage) -> Result<()> {
     write_atomic_with(path, |w| std::io::Write::write_all(w, &bytes))
 }
 
+/// A row-major `height x width` map aligned with a camera image (depth in metres, or class ids).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ImageMap<T> {
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// `height * width` values, row-major.
+    pub data: Vec<T>,
+}
+
+fn lower_ext(path: &Path) -> String {
+    path.extension()
+        .map(|e| e.to_string_lossy().to_lowercase())
+        .unwrap_or_default()
+}
+
+fn decode_image(path: &Path) -> Result<image::DynamicImage> {
+    let reader = ImageReader::open(path)
+        .map_err(|e| Error::io(path, e))?
+        .with_guessed_format()
+        .map_err(|e| Error::io(path, e))?;
+    if reader.format() != Some(ImageFormat::Png) {
+        return Err(Error::format(path, "not a PNG image"));
+    }
+    reader.decode().map_err(|e| image_error(path, e))
+}
+
+/// Read a depth map aligned with a camera image:
+///
+/// * `.png`: 16-bit greyscale in the KITTI depth convention, `depth_m = value / 256`, 0 = no depth
+///   (what `veila simulate` writes to `depth_2/` and KITTI's depth benchmark uses). An 8-bit or colour
+///   PNG is refused: it cannot hold metric depth.
+/// * `.npy`: a float32 / float64 array of shape `[H, W]` (leading axes of size 1 allowed), values as
+///   stored (metres, or a relative depth to be aligned; not disparity).
+pub fn read_depth_map(path: &Path) -> Result<ImageMap<f32>> {
+    match lower_ext(path).as_str() {
+        "png" => match decode_image(path)? {
+            image::DynamicImage::ImageLuma16(img) => Ok(ImageMap {
+                width: img.width(),
+                height: img.height(),
+                data: img
+                    .into_raw()
+                    .into_iter()
+                    .map(|v| v as f32 / 256.0)
+                    .collect(),
+            }),
+            other => Err(Error::format(
+                path,
+                format!(
+                    "a depth PNG must be 16-bit greyscale (metres x 256, the KITTI convention), this one is {:?}",
+                    other.color()
+                ),
+            )),
+        },
+        "npy" => {
+            let arrays = crate::peer_samples::read_sample_arrays(path)?;
+            let a = arrays
+                .into_iter()
+                .next()
+                .ok_or_else(|| Error::format(path, "no array"))?;
+            let dims: Vec<usize> = a.shape.iter().copied().skip_while(|&d| d == 1).collect();
+            let (h, w) = match dims.as_slice() {
+                [h, w] if *h > 0 && *w > 0 => (*h, *w),
+                _ => {
+                    return Err(Error::format(
+                        path,
+                        format!(
+                            "a depth map must have shape [H, W], this one has {:?}",
+                            a.shape
+                        ),
+                    ));
+                }
+            };
+            let (height, width) = (
+                u32::try_from(h).map_err(|_| Error::format(path, "height out of range"))?,
+                u32::try_from(w).map_err(|_| Error::format(path, "width out of range"))?,
+            );
+            Ok(ImageMap {
+                width,
+                height,
+                data: a.data,
+            })
+        }
+        _ => Err(Error::format(
+            path,
+            "a depth map is a 16-bit PNG (metres x 256) or a .npy float array",
+        )),
+    }
+}
+
+/// Read a class-id map aligned with a camera image: an 8- or 16-bit greyscale PNG whose values are
+/// class ids (a colour PNG is refused: colours are not ids).
+pub fn read_label_map(path: &Path) -> Result<ImageMap<u32>> {
+    if lower_ext(path) != "png" {
+        return Err(Error::format(
+            path,
+            "a class map is an 8- or 16-bit greyscale PNG of class ids",
+        ));
+    }
+    match decode_image(path)? {
+        image::DynamicImage::ImageLuma8(img) => Ok(ImageMap {
+            width: img.width(),
+            height: img.height(),
+            data: img.into_raw().into_iter().map(u32::from).collect(),
+        }),
+        image::DynamicImage::ImageLuma16(img) => Ok(ImageMap {
+            width: img.width(),
+            height: img.height(),
+            data: img.into_raw().into_iter().map(u32::from).collect(),
+        }),
+        other => Err(Error::format(
+            path,
+            format!(
+                "a class map must be an 8- or 16-bit greyscale PNG of class ids, this one is {:?}",
+                other.color()
+            ),
+        )),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A little-endian float32 `.npy` (format 1.0) written by hand, as numpy lays it out.
+    fn npy_f32(shape: &str, vals: &[f32]) -> Vec<u8> {
+        let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}");
+        while (10 + header.len() + 1) % 64 != 0 {
+            header.push(' ');
+        }
+        header.push('\n');
+        let mut out = b"\x93NUMPY\x01\x00".to_vec();
+        out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+        out.extend_from_slice(header.as_bytes());
+        for v in vals {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out
+    }
+
+    #[test]
+    fn depth_and_label_maps_from_png_and_npy() {
+        let dir = tempfile::tempdir().unwrap();
+        // 16-bit depth PNG: value / 256 metres, 0 stays 0
+        let raw: Vec<u16> = vec![0, 256, 2560, 65535, 384, 1];
+        let img: image::ImageBuffer<image::Luma<u16>, Vec<u16>> =
+            image::ImageBuffer::from_raw(3, 2, raw.clone()).unwrap();
+        let p = dir.path().join("d.png");
+        img.save(&p).unwrap();
+        let m = read_depth_map(&p).unwrap();
+        assert_eq!((m.width, m.height), (3, 2));
+        let want: Vec<f32> = raw.iter().map(|&v| v as f32 / 256.0).collect();
+        assert_eq!(m.data, want);
+        assert_eq!(m.data[1], 1.0);
+        // the same PNG read as a class map gives the raw ids
+        let l = read_label_map(&p).unwrap();
+        assert_eq!(l.data, raw.iter().map(|&v| v as u32).collect::<Vec<_>>());
+        // 8-bit: a class map yes, a depth map no (and the error names the file)
+        let p8 = dir.path().join("l8.png");
+        image::GrayImage::from_raw(2, 1, vec![9, 40])
+            .unwrap()
+            .save(&p8)
+            .unwrap();
+        assert_eq!(read_label_map(&p8).unwrap().data, vec![9, 40]);
+        let e = read_depth_map(&p8).unwrap_err().to_string();
+        assert!(e.contains("l8.png") && e.contains("16-bit"), "{e}");
+        // colour PNGs are neither
+        let prgb = dir.path().join("c.png");
+        RgbImage::new(2, 2).save(&prgb).unwrap();
+        assert!(
+            read_label_map(&prgb)
+                .unwrap_err()
+                .to_string()
+                .contains("c.png")
+        );
+        assert!(read_depth_map(&prgb).is_err());
+        // .npy float map, [1, H, W]
+        let pn = dir.path().join("d.npy");
+        let vals = [1.5f32, 2.0, 0.0, 7.25, 3.0, 4.0];
+        std::fs::write(&pn, npy_f32("(1, 2, 3)", &vals)).unwrap();
+        let m = read_depth_map(&pn).unwrap();
+        assert_eq!((m.width, m.height), (3, 2));
+        assert_eq!(m.data, vals.to_vec());
+        // a 1-D array or another extension is refused, naming the file
+        let p1 = dir.path().join("flat.npy");
+        std::fs::write(&p1, npy_f32("(4,)", &[1.0, 2.0, 3.0, 4.0])).unwrap();
+        assert!(
+            read_depth_map(&p1)
+                .unwrap_err()
+                .to_string()
+                .contains("flat.npy")
+        );
+        assert!(read_depth_map(&dir.path().join("x.exr")).is_err());
+    }
 
     #[test]
     fn png_round_trip_and_truncation() {

@@ -27,7 +27,7 @@ use veila_metrics::crossmodal::{
 use veila_metrics::dist;
 use veila_metrics::fd::{self, FeatureStats};
 use veila_nn::encoders::{Normalization, rgb8_to_tensor};
-use veila_nn::feature_nets::{FeatureNets, RangeNetInput};
+use veila_nn::feature_nets::FeatureNets;
 
 use crate::simdata::{SimExample, render_split, workspace_root};
 use crate::train_default::{self, TrainDefaultArgs};
@@ -368,7 +368,7 @@ fn seed_metrics(
         // CM-SC: the classes the range segmentation net gives the generated points against the
         // image semantic head's classes where they project
         if let Some(nets) = nets {
-            let (pts, labels) = segment_points(nets, &gen_points[i], &gen_intensity[i])?;
+            let (pts, labels) = nets.segment_points(&gen_points[i], Some(&gen_intensity[i]))?;
             let pred = Map2d::new(w, h, &judges.label_pred[i])?;
             let filter = ProjectionFilter {
                 ignore_label: Some(0),
@@ -461,32 +461,6 @@ fn frd_fpd(
 
 /// Segments a scan with the range net's semantic head: the points that won a range pixel and the
 /// class (learning map, 0 = unlabelled) of their pixel.
-fn segment_points(
-    nets: &FeatureNets,
-    points: &[Vec3],
-    intensity: &[f32],
-) -> Result<(Vec<Vec3>, Vec<u32>)> {
-    let cfg = nets.rangenet().config();
-    let input = RangeNetInput::from_points(points, Some(intensity), &cfg.sensor)?;
-    let x = RangeNetInput::batch(&[&input], cfg, &Device::Cpu)?;
-    let logits = nets.rangenet().forward(&x)?;
-    // never predict class 0 (unlabelled)
-    let labels = logits
-        .narrow(1, 1, logits.dim(1)? - 1)?
-        .argmax(1)?
-        .flatten_all()?
-        .to_vec1::<u32>()?;
-    let mut pts = Vec::new();
-    let mut out = Vec::new();
-    for (k, &pi) in input.point_index.iter().enumerate() {
-        if input.mask[k] && (pi as usize) < points.len() {
-            pts.push(points[pi as usize]);
-            out.push(labels[k] + 1);
-        }
-    }
-    Ok((pts, out))
-}
-
 /// A result row from per-set metric values (name -> region -> value per set).
 fn row(
     kind: &str,

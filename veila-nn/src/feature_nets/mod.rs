@@ -308,6 +308,37 @@ impl FeatureNets {
         self.range_features(&inputs)
     }
 
+    /// A SemanticKITTI train id (1..=19, never 0 = unlabelled) for every point the range net sees,
+    /// from its segmentation head: the points are projected with the net's sensor and each kept
+    /// pixel's point is returned with the pixel's class (points that lose their pixel to a nearer one
+    /// are left out). `intensity` is optional (remission 0 without). What CM-SC compares with an
+    /// image's class map.
+    pub fn segment_points(
+        &self,
+        points: &[Vec3],
+        intensity: Option<&[f32]>,
+    ) -> Result<(Vec<Vec3>, Vec<u32>)> {
+        let cfg = self.rangenet.config();
+        let input = RangeNetInput::from_points(points, intensity, &cfg.sensor)?;
+        let x = RangeNetInput::batch(&[&input], cfg, &self.device)?;
+        let logits = self.rangenet.forward(&x)?;
+        // never class 0 (unlabelled): the argmax runs over classes 1..
+        let labels = logits
+            .narrow(1, 1, logits.dim(1)? - 1)?
+            .argmax(1)?
+            .flatten_all()?
+            .to_vec1::<u32>()?;
+        let mut kept = Vec::new();
+        let mut out = Vec::new();
+        for (k, &pi) in input.point_index.iter().enumerate() {
+            if input.mask[k] && (pi as usize) < points.len() {
+                kept.push(points[pi as usize]);
+                out.push(labels[k] + 1);
+            }
+        }
+        Ok((kept, out))
+    }
+
     /// FPD features of point clouds (metres, LiDAR frame), one `Vec` of
     /// [`PointNetConfig::feature_dim`] values per scan. Fails on a scan without finite points.
     pub fn point_features(&self, scans: &[&[Vec3]]) -> Result<Vec<Vec<f32>>> {
