@@ -236,6 +236,9 @@ fn group_norm_act_matches_the_composition_with_gradients() {
             (vec![2, 8, 5, 6], 4),
             (vec![3, 6, 17], 3),
             (vec![1, 4, 2, 2], 1),
+            // rows longer than the kernels' 64-element blocks, with and without a remainder
+            (vec![2, 8, 16, 40], 4),
+            (vec![1, 4, 9, 23], 2),
         ] {
             let (b, c) = (shape[0], shape[1]);
             let x = Var::from_tensor(&seeded(&shape, 21).affine(3.0, 0.5).unwrap()).unwrap();
