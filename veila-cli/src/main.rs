@@ -7,47 +7,9 @@
 use anyhow::Result;
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
-/// mimalloc keeps freed blocks for reuse; with glibc's allocator every large tensor of a
-/// sampling step is a fresh `mmap` and page-faults in again (measured: ~30% of a training step).
-#[global_allocator]
-static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
-/// `mi_option_purge_delay` of `mimalloc.h` (v2 and v3; libmimalloc-sys names no constant for it):
-/// the option just before `use_numa_nodes`, which the assertion pins.
-const MI_OPTION_PURGE_DELAY: libmimalloc_sys::mi_option_t = 15;
-const _: () = assert!(libmimalloc_sys::mi_option_use_numa_nodes == MI_OPTION_PURGE_DELAY + 1);
-
-/// Process settings that candle and mimalloc read from the environment, set where the user has not:
-///
-/// * `RAYON_NUM_THREADS` (rayon's own default, the available parallelism): without it candle 0.11
-///   counts the physical cores from `/proc/cpuinfo` on every matrix product (~2 % of a training step
-///   in `cargo xtask bench-model`, in the kernel's `show_cpuinfo`);
-/// * mimalloc's purge delay, 10 s: by default it hands freed memory back to the OS within a second
-///   and the next step's tensors fault it in again as freshly zeroed huge pages (50,000 faults and
-///   ~5 % of a training step); 10 s spans any run of steps and still returns memory to an idle
-///   process.
-fn tune_process() {
-    if std::env::var_os("RAYON_NUM_THREADS").is_none() {
-        let n = std::thread::available_parallelism().map_or(1, |n| n.get());
-        // SAFETY: called at the start of `main`, before any other thread exists (nothing reads
-        // the environment concurrently).
-        #[allow(unsafe_code)]
-        unsafe {
-            std::env::set_var("RAYON_NUM_THREADS", n.to_string());
-        }
-    }
-    if std::env::var_os("MIMALLOC_PURGE_DELAY").is_none() {
-        // SAFETY: `mi_option_set` writes one entry of mimalloc's option table; the index is pinned
-        // by the assertion above and the value is in the option's domain (ms, -1 = never).
-        #[allow(unsafe_code)]
-        unsafe {
-            libmimalloc_sys::mi_option_set(MI_OPTION_PURGE_DELAY, 10_000);
-        }
-    }
-}
-
 mod generation; // what generate and edit share (rig and sampler arguments, scan files)
 mod model;
+mod process; // the global allocator and the process settings (shared with xtask)
 mod progress;
 mod report; // self-contained HTML reports (veila eval --report)
 mod staging; // the output discipline of every command
@@ -160,7 +122,7 @@ fn cli_command() -> clap::Command {
 
 fn main() {
     restore_default_sigpipe();
-    tune_process();
+    process::tune_process();
     staging::install_signal_cleanup();
     let cli = match Cli::from_arg_matches(&cli_command().get_matches()) {
         Ok(cli) => cli,

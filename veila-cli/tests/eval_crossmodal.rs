@@ -136,25 +136,21 @@ fn missing_inputs_fail_naming_what_is_missing_and_write_nothing() {
     // no depth maps
     let e = run(&["--calib".as_ref(), calib.as_os_str()]);
     assert!(e.contains("--depth-maps"), "{e}");
-    // a depth map missing for one scan: the error names the scan and the file looked for
-    std::fs::remove_file(depth.join("000001.png")).unwrap();
-    let e = run(&[
+    let both: [&std::ffi::OsStr; 4] = [
         "--calib".as_ref(),
         calib.as_os_str(),
         "--depth-maps".as_ref(),
         depth.as_os_str(),
-    ]);
+    ];
+    // a depth map missing for one scan: the error names the scan and the file looked for
+    std::fs::remove_file(depth.join("000001.png")).unwrap();
+    let e = run(&both);
     assert!(e.contains("000001.bin") && e.contains("000001.png"), "{e}");
     // an 8-bit PNG cannot hold metric depth
     veila_data::image::GrayImage::new(4, 4)
         .save(depth.join("000001.png"))
         .unwrap();
-    let e = run(&[
-        "--calib".as_ref(),
-        calib.as_os_str(),
-        "--depth-maps".as_ref(),
-        depth.as_os_str(),
-    ]);
+    let e = run(&both);
     assert!(e.contains("000001.png") && e.contains("16-bit"), "{e}");
     // a malformed --image-size is refused by the parser
     let e = run(&["--image-size".as_ref(), "12x".as_ref()]);

@@ -15,36 +15,43 @@ fn image_error(path: &Path, e: image::ImageError) -> Error {
     }
 }
 
-/// Read a PNG or JPEG camera image as 8-bit RGB (format detected from the content). A truncated or
-/// corrupt file is an error naming the file.
-pub fn read_rgb_image(path: &Path) -> Result<RgbImage> {
-    let reader = ImageReader::open(path)
+type FileImageReader = ImageReader<std::io::BufReader<std::fs::File>>;
+
+/// An image file opened with its format detected from the content (`format()` is `None` for content
+/// the `image` crate does not know).
+fn open_image(path: &Path) -> Result<FileImageReader> {
+    ImageReader::open(path)
         .map_err(|e| Error::io(path, e))?
         .with_guessed_format()
-        .map_err(|e| Error::io(path, e))?;
+        .map_err(|e| Error::io(path, e))
+}
+
+/// [`open_image`] for a camera image: any known format, else an error naming the file.
+fn open_camera_image(path: &Path) -> Result<FileImageReader> {
+    let reader = open_image(path)?;
     if reader.format().is_none() {
         return Err(Error::format(
             path,
             "not a PNG or JPEG image (unrecognised content)",
         ));
     }
-    let img = reader.decode().map_err(|e| image_error(path, e))?;
+    Ok(reader)
+}
+
+/// Read a PNG or JPEG camera image as 8-bit RGB (format detected from the content). A truncated or
+/// corrupt file is an error naming the file.
+pub fn read_rgb_image(path: &Path) -> Result<RgbImage> {
+    let img = open_camera_image(path)?
+        .decode()
+        .map_err(|e| image_error(path, e))?;
     Ok(img.into_rgb8())
 }
 
 /// Width and height of an image from its header only (cheap; the pixels are not decoded).
 pub fn image_dimensions(path: &Path) -> Result<(u32, u32)> {
-    let reader = ImageReader::open(path)
-        .map_err(|e| Error::io(path, e))?
-        .with_guessed_format()
-        .map_err(|e| Error::io(path, e))?;
-    if reader.format().is_none() {
-        return Err(Error::format(
-            path,
-            "not a PNG or JPEG image (unrecognised content)",
-        ));
-    }
-    reader.into_dimensions().map_err(|e| image_error(path, e))
+    open_camera_image(path)?
+        .into_dimensions()
+        .map_err(|e| image_error(path, e))
 }
 
 /// Encode an RGB image as PNG bytes.
@@ -81,11 +88,9 @@ fn lower_ext(path: &Path) -> String {
         .unwrap_or_default()
 }
 
-fn decode_image(path: &Path) -> Result<image::DynamicImage> {
-    let reader = ImageReader::open(path)
-        .map_err(|e| Error::io(path, e))?
-        .with_guessed_format()
-        .map_err(|e| Error::io(path, e))?;
+/// Decodes a PNG map (any other content is an error naming the file).
+fn decode_png(path: &Path) -> Result<image::DynamicImage> {
+    let reader = open_image(path)?;
     if reader.format() != Some(ImageFormat::Png) {
         return Err(Error::format(path, "not a PNG image"));
     }
@@ -101,7 +106,7 @@ fn decode_image(path: &Path) -> Result<image::DynamicImage> {
 ///   stored (metres, or a relative depth to be aligned; not disparity).
 pub fn read_depth_map(path: &Path) -> Result<ImageMap<f32>> {
     match lower_ext(path).as_str() {
-        "png" => match decode_image(path)? {
+        "png" => match decode_png(path)? {
             image::DynamicImage::ImageLuma16(img) => Ok(ImageMap {
                 width: img.width(),
                 height: img.height(),
@@ -164,7 +169,7 @@ pub fn read_label_map(path: &Path) -> Result<ImageMap<u32>> {
             "a class map is an 8- or 16-bit greyscale PNG of class ids",
         ));
     }
-    match decode_image(path)? {
+    match decode_png(path)? {
         image::DynamicImage::ImageLuma8(img) => Ok(ImageMap {
             width: img.width(),
             height: img.height(),
@@ -189,20 +194,10 @@ pub fn read_label_map(path: &Path) -> Result<ImageMap<u32>> {
 mod tests {
     use super::*;
 
-    /// A little-endian float32 `.npy` (format 1.0) written by hand, as numpy lays it out.
+    /// A float32 `.npy` of `vals` (the hand-written numpy layout of the `peer_samples` tests).
     fn npy_f32(shape: &str, vals: &[f32]) -> Vec<u8> {
-        let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}");
-        while (10 + header.len() + 1) % 64 != 0 {
-            header.push(' ');
-        }
-        header.push('\n');
-        let mut out = b"\x93NUMPY\x01\x00".to_vec();
-        out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-        out.extend_from_slice(header.as_bytes());
-        for v in vals {
-            out.extend_from_slice(&v.to_le_bytes());
-        }
-        out
+        let payload: Vec<u8> = vals.iter().flat_map(|v| v.to_le_bytes()).collect();
+        crate::peer_samples::tests::npy_bytes("<f4", shape, &payload)
     }
 
     #[test]

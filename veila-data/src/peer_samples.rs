@@ -234,10 +234,12 @@ fn read_npy<R: Read>(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn npy_bytes(descr: &str, shape: &str, payload: &[u8]) -> Vec<u8> {
+    /// A `.npy` (format 1.0) with dtype `descr`, shape `shape` (Python tuple syntax) and the raw
+    /// `payload`, laid out by hand as numpy writes it.
+    pub(crate) fn npy_bytes(descr: &str, shape: &str, payload: &[u8]) -> Vec<u8> {
         let mut header =
             format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
         while (10 + header.len() + 1) % 64 != 0 {

@@ -4,33 +4,9 @@
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
-#[global_allocator]
-static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
-/// `mi_option_purge_delay` of `mimalloc.h` (v2 and v3), pinned as in `veila-cli`'s `main.rs`.
-const MI_OPTION_PURGE_DELAY: libmimalloc_sys::mi_option_t = 15;
-const _: () = assert!(libmimalloc_sys::mi_option_use_numa_nodes == MI_OPTION_PURGE_DELAY + 1);
-
-/// The environment settings of `veila-cli`'s `tune_process` (see there why): `RAYON_NUM_THREADS`
-/// spares candle a `/proc/cpuinfo` read per matrix product, a 10 s purge delay spares mimalloc
-/// re-faulting freed memory every training step. The user's own settings win.
-fn tune_process() {
-    if std::env::var_os("RAYON_NUM_THREADS").is_none() {
-        let n = std::thread::available_parallelism().map_or(1, |n| n.get());
-        // SAFETY: first statement of `main`, before any other thread exists.
-        #[allow(unsafe_code)]
-        unsafe {
-            std::env::set_var("RAYON_NUM_THREADS", n.to_string());
-        }
-    }
-    if std::env::var_os("MIMALLOC_PURGE_DELAY").is_none() {
-        // SAFETY: one entry of mimalloc's option table, index pinned above, value in domain.
-        #[allow(unsafe_code)]
-        unsafe {
-            libmimalloc_sys::mi_option_set(MI_OPTION_PURGE_DELAY, 10_000);
-        }
-    }
-}
+// the global allocator and the process settings, as `veila` has them
+#[path = "../../veila-cli/src/process.rs"]
+mod process;
 
 mod bench_model; // cargo xtask bench-model
 mod bench_report; // cargo xtask bench-report
@@ -76,7 +52,7 @@ enum Command {
 }
 
 fn main() {
-    tune_process();
+    process::tune_process();
     if let Err(err) = run(Cli::parse().command) {
         eprintln!("error: {err:#}");
         std::process::exit(1);
