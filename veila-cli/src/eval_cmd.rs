@@ -24,6 +24,10 @@ use veila_metrics::{
     nn::PointIndex,
     protocol::{PeerProtocol, PeerSummary},
 };
+use veila_nn::encoders::dinov2::{DepthAnythingV2, DepthKind};
+use veila_nn::encoders::kind::EncoderKind;
+use veila_nn::encoders::mit::SegFormer;
+use veila_nn::encoders::preprocess::ImageProcessor;
 
 /// Evaluation commands.
 #[derive(Debug, Subcommand)]
@@ -36,7 +40,7 @@ pub(crate) enum EvalCmd {
     /// the protocol's layout; pickles are refused). FRD and FPD: whole panorama only; their built-in
     /// networks are simulator-trained, so the values are not comparable with published FRD / FPD
     /// numbers.
-    Eval(EvalArgs),
+    Eval(Box<EvalArgs>),
     /// Fréchet distance between two feature matrices (.npy, f32 or f64, one row per sample).
     Fd(FdArgs),
 }
@@ -91,6 +95,9 @@ pub(crate) enum AlignmentArg {
     LeastSquares,
     /// None: metric depth maps.
     None,
+    /// Scale and shift of the map to inverse depth by least squares: relative disparity maps
+    /// (Depth-Anything-V2's relative checkpoints, MiDaS).
+    Disparity,
 }
 
 impl From<AlignmentArg> for DepthAlignment {
@@ -99,6 +106,7 @@ impl From<AlignmentArg> for DepthAlignment {
             AlignmentArg::Median => DepthAlignment::Median,
             AlignmentArg::LeastSquares => DepthAlignment::LeastSquares,
             AlignmentArg::None => DepthAlignment::None,
+            AlignmentArg::Disparity => DepthAlignment::Disparity,
         }
     }
 }
@@ -213,6 +221,25 @@ pub(crate) struct EvalArgs {
     /// cm-sc: the id space of --semantic-maps.
     #[arg(long, value_enum, default_value = "train")]
     semantic_ids: SemanticIdsArg,
+    /// cm-dc / cm-sc with networks instead of map files: a folder with the camera image of each
+    /// generated scan, `<scan stem>.png` (e.g. `veila simulate`'s `image_2/`).
+    #[arg(long)]
+    images: Option<PathBuf>,
+    /// cm-dc: predict each image's depth with Depth-Anything-V2 as the paper does, `KIND=PATH`
+    /// (`depth-anything-v2-small|base|large`, PATH its Hugging Face `model.safetensors`; the
+    /// reference processor and post-processing). A relative checkpoint's inverse depth is aligned to
+    /// the points' in disparity space; for a metric one pass --depth-model-max-m.
+    #[arg(long, value_name = "KIND=PATH")]
+    depth_model: Option<String>,
+    /// cm-dc: --depth-model is a metric checkpoint (`Metric-*-hf`) with this max depth in metres
+    /// (80 for the outdoor ones); its depth is compared as --depth-alignment says.
+    #[arg(long, value_name = "M")]
+    depth_model_max_m: Option<f32>,
+    /// cm-sc: segment each image with SegFormer, `KIND=PATH` (`segformer-b0` .. `-b5`, PATH a
+    /// Cityscapes checkpoint's `model.safetensors`, 1024 x 1024 processor); its 19 classes are
+    /// mapped to SemanticKITTI's (sky ignored).
+    #[arg(long, value_name = "KIND=PATH")]
+    semantic_model: Option<String>,
     /// cm-dc / cm-sc: the camera image's size, WIDTHxHEIGHT, when the maps have another resolution
     /// (default: each map's own size).
     #[arg(long, value_parser = parse_size)]
@@ -252,7 +279,7 @@ pub(crate) struct FdArgs {
 
 pub(crate) fn run(cmd: EvalCmd) -> Result<()> {
     match cmd {
-        EvalCmd::Eval(a) => run_eval(a),
+        EvalCmd::Eval(a) => run_eval(*a),
         EvalCmd::Fd(a) => run_fd(a),
     }
 }
@@ -1057,11 +1084,31 @@ fn check_crossmodal_args(
     if a.calib.is_none() {
         bail!("cm-dc / cm-sc project the generated points into the camera: pass --calib FILE|DIR");
     }
-    if dc && a.depth_maps.is_none() {
-        bail!("cm-dc compares with depth maps: pass --depth-maps DIR (<scan stem>.png or .npy)");
+    match (dc, a.depth_maps.is_some(), a.depth_model.is_some()) {
+        (true, false, false) => bail!(
+            "cm-dc compares with depth maps: pass --depth-maps DIR (<scan stem>.png or .npy), or \
+             --depth-model depth-anything-v2-small=PATH with --images DIR"
+        ),
+        (_, true, true) => bail!("pass either --depth-maps or --depth-model, not both"),
+        _ => {}
     }
-    if sc && a.semantic_maps.is_none() {
-        bail!("cm-sc compares with class maps: pass --semantic-maps DIR (<scan stem>.png)");
+    match (sc, a.semantic_maps.is_some(), a.semantic_model.is_some()) {
+        (true, false, false) => bail!(
+            "cm-sc compares with class maps: pass --semantic-maps DIR (<scan stem>.png), or \
+             --semantic-model segformer-b0=PATH with --images DIR"
+        ),
+        (_, true, true) => bail!("pass either --semantic-maps or --semantic-model, not both"),
+        _ => {}
+    }
+    if (a.depth_model.is_some() || a.semantic_model.is_some()) && a.images.is_none() {
+        bail!(
+            "--depth-model / --semantic-model run on the camera images: pass --images DIR (<scan stem>.png)"
+        );
+    }
+    if let Some(m) = a.depth_model_max_m
+        && !(m.is_finite() && m > 0.0)
+    {
+        bail!("--depth-model-max-m must be a positive number of metres, got {m}");
     }
     if let Some(f) = gen_files
         .iter()
@@ -1109,6 +1156,64 @@ fn companion(dir: &Path, stem: &str, exts: &[&str], what: &str, scan: &Path) -> 
     )
 }
 
+/// `KIND=PATH` of --depth-model / --semantic-model.
+fn split_model_arg<'s>(flag: &str, spec: &'s str) -> Result<(EncoderKind, &'s Path)> {
+    let (kind, path) = spec
+        .split_once('=')
+        .with_context(|| format!("{flag} `{spec}`: expected KIND=PATH"))?;
+    let kind: EncoderKind = kind
+        .parse()
+        .map_err(|e: String| anyhow::anyhow!("{flag}: {e}"))?;
+    Ok((kind, Path::new(path)))
+}
+
+/// Depth-Anything-V2 with its head (relative, or metric with `max_m`); the flag says metric.
+fn load_depth_model(spec: &str, max_m: Option<f32>) -> Result<(DepthAnythingV2, bool)> {
+    let (kind, path) = split_model_arg("--depth-model", spec)?;
+    let mut cfg = kind.depth_anything_config().with_context(|| {
+        format!("--depth-model: `{kind}` is not a Depth-Anything-V2 kind (depth-anything-v2-small|base|large)")
+    })?;
+    if let Some(m) = max_m {
+        cfg.depth_estimation_type = DepthKind::Metric;
+        cfg.max_depth = m;
+    }
+    let model = DepthAnythingV2::load(
+        &cfg,
+        path,
+        candle_core::DType::F32,
+        &candle_core::Device::Cpu,
+    )
+    .with_context(|| {
+        format!(
+            "--depth-model {kind}: {} (the `model.safetensors` of {})",
+            path.display(),
+            kind.hub_repo().unwrap_or("-")
+        )
+    })?;
+    Ok((model, max_m.is_some()))
+}
+
+/// SegFormer with its Cityscapes head.
+fn load_semantic_model(spec: &str) -> Result<SegFormer> {
+    let (kind, path) = split_model_arg("--semantic-model", spec)?;
+    let cfg = kind.segformer_cityscapes_config().with_context(|| {
+        format!("--semantic-model: `{kind}` is not a SegFormer kind (segformer-b0 .. segformer-b5)")
+    })?;
+    SegFormer::load(
+        &cfg,
+        path,
+        candle_core::DType::F32,
+        &candle_core::Device::Cpu,
+    )
+    .with_context(|| {
+        format!(
+            "--semantic-model {kind}: {} (the `model.safetensors` of {})",
+            path.display(),
+            kind.hub_repo().unwrap_or("-")
+        )
+    })
+}
+
 /// CM-DC and CM-SC (when requested) over the generated scans, appended to `report` (region front:
 /// the camera's field of view; the value is the mean over the scans that have points in it).
 fn crossmodal_metrics(
@@ -1133,6 +1238,20 @@ fn crossmodal_metrics(
     } else {
         None
     };
+    let depth_model = match (&a.depth_model, want_dc) {
+        (Some(spec), true) => Some(load_depth_model(spec, a.depth_model_max_m)?),
+        _ => None,
+    };
+    let semantic_model = match (&a.semantic_model, want_sc) {
+        (Some(spec), true) => Some(load_semantic_model(spec)?),
+        _ => None,
+    };
+    let image_for = |stem: &str, f: &Path| -> Result<(PathBuf, veila_data::image::RgbImage)> {
+        let dir = a.images.as_deref().expect("checked");
+        let p = companion(dir, stem, &["png", "jpg"], "camera image", f)?;
+        let img = veila_data::image_io::read_rgb_image(&p)?;
+        Ok((p, img))
+    };
     let (mut dc, mut sc) = (Vec::new(), Vec::new());
     let pb = crate::progress::bar(gen_files.len() as u64, "cross-modal");
     for f in gen_files {
@@ -1149,9 +1268,41 @@ fn crossmodal_metrics(
             Ok(veila_data::weather::files::read_camera(&calib_file, w, h)?)
         };
         if want_dc {
-            let dir = a.depth_maps.as_deref().expect("checked");
-            let mp = companion(dir, &stem, &["png", "npy"], "depth map", f)?;
-            let map = veila_data::image_io::read_depth_map(&mp)?;
+            let (mp, map, alignment) = match &depth_model {
+                Some((model, metric)) => {
+                    let (p, img) = image_for(&stem, f)?;
+                    let (w, h) = img.dimensions();
+                    let data = model
+                        .predict_depth_map_rgb8(
+                            &ImageProcessor::depth_anything_v2(),
+                            img.as_raw(),
+                            h as usize,
+                            w as usize,
+                            &candle_core::Device::Cpu,
+                        )
+                        .with_context(|| format!("{}: depth prediction", p.display()))?;
+                    let alignment = if *metric {
+                        a.depth_alignment.into()
+                    } else {
+                        DepthAlignment::Disparity
+                    };
+                    (
+                        p,
+                        veila_data::image_io::ImageMap {
+                            width: w,
+                            height: h,
+                            data,
+                        },
+                        alignment,
+                    )
+                }
+                None => {
+                    let dir = a.depth_maps.as_deref().expect("checked");
+                    let mp = companion(dir, &stem, &["png", "npy"], "depth map", f)?;
+                    let map = veila_data::image_io::read_depth_map(&mp)?;
+                    (mp, map, a.depth_alignment.into())
+                }
+            };
             let cam = camera_for(map.width, map.height)?;
             let m = Map2d::new(map.width, map.height, &map.data)
                 .with_context(|| mp.display().to_string())?;
@@ -1159,7 +1310,7 @@ fn crossmodal_metrics(
                 &cloud.xyz,
                 &cam,
                 &m,
-                a.depth_alignment.into(),
+                alignment,
                 &ProjectionFilter::default(),
             ) {
                 Ok(c) if c.abs_rel.is_finite() => dc.push(c.abs_rel),
@@ -1168,16 +1319,46 @@ fn crossmodal_metrics(
             }
         }
         if let Some(nets) = &nets {
-            let dir = a.semantic_maps.as_deref().expect("checked");
-            let mp = companion(dir, &stem, &["png"], "class map", f)?;
-            let mut map = veila_data::image_io::read_label_map(&mp)?;
-            if a.semantic_ids == SemanticIdsArg::Raw {
-                for v in &mut map.data {
-                    *v = u32::from(veila_data::sim::class::learning_id(
-                        u16::try_from(*v).unwrap_or(0),
-                    ));
+            let (mp, map) = match &semantic_model {
+                Some(model) => {
+                    let (p, img) = image_for(&stem, f)?;
+                    let (w, h) = img.dimensions();
+                    let labels = model
+                        .predict_label_map_rgb8(
+                            &ImageProcessor::segformer(1024, 1024),
+                            img.as_raw(),
+                            h as usize,
+                            w as usize,
+                            &candle_core::Device::Cpu,
+                        )
+                        .with_context(|| format!("{}: segmentation", p.display()))?;
+                    let data = labels
+                        .into_iter()
+                        .map(veila_metrics::crossmodal::cityscapes_to_semantickitti)
+                        .collect();
+                    (
+                        p,
+                        veila_data::image_io::ImageMap {
+                            width: w,
+                            height: h,
+                            data,
+                        },
+                    )
                 }
-            }
+                None => {
+                    let dir = a.semantic_maps.as_deref().expect("checked");
+                    let mp = companion(dir, &stem, &["png"], "class map", f)?;
+                    let mut map = veila_data::image_io::read_label_map(&mp)?;
+                    if a.semantic_ids == SemanticIdsArg::Raw {
+                        for v in &mut map.data {
+                            *v = u32::from(veila_data::sim::class::learning_id(
+                                u16::try_from(*v).unwrap_or(0),
+                            ));
+                        }
+                    }
+                    (mp, map)
+                }
+            };
             let cam = camera_for(map.width, map.height)?;
             let (pts, labels) = nets.segment_points(&cloud.xyz, Some(&cloud.intensity))?;
             let m = Map2d::new(map.width, map.height, &map.data)

@@ -24,6 +24,10 @@
 //! # encoders_from = "models/default"       # reuse trained encoders instead of training them
 //! # image_height = 96              # camera input size of the encoders
 //! # image_width = 320
+//! # semantic_encoder = "segformer-b0"     # a pretrained encoder by kind instead of a small CNN:
+//! # semantic_weights = "weights/segformer-b0/model.safetensors"   # its Hugging Face file
+//! # depth_encoder = "depth-anything-v2-small"
+//! # depth_weights = "weights/da2-small/model.safetensors"
 //!
 //! [train]
 //! steps = 1000                     # denoiser steps
@@ -47,13 +51,14 @@ use clap::Args;
 use serde::{Deserialize, Serialize};
 use veila_data::image::imageops;
 use veila_data::shard::{Manifest, ShardSample, read_shard};
-use veila_diffusion::app::bundle::{Bundle, BundleConfig, Variant, sha256_hex};
+use veila_diffusion::app::bundle::{Bundle, BundleConfig, EncoderSpec, Variant, sha256_hex};
 use veila_diffusion::app::{
     Encoder, EncoderData, EncoderEvent, EncoderSource, RecipeInput, RecipeSettings, Stage,
     TrainExample, run_recipe,
 };
 use veila_diffusion::{StepStats, TrainObserver};
 use veila_geom::{LidarSensor, PinholeCamera, ProjectionOptions, Projector, RayTable};
+use veila_nn::encoders::kind::EncoderKind;
 
 use crate::{model, progress};
 
@@ -128,6 +133,19 @@ struct ModelSection {
     /// Camera input width of the encoders.
     #[serde(default)]
     image_width: Option<usize>,
+    /// The semantic encoder by kind (`small-cnn`, `segformer-b0` .. `segformer-b5`,
+    /// `depth-anything-v2-{small,base,large}`, `dinov2-{s,b,l}`); default: the config's.
+    #[serde(default)]
+    semantic_encoder: Option<String>,
+    /// The pretrained semantic encoder's `model.safetensors`.
+    #[serde(default)]
+    semantic_weights: Option<PathBuf>,
+    /// The depth encoder by kind, as `semantic_encoder`.
+    #[serde(default)]
+    depth_encoder: Option<String>,
+    /// The pretrained depth encoder's `model.safetensors`.
+    #[serde(default)]
+    depth_weights: Option<PathBuf>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -247,6 +265,8 @@ fn read_config(path: &Path) -> Result<TrainFile> {
     cfg.output.dir = resolve(&cfg.output.dir);
     cfg.model.bundle = cfg.model.bundle.as_deref().map(resolve);
     cfg.model.encoders_from = cfg.model.encoders_from.as_deref().map(resolve);
+    cfg.model.semantic_weights = cfg.model.semantic_weights.as_deref().map(resolve);
+    cfg.model.depth_weights = cfg.model.depth_weights.as_deref().map(resolve);
     let t = &cfg.train;
     let bad = |what: &str| anyhow::anyhow!("{}: [train] {what}", path.display());
     if t.steps == 0 {
@@ -332,6 +352,34 @@ fn bundle_config(file: &TrainFile, config_path: &Path) -> Result<BundleConfig> {
                 veila_nn::ConditioningConfig::pyramid_sizes(cfg.image_height, cfg.image_width);
         }
     }
+    if m.semantic_encoder.is_some()
+        || m.depth_encoder.is_some()
+        || m.semantic_weights.is_some()
+        || m.depth_weights.is_some()
+    {
+        let semantic = encoder_spec(
+            "semantic",
+            m.semantic_encoder.as_deref(),
+            m.semantic_weights.as_deref(),
+            cfg.semantic_encoder.as_ref(),
+            config_path,
+        )?;
+        let depth = encoder_spec(
+            "depth",
+            m.depth_encoder.as_deref(),
+            m.depth_weights.as_deref(),
+            cfg.depth_encoder.as_ref(),
+            config_path,
+        )?;
+        if cfg.denoiser.conditioning.is_none() {
+            bail!(
+                "{}: [model] names encoders, but the model is unconditional",
+                config_path.display()
+            );
+        }
+        cfg.set_encoders(semantic, depth)
+            .with_context(|| format!("{}: [model] encoders", config_path.display()))?;
+    }
     cfg.denoiser.validate().with_context(|| {
         format!(
             "{}: [model] gives an invalid denoiser",
@@ -339,6 +387,75 @@ fn bundle_config(file: &TrainFile, config_path: &Path) -> Result<BundleConfig> {
         )
     })?;
     Ok(cfg)
+}
+
+/// One encoder of `[model]`: `kind` (default: the config's), with `weights` for pretrained kinds
+/// (hashed here, so the bundle records which file it was trained with).
+fn encoder_spec(
+    which: &str,
+    kind: Option<&str>,
+    weights: Option<&Path>,
+    current: Option<&EncoderSpec>,
+    config_path: &Path,
+) -> Result<Option<EncoderSpec>> {
+    let at = || format!("{}: [model] {which}_encoder", config_path.display());
+    let kind: Option<EncoderKind> = match kind {
+        Some(k) => Some(
+            k.parse()
+                .map_err(|e: String| anyhow::anyhow!("{}: {e}", at()))?,
+        ),
+        None => current.map(|c| c.kind),
+    };
+    let Some(kind) = kind else {
+        if weights.is_some() {
+            bail!("{}: `{which}_weights` without an encoder", at());
+        }
+        return Ok(None);
+    };
+    if !kind.is_pretrained() {
+        if weights.is_some() {
+            bail!(
+                "{}: a small-cnn is trained here; `{which}_weights` is for pretrained kinds",
+                at()
+            );
+        }
+        let config = current
+            .and_then(|c| c.small_cnn_config().cloned())
+            .unwrap_or_default();
+        return Ok(Some(EncoderSpec::small_cnn(config)));
+    }
+    let Some(path) = weights else {
+        if let Some(c) = current.filter(|c| c.kind == kind) {
+            return Ok(Some(c.clone()));
+        }
+        bail!(
+            "{}: `{kind}` needs `{which}_weights`, the path of `model.safetensors` from {}",
+            at(),
+            kind.hub_repo().unwrap_or("-")
+        );
+    };
+    let bytes = std::fs::read(path).with_context(|| {
+        format!(
+            "{}: cannot read {} (download `model.safetensors` of {} from the Hugging Face Hub)",
+            at(),
+            path.display(),
+            kind.hub_repo().unwrap_or("-")
+        )
+    })?;
+    // check it now rather than after the data is loaded
+    kind.load_pretrained(
+        &bytes,
+        path,
+        candle_core::DType::F32,
+        &candle_core::Device::Cpu,
+    )
+    .with_context(at)?;
+    let path = std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
+    Ok(Some(EncoderSpec::pretrained(
+        kind,
+        path,
+        Some(sha256_hex(&bytes)),
+    )))
 }
 
 /// One shard sample reduced to what training uses.
@@ -684,7 +801,12 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
     let encoders = match &file.model.encoders_from {
         Some(dir) => EncoderSource::Bundle(dir),
         None => {
-            if cfg.semantic_encoder.is_some() && labels.is_none() {
+            if cfg
+                .semantic_encoder
+                .as_ref()
+                .is_some_and(|e| e.small_cnn_config().is_some())
+                && labels.is_none()
+            {
                 bail!(
                     "{}: the shards carry no semantic train ids (`label`), so the semantic encoder cannot be trained: \
                      convert with a label map (SemanticKITTI) or set [model] encoders_from = \"models/default\"",

@@ -159,3 +159,143 @@ fn missing_inputs_fail_naming_what_is_missing_and_write_nothing() {
         "{e}"
     );
 }
+
+/// `--depth-model` / `--semantic-model`: Depth-Anything-V2 and SegFormer run on the camera images
+/// inside `eval` (random weights in Hugging Face layout here: the numbers only have to be finite
+/// and in range); wrong kinds, missing files and missing images fail naming what is wrong.
+#[test]
+fn networks_predict_the_maps_when_asked() {
+    use candle_core::{DType, Device};
+    let tmp = tempfile::tempdir().unwrap();
+    let sim = simulate(tmp.path(), "a", 3);
+    // one frame is enough here (the networks are the slow part)
+    for entry in std::fs::read_dir(sim.join("velodyne")).unwrap() {
+        let p = entry.unwrap().path();
+        if !p.ends_with("000000.bin") {
+            std::fs::remove_file(p).unwrap();
+        }
+    }
+    let weights = tmp.path().join("w");
+    std::fs::create_dir_all(&weights).unwrap();
+    let save = |name: &str, build: &dyn Fn(candle_nn::VarBuilder<'_>)| {
+        let vm = candle_nn::VarMap::new();
+        build(veila_nn::seeded_var_builder(
+            &vm,
+            5,
+            DType::F32,
+            &Device::Cpu,
+        ));
+        vm.save(weights.join(name)).unwrap();
+    };
+    save("da.safetensors", &|vb| {
+        veila_nn::encoders::dinov2::DepthAnythingV2::new(
+            &veila_nn::encoders::dinov2::DepthAnythingV2Config::small(),
+            vb,
+        )
+        .unwrap();
+    });
+    save("seg.safetensors", &|vb| {
+        veila_nn::encoders::mit::SegFormer::new(
+            &veila_nn::encoders::mit::SegFormerConfig::b0_cityscapes(),
+            vb,
+        )
+        .unwrap();
+    });
+    let run = |extra: &[&str]| {
+        veila()
+            .args(["eval", "--quiet"])
+            .arg("--generated")
+            .arg(sim.join("velodyne"))
+            .arg("--reference")
+            .arg(sim.join("velodyne"))
+            .arg("--calib")
+            .arg(sim.join("calib"))
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let da = format!(
+        "depth-anything-v2-small={}",
+        weights.join("da.safetensors").display()
+    );
+    let seg = format!("segformer-b0={}", weights.join("seg.safetensors").display());
+    let images = sim.join("image_2");
+    let json = tmp.path().join("m.json");
+    let o = run(&[
+        "--metrics",
+        "cm-dc,cm-sc",
+        "--images",
+        images.to_str().unwrap(),
+        "--depth-model",
+        &da,
+        "--semantic-model",
+        &seg,
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    ok(&o);
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let get = |name: &str| {
+        v["metrics"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|m| m["name"] == name)
+            .unwrap_or_else(|| panic!("{name} missing in {v}"))["value"]
+            .as_f64()
+            .unwrap()
+    };
+    let (dc, sc) = (get("cm-dc"), get("cm-sc (%)"));
+    assert!(dc.is_finite() && dc >= 0.0, "{dc}");
+    assert!((0.0..=100.0).contains(&sc), "{sc}");
+
+    // no images; a model of the wrong family; a missing weights file; both maps and a model
+    let o = run(&["--depth-model", &da, "--metrics", "cm-dc"]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("pass --images DIR"), "{err}");
+    let wrong = format!("segformer-b0={}", weights.join("da.safetensors").display());
+    let o = run(&[
+        "--images",
+        images.to_str().unwrap(),
+        "--metrics",
+        "cm-dc",
+        "--depth-model",
+        &wrong,
+    ]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("not a Depth-Anything-V2 kind"), "{err}");
+    let missing = format!(
+        "segformer-b1={}",
+        weights.join("nope.safetensors").display()
+    );
+    let o = run(&[
+        "--images",
+        images.to_str().unwrap(),
+        "--metrics",
+        "cm-sc",
+        "--semantic-model",
+        &missing,
+    ]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("nope.safetensors")
+            && err.contains("nvidia/segformer-b1-finetuned-cityscapes-1024-1024"),
+        "{err}"
+    );
+    let o = run(&[
+        "--images",
+        images.to_str().unwrap(),
+        "--metrics",
+        "cm-dc",
+        "--depth-model",
+        &da,
+        "--depth-maps",
+        sim.join("depth_2").to_str().unwrap(),
+    ]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("not both"), "{err}");
+}

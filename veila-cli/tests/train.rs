@@ -357,3 +357,112 @@ fn killed_runs_resume_to_the_uninterrupted_weights() {
         String::from_utf8_lossy(&o.stderr)
     );
 }
+
+/// Random SegFormer-b0 encoder weights in Hugging Face layout, as `model.safetensors` would be.
+fn random_segformer_b0(path: &Path) {
+    use candle_core::{DType, Device};
+    let vm = candle_nn::VarMap::new();
+    veila_nn::encoders::mit::MitEncoder::new(
+        &veila_nn::encoders::mit::MitConfig::mit_b0(),
+        veila_nn::seeded_var_builder(&vm, 7, DType::F32, &Device::Cpu),
+    )
+    .unwrap();
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    vm.save(path).unwrap();
+}
+
+/// `[model] semantic_encoder = "segformer-b0"` with its weights: the run trains only the depth CNN,
+/// the bundle names the pretrained file, `veila generate` runs it, and without the file generation
+/// fails saying which file and where to get it.
+#[test]
+fn pretrained_encoders_are_named_by_kind_through_train_and_generate() {
+    let tmp = tempfile::tempdir().unwrap();
+    make_shards(&tmp.path().join("shards"), 2, false, true);
+    write_small_bundle_config(&tmp.path().join("small.json"));
+    random_segformer_b0(&tmp.path().join("weights/model.safetensors"));
+    let cfg = tmp.path().join("t.toml");
+    write_config(
+        &cfg,
+        "shards",
+        "run",
+        "bundle = \"small.json\"\nsemantic_encoder = \"segformer-b0\"\nsemantic_weights = \"weights/model.safetensors\"",
+        "steps = 1\nbatch = 1\nencoder_steps = 1\nencoder_batch = 1",
+    );
+    // no labels in the shards: a pretrained semantic encoder needs none
+    ok(&train(&cfg, &[]));
+    let bundle = tmp.path().join("run/bundle");
+    assert!(!bundle.join("semantic_encoder.safetensors").exists());
+    assert!(bundle.join("depth_encoder.safetensors").is_file());
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(bundle.join("bundle.json")).unwrap()).unwrap();
+    assert_eq!(json["semantic_encoder"]["kind"], "segformer-b0");
+    assert_eq!(
+        json["semantic_encoder"]["sha256"].as_str().unwrap().len(),
+        64
+    );
+    assert_eq!(json["depth_encoder"]["kind"], "small-cnn");
+    assert_eq!(
+        json["denoiser"]["conditioning"]["semantic_channels"],
+        serde_json::json!([32, 64, 160, 256])
+    );
+
+    let sim = common::simulate(tmp.path(), &tiny_scene(16, 128, 1), 3);
+    let generate = |out: &Path| {
+        veila()
+            .args(["generate", "--quiet", "--steps", "1", "--image"])
+            .arg(sim.join("image_2/000000.png"))
+            .arg("--calib")
+            .arg(sim.join("calib/000000.txt"))
+            .arg("--checkpoint")
+            .arg(&bundle)
+            .arg("--out")
+            .arg(out)
+            .output()
+            .unwrap()
+    };
+    ok(&generate(&tmp.path().join("gen")));
+    assert!(tmp.path().join("gen/scan_000.bin").is_file());
+
+    std::fs::remove_file(tmp.path().join("weights/model.safetensors")).unwrap();
+    let o = generate(&tmp.path().join("gen2"));
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    for want in [
+        "weights/model.safetensors",
+        "nvidia/segformer-b0-finetuned-cityscapes-1024-1024",
+        "semantic_encoder",
+    ] {
+        assert!(err.contains(want), "`{want}` missing from: {err}");
+    }
+    assert!(!tmp.path().join("gen2").exists());
+
+    // a kind that does not exist, and a pretrained kind without its file
+    write_config(
+        &cfg,
+        "shards",
+        "run-x",
+        "bundle = \"small.json\"\ndepth_encoder = \"midas\"",
+        "steps = 1",
+    );
+    let o = train(&cfg, &[]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("midas") && err.contains("depth-anything-v2-small"),
+        "{err}"
+    );
+    write_config(
+        &cfg,
+        "shards",
+        "run-y",
+        "bundle = \"small.json\"\ndepth_encoder = \"dinov2-s\"",
+        "steps = 1",
+    );
+    let o = train(&cfg, &[]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("depth_weights") && err.contains("facebook/dinov2-small"),
+        "{err}"
+    );
+}

@@ -36,8 +36,9 @@ fn small_config(variant: Variant) -> BundleConfig {
         .into_iter()
         .flatten()
     {
-        e.channels = [8, 8, 16, 16];
-        e.head_channels = 8;
+        let c = e.config.as_mut().unwrap();
+        c.channels = [8, 8, 16, 16];
+        c.head_channels = 8;
     }
     if let Some(c) = cfg.denoiser.conditioning.as_mut() {
         c.semantic_channels = vec![8, 8, 16, 16];
@@ -55,7 +56,7 @@ fn save_random_bundle(dir: &std::path::Path, cfg: &BundleConfig, seed: u64) {
         (SEMANTIC_FILE, &cfg.semantic_encoder),
         (DEPTH_FILE, &cfg.depth_encoder),
     ] {
-        if let Some(c) = c {
+        if let Some(c) = c.as_ref().and_then(|e| e.small_cnn_config()) {
             let vm = VarMap::new();
             SmallCnn::new(c, veila_nn::seeded_var_builder(&vm, seed, DType::F32, &dev)).unwrap();
             weights.insert(file, varmap_tensors(&vm).unwrap());
@@ -264,16 +265,26 @@ fn training_batches_are_a_pure_function_of_the_step_and_cover_each_epoch() {
     )
     .unwrap();
     let sem_vm = VarMap::new();
-    let sem = SmallCnn::new(
-        cfg.semantic_encoder.as_ref().unwrap(),
+    let sem: veila_nn::encoders::kind::AnyEncoder = SmallCnn::new(
+        cfg.semantic_encoder
+            .as_ref()
+            .unwrap()
+            .small_cnn_config()
+            .unwrap(),
         veila_nn::seeded_var_builder(&sem_vm, 0, DType::F32, &dev),
     )
-    .unwrap();
-    let dep = SmallCnn::new(
-        cfg.depth_encoder.as_ref().unwrap(),
+    .unwrap()
+    .into();
+    let dep: veila_nn::encoders::kind::AnyEncoder = SmallCnn::new(
+        cfg.depth_encoder
+            .as_ref()
+            .unwrap()
+            .small_cnn_config()
+            .unwrap(),
         veila_nn::seeded_var_builder(&sem_vm, 1, DType::F32, &dev),
     )
-    .unwrap();
+    .unwrap()
+    .into();
     let (h, w) = (cfg.denoiser.height(), cfg.denoiser.width());
     let scan = full_scan(h, w, vec![10.0; h * w], vec![0.1; h * w], vec![true; h * w]);
     let x0 = cfg.encoding.encode_to_vec(&scan).unwrap();
@@ -411,10 +422,10 @@ fn overfit_one(cfg: BundleConfig, scan: &RangeImage, steps: u64, dir: &std::path
             continue;
         };
         let vm = VarMap::new();
-        let net =
-            SmallCnn::new(&c, veila_nn::seeded_var_builder(&vm, 1, DType::F32, &dev)).unwrap();
+        let c = c.small_cnn_config().unwrap();
+        let net = SmallCnn::new(c, veila_nn::seeded_var_builder(&vm, 1, DType::F32, &dev)).unwrap();
         weights.insert(file, varmap_tensors(&vm).unwrap());
-        encoders.push(Some(net));
+        encoders.push(Some(veila_nn::encoders::kind::AnyEncoder::from(net)));
     }
     let tc = veila_diffusion::TrainConfig {
         seed: 0,
@@ -616,4 +627,138 @@ fn every_method_trains_and_generates_through_the_bundle_pipeline() {
             "{method:?}: {err}"
         );
     }
+}
+
+/// Random SegFormer-b0 encoder weights in Hugging Face layout (`segformer.encoder.*`).
+fn random_segformer_b0(path: &std::path::Path, seed: u64) {
+    let vm = VarMap::new();
+    veila_nn::encoders::mit::MitEncoder::new(
+        &veila_nn::encoders::mit::MitConfig::mit_b0(),
+        veila_nn::seeded_var_builder(&vm, seed, DType::F32, &Device::Cpu),
+    )
+    .unwrap();
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    vm.save(path).unwrap();
+}
+
+#[test]
+fn a_bundle_names_a_pretrained_encoder_by_kind() {
+    use veila_diffusion::app::bundle::EncoderSpec;
+    use veila_nn::encoders::kind::EncoderKind;
+    let tmp = tempfile::tempdir().unwrap();
+    let weights = tmp.path().join("weights/segformer-b0.safetensors");
+    random_segformer_b0(&weights, 3);
+    let sha = veila_diffusion::app::bundle::sha256_hex(&std::fs::read(&weights).unwrap());
+    let mut cfg = small_config(Variant::Full);
+    let depth = cfg.depth_encoder.clone();
+    cfg.set_encoders(
+        Some(EncoderSpec::pretrained(
+            EncoderKind::SegFormer(0),
+            "../weights/segformer-b0.safetensors".into(),
+            Some(sha),
+        )),
+        depth,
+    )
+    .unwrap();
+    let cc = cfg.denoiser.conditioning.as_ref().unwrap();
+    assert_eq!(cc.semantic_channels, vec![32, 64, 160, 256]);
+    assert_eq!(cc.feature_sizes[0], [IH / 4, IW / 4]);
+    // the semantic weights are not a bundle file; the depth CNN's are
+    assert_eq!(cfg.weight_files(), vec![DEPTH_FILE, DENOISER_FILE]);
+    let dir = tmp.path().join("bundle");
+    save_random_bundle(&dir, &cfg, 5);
+    let json = std::fs::read_to_string(dir.join("bundle.json")).unwrap();
+    assert!(
+        json.contains("\"kind\": \"segformer-b0\"") && json.contains("veila-bundle/2"),
+        "{json}"
+    );
+
+    let b = Bundle::from_dir(&dir, &Device::Cpu).unwrap();
+    assert_eq!(
+        b.semantic.as_ref().unwrap().kind(),
+        EncoderKind::SegFormer(0)
+    );
+    let cam = camera();
+    let rgb = image(1);
+    let views = [CameraView {
+        rgb: &rgb,
+        camera: &cam,
+    }];
+    let a = b.generate(&views, &opts(4, 1), |_, _| {}).unwrap();
+    assert!(a[0].range_m.iter().all(|v| v.is_finite()));
+    // the pretrained encoder sees the image (a random denoiser's zero-initialised condition
+    // paths would hide it in the scan)
+    let rgb2 = image(9);
+    let views2 = [CameraView {
+        rgb: &rgb2,
+        camera: &cam,
+    }];
+    let fa = b.encode_views(&views).unwrap().semantic.unwrap();
+    let fc = b.encode_views(&views2).unwrap().semantic.unwrap();
+    assert_eq!(fa[3].dims(), &[1, 256, IH / 32, IW / 32]);
+    let d = (&fa[3] - &fc[3]).unwrap().abs().unwrap().sum_all().unwrap();
+    assert!(d.to_scalar::<f32>().unwrap() > 0.0);
+    // weights moved into the bundle folder are found there by file name
+    std::fs::rename(&weights, dir.join("segformer-b0.safetensors")).unwrap();
+    let moved = Bundle::from_dir(&dir, &Device::Cpu).unwrap();
+    assert_eq!(
+        moved.generate(&views, &opts(4, 1), |_, _| {}).unwrap()[0].range_m,
+        a[0].range_m
+    );
+    // missing: which file, which encoder, where to get it and where to put it
+    std::fs::remove_file(dir.join("segformer-b0.safetensors")).unwrap();
+    let err = Bundle::from_dir(&dir, &Device::Cpu)
+        .unwrap_err()
+        .to_string();
+    for want in [
+        "semantic_encoder `segformer-b0`",
+        "weights not found",
+        "nvidia/segformer-b0-finetuned-cityscapes-1024-1024",
+        "weights/segformer-b0.safetensors",
+    ] {
+        assert!(err.contains(want), "`{want}` missing from: {err}");
+    }
+    // another file than the bundle was made with
+    random_segformer_b0(&weights, 4);
+    let err = Bundle::from_dir(&dir, &Device::Cpu)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("sha256") && err.contains("segformer-b0.safetensors"),
+        "{err}"
+    );
+}
+
+#[test]
+fn version_1_bundles_with_bare_encoder_configs_still_load() {
+    use veila_diffusion::app::bundle::EncoderSpec;
+    let cfg = small_config(Variant::Full);
+    let mut v = serde_json::to_value(&cfg).unwrap();
+    // write it the way veila-bundle/1 did: the small CNN's config in place of the spec
+    v["format"] = "veila-bundle/1".into();
+    for field in ["semantic_encoder", "depth_encoder"] {
+        let inner = v[field]["config"].clone();
+        assert!(inner.is_object());
+        v[field] = inner;
+    }
+    let old: BundleConfig = serde_json::from_value(v.clone()).unwrap();
+    assert_eq!(old.semantic_encoder, cfg.semantic_encoder);
+    assert!(matches!(
+        old.depth_encoder,
+        Some(EncoderSpec {
+            config: Some(_),
+            ..
+        })
+    ));
+    // a spec with a kind is read strictly
+    v["semantic_encoder"] = serde_json::json!({"kind": "segformer-b0", "weight": "x"});
+    let err = serde_json::from_value::<BundleConfig>(v.clone())
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("weight"), "{err}");
+    v["semantic_encoder"] = serde_json::json!({"kind": "segformer-b9", "weights": "x"});
+    let err = serde_json::from_value::<BundleConfig>(v)
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("segformer-b9"), "{err}");
 }

@@ -19,6 +19,10 @@
 //! - [`DepthAlignment::LeastSquares`]: `(s, t) = argmin Σ (s·m_i + t - d_i)²` (closed form, MiDaS-style
 //!   scale and shift); falls back to `t = 0, s = Σmd/Σm²` when all `m` are equal.
 //! - [`DepthAlignment::None`]: `s = 1, t = 0`, for metric depth maps.
+//! - [`DepthAlignment::Disparity`]: the map is affine-invariant *inverse* depth (what
+//!   Depth-Anything-V2's relative checkpoints and MiDaS predict): `(s, t)` fit `s·m + t` to `1 / d`
+//!   by least squares and `m̂ = 1 / (s·m + t)`; pairs where `s·m + t <= 0` count as the largest
+//!   possible error, 1.
 //!
 //! Pixels whose map value is non-finite or `<= 0` are skipped, as are points with LiDAR depth outside
 //! `(min_depth_m, max_depth_m)`.
@@ -75,6 +79,8 @@ pub enum DepthAlignment {
     LeastSquares,
     /// No alignment (metric depth).
     None,
+    /// Least-squares scale and shift of the map to inverse depth (relative disparity maps).
+    Disparity,
 }
 
 /// Which projected points take part.
@@ -199,6 +205,22 @@ pub fn cm_depth_consistency<P: Copy + Into<Vec3>>(
             window: "camera image (with a valid depth-map pixel)".into(),
         });
     }
+    // least squares of s·x + t to y over the pairs
+    let fit = |xy: &[(f64, f64)]| -> (f64, f64) {
+        let n = xy.len() as f64;
+        let mx = xy.iter().map(|p| p.0).sum::<f64>() / n;
+        let my = xy.iter().map(|p| p.1).sum::<f64>() / n;
+        let sxx: f64 = xy.iter().map(|p| (p.0 - mx) * (p.0 - mx)).sum();
+        let sxy: f64 = xy.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum();
+        if sxx > 0.0 {
+            let s = sxy / sxx;
+            (s, my - s * mx)
+        } else {
+            let s = xy.iter().map(|p| p.0 * p.1).sum::<f64>()
+                / xy.iter().map(|p| p.0 * p.0).sum::<f64>();
+            (s, 0.0)
+        }
+    };
     let (scale, shift) = match alignment {
         DepthAlignment::None => (1.0, 0.0),
         DepthAlignment::Median => {
@@ -206,25 +228,22 @@ pub fn cm_depth_consistency<P: Copy + Into<Vec3>>(
             let mut ds: Vec<f64> = pairs.iter().map(|p| p.1).collect();
             (median(&mut ds) / median(&mut ms), 0.0)
         }
-        DepthAlignment::LeastSquares => {
-            let n = pairs.len() as f64;
-            let mm = pairs.iter().map(|p| p.0).sum::<f64>() / n;
-            let md = pairs.iter().map(|p| p.1).sum::<f64>() / n;
-            let sxx: f64 = pairs.iter().map(|p| (p.0 - mm) * (p.0 - mm)).sum();
-            let sxy: f64 = pairs.iter().map(|p| (p.0 - mm) * (p.1 - md)).sum();
-            if sxx > 0.0 {
-                let s = sxy / sxx;
-                (s, md - s * mm)
-            } else {
-                let s = pairs.iter().map(|p| p.0 * p.1).sum::<f64>()
-                    / pairs.iter().map(|p| p.0 * p.0).sum::<f64>();
-                (s, 0.0)
-            }
+        DepthAlignment::LeastSquares => fit(&pairs),
+        DepthAlignment::Disparity => {
+            let inv: Vec<(f64, f64)> = pairs.iter().map(|&(m, d)| (m, 1.0 / d)).collect();
+            fit(&inv)
+        }
+    };
+    let predict = |m: f64| -> Option<f64> {
+        let a = scale * m + shift;
+        match alignment {
+            DepthAlignment::Disparity => (a > 0.0).then(|| 1.0 / a),
+            _ => Some(a),
         }
     };
     let abs_rel = pairs
         .iter()
-        .map(|&(m, d)| ((scale * m + shift) - d).abs() / d)
+        .map(|&(m, d)| predict(m).map_or(1.0, |p| (p - d).abs() / d))
         .sum::<f64>()
         / pairs.len() as f64;
     Ok(DepthConsistency {
@@ -276,4 +295,17 @@ pub fn cm_semantic_consistency<P: Copy + Into<Vec3>, L: Copy + Into<u32>, M: Cop
         percent: 100.0 * agree as f64 / total as f64,
         points: total,
     })
+}
+
+/// Cityscapes train ids (what the `nvidia/segformer-*-finetuned-cityscapes-*` checkpoints predict,
+/// 0..=18) to SemanticKITTI train ids (1..=19, 0 = ignored), for CM-SC with a Cityscapes
+/// segmenter: road → road, sidewalk → sidewalk, building and wall → building, fence → fence,
+/// pole → pole, traffic light and sign → traffic-sign, vegetation → vegetation, terrain → terrain,
+/// sky → ignored, person → person, rider → bicyclist, car → car, truck → truck, bus and train →
+/// other-vehicle, motorcycle → motorcycle, bicycle → bicycle. Ids outside 0..=18 are ignored.
+pub fn cityscapes_to_semantickitti(cityscapes_train_id: u32) -> u32 {
+    const MAP: [u32; 19] = [
+        9, 11, 13, 13, 14, 18, 19, 19, 15, 17, 0, 6, 7, 1, 4, 5, 5, 3, 2,
+    ];
+    MAP.get(cityscapes_train_id as usize).copied().unwrap_or(0)
 }

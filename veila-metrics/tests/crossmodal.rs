@@ -119,6 +119,52 @@ fn least_squares_alignment_removes_scale_and_shift() {
 }
 
 #[test]
+fn disparity_alignment_inverts_an_affine_inverse_depth_map() {
+    // what a relative Depth-Anything-V2 predicts: an affine function of 1 / depth
+    let m = depth_map(|d| 3.0 / d + 0.2);
+    let map = Map2d::new(100, 80, &m).unwrap();
+    let r = cm_depth_consistency(
+        &points(),
+        &camera(),
+        &map,
+        DepthAlignment::Disparity,
+        &ProjectionFilter::default(),
+    )
+    .unwrap();
+    // 1/d = (m - 0.2) / 3
+    assert!(
+        (r.scale - 1.0 / 3.0).abs() < 1e-4 && (r.shift + 0.2 / 3.0).abs() < 1e-4,
+        "{r:?}"
+    );
+    assert!(r.abs_rel < 1e-4, "{r:?}");
+    // depth-space least squares cannot undo the inversion
+    let r = cm_depth_consistency(
+        &points(),
+        &camera(),
+        &map,
+        DepthAlignment::LeastSquares,
+        &ProjectionFilter::default(),
+    )
+    .unwrap();
+    assert!(r.abs_rel > 0.05, "{r:?}");
+    // a map anti-correlated with disparity fits a negative scale: non-positive predictions score 1
+    let m = depth_map(|d| d);
+    let map = Map2d::new(100, 80, &m).unwrap();
+    let r = cm_depth_consistency(
+        &points(),
+        &camera(),
+        &map,
+        DepthAlignment::Disparity,
+        &ProjectionFilter::default(),
+    )
+    .unwrap();
+    assert!(
+        r.scale < 0.0 && r.abs_rel.is_finite() && r.abs_rel > 0.01,
+        "{r:?}"
+    );
+}
+
+#[test]
 fn half_resolution_map_is_sampled_at_rescaled_pixels() {
     // a constant map at half resolution: every point compares against 2.0
     let m = vec![2.0f32; 50 * 40];
@@ -199,4 +245,26 @@ fn semantic_agreement_percentage_and_zbuffer() {
         Err(Error::ShapeMismatch { .. })
     ));
     assert!(Map2d::new(100, 80, &sem[..10]).is_err());
+}
+
+#[test]
+fn cityscapes_classes_map_to_semantickitti_train_ids() {
+    use veila_metrics::crossmodal::cityscapes_to_semantickitti as map;
+    // spot checks by name (SemanticKITTI: 1 car, 9 road, 11 sidewalk, 13 building, 15 vegetation)
+    assert_eq!(map(0), 9);
+    assert_eq!(map(1), 11);
+    assert_eq!(map(2), 13);
+    assert_eq!(map(3), 13);
+    assert_eq!(map(8), 15);
+    assert_eq!(map(10), 0, "sky has no LiDAR return");
+    assert_eq!(map(13), 1);
+    assert_eq!(map(18), 2);
+    assert_eq!(map(19), 0);
+    assert_eq!(map(u32::MAX), 0);
+    // every SemanticKITTI class a camera segmenter can name is reached; none outside 0..=19
+    let hit: std::collections::BTreeSet<u32> = (0..19).map(map).collect();
+    assert!(hit.iter().all(|&c| c <= 19));
+    for c in [1, 2, 3, 4, 5, 6, 7, 9, 11, 13, 14, 15, 17, 18, 19] {
+        assert!(hit.contains(&c), "class {c}");
+    }
 }

@@ -18,6 +18,7 @@ use std::path::{Path, PathBuf};
 use candle_core::{DType, Device, Tensor};
 use veila_nn::encoders::dinov2::{DepthAnythingV2, DepthAnythingV2Config, DepthKind, DinoV2Config};
 use veila_nn::encoders::mit::{MitConfig, SegFormer, SegFormerConfig};
+use veila_nn::encoders::preprocess::{ImageProcessor, ResizeRule};
 use veila_nn::encoders::{ImageEncoder, depth_anything_resize_size};
 
 const DEV: Device = Device::Cpu;
@@ -167,6 +168,81 @@ fn segformer_small_matches_transformers() {
 #[test]
 fn depth_anything_small_matches_transformers() {
     depth_anything_parity(&data_dir(), "depth_anything_small", &small_depth_anything());
+}
+
+fn pipeline_image(io: &HashMap<String, Tensor>) -> (Vec<u8>, usize, usize) {
+    let t = &io["pipeline_image"];
+    let (h, w, _) = t.dims3().unwrap();
+    (t.flatten_all().unwrap().to_vec1::<u8>().unwrap(), h, w)
+}
+
+/// Image in, class map at the image's size out: the SegFormer processor (bilinear resize to the
+/// model size, ImageNet normalisation), the model, bilinear upsampling of the logits and argmax,
+/// against `SegformerImageProcessorPil` + `post_process_semantic_segmentation`.
+#[test]
+fn segformer_pipeline_matches_transformers() {
+    let cfg = small_segformer();
+    let model = SegFormer::load(
+        &cfg,
+        &data_dir().join("segformer_small.safetensors"),
+        DType::F32,
+        &DEV,
+    )
+    .unwrap();
+    let io = load_io(&data_dir(), "segformer_small");
+    let (rgb, h, w) = pipeline_image(&io);
+    let got = model
+        .predict_label_map_rgb8(&ImageProcessor::segformer(72, 52), &rgb, h, w, &DEV)
+        .unwrap();
+    let want: Vec<i64> = io["pipeline_labels"]
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<i64>()
+        .unwrap();
+    assert_eq!(got.len(), want.len());
+    let same = got
+        .iter()
+        .zip(&want)
+        .filter(|(a, b)| i64::from(**a) == **b)
+        .count();
+    // equal logits give equal labels; allow the odd near-tie
+    assert!(
+        same * 1000 >= want.len() * 998,
+        "{same} of {} labels agree",
+        want.len()
+    );
+    let classes: std::collections::BTreeSet<i64> = want.iter().copied().collect();
+    assert!(classes.len() >= 2, "the reference map is not constant");
+}
+
+/// Image in, depth at the image's size out: the Depth-Anything processor (aspect kept, patch
+/// multiple, bicubic), the model, bicubic resampling to the image size, against
+/// `DPTImageProcessorPil` + `post_process_depth_estimation`.
+#[test]
+fn depth_anything_pipeline_matches_transformers() {
+    let cfg = small_depth_anything();
+    let model = DepthAnythingV2::load(
+        &cfg,
+        &data_dir().join("depth_anything_small.safetensors"),
+        DType::F32,
+        &DEV,
+    )
+    .unwrap();
+    let io = load_io(&data_dir(), "depth_anything_small");
+    let (rgb, h, w) = pipeline_image(&io);
+    let processor = ImageProcessor {
+        resize: ResizeRule::KeepAspectMultiple {
+            height: 24,
+            width: 44,
+            multiple: 4,
+        },
+        ..ImageProcessor::depth_anything_v2()
+    };
+    let got = model
+        .predict_depth_map_rgb8(&processor, &rgb, h, w, &DEV)
+        .unwrap();
+    let got = Tensor::from_vec(got, (h, w), &DEV).unwrap();
+    check(&got, &io["pipeline_depth"], "depth-anything pipeline");
 }
 
 #[test]

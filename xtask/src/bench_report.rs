@@ -218,12 +218,22 @@ fn make_judges(
     for ex in tests {
         let img = rgb8_to_tensor(&ex.rgb, h, w, &Normalization::IMAGENET, device)?;
         let d = match &bundle.depth {
-            Some(net) => net.predict_maps(&img)?[0].depth_m.clone(),
+            Some(net) => net
+                .as_small_cnn()
+                .context("the judge bundle's depth encoder is not a small CNN")?
+                .predict_maps(&img)?[0]
+                .depth_m
+                .clone(),
             None => None,
         };
         depth_pred.push(d.context("the judge bundle has no depth head")?);
         let l = match &bundle.semantic {
-            Some(net) => net.predict_maps(&img)?[0].labels.clone(),
+            Some(net) => net
+                .as_small_cnn()
+                .context("the judge bundle's semantic encoder is not a small CNN")?
+                .predict_maps(&img)?[0]
+                .labels
+                .clone(),
             None => None,
         };
         label_pred.push(l.context("the judge bundle has no semantic head")?);

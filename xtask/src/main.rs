@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 #[path = "../../veila-cli/src/process.rs"]
 mod process;
 
+mod bench_encoders; // cargo xtask bench-encoders
 mod bench_model; // cargo xtask bench-model
 mod bench_report; // cargo xtask bench-report
 mod convert; // cargo xtask convert       (veila-data shards)
@@ -44,6 +45,9 @@ enum Command {
     BenchReport(bench_report::BenchReportArgs),
     /// CPU engine speed: forward b1/b8 and a b8 training step of the small denoiser (medians, JSON).
     BenchModel(bench_model::BenchModelArgs),
+    /// Pretrained image encoders on the CPU: seconds per KITTI-size image in f32 / bf16 / f16, with
+    /// the half-precision error next to the time.
+    BenchEncoders(bench_encoders::BenchEncodersArgs),
     /// Generative methods (ε / v diffusion, residual diffusion, rectified flow, regression) at
     /// equal training compute: quality against training seconds.
     MethodSweep(method_sweep::MethodSweepArgs),
@@ -67,6 +71,7 @@ fn run(command: Command) -> Result<()> {
         Command::BenchReport(a) => bench_report::run(a),
         Command::MethodSweep(a) => method_sweep::run(a),
         Command::BenchModel(a) => bench_model::run(a),
+        Command::BenchEncoders(a) => bench_encoders::run(a),
         Command::TrainDefault(a) => train_default::run(a).map(|_| ()),
         Command::TrainProbe(a) => train_probe::run(a),
         Command::Layers => {

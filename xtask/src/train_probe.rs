@@ -23,6 +23,7 @@ use veila_diffusion::app::{
 };
 use veila_diffusion::trainer::{CheckpointState, find_latest_checkpoint};
 use veila_geom::{RangeImage, Region};
+use veila_nn::encoders::kind::AnyEncoder;
 use veila_nn::encoders::small_cnn::SmallCnn;
 
 use crate::simdata::{SimExample, mean_std, render_split, workspace_root};
@@ -176,15 +177,19 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
         .with_context(|| format!("no encoders-* folder in {}", work.display()))?;
     let mut files: HashMap<&str, HashMap<String, Tensor>> = HashMap::new();
     let mut encoder =
-        |file: &'static str, c: &Option<veila_nn::encoders::small_cnn::SmallCnnConfig>| {
+        |file: &'static str, c: &Option<veila_diffusion::app::bundle::EncoderSpec>| {
             c.as_ref()
-                .map(|c| -> Result<SmallCnn> {
+                .map(|spec| -> Result<AnyEncoder> {
+                    let c = spec
+                        .small_cnn_config()
+                        .context("train-probe reads small-CNN encoders only")?;
                     let w = load_tensors(&enc_dir.join(file))?;
                     files.insert(file, w.clone());
                     Ok(SmallCnn::new(
                         c,
                         candle_nn::VarBuilder::from_tensors(w, DType::F32, &device),
-                    )?)
+                    )?
+                    .into())
                 })
                 .transpose()
         };

@@ -7,8 +7,8 @@
 //! | file | content |
 //! |---|---|
 //! | `bundle.json` | [`BundleConfig`] |
-//! | `semantic_encoder.safetensors` | `E_s` weights (when the config has a semantic encoder) |
-//! | `depth_encoder.safetensors` | `E_d` weights (when the config has a depth encoder) |
+//! | `semantic_encoder.safetensors` | `E_s` weights (when the semantic encoder is a `small-cnn`) |
+//! | `depth_encoder.safetensors` | `E_d` weights (when the depth encoder is a `small-cnn`) |
 //! | `denoiser.safetensors` | the U-Net (EMA weights for trained bundles) |
 //! | `mean.safetensors` | the mean network of residual diffusion (when the config has `residual`) |
 //! | `manifest.json` | `{"format": "veila-manifest/1", "files": {"NAME": "SHA256_HEX", ...}}` |
@@ -17,6 +17,13 @@
 //! binary can embed its default model with `include_bytes!`); both check that every file the config
 //! needs is listed in the manifest with a matching sum before anything is parsed, and that every
 //! tensor of every network is present with the right shape.
+//!
+//! Each encoder is named by kind ([`EncoderSpec`]): `small-cnn` (trained with the bundle, weights
+//! inside it) or a pretrained `segformer-b{0..5}`, `depth-anything-v2-{small,base,large}` or
+//! `dinov2-{s,b,l}`, whose Hugging Face `model.safetensors` stays outside the manifest: the config
+//! names its path (absolute, or relative to the bundle folder) and its sha256. A file missing there
+//! is also looked for under its file name inside the bundle folder; a missing, replaced or
+//! mis-shaped file is an error naming the file, the tensors and where to get it.
 
 use std::collections::{BTreeMap, HashMap};
 use std::fs;
@@ -26,6 +33,7 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
 use veila_geom::{EpipolarConfig, RangeImage};
+use veila_nn::encoders::kind::{AnyEncoder, EncoderKind};
 use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
 use veila_nn::{Denoiser as Net, DenoiserConfig};
 
@@ -35,8 +43,10 @@ use crate::error::{Error, Result};
 use crate::objective::DiffusionConfig;
 use crate::sampler::{RepaintConfig, SamplerConfig};
 
-/// Format tag of `bundle.json`.
-pub const BUNDLE_FORMAT: &str = "veila-bundle/1";
+/// Format tag of `bundle.json` this build writes.
+pub const BUNDLE_FORMAT: &str = "veila-bundle/2";
+/// The earlier format, still read: its encoders are bare small-CNN configs.
+pub const BUNDLE_FORMAT_V1: &str = "veila-bundle/1";
 /// Format tag of `manifest.json`.
 pub const MANIFEST_FORMAT: &str = "veila-manifest/1";
 /// Name of the config file.
@@ -65,9 +75,9 @@ pub struct BundleConfig {
     /// Width the camera image is resized to, pixels.
     pub image_width: usize,
     /// The semantic encoder `E_s` (`None` for unconditional and depth-only models).
-    pub semantic_encoder: Option<SmallCnnConfig>,
+    pub semantic_encoder: Option<EncoderSpec>,
     /// The depth encoder `E_d` (`None` for unconditional and semantic-only models).
-    pub depth_encoder: Option<SmallCnnConfig>,
+    pub depth_encoder: Option<EncoderSpec>,
     /// The U-Net; its sensor is the range-image grid.
     pub denoiser: DenoiserConfig,
     /// Schedule, prediction target, time input.
@@ -92,10 +102,11 @@ impl BundleConfig {
     /// The weight files this config needs, in a fixed order.
     pub fn weight_files(&self) -> Vec<&'static str> {
         let mut v = Vec::new();
-        if self.semantic_encoder.is_some() {
+        let inside = |e: &Option<EncoderSpec>| e.as_ref().is_some_and(|e| !e.kind.is_pretrained());
+        if inside(&self.semantic_encoder) {
             v.push(SEMANTIC_FILE);
         }
-        if self.depth_encoder.is_some() {
+        if inside(&self.depth_encoder) {
             v.push(DEPTH_FILE);
         }
         v.push(DENOISER_FILE);
@@ -115,7 +126,7 @@ impl BundleConfig {
             reason,
             path: origin.join(CONFIG_FILE),
         };
-        if self.format != BUNDLE_FORMAT {
+        if self.format != BUNDLE_FORMAT && self.format != BUNDLE_FORMAT_V1 {
             return Err(bad(format!(
                 "format `{}`, this build reads `{BUNDLE_FORMAT}`",
                 self.format
@@ -123,6 +134,17 @@ impl BundleConfig {
         }
         if self.image_height == 0 || self.image_width == 0 {
             return Err(bad("image size has a zero dimension".into()));
+        }
+        for (field, e) in [
+            ("semantic_encoder", &self.semantic_encoder),
+            ("depth_encoder", &self.depth_encoder),
+        ] {
+            if let Some(e) = e {
+                e.check(field).map_err(bad)?;
+                e.kind
+                    .input_size(self.image_height, self.image_width)
+                    .map_err(|err| bad(format!("{field}: {err}")))?;
+            }
         }
         let conditional = self.denoiser.conditioning.is_some();
         let has_encoder = self.semantic_encoder.is_some() || self.depth_encoder.is_some();
@@ -179,6 +201,246 @@ impl BundleConfig {
     }
 }
 
+/// One image encoder of a bundle, named by kind (`bundle.json`'s `semantic_encoder` /
+/// `depth_encoder`):
+///
+/// ```json
+/// {"kind": "small-cnn", "config": {"channels": [16, 32, 64, 96], ...}}
+/// {"kind": "depth-anything-v2-small", "weights": "../weights/model.safetensors", "sha256": "..."}
+/// ```
+///
+/// A `small-cnn` has its architecture here and its weights in the bundle; a pretrained kind has
+/// its weights file here. Bundles of format `veila-bundle/1` held a bare small-CNN config, which
+/// is still read.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "serde_json::Value")]
+pub struct EncoderSpec {
+    /// What encoder it is.
+    pub kind: EncoderKind,
+    /// The small CNN's architecture (`small-cnn` only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub config: Option<SmallCnnConfig>,
+    /// Pretrained kinds: the Hugging Face `model.safetensors`, absolute or relative to the bundle
+    /// folder.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub weights: Option<PathBuf>,
+    /// Pretrained kinds: the weights' sha256 (lowercase hex), checked on every load when given.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sha256: Option<String>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct EncoderSpecFields {
+    kind: EncoderKind,
+    #[serde(default)]
+    config: Option<SmallCnnConfig>,
+    #[serde(default)]
+    weights: Option<PathBuf>,
+    #[serde(default)]
+    sha256: Option<String>,
+}
+
+impl TryFrom<serde_json::Value> for EncoderSpec {
+    type Error = String;
+
+    fn try_from(v: serde_json::Value) -> std::result::Result<Self, String> {
+        if v.get("kind").is_some() {
+            let f: EncoderSpecFields = serde_json::from_value(v).map_err(|e| e.to_string())?;
+            return Ok(EncoderSpec {
+                kind: f.kind,
+                config: f.config,
+                weights: f.weights,
+                sha256: f.sha256,
+            });
+        }
+        // veila-bundle/1: a bare small-CNN config
+        let c: SmallCnnConfig = serde_json::from_value(v).map_err(|e| {
+            format!("neither an encoder spec with a `kind` nor a small-CNN config: {e}")
+        })?;
+        Ok(EncoderSpec::small_cnn(c))
+    }
+}
+
+impl EncoderSpec {
+    /// A small CNN with this architecture.
+    pub fn small_cnn(config: SmallCnnConfig) -> Self {
+        Self {
+            kind: EncoderKind::SmallCnn,
+            config: Some(config),
+            weights: None,
+            sha256: None,
+        }
+    }
+
+    /// A pretrained encoder whose weights are at `weights` (absolute or relative to the bundle
+    /// folder), with their sha256 when known.
+    pub fn pretrained(kind: EncoderKind, weights: PathBuf, sha256: Option<String>) -> Self {
+        Self {
+            kind,
+            config: None,
+            weights: Some(weights),
+            sha256,
+        }
+    }
+
+    /// The small CNN's config, for `small-cnn` specs.
+    pub fn small_cnn_config(&self) -> Option<&SmallCnnConfig> {
+        self.config.as_ref().filter(|_| !self.kind.is_pretrained())
+    }
+
+    /// Output channels of the four feature maps.
+    pub fn channels(&self) -> [usize; 4] {
+        match (&self.config, self.kind.channels()) {
+            (_, Some(c)) => c,
+            (Some(c), None) => c.channels,
+            (None, None) => [0; 4],
+        }
+    }
+
+    /// Feature map sizes for a `height x width` camera image.
+    pub fn feature_sizes(&self, height: usize, width: usize) -> Result<[(usize, usize); 4]> {
+        if let Some(s) = self.kind.feature_sizes(height, width)? {
+            return Ok(s);
+        }
+        match &self.config {
+            Some(c) => Ok(c.feature_sizes(height, width)),
+            None => Err(Error::Data(format!("{}: no config", self.kind))),
+        }
+    }
+
+    fn check(&self, field: &str) -> std::result::Result<(), String> {
+        match (self.kind.is_pretrained(), &self.config, &self.weights) {
+            (false, Some(c), None) => c.validate().map_err(|e| format!("{field}: {e}")),
+            (false, _, _) => Err(format!(
+                "{field}: a small-cnn needs `config` and keeps its weights in the bundle (no `weights`)"
+            )),
+            (true, None, Some(_)) => match &self.sha256 {
+                Some(h) if h.len() != 64 || !h.bytes().all(|b| b.is_ascii_hexdigit()) => {
+                    Err(format!("{field}: sha256 `{h}` is not 64 hex digits"))
+                }
+                _ => Ok(()),
+            },
+            (true, _, _) => Err(format!(
+                "{field}: a {} needs `weights` (the path of its model.safetensors) and no `config`",
+                self.kind
+            )),
+        }
+    }
+
+    /// Where the pretrained weights are: the configured path (relative to `bundle_dir`), else the
+    /// file of that name inside the bundle folder.
+    pub fn resolve_weights(&self, bundle_dir: &Path) -> Option<PathBuf> {
+        let w = self.weights.as_ref()?;
+        let primary = if w.is_absolute() {
+            w.clone()
+        } else {
+            bundle_dir.join(w)
+        };
+        if primary.is_file() {
+            return Some(primary);
+        }
+        let fallback = bundle_dir.join(w.file_name()?);
+        fallback.is_file().then_some(fallback)
+    }
+
+    /// Loads a pretrained encoder (its weights resolved against `bundle_dir`, see
+    /// [`Self::resolve_weights`]; `field` names the spec in errors), checking the sha256 when the
+    /// spec has one.
+    pub fn load(&self, bundle_dir: &Path, field: &str, device: &Device) -> Result<AnyEncoder> {
+        let w = self.weights.as_ref().ok_or_else(|| Error::Checkpoint {
+            reason: format!("{field}: a {} needs `weights`", self.kind),
+            path: bundle_dir.join(CONFIG_FILE),
+        })?;
+        let repo = self.kind.hub_repo().unwrap_or("-");
+        let Some(path) = self.resolve_weights(bundle_dir) else {
+            let primary = if w.is_absolute() {
+                w.clone()
+            } else {
+                bundle_dir.join(w)
+            };
+            let name = w.file_name().map(PathBuf::from).unwrap_or_default();
+            return Err(Error::Checkpoint {
+                reason: format!(
+                    "{field} `{}`: weights not found (bundle.json names `{}`); download `model.safetensors` of {repo} from the Hugging Face Hub and put it at {} or at {}",
+                    self.kind,
+                    w.display(),
+                    primary.display(),
+                    bundle_dir.join(name).display()
+                ),
+                path: primary,
+            });
+        };
+        let bytes = fs::read(&path).map_err(|source| Error::Io {
+            action: "reading encoder weights",
+            path: path.clone(),
+            source,
+        })?;
+        if let Some(want) = &self.sha256 {
+            let got = sha256_hex(&bytes);
+            if !want.eq_ignore_ascii_case(&got) {
+                return Err(Error::Checkpoint {
+                    reason: format!(
+                        "{field} `{}`: sha256 {got}, the bundle was made with {want} (another file, or another revision of {repo})",
+                        self.kind
+                    ),
+                    path,
+                });
+            }
+        }
+        Ok(self
+            .kind
+            .load_pretrained(&bytes, &path, DType::F32, device)?)
+    }
+}
+
+impl BundleConfig {
+    /// Sets the encoders (either may be `None`, not both for a conditional denoiser) and fits the
+    /// denoiser's and the mean network's conditioning to them: channels per scale, fused feature
+    /// sizes (the semantic encoder's, else the depth encoder's, at the image size) and cues.
+    pub fn set_encoders(
+        &mut self,
+        semantic: Option<EncoderSpec>,
+        depth: Option<EncoderSpec>,
+    ) -> Result<()> {
+        let (ih, iw) = (self.image_height, self.image_width);
+        let fused = match (&semantic, &depth) {
+            (Some(s), _) => s.feature_sizes(ih, iw)?,
+            (None, Some(d)) => d.feature_sizes(ih, iw)?,
+            (None, None) => {
+                return Err(Error::Data(
+                    "set_encoders: a conditional bundle needs at least one encoder".into(),
+                ));
+            }
+        };
+        let cues = match (&semantic, &depth) {
+            (Some(_), Some(_)) => veila_nn::Cues::Both,
+            (Some(_), None) => veila_nn::Cues::SemanticOnly,
+            _ => veila_nn::Cues::DepthOnly,
+        };
+        let fit = |d: &mut DenoiserConfig| {
+            if let Some(c) = d.conditioning.as_mut() {
+                if let Some(s) = &semantic {
+                    c.semantic_channels = s.channels().to_vec();
+                }
+                if let Some(e) = &depth {
+                    c.depth_channels = e.channels().to_vec();
+                }
+                c.feature_sizes = fused.iter().map(|&(h, w)| [h, w]).collect();
+                c.cues = cues;
+            }
+        };
+        fit(&mut self.denoiser);
+        if let Some(r) = self.residual.as_mut() {
+            fit(&mut r.mean_net);
+        }
+        self.semantic_encoder = semantic;
+        self.depth_encoder = depth;
+        self.denoiser.validate()?;
+        Ok(())
+    }
+}
+
 /// `manifest.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -197,9 +459,9 @@ pub struct Bundle {
     /// The config.
     pub config: BundleConfig,
     /// `E_s`.
-    pub semantic: Option<SmallCnn>,
+    pub semantic: Option<AnyEncoder>,
     /// `E_d`.
-    pub depth: Option<SmallCnn>,
+    pub depth: Option<AnyEncoder>,
     /// The denoiser.
     pub denoiser: Net,
     /// The denoiser's weights by name (to rebuild it for another number of views).
@@ -291,26 +553,31 @@ impl Bundle {
                 source,
             })?;
         cfg.check(origin)?;
-        let load_cnn = |c: &SmallCnnConfig, name: &str| -> Result<SmallCnn> {
-            let bytes = verified(name)?;
-            Ok(veila_nn::encoders::load_checked_bytes(
-                bytes,
-                &origin.join(name),
-                DType::F32,
-                device,
-                |_| true,
-                |vb| SmallCnn::new(c, vb),
-            )?)
+        let load_encoder = |spec: &EncoderSpec, field: &str, name: &str| -> Result<AnyEncoder> {
+            match &spec.config {
+                Some(c) if !spec.kind.is_pretrained() => {
+                    let bytes = verified(name)?;
+                    Ok(AnyEncoder::from(veila_nn::encoders::load_checked_bytes(
+                        bytes,
+                        &origin.join(name),
+                        DType::F32,
+                        device,
+                        |_| true,
+                        |vb| SmallCnn::new(c, vb),
+                    )?))
+                }
+                _ => spec.load(origin, field, device),
+            }
         };
         let semantic = cfg
             .semantic_encoder
             .as_ref()
-            .map(|c| load_cnn(c, SEMANTIC_FILE))
+            .map(|c| load_encoder(c, "semantic_encoder", SEMANTIC_FILE))
             .transpose()?;
         let depth = cfg
             .depth_encoder
             .as_ref()
-            .map(|c| load_cnn(c, DEPTH_FILE))
+            .map(|c| load_encoder(c, "depth_encoder", DEPTH_FILE))
             .transpose()?;
         let path = origin.join(DENOISER_FILE);
         let expected = veila_nn::checkpoint::expected_tensors(&cfg.denoiser)?;
@@ -395,6 +662,10 @@ impl Bundle {
             fs::write(&p, bytes).map_err(io("writing bundle file", &p))?;
             manifest.files.insert(file.into(), sha256_hex(bytes));
             Ok(())
+        };
+        let config = &BundleConfig {
+            format: BUNDLE_FORMAT.into(),
+            ..config.clone()
         };
         let json = serde_json::to_vec_pretty(config).map_err(|source| Error::Json {
             path: dir.join(CONFIG_FILE),
@@ -842,8 +1113,8 @@ impl BundleConfig {
             },
             image_height: 96,
             image_width: 320,
-            semantic_encoder: semantic,
-            depth_encoder: depth,
+            semantic_encoder: semantic.map(EncoderSpec::small_cnn),
+            depth_encoder: depth.map(EncoderSpec::small_cnn),
             denoiser,
             // v-prediction: with ε-prediction a short training run leaves the noisiest levels
             // (where x̂₀ = (x_t − σ ε̂) / α amplifies every error of ε̂ by σ / α > 10) unusable, and

@@ -13,8 +13,8 @@ use candle_core::{DType, Device, Tensor};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use veila_geom::{PinholeCamera, RangeImage};
-use veila_nn::encoders::small_cnn::SmallCnn;
-use veila_nn::encoders::{ImageEncoder, Normalization, rgb8_to_tensor};
+use veila_nn::encoders::kind::AnyEncoder;
+use veila_nn::encoders::{Normalization, rgb8_to_tensor};
 use veila_nn::{ConditionInput, Denoiser as Net, GcmaGeometry};
 
 use super::bundle::{Bundle, BundleConfig};
@@ -297,13 +297,12 @@ pub(crate) fn sample(
 }
 pub(crate) fn encode_views(
     cfg: &BundleConfig,
-    semantic: Option<&SmallCnn>,
-    depth: Option<&SmallCnn>,
+    semantic: Option<&AnyEncoder>,
+    depth: Option<&AnyEncoder>,
     views: &[CameraView<'_>],
     device: &Device,
 ) -> Result<ViewFeatures> {
     let (ih, iw) = (cfg.image_height, cfg.image_width);
-    let mut images = Vec::with_capacity(views.len());
     for (i, v) in views.iter().enumerate() {
         if v.rgb.len() != ih * iw * 3
             || (v.camera.width as usize, v.camera.height as usize) != (iw, ih)
@@ -319,12 +318,13 @@ pub(crate) fn encode_views(
                 ),
             });
         }
-        images.push(image_tensor(v.rgb, ih, iw, device)?);
     }
-    let batch = Tensor::cat(&images, 0)?;
-    let run = |e: Option<&SmallCnn>| -> Result<Option<Vec<Tensor>>> {
+    let images: Vec<&[u8]> = views.iter().map(|v| v.rgb).collect();
+    // each encoder gets the images fitted to it by its kind (a patch encoder: the nearest
+    // multiple of its patch, resampled as its reference processor does)
+    let run = |e: Option<&AnyEncoder>| -> Result<Option<Vec<Tensor>>> {
         e.map(|e| {
-            Ok(ImageEncoder::forward(e, &batch)?
+            Ok(e.encode_rgb8(&images, ih, iw, device)?
                 .into_iter()
                 .map(|t| t.detach())
                 .collect())

@@ -16,9 +16,12 @@ use std::collections::HashMap;
 use std::path::Path;
 
 use candle_core::{DType, Device, Tensor};
+use veila_nn::encoders::kind::AnyEncoder;
 use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
 
-use super::bundle::{Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, MEAN_FILE, SEMANTIC_FILE};
+use super::bundle::{
+    Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, EncoderSpec, MEAN_FILE, SEMANTIC_FILE,
+};
 use super::nn::VeilaDenoiser;
 use super::train::{
     BundleFit, BundleFitOutcome, EncoderStep, Stage, TrainExample, fit_bundle, train_small_cnn,
@@ -112,6 +115,14 @@ impl Encoder {
     }
 
     /// What seeds its training with the recipe's seed.
+    /// Its field in `bundle.json`.
+    pub fn field(self) -> &'static str {
+        match self {
+            Encoder::Semantic => "semantic_encoder",
+            Encoder::Depth => "depth_encoder",
+        }
+    }
+
     fn salt(self) -> u64 {
         match self {
             Encoder::Semantic => 0x5e,
@@ -119,7 +130,7 @@ impl Encoder {
         }
     }
 
-    fn config(self, config: &BundleConfig) -> Option<&SmallCnnConfig> {
+    fn config(self, config: &BundleConfig) -> Option<&EncoderSpec> {
         match self {
             Encoder::Semantic => config.semantic_encoder.as_ref(),
             Encoder::Depth => config.depth_encoder.as_ref(),
@@ -169,10 +180,11 @@ pub enum EncoderEvent<'a> {
 #[derive(Debug, Default)]
 pub struct Encoders {
     /// `E_s`.
-    pub semantic: Option<SmallCnn>,
+    pub semantic: Option<AnyEncoder>,
     /// `E_d`.
-    pub depth: Option<SmallCnn>,
-    /// Weights by bundle file name (what [`Bundle::save`] takes).
+    pub depth: Option<AnyEncoder>,
+    /// Weights of the small CNNs by bundle file name (what [`Bundle::save`] takes; pretrained
+    /// encoders stay in their own files).
     pub weights: HashMap<&'static str, HashMap<String, Tensor>>,
 }
 
@@ -201,7 +213,9 @@ fn load_cnn(c: &SmallCnnConfig, path: &Path, device: &Device) -> Result<SmallCnn
     )?)
 }
 
-/// Stages 1 and 2: the encoders `config` asks for, semantic first.
+/// Stages 1 and 2: the encoders `config` asks for, semantic first. Pretrained encoders are read
+/// from the files their specs name (paths relative to the working directory); small CNNs come
+/// from `source`.
 pub fn prepare_encoders(
     config: &BundleConfig,
     source: EncoderSource<'_>,
@@ -210,7 +224,27 @@ pub fn prepare_encoders(
     mut on_event: impl FnMut(EncoderEvent<'_>),
 ) -> Result<Encoders> {
     let mut out = Encoders::default();
+    let put = |out: &mut Encoders, which: Encoder, net: AnyEncoder| match which {
+        Encoder::Semantic => out.semantic = Some(net),
+        Encoder::Depth => out.depth = Some(net),
+    };
+    let mut small = Vec::new();
+    for which in [Encoder::Semantic, Encoder::Depth] {
+        let Some(spec) = which.config(config) else {
+            continue;
+        };
+        match spec.small_cnn_config() {
+            Some(c) => small.push((which, c)),
+            None => {
+                let net = spec.load(Path::new("."), which.field(), device)?;
+                put(&mut out, which, net);
+            }
+        }
+    }
     if let EncoderSource::Bundle(dir) = source {
+        if small.is_empty() {
+            return Ok(out);
+        }
         let b = Bundle::from_dir(dir, device)?;
         if b.config.image_height != config.image_height
             || b.config.image_width != config.image_width
@@ -226,11 +260,8 @@ pub fn prepare_encoders(
                 path: dir.to_path_buf(),
             });
         }
-        for which in [Encoder::Semantic, Encoder::Depth] {
-            let Some(c) = which.config(config) else {
-                continue;
-            };
-            if which.config(&b.config) != Some(c) {
+        for (which, c) in small {
+            if which.config(&b.config).and_then(|s| s.small_cnn_config()) != Some(c) {
                 return Err(Error::Checkpoint {
                     reason: format!(
                         "its {} does not match this model's encoder config",
@@ -242,10 +273,7 @@ pub fn prepare_encoders(
             let path = dir.join(which.file());
             out.weights.insert(which.file(), read_tensors(&path)?);
             let net = load_cnn(c, &path, device)?;
-            match which {
-                Encoder::Semantic => out.semantic = Some(net),
-                Encoder::Depth => out.depth = Some(net),
-            }
+            put(&mut out, which, net.into());
         }
         return Ok(out);
     }
@@ -253,10 +281,7 @@ pub fn prepare_encoders(
         return Ok(out);
     };
     let hw = (config.image_height, config.image_width);
-    for which in [Encoder::Semantic, Encoder::Depth] {
-        let Some(c) = which.config(config) else {
-            continue;
-        };
+    for (which, c) in small {
         let saved = dir.join(which.file());
         let (net, tensors) = if saved.is_file() {
             on_event(EncoderEvent::Reused(which, &saved));
@@ -300,10 +325,7 @@ pub fn prepare_encoders(
             (net, tensors)
         };
         out.weights.insert(which.file(), tensors);
-        match which {
-            Encoder::Semantic => out.semantic = Some(net),
-            Encoder::Depth => out.depth = Some(net),
-        }
+        put(&mut out, which, net.into());
     }
     Ok(out)
 }

@@ -15,6 +15,7 @@ use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use veila_geom::PinholeCamera;
+use veila_nn::encoders::kind::AnyEncoder;
 use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig, SmallCnnLossConfig};
 use veila_nn::{Denoiser as Net, GcmaGeometry};
 
@@ -150,8 +151,8 @@ impl DenoiserTraining {
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         config: &BundleConfig,
-        semantic: Option<&SmallCnn>,
-        depth: Option<&SmallCnn>,
+        semantic: Option<&AnyEncoder>,
+        depth: Option<&AnyEncoder>,
         net: &Net,
         examples: &[TrainExample],
         stage: Stage,
@@ -322,9 +323,9 @@ impl DenoiserTraining {
 #[derive(Debug, Clone, Copy)]
 pub struct DenoiserFit<'a> {
     /// Frozen `E_s` (when the config uses semantic cues).
-    pub semantic: Option<&'a SmallCnn>,
+    pub semantic: Option<&'a AnyEncoder>,
     /// Frozen `E_d` (when the config uses depth cues).
-    pub depth: Option<&'a SmallCnn>,
+    pub depth: Option<&'a AnyEncoder>,
     /// The training examples (one camera rig).
     pub examples: &'a [TrainExample],
     /// Which network of the bundle is trained.
@@ -446,9 +447,9 @@ where
 #[derive(Debug, Clone, Copy)]
 pub struct BundleFit<'a> {
     /// Frozen `E_s` (when the config uses semantic cues).
-    pub semantic: Option<&'a SmallCnn>,
+    pub semantic: Option<&'a AnyEncoder>,
     /// Frozen `E_d` (when the config uses depth cues).
-    pub depth: Option<&'a SmallCnn>,
+    pub depth: Option<&'a AnyEncoder>,
     /// The training examples (one camera rig).
     pub examples: &'a [TrainExample],
     /// Examples per update.
@@ -572,8 +573,8 @@ where
 /// example, in batches of `batch_size`: what a residual denoiser trains on.
 pub fn predict_means(
     config: &BundleConfig,
-    semantic: Option<&SmallCnn>,
-    depth: Option<&SmallCnn>,
+    semantic: Option<&AnyEncoder>,
+    depth: Option<&AnyEncoder>,
     mean_weights: &HashMap<String, Tensor>,
     examples: &[TrainExample],
     batch_size: usize,

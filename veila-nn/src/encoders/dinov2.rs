@@ -898,6 +898,28 @@ impl DepthAnythingV2 {
         self.depth_from_features(&feats, ph, pw)
     }
 
+    /// The depth map of one RGB image (`height x width x 3` bytes) at its own size, as
+    /// transformers' processor and `post_process_depth_estimation(target_sizes=...)` compute it:
+    /// `processor` (normally [`ImageProcessor::depth_anything_v2`]), the head's prediction, bicubic
+    /// resampling to `height x width` (PyTorch's kernel, [`bicubic_resize`]). Row-major; relative
+    /// checkpoints give affine-invariant inverse depth, metric ones metres.
+    ///
+    /// [`ImageProcessor::depth_anything_v2`]: super::preprocess::ImageProcessor::depth_anything_v2
+    pub fn predict_depth_map_rgb8(
+        &self,
+        processor: &super::preprocess::ImageProcessor,
+        rgb: &[u8],
+        height: usize,
+        width: usize,
+        device: &candle_core::Device,
+    ) -> crate::Result<Vec<f32>> {
+        let x = processor.preprocess(rgb, height, width, device)?;
+        let d = self.predict_depth(&x)?.to_dtype(DType::F32)?;
+        let (_, h, w) = d.dims3()?;
+        let v = d.flatten_all()?.to_vec1::<f32>()?;
+        Ok(bicubic_resize(&v, 1, h, w, height, width))
+    }
+
     /// The fusion neck and head on precomputed encoder features.
     pub fn depth_from_features(
         &self,
@@ -950,3 +972,87 @@ impl DepthAnythingV2 {
 }
 
 forward_image_encoder!([] DepthAnythingV2, |s| s.encoder);
+
+/// A plain DINOv2 backbone as an image encoder: the hidden states after four layers (final
+/// `layernorm` applied, CLS token dropped), each reshaped to the `H/14 x W/14` patch grid. All four
+/// maps share stride 14 and `hidden_size` channels; unlike Depth-Anything's reassemble stage nothing
+/// is learned on top, so a pyramid is not made up.
+#[derive(Debug)]
+pub struct DinoV2Encoder {
+    backbone: DinoV2Backbone,
+    out_indices: [usize; 4],
+}
+
+impl DinoV2Encoder {
+    /// Layers 3, 6, 9, 12 for 12-layer models, 6, 12, 18, 24 for ViT-L (1-based, as
+    /// transformers' `out_indices`).
+    pub fn default_out_indices(cfg: &DinoV2Config) -> [usize; 4] {
+        let n = cfg.num_hidden_layers;
+        [n / 4, n / 2, 3 * n / 4, n]
+    }
+
+    /// `vb` points at the backbone root (the file root of `facebook/dinov2-*`, `backbone` in a
+    /// Depth-Anything checkpoint).
+    pub fn new(
+        cfg: &DinoV2Config,
+        out_indices: [usize; 4],
+        vb: VarBuilder<'_>,
+    ) -> crate::Result<Self> {
+        for (i, &ix) in out_indices.iter().enumerate() {
+            if ix == 0 || ix > cfg.num_hidden_layers {
+                config_bail!(
+                    "DinoV2Encoder: out_indices[{i}] = {ix} must be in 1..={}",
+                    cfg.num_hidden_layers
+                );
+            }
+        }
+        Ok(Self {
+            backbone: DinoV2Backbone::new(cfg, vb)?,
+            out_indices,
+        })
+    }
+
+    /// The backbone.
+    pub fn backbone(&self) -> &DinoV2Backbone {
+        &self.backbone
+    }
+}
+
+impl ImageEncoder for DinoV2Encoder {
+    fn forward(&self, image: &Tensor) -> crate::Result<Vec<Tensor>> {
+        let _span = tracing::trace_span!("dinov2_encoder").entered();
+        let (hs, ph, pw) = self
+            .backbone
+            .hidden_states(image, &self.out_indices, true)?;
+        hs.iter()
+            .map(|h| {
+                let (b, n, c) = h.dims3()?;
+                Ok(h.narrow(1, 1, n - 1)?
+                    .transpose(1, 2)?
+                    .reshape((b, c, ph, pw))?)
+            })
+            .collect()
+    }
+
+    fn channels(&self) -> [usize; 4] {
+        [self.backbone.config().hidden_size; 4]
+    }
+
+    fn strides(&self) -> [f32; 4] {
+        [self.backbone.config().patch_size as f32; 4]
+    }
+
+    fn feature_sizes(&self, height: usize, width: usize) -> [(usize, usize); 4] {
+        let p = self.backbone.config().patch_size.max(1);
+        [(height / p, width / p); 4]
+    }
+
+    fn input_spec(&self) -> InputSpec {
+        let p = self.backbone.config().patch_size;
+        InputSpec {
+            normalization: Normalization::IMAGENET,
+            size_multiple: p,
+            min_size: p,
+        }
+    }
+}

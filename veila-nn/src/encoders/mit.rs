@@ -697,6 +697,26 @@ impl SegFormer {
             .upsample_bilinear2d(h, w, false)?;
         Ok(logits.argmax(1)?.flatten_from(1)?.to_vec2::<u32>()?)
     }
+
+    /// The class map of one RGB image (`height x width x 3` bytes) at its own size, as
+    /// transformers' processor and `post_process_semantic_segmentation(target_sizes=...)` compute
+    /// it: `processor` (e.g. [`ImageProcessor::segformer`](super::preprocess::ImageProcessor::segformer)`(1024, 1024)` for the Cityscapes
+    /// checkpoints), logits, bilinear upsampling to `height x width`, argmax. Row-major.
+    pub fn predict_label_map_rgb8(
+        &self,
+        processor: &super::preprocess::ImageProcessor,
+        rgb: &[u8],
+        height: usize,
+        width: usize,
+        device: &candle_core::Device,
+    ) -> crate::Result<Vec<u32>> {
+        let x = processor.preprocess(rgb, height, width, device)?;
+        let logits = self
+            .logits(&x)?
+            .to_dtype(candle_core::DType::F32)?
+            .upsample_bilinear2d(height, width, false)?;
+        Ok(logits.argmax(1)?.flatten_all()?.to_vec1::<u32>()?)
+    }
 }
 
 forward_image_encoder!([] SegFormer, |s| s.encoder);

@@ -124,8 +124,10 @@ macro_rules! forward_image_encoder {
 }
 
 pub mod dinov2;
+pub mod kind;
 pub mod losses;
 pub mod mit;
+pub mod preprocess;
 pub mod small_cnn;
 
 use std::collections::HashMap;

@@ -20,7 +20,11 @@ random weights, hundreds of MB: written outside the repository, never committed)
 
 Each model gives two files: `<name>.safetensors` (the weights, Hugging Face names) and
 `<name>_io.safetensors` (`pixel_values` [1, 3, H, W] and the outputs: `stage{i}` the four
-multi-scale encoder features, `logits` for SegFormer, `depth` for Depth-Anything). All weights are
+multi-scale encoder features, `logits` for SegFormer, `depth` for Depth-Anything). The small configs'
+files also hold an end-to-end reference: `pipeline_image` (45 x 67 uint8 RGB) through the
+reference processor (`*ImageProcessorPil`), the model and the post-processing back to the image size
+(`pipeline_labels` from `post_process_semantic_segmentation`, `pipeline_depth` from
+`post_process_depth_estimation`). All weights are
 drawn from a fixed seed, with noise added to Hugging Face's initialisation so that LayerNorm and
 BatchNorm parameters and running statistics are not the trivial 1/0.
 """
@@ -65,7 +69,21 @@ def save_weights(model, path):
         shutil.copyfile(os.path.join(tmp, "model.safetensors"), path)
 
 
-def segformer(name, cfg, height, width, out_dir, seed):
+IMAGENET_MEAN = [0.485, 0.456, 0.406]
+IMAGENET_STD = [0.229, 0.224, 0.225]
+
+
+def pipeline_image(seed, h=45, w=67):
+    """A fixed uint8 RGB image for the end-to-end pipeline references."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    base = np.stack([127 + 100 * np.sin(x / 6.0), 255 * x / (w - 1), 255 * y / (h - 1)], axis=-1)
+    return np.clip(np.round(base + rng.normal(0, 25, base.shape)), 0, 255).astype(np.uint8)
+
+
+def segformer(name, cfg, height, width, out_dir, seed, pipeline=False):
     torch.manual_seed(seed)
     model = SegformerForSemanticSegmentation(cfg)
     perturb(model, seed + 1)
@@ -77,12 +95,26 @@ def segformer(name, cfg, height, width, out_dir, seed):
     for i, h in enumerate(out.hidden_states):
         io[f"stage{i}"] = h.contiguous()
     io["logits"] = out.logits.contiguous()
+    if pipeline:
+        # processor (resize to the model size, bilinear), model, post-processing to the image size
+        from transformers import SegformerImageProcessorPil
+
+        image = pipeline_image(seed + 3)
+        proc = SegformerImageProcessorPil(
+            size={"height": height, "width": width}, image_mean=IMAGENET_MEAN, image_std=IMAGENET_STD
+        )
+        pv = proc(images=image, return_tensors="pt").pixel_values
+        with torch.no_grad():
+            o = model(pixel_values=pv)
+        labels = proc.post_process_semantic_segmentation(o, target_sizes=[image.shape[:2]])[0]
+        io["pipeline_image"] = torch.from_numpy(image).contiguous()
+        io["pipeline_labels"] = labels.to(torch.int64).contiguous()
     save_weights(model, os.path.join(out_dir, f"{name}.safetensors"))
     save_file(io, os.path.join(out_dir, f"{name}_io.safetensors"))
     return {k: list(v.shape) for k, v in io.items()}
 
 
-def depth_anything(name, cfg, height, width, out_dir, seed):
+def depth_anything(name, cfg, height, width, out_dir, seed, pipeline=False):
     torch.manual_seed(seed)
     model = DepthAnythingForDepthEstimation(cfg)
     perturb(model, seed + 1)
@@ -101,6 +133,26 @@ def depth_anything(name, cfg, height, width, out_dir, seed):
     for i, h in enumerate(captured["reassembled"]):
         io[f"stage{i}"] = h.contiguous()
     io["depth"] = out.predicted_depth.contiguous()
+    if pipeline:
+        # the -hf processor settings with a target of the model's size and its patch multiple
+        from transformers import DPTImageProcessorPil
+
+        image = pipeline_image(seed + 3)
+        proc = DPTImageProcessorPil(
+            size={"height": height, "width": width},
+            keep_aspect_ratio=True,
+            ensure_multiple_of=cfg.patch_size,
+            resample=3,
+            do_pad=False,
+            image_mean=IMAGENET_MEAN,
+            image_std=IMAGENET_STD,
+        )
+        pv = proc(images=image, return_tensors="pt").pixel_values
+        with torch.no_grad():
+            o = model(pixel_values=pv)
+        depth = proc.post_process_depth_estimation(o, target_sizes=[image.shape[:2]])[0]["predicted_depth"]
+        io["pipeline_image"] = torch.from_numpy(image).contiguous()
+        io["pipeline_depth"] = depth.contiguous()
     save_weights(model, os.path.join(out_dir, f"{name}.safetensors"))
     save_file(io, os.path.join(out_dir, f"{name}_io.safetensors"))
     return {k: list(v.shape) for k, v in io.items()}
@@ -157,7 +209,7 @@ def small(out_dir):
         layer_norm_eps=1e-6,
     )
     # 72 x 52: non-square, not a multiple of 32 (odd stage sizes exercise the padding and upsampling)
-    info["segformer_small"] = segformer("segformer_small", seg, 72, 52, out_dir, 1400)
+    info["segformer_small"] = segformer("segformer_small", seg, 72, 52, out_dir, 1400, pipeline=True)
     backbone = Dinov2Config(
         hidden_size=16,
         num_hidden_layers=4,
@@ -183,7 +235,9 @@ def small(out_dir):
     )
     # 24 x 44 pixels: a 6 x 11 patch grid against the stored 8 x 8 position grid (shrink one side,
     # grow the other) so that position-embedding resampling is exercised.
-    info["depth_anything_small"] = depth_anything("depth_anything_small", da, 24, 44, out_dir, 1410)
+    info["depth_anything_small"] = depth_anything(
+        "depth_anything_small", da, 24, 44, out_dir, 1410, pipeline=True
+    )
     return info
 
 
