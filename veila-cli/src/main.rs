@@ -7,6 +7,7 @@
 use anyhow::Result;
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
+mod dist; // the TCP transport of data-parallel `veila train`
 mod generation; // what generate and edit share (rig and sampler arguments, scan files)
 mod model;
 mod process; // the global allocator and the process settings (shared with xtask)

@@ -10,6 +10,13 @@
 //! bundle is written to `OUTPUT/bundle` (verified by reading it back). Every update appends a line
 //! to `OUTPUT/train_log.jsonl` (stage, step, loss, learning rate, samples/s).
 //!
+//! Data-parallel: started by a launcher as several processes (torchrun's `RANK` / `WORLD_SIZE` /
+//! `LOCAL_RANK` / `MASTER_ADDR` / `MASTER_PORT`, or Slurm's `SLURM_PROCID` / `SLURM_NTASKS` /
+//! `SLURM_LOCALID` with `MASTER_ADDR` / `MASTER_PORT` exported), the ranks meet at rank 0 over TCP
+//! ([`crate::dist`]), each trains on its share of every global batch of `[train] batch`, the
+//! gradients are averaged before each update, and rank 0 alone writes checkpoints, the log and the
+//! bundle (the other ranks log to `train_log.rank-N.jsonl`). The output folder must be shared.
+//!
 //! ```toml
 //! [data]
 //! shards = "data/kitti-shards"     # folder with manifest.json (relative to this file)
@@ -56,6 +63,7 @@ use veila_diffusion::app::{
     Encoder, EncoderData, EncoderEvent, EncoderSource, RecipeInput, RecipeSettings, Stage,
     TrainExample, run_recipe,
 };
+use veila_diffusion::trainer::distributed::{Parallel, ProcessGroup};
 use veila_diffusion::{StepStats, TrainObserver};
 use veila_geom::{LidarSensor, PinholeCamera, ProjectionOptions, Projector, RayTable};
 use veila_nn::encoders::kind::EncoderKind;
@@ -667,6 +675,26 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
     let mut cfg = bundle_config(&file, &args.config)?;
     let device = model::device()?;
     let t = &file.train;
+    // data-parallel when a launcher (torchrun, srun) started several of us
+    let group = ProcessGroup::from_env()?;
+    let parallel = if group.world_size > 1 {
+        if t.batch < group.world_size {
+            bail!(
+                "{}: [train] batch {} is smaller than the {} ranks (the batch is the global one, shared by the ranks)",
+                args.config.display(),
+                t.batch,
+                group.world_size
+            );
+        }
+        let comm = crate::dist::TcpGroup::connect(&group, std::time::Duration::from_secs(300))?;
+        eprintln!(
+            "train: rank {} of {} (local rank {})",
+            group.rank, group.world_size, group.local_rank
+        );
+        Some(Parallel::new(group.clone(), Box::new(comm))?)
+    } else {
+        None
+    };
 
     // 1. data
     let shards = &file.data.shards;
@@ -771,12 +799,22 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
             .as_ref()
             .map(|p| p.display().to_string()),
     };
-    veila_diffusion::claim_checkpoint_dir(&ck_dir, &fingerprint).with_context(|| {
-        format!(
-            "{}: model, [train] or data changed since these checkpoints; use another [output] dir",
-            out.display()
-        )
-    })?;
+    if group.is_main() {
+        veila_diffusion::claim_checkpoint_dir(&ck_dir, &fingerprint).with_context(|| {
+            format!(
+                "{}: model, [train] or data changed since these checkpoints; use another [output] dir",
+                out.display()
+            )
+        })?;
+    }
+    if let Some(p) = &parallel {
+        // the others wait for rank 0's claim (and learn whether it failed: a zero sum)
+        let mut ok = [1f32];
+        p.communicator().all_reduce_sum(&mut ok)?;
+        if ok[0] < group.world_size as f32 {
+            bail!("rank {}: another rank failed to start", group.rank);
+        }
+    }
 
     // 3. encoders and 4. networks: the shared recipe
     let settings = RecipeSettings {
@@ -835,7 +873,12 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
     let mut encoder_note = String::new();
     let mut enc_bar: Option<indicatif::ProgressBar> = None;
     let run = std::rc::Rc::new(std::cell::Cell::new(0u64));
-    let log = std::rc::Rc::new(TrainLog::open(out.join(TRAIN_LOG))?);
+    let log_path = if group.is_main() {
+        out.join(TRAIN_LOG)
+    } else {
+        out.join(format!("train_log.rank-{}.jsonl", group.rank))
+    };
+    let log = std::rc::Rc::new(TrainLog::open(log_path)?);
     let outcome = run_recipe(
         &mut cfg,
         RecipeInput {
@@ -843,6 +886,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
             examples: &examples,
             work_dir: &ck_dir,
             init: None,
+            parallel: parallel.as_ref(),
         },
         &settings,
         &device,
@@ -924,6 +968,10 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         }
     };
     print_denoiser_summary(den, t.steps, outcome.fit.seconds[1]);
+    if !group.is_main() {
+        println!("rank {}: done; rank 0 writes the bundle", group.rank);
+        return Ok(());
+    }
     let summary = den.summary.clone();
     let weights = outcome.into_weights();
 
@@ -937,6 +985,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         "samples": fingerprint.samples,
         "encoders_from": fingerprint.encoders_from,
         "train": fingerprint.train,
+        "ranks": group.world_size,
         "final_mean_loss_this_run": summary.mean_loss,
         "seconds_this_run": {
             "encoders": enc_secs.round(),

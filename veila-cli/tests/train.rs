@@ -466,3 +466,83 @@ fn pretrained_encoders_are_named_by_kind_through_train_and_generate() {
         "{err}"
     );
 }
+
+/// Two ranks launched as torchrun would (RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR, MASTER_PORT)
+/// train one model: both finish, rank 0 alone writes the bundle and the main log, and the run is
+/// deterministic (a second two-rank run gives the same weights byte for byte).
+#[test]
+fn two_ranks_train_one_model_data_parallel() {
+    use std::process::Stdio;
+    let tmp = tempfile::tempdir().unwrap();
+    make_shards(&tmp.path().join("shards"), 4, true, true);
+    write_small_bundle_config(&tmp.path().join("small.json"));
+    let run_pair = |out: &str| {
+        let cfg = tmp.path().join(format!("{out}.toml"));
+        write_config(
+            &cfg,
+            "shards",
+            out,
+            &format!(
+                "bundle = \"small.json\"\nencoders_from = \"{}\"",
+                model_dir().display()
+            ),
+            "steps = 3\nbatch = 2\nlr = 1e-3\nseed = 3\ncheckpoint_every = 2",
+        );
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let children: Vec<_> = (0..2)
+            .map(|rank| {
+                veila()
+                    .args(["train", "--quiet", "--config"])
+                    .arg(&cfg)
+                    .env("RANK", rank.to_string())
+                    .env("WORLD_SIZE", "2")
+                    .env("LOCAL_RANK", rank.to_string())
+                    .env("MASTER_ADDR", "127.0.0.1")
+                    .env("MASTER_PORT", port.to_string())
+                    .stdout(Stdio::piped())
+                    .stderr(Stdio::piped())
+                    .spawn()
+                    .unwrap()
+            })
+            .collect();
+        for c in children {
+            ok(&c.wait_with_output().unwrap());
+        }
+        tmp.path().join(out)
+    };
+    let a = run_pair("dp-a");
+    assert!(a.join("bundle/bundle.json").is_file());
+    assert!(a.join("train_log.jsonl").is_file());
+    assert!(a.join("train_log.rank-1.jsonl").is_file());
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(a.join("bundle/bundle.json")).unwrap()).unwrap();
+    assert_eq!(json["provenance"]["ranks"], 2);
+    let b = run_pair("dp-b");
+    let read = |d: &Path| std::fs::read(d.join("bundle/denoiser.safetensors")).unwrap();
+    assert_eq!(read(&a), read(&b), "two-rank runs are not deterministic");
+
+    // a batch smaller than the world is refused before anything starts
+    let cfg = tmp.path().join("small-batch.toml");
+    write_config(
+        &cfg,
+        "shards",
+        "dp-c",
+        "bundle = \"small.json\"",
+        "steps = 1\nbatch = 1",
+    );
+    let o = veila()
+        .args(["train", "--quiet", "--config"])
+        .arg(&cfg)
+        .env("RANK", "0")
+        .env("WORLD_SIZE", "2")
+        .env("MASTER_ADDR", "127.0.0.1")
+        .env("MASTER_PORT", "1")
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("smaller than the 2 ranks"));
+}

@@ -93,6 +93,11 @@ pub enum Error {
     /// The training data source ran out or failed.
     #[error("data source: {0}")]
     Data(String),
+
+    /// Data-parallel training: a rank could not reach, or lost, the others (the message names
+    /// the rank and the address).
+    #[error("data-parallel group: {0}")]
+    Distributed(String),
 }
 
 /// `Result` with this crate's [`Error`].

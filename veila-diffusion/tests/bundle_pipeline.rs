@@ -449,6 +449,7 @@ fn overfit_one(cfg: BundleConfig, scan: &RangeImage, steps: u64, dir: &std::path
             mean_train: None,
             work_dir: &dir.join("work"),
             init: None,
+            parallel: None,
         },
         &dev,
         |_, _, _| {},

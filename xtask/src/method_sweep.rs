@@ -347,6 +347,7 @@ pub fn run(args: MethodSweepArgs) -> Result<()> {
             train: &train_cfg,
             checkpoint_dir: &dir,
             init: None,
+            parallel: None,
         };
         match method {
             Method::Residual => {

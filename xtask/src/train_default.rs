@@ -237,6 +237,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             examples: &train_examples,
             work_dir: &work,
             init: init.as_ref(),
+            parallel: None,
         },
         &settings,
         &device,

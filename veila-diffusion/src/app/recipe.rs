@@ -341,6 +341,11 @@ pub struct RecipeInput<'a> {
     pub work_dir: &'a Path,
     /// Initial denoiser weights wherever names and shapes match (fine-tuning).
     pub init: Option<&'a HashMap<String, Tensor>>,
+    /// Data-parallel training with the other ranks of the run (`None`: one process). Every rank
+    /// runs every stage; the encoders' and the mean network's work is repeated on each (it is
+    /// deterministic), the networks' updates are shared. Only rank 0 writes checkpoints; the
+    /// caller writes the bundle on rank 0 only.
+    pub parallel: Option<&'a crate::trainer::distributed::Parallel>,
 }
 
 /// What [`run_recipe`] did.
@@ -406,6 +411,7 @@ where
             mean_train: Some(&mean_tc),
             work_dir: input.work_dir,
             init: input.init,
+            parallel: input.parallel,
         },
         device,
         on_resume,

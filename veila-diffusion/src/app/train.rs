@@ -25,6 +25,7 @@ use super::nn::{NetCond, VeilaDenoiser};
 use crate::error::{Error, Result};
 use crate::objective::Diffusion;
 use crate::sampler::{Sampler, SamplerConfig};
+use crate::trainer::distributed::{Parallel, ProcessGroup};
 use crate::trainer::{AdamW, Batch, FitSummary, ParamsAdamW, TrainConfig, TrainObserver, Trainer};
 
 /// One training example: a camera image at the bundle's size, its camera, and the encoded clean
@@ -142,6 +143,7 @@ pub struct DenoiserTraining {
     geometry: Option<GcmaGeometry>,
     batch_size: usize,
     seed: u64,
+    shard: Option<ProcessGroup>,
 }
 
 impl DenoiserTraining {
@@ -253,6 +255,7 @@ impl DenoiserTraining {
             geometry,
             batch_size,
             seed,
+            shard: None,
         })
     }
 
@@ -294,10 +297,27 @@ impl DenoiserTraining {
             .collect()
     }
 
+    /// Makes [`Self::batch`] return only `group`'s share of each global batch (data-parallel
+    /// training: every rank draws the same global batch and takes its own disjoint part).
+    pub fn set_shard(&mut self, group: &ProcessGroup) -> Result<()> {
+        if self.batch_size < group.world_size {
+            return Err(Error::Data(format!(
+                "a global batch of {} cannot be shared by {} ranks (each needs at least one example)",
+                self.batch_size, group.world_size
+            )));
+        }
+        self.shard = Some(group.clone());
+        Ok(())
+    }
+
     /// The batch of update `step` for `net` (the condition fusion runs here, inside the graph, so
-    /// CACM is trained).
+    /// CACM is trained); with [`Self::set_shard`], this rank's share of it.
     pub fn batch<'g>(&'g self, net: &Net, step: u64) -> Result<Batch<NetCond<'g>>> {
-        let idx = self.indices(step);
+        let all = self.indices(step);
+        let idx = match &self.shard {
+            Some(g) => g.shard(&all).to_vec(),
+            None => all,
+        };
         let pick = |v: &[Tensor]| -> Result<Tensor> {
             Ok(Tensor::cat(
                 &idx.iter().map(|&i| v[i].clone()).collect::<Vec<_>>(),
@@ -343,6 +363,9 @@ pub struct DenoiserFit<'a> {
     /// Start from these weights wherever names and shapes match (fine-tuning); the rest keeps its
     /// seeded initialisation.
     pub init: Option<&'a HashMap<String, Tensor>>,
+    /// Data-parallel training with the other ranks of this run (`None`: one process). Every rank
+    /// trains on its share of each global batch of `batch_size`; only rank 0 writes checkpoints.
+    pub parallel: Option<&'a Parallel>,
 }
 
 /// What [`fit_denoiser`] did.
@@ -409,7 +432,7 @@ where
             }
         }
     }
-    let data = DenoiserTraining::new(
+    let mut data = DenoiserTraining::new(
         config,
         fit.semantic,
         fit.depth,
@@ -421,6 +444,9 @@ where
         fit.train.seed,
         device,
     )?;
+    if let Some(p) = fit.parallel {
+        data.set_shard(p.group())?;
+    }
     // the batches run the condition fusion through a clone that shares the trained variables
     let batch_net = net.clone();
     let mut trainer = Trainer::new(
@@ -429,6 +455,9 @@ where
         Diffusion::new(diffusion)?,
         fit.train.clone(),
     )?;
+    if let Some(p) = fit.parallel {
+        trainer.set_communicator(p.communicator());
+    }
     let resumed: Option<PathBuf> = trainer.resume_latest(fit.checkpoint_dir)?;
     if let Some(p) = &resumed {
         on_resume(p, trainer.step());
@@ -462,6 +491,8 @@ pub struct BundleFit<'a> {
     pub work_dir: &'a Path,
     /// Initial denoiser weights wherever names and shapes match (fine-tuning).
     pub init: Option<&'a HashMap<String, Tensor>>,
+    /// Data-parallel training (see [`DenoiserFit::parallel`]).
+    pub parallel: Option<&'a Parallel>,
 }
 
 /// What [`fit_bundle`] did.
@@ -509,6 +540,7 @@ where
                 train: tc,
                 checkpoint_dir: &dir,
                 init: None,
+                parallel: fit.parallel,
             },
             device,
             |p, s| on_resume(Stage::Mean, p, s),
@@ -556,6 +588,7 @@ where
             train: fit.train,
             checkpoint_dir: fit.work_dir,
             init: fit.init,
+            parallel: fit.parallel,
         },
         device,
         |p, s| on_resume(Stage::Denoiser, p, s),

@@ -45,6 +45,7 @@
 //! ```
 
 mod checkpoint;
+pub mod distributed;
 mod lr;
 mod optim;
 
@@ -309,6 +310,7 @@ pub struct Trainer<M: Denoiser> {
     skipped: u64,
     rng: ChaCha8Rng,
     clock: Clock,
+    comm: Option<Box<dyn distributed::Communicator>>,
 }
 
 impl<M: Denoiser> std::fmt::Debug for Trainer<M> {
@@ -378,7 +380,23 @@ impl<M: Denoiser> Trainer<M> {
             skipped: 0,
             rng,
             clock: Clock::default(),
+            comm: None,
         })
+    }
+
+    /// Trains data-parallel with the other ranks of `comm` (see [`distributed`]): every update
+    /// averages the gradients and the loss over the ranks, so all ranks take the same step, and
+    /// the noise of update `s` comes from a ChaCha8 stream seeded by `(seed, s, rank)` (no
+    /// generator state to carry, so resumes stay exact). Each rank passes its own share of the
+    /// global batch ([`distributed::ProcessGroup::shard`]); only rank 0 writes checkpoints. A
+    /// world of one changes nothing.
+    pub fn set_communicator(&mut self, comm: Box<dyn distributed::Communicator>) {
+        self.comm = (comm.world_size() > 1).then_some(comm);
+    }
+
+    /// This trainer's rank (0 without a communicator).
+    pub fn rank(&self) -> usize {
+        self.comm.as_ref().map_or(0, |c| c.rank())
     }
 
     /// The model (current, non-averaged weights).
@@ -478,6 +496,13 @@ impl<M: Denoiser> Trainer<M> {
         let dropout = (self.config.cond_drop_prob > 0.0).then_some(CondDropout {
             prob: self.config.cond_drop_prob,
         });
+        if let Some(c) = &self.comm {
+            // a stream per (seed, step, rank): ranks draw different noise, and a resumed rank
+            // draws what it would have drawn
+            let mut rng = ChaCha8Rng::seed_from_u64(self.config.seed);
+            rng.set_stream(((c.rank() as u64) << 40) ^ self.step);
+            self.rng = rng;
+        }
         let out = self.diffusion.training_loss_weighted(
             &self.model,
             &batch.x0,
@@ -501,7 +526,9 @@ impl<M: Denoiser> Trainer<M> {
             step_secs: 0.0,
             samples_per_sec: 0.0,
         };
-        if loss.is_finite() {
+        if self.comm.is_some() {
+            self.distributed_update(&out.loss, loss, lr, &mut stats)?;
+        } else if loss.is_finite() {
             let grads = out.loss.backward()?;
             // one device sync for the global norm, not one per parameter
             let mut sums = Vec::with_capacity(self.vars.len());
@@ -516,20 +543,7 @@ impl<M: Denoiser> Trainer<M> {
                 (Tensor::stack(&sums, 0)?.sum_all()?.to_scalar::<f32>()? as f64).sqrt()
             };
             stats.grad_norm = norm;
-            if norm.is_finite() {
-                let scale = match self.config.grad_clip_norm {
-                    Some(c) if norm > c => {
-                        stats.clipped = true;
-                        c / (norm + 1e-6)
-                    }
-                    _ => 1.0,
-                };
-                self.opt.set_learning_rate(lr);
-                self.opt.step(&grads, scale)?;
-                self.update_ema()?;
-            } else {
-                stats.skipped = true;
-            }
+            self.apply_update(&grads, norm, lr, &mut stats)?;
         } else {
             stats.skipped = true;
         }
@@ -556,6 +570,93 @@ impl<M: Denoiser> Trainer<M> {
         stats.step_secs = started.elapsed().as_secs_f64();
         stats.samples_per_sec = b as f64 / stats.step_secs.max(1e-9);
         Ok(stats)
+    }
+
+    /// Clips by `norm` and steps the optimizer and the EMA (or marks the update skipped when the
+    /// norm is not finite).
+    fn apply_update(
+        &mut self,
+        grads: &candle_core::backprop::GradStore,
+        norm: f64,
+        lr: f64,
+        stats: &mut StepStats,
+    ) -> Result<()> {
+        if norm.is_finite() {
+            let scale = match self.config.grad_clip_norm {
+                Some(c) if norm > c => {
+                    stats.clipped = true;
+                    c / (norm + 1e-6)
+                }
+                _ => 1.0,
+            };
+            self.opt.set_learning_rate(lr);
+            self.opt.step(grads, scale)?;
+            self.update_ema()?;
+        } else {
+            stats.skipped = true;
+        }
+        Ok(())
+    }
+
+    /// The data-parallel update: every rank contributes its gradients (zeros and a flag when its
+    /// loss is not finite) and its loss to one all-reduce, then all apply the same mean gradient.
+    fn distributed_update(
+        &mut self,
+        loss_t: &Tensor,
+        loss: f64,
+        lr: f64,
+        stats: &mut StepStats,
+    ) -> Result<()> {
+        let finite = loss.is_finite();
+        let grads = if finite {
+            Some(loss_t.backward()?)
+        } else {
+            None
+        };
+        let mut sizes = Vec::with_capacity(self.vars.len());
+        let mut flat: Vec<f32> = Vec::new();
+        for v in &self.vars {
+            let n = v.as_tensor().elem_count();
+            sizes.push(n);
+            match grads.as_ref().and_then(|g| g.get(v.as_tensor())) {
+                Some(g) => flat.extend(
+                    g.to_dtype(candle_core::DType::F32)?
+                        .flatten_all()?
+                        .to_vec1::<f32>()?,
+                ),
+                None => flat.extend(std::iter::repeat_n(0f32, n)),
+            }
+        }
+        flat.push(if finite { loss as f32 } else { 0.0 });
+        flat.push(if finite { 0.0 } else { 1.0 });
+        let comm = self
+            .comm
+            .as_mut()
+            .ok_or_else(|| invalid("trainer", "no communicator"))?;
+        let world = comm.world_size() as f32;
+        comm.all_reduce_sum(&mut flat)?;
+        let bad = flat.pop().unwrap_or(0.0);
+        let loss_sum = flat.pop().unwrap_or(f32::NAN);
+        if bad > 0.0 {
+            stats.skipped = true;
+            stats.loss = f64::NAN;
+            return Ok(());
+        }
+        stats.loss = (loss_sum / world) as f64;
+        let mut store = grads.ok_or_else(|| invalid("trainer", "no gradients"))?;
+        let mut at = 0;
+        let mut sq = 0f64;
+        for (v, &n) in self.vars.iter().zip(&sizes) {
+            let mean: Vec<f32> = flat[at..at + n].iter().map(|x| x / world).collect();
+            at += n;
+            sq += mean.iter().map(|&x| (x as f64) * (x as f64)).sum::<f64>();
+            let t = Tensor::from_vec(mean, v.as_tensor().shape(), v.as_tensor().device())?
+                .to_dtype(v.as_tensor().dtype())?;
+            store.insert(v.as_tensor(), t);
+        }
+        let norm = sq.sqrt();
+        stats.grad_norm = norm;
+        self.apply_update(&store, norm, lr, stats)
     }
 
     fn update_ema(&mut self) -> Result<()> {
@@ -613,6 +714,7 @@ impl<M: Denoiser> Trainer<M> {
             }
             if let (Some(dir), Some(every)) = (checkpoint_dir, self.config.checkpoint_every)
                 && self.step.is_multiple_of(every)
+                && self.rank() == 0
             {
                 // the checkpoint carries the clock up to its own writing, counted after it
                 let t = std::time::Instant::now();
@@ -632,6 +734,7 @@ impl<M: Denoiser> Trainer<M> {
         if let Some(dir) = checkpoint_dir
             && last_saved != Some(self.step)
             && summary.steps_run > 0
+            && self.rank() == 0
         {
             let p = self.save_checkpoint(dir)?;
             observer.on_checkpoint(self.step, &p);

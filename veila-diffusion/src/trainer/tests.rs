@@ -214,3 +214,145 @@ fn a_checkpoint_folder_belongs_to_one_run() {
     // the record is not replaced by the refused settings
     claim_checkpoint_dir(&dir, &settings).unwrap();
 }
+
+/// A per-pixel offset plus a scale of the input: enough parameters to see gradients differ.
+struct Offset {
+    scale: Tensor,
+    bias: Tensor,
+}
+
+impl Denoiser for Offset {
+    type Cond = ();
+    fn forward(&self, x: &Tensor, _t: &Tensor, _c: Option<&()>) -> candle_core::Result<Tensor> {
+        x.broadcast_mul(&self.scale)?.broadcast_add(&self.bias)
+    }
+}
+
+fn offset_trainer(objective: crate::Objective, total: u64) -> Trainer<Offset> {
+    let varmap = VarMap::new();
+    let vb = candle_nn::VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
+    let model = Offset {
+        scale: vb
+            .get_with_hints(1, "scale", candle_nn::Init::Const(0.5))
+            .unwrap(),
+        bias: vb
+            .get_with_hints((1, 2, 2, 4), "bias", candle_nn::Init::Const(0.1))
+            .unwrap(),
+    };
+    let diffusion = Diffusion::new(crate::DiffusionConfig {
+        objective,
+        ..crate::DiffusionConfig::default()
+    })
+    .unwrap();
+    let config = TrainConfig {
+        total_steps: total,
+        warmup_steps: 1,
+        lr: 0.05,
+        // a large eps keeps Adam's first steps from turning rounding-level gradients (an L1
+        // gradient whose signs cancel) into full-size moves
+        adam_eps: 0.1,
+        checkpoint_every: None,
+        ..TrainConfig::default()
+    };
+    Trainer::new(model, varmap, diffusion, config).unwrap()
+}
+
+/// The global batch of update `step`: 6 examples whose values depend on the step.
+fn global_batch(step: u64) -> Vec<Tensor> {
+    (0..6)
+        .map(|i| {
+            let v: Vec<f32> = (0..16)
+                .map(|k| ((i * 16 + k) as f32 * 0.37 + step as f32).sin() * 3.0)
+                .collect();
+            Tensor::from_vec(v, (1, 2, 2, 4), &Device::Cpu).unwrap()
+        })
+        .collect()
+}
+
+fn weights_of(t: &Trainer<Offset>) -> Vec<f32> {
+    let w = t.weights().unwrap();
+    let mut names: Vec<&String> = w.keys().collect();
+    names.sort();
+    names
+        .into_iter()
+        .flat_map(|n| w[n].flatten_all().unwrap().to_vec1::<f32>().unwrap())
+        .collect()
+}
+
+/// Runs `world` ranks as threads, each on its shard of every global batch, and returns each
+/// rank's weights.
+fn data_parallel(objective: crate::Objective, world: usize, steps: u64) -> Vec<Vec<f32>> {
+    use distributed::Communicator as _;
+    let comms = distributed::InProcessGroup::new(world);
+    let handles: Vec<_> = comms
+        .into_iter()
+        .map(|comm| {
+            std::thread::spawn(move || {
+                let rank = comm.rank();
+                let mut trainer = offset_trainer(objective, steps);
+                trainer.set_communicator(Box::new(comm));
+                let group = distributed::ProcessGroup {
+                    rank,
+                    world_size: world,
+                    local_rank: rank,
+                    master: None,
+                };
+                let mut data = |step: u64| -> Result<Batch<()>> {
+                    let all = global_batch(step);
+                    Ok(Batch {
+                        x0: Tensor::cat(group.shard(&all), 0)?,
+                        cond: None,
+                        weight: None,
+                    })
+                };
+                trainer.fit(&mut data, None, &mut ()).unwrap();
+                weights_of(&trainer)
+            })
+        })
+        .collect();
+    handles.into_iter().map(|h| h.join().unwrap()).collect()
+}
+
+#[test]
+fn data_parallel_ranks_take_the_single_process_step() {
+    use distributed::Communicator as _;
+    // regression draws no noise: two or three ranks on shares of the batch must give the weights
+    // of one process on the whole batch (the mean of equal shares' mean gradients is the mean)
+    let steps = 6;
+    let mut single = offset_trainer(crate::Objective::Regression, steps);
+    let mut data = |step: u64| -> Result<Batch<()>> {
+        Ok(Batch {
+            x0: Tensor::cat(&global_batch(step), 0)?,
+            cond: None,
+            weight: None,
+        })
+    };
+    single.fit(&mut data, None, &mut ()).unwrap();
+    let want = weights_of(&single);
+    let init = weights_of(&offset_trainer(crate::Objective::Regression, steps));
+    assert!(
+        want.iter().zip(&init).any(|(a, b)| (a - b).abs() > 1e-3),
+        "training moved nothing"
+    );
+    for world in [2, 3] {
+        let ranks = data_parallel(crate::Objective::Regression, world, steps);
+        for (r, w) in ranks.iter().enumerate() {
+            let err = w
+                .iter()
+                .zip(&want)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0f32, f32::max);
+            assert!(err < 1e-5, "world {world} rank {r}: max |diff| {err}");
+        }
+    }
+    // with noise (diffusion), ranks draw different noise but stay in step with each other
+    let ranks = data_parallel(crate::Objective::Diffusion, 2, steps);
+    assert_eq!(ranks[0], ranks[1]);
+    // a world of one is the plain trainer
+    let mut t = offset_trainer(crate::Objective::Regression, steps);
+    let solo = distributed::InProcessGroup::new(1).pop().unwrap();
+    assert_eq!(solo.world_size(), 1);
+    t.set_communicator(Box::new(solo));
+    t.fit(&mut data, None, &mut ()).unwrap();
+    assert_eq!(weights_of(&t), want);
+}
