@@ -422,6 +422,44 @@ fn pretrained_encoders_are_named_by_kind_through_train_and_generate() {
     };
     ok(&generate(&tmp.path().join("gen")));
     assert!(tmp.path().join("gen/scan_000.bin").is_file());
+    // edit and demo take the bundle the same way
+    ok(&veila()
+        .args([
+            "edit",
+            "--quiet",
+            "--steps",
+            "1",
+            "--remove-box",
+            "2,-6,-3,25,6,3",
+            "--image",
+        ])
+        .arg(sim.join("image_2/000000.png"))
+        .arg("--calib")
+        .arg(sim.join("calib/000000.txt"))
+        .arg("--scan")
+        .arg(sim.join("velodyne/000000.bin"))
+        .arg("--checkpoint")
+        .arg(&bundle)
+        .arg("--out")
+        .arg(tmp.path().join("edit"))
+        .output()
+        .unwrap());
+    ok(&veila()
+        .args([
+            "demo",
+            "--quiet",
+            "--steps",
+            "1",
+            "--baseline-frames",
+            "0",
+            "--checkpoint",
+        ])
+        .arg(&bundle)
+        .arg("--out")
+        .arg(tmp.path().join("demo"))
+        .output()
+        .unwrap());
+    assert!(tmp.path().join("demo").read_dir().unwrap().count() > 0);
 
     std::fs::remove_file(tmp.path().join("weights/model.safetensors")).unwrap();
     let o = generate(&tmp.path().join("gen2"));
