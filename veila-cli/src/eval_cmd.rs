@@ -1181,7 +1181,7 @@ fn load_depth_model(spec: &str, max_m: Option<f32>) -> Result<(DepthAnythingV2, 
         &cfg,
         path,
         candle_core::DType::F32,
-        &candle_core::Device::Cpu,
+        &crate::model::device()?,
     )
     .with_context(|| {
         format!(
@@ -1203,7 +1203,7 @@ fn load_semantic_model(spec: &str) -> Result<SegFormer> {
         &cfg,
         path,
         candle_core::DType::F32,
-        &candle_core::Device::Cpu,
+        &crate::model::device()?,
     )
     .with_context(|| {
         format!(
@@ -1278,7 +1278,7 @@ fn crossmodal_metrics(
                             img.as_raw(),
                             h as usize,
                             w as usize,
-                            &candle_core::Device::Cpu,
+                            &crate::model::device()?,
                         )
                         .with_context(|| format!("{}: depth prediction", p.display()))?;
                     let alignment = if *metric {
@@ -1329,7 +1329,7 @@ fn crossmodal_metrics(
                             img.as_raw(),
                             h as usize,
                             w as usize,
-                            &candle_core::Device::Cpu,
+                            &crate::model::device()?,
                         )
                         .with_context(|| format!("{}: segmentation", p.display()))?;
                     let data = labels

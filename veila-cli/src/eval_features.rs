@@ -45,7 +45,7 @@ const CHUNK: usize = 32;
 
 /// The shipped bundle, or the one in `dir`.
 pub(crate) fn load_nets(dir: Option<&Path>) -> Result<FeatureNets> {
-    let dev = candle_core::Device::Cpu;
+    let dev = crate::model::device()?;
     match dir {
         Some(d) => FeatureNets::from_dir(d, &dev)
             .with_context(|| format!("loading the feature networks from {}", d.display())),

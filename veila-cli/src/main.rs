@@ -35,6 +35,10 @@ struct Cli {
     /// Log more: -v debug, -vv trace (RUST_LOG, when set, decides instead).
     #[arg(short, long, global = true, action = clap::ArgAction::Count)]
     verbose: u8,
+    /// Where the networks run: `cpu`, `cuda` (GPU 0, or the launcher's LOCAL_RANK in a
+    /// data-parallel `train`) or `cuda:N`; default: the first GPU of a CUDA build, else the CPU.
+    #[arg(long, global = true, value_name = "DEVICE", value_parser = model::parse_device)]
+    device: Option<model::DeviceArg>,
     #[command(subcommand)]
     command: Command,
 }
@@ -131,6 +135,7 @@ fn main() {
     };
     progress::set_quiet(cli.quiet);
     progress::init_logging(cli.verbose, cli.quiet);
+    model::set_device(cli.device);
     if let Err(err) = run(cli.command) {
         let err = staging::explain(err);
         eprintln!("error: {err:#}");

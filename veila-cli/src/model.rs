@@ -66,15 +66,65 @@ pub(crate) fn manifest_bytes(checkpoint: Option<&Path>) -> Option<Vec<u8>> {
     }
 }
 
-/// The compute device: CUDA 0 when built with `--features cuda` and a GPU is present, else the CPU.
+/// `--device`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum DeviceArg {
+    /// The CPU.
+    Cpu,
+    /// A GPU: `None` for GPU 0, or the launcher's `LOCAL_RANK` in a data-parallel run.
+    Cuda(Option<usize>),
+}
+
+/// Parses `cpu`, `cuda`, `cuda:N`.
+pub(crate) fn parse_device(s: &str) -> std::result::Result<DeviceArg, String> {
+    match s {
+        "cpu" => Ok(DeviceArg::Cpu),
+        "cuda" | "gpu" => Ok(DeviceArg::Cuda(None)),
+        _ => s
+            .strip_prefix("cuda:")
+            .and_then(|n| n.parse::<usize>().ok())
+            .map(|n| DeviceArg::Cuda(Some(n)))
+            .ok_or_else(|| format!("`{s}`: expected cpu, cuda or cuda:N")),
+    }
+}
+
+static DEVICE: std::sync::OnceLock<Option<DeviceArg>> = std::sync::OnceLock::new();
+
+/// Records `--device` (once, at start-up).
+pub(crate) fn set_device(d: Option<DeviceArg>) {
+    let _ = DEVICE.set(d);
+}
+
+/// The compute device: `--device` when given; otherwise the first GPU of a CUDA build when one is
+/// present, else the CPU. `cuda` in a data-parallel run means the launcher's `LOCAL_RANK`.
 pub(crate) fn device() -> Result<Device> {
-    #[cfg(feature = "cuda")]
-    {
-        if let Ok(d) = Device::new_cuda(0) {
-            return Ok(d);
+    let local_rank = || {
+        std::env::var("LOCAL_RANK")
+            .or_else(|_| std::env::var("SLURM_LOCALID"))
+            .ok()
+            .and_then(|v| v.parse::<usize>().ok())
+    };
+    match DEVICE.get().copied().flatten() {
+        Some(DeviceArg::Cpu) => Ok(Device::Cpu),
+        Some(DeviceArg::Cuda(n)) => {
+            let n = n.or_else(local_rank).unwrap_or(0);
+            if !cfg!(feature = "cuda") {
+                bail!(
+                    "--device cuda:{n}: this veila was built without CUDA; build one with `cargo xtask build-cuda` (or `cargo build --release --features cuda` with a CUDA toolkit)"
+                );
+            }
+            Device::new_cuda(n).with_context(|| format!("--device cuda:{n}: no such GPU"))
+        }
+        None => {
+            #[cfg(feature = "cuda")]
+            {
+                if let Ok(d) = Device::new_cuda(local_rank().unwrap_or(0)) {
+                    return Ok(d);
+                }
+            }
+            Ok(Device::Cpu)
         }
     }
-    Ok(Device::Cpu)
 }
 
 /// Loads and verifies (sha256 manifest, tensor names and shapes) a bundle.

@@ -418,3 +418,41 @@ fn real_nuscenes_rig_and_kitti_frame() {
     );
     assert_fails_cleanly(&o, &bad, &["half.png", "principal point"]);
 }
+
+/// `--device`: `cpu` runs, `cuda` in a CPU-only build says how to get a CUDA build, and an
+/// unknown device is refused by the argument parser; none of them leaves output behind.
+#[test]
+fn device_flag_selects_or_refuses_clearly() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (image, calib) = simulate(tmp.path());
+    ok(&generate(
+        &image,
+        &calib,
+        &tmp.path().join("cpu"),
+        &["--device", "cpu", "--steps", "1"],
+    ));
+    if cfg!(feature = "cuda") {
+        return;
+    }
+    let o = generate(
+        &image,
+        &calib,
+        &tmp.path().join("gpu"),
+        &["--device", "cuda:1", "--steps", "1"],
+    );
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("built without CUDA") && err.contains("xtask build-cuda"),
+        "{err}"
+    );
+    assert!(!tmp.path().join("gpu").exists());
+    let o = generate(
+        &image,
+        &calib,
+        &tmp.path().join("tpu"),
+        &["--device", "tpu"],
+    );
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("expected cpu, cuda or cuda:N"));
+}

@@ -11,6 +11,7 @@ mod process;
 mod bench_encoders; // cargo xtask bench-encoders
 mod bench_model; // cargo xtask bench-model
 mod bench_report; // cargo xtask bench-report
+mod build_cuda; // cargo xtask build-cuda (CUDA toolkit from PyPI)
 mod convert; // cargo xtask convert       (veila-data shards)
 mod feature_nets; // cargo xtask train-feature-nets (veila-nn feature_nets)
 mod kitti_weather; // cargo xtask kitti-weather (veila-data weather)
@@ -45,6 +46,9 @@ enum Command {
     BenchReport(bench_report::BenchReportArgs),
     /// CPU engine speed: forward b1/b8 and a b8 training step of the small denoiser (medians, JSON).
     BenchModel(bench_model::BenchModelArgs),
+    /// Build `veila` with `--features cuda` without a local CUDA install (nvcc and libraries from
+    /// PyPI wheels, a libcuda stub for linking), for a GPU machine.
+    BuildCuda(build_cuda::BuildCudaArgs),
     /// Pretrained image encoders on the CPU: seconds per KITTI-size image in f32 / bf16 / f16, with
     /// the half-precision error next to the time.
     BenchEncoders(bench_encoders::BenchEncodersArgs),
@@ -72,6 +76,7 @@ fn run(command: Command) -> Result<()> {
         Command::MethodSweep(a) => method_sweep::run(a),
         Command::BenchModel(a) => bench_model::run(a),
         Command::BenchEncoders(a) => bench_encoders::run(a),
+        Command::BuildCuda(a) => build_cuda::run(a),
         Command::TrainDefault(a) => train_default::run(a).map(|_| ()),
         Command::TrainProbe(a) => train_probe::run(a),
         Command::Layers => {
