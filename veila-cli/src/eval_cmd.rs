@@ -1168,7 +1168,11 @@ fn split_model_arg<'s>(flag: &str, spec: &'s str) -> Result<(EncoderKind, &'s Pa
 }
 
 /// Depth-Anything-V2 with its head (relative, or metric with `max_m`); the flag says metric.
-fn load_depth_model(spec: &str, max_m: Option<f32>) -> Result<(DepthAnythingV2, bool)> {
+fn load_depth_model(
+    spec: &str,
+    max_m: Option<f32>,
+    device: &candle_core::Device,
+) -> Result<(DepthAnythingV2, bool)> {
     let (kind, path) = split_model_arg("--depth-model", spec)?;
     let mut cfg = kind.depth_anything_config().with_context(|| {
         format!("--depth-model: `{kind}` is not a Depth-Anything-V2 kind (depth-anything-v2-small|base|large)")
@@ -1177,35 +1181,24 @@ fn load_depth_model(spec: &str, max_m: Option<f32>) -> Result<(DepthAnythingV2, 
         cfg.depth_estimation_type = DepthKind::Metric;
         cfg.max_depth = m;
     }
-    let model = DepthAnythingV2::load(
-        &cfg,
-        path,
-        candle_core::DType::F32,
-        &crate::model::device()?,
-    )
-    .with_context(|| {
-        format!(
-            "--depth-model {kind}: {} (the `model.safetensors` of {})",
-            path.display(),
-            kind.hub_repo().unwrap_or("-")
-        )
-    })?;
+    let model =
+        DepthAnythingV2::load(&cfg, path, candle_core::DType::F32, device).with_context(|| {
+            format!(
+                "--depth-model {kind}: {} (the `model.safetensors` of {})",
+                path.display(),
+                kind.hub_repo().unwrap_or("-")
+            )
+        })?;
     Ok((model, max_m.is_some()))
 }
 
 /// SegFormer with its Cityscapes head.
-fn load_semantic_model(spec: &str) -> Result<SegFormer> {
+fn load_semantic_model(spec: &str, device: &candle_core::Device) -> Result<SegFormer> {
     let (kind, path) = split_model_arg("--semantic-model", spec)?;
     let cfg = kind.segformer_cityscapes_config().with_context(|| {
         format!("--semantic-model: `{kind}` is not a SegFormer kind (segformer-b0 .. segformer-b5)")
     })?;
-    SegFormer::load(
-        &cfg,
-        path,
-        candle_core::DType::F32,
-        &crate::model::device()?,
-    )
-    .with_context(|| {
+    SegFormer::load(&cfg, path, candle_core::DType::F32, device).with_context(|| {
         format!(
             "--semantic-model {kind}: {} (the `model.safetensors` of {})",
             path.display(),
@@ -1238,12 +1231,14 @@ fn crossmodal_metrics(
     } else {
         None
     };
+    // chosen once: on a CUDA build it opens the GPU
+    let device = crate::model::device()?;
     let depth_model = match (&a.depth_model, want_dc) {
-        (Some(spec), true) => Some(load_depth_model(spec, a.depth_model_max_m)?),
+        (Some(spec), true) => Some(load_depth_model(spec, a.depth_model_max_m, &device)?),
         _ => None,
     };
     let semantic_model = match (&a.semantic_model, want_sc) {
-        (Some(spec), true) => Some(load_semantic_model(spec)?),
+        (Some(spec), true) => Some(load_semantic_model(spec, &device)?),
         _ => None,
     };
     let image_for = |stem: &str, f: &Path| -> Result<(PathBuf, veila_data::image::RgbImage)> {
@@ -1278,7 +1273,7 @@ fn crossmodal_metrics(
                             img.as_raw(),
                             h as usize,
                             w as usize,
-                            &crate::model::device()?,
+                            &device,
                         )
                         .with_context(|| format!("{}: depth prediction", p.display()))?;
                     let alignment = if *metric {
@@ -1329,7 +1324,7 @@ fn crossmodal_metrics(
                             img.as_raw(),
                             h as usize,
                             w as usize,
-                            &crate::model::device()?,
+                            &device,
                         )
                         .with_context(|| format!("{}: segmentation", p.display()))?;
                     let data = labels

@@ -20,9 +20,9 @@ use candle_nn::VarMap;
 use clap::Args;
 use serde::Serialize;
 use veila_nn::encoders::ImageEncoder;
-use veila_nn::encoders::dinov2::{DepthAnythingV2Config, DepthAnythingV2Encoder, DinoV2Config};
-use veila_nn::encoders::kind::{EncoderKind, VitSize};
-use veila_nn::encoders::mit::{MitConfig, MitEncoder};
+use veila_nn::encoders::dinov2::DepthAnythingV2Encoder;
+use veila_nn::encoders::kind::EncoderKind;
+use veila_nn::encoders::mit::MitEncoder;
 
 /// Arguments of `cargo xtask bench-encoders`.
 #[derive(Debug, Args)]
@@ -109,35 +109,14 @@ fn rounded_weights(bytes: &[u8], storage: DType) -> Result<Vec<u8>> {
 fn random_weights(kind: EncoderKind, seed: u64) -> Result<(Vec<u8>, usize)> {
     let vm = VarMap::new();
     let vb = veila_nn::seeded_var_builder(&vm, seed, DType::F32, &Device::Cpu);
-    match kind {
-        EncoderKind::SegFormer(n) => {
-            let cfg = match n {
-                0 => MitConfig::mit_b0(),
-                1 => MitConfig::mit_b1(),
-                2 => MitConfig::mit_b2(),
-                3 => MitConfig::mit_b3(),
-                4 => MitConfig::mit_b4(),
-                _ => MitConfig::mit_b5(),
-            };
-            MitEncoder::new(&cfg, vb)?;
-        }
-        EncoderKind::DepthAnythingV2(s) => {
-            let cfg = match s {
-                VitSize::Small => DepthAnythingV2Config::small(),
-                VitSize::Base => DepthAnythingV2Config::base(),
-                VitSize::Large => DepthAnythingV2Config::large(),
-            };
-            DepthAnythingV2Encoder::new(&cfg, vb)?;
-        }
-        EncoderKind::DinoV2(s) => {
-            let cfg = match s {
-                VitSize::Small => DinoV2Config::vit_small_14(),
-                VitSize::Base => DinoV2Config::vit_base_14(),
-                VitSize::Large => DinoV2Config::vit_large_14(),
-            };
-            veila_nn::encoders::dinov2::DinoV2Backbone::new(&cfg, vb)?;
-        }
-        EncoderKind::SmallCnn => bail!("small-cnn is not a pretrained kind"),
+    if let Some(cfg) = kind.mit_config() {
+        MitEncoder::new(&cfg, vb)?;
+    } else if let Some(cfg) = kind.depth_anything_config() {
+        DepthAnythingV2Encoder::new(&cfg, vb)?;
+    } else if let Some(cfg) = kind.dinov2_config() {
+        veila_nn::encoders::dinov2::DinoV2Backbone::new(&cfg, vb)?;
+    } else {
+        bail!("{kind} is not a pretrained kind");
     }
     let tensors = veila_diffusion::app::varmap_tensors(&vm)?;
     let parameters = tensors.values().map(|t| t.elem_count()).sum();

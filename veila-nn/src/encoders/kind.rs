@@ -134,6 +134,11 @@ impl EncoderKind {
         self.depth_anything()
     }
 
+    /// The DINOv2 config of a `dinov2-*` kind.
+    pub fn dinov2_config(self) -> Option<DinoV2Config> {
+        self.dinov2()
+    }
+
     fn mit(self) -> Option<MitConfig> {
         match self {
             EncoderKind::SegFormer(n) => Some(match n {
