@@ -8,6 +8,8 @@ use anyhow::Result;
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
 mod dist; // the TCP transport of data-parallel `veila train`
+#[cfg(feature = "nccl")]
+mod dist_nccl; // the NCCL transport on GPUs (bootstrapped by dist)
 mod generation; // what generate and edit share (rig and sampler arguments, scan files)
 mod model;
 mod process; // the global allocator and the process settings (shared with xtask)
@@ -23,6 +25,7 @@ mod eval_features; // FRD / FPD features for eval          (veila-nn::feature_ne
 mod generate_cmd; // generate                           (veila-diffusion::pipeline)
 mod sim_cmd; // simulate                               (veila-data::sim)
 mod train_cmd; // train (bundles from converted shards) (veila-diffusion::trainer)
+mod train_data; // the shards of train as examples, in memory or streamed
 mod weather_cmd; // weather                                (veila-data::weather)
 
 /// Panoramic LiDAR generation from a monocular RGB image, and the tools around it.

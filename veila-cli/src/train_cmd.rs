@@ -22,7 +22,9 @@
 //! shards = "data/kitti-shards"     # folder with manifest.json (relative to this file)
 //! # max_frames = 2000              # use the first N samples only
 //! # verify = true                  # check every shard's sha256 against the manifest
-//! # unify_cameras = false          # true: train every sample with the first sample's camera
+//! # unify_cameras = false          # true: give every sample the first one's camera (approximation)
+//! # stream = false                 # true: read the shards batch by batch (any dataset size)
+//! # prefetch = 4                   # batches read ahead when streaming
 //!
 //! [model]
 //! variant = "full"                 # full, unconditional, no-cacm, no-gcma, no-pfc, semantic-only, depth-only
@@ -44,6 +46,7 @@
 //! seed = 0
 //! encoder_steps = 250
 //! checkpoint_every = 250
+//! # grad_accum_steps = 1           # run each batch in this many parts (activation memory of one part)
 //!
 //! [output]
 //! dir = "runs/my-model"            # OUTPUT/checkpoints, OUTPUT/bundle
@@ -51,23 +54,24 @@
 
 use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use serde::{Deserialize, Serialize};
-use veila_data::image::imageops;
-use veila_data::shard::{Manifest, ShardSample, read_shard};
+use veila_data::shard::{Manifest, read_shard};
 use veila_diffusion::app::bundle::{Bundle, BundleConfig, EncoderSpec, Variant, sha256_hex};
 use veila_diffusion::app::{
-    Encoder, EncoderData, EncoderEvent, EncoderSource, RecipeInput, RecipeSettings, Stage,
-    TrainExample, run_recipe,
+    Encoder, EncoderData, EncoderEvent, EncoderSource, ExampleSource, Examples, RecipeInput,
+    RecipeSettings, Stage, TrainExample, run_recipe,
 };
 use veila_diffusion::trainer::distributed::{Parallel, ProcessGroup};
 use veila_diffusion::{StepStats, TrainObserver};
-use veila_geom::{LidarSensor, PinholeCamera, ProjectionOptions, Projector, RayTable};
+use veila_geom::{ProjectionOptions, Projector, RayTable};
 use veila_nn::encoders::kind::EncoderKind;
 
+use crate::train_data::{Prepared, ShardSource, prepare_sample};
 use crate::{model, progress};
 
 /// Arguments of `veila train`.
@@ -106,10 +110,23 @@ struct DataSection {
     /// Check every shard against the manifest's sha256 before training.
     #[serde(default = "yes")]
     verify: bool,
-    /// Train every sample with the first sample's camera (the denoiser's geometric attention takes
-    /// one camera rig per run); otherwise differing cameras are an error.
+    /// Train every sample with the first sample's camera, an approximation (by default every
+    /// sample's own camera is used: the geometric attention of each camera is built once and
+    /// samples of several rigs share a batch).
     #[serde(default)]
     unify_cameras: bool,
+    /// Read the samples from the shards batch by batch (a loader thread reads ahead) and run the
+    /// frozen encoders per batch, instead of loading every sample and its features into memory:
+    /// for datasets of any size, at the cost of encoding each batch.
+    #[serde(default)]
+    stream: bool,
+    /// Batches the loader reads ahead when streaming.
+    #[serde(default = "d_prefetch")]
+    prefetch: usize,
+}
+
+fn d_prefetch() -> usize {
+    4
 }
 
 fn yes() -> bool {
@@ -185,6 +202,17 @@ struct TrainSection {
     /// Steps of the residual method's mean network (default: `steps`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     mean_steps: Option<u64>,
+    /// Gradient accumulation: each update runs its batch in this many parts (default 1: none).
+    /// The batch stays the global one; each part's activations are freed before the next.
+    #[serde(default = "d_one", skip_serializing_if = "is_one")]
+    grad_accum_steps: u64,
+}
+
+fn d_one() -> u64 {
+    1
+}
+fn is_one(v: &u64) -> bool {
+    *v == 1
 }
 
 fn d_steps() -> u64 {
@@ -230,6 +258,7 @@ impl Default for TrainSection {
             ema_decay: d_ema(),
             cond_drop_prob: None,
             mean_steps: None,
+            grad_accum_steps: 1,
         }
     }
 }
@@ -288,6 +317,12 @@ fn read_config(path: &Path) -> Result<TrainFile> {
     }
     if t.checkpoint_every == 0 {
         return Err(bad("checkpoint_every must be at least 1"));
+    }
+    if t.grad_accum_steps == 0 || t.grad_accum_steps as usize > t.batch {
+        return Err(bad(&format!(
+            "grad_accum_steps must be in 1..=batch ({}), got {}",
+            t.batch, t.grad_accum_steps
+        )));
     }
     if !(0.0..1.0).contains(&t.ema_decay) {
         return Err(bad("ema_decay must be in [0, 1)"));
@@ -466,101 +501,6 @@ fn encoder_spec(
     )))
 }
 
-/// One shard sample reduced to what training uses.
-struct Prepared {
-    rgb: Vec<u8>,
-    camera: PinholeCamera,
-    x0: Vec<f32>,
-    /// Sparse camera depth at the bundle image size (0 = no return).
-    depth_m: Vec<f32>,
-    /// Sparse train ids at the bundle image size (0 = ignored), when the shard has labels.
-    labels: Option<Vec<u32>>,
-}
-
-fn prepare_sample(
-    s: &ShardSample,
-    shard_sensor: &LidarSensor,
-    shard_rays: &RayTable,
-    cfg: &BundleConfig,
-    projector: &Projector,
-    shard_path: &Path,
-    needs_camera: bool,
-) -> Result<Prepared> {
-    let at = || format!("{}: sample {}", shard_path.display(), s.id);
-    let (iw, ih) = (cfg.image_width as u32, cfg.image_height as u32);
-    let un = shard_rays.unproject(&s.scan)?;
-    let projected;
-    let on_grid = if shard_sensor == &cfg.denoiser.sensor {
-        &s.scan
-    } else {
-        projected = projector.project(&un.points, Some(&un.intensity), None)?.0;
-        &projected
-    };
-    let x0 = cfg.encoding.encode_to_vec(on_grid)?;
-    if !needs_camera {
-        // an unconditional model without encoders to train never looks at the camera
-        let k = [
-            [1.0, 0.0, 0.5 * iw as f32, 0.0],
-            [0.0, 1.0, 0.5 * ih as f32, 0.0],
-            [0.0, 0.0, 1.0, 0.0],
-        ];
-        return Ok(Prepared {
-            rgb: Vec::new(),
-            camera: PinholeCamera::new(k, glam::Mat4::IDENTITY, iw, ih)?,
-            x0,
-            depth_m: Vec::new(),
-            labels: None,
-        });
-    }
-    let Some(image) = &s.image else {
-        bail!(
-            "{}: has no camera image (convert the dataset with images: `cargo xtask convert` without --no-images)",
-            at()
-        );
-    };
-    let Some(matrices) = &s.camera else {
-        bail!(
-            "{}: has no camera matrices (intrinsics / cam_from_lidar); the dataset needs a calibrated camera",
-            at()
-        );
-    };
-    let (w, h) = image.dimensions();
-    let full = matrices
-        .to_camera(w, h)
-        .with_context(|| format!("{}: invalid camera", at()))?;
-    let camera = full
-        .resized(iw, ih)
-        .context("the model's image size has a zero dimension")?;
-    let rgb = imageops::resize(image, iw, ih, imageops::FilterType::Triangle).into_raw();
-    // sparse supervision: returns projected into the resized image, nearest wins
-    let npx = (iw * ih) as usize;
-    let mut depth_m = vec![0f32; npx];
-    let mut labels = s.train_ids.as_ref().map(|_| vec![0u32; npx]);
-    for (p, (r, c)) in un.points.iter().zip(&un.pixels) {
-        let Some(ip) = camera.try_project_in_image(*p) else {
-            continue;
-        };
-        let (u, v) = ((ip.u_px + 0.5).floor(), (ip.v_px + 0.5).floor());
-        if u < 0.0 || v < 0.0 || u >= iw as f32 || v >= ih as f32 {
-            continue;
-        }
-        let k = v as usize * iw as usize + u as usize;
-        if depth_m[k] == 0.0 || ip.depth_m < depth_m[k] {
-            depth_m[k] = ip.depth_m;
-            if let (Some(l), Some(src_l)) = (labels.as_mut(), s.train_ids.as_ref()) {
-                l[k] = u32::from(src_l[(*r * shard_sensor.cols + *c) as usize]);
-            }
-        }
-    }
-    Ok(Prepared {
-        rgb,
-        camera,
-        x0,
-        depth_m,
-        labels,
-    })
-}
-
 struct Progress {
     bar: indicatif::ProgressBar,
     ema_loss: Option<f64>,
@@ -686,12 +626,23 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
                 group.world_size
             );
         }
-        let comm = crate::dist::TcpGroup::connect(&group, std::time::Duration::from_secs(300))?;
+        let tcp = crate::dist::TcpGroup::connect(&group, std::time::Duration::from_secs(300))?;
+        // on GPUs of an NCCL build the gradients go over NCCL (the TCP group only bootstraps it)
+        #[cfg(feature = "nccl")]
+        let comm: Box<dyn veila_diffusion::trainer::distributed::Communicator> = if device.is_cuda()
+        {
+            let mut tcp = tcp;
+            Box::new(crate::dist_nccl::NcclGroup::connect(&device, &mut tcp)?)
+        } else {
+            Box::new(tcp)
+        };
+        #[cfg(not(feature = "nccl"))]
+        let comm: Box<dyn veila_diffusion::trainer::distributed::Communicator> = Box::new(tcp);
         eprintln!(
             "train: rank {} of {} (local rank {})",
             group.rank, group.world_size, group.local_rank
         );
-        Some(Parallel::new(group.clone(), Box::new(comm))?)
+        Some(Parallel::new(group.clone(), comm)?)
     } else {
         None
     };
@@ -717,62 +668,74 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         .max_frames
         .unwrap_or(manifest.count)
         .min(manifest.count);
-    let projector = Projector::new(&cfg.denoiser.sensor, ProjectionOptions::default())?;
-    let shard_rays = RayTable::new(&manifest.sensor)?;
     // the camera is needed by conditional models and to train encoders
     let needs_camera = cfg.denoiser.conditioning.is_some()
         || (file.model.encoders_from.is_none()
             && (cfg.semantic_encoder.is_some() || cfg.depth_encoder.is_some()));
-    let bar = progress::bar(want as u64, "loading");
-    let mut prepared: Vec<Prepared> = Vec::with_capacity(want);
-    'outer: for entry in &manifest.shards {
-        let path = shards.join(&entry.file);
-        let shard = read_shard(&path)?;
-        if shard.sensor != manifest.sensor {
-            bail!(
-                "{}: the shard's sensor differs from the manifest's",
-                path.display()
-            );
-        }
-        for s in &shard.samples {
-            if prepared.len() == want {
-                break 'outer;
-            }
-            prepared.push(prepare_sample(
-                s,
-                &shard.sensor,
-                &shard_rays,
-                &cfg,
-                &projector,
-                &path,
-                needs_camera,
-            )?);
-            bar.inc(1);
-        }
-    }
-    bar.finish_and_clear();
     let conditional = cfg.denoiser.conditioning.is_some();
-    if conditional {
-        let first = prepared[0].camera;
-        let differing = prepared.iter().filter(|p| p.camera != first).count();
-        if differing > 0 {
-            if !file.data.unify_cameras {
+    let mut prepared: Vec<Prepared> = Vec::new();
+    let mut stream: Option<Arc<dyn ExampleSource>> = None;
+    let mut first_has_labels = false;
+    if file.data.stream {
+        let source = ShardSource::new(
+            shards,
+            &manifest,
+            want,
+            &cfg,
+            needs_camera,
+            conditional,
+            file.data.unify_cameras,
+        )?;
+        first_has_labels = source.first_sample()?.train_ids.is_some();
+        stream = Some(Arc::new(source));
+    } else {
+        let projector = Projector::new(&cfg.denoiser.sensor, ProjectionOptions::default())?;
+        let shard_rays = RayTable::new(&manifest.sensor)?;
+        let bar = progress::bar(want as u64, "loading");
+        prepared.reserve(want);
+        'outer: for entry in &manifest.shards {
+            let path = shards.join(&entry.file);
+            let shard = read_shard(&path)?;
+            if shard.sensor != manifest.sensor {
                 bail!(
-                    "{}: {differing} of {} samples have another camera than the first; one run trains one camera rig \
-                     (set [data] unify_cameras = true to train all with the first sample's camera, an approximation)",
-                    shards.display(),
-                    prepared.len()
+                    "{}: the shard's sensor differs from the manifest's",
+                    path.display()
                 );
             }
+            for s in &shard.samples {
+                if prepared.len() == want {
+                    break 'outer;
+                }
+                prepared.push(prepare_sample(
+                    s,
+                    &shard.sensor,
+                    &shard_rays,
+                    &cfg,
+                    &projector,
+                    &path,
+                    needs_camera,
+                )?);
+                bar.inc(1);
+            }
+        }
+        bar.finish_and_clear();
+        if conditional && file.data.unify_cameras {
+            let first = prepared[0].camera;
             for p in &mut prepared {
                 p.camera = first;
             }
         }
     }
+    let samples = stream.as_ref().map_or(prepared.len(), |s| s.len());
     println!(
-        "train: {} samples from {} ({} sensor {}x{} -> model grid {}x{}), model `{}`",
-        prepared.len(),
+        "train: {} samples from {}{} ({} sensor {}x{} -> model grid {}x{}), model `{}`",
+        samples,
         shards.display(),
+        if stream.is_some() {
+            format!(", streamed (prefetch {})", file.data.prefetch)
+        } else {
+            String::new()
+        },
         manifest.dataset,
         manifest.sensor.rows,
         manifest.sensor.cols,
@@ -792,7 +755,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         bundle: cfg.clone(),
         train: serde_json::to_value(t)?,
         data_manifest_sha256: sha256_hex(&manifest_bytes),
-        samples: prepared.len(),
+        samples,
         encoders_from: file
             .model
             .encoders_from
@@ -830,6 +793,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         encoder_steps: t.encoder_steps,
         encoder_batch: t.encoder_batch,
         encoder_lr: t.encoder_lr,
+        grad_accum_steps: t.grad_accum_steps,
     };
     let mean_steps = settings.mean_steps();
     let enc_dir = ck_dir.join(ENCODER_DIR);
@@ -843,7 +807,11 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
                 .semantic_encoder
                 .as_ref()
                 .is_some_and(|e| e.small_cnn_config().is_some())
-                && labels.is_none()
+                && (if stream.is_some() {
+                    !first_has_labels
+                } else {
+                    labels.is_none()
+                })
             {
                 bail!(
                     "{}: the shards carry no semantic train ids (`label`), so the semantic encoder cannot be trained: \
@@ -852,10 +820,13 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
                 );
             }
             EncoderSource::Train {
-                data: EncoderData {
-                    images: &images,
-                    labels: labels.as_deref(),
-                    depth_m: &depths,
+                data: match &stream {
+                    Some(source) => EncoderData::Stream(source),
+                    None => EncoderData::Memory {
+                        images: &images,
+                        labels: labels.as_deref(),
+                        depth_m: &depths,
+                    },
                 },
                 dir: &enc_dir,
             }
@@ -883,7 +854,13 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         &mut cfg,
         RecipeInput {
             encoders,
-            examples: &examples,
+            examples: match &stream {
+                Some(source) => Examples::Stream {
+                    source,
+                    prefetch: file.data.prefetch.max(1),
+                },
+                None => (&examples).into(),
+            },
             work_dir: &ck_dir,
             init: None,
             parallel: parallel.as_ref(),
@@ -1003,5 +980,16 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         veila_nn::checkpoint::parameter_count(&cfg.denoiser)?,
         bundle_dir.display()
     );
+    if let Some(mib) = peak_host_mib() {
+        println!("peak host memory: {mib:.0} MiB");
+    }
     Ok(())
+}
+
+/// The process's peak resident set (`VmHWM` of `/proc/self/status`, Linux) in MiB.
+fn peak_host_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
 }

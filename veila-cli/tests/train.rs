@@ -584,3 +584,93 @@ fn two_ranks_train_one_model_data_parallel() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("smaller than the 2 ranks"));
 }
+
+/// Every tensor of a safetensors file, flattened, by name.
+fn tensors(path: &Path) -> Vec<(String, Vec<f32>)> {
+    let t = candle_core::safetensors::load(path, &candle_core::Device::Cpu).unwrap();
+    let mut v: Vec<(String, Vec<f32>)> = t
+        .into_iter()
+        .map(|(n, t)| (n, t.flatten_all().unwrap().to_vec1::<f32>().unwrap()))
+        .collect();
+    v.sort_by(|a, b| a.0.cmp(&b.0));
+    v
+}
+
+#[test]
+fn streamed_training_reads_the_shards_per_batch_to_the_same_model() {
+    let tmp = tempfile::tempdir().unwrap();
+    make_shards(&tmp.path().join("shards"), 5, true, true);
+    write_small_bundle_config(&tmp.path().join("small.json"));
+    let write = |name: &str, data: &str, out: &str| {
+        let p = tmp.path().join(name);
+        std::fs::write(
+            &p,
+            format!(
+                "[data]\nshards = \"shards\"\n{data}\n\n[model]\nbundle = \"small.json\"\n\n[train]\n\
+                 steps = 2\nbatch = 2\nlr = 1e-3\nseed = 3\nencoder_steps = 2\nencoder_batch = 2\n\
+                 grad_accum_steps = 2\n\n[output]\ndir = \"{out}\"\n"
+            ),
+        )
+        .unwrap();
+        p
+    };
+    ok(&train(&write("memory.toml", "", "memory"), &[]));
+    let streamed = train(
+        &write("stream.toml", "stream = true\nprefetch = 2", "stream"),
+        &[],
+    );
+    ok(&streamed);
+    assert!(
+        String::from_utf8_lossy(&streamed.stdout).contains("streamed (prefetch 2)"),
+        "{}",
+        String::from_utf8_lossy(&streamed.stdout)
+    );
+    let (m, s) = (
+        tmp.path().join("memory/bundle"),
+        tmp.path().join("stream/bundle"),
+    );
+    // the encoders read the same examples in the same order: bit-identical
+    for f in ["semantic_encoder.safetensors", "depth_encoder.safetensors"] {
+        assert_eq!(
+            std::fs::read(m.join(f)).unwrap(),
+            std::fs::read(s.join(f)).unwrap(),
+            "{f}"
+        );
+    }
+    // the networks: the same batches, up to the rounding of per-batch encoding and mean
+    // prediction (other batch sizes). Adam's first updates move a weight by about the learning
+    // rate (1e-3) whatever its gradient's size, so a weight whose gradient is rounding-level can
+    // differ by a fraction of that; on average the weights must agree to 1 % of it (wrong or
+    // reordered examples move them all by about the learning rate)
+    for f in ["mean.safetensors", "denoiser.safetensors"] {
+        let (a, b) = (tensors(&m.join(f)), tensors(&s.join(f)));
+        assert_eq!(a.len(), b.len());
+        let (mut sum, mut n, mut max) = (0f64, 0usize, 0f32);
+        for ((na, x), (nb, y)) in a.iter().zip(&b) {
+            assert_eq!(na, nb);
+            for (p, q) in x.iter().zip(y) {
+                sum += f64::from((p - q).abs());
+                n += 1;
+                max = max.max((p - q).abs());
+            }
+        }
+        let mean = sum / n as f64;
+        eprintln!("{f}: mean |diff| {mean:.2e}, max {max:.2e}");
+        assert!(
+            mean < 1e-5 && max < 1e-3,
+            "{f}: mean |diff| {mean:.2e}, max {max:.2e}"
+        );
+    }
+    // a damaged shard fails the streamed run naming it, and writes no bundle
+    let shard = tmp.path().join("shards/shard-00001.safetensors");
+    let bytes = std::fs::read(&shard).unwrap();
+    std::fs::write(&shard, &bytes[..bytes.len() / 2]).unwrap();
+    let bad = train(
+        &write("bad.toml", "stream = true\nverify = false", "bad"),
+        &[],
+    );
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(err.contains("shard-00001.safetensors"), "{err}");
+    assert!(!tmp.path().join("bad/bundle").exists());
+}

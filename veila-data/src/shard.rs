@@ -336,14 +336,12 @@ fn f32s(b: &[u8]) -> Vec<f32> {
         .collect()
 }
 
-/// Decode shard bytes (`path` names the source in errors).
-pub fn decode_shard(bytes: &[u8], path: &Path) -> Result<Shard> {
+/// A shard's string metadata checked: its sensor and frame ids.
+fn shard_metadata(
+    meta: &std::collections::HashMap<String, String>,
+    path: &Path,
+) -> Result<(LidarSensor, Vec<String>)> {
     let fmt = |m: String| Error::format(path, m);
-    let st =
-        SafeTensors::deserialize(bytes).map_err(|e| fmt(format!("not a safetensors file: {e}")))?;
-    let (_, meta) =
-        SafeTensors::read_metadata(bytes).map_err(|e| fmt(format!("bad header: {e}")))?;
-    let meta = meta.metadata().clone().unwrap_or_default();
     let get = |k: &str| {
         meta.get(k)
             .ok_or_else(|| fmt(format!("shard metadata has no `{k}`")))
@@ -367,99 +365,22 @@ pub fn decode_shard(bytes: &[u8], path: &Path) -> Result<Shard> {
     if ids.len() != count {
         return Err(fmt(format!("metadata count {count} but {} ids", ids.len())));
     }
-    let (h, w) = (sensor.rows as usize, sensor.cols as usize);
-    let mut samples = Vec::with_capacity(count);
+    Ok((sensor, ids))
+}
+
+/// Decode shard bytes (`path` names the source in errors).
+pub fn decode_shard(bytes: &[u8], path: &Path) -> Result<Shard> {
+    let fmt = |m: String| Error::format(path, m);
+    let st =
+        SafeTensors::deserialize(bytes).map_err(|e| fmt(format!("not a safetensors file: {e}")))?;
+    let (_, meta) =
+        SafeTensors::read_metadata(bytes).map_err(|e| fmt(format!("bad header: {e}")))?;
+    let meta = meta.metadata().clone().unwrap_or_default();
+    let (sensor, ids) = shard_metadata(&meta, path)?;
+    let mut samples = Vec::with_capacity(ids.len());
     for (k, id) in ids.into_iter().enumerate() {
-        let p = format!("{k:05}");
-        let req = |name: &str| -> Result<TensorView<'_>> {
-            tensor(&st, &format!("{p}/{name}"), path)?
-                .ok_or_else(|| fmt(format!("missing tensor {p}/{name}")))
-        };
-        let range = req("range_m")?;
-        expect(&range, Dtype::F32, &[h, w], "range_m", path)?;
-        let inten = req("intensity")?;
-        expect(&inten, Dtype::F32, &[h, w], "intensity", path)?;
-        let mask = req("mask")?;
-        expect(&mask, Dtype::U8, &[h, w], "mask", path)?;
-        let label = match tensor(&st, &format!("{p}/label"), path)? {
-            Some(t) => {
-                expect(&t, Dtype::U8, &[h, w], "label", path)?;
-                Some(t.data().to_vec())
-            }
-            None => None,
-        };
-        let label_raw = match tensor(&st, &format!("{p}/label_raw"), path)? {
-            Some(t) => {
-                expect(&t, Dtype::U32, &[h, w], "label_raw", path)?;
-                Some(
-                    t.data()
-                        .chunks_exact(4)
-                        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                        .collect(),
-                )
-            }
-            None => None,
-        };
-        let image = match tensor(&st, &format!("{p}/image"), path)? {
-            Some(t) => {
-                let s = t.shape().to_vec();
-                if t.dtype() != Dtype::U8 || s.len() != 3 || s[2] != 3 {
-                    return Err(fmt(format!(
-                        "tensor {p}/image: expected U8 [H, W, 3], found {:?} {s:?}",
-                        t.dtype()
-                    )));
-                }
-                Some(
-                    RgbImage::from_raw(s[1] as u32, s[0] as u32, t.data().to_vec())
-                        .ok_or_else(|| fmt(format!("tensor {p}/image: size mismatch")))?,
-                )
-            }
-            None => None,
-        };
-        let camera = match (
-            tensor(&st, &format!("{p}/intrinsics"), path)?,
-            tensor(&st, &format!("{p}/cam_from_lidar"), path)?,
-        ) {
-            (Some(k), Some(t)) => {
-                expect(&k, Dtype::F32, &[3, 4], "intrinsics", path)?;
-                expect(&t, Dtype::F32, &[4, 4], "cam_from_lidar", path)?;
-                let (kv, tv) = (f32s(k.data()), f32s(t.data()));
-                let mut intrinsics = [[0f32; 4]; 3];
-                let mut cam_from_lidar = [[0f32; 4]; 4];
-                for r in 0..3 {
-                    intrinsics[r].copy_from_slice(&kv[r * 4..r * 4 + 4]);
-                }
-                for r in 0..4 {
-                    cam_from_lidar[r].copy_from_slice(&tv[r * 4..r * 4 + 4]);
-                }
-                Some(CameraMatrices {
-                    intrinsics,
-                    cam_from_lidar,
-                })
-            }
-            (None, None) => None,
-            _ => {
-                return Err(fmt(format!(
-                    "sample {p}: intrinsics and cam_from_lidar must come together"
-                )));
-            }
-        };
-        let n = h * w;
-        samples.push(ShardSample {
-            id,
-            scan: RangeImage {
-                rows: sensor.rows,
-                cols: sensor.cols,
-                range_m: f32s(range.data()),
-                intensity: f32s(inten.data()),
-                point_index: vec![veila_geom::NO_POINT; n],
-                mask: mask.data().iter().map(|&m| m != 0).collect(),
-                label: label_raw,
-            },
-            train_ids: label,
-            image,
-            camera,
-        });
+        let get = |name: &str| tensor(&st, name, path);
+        samples.push(decode_sample(get, k, id, &sensor, path)?);
     }
     Ok(Shard {
         sensor,
@@ -468,10 +389,241 @@ pub fn decode_shard(bytes: &[u8], path: &Path) -> Result<Shard> {
     })
 }
 
+/// Sample `k` (frame `id`) of a shard whose tensors `get` looks up by name (`None`: absent).
+fn decode_sample<'a>(
+    get: impl Fn(&str) -> Result<Option<TensorView<'a>>>,
+    k: usize,
+    id: String,
+    sensor: &LidarSensor,
+    path: &Path,
+) -> Result<ShardSample> {
+    let fmt = |m: String| Error::format(path, m);
+    let (h, w) = (sensor.rows as usize, sensor.cols as usize);
+    let p = format!("{k:05}");
+    let req = |name: &str| -> Result<TensorView<'a>> {
+        get(&format!("{p}/{name}"))?.ok_or_else(|| fmt(format!("missing tensor {p}/{name}")))
+    };
+    let range = req("range_m")?;
+    expect(&range, Dtype::F32, &[h, w], "range_m", path)?;
+    let inten = req("intensity")?;
+    expect(&inten, Dtype::F32, &[h, w], "intensity", path)?;
+    let mask = req("mask")?;
+    expect(&mask, Dtype::U8, &[h, w], "mask", path)?;
+    let label = match get(&format!("{p}/label"))? {
+        Some(t) => {
+            expect(&t, Dtype::U8, &[h, w], "label", path)?;
+            Some(t.data().to_vec())
+        }
+        None => None,
+    };
+    let label_raw = match get(&format!("{p}/label_raw"))? {
+        Some(t) => {
+            expect(&t, Dtype::U32, &[h, w], "label_raw", path)?;
+            Some(
+                t.data()
+                    .chunks_exact(4)
+                    .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                    .collect(),
+            )
+        }
+        None => None,
+    };
+    let image = match get(&format!("{p}/image"))? {
+        Some(t) => {
+            let s = t.shape().to_vec();
+            if t.dtype() != Dtype::U8 || s.len() != 3 || s[2] != 3 {
+                return Err(fmt(format!(
+                    "tensor {p}/image: expected U8 [H, W, 3], found {:?} {s:?}",
+                    t.dtype()
+                )));
+            }
+            Some(
+                RgbImage::from_raw(s[1] as u32, s[0] as u32, t.data().to_vec())
+                    .ok_or_else(|| fmt(format!("tensor {p}/image: size mismatch")))?,
+            )
+        }
+        None => None,
+    };
+    let camera = match (
+        get(&format!("{p}/intrinsics"))?,
+        get(&format!("{p}/cam_from_lidar"))?,
+    ) {
+        (Some(k), Some(t)) => {
+            expect(&k, Dtype::F32, &[3, 4], "intrinsics", path)?;
+            expect(&t, Dtype::F32, &[4, 4], "cam_from_lidar", path)?;
+            let (kv, tv) = (f32s(k.data()), f32s(t.data()));
+            let mut intrinsics = [[0f32; 4]; 3];
+            let mut cam_from_lidar = [[0f32; 4]; 4];
+            for r in 0..3 {
+                intrinsics[r].copy_from_slice(&kv[r * 4..r * 4 + 4]);
+            }
+            for r in 0..4 {
+                cam_from_lidar[r].copy_from_slice(&tv[r * 4..r * 4 + 4]);
+            }
+            Some(CameraMatrices {
+                intrinsics,
+                cam_from_lidar,
+            })
+        }
+        (None, None) => None,
+        _ => {
+            return Err(fmt(format!(
+                "sample {p}: intrinsics and cam_from_lidar must come together"
+            )));
+        }
+    };
+    let n = h * w;
+    Ok(ShardSample {
+        id,
+        scan: RangeImage {
+            rows: sensor.rows,
+            cols: sensor.cols,
+            range_m: f32s(range.data()),
+            intensity: f32s(inten.data()),
+            point_index: vec![veila_geom::NO_POINT; n],
+            mask: mask.data().iter().map(|&m| m != 0).collect(),
+            label: label_raw,
+        },
+        train_ids: label,
+        image,
+        camera,
+    })
+}
+
 /// Read a shard file.
 pub fn read_shard(path: &Path) -> Result<Shard> {
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
     decode_shard(&bytes, path)
+}
+
+/// Random access to the samples of one shard file: [`Self::open`] reads the header alone (the
+/// tensors' offsets, the sensor, the ids), [`Self::sample`] then reads just that sample's tensors,
+/// so memory does not grow with the shard. Used by streaming training.
+#[derive(Debug)]
+pub struct ShardReader {
+    path: std::path::PathBuf,
+    file: std::sync::Mutex<std::fs::File>,
+    sensor: LidarSensor,
+    dataset: String,
+    ids: Vec<String>,
+    /// Byte offset of the tensor data in the file.
+    data_start: u64,
+    data_len: u64,
+    tensors: std::collections::HashMap<String, safetensors::tensor::TensorInfo>,
+}
+
+impl ShardReader {
+    /// Opens a shard and reads its header (at most 100 MB, as safetensors allows).
+    pub fn open(path: &Path) -> Result<Self> {
+        use std::io::Seek;
+        let fmt = |m: String| Error::format(path, m);
+        let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+        let file_len = file.metadata().map_err(|e| Error::io(path, e))?.len();
+        let mut n = [0u8; 8];
+        file.read_exact(&mut n)
+            .map_err(|_| fmt("not a safetensors file: shorter than its header".into()))?;
+        let n = u64::from_le_bytes(n);
+        if n > 100_000_000 || 8 + n > file_len {
+            return Err(fmt(format!(
+                "not a safetensors file: header of {n} bytes in a file of {file_len}"
+            )));
+        }
+        let mut header = vec![0u8; n as usize];
+        file.read_exact(&mut header)
+            .map_err(|e| Error::io(path, e))?;
+        let meta: safetensors::tensor::Metadata =
+            serde_json::from_slice(&header).map_err(|e| fmt(format!("bad header: {e}")))?;
+        let info = meta.metadata().clone().unwrap_or_default();
+        let (sensor, ids) = shard_metadata(&info, path)?;
+        let tensors = meta
+            .tensors()
+            .into_iter()
+            .map(|(k, v)| (k, v.clone()))
+            .collect();
+        let data_start = file.stream_position().map_err(|e| Error::io(path, e))?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            file: std::sync::Mutex::new(file),
+            sensor,
+            dataset: info.get("dataset").cloned().unwrap_or_default(),
+            ids,
+            data_start,
+            data_len: file_len - data_start,
+            tensors,
+        })
+    }
+
+    /// The sensor of every range image.
+    pub fn sensor(&self) -> &LidarSensor {
+        &self.sensor
+    }
+
+    /// The dataset name.
+    pub fn dataset(&self) -> &str {
+        &self.dataset
+    }
+
+    /// Frame ids, in order.
+    pub fn ids(&self) -> &[String] {
+        &self.ids
+    }
+
+    /// Number of samples.
+    pub fn len(&self) -> usize {
+        self.ids.len()
+    }
+
+    /// Whether the shard holds no samples.
+    pub fn is_empty(&self) -> bool {
+        self.ids.is_empty()
+    }
+
+    /// Sample `k`, read from the file (what [`read_shard`] gives as `samples[k]`).
+    pub fn sample(&self, k: usize) -> Result<ShardSample> {
+        use std::io::{Seek, SeekFrom};
+        let fmt = |m: String| Error::format(&self.path, m);
+        let id = self
+            .ids
+            .get(k)
+            .ok_or_else(|| fmt(format!("no sample {k}: the shard holds {}", self.ids.len())))?
+            .clone();
+        let prefix = format!("{k:05}/");
+        let mut owned: Vec<(String, Dtype, Vec<usize>, Vec<u8>)> = Vec::new();
+        {
+            let mut file = self
+                .file
+                .lock()
+                .map_err(|_| fmt("the shard's file lock is poisoned".into()))?;
+            for (name, t) in self.tensors.iter().filter(|(n, _)| n.starts_with(&prefix)) {
+                let (start, end) = t.data_offsets;
+                let elems: usize = t.shape.iter().product();
+                if end < start
+                    || end as u64 > self.data_len
+                    || end - start != elems * t.dtype.bitsize() / 8
+                {
+                    return Err(fmt(format!(
+                        "tensor {name}: bad offsets {start}..{end} for {:?} {:?}",
+                        t.dtype, t.shape
+                    )));
+                }
+                let mut buf = vec![0u8; end - start];
+                file.seek(SeekFrom::Start(self.data_start + start as u64))
+                    .and_then(|_| file.read_exact(&mut buf))
+                    .map_err(|e| Error::io(&self.path, e))?;
+                owned.push((name.clone(), t.dtype, t.shape.clone(), buf));
+            }
+        }
+        let views: std::collections::HashMap<&str, TensorView<'_>> = owned
+            .iter()
+            .map(|(n, d, s, b)| {
+                TensorView::new(*d, s.clone(), b)
+                    .map(|v| (n.as_str(), v))
+                    .map_err(|e| fmt(format!("tensor {n}: {e}")))
+            })
+            .collect::<Result<_>>()?;
+        let get = |name: &str| Ok(views.get(name).cloned());
+        decode_sample(get, k, id, &self.sensor, &self.path)
+    }
 }
 
 /// One shard in a manifest.
@@ -636,6 +788,50 @@ mod tests {
             e.contains("shard-00000.safetensors") && e.contains("checksum"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn the_reader_gives_each_sample_alone_as_read_shard_does() {
+        let sensor = LidarSensor {
+            rows: 4,
+            cols: 8,
+            ..LidarSensor::hdl64e()
+        };
+        let mut samples: Vec<ShardSample> = (0..5)
+            .map(|k| sample(&format!("f{k}"), &sensor, k as u32 + 1))
+            .collect();
+        samples[3].image = None;
+        samples[3].camera = None;
+        samples[3].train_ids = None;
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("shard-00000.safetensors");
+        write_shard(&p, &sensor, "test", &samples).unwrap();
+        let r = ShardReader::open(&p).unwrap();
+        assert_eq!((r.len(), r.sensor(), r.dataset()), (5, &sensor, "test"));
+        assert_eq!(r.ids(), &["f0", "f1", "f2", "f3", "f4"]);
+        // any order, any number of times
+        for k in [4, 0, 3, 3, 1, 2] {
+            assert_eq!(r.sample(k).unwrap(), samples[k], "sample {k}");
+        }
+        let e = r.sample(5).unwrap_err().to_string();
+        assert!(
+            e.contains("no sample 5") && e.contains("shard-00000"),
+            "{e}"
+        );
+        // a truncated file: the header still reads, the lost samples fail naming the file
+        let bytes = std::fs::read(&p).unwrap();
+        let cut = dir.path().join("cut.safetensors");
+        std::fs::write(&cut, &bytes[..bytes.len() - 200]).unwrap();
+        let r = ShardReader::open(&cut).unwrap();
+        let e = (0..5).find_map(|k| r.sample(k).err()).unwrap().to_string();
+        assert!(e.contains("cut.safetensors"), "{e}");
+        // not a shard at all
+        let junk = dir.path().join("junk.safetensors");
+        std::fs::write(&junk, b"\xff\xff\xff\xff\xff\xff\xff\x7fjunk").unwrap();
+        let e = ShardReader::open(&junk).unwrap_err().to_string();
+        assert!(e.contains("junk.safetensors"), "{e}");
+        std::fs::write(&junk, b"\x04\x00\x00\x00\x00\x00\x00\x00{}  ").unwrap();
+        assert!(ShardReader::open(&junk).is_err());
     }
 
     #[test]

@@ -12,8 +12,8 @@ use veila_diffusion::app::bundle::{
     SEMANTIC_FILE, Variant,
 };
 use veila_diffusion::app::{
-    BundleFit, CameraView, DenoiserTraining, GenerateOptions, Stage, TrainExample, fit_bundle,
-    varmap_tensors,
+    BundleFit, CameraView, DenoiserTraining, EncoderExample, ExampleSource, GenerateOptions, Stage,
+    TrainExample, fit_bundle, varmap_tensors,
 };
 use veila_geom::PinholeCamera;
 use veila_geom::RangeImage;
@@ -292,7 +292,8 @@ fn training_batches_are_a_pure_function_of_the_step_and_cover_each_epoch() {
         .map(|i| TrainExample {
             rgb: image(i),
             camera: camera(),
-            x0: x0.clone(),
+            // distinct targets, to tell the examples apart in a batch
+            x0: x0.iter().map(|v| v + i as f32 * 0.01).collect(),
         })
         .collect();
     let data = DenoiserTraining::new(
@@ -319,25 +320,57 @@ fn training_batches_are_a_pure_function_of_the_step_and_cover_each_epoch() {
     }
     let batch = data.batch(&net, 3).unwrap();
     assert_eq!(batch.x0.dims(), &[2, 3, h, w]);
-    assert_eq!(batch.cond.unwrap().image.unwrap().batch(), 2);
-    // a different camera in one run is refused
-    let mut bad = examples.clone();
-    bad[1].camera = camera().resized(IW as u32 / 2, IH as u32 / 2).unwrap();
-    assert!(
-        DenoiserTraining::new(
-            &cfg,
-            Some(&sem),
-            Some(&dep),
-            &net,
-            &bad,
-            Stage::Denoiser,
-            None,
-            2,
-            9,
-            &dev
-        )
-        .is_err()
+    // gradient accumulation: the two parts of the batch are its two examples, in order
+    let parts: Vec<_> = (0..2)
+        .map(|k| data.batch_part(&net, 3, k, 2).unwrap())
+        .collect();
+    for p in &parts {
+        assert_eq!(p.x0.dims(), &[1, 3, h, w]);
+        assert_eq!(p.cond.as_ref().unwrap().image.as_ref().unwrap().batch(), 1);
+    }
+    let joined = candle_core::Tensor::cat(&[&parts[0].x0, &parts[1].x0], 0).unwrap();
+    assert_eq!(
+        joined.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+        batch.x0.flatten_all().unwrap().to_vec1::<f32>().unwrap()
     );
+    assert!(
+        data.batch_part(&net, 3, 0, 3).is_err(),
+        "3 parts of a batch of 2"
+    );
+    assert_eq!(batch.cond.unwrap().image.unwrap().batch(), 2);
+    // examples of another rig train in the same run: the batches holding example 1 carry two
+    // geometries, the others one
+    let mut mixed = examples.clone();
+    mixed[1].camera = second_camera();
+    let data = DenoiserTraining::new(
+        &cfg,
+        Some(&sem),
+        Some(&dep),
+        &net,
+        &mixed,
+        Stage::Denoiser,
+        None,
+        2,
+        9,
+        &dev,
+    )
+    .unwrap();
+    let mut seen = [false; 2];
+    for step in 0..5 {
+        let idx = data.indices(step);
+        let two = idx.contains(&1) && idx.iter().any(|&i| i != 1);
+        let rigs = data
+            .batch(&net, step)
+            .unwrap()
+            .cond
+            .unwrap()
+            .image
+            .unwrap()
+            .num_rigs();
+        assert_eq!(rigs, if two { 2 } else { 1 }, "step {step}: {idx:?}");
+        seen[usize::from(two)] = true;
+    }
+    assert_eq!(seen, [true, true]);
 }
 
 /// A structured scan of `h x w` pixels: ground rings (range growing towards the top rows), a
@@ -401,6 +434,17 @@ impl<M: veila_diffusion::Denoiser> veila_diffusion::TrainObserver<M> for Quiet {
 /// Trains `cfg` (with random frozen encoders) on one example for `steps` updates and returns the
 /// bundle, read back through the verifying loader.
 fn overfit_one(cfg: BundleConfig, scan: &RangeImage, steps: u64, dir: &std::path::Path) -> Bundle {
+    overfit_one_accumulating(cfg, scan, steps, dir, 1)
+}
+
+/// [`overfit_one`] with every update's batch of 4 run in `parts` parts.
+fn overfit_one_accumulating(
+    cfg: BundleConfig,
+    scan: &RangeImage,
+    steps: u64,
+    dir: &std::path::Path,
+    parts: u64,
+) -> Bundle {
     let dev = Device::Cpu;
     let mut cfg = cfg;
     let (h, w) = (cfg.denoiser.height(), cfg.denoiser.width());
@@ -436,6 +480,7 @@ fn overfit_one(cfg: BundleConfig, scan: &RangeImage, steps: u64, dir: &std::path
         ema_decay: 0.9,
         cond_drop_prob: 0.0,
         checkpoint_every: None,
+        grad_accum_steps: parts,
         ..veila_diffusion::TrainConfig::default()
     };
     let out = fit_bundle(
@@ -443,7 +488,7 @@ fn overfit_one(cfg: BundleConfig, scan: &RangeImage, steps: u64, dir: &std::path
         BundleFit {
             semantic: encoders[0].as_ref(),
             depth: encoders[1].as_ref(),
-            examples: &examples,
+            examples: (&examples).into(),
             batch_size: 4,
             train: &tc,
             mean_train: None,
@@ -630,6 +675,35 @@ fn every_method_trains_and_generates_through_the_bundle_pipeline() {
     }
 }
 
+#[test]
+fn gradient_accumulation_trains_a_conditional_bundle_to_the_same_weights() {
+    // regression draws no noise and the batch of 4 repeats the one example, so 2 parts of 2
+    // give the whole batch's gradient: the same weights up to float rounding (through the
+    // conditioned parts of `DenoiserTraining::batch_part`)
+    let cfg = small_config(Variant::Full).with_method(Method::Regression);
+    let (h, w) = (cfg.denoiser.height(), cfg.denoiser.width());
+    let scan = structured_scan(h, w);
+    let weights = |parts: u64| {
+        let tmp = tempfile::tempdir().unwrap();
+        let b = overfit_one_accumulating(cfg.clone(), &scan, 3, tmp.path(), parts);
+        let t = candle_core::safetensors::load(
+            tmp.path().join("bundle").join(DENOISER_FILE),
+            &Device::Cpu,
+        )
+        .unwrap();
+        let mut names: Vec<_> = t.keys().cloned().collect();
+        names.sort();
+        drop(b);
+        names
+            .iter()
+            .flat_map(|n| t[n].flatten_all().unwrap().to_vec1::<f32>().unwrap())
+            .collect::<Vec<f32>>()
+    };
+    let (one, two) = (weights(1), weights(2));
+    let diff = max_diff(&one, &two);
+    assert!(diff < 1e-4, "max |diff| {diff}");
+}
+
 /// Random SegFormer-b0 encoder weights in Hugging Face layout (`segformer.encoder.*`).
 fn random_segformer_b0(path: &std::path::Path, seed: u64) {
     let vm = VarMap::new();
@@ -762,4 +836,438 @@ fn version_1_bundles_with_bare_encoder_configs_still_load() {
         .unwrap_err()
         .to_string();
     assert!(err.contains("segformer-b9"), "{err}");
+}
+
+/// Examples in memory behind the [`ExampleSource`] trait, with encoder targets, a read counter,
+/// and optionally one unreadable example.
+struct TestSource {
+    examples: Vec<TrainExample>,
+    fail_at: Option<usize>,
+    reads: std::sync::atomic::AtomicUsize,
+}
+
+impl ExampleSource for TestSource {
+    fn len(&self) -> usize {
+        self.examples.len()
+    }
+
+    fn example(&self, index: usize) -> veila_diffusion::Result<TrainExample> {
+        self.reads
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        if self.fail_at == Some(index) {
+            return Err(veila_diffusion::Error::Data(format!(
+                "frame {index}: unreadable (test)"
+            )));
+        }
+        Ok(self.examples[index].clone())
+    }
+
+    fn encoder_example(&self, index: usize) -> veila_diffusion::Result<EncoderExample> {
+        Ok(encoder_example(&self.examples[index], index))
+    }
+}
+
+fn encoder_example(ex: &TrainExample, index: usize) -> EncoderExample {
+    EncoderExample {
+        rgb: ex.rgb.clone(),
+        labels: Some((0..IH * IW).map(|p| ((p + index) % 4) as u32).collect()),
+        depth_m: (0..IH * IW).map(|p| ((p % 7) + index) as f32).collect(),
+    }
+}
+
+/// A second rig: another focal length and principal point at the same image size.
+fn second_camera() -> PinholeCamera {
+    let k = [
+        [45.0, 0.0, IW as f32 / 2.0 + 3.0, 0.0],
+        [0.0, 45.0, IH as f32 / 2.0, 0.0],
+        [0.0, 0.0, 1.0, 0.0],
+    ];
+    PinholeCamera::new(k, camera().cam_from_lidar, IW as u32, IH as u32).unwrap()
+}
+
+/// Five different examples of the small config's grid, 1 and 3 from [`second_camera`].
+fn five_examples(cfg: &BundleConfig) -> Vec<TrainExample> {
+    let (h, w) = (cfg.denoiser.height(), cfg.denoiser.width());
+    (0..5)
+        .map(|i| {
+            let mut scan = structured_scan(h, w);
+            for r in scan.range_m.iter_mut().filter(|r| **r > 0.0) {
+                *r += i as f32 * 1.5;
+            }
+            TrainExample {
+                rgb: image(i as u8 * 3),
+                camera: if i % 2 == 1 {
+                    second_camera()
+                } else {
+                    camera()
+                },
+                x0: cfg.encoding.encode_to_vec(&scan).unwrap(),
+            }
+        })
+        .collect()
+}
+
+/// Stops a run after update `at`.
+struct StopAt(u64);
+impl<M: veila_diffusion::Denoiser> veila_diffusion::TrainObserver<M> for StopAt {
+    fn on_step(&mut self, stats: &veila_diffusion::StepStats) -> std::ops::ControlFlow<()> {
+        if stats.step >= self.0 {
+            std::ops::ControlFlow::Break(())
+        } else {
+            std::ops::ControlFlow::Continue(())
+        }
+    }
+}
+
+/// Fits the residual small config (seeded random encoders) for 3 updates of each network at
+/// batch 2; with `stop_denoiser_at`, the denoiser's run stops there. Returns the mean network's
+/// and the denoiser's EMA weights (flattened in name order) and the residual scale.
+fn fit_small(
+    examples: veila_diffusion::app::Examples<'_>,
+    dir: &std::path::Path,
+    stop_denoiser_at: Option<u64>,
+) -> veila_diffusion::Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
+    let dev = Device::Cpu;
+    let mut cfg = small_config(Variant::Full).with_method(Method::Residual);
+    let encoders: Vec<veila_nn::encoders::kind::AnyEncoder> = [
+        cfg.semantic_encoder.clone().unwrap(),
+        cfg.depth_encoder.clone().unwrap(),
+    ]
+    .iter()
+    .map(|e| {
+        let vm = VarMap::new();
+        SmallCnn::new(
+            e.small_cnn_config().unwrap(),
+            veila_nn::seeded_var_builder(&vm, 1, DType::F32, &dev),
+        )
+        .unwrap()
+        .into()
+    })
+    .collect();
+    let tc = veila_diffusion::TrainConfig {
+        lr: 3e-3,
+        warmup_steps: 1,
+        total_steps: 3,
+        ema_decay: 0.5,
+        checkpoint_every: None,
+        ..veila_diffusion::TrainConfig::default()
+    };
+    let out = fit_bundle(
+        &mut cfg,
+        BundleFit {
+            semantic: Some(&encoders[0]),
+            depth: Some(&encoders[1]),
+            examples,
+            batch_size: 2,
+            train: &tc,
+            mean_train: None,
+            work_dir: dir,
+            init: None,
+            parallel: None,
+        },
+        &dev,
+        |_, _, _| {},
+        |stage, _| {
+            StopAt(match (stage, stop_denoiser_at) {
+                (Stage::Denoiser, Some(k)) => k,
+                _ => u64::MAX,
+            })
+        },
+    )?;
+    let flat = |w: &HashMap<String, candle_core::Tensor>| -> Vec<f32> {
+        let mut names: Vec<&String> = w.keys().collect();
+        names.sort();
+        names
+            .into_iter()
+            .flat_map(|n| w[n].flatten_all().unwrap().to_vec1::<f32>().unwrap())
+            .collect()
+    };
+    let mean = flat(&out.mean.unwrap().ema_weights);
+    let den = flat(&out.denoiser.unwrap().ema_weights);
+    Ok((mean, den, cfg.residual.unwrap().scale))
+}
+
+fn max_diff(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0f32, f32::max)
+}
+
+#[test]
+fn streamed_training_matches_training_in_memory_and_resumes_exactly() {
+    let cfg = small_config(Variant::Full).with_method(Method::Residual);
+    let examples = five_examples(&cfg);
+    let source = std::sync::Arc::new(TestSource {
+        examples: examples.clone(),
+        fail_at: None,
+        reads: Default::default(),
+    });
+    let dyn_source: std::sync::Arc<dyn ExampleSource> = source.clone();
+    let stream = veila_diffusion::app::Examples::Stream {
+        source: &dyn_source,
+        prefetch: 2,
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let memory = fit_small((&examples).into(), &tmp.path().join("memory"), None).unwrap();
+    let streamed = fit_small(stream, &tmp.path().join("stream"), None).unwrap();
+    // the mean network (from the seeded initialisation) moved
+    let init = fit_small((&examples).into(), &tmp.path().join("memory"), None).unwrap();
+    assert_eq!(init, memory, "a finished run reruns to the same weights");
+    assert!(source.reads.load(std::sync::atomic::Ordering::Relaxed) > 0);
+    // the same batches (`streamed_batches_equal_the_batches_in_memory`): the same weights up to
+    // float rounding. The mean predictions run in other batch sizes, which changes their last
+    // bits, and Adam's first updates move a weight by about the learning rate whatever its
+    // gradient's size, so the denoiser's tolerance is a tenth of one update (3e-3)
+    assert!(
+        max_diff(&memory.0, &streamed.0) < 1e-5,
+        "mean network {}",
+        max_diff(&memory.0, &streamed.0)
+    );
+    assert!(
+        max_diff(&memory.1, &streamed.1) < 3e-4,
+        "denoiser {}",
+        max_diff(&memory.1, &streamed.1)
+    );
+    assert!(
+        max_diff(&memory.2, &streamed.2) < 1e-5,
+        "scale {:?} {:?}",
+        memory.2,
+        streamed.2
+    );
+    // stopped after the denoiser's first update and run again: the loader restarts at the
+    // resumed update, and the weights are those of the uninterrupted run
+    let dir = tmp.path().join("stream-resumed");
+    fit_small(stream, &dir, Some(1)).unwrap();
+    let resumed = fit_small(stream, &dir, None).unwrap();
+    assert_eq!(resumed, streamed);
+}
+
+#[test]
+fn a_failing_read_stops_streamed_training_with_its_error() {
+    let cfg = small_config(Variant::Full).with_method(Method::Residual);
+    let source: std::sync::Arc<dyn ExampleSource> = std::sync::Arc::new(TestSource {
+        examples: five_examples(&cfg),
+        fail_at: Some(3),
+        reads: Default::default(),
+    });
+    let tmp = tempfile::tempdir().unwrap();
+    let err = fit_small(
+        veila_diffusion::app::Examples::Stream {
+            source: &source,
+            prefetch: 3,
+        },
+        tmp.path(),
+        None,
+    )
+    .unwrap_err();
+    assert!(err.to_string().contains("frame 3: unreadable"), "{err}");
+}
+
+#[test]
+fn encoders_train_to_the_same_weights_from_a_source() {
+    let cfg = small_config(Variant::Full);
+    let examples = five_examples(&cfg);
+    let targets: Vec<EncoderExample> = examples
+        .iter()
+        .enumerate()
+        .map(|(i, e)| encoder_example(e, i))
+        .collect();
+    let images: Vec<Vec<u8>> = targets.iter().map(|t| t.rgb.clone()).collect();
+    let labels: Vec<Vec<u32>> = targets.iter().map(|t| t.labels.clone().unwrap()).collect();
+    let depth: Vec<Vec<f32>> = targets.iter().map(|t| t.depth_m.clone()).collect();
+    let source: std::sync::Arc<dyn ExampleSource> = std::sync::Arc::new(TestSource {
+        examples,
+        fail_at: None,
+        reads: Default::default(),
+    });
+    let settings = veila_diffusion::app::RecipeSettings {
+        seed: 3,
+        steps: 1,
+        mean_steps: None,
+        batch: 2,
+        lr: 1e-3,
+        ema_decay: 0.9,
+        cond_drop_prob: 0.1,
+        checkpoint_every: 1,
+        keep_checkpoints: 1,
+        encoder_steps: 3,
+        encoder_batch: 2,
+        encoder_lr: 1e-3,
+        grad_accum_steps: 1,
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let weights = |data: veila_diffusion::app::EncoderData<'_>, dir: &str| {
+        let dir = tmp.path().join(dir);
+        let e = veila_diffusion::app::prepare_encoders(
+            &cfg,
+            veila_diffusion::app::EncoderSource::Train { data, dir: &dir },
+            &settings,
+            &Device::Cpu,
+            |_| {},
+        )
+        .unwrap();
+        let mut all: Vec<(String, Vec<f32>)> = e
+            .weights
+            .iter()
+            .flat_map(|(file, w)| {
+                w.iter().map(move |(n, t)| {
+                    (
+                        format!("{file}/{n}"),
+                        t.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+                    )
+                })
+            })
+            .collect();
+        all.sort_by(|a, b| a.0.cmp(&b.0));
+        all
+    };
+    let memory = weights(
+        veila_diffusion::app::EncoderData::Memory {
+            images: &images,
+            labels: Some(&labels),
+            depth_m: &depth,
+        },
+        "memory",
+    );
+    let streamed = weights(veila_diffusion::app::EncoderData::Stream(&source), "stream");
+    assert_eq!(memory.len(), streamed.len());
+    assert!(!memory.is_empty());
+    assert_eq!(memory, streamed);
+}
+
+#[test]
+fn streamed_batches_equal_the_batches_in_memory() {
+    use veila_diffusion::Denoiser as _;
+    let dev = Device::Cpu;
+    let mut cfg = small_config(Variant::Full).with_method(Method::Residual);
+    cfg.residual.as_mut().unwrap().scale = vec![0.1, 0.2, 0.3];
+    let examples = five_examples(&cfg);
+    let source: std::sync::Arc<dyn ExampleSource> = std::sync::Arc::new(TestSource {
+        examples: examples.clone(),
+        fail_at: None,
+        reads: Default::default(),
+    });
+    let enc =
+        |spec: &veila_diffusion::app::bundle::EncoderSpec| -> veila_nn::encoders::kind::AnyEncoder {
+            let vm = VarMap::new();
+            SmallCnn::new(
+                spec.small_cnn_config().unwrap(),
+                veila_nn::seeded_var_builder(&vm, 2, DType::F32, &dev),
+            )
+            .unwrap()
+            .into()
+        };
+    let (sem, dep) = (
+        enc(cfg.semantic_encoder.as_ref().unwrap()),
+        enc(cfg.depth_encoder.as_ref().unwrap()),
+    );
+    let seeded = |c: &veila_nn::DenoiserConfig, seed: u64| {
+        let vm = VarMap::new();
+        let net =
+            veila_nn::Denoiser::new(c, veila_nn::seeded_var_builder(&vm, seed, DType::F32, &dev))
+                .unwrap();
+        (net, varmap_tensors(&vm).unwrap())
+    };
+    let (_, mean_weights) = seeded(&cfg.residual.as_ref().unwrap().mean_net, 4);
+    let (net, _) = seeded(&cfg.denoiser, 5);
+    let means = veila_diffusion::app::predict_means(
+        &cfg,
+        Some(&sem),
+        Some(&dep),
+        &mean_weights,
+        &examples,
+        2,
+        &dev,
+    )
+    .unwrap();
+    let (b, c, h, w) = (
+        3,
+        cfg.channels(),
+        cfg.denoiser.height(),
+        cfg.denoiser.width(),
+    );
+    let t = candle_core::Tensor::new(&[0.3f32, 0.6, 0.9][..b], &dev).unwrap();
+    let x = candle_core::Tensor::ones((b, c, h, w), DType::F32, &dev).unwrap();
+    for stage in [Stage::Mean, Stage::Denoiser] {
+        let (net, mw) = match stage {
+            Stage::Mean => (seeded(&cfg.residual.as_ref().unwrap().mean_net, 6).0, None),
+            Stage::Denoiser => (net.clone(), Some(&mean_weights)),
+        };
+        let memory = DenoiserTraining::new(
+            &cfg,
+            Some(&sem),
+            Some(&dep),
+            &net,
+            &examples,
+            stage,
+            (stage == Stage::Denoiser).then_some(&means[..]),
+            3,
+            7,
+            &dev,
+        )
+        .unwrap();
+        let stream = DenoiserTraining::streaming(
+            &cfg,
+            Some(&sem),
+            Some(&dep),
+            &net,
+            source.clone(),
+            stage,
+            mw,
+            3,
+            7,
+            2,
+            &dev,
+        )
+        .unwrap();
+        let model = veila_diffusion::app::VeilaDenoiser::new(net.clone());
+        // steps out of order (a jump restarts the loader), and the parts of one step
+        for step in [0u64, 1, 2, 5, 3] {
+            let (m, s) = (
+                memory.batch(&net, step).unwrap(),
+                stream.batch(&net, step).unwrap(),
+            );
+            let v = |t: &candle_core::Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            assert!(
+                // residual targets divide the means' rounding (other batch sizes) by the scale
+                max_diff(&v(&m.x0), &v(&s.x0)) < 1e-4,
+                "{stage:?} step {step}: targets {}",
+                max_diff(&v(&m.x0), &v(&s.x0))
+            );
+            assert_eq!(
+                m.weight.as_ref().map(v),
+                s.weight.as_ref().map(v),
+                "{stage:?} step {step}"
+            );
+            let (mc, sc) = (m.cond.unwrap(), s.cond.unwrap());
+            match (&mc.mean, &sc.mean) {
+                (Some(a), Some(b)) => assert!(
+                    max_diff(&v(a), &v(b)) < 1e-5,
+                    "{stage:?} step {step}: means"
+                ),
+                (None, None) => assert_eq!(stage, Stage::Mean),
+                _ => panic!("{stage:?} step {step}: one batch has a mean, the other not"),
+            }
+            let (om, os) = (
+                model.forward(&x, &t, Some(&mc)).unwrap(),
+                model.forward(&x, &t, Some(&sc)).unwrap(),
+            );
+            assert!(
+                max_diff(&v(&om), &v(&os)) < 1e-4,
+                "{stage:?} step {step}: conditioned output"
+            );
+            for part in 0..2 {
+                let (mp, sp) = (
+                    memory.batch_part(&net, step, part, 2).unwrap(),
+                    stream.batch_part(&net, step, part, 2).unwrap(),
+                );
+                assert!(
+                    max_diff(&v(&mp.x0), &v(&sp.x0)) < 1e-5,
+                    "{stage:?} step {step} part {part}"
+                );
+            }
+        }
+    }
 }

@@ -89,11 +89,13 @@ impl LevelGeometry {
 }
 
 /// The sampling geometry of every GCMA level for one camera rig (one [`EpipolarTable`] per view and
-/// level), precomputed once and shared by every denoising step and every sample of a batch.
+/// level), precomputed once and shared by every denoising step and every sample of that rig.
 ///
-/// All samples of a batch share the rig: batch scenes by calibration (KITTI has one per sequence) or run
-/// differently calibrated samples in separate forward passes. Building costs one projection per sample
-/// point (`H W K` per level and view) and is meant to happen once per rig, outside the denoising loop.
+/// A batch of one rig passes it to [`crate::Denoiser::prepare_condition`]; a batch whose samples
+/// have different rigs (KITTI's three calibrations, nuScenes' per-log ones) passes one per sample
+/// to [`crate::Denoiser::prepare_condition_per_sample`], and GCMA attends each rig's samples with
+/// its own. Building costs one projection per sample point (`H W K` per level and view) and is
+/// meant to happen once per rig, outside the denoising loop.
 #[derive(Debug, Clone)]
 pub struct GcmaGeometry {
     levels: Vec<LevelGeometry>,

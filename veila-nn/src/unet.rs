@@ -98,11 +98,26 @@ pub struct ConditionInput {
 pub struct PreparedCondition<'g> {
     /// Fused maps `F^(i)`, `[B * views, C_i, H_i, W_i]`.
     pub fused: Vec<Tensor>,
-    /// Sampling geometry (required when the model has GCMA).
+    /// Sampling geometry (required when the model has GCMA): the rig of every sample, unless the
+    /// condition came from [`Denoiser::prepare_condition_per_sample`] with several rigs (then
+    /// `None`: each sample has its own).
     pub geometry: Option<&'g GcmaGeometry>,
     /// See [`ConditionInput::keep`].
     pub keep: Option<Tensor>,
     batch: usize,
+    /// Samples of different rigs ([`Denoiser::prepare_condition_per_sample`]): each distinct
+    /// geometry with the batch indices that use it.
+    groups: Option<Vec<GeometryGroup<'g>>>,
+}
+
+/// The samples of a batch that share one rig.
+#[derive(Debug, Clone)]
+struct GeometryGroup<'g> {
+    geometry: &'g GcmaGeometry,
+    /// `[n]` u32 batch indices.
+    samples: Tensor,
+    /// `[n * views]` u32 indices into the `B * views` fused maps.
+    views: Tensor,
 }
 
 impl PreparedCondition<'_> {
@@ -115,6 +130,15 @@ impl PreparedCondition<'_> {
     pub fn with_keep(mut self, keep: Option<Tensor>) -> Self {
         self.keep = keep;
         self
+    }
+
+    /// Number of distinct rigs in the batch (1 for a shared geometry, 0 without GCMA).
+    pub fn num_rigs(&self) -> usize {
+        match (&self.groups, self.geometry) {
+            (Some(g), _) => g.len(),
+            (None, Some(_)) => 1,
+            (None, None) => 0,
+        }
     }
 }
 
@@ -413,7 +437,63 @@ impl Denoiser {
             geometry,
             keep: input.keep.clone(),
             batch: n / views,
+            groups: None,
         })
+    }
+
+    /// [`Self::prepare_condition`] for a batch whose samples have their own rigs:
+    /// `geometries[b]` is sample `b`'s (the same reference for samples of one rig). GCMA then
+    /// attends each rig's samples with its geometry; a batch of one rig runs as a shared one.
+    pub fn prepare_condition_per_sample<'g>(
+        &self,
+        input: &ConditionInput,
+        geometries: &[&'g GcmaGeometry],
+    ) -> Result<PreparedCondition<'g>> {
+        let first = geometries.first().copied();
+        let mut prepared = self.prepare_condition(input, first)?;
+        if first.is_none() || geometries.len() != prepared.batch {
+            return Err(Error::Config(format!(
+                "{} geometries for a batch of {}",
+                geometries.len(),
+                prepared.batch
+            )));
+        }
+        let mut distinct: Vec<(&'g GcmaGeometry, Vec<u32>)> = Vec::new();
+        for (b, g) in geometries.iter().enumerate() {
+            if g.num_views() != geometries[0].num_views() {
+                return Err(Error::Config(format!(
+                    "geometry {b} has {} view(s), geometry 0 {}",
+                    g.num_views(),
+                    geometries[0].num_views()
+                )));
+            }
+            match distinct.iter_mut().find(|(d, _)| std::ptr::eq(*d, *g)) {
+                Some((_, v)) => v.push(b as u32),
+                None => distinct.push((g, vec![b as u32])),
+            }
+        }
+        if distinct.len() == 1 {
+            return Ok(prepared);
+        }
+        let views = geometries[0].num_views() as u32;
+        let device = prepared.fused[0].device().clone();
+        let groups = distinct
+            .into_iter()
+            .map(|(geometry, samples)| {
+                let view_idx: Vec<u32> = samples
+                    .iter()
+                    .flat_map(|&b| (0..views).map(move |v| b * views + v))
+                    .collect();
+                Ok(GeometryGroup {
+                    geometry,
+                    views: Tensor::from_vec(view_idx.clone(), view_idx.len(), &device)?,
+                    samples: Tensor::from_vec(samples.clone(), samples.len(), &device)?,
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        prepared.geometry = None;
+        prepared.groups = Some(groups);
+        Ok(prepared)
     }
 
     /// Predicts from the noisy range image `x: [B, C_in, H, W]` at noise level `t: [B]` (the scalar the
@@ -489,12 +569,45 @@ impl Denoiser {
                 .conditioning
                 .as_ref()
                 .ok_or_else(|| Error::Config("unconditional".into()))?;
-            let geom = cd
-                .geometry
-                .and_then(|g| g.level(level))
-                .ok_or_else(|| Error::Config(format!("the geometry has no GCMA level {level}")))?;
+            fn level_of(g: &GcmaGeometry, level: usize) -> Result<&crate::gcma::LevelGeometry> {
+                g.level(level)
+                    .ok_or_else(|| Error::Config(format!("the geometry has no GCMA level {level}")))
+            }
             let feat = &cd.fused[cc.scale_for_level(level)];
-            Ok(Some(blk.forward(hcur, feat, geom, cd.keep.as_ref())?))
+            let Some(groups) = &cd.groups else {
+                let geom = cd.geometry.ok_or_else(|| {
+                    Error::Config("this model has GCMA: pass a GcmaGeometry".into())
+                })?;
+                return Ok(Some(blk.forward(
+                    hcur,
+                    feat,
+                    level_of(geom, level)?,
+                    cd.keep.as_ref(),
+                )?));
+            };
+            // each rig's samples with its geometry, then back into batch order
+            let mut outs = Vec::with_capacity(groups.len());
+            let mut order: Vec<u32> = Vec::with_capacity(b);
+            for g in groups {
+                let keep = cd
+                    .keep
+                    .as_ref()
+                    .map(|k| k.index_select(&g.samples, 0))
+                    .transpose()?;
+                outs.push(blk.forward(
+                    &hcur.index_select(&g.samples, 0)?,
+                    &feat.index_select(&g.views, 0)?,
+                    level_of(g.geometry, level)?,
+                    keep.as_ref(),
+                )?);
+                order.extend(g.samples.to_vec1::<u32>()?);
+            }
+            let mut inverse = vec![0u32; b];
+            for (pos, &sample) in order.iter().enumerate() {
+                inverse[sample as usize] = pos as u32;
+            }
+            let inverse = Tensor::from_vec(inverse, b, hcur.device())?;
+            Ok(Some(Tensor::cat(&outs, 0)?.index_select(&inverse, 0)?))
         };
 
         let input = match &self.ray_features {

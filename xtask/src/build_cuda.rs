@@ -164,6 +164,18 @@ fn run_cmd(cmd: &mut Command, what: &str) -> Result<()> {
     Ok(())
 }
 
+/// The cargo features of `veila` for these options.
+pub fn features(cudnn: bool, nccl: bool) -> String {
+    let mut f = vec!["cuda"];
+    if cudnn {
+        f.push("cudnn");
+    }
+    if nccl {
+        f.push("nccl");
+    }
+    f.join(",")
+}
+
 /// Runs `build-cuda`.
 pub fn run(mut a: BuildCudaArgs) -> Result<()> {
     // build scripts run in their own folders: every path handed to them must be absolute
@@ -192,7 +204,7 @@ pub fn run(mut a: BuildCudaArgs) -> Result<()> {
             "--target-dir",
         ])
         .arg(&a.target_dir)
-        .args(["--features", if a.cudnn { "cuda,cudnn" } else { "cuda" }]);
+        .args(["--features", &features(a.cudnn, a.nccl)]);
     let env = build_env(&a.toolkit, a.compute_cap);
     if a.dry_run {
         println!("1. {pip:?}");
@@ -290,6 +302,16 @@ pub fn run(mut a: BuildCudaArgs) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_options_choose_the_features_and_wheels() {
+        assert_eq!(features(false, false), "cuda");
+        assert_eq!(features(true, false), "cuda,cudnn");
+        assert_eq!(features(false, true), "cuda,nccl");
+        assert_eq!(features(true, true), "cuda,cudnn,nccl");
+        assert!(wheels(false, true).contains(&NCCL_WHEEL));
+        assert!(!wheels(false, false).contains(&NCCL_WHEEL));
+    }
 
     #[test]
     fn every_wheel_is_pinned_to_cuda_13_0() {

@@ -9,6 +9,7 @@ use clap::{Parser, Subcommand};
 mod process;
 
 mod bench_encoders; // cargo xtask bench-encoders
+mod bench_memory; // cargo xtask bench-memory (peak host memory of veila train)
 mod bench_model; // cargo xtask bench-model
 mod bench_report; // cargo xtask bench-report
 mod build_cuda; // cargo xtask build-cuda (CUDA toolkit from PyPI)
@@ -52,6 +53,8 @@ enum Command {
     /// Pretrained image encoders on the CPU: seconds per KITTI-size image in f32 / bf16 / f16, with
     /// the half-precision error next to the time.
     BenchEncoders(bench_encoders::BenchEncodersArgs),
+    /// Peak host memory of `veila train` against the dataset size, examples in memory and streamed.
+    BenchMemory(bench_memory::BenchMemoryArgs),
     /// Generative methods (ε / v diffusion, residual diffusion, rectified flow, regression) at
     /// equal training compute: quality against training seconds.
     MethodSweep(method_sweep::MethodSweepArgs),
@@ -76,6 +79,7 @@ fn run(command: Command) -> Result<()> {
         Command::MethodSweep(a) => method_sweep::run(a),
         Command::BenchModel(a) => bench_model::run(a),
         Command::BenchEncoders(a) => bench_encoders::run(a),
+        Command::BenchMemory(a) => bench_memory::run(a),
         Command::BuildCuda(a) => build_cuda::run(a),
         Command::TrainDefault(a) => train_default::run(a).map(|_| ()),
         Command::TrainProbe(a) => train_probe::run(a),

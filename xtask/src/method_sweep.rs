@@ -340,9 +340,10 @@ pub fn run(args: MethodSweepArgs) -> Result<()> {
         let fit = DenoiserFit {
             semantic: base.semantic.as_ref(),
             depth: base.depth.as_ref(),
-            examples: &examples,
+            examples: (&examples).into(),
             stage: Stage::Denoiser,
             means: None,
+            mean_weights: None,
             batch_size: args.batch,
             train: &train_cfg,
             checkpoint_dir: &dir,

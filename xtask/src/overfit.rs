@@ -62,7 +62,7 @@ mod tests {
             BundleFit {
                 semantic: base.semantic.as_ref(),
                 depth: base.depth.as_ref(),
-                examples: &examples,
+                examples: (&examples).into(),
                 batch_size: 8,
                 train: &tc,
                 mean_train: None,

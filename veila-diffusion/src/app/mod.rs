@@ -4,7 +4,8 @@
 //! * [`bundle`]: model bundles (encoders + denoiser + settings in one folder, sha256 manifest
 //!   verified on load) and the ablation [`Variant`]s and generative [`Method`]s as config switches.
 //! * [`generate`]: camera views to scans with a bundle (generation, RePaint inpainting).
-//! * [`train`]: training a bundle's networks on in-memory examples.
+//! * [`train`]: training a bundle's networks.
+//! * [`dataset`]: training examples in memory or read on demand (data of any size).
 //! * [`recipe`]: the one training recipe (encoders, mean network, residual scale, denoiser) that
 //!   `veila train` and `cargo xtask train-default` both run.
 //! * [`rig`]: camera images and their calibration files as views of a rig, resized to a bundle's
@@ -12,6 +13,7 @@
 //! * [`nn`]: the Veila U-Net from `veila-nn` as a [`crate::Denoiser`] ([`VeilaDenoiser`]).
 
 pub mod bundle;
+pub mod dataset;
 pub mod generate;
 pub mod nn;
 pub mod recipe;
@@ -19,6 +21,7 @@ pub mod rig;
 pub mod train;
 
 pub use bundle::{Bundle, BundleConfig, Method, ResidualConfig, Variant};
+pub use dataset::{EncoderExample, ExampleSource, Examples};
 pub use generate::{CameraView, GenerateOptions, ViewFeatures};
 pub use nn::{NetCond, VeilaDenoiser};
 pub use recipe::{
@@ -28,6 +31,7 @@ pub use recipe::{
 pub use rig::{RigView, camera_views, load_view, prepare_view, prepare_views, scan_points};
 pub use train::{
     BundleFit, BundleFitOutcome, DenoiserFit, DenoiserFitOutcome, DenoiserTraining, EncoderStep,
-    Stage, TrainExample, fit_bundle, fit_denoiser, predict_means, raw_residual, regression_weight,
-    residual_scale, residual_target, stage_config, train_small_cnn, varmap_tensors,
+    MeanPredictor, Stage, TrainExample, fit_bundle, fit_denoiser, predict_means, raw_residual,
+    regression_weight, residual_scale, residual_scale_of, residual_target, stage_config,
+    train_small_cnn, train_small_cnn_from, varmap_tensors,
 };

@@ -2,7 +2,7 @@
 //! `cargo xtask train-default` (on simulator frames). Its five stages:
 //!
 //! 1. the semantic encoder `E_s` and 2. the depth encoder `E_d`, each trained on sparse LiDAR
-//!    supervision ([`train_small_cnn`]) or taken from another bundle ([`prepare_encoders`]);
+//!    supervision ([`super::train::train_small_cnn`]) or taken from another bundle ([`prepare_encoders`]);
 //! 3. for residual bundles the mean network (one-pass regression), 4. its predictions of every
 //!    example and the residual scale, 5. the denoiser on the frozen encoder features
 //!    ([`fit_bundle`]).
@@ -14,6 +14,7 @@
 
 use std::collections::HashMap;
 use std::path::Path;
+use std::sync::Arc;
 
 use candle_core::{DType, Device, Tensor};
 use veila_nn::encoders::kind::AnyEncoder;
@@ -22,9 +23,10 @@ use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
 use super::bundle::{
     Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, EncoderSpec, MEAN_FILE, SEMANTIC_FILE,
 };
+use super::dataset::{EncoderExample, ExampleSource, Examples};
 use super::nn::VeilaDenoiser;
 use super::train::{
-    BundleFit, BundleFitOutcome, EncoderStep, Stage, TrainExample, fit_bundle, train_small_cnn,
+    BundleFit, BundleFitOutcome, EncoderStep, Stage, fit_bundle, train_small_cnn_from,
     varmap_tensors,
 };
 use crate::error::{Error, Result};
@@ -58,6 +60,9 @@ pub struct RecipeSettings {
     pub encoder_batch: usize,
     /// Peak learning rate of the encoders.
     pub encoder_lr: f64,
+    /// Gradient accumulation of the denoiser and the mean network: each update runs its batch in
+    /// this many parts ([`TrainConfig::grad_accum_steps`]; 1: none).
+    pub grad_accum_steps: u64,
 }
 
 impl RecipeSettings {
@@ -83,6 +88,7 @@ impl RecipeSettings {
             },
             checkpoint_every: Some(self.checkpoint_every.max(1)),
             keep_checkpoints: Some(self.keep_checkpoints.max(1)),
+            grad_accum_steps: self.grad_accum_steps.max(1),
             ..TrainConfig::default()
         };
         let mean_steps = self.mean_steps();
@@ -140,14 +146,33 @@ impl Encoder {
 
 /// What the encoders train on: the examples' images at the bundle's image size with sparse
 /// targets of the same size.
-#[derive(Debug, Clone, Copy)]
-pub struct EncoderData<'a> {
-    /// RGB bytes, `image_width * image_height * 3` each.
-    pub images: &'a [Vec<u8>],
-    /// Train ids (0 = ignored) per pixel; needed by a semantic encoder.
-    pub labels: Option<&'a [Vec<u32>]>,
-    /// Metric depth (0 = no ground truth) per pixel.
-    pub depth_m: &'a [Vec<f32>],
+#[derive(Clone, Copy)]
+pub enum EncoderData<'a> {
+    /// In memory.
+    Memory {
+        /// RGB bytes, `image_width * image_height * 3` each.
+        images: &'a [Vec<u8>],
+        /// Train ids (0 = ignored) per pixel; needed by a semantic encoder.
+        labels: Option<&'a [Vec<u32>]>,
+        /// Metric depth (0 = no ground truth) per pixel.
+        depth_m: &'a [Vec<f32>],
+    },
+    /// Read on demand, batch by batch ([`ExampleSource::encoder_example`]).
+    Stream(&'a Arc<dyn ExampleSource>),
+}
+
+impl std::fmt::Debug for EncoderData<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            EncoderData::Memory { images, labels, .. } => write!(
+                f,
+                "EncoderData::Memory({} images, labels: {})",
+                images.len(),
+                labels.is_some()
+            ),
+            EncoderData::Stream(s) => write!(f, "EncoderData::Stream({} examples)", s.len()),
+        }
+    }
 }
 
 /// Where the encoders of a run come from.
@@ -287,21 +312,45 @@ pub fn prepare_encoders(
             on_event(EncoderEvent::Reused(which, &saved));
             (load_cnn(c, &saved, device)?, read_tensors(&saved)?)
         } else {
-            let labels = if c.semantic_head {
-                Some(data.labels.ok_or_else(|| {
-                    Error::Data(
-                        "the semantic encoder needs per-pixel train ids: the data has none".into(),
-                    )
-                })?)
-            } else {
-                None
+            if let EncoderData::Memory { labels: None, .. } = data
+                && c.semantic_head
+            {
+                return Err(Error::Data(
+                    "the semantic encoder needs per-pixel train ids: the data has none".into(),
+                ));
+            }
+            let get_memory;
+            let get_stream;
+            let (n, get): (usize, &dyn Fn(usize) -> Result<EncoderExample>) = match data {
+                EncoderData::Memory {
+                    images,
+                    labels,
+                    depth_m,
+                } => {
+                    get_memory = move |i: usize| -> Result<EncoderExample> {
+                        Ok(EncoderExample {
+                            rgb: images[i].clone(),
+                            labels: labels.filter(|_| c.semantic_head).map(|l| l[i].clone()),
+                            depth_m: if c.depth_head {
+                                depth_m[i].clone()
+                            } else {
+                                Vec::new()
+                            },
+                        })
+                    };
+                    (images.len(), &get_memory)
+                }
+                EncoderData::Stream(source) => {
+                    get_stream = move |i: usize| source.encoder_example(i);
+                    (source.len(), &get_stream)
+                }
             };
             let mut last = f32::NAN;
-            let (net, vm) = train_small_cnn(
+            let (net, vm) = train_small_cnn_from(
                 c,
-                data.images,
-                labels,
-                c.depth_head.then_some(data.depth_m),
+                n,
+                get,
+                (c.semantic_head, c.depth_head),
                 hw,
                 settings.encoder_steps,
                 settings.encoder_batch,
@@ -335,8 +384,8 @@ pub fn prepare_encoders(
 pub struct RecipeInput<'a> {
     /// Where the encoders come from.
     pub encoders: EncoderSource<'a>,
-    /// The training examples (one camera rig).
-    pub examples: &'a [TrainExample],
+    /// The training examples (any cameras), in memory or streamed.
+    pub examples: Examples<'a>,
     /// The networks' checkpoints: the denoiser's here, the mean network's in `mean/`.
     pub work_dir: &'a Path,
     /// Initial denoiser weights wherever names and shapes match (fine-tuning).

@@ -8,10 +8,10 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
-use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use veila_geom::PinholeCamera;
@@ -20,25 +20,17 @@ use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig, SmallCnnLossConfig
 use veila_nn::{Denoiser as Net, GcmaGeometry};
 
 use super::bundle::{BundleConfig, ResidualConfig};
+pub use super::dataset::TrainExample;
+use super::dataset::{EncoderExample, ExampleSource, Examples, Order, Prefetcher, Rigs};
 use super::generate::{CameraView, ViewFeatures, encode_views, image_tensor};
 use super::nn::{NetCond, VeilaDenoiser};
 use crate::error::{Error, Result};
 use crate::objective::Diffusion;
 use crate::sampler::{Sampler, SamplerConfig};
 use crate::trainer::distributed::{Parallel, ProcessGroup};
-use crate::trainer::{AdamW, Batch, FitSummary, ParamsAdamW, TrainConfig, TrainObserver, Trainer};
-
-/// One training example: a camera image at the bundle's size, its camera, and the encoded clean
-/// range image (`in_channels * rows * cols` values, row-major per channel).
-#[derive(Debug, Clone)]
-pub struct TrainExample {
-    /// RGB bytes at the bundle image size.
-    pub rgb: Vec<u8>,
-    /// The camera of that image.
-    pub camera: PinholeCamera,
-    /// Encoded range image.
-    pub x0: Vec<f32>,
-}
+use crate::trainer::{
+    AdamW, Batch, BatchSource, FitSummary, ParamsAdamW, TrainConfig, TrainObserver, Trainer,
+};
 
 /// Which network of a bundle a training run fits.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -109,41 +101,91 @@ pub fn residual_scale(
     means: &[Vec<f32>],
     hw: usize,
 ) -> Vec<f32> {
-    let c = enc.num_channels();
-    let mut sum = vec![0f64; c];
-    let mut count = vec![0f64; c];
+    let mut sums = ResidualSums::new(enc.num_channels());
     for (x, m) in x0.iter().zip(means) {
+        sums.add(enc, x, m, hw);
+    }
+    sums.scale()
+}
+
+/// Running sums of squared residuals per channel (see [`residual_scale`]).
+struct ResidualSums {
+    sum: Vec<f64>,
+    count: Vec<f64>,
+}
+
+impl ResidualSums {
+    fn new(c: usize) -> Self {
+        Self {
+            sum: vec![0.0; c],
+            count: vec![0.0; c],
+        }
+    }
+
+    fn add(&mut self, enc: &crate::RangeEncoding, x: &[f32], m: &[f32], hw: usize) {
         let w = regression_weight(enc, x, hw);
         let r = raw_residual(enc, x, m, hw);
-        for ch in 0..c {
+        for ch in 0..self.sum.len() {
             for p in ch * hw..(ch + 1) * hw {
                 if w[p] > 0.0 {
-                    sum[ch] += f64::from(r[p]) * f64::from(r[p]);
-                    count[ch] += 1.0;
+                    self.sum[ch] += f64::from(r[p]) * f64::from(r[p]);
+                    self.count[ch] += 1.0;
                 }
             }
         }
     }
-    (0..c)
-        .map(|ch| ((sum[ch] / count[ch].max(1.0)).sqrt() as f32).max(1e-3))
-        .collect()
+
+    fn scale(&self) -> Vec<f32> {
+        self.sum
+            .iter()
+            .zip(&self.count)
+            .map(|(s, n)| ((s / n.max(1.0)).sqrt() as f32).max(1e-3))
+            .collect()
+    }
 }
 
-/// Training state of one network of a bundle on in-memory examples: frozen encoder features
-/// computed once, one GCMA geometry for the rig (all examples must share the camera), the targets
-/// (and for residual diffusion the mean predictions and for regression the loss weights) as
-/// tensors, batches drawn by a seeded shuffle that is a pure function of the step (so resumed
-/// runs match uninterrupted ones).
+/// Training state of one network of a bundle: the targets (and for residual diffusion the mean
+/// predictions, for regression the loss weights), the frozen encoder features, the GCMA geometry
+/// of every camera (built the first time it appears; samples of different rigs share a batch,
+/// each attending with its own), batches drawn by a seeded shuffle that is a pure function of the
+/// step (so resumed runs match uninterrupted ones).
+///
+/// [`Self::new`] takes examples in memory and computes everything once per example;
+/// [`Self::streaming`] reads the examples of each batch from an [`ExampleSource`] (a loader
+/// thread reads ahead) and runs the frozen networks per batch. The two give the same batches.
 #[derive(Debug)]
 pub struct DenoiserTraining {
-    features: Vec<ViewFeatures>,
-    x0: Vec<Tensor>,
-    means: Option<Vec<Tensor>>,
-    weights: Option<Vec<Tensor>>,
-    geometry: Option<GcmaGeometry>,
-    batch_size: usize,
-    seed: u64,
-    shard: Option<ProcessGroup>,
+    store: Store,
+    /// The geometry of each camera, when the network has GCMA.
+    rigs: Option<Rigs>,
+    epipolar: veila_geom::EpipolarConfig,
+    device: Device,
+    order: Order,
+}
+
+#[derive(Debug)]
+enum Store {
+    Memory {
+        features: Vec<ViewFeatures>,
+        cameras: Vec<PinholeCamera>,
+        x0: Vec<Tensor>,
+        means: Option<Vec<Tensor>>,
+        weights: Option<Vec<Tensor>>,
+    },
+    Stream(Box<Streamed>),
+}
+
+/// What [`DenoiserTraining::streaming`] needs per batch.
+#[derive(Debug)]
+struct Streamed {
+    prefetch: Prefetcher,
+    config: BundleConfig,
+    semantic: Option<AnyEncoder>,
+    depth: Option<AnyEncoder>,
+    stage: Stage,
+    /// The frozen mean network and the residual scale (residual denoiser).
+    residual: Option<(MeanPredictor, Vec<f32>)>,
+    conditional: bool,
 }
 
 impl DenoiserTraining {
@@ -170,7 +212,6 @@ impl DenoiserTraining {
         }
         let (h, w) = (config.denoiser.height(), config.denoiser.width());
         let c = config.channels();
-        let camera = examples[0].camera;
         let conditional = net.is_conditional();
         let residual = match (stage, &config.residual) {
             (Stage::Denoiser, Some(r)) => {
@@ -208,11 +249,6 @@ impl DenoiserTraining {
                     got: format!("example {i}: {} values", ex.x0.len()),
                 });
             }
-            if ex.camera != camera && conditional {
-                return Err(Error::Data(format!(
-                    "example {i} has another camera than example 0; one training run takes one camera rig"
-                )));
-            }
             match &residual {
                 Some((m, scale)) => {
                     let mi = &m[i];
@@ -241,102 +277,312 @@ impl DenoiserTraining {
                 features.push(encode_views(config, semantic, depth, &[view], device)?);
             }
         }
-        let geometry = match &net.config().conditioning {
-            Some(cc) if cc.gcma.is_some() => {
-                Some(net.geometry(&[camera], &config.epipolar, device)?)
+        Ok(Self {
+            store: Store::Memory {
+                features,
+                cameras: examples.iter().map(|e| e.camera).collect(),
+                x0,
+                means: residual.is_some().then_some(mean_t),
+                weights: (stage == Stage::Mean).then_some(weights),
+            },
+            rigs: has_gcma(net).then(Rigs::new),
+            epipolar: config.epipolar,
+            device: device.clone(),
+            order: Order {
+                n: examples.len(),
+                batch: batch_size,
+                seed,
+                shard: None,
+            },
+        })
+    }
+
+    /// Training state that reads each batch's examples from `source` (a loader thread reads
+    /// `prefetch` batches ahead) and runs the frozen encoders, and for a residual denoiser the
+    /// frozen mean network with `mean_weights`, on every batch: memory does not grow with the
+    /// set. `config.residual.scale` must already be set for a residual denoiser
+    /// ([`residual_scale_of`]).
+    #[allow(clippy::too_many_arguments)]
+    pub fn streaming(
+        config: &BundleConfig,
+        semantic: Option<&AnyEncoder>,
+        depth: Option<&AnyEncoder>,
+        net: &Net,
+        source: Arc<dyn ExampleSource>,
+        stage: Stage,
+        mean_weights: Option<&HashMap<String, Tensor>>,
+        batch_size: usize,
+        seed: u64,
+        prefetch: usize,
+        device: &Device,
+    ) -> Result<Self> {
+        if source.is_empty() || batch_size == 0 {
+            return Err(Error::Data(
+                "training needs at least one example and a batch size of at least 1".into(),
+            ));
+        }
+        let conditional = net.is_conditional();
+        let residual = match (stage, &config.residual) {
+            (Stage::Denoiser, Some(r)) => {
+                let w = mean_weights.ok_or_else(|| {
+                    Error::Data(
+                        "a residual denoiser trains on the mean network's predictions: pass its weights"
+                            .into(),
+                    )
+                })?;
+                Some((MeanPredictor::new(config, w, device)?, r.scale.clone()))
+            }
+            (Stage::Mean, None) => {
+                return Err(Error::Data(
+                    "this bundle has no mean network (not residual diffusion)".into(),
+                ));
             }
             _ => None,
         };
+        let n = source.len();
         Ok(Self {
-            features,
-            x0,
-            means: residual.is_some().then_some(mean_t),
-            weights: (stage == Stage::Mean).then_some(weights),
-            geometry,
-            batch_size,
-            seed,
-            shard: None,
+            store: Store::Stream(Box::new(Streamed {
+                prefetch: Prefetcher::new(source, prefetch),
+                config: config.clone(),
+                semantic: semantic.cloned(),
+                depth: depth.cloned(),
+                stage,
+                residual,
+                conditional,
+            })),
+            rigs: has_gcma(net).then(Rigs::new),
+            epipolar: config.epipolar,
+            device: device.clone(),
+            order: Order {
+                n,
+                batch: batch_size,
+                seed,
+                shard: None,
+            },
         })
     }
 
     /// Number of examples.
     pub fn len(&self) -> usize {
-        self.x0.len()
+        self.order.n
     }
 
     /// Whether there are no examples.
     pub fn is_empty(&self) -> bool {
-        self.x0.is_empty()
+        self.order.n == 0
     }
 
-    /// The GCMA geometry of the rig.
+    /// The GCMA geometry of the first camera seen (`None` before the first batch, or without
+    /// GCMA).
     pub fn geometry(&self) -> Option<&GcmaGeometry> {
-        self.geometry.as_ref()
+        self.rigs.as_ref().and_then(Rigs::first)
+    }
+
+    /// The condition of a batch whose samples have `cameras`: every camera's geometry (built
+    /// once), each sample attending with its own.
+    fn condition<'g>(
+        &'g self,
+        net: &Net,
+        input: &veila_nn::ConditionInput,
+        cameras: &[&PinholeCamera],
+    ) -> Result<veila_nn::PreparedCondition<'g>> {
+        let Some(rigs) = &self.rigs else {
+            return Ok(net.prepare_condition(input, None)?);
+        };
+        let geoms = cameras
+            .iter()
+            .map(|c| {
+                rigs.get(c, || {
+                    Ok(net.geometry(&[**c], &self.epipolar, &self.device)?)
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(net.prepare_condition_per_sample(input, &geoms)?)
     }
 
     /// Indices of the examples of update `step`: epoch-wise seeded shuffles.
     pub fn indices(&self, step: u64) -> Vec<usize> {
-        let n = self.x0.len();
-        let b = self.batch_size;
-        let start = step as usize * b;
-        // one seeded shuffle per epoch, built once for the (at most a few) epochs the batch spans
-        let mut perm: Option<(usize, Vec<usize>)> = None;
-        (start..start + b)
-            .map(|k| {
-                let epoch = k / n;
-                if perm.as_ref().is_none_or(|(e, _)| *e != epoch) {
-                    let mut p: Vec<usize> = (0..n).collect();
-                    let mut rng = ChaCha8Rng::seed_from_u64(
-                        self.seed ^ (epoch as u64).wrapping_mul(0x9E37_79B9),
-                    );
-                    p.shuffle(&mut rng);
-                    perm = Some((epoch, p));
-                }
-                perm.as_ref().map_or(0, |(_, p)| p[k % n])
-            })
-            .collect()
+        self.order.indices(step)
     }
 
     /// Makes [`Self::batch`] return only `group`'s share of each global batch (data-parallel
     /// training: every rank draws the same global batch and takes its own disjoint part).
     pub fn set_shard(&mut self, group: &ProcessGroup) -> Result<()> {
-        if self.batch_size < group.world_size {
+        if self.order.batch < group.world_size {
             return Err(Error::Data(format!(
                 "a global batch of {} cannot be shared by {} ranks (each needs at least one example)",
-                self.batch_size, group.world_size
+                self.order.batch, group.world_size
             )));
         }
-        self.shard = Some(group.clone());
+        self.order.shard = Some(group.clone());
         Ok(())
     }
 
     /// The batch of update `step` for `net` (the condition fusion runs here, inside the graph, so
     /// CACM is trained); with [`Self::set_shard`], this rank's share of it.
     pub fn batch<'g>(&'g self, net: &Net, step: u64) -> Result<Batch<NetCond<'g>>> {
-        let all = self.indices(step);
-        let idx = match &self.shard {
-            Some(g) => g.shard(&all).to_vec(),
-            None => all,
+        let idx = self.order.local(step);
+        self.batch_range(net, step, &idx, 0..idx.len())
+    }
+
+    /// Part `part` of `parts` of [`Self::batch`] (gradient accumulation): contiguous parts of
+    /// this rank's examples whose sizes differ by at most one.
+    pub fn batch_part<'g>(
+        &'g self,
+        net: &Net,
+        step: u64,
+        part: usize,
+        parts: usize,
+    ) -> Result<Batch<NetCond<'g>>> {
+        let idx = self.order.local(step);
+        let (start, len) = crate::trainer::part_range(idx.len(), part, parts)?;
+        self.batch_range(net, step, &idx, start..start + len)
+    }
+
+    /// The batch of the examples `idx[range]` of update `step`.
+    fn batch_range<'g>(
+        &'g self,
+        net: &Net,
+        step: u64,
+        idx: &[usize],
+        range: std::ops::Range<usize>,
+    ) -> Result<Batch<NetCond<'g>>> {
+        match &self.store {
+            Store::Memory {
+                features,
+                cameras,
+                x0,
+                means,
+                weights,
+            } => {
+                let idx = &idx[range];
+                let pick = |v: &[Tensor]| -> Result<Tensor> {
+                    Ok(Tensor::cat(
+                        &idx.iter().map(|&i| v[i].clone()).collect::<Vec<_>>(),
+                        0,
+                    )?)
+                };
+                let x0 = pick(x0)?;
+                let image = if features.is_empty() {
+                    None
+                } else {
+                    let items: Vec<&ViewFeatures> = idx.iter().map(|&i| &features[i]).collect();
+                    let input = ViewFeatures::cat(&items)?;
+                    let cams: Vec<&PinholeCamera> = idx.iter().map(|&i| &cameras[i]).collect();
+                    Some(self.condition(net, &input, &cams)?)
+                };
+                let mean = means.as_deref().map(pick).transpose()?;
+                let weight = weights.as_deref().map(pick).transpose()?;
+                let cond = (image.is_some() || mean.is_some()).then_some(NetCond { image, mean });
+                Ok(Batch { x0, cond, weight })
+            }
+            Store::Stream(st) => {
+                let examples = st.prefetch.examples(&self.order, step)?;
+                self.stream_batch(st, net, &examples[range])
+            }
+        }
+    }
+
+    /// A batch of `examples` read by the loader: targets, mean predictions and features
+    /// computed now.
+    fn stream_batch<'g>(
+        &'g self,
+        st: &Streamed,
+        net: &Net,
+        examples: &[TrainExample],
+    ) -> Result<Batch<NetCond<'g>>> {
+        let config = &st.config;
+        let (h, w) = (config.denoiser.height(), config.denoiser.width());
+        let c = config.channels();
+        let b = examples.len();
+        for ex in examples {
+            if ex.x0.len() != c * h * w {
+                return Err(Error::Shape {
+                    what: "training example",
+                    expected: format!("{c} x {h} x {w} values"),
+                    got: format!("{} values", ex.x0.len()),
+                });
+            }
+        }
+        let dev = &self.device;
+        let (x0, mean) = match &st.residual {
+            Some((predictor, scale)) => {
+                let mu = predictor.predict(st.semantic.as_ref(), st.depth.as_ref(), examples)?;
+                let mut r = Vec::with_capacity(b * c * h * w);
+                for (ex, m) in examples.iter().zip(&mu) {
+                    r.extend(residual_target(&config.encoding, &ex.x0, m, scale, h * w));
+                }
+                let m: Vec<f32> = mu.concat();
+                (
+                    Tensor::from_vec(r, (b, c, h, w), dev)?,
+                    Some(Tensor::from_vec(m, (b, c, h, w), dev)?),
+                )
+            }
+            None => {
+                let x: Vec<f32> = examples.iter().flat_map(|e| e.x0.iter().copied()).collect();
+                (Tensor::from_vec(x, (b, c, h, w), dev)?, None)
+            }
         };
-        let pick = |v: &[Tensor]| -> Result<Tensor> {
-            Ok(Tensor::cat(
-                &idx.iter().map(|&i| v[i].clone()).collect::<Vec<_>>(),
-                0,
-            )?)
-        };
-        let x0 = pick(&self.x0)?;
-        let image = if self.features.is_empty() {
-            None
+        let weight = if st.stage == Stage::Mean {
+            let wt: Vec<f32> = examples
+                .iter()
+                .flat_map(|e| regression_weight(&config.encoding, &e.x0, h * w))
+                .collect();
+            Some(Tensor::from_vec(wt, (b, c, h, w), dev)?)
         } else {
-            let items: Vec<&ViewFeatures> = idx.iter().map(|&i| &self.features[i]).collect();
-            let input = ViewFeatures::cat(&items)?;
-            Some(net.prepare_condition(&input, self.geometry.as_ref())?)
+            None
         };
-        let mean = self.means.as_deref().map(pick).transpose()?;
-        let weight = self.weights.as_deref().map(pick).transpose()?;
+        let image = if st.conditional {
+            let feats = examples
+                .iter()
+                .map(|ex| {
+                    let view = CameraView {
+                        rgb: &ex.rgb,
+                        camera: &ex.camera,
+                    };
+                    encode_views(
+                        config,
+                        st.semantic.as_ref(),
+                        st.depth.as_ref(),
+                        &[view],
+                        dev,
+                    )
+                })
+                .collect::<Result<Vec<_>>>()?;
+            let refs: Vec<&ViewFeatures> = feats.iter().collect();
+            let cams: Vec<&PinholeCamera> = examples.iter().map(|e| &e.camera).collect();
+            Some(self.condition(net, &ViewFeatures::cat(&refs)?, &cams)?)
+        } else {
+            None
+        };
         let cond = (image.is_some() || mean.is_some()).then_some(NetCond { image, mean });
         Ok(Batch { x0, cond, weight })
     }
+}
+
+/// [`DenoiserTraining`] as the trainer's [`BatchSource`], with the network whose condition fusion
+/// the batches run.
+struct TrainingSource<'a> {
+    data: &'a DenoiserTraining,
+    net: &'a Net,
+}
+
+impl<'a> BatchSource<NetCond<'a>> for TrainingSource<'a> {
+    fn batch(&mut self, step: u64) -> Result<Batch<NetCond<'a>>> {
+        self.data.batch(self.net, step)
+    }
+
+    fn batch_part(&mut self, step: u64, part: usize, parts: usize) -> Result<Batch<NetCond<'a>>> {
+        self.data.batch_part(self.net, step, part, parts)
+    }
+}
+
+/// Whether `net` has GCMA (and so needs the cameras' geometry).
+fn has_gcma(net: &Net) -> bool {
+    net.config()
+        .conditioning
+        .as_ref()
+        .is_some_and(|c| c.gcma.is_some())
 }
 
 /// What [`fit_denoiser`] trains on and how.
@@ -346,13 +592,16 @@ pub struct DenoiserFit<'a> {
     pub semantic: Option<&'a AnyEncoder>,
     /// Frozen `E_d` (when the config uses depth cues).
     pub depth: Option<&'a AnyEncoder>,
-    /// The training examples (one camera rig).
-    pub examples: &'a [TrainExample],
+    /// The training examples (any cameras), in memory or streamed.
+    pub examples: Examples<'a>,
     /// Which network of the bundle is trained.
     pub stage: Stage,
-    /// For the residual denoiser: the mean network's prediction of every example
-    /// ([`predict_means`]).
+    /// For the residual denoiser on examples in memory: the mean network's prediction of every
+    /// example ([`predict_means`]).
     pub means: Option<&'a [Vec<f32>]>,
+    /// For the residual denoiser on streamed examples: the mean network's weights (it predicts
+    /// each batch).
+    pub mean_weights: Option<&'a HashMap<String, Tensor>>,
     /// Examples per update.
     pub batch_size: usize,
     /// Optimiser, schedule, EMA, dropout and checkpoint settings; its seed also seeds the
@@ -432,20 +681,45 @@ where
             }
         }
     }
-    let mut data = DenoiserTraining::new(
-        config,
-        fit.semantic,
-        fit.depth,
-        &net,
-        fit.examples,
-        fit.stage,
-        fit.means,
-        fit.batch_size,
-        fit.train.seed,
-        device,
-    )?;
+    let mut data = match fit.examples {
+        Examples::Memory(examples) => DenoiserTraining::new(
+            config,
+            fit.semantic,
+            fit.depth,
+            &net,
+            examples,
+            fit.stage,
+            fit.means,
+            fit.batch_size,
+            fit.train.seed,
+            device,
+        )?,
+        Examples::Stream { source, prefetch } => DenoiserTraining::streaming(
+            config,
+            fit.semantic,
+            fit.depth,
+            &net,
+            source.clone(),
+            fit.stage,
+            fit.mean_weights,
+            fit.batch_size,
+            fit.train.seed,
+            prefetch,
+            device,
+        )?,
+    };
     if let Some(p) = fit.parallel {
         data.set_shard(p.group())?;
+    }
+    let world = fit.parallel.map_or(1, |p| p.group().world_size);
+    let parts = fit.train.grad_accum_steps as usize;
+    if parts > fit.batch_size / world {
+        return Err(Error::Data(format!(
+            "grad_accum_steps {parts} splits each rank's share of the batch ({} of {} over {world} rank(s)) \
+             into more parts than it has examples",
+            fit.batch_size / world,
+            fit.batch_size
+        )));
     }
     // the batches run the condition fusion through a clone that shares the trained variables
     let batch_net = net.clone();
@@ -462,7 +736,10 @@ where
     if let Some(p) = &resumed {
         on_resume(p, trainer.step());
     }
-    let mut source = |step: u64| data.batch(&batch_net, step);
+    let mut source = TrainingSource {
+        data: &data,
+        net: &batch_net,
+    };
     let summary = trainer.fit(&mut source, Some(fit.checkpoint_dir), observer)?;
     Ok(DenoiserFitOutcome {
         summary,
@@ -479,8 +756,8 @@ pub struct BundleFit<'a> {
     pub semantic: Option<&'a AnyEncoder>,
     /// Frozen `E_d` (when the config uses depth cues).
     pub depth: Option<&'a AnyEncoder>,
-    /// The training examples (one camera rig).
-    pub examples: &'a [TrainExample],
+    /// The training examples (any cameras), in memory or streamed.
+    pub examples: Examples<'a>,
     /// Examples per update.
     pub batch_size: usize,
     /// Settings of the denoiser's run.
@@ -536,6 +813,7 @@ where
                 examples: fit.examples,
                 stage: Stage::Mean,
                 means: None,
+                mean_weights: None,
                 batch_size: fit.batch_size,
                 train: tc,
                 checkpoint_dir: &dir,
@@ -554,23 +832,40 @@ where
                 seconds,
             });
         }
-        let means = predict_means(
-            config,
-            fit.semantic,
-            fit.depth,
-            &out.ema_weights,
-            fit.examples,
-            16,
-            device,
-        )?;
-        let (h, w) = (config.denoiser.height(), config.denoiser.width());
-        let x0: Vec<Vec<f32>> = fit.examples.iter().map(|e| e.x0.clone()).collect();
-        let scale = residual_scale(&config.encoding, &x0, &means, h * w);
+        let (means, scale) = match fit.examples {
+            Examples::Memory(examples) => {
+                let means = predict_means(
+                    config,
+                    fit.semantic,
+                    fit.depth,
+                    &out.ema_weights,
+                    examples,
+                    16,
+                    device,
+                )?;
+                let (h, w) = (config.denoiser.height(), config.denoiser.width());
+                let x0: Vec<Vec<f32>> = examples.iter().map(|e| e.x0.clone()).collect();
+                let scale = residual_scale(&config.encoding, &x0, &means, h * w);
+                (Some(means), scale)
+            }
+            Examples::Stream { source, .. } => {
+                let scale = residual_scale_of(
+                    config,
+                    fit.semantic,
+                    fit.depth,
+                    &out.ema_weights,
+                    source.as_ref(),
+                    16,
+                    device,
+                )?;
+                (None, scale)
+            }
+        };
         if let Some(r) = config.residual.as_mut() {
             r.scale = scale;
         }
         seconds[0] = t.elapsed().as_secs_f64();
-        (Some(out), Some(means))
+        (Some(out), means)
     } else {
         (None, None)
     };
@@ -584,6 +879,7 @@ where
             examples: fit.examples,
             stage: Stage::Denoiser,
             means: means.as_deref(),
+            mean_weights: mean.as_ref().map(|m: &DenoiserFitOutcome| &m.ema_weights),
             batch_size: fit.batch_size,
             train: fit.train,
             checkpoint_dir: fit.work_dir,
@@ -602,6 +898,118 @@ where
     })
 }
 
+/// The frozen mean network of a residual bundle: its one-pass prediction of a batch of examples
+/// (what the residual denoiser's targets subtract and what it is conditioned on).
+pub struct MeanPredictor {
+    config: BundleConfig,
+    net: Net,
+    diffusion: Diffusion,
+    /// The geometry of each camera, when the mean network has GCMA.
+    rigs: Option<Rigs>,
+    device: Device,
+}
+
+impl std::fmt::Debug for MeanPredictor {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("MeanPredictor").finish_non_exhaustive()
+    }
+}
+
+impl MeanPredictor {
+    /// The mean network of `config` with `weights` (the GCMA geometry of each camera is built
+    /// when it first appears).
+    pub fn new(
+        config: &BundleConfig,
+        weights: &HashMap<String, Tensor>,
+        device: &Device,
+    ) -> Result<Self> {
+        let (cfg, diffusion) = stage_config(config, Stage::Mean)?;
+        let net = Net::new(
+            &cfg,
+            VarBuilder::from_tensors(weights.clone(), DType::F32, device),
+        )?;
+        Ok(Self {
+            config: config.clone(),
+            rigs: has_gcma(&net).then(Rigs::new),
+            net,
+            diffusion: Diffusion::new(diffusion)?,
+            device: device.clone(),
+        })
+    }
+
+    /// The prediction (encoded, `channels * rows * cols` values) of each of `examples`, in one
+    /// batch.
+    pub fn predict(
+        &self,
+        semantic: Option<&AnyEncoder>,
+        depth: Option<&AnyEncoder>,
+        examples: &[TrainExample],
+    ) -> Result<Vec<Vec<f32>>> {
+        if examples.is_empty() {
+            return Ok(Vec::new());
+        }
+        let cfg = self.net.config();
+        let (h, w) = (cfg.height(), cfg.width());
+        let c = self.config.channels();
+        let sampler = Sampler::new(
+            &self.diffusion,
+            SamplerConfig {
+                steps: 1,
+                guidance_scale: 1.0,
+                ..self.config.sampler.clone()
+            },
+        )?;
+        let image = if self.net.is_conditional() {
+            let feats = examples
+                .iter()
+                .map(|ex| {
+                    encode_views(
+                        &self.config,
+                        semantic,
+                        depth,
+                        &[CameraView {
+                            rgb: &ex.rgb,
+                            camera: &ex.camera,
+                        }],
+                        &self.device,
+                    )
+                })
+                .collect::<Result<Vec<_>>>()?;
+            let refs: Vec<&ViewFeatures> = feats.iter().collect();
+            let input = ViewFeatures::cat(&refs)?;
+            Some(match &self.rigs {
+                None => self.net.prepare_condition(&input, None)?,
+                Some(rigs) => {
+                    let geoms = examples
+                        .iter()
+                        .map(|e| {
+                            rigs.get(&e.camera, || {
+                                Ok(self.net.geometry(
+                                    &[e.camera],
+                                    &self.config.epipolar,
+                                    &self.device,
+                                )?)
+                            })
+                        })
+                        .collect::<Result<Vec<_>>>()?;
+                    self.net.prepare_condition_per_sample(&input, &geoms)?
+                }
+            })
+        } else {
+            None
+        };
+        let cond = NetCond { image, mean: None };
+        let model = VeilaDenoiser::new(self.net.clone());
+        let zeros = Tensor::zeros((examples.len(), c, h, w), DType::F32, &self.device)?;
+        // the one-pass regression from zeros draws no noise; a fixed stream keeps it so anyway
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let mu = sampler.sample_from(&model, zeros, Some(&cond), &mut rng, |_| {})?;
+        (0..examples.len())
+            .map(|i| Ok(mu.get(i)?.flatten_all()?.to_vec1::<f32>()?))
+            .collect()
+    }
+}
+
 /// The mean network's one-pass prediction (encoded, `channels * rows * cols` values) for every
 /// example, in batches of `batch_size`: what a residual denoiser trains on.
 pub fn predict_means(
@@ -613,61 +1021,46 @@ pub fn predict_means(
     batch_size: usize,
     device: &Device,
 ) -> Result<Vec<Vec<f32>>> {
-    let (cfg, diffusion) = stage_config(config, Stage::Mean)?;
-    let net = Net::new(
-        &cfg,
-        VarBuilder::from_tensors(mean_weights.clone(), DType::F32, device),
-    )?;
-    let (h, w) = (cfg.height(), cfg.width());
-    let c = config.channels();
-    let diffusion = Diffusion::new(diffusion)?;
-    let sampler = Sampler::new(
-        &diffusion,
-        SamplerConfig {
-            steps: 1,
-            guidance_scale: 1.0,
-            ..config.sampler.clone()
-        },
-    )?;
-    let geometry = match &cfg.conditioning {
-        Some(cc) if cc.gcma.is_some() && !examples.is_empty() => {
-            Some(net.geometry(&[examples[0].camera], &config.epipolar, device)?)
-        }
-        _ => None,
-    };
-    let model = VeilaDenoiser::new(net.clone());
+    let predictor = MeanPredictor::new(config, mean_weights, device)?;
     let mut out = Vec::with_capacity(examples.len());
-    let mut rng = ChaCha8Rng::seed_from_u64(0);
     for chunk in examples.chunks(batch_size.max(1)) {
-        let image = if net.is_conditional() {
-            let feats = chunk
-                .iter()
-                .map(|ex| {
-                    encode_views(
-                        config,
-                        semantic,
-                        depth,
-                        &[CameraView {
-                            rgb: &ex.rgb,
-                            camera: &ex.camera,
-                        }],
-                        device,
-                    )
-                })
-                .collect::<Result<Vec<_>>>()?;
-            let refs: Vec<&ViewFeatures> = feats.iter().collect();
-            Some(net.prepare_condition(&ViewFeatures::cat(&refs)?, geometry.as_ref())?)
-        } else {
-            None
-        };
-        let cond = NetCond { image, mean: None };
-        let zeros = Tensor::zeros((chunk.len(), c, h, w), DType::F32, device)?;
-        let mu = sampler.sample_from(&model, zeros, Some(&cond), &mut rng, |_| {})?;
-        for i in 0..chunk.len() {
-            out.push(mu.get(i)?.flatten_all()?.to_vec1::<f32>()?);
-        }
+        out.extend(predictor.predict(semantic, depth, chunk)?);
     }
     Ok(out)
+}
+
+/// [`residual_scale`] of a streamed set: one pass over `source` in chunks of `batch_size`, the
+/// mean network (`mean_weights`) predicting each chunk; memory bounded by the chunk.
+pub fn residual_scale_of(
+    config: &BundleConfig,
+    semantic: Option<&AnyEncoder>,
+    depth: Option<&AnyEncoder>,
+    mean_weights: &HashMap<String, Tensor>,
+    source: &dyn ExampleSource,
+    batch_size: usize,
+    device: &Device,
+) -> Result<Vec<f32>> {
+    if source.is_empty() {
+        return Err(Error::Data(
+            "the residual scale needs at least one example".into(),
+        ));
+    }
+    let predictor = MeanPredictor::new(config, mean_weights, device)?;
+    let (h, w) = (config.denoiser.height(), config.denoiser.width());
+    let c = config.channels();
+    let mut sums = ResidualSums::new(c);
+    let n = source.len();
+    let step = batch_size.max(1);
+    for start in (0..n).step_by(step) {
+        let chunk = (start..(start + step).min(n))
+            .map(|i| source.example(i))
+            .collect::<Result<Vec<_>>>()?;
+        let means = predictor.predict(semantic, depth, &chunk)?;
+        for (ex, m) in chunk.iter().zip(&means) {
+            sums.add(&config.encoding, &ex.x0, m, h * w);
+        }
+    }
+    Ok(sums.scale())
 }
 
 /// What one encoder training step did.
@@ -682,13 +1075,51 @@ pub struct EncoderStep {
 /// Trains a [`SmallCnn`] on images with per-pixel targets: `images[i]` is `h * w * 3` RGB bytes,
 /// `labels[i]` (class ids of the learning map) and/or `depth_m[i]` (metres, 0 = no ground truth)
 /// `h * w` values. AdamW with a cosine learning rate, seeded batches; returns the network and its
-/// `VarMap`.
+/// `VarMap`. [`train_small_cnn_from`] reads the examples on demand instead.
 #[allow(clippy::too_many_arguments)]
 pub fn train_small_cnn(
     cfg: &SmallCnnConfig,
     images: &[Vec<u8>],
     labels: Option<&[Vec<u32>]>,
     depth_m: Option<&[Vec<f32>]>,
+    hw: (usize, usize),
+    steps: usize,
+    batch_size: usize,
+    lr: f64,
+    seed: u64,
+    device: &Device,
+    on_step: impl FnMut(EncoderStep),
+) -> Result<(SmallCnn, VarMap)> {
+    let get = |i: usize| -> Result<EncoderExample> {
+        Ok(EncoderExample {
+            rgb: images[i].clone(),
+            labels: labels.map(|l| l[i].clone()),
+            depth_m: depth_m.map(|d| d[i].clone()).unwrap_or_default(),
+        })
+    };
+    train_small_cnn_from(
+        cfg,
+        images.len(),
+        &get,
+        (labels.is_some(), depth_m.is_some()),
+        hw,
+        steps,
+        batch_size,
+        lr,
+        seed,
+        device,
+        on_step,
+    )
+}
+
+/// [`train_small_cnn`] on `n` examples read by `get` when a batch needs them (bounded memory);
+/// `(labels, depth)` says which targets the loss uses. The same examples give the same weights.
+#[allow(clippy::too_many_arguments)]
+pub fn train_small_cnn_from(
+    cfg: &SmallCnnConfig,
+    n: usize,
+    get: &dyn Fn(usize) -> Result<EncoderExample>,
+    (use_labels, use_depth): (bool, bool),
     (h, w): (usize, usize),
     steps: usize,
     batch_size: usize,
@@ -697,7 +1128,6 @@ pub fn train_small_cnn(
     device: &Device,
     mut on_step: impl FnMut(EncoderStep),
 ) -> Result<(SmallCnn, VarMap)> {
-    let n = images.len();
     if n == 0 || batch_size == 0 {
         return Err(Error::Data(
             "encoder training needs images and a batch size".into(),
@@ -731,28 +1161,41 @@ pub fn train_small_cnn(
         let progress = step as f64 / steps.max(1) as f64;
         opt.set_learning_rate(lr * 0.5 * (1.0 + (std::f64::consts::PI * progress).cos()));
         let idx: Vec<usize> = (0..batch_size).map(|_| rng.random_range(0..n)).collect();
-        let imgs = idx
+        let batch = idx.iter().map(|&i| get(i)).collect::<Result<Vec<_>>>()?;
+        let imgs = batch
             .iter()
-            .map(|&i| image_tensor(&images[i], h, w, device))
+            .map(|e| image_tensor(&e.rgb, h, w, device))
             .collect::<Result<Vec<_>>>()?;
         let image = Tensor::cat(&imgs, 0)?;
         // random horizontal flips (targets flipped with the image)
         let flip = rng.random_bool(0.5);
         let image = if flip { flip_w(&image)? } else { image };
-        let lab = labels
-            .map(|l| -> Result<Tensor> {
-                let rows: Vec<u32> = idx.iter().flat_map(|&i| l[i].iter().copied()).collect();
-                let t = Tensor::from_vec(rows, (batch_size, h, w), device)?;
-                if flip { flip_w(&t) } else { Ok(t) }
-            })
-            .transpose()?;
-        let dep = depth_m
-            .map(|d| -> Result<Tensor> {
-                let rows: Vec<f32> = idx.iter().flat_map(|&i| d[i].iter().copied()).collect();
-                let t = Tensor::from_vec(rows, (batch_size, h, w), device)?;
-                if flip { flip_w(&t) } else { Ok(t) }
-            })
-            .transpose()?;
+        let lab = if use_labels {
+            let mut rows: Vec<u32> = Vec::with_capacity(batch_size * h * w);
+            for e in &batch {
+                let l = e.labels.as_ref().ok_or_else(|| {
+                    Error::Data(
+                        "the semantic encoder needs per-pixel train ids: an example has none"
+                            .into(),
+                    )
+                })?;
+                rows.extend_from_slice(l);
+            }
+            let t = Tensor::from_vec(rows, (batch_size, h, w), device)?;
+            Some(if flip { flip_w(&t)? } else { t })
+        } else {
+            None
+        };
+        let dep = if use_depth {
+            let rows: Vec<f32> = batch
+                .iter()
+                .flat_map(|e| e.depth_m.iter().copied())
+                .collect();
+            let t = Tensor::from_vec(rows, (batch_size, h, w), device)?;
+            Some(if flip { flip_w(&t)? } else { t })
+        } else {
+            None
+        };
         let loss = net.loss(&image, lab.as_ref(), dep.as_ref(), &loss_cfg)?;
         let grads = loss.total.backward()?;
         opt.step(&grads, 1.0)?;

@@ -108,6 +108,16 @@ pub struct TrainConfig {
     pub keep_checkpoints: Option<usize>,
     /// Call [`TrainObserver::on_preview`] every this many steps.
     pub preview_every: Option<u64>,
+    /// Gradient accumulation: every update runs this many forward/backward passes, each on one
+    /// part of the batch ([`BatchSource::batch_part`]), and steps on their example-weighted mean
+    /// gradient. The update equals one on the whole batch (up to float rounding and the order of
+    /// the random draws) at the activation memory of one part. 1: no accumulation.
+    #[serde(default = "one")]
+    pub grad_accum_steps: u64,
+}
+
+fn one() -> u64 {
+    1
 }
 
 impl Default for TrainConfig {
@@ -130,6 +140,7 @@ impl Default for TrainConfig {
             checkpoint_every: Some(5000),
             keep_checkpoints: Some(3),
             preview_every: None,
+            grad_accum_steps: 1,
         }
     }
 }
@@ -184,6 +195,9 @@ impl TrainConfig {
                 "must be at least 1",
             ));
         }
+        if self.grad_accum_steps == 0 {
+            return Err(invalid("grad_accum_steps", "must be at least 1"));
+        }
         if self.keep_checkpoints == Some(0) {
             return Err(invalid("keep_checkpoints", "must be at least 1"));
         }
@@ -218,6 +232,50 @@ pub struct Batch<C> {
 pub trait BatchSource<C> {
     /// The batch for update `step`.
     fn batch(&mut self, step: u64) -> Result<Batch<C>>;
+
+    /// Part `part` of `parts` of the batch of update `step` (gradient accumulation,
+    /// [`TrainConfig::grad_accum_steps`]): the parts are disjoint and together the whole batch.
+    /// The default splits [`Self::batch`] along the batch axis into contiguous parts whose sizes
+    /// differ by at most one; it cannot split a conditioning, so conditional sources implement
+    /// this themselves.
+    fn batch_part(&mut self, step: u64, part: usize, parts: usize) -> Result<Batch<C>> {
+        let batch = self.batch(step)?;
+        if parts == 1 {
+            return Ok(batch);
+        }
+        if batch.cond.is_some() {
+            return Err(invalid(
+                "grad_accum_steps",
+                "this data source cannot split a conditioned batch into parts; implement BatchSource::batch_part",
+            ));
+        }
+        let b = batch.x0.dim(0)?;
+        let (start, len) = part_range(b, part, parts)?;
+        let weight = match &batch.weight {
+            Some(w) if w.dim(0)? == b && b > 1 => Some(w.narrow(0, start, len)?),
+            other => other.clone(),
+        };
+        Ok(Batch {
+            x0: batch.x0.narrow(0, start, len)?,
+            cond: None,
+            weight,
+        })
+    }
+}
+
+/// The examples `start..start + len` of part `part` of `parts` of a batch of `b`: contiguous
+/// parts whose sizes differ by at most one (the first `b % parts` are one longer).
+pub fn part_range(b: usize, part: usize, parts: usize) -> Result<(usize, usize)> {
+    if parts == 0 || part >= parts || b < parts {
+        return Err(invalid(
+            "grad_accum_steps",
+            format!(
+                "part {part} of {parts} of a batch of {b}: every part needs at least one example"
+            ),
+        ));
+    }
+    let (q, r) = (b / parts, b % parts);
+    Ok((part * q + part.min(r), q + usize::from(part < r)))
 }
 
 impl<C, F: FnMut(u64) -> Result<Batch<C>>> BatchSource<C> for F {
@@ -492,17 +550,83 @@ impl<M: Denoiser> Trainer<M> {
         let started = Instant::now();
         let _span = tracing::debug_span!("train_step", step = self.step).entered();
         let b = batch.x0.dim(0)?;
-        let lr = self.config.lr_schedule().lr_at(self.step);
-        let dropout = (self.config.cond_drop_prob > 0.0).then_some(CondDropout {
-            prob: self.config.cond_drop_prob,
-        });
-        if let Some(c) = &self.comm {
-            // a stream per (seed, step, rank): ranks draw different noise, and a resumed rank
-            // draws what it would have drawn
-            let mut rng = ChaCha8Rng::seed_from_u64(self.config.seed);
-            rng.set_stream(((c.rank() as u64) << 40) ^ self.step);
-            self.rng = rng;
+        let (lr, dropout) = self.begin_step();
+        let (loss_t, loss) = self.batch_loss(batch, dropout)?;
+        let grads = if loss.is_finite() {
+            Some(loss_t.backward()?)
+        } else {
+            None
+        };
+        self.finish_step(started, b, loss, grads, lr)
+    }
+
+    /// One update accumulated over `parts` parts of a batch (see
+    /// [`TrainConfig::grad_accum_steps`]): `part(k)` gives part `k`; each part's forward and
+    /// backward pass runs and is freed before the next, and the update steps on the mean gradient
+    /// weighted by the parts' sizes (the gradient of the whole batch's mean loss). The loss
+    /// reported is the whole batch's. One part is [`Self::train_step`].
+    pub fn train_step_accumulated(
+        &mut self,
+        parts: usize,
+        mut part: impl FnMut(usize) -> Result<Batch<M::Cond>>,
+    ) -> Result<StepStats> {
+        if parts <= 1 {
+            let batch = part(0)?;
+            return self.train_step(&batch);
         }
+        let started = Instant::now();
+        let _span =
+            tracing::debug_span!("train_step_accumulated", step = self.step, parts).entered();
+        let (lr, dropout) = self.begin_step();
+        let mut sum: Vec<Option<Tensor>> = vec![None; self.vars.len()];
+        let (mut total, mut loss_sum, mut finite) = (0usize, 0f64, true);
+        for k in 0..parts {
+            let batch = part(k)?;
+            let b = batch.x0.dim(0)?;
+            total += b;
+            if !finite {
+                continue;
+            }
+            let (loss_t, loss) = self.batch_loss(&batch, dropout)?;
+            if !loss.is_finite() {
+                finite = false;
+                continue;
+            }
+            loss_sum += loss * b as f64;
+            let grads = loss_t.backward()?;
+            for (acc, v) in sum.iter_mut().zip(&self.vars) {
+                if let Some(g) = grads.get(v.as_tensor()) {
+                    let g = g.to_dtype(candle_core::DType::F32)?.affine(b as f64, 0.0)?;
+                    *acc = Some(match acc.take() {
+                        Some(a) => (a + g)?,
+                        None => g,
+                    });
+                }
+            }
+        }
+        let (loss, grads) = if finite {
+            let mut store = candle_core::backprop::GradStore::default();
+            for (acc, v) in sum.into_iter().zip(&self.vars) {
+                if let Some(a) = acc {
+                    let mean = a
+                        .affine(1.0 / total as f64, 0.0)?
+                        .to_dtype(v.as_tensor().dtype())?;
+                    store.insert(v.as_tensor(), mean);
+                }
+            }
+            (loss_sum / total as f64, Some(store))
+        } else {
+            (f64::NAN, None)
+        };
+        self.finish_step(started, total, loss, grads, lr)
+    }
+
+    /// The loss of `batch` (drawing its noise from the trainer's stream), as a tensor and a value.
+    fn batch_loss(
+        &mut self,
+        batch: &Batch<M::Cond>,
+        dropout: Option<CondDropout>,
+    ) -> Result<(Tensor, f64)> {
         let out = self.diffusion.training_loss_weighted(
             &self.model,
             &batch.x0,
@@ -515,6 +639,36 @@ impl<M: Denoiser> Trainer<M> {
             .loss
             .to_dtype(candle_core::DType::F64)?
             .to_scalar::<f64>()?;
+        Ok((out.loss, loss))
+    }
+
+    /// The learning rate and condition dropout of the coming update; under a communicator, the
+    /// random stream of `(seed, step, rank)`.
+    fn begin_step(&mut self) -> (f64, Option<CondDropout>) {
+        let lr = self.config.lr_schedule().lr_at(self.step);
+        let dropout = (self.config.cond_drop_prob > 0.0).then_some(CondDropout {
+            prob: self.config.cond_drop_prob,
+        });
+        if let Some(c) = &self.comm {
+            // a stream per (seed, step, rank): ranks draw different noise, and a resumed rank
+            // draws what it would have drawn
+            let mut rng = ChaCha8Rng::seed_from_u64(self.config.seed);
+            rng.set_stream(((c.rank() as u64) << 40) ^ self.step);
+            self.rng = rng;
+        }
+        (lr, dropout)
+    }
+
+    /// Applies the local gradients `grads` of a batch of `b` with loss `loss` (`None` when the
+    /// loss was not finite): averaged over the ranks under a communicator, clipped, stepped.
+    fn finish_step(
+        &mut self,
+        started: Instant,
+        b: usize,
+        loss: f64,
+        grads: Option<candle_core::backprop::GradStore>,
+        lr: f64,
+    ) -> Result<StepStats> {
         let mut stats = StepStats {
             step: self.step + 1,
             loss,
@@ -527,9 +681,8 @@ impl<M: Denoiser> Trainer<M> {
             samples_per_sec: 0.0,
         };
         if self.comm.is_some() {
-            self.distributed_update(&out.loss, loss, lr, &mut stats)?;
-        } else if loss.is_finite() {
-            let grads = out.loss.backward()?;
+            self.distributed_update(grads, loss, lr, &mut stats)?;
+        } else if let Some(grads) = grads {
             // one device sync for the global norm, not one per parameter
             let mut sums = Vec::with_capacity(self.vars.len());
             for v in &self.vars {
@@ -602,17 +755,12 @@ impl<M: Denoiser> Trainer<M> {
     /// loss is not finite) and its loss to one all-reduce, then all apply the same mean gradient.
     fn distributed_update(
         &mut self,
-        loss_t: &Tensor,
+        grads: Option<candle_core::backprop::GradStore>,
         loss: f64,
         lr: f64,
         stats: &mut StepStats,
     ) -> Result<()> {
-        let finite = loss.is_finite();
-        let grads = if finite {
-            Some(loss_t.backward()?)
-        } else {
-            None
-        };
+        let finite = loss.is_finite() && grads.is_some();
         let mut sizes = Vec::with_capacity(self.vars.len());
         let mut flat: Vec<f32> = Vec::new();
         for v in &self.vars {
@@ -693,9 +841,15 @@ impl<M: Denoiser> Trainer<M> {
         let mut loss_sum = 0.0;
         let mut loss_n = 0u64;
         let mut last_saved = None;
+        let parts = self.config.grad_accum_steps as usize;
         while self.step < self.config.total_steps {
-            let batch = source.batch(self.step)?;
-            let stats = self.train_step(&batch)?;
+            let stats = if parts > 1 {
+                let step = self.step;
+                self.train_step_accumulated(parts, |k| source.batch_part(step, k, parts))?
+            } else {
+                let batch = source.batch(self.step)?;
+                self.train_step(&batch)?
+            };
             summary.steps_run += 1;
             if stats.skipped {
                 summary.skipped += 1;

@@ -356,3 +356,145 @@ fn data_parallel_ranks_take_the_single_process_step() {
     t.fit(&mut data, None, &mut ()).unwrap();
     assert_eq!(weights_of(&t), want);
 }
+
+#[test]
+fn part_ranges_tile_the_batch() {
+    for b in 1..12 {
+        for parts in 1..=b {
+            let mut next = 0;
+            let mut sizes = Vec::new();
+            for k in 0..parts {
+                let (start, len) = part_range(b, k, parts).unwrap();
+                assert_eq!(start, next, "b {b} parts {parts} part {k}");
+                next += len;
+                sizes.push(len);
+            }
+            assert_eq!(next, b);
+            let (lo, hi) = (sizes.iter().min().unwrap(), sizes.iter().max().unwrap());
+            assert!(*lo >= 1 && hi - lo <= 1, "b {b} parts {parts}: {sizes:?}");
+        }
+        assert!(part_range(b, 0, b + 1).is_err());
+        assert!(part_range(b, b, b).is_err());
+    }
+}
+
+/// Trains `steps` updates of the offset model on the 6-example global batches with per-element
+/// loss weights, accumulating over `parts` parts (optionally on `world` thread ranks, each
+/// accumulating over its share); returns rank 0's weights.
+fn accumulated(objective: crate::Objective, parts: u64, world: usize, steps: u64) -> Vec<f32> {
+    use distributed::Communicator as _;
+    let weight_of = |step: u64, x0: &Tensor| -> Tensor {
+        // zero weight on some elements, so the parts' weight sums differ
+        let v: Vec<f32> = (0..x0.elem_count())
+            .map(|k| {
+                if (k as u64 + step).is_multiple_of(3) {
+                    0.0
+                } else {
+                    1.0
+                }
+            })
+            .collect();
+        Tensor::from_vec(v, x0.shape(), &Device::Cpu).unwrap()
+    };
+    let run = move |comm: Option<distributed::InProcessGroup>| {
+        let mut trainer = offset_trainer(objective, steps);
+        let mut config = trainer.config().clone();
+        config.grad_accum_steps = parts;
+        trainer.set_config(config).unwrap();
+        let group = comm.as_ref().map(|c| distributed::ProcessGroup {
+            rank: c.rank(),
+            world_size: c.world_size(),
+            local_rank: c.rank(),
+            master: None,
+        });
+        if let Some(c) = comm {
+            trainer.set_communicator(Box::new(c));
+        }
+        let mut data = |step: u64| -> Result<Batch<()>> {
+            let all = global_batch(step);
+            let x0 = match &group {
+                Some(g) => Tensor::cat(g.shard(&all), 0)?,
+                None => Tensor::cat(&all, 0)?,
+            };
+            let weight = Some(weight_of(step, &x0));
+            Ok(Batch {
+                x0,
+                cond: None,
+                weight,
+            })
+        };
+        trainer.fit(&mut data, None, &mut ()).unwrap();
+        weights_of(&trainer)
+    };
+    if world == 1 {
+        return run(None);
+    }
+    let handles: Vec<_> = distributed::InProcessGroup::new(world)
+        .into_iter()
+        .map(|c| std::thread::spawn(move || run(Some(c))))
+        .collect();
+    let out: Vec<Vec<f32>> = handles.into_iter().map(|h| h.join().unwrap()).collect();
+    assert!(out.iter().all(|w| *w == out[0]), "ranks out of step");
+    out[0].clone()
+}
+
+#[test]
+fn gradient_accumulation_takes_the_whole_batch_step() {
+    // regression draws no noise, so accumulating the parts' size-weighted gradients must give the
+    // update of the whole batch: 6 examples in 2 equal parts, in 4 unequal ones (2, 2, 1, 1),
+    // and in 6 single examples
+    let steps = 5;
+    let want = accumulated(crate::Objective::Regression, 1, 1, steps);
+    let init = weights_of(&offset_trainer(crate::Objective::Regression, steps));
+    assert!(
+        want.iter().zip(&init).any(|(a, b)| (a - b).abs() > 1e-3),
+        "training moved nothing"
+    );
+    let max_diff = |w: &[f32]| {
+        w.iter()
+            .zip(&want)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max)
+    };
+    for parts in [2, 4, 6] {
+        let got = accumulated(crate::Objective::Regression, parts, 1, steps);
+        assert!(
+            max_diff(&got) < 1e-5,
+            "{parts} parts: max |diff| {}",
+            max_diff(&got)
+        );
+    }
+    // with data parallelism: 2 ranks of 3 examples, each in 3 parts of 1
+    let got = accumulated(crate::Objective::Regression, 3, 2, steps);
+    assert!(
+        max_diff(&got) < 1e-5,
+        "2 ranks x 3 parts: {}",
+        max_diff(&got)
+    );
+    // diffusion draws noise per part, so it differs from the whole batch, but it trains, and
+    // is deterministic
+    let a = accumulated(crate::Objective::Diffusion, 2, 1, steps);
+    assert!(a.iter().all(|v| v.is_finite()));
+    assert_eq!(a, accumulated(crate::Objective::Diffusion, 2, 1, steps));
+}
+
+#[test]
+fn gradient_accumulation_refuses_what_it_cannot_split() {
+    let mut trainer = offset_trainer(crate::Objective::Regression, 2);
+    let mut config = trainer.config().clone();
+    config.grad_accum_steps = 4;
+    trainer.set_config(config.clone()).unwrap();
+    // a batch of 3 cannot be split into 4 parts
+    let mut small = |_step: u64| -> Result<Batch<()>> {
+        Ok(Batch {
+            x0: Tensor::zeros((3, 2, 2, 4), DType::F32, &Device::Cpu)?,
+            cond: None,
+            weight: None,
+        })
+    };
+    let err = trainer.fit(&mut small, None, &mut ()).unwrap_err();
+    assert!(err.to_string().contains("grad_accum_steps"), "{err}");
+    assert_eq!(trainer.step(), 0);
+    config.grad_accum_steps = 0;
+    assert!(trainer.set_config(config).is_err());
+}

@@ -1,0 +1,256 @@
+//! The training shards of `veila train` as training examples: each sample projected to the
+//! model's grid and encoded, its image resized to the encoders' input with the LiDAR's sparse
+//! depth and labels projected into it ([`prepare_sample`]); and [`ShardSource`], which reads
+//! samples from the shards one at a time for streaming training (`[data] stream = true`).
+
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+
+use anyhow::{Context, Result, bail};
+use veila_data::image::imageops;
+use veila_data::shard::{Manifest, ShardReader, ShardSample};
+use veila_diffusion::app::bundle::BundleConfig;
+use veila_diffusion::app::{EncoderExample, ExampleSource, TrainExample};
+use veila_geom::{LidarSensor, PinholeCamera, Projector, RayTable};
+
+/// One shard sample reduced to what training uses.
+pub(crate) struct Prepared {
+    pub(crate) rgb: Vec<u8>,
+    pub(crate) camera: PinholeCamera,
+    pub(crate) x0: Vec<f32>,
+    /// Sparse camera depth at the bundle image size (0 = no return).
+    pub(crate) depth_m: Vec<f32>,
+    /// Sparse train ids at the bundle image size (0 = ignored), when the shard has labels.
+    pub(crate) labels: Option<Vec<u32>>,
+}
+
+pub(crate) fn prepare_sample(
+    s: &ShardSample,
+    shard_sensor: &LidarSensor,
+    shard_rays: &RayTable,
+    cfg: &BundleConfig,
+    projector: &Projector,
+    shard_path: &Path,
+    needs_camera: bool,
+) -> Result<Prepared> {
+    let at = || format!("{}: sample {}", shard_path.display(), s.id);
+    let (iw, ih) = (cfg.image_width as u32, cfg.image_height as u32);
+    let un = shard_rays.unproject(&s.scan)?;
+    let projected;
+    let on_grid = if shard_sensor == &cfg.denoiser.sensor {
+        &s.scan
+    } else {
+        projected = projector.project(&un.points, Some(&un.intensity), None)?.0;
+        &projected
+    };
+    let x0 = cfg.encoding.encode_to_vec(on_grid)?;
+    if !needs_camera {
+        // an unconditional model without encoders to train never looks at the camera
+        let k = [
+            [1.0, 0.0, 0.5 * iw as f32, 0.0],
+            [0.0, 1.0, 0.5 * ih as f32, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+        ];
+        return Ok(Prepared {
+            rgb: Vec::new(),
+            camera: PinholeCamera::new(k, glam::Mat4::IDENTITY, iw, ih)?,
+            x0,
+            depth_m: Vec::new(),
+            labels: None,
+        });
+    }
+    let Some(image) = &s.image else {
+        bail!(
+            "{}: has no camera image (convert the dataset with images: `cargo xtask convert` without --no-images)",
+            at()
+        );
+    };
+    let Some(matrices) = &s.camera else {
+        bail!(
+            "{}: has no camera matrices (intrinsics / cam_from_lidar); the dataset needs a calibrated camera",
+            at()
+        );
+    };
+    let (w, h) = image.dimensions();
+    let full = matrices
+        .to_camera(w, h)
+        .with_context(|| format!("{}: invalid camera", at()))?;
+    let camera = full
+        .resized(iw, ih)
+        .context("the model's image size has a zero dimension")?;
+    let rgb = imageops::resize(image, iw, ih, imageops::FilterType::Triangle).into_raw();
+    // sparse supervision: returns projected into the resized image, nearest wins
+    let npx = (iw * ih) as usize;
+    let mut depth_m = vec![0f32; npx];
+    let mut labels = s.train_ids.as_ref().map(|_| vec![0u32; npx]);
+    for (p, (r, c)) in un.points.iter().zip(&un.pixels) {
+        let Some(ip) = camera.try_project_in_image(*p) else {
+            continue;
+        };
+        let (u, v) = ((ip.u_px + 0.5).floor(), (ip.v_px + 0.5).floor());
+        if u < 0.0 || v < 0.0 || u >= iw as f32 || v >= ih as f32 {
+            continue;
+        }
+        let k = v as usize * iw as usize + u as usize;
+        if depth_m[k] == 0.0 || ip.depth_m < depth_m[k] {
+            depth_m[k] = ip.depth_m;
+            if let (Some(l), Some(src_l)) = (labels.as_mut(), s.train_ids.as_ref()) {
+                l[k] = u32::from(src_l[(*r * shard_sensor.cols + *c) as usize]);
+            }
+        }
+    }
+    Ok(Prepared {
+        rgb,
+        camera,
+        x0,
+        depth_m,
+        labels,
+    })
+}
+
+/// How many shard files a [`ShardSource`] keeps open (their headers: offsets and ids).
+const OPEN_SHARDS: usize = 8;
+
+/// The first `count` samples of a converted dataset, read from its shards one sample at a time
+/// ([`ShardReader`]) and prepared when training asks for them: memory does not grow with the
+/// dataset. Errors name the shard file and the sample.
+pub(crate) struct ShardSource {
+    dir: PathBuf,
+    files: Vec<String>,
+    /// Sample `i` is sample `.1` of shard file `.0`.
+    index: Vec<(u32, u32)>,
+    sensor: LidarSensor,
+    rays: RayTable,
+    projector: Projector,
+    cfg: BundleConfig,
+    needs_camera: bool,
+    /// With `unify_cameras`: the camera every sample is given (the first sample's).
+    camera: Option<PinholeCamera>,
+    open: Mutex<Vec<(u32, Arc<ShardReader>)>>,
+}
+
+impl ShardSource {
+    /// The first `count` samples listed in `manifest` (in folder `dir`); a conditional model's
+    /// samples keep their own cameras unless `unify_cameras` gives them the first one's.
+    pub(crate) fn new(
+        dir: &Path,
+        manifest: &Manifest,
+        count: usize,
+        cfg: &BundleConfig,
+        needs_camera: bool,
+        conditional: bool,
+        unify_cameras: bool,
+    ) -> Result<Self> {
+        let mut index = Vec::with_capacity(count);
+        'outer: for (f, entry) in manifest.shards.iter().enumerate() {
+            for k in 0..entry.count {
+                if index.len() == count {
+                    break 'outer;
+                }
+                index.push((f as u32, k as u32));
+            }
+        }
+        if index.is_empty() {
+            bail!("{}: the manifest lists no samples", dir.display());
+        }
+        let mut source = ShardSource {
+            dir: dir.to_path_buf(),
+            files: manifest.shards.iter().map(|e| e.file.clone()).collect(),
+            index,
+            sensor: manifest.sensor.clone(),
+            rays: RayTable::new(&manifest.sensor)?,
+            projector: Projector::new(
+                &cfg.denoiser.sensor,
+                veila_geom::ProjectionOptions::default(),
+            )?,
+            cfg: cfg.clone(),
+            needs_camera,
+            camera: None,
+            open: Mutex::new(Vec::new()),
+        };
+        if conditional && unify_cameras {
+            source.camera = Some(source.prepared(0)?.camera);
+        }
+        Ok(source)
+    }
+
+    /// The first sample's shard sample as stored (what checks of the data look at).
+    pub(crate) fn first_sample(&self) -> Result<ShardSample> {
+        let (f, k) = self.index[0];
+        Ok(self.reader(f)?.sample(k as usize)?)
+    }
+
+    fn reader(&self, f: u32) -> Result<Arc<ShardReader>> {
+        let mut open = self
+            .open
+            .lock()
+            .map_err(|_| anyhow::anyhow!("the shard reader cache lock is poisoned"))?;
+        if let Some((_, r)) = open.iter().find(|(g, _)| *g == f) {
+            return Ok(r.clone());
+        }
+        let path = self.dir.join(&self.files[f as usize]);
+        let r = Arc::new(ShardReader::open(&path)?);
+        if r.sensor() != &self.sensor {
+            bail!(
+                "{}: the shard's sensor differs from the manifest's",
+                path.display()
+            );
+        }
+        if open.len() == OPEN_SHARDS {
+            open.remove(0);
+        }
+        open.push((f, r.clone()));
+        Ok(r)
+    }
+
+    fn prepared(&self, i: usize) -> Result<Prepared> {
+        let &(f, k) = self
+            .index
+            .get(i)
+            .with_context(|| format!("sample {i} of {}", self.index.len()))?;
+        let reader = self.reader(f)?;
+        let s = reader.sample(k as usize)?;
+        let path = self.dir.join(&self.files[f as usize]);
+        let mut p = prepare_sample(
+            &s,
+            &self.sensor,
+            &self.rays,
+            &self.cfg,
+            &self.projector,
+            &path,
+            self.needs_camera,
+        )?;
+        if let Some(c) = self.camera {
+            p.camera = c;
+        }
+        Ok(p)
+    }
+}
+
+fn data_error(e: anyhow::Error) -> veila_diffusion::Error {
+    veila_diffusion::Error::Data(format!("{e:#}"))
+}
+
+impl ExampleSource for ShardSource {
+    fn len(&self) -> usize {
+        self.index.len()
+    }
+
+    fn example(&self, index: usize) -> veila_diffusion::Result<TrainExample> {
+        let p = self.prepared(index).map_err(data_error)?;
+        Ok(TrainExample {
+            rgb: p.rgb,
+            camera: p.camera,
+            x0: p.x0,
+        })
+    }
+
+    fn encoder_example(&self, index: usize) -> veila_diffusion::Result<EncoderExample> {
+        let p = self.prepared(index).map_err(data_error)?;
+        Ok(EncoderExample {
+            rgb: p.rgb,
+            labels: p.labels,
+            depth_m: p.depth_m,
+        })
+    }
+}
