@@ -37,6 +37,7 @@
 //! # semantic_weights = "weights/segformer-b0/model.safetensors"   # its Hugging Face file
 //! # depth_encoder = "depth-anything-v2-small"
 //! # depth_weights = "weights/da2-small/model.safetensors"
+//! # views = 1                      # cameras per sample (3: the paper's front, front-left, front-right)
 //!
 //! [train]
 //! steps = 1000                     # denoiser steps
@@ -171,6 +172,10 @@ struct ModelSection {
     /// The pretrained depth encoder's `model.safetensors`.
     #[serde(default)]
     depth_weights: Option<PathBuf>,
+    /// Camera views per sample (the paper's table 8: 1 or 3); the shards must carry as many
+    /// cameras per sample (`cargo xtask convert --camera CAM_FRONT,CAM_FRONT_LEFT,...`).
+    #[serde(default)]
+    views: Option<usize>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -422,6 +427,25 @@ fn bundle_config(file: &TrainFile, config_path: &Path) -> Result<BundleConfig> {
         }
         cfg.set_encoders(semantic, depth)
             .with_context(|| format!("{}: [model] encoders", config_path.display()))?;
+    }
+    if let Some(views) = m.views {
+        if !(1..=6).contains(&views) {
+            bail!("{}: [model] views must be 1 to 6", config_path.display());
+        }
+        let Some(c) = cfg.denoiser.conditioning.as_mut() else {
+            bail!(
+                "{}: [model] views, but the model is unconditional",
+                config_path.display()
+            );
+        };
+        c.num_views = views;
+        if let Some(c) = cfg
+            .residual
+            .as_mut()
+            .and_then(|r| r.mean_net.conditioning.as_mut())
+        {
+            c.num_views = views;
+        }
     }
     cfg.denoiser.validate().with_context(|| {
         format!(
@@ -838,6 +862,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
             rgb: p.rgb,
             camera: p.camera,
             x0: p.x0,
+            extra_views: p.extra_views,
         })
         .collect();
     let t_den = Instant::now();

@@ -10,7 +10,7 @@ use anyhow::{Context, Result, bail};
 use veila_data::image::imageops;
 use veila_data::shard::{Manifest, ShardReader, ShardSample};
 use veila_diffusion::app::bundle::BundleConfig;
-use veila_diffusion::app::{EncoderExample, ExampleSource, TrainExample};
+use veila_diffusion::app::{EncoderExample, ExampleSource, TrainExample, TrainView};
 use veila_geom::{LidarSensor, PinholeCamera, Projector, RayTable};
 
 /// One shard sample reduced to what training uses.
@@ -18,6 +18,8 @@ pub(crate) struct Prepared {
     pub(crate) rgb: Vec<u8>,
     pub(crate) camera: PinholeCamera,
     pub(crate) x0: Vec<f32>,
+    /// The sample's further cameras at the bundle image size (multi-view models).
+    pub(crate) extra_views: Vec<TrainView>,
     /// Sparse camera depth at the bundle image size (0 = no return).
     pub(crate) depth_m: Vec<f32>,
     /// Sparse train ids at the bundle image size (0 = ignored), when the shard has labels.
@@ -55,6 +57,7 @@ pub(crate) fn prepare_sample(
             rgb: Vec::new(),
             camera: PinholeCamera::new(k, glam::Mat4::IDENTITY, iw, ih)?,
             x0,
+            extra_views: Vec::new(),
             depth_m: Vec::new(),
             labels: None,
         });
@@ -99,10 +102,42 @@ pub(crate) fn prepare_sample(
             }
         }
     }
+    let views = cfg
+        .denoiser
+        .conditioning
+        .as_ref()
+        .map_or(1, |c| c.num_views.max(1));
+    if 1 + s.extra_views.len() < views {
+        bail!(
+            "{}: has {} camera(s), the model takes {views} views (convert with more cameras: \
+             `cargo xtask convert --camera CAM_FRONT,CAM_FRONT_LEFT,CAM_FRONT_RIGHT`)",
+            at(),
+            1 + s.extra_views.len()
+        );
+    }
+    // the rig's further cameras the model takes, fitted to the encoders' input like the first
+    let extra_views = s
+        .extra_views
+        .iter()
+        .take(views - 1)
+        .enumerate()
+        .map(|(j, v)| -> Result<TrainView> {
+            let (w, h) = v.image.dimensions();
+            let camera = v
+                .camera
+                .to_camera(w, h)
+                .with_context(|| format!("{}: invalid camera of view {}", at(), j + 1))?
+                .resized(iw, ih)
+                .context("the model's image size has a zero dimension")?;
+            let rgb = imageops::resize(&v.image, iw, ih, imageops::FilterType::Triangle).into_raw();
+            Ok(TrainView { rgb, camera })
+        })
+        .collect::<Result<Vec<_>>>()?;
     Ok(Prepared {
         rgb,
         camera,
         x0,
+        extra_views,
         depth_m,
         labels,
     })
@@ -242,6 +277,7 @@ impl ExampleSource for ShardSource {
             rgb: p.rgb,
             camera: p.camera,
             x0: p.x0,
+            extra_views: p.extra_views,
         })
     }
 

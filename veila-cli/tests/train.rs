@@ -14,6 +14,12 @@ use common::*;
 /// 16 x 128 LiDAR (not the model's grid: training re-projects), 124 x 38 camera.
 /// Writes `frames` simulated frames as shards (2 per shard) with a manifest, like `cargo xtask convert`.
 fn make_shards(dir: &Path, frames: u32, labels: bool, images: bool) {
+    make_shards_with_views(dir, frames, labels, images, 0);
+}
+
+/// [`make_shards`] with `extra` further cameras per sample: the frame's image again under a
+/// camera whose principal point moves by 3 px per view (plumbing, not a real rig).
+fn make_shards_with_views(dir: &Path, frames: u32, labels: bool, images: bool, extra: usize) {
     let cfg = SceneConfig::from_toml_str(&tiny_scene(16, 128, 3), Path::new("tiny.toml")).unwrap();
     let scene = Scene::generate(&cfg, 11).unwrap();
     let mut samples = Vec::new();
@@ -41,6 +47,16 @@ fn make_shards(dir: &Path, frames: u32, labels: bool, images: bool) {
             },
             image: images.then(|| f.image.to_rgb_image().unwrap()),
             camera: Some(CameraMatrices::from_camera(&f.camera)),
+            extra_views: (1..=extra)
+                .map(|j| {
+                    let mut c = CameraMatrices::from_camera(&f.camera);
+                    c.intrinsics[0][2] += 3.0 * j as f32;
+                    veila_data::shard::ShardView {
+                        image: f.image.to_rgb_image().unwrap(),
+                        camera: c,
+                    }
+                })
+                .collect(),
         });
         sensor = Some(f.sensor.clone());
     }
@@ -673,4 +689,30 @@ fn streamed_training_reads_the_shards_per_batch_to_the_same_model() {
     let err = String::from_utf8_lossy(&bad.stderr);
     assert!(err.contains("shard-00001.safetensors"), "{err}");
     assert!(!tmp.path().join("bad/bundle").exists());
+}
+
+#[test]
+fn a_two_view_model_trains_on_shards_with_two_cameras() {
+    let tmp = tempfile::tempdir().unwrap();
+    make_shards_with_views(&tmp.path().join("two"), 2, true, true, 1);
+    make_shards(&tmp.path().join("one"), 2, true, true);
+    write_small_bundle_config(&tmp.path().join("small.json"));
+    let cfg = tmp.path().join("t.toml");
+    let model = "bundle = \"small.json\"\nviews = 2";
+    let train_cfg = "steps = 1\nbatch = 2\nencoder_steps = 1\nencoder_batch = 2";
+    write_config(&cfg, "two", "run", model, train_cfg);
+    ok(&train(&cfg, &[]));
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(tmp.path().join("run/bundle/bundle.json")).unwrap())
+            .unwrap();
+    assert_eq!(json["denoiser"]["conditioning"]["num_views"], 2);
+    // shards with one camera per sample cannot feed it: the error names the shard and the fix
+    write_config(&cfg, "one", "run-one", model, train_cfg);
+    let o = train(&cfg, &[]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("shard-00000.safetensors") && err.contains("takes 2 views"),
+        "{err}"
+    );
 }

@@ -27,8 +27,8 @@ use veila_geom::{
 use crate::dataset::{Dataset, Frame};
 use crate::semantic_kitti::LabelMap;
 use crate::shard::{
-    CameraMatrices, MANIFEST_FORMAT, Manifest, ShardEntry, ShardSample, sha256_file, sha256_hex,
-    write_shard,
+    CameraMatrices, MANIFEST_FORMAT, Manifest, ShardEntry, ShardSample, ShardView, sha256_file,
+    sha256_hex, write_shard,
 };
 use crate::{Error, Result};
 
@@ -195,6 +195,20 @@ pub fn frame_to_sample(
             None
         },
         camera: frame.camera.as_ref().map(CameraMatrices::from_camera),
+        extra_views: if include_image {
+            frame
+                .extra_views
+                .iter()
+                .filter_map(|v| {
+                    v.image.as_ref().map(|image| ShardView {
+                        image: image.clone(),
+                        camera: CameraMatrices::from_camera(&v.camera),
+                    })
+                })
+                .collect()
+        } else {
+            Vec::new()
+        },
     };
     Ok((sample, stats))
 }

@@ -26,6 +26,22 @@ pub struct Frame {
     pub image: Option<RgbImage>,
     /// The camera model (intrinsics and `cam_from_lidar`), when the dataset has a camera.
     pub camera: Option<PinholeCamera>,
+    /// Further cameras of the rig, when the dataset was opened with several (nuScenes' side
+    /// cameras); empty otherwise.
+    pub extra_views: Vec<FrameView>,
+}
+
+/// A further camera of a [`Frame`].
+#[derive(Debug, Clone)]
+pub struct FrameView {
+    /// The dataset's name for the camera (`CAM_FRONT_LEFT`, `image_3`).
+    pub channel: String,
+    /// The image file.
+    pub image_path: PathBuf,
+    /// The decoded image (only when the dataset was opened with images enabled).
+    pub image: Option<RgbImage>,
+    /// The camera model.
+    pub camera: PinholeCamera,
 }
 
 /// A dataset of frames read lazily.

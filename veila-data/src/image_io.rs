@@ -54,6 +54,18 @@ pub fn image_dimensions(path: &Path) -> Result<(u32, u32)> {
         .map_err(|e| image_error(path, e))
 }
 
+/// The image at `path` decoded when `load`, else only its size read from the header; with its
+/// `(width, height)` either way.
+pub fn read_rgb_image_if(path: &Path, load: bool) -> Result<(Option<RgbImage>, (u32, u32))> {
+    if load {
+        let img = read_rgb_image(path)?;
+        let d = img.dimensions();
+        Ok((Some(img), d))
+    } else {
+        Ok((None, image_dimensions(path)?))
+    }
+}
+
 /// Encode an RGB image as PNG bytes.
 pub fn encode_png(img: &RgbImage) -> Result<Vec<u8>> {
     let mut buf = std::io::Cursor::new(Vec::new());

@@ -11,7 +11,6 @@ use veila_geom::{LidarSensor, PinholeCamera};
 
 use crate::calib::CalibEntries;
 use crate::dataset::{Dataset, Frame};
-use crate::image_io::{image_dimensions, read_rgb_image};
 use crate::scan::read_kitti_bin;
 use crate::{Error, Result};
 
@@ -280,13 +279,7 @@ impl Dataset for KittiObjectDataset {
         let loaded = read_kitti_bin(&scan_path)?;
         let image_path = self.file("image_2", id, ".png");
         let calib = self.calib(index)?;
-        let (image, (w, h)) = if self.load_images {
-            let img = read_rgb_image(&image_path)?;
-            let d = img.dimensions();
-            (Some(img), d)
-        } else {
-            (None, image_dimensions(&image_path)?)
-        };
+        let (image, (w, h)) = crate::image_io::read_rgb_image_if(&image_path, self.load_images)?;
         let camera = calib.camera(2, w, h)?;
         Ok(Frame {
             id: id.clone(),
@@ -296,6 +289,7 @@ impl Dataset for KittiObjectDataset {
             image_path: Some(image_path),
             image,
             camera: Some(camera),
+            extra_views: Vec::new(),
         })
     }
     fn default_sensor(&self) -> LidarSensor {

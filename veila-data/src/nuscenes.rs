@@ -24,8 +24,7 @@ use serde::de::{DeserializeOwned, DeserializeSeed, SeqAccess, Visitor};
 use serde::{Deserialize, Deserializer};
 use veila_geom::{LidarSensor, PinholeCamera};
 
-use crate::dataset::{Dataset, Frame};
-use crate::image_io::{image_dimensions, read_rgb_image};
+use crate::dataset::{Dataset, Frame, FrameView};
 use crate::scan::read_nuscenes_pcd_bin;
 use crate::{Error, Result};
 
@@ -648,38 +647,64 @@ enum Source {
     SampleJson(Vec<PathBuf>),
 }
 
-/// nuScenes key frames (LIDAR_TOP + one camera), read lazily. Frame ids are sample tokens.
+/// nuScenes key frames (LIDAR_TOP + one or more cameras), read lazily. Frame ids are sample
+/// tokens.
 #[derive(Debug, Clone)]
 pub struct NuScenesDataset {
     dataroot: PathBuf,
     source: Source,
     ids: Vec<String>,
-    channel: String,
+    /// The cameras: the first is the frame's camera, the others its `extra_views`.
+    channels: Vec<String>,
     load_images: bool,
 }
+
+/// The paper's three cameras (front, front-left, front-right), in that order.
+pub const PAPER_CAMERAS: [&str; 3] = ["CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT"];
 
 impl NuScenesDataset {
     /// Open `dataroot`: the release tables when a `v1.0-*` folder (or `sample.json` in the root) is
     /// present, otherwise the per-sample JSON files in `dataroot/calib/`. `camera` is the paired
     /// channel (`CAM_FRONT` in the paper).
     pub fn open(dataroot: &Path, camera: &str) -> Result<Self> {
-        if !CAMERA_CHANNELS.contains(&camera) {
+        Self::open_cameras(dataroot, &[camera])
+    }
+
+    /// [`Self::open`] with several cameras (e.g. [`PAPER_CAMERAS`]): the first is each frame's
+    /// camera, the others its `extra_views`, in this order.
+    pub fn open_cameras(dataroot: &Path, cameras: &[&str]) -> Result<Self> {
+        if cameras.is_empty() {
             return Err(Error::Invalid {
-                what: "nuScenes camera channel".into(),
-                message: format!("`{camera}` is not one of {}", CAMERA_CHANNELS.join(", ")),
+                what: "nuScenes camera channels".into(),
+                message: "name at least one camera".into(),
             });
         }
-        if let Some(dir) = find_table_dir(dataroot)? {
-            return Self::open_tables(dataroot, &dir, camera);
+        for (i, camera) in cameras.iter().enumerate() {
+            if !CAMERA_CHANNELS.contains(camera) {
+                return Err(Error::Invalid {
+                    what: "nuScenes camera channel".into(),
+                    message: format!("`{camera}` is not one of {}", CAMERA_CHANNELS.join(", ")),
+                });
+            }
+            if cameras[..i].contains(camera) {
+                return Err(Error::Invalid {
+                    what: "nuScenes camera channels".into(),
+                    message: format!("`{camera}` is named twice"),
+                });
+            }
         }
-        let calib = dataroot.join("calib");
-        if calib.is_dir() {
-            return Self::open_sample_json(dataroot, camera);
-        }
-        Err(Error::format(
-            dataroot,
-            "not a nuScenes data root: no v1.0-*/sample.json tables and no calib/*.json",
-        ))
+        let mut ds = if let Some(dir) = find_table_dir(dataroot)? {
+            Self::open_tables(dataroot, &dir, cameras[0])?
+        } else if dataroot.join("calib").is_dir() {
+            Self::open_sample_json(dataroot, cameras[0])?
+        } else {
+            return Err(Error::format(
+                dataroot,
+                "not a nuScenes data root: no v1.0-*/sample.json tables and no calib/*.json",
+            ));
+        };
+        ds.channels = cameras.iter().map(|c| c.to_string()).collect();
+        Ok(ds)
     }
 
     /// Open with the release tables in `table_dir` (file names relative to `dataroot`).
@@ -690,7 +715,7 @@ impl NuScenesDataset {
             dataroot: dataroot.to_path_buf(),
             source: Source::Tables(Box::new(tables)),
             ids,
-            channel: camera.to_string(),
+            channels: vec![camera.to_string()],
             load_images: true,
         })
     }
@@ -707,7 +732,7 @@ impl NuScenesDataset {
             dataroot: dataroot.to_path_buf(),
             source: Source::SampleJson(files),
             ids: stems,
-            channel: camera.to_string(),
+            channels: vec![camera.to_string()],
             load_images: true,
         })
     }
@@ -721,7 +746,10 @@ impl NuScenesDataset {
     /// Calibration of sample `index` (the dataset's camera only, for tables; all cameras for JSON).
     pub fn sample(&self, index: usize) -> Result<NuScenesSample> {
         match &self.source {
-            Source::Tables(t) => t.sample(&self.ids[index], &[&self.channel]),
+            Source::Tables(t) => {
+                let channels: Vec<&str> = self.channels.iter().map(String::as_str).collect();
+                t.sample(&self.ids[index], &channels)
+            }
             Source::SampleJson(files) => NuScenesSample::read_json(&files[index]),
         }
     }
@@ -776,30 +804,32 @@ impl Dataset for NuScenesDataset {
         let sample = self.sample(index)?;
         let scan_path = self.dataroot.join(&sample.lidar_file);
         let loaded = read_nuscenes_pcd_bin(&scan_path)?;
-        let cam = sample
-            .cameras
-            .get(&self.channel)
-            .ok_or_else(|| Error::Invalid {
+        let mut views = Vec::with_capacity(self.channels.len());
+        for channel in &self.channels {
+            let cam = sample.cameras.get(channel).ok_or_else(|| Error::Invalid {
                 what: "nuScenes camera channel".into(),
-                message: format!("sample {} has no camera {}", sample.token, self.channel),
+                message: format!("sample {} has no camera {channel}", sample.token),
             })?;
-        let image_path = self.dataroot.join(&cam.file);
-        let (image, (w, h)) = if self.load_images {
-            let img = read_rgb_image(&image_path)?;
-            let d = img.dimensions();
-            (Some(img), d)
-        } else {
-            (None, image_dimensions(&image_path)?)
-        };
-        let camera = sample.camera(&self.channel, w, h)?;
+            let image_path = self.dataroot.join(&cam.file);
+            let (image, (w, h)) =
+                crate::image_io::read_rgb_image_if(&image_path, self.load_images)?;
+            views.push(FrameView {
+                channel: channel.clone(),
+                camera: sample.camera(channel, w, h)?,
+                image_path,
+                image,
+            });
+        }
+        let first = views.remove(0);
         Ok(Frame {
             id: sample.token.clone(),
             points: loaded.cloud,
             dropped_non_finite: loaded.dropped_non_finite,
             scan_path,
-            image_path: Some(image_path),
-            image,
-            camera: Some(camera),
+            image_path: Some(first.image_path),
+            image: first.image,
+            camera: Some(first.camera),
+            extra_views: views,
         })
     }
     fn default_sensor(&self) -> LidarSensor {
@@ -811,8 +841,10 @@ impl Dataset for NuScenesDataset {
     fn source_files(&self, index: usize) -> Result<Vec<PathBuf>> {
         let sample = self.sample(index)?;
         let mut files = vec![self.dataroot.join(&sample.lidar_file)];
-        if let Some(cam) = sample.cameras.get(&self.channel) {
-            files.push(self.dataroot.join(&cam.file));
+        for channel in &self.channels {
+            if let Some(cam) = sample.cameras.get(channel) {
+                files.push(self.dataroot.join(&cam.file));
+            }
         }
         if let Source::SampleJson(jsons) = &self.source {
             files.push(jsons[index].clone());

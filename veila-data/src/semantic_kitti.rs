@@ -12,7 +12,6 @@ use veila_geom::{LidarSensor, PinholeCamera};
 use crate::atomic::write_atomic_with;
 use crate::calib::CalibEntries;
 use crate::dataset::{Dataset, Frame};
-use crate::image_io::{image_dimensions, read_rgb_image};
 use crate::kitti::list_stems;
 use crate::scan::read_kitti_records;
 use crate::yaml::{self, Yaml};
@@ -579,13 +578,8 @@ impl Dataset for SemanticKittiDataset {
         let dropped_non_finite = cloud.retain_finite();
         let camera_and_image =
             if let (true, Some(calib)) = (image_path.is_file(), self.calib(index)) {
-                let (image, (w, h)) = if self.load_images {
-                    let img = read_rgb_image(&image_path)?;
-                    let d = img.dimensions();
-                    (Some(img), d)
-                } else {
-                    (None, image_dimensions(&image_path)?)
-                };
+                let (image, (w, h)) =
+                    crate::image_io::read_rgb_image_if(&image_path, self.load_images)?;
                 Some((image, calib.camera(2, w, h)?))
             } else {
                 None
@@ -602,6 +596,7 @@ impl Dataset for SemanticKittiDataset {
             image_path: camera.map(|_| image_path),
             image,
             camera,
+            extra_views: Vec::new(),
         })
     }
     fn default_sensor(&self) -> LidarSensor {

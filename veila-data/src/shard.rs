@@ -15,6 +15,7 @@
 //! | `NNNNN/image`         | U8    | `[H, W, 3]` | the camera image, RGB                             |
 //! | `NNNNN/intrinsics`    | F32   | `[3, 4]`    | `K`, row-major                                    |
 //! | `NNNNN/cam_from_lidar`| F32   | `[4, 4]`    | `T`, row-major                                    |
+//! | `NNNNN/viewJ/...`     |       |             | further cameras `J` = 1, 2, ...: `image`, `intrinsics`, `cam_from_lidar` as above |
 //!
 //! and the string metadata `format` ([`SHARD_FORMAT`]), `sensor` (JSON of [`LidarSensor`]), `count`,
 //! `ids` (JSON list of frame ids) and `dataset`.
@@ -52,6 +53,18 @@ pub struct ShardSample {
     pub image: Option<RgbImage>,
     /// `K` (3x4, row-major) and `cam_from_lidar` (4x4, row-major).
     pub camera: Option<CameraMatrices>,
+    /// The rig's further cameras (nuScenes' side cameras, KITTI's `image_3`), in order.
+    pub extra_views: Vec<ShardView>,
+}
+
+/// A further camera of a [`ShardSample`] (stored as `NNNNN/view{j}/image`,
+/// `NNNNN/view{j}/intrinsics` and `NNNNN/view{j}/cam_from_lidar`, `j` = 1, 2, ...).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ShardView {
+    /// The image, RGB.
+    pub image: RgbImage,
+    /// Its camera matrices.
+    pub camera: CameraMatrices,
 }
 
 /// Camera matrices as stored in a shard.
@@ -113,6 +126,16 @@ fn bytes_f32(v: &[f32]) -> Vec<u8> {
 }
 fn bytes_u32(v: &[u32]) -> Vec<u8> {
     v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// `intrinsics` and `cam_from_lidar` of a camera as (name, shape, f32 bytes).
+fn camera_tensors(c: &CameraMatrices) -> [(&'static str, Vec<usize>, Vec<u8>); 2] {
+    let k: Vec<f32> = c.intrinsics.iter().flatten().copied().collect();
+    let t: Vec<f32> = c.cam_from_lidar.iter().flatten().copied().collect();
+    [
+        ("intrinsics", vec![3, 4], bytes_f32(&k)),
+        ("cam_from_lidar", vec![4, 4], bytes_f32(&t)),
+    ]
 }
 
 /// The tensors of a shard, in file order (4-byte types first so every tensor stays aligned, then by
@@ -190,10 +213,22 @@ fn prepare_shard(
             );
         }
         if let Some(c) = &s.camera {
-            let k: Vec<f32> = c.intrinsics.iter().flatten().copied().collect();
-            let t: Vec<f32> = c.cam_from_lidar.iter().flatten().copied().collect();
-            put("intrinsics", Dtype::F32, vec![3, 4], bytes_f32(&k));
-            put("cam_from_lidar", Dtype::F32, vec![4, 4], bytes_f32(&t));
+            for (name, shape, data) in camera_tensors(c) {
+                put(name, Dtype::F32, shape, data);
+            }
+        }
+        for (j, v) in s.extra_views.iter().enumerate() {
+            let prefix = format!("view{}/", j + 1);
+            for (name, shape, data) in camera_tensors(&v.camera) {
+                put(&format!("{prefix}{name}"), Dtype::F32, shape, data);
+            }
+            let (iw, ih) = v.image.dimensions();
+            put(
+                &format!("{prefix}image"),
+                Dtype::U8,
+                vec![ih as usize, iw as usize, 3],
+                v.image.as_raw().clone(),
+            );
         }
     }
     tensors.sort_by(|(a, ta), (b, tb)| {
@@ -389,6 +424,60 @@ pub fn decode_shard(bytes: &[u8], path: &Path) -> Result<Shard> {
     })
 }
 
+/// The image and camera stored under `prefix` (`NNNNN/` or `NNNNN/viewJ/`).
+fn decode_view<'a>(
+    get: &impl Fn(&str) -> Result<Option<TensorView<'a>>>,
+    prefix: &str,
+    path: &Path,
+) -> Result<(Option<RgbImage>, Option<CameraMatrices>)> {
+    let fmt = |m: String| Error::format(path, m);
+    let image = match get(&format!("{prefix}image"))? {
+        Some(t) => {
+            let s = t.shape().to_vec();
+            if t.dtype() != Dtype::U8 || s.len() != 3 || s[2] != 3 {
+                return Err(fmt(format!(
+                    "tensor {prefix}image: expected U8 [H, W, 3], found {:?} {s:?}",
+                    t.dtype()
+                )));
+            }
+            Some(
+                RgbImage::from_raw(s[1] as u32, s[0] as u32, t.data().to_vec())
+                    .ok_or_else(|| fmt(format!("tensor {prefix}image: size mismatch")))?,
+            )
+        }
+        None => None,
+    };
+    let camera = match (
+        get(&format!("{prefix}intrinsics"))?,
+        get(&format!("{prefix}cam_from_lidar"))?,
+    ) {
+        (Some(k), Some(t)) => {
+            expect(&k, Dtype::F32, &[3, 4], "intrinsics", path)?;
+            expect(&t, Dtype::F32, &[4, 4], "cam_from_lidar", path)?;
+            let (kv, tv) = (f32s(k.data()), f32s(t.data()));
+            let mut intrinsics = [[0f32; 4]; 3];
+            let mut cam_from_lidar = [[0f32; 4]; 4];
+            for r in 0..3 {
+                intrinsics[r].copy_from_slice(&kv[r * 4..r * 4 + 4]);
+            }
+            for r in 0..4 {
+                cam_from_lidar[r].copy_from_slice(&tv[r * 4..r * 4 + 4]);
+            }
+            Some(CameraMatrices {
+                intrinsics,
+                cam_from_lidar,
+            })
+        }
+        (None, None) => None,
+        _ => {
+            return Err(fmt(format!(
+                "{prefix}: intrinsics and cam_from_lidar must come together"
+            )));
+        }
+    };
+    Ok((image, camera))
+}
+
 /// Sample `k` (frame `id`) of a shard whose tensors `get` looks up by name (`None`: absent).
 fn decode_sample<'a>(
     get: impl Fn(&str) -> Result<Option<TensorView<'a>>>,
@@ -428,50 +517,20 @@ fn decode_sample<'a>(
         }
         None => None,
     };
-    let image = match get(&format!("{p}/image"))? {
-        Some(t) => {
-            let s = t.shape().to_vec();
-            if t.dtype() != Dtype::U8 || s.len() != 3 || s[2] != 3 {
+    let (image, camera) = decode_view(&get, &format!("{p}/"), path)?;
+    let mut extra_views = Vec::new();
+    for j in 1.. {
+        let prefix = format!("{p}/view{j}/");
+        match decode_view(&get, &prefix, path)? {
+            (Some(image), Some(camera)) => extra_views.push(ShardView { image, camera }),
+            (None, None) => break,
+            _ => {
                 return Err(fmt(format!(
-                    "tensor {p}/image: expected U8 [H, W, 3], found {:?} {s:?}",
-                    t.dtype()
+                    "sample {p}: view {j} needs both its image and its camera"
                 )));
             }
-            Some(
-                RgbImage::from_raw(s[1] as u32, s[0] as u32, t.data().to_vec())
-                    .ok_or_else(|| fmt(format!("tensor {p}/image: size mismatch")))?,
-            )
         }
-        None => None,
-    };
-    let camera = match (
-        get(&format!("{p}/intrinsics"))?,
-        get(&format!("{p}/cam_from_lidar"))?,
-    ) {
-        (Some(k), Some(t)) => {
-            expect(&k, Dtype::F32, &[3, 4], "intrinsics", path)?;
-            expect(&t, Dtype::F32, &[4, 4], "cam_from_lidar", path)?;
-            let (kv, tv) = (f32s(k.data()), f32s(t.data()));
-            let mut intrinsics = [[0f32; 4]; 3];
-            let mut cam_from_lidar = [[0f32; 4]; 4];
-            for r in 0..3 {
-                intrinsics[r].copy_from_slice(&kv[r * 4..r * 4 + 4]);
-            }
-            for r in 0..4 {
-                cam_from_lidar[r].copy_from_slice(&tv[r * 4..r * 4 + 4]);
-            }
-            Some(CameraMatrices {
-                intrinsics,
-                cam_from_lidar,
-            })
-        }
-        (None, None) => None,
-        _ => {
-            return Err(fmt(format!(
-                "sample {p}: intrinsics and cam_from_lidar must come together"
-            )));
-        }
-    };
+    }
     let n = h * w;
     Ok(ShardSample {
         id,
@@ -487,6 +546,7 @@ fn decode_sample<'a>(
         train_ids: label,
         image,
         camera,
+        extra_views,
     })
 }
 
@@ -740,6 +800,27 @@ mod tests {
                     [0.0, 0.0, 0.0, 1.0],
                 ],
             }),
+            // seed % 3 further cameras (0, 1 or 2), each its own size and matrices
+            extra_views: (0..seed % 3)
+                .map(|v| ShardView {
+                    image: RgbImage::from_fn(4 + v, 2 + v, |x, y| {
+                        image::Rgb([x as u8, y as u8, (seed + v) as u8])
+                    }),
+                    camera: CameraMatrices {
+                        intrinsics: [
+                            [600.0 + v as f32, 0.0, 300.0, 0.0],
+                            [0.0, 600.0, 180.0, 0.0],
+                            [0.0, 0.0, 1.0, 0.0],
+                        ],
+                        cam_from_lidar: [
+                            [1.0, 0.0, 0.0, v as f32],
+                            [0.0, 1.0, 0.0, 0.0],
+                            [0.0, 0.0, 1.0, 0.0],
+                            [0.0, 0.0, 0.0, 1.0],
+                        ],
+                    },
+                })
+                .collect(),
         }
     }
 
@@ -847,7 +928,9 @@ mod tests {
             assert_eq!(encode_shard(&sensor, "d", &samples).unwrap(), a);
         }
         let st = SafeTensors::deserialize(&a).unwrap();
-        assert_eq!(st.len(), 16);
+        // 8 tensors per sample, and 3 for y's second camera
+        assert_eq!(st.len(), 19);
+        assert_eq!(st.tensor("00001/view1/image").unwrap().shape(), &[2, 4, 3]);
         let t = st.tensor("00001/range_m").unwrap();
         assert_eq!(t.shape(), &[2, 4]);
         assert_eq!(f32s(t.data()), samples[1].scan.range_m);

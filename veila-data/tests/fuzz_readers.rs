@@ -317,6 +317,11 @@ fn shard() {
         train_ids: Some(vec![1; n]),
         image: Some(image()),
         camera: Some(CameraMatrices::from_camera(&cam)),
+        // a second camera, so view decoding is fuzzed too
+        extra_views: vec![veila_data::shard::ShardView {
+            image: image(),
+            camera: CameraMatrices::from_camera(&cam),
+        }],
     };
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("shard.safetensors");

@@ -259,6 +259,62 @@ fn nuscenes_cam_front_points_in_image() {
     assert_eq!(s.boxes.len(), 69);
 }
 
+#[test]
+fn nuscenes_paper_cameras_come_as_extra_views() {
+    let Some(root) = real() else { return };
+    let dir = root.join("nuscenes");
+    let ds = NuScenesDataset::open_cameras(&dir, &veila_data::nuscenes::PAPER_CAMERAS).unwrap();
+    let f = ds.load(0).unwrap();
+    let s = NuScenesSample::read_json(&nuscenes_json(&root)).unwrap();
+    assert_eq!(f.camera.unwrap(), s.camera("CAM_FRONT", 1600, 900).unwrap());
+    let names: Vec<&str> = f.extra_views.iter().map(|v| v.channel.as_str()).collect();
+    assert_eq!(names, ["CAM_FRONT_LEFT", "CAM_FRONT_RIGHT"]);
+    let mut seen = Vec::new();
+    for v in &f.extra_views {
+        let img = v.image.as_ref().unwrap();
+        assert_eq!(img.dimensions(), (1600, 900));
+        assert_eq!(v.camera, s.camera(&v.channel, 1600, 900).unwrap());
+        assert!(v.image_path.to_string_lossy().contains(&v.channel));
+        // each side camera sees its own part of the sweep
+        let visible: Vec<usize> = f
+            .points
+            .xyz
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| {
+                v.camera
+                    .try_project_in_image(**p)
+                    .is_some_and(|ip| ip.depth_m > 1.0)
+            })
+            .map(|(i, _)| i)
+            .collect();
+        assert!(
+            visible.len() > 1000,
+            "{}: {} points",
+            v.channel,
+            visible.len()
+        );
+        seen.push(visible);
+    }
+    let shared = seen[0].iter().filter(|i| seen[1].contains(i)).count();
+    assert!(
+        shared < seen[0].len() / 10,
+        "left and right see the same points"
+    );
+    // one camera by name, a camera twice, an unknown one
+    assert!(
+        NuScenesDataset::open_cameras(&dir, &["CAM_FRONT"])
+            .unwrap()
+            .load(0)
+            .unwrap()
+            .extra_views
+            .is_empty()
+    );
+    assert!(NuScenesDataset::open_cameras(&dir, &["CAM_FRONT", "CAM_FRONT"]).is_err());
+    assert!(NuScenesDataset::open_cameras(&dir, &["CAM_TOP"]).is_err());
+    assert!(NuScenesDataset::open_cameras(&dir, &[]).is_err());
+}
+
 /// Build nuScenes release tables from the raw records quoted in the sample JSON, read them with
 /// [`NuScenesTables`] and check the devkit chain against the precomputed `lidar2cam`.
 #[test]

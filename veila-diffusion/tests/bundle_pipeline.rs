@@ -289,11 +289,13 @@ fn training_batches_are_a_pure_function_of_the_step_and_cover_each_epoch() {
     let scan = full_scan(h, w, vec![10.0; h * w], vec![0.1; h * w], vec![true; h * w]);
     let x0 = cfg.encoding.encode_to_vec(&scan).unwrap();
     let examples: Vec<TrainExample> = (0..5)
-        .map(|i| TrainExample {
-            rgb: image(i),
-            camera: camera(),
+        .map(|i| {
             // distinct targets, to tell the examples apart in a batch
-            x0: x0.iter().map(|v| v + i as f32 * 0.01).collect(),
+            TrainExample::new(
+                image(i),
+                camera(),
+                x0.iter().map(|v| v + i as f32 * 0.01).collect(),
+            )
         })
         .collect();
     let data = DenoiserTraining::new(
@@ -450,11 +452,7 @@ fn overfit_one_accumulating(
     let (h, w) = (cfg.denoiser.height(), cfg.denoiser.width());
     assert_eq!((scan.rows as usize, scan.cols as usize), (h, w));
     let x0 = cfg.encoding.encode_to_vec(scan).unwrap();
-    let examples = vec![TrainExample {
-        rgb: image(4),
-        camera: camera(),
-        x0,
-    }];
+    let examples = vec![TrainExample::new(image(4), camera(), x0)];
     let mut weights: HashMap<&str, HashMap<String, candle_core::Tensor>> = HashMap::new();
     let mut encoders = Vec::new();
     for (file, c) in [
@@ -894,15 +892,15 @@ fn five_examples(cfg: &BundleConfig) -> Vec<TrainExample> {
             for r in scan.range_m.iter_mut().filter(|r| **r > 0.0) {
                 *r += i as f32 * 1.5;
             }
-            TrainExample {
-                rgb: image(i as u8 * 3),
-                camera: if i % 2 == 1 {
+            TrainExample::new(
+                image(i as u8 * 3),
+                if i % 2 == 1 {
                     second_camera()
                 } else {
                     camera()
                 },
-                x0: cfg.encoding.encode_to_vec(&scan).unwrap(),
-            }
+                cfg.encoding.encode_to_vec(&scan).unwrap(),
+            )
         })
         .collect()
 }

@@ -103,6 +103,7 @@ fn make_shards(dir: &Path, n: usize, per_shard: usize) -> Result<f64> {
                         },
                         image: Some(f.image.to_rgb_image()?),
                         camera: Some(CameraMatrices::from_camera(&f.camera)),
+                        extra_views: Vec::new(),
                     },
                     f.sensor.clone(),
                 ))

@@ -50,9 +50,11 @@ pub struct ConvertArgs {
     /// SemanticKITTI: convert these sequences only (comma separated, e.g. 0,1,8).
     #[arg(long, value_delimiter = ',')]
     sequences: Option<Vec<u32>>,
-    /// nuScenes: the camera channel paired with each sweep.
-    #[arg(long, default_value = "CAM_FRONT")]
-    camera: String,
+    /// nuScenes: the camera channels paired with each sweep, comma-separated; the first is each
+    /// sample's camera, the others its further views (the paper's three:
+    /// `CAM_FRONT,CAM_FRONT_LEFT,CAM_FRONT_RIGHT`).
+    #[arg(long, value_delimiter = ',', default_value = "CAM_FRONT")]
+    camera: Vec<String>,
     /// Leave camera images out of the shards (matrices are still stored).
     #[arg(long)]
     no_images: bool,
@@ -138,7 +140,10 @@ fn open(args: &ConvertArgs) -> Result<Opened> {
             Ok((Box::new(ds), map))
         }
         "nuscenes" => Ok((
-            Box::new(NuScenesDataset::open(&args.root, &args.camera)?.with_images(images)),
+            Box::new({
+                let cams: Vec<&str> = args.camera.iter().map(String::as_str).collect();
+                NuScenesDataset::open_cameras(&args.root, &cams)?.with_images(images)
+            }),
             None,
         )),
         other => Ok(open_dataset(other, &args.root, images)?),

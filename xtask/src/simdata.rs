@@ -38,11 +38,7 @@ impl SimExample {
     /// The training example (encoded range image).
     pub fn train_example(&self, cfg: &BundleConfig) -> Result<TrainExample> {
         let x0 = cfg.encoding.encode_to_vec(&self.range)?;
-        Ok(TrainExample {
-            rgb: self.rgb.clone(),
-            camera: self.camera,
-            x0,
-        })
+        Ok(TrainExample::new(self.rgb.clone(), self.camera, x0))
     }
 }
 

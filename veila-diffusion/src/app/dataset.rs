@@ -22,7 +22,8 @@ use crate::error::{Error, Result};
 use crate::trainer::distributed::ProcessGroup;
 
 /// One training example: a camera image at the bundle's size, its camera, and the encoded clean
-/// range image (`in_channels * rows * cols` values, row-major per channel).
+/// range image (`in_channels * rows * cols` values, row-major per channel); a multi-view model
+/// (`conditioning.num_views > 1`) takes its further cameras from `extra_views`.
 #[derive(Debug, Clone)]
 pub struct TrainExample {
     /// RGB bytes at the bundle image size.
@@ -31,6 +32,61 @@ pub struct TrainExample {
     pub camera: PinholeCamera,
     /// Encoded range image.
     pub x0: Vec<f32>,
+    /// The rig's other cameras, in the model's view order (empty for one view).
+    pub extra_views: Vec<TrainView>,
+}
+
+/// A further camera of a [`TrainExample`]: its image at the bundle size and its camera.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrainView {
+    /// RGB bytes at the bundle image size.
+    pub rgb: Vec<u8>,
+    /// The camera of that image.
+    pub camera: PinholeCamera,
+}
+
+impl TrainExample {
+    /// An example of one camera.
+    pub fn new(rgb: Vec<u8>, camera: PinholeCamera, x0: Vec<f32>) -> Self {
+        Self {
+            rgb,
+            camera,
+            x0,
+            extra_views: Vec::new(),
+        }
+    }
+
+    /// Its first `n` views as the generation pipeline takes them (an error when it has fewer).
+    pub fn views(&self, n: usize) -> Result<Vec<super::generate::CameraView<'_>>> {
+        let all = 1 + self.extra_views.len();
+        if all < n {
+            return Err(Error::Data(format!(
+                "the model takes {n} camera views, an example has {all}"
+            )));
+        }
+        let mut v = vec![super::generate::CameraView {
+            rgb: &self.rgb,
+            camera: &self.camera,
+        }];
+        v.extend(
+            self.extra_views
+                .iter()
+                .take(n - 1)
+                .map(|x| super::generate::CameraView {
+                    rgb: &x.rgb,
+                    camera: &x.camera,
+                }),
+        );
+        Ok(v)
+    }
+
+    /// The cameras of its first `n` views.
+    pub fn rig(&self, n: usize) -> Vec<PinholeCamera> {
+        std::iter::once(self.camera)
+            .chain(self.extra_views.iter().map(|x| x.camera))
+            .take(n)
+            .collect()
+    }
 }
 
 /// A training set read on demand (from shards on disk, say). The denoiser's training
@@ -321,7 +377,7 @@ pub const MAX_RIGS: usize = 1024;
 /// The GCMA geometries of a run's cameras, built the first time a camera appears and kept for the
 /// run: examples of different rigs train in one batch, each sample attending with its own.
 pub(crate) struct Rigs {
-    slots: Vec<std::sync::OnceLock<(PinholeCamera, veila_nn::GcmaGeometry)>>,
+    slots: Vec<std::sync::OnceLock<(Vec<PinholeCamera>, veila_nn::GcmaGeometry)>>,
     insert: Mutex<()>,
 }
 
@@ -340,25 +396,25 @@ impl Rigs {
         }
     }
 
-    fn find(&self, camera: &PinholeCamera) -> Option<&veila_nn::GcmaGeometry> {
+    fn find(&self, rig: &[PinholeCamera]) -> Option<&veila_nn::GcmaGeometry> {
         self.slots
             .iter()
             .map_while(|s| s.get())
-            .find(|(c, _)| c == camera)
+            .find(|(c, _)| c == rig)
             .map(|(_, g)| g)
     }
 
-    /// The geometry of `camera` for `net` (built by `build` the first time).
+    /// The geometry of the cameras `rig` (one per view; built by `build` the first time).
     pub(crate) fn get(
         &self,
-        camera: &PinholeCamera,
+        rig: &[PinholeCamera],
         build: impl FnOnce() -> Result<veila_nn::GcmaGeometry>,
     ) -> Result<&veila_nn::GcmaGeometry> {
-        if let Some(g) = self.find(camera) {
+        if let Some(g) = self.find(rig) {
             return Ok(g);
         }
         let _one_writer = lock(&self.insert)?;
-        if let Some(g) = self.find(camera) {
+        if let Some(g) = self.find(rig) {
             return Ok(g);
         }
         let slot = self
@@ -367,10 +423,10 @@ impl Rigs {
             .find(|s| s.get().is_none())
             .ok_or_else(|| {
                 Error::Data(format!(
-                    "more than {MAX_RIGS} distinct cameras in one training run"
+                    "more than {MAX_RIGS} distinct camera rigs in one training run"
                 ))
             })?;
-        let _ = slot.set((*camera, build()?));
+        let _ = slot.set((rig.to_vec(), build()?));
         slot.get()
             .map(|(_, g)| g)
             .ok_or_else(|| Error::Data("internal: a rig slot was not filled".into()))

@@ -21,7 +21,7 @@ pub mod rig;
 pub mod train;
 
 pub use bundle::{Bundle, BundleConfig, Method, ResidualConfig, Variant};
-pub use dataset::{EncoderExample, ExampleSource, Examples};
+pub use dataset::{EncoderExample, ExampleSource, Examples, TrainView};
 pub use generate::{CameraView, GenerateOptions, ViewFeatures};
 pub use nn::{NetCond, VeilaDenoiser};
 pub use recipe::{

@@ -20,9 +20,9 @@ use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig, SmallCnnLossConfig
 use veila_nn::{Denoiser as Net, GcmaGeometry};
 
 use super::bundle::{BundleConfig, ResidualConfig};
-pub use super::dataset::TrainExample;
 use super::dataset::{EncoderExample, ExampleSource, Examples, Order, Prefetcher, Rigs};
-use super::generate::{CameraView, ViewFeatures, encode_views, image_tensor};
+pub use super::dataset::{TrainExample, TrainView};
+use super::generate::{ViewFeatures, encode_views, image_tensor};
 use super::nn::{NetCond, VeilaDenoiser};
 use crate::error::{Error, Result};
 use crate::objective::Diffusion;
@@ -167,7 +167,8 @@ pub struct DenoiserTraining {
 enum Store {
     Memory {
         features: Vec<ViewFeatures>,
-        cameras: Vec<PinholeCamera>,
+        /// Every example's cameras, one per view.
+        rigs: Vec<Vec<PinholeCamera>>,
         x0: Vec<Tensor>,
         means: Option<Vec<Tensor>>,
         weights: Option<Vec<Tensor>>,
@@ -270,17 +271,16 @@ impl DenoiserTraining {
                 weights.push(Tensor::from_vec(wt, (1, c, h, w), device)?);
             }
             if conditional {
-                let view = CameraView {
-                    rgb: &ex.rgb,
-                    camera: &ex.camera,
-                };
-                features.push(encode_views(config, semantic, depth, &[view], device)?);
+                let views = ex
+                    .views(num_views(net))
+                    .map_err(|e| Error::Data(format!("example {i}: {e}")))?;
+                features.push(encode_views(config, semantic, depth, &views, device)?);
             }
         }
         Ok(Self {
             store: Store::Memory {
                 features,
-                cameras: examples.iter().map(|e| e.camera).collect(),
+                rigs: examples.iter().map(|e| e.rig(num_views(net))).collect(),
                 x0,
                 means: residual.is_some().then_some(mean_t),
                 weights: (stage == Stage::Mean).then_some(weights),
@@ -378,24 +378,20 @@ impl DenoiserTraining {
         self.rigs.as_ref().and_then(Rigs::first)
     }
 
-    /// The condition of a batch whose samples have `cameras`: every camera's geometry (built
-    /// once), each sample attending with its own.
+    /// The condition of a batch whose samples have the camera rigs `cameras` (one camera per
+    /// view): every rig's geometry (built once), each sample attending with its own.
     fn condition<'g>(
         &'g self,
         net: &Net,
         input: &veila_nn::ConditionInput,
-        cameras: &[&PinholeCamera],
+        cameras: &[&[PinholeCamera]],
     ) -> Result<veila_nn::PreparedCondition<'g>> {
         let Some(rigs) = &self.rigs else {
             return Ok(net.prepare_condition(input, None)?);
         };
         let geoms = cameras
             .iter()
-            .map(|c| {
-                rigs.get(c, || {
-                    Ok(net.geometry(&[**c], &self.epipolar, &self.device)?)
-                })
-            })
+            .map(|c| rigs.get(c, || Ok(net.geometry(c, &self.epipolar, &self.device)?)))
             .collect::<Result<Vec<_>>>()?;
         Ok(net.prepare_condition_per_sample(input, &geoms)?)
     }
@@ -450,7 +446,7 @@ impl DenoiserTraining {
         match &self.store {
             Store::Memory {
                 features,
-                cameras,
+                rigs,
                 x0,
                 means,
                 weights,
@@ -468,7 +464,7 @@ impl DenoiserTraining {
                 } else {
                     let items: Vec<&ViewFeatures> = idx.iter().map(|&i| &features[i]).collect();
                     let input = ViewFeatures::cat(&items)?;
-                    let cams: Vec<&PinholeCamera> = idx.iter().map(|&i| &cameras[i]).collect();
+                    let cams: Vec<&[PinholeCamera]> = idx.iter().map(|&i| &rigs[i][..]).collect();
                     Some(self.condition(net, &input, &cams)?)
                 };
                 let mean = means.as_deref().map(pick).transpose()?;
@@ -533,24 +529,22 @@ impl DenoiserTraining {
             None
         };
         let image = if st.conditional {
+            let nv = num_views(net);
             let feats = examples
                 .iter()
                 .map(|ex| {
-                    let view = CameraView {
-                        rgb: &ex.rgb,
-                        camera: &ex.camera,
-                    };
                     encode_views(
                         config,
                         st.semantic.as_ref(),
                         st.depth.as_ref(),
-                        &[view],
+                        &ex.views(nv)?,
                         dev,
                     )
                 })
                 .collect::<Result<Vec<_>>>()?;
             let refs: Vec<&ViewFeatures> = feats.iter().collect();
-            let cams: Vec<&PinholeCamera> = examples.iter().map(|e| &e.camera).collect();
+            let rigs: Vec<Vec<PinholeCamera>> = examples.iter().map(|e| e.rig(nv)).collect();
+            let cams: Vec<&[PinholeCamera]> = rigs.iter().map(|r| &r[..]).collect();
             Some(self.condition(net, &ViewFeatures::cat(&refs)?, &cams)?)
         } else {
             None
@@ -575,6 +569,14 @@ impl<'a> BatchSource<NetCond<'a>> for TrainingSource<'a> {
     fn batch_part(&mut self, step: u64, part: usize, parts: usize) -> Result<Batch<NetCond<'a>>> {
         self.data.batch_part(self.net, step, part, parts)
     }
+}
+
+/// How many camera views `net` takes (1 when unconditional).
+fn num_views(net: &Net) -> usize {
+    net.config()
+        .conditioning
+        .as_ref()
+        .map_or(1, |c| c.num_views.max(1))
 }
 
 /// Whether `net` has GCMA (and so needs the cameras' geometry).
@@ -960,35 +962,24 @@ impl MeanPredictor {
             },
         )?;
         let image = if self.net.is_conditional() {
+            let nv = num_views(&self.net);
             let feats = examples
                 .iter()
-                .map(|ex| {
-                    encode_views(
-                        &self.config,
-                        semantic,
-                        depth,
-                        &[CameraView {
-                            rgb: &ex.rgb,
-                            camera: &ex.camera,
-                        }],
-                        &self.device,
-                    )
-                })
+                .map(|ex| encode_views(&self.config, semantic, depth, &ex.views(nv)?, &self.device))
                 .collect::<Result<Vec<_>>>()?;
             let refs: Vec<&ViewFeatures> = feats.iter().collect();
             let input = ViewFeatures::cat(&refs)?;
             Some(match &self.rigs {
                 None => self.net.prepare_condition(&input, None)?,
                 Some(rigs) => {
-                    let geoms = examples
+                    let all: Vec<Vec<PinholeCamera>> = examples.iter().map(|e| e.rig(nv)).collect();
+                    let geoms = all
                         .iter()
-                        .map(|e| {
-                            rigs.get(&e.camera, || {
-                                Ok(self.net.geometry(
-                                    &[e.camera],
-                                    &self.config.epipolar,
-                                    &self.device,
-                                )?)
+                        .map(|rig| {
+                            rigs.get(rig, || {
+                                Ok(self
+                                    .net
+                                    .geometry(rig, &self.config.epipolar, &self.device)?)
                             })
                         })
                         .collect::<Result<Vec<_>>>()?;
