@@ -29,6 +29,7 @@ pub(crate) struct NcclGroup {
 // SAFETY: an NCCL communicator may be used from any thread, one call at a time; the trainer
 // holds it behind a mutex and calls it from one thread (cudarc leaves `Comm` !Send only because
 // it wraps a raw pointer).
+#[allow(unsafe_code)]
 unsafe impl Send for NcclGroup {}
 
 impl NcclGroup {
@@ -70,7 +71,7 @@ impl Communicator for NcclGroup {
     fn all_reduce_sum(&mut self, buf: &mut [f32]) -> veila_diffusion::Result<()> {
         let mut d = self
             .stream
-            .memcpy_stod(buf)
+            .clone_htod(buf)
             .map_err(|e| nccl_error("copying to the GPU", e))?;
         self.comm
             .all_reduce_in_place(&mut d, &ReduceOp::Sum)

@@ -888,6 +888,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
             },
             work_dir: &ck_dir,
             init: None,
+            mean_init: None,
             parallel: parallel.as_ref(),
         },
         &settings,

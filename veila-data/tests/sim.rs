@@ -1076,3 +1076,64 @@ fn random_valid_configs_generate_and_render_without_panicking() {
     }
     assert!(generated >= 25, "{generated}");
 }
+
+#[test]
+fn a_rig_frame_renders_turned_cameras_consistent_with_the_scan() {
+    let cfg = tiny_config();
+    let scene = Scene::generate(&cfg, 21).unwrap();
+    let (f, views) = scene.render_frame_rig(2, &[55.0, -55.0, 0.0]).unwrap();
+    assert_eq!(f.image, scene.render_frame(2).unwrap().image);
+    assert_eq!(views.len(), 3);
+    // a turn of 0 is the scene camera itself
+    assert_eq!(views[2].image, f.image);
+    assert_eq!(views[2].camera, f.camera);
+    for v in &views[..2] {
+        assert_ne!(v.image.depth_m, f.image.depth_m, "yaw {}", v.yaw_deg);
+        // the scan's points that the turned camera sees lie at the depth it renders there
+        let (w, h) = (v.image.width as usize, v.image.height as usize);
+        let mut errs: Vec<f32> = Vec::new();
+        let mut left = 0usize;
+        for p in &f.scan.points.xyz {
+            let Some(ip) = v.camera.try_project_in_image(*p) else {
+                continue;
+            };
+            let (u, r) = (ip.u_px as usize, ip.v_px as usize);
+            if u >= w || r >= h || ip.depth_m < 2.0 {
+                continue;
+            }
+            left += usize::from(p.y > 0.0);
+            let rendered = v.image.depth_m[r * w + u];
+            if rendered > 0.0 {
+                errs.push((rendered - ip.depth_m).abs() / ip.depth_m);
+            }
+        }
+        assert!(
+            errs.len() > 50,
+            "yaw {}: {} points seen",
+            v.yaw_deg,
+            errs.len()
+        );
+        errs.sort_by(f32::total_cmp);
+        let median = errs[errs.len() / 2];
+        assert!(
+            median < 0.05,
+            "yaw {}: median relative depth error {median}",
+            v.yaw_deg
+        );
+        // +55 looks left (LiDAR +y), -55 right
+        let share = left as f32 / errs.len() as f32;
+        if v.yaw_deg > 0.0 {
+            assert!(
+                share > 0.8,
+                "yaw {}: {share} of its points on the left",
+                v.yaw_deg
+            );
+        } else {
+            assert!(
+                share < 0.2,
+                "yaw {}: {share} of its points on the left",
+                v.yaw_deg
+            );
+        }
+    }
+}

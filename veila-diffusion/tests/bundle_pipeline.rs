@@ -492,6 +492,7 @@ fn overfit_one_accumulating(
             mean_train: None,
             work_dir: &dir.join("work"),
             init: None,
+            mean_init: None,
             parallel: None,
         },
         &dev,
@@ -961,6 +962,7 @@ fn fit_small(
             mean_train: None,
             work_dir: dir,
             init: None,
+            mean_init: None,
             parallel: None,
         },
         &dev,
@@ -983,6 +985,77 @@ fn fit_small(
     let mean = flat(&out.mean.unwrap().ema_weights);
     let den = flat(&out.denoiser.unwrap().ema_weights);
     Ok((mean, den, cfg.residual.unwrap().scale))
+}
+
+#[test]
+fn fine_tuning_a_residual_bundle_starts_both_networks_from_its_weights() {
+    let dev = Device::Cpu;
+    let mut cfg = small_config(Variant::Full).with_method(Method::Residual);
+    let examples = five_examples(&cfg);
+    let seeded = |c: &veila_nn::DenoiserConfig, seed: u64| {
+        let vm = VarMap::new();
+        veila_nn::Denoiser::new(c, veila_nn::seeded_var_builder(&vm, seed, DType::F32, &dev))
+            .unwrap();
+        varmap_tensors(&vm).unwrap()
+    };
+    let den = seeded(&cfg.denoiser, 40);
+    let mean = seeded(&cfg.residual.as_ref().unwrap().mean_net, 41);
+    let encoders: Vec<veila_nn::encoders::kind::AnyEncoder> = [
+        cfg.semantic_encoder.clone().unwrap(),
+        cfg.depth_encoder.clone().unwrap(),
+    ]
+    .iter()
+    .map(|e| {
+        let vm = VarMap::new();
+        SmallCnn::new(
+            e.small_cnn_config().unwrap(),
+            veila_nn::seeded_var_builder(&vm, 1, DType::F32, &dev),
+        )
+        .unwrap()
+        .into()
+    })
+    .collect();
+    let tc = veila_diffusion::TrainConfig {
+        total_steps: 1,
+        warmup_steps: 1,
+        lr: 1e-9,
+        ema_decay: 0.0,
+        checkpoint_every: None,
+        ..veila_diffusion::TrainConfig::default()
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let out = fit_bundle(
+        &mut cfg,
+        BundleFit {
+            semantic: Some(&encoders[0]),
+            depth: Some(&encoders[1]),
+            examples: (&examples).into(),
+            batch_size: 2,
+            train: &tc,
+            mean_train: None,
+            work_dir: tmp.path(),
+            init: Some(&den),
+            mean_init: Some(&mean),
+            parallel: None,
+        },
+        &dev,
+        |_, _, _| {},
+        |_, _| Quiet,
+    )
+    .unwrap();
+    let m = out.mean.unwrap();
+    assert_eq!(m.initialised, mean.len());
+    assert_eq!(out.denoiser.unwrap().initialised, den.len());
+    // one update at a learning rate of 1e-9 leaves the given weights (not a seeded init)
+    for (name, t) in &mean {
+        let got = m.ema_weights[name]
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap();
+        let want = t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert!(max_diff(&got, &want) < 1e-6, "{name}");
+    }
 }
 
 fn max_diff(a: &[f32], b: &[f32]) -> f32 {
@@ -1268,4 +1341,104 @@ fn streamed_batches_equal_the_batches_in_memory() {
             }
         }
     }
+}
+
+#[test]
+fn variants_parse_by_name_and_three_cameras_trains_and_generates_with_three_views() {
+    for v in Variant::ALL {
+        assert_eq!(v.name().parse::<Variant>().unwrap(), v);
+        let cfg = BundleConfig::cpu_default(v).with_method(Method::Residual);
+        let views = |c: &veila_nn::DenoiserConfig| c.conditioning.as_ref().map(|c| c.num_views);
+        let want = (v != Variant::Unconditional).then_some(v.views());
+        assert_eq!(views(&cfg.denoiser), want, "{}", v.name());
+        assert_eq!(
+            views(&cfg.residual.as_ref().unwrap().mean_net),
+            want,
+            "{}",
+            v.name()
+        );
+    }
+    assert!("four-cameras".parse::<Variant>().is_err());
+    // a three-camera model on examples with two further cameras
+    let dev = Device::Cpu;
+    let mut cfg = small_config(Variant::ThreeCameras).with_method(Method::Residual);
+    let mut examples = five_examples(&cfg);
+    for (i, ex) in examples.iter_mut().enumerate() {
+        ex.extra_views = (1..=2)
+            .map(|j| veila_diffusion::app::TrainView {
+                rgb: image((i * 3 + j) as u8),
+                camera: if j == 1 { second_camera() } else { camera() },
+            })
+            .collect();
+    }
+    let mut weights: HashMap<&str, HashMap<String, candle_core::Tensor>> = HashMap::new();
+    let encoders: Vec<veila_nn::encoders::kind::AnyEncoder> = [
+        (SEMANTIC_FILE, cfg.semantic_encoder.clone().unwrap()),
+        (DEPTH_FILE, cfg.depth_encoder.clone().unwrap()),
+    ]
+    .iter()
+    .map(|(file, e)| {
+        let vm = VarMap::new();
+        let net = SmallCnn::new(
+            e.small_cnn_config().unwrap(),
+            veila_nn::seeded_var_builder(&vm, 1, DType::F32, &dev),
+        )
+        .unwrap();
+        weights.insert(file, varmap_tensors(&vm).unwrap());
+        net.into()
+    })
+    .collect();
+    let tc = veila_diffusion::TrainConfig {
+        total_steps: 2,
+        warmup_steps: 1,
+        checkpoint_every: None,
+        ..veila_diffusion::TrainConfig::default()
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let fit = |examples: &[TrainExample], cfg: &mut BundleConfig, dir: &str| {
+        fit_bundle(
+            cfg,
+            BundleFit {
+                semantic: Some(&encoders[0]),
+                depth: Some(&encoders[1]),
+                examples: examples.into(),
+                batch_size: 2,
+                train: &tc,
+                mean_train: None,
+                work_dir: &tmp.path().join(dir),
+                init: None,
+                mean_init: None,
+                parallel: None,
+            },
+            &dev,
+            |_, _, _| {},
+            |_, _| Quiet,
+        )
+    };
+    let out = fit(&examples, &mut cfg, "three").unwrap();
+    // examples with one camera cannot feed it
+    let single: Vec<TrainExample> = five_examples(&cfg);
+    let err = fit(&single, &mut cfg.clone(), "one").unwrap_err();
+    assert!(err.to_string().contains("takes 3 camera views"), "{err}");
+    // the trained bundle generates from its three views
+    weights.insert(MEAN_FILE, out.mean.unwrap().ema_weights);
+    weights.insert(DENOISER_FILE, out.denoiser.unwrap().ema_weights);
+    let bdir = tmp.path().join("bundle");
+    Bundle::save(&bdir, &cfg, &weights).unwrap();
+    let b = Bundle::from_dir(&bdir, &dev).unwrap();
+    let ex = &examples[0];
+    let views: Vec<CameraView<'_>> = std::iter::once(CameraView {
+        rgb: &ex.rgb,
+        camera: &ex.camera,
+    })
+    .chain(ex.extra_views.iter().map(|v| CameraView {
+        rgb: &v.rgb,
+        camera: &v.camera,
+    }))
+    .collect();
+    let scans = b.generate(&views, &opts(0, 1), |_, _| {}).unwrap();
+    assert!(scans[0].range_m.iter().all(|r| r.is_finite()));
+    // the weights do not depend on the view count: one view runs too, and sees less
+    let one = b.generate(&views[..1], &opts(0, 1), |_, _| {}).unwrap();
+    assert_ne!(one[0].range_m, scans[0].range_m);
 }

@@ -287,14 +287,16 @@ fn generate_all(
             unconditional,
             residual_weight,
         };
-        let mut scans = bundle.generate(
-            &[CameraView {
-                rgb: &ex.rgb,
-                camera: &ex.camera,
-            }],
-            &opts,
-            |_, _| {},
-        )?;
+        let n = crate::simdata::views_of(&bundle.config);
+        let mut views = vec![CameraView {
+            rgb: &ex.rgb,
+            camera: &ex.camera,
+        }];
+        views.extend(ex.extra_views.iter().take(n - 1).map(|v| CameraView {
+            rgb: &v.rgb,
+            camera: &v.camera,
+        }));
+        let mut scans = bundle.generate(&views, &opts, |_, _| {})?;
         out.push(scans.swap_remove(0));
         bar.inc(1);
     }
@@ -596,10 +598,27 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
     let work = abs(&args.work);
     let base = Bundle::from_dir(&model_dir, &device)
         .with_context(|| format!("loading {}", model_dir.display()))?;
+    // frames carry as many cameras as the most-viewed variant takes (three-cameras: 3); every
+    // other model reads the first
+    let rig_views = if args.shipped_only {
+        1
+    } else {
+        args.variants
+            .clone()
+            .unwrap_or_else(|| Variant::ALL.to_vec())
+            .iter()
+            .map(|v| v.views())
+            .max()
+            .unwrap_or(1)
+    };
+    let mut rig_config = base.config.clone();
+    if let Some(c) = rig_config.denoiser.conditioning.as_mut() {
+        c.num_views = c.num_views.max(rig_views);
+    }
     let tests = render_split(
         &root.join("scenes/test.txt"),
         args.test_frames,
-        &base.config,
+        &rig_config,
         "simulating test frames",
     )?;
     let nets_dir = root.join("models/feature-nets");
@@ -753,7 +772,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         render_split(
             &root.join("scenes/train.txt"),
             args.train_frames,
-            &base.config,
+            &rig_config,
             "simulating train frames",
         )?
     } else {

@@ -68,6 +68,7 @@ mod tests {
                 mean_train: None,
                 work_dir: tmp.path(),
                 init: None,
+                mean_init: None,
                 parallel: None,
             },
             &dev,

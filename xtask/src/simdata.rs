@@ -7,8 +7,8 @@ use anyhow::{Context, Result};
 use rayon::prelude::*;
 use veila_data::image::{RgbImage, imageops};
 use veila_data::sim::{Scene, SceneConfig, SceneList, SimFrame, class};
-use veila_diffusion::app::TrainExample;
 use veila_diffusion::app::bundle::BundleConfig;
+use veila_diffusion::app::{TrainExample, TrainView};
 use veila_geom::{LidarSensor, PinholeCamera, ProjectionOptions, Projector, RangeImage};
 
 /// The workspace root (xtask lives one level below it).
@@ -32,13 +32,31 @@ pub struct SimExample {
     pub camera: PinholeCamera,
     /// The scan projected on the bundle's grid.
     pub range: RangeImage,
+    /// The rig's further cameras at the bundle image size (multi-view configs, see
+    /// [`RIG_YAWS_DEG`]).
+    pub extra_views: Vec<TrainView>,
+}
+
+/// The turns of a simulated rig's further cameras from the front one, degrees (positive: left),
+/// in view order: nuScenes' front-left and front-right cameras sit at about +-55 degrees.
+pub const RIG_YAWS_DEG: [f32; 5] = [55.0, -55.0, 110.0, -110.0, 180.0];
+
+/// Camera views `cfg` takes.
+pub fn views_of(cfg: &BundleConfig) -> usize {
+    cfg.denoiser
+        .conditioning
+        .as_ref()
+        .map_or(1, |c| c.num_views.max(1))
 }
 
 impl SimExample {
     /// The training example (encoded range image).
     pub fn train_example(&self, cfg: &BundleConfig) -> Result<TrainExample> {
         let x0 = cfg.encoding.encode_to_vec(&self.range)?;
-        Ok(TrainExample::new(self.rgb.clone(), self.camera, x0))
+        Ok(TrainExample {
+            extra_views: self.extra_views.clone(),
+            ..TrainExample::new(self.rgb.clone(), self.camera, x0)
+        })
     }
 }
 
@@ -85,7 +103,30 @@ pub fn example_from_frame(frame: &SimFrame, cfg: &BundleConfig) -> Result<SimExa
         depth_m,
         camera,
         range,
+        extra_views: Vec::new(),
     })
+}
+
+/// [`example_from_frame`] with the rig's further cameras (`views` from
+/// [`Scene::render_frame_rig`]), each resized to `cfg`'s image size.
+pub fn example_from_rig(
+    frame: &SimFrame,
+    views: &[veila_data::sim::SimView],
+    cfg: &BundleConfig,
+) -> Result<SimExample> {
+    let mut ex = example_from_frame(frame, cfg)?;
+    let (nw, nh) = (cfg.image_width as u32, cfg.image_height as u32);
+    ex.extra_views = views
+        .iter()
+        .map(|v| -> Result<TrainView> {
+            let img = &v.image;
+            Ok(TrainView {
+                rgb: resize_rgb(&img.rgb, img.width, img.height, nw, nh)?,
+                camera: v.camera.resized(nw, nh).context("zero image size")?,
+            })
+        })
+        .collect::<Result<_>>()?;
+    Ok(ex)
 }
 
 /// The first `n` frames of a split list, interleaving its scene files (scene 0 seed 0, scene 1
@@ -119,7 +160,8 @@ pub fn split_items(list: &Path, n: usize) -> Result<Vec<(PathBuf, u64)>> {
     Ok(out)
 }
 
-/// Renders the first `n` frames of a split for `cfg` in parallel (`label` names the progress bar).
+/// Renders the first `n` frames of a split for `cfg` in parallel (`label` names the progress bar),
+/// with as many cameras as `cfg` takes views (the front one, then [`RIG_YAWS_DEG`]).
 pub fn render_split(
     list: &Path,
     n: usize,
@@ -134,8 +176,9 @@ pub fn render_split(
             let scene_cfg = SceneConfig::from_file(path)?;
             let scene = Scene::generate(&scene_cfg, *seed)?;
             let frames = scene_cfg.frames.count.max(1) as u64;
-            let frame = scene.render_frame((*seed % frames) as u32)?;
-            let ex = example_from_frame(&frame, cfg)
+            let yaws = &RIG_YAWS_DEG[..views_of(cfg).clamp(1, RIG_YAWS_DEG.len() + 1) - 1];
+            let (frame, views) = scene.render_frame_rig((*seed % frames) as u32, yaws)?;
+            let ex = example_from_rig(&frame, &views, cfg)
                 .with_context(|| format!("{} seed {seed}", path.display()))?;
             bar.inc(1);
             Ok(ex)

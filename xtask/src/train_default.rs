@@ -222,10 +222,10 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         .as_ref()
         .map(|dir| {
             Bundle::from_dir(dir, &device)
-                .map(|b| b.weights)
                 .with_context(|| format!("loading initial weights from {}", dir.display()))
         })
         .transpose()?;
+    let mean_init = init.as_ref().and_then(|b| b.mean.as_ref().map(|(_, w)| w));
     let train_examples: Vec<TrainExample> = examples
         .iter()
         .map(|e| e.train_example(&cfg))
@@ -238,7 +238,8 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             encoders,
             examples: (&train_examples).into(),
             work_dir: &work,
-            init: init.as_ref(),
+            init: init.as_ref().map(|b| &b.weights),
+            mean_init,
             parallel: None,
         },
         &settings,
@@ -291,6 +292,14 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             den.ema_weights.len(),
             dir.display()
         );
+        if let Some(m) = &outcome.fit.mean {
+            println!(
+                "  initialised {} of {} mean-network tensors from {}",
+                m.initialised,
+                m.ema_weights.len(),
+                dir.display()
+            );
+        }
     }
     let summary = den.summary.clone();
     // the runs' own clocks, summed over every resumed session (this process's seconds are below)

@@ -60,5 +60,5 @@ pub use material::{Material, class};
 pub use mesh::{Mesh, Surface};
 pub use output::{FramePaths, SimSummary, simulate_to_dir, write_frame};
 pub use raycast::{Accel, Hit};
-pub use scene::{Actor, Scene, SimFrame};
+pub use scene::{Actor, Scene, SimFrame, SimView};
 pub use split::{SceneList, SceneListEntry};

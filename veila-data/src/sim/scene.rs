@@ -158,6 +158,42 @@ impl Scene {
         }
     }
 
+    /// Render frame `index` with a rig of cameras: the scene's camera (in the returned frame) and
+    /// one more per entry of `yaws_deg`, the same camera turned that many degrees about the
+    /// LiDAR's vertical axis (positive: to the left; nuScenes' front-left and front-right cameras
+    /// sit at about +55 and -55 degrees). The further views come in the order of `yaws_deg`.
+    pub fn render_frame_rig(
+        &self,
+        index: u32,
+        yaws_deg: &[f32],
+    ) -> Result<(SimFrame, Vec<SimView>)> {
+        let frame = self.render_frame(index)?;
+        if yaws_deg.is_empty() {
+            return Ok((frame, Vec::new()));
+        }
+        let snap = self.snapshot(index);
+        let opts = CameraRenderOptions::from(&self.config.camera);
+        let views = yaws_deg
+            .iter()
+            .map(|&yaw| {
+                // the same camera, its frame turned about the LiDAR's z axis: a point at azimuth
+                // `yaw` is where the scene camera sees azimuth 0
+                let camera = PinholeCamera {
+                    cam_from_lidar: frame.camera.cam_from_lidar
+                        * glam::Mat4::from_rotation_z(-yaw.to_radians()),
+                    ..frame.camera
+                };
+                let image = snap.render_camera(&camera, &opts)?;
+                Ok(SimView {
+                    yaw_deg: yaw,
+                    camera,
+                    image,
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok((frame, views))
+    }
+
     /// Render frame `index` with the scene's own sensors (the config's LiDAR, return model and
     /// camera): the paired scan and image without touching files, for training and demo code.
     pub fn render_frame(&self, index: u32) -> Result<SimFrame> {
@@ -178,6 +214,17 @@ impl Scene {
             image,
         })
     }
+}
+
+/// A further camera of a rig frame ([`Scene::render_frame_rig`]).
+#[derive(Debug, Clone)]
+pub struct SimView {
+    /// The turn from the scene's camera, degrees (positive: to the left).
+    pub yaw_deg: f32,
+    /// The camera.
+    pub camera: PinholeCamera,
+    /// Its image with depth and semantics.
+    pub image: SimImage,
 }
 
 /// One rendered frame: a LiDAR scan and the paired camera image with their sensors.

@@ -879,11 +879,14 @@ pub enum Variant {
     SemanticOnly,
     /// Depth cue (`E_d`) only.
     DepthOnly,
+    /// The full model with three cameras (the paper's table 8): the front camera and two turned
+    /// to its sides.
+    ThreeCameras,
 }
 
 impl Variant {
     /// Every variant, the full model first.
-    pub const ALL: [Variant; 7] = [
+    pub const ALL: [Variant; 8] = [
         Variant::Full,
         Variant::Unconditional,
         Variant::NoCacm,
@@ -891,7 +894,16 @@ impl Variant {
         Variant::NoPfc,
         Variant::SemanticOnly,
         Variant::DepthOnly,
+        Variant::ThreeCameras,
     ];
+
+    /// Camera views the variant takes.
+    pub fn views(self) -> usize {
+        match self {
+            Variant::ThreeCameras => 3,
+            _ => 1,
+        }
+    }
 
     /// Kebab-case name (`no-gcma`, ...).
     pub fn name(self) -> &'static str {
@@ -903,6 +915,7 @@ impl Variant {
             Variant::NoPfc => "no-pfc",
             Variant::SemanticOnly => "semantic-only",
             Variant::DepthOnly => "depth-only",
+            Variant::ThreeCameras => "three-cameras",
         }
     }
 
@@ -916,6 +929,7 @@ impl Variant {
             Variant::NoPfc => "w/o PFC",
             Variant::SemanticOnly => "E_s only",
             Variant::DepthOnly => "E_d only",
+            Variant::ThreeCameras => "3 cameras",
         }
     }
 }
@@ -1098,6 +1112,11 @@ impl BundleConfig {
                     c.cues = veila_nn::Cues::DepthOnly;
                 }
                 semantic = None;
+            }
+            Variant::ThreeCameras => {
+                if let Some(c) = denoiser.conditioning.as_mut() {
+                    c.num_views = 3;
+                }
             }
         }
         let mut sampler = SamplerConfig::dpm_solver_pp_2m(16);

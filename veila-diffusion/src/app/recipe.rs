@@ -390,6 +390,8 @@ pub struct RecipeInput<'a> {
     pub work_dir: &'a Path,
     /// Initial denoiser weights wherever names and shapes match (fine-tuning).
     pub init: Option<&'a HashMap<String, Tensor>>,
+    /// Initial mean-network weights, likewise (residual bundles).
+    pub mean_init: Option<&'a HashMap<String, Tensor>>,
     /// Data-parallel training with the other ranks of the run (`None`: one process). Every rank
     /// runs every stage; the encoders' and the mean network's work is repeated on each (it is
     /// deterministic), the networks' updates are shared. Only rank 0 writes checkpoints; the
@@ -460,6 +462,7 @@ where
             mean_train: Some(&mean_tc),
             work_dir: input.work_dir,
             init: input.init,
+            mean_init: input.mean_init,
             parallel: input.parallel,
         },
         device,

@@ -770,6 +770,9 @@ pub struct BundleFit<'a> {
     pub work_dir: &'a Path,
     /// Initial denoiser weights wherever names and shapes match (fine-tuning).
     pub init: Option<&'a HashMap<String, Tensor>>,
+    /// Initial mean-network weights, likewise (fine-tuning a residual bundle: without them its
+    /// mean network starts from its seeded initialisation).
+    pub mean_init: Option<&'a HashMap<String, Tensor>>,
     /// Data-parallel training (see [`DenoiserFit::parallel`]).
     pub parallel: Option<&'a Parallel>,
 }
@@ -819,7 +822,7 @@ where
                 batch_size: fit.batch_size,
                 train: tc,
                 checkpoint_dir: &dir,
-                init: None,
+                init: fit.mean_init,
                 parallel: fit.parallel,
             },
             device,
