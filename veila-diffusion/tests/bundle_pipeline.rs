@@ -906,6 +906,25 @@ fn five_examples(cfg: &BundleConfig) -> Vec<TrainExample> {
         .collect()
 }
 
+/// The small config's two encoders, seeded (1).
+fn seeded_encoders(cfg: &BundleConfig) -> Vec<veila_nn::encoders::kind::AnyEncoder> {
+    [
+        cfg.semantic_encoder.clone().unwrap(),
+        cfg.depth_encoder.clone().unwrap(),
+    ]
+    .iter()
+    .map(|e| {
+        let vm = VarMap::new();
+        SmallCnn::new(
+            e.small_cnn_config().unwrap(),
+            veila_nn::seeded_var_builder(&vm, 1, DType::F32, &Device::Cpu),
+        )
+        .unwrap()
+        .into()
+    })
+    .collect()
+}
+
 /// Stops a run after update `at`.
 struct StopAt(u64);
 impl<M: veila_diffusion::Denoiser> veila_diffusion::TrainObserver<M> for StopAt {
@@ -928,21 +947,7 @@ fn fit_small(
 ) -> veila_diffusion::Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
     let dev = Device::Cpu;
     let mut cfg = small_config(Variant::Full).with_method(Method::Residual);
-    let encoders: Vec<veila_nn::encoders::kind::AnyEncoder> = [
-        cfg.semantic_encoder.clone().unwrap(),
-        cfg.depth_encoder.clone().unwrap(),
-    ]
-    .iter()
-    .map(|e| {
-        let vm = VarMap::new();
-        SmallCnn::new(
-            e.small_cnn_config().unwrap(),
-            veila_nn::seeded_var_builder(&vm, 1, DType::F32, &dev),
-        )
-        .unwrap()
-        .into()
-    })
-    .collect();
+    let encoders = seeded_encoders(&cfg);
     let tc = veila_diffusion::TrainConfig {
         lr: 3e-3,
         warmup_steps: 1,
@@ -1000,21 +1005,7 @@ fn fine_tuning_a_residual_bundle_starts_both_networks_from_its_weights() {
     };
     let den = seeded(&cfg.denoiser, 40);
     let mean = seeded(&cfg.residual.as_ref().unwrap().mean_net, 41);
-    let encoders: Vec<veila_nn::encoders::kind::AnyEncoder> = [
-        cfg.semantic_encoder.clone().unwrap(),
-        cfg.depth_encoder.clone().unwrap(),
-    ]
-    .iter()
-    .map(|e| {
-        let vm = VarMap::new();
-        SmallCnn::new(
-            e.small_cnn_config().unwrap(),
-            veila_nn::seeded_var_builder(&vm, 1, DType::F32, &dev),
-        )
-        .unwrap()
-        .into()
-    })
-    .collect();
+    let encoders = seeded_encoders(&cfg);
     let tc = veila_diffusion::TrainConfig {
         total_steps: 1,
         warmup_steps: 1,
