@@ -66,6 +66,11 @@ pub struct BuildCudaArgs {
     /// Print the commands and the environment, run nothing.
     #[arg(long)]
     dry_run: bool,
+    /// Also write `TARGET_DIR/veila-cuda.xz`: the binary stripped of debug info and xz-compressed
+    /// (213 MB -> 20 MB), to carry to a GPU machine (`xz -d veila-cuda.xz` there). Needs `strip`
+    /// and `xz`.
+    #[arg(long)]
+    pack: bool,
 }
 
 /// The wheels of a build.
@@ -216,6 +221,10 @@ pub fn run(mut a: BuildCudaArgs) -> Result<()> {
             println!("   {k}={v}");
         }
         println!("3. {cargo:?}");
+        if a.pack {
+            let [strip, xz] = pack_commands(&a.target_dir.join("release/veila"), &a.target_dir);
+            println!("4. {strip:?}\n   {xz:?}");
+        }
         return Ok(());
     }
     // 1. toolkit
@@ -296,12 +305,56 @@ pub fn run(mut a: BuildCudaArgs) -> Result<()> {
         a.compute_cap,
         if a.cudnn { ", cudnn" } else { "" }
     );
+    if a.pack {
+        let packed = pack(&a.target_dir.join("release/veila"), &a.target_dir)?;
+        let mib = |p: &Path| std::fs::metadata(p).map(|m| m.len() as f64 / 1048576.0);
+        println!(
+            "packed {} ({:.0} MiB; `xz -d` it on the GPU machine)",
+            packed.display(),
+            mib(&packed)?
+        );
+    }
     Ok(())
+}
+
+/// The commands that make `dir/veila-cuda.xz` from `binary`: a stripped copy, then xz.
+pub fn pack_commands(binary: &Path, dir: &Path) -> [Command; 2] {
+    let copy = dir.join("veila-cuda");
+    let mut strip = Command::new("strip");
+    strip.arg("-o").arg(&copy).arg(binary);
+    let mut xz = Command::new("xz");
+    xz.args(["-6", "-T0", "-f"]).arg(&copy);
+    [strip, xz]
+}
+
+/// Strips and compresses `binary` into `dir/veila-cuda.xz` (the stripped copy is replaced by it).
+fn pack(binary: &Path, dir: &Path) -> Result<PathBuf> {
+    let [mut strip, mut xz] = pack_commands(binary, dir);
+    run_cmd(&mut strip, "stripping the binary (binutils' `strip`)")?;
+    run_cmd(&mut xz, "compressing the binary (`xz`)")?;
+    Ok(dir.join("veila-cuda.xz"))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn packing_strips_a_copy_then_compresses_it_in_place() {
+        let [strip, xz] = pack_commands(Path::new("/t/cuda/release/veila"), Path::new("/t/cuda"));
+        let args = |c: &Command| -> Vec<String> {
+            c.get_args()
+                .map(|a| a.to_string_lossy().into_owned())
+                .collect()
+        };
+        assert_eq!(strip.get_program(), "strip");
+        assert_eq!(
+            args(&strip),
+            ["-o", "/t/cuda/veila-cuda", "/t/cuda/release/veila"]
+        );
+        assert_eq!(xz.get_program(), "xz");
+        assert_eq!(args(&xz), ["-6", "-T0", "-f", "/t/cuda/veila-cuda"]);
+    }
 
     #[test]
     fn the_options_choose_the_features_and_wheels() {
