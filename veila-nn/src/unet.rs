@@ -107,7 +107,15 @@ pub struct PreparedCondition<'g> {
     batch: usize,
     /// Samples of different rigs ([`Denoiser::prepare_condition_per_sample`]): each distinct
     /// geometry with the batch indices that use it.
-    groups: Option<Vec<GeometryGroup<'g>>>,
+    groups: Option<RigGroups<'g>>,
+}
+
+/// A batch's samples grouped by rig, and the permutation back from group order to batch order.
+#[derive(Debug, Clone)]
+struct RigGroups<'g> {
+    groups: Vec<GeometryGroup<'g>>,
+    /// `[B]` u32: where sample `b` lands in the concatenation of the groups' outputs.
+    inverse: Tensor,
 }
 
 /// The samples of a batch that share one rig.
@@ -135,7 +143,7 @@ impl PreparedCondition<'_> {
     /// Number of distinct rigs in the batch (1 for a shared geometry, 0 without GCMA).
     pub fn num_rigs(&self) -> usize {
         match (&self.groups, self.geometry) {
-            (Some(g), _) => g.len(),
+            (Some(g), _) => g.groups.len(),
             (None, Some(_)) => 1,
             (None, None) => 0,
         }
@@ -477,6 +485,11 @@ impl Denoiser {
         }
         let views = geometries[0].num_views() as u32;
         let device = prepared.fused[0].device().clone();
+        let mut inverse = vec![0u32; geometries.len()];
+        for (pos, &b) in distinct.iter().flat_map(|(_, v)| v).enumerate() {
+            inverse[b as usize] = pos as u32;
+        }
+        let inverse = Tensor::from_vec(inverse, geometries.len(), &device)?;
         let groups = distinct
             .into_iter()
             .map(|(geometry, samples)| {
@@ -484,15 +497,16 @@ impl Denoiser {
                     .iter()
                     .flat_map(|&b| (0..views).map(move |v| b * views + v))
                     .collect();
+                let (nv, ns) = (view_idx.len(), samples.len());
                 Ok(GeometryGroup {
                     geometry,
-                    views: Tensor::from_vec(view_idx.clone(), view_idx.len(), &device)?,
-                    samples: Tensor::from_vec(samples.clone(), samples.len(), &device)?,
+                    views: Tensor::from_vec(view_idx, nv, &device)?,
+                    samples: Tensor::from_vec(samples, ns, &device)?,
                 })
             })
             .collect::<Result<Vec<_>>>()?;
         prepared.geometry = None;
-        prepared.groups = Some(groups);
+        prepared.groups = Some(RigGroups { groups, inverse });
         Ok(prepared)
     }
 
@@ -586,9 +600,8 @@ impl Denoiser {
                 )?));
             };
             // each rig's samples with its geometry, then back into batch order
-            let mut outs = Vec::with_capacity(groups.len());
-            let mut order: Vec<u32> = Vec::with_capacity(b);
-            for g in groups {
+            let mut outs = Vec::with_capacity(groups.groups.len());
+            for g in &groups.groups {
                 let keep = cd
                     .keep
                     .as_ref()
@@ -600,14 +613,10 @@ impl Denoiser {
                     level_of(g.geometry, level)?,
                     keep.as_ref(),
                 )?);
-                order.extend(g.samples.to_vec1::<u32>()?);
             }
-            let mut inverse = vec![0u32; b];
-            for (pos, &sample) in order.iter().enumerate() {
-                inverse[sample as usize] = pos as u32;
-            }
-            let inverse = Tensor::from_vec(inverse, b, hcur.device())?;
-            Ok(Some(Tensor::cat(&outs, 0)?.index_select(&inverse, 0)?))
+            Ok(Some(
+                Tensor::cat(&outs, 0)?.index_select(&groups.inverse, 0)?,
+            ))
         };
 
         let input = match &self.ray_features {

@@ -125,7 +125,7 @@ pub struct EncoderExample {
     pub depth_m: Vec<f32>,
 }
 
-/// Examples in memory, as a source (what tests compare the streaming path with).
+/// Examples in memory, as a source (`Arc::new(examples)` streams them through the loader).
 impl ExampleSource for Vec<TrainExample> {
     fn len(&self) -> usize {
         Vec::len(self)
@@ -192,17 +192,6 @@ impl Examples<'_> {
     /// Whether there are none.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
-    }
-
-    /// Example `index` (a clone for `Memory`).
-    pub fn get(&self, index: usize) -> Result<TrainExample> {
-        match self {
-            Examples::Memory(e) => e
-                .get(index)
-                .cloned()
-                .ok_or_else(|| Error::Data(format!("example {index} of a set of {}", e.len()))),
-            Examples::Stream { source, .. } => source.example(index),
-        }
     }
 }
 

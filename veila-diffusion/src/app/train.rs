@@ -386,14 +386,14 @@ impl DenoiserTraining {
         input: &veila_nn::ConditionInput,
         cameras: &[&[PinholeCamera]],
     ) -> Result<veila_nn::PreparedCondition<'g>> {
-        let Some(rigs) = &self.rigs else {
-            return Ok(net.prepare_condition(input, None)?);
-        };
-        let geoms = cameras
-            .iter()
-            .map(|c| rigs.get(c, || Ok(net.geometry(c, &self.epipolar, &self.device)?)))
-            .collect::<Result<Vec<_>>>()?;
-        Ok(net.prepare_condition_per_sample(input, &geoms)?)
+        rig_condition(
+            net,
+            self.rigs.as_ref(),
+            input,
+            cameras,
+            &self.epipolar,
+            &self.device,
+        )
     }
 
     /// Indices of the examples of update `step`: epoch-wise seeded shuffles.
@@ -501,9 +501,23 @@ impl DenoiserTraining {
             }
         }
         let dev = &self.device;
+        let nv = num_views(net);
+        // the frozen encoders run once per batch: the mean network and the denoiser share them
+        let input = if st.conditional {
+            Some(encode_examples(
+                config,
+                st.semantic.as_ref(),
+                st.depth.as_ref(),
+                examples,
+                nv,
+                dev,
+            )?)
+        } else {
+            None
+        };
         let (x0, mean) = match &st.residual {
             Some((predictor, scale)) => {
-                let mu = predictor.predict(st.semantic.as_ref(), st.depth.as_ref(), examples)?;
+                let mu = predictor.predict_encoded(input.as_ref(), examples)?;
                 let mut r = Vec::with_capacity(b * c * h * w);
                 for (ex, m) in examples.iter().zip(&mu) {
                     r.extend(residual_target(&config.encoding, &ex.x0, m, scale, h * w));
@@ -528,26 +542,13 @@ impl DenoiserTraining {
         } else {
             None
         };
-        let image = if st.conditional {
-            let nv = num_views(net);
-            let feats = examples
-                .iter()
-                .map(|ex| {
-                    encode_views(
-                        config,
-                        st.semantic.as_ref(),
-                        st.depth.as_ref(),
-                        &ex.views(nv)?,
-                        dev,
-                    )
-                })
-                .collect::<Result<Vec<_>>>()?;
-            let refs: Vec<&ViewFeatures> = feats.iter().collect();
-            let rigs: Vec<Vec<PinholeCamera>> = examples.iter().map(|e| e.rig(nv)).collect();
-            let cams: Vec<&[PinholeCamera]> = rigs.iter().map(|r| &r[..]).collect();
-            Some(self.condition(net, &ViewFeatures::cat(&refs)?, &cams)?)
-        } else {
-            None
+        let image = match &input {
+            Some(input) => {
+                let rigs: Vec<Vec<PinholeCamera>> = examples.iter().map(|e| e.rig(nv)).collect();
+                let cams: Vec<&[PinholeCamera]> = rigs.iter().map(|r| &r[..]).collect();
+                Some(self.condition(net, input, &cams)?)
+            }
+            None => None,
         };
         let cond = (image.is_some() || mean.is_some()).then_some(NetCond { image, mean });
         Ok(Batch { x0, cond, weight })
@@ -950,6 +951,29 @@ impl MeanPredictor {
         depth: Option<&AnyEncoder>,
         examples: &[TrainExample],
     ) -> Result<Vec<Vec<f32>>> {
+        let input = if self.net.is_conditional() && !examples.is_empty() {
+            let nv = num_views(&self.net);
+            Some(encode_examples(
+                &self.config,
+                semantic,
+                depth,
+                examples,
+                nv,
+                &self.device,
+            )?)
+        } else {
+            None
+        };
+        self.predict_encoded(input.as_ref(), examples)
+    }
+
+    /// [`Self::predict`] from the examples' frozen encoder features already computed
+    /// ([`encode_examples`]; `None` for an unconditional network).
+    fn predict_encoded(
+        &self,
+        input: Option<&veila_nn::ConditionInput>,
+        examples: &[TrainExample],
+    ) -> Result<Vec<Vec<f32>>> {
         if examples.is_empty() {
             return Ok(Vec::new());
         }
@@ -964,33 +988,26 @@ impl MeanPredictor {
                 ..self.config.sampler.clone()
             },
         )?;
-        let image = if self.net.is_conditional() {
-            let nv = num_views(&self.net);
-            let feats = examples
-                .iter()
-                .map(|ex| encode_views(&self.config, semantic, depth, &ex.views(nv)?, &self.device))
-                .collect::<Result<Vec<_>>>()?;
-            let refs: Vec<&ViewFeatures> = feats.iter().collect();
-            let input = ViewFeatures::cat(&refs)?;
-            Some(match &self.rigs {
-                None => self.net.prepare_condition(&input, None)?,
-                Some(rigs) => {
-                    let all: Vec<Vec<PinholeCamera>> = examples.iter().map(|e| e.rig(nv)).collect();
-                    let geoms = all
-                        .iter()
-                        .map(|rig| {
-                            rigs.get(rig, || {
-                                Ok(self
-                                    .net
-                                    .geometry(rig, &self.config.epipolar, &self.device)?)
-                            })
-                        })
-                        .collect::<Result<Vec<_>>>()?;
-                    self.net.prepare_condition_per_sample(&input, &geoms)?
-                }
-            })
-        } else {
-            None
+        let image = match (self.net.is_conditional(), input) {
+            (true, Some(input)) => {
+                let nv = num_views(&self.net);
+                let rigs: Vec<Vec<PinholeCamera>> = examples.iter().map(|e| e.rig(nv)).collect();
+                let cams: Vec<&[PinholeCamera]> = rigs.iter().map(|r| &r[..]).collect();
+                Some(rig_condition(
+                    &self.net,
+                    self.rigs.as_ref(),
+                    input,
+                    &cams,
+                    &self.config.epipolar,
+                    &self.device,
+                )?)
+            }
+            (true, None) => {
+                return Err(Error::Data(
+                    "the mean network is image-conditioned: it needs the examples' features".into(),
+                ));
+            }
+            (false, _) => None,
         };
         let cond = NetCond { image, mean: None };
         let model = VeilaDenoiser::new(self.net.clone());
@@ -1002,6 +1019,44 @@ impl MeanPredictor {
             .map(|i| Ok(mu.get(i)?.flatten_all()?.to_vec1::<f32>()?))
             .collect()
     }
+}
+
+/// The frozen encoders' features of `examples` (their first `views` camera views), as one batch.
+fn encode_examples(
+    config: &BundleConfig,
+    semantic: Option<&AnyEncoder>,
+    depth: Option<&AnyEncoder>,
+    examples: &[TrainExample],
+    views: usize,
+    device: &Device,
+) -> Result<veila_nn::ConditionInput> {
+    let feats = examples
+        .iter()
+        .map(|ex| encode_views(config, semantic, depth, &ex.views(views)?, device))
+        .collect::<Result<Vec<_>>>()?;
+    let refs: Vec<&ViewFeatures> = feats.iter().collect();
+    ViewFeatures::cat(&refs)
+}
+
+/// `input` prepared for `net`, each sample attending with the GCMA geometry of its rig
+/// (`cameras[b]`, one camera per view), built the first time the rig appears in `rigs`
+/// (`None`: the network has no GCMA).
+fn rig_condition<'g>(
+    net: &Net,
+    rigs: Option<&'g Rigs>,
+    input: &veila_nn::ConditionInput,
+    cameras: &[&[PinholeCamera]],
+    epipolar: &veila_geom::EpipolarConfig,
+    device: &Device,
+) -> Result<veila_nn::PreparedCondition<'g>> {
+    let Some(rigs) = rigs else {
+        return Ok(net.prepare_condition(input, None)?);
+    };
+    let geoms = cameras
+        .iter()
+        .map(|c| rigs.get(c, || Ok(net.geometry(c, epipolar, device)?)))
+        .collect::<Result<Vec<_>>>()?;
+    Ok(net.prepare_condition_per_sample(input, &geoms)?)
 }
 
 /// The mean network's one-pass prediction (encoded, `channels * rows * cols` values) for every
