@@ -28,10 +28,13 @@
 //!
 //! # Features
 //!
-//! The readers and writers above are the core and always built. Three rooms build on them, each
+//! The readers and writers above are the core and always built. Four rooms build on them, each
 //! behind a cargo feature (all off by default, so a reader alone compiles no ray tracer, random
 //! number stack or plotting):
 //!
+//! - `augment`: camera image augmentation and degradation (module `augment`: exposure, white
+//!   balance, vignetting, blur, sensor noise, colour jitter, JPEG, crop-and-zoom with the camera
+//!   updated; seeded); also turned on by `sim`;
 //! - `sim`: the procedural scene simulator (module `sim`: scenes from TOML + seed, ray cast through
 //!   an `obvhs` BVH into LiDAR scans and camera images with ground truth);
 //! - `weather`: the weather simulator (module `weather`: fog, rain, snow, wet ground, night);
@@ -70,6 +73,8 @@
 //! ```
 
 pub mod atomic;
+#[cfg(feature = "augment")]
+pub mod augment;
 mod calib;
 pub mod convert;
 pub mod dataset;
