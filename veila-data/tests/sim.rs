@@ -1137,3 +1137,358 @@ fn a_rig_frame_renders_turned_cameras_consistent_with_the_scan() {
         }
     }
 }
+
+/// The RGB, depth and semantic bytes of a few small renders of the example scenes and the test
+/// helpers, hashed (sha256 hex), for the byte-identity check of the default appearance.
+fn reference_render_hashes() -> Vec<(String, String)> {
+    let hash = |img: &SimImage| {
+        let mut bytes = img.rgb.clone();
+        for d in &img.depth_m {
+            bytes.extend_from_slice(&d.to_bits().to_le_bytes());
+        }
+        for s in img.semantic.iter().chain(&img.instance) {
+            bytes.extend_from_slice(&s.to_le_bytes());
+        }
+        veila_data::shard::sha256_hex(&bytes)
+    };
+    let mut out = Vec::new();
+    let cfg = tiny_config();
+    let scene = Scene::generate(&cfg, 42).unwrap();
+    out.push((
+        "tiny/42/1".into(),
+        hash(&scene.render_frame(1).unwrap().image),
+    ));
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
+    for (name, seed, frame, spp) in [
+        ("straight_road", 0u64, 0u32, 2u32),
+        ("junction", 0, 0, 2),
+        ("narrow_street", 0, 0, 2),
+        ("straight_road", 3, 2, 1),
+    ] {
+        let cfg = SceneConfig::from_file(&dir.join(format!("{name}.toml"))).unwrap();
+        let ccfg = CameraConfig {
+            samples_per_axis: spp,
+            ..small_camera_config()
+        };
+        let cam = SimCalib::from_config(&ccfg).camera().unwrap();
+        let scene = Scene::generate(&cfg, seed).unwrap();
+        let img = scene
+            .snapshot(frame)
+            .render_camera(&cam, &CameraRenderOptions::from(&ccfg))
+            .unwrap();
+        out.push((format!("{name}/{seed}/{frame}/spp{spp}"), hash(&img)));
+    }
+    out
+}
+
+#[test]
+fn default_appearance_renders_are_byte_identical_to_the_recorded_ones() {
+    // recorded before appearance randomisation existed (x86-64 Linux; the hashes pin the exact
+    // floating-point path of the default renderer, so another libm may need them re-recorded)
+    let expected = [
+        (
+            "tiny/42/1",
+            "2cf2fd856a2485689d17f4a4878d35692c26bf741f8dc13c54d6dbb8b4e8dd2e",
+        ),
+        (
+            "straight_road/0/0/spp2",
+            "841af0d1a7b10e41a34686af699c328ab22a65a83ded28008cb9e975c114306c",
+        ),
+        (
+            "junction/0/0/spp2",
+            "5a7e3e1505fcf2d21a3418c23af503eb0330e95f3d3dd47d5aa5aa2e442f2144",
+        ),
+        (
+            "narrow_street/0/0/spp2",
+            "685247af7697f12dd760545ed9329a88d97972add6c922bdd8b7b1a25f2e5806",
+        ),
+        (
+            "straight_road/3/2/spp1",
+            "ca3a03c63fcfd052784afbe200449fd09c9b6a27c3cbd2974c2d8eb6af43bb16",
+        ),
+    ];
+    let got = reference_render_hashes();
+    assert_eq!(got.len(), expected.len());
+    for ((k, h), (ek, eh)) in got.iter().zip(expected) {
+        assert_eq!((k.as_str(), h.as_str()), (ek, eh), "render {k} changed");
+    }
+}
+
+/// `tiny_config` with appearance randomisation on.
+fn randomized(mut cfg: SceneConfig) -> SceneConfig {
+    cfg.appearance.randomize = true;
+    cfg
+}
+
+fn depth_bytes(img: &SimImage) -> Vec<u8> {
+    img.depth_m
+        .iter()
+        .flat_map(|d| d.to_bits().to_le_bytes())
+        .collect()
+}
+
+#[test]
+fn randomized_appearance_is_deterministic_and_seed_dependent() {
+    let cfg = randomized(tiny_config());
+    // same geometry (one mesh), seeds 0..6: the appearance alone differs
+    let base = Scene::generate(&cfg, 11).unwrap();
+    let mesh = base.static_mesh().clone();
+    let pose = base.world_from_lidar(0.0);
+    let render = |seed: u64| {
+        let scene = Scene::from_parts(&cfg, seed, mesh.clone(), Vec::new(), pose);
+        let frame = scene.render_frame(0).unwrap();
+        (frame.image, scene.snapshot(0).lighting)
+    };
+    let (a, la) = render(0);
+    let (a2, la2) = render(0);
+    assert_eq!(a.rgb, a2.rgb, "same seed, different image bytes");
+    assert_eq!(la, la2);
+    let mut suns = Vec::new();
+    for seed in 0..6 {
+        let (img, l) = render(seed);
+        assert_eq!(img.semantic, a.semantic);
+        assert_eq!(depth_bytes(&img), depth_bytes(&a));
+        if seed > 0 {
+            assert_ne!(img.rgb, a.rgb, "seed {seed} rendered like seed 0");
+        }
+        assert!((8.0..=70.0).contains(&l.sun_elevation_deg), "{l:?}");
+        assert!((0.0..360.0).contains(&l.sun_azimuth_deg), "{l:?}");
+        suns.push((l.sun_elevation_deg, l.sun_azimuth_deg));
+    }
+    for (i, x) in suns.iter().enumerate() {
+        for y in &suns[i + 1..] {
+            assert!(
+                (x.0 - y.0).abs() > 1e-3 || (x.1 - y.1).abs() > 1e-3,
+                "two seeds drew the same sun: {suns:?}"
+            );
+        }
+    }
+    // the appearance is per scene: frames of a sequence share the sun
+    let scene = Scene::generate(&cfg, 5).unwrap();
+    assert_eq!(scene.snapshot(0).lighting, scene.snapshot(7).lighting);
+    // and randomised images differ from the flat stock look
+    let off = Scene::from_parts(&tiny_config(), 0, mesh.clone(), Vec::new(), pose);
+    assert_ne!(off.render_frame(0).unwrap().image.rgb, a.rgb);
+}
+
+#[test]
+fn appearance_never_changes_geometry_semantics_depth_or_lidar() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
+    for (name, seed) in [
+        ("straight_road", 4u64),
+        ("junction", 9),
+        ("narrow_street", 2),
+    ] {
+        let mut off = SceneConfig::from_file(&dir.join(format!("{name}.toml"))).unwrap();
+        off.lidar.sensor = Some(LidarSensor {
+            cols: 512,
+            ..off.lidar.sensor().unwrap()
+        });
+        off.camera = tiny_config().camera;
+        let on = randomized(off.clone());
+        let (a, b) = (
+            Scene::generate(&off, seed).unwrap(),
+            Scene::generate(&on, seed).unwrap(),
+        );
+        assert_eq!(a.static_mesh().triangles, b.static_mesh().triangles);
+        assert_eq!(a.static_mesh().surfaces, b.static_mesh().surfaces);
+        for frame in [0, 3] {
+            let (fa, fb) = (
+                a.render_frame(frame).unwrap(),
+                b.render_frame(frame).unwrap(),
+            );
+            assert!(
+                scan_bytes(&fa.scan) == scan_bytes(&fb.scan),
+                "{name}: scan changed"
+            );
+            assert_eq!(
+                fa.scan.range_image.range_m, fb.scan.range_image.range_m,
+                "{name}"
+            );
+            assert_eq!(depth_bytes(&fa.image), depth_bytes(&fb.image), "{name}");
+            assert_eq!(fa.image.semantic, fb.image.semantic, "{name}");
+            assert_eq!(fa.image.instance, fb.image.instance, "{name}");
+            assert_ne!(
+                fa.image.rgb, fb.image.rgb,
+                "{name}: randomisation had no effect"
+            );
+        }
+    }
+}
+
+#[test]
+fn randomized_render_is_independent_of_thread_count() {
+    let cfg = randomized(SceneConfig {
+        layout: Layout::Junction,
+        ..SceneConfig::default()
+    });
+    let ccfg = CameraConfig {
+        samples_per_axis: 2,
+        ..small_camera_config()
+    };
+    let camera = SimCalib::from_config(&ccfg).camera().unwrap();
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let scene = Scene::generate(&cfg, 8).unwrap();
+            let img = scene
+                .snapshot(2)
+                .render_camera(&camera, &CameraRenderOptions::from(&ccfg))
+                .unwrap();
+            (depth_bytes(&img), img.rgb, img.semantic)
+        })
+    };
+    let one = run(1);
+    assert!(
+        one == run(2),
+        "randomised images differ between 1 and 2 threads"
+    );
+}
+
+/// Mean and standard deviation of the sRGB luminance of the pixels of `class` (and their count).
+fn class_stats(img: &SimImage, cls: u16) -> (f64, f64, usize) {
+    let vals: Vec<f64> = img
+        .semantic
+        .iter()
+        .enumerate()
+        .filter(|(_, s)| **s == cls)
+        .map(|(k, _)| {
+            let p = &img.rgb[3 * k..3 * k + 3];
+            0.2126 * f64::from(p[0]) + 0.7152 * f64::from(p[1]) + 0.0722 * f64::from(p[2])
+        })
+        .collect();
+    let n = vals.len().max(1) as f64;
+    let mean = vals.iter().sum::<f64>() / n;
+    let var = vals.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+    (mean, var.sqrt(), vals.len())
+}
+
+#[test]
+fn textures_vary_road_pixels_and_road_albedo_across_scenes() {
+    // one fixed sun and a clear sky, no shadows: road pixels differ by texture only
+    let off = SceneConfig {
+        camera: CameraConfig {
+            shadows: false,
+            ..small_camera_config()
+        },
+        ..SceneConfig::default()
+    };
+    let mut on = randomized(off.clone());
+    on.appearance.sun_elevation_deg = [40.0, 40.0];
+    on.appearance.sun_azimuth_deg = [130.0, 130.0];
+    on.appearance.sun_temperature_k = [5000.0, 5000.0];
+    on.appearance.overcast = [0.0, 0.0];
+    let mut means = Vec::new();
+    for seed in 0..6 {
+        let img_off = Scene::generate(&off, seed)
+            .unwrap()
+            .render_frame(0)
+            .unwrap()
+            .image;
+        let img_on = Scene::generate(&on, seed)
+            .unwrap()
+            .render_frame(0)
+            .unwrap()
+            .image;
+        let (m_off, s_off, n) = class_stats(&img_off, class::ROAD);
+        let (m_on, s_on, _) = class_stats(&img_on, class::ROAD);
+        eprintln!(
+            "seed {seed}: {n} road px, off mean {m_off:.1} std {s_off:.2}, on mean {m_on:.1} std {s_on:.2}"
+        );
+        assert!(n > 5000, "{n} road pixels");
+        // relative spread: the texture's, not the brightness'
+        assert!(
+            s_on / m_on > 1.5 * (s_off / m_off),
+            "seed {seed}: road texture std/mean {} vs flat {}",
+            s_on / m_on,
+            s_off / m_off
+        );
+        means.push(m_on);
+    }
+    let (lo, hi) = means
+        .iter()
+        .fold((f64::INFINITY, 0.0f64), |(a, b), &m| (a.min(m), b.max(m)));
+    // the flat road is the same grey in every scene (100.4 levels); the drawn asphalts span more
+    // than 15 8-bit levels (their linear albedo range is 0.04..0.2)
+    assert!(hi - lo > 15.0, "road means across seeds {means:?}");
+}
+
+#[test]
+fn appearance_ranges_are_validated_with_the_key_named() {
+    let p = Path::new("appearance.toml");
+    for (text, key) in [
+        (
+            "[appearance]\nsun_elevation_deg = [-5.0, 40.0]\n",
+            "sun_elevation_deg",
+        ),
+        (
+            "[appearance]\nsun_elevation_deg = [10.0, 95.0]\n",
+            "sun_elevation_deg",
+        ),
+        (
+            "[appearance]\nsun_elevation_deg = [50.0, 40.0]\n",
+            "sun_elevation_deg",
+        ),
+        (
+            "[appearance]\nsun_azimuth_deg = [0.0, 400.0]\n",
+            "sun_azimuth_deg",
+        ),
+        (
+            "[appearance]\nsun_temperature_k = [1000.0, 6500.0]\n",
+            "sun_temperature_k",
+        ),
+        ("[appearance]\novercast = [0.0, nan]\n", "overcast"),
+        ("[appearance]\nroad_albedo = [0.1, 1.5]\n", "road_albedo"),
+        (
+            "[appearance]\nbrightness_jitter = -0.1\n",
+            "brightness_jitter",
+        ),
+        ("[appearance]\nhue_jitter_deg = inf\n", "hue_jitter_deg"),
+        (
+            "[appearance]\nsaturation_jitter = 2.0\n",
+            "saturation_jitter",
+        ),
+        ("[appearance]\ntexture_contrast = nan\n", "texture_contrast"),
+        ("[appearance]\nrandomise = true\n", "randomise"),
+    ] {
+        let e = SceneConfig::from_toml_str(text, p).unwrap_err().to_string();
+        assert!(e.contains(key) && e.contains("appearance"), "{text:?}: {e}");
+    }
+    // validate() on a config built in code, and generate() refusing it
+    let mut cfg = randomized(SceneConfig::default());
+    cfg.appearance.road_albedo = [f32::NAN, 0.1];
+    let e = cfg.validate().unwrap_err().to_string();
+    assert!(e.contains("appearance.road_albedo"), "{e}");
+    assert!(Scene::generate(&cfg, 0).is_err());
+    cfg.appearance.road_albedo = [0.3, 0.2];
+    assert!(cfg.validate().is_err());
+    // ranges are checked even with randomisation off
+    let mut cfg = SceneConfig::default();
+    cfg.appearance.overcast = [-1.0, 0.5];
+    assert!(cfg.validate().is_err());
+    // the defaults pass, a full section parses, and an untouched section is not serialised
+    assert!(AppearanceConfig::default().validate().is_ok());
+    let cfg = SceneConfig::from_toml_str(
+        "[appearance]\nrandomize = true\nsun_elevation_deg = [5.0, 30.0]\nsun_azimuth_deg = [-90.0, 90.0]\novercast = [0.2, 0.2]\ntexture_contrast = 0.0\n",
+        p,
+    )
+    .unwrap();
+    assert!(cfg.appearance.randomize && cfg.appearance.overcast == [0.2, 0.2]);
+    let json = serde_json::to_string(&SceneConfig::default()).unwrap();
+    assert!(!json.contains("appearance"), "{json}");
+    assert!(serde_json::to_string(&cfg).unwrap().contains("appearance"));
+}
+
+#[test]
+fn the_randomized_example_scene_parses_and_renders() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/examples/randomized.toml");
+    let mut cfg = SceneConfig::from_file(&path).unwrap();
+    assert!(cfg.appearance.randomize);
+    cfg.camera = tiny_config().camera;
+    cfg.lidar.sensor = tiny_config().lidar.sensor;
+    let frame = Scene::generate(&cfg, 0).unwrap().render_frame(0).unwrap();
+    assert!(frame.image.semantic.contains(&class::ROAD));
+}

@@ -12,7 +12,28 @@
 //!
 //! where `V` is 0 when a shadow ray toward the sun hits anything (1 with shadows off). Rays that miss
 //! see a sky gradient from the horizon colour to the zenith colour (by `sqrt` of the ray's
-//! elevation) with a sun disc. Pixels are tone-mapped with `1 - exp(-exposure * L)` and encoded sRGB.
+//! elevation; 0.7 times the horizon colour below it) with a sun disc of radiance
+//! `20 E_sun (1 - c)^2` (`c` the cloud cover, 0 unless randomised). Pixels are tone-mapped with
+//! `1 - exp(-exposure * L)`, encoded sRGB and dithered by at most half an 8-bit level.
+//!
+//! # Albedo
+//!
+//! By default `a` is the material's stock albedo, with a small hashed grain on materials that have
+//! one (asphalt, grass), and `l`, `E_sun`, `E_sky` and the sky come from
+//! [`LightingConfig`](super::LightingConfig). With
+//! [`AppearanceConfig::randomize`](super::AppearanceConfig) the scene draws its sun (elevation,
+//! azimuth, black-body colour temperature), sky (clear blue to overcast grey: cloud cover `c`
+//! scales the sun's irradiance by `1 - 0.85 c` and moves the ambient toward a brighter grey),
+//! class palettes and texture styles from its seed, and `a` becomes a procedural texture of the
+//! surface's class evaluated at the world hit point (so it sticks to the surface when the camera
+//! moves): asphalt grain, patches and cracks on road and parking; slabs or pavers with joints on
+//! sidewalks; brick, panel or plaster walls; varying reflections on windows; leaf-scale noise on
+//! vegetation; grass with soil patches on terrain; planks on fences; a paint per vehicle instance.
+//! Every colour gets a per-surface / per-instance HSV jitter; every albedo stays in `[0, 1]`
+//! (linear). Textures are band-limited to the sample's footprint on the surface (`t * angle
+//! between neighbouring samples / sqrt(cos incidence)`): detail finer than the footprint fades to
+//! its mean. Only the camera's albedo and light change, never geometry, semantics, depth or the
+//! LiDAR.
 //!
 //! Semantics and depth come from the ray through the pixel centre: the hit surface's SemanticKITTI raw
 //! id (0 for sky) and `z` of the hit point in the camera frame of [`PinholeCamera::cam_from_lidar`]
@@ -312,6 +333,10 @@ type PixelOut = ([u8; 3], f32, u16, u16);
 struct Shading {
     sun_dir: Vec3,
     sun: Vec3,
+    /// Radiance added inside the sun disc.
+    sun_disc: Vec3,
+    /// Angle between neighbouring pixels' (or samples') rays, radians: the texture footprint.
+    sample_angle: f32,
     ambient: Vec3,
     zenith: Vec3,
     horizon: Vec3,
@@ -320,15 +345,23 @@ struct Shading {
 }
 
 impl SceneSnapshot {
-    fn shading(&self, shadows: bool) -> Shading {
+    fn shading(&self, shadows: bool, sample_angle: f32) -> Shading {
         let l = &self.lighting;
         let (az, el) = (
             l.sun_azimuth_deg.to_radians(),
             l.sun_elevation_deg.to_radians(),
         );
+        let sun = Vec3::from(l.sun_rgb);
+        // clouds hide the disc (the stock lighting has none)
+        let clear = self
+            .appearance
+            .as_ref()
+            .map_or(1.0, |a| (1.0 - a.overcast).powi(2));
         Shading {
             sun_dir: Vec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin()),
-            sun: Vec3::from(l.sun_rgb),
+            sun,
+            sun_disc: sun * 20.0 * clear,
+            sample_angle,
             ambient: Vec3::from(l.sky_ambient_rgb),
             zenith: Vec3::from(l.sky_zenith_rgb),
             horizon: Vec3::from(l.sky_horizon_rgb),
@@ -346,18 +379,29 @@ impl SceneSnapshot {
                 sh.horizon * 0.7
             };
             if dir.dot(sh.sun_dir) > 0.99995 {
-                sky += sh.sun * 20.0;
+                sky += sh.sun_disc;
             }
             return sky;
         };
         let p = origin + dir * hit.t;
         let mat = hit.surface.material;
-        let mut albedo = Vec3::from(mat.albedo);
-        if mat.grain > 0.0 {
-            let g = 0.6 * (cell_noise(p, 4.0) - 0.5) + 0.4 * (cell_noise(p, 23.0) - 0.5);
-            albedo *= 1.0 + mat.grain * g;
-        }
         let n = hit.normal;
+        let albedo = match &self.appearance {
+            Some(a) => {
+                // the sample's footprint on the surface: its width across the ray times the
+                // geometric mean of the stretch along the surface (1 and 1 / cos incidence)
+                let cos_i = n.dot(dir).abs().max(0.02);
+                a.albedo(&hit.surface, p, n, hit.t * sh.sample_angle / cos_i.sqrt())
+            }
+            None => {
+                let mut albedo = Vec3::from(mat.albedo);
+                if mat.grain > 0.0 {
+                    let g = 0.6 * (cell_noise(p, 4.0) - 0.5) + 0.4 * (cell_noise(p, 23.0) - 0.5);
+                    albedo *= 1.0 + mat.grain * g;
+                }
+                albedo
+            }
+        };
         let ndotl = n.dot(sh.sun_dir);
         let mut direct = Vec3::ZERO;
         if ndotl > 0.0 && sh.sun_dir.z > 0.0 {
@@ -396,9 +440,11 @@ impl SceneSnapshot {
         }
         let rays = CameraRays::new(camera)?;
         let (w, h) = (camera.width, camera.height);
-        let sh = self.shading(opts.shadows);
-        let origin_w = world_from_lidar.transform_point3(rays.centre_lidar);
         let n = opts.samples_per_axis;
+        let (uc, vc) = (w as f32 / 2.0, h as f32 / 2.0);
+        let sample_angle = rays.dir(uc, vc).angle_between(rays.dir(uc + 1.0, vc)) / n as f32;
+        let sh = self.shading(opts.shadows, sample_angle);
+        let origin_w = world_from_lidar.transform_point3(rays.centre_lidar);
         let rows: Vec<Vec<PixelOut>> = (0..h)
             .into_par_iter()
             .map(|row| {

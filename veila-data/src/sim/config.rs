@@ -21,6 +21,9 @@
 //! [lidar]
 //! preset = "hdl64e"            # or a full [lidar.sensor] table (veila_geom::LidarSensor)
 //!
+//! [appearance]
+//! randomize = true             # textures, palettes, sun and sky drawn per scene (AppearanceConfig)
+//!
 //! [frames]
 //! count = 10
 //! ```
@@ -66,6 +69,10 @@ pub struct SceneConfig {
     pub camera: CameraConfig,
     /// Sun and sky.
     pub lighting: LightingConfig,
+    /// Appearance randomisation of the camera image (off by default; left out of the serialised
+    /// scene while it is at its default, so `scene.json` of earlier scene files is unchanged).
+    #[serde(skip_serializing_if = "AppearanceConfig::is_default")]
+    pub appearance: AppearanceConfig,
     /// Number of frames and their spacing.
     pub frames: FramesConfig,
 }
@@ -428,6 +435,10 @@ impl Default for CameraConfig {
 }
 
 /// Sun and sky (linear RGB radiometry, arbitrary units; 1.0 is white paper in full sun).
+///
+/// With [`AppearanceConfig::randomize`] the sun and sky are drawn per scene instead, and these
+/// values are the clear-sky reference of the draw: the sun's and the ambient's luminance, the sky
+/// colours and the exposure (which is always this one).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct LightingConfig {
@@ -458,6 +469,121 @@ impl Default for LightingConfig {
             sky_horizon_rgb: [0.72, 0.8, 0.9],
             exposure: 1.6,
         }
+    }
+}
+
+/// Appearance randomisation of the camera image (TOML section `[appearance]`).
+///
+/// With `randomize = true` every scene draws, from its seed, a sun (elevation, azimuth, colour
+/// temperature), a sky between clear blue and overcast grey, class palettes (asphalt grey, paving,
+/// facades, grass, foliage, fences, car paints by their share of real fleets), texture styles
+/// (paving slabs or pavers, brick, panels or plaster walls) and per-surface colour jitter, and the
+/// camera shades every hit with a procedural texture of its class evaluated at the world point (see
+/// [`crate::sim::camera`]). The draws are per scene, not per frame: nothing moves the sun or
+/// repaints a wall within a sequence. LiDAR scans, depth, semantics and instances never change.
+///
+/// With `randomize = false` (the default) the ranges are ignored (but still validated) and images
+/// are exactly those of the flat stock materials under [`LightingConfig`].
+///
+/// ```toml
+/// [appearance]
+/// randomize = true
+/// sun_elevation_deg = [8.0, 70.0]
+/// overcast = [0.0, 0.6]
+/// ```
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AppearanceConfig {
+    /// Draw textures, colours, sun and sky per scene.
+    pub randomize: bool,
+    /// Sun elevation range `[low, high]`, degrees above the horizon, within `[0, 90]`.
+    pub sun_elevation_deg: [f32; 2],
+    /// Sun azimuth range `[low, high]`, degrees counter-clockwise from the world +x axis (the main
+    /// street), within `[-360, 720]` and at most 360 wide.
+    pub sun_azimuth_deg: [f32; 2],
+    /// Correlated colour temperature of direct sunlight, `[low, high]` kelvin within
+    /// `[2000, 12000]` (6500 K renders white); a low sun is capped at 2000 K + 300 K per degree of
+    /// elevation.
+    pub sun_temperature_k: [f32; 2],
+    /// Cloud cover range `[low, high]` within `[0, 1]`: 0 a clear blue sky, 1 an overcast grey one
+    /// (the sun's irradiance falls to 15 % and the sky ambient rises).
+    pub overcast: [f32; 2],
+    /// Asphalt albedo range `[low, high]` (linear grey level, one per scene) within `[0, 1]`.
+    pub road_albedo: [f32; 2],
+    /// Relative brightness jitter per surface and instance: the HSV value scales by a factor in
+    /// `[1 - j, 1 + j]`; `j` within `[0, 1]`.
+    pub brightness_jitter: f32,
+    /// Hue jitter per surface and instance, degrees (half width), within `[0, 180]`.
+    pub hue_jitter_deg: f32,
+    /// Relative saturation jitter per surface and instance (half width), within `[0, 1]`.
+    pub saturation_jitter: f32,
+    /// Contrast of the procedural textures within `[0, 2]`: 0 flat (palettes and jitter only), 1
+    /// as designed.
+    pub texture_contrast: f32,
+}
+
+impl Default for AppearanceConfig {
+    fn default() -> Self {
+        AppearanceConfig {
+            randomize: false,
+            sun_elevation_deg: [8.0, 70.0],
+            sun_azimuth_deg: [0.0, 360.0],
+            sun_temperature_k: [4000.0, 6500.0],
+            overcast: [0.0, 0.8],
+            road_albedo: [0.04, 0.2],
+            brightness_jitter: 0.15,
+            hue_jitter_deg: 8.0,
+            saturation_jitter: 0.2,
+            texture_contrast: 1.0,
+        }
+    }
+}
+
+impl AppearanceConfig {
+    fn is_default(&self) -> bool {
+        *self == Self::default()
+    }
+
+    /// Check every range (finite, `low <= high`, within its bounds); the error names the key.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |key: &str, message: String| {
+            Err(Error::Invalid {
+                what: format!("appearance.{key}"),
+                message,
+            })
+        };
+        for (key, [lo, hi], min, max) in [
+            ("sun_elevation_deg", self.sun_elevation_deg, 0.0, 90.0),
+            ("sun_azimuth_deg", self.sun_azimuth_deg, -360.0, 720.0),
+            ("sun_temperature_k", self.sun_temperature_k, 2000.0, 12000.0),
+            ("overcast", self.overcast, 0.0, 1.0),
+            ("road_albedo", self.road_albedo, 0.0, 1.0),
+        ] {
+            if !(lo.is_finite() && hi.is_finite() && min <= lo && lo <= hi && hi <= max) {
+                return bad(
+                    key,
+                    format!("[{lo}, {hi}] must satisfy {min} <= low <= high <= {max}"),
+                );
+            }
+        }
+        let [lo, hi] = self.sun_azimuth_deg;
+        if hi - lo > 360.0 {
+            return bad(
+                "sun_azimuth_deg",
+                format!("[{lo}, {hi}] is wider than 360 degrees"),
+            );
+        }
+        for (key, v, max) in [
+            ("brightness_jitter", self.brightness_jitter, 1.0),
+            ("hue_jitter_deg", self.hue_jitter_deg, 180.0),
+            ("saturation_jitter", self.saturation_jitter, 1.0),
+            ("texture_contrast", self.texture_contrast, 2.0),
+        ] {
+            if !(v.is_finite() && (0.0..=max).contains(&v)) {
+                return bad(key, format!("{v} not in [0, {max}]"));
+            }
+        }
+        Ok(())
     }
 }
 
@@ -695,6 +821,7 @@ impl SceneConfig {
             "lighting",
             "colours must be in [0, 100] and exposure positive".into(),
         )?;
+        self.appearance.validate()?;
         check(
             self.frames.count <= 100_000,
             "frames.count",

@@ -3,6 +3,7 @@
 
 use glam::Affine3A;
 
+use super::appearance::Appearance;
 use super::config::LightingConfig;
 use super::raycast::Accel;
 
@@ -16,8 +17,12 @@ pub struct SceneSnapshot {
     pub time_s: f32,
     /// Pose of the LiDAR (world from LiDAR frame) at this instant.
     pub world_from_lidar: Affine3A,
-    /// Lighting of the scene.
+    /// Lighting of the scene: the configured one, or the sun and sky drawn for the scene when its
+    /// appearance is randomised ([`crate::sim::AppearanceConfig`]).
     pub lighting: LightingConfig,
     /// Random stream of this frame (ray drop, range noise).
     pub noise_seed: u64,
+    /// The scene's drawn appearance (palettes, textures) when randomised; `None` renders the stock
+    /// materials flat.
+    pub(crate) appearance: Option<Appearance>,
 }

@@ -1,7 +1,8 @@
 //! Procedural scene simulator: paired camera images and LiDAR scans with ground-truth semantics and
 //! depth, by ray casting through an `obvhs` BVH.
 //!
-//! - [`SceneConfig`]: a TOML scene file (layout, road, population, ego, sensors, lighting, frames).
+//! - [`SceneConfig`]: a TOML scene file (layout, road, population, ego, sensors, lighting,
+//!   appearance randomisation of the camera image, frames).
 //! - [`Scene::generate`]: a deterministic world from a config and a seed: road with lanes and
 //!   markings, kerbs, sidewalks, parking strips, buildings with windows, fences, hedges, trees,
 //!   bushes, terrain, street lights, signs, traffic lights, parked and moving cars, vans, trucks,
@@ -36,6 +37,7 @@
 //! # Ok::<(), veila_data::Error>(())
 //! ```
 
+mod appearance;
 pub mod camera;
 pub mod config;
 pub mod frame;
@@ -51,8 +53,8 @@ pub mod split;
 
 pub use camera::{CameraRenderOptions, SimCalib, SimImage};
 pub use config::{
-    CameraConfig, EgoConfig, FramesConfig, Layout, LidarConfig, LidarReturnModel, LightingConfig,
-    PopulationConfig, RoadConfig, RoadParams, SceneConfig,
+    AppearanceConfig, CameraConfig, EgoConfig, FramesConfig, Layout, LidarConfig, LidarReturnModel,
+    LightingConfig, PopulationConfig, RoadConfig, RoadParams, SceneConfig,
 };
 pub use frame::SceneSnapshot;
 pub use lidar::{RayOutcome, SimScan};

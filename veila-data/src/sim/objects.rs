@@ -446,6 +446,11 @@ pub fn hedge(rng: &mut ChaCha8Rng, length: f32) -> Mesh {
     m
 }
 
+/// Window glass of buildings.
+pub(crate) const WINDOW: Material = Material::new([0.04, 0.05, 0.06], 0.1, class::BUILDING);
+/// Roofs of buildings.
+pub(crate) const ROOF: Material = Material::new([0.15, 0.13, 0.12], 0.15, class::BUILDING);
+
 const FACADES: [([f32; 3], f32); 6] = [
     ([0.62, 0.56, 0.45], 0.65),
     ([0.72, 0.72, 0.7], 0.75),
@@ -461,8 +466,8 @@ pub fn building(rng: &mut ChaCha8Rng, width: f32, depth: f32, height: f32) -> Me
     let mut m = Mesh::new();
     let (albedo, refl) = FACADES[rng.random_range(0..FACADES.len())];
     let wall = m.surface(Material::new(albedo, refl, class::BUILDING), 0);
-    let window = m.surface(Material::new([0.04, 0.05, 0.06], 0.1, class::BUILDING), 0);
-    let roof = m.surface(Material::new([0.15, 0.13, 0.12], 0.15, class::BUILDING), 0);
+    let window = m.surface(WINDOW, 0);
+    let roof = m.surface(ROOF, 0);
     m.add_aabb(
         Vec3::new(-width / 2.0, -depth, 0.0),
         Vec3::new(width / 2.0, 0.0, height - 0.3),

@@ -11,6 +11,7 @@ use rand_chacha::ChaCha8Rng;
 
 use veila_geom::{LidarSensor, PinholeCamera};
 
+use super::appearance::Appearance;
 use super::camera::{CameraRenderOptions, SimCalib, SimImage};
 use super::config::{Layout, RoadParams, SceneConfig};
 use super::frame::SceneSnapshot;
@@ -149,12 +150,20 @@ impl Scene {
     pub fn snapshot(&self, index: u32) -> SceneSnapshot {
         let time_s = self.frame_time_s(index);
         let mesh = self.mesh_at(time_s);
+        // the appearance is drawn per scene (from its seed): the same in every frame
+        let appearance =
+            self.config.appearance.randomize.then(|| {
+                Appearance::draw(&self.config.appearance, &self.config.lighting, self.seed)
+            });
         SceneSnapshot {
             accel: Accel::build(&mesh),
             time_s,
             world_from_lidar: self.world_from_lidar(time_s),
-            lighting: self.config.lighting,
+            lighting: appearance
+                .as_ref()
+                .map_or(self.config.lighting, |a| a.lighting),
             noise_seed: splitmix(self.seed ^ splitmix(u64::from(index).wrapping_add(0x5eed))),
+            appearance,
         }
     }
 
