@@ -48,6 +48,8 @@
 //! encoder_steps = 250
 //! checkpoint_every = 250
 //! # grad_accum_steps = 1           # run each batch in this many parts (activation memory of one part)
+//! # [train.encoder_augment]        # augment the encoders' training images (crop-zoom, colour,
+//! # crop_zoom = { p = 0.5, scale = [1.0, 1.3] }   #  blur, noise, JPEG; veila_data::augment)
 //!
 //! [output]
 //! dir = "runs/my-model"            # OUTPUT/checkpoints, OUTPUT/bundle
@@ -211,6 +213,11 @@ struct TrainSection {
     /// The batch stays the global one; each part's activations are freed before the next.
     #[serde(default = "d_one", skip_serializing_if = "is_one")]
     grad_accum_steps: u64,
+    /// Image augmentation of the encoders' training (`[train.encoder_augment]`, any key of
+    /// `veila_data::augment::Photometric` under `photometric`, `p` / `scale` under `crop_zoom`;
+    /// absent: none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    encoder_augment: Option<veila_diffusion::app::EncoderAugment>,
 }
 
 fn d_one() -> u64 {
@@ -264,6 +271,7 @@ impl Default for TrainSection {
             cond_drop_prob: None,
             mean_steps: None,
             grad_accum_steps: 1,
+            encoder_augment: None,
         }
     }
 }
@@ -818,6 +826,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         encoder_batch: t.encoder_batch,
         encoder_lr: t.encoder_lr,
         grad_accum_steps: t.grad_accum_steps,
+        encoder_augment: t.encoder_augment,
     };
     let mean_steps = settings.mean_steps();
     let enc_dir = ck_dir.join(ENCODER_DIR);

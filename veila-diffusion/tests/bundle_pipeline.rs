@@ -1158,6 +1158,7 @@ fn encoders_train_to_the_same_weights_from_a_source() {
         encoder_batch: 2,
         encoder_lr: 1e-3,
         grad_accum_steps: 1,
+        encoder_augment: None,
     };
     let tmp = tempfile::tempdir().unwrap();
     let weights = |data: veila_diffusion::app::EncoderData<'_>, dir: &str| {

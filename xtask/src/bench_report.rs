@@ -29,6 +29,7 @@ use veila_metrics::fd::{self, FeatureStats};
 use veila_nn::encoders::{Normalization, rgb8_to_tensor};
 use veila_nn::feature_nets::FeatureNets;
 
+use crate::sampler_name::{sampler_for, sampler_label};
 use crate::simdata::{SimExample, render_split, workspace_root};
 use crate::train_default::{self, TrainDefaultArgs};
 
@@ -100,6 +101,12 @@ pub struct BenchReportArgs {
     /// with 4/8/16 steps): a smoke run whose numbers show the pipeline, not converged models.
     #[arg(long)]
     quick: bool,
+    /// Leave out the real frames of `../shared/data/real`.
+    #[arg(long)]
+    no_real: bool,
+    /// Samples per real frame.
+    #[arg(long, default_value_t = 4)]
+    real_seeds: usize,
 }
 
 /// How ablation variants are trained.
@@ -184,6 +191,8 @@ struct Report {
     shipped_only: bool,
     variants: Vec<VariantResult>,
     sweep: Vec<SweepPoint>,
+    /// The bundle on the real frames (issue 18), `None` with `--no-real`.
+    real: Option<crate::bench_real::RealReport>,
     notes: Vec<String>,
 }
 
@@ -543,26 +552,6 @@ fn data_floor(folds: &[std::ops::Range<usize>], judges: &[Judges]) -> VariantRes
     )
 }
 
-/// How the report names a sampler.
-fn sampler_label(name: &str) -> &'static str {
-    match name {
-        "ddpm" => "DDPM",
-        "ddim" => "DDIM (η = 0)",
-        _ => "DPM-Solver++(2M)",
-    }
-}
-
-fn sampler_for(name: &str, steps: usize, guidance: f64) -> Result<SamplerConfig> {
-    let mut s = match name {
-        "ddpm" => SamplerConfig::ddpm(steps),
-        "ddim" => SamplerConfig::ddim(steps, 0.0),
-        "dpm" => SamplerConfig::dpm_solver_pp_2m(steps),
-        other => bail!("unknown sampler {other}"),
-    };
-    s.guidance_scale = guidance;
-    Ok(s)
-}
-
 /// Runs the benchmark and writes the report.
 pub fn run(mut args: BenchReportArgs) -> Result<()> {
     if args.quick {
@@ -681,7 +670,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
             baseline_train.len()
         ),
         "-",
-        &per_fold(&base, &vec![median; tests.len()])?,
+        &per_fold(&base, &vec![median.clone(); tests.len()])?,
         fold_size,
     ));
     if base.is_conditional() {
@@ -816,6 +805,8 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                     work: Some(work.join(format!("ckpt-{}-{tag}-{}", v.name(), args.train_steps))),
                     encoders_from: Some(model_dir.clone()),
                     init_from: (args.protocol == Protocol::Finetune).then(|| model_dir.clone()),
+                    randomize: false,
+                    augment_encoders: false,
                 },
                 Some(&train_frames),
             )?;
@@ -906,6 +897,25 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
     }
 
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    let real = if args.no_real {
+        None
+    } else {
+        let sampler = sampler_for(
+            &args.sampler,
+            args.steps,
+            base.config.sampler.guidance_scale,
+        )?;
+        Some(crate::bench_real::evaluate(
+            &base,
+            &crate::bench_real::RealOptions {
+                sampler: &sampler,
+                sampler_label: format!("{} {} steps", sampler_label(&args.sampler), args.steps),
+                seeds: args.real_seeds,
+                mean_scan: &median,
+            },
+            &out,
+        )?)
+    };
     let report = Report {
         command: std::iter::once("cargo xtask".to_string())
             .chain(std::env::args().skip(1))
@@ -927,6 +937,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         shipped_only: args.shipped_only,
         variants: results,
         sweep,
+        real,
         notes: vec![
             match args.protocol {
                 Protocol::Finetune => format!("Protocol `finetune`: every variant starts from the bundled model's denoiser and is trained {} more steps with its switch flipped (weights that no longer fit are freshly initialised); `Veila` is the bundled model fine-tuned the same way (the control). The unconditional row is the bundled network's own unconditional branch (trained by 10% condition dropout), not a separately trained model.", args.train_steps),
@@ -1080,6 +1091,9 @@ fn write_report(out: &Path, r: &Report) -> Result<()> {
     writeln!(md)?;
     writeln!(md, "![sampler trade-off](sampler_tradeoff.png)")?;
     writeln!(md)?;
+    if let Some(real) = &r.real {
+        writeln!(md, "{}", crate::bench_real::markdown(real))?;
+    }
     writeln!(md, "## Notes")?;
     writeln!(md)?;
     for n in &r.notes {

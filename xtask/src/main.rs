@@ -11,14 +11,17 @@ mod process;
 mod bench_encoders; // cargo xtask bench-encoders
 mod bench_memory; // cargo xtask bench-memory (peak host memory of veila train)
 mod bench_model; // cargo xtask bench-model
+mod bench_real; // cargo xtask bench-real (and bench-report's real-frame section)
 mod bench_report; // cargo xtask bench-report
 mod build_cuda; // cargo xtask build-cuda (CUDA toolkit from PyPI)
 mod convert; // cargo xtask convert       (veila-data shards)
+mod encoder_transfer; // cargo xtask encoder-transfer (depth encoder recipes, sim vs real)
 mod feature_nets; // cargo xtask train-feature-nets (veila-nn feature_nets)
 mod kitti_weather; // cargo xtask kitti-weather (veila-data weather)
 mod method_sweep; // cargo xtask method-sweep (generative methods at equal training compute)
 mod overfit; // the bundled-size overfit check (an ignored test, run by hand)
 mod progress; // progress bars of the long commands
+mod sampler_name; // samplers by their command-line name
 mod simdata; // simulated examples for training and benchmarks
 #[cfg(test)]
 mod tidy;
@@ -45,6 +48,12 @@ enum Command {
     TrainFeatureNets(feature_nets::TrainFeatureNetsArgs),
     /// Benchmark report: Veila vs the unconditional baseline and the ablations, and sampler speed vs quality.
     BenchReport(bench_report::BenchReportArgs),
+    /// A bundle on the real KITTI / nuScenes frames of ../shared/data/real against the real scans
+    /// and two image-free baselines (bench-report's real-frame section alone, in seconds).
+    BenchReal(bench_real::BenchRealArgs),
+    /// Depth-encoder training recipes (augmentation, domain randomisation) scored on simulated
+    /// and on real images: the sim-to-real ablation at the encoders.
+    EncoderTransfer(encoder_transfer::EncoderTransferArgs),
     /// CPU engine speed: forward b1/b8 and a b8 training step of the small denoiser (medians, JSON).
     BenchModel(bench_model::BenchModelArgs),
     /// Build `veila` with `--features cuda` without a local CUDA install (nvcc and libraries from
@@ -76,6 +85,8 @@ fn run(command: Command) -> Result<()> {
         Command::KittiWeather(a) => kitti_weather::run(a),
         Command::TrainFeatureNets(a) => feature_nets::run(a),
         Command::BenchReport(a) => bench_report::run(a),
+        Command::BenchReal(a) => bench_real::run(a),
+        Command::EncoderTransfer(a) => encoder_transfer::run(a),
         Command::MethodSweep(a) => method_sweep::run(a),
         Command::BenchModel(a) => bench_model::run(a),
         Command::BenchEncoders(a) => bench_encoders::run(a),

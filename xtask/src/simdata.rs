@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use rayon::prelude::*;
+use veila_data::augment::Photometric;
 use veila_data::image::{RgbImage, imageops};
 use veila_data::sim::{Scene, SceneConfig, SceneList, SimFrame, class};
 use veila_diffusion::app::bundle::BundleConfig;
@@ -168,16 +169,58 @@ pub fn render_split(
     cfg: &BundleConfig,
     label: &str,
 ) -> Result<Vec<SimExample>> {
+    render_split_styled(list, n, cfg, &RenderStyle::default(), label)
+}
+
+/// How simulated camera images look: the simulator's stock images by default, or with the
+/// domain randomisation of issue 18.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct RenderStyle {
+    /// Scene appearance drawn per scene (`[appearance] randomize`: textures, palettes, sun, sky).
+    pub randomize_appearance: bool,
+    /// Sensor randomisation at the rendered resolution (exposure, vignetting, blur, white
+    /// balance, noise, colour, JPEG), seeded per frame.
+    pub sensor: Option<Photometric>,
+}
+
+impl RenderStyle {
+    /// The stock images (`false`) or both randomisations at their defaults (`true`).
+    pub fn randomized(on: bool) -> Self {
+        RenderStyle {
+            randomize_appearance: on,
+            sensor: on.then(Photometric::default),
+        }
+    }
+}
+
+/// [`render_split`] with a [`RenderStyle`] (the default style renders the same bytes).
+pub fn render_split_styled(
+    list: &Path,
+    n: usize,
+    cfg: &BundleConfig,
+    style: &RenderStyle,
+    label: &str,
+) -> Result<Vec<SimExample>> {
     let items = split_items(list, n)?;
     let bar = crate::progress::progress_bar(items.len() as u64, label);
     let out: Result<Vec<SimExample>> = items
         .par_iter()
-        .map(|(path, seed)| {
-            let scene_cfg = SceneConfig::from_file(path)?;
+        .enumerate()
+        .map(|(k, (path, seed))| {
+            let mut scene_cfg = SceneConfig::from_file(path)?;
+            scene_cfg.appearance.randomize |= style.randomize_appearance;
             let scene = Scene::generate(&scene_cfg, *seed)?;
             let frames = scene_cfg.frames.count.max(1) as u64;
             let yaws = &RIG_YAWS_DEG[..views_of(cfg).clamp(1, RIG_YAWS_DEG.len() + 1) - 1];
-            let (frame, views) = scene.render_frame_rig((*seed % frames) as u32, yaws)?;
+            let (mut frame, mut views) = scene.render_frame_rig((*seed % frames) as u32, yaws)?;
+            if let Some(sensor) = &style.sensor {
+                // one draw per frame (the rig's cameras share a sensor model, each its noise)
+                let frame_seed = sensor_seed(*seed, k as u64);
+                degrade(&mut frame.image, sensor, frame_seed)?;
+                for (j, v) in views.iter_mut().enumerate() {
+                    degrade(&mut v.image, sensor, frame_seed ^ (j as u64 + 1))?;
+                }
+            }
             let ex = example_from_rig(&frame, &views, cfg)
                 .with_context(|| format!("{} seed {seed}", path.display()))?;
             bar.inc(1);
@@ -186,6 +229,18 @@ pub fn render_split(
         .collect();
     bar.finish_and_clear();
     out
+}
+
+fn sensor_seed(scene_seed: u64, item: u64) -> u64 {
+    scene_seed
+        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        .wrapping_add(item.wrapping_mul(0xD1B5_4A32_D192_ED03))
+}
+
+fn degrade(image: &mut veila_data::sim::SimImage, sensor: &Photometric, seed: u64) -> Result<()> {
+    let img = image.to_rgb_image()?;
+    image.rgb = sensor.augment(&img, seed)?.into_raw();
+    Ok(())
 }
 
 /// The retrieval baseline: for every test frame, the range image of the training frame whose

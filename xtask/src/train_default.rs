@@ -18,7 +18,7 @@ use veila_diffusion::app::{
 };
 use veila_diffusion::{StepStats, TrainObserver};
 
-use crate::simdata::{SimExample, render_split, workspace_root};
+use crate::simdata::{SimExample, workspace_root};
 
 /// Arguments of `cargo xtask train-default`.
 #[derive(Debug, Args, Clone)]
@@ -70,6 +70,14 @@ pub struct TrainDefaultArgs {
     /// (bench-report's fine-tuned ablations); the rest keeps its seeded initialisation.
     #[arg(long)]
     pub init_from: Option<PathBuf>,
+    /// Render the training frames with domain randomisation (issue 18): scene appearance
+    /// (textures, palettes, sun, sky) and the sensor (exposure, white balance, noise, blur,
+    /// vignetting, JPEG).
+    #[arg(long)]
+    pub randomize: bool,
+    /// Augment the encoders' training images (crop-and-zoom, colour, blur, noise, JPEG).
+    #[arg(long)]
+    pub augment_encoders: bool,
 }
 
 struct Progress {
@@ -143,10 +151,11 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     let examples: &[SimExample] = match frames {
         Some(f) => f,
         None => {
-            rendered = render_split(
+            rendered = crate::simdata::render_split_styled(
                 &root.join("scenes/train.txt"),
                 args.frames,
                 &cfg,
+                &crate::simdata::RenderStyle::randomized(args.randomize),
                 "simulating train frames",
             )?;
             &rendered
@@ -175,6 +184,9 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         encoder_batch: 8,
         encoder_lr: 2e-3,
         grad_accum_steps: 1,
+        encoder_augment: args
+            .augment_encoders
+            .then(veila_diffusion::app::EncoderAugment::default),
     };
     let (tc, mean_tc) = settings.train_configs(cfg.denoiser.conditioning.is_some());
     let mean_steps = settings.mean_steps();
@@ -191,6 +203,8 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         "batch": args.batch,
         "encoders_from": args.encoders_from,
         "init_from": args.init_from,
+        "randomize": args.randomize,
+        "encoder_augment": settings.encoder_augment,
     });
     veila_diffusion::claim_checkpoint_dir(&work, &run_key)
         .with_context(|| "pass another --work to start a separate run")?;
@@ -201,10 +215,16 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     // trained encoders are kept in the work folder, so a resumed run does not train them
     // again (their training is deterministic: the same seed gives the same weights)
     let enc_dir = work.join(format!(
-        "encoders-seed{}-steps{}-frames{}",
+        "encoders-seed{}-steps{}-frames{}{}{}",
         args.seed,
         args.encoder_steps,
-        examples.len()
+        examples.len(),
+        if args.randomize { "-randomized" } else { "" },
+        if args.augment_encoders {
+            "-augmented"
+        } else {
+            ""
+        },
     ));
     let encoders = match &args.encoders_from {
         Some(dir) => EncoderSource::Bundle(dir),

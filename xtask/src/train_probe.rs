@@ -43,6 +43,11 @@ pub struct TrainProbeArgs {
     /// Held-out test frames (scenes/test.txt, interleaving its scene files).
     #[arg(long, default_value_t = 24)]
     test_frames: usize,
+    /// Split the probed frames come from: `test` (held out) or `train` (the first frames of the
+    /// training split, which a run of at least that many frames has trained on: the gap between the
+    /// two is the generalisation gap).
+    #[arg(long, default_value = "test")]
+    split: ProbeSplit,
     /// Training frames behind the baselines (median scan, retrieval) and the residual scale.
     #[arg(long, default_value_t = 96)]
     baseline_frames: usize,
@@ -61,6 +66,15 @@ pub struct TrainProbeArgs {
     /// 0 steps: the mean network alone.
     #[arg(long)]
     bundle_out: Option<PathBuf>,
+}
+
+/// Where `train-probe`'s frames come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum ProbeSplit {
+    /// The held-out test split.
+    Test,
+    /// The training split (frames the run trained on).
+    Train,
 }
 
 /// Front and rear range MAE and ring spread of `scans` against the test frames.
@@ -206,7 +220,10 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
         bail!("no checkpoint in {} yet", work.display());
     }
     let tests = render_split(
-        &root.join("scenes/test.txt"),
+        &root.join(match args.split {
+            ProbeSplit::Test => "scenes/test.txt",
+            ProbeSplit::Train => "scenes/train.txt",
+        }),
         args.test_frames,
         &cfg,
         "simulating test frames",
@@ -324,6 +341,7 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
     );
     let mut line = serde_json::json!({
         "test_frames": tests.len(),
+        "split": format!("{:?}", args.split).to_lowercase(),
         "baseline_frames": train.len(),
         "mean": mean_ckpt.as_ref().map(|(_, s)| clock(s)),
         "denoiser": den_ckpt.as_ref().map(|(_, s)| clock(s)),

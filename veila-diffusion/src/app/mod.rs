@@ -30,8 +30,8 @@ pub use recipe::{
 };
 pub use rig::{RigView, camera_views, load_view, prepare_view, prepare_views, scan_points};
 pub use train::{
-    BundleFit, BundleFitOutcome, DenoiserFit, DenoiserFitOutcome, DenoiserTraining, EncoderStep,
-    MeanPredictor, Stage, TrainExample, fit_bundle, fit_denoiser, predict_means, raw_residual,
-    regression_weight, residual_scale, residual_scale_of, residual_target, stage_config,
-    train_small_cnn, train_small_cnn_from, varmap_tensors,
+    BundleFit, BundleFitOutcome, DenoiserFit, DenoiserFitOutcome, DenoiserTraining, EncoderAugment,
+    EncoderStep, MeanPredictor, Stage, TrainExample, fit_bundle, fit_denoiser, predict_means,
+    raw_residual, regression_weight, residual_scale, residual_scale_of, residual_target,
+    stage_config, train_small_cnn, train_small_cnn_from, varmap_tensors,
 };

@@ -63,6 +63,8 @@ pub struct RecipeSettings {
     /// Gradient accumulation of the denoiser and the mean network: each update runs its batch in
     /// this many parts ([`TrainConfig::grad_accum_steps`]; 1: none).
     pub grad_accum_steps: u64,
+    /// Image augmentation of the encoders' training (`None`: the images as they are).
+    pub encoder_augment: Option<super::train::EncoderAugment>,
 }
 
 impl RecipeSettings {
@@ -356,6 +358,7 @@ pub fn prepare_encoders(
                 settings.encoder_batch,
                 settings.encoder_lr,
                 settings.seed ^ which.salt(),
+                settings.encoder_augment.as_ref(),
                 device,
                 |s| {
                     last = s.loss;

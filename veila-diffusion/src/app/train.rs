@@ -1121,6 +1121,65 @@ pub struct EncoderStep {
     pub loss: f32,
 }
 
+/// Image augmentation of encoder training (issue 18): a random crop-and-zoom with the targets
+/// resampled alike, then the photometric pipeline of [`veila_data::augment`] (exposure,
+/// vignetting, blur, white balance, noise, colour jitter, JPEG). Depth targets are divided by the
+/// zoom `s`: an object zoomed `s` times looks as it would `s` times nearer through the training
+/// camera, and the encoder keeps answering for that camera's focal length.
+///
+/// Each example of each update draws its own parameters from `(seed, update, slot)`, so a run is
+/// reproducible and the same image is augmented differently every time it is drawn.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EncoderAugment {
+    /// Photometric ranges and probabilities.
+    pub photometric: veila_data::augment::Photometric,
+    /// Crop-and-zoom probability and zoom range.
+    pub crop_zoom: veila_data::augment::CropZoomRange,
+}
+
+impl EncoderAugment {
+    /// Augments one `h x w` example in place with the parameters drawn from `seed`.
+    pub fn apply(&self, ex: &mut EncoderExample, (h, w): (usize, usize), seed: u64) -> Result<()> {
+        let img = veila_data::augment::rgb_image_from_raw(
+            w as u32,
+            h as u32,
+            std::mem::take(&mut ex.rgb),
+        )?;
+        let crop = self.crop_zoom.draw(w as u32, h as u32, seed)?;
+        let img = if crop.scale != 1.0 || crop.offset_px != [0.0, 0.0] {
+            if let Some(l) = ex.labels.as_mut() {
+                *l = crop.resample_nearest(l, w as u32, h as u32)?;
+            }
+            if !ex.depth_m.is_empty() {
+                let inv = 1.0 / crop.scale;
+                ex.depth_m = crop
+                    .resample_nearest(&ex.depth_m, w as u32, h as u32)?
+                    .into_iter()
+                    .map(|d| d * inv)
+                    .collect();
+            }
+            crop.resample_rgb(&img)?
+        } else {
+            img
+        };
+        ex.rgb = self
+            .photometric
+            .augment(&img, seed ^ 0x6a09_e667_f3bc_c909)?
+            .into_raw();
+        Ok(())
+    }
+}
+
+fn augment_seed(seed: u64, step: usize, slot: usize) -> u64 {
+    let mut z = seed
+        ^ (step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        ^ (slot as u64).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
 /// Trains a [`SmallCnn`] on images with per-pixel targets: `images[i]` is `h * w * 3` RGB bytes,
 /// `labels[i]` (class ids of the learning map) and/or `depth_m[i]` (metres, 0 = no ground truth)
 /// `h * w` values. AdamW with a cosine learning rate, seeded batches; returns the network and its
@@ -1136,6 +1195,7 @@ pub fn train_small_cnn(
     batch_size: usize,
     lr: f64,
     seed: u64,
+    augment: Option<&EncoderAugment>,
     device: &Device,
     on_step: impl FnMut(EncoderStep),
 ) -> Result<(SmallCnn, VarMap)> {
@@ -1156,6 +1216,7 @@ pub fn train_small_cnn(
         batch_size,
         lr,
         seed,
+        augment,
         device,
         on_step,
     )
@@ -1174,6 +1235,7 @@ pub fn train_small_cnn_from(
     batch_size: usize,
     lr: f64,
     seed: u64,
+    augment: Option<&EncoderAugment>,
     device: &Device,
     mut on_step: impl FnMut(EncoderStep),
 ) -> Result<(SmallCnn, VarMap)> {
@@ -1210,7 +1272,12 @@ pub fn train_small_cnn_from(
         let progress = step as f64 / steps.max(1) as f64;
         opt.set_learning_rate(lr * 0.5 * (1.0 + (std::f64::consts::PI * progress).cos()));
         let idx: Vec<usize> = (0..batch_size).map(|_| rng.random_range(0..n)).collect();
-        let batch = idx.iter().map(|&i| get(i)).collect::<Result<Vec<_>>>()?;
+        let mut batch = idx.iter().map(|&i| get(i)).collect::<Result<Vec<_>>>()?;
+        if let Some(a) = augment {
+            for (slot, e) in batch.iter_mut().enumerate() {
+                a.apply(e, (h, w), augment_seed(seed, step, slot))?;
+            }
+        }
         let imgs = batch
             .iter()
             .map(|e| image_tensor(&e.rgb, h, w, device))
