@@ -541,7 +541,7 @@ pub fn run(args: BenchRealArgs) -> Result<()> {
     )?;
     let md = format!(
         "# Real frames: {}\n\n{}",
-        model_dir.display(),
+        args.model.display(),
         markdown(&report)
     );
     veila_data::atomic::write_atomic(&out.join("report.md"), md.as_bytes())?;
@@ -569,7 +569,9 @@ pub fn markdown(r: &RealReport) -> String {
          std; `mean-network`: the residual bundle's mean network alone; `mean-scan`: the per-pixel \
          median of simulated training scans; `flat-ground`: a flat ground plane at the LiDAR's \
          height. View = the grid pixels the camera sees; coverage = share of the real returns \
-         there that the scan also has (MAE counts only pixels where both have one).\n",
+         there that the scan also has (MAE counts only pixels where both have one). The overlays \
+         (generated points above, real below, coloured by depth) are written under `real/` by the \
+         command and are not committed: they contain the real images, which keep their licences.\n",
         r.seeds, r.sampler
     );
     for m in &r.missing {

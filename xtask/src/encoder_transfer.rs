@@ -19,7 +19,8 @@ use glam::Vec3;
 use serde::Serialize;
 use veila_diffusion::app::bundle::{BundleConfig, Variant};
 use veila_diffusion::app::rig::{load_view, prepare_views};
-use veila_diffusion::app::train_small_cnn;
+use veila_data::augment::{CropZoomRange, Photometric};
+use veila_diffusion::app::{EncoderAugment, train_small_cnn};
 use veila_nn::encoders::small_cnn::SmallCnn;
 use veila_nn::encoders::{Normalization, rgb8_to_tensor};
 
@@ -29,7 +30,7 @@ use crate::simdata::{SimExample, render_split, workspace_root};
 /// Arguments of `cargo xtask encoder-transfer`.
 #[derive(Debug, Args)]
 pub struct EncoderTransferArgs {
-    /// Recipes to compare (comma-separated): plain, augment, appearance, both.
+    /// Recipes to compare (comma-separated): plain, augment, photometric, crop, appearance, both.
     #[arg(
         long,
         value_delimiter = ',',
@@ -59,8 +60,12 @@ pub struct EncoderTransferArgs {
 pub enum Recipe {
     /// The simulator's images as they are (the shipped recipe).
     Plain,
-    /// Plus image augmentation during training.
+    /// Plus image augmentation during training (crop-and-zoom and photometric).
     Augment,
+    /// Plus the photometric half of the augmentation only.
+    Photometric,
+    /// Plus the crop-and-zoom half of the augmentation only.
+    Crop,
     /// Training images rendered with appearance and sensor randomisation.
     Appearance,
     /// Both.
@@ -71,8 +76,20 @@ impl Recipe {
     fn randomized_appearance(self) -> bool {
         matches!(self, Recipe::Appearance | Recipe::Both)
     }
-    fn augmented(self) -> bool {
-        matches!(self, Recipe::Augment | Recipe::Both)
+    fn augment(self) -> Option<EncoderAugment> {
+        let full = EncoderAugment::default();
+        match self {
+            Recipe::Augment | Recipe::Both => Some(full),
+            Recipe::Photometric => Some(EncoderAugment {
+                crop_zoom: CropZoomRange::identity(),
+                ..full
+            }),
+            Recipe::Crop => Some(EncoderAugment {
+                photometric: Photometric::identity(),
+                ..full
+            }),
+            Recipe::Plain | Recipe::Appearance => None,
+        }
     }
 }
 
@@ -249,9 +266,7 @@ pub fn run(args: EncoderTransferArgs) -> Result<()> {
         let bar = crate::progress::progress_bar(args.steps as u64, "depth encoder");
         let mut last = f32::NAN;
         let t = Instant::now();
-        let augment = recipe
-            .augmented()
-            .then(veila_diffusion::app::EncoderAugment::default);
+        let augment = recipe.augment();
         let (net, _) = train_small_cnn(
             &enc_cfg,
             &images,
@@ -306,9 +321,13 @@ pub fn run(args: EncoderTransferArgs) -> Result<()> {
     md.push('\n');
     for r in &rows {
         md.push_str(&format!(
-            "| {} | {:.0} | {:.3} | {:.3} |",
+            "| {} | {} | {:.3} | {:.3} |",
             r.name(),
-            r.train_seconds,
+            if r.train_seconds.is_finite() {
+                format!("{:.0}", r.train_seconds)
+            } else {
+                "-".to_string()
+            },
             r.sim.abs_rel,
             r.real_mean_abs_rel
         ));
