@@ -13,7 +13,7 @@ use veila_geom::{LidarSensor, PinholeCamera};
 
 use super::appearance::Appearance;
 use super::camera::{CameraRenderOptions, SimCalib, SimImage};
-use super::config::{Layout, RoadParams, SceneConfig};
+use super::config::{CameraConfig, Layout, RoadParams, SceneConfig};
 use super::frame::SceneSnapshot;
 use super::hash::splitmix;
 use super::lidar::SimScan;
@@ -27,6 +27,8 @@ use crate::Result;
 const TILE_M: f32 = 10.0;
 /// Height of lane paint above the asphalt, metres (keeps markings ahead of the road in closest-hit).
 const PAINT_Z: f32 = 0.003;
+/// First random stream of the open roadsides (apart from every stream the older features use).
+const OPEN_STREAM: u64 = 0x6f70_0000;
 
 /// A moving or movable object: a mesh in its own frame moved along a straight line.
 #[derive(Debug, Clone)]
@@ -59,6 +61,10 @@ pub struct Scene {
     /// LiDAR pose at time 0.
     ego_pose0: Affine3A,
     ego_velocity: Vec3,
+    /// The camera of the scene's rig (the config's, or drawn with [`super::RigConfig`]).
+    camera: CameraConfig,
+    /// The LiDAR's height above the road.
+    lidar_height_m: f32,
 }
 
 impl Scene {
@@ -68,11 +74,15 @@ impl Scene {
         let road = config.road_params();
         let mut g = Gen::new(config, road, seed);
         match config.layout {
-            Layout::Straight | Layout::NarrowStreet => g.straight(),
+            Layout::Straight | Layout::NarrowStreet | Layout::Open => g.straight(),
             Layout::Junction => g.junction(),
         }
         g.populate();
         let ego_d = -(road.lanes_per_direction as f32 - 0.5) * road.lane_width_m;
+        let (lidar_height_m, camera) =
+            config
+                .rig
+                .draw(seed, config.ego.lidar_height_m, &config.camera);
         Ok(Scene {
             config: config.clone(),
             seed,
@@ -81,9 +91,11 @@ impl Scene {
             ego_pose0: Affine3A::from_translation(Vec3::new(
                 config.ego.start_x_m,
                 ego_d,
-                config.ego.lidar_height_m,
+                lidar_height_m,
             )),
             ego_velocity: Vec3::new(config.ego.speed_mps, 0.0, 0.0),
+            camera,
+            lidar_height_m,
         })
     }
 
@@ -104,7 +116,23 @@ impl Scene {
             actors,
             ego_pose0: world_from_lidar,
             ego_velocity: Vec3::ZERO,
+            camera: config.camera,
+            lidar_height_m: world_from_lidar.translation.z,
         }
+    }
+
+    /// The camera of the scene's rig: the config's camera, with its height (`up_m`) and pitch
+    /// (`pitch_down_deg`) drawn when [`super::RigConfig::randomize`] is on. The frames' camera and
+    /// calibration are made from it ([`SimCalib::from_config`]).
+    pub fn camera_config(&self) -> &CameraConfig {
+        &self.camera
+    }
+
+    /// The LiDAR's height above the road, metres: the drawn one with
+    /// [`super::RigConfig::randomize`], else `ego.lidar_height_m` (for a scene from
+    /// [`Scene::from_parts`], the height of its LiDAR pose).
+    pub fn lidar_height_m(&self) -> f32 {
+        self.lidar_height_m
     }
 
     /// The configuration the scene was generated from.
@@ -181,7 +209,7 @@ impl Scene {
             return Ok((frame, Vec::new()));
         }
         let snap = self.snapshot(index);
-        let opts = CameraRenderOptions::from(&self.config.camera);
+        let opts = CameraRenderOptions::from(&self.camera);
         let views = yaws_deg
             .iter()
             .map(|&yaw| {
@@ -207,11 +235,11 @@ impl Scene {
     /// camera): the paired scan and image without touching files, for training and demo code.
     pub fn render_frame(&self, index: u32) -> Result<SimFrame> {
         let sensor = self.config.lidar.sensor()?;
-        let calib = SimCalib::from_config(&self.config.camera);
+        let calib = SimCalib::from_config(&self.camera);
         let camera = calib.camera()?;
         let snap = self.snapshot(index);
         let scan = snap.render_lidar(&sensor, &self.config.lidar.returns)?;
-        let image = snap.render_camera(&camera, &CameraRenderOptions::from(&self.config.camera))?;
+        let image = snap.render_camera(&camera, &CameraRenderOptions::from(&self.camera))?;
         Ok(SimFrame {
             index,
             time_s: snap.time_s,
@@ -335,6 +363,8 @@ struct Gen<'a> {
     no_parking: Vec<(f32, f32)>,
     next_instance: u16,
     furniture: Vec<Occupancy>,
+    /// Street sections whose lots were built so far (numbers the open-roadside draws).
+    lot_calls: u64,
 }
 
 impl<'a> Gen<'a> {
@@ -349,6 +379,7 @@ impl<'a> Gen<'a> {
             no_parking: Vec::new(),
             next_instance: 1,
             furniture: (0..4).map(|_| Occupancy::default()).collect(),
+            lot_calls: 0,
         }
     }
 
@@ -370,9 +401,16 @@ impl<'a> Gen<'a> {
         self.road.length_m / 2.0
     }
 
-    /// Outer extent of the world across a street (terrain reaches this far).
+    /// Outer extent of the world across a street (terrain reaches this far; further when sides
+    /// may be open, to carry their far buildings and trees).
     fn outer_d(&self) -> f32 {
-        self.road.half_carriageway_m() + self.road.sidewalk_width_m + self.road.setback_m + 45.0
+        let r = &self.road;
+        let back = if r.open_side_probability > 0.0 && self.cfg.layout != Layout::Junction {
+            r.setback_m.max(r.open_setback_m[1] + 20.0)
+        } else {
+            r.setback_m
+        };
+        r.half_carriageway_m() + r.sidewalk_width_m + back + 45.0
     }
 
     fn straight(&mut self) {
@@ -572,7 +610,14 @@ impl<'a> Gen<'a> {
         let r = self.road;
         let front = r.half_carriageway_m() + r.sidewalk_width_m + r.setback_m;
         let [hmin, hmax] = r.building_height_m;
+        let call = self.lot_calls;
+        self.lot_calls += 1;
         for side in [-1.0f32, 1.0] {
+            // the junction's arms keep their lots (open ground there would run into the cross street)
+            if self.cfg.layout != Layout::Junction && self.side_open(call, side) {
+                self.open_side(f, s0, s1, side, call);
+                continue;
+            }
             let mut s = s0 + rng.random_range(0.0..4.0f32);
             while s < s1 - 4.0 {
                 if rng.random::<f32>() < r.building_frontage {
@@ -626,6 +671,136 @@ impl<'a> Gen<'a> {
                     self.mesh
                         .append_transformed(&b, f.place(bs, bd, r.kerb_height_m, 0.0));
                 }
+            }
+        }
+    }
+
+    /// Whether side `side` of the `call`-th street section is open (its own random stream: the
+    /// draw never shifts the other streams, and with probability 0 nothing changes).
+    fn side_open(&self, call: u64, side: f32) -> bool {
+        let p = self.road.open_side_probability;
+        if p <= 0.0 {
+            return false;
+        }
+        let mut rng = self.rng(OPEN_STREAM + 2 * call + u64::from(side > 0.0));
+        rng.random::<f32>() < p
+    }
+
+    /// An open roadside along `[s0, s1]` on `side`: maybe a guardrail at the road edge, maybe a
+    /// far building row, and open ground with trees (a row, clusters, single trees), bushes and
+    /// field fences or hedges in front of it.
+    fn open_side(&mut self, f: StreetFrame, s0: f32, s1: f32, side: f32, call: u64) {
+        let r = self.road;
+        let p = self.cfg.population.clone();
+        let mut rng = self.rng(OPEN_STREAM + 0x100 + 2 * call + u64::from(side > 0.0));
+        let kh = r.kerb_height_m;
+        let wc = r.half_carriageway_m();
+        let front = wc + r.sidewalk_width_m;
+        let len = (s1 - s0).max(0.0);
+        // heading that turns an object's local +y toward the road
+        let to_road = if side > 0.0 {
+            std::f32::consts::PI
+        } else {
+            0.0
+        };
+        if rng.random::<f32>() < r.guardrail_probability {
+            let d = side * (wc + 0.25);
+            let mut s = s0 + rng.random_range(0.0..20.0f32);
+            while s < s1 - 10.0 {
+                let l = rng.random_range(30.0..150.0f32).min(s1 - 1.0 - s);
+                if l < 8.0 {
+                    break;
+                }
+                let g = objects::guardrail(l);
+                self.mesh
+                    .append_transformed(&g, f.place(s + l / 2.0, d, kh, to_road));
+                s += l + rng.random_range(4.0..40.0f32);
+            }
+        }
+        // far buildings: a sparse row well behind the open ground
+        let mut reach = 60.0f32;
+        if rng.random::<f32>() < r.open_building_probability {
+            let [lo, hi] = r.open_setback_m;
+            let setback = lo + (hi - lo) * rng.random::<f32>();
+            reach = setback - 3.0;
+            let [hmin, hmax] = r.building_height_m;
+            let mut s = s0 + rng.random_range(0.0..10.0f32);
+            while s < s1 - 8.0 {
+                let w = rng.random_range(8.0..20.0f32).min(s1 - s);
+                if rng.random::<f32>() < r.building_frontage {
+                    let depth = rng.random_range(8.0..16.0f32);
+                    let height = rng.random_range(hmin..=hmax);
+                    let b = objects::building(&mut rng, w, depth, height);
+                    let dd = side * (front + setback + rng.random_range(0.0..4.0f32));
+                    self.mesh
+                        .append_transformed(&b, f.place(s + w / 2.0, dd, kh, to_road));
+                }
+                s += w + rng.random_range(2.0..12.0f32);
+            }
+        }
+        let dist = |rng: &mut ChaCha8Rng, a: f32, b: f32| rng.random_range(a..b.max(a + 0.1));
+        let tree_at = |g: &mut Self, rng: &mut ChaCha8Rng, s: f32, d_out: f32| {
+            let t = objects::tree(rng);
+            let k = rng.random_range(0.8..1.6f32);
+            g.mesh.append_transformed(
+                &t,
+                f.place(s, side * (front + d_out), kh, 0.0) * Affine3A::from_scale(Vec3::splat(k)),
+            );
+        };
+        // a row of trees along the road (an avenue or a windbreak)
+        if rng.random_bool(0.4) {
+            let d_row = dist(&mut rng, 2.0, reach.min(25.0));
+            let spacing = rng.random_range(6.0..14.0f32);
+            let mut s = s0 + rng.random_range(0.0..spacing);
+            while s < s1 {
+                if rng.random_bool(0.8) {
+                    let jitter = rng.random_range(-0.8..0.8f32);
+                    tree_at(self, &mut rng, s, d_row + jitter);
+                }
+                s += spacing * rng.random_range(0.85..1.15f32);
+            }
+        }
+        // clusters of trees (copses) at varied distances
+        let density = p.trees_per_100m / 8.0;
+        let clusters = poisson_count(&mut rng, 2.5 * density * len / 100.0);
+        for _ in 0..clusters {
+            let cs = rng.random_range(s0..s1.max(s0 + 1e-3));
+            let cd = dist(&mut rng, 4.0, reach);
+            let spread = rng.random_range(3.0..10.0f32);
+            for _ in 0..rng.random_range(3..12u32) {
+                let s = (cs + rng.random_range(-spread..spread)).clamp(s0, s1);
+                let d = (cd + rng.random_range(-spread..spread) * 0.6).clamp(2.0, reach.max(2.0));
+                tree_at(self, &mut rng, s, d);
+            }
+        }
+        // single trees and bushes scattered over the open ground
+        for _ in 0..poisson_count(&mut rng, 1.5 * p.trees_per_100m * len / 100.0) {
+            let s = rng.random_range(s0..s1.max(s0 + 1e-3));
+            let d = dist(&mut rng, 2.0, reach);
+            tree_at(self, &mut rng, s, d);
+        }
+        for _ in 0..poisson_count(&mut rng, p.bushes_per_100m * len / 100.0) {
+            let s = rng.random_range(s0..s1.max(s0 + 1e-3));
+            let d = dist(&mut rng, 1.0, reach);
+            let b = objects::bush(&mut rng);
+            self.mesh
+                .append_transformed(&b, f.place(s, side * (front + d), kh, 0.0));
+        }
+        // a field boundary: fence or hedge runs with gaps, parallel to the road
+        let u = rng.random::<f32>();
+        if u < 0.6 {
+            let d = dist(&mut rng, 3.0, reach.min(30.0));
+            let mut s = s0 + rng.random_range(0.0..20.0f32);
+            while s < s1 - 5.0 {
+                let l = rng.random_range(15.0..60.0f32).min(s1 - s);
+                let m = if rng.random::<f32>() < p.fence_probability {
+                    objects::fence(l, rng.random_range(0.9..1.6f32))
+                } else {
+                    objects::hedge(&mut rng, l)
+                };
+                self.mesh
+                    .append_transformed(&m, f.place(s + l / 2.0, side * (front + d), kh, 0.0));
+                s += l + rng.random_range(5.0..40.0f32);
             }
         }
     }
