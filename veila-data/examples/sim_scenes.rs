@@ -1,6 +1,6 @@
 //! The open-country scenes of the simulator: renders frame 0 of `scenes/open_road.toml` and
 //! `scenes/suburban.toml` for a few seeds at the scene's camera size (with the rig drawn for the
-//! seed), writes the images and a bird's-eye view of each LiDAR scan coloured by class to a folder,
+//! seed, on the road's grade where one is drawn), writes the images and a bird's-eye view of each LiDAR scan coloured by class to a folder,
 //! and prints the drawn rig.
 //!
 //! ```sh
@@ -54,7 +54,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             birds_eye(&frame.scan).save(out.join(format!("{name}_{seed}_bev.png")))?;
             let c = scene.camera_config();
             println!(
-                "{name} seed {seed}: LiDAR {:.3} m, camera {:+.3} m, pitch {:+.2} deg, {} points -> {}",
+                "{name} seed {seed}: grade {:+.2} %, LiDAR {:.3} m, camera {:+.3} m, pitch {:+.2} deg, \
+                 {} points -> {}",
+                scene.grade_percent(),
                 scene.lidar_height_m(),
                 c.up_m,
                 c.pitch_down_deg,

@@ -1078,6 +1078,7 @@ fn random_valid_configs_generate_and_render_without_panicking() {
             open_setback_m: Some([5.0, rng.random_range(5.0..100.0)]),
             open_building_probability: Some(rng.random_range(0.0..=1.0)),
             guardrail_probability: Some(rng.random_range(0.0..=1.0)),
+            grade_percent: Some([rng.random_range(-12.0..0.0), rng.random_range(0.0..12.0)]),
             ..RoadConfig::default()
         };
         cfg.rig.randomize = rng.random_bool(0.5);
@@ -1774,6 +1775,7 @@ fn new_keys_at_their_defaults_are_left_out_of_the_serialised_scene() {
         "open_setback_m",
         "open_building_probability",
         "guardrail_probability",
+        "grade_percent",
         "\"rig\"",
         "appearance",
     ] {
@@ -1987,6 +1989,11 @@ fn open_roadside_and_rig_values_are_validated_with_the_key_named() {
             "[road]\nguardrail_probability = 2.0\n",
             "road.guardrail_probability",
         ),
+        ("[road]\ngrade_percent = [5.0, 2.0]\n", "road.grade_percent"),
+        (
+            "[road]\ngrade_percent = [-20.0, 0.0]\n",
+            "road.grade_percent",
+        ),
         ("[rig]\nlidar_height_m = [0.0, 1.0]\n", "rig.lidar_height_m"),
         ("[rig]\nlidar_height_m = [2.0, 1.0]\n", "rig.lidar_height_m"),
         ("[rig]\ncamera_up_m = [-1.0, 3.0]\n", "rig.camera_up_m"),
@@ -2059,4 +2066,84 @@ fn v2_scene_lists_extend_the_v1_lists_with_disjoint_seeds() {
             );
         }
     }
+}
+
+#[test]
+fn on_a_grade_change_the_road_and_the_ego_follow_the_profile() {
+    let mut cfg = tiny_config();
+    cfg.road.grade_percent = Some([-6.0, 6.0]);
+    cfg.rig.randomize = true;
+    let sensor = LidarSensor {
+        cols: 1024,
+        ..LidarSensor::hdl64e()
+    };
+    let (mut climbs, mut falls, mut seen_lifted) = (0, 0, 0);
+    for seed in 0..6u64 {
+        let scene = Scene::generate(&cfg, seed).unwrap();
+        let g = scene.grade_percent();
+        assert!((-6.0..=6.0).contains(&g) && g != 0.0, "seed {seed}: {g}");
+        climbs += usize::from(g > 0.0);
+        falls += usize::from(g < 0.0);
+        let h = scene.lidar_height_m();
+        // frame 0 and a frame 12 s later (the ego then is 96 m on, past every curve's end)
+        for index in [0u32, 120] {
+            let t = scene.frame_time_s(index);
+            let pose = scene.world_from_lidar(t);
+            let x = pose.translation.x;
+            // the ego pitches with the road: its forward axis climbs with the slope there
+            let slope = (scene.road_height_m(x + 0.05) - scene.road_height_m(x - 0.05)) / 0.1;
+            let fwd = pose.matrix3.x_axis;
+            assert!(
+                (fwd.z / fwd.x - slope).abs() < 2e-3,
+                "seed {seed} frame {index}: forward {fwd} on slope {slope}"
+            );
+            let scan = scene
+                .snapshot(index)
+                .render_lidar(&sensor, &LidarReturnModel::ideal())
+                .unwrap();
+            let labels = scan.points.label.as_ref().unwrap();
+            let mut beneath = 0;
+            for (p, l) in scan.points.xyz.iter().zip(labels) {
+                let c = (l & 0xFFFF) as u16;
+                if c != class::ROAD {
+                    continue;
+                }
+                // LiDAR ground returns around the ego lie at the LiDAR's height below it (the
+                // lowest beam reaches the road about 4 m out; within 8 m a 6 % curve over 40 m
+                // bends the road by at most 0.05 m from the ego's tangent plane)
+                if p.x.abs() < 8.0 && p.y.abs() < 1.5 {
+                    assert!(
+                        (p.z + h).abs() < 0.06,
+                        "seed {seed} frame {index}: road point {p} for height {h}"
+                    );
+                    beneath += 1;
+                }
+                // every road return lies on the road's profile
+                let w = pose.transform_point3(*p);
+                let road = scene.road_height_m(w.x);
+                assert!(
+                    (w.z - road).abs() < 5e-3,
+                    "seed {seed} frame {index}: road return at {w}, road at {road}"
+                );
+                seen_lifted += usize::from((w.z - scene.road_height_m(x)).abs() > 0.5);
+            }
+            assert!(beneath > 100, "seed {seed} frame {index}: {beneath}");
+        }
+    }
+    assert!(
+        climbs > 0 && falls > 0,
+        "{climbs} climbing, {falls} falling"
+    );
+    assert!(
+        seen_lifted > 100,
+        "{seen_lifted} road returns off the ego's level"
+    );
+    // a flat config has a flat world and an upright ego
+    let flat = Scene::generate(&tiny_config(), 1).unwrap();
+    assert_eq!(flat.grade_percent(), 0.0);
+    assert_eq!(flat.road_height_m(50.0), 0.0);
+    assert_eq!(
+        flat.world_from_lidar(1.0).matrix3,
+        glam::Affine3A::IDENTITY.matrix3
+    );
 }

@@ -132,10 +132,17 @@ pub struct RoadConfig {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub open_building_probability: Option<f32>,
     /// On an open side: the probability, within `[0, 1]`, of a guardrail (a low metal barrier,
-    /// labelled `fence` as in SemanticKITTI) in long runs along the road edge. Default 0.2 (0.6
-    /// for the `open` layout).
+    /// labelled `fence` as in SemanticKITTI) in long runs along the road edge; never beside a
+    /// parking strip. Default 0.2 (0.6 for the `open` layout).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub guardrail_probability: Option<f32>,
+    /// A grade change of the main street: the range `[low, high]`, percent within `[-12, 12]`, of
+    /// the grade drawn per scene (positive: the road climbs in +x). The street is flat up to a
+    /// point drawn 30 m behind to 50 m ahead of the ego's start, then bends over a 40 m parabolic
+    /// vertical curve into that grade; everything on it (the ego, pitching with the road, too)
+    /// follows the road's height. Default `[0, 0]`: flat.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub grade_percent: Option<[f32; 2]>,
 }
 
 /// Road parameters with every default resolved for a layout.
@@ -171,6 +178,8 @@ pub struct RoadParams {
     pub open_building_probability: f32,
     /// Probability that an open side has a guardrail along the road edge.
     pub guardrail_probability: f32,
+    /// Range of the main street's grade after its vertical curve, percent.
+    pub grade_percent: [f32; 2],
 }
 
 impl RoadParams {
@@ -244,6 +253,7 @@ impl RoadConfig {
             } else {
                 0.2
             }),
+            grade_percent: self.grade_percent.unwrap_or([0.0, 0.0]),
         }
     }
 }
@@ -878,6 +888,12 @@ impl SceneConfig {
                 format!("{v} not in [0, 1]"),
             )?;
         }
+        let [g0, g1] = r.grade_percent;
+        check(
+            g0.is_finite() && g1.is_finite() && (-12.0..=g1).contains(&g0) && g1 <= 12.0,
+            "road.grade_percent",
+            format!("[{g0}, {g1}] must satisfy -12 <= low <= high <= 12"),
+        )?;
         let min_len = match self.layout {
             // the junction's four arms need room beyond the crossing street's sidewalks
             Layout::Junction => {

@@ -29,6 +29,78 @@ const TILE_M: f32 = 10.0;
 const PAINT_Z: f32 = 0.003;
 /// First random stream of the open roadsides (apart from every stream the older features use).
 const OPEN_STREAM: u64 = 0x6f70_0000;
+/// Random stream of the grade draw.
+const GRADE_STREAM: u64 = 0x6772_0000;
+/// Length of the vertical curve into the grade, metres.
+const VERTICAL_CURVE_M: f32 = 40.0;
+/// Triangles in the vertical curve are split until their extent along x is at most this, metres
+/// (the piecewise-linear road then deviates from the parabola by under a millimetre at 12 %).
+const CURVE_CHORD_M: f32 = 1.0;
+
+/// The main street's height profile: flat up to `x0`, then a parabolic vertical curve over `len`
+/// metres into the constant grade `g` (rise over run).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Grade {
+    x0: f32,
+    len: f32,
+    g: f32,
+}
+
+impl Grade {
+    /// Road height at `x`.
+    fn z(&self, x: f32) -> f32 {
+        let t = x - self.x0;
+        if t <= 0.0 {
+            0.0
+        } else if t < self.len {
+            self.g * t * t / (2.0 * self.len)
+        } else {
+            self.g * (t - self.len / 2.0)
+        }
+    }
+
+    /// Road slope (dz/dx) at `x`.
+    fn slope(&self, x: f32) -> f32 {
+        self.g * ((x - self.x0) / self.len).clamp(0.0, 1.0)
+    }
+
+    /// `mesh` with every vertex lifted by the road height at its x. Triangles reaching into the
+    /// curve are first split (longest extent along x halved) into pieces of at most
+    /// [`CURVE_CHORD_M`]; elsewhere the lift is affine in x and triangles stay whole. Vertical
+    /// edges stay vertical.
+    fn warp(&self, mesh: &Mesh) -> Mesh {
+        let (a, b) = (self.x0, self.x0 + self.len);
+        let mut out = Mesh {
+            triangles: Vec::with_capacity(mesh.triangles.len()),
+            surface_of: Vec::with_capacity(mesh.triangles.len()),
+            surfaces: mesh.surfaces.clone(),
+        };
+        let mut stack = Vec::new();
+        for (t, &surf) in mesh.triangles.iter().zip(&mesh.surface_of) {
+            stack.push(*t);
+            while let Some(t) = stack.pop() {
+                let lo = t[0].x.min(t[1].x).min(t[2].x);
+                let hi = t[0].x.max(t[1].x).max(t[2].x);
+                if hi - lo > CURVE_CHORD_M && hi > a && lo < b {
+                    // split the edge that spans the most x at its midpoint (orientation kept)
+                    let span = |i: usize| (t[(i + 1) % 3].x - t[i].x).abs();
+                    let i = (0..3)
+                        .max_by(|&i, &j| span(i).total_cmp(&span(j)))
+                        .unwrap_or(0);
+                    let (j, k) = ((i + 1) % 3, (i + 2) % 3);
+                    let m = (t[i] + t[j]) * 0.5;
+                    stack.push([t[i], m, t[k]]);
+                    stack.push([m, t[j], t[k]]);
+                    continue;
+                }
+                out.triangles
+                    .push(t.map(|v| Vec3::new(v.x, v.y, v.z + self.z(v.x))));
+                out.surface_of.push(surf);
+            }
+        }
+        out
+    }
+}
 
 /// A moving or movable object: a mesh in its own frame moved along a straight line.
 #[derive(Debug, Clone)]
@@ -65,6 +137,8 @@ pub struct Scene {
     camera: CameraConfig,
     /// The LiDAR's height above the road.
     lidar_height_m: f32,
+    /// The main street's height profile (None: flat).
+    grade: Option<Grade>,
 }
 
 impl Scene {
@@ -83,10 +157,25 @@ impl Scene {
             config
                 .rig
                 .draw(seed, config.ego.lidar_height_m, &config.camera);
+        let grade = (road.grade_percent != [0.0, 0.0])
+            .then(|| {
+                let mut rng = g.rng(GRADE_STREAM);
+                let [lo, hi] = road.grade_percent;
+                let percent = lo + (hi - lo) * rng.random::<f32>();
+                Grade {
+                    x0: config.ego.start_x_m + rng.random_range(-30.0..50.0f32),
+                    len: VERTICAL_CURVE_M,
+                    g: percent / 100.0,
+                }
+            })
+            .filter(|grade| grade.g != 0.0);
         Ok(Scene {
             config: config.clone(),
             seed,
-            static_mesh: g.mesh,
+            static_mesh: match &grade {
+                Some(grade) => grade.warp(&g.mesh),
+                None => g.mesh,
+            },
             actors: g.actors,
             ego_pose0: Affine3A::from_translation(Vec3::new(
                 config.ego.start_x_m,
@@ -96,6 +185,7 @@ impl Scene {
             ego_velocity: Vec3::new(config.ego.speed_mps, 0.0, 0.0),
             camera,
             lidar_height_m,
+            grade,
         })
     }
 
@@ -118,7 +208,19 @@ impl Scene {
             ego_velocity: Vec3::ZERO,
             camera: config.camera,
             lidar_height_m: world_from_lidar.translation.z,
+            grade: None,
         }
+    }
+
+    /// Height of the main street's surface at `x` (world frame), metres: 0 on a flat street, else
+    /// the profile of the grade drawn from [`super::RoadConfig::grade_percent`].
+    pub fn road_height_m(&self, x: f32) -> f32 {
+        self.grade.map_or(0.0, |g| g.z(x))
+    }
+
+    /// The main street's grade after its vertical curve, percent (0: flat).
+    pub fn grade_percent(&self) -> f32 {
+        self.grade.map_or(0.0, |g| g.g * 100.0)
     }
 
     /// The camera of the scene's rig: the config's camera, with its height (`up_m`) and pitch
@@ -160,16 +262,40 @@ impl Scene {
         index as f32 * self.config.frames.interval_s
     }
 
-    /// LiDAR pose (world from LiDAR: x forward along the ego's heading, z up) at `time_s`.
+    /// LiDAR pose (world from LiDAR: x forward along the ego's heading, z up) at `time_s`. On a
+    /// graded street the ego stands on the road at its x, pitched with the road's slope, the LiDAR
+    /// its height above the road along the road's normal.
     pub fn world_from_lidar(&self, time_s: f32) -> Affine3A {
-        Affine3A::from_translation(self.ego_velocity * time_s) * self.ego_pose0
+        let flat = Affine3A::from_translation(self.ego_velocity * time_s) * self.ego_pose0;
+        let Some(grade) = self.grade else {
+            return flat;
+        };
+        let p = flat.translation;
+        let pitch = grade.slope(p.x).atan();
+        let normal = Vec3::new(-pitch.sin(), 0.0, pitch.cos());
+        let ground = Vec3::new(p.x, p.y, grade.z(p.x));
+        Affine3A::from_translation(ground + normal * p.z)
+            * Affine3A::from_rotation_y(-pitch)
+            * Affine3A::from_mat3(Mat3::from(flat.matrix3))
     }
 
-    /// The whole world at `time_s` as one mesh (static world plus actors moved).
+    /// The whole world at `time_s` as one mesh (static world plus actors moved; on a graded street
+    /// the actors are lifted onto the road's profile like the static world).
     pub fn mesh_at(&self, time_s: f32) -> Mesh {
         let mut m = self.static_mesh.clone();
-        for a in &self.actors {
-            m.append_transformed(&a.mesh, a.world_from_actor(time_s));
+        match &self.grade {
+            None => {
+                for a in &self.actors {
+                    m.append_transformed(&a.mesh, a.world_from_actor(time_s));
+                }
+            }
+            Some(grade) => {
+                let mut moving = Mesh::new();
+                for a in &self.actors {
+                    moving.append_transformed(&a.mesh, a.world_from_actor(time_s));
+                }
+                m.append(&grade.warp(&moving));
+            }
         }
         m
     }
@@ -703,7 +829,8 @@ impl<'a> Gen<'a> {
         } else {
             0.0
         };
-        if rng.random::<f32>() < r.guardrail_probability {
+        // (no guardrail beside a parking strip)
+        if rng.random::<f32>() < r.guardrail_probability && !r.parking_lane {
             let d = side * (wc + 0.25);
             let mut s = s0 + rng.random_range(0.0..20.0f32);
             while s < s1 - 10.0 {
