@@ -744,7 +744,7 @@ impl RigConfig {
     /// The rig of scene `seed`: the LiDAR height above the road and the camera configuration (with
     /// `up_m` and `pitch_down_deg` drawn). Without `randomize`, `lidar_height_m` and `camera`
     /// unchanged.
-    pub fn draw(
+    pub(crate) fn draw(
         &self,
         seed: u64,
         lidar_height_m: f32,
