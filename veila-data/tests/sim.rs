@@ -831,7 +831,19 @@ fn example_scenes_parse_and_give_plausible_scans() {
             100.0 * frac
         );
         assert!(classes.len() >= 6, "{}: classes {classes:?}", f.display());
-        for must in [class::ROAD, class::SIDEWALK, class::BUILDING] {
+        // open roadsides may have no building in reach (the open layout, mixed sides)
+        let lined = cfg.road_params().open_side_probability == 0.0;
+        let musts: &[u16] = if lined {
+            &[class::ROAD, class::SIDEWALK, class::BUILDING]
+        } else {
+            &[
+                class::ROAD,
+                class::SIDEWALK,
+                class::VEGETATION,
+                class::TERRAIN,
+            ]
+        };
+        for &must in musts {
             assert!(
                 classes.contains(&u32::from(must)),
                 "{}: no class {must}",
@@ -857,7 +869,7 @@ fn example_scenes_parse_and_give_plausible_scans() {
         sem.dedup();
         assert!(sem.len() >= 5, "{}: image classes {sem:?}", f.display());
     }
-    assert_eq!(layouts.len(), 3, "{layouts:?}");
+    assert_eq!(layouts.len(), 4, "{layouts:?}");
 }
 
 #[test]
@@ -1046,7 +1058,12 @@ fn random_valid_configs_generate_and_render_without_panicking() {
             cols: 64,
             ..LidarSensor::hdl64e()
         });
-        cfg.layout = [Layout::Straight, Layout::Junction, Layout::NarrowStreet][i % 3];
+        cfg.layout = [
+            Layout::Straight,
+            Layout::Junction,
+            Layout::NarrowStreet,
+            Layout::Open,
+        ][i % 4];
         cfg.road = RoadConfig {
             length_m: Some(rng.random_range(5.0..300.0)),
             lanes_per_direction: Some(rng.random_range(1..=4)),
@@ -1057,8 +1074,14 @@ fn random_valid_configs_generate_and_render_without_panicking() {
             building_frontage: Some(rng.random_range(0.0..=1.0)),
             building_height_m: Some([3.0, rng.random_range(3.0..40.0)]),
             lane_markings: Some(rng.random_bool(0.5)),
+            open_side_probability: Some(rng.random_range(0.0..=1.0)),
+            open_setback_m: Some([5.0, rng.random_range(5.0..100.0)]),
+            open_building_probability: Some(rng.random_range(0.0..=1.0)),
+            guardrail_probability: Some(rng.random_range(0.0..=1.0)),
+            grade_percent: Some([rng.random_range(-12.0..0.0), rng.random_range(0.0..12.0)]),
             ..RoadConfig::default()
         };
+        cfg.rig.randomize = rng.random_bool(0.5);
         cfg.population.parked_vehicles_per_100m = rng.random_range(0.0..40.0);
         cfg.population.moving_vehicles = rng.random_range(0..30);
         cfg.population.pedestrians = rng.random_range(0..30);
@@ -1491,4 +1514,636 @@ fn the_randomized_example_scene_parses_and_renders() {
     cfg.lidar.sensor = tiny_config().lidar.sensor;
     let frame = Scene::generate(&cfg, 0).unwrap().render_frame(0).unwrap();
     assert!(frame.image.semantic.contains(&class::ROAD));
+}
+
+/// sha256 of every file `simulate_to_dir` writes (path and bytes, `scene.json` included) for the
+/// shipped scene files with a small LiDAR and camera, and of each scene file's configuration as
+/// serialised JSON (what `scene.json` holds for the unmodified file).
+fn reference_output_hashes() -> Vec<(String, String)> {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
+    let mut out = Vec::new();
+    for (name, seed) in [
+        ("straight_road", 0u64),
+        ("junction", 1),
+        ("narrow_street", 2),
+        ("straight_road", 100_000),
+    ] {
+        let file_cfg = SceneConfig::from_file(&dir.join(format!("{name}.toml"))).unwrap();
+        out.push((
+            format!("{name}/config.json"),
+            veila_data::shard::sha256_hex(serde_json::to_string(&file_cfg).unwrap().as_bytes()),
+        ));
+        let mut cfg = file_cfg;
+        cfg.lidar.sensor = Some(LidarSensor {
+            rows: 32,
+            cols: 256,
+            ..cfg.lidar.sensor().unwrap()
+        });
+        cfg.camera = CameraConfig {
+            width: 124,
+            height: 38,
+            fx: 72.15,
+            fy: 72.15,
+            cx: 61.0,
+            cy: 17.3,
+            ..cfg.camera
+        };
+        let tmp = tempfile::tempdir().unwrap();
+        simulate_to_dir(&cfg, seed, 2, tmp.path(), |_| {}).unwrap();
+        let mut bytes = Vec::new();
+        for (p, b) in read_dir_bytes(tmp.path()) {
+            bytes.extend_from_slice(p.to_string_lossy().as_bytes());
+            bytes.extend_from_slice(&(b.len() as u64).to_le_bytes());
+            bytes.extend_from_slice(&b);
+        }
+        out.push((
+            format!("{name}/{seed}/kitti"),
+            veila_data::shard::sha256_hex(&bytes),
+        ));
+    }
+    out
+}
+
+#[test]
+fn shipped_scene_files_write_byte_identical_output_and_config_json() {
+    // recorded before open roadsides and rig variation existed (x86-64 Linux): the scans, images,
+    // calibration, poses and scene.json of the shipped scene files must never change
+    let expected = [
+        (
+            "straight_road/config.json",
+            "bf78f5264576f5fd5ed47877b78d432c45159e04ff70c056925352eb19d78e54",
+        ),
+        (
+            "straight_road/0/kitti",
+            "b2452910d5a181186de07fdfb6c771ce776abf2c62b11fb85ce98c63911eabd6",
+        ),
+        (
+            "junction/config.json",
+            "36b4ff0797b2afdef43ce27600a86083ca4579adbdf1377073f85929c8dc5556",
+        ),
+        (
+            "junction/1/kitti",
+            "74debad60d59f1ddf69fb72e4c106ffa61eb592a17493f629d14c5ce4b6063a7",
+        ),
+        (
+            "narrow_street/config.json",
+            "a2a254b66a55cf405f69c04c18b066349e51a3f7b1a6e736df94ec22ba5115c3",
+        ),
+        (
+            "narrow_street/2/kitti",
+            "ed51588cd808a49e0c7acd5e27d722002d98f5563eaaa8fee885a3f9ad02a645",
+        ),
+        (
+            "straight_road/config.json",
+            "bf78f5264576f5fd5ed47877b78d432c45159e04ff70c056925352eb19d78e54",
+        ),
+        (
+            "straight_road/100000/kitti",
+            "6db1f6f4371a4343218c3dfc05483f89b67998ced453fd4e7c5dfa7d940a5f42",
+        ),
+    ];
+    let got = reference_output_hashes();
+    assert_eq!(got.len(), expected.len());
+    for ((k, h), (ek, eh)) in got.iter().zip(expected) {
+        assert_eq!((k.as_str(), h.as_str()), (ek, eh), "output {k} changed");
+    }
+}
+
+fn scenes_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes")
+}
+
+/// Per class, the smallest |y| (distance across the main street) of any vertex on side `side`
+/// (+1 left, -1 right) of a static mesh, and the number of its triangles there.
+fn nearest_on_side(mesh: &Mesh, cls: u16, side: f32) -> (f32, usize) {
+    let mut near = f32::INFINITY;
+    let mut n = 0;
+    for (t, &si) in mesh.triangles.iter().zip(&mesh.surface_of) {
+        if mesh.surfaces[si as usize].material.class != cls {
+            continue;
+        }
+        let centre = (t[0] + t[1] + t[2]) / 3.0;
+        if centre.y * side <= 0.0 {
+            continue;
+        }
+        n += 1;
+        for v in t {
+            near = near.min(v.y * side);
+        }
+    }
+    (near, n)
+}
+
+#[test]
+fn open_layout_keeps_buildings_far_from_the_road_and_fills_the_sides() {
+    let cfg = SceneConfig::from_file(&scenes_dir().join("open_road.toml")).unwrap();
+    assert_eq!(cfg.layout, Layout::Open);
+    let r = cfg.road_params();
+    let front = r.half_carriageway_m() + r.sidewalk_width_m;
+    let limit = front + r.open_setback_m[0] - 0.2; // roofs overhang their walls by 0.1 m
+    let sensor = LidarSensor {
+        cols: 512,
+        ..cfg.lidar.sensor().unwrap()
+    };
+    let (mut far_buildings, mut guardrails, mut far_trees, mut near_trees) = (0, 0, 0, 0);
+    for seed in 0..8u64 {
+        let scene = Scene::generate(&cfg, seed).unwrap();
+        let mesh = scene.static_mesh();
+        for side in [-1.0f32, 1.0] {
+            let (near, n) = nearest_on_side(mesh, class::BUILDING, side);
+            assert!(
+                near >= limit,
+                "seed {seed} side {side}: a building {near} m from the street axis (< {limit})"
+            );
+            far_buildings += usize::from(n > 0);
+            // a guardrail stands at the road edge, on the shoulder
+            let (g, n) = nearest_on_side(mesh, class::FENCE, side);
+            guardrails += usize::from(n > 0 && g < r.half_carriageway_m() + 0.5);
+        }
+        for (t, &si) in mesh.triangles.iter().zip(&mesh.surface_of) {
+            if mesh.surfaces[si as usize].material.class == class::TRUNK {
+                let d = t[0].y.abs() - front;
+                far_trees += usize::from(d > 25.0);
+                near_trees += usize::from((1.0..10.0).contains(&d));
+            }
+        }
+        // and the LiDAR sees no building near the road, but open ground far out
+        let scan = scene
+            .snapshot(0)
+            .render_lidar(&sensor, &LidarReturnModel::ideal())
+            .unwrap();
+        let world = scene.world_from_lidar(0.0);
+        let labels = scan.points.label.as_ref().unwrap();
+        let (mut near_building, mut far_terrain) = (0, 0);
+        for (p, l) in scan.points.xyz.iter().zip(labels) {
+            let y = world.transform_point3(*p).y.abs();
+            let c = (l & 0xFFFF) as u16;
+            near_building += usize::from(c == class::BUILDING && y < limit);
+            far_terrain += usize::from(c == class::TERRAIN && y > front + 10.0);
+        }
+        assert_eq!(near_building, 0, "seed {seed}");
+        assert!(
+            far_terrain > 100,
+            "seed {seed}: {far_terrain} terrain returns"
+        );
+    }
+    eprintln!(
+        "open road, 8 seeds: {far_buildings} sides with far buildings, {guardrails} with \
+         guardrails, tree trunks {near_trees} within 1-10 m and {far_trees} beyond 25 m"
+    );
+    // with probabilities 0.3 and 0.6 per side over 16 sides, both outcomes occur
+    assert!((1..16).contains(&far_buildings), "{far_buildings}");
+    assert!((1..16).contains(&guardrails), "{guardrails}");
+    assert!(
+        far_trees > 20 && near_trees > 20,
+        "{far_trees} {near_trees}"
+    );
+}
+
+#[test]
+fn mixed_roadsides_are_open_or_lined_per_side_and_seed() {
+    let cfg = SceneConfig::from_file(&scenes_dir().join("suburban.toml")).unwrap();
+    let r = cfg.road_params();
+    let front = r.half_carriageway_m() + r.sidewalk_width_m;
+    // a lined side has facades at front + setback; an open one nothing before front + 15 m
+    let lined_limit = front + r.setback_m + 1.0;
+    let (mut open, mut lined) = (0, 0);
+    for seed in 0..12u64 {
+        let scene = Scene::generate(&cfg, seed).unwrap();
+        for side in [-1.0f32, 1.0] {
+            let (near, _) = nearest_on_side(scene.static_mesh(), class::BUILDING, side);
+            if near < lined_limit {
+                lined += 1;
+            } else {
+                assert!(
+                    near >= front + r.open_setback_m[0] - 0.2,
+                    "seed {seed} side {side}: building at {near}"
+                );
+                open += 1;
+            }
+        }
+    }
+    eprintln!("suburban, 12 seeds: {open} open sides, {lined} lined");
+    assert!(open >= 4 && lined >= 4, "open {open}, lined {lined}");
+    // same seed, same world; another seed, another
+    let a = Scene::generate(&cfg, 5).unwrap();
+    let b = Scene::generate(&cfg, 5).unwrap();
+    let c = Scene::generate(&cfg, 6).unwrap();
+    assert_eq!(a.static_mesh().triangles, b.static_mesh().triangles);
+    assert_ne!(a.static_mesh().triangles, c.static_mesh().triangles);
+}
+
+#[test]
+fn open_scenes_write_byte_identical_output_for_a_seed() {
+    for name in ["open_road", "suburban"] {
+        let mut cfg = SceneConfig::from_file(&scenes_dir().join(format!("{name}.toml"))).unwrap();
+        cfg.lidar.sensor = Some(LidarSensor {
+            rows: 16,
+            cols: 128,
+            ..LidarSensor::hdl64e()
+        });
+        cfg.camera = CameraConfig {
+            samples_per_axis: 1,
+            ..tiny_config().camera
+        };
+        let tmp = tempfile::tempdir().unwrap();
+        let (a, b, c) = (
+            tmp.path().join("a"),
+            tmp.path().join("b"),
+            tmp.path().join("c"),
+        );
+        simulate_to_dir(&cfg, 9, 2, &a, |_| {}).unwrap();
+        simulate_to_dir(&cfg, 9, 2, &b, |_| {}).unwrap();
+        simulate_to_dir(&cfg, 10, 2, &c, |_| {}).unwrap();
+        let (fa, fb, fc) = (read_dir_bytes(&a), read_dir_bytes(&b), read_dir_bytes(&c));
+        assert!(fa == fb, "{name}: same seed, different bytes");
+        assert!(fa.iter().zip(&fc).any(|(x, y)| x.1 != y.1), "{name}");
+        // scene.json holds the new keys, and parses back to the same configuration
+        let json: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(a.join("scene.json")).unwrap()).unwrap();
+        let back: SceneConfig = serde_json::from_value(json["config"].clone()).unwrap();
+        assert_eq!(back, cfg, "{name}");
+        assert_eq!(json["config"]["rig"]["randomize"], true, "{name}");
+    }
+}
+
+#[test]
+fn new_keys_at_their_defaults_are_left_out_of_the_serialised_scene() {
+    let text = serde_json::to_string(&SceneConfig::default()).unwrap();
+    for key in [
+        "open_side_probability",
+        "open_setback_m",
+        "open_building_probability",
+        "guardrail_probability",
+        "grade_percent",
+        "\"rig\"",
+        "appearance",
+    ] {
+        assert!(!text.contains(key), "{key} in {text}");
+    }
+    let mut cfg = SceneConfig::default();
+    cfg.road.guardrail_probability = Some(0.5);
+    cfg.rig.randomize = true;
+    let text = serde_json::to_string(&cfg).unwrap();
+    assert!(text.contains("\"guardrail_probability\":0.5") && text.contains("\"rig\""));
+    assert!(!text.contains("open_side_probability"), "{text}");
+}
+
+#[test]
+fn rig_variation_draws_in_range_and_the_calibration_follows_the_draw() {
+    let mut cfg = tiny_config();
+    cfg.rig.randomize = true;
+    cfg.camera.pitch_down_deg = 1.0;
+    let sensor = LidarSensor {
+        cols: 1024,
+        ..LidarSensor::hdl64e()
+    };
+    let mut heights = Vec::new();
+    let mut pitches = Vec::new();
+    let mut ups = Vec::new();
+    for seed in 0..12u64 {
+        let scene = Scene::generate(&cfg, seed).unwrap();
+        let (h, c) = (scene.lidar_height_m(), *scene.camera_config());
+        assert!((1.6..=2.0).contains(&h), "seed {seed}: height {h}");
+        assert!(
+            (-0.35..=0.0).contains(&c.up_m),
+            "seed {seed}: up {}",
+            c.up_m
+        );
+        assert!(
+            (-1.0..=3.0).contains(&c.pitch_down_deg),
+            "seed {seed}: pitch {}",
+            c.pitch_down_deg
+        );
+        // only the drawn values differ from the configured camera
+        assert_eq!(
+            CameraConfig {
+                up_m: cfg.camera.up_m,
+                pitch_down_deg: cfg.camera.pitch_down_deg,
+                ..c
+            },
+            cfg.camera
+        );
+        assert_eq!(scene.world_from_lidar(0.0).translation.z, h);
+        heights.push(h);
+        pitches.push(c.pitch_down_deg);
+        ups.push(c.up_m);
+        // the same seed draws the same rig
+        let again = Scene::generate(&cfg, seed).unwrap();
+        assert_eq!(again.camera_config(), scene.camera_config());
+        if seed >= 3 {
+            continue;
+        }
+        // the frame's camera and calibration are the drawn ones
+        let frame = scene.render_frame(0).unwrap();
+        let calib = SimCalib::from_config(&c);
+        assert_eq!(frame.calib, calib);
+        assert_eq!(frame.camera, calib.camera().unwrap());
+        let centre = frame.camera.cam_from_lidar.inverse().w_axis;
+        assert!((centre.z - c.up_m).abs() < 1e-5, "camera centre {centre}");
+        // LiDAR ground returns beneath the ego lie at the drawn height
+        let scan = scene
+            .snapshot(0)
+            .render_lidar(&sensor, &LidarReturnModel::ideal())
+            .unwrap();
+        let labels = scan.points.label.as_ref().unwrap();
+        let mut ground = 0;
+        for (p, l) in scan.points.xyz.iter().zip(labels) {
+            if (l & 0xFFFF) as u16 == class::ROAD && p.x.abs() < 12.0 && p.y.abs() < 1.5 {
+                assert!(
+                    (p.z + h).abs() < 1e-3,
+                    "seed {seed}: road point {p} at h {h}"
+                );
+                ground += 1;
+            }
+        }
+        assert!(ground > 200, "{ground}");
+        // a ground point rendered by the camera lies at its LiDAR point projected with the
+        // frame's camera (rendered with the same ideal model for a dense match)
+        let img = scene
+            .snapshot(0)
+            .render_camera(&frame.camera, &CameraRenderOptions::from(&c))
+            .unwrap();
+        let (w, hgt) = (img.width as usize, img.height as usize);
+        let (mut total, mut ok) = (0usize, 0usize);
+        for (p, l) in scan.points.xyz.iter().zip(labels) {
+            if (l & 0xFFFF) as u16 != class::ROAD {
+                continue;
+            }
+            let Some(ip) = frame.camera.try_project_in_image(*p) else {
+                continue;
+            };
+            let (u, v) = (ip.u_px.round() as usize, ip.v_px.round() as usize);
+            if u >= w || v >= hgt || ip.depth_m < 3.0 || ip.depth_m > 40.0 {
+                continue;
+            }
+            // the ray through the pixel centre hits the ground within a pixel of the point: its
+            // depth differs by the ground's depth gradient over half a pixel or so
+            let rendered = img.depth_m[v * w + u];
+            total += 1;
+            let tol = 0.02 + ip.depth_m * ip.depth_m / (h * c.fy.max(1.0));
+            ok += usize::from((rendered - ip.depth_m).abs() <= tol);
+        }
+        assert!(total > 100, "seed {seed}: {total} road points in view");
+        let frac = ok as f64 / total as f64;
+        assert!(
+            frac > 0.95,
+            "seed {seed}: depth agreement {frac} over {total}"
+        );
+        // with the configured (undrawn) rig the same points no longer agree
+        let wrong = SimCalib::from_config(&cfg.camera).camera().unwrap();
+        let moved = scan
+            .points
+            .xyz
+            .iter()
+            .filter_map(|p| Some((frame.camera.try_project(*p)?, wrong.try_project(*p)?)))
+            .filter(|(a, b)| a.depth_m > 5.0 && (a.v_px - b.v_px).abs() > 0.2)
+            .count();
+        assert!(moved > 100, "seed {seed}: the drawn rig moves no pixel");
+    }
+    let distinct = |v: &mut Vec<f32>| {
+        v.sort_by(f32::total_cmp);
+        v.dedup();
+        v.len()
+    };
+    eprintln!("drawn heights {heights:?}\nups {ups:?}\npitches {pitches:?}");
+    // both halves of every range are drawn
+    for (v, mid) in [(&heights, 1.8), (&ups, -0.175), (&pitches, 1.0)] {
+        assert!(
+            v.iter().any(|x| *x < mid) && v.iter().any(|x| *x > mid),
+            "{v:?}"
+        );
+    }
+    assert_eq!(distinct(&mut heights), 12);
+    assert_eq!(distinct(&mut pitches), 12);
+    assert_eq!(distinct(&mut ups), 12);
+    // without [rig] the scene's rig is the configured one
+    let plain = Scene::generate(&tiny_config(), 3).unwrap();
+    assert_eq!(plain.camera_config(), &tiny_config().camera);
+    assert_eq!(plain.lidar_height_m(), tiny_config().ego.lidar_height_m);
+}
+
+#[test]
+fn written_calibration_of_a_drawn_rig_loads_back_as_the_frame_camera() {
+    use veila_data::dataset::Dataset;
+    let mut cfg = tiny_config();
+    cfg.rig.randomize = true;
+    let tmp = tempfile::tempdir().unwrap();
+    simulate_to_dir(&cfg, 17, 1, tmp.path(), |_| {}).unwrap();
+    let scene = Scene::generate(&cfg, 17).unwrap();
+    let frame = scene.render_frame(0).unwrap();
+    let ds = veila_data::kitti::KittiObjectDataset::open(tmp.path()).unwrap();
+    let loaded = ds.load(0).unwrap().camera.unwrap();
+    for p in [
+        Vec3::new(15.0, -2.0, -1.5),
+        Vec3::new(30.0, 4.0, 0.5),
+        Vec3::new(8.0, 1.0, -1.8),
+    ] {
+        let (a, b) = (
+            loaded.try_project(p).unwrap(),
+            frame.camera.try_project(p).unwrap(),
+        );
+        assert!(
+            (a.u_px - b.u_px).abs() < 1e-3
+                && (a.v_px - b.v_px).abs() < 1e-3
+                && (a.depth_m - b.depth_m).abs() < 1e-5,
+            "{p}: {a:?} vs {b:?}"
+        );
+    }
+    // and the drawn rig is not the configured one
+    assert_ne!(scene.camera_config(), &cfg.camera);
+    let plain = SimCalib::from_config(&cfg.camera).camera().unwrap();
+    let p = Vec3::new(20.0, 0.0, -1.7);
+    let (a, b) = (
+        plain.try_project(p).unwrap(),
+        loaded.try_project(p).unwrap(),
+    );
+    assert!((a.v_px - b.v_px).abs() > 0.05, "{a:?} vs {b:?}");
+}
+
+#[test]
+fn open_roadside_and_rig_values_are_validated_with_the_key_named() {
+    let p = Path::new("bad.toml");
+    for (text, key) in [
+        (
+            "[road]\nopen_side_probability = 1.5\n",
+            "road.open_side_probability",
+        ),
+        (
+            "[road]\nopen_side_probability = nan\n",
+            "road.open_side_probability",
+        ),
+        (
+            "[road]\nopen_setback_m = [60.0, 15.0]\n",
+            "road.open_setback_m",
+        ),
+        (
+            "[road]\nopen_setback_m = [1.0, 15.0]\n",
+            "road.open_setback_m",
+        ),
+        (
+            "[road]\nopen_building_probability = -0.1\n",
+            "road.open_building_probability",
+        ),
+        (
+            "[road]\nguardrail_probability = 2.0\n",
+            "road.guardrail_probability",
+        ),
+        ("[road]\ngrade_percent = [5.0, 2.0]\n", "road.grade_percent"),
+        (
+            "[road]\ngrade_percent = [-20.0, 0.0]\n",
+            "road.grade_percent",
+        ),
+        ("[rig]\nlidar_height_m = [0.0, 1.0]\n", "rig.lidar_height_m"),
+        ("[rig]\nlidar_height_m = [2.0, 1.0]\n", "rig.lidar_height_m"),
+        ("[rig]\ncamera_up_m = [-1.0, 3.0]\n", "rig.camera_up_m"),
+        (
+            "[rig]\npitch_offset_deg = [-20.0, 0.0]\n",
+            "rig.pitch_offset_deg",
+        ),
+        (
+            "[rig]\npitch_offset_deg = [0.0, inf]\n",
+            "rig.pitch_offset_deg",
+        ),
+        (
+            "[camera]\npitch_down_deg = 44.0\n[rig]\nrandomize = true\npitch_offset_deg = [0.0, 2.0]\n",
+            "rig.pitch_offset_deg",
+        ),
+        ("[rig]\nrandomise = true\n", "randomise"),
+    ] {
+        let e = SceneConfig::from_toml_str(text, p).unwrap_err().to_string();
+        assert!(e.contains(key) && e.contains("bad.toml"), "{text}: {e}");
+    }
+    // the layout parses, and the same out-of-range pitch is fine while the rig is not drawn
+    let cfg = SceneConfig::from_toml_str(
+        "layout = \"open\"\n[camera]\npitch_down_deg = 44.0\n[rig]\npitch_offset_deg = [0.0, 2.0]\n",
+        p,
+    )
+    .unwrap();
+    assert_eq!(cfg.road_params().open_side_probability, 1.0);
+    assert!(!cfg.road_params().parking_lane);
+}
+
+#[test]
+fn v2_scene_lists_extend_the_v1_lists_with_disjoint_seeds() {
+    let dir = scenes_dir();
+    for (v1, v2) in [("train.txt", "train-v2.txt"), ("test.txt", "test-v2.txt")] {
+        let old = SceneList::read(&dir.join(v1)).unwrap();
+        let new = SceneList::read(&dir.join(v2)).unwrap();
+        // every v1 entry is in v2 with the same seeds
+        for e in &old.entries {
+            assert!(
+                new.entries
+                    .iter()
+                    .any(|n| n.scene == e.scene && n.seeds == e.seeds),
+                "{v2} lacks {} {:?}",
+                e.scene.display(),
+                e.seeds
+            );
+        }
+        let names: Vec<String> = new
+            .entries
+            .iter()
+            .map(|e| e.scene.file_name().unwrap().to_string_lossy().into_owned())
+            .collect();
+        assert!(
+            names.contains(&"open_road.toml".to_string())
+                && names.contains(&"suburban.toml".to_string()),
+            "{names:?}"
+        );
+        for e in &new.entries {
+            SceneConfig::from_file(&e.scene).unwrap();
+        }
+    }
+    let train = SceneList::read(&dir.join("train-v2.txt")).unwrap();
+    let test = SceneList::read(&dir.join("test-v2.txt")).unwrap();
+    for a in &train.entries {
+        for b in test.entries.iter().filter(|b| b.scene == a.scene) {
+            assert!(
+                a.seeds.end() < b.seeds.start() || b.seeds.end() < a.seeds.start(),
+                "{} seeds overlap",
+                a.scene.display()
+            );
+        }
+    }
+}
+
+#[test]
+fn on_a_grade_change_the_road_and_the_ego_follow_the_profile() {
+    let mut cfg = tiny_config();
+    cfg.road.grade_percent = Some([-6.0, 6.0]);
+    cfg.rig.randomize = true;
+    let sensor = LidarSensor {
+        cols: 1024,
+        ..LidarSensor::hdl64e()
+    };
+    let (mut climbs, mut falls, mut seen_lifted) = (0, 0, 0);
+    for seed in 0..6u64 {
+        let scene = Scene::generate(&cfg, seed).unwrap();
+        let g = scene.grade_percent();
+        assert!((-6.0..=6.0).contains(&g) && g != 0.0, "seed {seed}: {g}");
+        climbs += usize::from(g > 0.0);
+        falls += usize::from(g < 0.0);
+        let h = scene.lidar_height_m();
+        // frame 0 and a frame 12 s later (the ego then is 96 m on, past every curve's end)
+        for index in [0u32, 120] {
+            let t = scene.frame_time_s(index);
+            let pose = scene.world_from_lidar(t);
+            let x = pose.translation.x;
+            // the ego pitches with the road: its forward axis climbs with the slope there
+            let slope = (scene.road_height_m(x + 0.05) - scene.road_height_m(x - 0.05)) / 0.1;
+            let fwd = pose.matrix3.x_axis;
+            assert!(
+                (fwd.z / fwd.x - slope).abs() < 2e-3,
+                "seed {seed} frame {index}: forward {fwd} on slope {slope}"
+            );
+            let scan = scene
+                .snapshot(index)
+                .render_lidar(&sensor, &LidarReturnModel::ideal())
+                .unwrap();
+            let labels = scan.points.label.as_ref().unwrap();
+            let mut beneath = 0;
+            for (p, l) in scan.points.xyz.iter().zip(labels) {
+                let c = (l & 0xFFFF) as u16;
+                if c != class::ROAD {
+                    continue;
+                }
+                // LiDAR ground returns around the ego lie at the LiDAR's height below it (the
+                // lowest beam reaches the road about 4 m out; within 8 m a 6 % curve over 40 m
+                // bends the road by at most 0.05 m from the ego's tangent plane)
+                if p.x.abs() < 8.0 && p.y.abs() < 1.5 {
+                    assert!(
+                        (p.z + h).abs() < 0.06,
+                        "seed {seed} frame {index}: road point {p} for height {h}"
+                    );
+                    beneath += 1;
+                }
+                // every road return lies on the road's profile
+                let w = pose.transform_point3(*p);
+                let road = scene.road_height_m(w.x);
+                assert!(
+                    (w.z - road).abs() < 5e-3,
+                    "seed {seed} frame {index}: road return at {w}, road at {road}"
+                );
+                seen_lifted += usize::from((w.z - scene.road_height_m(x)).abs() > 0.5);
+            }
+            assert!(beneath > 100, "seed {seed} frame {index}: {beneath}");
+        }
+    }
+    assert!(
+        climbs > 0 && falls > 0,
+        "{climbs} climbing, {falls} falling"
+    );
+    assert!(
+        seen_lifted > 100,
+        "{seen_lifted} road returns off the ego's level"
+    );
+    // a flat config has a flat world and an upright ego
+    let flat = Scene::generate(&tiny_config(), 1).unwrap();
+    assert_eq!(flat.grade_percent(), 0.0);
+    assert_eq!(flat.road_height_m(50.0), 0.0);
+    assert_eq!(
+        flat.world_from_lidar(1.0).matrix3,
+        glam::Affine3A::IDENTITY.matrix3
+    );
 }

@@ -5,7 +5,7 @@
 //!
 //! ```toml
 //! name = "junction"
-//! layout = "junction"          # straight | junction | narrow_street
+//! layout = "junction"          # straight | junction | narrow_street | open
 //!
 //! [road]
 //! length_m = 240.0
@@ -23,6 +23,9 @@
 //!
 //! [appearance]
 //! randomize = true             # textures, palettes, sun and sky drawn per scene (AppearanceConfig)
+//!
+//! [rig]
+//! randomize = true             # LiDAR height, camera height and pitch drawn per scene (RigConfig)
 //!
 //! [frames]
 //! count = 10
@@ -47,6 +50,11 @@ pub enum Layout {
     /// A narrow street: one lane per direction without markings, narrow sidewalks, facades close to
     /// the road and cars parked on the carriageway.
     NarrowStreet,
+    /// A road through open country: no parking strips, a narrow paved shoulder (a `sidewalk`) and
+    /// open roadsides on both sides by default ([`RoadConfig::open_side_probability`] 1): grass,
+    /// trees in rows, clusters and alone at every distance, field fences and hedges, guardrails,
+    /// and only now and then a row of buildings far back.
+    Open,
 }
 
 /// A complete scene description (the root of a scene TOML file).
@@ -73,6 +81,10 @@ pub struct SceneConfig {
     /// scene while it is at its default, so `scene.json` of earlier scene files is unchanged).
     #[serde(skip_serializing_if = "AppearanceConfig::is_default")]
     pub appearance: AppearanceConfig,
+    /// Sensor rig variation: LiDAR height, camera height and pitch drawn per scene (off by default;
+    /// left out of the serialised scene while it is at its default).
+    #[serde(skip_serializing_if = "RigConfig::is_default")]
+    pub rig: RigConfig,
     /// Number of frames and their spacing.
     pub frames: FramesConfig,
 }
@@ -103,6 +115,34 @@ pub struct RoadConfig {
     pub building_height_m: Option<[f32; 2]>,
     /// Lane markings (dashed lane lines, edge lines, crosswalks).
     pub lane_markings: Option<bool>,
+    /// Probability, within `[0, 1]`, that a roadside is open: drawn per scene for each side of the
+    /// street, an open side has no building row behind its sidewalk but open ground (grass), trees
+    /// in rows, clusters and alone at 1-60 m, bushes, field fences or hedges, maybe a guardrail
+    /// and maybe a row of buildings set back far ([`RoadConfig::open_setback_m`]). Default 0 (1
+    /// for the `open` layout). The junction layout ignores it (its arms keep their lots).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub open_side_probability: Option<f32>,
+    /// On an open side: the range `[low, high]` of the distance, metres, from the sidewalk's outer
+    /// edge to the facades of its far building row, drawn per side within `[5, 200]`. Default
+    /// `[15, 60]`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub open_setback_m: Option<[f32; 2]>,
+    /// On an open side: the probability, within `[0, 1]`, that it has a far building row at all
+    /// (covering `building_frontage` of the frontage). Default 0.5 (0.3 for the `open` layout).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub open_building_probability: Option<f32>,
+    /// On an open side: the probability, within `[0, 1]`, of a guardrail (a low metal barrier,
+    /// labelled `fence` as in SemanticKITTI) in long runs along the road edge; never beside a
+    /// parking strip. Default 0.2 (0.6 for the `open` layout).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub guardrail_probability: Option<f32>,
+    /// A grade change of the main street: the range `[low, high]`, percent within `[-12, 12]`, of
+    /// the grade drawn per scene (positive: the road climbs in +x). The street is flat up to a
+    /// point drawn 30 m behind to 50 m ahead of the ego's start, then bends over a 40 m parabolic
+    /// vertical curve into that grade; everything on it (the ego, pitching with the road, too)
+    /// follows the road's height. Default `[0, 0]`: flat.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub grade_percent: Option<[f32; 2]>,
 }
 
 /// Road parameters with every default resolved for a layout.
@@ -130,6 +170,16 @@ pub struct RoadParams {
     pub building_height_m: [f32; 2],
     /// Lane markings.
     pub lane_markings: bool,
+    /// Probability that a roadside is open.
+    pub open_side_probability: f32,
+    /// Distance range of the far building row of an open side behind the sidewalk, metres.
+    pub open_setback_m: [f32; 2],
+    /// Probability that an open side has a far building row.
+    pub open_building_probability: f32,
+    /// Probability that an open side has a guardrail along the road edge.
+    pub guardrail_probability: f32,
+    /// Range of the main street's grade after its vertical curve, percent.
+    pub grade_percent: [f32; 2],
 }
 
 impl RoadParams {
@@ -148,28 +198,62 @@ impl RoadConfig {
     /// Resolve every default for `layout`.
     pub fn resolve(&self, layout: Layout) -> RoadParams {
         let narrow = layout == Layout::NarrowStreet;
+        let open = layout == Layout::Open;
         RoadParams {
-            length_m: self.length_m.unwrap_or(if narrow { 160.0 } else { 240.0 }),
+            length_m: self.length_m.unwrap_or(if narrow {
+                160.0
+            } else if open {
+                300.0
+            } else {
+                240.0
+            }),
             lanes_per_direction: self
                 .lanes_per_direction
                 .unwrap_or(if narrow { 1 } else { 2 }),
             lane_width_m: self.lane_width_m.unwrap_or(if narrow { 2.9 } else { 3.5 }),
-            parking_lane: self.parking_lane.unwrap_or(!narrow),
+            parking_lane: self.parking_lane.unwrap_or(!narrow && !open),
             parking_width_m: self.parking_width_m.unwrap_or(2.3),
-            sidewalk_width_m: self
-                .sidewalk_width_m
-                .unwrap_or(if narrow { 1.6 } else { 3.5 }),
-            kerb_height_m: self.kerb_height_m.unwrap_or(0.15),
+            sidewalk_width_m: self.sidewalk_width_m.unwrap_or(if narrow {
+                1.6
+            } else if open {
+                1.5
+            } else {
+                3.5
+            }),
+            kerb_height_m: self.kerb_height_m.unwrap_or(if open { 0.1 } else { 0.15 }),
             setback_m: self.setback_m.unwrap_or(if narrow { 0.0 } else { 3.0 }),
-            building_frontage: self
-                .building_frontage
-                .unwrap_or(if narrow { 0.95 } else { 0.7 }),
+            building_frontage: self.building_frontage.unwrap_or(if narrow {
+                0.95
+            } else if open {
+                0.5
+            } else {
+                0.7
+            }),
             building_height_m: self.building_height_m.unwrap_or(if narrow {
                 [9.0, 18.0]
+            } else if open {
+                [4.0, 12.0]
             } else {
                 [6.0, 22.0]
             }),
             lane_markings: self.lane_markings.unwrap_or(!narrow),
+            open_side_probability: self.open_side_probability.unwrap_or(if open {
+                1.0
+            } else {
+                0.0
+            }),
+            open_setback_m: self.open_setback_m.unwrap_or([15.0, 60.0]),
+            open_building_probability: self.open_building_probability.unwrap_or(if open {
+                0.3
+            } else {
+                0.5
+            }),
+            guardrail_probability: self.guardrail_probability.unwrap_or(if open {
+                0.6
+            } else {
+                0.2
+            }),
+            grade_percent: self.grade_percent.unwrap_or([0.0, 0.0]),
         }
     }
 }
@@ -587,6 +671,107 @@ impl AppearanceConfig {
     }
 }
 
+/// Sensor rig variation (TOML section `[rig]`).
+///
+/// With `randomize = true` every scene draws, from its seed, the LiDAR's height above the road
+/// (replacing [`EgoConfig::lidar_height_m`]), camera 0's height relative to the LiDAR (replacing
+/// [`CameraConfig::up_m`]) and a change of the camera's pitch (added to
+/// [`CameraConfig::pitch_down_deg`]), each uniform in its range; [`Scene::camera_config`] and
+/// [`Scene::lidar_height_m`] give the drawn values, and the frames' camera and KITTI calibration
+/// follow them. With `randomize = false` (the default) the ranges are ignored (but validated).
+///
+/// [`Scene::camera_config`]: super::Scene::camera_config
+/// [`Scene::lidar_height_m`]: super::Scene::lidar_height_m
+///
+/// ```toml
+/// [rig]
+/// randomize = true
+/// lidar_height_m = [1.6, 2.0]   # KITTI 1.73, nuScenes 1.84
+/// camera_up_m = [-0.35, 0.0]    # KITTI -0.08, nuScenes about -0.33
+/// pitch_offset_deg = [-2.0, 2.0]
+/// ```
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RigConfig {
+    /// Draw the rig per scene.
+    pub randomize: bool,
+    /// LiDAR height above the road, `[low, high]` metres within `(0, 10]`.
+    pub lidar_height_m: [f32; 2],
+    /// Camera 0 above the LiDAR (negative: below), `[low, high]` metres within `[-2, 2]`.
+    pub camera_up_m: [f32; 2],
+    /// Change of the camera's downward pitch, `[low, high]` degrees within `[-10, 10]`.
+    pub pitch_offset_deg: [f32; 2],
+}
+
+impl Default for RigConfig {
+    fn default() -> Self {
+        RigConfig {
+            randomize: false,
+            lidar_height_m: [1.6, 2.0],
+            camera_up_m: [-0.35, 0.0],
+            pitch_offset_deg: [-2.0, 2.0],
+        }
+    }
+}
+
+impl RigConfig {
+    fn is_default(&self) -> bool {
+        *self == Self::default()
+    }
+
+    /// Check every range (finite, `low <= high`, within its bounds); the error names the key.
+    pub fn validate(&self) -> Result<()> {
+        for (key, [lo, hi], min, max) in [
+            ("lidar_height_m", self.lidar_height_m, 0.0, 10.0),
+            ("camera_up_m", self.camera_up_m, -2.0, 2.0),
+            ("pitch_offset_deg", self.pitch_offset_deg, -10.0, 10.0),
+        ] {
+            let in_bounds = if key == "lidar_height_m" {
+                min < lo
+            } else {
+                min <= lo
+            };
+            if !(lo.is_finite() && hi.is_finite() && in_bounds && lo <= hi && hi <= max) {
+                return Err(Error::Invalid {
+                    what: format!("rig.{key}"),
+                    message: format!("[{lo}, {hi}] must satisfy {min} <= low <= high <= {max}"),
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// The rig of scene `seed`: the LiDAR height above the road and the camera configuration (with
+    /// `up_m` and `pitch_down_deg` drawn). Without `randomize`, `lidar_height_m` and `camera`
+    /// unchanged.
+    pub(crate) fn draw(
+        &self,
+        seed: u64,
+        lidar_height_m: f32,
+        camera: &CameraConfig,
+    ) -> (f32, CameraConfig) {
+        if !self.randomize {
+            return (lidar_height_m, *camera);
+        }
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        rng.set_stream(RIG_STREAM);
+        let mut draw = |[lo, hi]: [f32; 2]| lo + (hi - lo) * rng.random::<f32>();
+        let height = draw(self.lidar_height_m);
+        let up = draw(self.camera_up_m);
+        let pitch = draw(self.pitch_offset_deg);
+        let camera = CameraConfig {
+            up_m: up,
+            pitch_down_deg: camera.pitch_down_deg + pitch,
+            ..*camera
+        };
+        (height, camera)
+    }
+}
+
+/// The random stream of the rig draw (apart from the scene generator's streams).
+const RIG_STREAM: u64 = 0x7269_6700;
+
 /// Number of frames and their spacing.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -681,6 +866,33 @@ impl SceneConfig {
             (0.0..=1.0).contains(&r.building_frontage),
             "road.building_frontage",
             format!("{} not in [0, 1]", r.building_frontage),
+        )?;
+        check(
+            (0.0..=1.0).contains(&r.open_side_probability),
+            "road.open_side_probability",
+            format!("{} not in [0, 1]", r.open_side_probability),
+        )?;
+        let [o0, o1] = r.open_setback_m;
+        check(
+            o0.is_finite() && o1.is_finite() && (5.0..=o1).contains(&o0) && o1 <= 200.0,
+            "road.open_setback_m",
+            format!("[{o0}, {o1}] must satisfy 5 <= low <= high <= 200"),
+        )?;
+        for (name, v) in [
+            ("open_building_probability", r.open_building_probability),
+            ("guardrail_probability", r.guardrail_probability),
+        ] {
+            check(
+                (0.0..=1.0).contains(&v),
+                &format!("road.{name}"),
+                format!("{v} not in [0, 1]"),
+            )?;
+        }
+        let [g0, g1] = r.grade_percent;
+        check(
+            g0.is_finite() && g1.is_finite() && (-12.0..=g1).contains(&g0) && g1 <= 12.0,
+            "road.grade_percent",
+            format!("[{g0}, {g1}] must satisfy -12 <= low <= high <= 12"),
         )?;
         let min_len = match self.layout {
             // the junction's four arms need room beyond the crossing street's sidewalks
@@ -796,6 +1008,15 @@ impl SceneConfig {
             "camera.pitch_down_deg",
             "must be within [-45, 45]".into(),
         )?;
+        self.rig.validate()?;
+        if self.rig.randomize {
+            let [p0, p1] = self.rig.pitch_offset_deg;
+            check(
+                (c.pitch_down_deg + p0).abs() <= 45.0 && (c.pitch_down_deg + p1).abs() <= 45.0,
+                "rig.pitch_offset_deg",
+                "camera.pitch_down_deg plus the offsets must stay within [-45, 45]".into(),
+            )?;
+        }
         check(
             (1..=8).contains(&c.samples_per_axis),
             "camera.samples_per_axis",

@@ -32,7 +32,7 @@ pub mod class {
     pub const SIDEWALK: u16 = 48;
     /// Building.
     pub const BUILDING: u16 = 50;
-    /// Fence.
+    /// Fence (also guardrails and other low barriers).
     pub const FENCE: u16 = 51;
     /// Lane marking.
     pub const LANE_MARKING: u16 = 60;
@@ -204,6 +204,8 @@ pub mod stock {
     pub const SIGN: Material = Material::new([0.8, 0.8, 0.82], 0.95, class::TRAFFIC_SIGN);
     /// Wooden / metal fence.
     pub const FENCE: Material = Material::new([0.3, 0.24, 0.17], 0.3, class::FENCE);
+    /// Galvanised steel of guardrails (SemanticKITTI labels guardrails `fence`).
+    pub const GUARDRAIL: Material = Material::new([0.42, 0.43, 0.44], 0.55, class::FENCE);
     /// Tyres.
     pub const TYRE: Material = Material::new([0.03, 0.03, 0.03], 0.05, class::CAR);
     /// Vehicle glass (dark; LiDAR sees little of it).

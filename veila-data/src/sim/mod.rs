@@ -2,10 +2,10 @@
 //! depth, by ray casting through an `obvhs` BVH.
 //!
 //! - [`SceneConfig`]: a TOML scene file (layout, road, population, ego, sensors, lighting,
-//!   appearance randomisation of the camera image, frames).
+//!   appearance randomisation of the camera image, rig variation, frames).
 //! - [`Scene::generate`]: a deterministic world from a config and a seed: road with lanes and
-//!   markings, kerbs, sidewalks, parking strips, buildings with windows, fences, hedges, trees,
-//!   bushes, terrain, street lights, signs, traffic lights, parked and moving cars, vans, trucks,
+//!   markings, kerbs, sidewalks, parking strips, buildings with windows, open roadsides, fences,
+//!   hedges, guardrails, trees, bushes, terrain, street lights, signs, traffic lights, parked and moving cars, vans, trucks,
 //!   buses, trailers, pedestrians and cyclists; every surface has a [`Material`] (albedo, LiDAR
 //!   reflectivity) and a SemanticKITTI raw class ([`class`]).
 //! - [`Scene::snapshot`]: the world at one frame with its BVH ([`Accel`]) and the ego's LiDAR pose;
@@ -54,7 +54,7 @@ pub mod split;
 pub use camera::{CameraRenderOptions, SimCalib, SimImage};
 pub use config::{
     AppearanceConfig, CameraConfig, EgoConfig, FramesConfig, Layout, LidarConfig, LidarReturnModel,
-    LightingConfig, PopulationConfig, RoadConfig, RoadParams, SceneConfig,
+    LightingConfig, PopulationConfig, RigConfig, RoadConfig, RoadParams, SceneConfig,
 };
 pub use frame::SceneSnapshot;
 pub use lidar::{RayOutcome, SimScan};

@@ -432,6 +432,30 @@ pub fn fence(length: f32, height: f32) -> Mesh {
     m
 }
 
+/// A guardrail of `length` along local x (`fence`, as SemanticKITTI labels guardrails): a steel
+/// beam 0.45-0.75 m above the ground whose face is at local `y = 0` facing +y (the road), on posts
+/// every 2 m behind it.
+pub fn guardrail(length: f32) -> Mesh {
+    let mut m = Mesh::new();
+    let steel = m.surface(stock::GUARDRAIL, 0);
+    m.add_aabb(
+        Vec3::new(-length / 2.0, -0.08, 0.45),
+        Vec3::new(length / 2.0, 0.0, 0.75),
+        steel,
+    );
+    let posts = (length / 2.0).floor().max(1.0) as i32;
+    let step = length / posts as f32;
+    for i in 0..=posts {
+        let x = -length / 2.0 + i as f32 * step;
+        m.add_aabb(
+            Vec3::new(x - 0.05, -0.2, 0.0),
+            Vec3::new(x + 0.05, -0.08, 0.7),
+            steel,
+        );
+    }
+    m
+}
+
 /// A hedge of `length` along local x (`vegetation`).
 pub fn hedge(rng: &mut ChaCha8Rng, length: f32) -> Mesh {
     let mut m = Mesh::new();

@@ -214,9 +214,10 @@ pub fn simulate_to_dir(
 ) -> Result<SimSummary> {
     let scene = Scene::generate(config, seed)?;
     let sensor = config.lidar.sensor()?;
-    let calib = SimCalib::from_config(&config.camera);
+    // the scene's rig: the config's camera, or the one drawn for this seed ([rig])
+    let calib = SimCalib::from_config(scene.camera_config());
     let camera = calib.camera()?;
-    let opts = CameraRenderOptions::from(&config.camera);
+    let opts = CameraRenderOptions::from(scene.camera_config());
     create_output_dirs(dir)?;
     let mut summary = SimSummary {
         name: config.name.clone(),

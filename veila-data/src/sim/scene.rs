@@ -13,7 +13,7 @@ use veila_geom::{LidarSensor, PinholeCamera};
 
 use super::appearance::Appearance;
 use super::camera::{CameraRenderOptions, SimCalib, SimImage};
-use super::config::{Layout, RoadParams, SceneConfig};
+use super::config::{CameraConfig, Layout, RoadParams, SceneConfig};
 use super::frame::SceneSnapshot;
 use super::hash::splitmix;
 use super::lidar::SimScan;
@@ -27,6 +27,80 @@ use crate::Result;
 const TILE_M: f32 = 10.0;
 /// Height of lane paint above the asphalt, metres (keeps markings ahead of the road in closest-hit).
 const PAINT_Z: f32 = 0.003;
+/// First random stream of the open roadsides (apart from every stream the older features use).
+const OPEN_STREAM: u64 = 0x6f70_0000;
+/// Random stream of the grade draw.
+const GRADE_STREAM: u64 = 0x6772_0000;
+/// Length of the vertical curve into the grade, metres.
+const VERTICAL_CURVE_M: f32 = 40.0;
+/// Triangles in the vertical curve are split until their extent along x is at most this, metres
+/// (the piecewise-linear road then deviates from the parabola by under a millimetre at 12 %).
+const CURVE_CHORD_M: f32 = 1.0;
+
+/// The main street's height profile: flat up to `x0`, then a parabolic vertical curve over `len`
+/// metres into the constant grade `g` (rise over run).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Grade {
+    x0: f32,
+    len: f32,
+    g: f32,
+}
+
+impl Grade {
+    /// Road height at `x`.
+    fn z(&self, x: f32) -> f32 {
+        let t = x - self.x0;
+        if t <= 0.0 {
+            0.0
+        } else if t < self.len {
+            self.g * t * t / (2.0 * self.len)
+        } else {
+            self.g * (t - self.len / 2.0)
+        }
+    }
+
+    /// Road slope (dz/dx) at `x`.
+    fn slope(&self, x: f32) -> f32 {
+        self.g * ((x - self.x0) / self.len).clamp(0.0, 1.0)
+    }
+
+    /// `mesh` with every vertex lifted by the road height at its x. Triangles reaching into the
+    /// curve are first split (longest extent along x halved) into pieces of at most
+    /// [`CURVE_CHORD_M`]; elsewhere the lift is affine in x and triangles stay whole. Vertical
+    /// edges stay vertical.
+    fn warp(&self, mesh: &Mesh) -> Mesh {
+        let (a, b) = (self.x0, self.x0 + self.len);
+        let mut out = Mesh {
+            triangles: Vec::with_capacity(mesh.triangles.len()),
+            surface_of: Vec::with_capacity(mesh.triangles.len()),
+            surfaces: mesh.surfaces.clone(),
+        };
+        let mut stack = Vec::new();
+        for (t, &surf) in mesh.triangles.iter().zip(&mesh.surface_of) {
+            stack.push(*t);
+            while let Some(t) = stack.pop() {
+                let lo = t[0].x.min(t[1].x).min(t[2].x);
+                let hi = t[0].x.max(t[1].x).max(t[2].x);
+                if hi - lo > CURVE_CHORD_M && hi > a && lo < b {
+                    // split the edge that spans the most x at its midpoint (orientation kept)
+                    let span = |i: usize| (t[(i + 1) % 3].x - t[i].x).abs();
+                    let i = (0..3)
+                        .max_by(|&i, &j| span(i).total_cmp(&span(j)))
+                        .unwrap_or(0);
+                    let (j, k) = ((i + 1) % 3, (i + 2) % 3);
+                    let m = (t[i] + t[j]) * 0.5;
+                    stack.push([t[i], m, t[k]]);
+                    stack.push([m, t[j], t[k]]);
+                    continue;
+                }
+                out.triangles
+                    .push(t.map(|v| Vec3::new(v.x, v.y, v.z + self.z(v.x))));
+                out.surface_of.push(surf);
+            }
+        }
+        out
+    }
+}
 
 /// A moving or movable object: a mesh in its own frame moved along a straight line.
 #[derive(Debug, Clone)]
@@ -59,6 +133,12 @@ pub struct Scene {
     /// LiDAR pose at time 0.
     ego_pose0: Affine3A,
     ego_velocity: Vec3,
+    /// The camera of the scene's rig (the config's, or drawn with [`super::RigConfig`]).
+    camera: CameraConfig,
+    /// The LiDAR's height above the road.
+    lidar_height_m: f32,
+    /// The main street's height profile (None: flat).
+    grade: Option<Grade>,
 }
 
 impl Scene {
@@ -68,22 +148,44 @@ impl Scene {
         let road = config.road_params();
         let mut g = Gen::new(config, road, seed);
         match config.layout {
-            Layout::Straight | Layout::NarrowStreet => g.straight(),
+            Layout::Straight | Layout::NarrowStreet | Layout::Open => g.straight(),
             Layout::Junction => g.junction(),
         }
         g.populate();
         let ego_d = -(road.lanes_per_direction as f32 - 0.5) * road.lane_width_m;
+        let (lidar_height_m, camera) =
+            config
+                .rig
+                .draw(seed, config.ego.lidar_height_m, &config.camera);
+        let grade = (road.grade_percent != [0.0, 0.0])
+            .then(|| {
+                let mut rng = g.rng(GRADE_STREAM);
+                let [lo, hi] = road.grade_percent;
+                let percent = lo + (hi - lo) * rng.random::<f32>();
+                Grade {
+                    x0: config.ego.start_x_m + rng.random_range(-30.0..50.0f32),
+                    len: VERTICAL_CURVE_M,
+                    g: percent / 100.0,
+                }
+            })
+            .filter(|grade| grade.g != 0.0);
         Ok(Scene {
             config: config.clone(),
             seed,
-            static_mesh: g.mesh,
+            static_mesh: match &grade {
+                Some(grade) => grade.warp(&g.mesh),
+                None => g.mesh,
+            },
             actors: g.actors,
             ego_pose0: Affine3A::from_translation(Vec3::new(
                 config.ego.start_x_m,
                 ego_d,
-                config.ego.lidar_height_m,
+                lidar_height_m,
             )),
             ego_velocity: Vec3::new(config.ego.speed_mps, 0.0, 0.0),
+            camera,
+            lidar_height_m,
+            grade,
         })
     }
 
@@ -104,7 +206,35 @@ impl Scene {
             actors,
             ego_pose0: world_from_lidar,
             ego_velocity: Vec3::ZERO,
+            camera: config.camera,
+            lidar_height_m: world_from_lidar.translation.z,
+            grade: None,
         }
+    }
+
+    /// Height of the main street's surface at `x` (world frame), metres: 0 on a flat street, else
+    /// the profile of the grade drawn from [`super::RoadConfig::grade_percent`].
+    pub fn road_height_m(&self, x: f32) -> f32 {
+        self.grade.map_or(0.0, |g| g.z(x))
+    }
+
+    /// The main street's grade after its vertical curve, percent (0: flat).
+    pub fn grade_percent(&self) -> f32 {
+        self.grade.map_or(0.0, |g| g.g * 100.0)
+    }
+
+    /// The camera of the scene's rig: the config's camera, with its height (`up_m`) and pitch
+    /// (`pitch_down_deg`) drawn when [`super::RigConfig::randomize`] is on. The frames' camera and
+    /// calibration are made from it ([`SimCalib::from_config`]).
+    pub fn camera_config(&self) -> &CameraConfig {
+        &self.camera
+    }
+
+    /// The LiDAR's height above the road, metres: the drawn one with
+    /// [`super::RigConfig::randomize`], else `ego.lidar_height_m` (for a scene from
+    /// [`Scene::from_parts`], the height of its LiDAR pose).
+    pub fn lidar_height_m(&self) -> f32 {
+        self.lidar_height_m
     }
 
     /// The configuration the scene was generated from.
@@ -132,16 +262,40 @@ impl Scene {
         index as f32 * self.config.frames.interval_s
     }
 
-    /// LiDAR pose (world from LiDAR: x forward along the ego's heading, z up) at `time_s`.
+    /// LiDAR pose (world from LiDAR: x forward along the ego's heading, z up) at `time_s`. On a
+    /// graded street the ego stands on the road at its x, pitched with the road's slope, the LiDAR
+    /// its height above the road along the road's normal.
     pub fn world_from_lidar(&self, time_s: f32) -> Affine3A {
-        Affine3A::from_translation(self.ego_velocity * time_s) * self.ego_pose0
+        let flat = Affine3A::from_translation(self.ego_velocity * time_s) * self.ego_pose0;
+        let Some(grade) = self.grade else {
+            return flat;
+        };
+        let p = flat.translation;
+        let pitch = grade.slope(p.x).atan();
+        let normal = Vec3::new(-pitch.sin(), 0.0, pitch.cos());
+        let ground = Vec3::new(p.x, p.y, grade.z(p.x));
+        Affine3A::from_translation(ground + normal * p.z)
+            * Affine3A::from_rotation_y(-pitch)
+            * Affine3A::from_mat3(Mat3::from(flat.matrix3))
     }
 
-    /// The whole world at `time_s` as one mesh (static world plus actors moved).
+    /// The whole world at `time_s` as one mesh (static world plus actors moved; on a graded street
+    /// the actors are lifted onto the road's profile like the static world).
     pub fn mesh_at(&self, time_s: f32) -> Mesh {
         let mut m = self.static_mesh.clone();
-        for a in &self.actors {
-            m.append_transformed(&a.mesh, a.world_from_actor(time_s));
+        match &self.grade {
+            None => {
+                for a in &self.actors {
+                    m.append_transformed(&a.mesh, a.world_from_actor(time_s));
+                }
+            }
+            Some(grade) => {
+                let mut moving = Mesh::new();
+                for a in &self.actors {
+                    moving.append_transformed(&a.mesh, a.world_from_actor(time_s));
+                }
+                m.append(&grade.warp(&moving));
+            }
         }
         m
     }
@@ -181,7 +335,7 @@ impl Scene {
             return Ok((frame, Vec::new()));
         }
         let snap = self.snapshot(index);
-        let opts = CameraRenderOptions::from(&self.config.camera);
+        let opts = CameraRenderOptions::from(&self.camera);
         let views = yaws_deg
             .iter()
             .map(|&yaw| {
@@ -207,11 +361,11 @@ impl Scene {
     /// camera): the paired scan and image without touching files, for training and demo code.
     pub fn render_frame(&self, index: u32) -> Result<SimFrame> {
         let sensor = self.config.lidar.sensor()?;
-        let calib = SimCalib::from_config(&self.config.camera);
+        let calib = SimCalib::from_config(&self.camera);
         let camera = calib.camera()?;
         let snap = self.snapshot(index);
         let scan = snap.render_lidar(&sensor, &self.config.lidar.returns)?;
-        let image = snap.render_camera(&camera, &CameraRenderOptions::from(&self.config.camera))?;
+        let image = snap.render_camera(&camera, &CameraRenderOptions::from(&self.camera))?;
         Ok(SimFrame {
             index,
             time_s: snap.time_s,
@@ -335,6 +489,8 @@ struct Gen<'a> {
     no_parking: Vec<(f32, f32)>,
     next_instance: u16,
     furniture: Vec<Occupancy>,
+    /// Street sections whose lots were built so far (numbers the open-roadside draws).
+    lot_calls: u64,
 }
 
 impl<'a> Gen<'a> {
@@ -349,6 +505,7 @@ impl<'a> Gen<'a> {
             no_parking: Vec::new(),
             next_instance: 1,
             furniture: (0..4).map(|_| Occupancy::default()).collect(),
+            lot_calls: 0,
         }
     }
 
@@ -370,9 +527,16 @@ impl<'a> Gen<'a> {
         self.road.length_m / 2.0
     }
 
-    /// Outer extent of the world across a street (terrain reaches this far).
+    /// Outer extent of the world across a street (terrain reaches this far; further when sides
+    /// may be open, to carry their far buildings and trees).
     fn outer_d(&self) -> f32 {
-        self.road.half_carriageway_m() + self.road.sidewalk_width_m + self.road.setback_m + 45.0
+        let r = &self.road;
+        let back = if r.open_side_probability > 0.0 && self.cfg.layout != Layout::Junction {
+            r.setback_m.max(r.open_setback_m[1] + 20.0)
+        } else {
+            r.setback_m
+        };
+        r.half_carriageway_m() + r.sidewalk_width_m + back + 45.0
     }
 
     fn straight(&mut self) {
@@ -572,7 +736,14 @@ impl<'a> Gen<'a> {
         let r = self.road;
         let front = r.half_carriageway_m() + r.sidewalk_width_m + r.setback_m;
         let [hmin, hmax] = r.building_height_m;
+        let call = self.lot_calls;
+        self.lot_calls += 1;
         for side in [-1.0f32, 1.0] {
+            // the junction's arms keep their lots (open ground there would run into the cross street)
+            if self.cfg.layout != Layout::Junction && self.side_open(call, side) {
+                self.open_side(f, s0, s1, side, call);
+                continue;
+            }
             let mut s = s0 + rng.random_range(0.0..4.0f32);
             while s < s1 - 4.0 {
                 if rng.random::<f32>() < r.building_frontage {
@@ -626,6 +797,137 @@ impl<'a> Gen<'a> {
                     self.mesh
                         .append_transformed(&b, f.place(bs, bd, r.kerb_height_m, 0.0));
                 }
+            }
+        }
+    }
+
+    /// Whether side `side` of the `call`-th street section is open (its own random stream: the
+    /// draw never shifts the other streams, and with probability 0 nothing changes).
+    fn side_open(&self, call: u64, side: f32) -> bool {
+        let p = self.road.open_side_probability;
+        if p <= 0.0 {
+            return false;
+        }
+        let mut rng = self.rng(OPEN_STREAM + 2 * call + u64::from(side > 0.0));
+        rng.random::<f32>() < p
+    }
+
+    /// An open roadside along `[s0, s1]` on `side`: maybe a guardrail at the road edge, maybe a
+    /// far building row, and open ground with trees (a row, clusters, single trees), bushes and
+    /// field fences or hedges in front of it.
+    fn open_side(&mut self, f: StreetFrame, s0: f32, s1: f32, side: f32, call: u64) {
+        let r = self.road;
+        let p = self.cfg.population.clone();
+        let mut rng = self.rng(OPEN_STREAM + 0x100 + 2 * call + u64::from(side > 0.0));
+        let kh = r.kerb_height_m;
+        let wc = r.half_carriageway_m();
+        let front = wc + r.sidewalk_width_m;
+        let len = (s1 - s0).max(0.0);
+        // heading that turns an object's local +y toward the road
+        let to_road = if side > 0.0 {
+            std::f32::consts::PI
+        } else {
+            0.0
+        };
+        // (no guardrail beside a parking strip)
+        if rng.random::<f32>() < r.guardrail_probability && !r.parking_lane {
+            let d = side * (wc + 0.25);
+            let mut s = s0 + rng.random_range(0.0..20.0f32);
+            while s < s1 - 10.0 {
+                let l = rng.random_range(30.0..150.0f32).min(s1 - 1.0 - s);
+                if l < 8.0 {
+                    break;
+                }
+                let g = objects::guardrail(l);
+                self.mesh
+                    .append_transformed(&g, f.place(s + l / 2.0, d, kh, to_road));
+                s += l + rng.random_range(4.0..40.0f32);
+            }
+        }
+        // far buildings: a sparse row well behind the open ground
+        let mut reach = 60.0f32;
+        if rng.random::<f32>() < r.open_building_probability {
+            let [lo, hi] = r.open_setback_m;
+            let setback = lo + (hi - lo) * rng.random::<f32>();
+            reach = setback - 3.0;
+            let [hmin, hmax] = r.building_height_m;
+            let mut s = s0 + rng.random_range(0.0..10.0f32);
+            while s < s1 - 8.0 {
+                let w = rng.random_range(8.0..20.0f32).min(s1 - s);
+                if rng.random::<f32>() < r.building_frontage {
+                    let depth = rng.random_range(8.0..16.0f32);
+                    let height = rng.random_range(hmin..=hmax);
+                    let b = objects::building(&mut rng, w, depth, height);
+                    let dd = side * (front + setback + rng.random_range(0.0..4.0f32));
+                    self.mesh
+                        .append_transformed(&b, f.place(s + w / 2.0, dd, kh, to_road));
+                }
+                s += w + rng.random_range(2.0..12.0f32);
+            }
+        }
+        let dist = |rng: &mut ChaCha8Rng, a: f32, b: f32| rng.random_range(a..b.max(a + 0.1));
+        let tree_at = |g: &mut Self, rng: &mut ChaCha8Rng, s: f32, d_out: f32| {
+            let t = objects::tree(rng);
+            let k = rng.random_range(0.8..1.6f32);
+            g.mesh.append_transformed(
+                &t,
+                f.place(s, side * (front + d_out), kh, 0.0) * Affine3A::from_scale(Vec3::splat(k)),
+            );
+        };
+        // a row of trees along the road (an avenue or a windbreak)
+        if rng.random_bool(0.4) {
+            let d_row = dist(&mut rng, 2.0, reach.min(25.0));
+            let spacing = rng.random_range(6.0..14.0f32);
+            let mut s = s0 + rng.random_range(0.0..spacing);
+            while s < s1 {
+                if rng.random_bool(0.8) {
+                    let jitter = rng.random_range(-0.8..0.8f32);
+                    tree_at(self, &mut rng, s, d_row + jitter);
+                }
+                s += spacing * rng.random_range(0.85..1.15f32);
+            }
+        }
+        // clusters of trees (copses) at varied distances
+        let density = p.trees_per_100m / 8.0;
+        let clusters = poisson_count(&mut rng, 2.5 * density * len / 100.0);
+        for _ in 0..clusters {
+            let cs = rng.random_range(s0..s1.max(s0 + 1e-3));
+            let cd = dist(&mut rng, 4.0, reach);
+            let spread = rng.random_range(3.0..10.0f32);
+            for _ in 0..rng.random_range(3..12u32) {
+                let s = (cs + rng.random_range(-spread..spread)).clamp(s0, s1);
+                let d = (cd + rng.random_range(-spread..spread) * 0.6).clamp(2.0, reach.max(2.0));
+                tree_at(self, &mut rng, s, d);
+            }
+        }
+        // single trees and bushes scattered over the open ground
+        for _ in 0..poisson_count(&mut rng, 1.5 * p.trees_per_100m * len / 100.0) {
+            let s = rng.random_range(s0..s1.max(s0 + 1e-3));
+            let d = dist(&mut rng, 2.0, reach);
+            tree_at(self, &mut rng, s, d);
+        }
+        for _ in 0..poisson_count(&mut rng, p.bushes_per_100m * len / 100.0) {
+            let s = rng.random_range(s0..s1.max(s0 + 1e-3));
+            let d = dist(&mut rng, 1.0, reach);
+            let b = objects::bush(&mut rng);
+            self.mesh
+                .append_transformed(&b, f.place(s, side * (front + d), kh, 0.0));
+        }
+        // a field boundary: fence or hedge runs with gaps, parallel to the road
+        let u = rng.random::<f32>();
+        if u < 0.6 {
+            let d = dist(&mut rng, 3.0, reach.min(30.0));
+            let mut s = s0 + rng.random_range(0.0..20.0f32);
+            while s < s1 - 5.0 {
+                let l = rng.random_range(15.0..60.0f32).min(s1 - s);
+                let m = if rng.random::<f32>() < p.fence_probability {
+                    objects::fence(l, rng.random_range(0.9..1.6f32))
+                } else {
+                    objects::hedge(&mut rng, l)
+                };
+                self.mesh
+                    .append_transformed(&m, f.place(s + l / 2.0, side * (front + d), kh, 0.0));
+                s += l + rng.random_range(5.0..40.0f32);
             }
         }
     }
