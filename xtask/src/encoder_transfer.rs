@@ -49,6 +49,10 @@ pub struct EncoderTransferArgs {
     /// Seed of the training.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Training split list (scene files and seeds; `scenes/train-v2.txt` adds the open-road and
+    /// suburban scenes with rig variation).
+    #[arg(long, default_value = "scenes/train.txt")]
+    train_list: PathBuf,
     /// Output folder (report.md, report.json).
     #[arg(long, default_value = "target/encoder-transfer")]
     out: PathBuf,
@@ -253,7 +257,7 @@ pub fn run(args: EncoderTransferArgs) -> Result<()> {
         };
         if slot.is_none() {
             *slot = Some(crate::simdata::render_split_styled(
-                &root.join("scenes/train.txt"),
+                &root.join(&args.train_list),
                 args.frames,
                 &cfg,
                 &crate::simdata::RenderStyle::randomized(recipe.randomized_appearance()),
@@ -302,8 +306,9 @@ pub fn run(args: EncoderTransferArgs) -> Result<()> {
     };
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let mut md = format!(
-        "# Depth encoder: simulated to real\n\n`cargo xtask encoder-transfer` ({} simulated training frames, {} updates of batch 8, seed {}; sim score on {} held-out simulated frames, real score on the real LiDAR points in each real image; AbsRel = mean |pred - true| / true, lower is better).\n\n| recipe | train s | sim AbsRel | real AbsRel (mean) |",
+        "# Depth encoder: simulated to real\n\n`cargo xtask encoder-transfer` ({} simulated training frames of `{}`, {} updates of batch 8, seed {}; sim score on {} held-out simulated frames, real score on the real LiDAR points in each real image; AbsRel = mean |pred - true| / true, lower is better).\n\n| recipe | train s | sim AbsRel | real AbsRel (mean) |",
         args.frames,
+        args.train_list.display(),
         args.steps,
         args.seed,
         tests.len()
