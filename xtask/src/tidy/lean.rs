@@ -1,5 +1,5 @@
 //! veila-data stays lean by default: a project that reads KITTI compiles no ray tracer, random-number
-//! stack or plotting library. Those come with the `sim`, `weather` and `vis` features.
+//! stack or plotting library. Those come with the `sim`, `weather`, `augment` and `vis` features.
 
 use std::process::Command;
 
@@ -7,7 +7,7 @@ use std::process::Command;
 /// that brings each.
 const HEAVY: &[(&str, &str)] = &[
     ("obvhs", "sim"),
-    ("rand", "sim / weather"),
+    ("rand", "sim / weather / augment"),
     ("plotters", "vis"),
     ("colorous", "vis"),
     ("ab_glyph", "vis"),
@@ -81,7 +81,7 @@ fn lean_check_catches_heavy_crates() {
         vec![
             "obvhs (belongs behind the `sim` feature)".to_string(),
             "plotters-backend (belongs behind the `vis` feature)".to_string(),
-            "rand_chacha (belongs behind the `sim / weather` feature)".to_string(),
+            "rand_chacha (belongs behind the `sim / weather / augment` feature)".to_string(),
         ]
     );
 }
