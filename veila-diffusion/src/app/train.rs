@@ -1183,7 +1183,8 @@ fn augment_seed(seed: u64, step: usize, slot: usize) -> u64 {
 /// Trains a [`SmallCnn`] on images with per-pixel targets: `images[i]` is `h * w * 3` RGB bytes,
 /// `labels[i]` (class ids of the learning map) and/or `depth_m[i]` (metres, 0 = no ground truth)
 /// `h * w` values. AdamW with a cosine learning rate, seeded batches; returns the network and its
-/// `VarMap`. [`train_small_cnn_from`] reads the examples on demand instead.
+/// `VarMap`. With `augment`, every drawn example is augmented first ([`EncoderAugment`]).
+/// [`train_small_cnn_from`] reads the examples on demand instead.
 #[allow(clippy::too_many_arguments)]
 pub fn train_small_cnn(
     cfg: &SmallCnnConfig,
