@@ -92,6 +92,8 @@ pub mod shard;
 #[cfg(feature = "sim")]
 pub mod sim;
 pub mod spec;
+#[cfg(any(feature = "augment", feature = "weather"))]
+mod srgb;
 pub mod stamp;
 #[cfg(feature = "vis")]
 pub mod vis;

@@ -537,29 +537,29 @@ fn deterministic_regardless_of_thread_count() {
     };
     let camera = SimCalib::from_config(&ccfg).camera().unwrap();
     let run = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        pool.install(|| {
+        with_threads(threads, || {
             let scene = Scene::generate(&cfg, 5).unwrap();
             let snap = scene.snapshot(3);
             let scan = snap.render_lidar(&sensor, &cfg.lidar.returns).unwrap();
             let img = snap
                 .render_camera(&camera, &CameraRenderOptions::from(&ccfg))
                 .unwrap();
-            let depth: Vec<u8> = img
-                .depth_m
-                .iter()
-                .flat_map(|d| d.to_bits().to_le_bytes())
-                .collect();
-            (scan_bytes(&scan), img.rgb, depth, img.semantic)
+            (scan_bytes(&scan), depth_bytes(&img), img.rgb, img.semantic)
         })
     };
     let one = run(1);
     let many = run(4);
     assert!(!one.0.is_empty());
     assert!(one == many, "outputs differ between 1 and 4 threads");
+}
+
+/// Runs `f` in a rayon pool of `threads` threads.
+fn with_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+        .install(f)
 }
 
 fn tiny_config() -> SceneConfig {
@@ -1351,11 +1351,7 @@ fn randomized_render_is_independent_of_thread_count() {
     };
     let camera = SimCalib::from_config(&ccfg).camera().unwrap();
     let run = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        pool.install(|| {
+        with_threads(threads, || {
             let scene = Scene::generate(&cfg, 8).unwrap();
             let img = scene
                 .snapshot(2)

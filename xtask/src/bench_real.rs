@@ -36,6 +36,7 @@ use veila_diffusion::SamplerConfig;
 use veila_diffusion::app::rig::{RigView, camera_views, load_view, prepare_views};
 use veila_diffusion::app::{Bundle, GenerateOptions};
 use veila_geom::{LidarSensor, PinholeCamera, ProjectionOptions, Projector, RangeImage, RayTable};
+use veila_nn::encoders::small_cnn::SmallCnn;
 use veila_nn::encoders::{Normalization, rgb8_to_tensor};
 
 /// KITTI's Velodyne HDL-64E sits 1.73 m above the ground (Geiger et al. 2013, fig. 3).
@@ -194,6 +195,18 @@ pub fn depth_score(
         mae_m: abs / n as f64,
         coverage: n as f64 / total as f64,
     })
+}
+
+/// The depth head's map (metres, `h x w`) of an `h x w` RGB image; `None` without a depth head.
+pub fn predict_depth(net: &SmallCnn, rgb: &[u8], h: usize, w: usize) -> Result<Option<Vec<f32>>> {
+    let img = rgb8_to_tensor(
+        rgb,
+        h,
+        w,
+        &Normalization::IMAGENET,
+        &candle_core::Device::Cpu,
+    )?;
+    Ok(net.predict_maps(&img)?.swap_remove(0).depth_m)
 }
 
 /// The flat-ground prior in the image: each pixel's ray meets the ground plane `height_m` below
@@ -369,19 +382,16 @@ pub fn evaluate(bundle: &Bundle, opts: &RealOptions<'_>, out: &Path) -> Result<R
         let views = camera_views(&prepared);
         let (small_rgb, small_cam) = &prepared[0];
         let encoder_depth = match bundle.depth.as_ref().and_then(|d| d.as_small_cnn()) {
-            Some(net) => {
-                let img = rgb8_to_tensor(
-                    small_rgb,
-                    bundle.config.image_height,
-                    bundle.config.image_width,
-                    &Normalization::IMAGENET,
-                    &candle_core::Device::Cpu,
-                )?;
-                net.predict_maps(&img)?[0].depth_m.as_ref().and_then(|d| {
-                    let d: Vec<Option<f32>> = d.iter().map(|&x| Some(x)).collect();
-                    depth_score(&d, small_cam, &xyz)
-                })
-            }
+            Some(net) => predict_depth(
+                net,
+                small_rgb,
+                bundle.config.image_height,
+                bundle.config.image_width,
+            )?
+            .and_then(|d| {
+                let d: Vec<Option<f32>> = d.into_iter().map(Some).collect();
+                depth_score(&d, small_cam, &xyz)
+            }),
             None => None,
         };
         let ground_depth = depth_score(

@@ -22,9 +22,8 @@ use veila_diffusion::app::bundle::{BundleConfig, Variant};
 use veila_diffusion::app::rig::{load_view, prepare_views};
 use veila_diffusion::app::{EncoderAugment, train_small_cnn};
 use veila_nn::encoders::small_cnn::SmallCnn;
-use veila_nn::encoders::{Normalization, rgb8_to_tensor};
 
-use crate::bench_real::{DepthScore, real_frames, real_root};
+use crate::bench_real::{DepthScore, predict_depth, real_frames, real_root};
 use crate::simdata::{SimExample, render_split, workspace_root};
 
 /// Arguments of `cargo xtask encoder-transfer`.
@@ -161,11 +160,7 @@ impl Row {
 fn sim_score(net: &SmallCnn, tests: &[SimExample], h: usize, w: usize) -> Result<DepthScore> {
     let (mut rel, mut abs, mut n, mut total) = (0.0f64, 0.0f64, 0usize, 0usize);
     for ex in tests {
-        let img = rgb8_to_tensor(&ex.rgb, h, w, &Normalization::IMAGENET, &Device::Cpu)?;
-        let pred = net.predict_maps(&img)?[0]
-            .depth_m
-            .clone()
-            .context("the encoder has no depth head")?;
+        let pred = predict_depth(net, &ex.rgb, h, w)?.context("the encoder has no depth head")?;
         for (p, t) in pred.iter().zip(&ex.depth_m) {
             if *t >= 1.0 && *t <= 80.0 {
                 total += 1;
@@ -218,11 +213,8 @@ pub fn run(args: EncoderTransferArgs) -> Result<()> {
     let score_real = |net: &SmallCnn| -> Result<Vec<(String, Option<DepthScore>)>> {
         real.iter()
             .map(|(name, rgb, cam, pts)| {
-                let img = rgb8_to_tensor(rgb, h, w, &Normalization::IMAGENET, &Device::Cpu)?;
-                let pred = net.predict_maps(&img)?[0]
-                    .depth_m
-                    .clone()
-                    .context("the encoder has no depth head")?;
+                let pred =
+                    predict_depth(net, rgb, h, w)?.context("the encoder has no depth head")?;
                 let pred: Vec<Option<f32>> = pred.into_iter().map(Some).collect();
                 Ok((
                     name.clone(),

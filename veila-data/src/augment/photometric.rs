@@ -23,22 +23,14 @@ pub(super) fn invalid(what: &str, message: impl Into<String>) -> Error {
 /// `v / 12.92` for `v <= 0.04045`, else `((v + 0.055) / 1.055)^2.4`. Inputs outside `[0, 1]` follow the
 /// same formulas (the linear segment for negatives).
 pub fn srgb_to_linear(v: f32) -> f32 {
-    if v <= 0.040_45 {
-        v / 12.92
-    } else {
-        ((v + 0.055) / 1.055).powf(2.4)
-    }
+    crate::srgb::srgb_to_linear(v)
 }
 
 /// The sRGB encoding function of IEC 61966-2-1: linear light `l` in `[0, 1]` to encoded.
 ///
 /// `12.92 l` for `l <= 0.0031308`, else `1.055 l^(1/2.4) - 0.055`; the inverse of [`srgb_to_linear`].
 pub fn linear_to_srgb(l: f32) -> f32 {
-    if l <= 0.003_130_8 {
-        12.92 * l
-    } else {
-        1.055 * l.powf(1.0 / 2.4) - 0.055
-    }
+    crate::srgb::linear_to_srgb(l)
 }
 
 /// Linear light of an 8-bit sRGB value (`srgb_to_linear(v / 255)`, from a table).
@@ -49,12 +41,7 @@ pub fn srgb_u8_to_linear(v: u8) -> f32 {
 /// The 8-bit sRGB value of linear light `l`: clamped to `[0, 1]`, encoded, scaled by 255 and rounded to
 /// nearest. NaN maps to 0. `linear_to_srgb_u8(srgb_u8_to_linear(v)) == v` for every `v`.
 pub fn linear_to_srgb_u8(l: f32) -> u8 {
-    if l.is_nan() {
-        return 0;
-    }
-    (linear_to_srgb(l.clamp(0.0, 1.0)) * 255.0)
-        .round()
-        .clamp(0.0, 255.0) as u8
+    crate::srgb::linear_to_srgb_u8(l)
 }
 
 fn decode_table() -> &'static [f32; 256] {

@@ -311,14 +311,6 @@ impl CameraRays {
     }
 }
 
-fn srgb_encode(x: f32) -> f32 {
-    if x <= 0.003_130_8 {
-        12.92 * x
-    } else {
-        1.055 * x.powf(1.0 / 2.4) - 0.055
-    }
-}
-
 fn cell_noise(p: Vec3, scale: f32) -> f32 {
     let q = (p * scale).floor();
     let key = (q.x as i64 as u64).wrapping_mul(0x9E37_79B9)
@@ -491,7 +483,7 @@ impl SceneSnapshot {
                         let px = (Vec3::ONE - (-acc * sh.exposure).exp())
                             .to_array()
                             .map(|c| {
-                                ((srgb_encode(c.clamp(0.0, 1.0)) + dither) * 255.0)
+                                ((crate::srgb::linear_to_srgb(c.clamp(0.0, 1.0)) + dither) * 255.0)
                                     .round()
                                     .clamp(0.0, 255.0) as u8
                             });

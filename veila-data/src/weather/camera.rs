@@ -239,54 +239,12 @@ pub struct CameraOutput {
 
 /// sRGB decode of one 8-bit value.
 pub fn srgb_to_linear(v: u8) -> f32 {
-    let c = v as f32 / 255.0;
-    if c <= 0.04045 {
-        c / 12.92
-    } else {
-        ((c + 0.055) / 1.055).powf(2.4)
-    }
-}
-
-/// The sRGB encoding formula (slow path; [`linear_to_srgb`] reproduces it exactly with a table).
-fn linear_to_srgb_formula(x: f32) -> u8 {
-    let x = if x.is_nan() { 0.0 } else { x.clamp(0.0, 1.0) };
-    let c = if x <= 0.003_130_8 {
-        12.92 * x
-    } else {
-        1.055 * x.powf(1.0 / 2.4) - 0.055
-    };
-    (c * 255.0).round().clamp(0.0, 255.0) as u8
-}
-
-/// For each code k in 1..=255, the smallest non-negative f32 whose encoding is >= k (bisection on the
-/// bit patterns, which order like the values for non-negative floats).
-fn srgb_thresholds() -> &'static [f32; 255] {
-    static T: std::sync::OnceLock<[f32; 255]> = std::sync::OnceLock::new();
-    T.get_or_init(|| {
-        let mut t = [0f32; 255];
-        for (k, slot) in t.iter_mut().enumerate() {
-            let want = (k + 1) as u8;
-            let (mut lo, mut hi) = (0u32, 1.0f32.to_bits());
-            while lo < hi {
-                let mid = lo + (hi - lo) / 2;
-                if linear_to_srgb_formula(f32::from_bits(mid)) >= want {
-                    hi = mid;
-                } else {
-                    lo = mid + 1;
-                }
-            }
-            *slot = f32::from_bits(lo);
-        }
-        t
-    })
+    crate::srgb::srgb_to_linear(v as f32 / 255.0)
 }
 
 /// sRGB encode of a linear value (clamped to [0, 1]; NaN -> 0) to 8 bits, rounding to nearest.
 pub fn linear_to_srgb(x: f32) -> u8 {
-    if !(x > 0.0) {
-        return 0;
-    }
-    srgb_thresholds().partition_point(|t| *t <= x) as u8
+    crate::srgb::linear_to_srgb_u8(x)
 }
 
 /// Airlight estimate (linear RGB): dark channel with a 15x15 minimum filter, the brightest 0.1 % of it,
@@ -668,26 +626,4 @@ pub fn apply_camera(
             message: "buffer size mismatch".into(),
         })?;
     Ok(CameraOutput { image, records })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn table_encoding_equals_the_formula() {
-        let mut x = 0.0f32;
-        while x <= 1.001 {
-            assert_eq!(linear_to_srgb(x), linear_to_srgb_formula(x), "{x}");
-            x += 1.7e-5;
-        }
-        for t in srgb_thresholds() {
-            let below = f32::from_bits(t.to_bits() - 1);
-            assert_eq!(linear_to_srgb(*t), linear_to_srgb_formula(*t));
-            assert_eq!(linear_to_srgb(below), linear_to_srgb_formula(below));
-        }
-        assert_eq!(linear_to_srgb(f32::NAN), 0);
-        assert_eq!(linear_to_srgb(f32::INFINITY), 255);
-        assert_eq!(linear_to_srgb(-1.0), 0);
-    }
 }

@@ -1147,7 +1147,7 @@ impl EncoderAugment {
             std::mem::take(&mut ex.rgb),
         )?;
         let crop = self.crop_zoom.draw(w as u32, h as u32, seed)?;
-        let img = if crop.scale != 1.0 || crop.offset_px != [0.0, 0.0] {
+        let img = if crop != veila_data::augment::CropZoom::identity(w as u32, h as u32) {
             if let Some(l) = ex.labels.as_mut() {
                 *l = crop.resample_nearest(l, w as u32, h as u32)?;
             }
