@@ -48,6 +48,7 @@
 //! encoder_steps = 250
 //! checkpoint_every = 250
 //! # grad_accum_steps = 1           # run each batch in this many parts (activation memory of one part)
+//! # precision = "f32"              # or "bf16": mixed precision (bf16 activations, f32 weights; GPUs)
 //! # [train.encoder_augment]        # augment the encoders' training images (crop-zoom, colour,
 //! # crop_zoom = { p = 0.5, scale = [1.0, 1.3] }   #  blur, noise, JPEG; veila_data::augment)
 //!
@@ -70,7 +71,7 @@ use veila_diffusion::app::{
     RecipeSettings, Stage, TrainExample, run_recipe,
 };
 use veila_diffusion::trainer::distributed::{Parallel, ProcessGroup};
-use veila_diffusion::{StepStats, TrainObserver};
+use veila_diffusion::{Precision, StepStats, TrainObserver};
 use veila_geom::{ProjectionOptions, Projector, RayTable};
 use veila_nn::encoders::kind::EncoderKind;
 
@@ -218,6 +219,14 @@ struct TrainSection {
     /// absent: none).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     encoder_augment: Option<veila_diffusion::app::EncoderAugment>,
+    /// The activations' precision of the two networks' training: `f32` (default) or `bf16`
+    /// (mixed precision on f32 master weights; for GPUs).
+    #[serde(default, skip_serializing_if = "is_f32")]
+    precision: Precision,
+}
+
+fn is_f32(p: &Precision) -> bool {
+    *p == Precision::F32
 }
 
 fn d_one() -> u64 {
@@ -272,6 +281,7 @@ impl Default for TrainSection {
             mean_steps: None,
             grad_accum_steps: 1,
             encoder_augment: None,
+            precision: Precision::F32,
         }
     }
 }
@@ -647,6 +657,12 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
     let mut cfg = bundle_config(&file, &args.config)?;
     let device = model::device()?;
     let t = &file.train;
+    if t.precision == Precision::Bf16 && device.is_cpu() {
+        eprintln!(
+            "note: precision = \"bf16\" on the CPU runs slower than f32 (candle's CPU backend has \
+             no bf16 convolution or matrix kernels); it is meant for GPUs (--device cuda)"
+        );
+    }
     // data-parallel when a launcher (torchrun, srun) started several of us
     let group = ProcessGroup::from_env()?;
     let parallel = if group.world_size > 1 {
@@ -827,6 +843,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         encoder_lr: t.encoder_lr,
         grad_accum_steps: t.grad_accum_steps,
         encoder_augment: t.encoder_augment,
+        precision: t.precision,
     };
     let mean_steps = settings.mean_steps();
     let enc_dir = ck_dir.join(ENCODER_DIR);

@@ -300,6 +300,50 @@ fn shards_without_what_training_needs_fail_clearly() {
     let o = train(&cfg, &[]);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("huge"));
+    write_config(
+        &cfg,
+        "nolabel",
+        "run-e",
+        "variant = \"full\"",
+        "steps = 1\nprecision = \"fp8\"",
+    );
+    let o = train(&cfg, &[]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("a.toml") && err.contains("fp8"), "{err}");
+}
+
+/// `precision = "bf16"` trains both networks in mixed precision end to end (on the CPU with a
+/// note that it is meant for GPUs) and ships f32 weights.
+#[test]
+fn a_bf16_run_trains_and_ships_f32_weights() {
+    let tmp = tempfile::tempdir().unwrap();
+    make_shards(&tmp.path().join("shards"), 2, false, true);
+    write_small_bundle_config(&tmp.path().join("small.json"));
+    let model = format!(
+        "bundle = \"small.json\"\nencoders_from = \"{}\"",
+        model_dir().display()
+    );
+    let a = tmp.path().join("a.toml");
+    write_config(
+        &a,
+        "shards",
+        "run-a",
+        &model,
+        "steps = 2\nbatch = 1\nlr = 1e-3\nseed = 3\nprecision = \"bf16\"",
+    );
+    let o = train(&a, &[]);
+    ok(&o);
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("meant for GPUs"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let weights = tensors(&tmp.path().join("run-a/bundle").join("denoiser.safetensors"));
+    assert!(!weights.is_empty());
+    for (name, v) in &weights {
+        assert!(v.iter().all(|x| x.is_finite()), "{name}");
+    }
 }
 
 /// SIGKILL at seeded random points of a run (not the clean `--stop-after`), resumed each time, ends

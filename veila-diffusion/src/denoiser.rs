@@ -47,6 +47,36 @@ impl<D: Denoiser + ?Sized> Denoiser for Box<D> {
     }
 }
 
+/// Mixed precision: runs `inner` on its input cast to `dtype` (bf16 on a GPU) and returns the
+/// prediction in the input's dtype. The network's weights stay where they are (f32 master
+/// weights while training): veila-nn's layers cast them to the activations' dtype at use, run
+/// their normalisations and softmaxes in f32, and the gradients flow back through the casts.
+/// With `dtype` equal to the input's, this is `inner` itself.
+#[derive(Debug, Clone, Copy)]
+pub struct Autocast<D> {
+    /// The wrapped network.
+    pub inner: D,
+    /// The activations' dtype.
+    pub dtype: DType,
+}
+
+impl<D: Denoiser> Denoiser for Autocast<D> {
+    type Cond = D::Cond;
+    fn forward(
+        &self,
+        x_t: &Tensor,
+        t: &Tensor,
+        cond: Option<&Self::Cond>,
+    ) -> candle_core::Result<Tensor> {
+        if x_t.dtype() == self.dtype {
+            return self.inner.forward(x_t, t, cond);
+        }
+        self.inner
+            .forward(&x_t.to_dtype(self.dtype)?, t, cond)?
+            .to_dtype(x_t.dtype())
+    }
+}
+
 /// A conditioning that can be replaced by the "null" conditioning per sample, for condition dropout
 /// during training and the unconditional branch of classifier-free guidance.
 pub trait Conditioning: Sized {

@@ -68,7 +68,7 @@ pub mod schedule;
 pub mod trainer;
 
 pub use app::nn::{NetCond, VeilaDenoiser};
-pub use denoiser::{CondDropout, Conditioning, Denoiser, guide};
+pub use denoiser::{Autocast, CondDropout, Conditioning, Denoiser, guide};
 pub use encoding::RangeEncoding;
 pub use error::{Error, Result};
 pub use objective::{Denoised, Diffusion, DiffusionConfig, LossOutput, Objective};
@@ -81,6 +81,6 @@ pub use schedule::{
     CosineLogSnr, DiscreteSchedule, NoiseLevel, NoiseSchedule, ScheduleConfig, Spacing,
 };
 pub use trainer::{
-    Batch, BatchSource, Clock, FitSummary, LrSchedule, StepStats, TrainConfig, TrainObserver,
-    Trainer, claim_checkpoint_dir,
+    Batch, BatchSource, Clock, FitSummary, LrSchedule, Precision, StepStats, TrainConfig,
+    TrainObserver, Trainer, claim_checkpoint_dir,
 };

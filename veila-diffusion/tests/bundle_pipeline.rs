@@ -15,6 +15,7 @@ use veila_diffusion::app::{
     BundleFit, CameraView, DenoiserTraining, EncoderExample, ExampleSource, GenerateOptions, Stage,
     TrainExample, fit_bundle, varmap_tensors,
 };
+use veila_diffusion::trainer::Precision;
 use veila_geom::PinholeCamera;
 use veila_geom::RangeImage;
 use veila_nn::ConditioningConfig;
@@ -447,6 +448,32 @@ fn overfit_one_accumulating(
     dir: &std::path::Path,
     parts: u64,
 ) -> Bundle {
+    overfit_one_with(cfg, scan, steps, dir, parts, Precision::F32, None)
+}
+
+/// Stops the denoiser stage's training after update `at` (a checkpoint is written there).
+struct StopDenoiserAt(Option<u64>);
+impl<M: veila_diffusion::Denoiser> veila_diffusion::TrainObserver<M> for StopDenoiserAt {
+    fn on_step(&mut self, s: &veila_diffusion::StepStats) -> std::ops::ControlFlow<()> {
+        if self.0 == Some(s.step) {
+            std::ops::ControlFlow::Break(())
+        } else {
+            std::ops::ControlFlow::Continue(())
+        }
+    }
+}
+
+/// [`overfit_one_accumulating`] in `precision`; `stop_at`: interrupt the denoiser's training
+/// after that update and resume it from its checkpoint in a second call, as a user would.
+fn overfit_one_with(
+    cfg: BundleConfig,
+    scan: &RangeImage,
+    steps: u64,
+    dir: &std::path::Path,
+    parts: u64,
+    precision: Precision,
+    stop_at: Option<u64>,
+) -> Bundle {
     let dev = Device::Cpu;
     let mut cfg = cfg;
     let (h, w) = (cfg.denoiser.height(), cfg.denoiser.width());
@@ -479,27 +506,39 @@ fn overfit_one_accumulating(
         cond_drop_prob: 0.0,
         checkpoint_every: None,
         grad_accum_steps: parts,
+        precision,
         ..veila_diffusion::TrainConfig::default()
     };
-    let out = fit_bundle(
-        &mut cfg,
-        BundleFit {
-            semantic: encoders[0].as_ref(),
-            depth: encoders[1].as_ref(),
-            examples: (&examples).into(),
-            batch_size: 4,
-            train: &tc,
-            mean_train: None,
-            work_dir: &dir.join("work"),
-            init: None,
-            mean_init: None,
-            parallel: None,
-        },
-        &dev,
-        |_, _, _| {},
-        |_, _| Quiet,
-    )
-    .unwrap();
+    let fit = |cfg: &mut BundleConfig, stop: Option<u64>| {
+        fit_bundle(
+            cfg,
+            BundleFit {
+                semantic: encoders[0].as_ref(),
+                depth: encoders[1].as_ref(),
+                examples: (&examples).into(),
+                batch_size: 4,
+                train: &tc,
+                mean_train: None,
+                work_dir: &dir.join("work"),
+                init: None,
+                mean_init: None,
+                parallel: None,
+            },
+            &dev,
+            |_, _, _| {},
+            |stage, _| StopDenoiserAt(stop.filter(|_| stage == Stage::Denoiser)),
+        )
+        .unwrap()
+    };
+    if stop_at.is_some() {
+        let first = fit(&mut cfg, stop_at);
+        let d = first.denoiser.expect("the denoiser stage ran");
+        assert!(
+            d.summary.stopped_early && Some(d.step) == stop_at,
+            "interrupted"
+        );
+    }
+    let out = fit(&mut cfg, None);
     if let Some(m) = out.mean {
         weights.insert(MEAN_FILE, m.ema_weights);
     }
@@ -701,6 +740,74 @@ fn gradient_accumulation_trains_a_conditional_bundle_to_the_same_weights() {
     let (one, two) = (weights(1), weights(2));
     let diff = max_diff(&one, &two);
     assert!(diff < 1e-4, "max |diff| {diff}");
+}
+
+/// The denoiser's saved weights, flattened in name order.
+fn denoiser_weights(bundle_dir: &std::path::Path) -> Vec<f32> {
+    let t = candle_core::safetensors::load(bundle_dir.join(DENOISER_FILE), &Device::Cpu).unwrap();
+    let mut names: Vec<_> = t.keys().cloned().collect();
+    names.sort();
+    names
+        .iter()
+        .flat_map(|n| {
+            assert_eq!(t[n].dtype(), DType::F32, "{n}: saved as f32");
+            t[n].flatten_all().unwrap().to_vec1::<f32>().unwrap()
+        })
+        .collect()
+}
+
+/// Mixed precision (bf16 activations on f32 master weights) trains the real network as f32
+/// does: after the same updates from the same seeds its residual bundle reproduces its one scan
+/// about as closely, and an interrupted bf16 run resumes from its checkpoint to the very weights
+/// of an uninterrupted one. (bf16 on the CPU runs candle's reference ops, so this is kept short.)
+#[test]
+fn bf16_training_tracks_f32_and_resumes_exactly() {
+    let cfg = small_config(Variant::Full).with_method(Method::Residual);
+    let (h, w) = (cfg.denoiser.height(), cfg.denoiser.width());
+    let scan = structured_scan(h, w);
+    let quality = |precision: Precision| {
+        let tmp = tempfile::tempdir().unwrap();
+        let b = overfit_one_with(cfg.clone(), &scan, 80, tmp.path(), 1, precision, None);
+        let mean = range_mae(&generate_one(&b, SamplerConfig::ddim(0, 0.0), 1), &scan);
+        let full = range_mae(&generate_one(&b, SamplerConfig::ddim(8, 0.0), 1), &scan);
+        eprintln!(
+            "{precision:?}, 80 updates: mean network range MAE {:.3} m ({:.3} flips), with the \
+             residual {:.3} m ({:.3} flips)",
+            mean.0, mean.1, full.0, full.1
+        );
+        (mean, full, denoiser_weights(&tmp.path().join("bundle")))
+    };
+    let (mean32, full32, w32) = quality(Precision::F32);
+    let (mean16, full16, w16) = quality(Precision::Bf16);
+    assert_ne!(w32, w16, "the precision mattered");
+    for (what, a, b) in [
+        ("mean", mean16, mean32),
+        ("mean + residual", full16, full32),
+    ] {
+        assert!(
+            a.0.is_finite() && a.0 <= 1.25 * b.0 + 0.05,
+            "{what}: bf16 {a:?} against f32 {b:?}"
+        );
+        assert!(a.1 <= b.1 + 0.03, "{what}: bf16 {a:?} against f32 {b:?}");
+    }
+    // exact resume: 6 updates straight against 3, a checkpoint, and 3 more in a second call
+    let straight = tempfile::tempdir().unwrap();
+    overfit_one_with(
+        cfg.clone(),
+        &scan,
+        6,
+        straight.path(),
+        1,
+        Precision::Bf16,
+        None,
+    );
+    let resumed = tempfile::tempdir().unwrap();
+    overfit_one_with(cfg, &scan, 6, resumed.path(), 1, Precision::Bf16, Some(3));
+    assert_eq!(
+        denoiser_weights(&straight.path().join("bundle")),
+        denoiser_weights(&resumed.path().join("bundle")),
+        "bf16 resume is exact"
+    );
 }
 
 /// Random SegFormer-b0 encoder weights in Hugging Face layout (`segformer.encoder.*`).
@@ -1159,6 +1266,7 @@ fn encoders_train_to_the_same_weights_from_a_source() {
         encoder_lr: 1e-3,
         grad_accum_steps: 1,
         encoder_augment: None,
+        precision: veila_diffusion::Precision::F32,
     };
     let tmp = tempfile::tempdir().unwrap();
     let weights = |data: veila_diffusion::app::EncoderData<'_>, dir: &str| {

@@ -28,6 +28,11 @@ use crate::error::{Result, shape_err};
 /// composition): for before/after measurements in one binary (`cargo xtask bench-model`).
 pub const REFERENCE_OPS_ENV: &str = "VEILA_NN_REFERENCE_OPS";
 
+/// bf16 or f16: the dtypes whose normalisations and softmaxes run in f32 (mixed precision).
+pub fn is_half(dtype: DType) -> bool {
+    matches!(dtype, DType::BF16 | DType::F16)
+}
+
 /// Whether the CPU kernels are on (they are unless [`REFERENCE_OPS_ENV`] is `1`; read once).
 pub fn kernels_enabled() -> bool {
     static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
@@ -964,6 +969,11 @@ pub fn conv2d(
 ) -> Result<Tensor> {
     let (b, c, h, w) = x.dims4()?;
     let (out_c, wc, kh, kw) = weight.dims4()?;
+    // the weights follow the activations' dtype (mixed precision: f32 master weights, half
+    // activations; the cast is differentiable, and free when the dtypes agree)
+    let weight = &weight.to_dtype(x.dtype())?;
+    let bias = bias.map(|b| b.to_dtype(x.dtype())).transpose()?;
+    let bias = bias.as_ref();
     let spec = Im2ColSpec {
         kernel: (kh, kw),
         ones_row: false,
@@ -1295,6 +1305,13 @@ pub fn group_norm_act(
             scale.dims(),
         ));
     }
+    if is_half(x.dtype()) {
+        // statistics of half-precision activations in f32, the result back in their dtype
+        let f = |t: &Tensor| t.to_dtype(DType::F32);
+        let y = group_norm_act(&f(x)?, &f(scale)?, &f(shift)?, groups, eps, silu)?;
+        return Ok(y.to_dtype(x.dtype())?);
+    }
+    let (scale, shift) = (&scale.to_dtype(x.dtype())?, &shift.to_dtype(x.dtype())?);
     if on_cpu_f32(x) && on_cpu_f32(scale) && on_cpu_f32(shift) {
         return Ok(x.contiguous()?.apply_op3(
             &scale.contiguous()?,

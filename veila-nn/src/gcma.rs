@@ -34,7 +34,7 @@
 //! `gamma(r_k)`. The denoising loop only does `index_select`, weighted sums and small matmuls.
 
 use candle_core::{D, Device, Tensor};
-use candle_nn::{Linear, Module, VarBuilder};
+use candle_nn::{Linear, VarBuilder};
 use veila_geom::{BeamLayout, EpipolarConfig, EpipolarTable, LidarSensor, PinholeCamera, RayTable};
 
 use crate::config::{DenoiserConfig, GcmaConfig};
@@ -442,9 +442,13 @@ impl Gcma {
             .index_select(&geom.active, 2)?
             .transpose(1, 2)?
             .reshape((b, p, 1, heads, dh))?;
-        let pos = self.pos2.forward(&silu(
-            &self.pos0.forward(&geom.point_features.to_dtype(dtype)?)?,
-        )?)?;
+        let pos = crate::ops::linear(
+            &self.pos2,
+            &silu(&crate::ops::linear(
+                &self.pos0,
+                &geom.point_features.to_dtype(dtype)?,
+            )?)?,
+        )?;
         let q = qr.broadcast_add(&pos.reshape((1, p, s, heads, dh))?)?;
         let logits = ((q * &keys)?.sum(D::Minus1)? / (dh as f64).sqrt())?; // [B, P, S, heads]
         let logits = logits.transpose(2, 3)?; // [B, P, heads, S]

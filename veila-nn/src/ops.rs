@@ -174,6 +174,9 @@ pub fn conv2d_padded_hw(
     }
     let ho = (hp - kh) / stride_h + 1;
     let wo = (wp - kw) / stride_w + 1;
+    let weight = &weight.to_dtype(xp.dtype())?;
+    let bias = bias.map(|b| b.to_dtype(xp.dtype())).transpose()?;
+    let bias = bias.as_ref();
     let y = if kh == 1 && kw == 1 {
         let xs = strided_narrow(&strided_narrow(xp, 2, 0, ho, stride_h)?, 3, 0, wo, stride_w)?;
         let wm = weight.reshape((1, out_c, c))?;
@@ -195,9 +198,22 @@ pub fn conv2d_padded_hw(
         );
     };
     Ok(match bias {
-        Some(bias) => y.broadcast_add(&bias.reshape((1, bias.dim(0)?, 1, 1))?)?,
+        Some(bias) => add_bias(&y, &bias.reshape((1, bias.dim(0)?, 1, 1))?)?,
         None => y,
     })
+}
+
+/// `y + bias` (broadcast) in `y`'s dtype. For half-precision `y` the sum runs in f32, so that the
+/// bias gradient (a sum over every position of the batch) is accumulated in f32 rather than in
+/// 8 significant bits.
+pub fn add_bias(y: &Tensor, bias: &Tensor) -> Result<Tensor> {
+    if crate::fused::is_half(y.dtype()) {
+        let sum = y
+            .to_dtype(DType::F32)?
+            .broadcast_add(&bias.to_dtype(DType::F32)?)?;
+        return Ok(sum.to_dtype(y.dtype())?);
+    }
+    Ok(y.broadcast_add(&bias.to_dtype(y.dtype())?)?)
 }
 
 /// A zero-padded convolution through [`conv2d_padded`]: the same result as candle's
@@ -328,10 +344,10 @@ impl Conv1x1 {
                 &dims,
             ));
         }
-        let w = self.weight.reshape((1, out_c, in_c))?;
+        let w = self.weight.to_dtype(x.dtype())?.reshape((1, out_c, in_c))?;
         let y = w.broadcast_matmul(&x.reshape((b, c, n))?)?;
         let y = match &self.bias {
-            Some(bias) => y.broadcast_add(&bias.reshape((1, out_c, 1))?)?,
+            Some(bias) => add_bias(&y, &bias.reshape((1, out_c, 1))?)?,
             None => y,
         };
         let mut out_dims = dims;
@@ -403,6 +419,16 @@ pub fn bilinear_resize(x: &Tensor, out_h: usize, out_w: usize) -> Result<Tensor>
 /// * `log_w`: broadcastable to `logits`; finite on valid entries (anything on invalid ones)
 /// * `valid`: broadcastable to `logits`, `u8` (1 = valid)
 pub fn masked_softmax_last_dim(logits: &Tensor, log_w: &Tensor, valid: &Tensor) -> Result<Tensor> {
+    if crate::fused::is_half(logits.dtype()) {
+        // in f32: the -3e38 mask does not fit f16, and bf16's sums lose the small weights
+        let a = masked_softmax_last_dim(
+            &logits.to_dtype(DType::F32)?,
+            &log_w.to_dtype(DType::F32)?,
+            valid,
+        )?;
+        return Ok(a.to_dtype(logits.dtype())?);
+    }
+    let log_w = &log_w.to_dtype(logits.dtype())?;
     const BIG: f64 = 1e38;
     let shape = logits.shape().clone();
     let dtype = logits.dtype();
@@ -449,6 +475,21 @@ pub fn sinusoidal_embedding(t: &Tensor, dim: usize, max_period: f64, scale: f64)
         .reshape((b, 1))?)
     .broadcast_mul(&freqs)?;
     Ok(Tensor::cat(&[args.cos()?, args.sin()?], 1)?)
+}
+
+/// `x W^T + b` of a `candle_nn::Linear` in `x`'s dtype: the weights are cast to it first
+/// (mixed precision: f32 master weights, half activations; free when the dtypes agree).
+pub fn linear(layer: &candle_nn::Linear, x: &Tensor) -> Result<Tensor> {
+    use candle_core::Module;
+    let dt = x.dtype();
+    if layer.weight().dtype() == dt {
+        return Ok(layer.forward(x)?);
+    }
+    let y = candle_nn::Linear::new(layer.weight().to_dtype(dt)?, None).forward(x)?;
+    match layer.bias() {
+        Some(b) => add_bias(&y, b),
+        None => Ok(y),
+    }
 }
 
 /// Swish / SiLU.
@@ -521,10 +562,12 @@ impl GroupNorm {
         scale: &Tensor,
         shift: &Tensor,
     ) -> Result<Tensor> {
-        // (xhat w + b)(1 + s) + t = xhat [w (1 + s)] + [b (1 + s) + t]
-        let one_s = (scale + 1.0)?;
+        // (xhat w + b)(1 + s) + t = xhat [w (1 + s)] + [b (1 + s) + t], in the weights' dtype
+        // (f32 master weights under mixed precision; group_norm_act casts as it needs)
+        let dt = self.weight.dtype();
+        let one_s = (scale.to_dtype(dt)? + 1.0)?;
         let sc = one_s.broadcast_mul(&self.weight.unsqueeze(0)?)?;
-        let sh = (one_s.broadcast_mul(&self.bias.unsqueeze(0)?)? + shift)?;
+        let sh = (one_s.broadcast_mul(&self.bias.unsqueeze(0)?)? + shift.to_dtype(dt)?)?;
         group_norm_act(x, &sc, &sh, self.groups, self.eps, true)
     }
 }

@@ -1,7 +1,7 @@
 //! Panoramic Feature Coherence: global multi-head self-attention over every position of the deepest
 //! U-Net level, with GroupNorm before it and a residual around it (equation 11).
 
-use candle_core::{D, Tensor};
+use candle_core::{D, DType, Tensor};
 use candle_nn::VarBuilder;
 
 use crate::config::PfcConfig;
@@ -64,7 +64,13 @@ impl Pfc {
         // logits [B*h, N_q, N_k]
         let logits =
             (q.transpose(1, 2)?.contiguous()?.matmul(&k.contiguous()?)? / (dh as f64).sqrt())?;
-        let attn = candle_nn::ops::softmax(&logits, D::Minus1)?;
+        // the softmax of half-precision logits in f32
+        let attn = if crate::fused::is_half(logits.dtype()) {
+            candle_nn::ops::softmax(&logits.to_dtype(DType::F32)?, D::Minus1)?
+                .to_dtype(logits.dtype())?
+        } else {
+            candle_nn::ops::softmax(&logits, D::Minus1)?
+        };
         // out [B*h, dh, N_q] = v [dh, N_k] x attn^T [N_k, N_q]
         let out = v
             .contiguous()?

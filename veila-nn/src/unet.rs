@@ -1,7 +1,7 @@
 //! The denoising U-Net over range images with CACM, GCMA and PFC.
 
 use candle_core::{Device, Tensor};
-use candle_nn::{Linear, Module, VarBuilder};
+use candle_nn::{Linear, VarBuilder};
 
 use crate::cacm::ConditionFusion;
 use crate::config::DenoiserConfig;
@@ -62,7 +62,7 @@ impl ResBlock {
     pub fn forward(&self, x: &Tensor, emb: &Tensor) -> Result<Tensor> {
         let _enter = self.span.enter();
         let h = self.conv1.forward(&self.norm1.forward_silu(x)?)?;
-        let e = self.emb.forward(emb)?;
+        let e = crate::ops::linear(&self.emb, emb)?;
         let (sc, sh) = (
             e.narrow(1, 0, self.out_c)?,
             e.narrow(1, self.out_c, self.out_c)?,
@@ -547,8 +547,10 @@ impl Denoiser {
             }
         }
         let dtype = x.dtype();
-        let mut emb = self.time2.forward(&silu(
-            &self.time0.forward(
+        let mut emb = crate::ops::linear(
+            &self.time2,
+            &silu(&crate::ops::linear(
+                &self.time0,
                 &sinusoidal_embedding(
                     t,
                     self.cfg.time.dim,
@@ -556,8 +558,8 @@ impl Denoiser {
                     self.cfg.time.input_scale,
                 )?
                 .to_dtype(dtype)?,
-            )?,
-        )?)?;
+            )?)?,
+        )?;
         if let (Some(pool), Some(cd)) = (&self.pool, cond) {
             let last = cd
                 .fused
@@ -565,11 +567,12 @@ impl Denoiser {
                 .ok_or_else(|| Error::Config("no fused scales".into()))?;
             let (n, cf, _, _) = last.dims4()?;
             let pooled = last
+                .to_dtype(dtype)?
                 .flatten_from(2)?
                 .mean(2)?
                 .reshape((b, n / b, cf))?
                 .mean(1)?;
-            let mut g = pool.forward(&pooled)?;
+            let mut g = crate::ops::linear(pool, &pooled)?;
             if let Some(k) = &cd.keep {
                 g = g.broadcast_mul(&k.to_dtype(dtype)?.unsqueeze(1)?)?;
             }
@@ -587,7 +590,8 @@ impl Denoiser {
                 g.level(level)
                     .ok_or_else(|| Error::Config(format!("the geometry has no GCMA level {level}")))
             }
-            let feat = &cd.fused[cc.scale_for_level(level)];
+            // the fused maps in the activations' dtype (mixed precision)
+            let feat = &cd.fused[cc.scale_for_level(level)].to_dtype(hcur.dtype())?;
             let Some(groups) = &cd.groups else {
                 let geom = cd.geometry.ok_or_else(|| {
                     Error::Config("this model has GCMA: pass a GcmaGeometry".into())

@@ -187,6 +187,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         encoder_augment: args
             .augment_encoders
             .then(veila_diffusion::app::EncoderAugment::default),
+        precision: veila_diffusion::Precision::F32,
     };
     let (tc, mean_tc) = settings.train_configs(cfg.denoiser.conditioning.is_some());
     let mean_steps = settings.mean_steps();

@@ -90,7 +90,8 @@ impl<'g> Denoiser for VeilaDenoiser<'g> {
         };
         match mean {
             Some(m) => {
-                let x = Tensor::cat(&[x_t, m], 1)?;
+                // the mean in the input's dtype (mixed precision runs x_t in bf16)
+                let x = Tensor::cat(&[x_t, &m.to_dtype(x_t.dtype())?], 1)?;
                 self.net.forward(&x, t, image).map_err(to_candle)
             }
             None => self.net.forward(x_t, t, image).map_err(to_candle),

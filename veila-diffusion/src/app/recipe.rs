@@ -65,6 +65,9 @@ pub struct RecipeSettings {
     pub grad_accum_steps: u64,
     /// Image augmentation of the encoders' training (`None`: the images as they are).
     pub encoder_augment: Option<super::train::EncoderAugment>,
+    /// The activations' precision of the denoiser's and the mean network's training
+    /// ([`TrainConfig::precision`]; the encoders train in f32).
+    pub precision: crate::trainer::Precision,
 }
 
 impl RecipeSettings {
@@ -91,6 +94,7 @@ impl RecipeSettings {
             checkpoint_every: Some(self.checkpoint_every.max(1)),
             keep_checkpoints: Some(self.keep_checkpoints.max(1)),
             grad_accum_steps: self.grad_accum_steps.max(1),
+            precision: self.precision,
             ..TrainConfig::default()
         };
         let mean_steps = self.mean_steps();

@@ -114,6 +114,57 @@ pub struct TrainConfig {
     /// the random draws) at the activation memory of one part. 1: no accumulation.
     #[serde(default = "one")]
     pub grad_accum_steps: u64,
+    /// The activations' precision. The weights, their gradients, the optimizer state and the
+    /// EMA stay f32 in every mode, so a checkpoint resumes in any mode.
+    #[serde(default)]
+    pub precision: Precision,
+}
+
+/// The precision of a training run's forward and backward passes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Precision {
+    /// f32 throughout.
+    #[default]
+    F32,
+    /// Mixed precision: bf16 activations on f32 master weights ([`crate::denoiser::Autocast`]),
+    /// normalisations, softmaxes, bias sums and the loss in f32. bf16 keeps f32's exponent
+    /// range, so no loss scaling is needed. Meant for GPUs: candle's CPU backend has no bf16
+    /// convolution kernels and widens bf16 matrix products to f32, so on a CPU it is slower
+    /// than f32 (it still runs, which is what the tests use).
+    Bf16,
+}
+
+impl Precision {
+    /// The dtype of the activations.
+    pub fn dtype(self) -> candle_core::DType {
+        match self {
+            Self::F32 => candle_core::DType::F32,
+            Self::Bf16 => candle_core::DType::BF16,
+        }
+    }
+
+    /// The name used in configs and on command lines (`f32`, `bf16`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::F32 => "f32",
+            Self::Bf16 => "bf16",
+        }
+    }
+}
+
+impl std::str::FromStr for Precision {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "f32" => Ok(Self::F32),
+            "bf16" => Ok(Self::Bf16),
+            other => Err(invalid(
+                "precision",
+                format!("`{other}` is not one of f32, bf16"),
+            )),
+        }
+    }
 }
 
 fn one() -> u64 {
@@ -141,6 +192,7 @@ impl Default for TrainConfig {
             keep_checkpoints: Some(3),
             preview_every: None,
             grad_accum_steps: 1,
+            precision: Precision::F32,
         }
     }
 }
@@ -627,14 +679,27 @@ impl<M: Denoiser> Trainer<M> {
         batch: &Batch<M::Cond>,
         dropout: Option<CondDropout>,
     ) -> Result<(Tensor, f64)> {
-        let out = self.diffusion.training_loss_weighted(
-            &self.model,
-            &batch.x0,
-            batch.weight.as_ref(),
-            batch.cond.as_ref(),
-            dropout,
-            &mut self.rng,
-        )?;
+        let out = match self.config.precision {
+            Precision::F32 => self.diffusion.training_loss_weighted(
+                &self.model,
+                &batch.x0,
+                batch.weight.as_ref(),
+                batch.cond.as_ref(),
+                dropout,
+                &mut self.rng,
+            )?,
+            p => self.diffusion.training_loss_weighted(
+                &crate::denoiser::Autocast {
+                    inner: &self.model,
+                    dtype: p.dtype(),
+                },
+                &batch.x0,
+                batch.weight.as_ref(),
+                batch.cond.as_ref(),
+                dropout,
+                &mut self.rng,
+            )?,
+        };
         let loss = out
             .loss
             .to_dtype(candle_core::DType::F64)?
