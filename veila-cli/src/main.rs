@@ -17,6 +17,7 @@ mod progress;
 mod report; // self-contained HTML reports (veila eval --report)
 mod staging; // the output discipline of every command
 // command modules (one per family):
+mod bench_cmd; // bench (training and sampling speed)  (veila-nn, veila-diffusion)
 mod data_cmd; // project, unproject, render           (veila-data)
 mod demo_cmd; // demo (the README's main job)
 mod edit_cmd; // edit (RePaint scene editing)         (veila-diffusion::pipeline)
@@ -66,6 +67,9 @@ enum Command {
     /// Edit a scan by inpainting: regenerate the pixels a mask image or a 3D box selects, consistent
     /// with the rest of the scan and the camera views (RePaint), and keep every other pixel.
     Edit(edit_cmd::EditArgs),
+    /// Time the denoiser's training update (f32 and bf16 mixed precision) and its sampling on
+    /// this machine's device, for the bundled network and the paper's 64 x 1024 one.
+    Bench(bench_cmd::BenchArgs),
     /// Train a model bundle (encoders and denoiser) on converted shards from a TOML config;
     /// resumable: rerunning the same config continues from the newest checkpoint.
     Train(train_cmd::TrainArgs),
@@ -92,6 +96,10 @@ const EXAMPLES: &[(&str, &str)] = &[
     (
         "train",
         "veila train --config runs/my-model.toml --stop-after 500",
+    ),
+    (
+        "bench",
+        "veila bench --device cuda --models bundled,paper --precision f32,bf16 --json bench.json",
     ),
     (
         "eval",
@@ -172,6 +180,7 @@ fn run(command: Command) -> Result<()> {
         Command::Generate(a) => generate_cmd::run(a),
         Command::Edit(a) => edit_cmd::run(a),
         Command::Train(a) => train_cmd::run(a),
+        Command::Bench(a) => bench_cmd::run(a),
         Command::Completions { shell } => {
             clap_complete::generate(shell, &mut cli_command(), "veila", &mut std::io::stdout());
             Ok(())
