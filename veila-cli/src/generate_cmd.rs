@@ -6,7 +6,10 @@
 //! previews. Everything goes to a staging folder first: a failure leaves no output behind.
 //!
 //! Calibration files carry no image size, so each camera takes the size of its image
-//! (`veila_diffusion::app::rig` reads and checks them).
+//! (`veila_diffusion::app::rig` reads and checks them). A LiDAR frame whose forward axis is not the
+//! first camera's (nuScenes: `y` forward) is turned by quarter turns into the model's frame for
+//! sampling (the bundled prior has the camera looking along `+x`), and every scan is turned back:
+//! the files are in the calibration's LiDAR frame.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -76,6 +79,9 @@ struct GenerateReport<'a> {
     model: ModelInfo,
     sampler: &'a SamplerConfig,
     sampler_name: String,
+    /// Quarter turns about z from the calibration's LiDAR frame into the model's (1 for
+    /// nuScenes); the scans are written in the calibration's frame.
+    model_frame_quarter_turns: i32,
     steps: usize,
     guidance: f64,
     residual_weight: f64,
@@ -109,7 +115,11 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
     let sampler = resolve_sampler(&bundle, args.sampler, args.steps, args.guidance)?;
     check_residual_weight(args.residual_weight, Some(&bundle))?;
     let views = load_rig(&args.rig)?;
-    let prepared = prepare_views(&bundle, &views)?;
+    let mut prepared = prepare_views(&bundle, &views)?;
+    let turns = veila_diffusion::app::quarter_turns_to_model(&views[0].camera);
+    for (_, cam) in &mut prepared {
+        *cam = veila_diffusion::app::camera_in_model_frame(cam, turns);
+    }
     // inputs are good: only now does the output folder get a staging directory
     let staging = staging::stage_checked(&args.out, args.force, &inputs)?;
     let load_secs = t0.elapsed().as_secs_f64();
@@ -144,11 +154,12 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
         // each batch is written and dropped before the next is drawn
         let t = Instant::now();
         for (j, scan) in scans.iter().enumerate() {
+            let scan = veila_diffusion::app::range_to_lidar_frame(&bundle.config, scan, turns)?;
             let (rec, _) = write_scan(
                 staging.path(),
                 &format!("scan_{:03}", first + j),
                 &bundle,
-                scan,
+                &scan,
                 &views[0],
             )?;
             records.push(rec);
@@ -163,6 +174,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
         model: model_info(&bundle, args.checkpoint.as_deref()),
         sampler: &sampler,
         sampler_name: sampler_label(&sampler),
+        model_frame_quarter_turns: turns,
         steps: sampler.steps,
         guidance: sampler.guidance_scale,
         residual_weight: args.residual_weight,

@@ -381,6 +381,8 @@ fn real_nuscenes_rig_and_kitti_frame() {
     assert_eq!(json["inputs"].as_array().unwrap().len(), 6);
     assert_eq!(json["inputs"][0]["image_size"][0], 1600);
     assert_eq!(json["inputs"][0]["calib_kind"], "nuscenes-json");
+    // nuScenes' LiDAR has y forward: sampled in the model's frame, written in the LiDAR's
+    assert_eq!(json["model_frame_quarter_turns"], 1);
     let bin = read_kitti_bin(&tmp.path().join("nus/scan_000.bin")).unwrap();
     assert!(!bin.cloud.is_empty());
 
@@ -399,6 +401,7 @@ fn real_nuscenes_rig_and_kitti_frame() {
         json["inputs"][0]["image_size"],
         serde_json::json!([1224, 370])
     );
+    assert_eq!(json["model_frame_quarter_turns"], 0);
     // an image at half the size does not fit the calibration
     let img = veila_data::image_io::read_rgb_image(&k.join("image_2/000000.png")).unwrap();
     let half = veila_data::image::imageops::resize(

@@ -28,7 +28,10 @@ pub use recipe::{
     Encoder, EncoderData, EncoderEvent, EncoderSource, Encoders, RecipeInput, RecipeOutcome,
     RecipeSettings, prepare_encoders, run_recipe,
 };
-pub use rig::{RigView, camera_views, load_view, prepare_view, prepare_views, scan_points};
+pub use rig::{
+    RigView, camera_in_model_frame, camera_views, load_view, prepare_view, prepare_views,
+    quarter_turns_to_model, range_to_lidar_frame, scan_points,
+};
 pub use train::{
     BundleFit, BundleFitOutcome, DenoiserFit, DenoiserFitOutcome, DenoiserTraining, EncoderAugment,
     EncoderStep, MeanPredictor, Stage, TrainExample, fit_bundle, fit_denoiser, predict_means,

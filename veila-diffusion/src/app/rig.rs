@@ -180,6 +180,77 @@ pub fn camera_views(prepared: &[(Vec<u8>, PinholeCamera)]) -> Vec<CameraView<'_>
         .collect()
 }
 
+/// Quarter turns `q` about the LiDAR's `z` axis from a dataset's LiDAR frame into the model's,
+/// whose `x` axis is the camera's optical axis (to the nearest quarter turn): the bundled models
+/// learnt their prior with the front camera looking along `+x` (KITTI's LiDAR frame), while
+/// nuScenes' LiDAR frame has `y` forward (`q = 1`). `p_model = R_z(-q·90°) p_lidar`; `0` for KITTI.
+pub fn quarter_turns_to_model(camera: &PinholeCamera) -> i32 {
+    let axis = camera
+        .cam_from_lidar
+        .inverse()
+        .transform_vector3(glam::Vec3::Z);
+    let q = (axis.y.atan2(axis.x) / std::f32::consts::FRAC_PI_2).round() as i32;
+    q.rem_euclid(4)
+}
+
+/// `camera` seeing the model frame of [`quarter_turns_to_model`]: `cam_from_model =
+/// cam_from_lidar · R_z(q·90°)`.
+pub fn camera_in_model_frame(camera: &PinholeCamera, q: i32) -> PinholeCamera {
+    let mut cam = camera.clone();
+    if q.rem_euclid(4) != 0 {
+        let turn = glam::Mat4::from_rotation_z(q as f32 * std::f32::consts::FRAC_PI_2);
+        cam.cam_from_lidar *= turn;
+    }
+    cam
+}
+
+/// A range image of the model frame turned back into the LiDAR frame (`p_lidar = R_z(q·90°)
+/// p_model`): a roll of the columns by a quarter of the width per turn, exact because the grid's
+/// columns are uniform in azimuth. Needs a width divisible by 4 when `q` is not a multiple of 4.
+pub fn range_to_lidar_frame(
+    config: &BundleConfig,
+    range: &RangeImage,
+    q: i32,
+) -> Result<RangeImage> {
+    let q = q.rem_euclid(4);
+    if q == 0 {
+        return Ok(range.clone());
+    }
+    let (rows, cols) = (range.rows as usize, range.cols as usize);
+    if !cols.is_multiple_of(4) || range.range_m.len() != rows * cols {
+        return Err(Error::InvalidConfig {
+            field: "sensor.cols",
+            reason: format!(
+                "turning a {rows} x {cols} range image by quarter turns needs a width divisible by 4"
+            ),
+        });
+    }
+    // which way the columns run: the model-frame column whose ray is lidar column 0's, turned
+    let rays = RayTable::new(&config.denoiser.sensor)?;
+    let row = (rows / 2) as u32;
+    let turn = glam::Mat3::from_rotation_z(-(q as f32) * std::f32::consts::FRAC_PI_2);
+    let want = turn * rays.dir(row, 0);
+    let shift = (0..cols)
+        .max_by(|&a, &b| {
+            want.dot(rays.dir(row, a as u32))
+                .total_cmp(&want.dot(rays.dir(row, b as u32)))
+        })
+        .unwrap_or(0);
+    // lidar pixel (r, c) is model pixel (r, (c + shift) mod cols)
+    fn roll<T: Copy>(v: &[T], cols: usize, shift: usize) -> Vec<T> {
+        (0..v.len())
+            .map(|i| v[(i / cols) * cols + (i % cols + shift) % cols])
+            .collect()
+    }
+    let mut out = range.clone();
+    out.range_m = roll(&range.range_m, cols, shift);
+    out.intensity = roll(&range.intensity, cols, shift);
+    out.mask = roll(&range.mask, cols, shift);
+    out.point_index = roll(&range.point_index, cols, shift);
+    out.label = range.label.as_ref().map(|l| roll(l, cols, shift));
+    Ok(out)
+}
+
 /// The points of a generated range image in the LiDAR frame (one per return, with intensity).
 pub fn scan_points(config: &BundleConfig, range: &RangeImage) -> Result<PointCloud> {
     let rays = RayTable::new(&config.denoiser.sensor)?;
@@ -262,5 +333,100 @@ mod tests {
             point_colours(&view, &cloud),
             [[200, 10, 30], [1, 2, 3], [128, 128, 128], [255, 255, 255]]
         );
+    }
+
+    /// KITTI's axes (x forward) and a nuScenes-like LiDAR (y forward: the camera's optical axis
+    /// is LiDAR +y).
+    fn axes(y_forward: bool) -> Mat4 {
+        let kitti = Mat4::from_cols_array_2d(&[
+            [0.0, 0.0, 1.0, 0.0],
+            [-1.0, 0.0, 0.0, 0.0],
+            [0.0, -1.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ]);
+        if y_forward {
+            // p_kitti = R_z(-90°) p_nusc takes nuScenes' +y to +x
+            kitti * Mat4::from_rotation_z(-std::f32::consts::FRAC_PI_2)
+        } else {
+            kitti
+        }
+    }
+
+    fn cam(cam_from_lidar: Mat4) -> PinholeCamera {
+        let k = [
+            [50.0, 0.0, 40.0, 0.0],
+            [0.0, 50.0, 30.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+        ];
+        PinholeCamera::new(k, cam_from_lidar, 80, 60).unwrap()
+    }
+
+    #[test]
+    fn a_y_forward_lidar_is_turned_so_the_camera_looks_along_model_x() {
+        assert_eq!(quarter_turns_to_model(&cam(axes(false))), 0);
+        let nusc = cam(axes(true));
+        let q = quarter_turns_to_model(&nusc);
+        assert_eq!(q, 1);
+        // the camera in the model frame sees model +x where the dataset's camera saw lidar +y
+        let m = camera_in_model_frame(&nusc, q);
+        let ahead = m.try_project(Vec3::new(10.0, 0.0, 0.0)).unwrap();
+        let same = nusc.try_project(Vec3::new(0.0, 10.0, 0.0)).unwrap();
+        assert!((ahead.u_px - 40.0).abs() < 1e-4 && (ahead.v_px - 30.0).abs() < 1e-4);
+        assert!(
+            (ahead.u_px - same.u_px).abs() < 1e-4 && (ahead.depth_m - same.depth_m).abs() < 1e-4
+        );
+        assert_eq!(
+            camera_in_model_frame(&nusc, 0).cam_from_lidar,
+            nusc.cam_from_lidar
+        );
+    }
+
+    #[test]
+    fn turning_a_range_image_back_rolls_its_points_about_z() {
+        let config = BundleConfig::cpu_default(super::super::bundle::Variant::Full);
+        let sensor = &config.denoiser.sensor;
+        let (rows, cols) = (sensor.rows, sensor.cols);
+        let n = (rows * cols) as usize;
+        // a structured scan: range and intensity vary with row and column, some pixels empty
+        let mut range = RangeImage::new_empty(rows, cols);
+        for i in 0..n {
+            if i % 7 != 3 {
+                range.range_m[i] =
+                    5.0 + (i % cols as usize) as f32 * 0.1 + (i / cols as usize) as f32;
+                range.intensity[i] = (i % 11) as f32 / 10.0;
+                range.mask[i] = true;
+            }
+        }
+        for q in 0..4 {
+            let model_pts = scan_points(&config, &range).unwrap();
+            let lidar = range_to_lidar_frame(&config, &range, q).unwrap();
+            let lidar_pts = scan_points(&config, &lidar).unwrap();
+            assert_eq!(model_pts.len(), lidar_pts.len());
+            // p_lidar = R_z(q·90°) p_model, point for point (up to float rounding of the rays);
+            // compare as sets: sort both by their coordinates
+            let turn = glam::Mat3::from_rotation_z(q as f32 * std::f32::consts::FRAC_PI_2);
+            let key = |p: &Vec3| {
+                (
+                    (p.x * 100.0).round() as i64,
+                    (p.y * 100.0).round() as i64,
+                    (p.z * 100.0).round() as i64,
+                )
+            };
+            let mut want: Vec<_> = model_pts.xyz.iter().map(|p| key(&(turn * *p))).collect();
+            let mut got: Vec<_> = lidar_pts.xyz.iter().map(key).collect();
+            want.sort_unstable();
+            got.sort_unstable();
+            let mismatched = want.iter().zip(&got).filter(|(a, b)| a != b).count();
+            assert!(
+                mismatched <= n / 1000,
+                "q = {q}: {mismatched} of {} points differ",
+                want.len()
+            );
+        }
+        let mut odd = config.clone();
+        odd.denoiser.sensor.cols = 258;
+        let r = RangeImage::new_empty(rows, 258);
+        assert!(range_to_lidar_frame(&odd, &r, 1).is_err());
+        assert!(range_to_lidar_frame(&odd, &r, 4).is_ok());
     }
 }
