@@ -196,7 +196,7 @@ pub fn quarter_turns_to_model(camera: &PinholeCamera) -> i32 {
 /// `camera` seeing the model frame of [`quarter_turns_to_model`]: `cam_from_model =
 /// cam_from_lidar · R_z(q·90°)`.
 pub fn camera_in_model_frame(camera: &PinholeCamera, q: i32) -> PinholeCamera {
-    let mut cam = camera.clone();
+    let mut cam = *camera;
     if q.rem_euclid(4) != 0 {
         let turn = glam::Mat4::from_rotation_z(q as f32 * std::f32::consts::FRAC_PI_2);
         cam.cam_from_lidar *= turn;
