@@ -382,7 +382,7 @@ pub(crate) fn run(args: BenchArgs) -> Result<()> {
     );
     for r in &report.rows {
         println!(
-            "| {} | {} x {} | {} | {} | {:.1} | {:.2} | {:.1} | {} |",
+            "| {} | {} x {} | {} | {} | {:.1} | {:.3} | {:.1} | {} |",
             r.model,
             r.grid[0],
             r.grid[1],
