@@ -1079,6 +1079,10 @@ fn random_valid_configs_generate_and_render_without_panicking() {
             open_building_probability: Some(rng.random_range(0.0..=1.0)),
             guardrail_probability: Some(rng.random_range(0.0..=1.0)),
             grade_percent: Some([rng.random_range(-12.0..0.0), rng.random_range(0.0..12.0)]),
+            // (no draws from `rng` here: the configs above stay those of the recorded runs)
+            curve_probability: Some(if i % 3 == 0 { 0.0 } else { 1.0 }),
+            curve_radius_m: Some([40.0, 40.0 + 50.0 * (i % 10) as f32]),
+            curve_angle_deg: Some([10.0, 10.0 + 17.0 * (i % 11) as f32]),
             ..RoadConfig::default()
         };
         cfg.rig.randomize = rng.random_bool(0.5);
@@ -2142,4 +2146,465 @@ fn on_a_grade_change_the_road_and_the_ego_follow_the_profile() {
         flat.world_from_lidar(1.0).matrix3,
         glam::Affine3A::IDENTITY.matrix3
     );
+}
+
+/// `tiny_config` on a street that always bends, with a radius and turn from the given ranges.
+fn curved(mut cfg: SceneConfig, radius: [f32; 2], angle: [f32; 2]) -> SceneConfig {
+    cfg.road.curve_probability = Some(1.0);
+    cfg.road.curve_radius_m = Some(radius);
+    cfg.road.curve_angle_deg = Some(angle);
+    cfg
+}
+
+/// A scene with nothing but the road, its sidewalks and the terrain.
+fn empty_street(mut cfg: SceneConfig) -> SceneConfig {
+    cfg.road.building_frontage = Some(0.0);
+    cfg.road.setback_m = Some(0.0);
+    cfg.population = PopulationConfig {
+        parked_vehicles_per_100m: 0.0,
+        moving_vehicles: 0,
+        pedestrians: 0,
+        cyclists: 0,
+        trees_per_100m: 0.0,
+        poles_per_100m: 0.0,
+        signs_per_100m: 0.0,
+        bushes_per_100m: 0.0,
+        ..PopulationConfig::default()
+    };
+    cfg
+}
+
+fn is_ground(cls: u16) -> bool {
+    matches!(
+        cls,
+        class::ROAD | class::PARKING | class::LANE_MARKING | class::SIDEWALK | class::TERRAIN
+    )
+}
+
+#[test]
+fn curved_streets_are_drawn_per_seed_left_and_right_within_the_ranges() {
+    let cfg = curved(tiny_config(), [40.0, 600.0], [30.0, 120.0]);
+    let (mut left, mut right) = (0, 0);
+    for seed in 0..16u64 {
+        let scene = Scene::generate(&cfg, seed).unwrap();
+        let c = *scene
+            .road_curve()
+            .expect("curve_probability 1 always bends");
+        assert!((40.0..=600.0).contains(&c.radius_m()), "seed {seed}: {c:?}");
+        let turn = c.turn_rad().to_degrees();
+        assert!((29.99..=120.01).contains(&turn), "seed {seed}: turn {turn}");
+        let start = cfg.ego.start_x_m;
+        assert!(
+            (start - 20.0..=start + 40.0).contains(&c.arc_start_m()),
+            "seed {seed}: {c:?}"
+        );
+        left += usize::from(c.is_left());
+        right += usize::from(!c.is_left());
+        // the same seed draws the same street
+        let again = Scene::generate(&cfg, seed).unwrap();
+        assert_eq!(again.road_curve(), Some(&c));
+        assert!(again.static_mesh().triangles == scene.static_mesh().triangles);
+    }
+    assert!(left > 0 && right > 0, "{left} left, {right} right");
+    // off by default, with probability 0 and on a junction
+    assert!(
+        Scene::generate(&tiny_config(), 3)
+            .unwrap()
+            .road_curve()
+            .is_none()
+    );
+    let mut off = cfg.clone();
+    off.road.curve_probability = Some(0.0);
+    assert!(Scene::generate(&off, 3).unwrap().road_curve().is_none());
+    let mut junction = cfg.clone();
+    junction.layout = Layout::Junction;
+    assert!(
+        Scene::generate(&junction, 3)
+            .unwrap()
+            .road_curve()
+            .is_none()
+    );
+    // about half of the scenes bend at probability 0.5
+    let mut half = cfg;
+    half.road.curve_probability = Some(0.5);
+    let bent = (0..40u64)
+        .filter(|&s| Scene::generate(&half, s).unwrap().road_curve().is_some())
+        .count();
+    assert!((10..=30).contains(&bent), "{bent} of 40 bent");
+}
+
+#[test]
+fn curve_values_are_validated_with_the_key_named() {
+    let bad = |f: &dyn Fn(&mut RoadConfig), key: &str| {
+        let mut cfg = SceneConfig::default();
+        f(&mut cfg.road);
+        let err = cfg.validate().expect_err(key).to_string();
+        assert!(err.contains(key), "{key}: {err}");
+        assert!(Scene::generate(&cfg, 0).is_err(), "{key}");
+    };
+    for r in [
+        [0.0, 100.0],
+        [-50.0, 100.0],
+        [f32::NAN, 100.0],
+        [60.0, f32::NAN],
+        [60.0, f32::INFINITY],
+        [100.0, 60.0],
+        [10.0, 100.0],
+        // the carriageway (2 x 3.5 m + 2.3 m parking) and the 3.5 m sidewalk do not fit in 14 m
+        [14.0, 100.0],
+    ] {
+        bad(&|c| c.curve_radius_m = Some(r), "road.curve_radius_m");
+    }
+    for a in [
+        [0.0, 90.0],
+        [-10.0, 90.0],
+        [30.0, 181.0],
+        [90.0, 30.0],
+        [f32::NAN, 90.0],
+    ] {
+        bad(&|c| c.curve_angle_deg = Some(a), "road.curve_angle_deg");
+    }
+    for p in [-0.1, 1.5, f32::NAN] {
+        bad(&|c| c.curve_probability = Some(p), "road.curve_probability");
+    }
+    // and from a scene file, with the file and the key named
+    let err = SceneConfig::from_toml_str(
+        "[road]\ncurve_probability = 1.0\ncurve_radius_m = [0.0, 200.0]\n",
+        Path::new("bend.toml"),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        err.contains("bend.toml") && err.contains("road.curve_radius_m"),
+        "{err}"
+    );
+    let err = SceneConfig::from_toml_str(
+        "[road]\ncurve_radius_m = [nan, 200.0]\n",
+        Path::new("bend.toml"),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("road.curve_radius_m"), "{err}");
+    // the defaults are valid and left out of the serialised scene
+    let text = serde_json::to_string(&SceneConfig::default()).unwrap();
+    assert!(!text.contains("curve"), "{text}");
+}
+
+#[test]
+fn on_a_curved_street_lidar_ground_returns_lie_between_the_road_edges() {
+    let sensor = LidarSensor {
+        cols: 1024,
+        ..LidarSensor::hdl64e()
+    };
+    let mut seen = [false; 2];
+    for (seed, radius, grade) in [
+        (0u64, 60.0, 0.0),
+        (1, 60.0, 0.0),
+        (2, 150.0, 5.0),
+        (3, 45.0, -4.0),
+    ] {
+        let mut cfg = empty_street(curved(tiny_config(), [radius, radius], [90.0, 90.0]));
+        cfg.road.grade_percent = Some([grade, grade]);
+        let scene = Scene::generate(&cfg, seed).unwrap();
+        let c = *scene.road_curve().unwrap();
+        seen[usize::from(c.is_left())] = true;
+        let r = cfg.road_params();
+        let (wc, sw) = (r.half_carriageway_m(), r.sidewalk_width_m);
+        // the road keeps its area: the strip |d| <= wc is as large on the arc as on a straight street
+        let mesh = scene.static_mesh();
+        let area: f64 = mesh
+            .triangles
+            .iter()
+            .zip(&mesh.surface_of)
+            .filter(|(_, s)| {
+                matches!(
+                    mesh.surfaces[**s as usize].material.class,
+                    class::ROAD | class::PARKING
+                )
+            })
+            .map(|(t, _)| {
+                let (a, b) = (t[1] - t[0], t[2] - t[0]);
+                f64::from(a.x * b.y - a.y * b.x).abs() / 2.0
+            })
+            .sum();
+        let want = f64::from(2.0 * wc * r.length_m);
+        assert!(
+            (area - want).abs() < 1e-3 * want,
+            "seed {seed}: road area {area}, want {want}"
+        );
+        // the ego drives into the bend: frames at 0 s and 5 s
+        let (mut on_arc, mut edge_l, mut edge_r) = (0, 0.0f32, 0.0f32);
+        for index in [0u32, 50] {
+            let t = scene.frame_time_s(index);
+            let pose = scene.world_from_lidar(t);
+            let scan = scene
+                .snapshot(index)
+                .render_lidar(&sensor, &LidarReturnModel::ideal())
+                .unwrap();
+            let labels = scan.points.label.as_ref().unwrap();
+            for (p, l) in scan.points.xyz.iter().zip(labels) {
+                let cls = (l & 0xFFFF) as u16;
+                let w = pose.transform_point3(*p);
+                let (s, d) = c.to_road(glam::Vec2::new(w.x, w.y));
+                let ground = scene.road_height_m(s);
+                match cls {
+                    class::ROAD | class::PARKING | class::LANE_MARKING => {
+                        assert!(
+                            d.abs() <= wc + 0.02,
+                            "seed {seed}: road return at d {d} (s {s}), kerbs at {wc}"
+                        );
+                        assert!((w.z - ground).abs() < 0.01, "seed {seed}: {w} vs {ground}");
+                        if s > c.arc_start_m() + 5.0 && s < c.arc_end_m() - 5.0 {
+                            on_arc += 1;
+                            if d > 0.0 {
+                                edge_l = edge_l.max(d);
+                            } else {
+                                edge_r = edge_r.max(-d);
+                            }
+                        }
+                    }
+                    class::SIDEWALK => {
+                        assert!(
+                            d.abs() >= wc - 0.02 && d.abs() <= wc + sw + 0.02,
+                            "seed {seed}: sidewalk return at d {d}"
+                        );
+                    }
+                    class::TERRAIN => {
+                        assert!(d.abs() >= wc + sw - 0.02, "seed {seed}: terrain at d {d}");
+                        assert!((w.z - ground - r.kerb_height_m).abs() < 0.01);
+                    }
+                    // (the fences, hedges and trees of the lot gaps) beside the road
+                    other => assert!(d.abs() > wc, "seed {seed}: class {other} at d {d}"),
+                }
+            }
+        }
+        // returns from the whole width of the road on the arc, out to both kerbs
+        assert!(
+            on_arc > 2000,
+            "seed {seed}: {on_arc} road returns on the arc"
+        );
+        assert!(
+            edge_l > wc - 0.3 && edge_r > wc - 0.3,
+            "seed {seed}: road seen to {edge_l} / {edge_r} of {wc}"
+        );
+    }
+    assert_eq!(seen, [true, true], "left and right bends");
+}
+
+#[test]
+fn on_a_curved_street_the_ego_keeps_its_lane_heading_and_speed() {
+    for (seed, grade) in [(0u64, 0.0), (1, 0.0), (4, 6.0), (5, -6.0)] {
+        let mut cfg = curved(tiny_config(), [40.0, 300.0], [60.0, 180.0]);
+        cfg.road.grade_percent = Some([grade, grade]);
+        cfg.rig.randomize = true;
+        let scene = Scene::generate(&cfg, seed).unwrap();
+        let c = *scene.road_curve().unwrap();
+        let r = cfg.road_params();
+        let lane_d = -(r.lanes_per_direction as f32 - 0.5) * r.lane_width_m;
+        let h = scene.lidar_height_m();
+        let v = cfg.ego.speed_mps;
+        let mut last: Option<Vec3> = None;
+        let mut turned = 0.0f32;
+        for i in 0..=120 {
+            let t = i as f32 * 0.1;
+            let pose = scene.world_from_lidar(t);
+            let p = pose.translation;
+            let (s, d) = c.to_road(glam::Vec2::new(p.x, p.y));
+            // on its lane's centre line, at the LiDAR height above the road (pitch is small)
+            assert!(
+                (d - lane_d).abs() < 0.02,
+                "seed {seed} t {t}: d {d} off its lane at {lane_d}"
+            );
+            assert!(
+                (p.z - scene.road_height_m(s) - h).abs() < 0.02,
+                "seed {seed} t {t}: z {} over road {}",
+                p.z,
+                scene.road_height_m(s)
+            );
+            // heading along the tangent, the LiDAR's z axis square to the road
+            let (_, heading) = c.centreline(s);
+            let fwd = pose.matrix3.x_axis;
+            let yaw = fwd.y.atan2(fwd.x);
+            let diff = (yaw - heading + std::f32::consts::PI).rem_euclid(std::f32::consts::TAU)
+                - std::f32::consts::PI;
+            assert!(
+                diff.abs() < 2e-3,
+                "seed {seed} t {t}: yaw {yaw} vs tangent {heading}"
+            );
+            assert!(pose.matrix3.y_axis.z.abs() < 1e-4, "no roll");
+            turned = turned.max(heading.abs());
+            // travelling at its speed along the lane
+            if let Some(q) = last {
+                let step = (Vec3::from(p) - q).length();
+                assert!(
+                    (step - v * 0.1).abs() < 0.02 * v * 0.1 + 1e-3,
+                    "seed {seed} t {t}: moved {step} in 0.1 s at {v} m/s"
+                );
+            }
+            last = Some(Vec3::from(p));
+        }
+        assert!(
+            turned > 0.1,
+            "seed {seed}: the ego should drive into the bend ({turned} rad)"
+        );
+        // ground returns right below the ego at its height
+        let sensor = LidarSensor {
+            cols: 512,
+            ..LidarSensor::hdl64e()
+        };
+        let scan = scene
+            .snapshot(40)
+            .render_lidar(&sensor, &LidarReturnModel::ideal())
+            .unwrap();
+        let labels = scan.points.label.as_ref().unwrap();
+        let mut beneath = 0;
+        for (p, l) in scan.points.xyz.iter().zip(labels) {
+            if (l & 0xFFFF) as u16 == class::ROAD && p.x.abs() < 8.0 && p.y.abs() < 1.5 {
+                assert!((p.z + h).abs() < 0.06, "seed {seed}: {p}");
+                beneath += 1;
+            }
+        }
+        assert!(beneath > 50, "seed {seed}: {beneath}");
+    }
+}
+
+#[test]
+fn on_a_curved_street_objects_stand_beside_the_road_and_traffic_on_it() {
+    for (layout, radius, seed) in [
+        (Layout::Straight, [60.0, 120.0], 0u64),
+        (Layout::Straight, [200.0, 600.0], 1),
+        (Layout::Open, [40.0, 40.0], 2),
+        (Layout::NarrowStreet, [40.0, 80.0], 3),
+    ] {
+        let mut cfg = curved(tiny_config(), radius, [60.0, 150.0]);
+        cfg.layout = layout;
+        cfg.road.grade_percent = Some([-4.0, 4.0]);
+        cfg.population.moving_vehicles = 12;
+        let scene = Scene::generate(&cfg, seed).unwrap();
+        let c = *scene.road_curve().unwrap();
+        let r = cfg.road_params();
+        let wl = r.lanes_per_direction as f32 * r.lane_width_m;
+        let wc = r.half_carriageway_m();
+        let (inner_side, inner_limit) = c.inner_limit_m();
+        let mesh = scene.mesh_at(1.0);
+        let (mut objects, mut movers) = (0, 0);
+        for (t, s) in mesh.triangles.iter().zip(&mesh.surface_of) {
+            let cls = mesh.surfaces[*s as usize].material.class;
+            for v in t {
+                assert!(v.is_finite());
+                let (s, d) = c.to_road(glam::Vec2::new(v.x, v.y));
+                // nothing reaches past the turning centre on the inside of the bend
+                assert!(d * inner_side <= inner_limit + 1e-2, "{layout:?}: d {d}");
+                let up = v.z - scene.road_height_m(s);
+                if is_ground(cls) || !(0.2..1.5).contains(&up) {
+                    continue;
+                }
+                let moving = cls >= 252 || cls == class::BICYCLIST || cls == class::PERSON;
+                if moving {
+                    // traffic on the carriageway (buses overhang their lane a little in the bend),
+                    // pedestrians on the sidewalks
+                    movers += 1;
+                    assert!(
+                        d.abs() < wc + r.sidewalk_width_m + 0.5,
+                        "{layout:?}: class {cls} at d {d} off the street"
+                    );
+                } else if matches!(
+                    cls,
+                    class::CAR | class::TRUCK | class::BUS | class::OTHER_VEHICLE
+                ) {
+                    // parked: off the driving lanes (a long vehicle's corners may reach over the
+                    // line a little on the inside of a tight bend)
+                    if r.parking_lane {
+                        objects += 1;
+                        assert!(
+                            d.abs() > wl - 0.5,
+                            "{layout:?}: parked class {cls} at d {d}"
+                        );
+                    }
+                } else {
+                    // buildings, trees, poles, signs, fences, guardrails: off the carriageway
+                    objects += 1;
+                    assert!(
+                        d.abs() > wc - 0.05,
+                        "{layout:?} seed {seed}: class {cls} at ({s}, {d}) on the road (kerb {wc})"
+                    );
+                }
+            }
+        }
+        assert!(
+            objects > 100 && movers > 100,
+            "{layout:?}: {objects} / {movers}"
+        );
+    }
+}
+
+#[test]
+fn curved_scenes_render_the_same_on_one_and_two_threads_and_per_seed() {
+    let mut cfg = curved(tiny_config(), [40.0, 600.0], [30.0, 120.0]);
+    cfg.road.grade_percent = Some([-5.0, 5.0]);
+    cfg.camera.samples_per_axis = 1;
+    let run = |threads: usize, seed: u64| {
+        with_threads(threads, || {
+            let scene = Scene::generate(&cfg, seed).unwrap();
+            let f = scene.render_frame(3).unwrap();
+            let mut bytes = scan_bytes(&f.scan);
+            bytes.extend_from_slice(&f.image.rgb);
+            bytes.extend(depth_bytes(&f.image));
+            bytes
+        })
+    };
+    let one = run(1, 7);
+    assert!(
+        one == run(2, 7),
+        "curved scene differs between 1 and 2 threads"
+    );
+    assert!(one != run(1, 8), "seeds 7 and 8 render the same");
+}
+
+#[test]
+fn the_curved_example_scene_bends_and_renders() {
+    let cfg = SceneConfig::from_file(&scenes_dir().join("curved_road.toml")).unwrap();
+    let mut small = cfg.clone();
+    small.lidar.sensor = tiny_config().lidar.sensor;
+    small.camera = tiny_config().camera;
+    let mut left = 0;
+    for seed in 0..6u64 {
+        let scene = Scene::generate(&small, seed).unwrap();
+        let c = scene.road_curve().expect("the example always bends");
+        left += usize::from(c.is_left());
+        let f = scene.render_frame(0).unwrap();
+        assert!(f.image.semantic.contains(&class::ROAD));
+        assert!(f.scan.points.len() > 32 * 256 / 2);
+    }
+    assert!((1..6).contains(&left), "{left} of 6 bend left");
+    // the v3 lists extend v2 with the curved street, with disjoint seeds
+    let dir = scenes_dir();
+    for (v2, v3) in [
+        ("train-v2.txt", "train-v3.txt"),
+        ("test-v2.txt", "test-v3.txt"),
+    ] {
+        let old = SceneList::read(&dir.join(v2)).unwrap();
+        let new = SceneList::read(&dir.join(v3)).unwrap();
+        for e in &old.entries {
+            assert!(
+                new.entries
+                    .iter()
+                    .any(|n| n.scene == e.scene && n.seeds == e.seeds),
+                "{v3} lacks {}",
+                e.scene.display()
+            );
+        }
+        assert!(
+            new.entries
+                .iter()
+                .any(|e| e.scene.file_name().unwrap() == "curved_road.toml")
+        );
+    }
+    let train = SceneList::read(&dir.join("train-v3.txt")).unwrap();
+    let test = SceneList::read(&dir.join("test-v3.txt")).unwrap();
+    for a in &train.entries {
+        for b in test.entries.iter().filter(|b| b.scene == a.scene) {
+            assert!(a.seeds.end() < b.seeds.start() || b.seeds.end() < a.seeds.start());
+        }
+    }
 }

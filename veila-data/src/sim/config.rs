@@ -30,6 +30,22 @@
 //! [frames]
 //! count = 10
 //! ```
+//!
+//! Curved streets (`[road]`, every key optional; see [`RoadConfig::curve_probability`]): the main
+//! street of the straight, narrow-street and open layouts bends with a probability drawn per
+//! scene, left or right at even odds, on a circular arc between two straight tangents. The scene is
+//! laid out in road coordinates (distance `s` along the centreline, offset across it) mapped
+//! through the bent centreline ([`super::curve::RoadCurve`]): ground, markings and long runs of
+//! fence, hedge and guardrail bend with the road; buildings, trees, poles, signs and vehicles stand
+//! upright at their place turned to the road's heading there; the ego and the traffic drive along
+//! their lanes; the LiDAR and camera turn with the ego. The junction layout ignores these keys.
+//!
+//! ```toml
+//! [road]
+//! curve_probability = 1.0          # default 0: straight
+//! curve_radius_m = [40.0, 600.0]   # drawn per scene, log-uniform (default)
+//! curve_angle_deg = [30.0, 120.0]  # how far the street turns (default)
+//! ```
 
 use std::path::Path;
 
@@ -143,6 +159,27 @@ pub struct RoadConfig {
     /// follows the road's height. Default `[0, 0]`: flat.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub grade_percent: Option<[f32; 2]>,
+    /// Probability, within `[0, 1]`, that the main street bends, drawn per scene. A bent street
+    /// runs straight up to a point drawn 20 m behind to 40 m ahead of the ego's start, turns left
+    /// or right (even odds) along a circular arc of a radius drawn from
+    /// [`RoadConfig::curve_radius_m`] through an angle drawn from [`RoadConfig::curve_angle_deg`],
+    /// then runs straight again. Everything is laid out along it: the road surface, markings,
+    /// kerbs, sidewalks and terrain bend with it, objects stand at their place along the road
+    /// turned with it, and the ego and the traffic drive along their lanes. Composes with
+    /// [`RoadConfig::grade_percent`] (the grade's distances are measured along the road). Default 0:
+    /// straight. The junction layout ignores it (its streets stay straight).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub curve_probability: Option<f32>,
+    /// The range `[low, high]` of the bend's radius, metres, drawn per scene log-uniformly; `low`
+    /// at least 20 and more than the half carriageway plus the sidewalk plus 2 m, `high` at most
+    /// 10000. Default `[40, 600]` (tight urban corners to rural bends).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub curve_radius_m: Option<[f32; 2]>,
+    /// The range `[low, high]` of the angle the bent street turns through, degrees within
+    /// `(0, 180]`, drawn per scene (a wide radius may turn less within the street's length).
+    /// Default `[30, 120]`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub curve_angle_deg: Option<[f32; 2]>,
 }
 
 /// Road parameters with every default resolved for a layout.
@@ -180,6 +217,12 @@ pub struct RoadParams {
     pub guardrail_probability: f32,
     /// Range of the main street's grade after its vertical curve, percent.
     pub grade_percent: [f32; 2],
+    /// Probability that the main street bends.
+    pub curve_probability: f32,
+    /// Range of the bend's radius, metres.
+    pub curve_radius_m: [f32; 2],
+    /// Range of the angle the bend turns through, degrees.
+    pub curve_angle_deg: [f32; 2],
 }
 
 impl RoadParams {
@@ -254,6 +297,9 @@ impl RoadConfig {
                 0.2
             }),
             grade_percent: self.grade_percent.unwrap_or([0.0, 0.0]),
+            curve_probability: self.curve_probability.unwrap_or(0.0),
+            curve_radius_m: self.curve_radius_m.unwrap_or([40.0, 600.0]),
+            curve_angle_deg: self.curve_angle_deg.unwrap_or([30.0, 120.0]),
         }
     }
 }
@@ -319,7 +365,8 @@ impl Default for PopulationConfig {
 pub struct EgoConfig {
     /// Speed, m/s.
     pub speed_mps: f32,
-    /// Position along the main street at frame 0, metres (0 = street centre / junction centre).
+    /// Position along the main street at frame 0, metres (0 = street centre / junction centre; on
+    /// a curved street, the distance along its centreline).
     pub start_x_m: f32,
     /// LiDAR height above the road, metres (KITTI: 1.73).
     pub lidar_height_m: f32,
@@ -893,6 +940,27 @@ impl SceneConfig {
             g0.is_finite() && g1.is_finite() && (-12.0..=g1).contains(&g0) && g1 <= 12.0,
             "road.grade_percent",
             format!("[{g0}, {g1}] must satisfy -12 <= low <= high <= 12"),
+        )?;
+        check(
+            (0.0..=1.0).contains(&r.curve_probability),
+            "road.curve_probability",
+            format!("{} not in [0, 1]", r.curve_probability),
+        )?;
+        let [c0, c1] = r.curve_radius_m;
+        let c_min = (r.half_carriageway_m() + r.sidewalk_width_m + 2.0).max(20.0);
+        check(
+            c0.is_finite() && c1.is_finite() && c0 >= c_min && c0 <= c1 && c1 <= 10_000.0,
+            "road.curve_radius_m",
+            format!(
+                "[{c0}, {c1}] must satisfy {c_min} <= low <= high <= 10000 (the carriageway and \
+                 sidewalk must fit inside the bend)"
+            ),
+        )?;
+        let [a0, a1] = r.curve_angle_deg;
+        check(
+            a0.is_finite() && a1.is_finite() && a0 > 0.0 && a0 <= a1 && a1 <= 180.0,
+            "road.curve_angle_deg",
+            format!("[{a0}, {a1}] must satisfy 0 < low <= high <= 180"),
         )?;
         let min_len = match self.layout {
             // the junction's four arms need room beyond the crossing street's sidewalks

@@ -40,6 +40,7 @@
 mod appearance;
 pub mod camera;
 pub mod config;
+pub mod curve;
 pub mod frame;
 mod hash;
 pub mod lidar;
@@ -56,6 +57,7 @@ pub use config::{
     AppearanceConfig, CameraConfig, EgoConfig, FramesConfig, Layout, LidarConfig, LidarReturnModel,
     LightingConfig, PopulationConfig, RigConfig, RoadConfig, RoadParams, SceneConfig,
 };
+pub use curve::RoadCurve;
 pub use frame::SceneSnapshot;
 pub use lidar::{RayOutcome, SimScan};
 pub use material::{Material, class};

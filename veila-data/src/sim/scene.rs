@@ -5,7 +5,7 @@
 //! sidewalks, gardens and terrain sit at the kerb height. Traffic drives on the right: the ego
 //! vehicle drives in +x in the rightmost lane (`y < 0`).
 
-use glam::{Affine3A, Mat3, Vec3};
+use glam::{Affine3A, Mat3, Vec2, Vec3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -14,6 +14,7 @@ use veila_geom::{LidarSensor, PinholeCamera};
 use super::appearance::Appearance;
 use super::camera::{CameraRenderOptions, SimCalib, SimImage};
 use super::config::{CameraConfig, Layout, RoadParams, SceneConfig};
+use super::curve::RoadCurve;
 use super::frame::SceneSnapshot;
 use super::hash::splitmix;
 use super::lidar::SimScan;
@@ -33,6 +34,13 @@ const OPEN_STREAM: u64 = 0x6f70_0000;
 const GRADE_STREAM: u64 = 0x6772_0000;
 /// Length of the vertical curve into the grade, metres.
 const VERTICAL_CURVE_M: f32 = 40.0;
+/// Random stream of the horizontal curve draw.
+const CURVE_STREAM: u64 = 0x6375_0000;
+/// Where a bend begins relative to the ego's start, metres along the street.
+const CURVE_START_M: std::ops::Range<f32> = -20.0..40.0;
+/// Non-ground geometry keeps this far from the inner limit of a bend (its turning centre), metres.
+const INNER_MARGIN_M: f32 = 1.0;
+
 /// Triangles in the vertical curve are split until their extent along x is at most this, metres
 /// (the piecewise-linear road then deviates from the parabola by under a millimetre at 12 %).
 const CURVE_CHORD_M: f32 = 1.0;
@@ -102,21 +110,212 @@ impl Grade {
     }
 }
 
+/// An object in a mesh in road coordinates: its triangles `start..end` and its anchor (s, d). On
+/// a curved street a rigid part keeps the road frame at its anchor (it is turned whole with the
+/// road there); a bent one (a building, a run of fence) follows the road vertex by vertex.
+#[derive(Debug, Clone, Copy)]
+struct Part {
+    start: usize,
+    end: usize,
+    anchor: Vec2,
+    bent: bool,
+}
+
+/// Sorted cut positions along s: every triangle is split at these (see [`clip_slabs`]).
+fn cut_planes(grade: Option<&Grade>, curve: Option<&RoadCurve>) -> Vec<f32> {
+    let mut planes = Vec::new();
+    let mut span = |a: f32, len: f32, step: f32| {
+        let n = (len / step).ceil().max(1.0) as usize;
+        planes.extend((0..=n).map(|i| {
+            if i == n {
+                a + len
+            } else {
+                a + len * i as f32 / n as f32
+            }
+        }));
+    };
+    if let Some(g) = grade {
+        span(g.x0, g.len, CURVE_CHORD_M);
+    }
+    if let Some(c) = curve {
+        // chords short enough that the sagitta stays at a few millimetres at any offset
+        span(
+            c.arc_start_m(),
+            c.arc_length_m(),
+            (c.radius_m() / 50.0).clamp(0.5, 4.0),
+        );
+    }
+    planes.sort_by(f32::total_cmp);
+    planes.dedup();
+    planes
+}
+
+/// The point where the segment `a b` crosses `x`, computed the same way from either end (so that
+/// neighbouring triangles split their shared edge at the same point: no cracks).
+fn cut(a: Vec3, b: Vec3, x: f32) -> Vec3 {
+    let (u, v) = if a.to_array() <= b.to_array() {
+        (a, b)
+    } else {
+        (b, a)
+    };
+    let t = (x - u.x) / (v.x - u.x);
+    let mut p = u + (v - u) * t;
+    p.x = x;
+    p
+}
+
+/// Split triangle `t` at every plane `x = p` of `planes` (sorted) that crosses it and hand the
+/// pieces (fans of the clipped polygons, orientation kept) to `emit`.
+fn clip_slabs(t: [Vec3; 3], planes: &[f32], emit: &mut impl FnMut([Vec3; 3])) {
+    let lo = t[0].x.min(t[1].x).min(t[2].x);
+    let hi = t[0].x.max(t[1].x).max(t[2].x);
+    let i0 = planes.partition_point(|&p| p <= lo);
+    let i1 = planes.partition_point(|&p| p < hi);
+    if i0 >= i1 {
+        emit(t);
+        return;
+    }
+    let mut bounds = vec![lo];
+    bounds.extend_from_slice(&planes[i0..i1]);
+    bounds.push(hi);
+    let clip = |poly: &[Vec3], x: f32, keep_above: bool| -> Vec<Vec3> {
+        let inside = |v: &Vec3| if keep_above { v.x >= x } else { v.x <= x };
+        let mut out = Vec::with_capacity(poly.len() + 2);
+        for (i, a) in poly.iter().enumerate() {
+            let b = &poly[(i + 1) % poly.len()];
+            if inside(a) {
+                out.push(*a);
+            }
+            if inside(a) != inside(b) && a.x != x && b.x != x {
+                out.push(cut(*a, *b, x));
+            }
+        }
+        out
+    };
+    for w in bounds.windows(2) {
+        let poly = clip(&clip(&t[..], w[0], true), w[1], false);
+        for i in 1..poly.len().saturating_sub(1) {
+            emit([poly[0], poly[i], poly[i + 1]]);
+        }
+    }
+}
+
+/// `mesh`, built in road coordinates, laid along the curved street: with a grade every vertex is
+/// first lifted by the road height at its s; the rigid parts are then moved whole by the road's
+/// frame at their anchor, everything else bent through the centreline map vertex by vertex
+/// (triangles split at chords along the arc and at 1 m in the vertical curve). With `keep_clear` a
+/// rigid part beside the road is moved out along the road's normal by as much as its straight
+/// sides would otherwise reach closer to the centreline than laid out (the ends of a long parked
+/// vehicle on the inside of a bend), so that it keeps clear of the lanes. On the inside of the bend
+/// the map would fold over at the turning centre: ground reaching past it is clipped there, other
+/// geometry reaching within [`INNER_MARGIN_M`] of it is dropped (a part as a whole).
+fn warp_road(
+    mesh: &Mesh,
+    parts: &[Part],
+    grade: Option<&Grade>,
+    curve: &RoadCurve,
+    keep_clear: bool,
+) -> Mesh {
+    let mut out = Mesh {
+        triangles: Vec::with_capacity(mesh.triangles.len() * 2),
+        surface_of: Vec::with_capacity(mesh.triangles.len() * 2),
+        surfaces: mesh.surfaces.clone(),
+    };
+    let grade_planes = cut_planes(grade, None);
+    let all_planes = cut_planes(grade, Some(curve));
+    let (side, limit) = curve.inner_limit_m();
+    let inner = |v: &Vec3| side * v.y;
+    let lift = |v: Vec3| Vec3::new(v.x, v.y, v.z + grade.map_or(0.0, |g| g.z(v.x)));
+    let push = |out: &mut Mesh, t: [Vec3; 3], surf: u32| {
+        let area2 = (t[1] - t[0]).cross(t[2] - t[0]).length_squared();
+        if area2 > 1e-12 && area2.is_finite() {
+            out.triangles.push(t);
+            out.surface_of.push(surf);
+        }
+    };
+    let bend = |v: Vec3| {
+        let v = lift(v);
+        let w = curve.to_world(v.x, v.y);
+        Vec3::new(w.x, w.y, v.z)
+    };
+    let mut next_part = parts.iter().peekable();
+    let mut i = 0;
+    while i < mesh.triangles.len() {
+        if let Some(part) = next_part.next_if(|p| p.start == i) {
+            let tris = &mesh.triangles[part.start..part.end];
+            let surfs = &mesh.surface_of[part.start..part.end];
+            i = part.end;
+            if tris
+                .iter()
+                .flatten()
+                .any(|v| inner(v) > limit - INNER_MARGIN_M)
+            {
+                continue;
+            }
+            if part.bent {
+                for (t, &surf) in tris.iter().zip(surfs) {
+                    clip_slabs(*t, &all_planes, &mut |p| push(&mut out, p.map(bend), surf));
+                }
+                continue;
+            }
+            let (s, d) = (part.anchor.x, part.anchor.y);
+            let mut xf = curve.world_from_road_at(s, d);
+            if keep_clear && d != 0.0 {
+                let away = d.signum();
+                let closer = tris
+                    .iter()
+                    .flatten()
+                    .map(|v| {
+                        let w = xf.transform_point3(*v);
+                        away * (v.y - curve.to_road(Vec2::new(w.x, w.y)).1)
+                    })
+                    .fold(0.0f32, f32::max);
+                if closer > 0.0 {
+                    let (_, heading) = curve.centreline(s);
+                    let n = Vec3::new(-heading.sin(), heading.cos(), 0.0);
+                    xf = Affine3A::from_translation(n * (away * closer)) * xf;
+                }
+            }
+            for (t, &surf) in tris.iter().zip(surfs) {
+                clip_slabs(*t, &grade_planes, &mut |p| {
+                    push(&mut out, p.map(|v| xf.transform_point3(lift(v))), surf);
+                });
+            }
+            continue;
+        }
+        let (t, surf) = (mesh.triangles[i], mesh.surface_of[i]);
+        i += 1;
+        let ground = t[0].z == t[1].z && t[1].z == t[2].z;
+        let t = if ground {
+            t.map(|v| Vec3::new(v.x, side * inner(&v).min(limit), v.z))
+        } else if t.iter().any(|v| inner(v) > limit - INNER_MARGIN_M) {
+            continue;
+        } else {
+            t
+        };
+        clip_slabs(t, &all_planes, &mut |p| push(&mut out, p.map(bend), surf));
+    }
+    out
+}
+
 /// A moving or movable object: a mesh in its own frame moved along a straight line.
 #[derive(Debug, Clone)]
 pub struct Actor {
     /// Mesh in the actor's frame (x forward, z up, origin on the ground).
     pub mesh: Mesh,
-    /// Position of the actor's origin at time 0, world frame.
+    /// Position of the actor's origin at time 0, world frame (on a curved street, road
+    /// coordinates: distance along the centreline, offset across it, height; see
+    /// [`Scene::road_curve`]).
     pub start: Vec3,
     /// Heading (rotation about z) in radians.
     pub heading_rad: f32,
-    /// Velocity, world frame, m/s.
+    /// Velocity, world frame, m/s (on a curved street, in road coordinates: `x` the speed along
+    /// the actor's lane, which [`Scene::mesh_at`] follows around the bend).
     pub velocity: Vec3,
 }
 
 impl Actor {
-    /// World-from-actor transform at `time_s`.
+    /// World-from-actor transform at `time_s` (on a curved street: in road coordinates).
     pub fn world_from_actor(&self, time_s: f32) -> Affine3A {
         Affine3A::from_translation(self.start + self.velocity * time_s) * yaw(self.heading_rad)
     }
@@ -139,6 +338,8 @@ pub struct Scene {
     lidar_height_m: f32,
     /// The main street's height profile (None: flat).
     grade: Option<Grade>,
+    /// The main street's bend (None: straight).
+    curve: Option<RoadCurve>,
 }
 
 impl Scene {
@@ -169,13 +370,35 @@ impl Scene {
                 }
             })
             .filter(|grade| grade.g != 0.0);
+        let curve = (config.layout != Layout::Junction && road.curve_probability > 0.0)
+            .then(|| {
+                let mut rng = g.rng(CURVE_STREAM);
+                if rng.random::<f32>() >= road.curve_probability {
+                    return None;
+                }
+                let [r0, r1] = road.curve_radius_m;
+                let radius = (r0.ln() + (r1.ln() - r0.ln()) * rng.random::<f32>()).exp();
+                let [a0, a1] = road.curve_angle_deg;
+                let angle = (a0 + (a1 - a0) * rng.random::<f32>()).to_radians();
+                let left = rng.random_bool(0.5);
+                let start = config.ego.start_x_m + rng.random_range(CURVE_START_M);
+                Some(RoadCurve::new(
+                    start,
+                    radius.clamp(r0, r1),
+                    angle.min(std::f32::consts::PI),
+                    left,
+                ))
+            })
+            .flatten();
+        let static_mesh = match (&curve, &grade) {
+            (Some(curve), _) => warp_road(&g.mesh, &g.parts, grade.as_ref(), curve, true),
+            (None, Some(grade)) => grade.warp(&g.mesh),
+            (None, None) => g.mesh,
+        };
         Ok(Scene {
             config: config.clone(),
             seed,
-            static_mesh: match &grade {
-                Some(grade) => grade.warp(&g.mesh),
-                None => g.mesh,
-            },
+            static_mesh,
             actors: g.actors,
             ego_pose0: Affine3A::from_translation(Vec3::new(
                 config.ego.start_x_m,
@@ -186,6 +409,7 @@ impl Scene {
             camera,
             lidar_height_m,
             grade,
+            curve,
         })
     }
 
@@ -209,13 +433,23 @@ impl Scene {
             camera: config.camera,
             lidar_height_m: world_from_lidar.translation.z,
             grade: None,
+            curve: None,
         }
     }
 
-    /// Height of the main street's surface at `x` (world frame), metres: 0 on a flat street, else
-    /// the profile of the grade drawn from [`super::RoadConfig::grade_percent`].
+    /// Height of the main street's surface at `x` along it, metres: 0 on a flat street, else the
+    /// profile of the grade drawn from [`super::RoadConfig::grade_percent`]. On a straight street
+    /// `x` is the world x; on a curved one ([`Scene::road_curve`]) the distance along the
+    /// centreline (the height is the same across the street).
     pub fn road_height_m(&self, x: f32) -> f32 {
         self.grade.map_or(0.0, |g| g.z(x))
+    }
+
+    /// The main street's bend, drawn from [`super::RoadConfig::curve_probability`] (None: the
+    /// street is straight): maps road coordinates (distance along the centreline, offset across
+    /// it) to the world.
+    pub fn road_curve(&self) -> Option<&RoadCurve> {
+        self.curve.as_ref()
     }
 
     /// The main street's grade after its vertical curve, percent (0: flat).
@@ -267,6 +501,9 @@ impl Scene {
     /// its height above the road along the road's normal.
     pub fn world_from_lidar(&self, time_s: f32) -> Affine3A {
         let flat = Affine3A::from_translation(self.ego_velocity * time_s) * self.ego_pose0;
+        if let Some(curve) = &self.curve {
+            return self.curved_pose(curve, time_s, flat);
+        }
         let Some(grade) = self.grade else {
             return flat;
         };
@@ -279,10 +516,59 @@ impl Scene {
             * Affine3A::from_mat3(Mat3::from(flat.matrix3))
     }
 
+    /// The LiDAR pose on a curved street: the ego's pose in road coordinates (`flat`, its
+    /// translation at time 0 and its velocity read as distance along the street and offset across
+    /// it) moved along its lane: it travels `speed * time_s` metres along the line at its offset,
+    /// heading along the road's tangent there, pitched with the grade along its path.
+    fn curved_pose(&self, curve: &RoadCurve, time_s: f32, flat: Affine3A) -> Affine3A {
+        let p0 = self.ego_pose0.translation;
+        let v = self.ego_velocity;
+        let s = curve.advance(p0.x, p0.y, v.x * time_s);
+        let d = p0.y + v.y * time_s;
+        let (z, slope) = self.grade.map_or((0.0, 0.0), |g| (g.z(s), g.slope(s)));
+        // the path at offset d is (1 - curvature d) times as long as the centreline beside it
+        let pitch = (slope / (1.0 - curve.curvature_at(s) * d)).atan();
+        let (_, heading) = curve.centreline(s);
+        let w = curve.to_world(s, d);
+        let rot = Mat3::from_rotation_z(heading) * Mat3::from_rotation_y(-pitch);
+        let normal = rot * Vec3::Z;
+        Affine3A::from_translation(Vec3::new(w.x, w.y, z) + normal * flat.translation.z)
+            * Affine3A::from_mat3(rot * Mat3::from(flat.matrix3))
+    }
+
     /// The whole world at `time_s` as one mesh (static world plus actors moved; on a graded street
-    /// the actors are lifted onto the road's profile like the static world).
+    /// the actors are lifted onto the road's profile like the static world; on a curved street
+    /// they move along their lanes in road coordinates, turned with the road).
     pub fn mesh_at(&self, time_s: f32) -> Mesh {
         let mut m = self.static_mesh.clone();
+        if let Some(curve) = &self.curve {
+            let mut moving = Mesh::new();
+            let mut parts = Vec::with_capacity(self.actors.len());
+            for a in &self.actors {
+                let s = curve.advance(a.start.x, a.start.y, a.velocity.x * time_s);
+                let d = a.start.y + a.velocity.y * time_s;
+                let z = a.start.z + a.velocity.z * time_s;
+                let start = moving.len();
+                moving.append_transformed(
+                    &a.mesh,
+                    Affine3A::from_translation(Vec3::new(s, d, z)) * yaw(a.heading_rad),
+                );
+                parts.push(Part {
+                    start,
+                    end: moving.len(),
+                    anchor: Vec2::new(s, d),
+                    bent: false,
+                });
+            }
+            m.append(&warp_road(
+                &moving,
+                &parts,
+                self.grade.as_ref(),
+                curve,
+                false,
+            ));
+            return m;
+        }
         match &self.grade {
             None => {
                 for a in &self.actors {
@@ -491,6 +777,11 @@ struct Gen<'a> {
     furniture: Vec<Occupancy>,
     /// Street sections whose lots were built so far (numbers the open-roadside draws).
     lot_calls: u64,
+    /// The objects in `mesh`: triangle range and anchor (s, d) in road coordinates. A curved
+    /// street turns the rigid ones (trees, poles, signs, vehicles) whole with the road at their
+    /// anchor and bends the others (buildings, fences, hedges, guardrails) along with it, like the
+    /// ground and the markings.
+    parts: Vec<Part>,
 }
 
 impl<'a> Gen<'a> {
@@ -506,7 +797,29 @@ impl<'a> Gen<'a> {
             next_instance: 1,
             furniture: (0..4).map(|_| Occupancy::default()).collect(),
             lot_calls: 0,
+            parts: Vec::new(),
         }
+    }
+
+    /// Append a rigid object placed by `xf` (its anchor: the translation of `xf`).
+    fn put(&mut self, m: &Mesh, xf: Affine3A) {
+        self.put_part(m, xf, false);
+    }
+
+    /// Append an object placed by `xf` that bends with a curved street (a building, a fence).
+    fn put_bent(&mut self, m: &Mesh, xf: Affine3A) {
+        self.put_part(m, xf, true);
+    }
+
+    fn put_part(&mut self, m: &Mesh, xf: Affine3A, bent: bool) {
+        let start = self.mesh.len();
+        self.mesh.append_transformed(m, xf);
+        self.parts.push(Part {
+            start,
+            end: self.mesh.len(),
+            anchor: Vec2::new(xf.translation.x, xf.translation.y),
+            bent,
+        });
     }
 
     /// An independent random stream per purpose, so that changing one count does not reshuffle
@@ -605,7 +918,7 @@ impl<'a> Gen<'a> {
                 sy * (wc + 0.6),
                 r.kerb_height_m,
             )) * yaw(facing);
-            self.mesh.append_transformed(&light, xf);
+            self.put(&light, xf);
         }
     }
 
@@ -757,10 +1070,7 @@ impl<'a> Gen<'a> {
                     } else {
                         0.0
                     };
-                    self.mesh.append_transformed(
-                        &b,
-                        f.place(s + w / 2.0, side * front, r.kerb_height_m, h),
-                    );
+                    self.put_bent(&b, f.place(s + w / 2.0, side * front, r.kerb_height_m, h));
                     s += w + rng.random_range(0.0..1.5f32);
                 } else {
                     let w = rng.random_range(4.0..12.0f32).min(s1 - s);
@@ -768,15 +1078,13 @@ impl<'a> Gen<'a> {
                     let d = side * (front - 0.4);
                     if u < self.cfg.population.fence_probability {
                         let fe = objects::fence(w, rng.random_range(1.0..2.0f32));
-                        self.mesh
-                            .append_transformed(&fe, f.place(s + w / 2.0, d, r.kerb_height_m, 0.0));
+                        self.put_bent(&fe, f.place(s + w / 2.0, d, r.kerb_height_m, 0.0));
                     } else if u < self.cfg.population.fence_probability + 0.35 {
                         let he = objects::hedge(rng, w);
-                        self.mesh
-                            .append_transformed(&he, f.place(s + w / 2.0, d, r.kerb_height_m, 0.0));
+                        self.put_bent(&he, f.place(s + w / 2.0, d, r.kerb_height_m, 0.0));
                     } else if rng.random_bool(0.6) {
                         let t = objects::tree(rng);
-                        self.mesh.append_transformed(
+                        self.put(
                             &t,
                             f.place(s + w / 2.0, side * (front + 4.0), r.kerb_height_m, 0.0),
                         );
@@ -794,8 +1102,7 @@ impl<'a> Gen<'a> {
                     let bs = rng.random_range(s0..s1);
                     let bd = side * (front - rng.random_range(0.5..r.setback_m.min(3.0)));
                     let b = objects::bush(rng);
-                    self.mesh
-                        .append_transformed(&b, f.place(bs, bd, r.kerb_height_m, 0.0));
+                    self.put(&b, f.place(bs, bd, r.kerb_height_m, 0.0));
                 }
             }
         }
@@ -839,8 +1146,7 @@ impl<'a> Gen<'a> {
                     break;
                 }
                 let g = objects::guardrail(l);
-                self.mesh
-                    .append_transformed(&g, f.place(s + l / 2.0, d, kh, to_road));
+                self.put_bent(&g, f.place(s + l / 2.0, d, kh, to_road));
                 s += l + rng.random_range(4.0..40.0f32);
             }
         }
@@ -859,8 +1165,7 @@ impl<'a> Gen<'a> {
                     let height = rng.random_range(hmin..=hmax);
                     let b = objects::building(&mut rng, w, depth, height);
                     let dd = side * (front + setback + rng.random_range(0.0..4.0f32));
-                    self.mesh
-                        .append_transformed(&b, f.place(s + w / 2.0, dd, kh, to_road));
+                    self.put_bent(&b, f.place(s + w / 2.0, dd, kh, to_road));
                 }
                 s += w + rng.random_range(2.0..12.0f32);
             }
@@ -869,7 +1174,7 @@ impl<'a> Gen<'a> {
         let tree_at = |g: &mut Self, rng: &mut ChaCha8Rng, s: f32, d_out: f32| {
             let t = objects::tree(rng);
             let k = rng.random_range(0.8..1.6f32);
-            g.mesh.append_transformed(
+            g.put(
                 &t,
                 f.place(s, side * (front + d_out), kh, 0.0) * Affine3A::from_scale(Vec3::splat(k)),
             );
@@ -910,8 +1215,7 @@ impl<'a> Gen<'a> {
             let s = rng.random_range(s0..s1.max(s0 + 1e-3));
             let d = dist(&mut rng, 1.0, reach);
             let b = objects::bush(&mut rng);
-            self.mesh
-                .append_transformed(&b, f.place(s, side * (front + d), kh, 0.0));
+            self.put(&b, f.place(s, side * (front + d), kh, 0.0));
         }
         // a field boundary: fence or hedge runs with gaps, parallel to the road
         let u = rng.random::<f32>();
@@ -925,8 +1229,7 @@ impl<'a> Gen<'a> {
                 } else {
                     objects::hedge(&mut rng, l)
                 };
-                self.mesh
-                    .append_transformed(&m, f.place(s + l / 2.0, side * (front + d), kh, 0.0));
+                self.put_bent(&m, f.place(s + l / 2.0, side * (front + d), kh, 0.0));
                 s += l + rng.random_range(5.0..40.0f32);
             }
         }
@@ -981,7 +1284,7 @@ impl<'a> Gen<'a> {
                         },
                     ),
                 };
-                self.mesh.append_transformed(&m, f.place(s, d, kh, h));
+                self.put(&m, f.place(s, d, kh, h));
             }
         }
     }
@@ -1049,8 +1352,7 @@ impl<'a> Gen<'a> {
                         } else {
                             0.0
                         };
-                        self.mesh
-                            .append_transformed(&m, sec.frame.place(s + len / 2.0, d, 0.0, h));
+                        self.put(&m, sec.frame.place(s + len / 2.0, d, 0.0, h));
                     }
                     // exponential-ish gaps around the mean spacing
                     let gap = (mean_gap - 4.5).max(0.8)
