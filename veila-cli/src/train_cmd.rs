@@ -38,6 +38,8 @@
 //! # depth_encoder = "depth-anything-v2-small"
 //! # depth_weights = "weights/da2-small/model.safetensors"
 //! # views = 1                      # cameras per sample (3: the paper's front, front-left, front-right)
+//! # ground_prior = false           # true: the small-CNN encoders also take the flat-ground depth
+//! #                                #   from each image's calibration (LiDAR 1.73 m above the ground)
 //!
 //! [train]
 //! steps = 1000                     # denoiser steps
@@ -179,6 +181,10 @@ struct ModelSection {
     /// cameras per sample (`cargo xtask convert --camera CAM_FRONT,CAM_FRONT_LEFT,...`).
     #[serde(default)]
     views: Option<usize>,
+    /// The flat-ground prior as an input channel of the small-CNN encoders (`true`), or none
+    /// (`false`); default: the config's (none for the CPU default).
+    #[serde(default)]
+    ground_prior: Option<bool>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -445,6 +451,15 @@ fn bundle_config(file: &TrainFile, config_path: &Path) -> Result<BundleConfig> {
         }
         cfg.set_encoders(semantic, depth)
             .with_context(|| format!("{}: [model] encoders", config_path.display()))?;
+    }
+    if let Some(on) = m.ground_prior {
+        let prior = on.then(veila_nn::encoders::ground::GroundPrior::default);
+        if cfg.set_ground_prior(prior) == 0 && on {
+            bail!(
+                "{}: [model] ground_prior needs a small-cnn encoder (pretrained encoders take colours only)",
+                config_path.display()
+            );
+        }
     }
     if let Some(views) = m.views {
         if !(1..=6).contains(&views) {
@@ -849,6 +864,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
     let enc_dir = ck_dir.join(ENCODER_DIR);
     let images: Vec<Vec<u8>> = prepared.iter().map(|p| p.rgb.clone()).collect();
     let depths: Vec<Vec<f32>> = prepared.iter().map(|p| p.depth_m.clone()).collect();
+    let cameras: Vec<veila_geom::PinholeCamera> = prepared.iter().map(|p| p.camera).collect();
     let labels: Option<Vec<Vec<u32>>> = prepared.iter().map(|p| p.labels.clone()).collect();
     let encoders = match &file.model.encoders_from {
         Some(dir) => EncoderSource::Bundle(dir),
@@ -876,6 +892,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
                         images: &images,
                         labels: labels.as_deref(),
                         depth_m: &depths,
+                        cameras: Some(&cameras),
                     },
                 },
                 dir: &enc_dir,

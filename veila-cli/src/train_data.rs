@@ -285,6 +285,7 @@ impl ExampleSource for ShardSource {
         let p = self.prepared(index).map_err(data_error)?;
         Ok(EncoderExample {
             rgb: p.rgb,
+            camera: Some(p.camera),
             labels: p.labels,
             depth_m: p.depth_m,
         })

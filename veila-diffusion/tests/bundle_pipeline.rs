@@ -976,6 +976,7 @@ impl ExampleSource for TestSource {
 fn encoder_example(ex: &TrainExample, index: usize) -> EncoderExample {
     EncoderExample {
         rgb: ex.rgb.clone(),
+        camera: Some(ex.camera),
         labels: Some((0..IH * IW).map(|p| ((p + index) % 4) as u32).collect()),
         depth_m: (0..IH * IW).map(|p| ((p % 7) + index) as f32).collect(),
     }
@@ -1246,6 +1247,7 @@ fn encoders_train_to_the_same_weights_from_a_source() {
     let images: Vec<Vec<u8>> = targets.iter().map(|t| t.rgb.clone()).collect();
     let labels: Vec<Vec<u32>> = targets.iter().map(|t| t.labels.clone().unwrap()).collect();
     let depth: Vec<Vec<f32>> = targets.iter().map(|t| t.depth_m.clone()).collect();
+    let cameras: Vec<PinholeCamera> = examples.iter().map(|e| e.camera).collect();
     let source: std::sync::Arc<dyn ExampleSource> = std::sync::Arc::new(TestSource {
         examples,
         fail_at: None,
@@ -1299,6 +1301,7 @@ fn encoders_train_to_the_same_weights_from_a_source() {
             images: &images,
             labels: Some(&labels),
             depth_m: &depth,
+            cameras: Some(&cameras),
         },
         "memory",
     );
@@ -1541,4 +1544,165 @@ fn variants_parse_by_name_and_three_cameras_trains_and_generates_with_three_view
     // the weights do not depend on the view count: one view runs too, and sees less
     let one = b.generate(&views[..1], &opts(0, 1), |_, _| {}).unwrap();
     assert_ne!(one[0].range_m, scans[0].range_m);
+}
+
+#[test]
+fn the_ground_prior_is_a_bundle_switch_that_reads_each_views_camera() {
+    use veila_nn::encoders::ground::GroundPrior;
+    let tmp = tempfile::tempdir().unwrap();
+    let cam = camera();
+    // the same rig raised by 0.5 m: the same image, another flat ground
+    let raised = PinholeCamera {
+        cam_from_lidar: cam.cam_from_lidar
+            * glam::Mat4::from_translation(glam::Vec3::new(0.0, 0.0, -0.5)),
+        ..cam
+    };
+    let img = image(4);
+    let feats = |b: &Bundle, c: &PinholeCamera| {
+        let f = b
+            .encode_views(&[CameraView {
+                rgb: &img,
+                camera: c,
+            }])
+            .unwrap();
+        [f.semantic.unwrap(), f.depth.unwrap()]
+            .iter()
+            .flat_map(|p| {
+                p.iter()
+                    .map(|t| t.flatten_all().unwrap().to_vec1::<f32>().unwrap())
+            })
+            .collect::<Vec<_>>()
+    };
+
+    // off (the default): the config says nothing about it and the camera does not matter
+    let off = small_config(Variant::Full);
+    let json = serde_json::to_string(&off).unwrap();
+    assert!(!json.contains("ground_prior"), "{json}");
+    save_random_bundle(&tmp.path().join("off"), &off, 3);
+    let b = Bundle::from_dir(&tmp.path().join("off"), &Device::Cpu).unwrap();
+    assert_eq!(feats(&b, &cam), feats(&b, &raised));
+
+    // on: stored in bundle.json, the stems take 4 channels, each view's camera matters
+    let mut on = off.clone();
+    assert_eq!(on.set_ground_prior(Some(GroundPrior::default())), 2);
+    save_random_bundle(&tmp.path().join("on"), &on, 3);
+    let text = std::fs::read_to_string(tmp.path().join("on/bundle.json")).unwrap();
+    assert_eq!(text.matches("\"ground_prior\"").count(), 2, "{text}");
+    let b = Bundle::from_dir(&tmp.path().join("on"), &Device::Cpu).unwrap();
+    assert_eq!(b.config, on);
+    let stem = b.depth.as_ref().unwrap().as_small_cnn().unwrap();
+    assert_eq!(stem.config().input_channels(), 4);
+    assert_ne!(feats(&b, &cam), feats(&b, &raised));
+    // and generation runs through it
+    let view = [CameraView {
+        rgb: &img,
+        camera: &cam,
+    }];
+    let scans = b.generate(&view, &opts(1, 1), |_, _| {}).unwrap();
+    assert!(scans[0].range_m.iter().all(|r| r.is_finite()));
+    // a bundle of the other setting does not load the weights of this one
+    std::fs::copy(
+        tmp.path().join("off/bundle.json"),
+        tmp.path().join("on/bundle.json"),
+    )
+    .unwrap();
+    assert!(Bundle::from_dir(&tmp.path().join("on"), &Device::Cpu).is_err());
+}
+
+#[test]
+fn encoders_with_the_ground_prior_train_from_memory_and_a_source_alike_and_need_cameras() {
+    use veila_nn::encoders::ground::GroundPrior;
+    let mut cfg = small_config(Variant::Full);
+    cfg.set_ground_prior(Some(GroundPrior::default()));
+    let examples = five_examples(&cfg);
+    let targets: Vec<EncoderExample> = examples
+        .iter()
+        .enumerate()
+        .map(|(i, e)| encoder_example(e, i))
+        .collect();
+    let images: Vec<Vec<u8>> = targets.iter().map(|t| t.rgb.clone()).collect();
+    let labels: Vec<Vec<u32>> = targets.iter().map(|t| t.labels.clone().unwrap()).collect();
+    let depth: Vec<Vec<f32>> = targets.iter().map(|t| t.depth_m.clone()).collect();
+    let cameras: Vec<PinholeCamera> = examples.iter().map(|e| e.camera).collect();
+    let source: std::sync::Arc<dyn ExampleSource> = std::sync::Arc::new(TestSource {
+        examples,
+        fail_at: None,
+        reads: Default::default(),
+    });
+    let settings = veila_diffusion::app::RecipeSettings {
+        seed: 3,
+        steps: 1,
+        mean_steps: None,
+        batch: 2,
+        lr: 1e-3,
+        ema_decay: 0.9,
+        cond_drop_prob: 0.1,
+        checkpoint_every: 1,
+        keep_checkpoints: 1,
+        encoder_steps: 2,
+        encoder_batch: 2,
+        encoder_lr: 1e-3,
+        grad_accum_steps: 1,
+        encoder_augment: Some(veila_diffusion::app::EncoderAugment::default()),
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let train = |data: veila_diffusion::app::EncoderData<'_>, dir: &str| {
+        veila_diffusion::app::prepare_encoders(
+            &cfg,
+            veila_diffusion::app::EncoderSource::Train {
+                data,
+                dir: &tmp.path().join(dir),
+            },
+            &settings,
+            &Device::Cpu,
+            |_| {},
+        )
+        .map(|e| {
+            let mut all: Vec<(String, Vec<f32>)> = e
+                .weights
+                .iter()
+                .flat_map(|(file, w)| {
+                    w.iter().map(move |(n, t)| {
+                        (
+                            format!("{file}/{n}"),
+                            t.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+                        )
+                    })
+                })
+                .collect();
+            all.sort_by(|a, b| a.0.cmp(&b.0));
+            all
+        })
+    };
+    let memory = train(
+        veila_diffusion::app::EncoderData::Memory {
+            images: &images,
+            labels: Some(&labels),
+            depth_m: &depth,
+            cameras: Some(&cameras),
+        },
+        "memory",
+    )
+    .unwrap();
+    let streamed = train(veila_diffusion::app::EncoderData::Stream(&source), "stream").unwrap();
+    assert_eq!(memory, streamed);
+    // the stem reads four channels
+    let stem = memory
+        .iter()
+        .find(|(n, _)| n.ends_with("encoder.stem.conv1.weight"))
+        .unwrap();
+    assert_eq!(stem.1.len(), 8 * 4 * 3 * 3);
+    // no cameras: an error naming them, not a panic
+    let err = train(
+        veila_diffusion::app::EncoderData::Memory {
+            images: &images,
+            labels: Some(&labels),
+            depth_m: &depth,
+            cameras: None,
+        },
+        "none",
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("camera"), "{err}");
 }

@@ -21,6 +21,7 @@ fn example() -> EncoderExample {
     }
     EncoderExample {
         rgb,
+        camera: None,
         labels: Some(labels),
         depth_m: depth,
     }
@@ -101,4 +102,61 @@ fn a_wrong_buffer_is_an_error_not_a_panic() {
     let mut ex = example();
     ex.rgb.pop();
     assert!(EncoderAugment::default().apply(&mut ex, (H, W), 1).is_err());
+}
+
+/// A level camera 1.73 m above flat ground, horizon at row 4, and an example whose depth targets
+/// are that flat ground (0 above the horizon).
+fn ground_example() -> (veila_geom::PinholeCamera, EncoderExample) {
+    let axes = glam::Mat4::from_cols(
+        glam::Vec4::new(0., 0., 1., 0.),
+        glam::Vec4::new(-1., 0., 0., 0.),
+        glam::Vec4::new(0., -1., 0., 0.),
+        glam::Vec4::W,
+    );
+    let k = [
+        [30.0, 0.0, W as f32 / 2.0, 0.0],
+        [0.0, 30.0, 4.0, 0.0],
+        [0.0, 0.0, 1.0, 0.0],
+    ];
+    let cam = veila_geom::PinholeCamera::new(k, axes, W as u32, H as u32).unwrap();
+    let mut ex = example();
+    ex.depth_m = veila_geom::flat_ground_depth_map_m(&cam, -1.73);
+    ex.camera = Some(cam);
+    (cam, ex)
+}
+
+#[test]
+fn the_camera_follows_the_crop_so_the_ground_prior_agrees_with_the_depth_targets() {
+    let (cam, orig) = ground_example();
+    // no crop: the camera is left exactly as it was
+    let mut ex = orig.clone();
+    zoom_only([1.0, 1.0]).apply(&mut ex, (H, W), 5).unwrap();
+    assert_eq!(ex.camera, Some(cam));
+    for (seed, s) in [(3u64, 1.25f32), (8, 1.1), (21, 1.3)] {
+        let mut ex = orig.clone();
+        zoom_only([s, s]).apply(&mut ex, (H, W), seed).unwrap();
+        let moved = ex.camera.unwrap();
+        assert_ne!(moved, cam);
+        // the flat ground through the returned camera against the (divided, nearest-resampled)
+        // targets: equal up to the half-pixel of nearest sampling, never off by the zoom
+        let prior = veila_geom::flat_ground_depth_map_m(&moved, -1.73);
+        let mut rel = Vec::new();
+        for v in 12..H {
+            for u in 0..W {
+                let (p, t) = (prior[v * W + u], ex.depth_m[v * W + u]);
+                assert!(p > 0.0 && t > 0.0, "({u}, {v})");
+                rel.push((p - t).abs() / t);
+            }
+        }
+        rel.sort_by(f32::total_cmp);
+        let median = rel[rel.len() / 2];
+        let worst = rel[rel.len() - 1];
+        assert!(
+            median < 0.03 && worst < 0.12,
+            "zoom {s}: median {median}, worst {worst}"
+        );
+        // both put the horizon in the same place, up to the row of nearest sampling
+        let zeros = |m: &[f32]| m.iter().filter(|&&d| d == 0.0).count();
+        assert!(zeros(&prior).abs_diff(zeros(&ex.depth_m)) <= W, "zoom {s}");
+    }
 }

@@ -11,6 +11,9 @@
 //! - [`PinholeCamera`]: `K` (3x4) and `T` (camera from LiDAR) from KITTI or nuScenes calibration,
 //!   with [`PinholeCamera::try_project`] that never returns a mirrored pixel.
 //! - [`EpipolarTable`]: the image positions of `K` samples along every LiDAR ray, for GCMA.
+//! - [`flat_ground_depth_map_m`] / [`try_flat_ground_depth_m`]: the flat-ground prior, the camera
+//!   depth at which each pixel's ray meets a level ground plane of the LiDAR frame (0 / `None` at
+//!   and above the horizon), and [`flat_ground_range_image`], the same plane on a LiDAR grid.
 //! - [`FourierEncoding`] and the paper's front/rear [`Region`] split.
 //!
 //! Frames: LiDAR x forward, y left, z up; camera x right, y down, z forward; metres and radians unless a
@@ -44,6 +47,7 @@ mod epipolar;
 mod error;
 pub mod fastmath;
 mod fourier;
+mod ground;
 mod projection;
 mod rays;
 mod region;
@@ -53,6 +57,7 @@ pub use camera::{ImagePoint, PinholeCamera};
 pub use epipolar::{BilinearGather, DepthSpacing, EpipolarConfig, EpipolarTable};
 pub use error::GeomError;
 pub use fourier::FourierEncoding;
+pub use ground::{flat_ground_depth_map_m, flat_ground_range_image, try_flat_ground_depth_m};
 pub use projection::{
     AngleMethod, NO_POINT, OutOfFov, PixelOutcome, ProjectionOptions, ProjectionStats, Projector,
     RangeImage, Rejections, project,

@@ -37,7 +37,6 @@ use veila_diffusion::app::rig::{RigView, camera_views, load_view, prepare_views}
 use veila_diffusion::app::{Bundle, GenerateOptions};
 use veila_geom::{LidarSensor, PinholeCamera, ProjectionOptions, Projector, RangeImage, RayTable};
 use veila_nn::encoders::small_cnn::SmallCnn;
-use veila_nn::encoders::{Normalization, rgb8_to_tensor};
 
 /// KITTI's Velodyne HDL-64E sits 1.73 m above the ground (Geiger et al. 2013, fig. 3).
 const KITTI_LIDAR_HEIGHT_M: f32 = 1.73;
@@ -197,37 +196,30 @@ pub fn depth_score(
     })
 }
 
-/// The depth head's map (metres, `h x w`) of an `h x w` RGB image; `None` without a depth head.
-pub fn predict_depth(net: &SmallCnn, rgb: &[u8], h: usize, w: usize) -> Result<Option<Vec<f32>>> {
-    let img = rgb8_to_tensor(
-        rgb,
-        h,
-        w,
-        &Normalization::IMAGENET,
-        &candle_core::Device::Cpu,
-    )?;
+/// The depth head's map (metres, `h x w`) of an `h x w` RGB image seen by `camera` (the camera of
+/// that image: an encoder with the ground prior computes its input channel from it); `None`
+/// without a depth head.
+pub fn predict_depth(
+    net: &SmallCnn,
+    rgb: &[u8],
+    camera: &PinholeCamera,
+    h: usize,
+    w: usize,
+) -> Result<Option<Vec<f32>>> {
+    let img = net
+        .config()
+        .input_tensor(rgb, h, w, Some(camera), &candle_core::Device::Cpu)?;
     Ok(net.predict_maps(&img)?.swap_remove(0).depth_m)
 }
 
-/// The flat-ground prior in the image: each pixel's ray meets the ground plane `height_m` below
-/// the (level) LiDAR; `None` at and above the horizon or beyond `max_m`.
+/// The flat-ground prior in the image ([`veila_geom::flat_ground_depth_map_m`]): each pixel's ray
+/// meets the ground plane `height_m` below the (level) LiDAR; `None` at and above the horizon or
+/// beyond `max_m`.
 pub fn flat_ground_depth(camera: &PinholeCamera, height_m: f32, max_m: f32) -> Vec<Option<f32>> {
-    let mut out = Vec::with_capacity((camera.width * camera.height) as usize);
-    for v in 0..camera.height {
-        for u in 0..camera.width {
-            let (u, v) = (u as f32, v as f32);
-            // the pixel's points at camera depth 1 and 2: back-projection is affine in depth
-            let d = camera
-                .try_back_project(u, v, 1.0)
-                .zip(camera.try_back_project(u, v, 2.0))
-                .and_then(|(p1, p2)| {
-                    let dz = p2.z - p1.z;
-                    (dz < 0.0).then(|| 1.0 + (-height_m - p1.z) / dz)
-                });
-            out.push(d.filter(|&d| d > 0.0 && d <= max_m));
-        }
-    }
-    out
+    veila_geom::flat_ground_depth_map_m(camera, -height_m)
+        .into_iter()
+        .map(|d| (d > 0.0 && d <= max_m).then_some(d))
+        .collect()
 }
 
 /// All rows of one frame.
@@ -313,23 +305,6 @@ impl Regions {
     }
 }
 
-/// The flat-ground prior on `sensor`'s grid: rays below the horizon meet the ground plane
-/// `height_m` below the LiDAR (returns within the sensor's range limits), the rest have none.
-pub fn flat_ground_scan(sensor: &LidarSensor, height_m: f32) -> Result<RangeImage> {
-    let rays = RayTable::new(sensor)?;
-    let mut img = RangeImage::new_empty(sensor.rows, sensor.cols);
-    for (i, d) in rays.dirs().iter().enumerate() {
-        if d.z < 0.0 {
-            let r = height_m / -d.z;
-            if r >= sensor.min_range_m && r <= sensor.max_range_m {
-                img.range_m[i] = r;
-                img.mask[i] = true;
-            }
-        }
-    }
-    Ok(img)
-}
-
 /// How to sample the generated rows.
 pub struct RealOptions<'a> {
     /// Sampler of the bundle's scans.
@@ -385,6 +360,7 @@ pub fn evaluate(bundle: &Bundle, opts: &RealOptions<'_>, out: &Path) -> Result<R
             Some(net) => predict_depth(
                 net,
                 small_rgb,
+                small_cam,
                 bundle.config.image_height,
                 bundle.config.image_width,
             )?
@@ -448,7 +424,10 @@ pub fn evaluate(bundle: &Bundle, opts: &RealOptions<'_>, out: &Path) -> Result<R
         rows.push(scored("mean-scan", std::slice::from_ref(opts.mean_scan))?);
         rows.push(scored(
             "flat-ground",
-            &[flat_ground_scan(sensor, f.lidar_height_m)?],
+            &[veila_geom::flat_ground_range_image(
+                sensor,
+                -f.lidar_height_m,
+            )?],
         )?);
 
         // overlay: the first sample's points above the real scan's (both on the model's grid)
@@ -640,29 +619,6 @@ mod tests {
     use super::*;
 
     #[test]
-    fn flat_ground_ranges_meet_the_plane() {
-        let sensor = LidarSensor {
-            rows: 16,
-            cols: 32,
-            ..LidarSensor::hdl64e()
-        };
-        let img = flat_ground_scan(&sensor, 1.73).unwrap();
-        let rays = RayTable::new(&sensor).unwrap();
-        let mut below = 0;
-        for (i, d) in rays.dirs().iter().enumerate() {
-            if img.mask[i] {
-                below += 1;
-                // the point lies on z = -1.73 (independent check through the point itself)
-                assert!((d.z * img.range_m[i] + 1.73).abs() < 1e-4);
-            } else {
-                // no return: at or above the horizon, or beyond the range limit
-                assert!(d.z >= 0.0 || 1.73 / -d.z > sensor.max_range_m);
-            }
-        }
-        assert!(below > 0);
-    }
-
-    #[test]
     fn flat_ground_depth_points_lie_on_the_plane() {
         let k = [
             [200.0, 0.0, 160.0, 12.0],
@@ -697,6 +653,10 @@ mod tests {
         // the lower rows see the ground, the top row does not (pitched 5 deg down, fov ~27 deg)
         assert!(hits > 320 * 30);
         assert!(d[..320].iter().all(|x| x.is_none()));
+        // nothing beyond max_m survives
+        let near = flat_ground_depth(&cam, 1.73, 10.0);
+        assert!(near.iter().flatten().all(|&x| x <= 10.0));
+        assert!(near.iter().flatten().count() < hits);
     }
 
     #[test]

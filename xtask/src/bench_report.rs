@@ -26,7 +26,7 @@ use veila_metrics::crossmodal::{
 };
 use veila_metrics::dist;
 use veila_metrics::fd::{self, FeatureStats};
-use veila_nn::encoders::{Normalization, rgb8_to_tensor};
+use veila_nn::encoders::small_cnn::SmallCnn;
 use veila_nn::feature_nets::FeatureNets;
 
 use crate::sampler_name::{sampler_for, sampler_label};
@@ -224,25 +224,30 @@ fn make_judges(
     let rays = RayTable::new(&bundle.config.denoiser.sensor)?;
     let mut reference_points = Vec::new();
     let mut reference_intensity = Vec::new();
+    // each judge's input: the image, and its camera's ground prior when the judge takes one
+    let input = |net: &SmallCnn, ex: &SimExample| -> Result<candle_core::Tensor> {
+        Ok(net
+            .config()
+            .input_tensor(&ex.rgb, h, w, Some(&ex.camera), device)?)
+    };
     for ex in tests {
-        let img = rgb8_to_tensor(&ex.rgb, h, w, &Normalization::IMAGENET, device)?;
         let d = match &bundle.depth {
-            Some(net) => net
-                .as_small_cnn()
-                .context("the judge bundle's depth encoder is not a small CNN")?
-                .predict_maps(&img)?[0]
-                .depth_m
-                .clone(),
+            Some(net) => {
+                let net = net
+                    .as_small_cnn()
+                    .context("the judge bundle's depth encoder is not a small CNN")?;
+                net.predict_maps(&input(net, ex)?)?[0].depth_m.clone()
+            }
             None => None,
         };
         depth_pred.push(d.context("the judge bundle has no depth head")?);
         let l = match &bundle.semantic {
-            Some(net) => net
-                .as_small_cnn()
-                .context("the judge bundle's semantic encoder is not a small CNN")?
-                .predict_maps(&img)?[0]
-                .labels
-                .clone(),
+            Some(net) => {
+                let net = net
+                    .as_small_cnn()
+                    .context("the judge bundle's semantic encoder is not a small CNN")?;
+                net.predict_maps(&input(net, ex)?)?[0].labels.clone()
+            }
             None => None,
         };
         label_pred.push(l.context("the judge bundle has no semantic head")?);
@@ -807,6 +812,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                     init_from: (args.protocol == Protocol::Finetune).then(|| model_dir.clone()),
                     randomize: false,
                     augment_encoders: false,
+                    ground_prior: false,
                 },
                 Some(&train_frames),
             )?;

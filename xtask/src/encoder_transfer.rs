@@ -8,20 +8,28 @@
 //! frames (ground-truth depth per pixel) and on every real frame the tests can reach (the real
 //! LiDAR points projected into the image). Every recipe trains from the same seed for the same
 //! updates; each row says what its training cost.
+//!
+//! The `ground*` recipes give the encoder the flat-ground prior as a fourth input channel
+//! (`veila_nn::encoders::ground`, the default `GroundPrior`: the LiDAR 1.73 m above the ground),
+//! computed from each image's own camera: the simulated frames', the crop-zoomed camera under
+//! augmentation, each real frame's calibration when scored. The plane's height is the model's
+//! one assumption (nuScenes' LiDAR sits at 1.84 m; the prior then puts its ground 6 % too near).
 
 use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use candle_core::Device;
-use clap::Args;
+use clap::{Args, ValueEnum};
 use glam::Vec3;
 use serde::Serialize;
 use veila_data::augment::{CropZoomRange, Photometric};
 use veila_diffusion::app::bundle::{BundleConfig, Variant};
 use veila_diffusion::app::rig::{load_view, prepare_views};
 use veila_diffusion::app::{EncoderAugment, train_small_cnn};
-use veila_nn::encoders::small_cnn::SmallCnn;
+use veila_geom::PinholeCamera;
+use veila_nn::encoders::ground::GroundPrior;
+use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
 
 use crate::bench_real::{DepthScore, predict_depth, real_frames, real_root};
 use crate::simdata::{SimExample, render_split, workspace_root};
@@ -29,7 +37,9 @@ use crate::simdata::{SimExample, render_split, workspace_root};
 /// Arguments of `cargo xtask encoder-transfer`.
 #[derive(Debug, Args)]
 pub struct EncoderTransferArgs {
-    /// Recipes to compare (comma-separated): plain, augment, photometric, crop, appearance, both.
+    /// Recipes to compare (comma-separated): plain, augment, photometric, crop, appearance, both,
+    /// and with the flat-ground prior channel: ground, ground-augment, ground-appearance,
+    /// ground-both.
     #[arg(
         long,
         value_delimiter = ',',
@@ -73,16 +83,36 @@ pub enum Recipe {
     Appearance,
     /// Both.
     Both,
+    /// `plain` with the flat-ground prior as an input channel.
+    Ground,
+    /// `augment` with the flat-ground prior (computed from the crop-zoomed camera).
+    GroundAugment,
+    /// `appearance` with the flat-ground prior.
+    GroundAppearance,
+    /// `both` with the flat-ground prior.
+    GroundBoth,
 }
 
 impl Recipe {
     fn randomized_appearance(self) -> bool {
-        matches!(self, Recipe::Appearance | Recipe::Both)
+        matches!(
+            self,
+            Recipe::Appearance | Recipe::Both | Recipe::GroundAppearance | Recipe::GroundBoth
+        )
+    }
+    fn ground_prior(self) -> Option<GroundPrior> {
+        matches!(
+            self,
+            Recipe::Ground | Recipe::GroundAugment | Recipe::GroundAppearance | Recipe::GroundBoth
+        )
+        .then(GroundPrior::default)
     }
     fn augment(self) -> Option<EncoderAugment> {
         let full = EncoderAugment::default();
         match self {
-            Recipe::Augment | Recipe::Both => Some(full),
+            Recipe::Augment | Recipe::Both | Recipe::GroundAugment | Recipe::GroundBoth => {
+                Some(full)
+            }
             Recipe::Photometric => Some(EncoderAugment {
                 crop_zoom: CropZoomRange::identity(),
                 ..full
@@ -91,7 +121,7 @@ impl Recipe {
                 photometric: Photometric::identity(),
                 ..full
             }),
-            Recipe::Plain | Recipe::Appearance => None,
+            Recipe::Plain | Recipe::Appearance | Recipe::Ground | Recipe::GroundAppearance => None,
         }
     }
 }
@@ -150,8 +180,9 @@ struct Row {
 impl Row {
     fn name(&self) -> String {
         self.recipe
-            .map_or("shipped (models/default)".to_string(), |r| {
-                format!("{r:?}").to_lowercase()
+            .and_then(|r| r.to_possible_value())
+            .map_or("shipped (models/default)".to_string(), |v| {
+                v.get_name().to_string()
             })
     }
 }
@@ -160,7 +191,8 @@ impl Row {
 fn sim_score(net: &SmallCnn, tests: &[SimExample], h: usize, w: usize) -> Result<DepthScore> {
     let (mut rel, mut abs, mut n, mut total) = (0.0f64, 0.0f64, 0usize, 0usize);
     for ex in tests {
-        let pred = predict_depth(net, &ex.rgb, h, w)?.context("the encoder has no depth head")?;
+        let pred = predict_depth(net, &ex.rgb, &ex.camera, h, w)?
+            .context("the encoder has no depth head")?;
         for (p, t) in pred.iter().zip(&ex.depth_m) {
             if *t >= 1.0 && *t <= 80.0 {
                 total += 1;
@@ -214,7 +246,7 @@ pub fn run(args: EncoderTransferArgs) -> Result<()> {
         real.iter()
             .map(|(name, rgb, cam, pts)| {
                 let pred =
-                    predict_depth(net, rgb, h, w)?.context("the encoder has no depth head")?;
+                    predict_depth(net, rgb, cam, h, w)?.context("the encoder has no depth head")?;
                 let pred: Vec<Option<f32>> = pred.into_iter().map(Some).collect();
                 Ok((
                     name.clone(),
@@ -259,15 +291,21 @@ pub fn run(args: EncoderTransferArgs) -> Result<()> {
         let train = slot.as_ref().context("rendered above")?;
         let images: Vec<Vec<u8>> = train.iter().map(|e| e.rgb.clone()).collect();
         let depths: Vec<Vec<f32>> = train.iter().map(|e| e.depth_m.clone()).collect();
+        let cameras: Vec<PinholeCamera> = train.iter().map(|e| e.camera).collect();
+        let recipe_cfg = SmallCnnConfig {
+            ground_prior: recipe.ground_prior(),
+            ..enc_cfg.clone()
+        };
         let bar = crate::progress::progress_bar(args.steps as u64, "depth encoder");
         let mut last = f32::NAN;
         let t = Instant::now();
         let augment = recipe.augment();
         let (net, _) = train_small_cnn(
-            &enc_cfg,
+            &recipe_cfg,
             &images,
             None,
             Some(&depths),
+            Some(&cameras),
             (h, w),
             args.steps,
             8,
@@ -343,4 +381,41 @@ pub fn run(args: EncoderTransferArgs) -> Result<()> {
     )?;
     println!("{md}\nwrote {}", out.display());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ground_recipes_add_the_prior_to_their_base_recipe_and_nothing_else() {
+        let pairs = [
+            (Recipe::Plain, Recipe::Ground),
+            (Recipe::Augment, Recipe::GroundAugment),
+            (Recipe::Appearance, Recipe::GroundAppearance),
+            (Recipe::Both, Recipe::GroundBoth),
+        ];
+        for (base, ground) in pairs {
+            assert_eq!(base.ground_prior(), None);
+            assert_eq!(ground.ground_prior(), Some(GroundPrior::default()));
+            assert_eq!(base.augment(), ground.augment());
+            assert_eq!(base.randomized_appearance(), ground.randomized_appearance());
+        }
+        for r in [Recipe::Photometric, Recipe::Crop] {
+            assert_eq!(r.ground_prior(), None);
+        }
+        let row = Row {
+            recipe: Some(Recipe::GroundAugment),
+            train_seconds: 1.0,
+            final_loss: 0.0,
+            sim: DepthScore {
+                abs_rel: 0.1,
+                mae_m: 1.0,
+                coverage: 1.0,
+            },
+            real: Vec::new(),
+            real_mean_abs_rel: 0.0,
+        };
+        assert_eq!(row.name(), "ground-augment");
+    }
 }

@@ -78,6 +78,10 @@ pub struct TrainDefaultArgs {
     /// Augment the encoders' training images (crop-and-zoom, colour, blur, noise, JPEG).
     #[arg(long)]
     pub augment_encoders: bool,
+    /// Give the small-CNN encoders the flat-ground prior as a fourth input channel (issue 18:
+    /// the flat ground's depth from each image's calibration; stored in `bundle.json`).
+    #[arg(long)]
+    pub ground_prior: bool,
 }
 
 struct Progress {
@@ -133,6 +137,9 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     let root = workspace_root();
     let mut cfg = BundleConfig::cpu_default(args.variant);
     cfg = cfg.with_method(args.method);
+    if args.ground_prior {
+        cfg.set_ground_prior(Some(veila_nn::encoders::ground::GroundPrior::default()));
+    }
     let method = cfg.method();
     println!(
         "train-default: variant {} ({}), method {} ({}), {} frames, encoders {} steps, denoiser {} steps x batch {}, seed {}",
@@ -207,16 +214,22 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         "randomize": args.randomize,
         "encoder_augment": settings.encoder_augment,
     });
+    // (only when on: the work folders of earlier runs keep their key)
+    let mut run_key = run_key;
+    if args.ground_prior {
+        run_key["ground_prior"] = serde_json::Value::Bool(true);
+    }
     veila_diffusion::claim_checkpoint_dir(&work, &run_key)
         .with_context(|| "pass another --work to start a separate run")?;
 
     let images: Vec<Vec<u8>> = examples.iter().map(|e| e.rgb.clone()).collect();
     let labels: Vec<Vec<u32>> = examples.iter().map(|e| e.labels.clone()).collect();
     let depths: Vec<Vec<f32>> = examples.iter().map(|e| e.depth_m.clone()).collect();
+    let cameras: Vec<veila_geom::PinholeCamera> = examples.iter().map(|e| e.camera).collect();
     // trained encoders are kept in the work folder, so a resumed run does not train them
     // again (their training is deterministic: the same seed gives the same weights)
     let enc_dir = work.join(format!(
-        "encoders-seed{}-steps{}-frames{}{}{}",
+        "encoders-seed{}-steps{}-frames{}{}{}{}",
         args.seed,
         args.encoder_steps,
         examples.len(),
@@ -226,6 +239,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         } else {
             ""
         },
+        if args.ground_prior { "-ground" } else { "" },
     ));
     let encoders = match &args.encoders_from {
         Some(dir) => EncoderSource::Bundle(dir),
@@ -234,6 +248,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
                 images: &images,
                 labels: Some(&labels),
                 depth_m: &depths,
+                cameras: Some(&cameras),
             },
             dir: &enc_dir,
         },

@@ -395,6 +395,30 @@ impl EncoderSpec {
 }
 
 impl BundleConfig {
+    /// Gives every small-CNN encoder the flat-ground prior as an input channel (`None`: takes it
+    /// away), the config switch of issue 18's "geometry that transfers" (stored in `bundle.json`
+    /// inside each encoder's `config`; bundles without it have none). Pretrained encoders take
+    /// colours only and are left alone. Returns how many encoders it set.
+    pub fn set_ground_prior(
+        &mut self,
+        prior: Option<veila_nn::encoders::ground::GroundPrior>,
+    ) -> usize {
+        let mut n = 0;
+        for spec in [&mut self.semantic_encoder, &mut self.depth_encoder]
+            .into_iter()
+            .flatten()
+        {
+            if spec.kind.is_pretrained() {
+                continue;
+            }
+            if let Some(c) = spec.config.as_mut() {
+                c.ground_prior = prior;
+                n += 1;
+            }
+        }
+        n
+    }
+
     /// Sets the encoders (either may be `None`, not both for a conditional denoiser) and fits the
     /// denoiser's and the mean network's conditioning to them: channels per scale, fused feature
     /// sizes (the semantic encoder's, else the depth encoder's, at the image size) and cues.

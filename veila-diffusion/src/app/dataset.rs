@@ -119,6 +119,10 @@ pub trait ExampleSource: Send + Sync {
 pub struct EncoderExample {
     /// RGB bytes at the bundle image size.
     pub rgb: Vec<u8>,
+    /// The camera of that image; an encoder with the ground prior
+    /// ([`veila_nn::encoders::small_cnn::SmallCnnConfig::ground_prior`]) computes its input
+    /// channel from it, and fails without it. Augmentation keeps it in step with the image.
+    pub camera: Option<PinholeCamera>,
     /// Train ids per pixel (0 = ignored), when the data has labels.
     pub labels: Option<Vec<u32>>,
     /// Metric depth per pixel (0 = no ground truth).

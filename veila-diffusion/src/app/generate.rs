@@ -14,7 +14,6 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use veila_geom::{PinholeCamera, RangeImage};
 use veila_nn::encoders::kind::AnyEncoder;
-use veila_nn::encoders::{Normalization, rgb8_to_tensor};
 use veila_nn::{ConditionInput, Denoiser as Net, GcmaGeometry};
 
 use super::bundle::{Bundle, BundleConfig};
@@ -124,10 +123,6 @@ impl GenerateOptions {
             residual_weight: 1.0,
         }
     }
-}
-
-pub(crate) fn image_tensor(rgb: &[u8], h: usize, w: usize, device: &Device) -> Result<Tensor> {
-    Ok(rgb8_to_tensor(rgb, h, w, &Normalization::IMAGENET, device)?)
 }
 
 /// Draws scans for [`Bundle::generate`] and [`Bundle::inpaint`] (`inpainting`: the known scan,
@@ -320,14 +315,18 @@ pub(crate) fn encode_views(
         }
     }
     let images: Vec<&[u8]> = views.iter().map(|v| v.rgb).collect();
+    let cameras: Vec<PinholeCamera> = views.iter().map(|v| *v.camera).collect();
     // each encoder gets the images fitted to it by its kind (a patch encoder: the nearest
-    // multiple of its patch, resampled as its reference processor does)
+    // multiple of its patch, resampled as its reference processor does); a small CNN with the
+    // ground prior gets each view's channel from that view's camera
     let run = |e: Option<&AnyEncoder>| -> Result<Option<Vec<Tensor>>> {
         e.map(|e| {
-            Ok(e.encode_rgb8(&images, ih, iw, device)?
-                .into_iter()
-                .map(|t| t.detach())
-                .collect())
+            Ok(
+                e.encode_rgb8_with_cameras(&images, Some(&cameras), ih, iw, device)?
+                    .into_iter()
+                    .map(|t| t.detach())
+                    .collect(),
+            )
         })
         .transpose()
     };

@@ -17,6 +17,7 @@ use std::path::Path;
 use std::sync::Arc;
 
 use candle_core::{DType, Device, Tensor};
+use veila_geom::PinholeCamera;
 use veila_nn::encoders::kind::AnyEncoder;
 use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
 
@@ -162,6 +163,8 @@ pub enum EncoderData<'a> {
         labels: Option<&'a [Vec<u32>]>,
         /// Metric depth (0 = no ground truth) per pixel.
         depth_m: &'a [Vec<f32>],
+        /// Each image's camera; needed by an encoder with the ground prior.
+        cameras: Option<&'a [PinholeCamera]>,
     },
     /// Read on demand, batch by batch ([`ExampleSource::encoder_example`]).
     Stream(&'a Arc<dyn ExampleSource>),
@@ -325,6 +328,14 @@ pub fn prepare_encoders(
                     "the semantic encoder needs per-pixel train ids: the data has none".into(),
                 ));
             }
+            if let EncoderData::Memory { cameras: None, .. } = data
+                && c.ground_prior.is_some()
+            {
+                return Err(Error::Data(format!(
+                    "the {} takes the ground prior, which needs each training image's camera: the data has none",
+                    which.field()
+                )));
+            }
             let get_memory;
             let get_stream;
             let (n, get): (usize, &dyn Fn(usize) -> Result<EncoderExample>) = match data {
@@ -332,10 +343,21 @@ pub fn prepare_encoders(
                     images,
                     labels,
                     depth_m,
+                    cameras,
                 } => {
+                    if let Some(cams) = cameras
+                        && cams.len() != images.len()
+                    {
+                        return Err(Error::Data(format!(
+                            "encoder training: {} images but {} cameras",
+                            images.len(),
+                            cams.len()
+                        )));
+                    }
                     get_memory = move |i: usize| -> Result<EncoderExample> {
                         Ok(EncoderExample {
                             rgb: images[i].clone(),
+                            camera: cameras.map(|c| c[i]),
                             labels: labels.filter(|_| c.semantic_head).map(|l| l[i].clone()),
                             depth_m: if c.depth_head {
                                 depth_m[i].clone()

@@ -22,7 +22,7 @@ use veila_nn::{Denoiser as Net, GcmaGeometry};
 use super::bundle::{BundleConfig, ResidualConfig};
 use super::dataset::{EncoderExample, ExampleSource, Examples, Order, Prefetcher, Rigs};
 pub use super::dataset::{TrainExample, TrainView};
-use super::generate::{ViewFeatures, encode_views, image_tensor};
+use super::generate::{ViewFeatures, encode_views};
 use super::nn::{NetCond, VeilaDenoiser};
 use crate::error::{Error, Result};
 use crate::objective::Diffusion;
@@ -1127,6 +1127,12 @@ pub struct EncoderStep {
 /// zoom `s`: an object zoomed `s` times looks as it would `s` times nearer through the training
 /// camera, and the encoder keeps answering for that camera's focal length.
 ///
+/// The example's camera (when it has one) follows the crop: the cropped intrinsics
+/// ([`veila_data::augment::CropZoom::camera`]) with the camera frame scaled by `1 / s`, the same
+/// "s times nearer" as the depth targets, so that a ground prior computed from it
+/// ([`veila_nn::encoders::ground`]) agrees with them: the flat ground's depth through the
+/// returned camera is the true one divided by `s`, at the pixels where the crop put it.
+///
 /// Each example of each update draws its own parameters from `(seed, update, slot)`, so a run is
 /// reproducible and the same image is augmented differently every time it is drawn.
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -1148,6 +1154,14 @@ impl EncoderAugment {
         )?;
         let crop = self.crop_zoom.draw(w as u32, h as u32, seed)?;
         let img = if crop != veila_data::augment::CropZoom::identity(w as u32, h as u32) {
+            if let Some(cam) = ex.camera.as_mut() {
+                let cropped = crop.camera(cam)?;
+                *cam = PinholeCamera {
+                    cam_from_lidar: glam::Mat4::from_scale(glam::Vec3::splat(1.0 / crop.scale))
+                        * cropped.cam_from_lidar,
+                    ..cropped
+                };
+            }
             if let Some(l) = ex.labels.as_mut() {
                 *l = crop.resample_nearest(l, w as u32, h as u32)?;
             }
@@ -1182,7 +1196,8 @@ fn augment_seed(seed: u64, step: usize, slot: usize) -> u64 {
 
 /// Trains a [`SmallCnn`] on images with per-pixel targets: `images[i]` is `h * w * 3` RGB bytes,
 /// `labels[i]` (class ids of the learning map) and/or `depth_m[i]` (metres, 0 = no ground truth)
-/// `h * w` values. AdamW with a cosine learning rate, seeded batches; returns the network and its
+/// `h * w` values, `cameras[i]` the image's camera (needed when `cfg` has the ground prior,
+/// ignored otherwise). AdamW with a cosine learning rate, seeded batches; returns the network and its
 /// `VarMap`. With `augment`, every drawn example is augmented first ([`EncoderAugment`]).
 /// [`train_small_cnn_from`] reads the examples on demand instead.
 #[allow(clippy::too_many_arguments)]
@@ -1191,6 +1206,7 @@ pub fn train_small_cnn(
     images: &[Vec<u8>],
     labels: Option<&[Vec<u32>]>,
     depth_m: Option<&[Vec<f32>]>,
+    cameras: Option<&[PinholeCamera]>,
     hw: (usize, usize),
     steps: usize,
     batch_size: usize,
@@ -1200,9 +1216,19 @@ pub fn train_small_cnn(
     device: &Device,
     on_step: impl FnMut(EncoderStep),
 ) -> Result<(SmallCnn, VarMap)> {
+    if let Some(c) = cameras
+        && c.len() != images.len()
+    {
+        return Err(Error::Data(format!(
+            "encoder training: {} images but {} cameras",
+            images.len(),
+            c.len()
+        )));
+    }
     let get = |i: usize| -> Result<EncoderExample> {
         Ok(EncoderExample {
             rgb: images[i].clone(),
+            camera: cameras.map(|c| c[i]),
             labels: labels.map(|l| l[i].clone()),
             depth_m: depth_m.map(|d| d[i].clone()).unwrap_or_default(),
         })
@@ -1279,9 +1305,10 @@ pub fn train_small_cnn_from(
                 a.apply(e, (h, w), augment_seed(seed, step, slot))?;
             }
         }
+        // colours, and the ground prior of each (augmented) example's camera when configured
         let imgs = batch
             .iter()
-            .map(|e| image_tensor(&e.rgb, h, w, device))
+            .map(|e| Ok(cfg.input_tensor(&e.rgb, h, w, e.camera.as_ref(), device)?))
             .collect::<Result<Vec<_>>>()?;
         let image = Tensor::cat(&imgs, 0)?;
         // random horizontal flips (targets flipped with the image)

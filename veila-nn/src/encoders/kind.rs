@@ -34,6 +34,7 @@ use std::str::FromStr;
 use std::sync::Arc;
 
 use candle_core::{DType, Device, Tensor};
+use veila_geom::PinholeCamera;
 
 use super::dinov2::{DepthAnythingV2Config, DepthAnythingV2Encoder, DinoV2Config, DinoV2Encoder};
 use super::mit::{MitConfig, MitEncoder};
@@ -441,7 +442,8 @@ impl AnyEncoder {
     }
 
     /// Encodes camera images (each `height x width x 3` RGB bytes) as one batch, each fitted to
-    /// the encoder by its kind's [`ImageProcessor`] first.
+    /// the encoder by its kind's [`ImageProcessor`] first. An error for a small CNN that takes
+    /// the ground prior, which needs the cameras ([`Self::encode_rgb8_with_cameras`]).
     pub fn encode_rgb8(
         &self,
         images: &[&[u8]],
@@ -449,12 +451,52 @@ impl AnyEncoder {
         width: usize,
         device: &Device,
     ) -> crate::Result<Vec<Tensor>> {
+        self.encode_rgb8_with_cameras(images, None, height, width, device)
+    }
+
+    /// Whether the encoder needs each image's camera (a small CNN with the ground prior).
+    pub fn needs_cameras(&self) -> bool {
+        self.as_small_cnn()
+            .is_some_and(|n| n.config().ground_prior.is_some())
+    }
+
+    /// [`Self::encode_rgb8`] with each image's camera (`cameras[i]` of `images[i]`, the camera of
+    /// the `height x width` image): a small CNN with the ground prior gets its channel computed
+    /// from that camera; the other encoders ignore the cameras.
+    ///
+    /// # Errors
+    /// Besides [`Self::encode_rgb8`]'s: a camera count other than the image count, or no
+    /// cameras for an encoder that needs them.
+    pub fn encode_rgb8_with_cameras(
+        &self,
+        images: &[&[u8]],
+        cameras: Option<&[PinholeCamera]>,
+        height: usize,
+        width: usize,
+        device: &Device,
+    ) -> crate::Result<Vec<Tensor>> {
+        if let Some(c) = cameras
+            && c.len() != images.len()
+        {
+            input_bail!(
+                "AnyEncoder::encode_rgb8_with_cameras: {} images but {} cameras",
+                images.len(),
+                c.len()
+            );
+        }
         let p = self.kind().processor();
+        let small = self.as_small_cnn().map(|n| n.config());
         let batch = images
             .iter()
-            .map(|rgb| {
+            .enumerate()
+            .map(|(i, rgb)| {
                 let (bytes, h, w) = p.resize_rgb8(rgb, height, width)?;
-                rgb8_to_tensor(&bytes, h, w, &p.normalization, device)
+                match small {
+                    Some(cfg) if cfg.ground_prior.is_some() => {
+                        cfg.input_tensor(&bytes, h, w, cameras.map(|c| &c[i]), device)
+                    }
+                    _ => rgb8_to_tensor(&bytes, h, w, &p.normalization, device),
+                }
             })
             .collect::<crate::Result<Vec<_>>>()?;
         if batch.is_empty() {

@@ -27,6 +27,11 @@
 //! [`size_for_multiple`]) because the right target size depends on the encoder (Depth-Anything wants
 //! multiples of its patch size 14, see [`ImageEncoder::input_spec`]).
 //!
+//! The one exception is a small CNN configured with the flat-ground prior
+//! ([`small_cnn::SmallCnnConfig::ground_prior`], [`ground`]): it takes a fourth channel computed
+//! from the image's camera, and [`small_cnn::SmallCnnConfig::input_tensor`] /
+//! [`kind::AnyEncoder::encode_rgb8_with_cameras`] build its input.
+//!
 //! # Loading pretrained weights
 //!
 //! [`mit::MitEncoder::load`], [`mit::SegFormer::load`], [`dinov2::DepthAnythingV2Encoder::load`],
@@ -124,6 +129,7 @@ macro_rules! forward_image_encoder {
 }
 
 pub mod dinov2;
+pub mod ground;
 pub mod kind;
 pub mod losses;
 pub mod mit;
@@ -393,9 +399,19 @@ pub(crate) fn check_image(
     min_size: usize,
     who: &str,
 ) -> crate::Result<(usize, usize, usize)> {
+    check_image_channels(image, 3, min_size, who)
+}
+
+/// [`check_image`] for a `[B, channels, H, W]` input.
+pub(crate) fn check_image_channels(
+    image: &Tensor,
+    channels: usize,
+    min_size: usize,
+    who: &str,
+) -> crate::Result<(usize, usize, usize)> {
     let dims = image.dims();
-    if dims.len() != 4 || dims[1] != 3 {
-        input_bail!("{who}: expected an image tensor [B, 3, H, W], got shape {dims:?}");
+    if dims.len() != 4 || dims[1] != channels {
+        input_bail!("{who}: expected an image tensor [B, {channels}, H, W], got shape {dims:?}");
     }
     let (b, h, w) = (dims[0], dims[2], dims[3]);
     if b == 0 || h < min_size || w < min_size {

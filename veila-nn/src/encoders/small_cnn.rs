@@ -19,20 +19,29 @@
 //! `ln d = raw + ln(depth_prior_m)`, trained with [`super::losses`] and clamped to
 //! `[min_depth_m, max_depth_m]` only when turned into depth by [`SmallCnn::predict_maps`].
 //!
+//! **Ground prior** (optional, [`SmallCnnConfig::ground_prior`]): a fourth input channel after the
+//! colours, the scaled inverse flat-ground depth of the image's camera ([`super::ground`]); only
+//! `stem.conv1` changes shape. Off by default, and configs without the field (every bundle made
+//! before it) read as off.
+//!
 //! With the default config the backbone has 0.35 M parameters and each head about 16 k (0.38 M in
 //! all).
 
-use candle_core::{DType, Module, Tensor};
+use candle_core::{DType, Device, Module, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, GroupNorm, VarBuilder};
 
+use veila_geom::PinholeCamera;
+
+use super::ground::GroundPrior;
 use super::{
-    ImageEncoder, InputSpec, Normalization, check_image, conv_out, resize_bilinear_differentiable,
+    ImageEncoder, InputSpec, Normalization, check_image_channels, conv_out,
+    resize_bilinear_differentiable, rgb8_to_tensor,
 };
 
 /// Configuration of [`SmallCnn`].
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct SmallCnnConfig {
-    /// Input channels (3).
+    /// Image channels (3; the network takes [`Self::input_channels`]).
     pub in_channels: usize,
     /// Channels of the four stages (feature channels).
     pub channels: [usize; 4],
@@ -56,6 +65,10 @@ pub struct SmallCnnConfig {
     pub min_depth_m: f32,
     /// Upper clamp of predicted depth, metres.
     pub max_depth_m: f32,
+    /// The flat-ground prior as one more input channel after the colours (`None`, the default:
+    /// colours only). Such a network needs every image's camera ([`Self::input_tensor`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ground_prior: Option<GroundPrior>,
 }
 
 impl Default for SmallCnnConfig {
@@ -73,6 +86,7 @@ impl Default for SmallCnnConfig {
             depth_prior_m: 10.0,
             min_depth_m: 0.5,
             max_depth_m: 80.0,
+            ground_prior: None,
         }
     }
 }
@@ -85,6 +99,9 @@ impl SmallCnnConfig {
         }
         if self.norm_groups == 0 {
             config_bail!("SmallCnnConfig: norm_groups must be positive");
+        }
+        if let Some(g) = &self.ground_prior {
+            g.validate()?;
         }
         if self.semantic_head && self.num_classes < 2 {
             config_bail!(
@@ -99,6 +116,45 @@ impl SmallCnnConfig {
             );
         }
         Ok(())
+    }
+
+    /// Channels the network takes: the image's, plus one for the ground prior.
+    pub fn input_channels(&self) -> usize {
+        self.in_channels + usize::from(self.ground_prior.is_some())
+    }
+
+    /// The network's input for one `height x width` RGB image: the colours normalised with the
+    /// ImageNet statistics ([`rgb8_to_tensor`]), then the ground-prior channel of `camera` when
+    /// the config has one; `[1, input_channels, height, width]`.
+    ///
+    /// # Errors
+    /// A buffer of the wrong size, an image that is not RGB (`in_channels != 3`), or a config
+    /// with a ground prior and no camera.
+    pub fn input_tensor(
+        &self,
+        rgb: &[u8],
+        height: usize,
+        width: usize,
+        camera: Option<&PinholeCamera>,
+        device: &Device,
+    ) -> crate::Result<Tensor> {
+        if self.in_channels != 3 {
+            input_bail!(
+                "SmallCnnConfig::input_tensor: RGB bytes for a network of {} image channels",
+                self.in_channels
+            );
+        }
+        let image = rgb8_to_tensor(rgb, height, width, &Normalization::IMAGENET, device)?;
+        match (&self.ground_prior, camera) {
+            (None, _) => Ok(image),
+            (Some(g), Some(cam)) => Ok(Tensor::cat(
+                &[image, g.tensor(cam, height, width, device)?],
+                1,
+            )?),
+            (Some(_), None) => input_bail!(
+                "this small CNN takes the flat-ground prior as an input channel: it needs the image's camera, none was given"
+            ),
+        }
     }
 
     /// `(H_i, W_i)` of the four features for an input of `height x width` (`ceil(H / s)` chains).
@@ -202,7 +258,7 @@ impl SmallCnnEncoder {
         let c = cfg.channels;
         let vs = vb.pp("stem");
         let stem1 = ConvNorm::new(
-            cfg.in_channels,
+            cfg.input_channels(),
             c[0],
             3,
             2,
@@ -251,10 +307,15 @@ impl ImageEncoder for SmallCnnEncoder {
     fn forward(&self, image: &Tensor) -> crate::Result<Vec<Tensor>> {
         let _span = tracing::trace_span!("small_cnn_encoder").entered();
         let dims = image.dims();
-        if dims.len() != 4 || dims[1] != self.cfg.in_channels || dims[0] == 0 {
+        if dims.len() != 4 || dims[1] != self.cfg.input_channels() || dims[0] == 0 {
             input_bail!(
-                "SmallCnnEncoder: expected an image tensor [B, {}, H, W], got shape {dims:?}",
-                self.cfg.in_channels
+                "SmallCnnEncoder: expected an image tensor [B, {}, H, W]{}, got shape {dims:?}",
+                self.cfg.input_channels(),
+                if self.cfg.ground_prior.is_some() {
+                    " (colours and the ground prior)"
+                } else {
+                    ""
+                }
             );
         }
         let mut x = self.stem2.forward_act(&self.stem1.forward_act(image)?)?;
@@ -509,7 +570,7 @@ impl SmallCnn {
 
     /// Features plus head outputs at the input resolution.
     pub fn forward_all(&self, image: &Tensor) -> crate::Result<SmallCnnOutput> {
-        let (_, h, w) = check_image(image, 1, "SmallCnn")?;
+        let (_, h, w) = check_image_channels(image, self.cfg.input_channels(), 1, "SmallCnn")?;
         let features = self.encoder.forward(image)?;
         let semantic_logits = match &self.semantic {
             Some(head) => Some(head.forward(&features, h, w)?),
