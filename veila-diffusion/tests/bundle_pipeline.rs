@@ -1644,6 +1644,7 @@ fn encoders_with_the_ground_prior_train_from_memory_and_a_source_alike_and_need_
         encoder_lr: 1e-3,
         grad_accum_steps: 1,
         encoder_augment: Some(veila_diffusion::app::EncoderAugment::default()),
+        precision: Precision::F32,
     };
     let tmp = tempfile::tempdir().unwrap();
     let train = |data: veila_diffusion::app::EncoderData<'_>, dir: &str| {
