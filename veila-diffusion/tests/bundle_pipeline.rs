@@ -1235,25 +1235,53 @@ fn a_failing_read_stops_streamed_training_with_its_error() {
     assert!(err.to_string().contains("frame 3: unreadable"), "{err}");
 }
 
-#[test]
-fn encoders_train_to_the_same_weights_from_a_source() {
-    let cfg = small_config(Variant::Full);
-    let examples = five_examples(&cfg);
-    let targets: Vec<EncoderExample> = examples
-        .iter()
-        .enumerate()
-        .map(|(i, e)| encoder_example(e, i))
-        .collect();
-    let images: Vec<Vec<u8>> = targets.iter().map(|t| t.rgb.clone()).collect();
-    let labels: Vec<Vec<u32>> = targets.iter().map(|t| t.labels.clone().unwrap()).collect();
-    let depth: Vec<Vec<f32>> = targets.iter().map(|t| t.depth_m.clone()).collect();
-    let cameras: Vec<PinholeCamera> = examples.iter().map(|e| e.camera).collect();
-    let source: std::sync::Arc<dyn ExampleSource> = std::sync::Arc::new(TestSource {
-        examples,
-        fail_at: None,
-        reads: Default::default(),
-    });
-    let settings = veila_diffusion::app::RecipeSettings {
+/// Five examples' encoder targets, in memory and as a streamed source.
+struct EncoderFixture {
+    images: Vec<Vec<u8>>,
+    labels: Vec<Vec<u32>>,
+    depth: Vec<Vec<f32>>,
+    cameras: Vec<PinholeCamera>,
+    source: std::sync::Arc<dyn ExampleSource>,
+}
+
+impl EncoderFixture {
+    fn new(cfg: &BundleConfig) -> Self {
+        let examples = five_examples(cfg);
+        let targets: Vec<EncoderExample> = examples
+            .iter()
+            .enumerate()
+            .map(|(i, e)| encoder_example(e, i))
+            .collect();
+        Self {
+            images: targets.iter().map(|t| t.rgb.clone()).collect(),
+            labels: targets.iter().map(|t| t.labels.clone().unwrap()).collect(),
+            depth: targets.iter().map(|t| t.depth_m.clone()).collect(),
+            cameras: examples.iter().map(|e| e.camera).collect(),
+            source: std::sync::Arc::new(TestSource {
+                examples,
+                fail_at: None,
+                reads: Default::default(),
+            }),
+        }
+    }
+
+    /// The in-memory data, with or without the cameras.
+    fn memory(&self, cameras: bool) -> veila_diffusion::app::EncoderData<'_> {
+        veila_diffusion::app::EncoderData::Memory {
+            images: &self.images,
+            labels: Some(&self.labels),
+            depth_m: &self.depth,
+            cameras: cameras.then_some(self.cameras.as_slice()),
+        }
+    }
+}
+
+/// Recipe settings of the encoder tests (one denoiser step; only the encoders train).
+fn encoder_settings(
+    encoder_steps: usize,
+    encoder_augment: Option<veila_diffusion::app::EncoderAugment>,
+) -> veila_diffusion::app::RecipeSettings {
+    veila_diffusion::app::RecipeSettings {
         seed: 3,
         steps: 1,
         mean_steps: None,
@@ -1263,49 +1291,58 @@ fn encoders_train_to_the_same_weights_from_a_source() {
         cond_drop_prob: 0.1,
         checkpoint_every: 1,
         keep_checkpoints: 1,
-        encoder_steps: 3,
+        encoder_steps,
         encoder_batch: 2,
         encoder_lr: 1e-3,
         grad_accum_steps: 1,
-        encoder_augment: None,
-        precision: veila_diffusion::Precision::F32,
-    };
-    let tmp = tempfile::tempdir().unwrap();
-    let weights = |data: veila_diffusion::app::EncoderData<'_>, dir: &str| {
-        let dir = tmp.path().join(dir);
-        let e = veila_diffusion::app::prepare_encoders(
-            &cfg,
-            veila_diffusion::app::EncoderSource::Train { data, dir: &dir },
-            &settings,
-            &Device::Cpu,
-            |_| {},
-        )
-        .unwrap();
-        let mut all: Vec<(String, Vec<f32>)> = e
-            .weights
-            .iter()
-            .flat_map(|(file, w)| {
-                w.iter().map(move |(n, t)| {
-                    (
-                        format!("{file}/{n}"),
-                        t.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
-                    )
-                })
+        encoder_augment,
+        precision: Precision::F32,
+    }
+}
+
+/// Trains `cfg`'s encoders on `data` in `dir` and returns every weight, by file and name, sorted.
+fn trained_encoder_weights(
+    cfg: &BundleConfig,
+    settings: &veila_diffusion::app::RecipeSettings,
+    data: veila_diffusion::app::EncoderData<'_>,
+    dir: &std::path::Path,
+) -> veila_diffusion::Result<Vec<(String, Vec<f32>)>> {
+    let e = veila_diffusion::app::prepare_encoders(
+        cfg,
+        veila_diffusion::app::EncoderSource::Train { data, dir },
+        settings,
+        &Device::Cpu,
+        |_| {},
+    )?;
+    let mut all: Vec<(String, Vec<f32>)> = e
+        .weights
+        .iter()
+        .flat_map(|(file, w)| {
+            w.iter().map(move |(n, t)| {
+                (
+                    format!("{file}/{n}"),
+                    t.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+                )
             })
-            .collect();
-        all.sort_by(|a, b| a.0.cmp(&b.0));
-        all
-    };
-    let memory = weights(
-        veila_diffusion::app::EncoderData::Memory {
-            images: &images,
-            labels: Some(&labels),
-            depth_m: &depth,
-            cameras: Some(&cameras),
-        },
-        "memory",
+        })
+        .collect();
+    all.sort_by(|a, b| a.0.cmp(&b.0));
+    Ok(all)
+}
+
+#[test]
+fn encoders_train_to_the_same_weights_from_a_source() {
+    let cfg = small_config(Variant::Full);
+    let data = EncoderFixture::new(&cfg);
+    let settings = encoder_settings(3, None);
+    let tmp = tempfile::tempdir().unwrap();
+    let weights =
+        |d, dir: &str| trained_encoder_weights(&cfg, &settings, d, &tmp.path().join(dir)).unwrap();
+    let memory = weights(data.memory(true), "memory");
+    let streamed = weights(
+        veila_diffusion::app::EncoderData::Stream(&data.source),
+        "stream",
     );
-    let streamed = weights(veila_diffusion::app::EncoderData::Stream(&source), "stream");
     assert_eq!(memory.len(), streamed.len());
     assert!(!memory.is_empty());
     assert_eq!(memory, streamed);
@@ -1614,78 +1651,16 @@ fn encoders_with_the_ground_prior_train_from_memory_and_a_source_alike_and_need_
     use veila_nn::encoders::ground::GroundPrior;
     let mut cfg = small_config(Variant::Full);
     cfg.set_ground_prior(Some(GroundPrior::default()));
-    let examples = five_examples(&cfg);
-    let targets: Vec<EncoderExample> = examples
-        .iter()
-        .enumerate()
-        .map(|(i, e)| encoder_example(e, i))
-        .collect();
-    let images: Vec<Vec<u8>> = targets.iter().map(|t| t.rgb.clone()).collect();
-    let labels: Vec<Vec<u32>> = targets.iter().map(|t| t.labels.clone().unwrap()).collect();
-    let depth: Vec<Vec<f32>> = targets.iter().map(|t| t.depth_m.clone()).collect();
-    let cameras: Vec<PinholeCamera> = examples.iter().map(|e| e.camera).collect();
-    let source: std::sync::Arc<dyn ExampleSource> = std::sync::Arc::new(TestSource {
-        examples,
-        fail_at: None,
-        reads: Default::default(),
-    });
-    let settings = veila_diffusion::app::RecipeSettings {
-        seed: 3,
-        steps: 1,
-        mean_steps: None,
-        batch: 2,
-        lr: 1e-3,
-        ema_decay: 0.9,
-        cond_drop_prob: 0.1,
-        checkpoint_every: 1,
-        keep_checkpoints: 1,
-        encoder_steps: 2,
-        encoder_batch: 2,
-        encoder_lr: 1e-3,
-        grad_accum_steps: 1,
-        encoder_augment: Some(veila_diffusion::app::EncoderAugment::default()),
-        precision: Precision::F32,
-    };
+    let data = EncoderFixture::new(&cfg);
+    let settings = encoder_settings(2, Some(veila_diffusion::app::EncoderAugment::default()));
     let tmp = tempfile::tempdir().unwrap();
-    let train = |data: veila_diffusion::app::EncoderData<'_>, dir: &str| {
-        veila_diffusion::app::prepare_encoders(
-            &cfg,
-            veila_diffusion::app::EncoderSource::Train {
-                data,
-                dir: &tmp.path().join(dir),
-            },
-            &settings,
-            &Device::Cpu,
-            |_| {},
-        )
-        .map(|e| {
-            let mut all: Vec<(String, Vec<f32>)> = e
-                .weights
-                .iter()
-                .flat_map(|(file, w)| {
-                    w.iter().map(move |(n, t)| {
-                        (
-                            format!("{file}/{n}"),
-                            t.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
-                        )
-                    })
-                })
-                .collect();
-            all.sort_by(|a, b| a.0.cmp(&b.0));
-            all
-        })
-    };
-    let memory = train(
-        veila_diffusion::app::EncoderData::Memory {
-            images: &images,
-            labels: Some(&labels),
-            depth_m: &depth,
-            cameras: Some(&cameras),
-        },
-        "memory",
+    let train = |d, dir: &str| trained_encoder_weights(&cfg, &settings, d, &tmp.path().join(dir));
+    let memory = train(data.memory(true), "memory").unwrap();
+    let streamed = train(
+        veila_diffusion::app::EncoderData::Stream(&data.source),
+        "stream",
     )
     .unwrap();
-    let streamed = train(veila_diffusion::app::EncoderData::Stream(&source), "stream").unwrap();
     assert_eq!(memory, streamed);
     // the stem reads four channels
     let stem = memory
@@ -1694,16 +1669,6 @@ fn encoders_with_the_ground_prior_train_from_memory_and_a_source_alike_and_need_
         .unwrap();
     assert_eq!(stem.1.len(), 8 * 4 * 3 * 3);
     // no cameras: an error naming them, not a panic
-    let err = train(
-        veila_diffusion::app::EncoderData::Memory {
-            images: &images,
-            labels: Some(&labels),
-            depth_m: &depth,
-            cameras: None,
-        },
-        "none",
-    )
-    .unwrap_err()
-    .to_string();
+    let err = train(data.memory(false), "none").unwrap_err().to_string();
     assert!(err.contains("camera"), "{err}");
 }

@@ -174,12 +174,10 @@ pub fn conv2d_padded_hw(
     }
     let ho = (hp - kh) / stride_h + 1;
     let wo = (wp - kw) / stride_w + 1;
-    let weight = &weight.to_dtype(xp.dtype())?;
-    let bias = bias.map(|b| b.to_dtype(xp.dtype())).transpose()?;
-    let bias = bias.as_ref();
     let y = if kh == 1 && kw == 1 {
         let xs = strided_narrow(&strided_narrow(xp, 2, 0, ho, stride_h)?, 3, 0, wo, stride_w)?;
-        let wm = weight.reshape((1, out_c, c))?;
+        // the weights in the activations' dtype; add_bias takes the bias as it is
+        let wm = weight.to_dtype(xp.dtype())?.reshape((1, out_c, c))?;
         wm.broadcast_matmul(&xs.reshape((b, c, ho * wo))?)?
             .reshape((b, out_c, ho, wo))?
     } else {

@@ -182,35 +182,16 @@ fn f16_activations_run_with_f32_statistics() {
 #[test]
 fn bf16_weights_and_activations_run_the_whole_network() {
     // inference with the weights themselves in bf16 (the cast at use is then free)
-    let cfg = small_config();
-    let (vm32, net32) = varmap_model(&cfg, 3);
-    wake_zero_branches(&vm32, 4);
-    let vb = candle_nn::VarBuilder::from_varmap(&vm32, DType::BF16, &Device::Cpu);
-    let net16 = veila_nn::Denoiser::new(&cfg, vb).unwrap();
-    let mut r = rng(5);
-    let x = rand_tensor(&mut r, &[1, 3, 16, 128]);
-    let t = Tensor::new(&[0.5f32], &Device::Cpu).unwrap();
-    let geom = GcmaGeometry::new(&cfg, &[kitti_camera()], &epipolar(4), &Device::Cpu).unwrap();
-    let (sem, dep) = rand_pyramids(&mut r, &cfg, 1);
-    let input = ConditionInput {
-        semantic: Some(sem),
-        depth: Some(dep),
-        keep: None,
+    let s = setup(&small_config(), 1);
+    let vb = candle_nn::VarBuilder::from_varmap(&s.vm, DType::BF16, &Device::Cpu);
+    let net16 = veila_nn::Denoiser::new(&small_config(), vb).unwrap();
+    let forward = |net: &veila_nn::Denoiser, dtype: DType| {
+        let prepared = net.prepare_condition(&s.input, Some(&s.geom)).unwrap();
+        net.forward(&s.x.to_dtype(dtype).unwrap(), &s.t, Some(&prepared))
+            .unwrap()
     };
-    let y32 = net32
-        .forward(
-            &x,
-            &t,
-            Some(&net32.prepare_condition(&input, Some(&geom)).unwrap()),
-        )
-        .unwrap();
-    let y16 = net16
-        .forward(
-            &x.to_dtype(DType::BF16).unwrap(),
-            &t,
-            Some(&net16.prepare_condition(&input, Some(&geom)).unwrap()),
-        )
-        .unwrap();
+    let y32 = forward(&s.net, DType::F32);
+    let y16 = forward(&net16, DType::BF16);
     assert_eq!(y16.dtype(), DType::BF16);
     let d = rel_l2(&y16, &y32);
     assert!(d < 3e-2 && d > 1e-4, "relative L2 {d}");

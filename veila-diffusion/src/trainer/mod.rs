@@ -679,27 +679,19 @@ impl<M: Denoiser> Trainer<M> {
         batch: &Batch<M::Cond>,
         dropout: Option<CondDropout>,
     ) -> Result<(Tensor, f64)> {
-        let out = match self.config.precision {
-            Precision::F32 => self.diffusion.training_loss_weighted(
-                &self.model,
-                &batch.x0,
-                batch.weight.as_ref(),
-                batch.cond.as_ref(),
-                dropout,
-                &mut self.rng,
-            )?,
-            p => self.diffusion.training_loss_weighted(
-                &crate::denoiser::Autocast {
-                    inner: &self.model,
-                    dtype: p.dtype(),
-                },
-                &batch.x0,
-                batch.weight.as_ref(),
-                batch.cond.as_ref(),
-                dropout,
-                &mut self.rng,
-            )?,
+        // f32 data in an f32 run: Autocast passes straight through
+        let model = crate::denoiser::Autocast {
+            inner: &self.model,
+            dtype: self.config.precision.dtype(),
         };
+        let out = self.diffusion.training_loss_weighted(
+            &model,
+            &batch.x0,
+            batch.weight.as_ref(),
+            batch.cond.as_ref(),
+            dropout,
+            &mut self.rng,
+        )?;
         let loss = out
             .loss
             .to_dtype(candle_core::DType::F64)?
