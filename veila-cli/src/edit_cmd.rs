@@ -227,6 +227,9 @@ struct EditReport {
     regenerated_pixels: usize,
     kept_pixels: usize,
     region_returns_before: usize,
+    /// Quarter turns from the calibration's LiDAR frame into the model's (1 for nuScenes): the
+    /// scan and the region are inpainted there and written back in the LiDAR frame.
+    model_frame_quarter_turns: i32,
     scans: Vec<EditScan>,
 }
 
@@ -291,7 +294,13 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
             _ => bail!("nothing to regenerate"),
         }
     }
-    let prepared = prepare_views(&bundle, &views)?;
+    // inpainted in the model's frame (camera along +x), like `generate`; the scan, the region and
+    // the results stay in the calibration's LiDAR frame
+    let turns = veila_diffusion::app::quarter_turns_to_model(&views[0].camera);
+    let mut prepared = prepare_views(&bundle, &views)?;
+    for (_, cam) in &mut prepared {
+        *cam = veila_diffusion::app::camera_in_model_frame(cam, turns);
+    }
     let staging = staging::stage_checked(&args.out, args.force, &inputs)?;
     let load_secs = t0.elapsed().as_secs_f64();
 
@@ -315,9 +324,21 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
         unconditional: false,
         residual_weight: 1.0,
     };
+    let before_model = veila_diffusion::app::range_to_model_frame(&bundle.config, &before, turns)?;
+    let keep_model =
+        veila_diffusion::app::pixels_to_model_frame(&bundle.config, &keep, rows, cols, turns)?;
     let scans = bundle
-        .inpaint(&camera_views(&prepared), &before, &keep, &options, &repaint)
-        .context("inpainting")?;
+        .inpaint(
+            &camera_views(&prepared),
+            &before_model,
+            &keep_model,
+            &options,
+            &repaint,
+        )
+        .context("inpainting")?
+        .iter()
+        .map(|s| veila_diffusion::app::range_to_lidar_frame(&bundle.config, s, turns))
+        .collect::<Result<Vec<_>, _>>()?;
     pb.finish_and_clear();
     let sampling_secs = t.elapsed().as_secs_f64();
 
@@ -407,6 +428,7 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
             .zip(&before.mask)
             .filter(|(r, m)| **r && **m)
             .count(),
+        model_frame_quarter_turns: turns,
         scans: records,
     };
     // wall-clock times apart, so edit.json of identical runs is byte-identical

@@ -29,8 +29,8 @@ pub use recipe::{
     RecipeSettings, prepare_encoders, run_recipe,
 };
 pub use rig::{
-    RigView, camera_in_model_frame, camera_views, load_view, prepare_view, prepare_views,
-    quarter_turns_to_model, range_to_lidar_frame, scan_points,
+    RigView, camera_in_model_frame, camera_views, load_view, pixels_to_model_frame, prepare_view,
+    prepare_views, quarter_turns_to_model, range_to_lidar_frame, range_to_model_frame, scan_points,
 };
 pub use train::{
     BundleFit, BundleFitOutcome, DenoiserFit, DenoiserFitOutcome, DenoiserTraining, EncoderAugment,

@@ -212,12 +212,48 @@ pub fn range_to_lidar_frame(
     range: &RangeImage,
     q: i32,
 ) -> Result<RangeImage> {
+    roll_range(config, range, q)
+}
+
+/// The inverse of [`range_to_lidar_frame`]: a range image of the LiDAR frame (a scan to edit)
+/// turned into the model frame, `p_model = R_z(-q·90°) p_lidar`.
+pub fn range_to_model_frame(
+    config: &BundleConfig,
+    range: &RangeImage,
+    q: i32,
+) -> Result<RangeImage> {
+    roll_range(config, range, -q)
+}
+
+/// Per-pixel values (row-major, `rows x cols`, e.g. an edit's keep mask) of the LiDAR frame moved
+/// into the model frame, as [`range_to_model_frame`] moves a range image.
+pub fn pixels_to_model_frame<T: Copy>(
+    config: &BundleConfig,
+    values: &[T],
+    rows: usize,
+    cols: usize,
+    q: i32,
+) -> Result<Vec<T>> {
+    match column_shift(config, rows, cols, values.len(), -q)? {
+        0 => Ok(values.to_vec()),
+        shift => Ok(roll(values, cols, shift)),
+    }
+}
+
+/// Output pixel `(r, c)` is input pixel `(r, (c + shift) mod cols)` for a turn of the output
+/// frame by `p_out = R_z(q·90°) p_in`; 0 when `q` is a multiple of 4.
+fn column_shift(
+    config: &BundleConfig,
+    rows: usize,
+    cols: usize,
+    len: usize,
+    q: i32,
+) -> Result<usize> {
     let q = q.rem_euclid(4);
     if q == 0 {
-        return Ok(range.clone());
+        return Ok(0);
     }
-    let (rows, cols) = (range.rows as usize, range.cols as usize);
-    if !cols.is_multiple_of(4) || range.range_m.len() != rows * cols {
+    if !cols.is_multiple_of(4) || len != rows * cols {
         return Err(Error::InvalidConfig {
             field: "sensor.cols",
             reason: format!(
@@ -225,22 +261,30 @@ pub fn range_to_lidar_frame(
             ),
         });
     }
-    // which way the columns run: the model-frame column whose ray is lidar column 0's, turned
+    // which way the columns run: the input column whose ray is output column 0's, turned
     let rays = RayTable::new(&config.denoiser.sensor)?;
     let row = (rows / 2) as u32;
     let turn = glam::Mat3::from_rotation_z(-(q as f32) * std::f32::consts::FRAC_PI_2);
     let want = turn * rays.dir(row, 0);
-    let shift = (0..cols)
+    Ok((0..cols)
         .max_by(|&a, &b| {
             want.dot(rays.dir(row, a as u32))
                 .total_cmp(&want.dot(rays.dir(row, b as u32)))
         })
-        .unwrap_or(0);
-    // lidar pixel (r, c) is model pixel (r, (c + shift) mod cols)
-    fn roll<T: Copy>(v: &[T], cols: usize, shift: usize) -> Vec<T> {
-        (0..v.len())
-            .map(|i| v[(i / cols) * cols + (i % cols + shift) % cols])
-            .collect()
+        .unwrap_or(0))
+}
+
+fn roll<T: Copy>(v: &[T], cols: usize, shift: usize) -> Vec<T> {
+    (0..v.len())
+        .map(|i| v[(i / cols) * cols + (i % cols + shift) % cols])
+        .collect()
+}
+
+fn roll_range(config: &BundleConfig, range: &RangeImage, q: i32) -> Result<RangeImage> {
+    let (rows, cols) = (range.rows as usize, range.cols as usize);
+    let shift = column_shift(config, rows, cols, range.range_m.len(), q)?;
+    if shift == 0 {
+        return Ok(range.clone());
     }
     let mut out = range.clone();
     out.range_m = roll(&range.range_m, cols, shift);
@@ -428,5 +472,37 @@ mod tests {
         let r = RangeImage::new_empty(rows, 258);
         assert!(range_to_lidar_frame(&odd, &r, 1).is_err());
         assert!(range_to_lidar_frame(&odd, &r, 4).is_ok());
+    }
+
+    #[test]
+    fn into_the_model_frame_and_back_is_the_identity() {
+        let config = BundleConfig::cpu_default(super::super::bundle::Variant::Full);
+        let sensor = &config.denoiser.sensor;
+        let (rows, cols) = (sensor.rows as usize, sensor.cols as usize);
+        let mut range = RangeImage::new_empty(rows as u32, cols as u32);
+        for i in 0..rows * cols {
+            if i % 5 != 1 {
+                range.range_m[i] = 3.0 + (i % cols) as f32 * 0.05 + (i / cols) as f32;
+                range.mask[i] = true;
+            }
+        }
+        let index: Vec<usize> = (0..rows * cols).collect();
+        for q in 0..4 {
+            let model = range_to_model_frame(&config, &range, q).unwrap();
+            let back = range_to_lidar_frame(&config, &model, q).unwrap();
+            assert_eq!(back.range_m, range.range_m, "q = {q}");
+            assert_eq!(back.mask, range.mask, "q = {q}");
+            // per-pixel values (an edit's keep mask) move exactly as the scan does
+            let moved = pixels_to_model_frame(&config, &index, rows, cols, q).unwrap();
+            for (k, &from) in moved.iter().enumerate() {
+                assert_eq!(model.range_m[k], range.range_m[from], "q = {q}, pixel {k}");
+                assert_eq!(model.mask[k], range.mask[from], "q = {q}, pixel {k}");
+            }
+            // a turn of a quarter moves the columns by a quarter of the width
+            if q != 0 {
+                assert_ne!(model.range_m, range.range_m, "q = {q}");
+            }
+        }
+        assert!(pixels_to_model_frame(&config, &index, rows, cols + 1, 1).is_err());
     }
 }

@@ -115,8 +115,9 @@ pub struct TrainConfig {
     #[serde(default = "one")]
     pub grad_accum_steps: u64,
     /// The activations' precision. The weights, their gradients, the optimizer state and the
-    /// EMA stay f32 in every mode, so a checkpoint resumes in any mode.
-    #[serde(default)]
+    /// EMA stay f32 in every mode, so a checkpoint resumes in any mode. Left out of the JSON when
+    /// f32, so the run records of runs made before this field existed still match.
+    #[serde(default, skip_serializing_if = "Precision::is_f32")]
     pub precision: Precision,
 }
 
@@ -136,6 +137,11 @@ pub enum Precision {
 }
 
 impl Precision {
+    /// Whether this is [`Precision::F32`] (the default).
+    pub fn is_f32(&self) -> bool {
+        *self == Self::F32
+    }
+
     /// The dtype of the activations.
     pub fn dtype(self) -> candle_core::DType {
         match self {

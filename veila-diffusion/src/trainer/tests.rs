@@ -215,6 +215,35 @@ fn a_checkpoint_folder_belongs_to_one_run() {
     claim_checkpoint_dir(&dir, &settings).unwrap();
 }
 
+#[test]
+fn an_f32_run_record_is_the_one_written_before_precision_existed() {
+    use crate::trainer::{Precision, claim_checkpoint_dir};
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("ck");
+    let tc = TrainConfig::default();
+    let json = serde_json::to_value(&tc).unwrap();
+    // a run record from before the field: the same settings without "precision"
+    let mut old = json.clone();
+    old.as_object_mut().unwrap().remove("precision");
+    // (run keys are JSON values, as `train-default` builds them)
+    claim_checkpoint_dir(&dir, &serde_json::json!({ "train": old })).unwrap();
+    claim_checkpoint_dir(&dir, &serde_json::json!({ "train": tc })).unwrap();
+    // bf16 is recorded, so it does not resume an f32 run's folder
+    let bf16 = TrainConfig {
+        precision: Precision::Bf16,
+        ..TrainConfig::default()
+    };
+    let e = claim_checkpoint_dir(&dir, &serde_json::json!({ "train": bf16 }))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("other settings"), "{e}");
+    // both read back
+    for c in [&tc, &bf16] {
+        let back: TrainConfig = serde_json::from_str(&serde_json::to_string(c).unwrap()).unwrap();
+        assert_eq!(back.precision, c.precision);
+    }
+}
+
 /// A per-pixel offset plus a scale of the input: enough parameters to see gradients differ.
 struct Offset {
     scale: Tensor,
