@@ -86,6 +86,87 @@ fn min_len(chunk: usize) -> usize {
     (GRAIN / chunk.max(1)).max(1)
 }
 
+/// Defines `$name`, which runs the `#[inline(always)]` kernel `$kernel` compiled for the widest
+/// vector unit the CPU has (AVX-512, else AVX2, else the baseline SSE2 the crate is built for):
+/// the kernel is inlined into one function per level with those target features, so its loops
+/// vectorise 16 or 8 lanes wide instead of 4. The kernels keep their own lane structure and never
+/// use `mul_add`, so every level computes the same IEEE operations in the same order: results
+/// are bit-identical across CPUs (a test compares the levels).
+macro_rules! multiversion {
+    ($(#[$doc:meta])* fn $name:ident / $at:ident($($arg:ident: $ty:ty),* $(,)?) => $kernel:path) => {
+        $(#[$doc])*
+        #[allow(clippy::too_many_arguments)]
+        fn $name($($arg: $ty),*) {
+            #[cfg(target_arch = "x86_64")]
+            {
+                $at(simd_level(), $($arg),*)
+            }
+            #[cfg(not(target_arch = "x86_64"))]
+            {
+                $kernel($($arg),*)
+            }
+        }
+
+        /// The kernel at a given vector level (which the caller must have checked the CPU has).
+        #[cfg(target_arch = "x86_64")]
+        #[allow(clippy::too_many_arguments)]
+        fn $at(level: SimdLevel, $($arg: $ty),*) {
+            #[target_feature(enable = "avx2,fma,avx512f")]
+            #[allow(clippy::too_many_arguments)]
+            fn avx512($($arg: $ty),*) {
+                $kernel($($arg),*)
+            }
+            #[target_feature(enable = "avx2,fma")]
+            #[allow(clippy::too_many_arguments)]
+            fn avx2($($arg: $ty),*) {
+                $kernel($($arg),*)
+            }
+            match level {
+                // SAFETY: `level` came from `simd_level` (or a test that checked the CPU), so
+                // the CPU has these features.
+                #[allow(unsafe_code)]
+                SimdLevel::Avx512 => unsafe { avx512($($arg),*) },
+                #[allow(unsafe_code)]
+                SimdLevel::Avx2 => unsafe { avx2($($arg),*) },
+                SimdLevel::Baseline => $kernel($($arg),*),
+            }
+        }
+    };
+}
+
+#[cfg(target_arch = "x86_64")]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum SimdLevel {
+    Avx512,
+    Avx2,
+    Baseline,
+}
+
+/// The CPU's vector level (AVX-512 and AVX2 levels include FMA), detected once (`VEILA_NN_SIMD=baseline|avx2` caps it, for tests and
+/// comparisons).
+#[cfg(target_arch = "x86_64")]
+fn simd_level() -> SimdLevel {
+    static LEVEL: std::sync::OnceLock<SimdLevel> = std::sync::OnceLock::new();
+    *LEVEL.get_or_init(|| {
+        let cap = std::env::var("VEILA_NN_SIMD").unwrap_or_default();
+        if cap != "baseline"
+            && cap != "avx2"
+            && std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx2")
+            && std::arch::is_x86_feature_detected!("fma")
+        {
+            SimdLevel::Avx512
+        } else if cap != "baseline"
+            && std::arch::is_x86_feature_detected!("avx2")
+            && std::arch::is_x86_feature_detected!("fma")
+        {
+            SimdLevel::Avx2
+        } else {
+            SimdLevel::Baseline
+        }
+    })
+}
+
 // ---------------------------------------------------------------------------------------------
 // im2col
 
@@ -500,6 +581,153 @@ fn matmul_into(
     Ok(())
 }
 
+/// `dst (m x nb, row-major) = a (m x len) · bᵀ` for `b (nb x len)`, both row-major: every output
+/// is a dot product of two contiguous rows. This is the weight gradient of a convolution (`g ·
+/// colᵀ`, summed over the pixels), for which `gemm` first copies both operands into packed panels
+/// (a transposing gather of the whole column matrix: most of that product's time, and more with
+/// AVX-512's wider panels); here the rows are read in place, 4 x 3 outputs at a time in vector
+/// accumulators (`pulp`: AVX-512, AVX2 + FMA or scalar, chosen at run time; fused multiply-adds
+/// where the CPU has them, so the last bits depend on the CPU, as `gemm`'s do).
+struct Abt<'a> {
+    dst: &'a mut [f32],
+    a: &'a [f32],
+    b: &'a [f32],
+    m: usize,
+    nb: usize,
+    len: usize,
+}
+
+impl pulp::WithSimd for Abt<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, simd: S) {
+        let Abt {
+            dst,
+            a,
+            b,
+            m,
+            nb,
+            len,
+        } = self;
+        let row = |_: &[f32], i: usize| -> (usize, usize) { (i * len, (i + 1) * len) };
+        let dot = |x: &[f32], y: &[f32]| -> f32 {
+            let (xs, xt) = S::as_simd_f32s(x);
+            let (ys, yt) = S::as_simd_f32s(y);
+            let mut acc = simd.splat_f32s(0.0);
+            for (p, q) in xs.iter().zip(ys) {
+                acc = simd.mul_add_f32s(*p, *q, acc);
+            }
+            let mut t = simd.reduce_sum_f32s(acc);
+            for (p, q) in xt.iter().zip(yt) {
+                t += p * q;
+            }
+            t
+        };
+        for i in (0..m).step_by(4) {
+            for j in (0..nb).step_by(3) {
+                if i + 4 > m || j + 3 > nb {
+                    for ii in i..(i + 4).min(m) {
+                        for jj in j..(j + 3).min(nb) {
+                            let (x0, x1) = row(a, ii);
+                            let (y0, y1) = row(b, jj);
+                            dst[ii * nb + jj] = dot(&a[x0..x1], &b[y0..y1]);
+                        }
+                    }
+                    continue;
+                }
+                let ar = |r: usize| {
+                    let (s0, s1) = row(a, i + r);
+                    S::as_simd_f32s(&a[s0..s1])
+                };
+                let br = |q: usize| {
+                    let (s0, s1) = row(b, j + q);
+                    S::as_simd_f32s(&b[s0..s1])
+                };
+                let ((a0, a0t), (a1, a1t), (a2, a2t), (a3, a3t)) = (ar(0), ar(1), ar(2), ar(3));
+                let ((b0, b0t), (b1, b1t), (b2, b2t)) = (br(0), br(1), br(2));
+                let z = simd.splat_f32s(0.0);
+                let (mut c00, mut c01, mut c02) = (z, z, z);
+                let (mut c10, mut c11, mut c12) = (z, z, z);
+                let (mut c20, mut c21, mut c22) = (z, z, z);
+                let (mut c30, mut c31, mut c32) = (z, z, z);
+                for ((((x0, x1), x2), x3), ((y0, y1), y2)) in a0
+                    .iter()
+                    .zip(a1)
+                    .zip(a2)
+                    .zip(a3)
+                    .zip(b0.iter().zip(b1).zip(b2))
+                {
+                    c00 = simd.mul_add_f32s(*x0, *y0, c00);
+                    c01 = simd.mul_add_f32s(*x0, *y1, c01);
+                    c02 = simd.mul_add_f32s(*x0, *y2, c02);
+                    c10 = simd.mul_add_f32s(*x1, *y0, c10);
+                    c11 = simd.mul_add_f32s(*x1, *y1, c11);
+                    c12 = simd.mul_add_f32s(*x1, *y2, c12);
+                    c20 = simd.mul_add_f32s(*x2, *y0, c20);
+                    c21 = simd.mul_add_f32s(*x2, *y1, c21);
+                    c22 = simd.mul_add_f32s(*x2, *y2, c22);
+                    c30 = simd.mul_add_f32s(*x3, *y0, c30);
+                    c31 = simd.mul_add_f32s(*x3, *y1, c31);
+                    c32 = simd.mul_add_f32s(*x3, *y2, c32);
+                }
+                let acc = [
+                    [c00, c01, c02],
+                    [c10, c11, c12],
+                    [c20, c21, c22],
+                    [c30, c31, c32],
+                ];
+                let (at, bt) = ([a0t, a1t, a2t, a3t], [b0t, b1t, b2t]);
+                for r in 0..4 {
+                    for q in 0..3 {
+                        let mut t = simd.reduce_sum_f32s(acc[r][q]);
+                        for (p, v) in at[r].iter().zip(bt[q]) {
+                            t += p * v;
+                        }
+                        dst[(i + r) * nb + j + q] = t;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// [`Abt`] on the CPU's widest vector unit; with `threaded`, blocks of output rows are
+/// spread over rayon's threads (each output is one thread's, so the result does not depend on
+/// the thread count).
+fn matmul_abt(
+    dst: &mut [f32],
+    a: &[f32],
+    b: &[f32],
+    (m, nb, len): (usize, usize, usize),
+    threaded: bool,
+) -> candle_core::Result<()> {
+    if dst.len() != m * nb || a.len() < m * len || b.len() < nb * len {
+        candle_core::bail!(
+            "matmul_abt: a matrix does not fit its slice ({m}x{len} · ({nb}x{len})ᵀ)"
+        )
+    }
+    fn run(dst: &mut [f32], a: &[f32], b: &[f32], (m, nb, len): (usize, usize, usize)) {
+        pulp::Arch::new().dispatch(Abt {
+            dst,
+            a,
+            b,
+            m,
+            nb,
+            len,
+        });
+    }
+    const ROWS: usize = 4;
+    if threaded && rayon::current_num_threads() > 1 && m > ROWS && nb > 0 {
+        dst.par_chunks_mut(ROWS * nb)
+            .zip(a.par_chunks(ROWS * len))
+            .for_each(|(d, a)| run(d, a, b, (d.len() / nb, nb, len)));
+    } else {
+        run(dst, a, b, (m, nb, len));
+    }
+    Ok(())
+}
+
 impl Im2Col {
     /// The `[C kh kw, H_o W_o]` column matrix of one sample (`x`: its `C` planes of `h x w`).
     /// Fills row `r` (below `C kh kw`) of one sample's column matrix from that sample's planes `x`.
@@ -758,15 +986,8 @@ impl Conv2dGemm {
             h, w, out_c, k, n, ..
         } = *d;
         self.cols.fill_sample(col, x, (h, w, n), threaded);
-        // dW (O x K) = g (O x N) · colᵀ (N x K)
-        matmul_into(
-            (dw, k, 1),
-            (out_c, k, n),
-            false,
-            (g, n, 1),
-            (col, 1, n),
-            threaded,
-        )?;
+        // dW (O x K) = g (O x N) · colᵀ (N x K): rows of g against rows of col, both in place
+        matmul_abt(dw, g, col, (out_c, k, n), threaded)?;
         // dcol (K x N) = Wᵀ (K x O) · g (O x N), transposed as in the forward:
         // dcolᵀ (N x K) = gᵀ (N x O) · W (O x K)
         matmul_into(
@@ -1127,12 +1348,173 @@ fn sigmoid(z: f32) -> f32 {
     1.0 / (1.0 + exp_f32(-z))
 }
 
-/// The logistic function through libm's `expf`, for the scalar loops of the backward pass (whose
-/// f64 sums keep them from vectorising): there `expf` measured faster than [`exp_f32`].
+/// One group of one sample: `out = act(xhat * sc + sh)` for its `sc.len()` channels of `n`.
 #[inline(always)]
-fn sigmoid_scalar(z: f32) -> f32 {
-    1.0 / (1.0 + (-z).exp())
+fn gn_forward_group(
+    out: &mut [f32],
+    xs: &[f32],
+    sc: &[f32],
+    sh: &[f32],
+    n: usize,
+    eps: f64,
+    silu: bool,
+) {
+    let (mean, rstd) = group_stats(xs, eps);
+    for ci in 0..sc.len() {
+        let a = sc[ci] * rstd;
+        let bb = sh[ci] - mean * a;
+        let (o, xi) = (&mut out[ci * n..(ci + 1) * n], &xs[ci * n..(ci + 1) * n]);
+        if silu {
+            for (o, v) in o.iter_mut().zip(xi) {
+                let z = v * a + bb;
+                *o = z * sigmoid(z);
+            }
+        } else {
+            for (o, v) in o.iter_mut().zip(xi) {
+                *o = v * a + bb;
+            }
+        }
+    }
 }
+
+multiversion!(
+    /// [`gn_forward_group`] on the CPU's widest vector unit.
+    fn gn_forward_simd / gn_forward_at(
+        out: &mut [f32],
+        xs: &[f32],
+        sc: &[f32],
+        sh: &[f32],
+        n: usize,
+        eps: f64,
+        silu: bool,
+    ) => gn_forward_group
+);
+
+/// One channel of the backward pass 1: `d = dxhat` and the sums `[Σ dz xhat, Σ dz, Σ dxhat,
+/// Σ dxhat xhat]`, in f32 lanes within blocks of [`BLOCK`] (f64 across blocks) so the loop
+/// vectorises.
+#[inline(always)]
+fn gn_backward_channel<const SILU: bool>(
+    d: &mut [f32],
+    x: &[f32],
+    g: &[f32],
+    (mean, rstd): (f32, f32),
+    (s, t): (f32, f32),
+) -> [f64; 4] {
+    #[inline(always)]
+    fn elem<const SILU: bool>(
+        v: f32,
+        g: f32,
+        mean: f32,
+        rstd: f32,
+        s: f32,
+        t: f32,
+    ) -> (f32, f32, f32) {
+        let xh = (v - mean) * rstd;
+        let dz = if SILU {
+            let z = xh * s + t;
+            let sg = sigmoid(z);
+            g * sg * (1.0 + z * (1.0 - sg))
+        } else {
+            g
+        };
+        (xh, dz, dz * s)
+    }
+    let mut tot = [0f64; 4];
+    let n = d.len();
+    let done = n - n % BLOCK;
+    for ((db, xb), gb) in d[..done]
+        .chunks_exact_mut(BLOCK)
+        .zip(x[..done].chunks_exact(BLOCK))
+        .zip(g[..done].chunks_exact(BLOCK))
+    {
+        let (mut l0, mut l1, mut l2, mut l3) =
+            ([0f32; LANES], [0f32; LANES], [0f32; LANES], [0f32; LANES]);
+        for ((dc, xc), gc) in db
+            .chunks_exact_mut(LANES)
+            .zip(xb.chunks_exact(LANES))
+            .zip(gb.chunks_exact(LANES))
+        {
+            for j in 0..LANES {
+                let (xh, dz, dxh) = elem::<SILU>(xc[j], gc[j], mean, rstd, s, t);
+                dc[j] = dxh;
+                l0[j] += dz * xh;
+                l1[j] += dz;
+                l2[j] += dxh;
+                l3[j] += dxh * xh;
+            }
+        }
+        for (t, l) in tot.iter_mut().zip([l0, l1, l2, l3]) {
+            *t += l.iter().map(|v| f64::from(*v)).sum::<f64>();
+        }
+    }
+    for k in done..n {
+        let (xh, dz, dxh) = elem::<SILU>(x[k], g[k], mean, rstd, s, t);
+        d[k] = dxh;
+        for (t, p) in tot.iter_mut().zip([dz * xh, dz, dxh, dxh * xh]) {
+            *t += f64::from(p);
+        }
+    }
+    tot
+}
+
+/// One group of one sample, backward: `dxs` gets the input gradient, `dsc`/`dsh` the scale and
+/// shift gradients of its channels. Pass 1 ([`gn_backward_channel`]) writes `dxhat` and the
+/// sums; pass 2 turns `dxhat` into `dx`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn gn_backward_group(
+    dxs: &mut [f32],
+    xs: &[f32],
+    gs: &[f32],
+    dsc: &mut [f32],
+    dsh: &mut [f32],
+    scs: &[f32],
+    shs: &[f32],
+    n: usize,
+    eps: f64,
+    silu: bool,
+) {
+    let (mean, rstd) = group_stats(xs, eps);
+    let (mut sum_d, mut sum_dx) = (0f64, 0f64);
+    for ci in 0..scs.len() {
+        let r = ci * n..(ci + 1) * n;
+        let (d, x, g) = (&mut dxs[r.clone()], &xs[r.clone()], &gs[r]);
+        let st = (scs[ci], shs[ci]);
+        let tot = if silu {
+            gn_backward_channel::<true>(d, x, g, (mean, rstd), st)
+        } else {
+            gn_backward_channel::<false>(d, x, g, (mean, rstd), st)
+        };
+        dsc[ci] = tot[0] as f32;
+        dsh[ci] = tot[1] as f32;
+        sum_d += tot[2];
+        sum_dx += tot[3];
+    }
+    // pass 2: dx = rstd (dxhat - mean(dxhat) - xhat mean(dxhat xhat))
+    let m = xs.len().max(1) as f64;
+    let (md, mdx) = ((sum_d / m) as f32, (sum_dx / m) as f32);
+    for (d, v) in dxs.iter_mut().zip(xs) {
+        let xh = (v - mean) * rstd;
+        *d = rstd * (*d - md - xh * mdx);
+    }
+}
+
+multiversion!(
+    /// [`gn_backward_group`] on the CPU's widest vector unit.
+    fn gn_backward_simd / gn_backward_at(
+        dxs: &mut [f32],
+        xs: &[f32],
+        gs: &[f32],
+        dsc: &mut [f32],
+        dsh: &mut [f32],
+        scs: &[f32],
+        shs: &[f32],
+        n: usize,
+        eps: f64,
+        silu: bool,
+    ) => gn_backward_group
+);
 
 impl GroupNormAct {
     fn check(
@@ -1181,22 +1563,7 @@ impl CustomOp3 for GroupNormAct {
                 .zip(x.par_chunks(cg * n))
                 .zip(scale.par_chunks(cg).zip(shift.par_chunks(cg)))
                 .for_each(|((out, xs), (sc, sh))| {
-                    let (mean, rstd) = group_stats(xs, self.eps);
-                    for ci in 0..cg {
-                        let a = sc[ci] * rstd;
-                        let bb = sh[ci] - mean * a;
-                        let (o, xi) = (&mut out[ci * n..(ci + 1) * n], &xs[ci * n..(ci + 1) * n]);
-                        if self.silu {
-                            for (o, v) in o.iter_mut().zip(xi) {
-                                let z = v * a + bb;
-                                *o = z * sigmoid(z);
-                            }
-                        } else {
-                            for (o, v) in o.iter_mut().zip(xi) {
-                                *o = v * a + bb;
-                            }
-                        }
-                    }
+                    gn_forward_simd(out, xs, sc, sh, n, self.eps, self.silu)
                 });
         }
         Ok((CpuStorage::F32(dst), l1.shape().clone()))
@@ -1227,44 +1594,7 @@ impl CustomOp3 for GroupNormAct {
                     .zip(dscale.par_chunks_mut(cg).zip(dshift.par_chunks_mut(cg)))
                     .zip(sc.par_chunks(cg).zip(sh.par_chunks(cg)))
                     .for_each(|(((dxs, (xs, gs)), (dsc, dsh)), (scs, shs))| {
-                        let (mean, rstd) = group_stats(xs, self.eps);
-                        // pass 1: dxhat into dx, the scale/shift gradients, the two group sums
-                        let (mut sum_d, mut sum_dx) = (0f64, 0f64);
-                        for ci in 0..cg {
-                            let r = ci * n..(ci + 1) * n;
-                            let (s, t) = (scs[ci], shs[ci]);
-                            let (mut ds, mut dt) = (0f64, 0f64);
-                            let (mut sd, mut sdx) = (0f32, 0f32);
-                            for ((d, v), g) in
-                                dxs[r.clone()].iter_mut().zip(&xs[r.clone()]).zip(&gs[r])
-                            {
-                                let xh = (v - mean) * rstd;
-                                let dz = if self.silu {
-                                    let z = xh * s + t;
-                                    let sg = sigmoid_scalar(z);
-                                    g * sg * (1.0 + z * (1.0 - sg))
-                                } else {
-                                    *g
-                                };
-                                ds += f64::from(dz * xh);
-                                dt += f64::from(dz);
-                                let dxh = dz * s;
-                                sd += dxh;
-                                sdx += dxh * xh;
-                                *d = dxh;
-                            }
-                            dsc[ci] = ds as f32;
-                            dsh[ci] = dt as f32;
-                            sum_d += f64::from(sd);
-                            sum_dx += f64::from(sdx);
-                        }
-                        // pass 2: dx = rstd (dxhat - mean(dxhat) - xhat mean(dxhat xhat))
-                        let m = (cg * n) as f64;
-                        let (md, mdx) = ((sum_d / m) as f32, (sum_dx / m) as f32);
-                        for (d, v) in dxs.iter_mut().zip(xs) {
-                            let xh = (v - mean) * rstd;
-                            *d = rstd * (*d - md - xh * mdx);
-                        }
+                        gn_backward_simd(dxs, xs, gs, dsc, dsh, scs, shs, n, self.eps, self.silu)
                     });
                 Ok(())
             })
@@ -1641,5 +1971,93 @@ mod tests {
             a[2].iter().any(|v| *v != 0.0),
             "the weight gradient is all zero"
         );
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn group_norm_kernels_give_the_same_bits_on_every_vector_unit() {
+        // the kernels inlined into AVX-512 / AVX2 functions against the baseline build: same
+        // operations in the same order, so the same bits (on a CPU without these units the
+        // wider paths are skipped)
+        // 2 channels of 203 values: 3 whole blocks and a remainder
+        let (cg, n) = (2, 203);
+        let x = pattern(cg * n, 0.37);
+        let g = pattern(cg * n, 0.53);
+        let (sc, sh) = (vec![1.3f32, 0.7], vec![-0.2f32, 0.4]);
+        for silu in [true, false] {
+            let run = |level: SimdLevel| -> Vec<f32> {
+                let mut out = vec![0f32; cg * n];
+                let mut dx = vec![0f32; cg * n];
+                let (mut dsc, mut dsh) = (vec![0f32; cg], vec![0f32; cg]);
+                gn_forward_at(level, &mut out, &x, &sc, &sh, n, 1e-5, silu);
+                gn_backward_at(
+                    level, &mut dx, &x, &g, &mut dsc, &mut dsh, &sc, &sh, n, 1e-5, silu,
+                );
+                [out, dx, dsc, dsh].concat()
+            };
+            let base = run(SimdLevel::Baseline);
+            assert!(base.iter().all(|v| v.is_finite()) && base.iter().any(|v| *v != 0.0));
+            #[cfg(target_arch = "x86_64")]
+            {
+                let same =
+                    |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(p, q)| p.to_bits() == q.to_bits());
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    let wide = run(SimdLevel::Avx2);
+                    assert!(same(&base, &wide), "AVX2 path differs (silu {silu})");
+                }
+                if std::arch::is_x86_feature_detected!("avx512f")
+                    && std::arch::is_x86_feature_detected!("avx2")
+                {
+                    let wide = run(SimdLevel::Avx512);
+                    assert!(same(&base, &wide), "AVX-512 path differs (silu {silu})");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn matmul_abt_matches_an_f64_reference_on_every_vector_unit() {
+        // whole 4 x 3 blocks, partial blocks in both directions, rows with a lane remainder
+        for (m, nb, len) in [(8, 9, 64), (6, 7, 37), (1, 1, 5), (16, 144, 1000)] {
+            let a = pattern(m * len, 0.37);
+            let b = pattern(nb * len, 0.11);
+            let want: Vec<f64> = (0..m * nb)
+                .map(|ij| {
+                    let (i, j) = (ij / nb, ij % nb);
+                    (0..len)
+                        .map(|p| f64::from(a[i * len + p]) * f64::from(b[j * len + p]))
+                        .sum()
+                })
+                .collect();
+            let scale = want.iter().fold(0f64, |s, v| s.max(v.abs())).max(1.0);
+            let check = |got: &[f32], what: &str| {
+                for (g, w) in got.iter().zip(&want) {
+                    assert!(
+                        (f64::from(*g) - w).abs() <= 1e-5 * scale,
+                        "{what} {m}x{nb}x{len}: {g} against {w}"
+                    );
+                }
+            };
+            for threaded in [false, true] {
+                let mut dst = vec![f32::NAN; m * nb];
+                matmul_abt(&mut dst, &a, &b, (m, nb, len), threaded).unwrap();
+                check(&dst, "dispatched");
+            }
+            let mut scalar = vec![f32::NAN; m * nb];
+            pulp::Simd::vectorize(
+                pulp::Scalar::new(),
+                Abt {
+                    dst: &mut scalar,
+                    a: &a,
+                    b: &b,
+                    m,
+                    nb,
+                    len,
+                },
+            );
+            check(&scalar, "scalar");
+        }
+        let mut small = vec![0f32; 4];
+        assert!(matmul_abt(&mut small, &[0.0; 3], &[0.0; 6], (2, 2, 3), false).is_err());
     }
 }

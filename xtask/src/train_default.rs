@@ -39,9 +39,9 @@ pub struct TrainDefaultArgs {
     /// shipped `models/default`.
     #[arg(long, default_value_t = 960)]
     pub frames: usize,
-    /// Training steps of each encoder (1,500 since session 8: 150 gave a front range MAE of
-    /// 1.41 m on 120 test frames, 1,500 gives 1.30 m).
-    #[arg(long, default_value_t = 1500)]
+    /// Training steps of each encoder (4,000 since 2026-11-25: on 120 test frames 150 gave a
+    /// front range MAE of 1.41 m, 1,500 gave 1.30 m, 4,000 gives 1.26 m).
+    #[arg(long, default_value_t = 4000)]
     pub encoder_steps: usize,
     /// Denoiser training steps (the mean network takes as many unless --mean-steps: 2 x 6,250
     /// updates of batch 8 are the 100,000 training samples of the shipped model).
