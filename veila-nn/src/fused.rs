@@ -282,6 +282,7 @@ impl Im2Col {
     }
 
     /// Adds one gradient row back into the channel plane (the transpose of `Im2Col::fill_row`).
+    #[inline(always)]
     fn scatter_row(
         &self,
         row: &[f32],
@@ -746,6 +747,7 @@ impl Im2Col {
 
     /// Adds channel `ci`'s rows of one sample's column gradient `dcol` (`n` values a row) into that
     /// channel's plane.
+    #[inline(always)]
     fn scatter_plane(
         &self,
         ci: usize,
@@ -802,10 +804,31 @@ impl Im2Col {
                 .enumerate()
                 .for_each(scatter);
         } else {
-            dx.chunks_mut(h * w).enumerate().for_each(scatter);
+            scatter_planes_simd(self, dcol, dx, h, w, n);
         }
     }
 }
+
+/// One sample's col2im on one thread: every channel's plane in turn.
+#[inline(always)]
+fn scatter_planes(cols: &Im2Col, dcol: &[f32], dx: &mut [f32], h: usize, w: usize, n: usize) {
+    for (ci, plane) in dx.chunks_mut(h * w).enumerate() {
+        cols.scatter_plane(ci, plane, dcol, (h, w, n));
+    }
+}
+
+multiversion!(
+    /// [`scatter_planes`] on the CPU's widest vector unit (its adds vectorise; same bits on
+    /// every level).
+    fn scatter_planes_simd / scatter_planes_at(
+        cols: &Im2Col,
+        dcol: &[f32],
+        dx: &mut [f32],
+        h: usize,
+        w: usize,
+        n: usize,
+    ) => scatter_planes
+);
 
 thread_local! {
     /// This thread's scratch for the fused convolution (one sample's columns and their gradient),
