@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::process::Output;
 
 use veila_data::range_exr::read_range_exr;
-use veila_data::scan::read_kitti_bin;
+use veila_data::scan::{PointFormat, read_points};
 use veila_diffusion::app::bundle::BundleConfig;
 use veila_geom::{LidarSensor, ProjectionOptions, Projector, RangeImage, RayTable};
 
@@ -46,18 +46,53 @@ fn edit(image: &Path, calib: &Path, scan: &Path, out: &Path, extra: &[&str]) -> 
 }
 
 /// The scan on the model grid, projected here independently of the command (returns nearer than
-/// the encoding's minimum range are left out: the model cannot represent them).
+/// the encoding's minimum range are left out: the model cannot represent them; nuScenes'
+/// intensities, 0..255, on the model's 0..1).
 fn before(scan: &Path) -> RangeImage {
-    let pts = read_kitti_bin(scan).unwrap().cloud;
+    let loaded = read_points(scan).unwrap();
+    let pts = loaded.cloud;
     let cfg: BundleConfig =
         serde_json::from_slice(&std::fs::read(model_dir().join("bundle.json")).unwrap()).unwrap();
+    let scale = if loaded.format == PointFormat::NuScenesPcdBin && cfg.encoding.intensity_max <= 1.0
+    {
+        255.0
+    } else {
+        1.0
+    };
     let keep: Vec<usize> = (0..pts.xyz.len())
         .filter(|&i| pts.xyz[i].length() >= cfg.encoding.min_range_m)
         .collect();
     let xyz: Vec<_> = keep.iter().map(|&i| pts.xyz[i]).collect();
-    let intensity: Vec<f32> = keep.iter().map(|&i| pts.intensity[i]).collect();
+    let intensity: Vec<f32> = keep.iter().map(|&i| pts.intensity[i] / scale).collect();
     let projector = Projector::new(&model_sensor(), ProjectionOptions::default()).unwrap();
     projector.project(&xyz, Some(&intensity), None).unwrap().0
+}
+
+/// Checks an edit of `--remove-box b` (`[x0, y0, z0, x1, y1, z1]`, LiDAR frame): the expected
+/// region, brute force, is the returns whose point lies in the box; it must hold enough returns,
+/// the rest must be kept and most of it regenerated ([`check_edit`]). Returns the region.
+fn check_box_edit(before: &RangeImage, out: &Path, b: [f32; 6]) -> Vec<bool> {
+    let rays = RayTable::new(&model_sensor()).unwrap();
+    let regen: Vec<bool> = (0..before.range_m.len())
+        .map(|k| {
+            let (r, c) = (k as u32 / before.cols, k as u32 % before.cols);
+            let p = rays.dir(r, c) * before.range_m[k];
+            before.mask[k]
+                && (b[0]..=b[3]).contains(&p.x)
+                && (b[1]..=b[4]).contains(&p.y)
+                && (b[2]..=b[5]).contains(&p.z)
+        })
+        .collect();
+    assert!(
+        regen.iter().filter(|r| **r).count() > 50,
+        "box holds too few returns"
+    );
+    let frac = check_edit(before, out, &regen);
+    assert!(
+        frac > 0.5,
+        "only {frac:.2} of the regenerated pixels changed"
+    );
+    regen
 }
 
 /// Checks kept pixels are kept and regenerated pixels changed; returns the changed fraction.
@@ -120,31 +155,7 @@ fn remove_box_keeps_the_rest_exactly_and_regenerates_the_box() {
         &out,
         &["--remove-box", spec, "--steps", "2", "--seed", "1"],
     ));
-    let before = before(&scan);
-    // the expected region, brute force: returns whose point lies in the box
-    let rays = RayTable::new(&model_sensor()).unwrap();
-    let regen: Vec<bool> = (0..before.range_m.len())
-        .map(|k| {
-            let (r, c) = (k as u32 / before.cols, k as u32 % before.cols);
-            let p = rays.dir(r, c) * before.range_m[k];
-            before.mask[k]
-                && p.x >= b[0]
-                && p.y >= b[1]
-                && p.z >= b[2]
-                && p.x <= b[3]
-                && p.y <= b[4]
-                && p.z <= b[5]
-        })
-        .collect();
-    assert!(
-        regen.iter().filter(|r| **r).count() > 50,
-        "box holds too few returns"
-    );
-    let frac = check_edit(&before, &out, &regen);
-    assert!(
-        frac > 0.5,
-        "only {frac:.2} of the regenerated pixels changed"
-    );
+    let regen = check_box_edit(&before(&scan), &out, b);
     for f in [
         "scan_000.bin",
         "scan_000_range.png",
@@ -290,68 +301,25 @@ fn real_nuscenes_edit_runs_in_the_model_frame_and_keeps_the_rest() {
     let out = tmp.path().join("edit");
     // ahead of the car in nuScenes' frame (y forward, x right)
     let b = [-6.0f32, 3.0, -3.0, 6.0, 30.0, 3.0];
-    let o = veila()
-        .args(["edit", "--quiet", "--image"])
-        .arg(&image)
-        .args(["--camera", "CAM_FRONT", "--calib"])
-        .arg(&calib)
-        .arg("--scan")
-        .arg(&scan)
-        .arg("--checkpoint")
-        .arg(model_dir())
-        .arg("--out")
-        .arg(&out)
-        .args([
+    ok(&edit(
+        &image,
+        &calib,
+        &scan,
+        &out,
+        &[
+            "--camera",
+            "CAM_FRONT",
             "--remove-box",
             "-6,3,-3,6,30,3",
             "--steps",
             "2",
             "--seed",
             "1",
-        ])
-        .output()
-        .unwrap();
-    ok(&o);
+        ],
+    ));
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("edit.json")).unwrap()).unwrap();
     assert_eq!(json["model_frame_quarter_turns"], 1);
-    // the scan on the model grid in nuScenes' own frame, projected here independently
-    let cfg: BundleConfig =
-        serde_json::from_slice(&std::fs::read(model_dir().join("bundle.json")).unwrap()).unwrap();
-    let loaded = veila_data::scan::read_points(&scan).unwrap();
-    let scale = if cfg.encoding.intensity_max <= 1.0 {
-        255.0
-    } else {
-        1.0
-    };
-    let (xyz, intensity): (Vec<_>, Vec<f32>) = loaded
-        .cloud
-        .xyz
-        .iter()
-        .zip(&loaded.cloud.intensity)
-        .filter(|(p, _)| p.length() >= cfg.encoding.min_range_m)
-        .map(|(p, i)| (*p, *i / scale))
-        .unzip();
-    let projector = Projector::new(&model_sensor(), ProjectionOptions::default()).unwrap();
-    let before = projector.project(&xyz, Some(&intensity), None).unwrap().0;
-    let rays = RayTable::new(&model_sensor()).unwrap();
-    let regen: Vec<bool> = (0..before.range_m.len())
-        .map(|k| {
-            let (r, c) = (k as u32 / before.cols, k as u32 % before.cols);
-            let p = rays.dir(r, c) * before.range_m[k];
-            before.mask[k]
-                && (b[0]..=b[3]).contains(&p.x)
-                && (b[1]..=b[4]).contains(&p.y)
-                && (b[2]..=b[5]).contains(&p.z)
-        })
-        .collect();
-    assert!(
-        regen.iter().filter(|r| **r).count() > 50,
-        "box holds too few returns"
-    );
-    let frac = check_edit(&before, &out, &regen);
-    assert!(
-        frac > 0.5,
-        "only {frac:.2} of the regenerated pixels changed"
-    );
+    // the scan on the model grid in nuScenes' own frame
+    check_box_edit(&before(&scan), &out, b);
 }

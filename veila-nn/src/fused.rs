@@ -86,14 +86,25 @@ fn min_len(chunk: usize) -> usize {
     (GRAIN / chunk.max(1)).max(1)
 }
 
-/// Defines `$name`, which runs the `#[inline(always)]` kernel `$kernel` compiled for the widest
-/// vector unit the CPU has (AVX-512, else AVX2, else the baseline SSE2 the crate is built for):
-/// the kernel is inlined into one function per level with those target features, so its loops
-/// vectorise 16 or 8 lanes wide instead of 4. The kernels keep their own lane structure and never
-/// use `mul_add`, so every level computes the same IEEE operations in the same order: results
-/// are bit-identical across CPUs (a test compares the levels).
+/// Defines the `#[inline(always)]` kernel `$kernel` and, after `dispatch`, `$name`, which runs it
+/// compiled for the widest vector unit the CPU has (AVX-512, else AVX2, else the baseline SSE2 the
+/// crate is built for), and `$at`, which runs it at a given level (for tests): the kernel is
+/// inlined into one function per level with those target features, so its loops vectorise 16 or
+/// 8 lanes wide instead of 4. The kernels keep their own lane structure and never use `mul_add`,
+/// so every level computes the same IEEE operations in the same order: results are bit-identical
+/// across CPUs (tests compare the levels).
 macro_rules! multiversion {
-    ($(#[$doc:meta])* fn $name:ident / $at:ident($($arg:ident: $ty:ty),* $(,)?) => $kernel:path) => {
+    (
+        $(#[$kdoc:meta])*
+        fn $kernel:ident($($arg:ident: $ty:ty),* $(,)?) $body:block
+        $(#[$doc:meta])*
+        dispatch $name:ident / $at:ident;
+    ) => {
+        $(#[$kdoc])*
+        #[inline(always)]
+        #[allow(clippy::too_many_arguments)]
+        fn $kernel($($arg: $ty),*) $body
+
         $(#[$doc])*
         #[allow(clippy::too_many_arguments)]
         fn $name($($arg: $ty),*) {
@@ -611,7 +622,7 @@ impl pulp::WithSimd for Abt<'_> {
             nb,
             len,
         } = self;
-        let row = |_: &[f32], i: usize| -> (usize, usize) { (i * len, (i + 1) * len) };
+        let span = |i: usize| i * len..(i + 1) * len;
         let dot = |x: &[f32], y: &[f32]| -> f32 {
             let (xs, xt) = S::as_simd_f32s(x);
             let (ys, yt) = S::as_simd_f32s(y);
@@ -630,21 +641,13 @@ impl pulp::WithSimd for Abt<'_> {
                 if i + 4 > m || j + 3 > nb {
                     for ii in i..(i + 4).min(m) {
                         for jj in j..(j + 3).min(nb) {
-                            let (x0, x1) = row(a, ii);
-                            let (y0, y1) = row(b, jj);
-                            dst[ii * nb + jj] = dot(&a[x0..x1], &b[y0..y1]);
+                            dst[ii * nb + jj] = dot(&a[span(ii)], &b[span(jj)]);
                         }
                     }
                     continue;
                 }
-                let ar = |r: usize| {
-                    let (s0, s1) = row(a, i + r);
-                    S::as_simd_f32s(&a[s0..s1])
-                };
-                let br = |q: usize| {
-                    let (s0, s1) = row(b, j + q);
-                    S::as_simd_f32s(&b[s0..s1])
-                };
+                let ar = |r: usize| S::as_simd_f32s(&a[span(i + r)]);
+                let br = |q: usize| S::as_simd_f32s(&b[span(j + q)]);
                 let ((a0, a0t), (a1, a1t), (a2, a2t), (a3, a3t)) = (ar(0), ar(1), ar(2), ar(3));
                 let ((b0, b0t), (b1, b1t), (b2, b2t)) = (br(0), br(1), br(2));
                 let z = simd.splat_f32s(0.0);
@@ -809,26 +812,18 @@ impl Im2Col {
     }
 }
 
-/// One sample's col2im on one thread: every channel's plane in turn.
-#[inline(always)]
-fn scatter_planes(cols: &Im2Col, dcol: &[f32], dx: &mut [f32], h: usize, w: usize, n: usize) {
-    for (ci, plane) in dx.chunks_mut(h * w).enumerate() {
-        cols.scatter_plane(ci, plane, dcol, (h, w, n));
+multiversion! {
+    /// One sample's col2im on one thread: every channel's plane in turn.
+    fn scatter_planes(cols: &Im2Col, dcol: &[f32], dx: &mut [f32], h: usize, w: usize, n: usize) {
+        for (ci, plane) in dx.chunks_mut(h * w).enumerate() {
+            cols.scatter_plane(ci, plane, dcol, (h, w, n));
+        }
     }
-}
 
-multiversion!(
     /// [`scatter_planes`] on the CPU's widest vector unit (its adds vectorise; same bits on
     /// every level).
-    fn scatter_planes_simd / scatter_planes_at(
-        cols: &Im2Col,
-        dcol: &[f32],
-        dx: &mut [f32],
-        h: usize,
-        w: usize,
-        n: usize,
-    ) => scatter_planes
-);
+    dispatch scatter_planes_simd / scatter_planes_at;
+}
 
 thread_local! {
     /// This thread's scratch for the fused convolution (one sample's columns and their gradient),
@@ -1371,38 +1366,9 @@ fn sigmoid(z: f32) -> f32 {
     1.0 / (1.0 + exp_f32(-z))
 }
 
-/// One group of one sample: `out = act(xhat * sc + sh)` for its `sc.len()` channels of `n`.
-#[inline(always)]
-fn gn_forward_group(
-    out: &mut [f32],
-    xs: &[f32],
-    sc: &[f32],
-    sh: &[f32],
-    n: usize,
-    eps: f64,
-    silu: bool,
-) {
-    let (mean, rstd) = group_stats(xs, eps);
-    for ci in 0..sc.len() {
-        let a = sc[ci] * rstd;
-        let bb = sh[ci] - mean * a;
-        let (o, xi) = (&mut out[ci * n..(ci + 1) * n], &xs[ci * n..(ci + 1) * n]);
-        if silu {
-            for (o, v) in o.iter_mut().zip(xi) {
-                let z = v * a + bb;
-                *o = z * sigmoid(z);
-            }
-        } else {
-            for (o, v) in o.iter_mut().zip(xi) {
-                *o = v * a + bb;
-            }
-        }
-    }
-}
-
-multiversion!(
-    /// [`gn_forward_group`] on the CPU's widest vector unit.
-    fn gn_forward_simd / gn_forward_at(
+multiversion! {
+    /// One group of one sample: `out = act(xhat * sc + sh)` for its `sc.len()` channels of `n`.
+    fn gn_forward_group(
         out: &mut [f32],
         xs: &[f32],
         sc: &[f32],
@@ -1410,8 +1376,28 @@ multiversion!(
         n: usize,
         eps: f64,
         silu: bool,
-    ) => gn_forward_group
-);
+    ) {
+        let (mean, rstd) = group_stats(xs, eps);
+        for ci in 0..sc.len() {
+            let a = sc[ci] * rstd;
+            let bb = sh[ci] - mean * a;
+            let (o, xi) = (&mut out[ci * n..(ci + 1) * n], &xs[ci * n..(ci + 1) * n]);
+            if silu {
+                for (o, v) in o.iter_mut().zip(xi) {
+                    let z = v * a + bb;
+                    *o = z * sigmoid(z);
+                }
+            } else {
+                for (o, v) in o.iter_mut().zip(xi) {
+                    *o = v * a + bb;
+                }
+            }
+        }
+    }
+
+    /// [`gn_forward_group`] on the CPU's widest vector unit.
+    dispatch gn_forward_simd / gn_forward_at;
+}
 
 /// One channel of the backward pass 1: `d = dxhat` and the sums `[Σ dz xhat, Σ dz, Σ dxhat,
 /// Σ dxhat xhat]`, in f32 lanes within blocks of [`BLOCK`] (f64 across blocks) so the loop
@@ -1481,51 +1467,11 @@ fn gn_backward_channel<const SILU: bool>(
     tot
 }
 
-/// One group of one sample, backward: `dxs` gets the input gradient, `dsc`/`dsh` the scale and
-/// shift gradients of its channels. Pass 1 ([`gn_backward_channel`]) writes `dxhat` and the
-/// sums; pass 2 turns `dxhat` into `dx`.
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn gn_backward_group(
-    dxs: &mut [f32],
-    xs: &[f32],
-    gs: &[f32],
-    dsc: &mut [f32],
-    dsh: &mut [f32],
-    scs: &[f32],
-    shs: &[f32],
-    n: usize,
-    eps: f64,
-    silu: bool,
-) {
-    let (mean, rstd) = group_stats(xs, eps);
-    let (mut sum_d, mut sum_dx) = (0f64, 0f64);
-    for ci in 0..scs.len() {
-        let r = ci * n..(ci + 1) * n;
-        let (d, x, g) = (&mut dxs[r.clone()], &xs[r.clone()], &gs[r]);
-        let st = (scs[ci], shs[ci]);
-        let tot = if silu {
-            gn_backward_channel::<true>(d, x, g, (mean, rstd), st)
-        } else {
-            gn_backward_channel::<false>(d, x, g, (mean, rstd), st)
-        };
-        dsc[ci] = tot[0] as f32;
-        dsh[ci] = tot[1] as f32;
-        sum_d += tot[2];
-        sum_dx += tot[3];
-    }
-    // pass 2: dx = rstd (dxhat - mean(dxhat) - xhat mean(dxhat xhat))
-    let m = xs.len().max(1) as f64;
-    let (md, mdx) = ((sum_d / m) as f32, (sum_dx / m) as f32);
-    for (d, v) in dxs.iter_mut().zip(xs) {
-        let xh = (v - mean) * rstd;
-        *d = rstd * (*d - md - xh * mdx);
-    }
-}
-
-multiversion!(
-    /// [`gn_backward_group`] on the CPU's widest vector unit.
-    fn gn_backward_simd / gn_backward_at(
+multiversion! {
+    /// One group of one sample, backward: `dxs` gets the input gradient, `dsc`/`dsh` the scale and
+    /// shift gradients of its channels. Pass 1 ([`gn_backward_channel`]) writes `dxhat` and the
+    /// sums; pass 2 turns `dxhat` into `dx`.
+    fn gn_backward_group(
         dxs: &mut [f32],
         xs: &[f32],
         gs: &[f32],
@@ -1536,8 +1482,35 @@ multiversion!(
         n: usize,
         eps: f64,
         silu: bool,
-    ) => gn_backward_group
-);
+    ) {
+        let (mean, rstd) = group_stats(xs, eps);
+        let (mut sum_d, mut sum_dx) = (0f64, 0f64);
+        for ci in 0..scs.len() {
+            let r = ci * n..(ci + 1) * n;
+            let (d, x, g) = (&mut dxs[r.clone()], &xs[r.clone()], &gs[r]);
+            let st = (scs[ci], shs[ci]);
+            let tot = if silu {
+                gn_backward_channel::<true>(d, x, g, (mean, rstd), st)
+            } else {
+                gn_backward_channel::<false>(d, x, g, (mean, rstd), st)
+            };
+            dsc[ci] = tot[0] as f32;
+            dsh[ci] = tot[1] as f32;
+            sum_d += tot[2];
+            sum_dx += tot[3];
+        }
+        // pass 2: dx = rstd (dxhat - mean(dxhat) - xhat mean(dxhat xhat))
+        let m = xs.len().max(1) as f64;
+        let (md, mdx) = ((sum_d / m) as f32, (sum_dx / m) as f32);
+        for (d, v) in dxs.iter_mut().zip(xs) {
+            let xh = (v - mean) * rstd;
+            *d = rstd * (*d - md - xh * mdx);
+        }
+    }
+
+    /// [`gn_backward_group`] on the CPU's widest vector unit.
+    dispatch gn_backward_simd / gn_backward_at;
+}
 
 impl GroupNormAct {
     fn check(

@@ -132,7 +132,7 @@ pub const RUN_RECORD_FILE: &str = "run.json";
 /// Ties a checkpoint folder to one run: the first call writes `settings` (pretty JSON) to
 /// `dir/run.json`; later calls succeed only with the same settings, so resuming never mixes
 /// checkpoints of different models, data or schedules. Compared as text (the same serializer on
-/// both sides), since JSON parsing does not round-trip every float exactly.
+/// both sides): no parse, so nothing depends on how floats read back.
 pub fn claim_checkpoint_dir<T: Serialize>(dir: &Path, settings: &T) -> Result<()> {
     let path = dir.join(RUN_RECORD_FILE);
     let text = serde_json::to_string_pretty(settings).map_err(|source| Error::Json {
