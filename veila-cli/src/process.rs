@@ -18,6 +18,11 @@ const _: () = assert!(libmimalloc_sys::mi_option_use_numa_nodes == MI_OPTION_PUR
 /// * `RAYON_NUM_THREADS` (rayon's own default, the available parallelism): without it candle 0.11
 ///   counts the physical cores from `/proc/cpuinfo` on every matrix product (~2 % of a training step
 ///   in `cargo xtask bench-model`, in the kernel's `show_cpuinfo`);
+/// * `CANDLE_NUM_THREADS=1`: candle's own elementwise kernels run on the calling thread, while
+///   the engine's kernels (`veila_nn::fused`) and the matrix products use rayon's threads. candle
+///   0.11's barrier pool otherwise keeps one worker per core spinning (25,000 iterations) after
+///   each of its ops, on the cores that rayon's threads need next: 264 → 236 ms per training step of
+///   `cargo xtask bench-model` on 2 cores (BENCHMARKS.md);
 /// * mimalloc's purge delay, 10 s: by default it hands freed memory back to the OS within a second
 ///   and the next step's tensors fault it in again as freshly zeroed huge pages (50,000 faults and
 ///   ~5 % of a training step); 10 s spans any run of steps and still returns memory to an idle
@@ -30,6 +35,13 @@ pub fn tune_process() {
         #[allow(unsafe_code)]
         unsafe {
             std::env::set_var("RAYON_NUM_THREADS", n.to_string());
+        }
+    }
+    if std::env::var_os("CANDLE_NUM_THREADS").is_none() {
+        // SAFETY: as above (start of `main`, no other thread).
+        #[allow(unsafe_code)]
+        unsafe {
+            std::env::set_var("CANDLE_NUM_THREADS", "1");
         }
     }
     if std::env::var_os("MIMALLOC_PURGE_DELAY").is_none() {

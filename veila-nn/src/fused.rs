@@ -13,7 +13,9 @@
 //! * [`group_norm_act`]: GroupNorm with a per-sample, per-channel scale and shift (the affine weights,
 //!   and the FiLM / AdaGN modulation of the time embedding folded in) and an optional SiLU, forward and
 //!   backward;
-//! * [`add_scaled`]: the scaled residual sum `(a + b) * s`.
+//! * [`add_scaled`]: the scaled residual sum `(a + b) * s`;
+//! * [`res_block`]: a whole residual block (the ops above, composed, with a hand-written backward), so
+//!   candle's backward handles one gradient for it instead of one per layer.
 //!
 //! Each public function dispatches: F32 tensors on the CPU take the kernels, every other device or dtype
 //! runs the plain candle composition (the `*_reference` functions), which is also what the tests compare
@@ -37,6 +39,11 @@ pub fn is_half(dtype: DType) -> bool {
 pub fn kernels_enabled() -> bool {
     static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     *ON.get_or_init(|| std::env::var(REFERENCE_OPS_ENV).map_or(true, |v| v != "1"))
+}
+
+/// Whether `t` takes the CPU kernels of this module (an f32 tensor on the CPU, kernels on).
+pub fn takes_kernels(t: &Tensor) -> bool {
+    on_cpu_f32(t)
 }
 
 /// Whether `t` takes the CPU kernels of this module.
@@ -81,6 +88,18 @@ fn with_f32<R>(
 
 /// Minimum elements per rayon task: below this the split costs more than it saves.
 const GRAIN: usize = 16 * 1024;
+
+/// `n` zeros, written over the rayon pool when `n` is large: the big activation and gradient
+/// buffers of a training step, zero-filled on the calling thread, kept one core idle for about
+/// 5 % of the step.
+fn zeros(n: usize) -> Vec<f32> {
+    if n < 4 * GRAIN {
+        return vec![0f32; n];
+    }
+    let mut v = Vec::with_capacity(n);
+    v.par_extend(rayon::iter::repeat_n(0f32, n));
+    v
+}
 
 fn min_len(chunk: usize) -> usize {
     (GRAIN / chunk.max(1)).max(1)
@@ -354,7 +373,7 @@ impl CustomOp1 for Im2Col {
         let kk = kh * kw;
         let rows = self.spec.rows(c);
         let n = ho * wo;
-        let mut dst = vec![0f32; b * rows * n];
+        let mut dst = zeros(b * rows * n);
         if n > 0 {
             dst.par_chunks_mut(n)
                 .with_min_len(min_len(n))
@@ -420,7 +439,7 @@ impl CustomOp1 for Col2Im {
                 [b, rows, n]
             );
         }
-        let mut dst = vec![0f32; b * c * h * w];
+        let mut dst = zeros(b * c * h * w);
         if h * w > 0 {
             dst.par_chunks_mut(h * w)
                 .with_min_len(min_len(h * w * kk))
@@ -733,6 +752,19 @@ fn matmul_abt(
 }
 
 impl Im2Col {
+    /// Whether the column matrix of a sample is its planes as they are (a 1x1 kernel, stride 1,
+    /// no padding): the convolution then reads the input in place and writes the input gradient
+    /// directly, with no column buffer.
+    fn is_identity(&self) -> bool {
+        let s = self.spec;
+        s.kernel == (1, 1) && s.stride == (1, 1) && s.pad_h == 0 && s.pad_w == 0 && !s.ones_row
+    }
+
+    /// Scratch floats per column buffer for a `k x n` column matrix (none for [`Self::is_identity`]).
+    fn scratch_len(&self, k: usize, n: usize) -> usize {
+        if self.is_identity() { 0 } else { k * n }
+    }
+
     /// The `[C kh kw, H_o W_o]` column matrix of one sample (`x`: its `C` planes of `h x w`).
     /// Fills row `r` (below `C kh kw`) of one sample's column matrix from that sample's planes `x`.
     fn fill_col_row(&self, r: usize, row: &mut [f32], x: &[f32], h: usize, w: usize) {
@@ -929,7 +961,12 @@ impl Conv2dGemm {
         let ConvDims {
             h, w, out_c, k, n, ..
         } = *d;
-        self.cols.fill_sample(col, x, (h, w, n), threaded);
+        let col: &[f32] = if self.cols.is_identity() {
+            x
+        } else {
+            self.cols.fill_sample(col, x, (h, w, n), threaded);
+            col
+        };
         if let Some(bias) = bias {
             for (row, &v) in dst.chunks_mut(n).zip(bias) {
                 row.fill(v);
@@ -954,6 +991,21 @@ impl Conv2dGemm {
         weight: &[f32],
         bias: Option<&[f32]>,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let out = self.forward_vec(d, x, weight, bias)?;
+        Ok((
+            CpuStorage::F32(out),
+            Shape::from((d.b, d.out_c, d.ho, d.wo)),
+        ))
+    }
+
+    /// The output `[B, out, H_o, W_o]` as a plain vector.
+    fn forward_vec(
+        &self,
+        d: ConvDims,
+        x: &[f32],
+        weight: &[f32],
+        bias: Option<&[f32]>,
+    ) -> candle_core::Result<Vec<f32>> {
         let ConvDims {
             b,
             c,
@@ -964,28 +1016,28 @@ impl Conv2dGemm {
             n,
             ..
         } = d;
-        let mut out = vec![0f32; b * out_c * n];
+        let mut out = zeros(b * out_c * n);
         let plane = c * h * w;
         if out.is_empty() || plane == 0 {
-            return Ok((CpuStorage::F32(out), Shape::from((b, out_c, d.ho, d.wo))));
+            return Ok(out);
         }
         if self.samples_in_parallel(&d) {
             out.par_chunks_mut(out_c * n)
                 .zip(x.par_chunks(plane))
                 .try_for_each(|(dst, xb)| {
-                    with_scratch(k * n, |col, _| {
+                    with_scratch(self.cols.scratch_len(k, n), |col, _| {
                         self.forward_sample(&d, (xb, weight, bias), dst, col, false)
                     })
                 })?;
         } else {
-            with_scratch(k * n, |col, _| {
+            with_scratch(self.cols.scratch_len(k, n), |col, _| {
                 for (dst, xb) in out.chunks_mut(out_c * n).zip(x.chunks(plane)) {
                     self.forward_sample(&d, (xb, weight, bias), dst, col, true)?;
                 }
                 Ok::<_, candle_core::Error>(())
             })?;
         }
-        Ok((CpuStorage::F32(out), Shape::from((b, out_c, d.ho, d.wo))))
+        Ok(out)
     }
 
     /// One sample's share of the gradients: its input gradient `dx` (zeroed), its own weight
@@ -1003,20 +1055,33 @@ impl Conv2dGemm {
         let ConvDims {
             h, w, out_c, k, n, ..
         } = *d;
-        self.cols.fill_sample(col, x, (h, w, n), threaded);
+        let identity = self.cols.is_identity();
+        let col: &[f32] = if identity {
+            x
+        } else {
+            self.cols.fill_sample(col, x, (h, w, n), threaded);
+            col
+        };
         // dW (O x K) = g (O x N) · colᵀ (N x K): rows of g against rows of col, both in place
         matmul_abt(dw, g, col, (out_c, k, n), threaded)?;
         // dcol (K x N) = Wᵀ (K x O) · g (O x N), transposed as in the forward:
-        // dcolᵀ (N x K) = gᵀ (N x O) · W (O x K)
-        matmul_into(
-            (dcol, 1, n),
-            (n, k, out_c),
-            false,
-            (g, 1, n),
-            (weight, k, 1),
-            threaded,
-        )?;
-        self.cols.scatter_sample(dcol, dx, (h, w, n), threaded);
+        // dcolᵀ (N x K) = gᵀ (N x O) · W (O x K); a 1x1 convolution's dcol is dx itself
+        let dcol_into = |dst: &mut [f32]| {
+            matmul_into(
+                (dst, 1, n),
+                (n, k, out_c),
+                false,
+                (g, 1, n),
+                (weight, k, 1),
+                threaded,
+            )
+        };
+        if identity {
+            dcol_into(dx)?;
+        } else {
+            dcol_into(dcol)?;
+            self.cols.scatter_sample(dcol, dx, (h, w, n), threaded);
+        }
         for (acc, row) in db.iter_mut().zip(g.chunks(n)) {
             *acc = row.iter().sum::<f32>();
         }
@@ -1033,6 +1098,35 @@ impl Conv2dGemm {
         with_bias: bool,
     ) -> candle_core::Result<(Tensor, Tensor, Option<Tensor>)> {
         let d = self.dims(x.dims(), weight.dims())?;
+        // the input and the weights are read in place (no copies: this runs once per convolution
+        // in every training step)
+        let (dx, dw, db) = with_f32(x, "convolution input", |xs| {
+            with_f32(weight, "convolution weight", |ws| {
+                with_f32(grad, "convolution gradient", |g| {
+                    self.backward_slices(&d, xs, ws, g)
+                })
+            })
+        })?;
+        let dev = x.device();
+        let dx = Tensor::from_vec(dx, (d.b, d.c, d.h, d.w), dev)?;
+        let dw = Tensor::from_vec(dw, weight.dims(), dev)?;
+        let db = if with_bias {
+            Some(Tensor::from_vec(db, d.out_c, dev)?)
+        } else {
+            None
+        };
+        Ok((dx, dw, db))
+    }
+
+    /// [`Self::backward`] on slices: `(dx, dw, db)` for input `xs`, weights `ws` and output
+    /// gradient `g` (`db` is the bias gradient whether or not there is a bias).
+    fn backward_slices(
+        &self,
+        d: &ConvDims,
+        xs: &[f32],
+        ws: &[f32],
+        g: &[f32],
+    ) -> candle_core::Result<(Vec<f32>, Vec<f32>, Vec<f32>)> {
         let ConvDims {
             b,
             c,
@@ -1042,89 +1136,60 @@ impl Conv2dGemm {
             k,
             n,
             ..
-        } = d;
+        } = *d;
         let plane = c * h * w;
-        // the input and the weights are read in place (no copies: this runs once per convolution
-        // in every training step)
-        let (dx, dw, db) = with_f32(x, "convolution input", |xs| {
-            with_f32(weight, "convolution weight", |ws| {
-                with_f32(grad, "convolution gradient", |g| {
-                    if g.len() != b * out_c * n {
-                        candle_core::bail!(
-                            "convolution: gradient {:?}, expected {:?}",
-                            grad.dims(),
-                            [b, out_c, d.ho, d.wo]
-                        )
+        if g.len() != b * out_c * n || xs.len() != b * plane || ws.len() != out_c * k {
+            candle_core::bail!(
+                "convolution: gradient of {} values, input of {}, weights of {} for {d:?}",
+                g.len(),
+                xs.len(),
+                ws.len()
+            )
+        }
+        let mut dx = zeros(b * plane);
+        let mut dw_parts = vec![0f32; b * out_c * k];
+        let mut db_parts = vec![0f32; b * out_c];
+        if !(dx.is_empty() || g.is_empty() || dw_parts.is_empty()) {
+            let (dws, dbs) = (out_c * k, out_c);
+            let scratch = self.cols.scratch_len(k, n);
+            if self.samples_in_parallel(d) {
+                dx.par_chunks_mut(plane)
+                    .zip(dw_parts.par_chunks_mut(dws))
+                    .zip(db_parts.par_chunks_mut(dbs))
+                    .zip(xs.par_chunks(plane).zip(g.par_chunks(out_c * n)))
+                    .try_for_each(|(((dxb, dwb), dbb), (xb, gb))| {
+                        with_scratch(scratch, |col, dcol| {
+                            self.backward_sample(d, (xb, ws, gb), (dxb, dwb, dbb), col, dcol, false)
+                        })
+                    })?;
+            } else {
+                with_scratch(scratch, |col, dcol| {
+                    for (((dxb, dwb), dbb), (xb, gb)) in dx
+                        .chunks_mut(plane)
+                        .zip(dw_parts.chunks_mut(dws))
+                        .zip(db_parts.chunks_mut(dbs))
+                        .zip(xs.chunks(plane).zip(g.chunks(out_c * n)))
+                    {
+                        self.backward_sample(d, (xb, ws, gb), (dxb, dwb, dbb), col, dcol, true)?;
                     }
-                    let mut dx = vec![0f32; b * plane];
-                    let mut dw_parts = vec![0f32; b * out_c * k];
-                    let mut db_parts = vec![0f32; b * out_c];
-                    if !(dx.is_empty() || g.is_empty() || dw_parts.is_empty()) {
-                        let (dws, dbs) = (out_c * k, out_c);
-                        if self.samples_in_parallel(&d) {
-                            dx.par_chunks_mut(plane)
-                                .zip(dw_parts.par_chunks_mut(dws))
-                                .zip(db_parts.par_chunks_mut(dbs))
-                                .zip(xs.par_chunks(plane).zip(g.par_chunks(out_c * n)))
-                                .try_for_each(|(((dxb, dwb), dbb), (xb, gb))| {
-                                    with_scratch(k * n, |col, dcol| {
-                                        self.backward_sample(
-                                            &d,
-                                            (xb, ws, gb),
-                                            (dxb, dwb, dbb),
-                                            col,
-                                            dcol,
-                                            false,
-                                        )
-                                    })
-                                })?;
-                        } else {
-                            with_scratch(k * n, |col, dcol| {
-                                for (((dxb, dwb), dbb), (xb, gb)) in dx
-                                    .chunks_mut(plane)
-                                    .zip(dw_parts.chunks_mut(dws))
-                                    .zip(db_parts.chunks_mut(dbs))
-                                    .zip(xs.chunks(plane).zip(g.chunks(out_c * n)))
-                                {
-                                    self.backward_sample(
-                                        &d,
-                                        (xb, ws, gb),
-                                        (dxb, dwb, dbb),
-                                        col,
-                                        dcol,
-                                        true,
-                                    )?;
-                                }
-                                Ok::<_, candle_core::Error>(())
-                            })?;
-                        }
-                    }
-                    let sum_parts = |parts: &[f32], len: usize| -> Vec<f32> {
-                        let mut acc = vec![0f32; len];
-                        for part in parts.chunks(len.max(1)) {
-                            for (a, v) in acc.iter_mut().zip(part) {
-                                *a += v;
-                            }
-                        }
-                        acc
-                    };
-                    Ok((
-                        dx,
-                        sum_parts(&dw_parts, out_c * k),
-                        sum_parts(&db_parts, out_c),
-                    ))
-                })
-            })
-        })?;
-        let dev = x.device();
-        let dx = Tensor::from_vec(dx, (b, c, h, w), dev)?;
-        let dw = Tensor::from_vec(dw, weight.dims(), dev)?;
-        let db = if with_bias {
-            Some(Tensor::from_vec(db, out_c, dev)?)
-        } else {
-            None
+                    Ok::<_, candle_core::Error>(())
+                })?;
+            }
+        }
+        let sum_parts = |parts: &[f32], len: usize| -> Vec<f32> {
+            let mut acc = vec![0f32; len];
+            for part in parts.chunks(len.max(1)) {
+                for (a, v) in acc.iter_mut().zip(part) {
+                    *a += v;
+                }
+            }
+            acc
         };
-        Ok((dx, dw, db))
+        Ok((
+            dx,
+            sum_parts(&dw_parts, out_c * k),
+            sum_parts(&db_parts, out_c),
+        ))
     }
 }
 
@@ -1513,6 +1578,53 @@ multiversion! {
 }
 
 impl GroupNormAct {
+    /// `act(GroupNorm(x) * scale + shift)` of `x: [B, C, N]` (contiguous) with `scale`, `shift:
+    /// [B, C]`, `C` divisible by the group count; groups of all samples in parallel.
+    fn forward_slices(
+        &self,
+        x: &[f32],
+        scale: &[f32],
+        shift: &[f32],
+        (c, n): (usize, usize),
+    ) -> Vec<f32> {
+        let cg = c / self.groups;
+        let mut dst = zeros(x.len());
+        if cg * n > 0 {
+            dst.par_chunks_mut(cg * n)
+                .zip(x.par_chunks(cg * n))
+                .zip(scale.par_chunks(cg).zip(shift.par_chunks(cg)))
+                .for_each(|((out, xs), (sc, sh))| {
+                    gn_forward_simd(out, xs, sc, sh, n, self.eps, self.silu)
+                });
+        }
+        dst
+    }
+
+    /// Gradients `(dx, dscale, dshift)` of [`Self::forward_slices`] for the output gradient `g`.
+    fn backward_slices(
+        &self,
+        x: &[f32],
+        scale: &[f32],
+        shift: &[f32],
+        g: &[f32],
+        (c, n): (usize, usize),
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let cg = c / self.groups;
+        let mut dx = zeros(x.len());
+        let mut dscale = vec![0f32; scale.len()];
+        let mut dshift = vec![0f32; shift.len()];
+        if cg * n > 0 {
+            dx.par_chunks_mut(cg * n)
+                .zip(x.par_chunks(cg * n).zip(g.par_chunks(cg * n)))
+                .zip(dscale.par_chunks_mut(cg).zip(dshift.par_chunks_mut(cg)))
+                .zip(scale.par_chunks(cg).zip(shift.par_chunks(cg)))
+                .for_each(|(((dxs, (xs, gs)), (dsc, dsh)), (scs, shs))| {
+                    gn_backward_simd(dxs, xs, gs, dsc, dsh, scs, shs, n, self.eps, self.silu)
+                });
+        }
+        (dx, dscale, dshift)
+    }
+
     fn check(
         &self,
         (b, c, _): (usize, usize, usize),
@@ -1552,16 +1664,7 @@ impl CustomOp3 for GroupNormAct {
         let x = slice_f32(s1, l1, "group norm input")?;
         let scale = slice_f32(s2, l2, "group norm scale")?;
         let shift = slice_f32(s3, l3, "group norm shift")?;
-        let cg = c / self.groups;
-        let mut dst = vec![0f32; x.len()];
-        if cg * n > 0 {
-            dst.par_chunks_mut(cg * n)
-                .zip(x.par_chunks(cg * n))
-                .zip(scale.par_chunks(cg).zip(shift.par_chunks(cg)))
-                .for_each(|((out, xs), (sc, sh))| {
-                    gn_forward_simd(out, xs, sc, sh, n, self.eps, self.silu)
-                });
-        }
+        let dst = self.forward_slices(x, scale, shift, (c, n));
         Ok((CpuStorage::F32(dst), l1.shape().clone()))
     }
 
@@ -1574,25 +1677,11 @@ impl CustomOp3 for GroupNormAct {
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let (b, c, n) = bcn(x.shape())?;
-        let cg = c / self.groups;
         let sc = tensor_f32(scale, "group norm scale")?;
         let sh = tensor_f32(shift, "group norm shift")?;
-        let mut dx = vec![0f32; b * c * n];
-        let mut dscale = vec![0f32; b * c];
-        let mut dshift = vec![0f32; b * c];
-        with_f32(x, "group norm input", |xv| {
+        let (dx, dscale, dshift) = with_f32(x, "group norm input", |xv| {
             with_f32(grad, "group norm gradient", |gv| {
-                if cg * n == 0 {
-                    return Ok(());
-                }
-                dx.par_chunks_mut(cg * n)
-                    .zip(xv.par_chunks(cg * n).zip(gv.par_chunks(cg * n)))
-                    .zip(dscale.par_chunks_mut(cg).zip(dshift.par_chunks_mut(cg)))
-                    .zip(sc.par_chunks(cg).zip(sh.par_chunks(cg)))
-                    .for_each(|(((dxs, (xs, gs)), (dsc, dsh)), (scs, shs))| {
-                        gn_backward_simd(dxs, xs, gs, dsc, dsh, scs, shs, n, self.eps, self.silu)
-                    });
-                Ok(())
+                Ok(self.backward_slices(xv, &sc, &sh, gv, (c, n)))
             })
         })?;
         let dev = x.device();
@@ -1705,15 +1794,14 @@ impl CustomOp2 for AddScaled {
                 l2.shape()
             )
         }
-        let mut dst = vec![0f32; a.len()];
         let s = self.scale;
-        dst.par_chunks_mut(GRAIN)
-            .zip(a.par_chunks(GRAIN).zip(b.par_chunks(GRAIN)))
-            .for_each(|(d, (a, b))| {
-                for ((d, a), b) in d.iter_mut().zip(a).zip(b) {
-                    *d = (a + b) * s;
-                }
-            });
+        // collected, not written into a zero-filled buffer: every value is new
+        let dst: Vec<f32> = a
+            .par_iter()
+            .zip(b)
+            .with_min_len(GRAIN)
+            .map(|(a, b)| (a + b) * s)
+            .collect();
         Ok((CpuStorage::F32(dst), l1.shape().clone()))
     }
 
@@ -1747,16 +1835,10 @@ impl CustomOp1 for Scale {
         layout: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
         let a = slice_f32(storage, layout, "scale input")?;
-        let mut dst = vec![0f32; a.len()];
-        let s = self.scale;
-        dst.par_chunks_mut(GRAIN)
-            .zip(a.par_chunks(GRAIN))
-            .for_each(|(d, a)| {
-                for (d, a) in d.iter_mut().zip(a) {
-                    *d = a * s;
-                }
-            });
-        Ok((CpuStorage::F32(dst), layout.shape().clone()))
+        Ok((
+            CpuStorage::F32(scaled(a, self.scale)),
+            layout.shape().clone(),
+        ))
     }
 }
 
@@ -1781,6 +1863,446 @@ pub fn add_scaled(a: &Tensor, b: &Tensor, scale: f64) -> Result<Tensor> {
 }
 
 // ---------------------------------------------------------------------------------------------
+// residual block
+
+/// The parameters of one [`res_block`] call, as the block's layers hold them.
+#[derive(Debug, Clone, Copy)]
+pub struct ResBlockParams<'a> {
+    /// GroupNorm 1's per-sample scale and shift, `[B, C_in]` each (its affine weights folded in).
+    pub norm1: (&'a Tensor, &'a Tensor),
+    /// Convolution 1: weights `[C_out, C_in, k, k]` and bias `[C_out]`.
+    pub conv1: (&'a Tensor, Option<&'a Tensor>),
+    /// GroupNorm 2's per-sample scale and shift, `[B, C_out]` each (time modulation folded in).
+    pub norm2: (&'a Tensor, &'a Tensor),
+    /// Convolution 2: weights `[C_out, C_out, k, k]` and bias `[C_out]`.
+    pub conv2: (&'a Tensor, Option<&'a Tensor>),
+    /// The skip's 1x1 convolution `[C_out, C_in, 1, 1]` and bias, when the channel count changes.
+    pub skip: Option<(&'a Tensor, Option<&'a Tensor>)>,
+}
+
+/// Group counts, epsilon, residual scale and convolution geometry of one [`res_block`].
+#[derive(Debug, Clone, Copy)]
+pub struct ResBlockSpec {
+    /// GroupNorm 1's group count (divides `C_in`).
+    pub groups1: usize,
+    /// GroupNorm 2's group count (divides `C_out`).
+    pub groups2: usize,
+    /// Both GroupNorms' variance epsilon.
+    pub eps: f64,
+    /// Factor on the residual sum.
+    pub scale: f64,
+    /// Both convolutions' padding and stride (the kernel comes from the weights; stride 1 and
+    /// size-preserving padding, so the skip adds up).
+    pub conv: Im2ColSpec,
+}
+
+/// What the forward pass of [`ResBlockOp`] keeps for its backward pass.
+struct ResBlockSaved {
+    /// `SiLU(GN1(x))`, convolution 1's input.
+    a1: Vec<f32>,
+    /// Convolution 1's output, GroupNorm 2's input.
+    h1: Vec<f32>,
+    /// `SiLU(GN2(h1))`, convolution 2's input.
+    a2: Vec<f32>,
+}
+
+/// A residual block as one op: `(skip(x) + conv2(SiLU(GN2(conv1(SiLU(GN1(x))))))) * scale`, from
+/// the kernels above, with the small per-sample and weight tensors packed into two flat inputs.
+/// candle's backward pass zero-fills and adds a gradient for every edge of its graph; as one node
+/// the block has one such edge instead of six, and its intermediate activations live here.
+struct ResBlockOp {
+    spec: ResBlockSpec,
+    /// `(C_in, C_out, k)`.
+    channels: (usize, usize, usize),
+    conv: Conv2dGemm,
+    skip: Option<Conv2dGemm>,
+    /// Which of conv 1, conv 2 and the skip have a bias.
+    biases: [bool; 3],
+    saved: std::sync::Mutex<Option<ResBlockSaved>>,
+}
+
+/// Offsets of the packed weights: `[w1, b1?, w2, b2?, ws?, bs?]`.
+struct ResBlockLayout {
+    w1: std::ops::Range<usize>,
+    b1: Option<std::ops::Range<usize>>,
+    w2: std::ops::Range<usize>,
+    b2: Option<std::ops::Range<usize>>,
+    ws: Option<std::ops::Range<usize>>,
+    bs: Option<std::ops::Range<usize>>,
+    len: usize,
+}
+
+impl ResBlockOp {
+    fn layout(&self) -> ResBlockLayout {
+        let (ci, co, k) = self.channels;
+        let mut at = 0;
+        let mut take = |len: usize| {
+            let r = at..at + len;
+            at += len;
+            r
+        };
+        let w1 = take(co * ci * k * k);
+        let b1 = self.biases[0].then(|| take(co));
+        let w2 = take(co * co * k * k);
+        let b2 = self.biases[1].then(|| take(co));
+        let ws = self.skip.map(|_| take(co * ci));
+        let bs = (self.skip.is_some() && self.biases[2]).then(|| take(co));
+        ResBlockLayout {
+            w1,
+            b1,
+            w2,
+            b2,
+            ws,
+            bs,
+            len: at,
+        }
+    }
+
+    /// `(B, H, W)` of the input, checked against the packed inputs' lengths.
+    fn check(
+        &self,
+        x: &[usize],
+        small: usize,
+        weights: usize,
+    ) -> candle_core::Result<(usize, usize, usize)> {
+        let (ci, co, _) = self.channels;
+        let &[b, c, h, w] = x else {
+            candle_core::bail!("residual block: input {x:?} is not 4-d")
+        };
+        if c != ci || small != 2 * b * (ci + co) || weights != self.layout().len {
+            candle_core::bail!(
+                "residual block: input {x:?}, {small} per-sample and {weights} weight values for {:?}",
+                self.channels
+            )
+        }
+        Ok((b, h, w))
+    }
+
+    fn conv_dims(
+        &self,
+        (b, h, w): (usize, usize, usize),
+    ) -> candle_core::Result<(ConvDims, ConvDims, Option<ConvDims>)> {
+        let (ci, co, k) = self.channels;
+        let d1 = self.conv.dims(&[b, ci, h, w], &[co, ci, k, k])?;
+        let d2 = self.conv.dims(&[b, co, h, w], &[co, co, k, k])?;
+        let ds = self
+            .skip
+            .map(|s| s.dims(&[b, ci, h, w], &[co, ci, 1, 1]))
+            .transpose()?;
+        if (d1.ho, d1.wo) != (h, w) {
+            candle_core::bail!(
+                "residual block: {:?} changes the size {h}x{w}",
+                self.spec.conv
+            )
+        }
+        Ok((d1, d2, ds))
+    }
+
+    fn norm(&self, groups: usize) -> GroupNormAct {
+        GroupNormAct {
+            groups,
+            eps: self.spec.eps,
+            silu: true,
+        }
+    }
+}
+
+impl CustomOp3 for ResBlockOp {
+    fn name(&self) -> &'static str {
+        "veila-res-block"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let x = slice_f32(s1, l1, "residual block input")?;
+        let small = slice_f32(s2, l2, "residual block norms")?;
+        let wts = slice_f32(s3, l3, "residual block weights")?;
+        let (b, h, w) = self.check(l1.dims(), small.len(), wts.len())?;
+        let (ci, co, _) = self.channels;
+        let (d1, d2, ds) = self.conv_dims((b, h, w))?;
+        let n = h * w;
+        let lay = self.layout();
+        let (sc1, rest) = small.split_at(b * ci);
+        let (sh1, rest) = rest.split_at(b * ci);
+        let (sc2, sh2) = rest.split_at(b * co);
+        let a1 = self
+            .norm(self.spec.groups1)
+            .forward_slices(x, sc1, sh1, (ci, n));
+        let h1 = self
+            .conv
+            .forward_vec(d1, &a1, &wts[lay.w1], lay.b1.map(|r| &wts[r]))?;
+        let a2 = self
+            .norm(self.spec.groups2)
+            .forward_slices(&h1, sc2, sh2, (co, n));
+        let mut out = self
+            .conv
+            .forward_vec(d2, &a2, &wts[lay.w2], lay.b2.map(|r| &wts[r]))?;
+        let skip = match (self.skip, ds, lay.ws) {
+            (Some(conv), Some(d), Some(ws)) => {
+                Some(conv.forward_vec(d, x, &wts[ws], lay.bs.map(|r| &wts[r]))?)
+            }
+            _ => None,
+        };
+        let skip: &[f32] = skip.as_deref().unwrap_or(x);
+        let s = self.spec.scale as f32;
+        out.par_chunks_mut(GRAIN)
+            .zip(skip.par_chunks(GRAIN))
+            .for_each(|(o, k)| {
+                for (o, k) in o.iter_mut().zip(k) {
+                    *o = (k + *o) * s;
+                }
+            });
+        *self
+            .saved
+            .lock()
+            .map_err(|_| candle_core::Error::Msg("residual block: poisoned".into()))? =
+            Some(ResBlockSaved { a1, h1, a2 });
+        Ok((CpuStorage::F32(out), Shape::from((b, co, h, w))))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        small: &Tensor,
+        weights: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let guard = self
+            .saved
+            .lock()
+            .map_err(|_| candle_core::Error::Msg("residual block: poisoned".into()))?;
+        let Some(saved) = guard.as_ref() else {
+            candle_core::bail!("residual block: backward pass before a forward pass")
+        };
+        let (b, h, w) = self.check(x.dims(), small.elem_count(), weights.elem_count())?;
+        let (ci, co, _) = self.channels;
+        let (d1, d2, ds) = self.conv_dims((b, h, w))?;
+        let n = h * w;
+        let lay = self.layout();
+        let sm = tensor_f32(small, "residual block norms")?;
+        let wts = tensor_f32(weights, "residual block weights")?;
+        let (sc1, rest) = sm.split_at(b * ci);
+        let (sh1, rest) = rest.split_at(b * ci);
+        let (sc2, sh2) = rest.split_at(b * co);
+        let s = self.spec.scale as f32;
+        let (dx, dsmall, dw) = with_f32(x, "residual block input", |xs| {
+            with_f32(grad, "residual block gradient", |g| {
+                // both branches of the sum get g * scale
+                let gs = scaled(g, s);
+                let mut dw = vec![0f32; lay.len];
+                let (da2, dw2, db2) =
+                    self.conv
+                        .backward_slices(&d2, &saved.a2, &wts[lay.w2.clone()], &gs)?;
+                dw[lay.w2.clone()].copy_from_slice(&dw2);
+                if let Some(r) = lay.b2.clone() {
+                    dw[r].copy_from_slice(&db2);
+                }
+                let (dh1, dsc2, dsh2) = self.norm(self.spec.groups2).backward_slices(
+                    &saved.h1,
+                    sc2,
+                    sh2,
+                    &da2,
+                    (co, n),
+                );
+                let (da1, dw1, db1) =
+                    self.conv
+                        .backward_slices(&d1, &saved.a1, &wts[lay.w1.clone()], &dh1)?;
+                dw[lay.w1.clone()].copy_from_slice(&dw1);
+                if let Some(r) = lay.b1.clone() {
+                    dw[r].copy_from_slice(&db1);
+                }
+                let (mut dx, dsc1, dsh1) =
+                    self.norm(self.spec.groups1)
+                        .backward_slices(xs, sc1, sh1, &da1, (ci, n));
+                // the skip's share of dx
+                match (self.skip, ds, lay.ws.clone()) {
+                    (Some(conv), Some(d), Some(r)) => {
+                        let (dxs, dws, dbs) = conv.backward_slices(&d, xs, &wts[r.clone()], &gs)?;
+                        dw[r].copy_from_slice(&dws);
+                        if let Some(rb) = lay.bs.clone() {
+                            dw[rb].copy_from_slice(&dbs);
+                        }
+                        add_into(&mut dx, &dxs);
+                    }
+                    _ => add_into(&mut dx, &gs),
+                }
+                let dsmall = [dsc1, dsh1, dsc2, dsh2].concat();
+                Ok((dx, dsmall, dw))
+            })
+        })?;
+        let dev = x.device();
+        Ok((
+            Some(Tensor::from_vec(dx, x.shape(), dev)?),
+            Some(Tensor::from_vec(dsmall, small.shape(), dev)?),
+            Some(Tensor::from_vec(dw, weights.shape(), dev)?),
+        ))
+    }
+}
+
+/// `a * s`, collected over the rayon pool.
+fn scaled(a: &[f32], s: f32) -> Vec<f32> {
+    a.par_iter().with_min_len(GRAIN).map(|v| v * s).collect()
+}
+
+/// `acc += v`, elementwise over the rayon pool.
+fn add_into(acc: &mut [f32], v: &[f32]) {
+    acc.par_chunks_mut(GRAIN)
+        .zip(v.par_chunks(GRAIN))
+        .for_each(|(a, v)| {
+            for (a, v) in a.iter_mut().zip(v) {
+                *a += v;
+            }
+        });
+}
+
+/// A residual block `(skip(x) + conv2(SiLU(GN2(conv1(SiLU(GN1(x))))))) * scale` as one op on CPU
+/// f32 tensors (`skip` is a 1x1 convolution when given, the identity otherwise); `None` when a
+/// tensor is not CPU f32 or the kernels are off (then compose the layers instead). The GroupNorms'
+/// scales and shifts are per sample (`[B, C]`), with their affine weights and any modulation
+/// folded in, as in [`group_norm_act`]. Same arithmetic as that composition, kernel for kernel.
+pub fn res_block(x: &Tensor, p: ResBlockParams<'_>, spec: ResBlockSpec) -> Result<Option<Tensor>> {
+    let mut all = vec![
+        x, p.norm1.0, p.norm1.1, p.norm2.0, p.norm2.1, p.conv1.0, p.conv2.0,
+    ];
+    all.extend(p.conv1.1);
+    all.extend(p.conv2.1);
+    if let Some((w, b)) = p.skip {
+        all.push(w);
+        all.extend(b);
+    }
+    if !all.iter().all(|t| on_cpu_f32(t)) {
+        return Ok(None);
+    }
+    let (b, ci, h, w) = x.dims4()?;
+    let (co, wc, kh, kw) = p.conv1.0.dims4()?;
+    if wc != ci || kh != kw || p.conv2.0.dims() != [co, co, kh, kw] {
+        return Err(shape_err(
+            "residual block weights",
+            format!("[C_out, {ci}, k, k] and [C_out, C_out, k, k]"),
+            p.conv1.0.dims(),
+        ));
+    }
+    if spec.groups1 == 0
+        || spec.groups2 == 0
+        || !ci.is_multiple_of(spec.groups1)
+        || !co.is_multiple_of(spec.groups2)
+    {
+        return Err(shape_err(
+            "residual block input",
+            format!(
+                "channels divisible by {} and {}",
+                spec.groups1, spec.groups2
+            ),
+            x.dims(),
+        ));
+    }
+    for (t, want) in [
+        (p.norm1.0, [b, ci]),
+        (p.norm1.1, [b, ci]),
+        (p.norm2.0, [b, co]),
+        (p.norm2.1, [b, co]),
+    ] {
+        if t.dims() != want {
+            return Err(shape_err(
+                "residual block scale/shift",
+                format!("{want:?}"),
+                t.dims(),
+            ));
+        }
+    }
+    for bias in [p.conv1.1, p.conv2.1, p.skip.and_then(|s| s.1)]
+        .into_iter()
+        .flatten()
+    {
+        if bias.dims() != [co] {
+            return Err(shape_err(
+                "residual block bias",
+                format!("[{co}]"),
+                bias.dims(),
+            ));
+        }
+    }
+    match p.skip {
+        Some((sw, _)) if sw.dims() != [co, ci, 1, 1] => {
+            return Err(shape_err(
+                "residual block skip",
+                format!("[{co}, {ci}, 1, 1]"),
+                sw.dims(),
+            ));
+        }
+        None if ci != co => {
+            return Err(shape_err(
+                "residual block skip",
+                format!("a [{co}, {ci}, 1, 1] projection"),
+                &[],
+            ));
+        }
+        _ => {}
+    }
+    let flat = |t: &Tensor| t.flatten_all();
+    let small = Tensor::cat(
+        &[
+            flat(p.norm1.0)?,
+            flat(p.norm1.1)?,
+            flat(p.norm2.0)?,
+            flat(p.norm2.1)?,
+        ],
+        0,
+    )?;
+    let mut parts = vec![flat(p.conv1.0)?];
+    parts.extend(p.conv1.1.cloned());
+    parts.push(flat(p.conv2.0)?);
+    parts.extend(p.conv2.1.cloned());
+    if let Some((sw, sb)) = p.skip {
+        parts.push(flat(sw)?);
+        parts.extend(sb.cloned());
+    }
+    let weights = Tensor::cat(&parts, 0)?;
+    let identity = Im2ColSpec {
+        kernel: (1, 1),
+        stride: (1, 1),
+        pad_h: 0,
+        pad_w: 0,
+        ring: false,
+        ones_row: false,
+    };
+    let op = ResBlockOp {
+        spec,
+        channels: (ci, co, kh),
+        conv: Conv2dGemm {
+            cols: Im2Col {
+                spec: Im2ColSpec {
+                    kernel: (kh, kw),
+                    ones_row: false,
+                    ..spec.conv
+                },
+            },
+            parallel: None,
+        },
+        skip: p.skip.map(|_| Conv2dGemm {
+            cols: Im2Col { spec: identity },
+            parallel: None,
+        }),
+        biases: [
+            p.conv1.1.is_some(),
+            p.conv2.1.is_some(),
+            p.skip.is_some_and(|s| s.1.is_some()),
+        ],
+        saved: std::sync::Mutex::new(None),
+    };
+    let _ = (h, w);
+    Ok(Some(x.contiguous()?.apply_op3(&small, &weights, op)?))
+}
+
+// ---------------------------------------------------------------------------------------------
 // nearest-neighbour upsampling
 
 #[derive(Debug, Clone, Copy)]
@@ -1802,7 +2324,7 @@ impl CustomOp1 for UpsampleNearest {
         let (b, c, h, w) = layout.shape().dims4()?;
         let f = self.factor;
         let (ho, wo) = (h * f, w * f);
-        let mut dst = vec![0f32; b * c * ho * wo];
+        let mut dst = zeros(b * c * ho * wo);
         if h * w > 0 {
             dst.par_chunks_mut(ho * wo)
                 .zip(x.par_chunks(h * w))
@@ -1861,7 +2383,7 @@ impl CustomOp1 for DownsampleSum {
             candle_core::bail!("block sum: {ho}x{wo} is not divisible by {f}")
         }
         let (h, w) = (ho / f, wo / f);
-        let mut dst = vec![0f32; b * c * h * w];
+        let mut dst = zeros(b * c * h * w);
         if h * w > 0 {
             dst.par_chunks_mut(h * w)
                 .zip(g.par_chunks(ho * wo))

@@ -37,9 +37,10 @@
 //! **Speed on the CPU** (measured in BENCHMARKS.md, `cargo xtask bench-model`): the convolutions,
 //! GroupNorms and residual sums run as the multi-threaded kernels of [`fused`]. A program of its own
 //! gets the `veila` binary's speed with two process settings: a global allocator that keeps freed
-//! memory (mimalloc, with a purge delay of seconds), and `RAYON_NUM_THREADS` set before the first
-//! candle operation (candle 0.11 otherwise counts the cores from `/proc/cpuinfo` on every matrix
-//! product).
+//! memory (mimalloc, with a purge delay of seconds), and two environment variables set before the
+//! first candle operation: `RAYON_NUM_THREADS` (candle 0.11 otherwise counts the cores from
+//! `/proc/cpuinfo` on every matrix product) and `CANDLE_NUM_THREADS=1` (candle's own thread pool
+//! spins after each of its ops on the cores the kernels here use next).
 
 pub mod cacm;
 pub mod checkpoint;

@@ -95,25 +95,30 @@ impl RingConv2d {
         })
     }
 
+    /// Weights `[out, in, k, k]` and bias `[out]`.
+    pub(crate) fn weights(&self) -> (&Tensor, Option<&Tensor>) {
+        (&self.weight, self.bias.as_ref())
+    }
+
+    /// The im2col geometry of [`Self::forward`] (ring padding in width, zeros in height).
+    pub(crate) fn spec(&self) -> Im2ColSpec {
+        let p = self.kernel / 2;
+        Im2ColSpec {
+            kernel: (self.kernel, self.kernel),
+            stride: (self.stride, self.stride),
+            pad_h: p,
+            pad_w: p,
+            ring: true,
+            ones_row: false,
+        }
+    }
+
     /// `[B, in, H, W] -> [B, out, ceil(H/stride), ceil(W/stride)]` (for odd kernels).
     ///
     /// Runs as one im2col ([`crate::fused::im2col`], padding included) and one matrix product.
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let _enter = self.span.enter();
-        let p = self.kernel / 2;
-        conv2d_im2col(
-            x,
-            &self.weight,
-            self.bias.as_ref(),
-            Im2ColSpec {
-                kernel: (self.kernel, self.kernel),
-                stride: (self.stride, self.stride),
-                pad_h: p,
-                pad_w: p,
-                ring: true,
-                ones_row: false,
-            },
-        )
+        conv2d_im2col(x, &self.weight, self.bias.as_ref(), self.spec())
     }
 }
 
@@ -326,6 +331,11 @@ impl Conv1x1 {
         Ok(Self { weight, bias })
     }
 
+    /// Weights `[out, in, 1, 1]` and bias `[out]`.
+    pub(crate) fn weights(&self) -> (&Tensor, Option<&Tensor>) {
+        (&self.weight, self.bias.as_ref())
+    }
+
     /// `[B, in, ...spatial] -> [B, out, ...spatial]` (any number of trailing spatial dims).
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let dims = x.dims().to_vec();
@@ -342,14 +352,33 @@ impl Conv1x1 {
                 &dims,
             ));
         }
+        let mut out_dims = dims;
+        out_dims[1] = out_c;
+        if crate::fused::takes_kernels(x) {
+            // one fused op (bias inside, input read in place): the product below builds a
+            // batch-broadcast weight and a `[1, out, 1]` bias broadcast, whose backward passes
+            // are candle's single-threaded strided sums (about a tenth of a training step)
+            let y = crate::fused::conv2d(
+                &x.reshape((b, c, n, 1))?,
+                &self.weight,
+                self.bias.as_ref(),
+                Im2ColSpec {
+                    kernel: (1, 1),
+                    stride: (1, 1),
+                    pad_h: 0,
+                    pad_w: 0,
+                    ring: false,
+                    ones_row: false,
+                },
+            )?;
+            return Ok(y.reshape(out_dims)?);
+        }
         let w = self.weight.to_dtype(x.dtype())?.reshape((1, out_c, in_c))?;
         let y = w.broadcast_matmul(&x.reshape((b, c, n))?)?;
         let y = match &self.bias {
             Some(bias) => add_bias(&y, &bias.reshape((1, out_c, 1))?)?,
             None => y,
         };
-        let mut out_dims = dims;
-        out_dims[1] = out_c;
         Ok(y.reshape(out_dims)?)
     }
 }
@@ -529,8 +558,13 @@ impl GroupNorm {
         self.groups
     }
 
+    /// Variance epsilon.
+    pub(crate) fn eps(&self) -> f64 {
+        self.eps
+    }
+
     /// The affine weights broadcast to `[B, C]` (scale, shift).
-    fn affine(&self, b: usize) -> Result<(Tensor, Tensor)> {
+    pub(crate) fn affine(&self, b: usize) -> Result<(Tensor, Tensor)> {
         let c = self.weight.dim(0)?;
         Ok((
             self.weight
@@ -560,13 +594,23 @@ impl GroupNorm {
         scale: &Tensor,
         shift: &Tensor,
     ) -> Result<Tensor> {
+        let (sc, sh) = self.modulated_affine(scale, shift)?;
+        group_norm_act(x, &sc, &sh, self.groups, self.eps, true)
+    }
+
+    /// The per-sample `[B, C]` scale and shift of [`Self::forward_modulated_silu`].
+    pub(crate) fn modulated_affine(
+        &self,
+        scale: &Tensor,
+        shift: &Tensor,
+    ) -> Result<(Tensor, Tensor)> {
         // (xhat w + b)(1 + s) + t = xhat [w (1 + s)] + [b (1 + s) + t], in the weights' dtype
         // (f32 master weights under mixed precision; group_norm_act casts as it needs)
         let dt = self.weight.dtype();
         let one_s = (scale.to_dtype(dt)? + 1.0)?;
         let sc = one_s.broadcast_mul(&self.weight.unsqueeze(0)?)?;
         let sh = (one_s.broadcast_mul(&self.bias.unsqueeze(0)?)? + shift.to_dtype(dt)?)?;
-        group_norm_act(x, &sc, &sh, self.groups, self.eps, true)
+        Ok((sc, sh))
     }
 }
 

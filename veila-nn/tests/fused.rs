@@ -6,10 +6,10 @@ use std::collections::HashMap;
 use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::VarBuilder;
 use veila_nn::fused::{
-    Im2ColSpec, add_scaled, conv2d, conv2d_reference, group_norm_act, group_norm_act_reference,
-    im2col, im2col_reference,
+    Im2ColSpec, ResBlockParams, ResBlockSpec, add_scaled, conv2d, conv2d_reference, group_norm_act,
+    group_norm_act_reference, im2col, im2col_reference, res_block,
 };
-use veila_nn::ops::{RingConv2d, conv2d_zero_pad, group_norm, ring_pad};
+use veila_nn::ops::{Conv1x1, RingConv2d, conv2d_zero_pad, group_norm, ring_pad};
 
 fn seeded(shape: &[usize], seed: u64) -> Tensor {
     // a fixed pseudo-random pattern (no RNG dependency): values in about [-2, 2]
@@ -217,6 +217,77 @@ fn fused_convolution_of_one_sample_matches_im2col_and_matmul() {
 }
 
 #[test]
+fn one_by_one_convolution_reads_its_input_in_place_on_either_path() {
+    // a 1x1 kernel at stride 1 without padding skips the column buffer (forward) and writes the
+    // input gradient directly (backward): batch 1 (threaded products) and batch 3 (samples in
+    // parallel) against im2col + matmul
+    let spec = Im2ColSpec {
+        kernel: (1, 1),
+        stride: (1, 1),
+        pad_h: 0,
+        pad_w: 0,
+        ring: false,
+        ones_row: false,
+    };
+    for (b, h, w) in [(1, 40, 96), (3, 5, 9)] {
+        let x = Var::from_tensor(&seeded(&[b, 6, h, w], 41)).unwrap();
+        let wt = Var::from_tensor(&(seeded(&[7, 6, 1, 1], 42) * 0.4).unwrap()).unwrap();
+        let bias = Var::from_tensor(&seeded(&[7], 43)).unwrap();
+        let fast = conv2d(x.as_tensor(), wt.as_tensor(), Some(bias.as_tensor()), spec).unwrap();
+        let slow = conv2d_reference(
+            x.as_tensor(),
+            wt.as_tensor(),
+            Some(bias.as_tensor()),
+            spec,
+            (b, h, w),
+        )
+        .unwrap();
+        let what = format!("1x1 batch {b}");
+        assert_close(&fast, &slow, &what);
+        let gf = conv_grads(&fast, &[&x, &wt, &bias]);
+        let gs = conv_grads(&slow, &[&x, &wt, &bias]);
+        for (k, (a, e)) in gf.iter().zip(&gs).enumerate() {
+            assert_close(a, e, &format!("{what} gradient {k}"));
+        }
+    }
+}
+
+#[test]
+fn conv1x1_layer_matches_the_per_pixel_product_with_gradients() {
+    // the layer takes the fused convolution on CPU f32 input; the reference is the plain per-pixel
+    // product `W x + b` (a batch-broadcast matrix product), for 4-d and 3-d inputs
+    for shape in [vec![3, 5, 4, 9], vec![2, 5, 11]] {
+        let vm = candle_nn::VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu);
+        let layer = Conv1x1::new(5, 4, true, vb).unwrap();
+        let vars = vm.data().lock().unwrap().clone();
+        let (w, b) = (&vars["weight"], &vars["bias"]);
+        let x = Var::from_tensor(&seeded(&shape, 51)).unwrap();
+        let fast = layer.forward(x.as_tensor()).unwrap();
+        let n: usize = shape[2..].iter().product();
+        let slow = w
+            .as_tensor()
+            .reshape((1, 4, 5))
+            .unwrap()
+            .broadcast_matmul(&x.as_tensor().reshape((shape[0], 5, n)).unwrap())
+            .unwrap()
+            .broadcast_add(&b.as_tensor().reshape((1, 4, 1)).unwrap())
+            .unwrap();
+        let mut out = shape.clone();
+        out[1] = 4;
+        let slow = slow.reshape(out.as_slice()).unwrap();
+        let what = format!("conv1x1 {shape:?}");
+        assert_eq!(fast.dims(), slow.dims(), "{what}");
+        assert_close(&fast, &slow, &what);
+        let gf = conv_grads(&fast, &[&x, w, b]);
+        let gs = conv_grads(&slow, &[&x, w, b]);
+        for (k, (a, e)) in gf.iter().zip(&gs).enumerate() {
+            assert_close(a, e, &format!("{what} gradient {k}"));
+        }
+    }
+}
+
+#[test]
 fn fused_convolution_rejects_mismatched_weights_and_bias() {
     let x = seeded(&[1, 4, 6, 6], 1);
     let spec = specs()[0];
@@ -326,4 +397,165 @@ fn upsample_nearest_matches_the_broadcast_with_gradients() {
     let gf = conv_grads(&fast, &[&x]);
     let gs = conv_grads(&slow, &[&x]);
     assert_close(&gf[0], &gs[0], "upsample gradient");
+}
+
+#[test]
+fn fused_residual_block_matches_the_composition_with_gradients() {
+    // the block as one op against candle's composition of the same formula (reference GroupNorm,
+    // im2col + matmul convolutions, plain sum): with and without the 1x1 skip and biases, at
+    // batch 1 (threaded products) and 3 (samples in parallel)
+    let spec = Im2ColSpec {
+        kernel: (3, 3),
+        stride: (1, 1),
+        pad_h: 1,
+        pad_w: 1,
+        ring: true,
+        ones_row: false,
+    };
+    let identity = Im2ColSpec {
+        kernel: (1, 1),
+        pad_h: 0,
+        pad_w: 0,
+        ring: false,
+        ..spec
+    };
+    for (case, (b, ci, co, biases)) in [
+        (3, 4, 4, true),
+        (1, 4, 6, true),
+        (3, 6, 4, false),
+        (2, 4, 4, false),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let (h, w) = (5, 12);
+        let seed = 100 * case as u64;
+        let var = |shape: &[usize], k: u64, scale: f64| {
+            Var::from_tensor(&(seeded(shape, seed + k) * scale).unwrap()).unwrap()
+        };
+        let x = var(&[b, ci, h, w], 1, 1.0);
+        let (sc1, sh1) = (var(&[b, ci], 2, 0.5), var(&[b, ci], 3, 0.5));
+        let (sc2, sh2) = (var(&[b, co], 4, 0.5), var(&[b, co], 5, 0.5));
+        let (w1, b1) = (var(&[co, ci, 3, 3], 6, 0.3), var(&[co], 7, 0.5));
+        let (w2, b2) = (var(&[co, co, 3, 3], 8, 0.3), var(&[co], 9, 0.5));
+        let (ws, bs) = (var(&[co, ci, 1, 1], 10, 0.4), var(&[co], 11, 0.5));
+        let with_skip = ci != co;
+        let bias = |v: &Var| biases.then(|| v.as_tensor().clone());
+        let (b1t, b2t, bst) = (bias(&b1), bias(&b2), bias(&bs));
+        let (groups1, groups2) = (ci / 2, co / 2);
+        let rb_spec = ResBlockSpec {
+            groups1,
+            groups2,
+            eps: 1e-5,
+            scale: 0.7,
+            conv: spec,
+        };
+        let fast = res_block(
+            x.as_tensor(),
+            ResBlockParams {
+                norm1: (sc1.as_tensor(), sh1.as_tensor()),
+                conv1: (w1.as_tensor(), b1t.as_ref()),
+                norm2: (sc2.as_tensor(), sh2.as_tensor()),
+                conv2: (w2.as_tensor(), b2t.as_ref()),
+                skip: with_skip.then(|| (ws.as_tensor(), bst.as_ref())),
+            },
+            rb_spec,
+        )
+        .unwrap()
+        .expect("CPU f32 takes the fused op");
+        let a1 = group_norm_act_reference(
+            x.as_tensor(),
+            sc1.as_tensor(),
+            sh1.as_tensor(),
+            groups1,
+            1e-5,
+            true,
+        )
+        .unwrap();
+        let h1 = conv2d_reference(&a1, w1.as_tensor(), b1t.as_ref(), spec, (b, h, w)).unwrap();
+        let a2 =
+            group_norm_act_reference(&h1, sc2.as_tensor(), sh2.as_tensor(), groups2, 1e-5, true)
+                .unwrap();
+        let h2 = conv2d_reference(&a2, w2.as_tensor(), b2t.as_ref(), spec, (b, h, w)).unwrap();
+        let skip = if with_skip {
+            conv2d_reference(
+                x.as_tensor(),
+                ws.as_tensor(),
+                bst.as_ref(),
+                identity,
+                (b, h, w),
+            )
+            .unwrap()
+        } else {
+            x.as_tensor().clone()
+        };
+        let slow = ((skip + h2).unwrap() * 0.7).unwrap();
+        let what = format!("residual block b{b} {ci}->{co} biases {biases}");
+        assert_eq!(fast.dims(), [b, co, h, w], "{what}");
+        assert_close(&fast, &slow, &what);
+        let mut vars = vec![&x, &sc1, &sh1, &sc2, &sh2, &w1, &w2];
+        if biases {
+            vars.extend([&b1, &b2]);
+        }
+        if with_skip {
+            vars.push(&ws);
+            if biases {
+                vars.push(&bs);
+            }
+        }
+        let gf = conv_grads(&fast, &vars);
+        let gs = conv_grads(&slow, &vars);
+        for (k, (a, e)) in gf.iter().zip(&gs).enumerate() {
+            assert_close(a, e, &format!("{what} gradient {k}"));
+        }
+    }
+}
+
+#[test]
+fn fused_residual_block_rejects_mismatched_parameters() {
+    let spec = ResBlockSpec {
+        groups1: 2,
+        groups2: 2,
+        eps: 1e-5,
+        scale: 1.0,
+        conv: Im2ColSpec {
+            kernel: (3, 3),
+            stride: (1, 1),
+            pad_h: 1,
+            pad_w: 1,
+            ring: true,
+            ones_row: false,
+        },
+    };
+    let x = seeded(&[2, 4, 4, 6], 1);
+    let n4 = seeded(&[2, 4], 2);
+    let w = seeded(&[4, 4, 3, 3], 3);
+    fn params<'a>(
+        n4: &'a Tensor,
+        w: &'a Tensor,
+        norm2: &'a Tensor,
+        skip: Option<(&'a Tensor, Option<&'a Tensor>)>,
+    ) -> ResBlockParams<'a> {
+        ResBlockParams {
+            norm1: (n4, n4),
+            conv1: (w, None),
+            norm2: (norm2, norm2),
+            conv2: (w, None),
+            skip,
+        }
+    }
+    assert!(
+        res_block(&x, params(&n4, &w, &n4, None), spec)
+            .unwrap()
+            .is_some()
+    );
+    // a per-sample scale for the wrong batch
+    let n3 = seeded(&[3, 4], 4);
+    assert!(res_block(&x, params(&n4, &w, &n3, None), spec).is_err());
+    // a skip projection of the wrong shape
+    let ws = seeded(&[4, 3, 1, 1], 5);
+    assert!(res_block(&x, params(&n4, &w, &n4, Some((&ws, None))), spec).is_err());
+    // groups that do not divide the channels
+    let bad = ResBlockSpec { groups1: 3, ..spec };
+    assert!(res_block(&x, params(&n4, &w, &n4, None), bad).is_err());
 }
