@@ -2181,7 +2181,7 @@ pub fn res_block(x: &Tensor, p: ResBlockParams<'_>, spec: ResBlockSpec) -> Resul
     if !all.iter().all(|t| on_cpu_f32(t)) {
         return Ok(None);
     }
-    let (b, ci, h, w) = x.dims4()?;
+    let (b, ci, _, _) = x.dims4()?;
     let (co, wc, kh, kw) = p.conv1.0.dims4()?;
     if wc != ci || kh != kw || p.conv2.0.dims() != [co, co, kh, kw] {
         return Err(shape_err(
@@ -2298,7 +2298,6 @@ pub fn res_block(x: &Tensor, p: ResBlockParams<'_>, spec: ResBlockSpec) -> Resul
         ],
         saved: std::sync::Mutex::new(None),
     };
-    let _ = (h, w);
     Ok(Some(x.contiguous()?.apply_op3(&small, &weights, op)?))
 }
 
