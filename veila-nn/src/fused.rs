@@ -218,6 +218,17 @@ pub struct Im2ColSpec {
 }
 
 impl Im2ColSpec {
+    /// A 1x1 kernel at stride 1 without padding: a per-pixel linear map, whose column matrix is the
+    /// input itself (the fused convolution then reads the input in place).
+    pub const POINTWISE: Self = Self {
+        kernel: (1, 1),
+        stride: (1, 1),
+        pad_h: 0,
+        pad_w: 0,
+        ring: false,
+        ones_row: false,
+    };
+
     /// Output `(H_o, W_o)` for an input of `h x w`.
     pub fn out_size(&self, h: usize, w: usize) -> Option<(usize, usize)> {
         let (kh, kw) = self.kernel;
@@ -756,8 +767,10 @@ impl Im2Col {
     /// no padding): the convolution then reads the input in place and writes the input gradient
     /// directly, with no column buffer.
     fn is_identity(&self) -> bool {
-        let s = self.spec;
-        s.kernel == (1, 1) && s.stride == (1, 1) && s.pad_h == 0 && s.pad_w == 0 && !s.ones_row
+        Im2ColSpec {
+            ring: false,
+            ..self.spec
+        } == Im2ColSpec::POINTWISE
     }
 
     /// Scratch floats per column buffer for a `k x n` column matrix (none for [`Self::is_identity`]).
@@ -2266,14 +2279,6 @@ pub fn res_block(x: &Tensor, p: ResBlockParams<'_>, spec: ResBlockSpec) -> Resul
         parts.extend(sb.cloned());
     }
     let weights = Tensor::cat(&parts, 0)?;
-    let identity = Im2ColSpec {
-        kernel: (1, 1),
-        stride: (1, 1),
-        pad_h: 0,
-        pad_w: 0,
-        ring: false,
-        ones_row: false,
-    };
     let op = ResBlockOp {
         spec,
         channels: (ci, co, kh),
@@ -2288,7 +2293,9 @@ pub fn res_block(x: &Tensor, p: ResBlockParams<'_>, spec: ResBlockSpec) -> Resul
             parallel: None,
         },
         skip: p.skip.map(|_| Conv2dGemm {
-            cols: Im2Col { spec: identity },
+            cols: Im2Col {
+                spec: Im2ColSpec::POINTWISE,
+            },
             parallel: None,
         }),
         biases: [

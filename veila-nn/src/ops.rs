@@ -362,14 +362,7 @@ impl Conv1x1 {
                 &x.reshape((b, c, n, 1))?,
                 &self.weight,
                 self.bias.as_ref(),
-                Im2ColSpec {
-                    kernel: (1, 1),
-                    stride: (1, 1),
-                    pad_h: 0,
-                    pad_w: 0,
-                    ring: false,
-                    ones_row: false,
-                },
+                Im2ColSpec::POINTWISE,
             )?;
             return Ok(y.reshape(out_dims)?);
         }
