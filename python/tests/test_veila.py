@@ -10,6 +10,7 @@
 Checks on real scans skip when ``../shared/data/real`` is absent."""
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -311,3 +312,19 @@ def test_generate_checks_its_input(tmp_path):
         veila.generate(image, k, t, steps=0)
     with pytest.raises(ValueError, match="no-model"):
         veila.generate(image, k, t, steps=2, model_dir=tmp_path / "no-model")
+
+
+def test_import_turns_candles_spinning_pool_off_unless_the_user_chose():
+    # a fresh interpreter: the import sets CANDLE_NUM_THREADS=1 where it is unset, and keeps a
+    # user's own value
+    import subprocess
+    import sys
+
+    code = "import os, veila; print(os.environ['CANDLE_NUM_THREADS'])"
+    env = {k: v for k, v in os.environ.items() if k != "CANDLE_NUM_THREADS"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "1"
+    env["CANDLE_NUM_THREADS"] = "3"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert out.stdout.strip() == "3"

@@ -15,7 +15,15 @@ reproductions of the peers' scripts).
 {'jsd': 0.0, 'mmd': 0.0}
 """
 
-from ._veila import (
+import os as _os
+
+# candle's own thread pool keeps a worker spinning after each of its ops, on the cores that the
+# engine's kernels (rayon) need next; the `veila` binary turns it off at start-up (training step
+# 264 -> 236 ms, BENCHMARKS.md), and so does this import where the variable is not set already. The
+# extension reads it at its first tensor operation, so it must be set before that.
+_os.environ.setdefault("CANDLE_NUM_THREADS", "1")
+
+from ._veila import (  # noqa: E402
     PROTOCOLS,
     chamfer_distance,
     frechet_distance,
