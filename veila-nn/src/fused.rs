@@ -2111,13 +2111,19 @@ impl CustomOp3 for ResBlockOp {
                 // both branches of the sum get g * scale
                 let gs = scaled(g, s);
                 let mut dw = vec![0f32; lay.len];
+                // a convolution's weight and bias gradients into their places in `dw`
+                let mut put = |w: std::ops::Range<usize>,
+                               b: Option<std::ops::Range<usize>>,
+                               (dwv, dbv): (Vec<f32>, Vec<f32>)| {
+                    dw[w].copy_from_slice(&dwv);
+                    if let Some(r) = b {
+                        dw[r].copy_from_slice(&dbv);
+                    }
+                };
                 let (da2, dw2, db2) =
                     self.conv
                         .backward_slices(&d2, &saved.a2, &wts[lay.w2.clone()], &gs)?;
-                dw[lay.w2.clone()].copy_from_slice(&dw2);
-                if let Some(r) = lay.b2.clone() {
-                    dw[r].copy_from_slice(&db2);
-                }
+                put(lay.w2.clone(), lay.b2.clone(), (dw2, db2));
                 let (dh1, dsc2, dsh2) = self.norm(self.spec.groups2).backward_slices(
                     &saved.h1,
                     sc2,
@@ -2128,10 +2134,7 @@ impl CustomOp3 for ResBlockOp {
                 let (da1, dw1, db1) =
                     self.conv
                         .backward_slices(&d1, &saved.a1, &wts[lay.w1.clone()], &dh1)?;
-                dw[lay.w1.clone()].copy_from_slice(&dw1);
-                if let Some(r) = lay.b1.clone() {
-                    dw[r].copy_from_slice(&db1);
-                }
+                put(lay.w1.clone(), lay.b1.clone(), (dw1, db1));
                 let (mut dx, dsc1, dsh1) =
                     self.norm(self.spec.groups1)
                         .backward_slices(xs, sc1, sh1, &da1, (ci, n));
@@ -2139,10 +2142,7 @@ impl CustomOp3 for ResBlockOp {
                 match (self.skip, ds, lay.ws.clone()) {
                     (Some(conv), Some(d), Some(r)) => {
                         let (dxs, dws, dbs) = conv.backward_slices(&d, xs, &wts[r.clone()], &gs)?;
-                        dw[r].copy_from_slice(&dws);
-                        if let Some(rb) = lay.bs.clone() {
-                            dw[rb].copy_from_slice(&dbs);
-                        }
+                        put(r, lay.bs.clone(), (dws, dbs));
                         add_into(&mut dx, &dxs);
                     }
                     _ => add_into(&mut dx, &gs),
