@@ -42,15 +42,19 @@ pub struct BenchReportArgs {
     /// The bundle whose encoders every variant shares (and whose denoiser the sampler sweep uses).
     #[arg(long, default_value = "models/default")]
     model: PathBuf,
-    /// Held-out test frames (scenes/test.txt, interleaving its scene files), split into
+    /// Held-out test frames (from --test-scenes, interleaving its scene files), split into
     /// `--folds` disjoint folds: every metric is computed per fold (and seed), and the spread is
     /// over folds and seeds.
     #[arg(long, default_value_t = 120)]
     test_frames: usize,
+    /// Scene list of the held-out test frames (`scenes/test-v3.txt` for a bundle trained on
+    /// `scenes/train-v3.txt`). The baselines are built from the bundle's own training list.
+    #[arg(long, default_value = "scenes/test.txt")]
+    test_scenes: PathBuf,
     /// Disjoint folds of the test frames.
     #[arg(long, default_value_t = 3)]
     folds: usize,
-    /// Training frames (scenes/train.txt) behind the baselines: their per-pixel median scan, and
+    /// Training frames (the bundle's training list) behind the baselines: their per-pixel median scan, and
     /// the retrieval database.
     #[arg(long, default_value_t = 480)]
     baseline_frames: usize,
@@ -610,7 +614,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         c.num_views = c.num_views.max(rig_views);
     }
     let tests = render_split(
-        &root.join("scenes/test.txt"),
+        &root.join(&args.test_scenes),
         args.test_frames,
         &rig_config,
         "simulating test frames",
@@ -660,7 +664,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
 
     // the zero-skill baselines and the data floor
     let baseline_train = render_split(
-        &root.join("scenes/train.txt"),
+        &crate::simdata::train_split_of(&base.config),
         args.baseline_frames,
         &base.config,
         "simulating baseline train frames",
@@ -764,7 +768,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         .any(|v| !(args.protocol == Protocol::Finetune && *v == Variant::Unconditional));
     let train_frames = if needs_training {
         render_split(
-            &root.join("scenes/train.txt"),
+            &crate::simdata::train_split_of(&base.config),
             args.train_frames,
             &rig_config,
             "simulating train frames",
@@ -813,6 +817,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                     randomize: false,
                     augment_encoders: false,
                     ground_prior: false,
+                    scenes: crate::simdata::train_split_of(&base.config),
                 },
                 Some(&train_frames),
             )?;
@@ -929,7 +934,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
             .join(" "),
         date_utc: veila_data::stamp::report_time(),
         machine: format!("{} CPU cores (CPU only)", std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)),
-        test_split: "scenes/test.txt".into(),
+        test_split: args.test_scenes.display().to_string(),
         test_frames: tests.len(),
         folds: args.folds,
         baseline_frames: baseline_train.len(),

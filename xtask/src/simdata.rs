@@ -130,6 +130,18 @@ pub fn example_from_rig(
     Ok(ex)
 }
 
+/// The scene list a bundle was trained on (its provenance's `train_split`, relative to the
+/// workspace; `scenes/train.txt` for bundles that do not say), so its baselines are built from
+/// the same scenes.
+pub fn train_split_of(cfg: &BundleConfig) -> PathBuf {
+    let rel = cfg
+        .provenance
+        .get("train_split")
+        .and_then(|v| v.as_str())
+        .unwrap_or("scenes/train.txt");
+    workspace_root().join(rel)
+}
+
 /// The first `n` frames of a split list, interleaving its scene files (scene 0 seed 0, scene 1
 /// seed 0, ..., scene 0 seed 1, ...); frame `seed % frames` of each scene.
 pub fn split_items(list: &Path, n: usize) -> Result<Vec<(PathBuf, u64)>> {
@@ -275,4 +287,25 @@ pub fn mean_std(v: &[f64]) -> (f64, f64) {
     let m = v.iter().sum::<f64>() / n;
     let s = (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
     (m, s)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use veila_diffusion::app::bundle::Variant;
+
+    #[test]
+    fn baselines_follow_the_bundles_own_training_list() {
+        let mut cfg = BundleConfig::cpu_default(Variant::Full);
+        // bundles written before the list was recorded were trained on scenes/train.txt
+        cfg.provenance = serde_json::Value::Null;
+        assert_eq!(train_split_of(&cfg), workspace_root().join("scenes/train.txt"));
+        cfg.provenance = serde_json::json!({ "train_split": "scenes/train-v3.txt" });
+        let list = train_split_of(&cfg);
+        assert_eq!(list, workspace_root().join("scenes/train-v3.txt"));
+        // and the list it names is one split_items reads, with every scene file of v3 in turn
+        let items = split_items(&list, 6).unwrap();
+        let files: std::collections::BTreeSet<_> = items.iter().map(|(p, _)| p.clone()).collect();
+        assert_eq!(files.len(), 6, "{items:?}");
+    }
 }

@@ -35,17 +35,23 @@ pub struct TrainDefaultArgs {
     /// Training steps of the mean network (residual method; default: --steps).
     #[arg(long)]
     pub mean_steps: Option<u64>,
-    /// Simulated training frames (from scenes/train.txt). The defaults are the recipe of the
-    /// shipped `models/default`.
+    /// Simulated training frames (from --scenes). The defaults are the recipe of the shipped
+    /// `models/default`.
     #[arg(long, default_value_t = 960)]
     pub frames: usize,
+    /// Scene list the training frames are drawn from (relative to the workspace): `scenes/train.txt`
+    /// (streets and a junction), `scenes/train-v3.txt` (also open roads, suburbs, curved roads
+    /// and a rig drawn per seed).
+    #[arg(long, default_value = DEFAULT_SCENES)]
+    pub scenes: PathBuf,
     /// Training steps of each encoder (4,000 since 2026-11-25: on 120 test frames 150 gave a
     /// front range MAE of 1.41 m, 1,500 gave 1.30 m, 4,000 gives 1.26 m).
     #[arg(long, default_value_t = 4000)]
     pub encoder_steps: usize,
-    /// Denoiser training steps (the mean network takes as many unless --mean-steps: 2 x 6,250
-    /// updates of batch 8 are the 100,000 training samples of the shipped model).
-    #[arg(long, default_value_t = 6250)]
+    /// Denoiser training steps (the mean network takes as many unless --mean-steps: 2 x 12,500
+    /// updates of batch 8 are the 200,000 training samples of the shipped model; 6,250 gave a
+    /// front range MAE of 1.26 m on 120 test frames, 12,500 gives 1.19 m).
+    #[arg(long, default_value_t = 12500)]
     pub steps: u64,
     /// Batch size of both networks.
     #[arg(long, default_value_t = 8)]
@@ -83,6 +89,9 @@ pub struct TrainDefaultArgs {
     #[arg(long)]
     pub ground_prior: bool,
 }
+
+/// The scene list of the shipped recipe.
+pub const DEFAULT_SCENES: &str = "scenes/train.txt";
 
 struct Progress {
     bar: indicatif::ProgressBar,
@@ -159,7 +168,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         Some(f) => f,
         None => {
             rendered = crate::simdata::render_split_styled(
-                &root.join("scenes/train.txt"),
+                &root.join(&args.scenes),
                 args.frames,
                 &cfg,
                 &crate::simdata::RenderStyle::randomized(args.randomize),
@@ -218,6 +227,9 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     let mut run_key = run_key;
     if args.ground_prior {
         run_key["ground_prior"] = serde_json::Value::Bool(true);
+    }
+    if args.scenes != std::path::Path::new(DEFAULT_SCENES) {
+        run_key["scenes"] = serde_json::json!(args.scenes);
     }
     veila_diffusion::claim_checkpoint_dir(&work, &run_key)
         .with_context(|| "pass another --work to start a separate run")?;
@@ -365,7 +377,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         "variant": args.variant.name(),
         "method": method.name(),
         "seed": args.seed,
-        "train_split": "scenes/train.txt",
+        "train_split": args.scenes.display().to_string(),
         "frames": examples.len(),
         "encoder_steps": if args.encoders_from.is_some() { 0 } else { args.encoder_steps },
         "encoders_from": args.encoders_from.as_ref().map(|p| p.display().to_string()),
