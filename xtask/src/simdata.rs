@@ -299,7 +299,10 @@ mod tests {
         let mut cfg = BundleConfig::cpu_default(Variant::Full);
         // bundles written before the list was recorded were trained on scenes/train.txt
         cfg.provenance = serde_json::Value::Null;
-        assert_eq!(train_split_of(&cfg), workspace_root().join("scenes/train.txt"));
+        assert_eq!(
+            train_split_of(&cfg),
+            workspace_root().join("scenes/train.txt")
+        );
         cfg.provenance = serde_json::json!({ "train_split": "scenes/train-v3.txt" });
         let list = train_split_of(&cfg);
         assert_eq!(list, workspace_root().join("scenes/train-v3.txt"));
