@@ -502,7 +502,7 @@ pub fn run(args: BenchRealArgs) -> Result<()> {
     let bundle = Bundle::from_dir(&model_dir, &candle_core::Device::Cpu)
         .with_context(|| format!("loading {}", model_dir.display()))?;
     let train = crate::simdata::render_split(
-        &crate::simdata::train_split_of(&bundle.config),
+        &root.join(crate::simdata::train_split_of(&bundle.config)),
         args.baseline_frames,
         &bundle.config,
         "simulating baseline train frames",

@@ -664,7 +664,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
 
     // the zero-skill baselines and the data floor
     let baseline_train = render_split(
-        &crate::simdata::train_split_of(&base.config),
+        &root.join(crate::simdata::train_split_of(&base.config)),
         args.baseline_frames,
         &base.config,
         "simulating baseline train frames",
@@ -768,7 +768,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         .any(|v| !(args.protocol == Protocol::Finetune && *v == Variant::Unconditional));
     let train_frames = if needs_training {
         render_split(
-            &crate::simdata::train_split_of(&base.config),
+            &root.join(crate::simdata::train_split_of(&base.config)),
             args.train_frames,
             &rig_config,
             "simulating train frames",

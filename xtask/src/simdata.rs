@@ -130,16 +130,16 @@ pub fn example_from_rig(
     Ok(ex)
 }
 
-/// The scene list a bundle was trained on (its provenance's `train_split`, relative to the
-/// workspace; `scenes/train.txt` for bundles that do not say), so its baselines are built from
-/// the same scenes.
+/// The scene list a bundle was trained on, as its provenance's `train_split` names it (relative
+/// to the workspace; `scenes/train.txt` for bundles that do not say), so its baselines are built
+/// from the same scenes.
 pub fn train_split_of(cfg: &BundleConfig) -> PathBuf {
     let rel = cfg
         .provenance
         .get("train_split")
         .and_then(|v| v.as_str())
         .unwrap_or("scenes/train.txt");
-    workspace_root().join(rel)
+    PathBuf::from(rel)
 }
 
 /// The first `n` frames of a split list, interleaving its scene files (scene 0 seed 0, scene 1
@@ -299,13 +299,10 @@ mod tests {
         let mut cfg = BundleConfig::cpu_default(Variant::Full);
         // bundles written before the list was recorded were trained on scenes/train.txt
         cfg.provenance = serde_json::Value::Null;
-        assert_eq!(
-            train_split_of(&cfg),
-            workspace_root().join("scenes/train.txt")
-        );
+        assert_eq!(train_split_of(&cfg), Path::new("scenes/train.txt"));
         cfg.provenance = serde_json::json!({ "train_split": "scenes/train-v3.txt" });
-        let list = train_split_of(&cfg);
-        assert_eq!(list, workspace_root().join("scenes/train-v3.txt"));
+        assert_eq!(train_split_of(&cfg), Path::new("scenes/train-v3.txt"));
+        let list = workspace_root().join(train_split_of(&cfg));
         // and the list it names is one split_items reads, with every scene file of v3 in turn
         let items = split_items(&list, 6).unwrap();
         let files: std::collections::BTreeSet<_> = items.iter().map(|(p, _)| p.clone()).collect();
