@@ -596,6 +596,8 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
     let work = abs(&args.work);
     let base = Bundle::from_dir(&model_dir, &device)
         .with_context(|| format!("loading {}", model_dir.display()))?;
+    // the baselines and every fine-tuned variant draw from the bundle's own training list
+    let train_list = crate::simdata::train_split_of(&base.config);
     // frames carry as many cameras as the most-viewed variant takes (three-cameras: 3); every
     // other model reads the first
     let rig_views = if args.shipped_only {
@@ -664,7 +666,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
 
     // the zero-skill baselines and the data floor
     let baseline_train = render_split(
-        &root.join(crate::simdata::train_split_of(&base.config)),
+        &root.join(&train_list),
         args.baseline_frames,
         &base.config,
         "simulating baseline train frames",
@@ -768,7 +770,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         .any(|v| !(args.protocol == Protocol::Finetune && *v == Variant::Unconditional));
     let train_frames = if needs_training {
         render_split(
-            &root.join(crate::simdata::train_split_of(&base.config)),
+            &root.join(&train_list),
             args.train_frames,
             &rig_config,
             "simulating train frames",
@@ -817,7 +819,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                     randomize: false,
                     augment_encoders: false,
                     ground_prior: false,
-                    scenes: crate::simdata::train_split_of(&base.config),
+                    scenes: train_list.clone(),
                 },
                 Some(&train_frames),
             )?;

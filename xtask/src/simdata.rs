@@ -130,6 +130,10 @@ pub fn example_from_rig(
     Ok(ex)
 }
 
+/// The scene list of the shipped recipe (`train-default --scenes`), and of every bundle whose
+/// provenance does not name one.
+pub const DEFAULT_SCENES: &str = "scenes/train.txt";
+
 /// The scene list a bundle was trained on, as its provenance's `train_split` names it (relative
 /// to the workspace; `scenes/train.txt` for bundles that do not say), so its baselines are built
 /// from the same scenes.
@@ -138,7 +142,7 @@ pub fn train_split_of(cfg: &BundleConfig) -> PathBuf {
         .provenance
         .get("train_split")
         .and_then(|v| v.as_str())
-        .unwrap_or("scenes/train.txt");
+        .unwrap_or(DEFAULT_SCENES);
     PathBuf::from(rel)
 }
 

@@ -42,7 +42,7 @@ pub struct TrainDefaultArgs {
     /// Scene list the training frames are drawn from (relative to the workspace): `scenes/train.txt`
     /// (streets and a junction), `scenes/train-v3.txt` (also open roads, suburbs, curved roads
     /// and a rig drawn per seed).
-    #[arg(long, default_value = DEFAULT_SCENES)]
+    #[arg(long, default_value = crate::simdata::DEFAULT_SCENES)]
     pub scenes: PathBuf,
     /// Training steps of each encoder (4,000 since 2026-11-25: on 120 test frames 150 gave a
     /// front range MAE of 1.41 m, 1,500 gave 1.30 m, 4,000 gives 1.26 m).
@@ -89,9 +89,6 @@ pub struct TrainDefaultArgs {
     #[arg(long)]
     pub ground_prior: bool,
 }
-
-/// The scene list of the shipped recipe.
-pub const DEFAULT_SCENES: &str = "scenes/train.txt";
 
 struct Progress {
     bar: indicatif::ProgressBar,
@@ -228,7 +225,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     if args.ground_prior {
         run_key["ground_prior"] = serde_json::Value::Bool(true);
     }
-    if args.scenes != std::path::Path::new(DEFAULT_SCENES) {
+    if args.scenes != std::path::Path::new(crate::simdata::DEFAULT_SCENES) {
         run_key["scenes"] = serde_json::json!(args.scenes);
     }
     veila_diffusion::claim_checkpoint_dir(&work, &run_key)
