@@ -2608,3 +2608,172 @@ fn the_curved_example_scene_bends_and_renders() {
         }
     }
 }
+
+/// Whether a ray from `o` along `d` hits any triangle of `m`, brute force.
+fn ray_hits(m: &Mesh, o: Vec3, d: Vec3) -> bool {
+    m.triangles.iter().any(|[a, b, c]| {
+        intersect_triangle(
+            o.into(),
+            d.into(),
+            (*a).into(),
+            (*b - *a).into(),
+            (*c - *a).into(),
+            0.0,
+            f32::INFINITY,
+        )
+        .is_some()
+    })
+}
+
+#[test]
+fn a_tree_line_is_a_gapless_wall_of_foliage_within_its_bounds() {
+    for seed in 0..4u64 {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let (len, depth, [lo, hi]) = (40.0f32, 9.0f32, [6.0f32, 20.0f32]);
+        let m = objects::tree_line(&mut rng, len, depth, [lo, hi]);
+        assert!(
+            m.surfaces
+                .iter()
+                .all(|s| s.material.class == class::VEGETATION)
+        );
+        let mut top = 0.0f32;
+        for t in &m.triangles {
+            for v in t {
+                // crowns may round past the ends (radius <= 4.5 m) and the back (<= 5.4 m)
+                assert!(v.x.abs() <= len / 2.0 + 4.6, "seed {seed}: x {}", v.x);
+                assert!(v.y <= 1e-3 && v.y >= -depth - 5.5, "seed {seed}: y {}", v.y);
+                assert!(v.z >= -1e-3 && v.z <= hi + 1e-3, "seed {seed}: z {}", v.z);
+                top = top.max(v.z);
+            }
+        }
+        assert!(top >= lo, "seed {seed}: top {top}");
+        // seen from the road (rays toward -y), the front has no gap below 2 m along the whole
+        // run (the undergrowth closes it) and few at the height of the lowest tops' middle
+        let xs: Vec<f32> = (0..=76)
+            .map(|i| -len / 2.0 + 0.5 + i as f32 * 0.5)
+            .collect();
+        for &x in &xs {
+            for z in [0.5f32, 1.9] {
+                assert!(
+                    ray_hits(&m, Vec3::new(x, 5.0, z), -Vec3::Y),
+                    "seed {seed}: a gap at x {x} z {z}"
+                );
+            }
+        }
+        let z = lo * 0.6;
+        let covered = xs
+            .iter()
+            .filter(|&&x| ray_hits(&m, Vec3::new(x, 5.0, z), -Vec3::Y))
+            .count();
+        assert!(
+            covered * 10 >= xs.len() * 8,
+            "seed {seed}: {covered} of {} covered at {z} m",
+            xs.len()
+        );
+    }
+}
+
+#[test]
+fn tree_lines_put_foliage_far_out_and_leave_everything_else_as_it_was() {
+    let dir = scenes_dir();
+    let cfg = SceneConfig::from_file(&dir.join("tree_lined_road.toml")).unwrap();
+    assert!(cfg.population.tree_line_probability > 0.5);
+    let mut without = cfg.clone();
+    without.population.tree_line_probability = 0.0;
+    let sensor = LidarSensor {
+        cols: 512,
+        ..cfg.lidar.sensor().unwrap()
+    };
+    let not_vegetation = |m: &Mesh| -> Vec<[Vec3; 3]> {
+        m.triangles
+            .iter()
+            .zip(&m.surface_of)
+            .filter(|(_, s)| m.surfaces[**s as usize].material.class != class::VEGETATION)
+            .map(|(t, _)| *t)
+            .collect()
+    };
+    let (mut far_with, mut far_without) = (0usize, 0usize);
+    for seed in 0..4u64 {
+        let a = Scene::generate(&cfg, seed).unwrap();
+        let b = Scene::generate(&without, seed).unwrap();
+        // the tree lines add only foliage: every other triangle is where it was, in order
+        assert_eq!(
+            not_vegetation(a.static_mesh()),
+            not_vegetation(b.static_mesh()),
+            "seed {seed}"
+        );
+        assert!(a.static_mesh().triangles.len() >= b.static_mesh().triangles.len());
+        // vegetation returns near the horizon (within 2 degrees) 15-60 m out
+        for (scene, count) in [(&a, &mut far_with), (&b, &mut far_without)] {
+            let scan = scene
+                .snapshot(0)
+                .render_lidar(&sensor, &LidarReturnModel::ideal())
+                .unwrap();
+            let labels = scan.points.label.as_ref().unwrap();
+            for (p, l) in scan.points.xyz.iter().zip(labels) {
+                let r = p.length();
+                let elev = (p.z / r.max(1e-6)).asin().to_degrees();
+                *count += usize::from(
+                    (l & 0xFFFF) as u16 == class::VEGETATION
+                        && (15.0..60.0).contains(&r)
+                        && elev.abs() < 2.0,
+                );
+            }
+        }
+    }
+    eprintln!(
+        "tree-lined road, 4 seeds: {far_with} vegetation returns 15-60 m out near the horizon, \
+         {far_without} without the tree lines"
+    );
+    assert!(far_with > 2 * far_without + 200, "{far_with} {far_without}");
+}
+
+#[test]
+fn tree_line_keys_are_validated_and_the_v4_lists_extend_v1() {
+    let p = Path::new("bad.toml");
+    for text in [
+        "[population]\ntree_line_probability = 1.5\n",
+        "[population]\ntree_line_probability = nan\n",
+    ] {
+        let e = SceneConfig::from_toml_str(text, p).unwrap_err().to_string();
+        assert!(
+            e.contains("population.tree_line_probability") && e.contains("bad.toml"),
+            "{text}: {e}"
+        );
+    }
+    for text in [
+        "[population]\ntree_line_height_m = [20.0, 6.0]\n",
+        "[population]\ntree_line_height_m = [0.5, 6.0]\n",
+        "[population]\ntree_line_height_m = [6.0, 60.0]\n",
+    ] {
+        let e = SceneConfig::from_toml_str(text, p).unwrap_err().to_string();
+        assert!(e.contains("population.tree_line_height_m"), "{text}: {e}");
+    }
+    let dir = scenes_dir();
+    for (v1, v4) in [("train.txt", "train-v4.txt"), ("test.txt", "test-v4.txt")] {
+        let old = SceneList::read(&dir.join(v1)).unwrap();
+        let new = SceneList::read(&dir.join(v4)).unwrap();
+        for e in &old.entries {
+            assert!(
+                new.entries
+                    .iter()
+                    .any(|n| n.scene == e.scene && n.seeds == e.seeds),
+                "{v4} lacks {}",
+                e.scene.display()
+            );
+        }
+        assert_eq!(new.entries.len(), old.entries.len() + 1);
+        assert!(
+            new.entries
+                .iter()
+                .any(|e| e.scene.file_name().unwrap() == "tree_lined_road.toml")
+        );
+    }
+    let train = SceneList::read(&dir.join("train-v4.txt")).unwrap();
+    let test = SceneList::read(&dir.join("test-v4.txt")).unwrap();
+    for a in &train.entries {
+        for b in test.entries.iter().filter(|b| b.scene == a.scene) {
+            assert!(a.seeds.end() < b.seeds.start() || b.seeds.end() < a.seeds.start());
+        }
+    }
+}

@@ -41,7 +41,8 @@ pub struct TrainDefaultArgs {
     pub frames: usize,
     /// Scene list the training frames are drawn from (relative to the workspace): `scenes/train.txt`
     /// (streets and a junction), `scenes/train-v3.txt` (also open roads, suburbs, curved roads
-    /// and a rig drawn per seed).
+    /// and a rig drawn per seed), `scenes/train-v4.txt` (the streets and a road between woodland
+    /// edges: tree lines, a rig drawn per seed).
     #[arg(long, default_value = crate::simdata::DEFAULT_SCENES)]
     pub scenes: PathBuf,
     /// Training steps of each encoder (4,000 since 2026-11-25: on 120 test frames 150 gave a

@@ -14,6 +14,7 @@
 //! [population]
 //! moving_vehicles = 8
 //! pedestrians = 12
+//! tree_line_probability = 0.5  # open roadsides only; belts of dense woodland (default 0)
 //!
 //! [ego]
 //! speed_mps = 8.0
@@ -336,6 +337,29 @@ pub struct PopulationConfig {
     pub bushes_per_100m: f32,
     /// Probability that a gap between buildings is closed by a fence (else a hedge or open).
     pub fence_probability: f32,
+    /// Probability, within `[0, 1]`, that an open roadside ([`RoadConfig::open_side_probability`])
+    /// has tree lines: belts of dense woodland 4-14 m deep with crowns down to the undergrowth, in
+    /// runs of 30-150 m, 2-50 m behind the sidewalk (and in front of a far building row). Heights
+    /// in [`PopulationConfig::tree_line_height_m`]. Default 0 (drawn from its own random stream,
+    /// so a scene without tree lines is the same as before they existed; left out of the written
+    /// `scene.json` while 0, so that file is too).
+    #[serde(skip_serializing_if = "is_zero")]
+    pub tree_line_probability: f32,
+    /// Height range `[low, high]` of a tree line's crowns, metres within `(1, 40]`. Default
+    /// `[6, 20]` (left out of `scene.json` while the default).
+    #[serde(skip_serializing_if = "is_default_tree_line_height")]
+    pub tree_line_height_m: [f32; 2],
+}
+
+/// The default of [`PopulationConfig::tree_line_height_m`].
+const DEFAULT_TREE_LINE_HEIGHT_M: [f32; 2] = [6.0, 20.0];
+
+fn is_zero(x: &f32) -> bool {
+    *x == 0.0
+}
+
+fn is_default_tree_line_height(h: &[f32; 2]) -> bool {
+    *h == DEFAULT_TREE_LINE_HEIGHT_M
 }
 
 impl Default for PopulationConfig {
@@ -355,6 +379,8 @@ impl Default for PopulationConfig {
             signs_per_100m: 3.0,
             bushes_per_100m: 10.0,
             fence_probability: 0.4,
+            tree_line_probability: 0.0,
+            tree_line_height_m: DEFAULT_TREE_LINE_HEIGHT_M,
         }
     }
 }
@@ -1008,6 +1034,7 @@ impl SceneConfig {
             ("trailer_fraction", p.trailer_fraction),
             ("standing_fraction", p.standing_fraction),
             ("fence_probability", p.fence_probability),
+            ("tree_line_probability", p.tree_line_probability),
         ] {
             check(
                 (0.0..=1.0).contains(&v),
@@ -1015,6 +1042,12 @@ impl SceneConfig {
                 format!("{v} not in [0, 1]"),
             )?;
         }
+        let [t0, t1] = p.tree_line_height_m;
+        check(
+            t0 > 1.0 && t0 <= t1 && t1 <= 40.0,
+            "population.tree_line_height_m",
+            format!("[{t0}, {t1}] is not an interval within (1, 40]"),
+        )?;
         check(
             p.van_fraction + p.truck_fraction + p.bus_fraction <= 1.0,
             "population",

@@ -333,6 +333,53 @@ pub fn tree(rng: &mut ChaCha8Rng) -> Mesh {
     m
 }
 
+/// A tree line: a belt of dense woodland `length` along local x and `depth` deep along -y (its
+/// front at y = 0 faces +y, the road), crowns from 1 m above the ground or lower up to a top drawn
+/// in `height_m` (`vegetation`; trunks hidden behind undergrowth). Unlike [`tree`]'s single crowns
+/// on bare trunks it reads as a continuous wall of foliage, as a real woodland edge or a tall
+/// hedgerow does: the simulated streets otherwise show such a wall only as a near facade.
+pub fn tree_line(rng: &mut ChaCha8Rng, length: f32, depth: f32, height_m: [f32; 2]) -> Mesh {
+    let mut m = Mesh::new();
+    let leaves = m.surface(stock::VEGETATION, 0);
+    let [h_lo, h_hi] = height_m;
+    let half = length / 2.0;
+    // undergrowth along the front: an uneven band 2-4 m high that closes the gaps between crowns
+    let mut x = -half;
+    while x < half {
+        let l = rng.random_range(3.0..9.0f32).min(half - x);
+        let h = rng.random_range(2.0..4.0f32);
+        m.add_aabb(
+            Vec3::new(x, -rng.random_range(0.8..2.0f32), 0.0),
+            Vec3::new(x + l, 0.0, h),
+            leaves,
+        );
+        x += l;
+    }
+    // crowns in staggered rows across the depth, each reaching from near the ground to its top
+    let rows = ((depth / 4.0).ceil() as u32).clamp(1, 4);
+    for row in 0..rows {
+        let y = -(row as f32 + 0.5) * depth / rows as f32;
+        let mut x = -half + rng.random_range(0.0..3.0f32);
+        while x < half {
+            let top = rng.random_range(h_lo..h_hi.max(h_lo + 0.1));
+            let bottom = rng.random_range(0.0..1.5f32).min(top * 0.3);
+            let rz = (top - bottom) / 2.0;
+            let rx = rng.random_range(2.0..4.5f32).min(rz.max(1.5));
+            let ry = rx * rng.random_range(0.8..1.2f32);
+            m.add_ellipsoid(
+                // (no crown bulges past the front toward the road)
+                Affine3A::from_translation(Vec3::new(x, y.min(-ry), bottom + rz)),
+                Vec3::new(rx, ry, rz),
+                10,
+                6,
+                leaves,
+            );
+            x += rx * rng.random_range(0.9..1.4f32);
+        }
+    }
+    m
+}
+
 /// A bush (`vegetation`).
 pub fn bush(rng: &mut ChaCha8Rng) -> Mesh {
     let mut m = Mesh::new();

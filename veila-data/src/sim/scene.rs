@@ -30,6 +30,9 @@ const TILE_M: f32 = 10.0;
 const PAINT_Z: f32 = 0.003;
 /// First random stream of the open roadsides (apart from every stream the older features use).
 const OPEN_STREAM: u64 = 0x6f70_0000;
+/// First random stream of the open roadsides' tree lines (apart from the other open-side draws, so
+/// a scene without them is unchanged).
+const TREE_LINE_STREAM: u64 = 0x746c_0000;
 /// Random stream of the grade draw.
 const GRADE_STREAM: u64 = 0x6772_0000;
 /// Length of the vertical curve into the grade, metres.
@@ -1232,6 +1235,43 @@ impl<'a> Gen<'a> {
                 self.put_bent(&m, f.place(s + l / 2.0, side * (front + d), kh, 0.0));
                 s += l + rng.random_range(5.0..40.0f32);
             }
+        }
+        self.tree_lines(f, s0, s1, side, call, reach);
+    }
+
+    /// Tree lines on an open roadside (with [`PopulationConfig::tree_line_probability`]): runs of
+    /// woodland belts parallel to the road, in front of the far building row when there is one.
+    fn tree_lines(&mut self, f: StreetFrame, s0: f32, s1: f32, side: f32, call: u64, reach: f32) {
+        let p = self.cfg.population.tree_line_probability;
+        if p <= 0.0 {
+            return;
+        }
+        let mut rng = self.rng(TREE_LINE_STREAM + 2 * call + u64::from(side > 0.0));
+        if rng.random::<f32>() >= p {
+            return;
+        }
+        let r = self.road;
+        let front = r.half_carriageway_m() + r.sidewalk_width_m;
+        let heights = self.cfg.population.tree_line_height_m;
+        let to_road = if side > 0.0 {
+            std::f32::consts::PI
+        } else {
+            0.0
+        };
+        // one distance per side (a woodland edge runs along the road), varied a little per run
+        let d_side = rng.random_range(2.0..reach.clamp(2.1, 50.0));
+        let mut s = s0 + rng.random_range(0.0..30.0f32);
+        while s < s1 - 10.0 {
+            let l = rng.random_range(30.0..150.0f32).min(s1 - s);
+            let d = (d_side + rng.random_range(-3.0..3.0f32)).max(1.0);
+            // (not through the far building row)
+            let depth = rng.random_range(4.0..14.0f32).min((reach - d).max(2.0));
+            let m = objects::tree_line(&mut rng, l, depth, heights);
+            self.put_bent(
+                &m,
+                f.place(s + l / 2.0, side * (front + d), r.kerb_height_m, to_road),
+            );
+            s += l + rng.random_range(0.0..30.0f32);
         }
     }
 
