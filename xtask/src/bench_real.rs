@@ -161,6 +161,76 @@ pub struct DepthScore {
     pub coverage: f64,
 }
 
+/// Camera depth in one region of the image: which part of the picture the depth head gets wrong.
+#[derive(Debug, Clone, Serialize)]
+pub struct RegionDepth {
+    /// `left`, `centre` or `right` third, `upper` or `lower` half: e.g. `left upper`.
+    pub region: String,
+    /// Real points in the region.
+    pub points: usize,
+    /// Median camera depth of the real points, m.
+    pub real_median_m: f64,
+    /// Median predicted depth at those points, m.
+    pub predicted_median_m: f64,
+    /// Mean |predicted - true| / true over them.
+    pub abs_rel: f64,
+}
+
+/// [`depth_score`] split into the image's thirds across and halves down (six regions, those
+/// without a point left out): a frame's AbsRel is mostly the near road, which the depth head gets
+/// right, so the far objects it misses show only here.
+pub fn depth_by_region(
+    depth_m: &[f32],
+    camera: &PinholeCamera,
+    points: &[Vec3],
+) -> Vec<RegionDepth> {
+    let (w, h) = (camera.width as i64, camera.height as i64);
+    let mut cells: Vec<Vec<(f64, f64)>> = vec![Vec::new(); 6];
+    for p in points {
+        let Some(ip) = camera.try_project_in_image(*p) else {
+            continue;
+        };
+        let (u, v) = (
+            (ip.u_px + 0.5).floor() as i64,
+            (ip.v_px + 0.5).floor() as i64,
+        );
+        if ip.depth_m < 1.0 || u < 0 || v < 0 || u >= w || v >= h {
+            continue;
+        }
+        let (col, row) = ((3 * u / w) as usize, (2 * v / h) as usize);
+        let d = depth_m[(v * w + u) as usize] as f64;
+        cells[row * 3 + col].push((ip.depth_m as f64, d));
+    }
+    let median = |mut x: Vec<f64>| {
+        x.sort_by(f64::total_cmp);
+        let n = x.len();
+        if n % 2 == 1 {
+            x[n / 2]
+        } else {
+            0.5 * (x[n / 2 - 1] + x[n / 2])
+        }
+    };
+    let mut out = Vec::new();
+    for (i, c) in cells.into_iter().enumerate() {
+        if c.is_empty() {
+            continue;
+        }
+        let abs_rel = c.iter().map(|(t, d)| (d - t).abs() / t).sum::<f64>() / c.len() as f64;
+        out.push(RegionDepth {
+            region: format!(
+                "{} {}",
+                ["left", "centre", "right"][i % 3],
+                ["upper", "lower"][i / 3]
+            ),
+            points: c.len(),
+            real_median_m: median(c.iter().map(|x| x.0).collect()),
+            predicted_median_m: median(c.iter().map(|x| x.1).collect()),
+            abs_rel,
+        });
+    }
+    out
+}
+
 /// Scores per-pixel camera depth (`None` = no prediction) against the points' camera depths,
 /// nearest pixel of a `width x height` map.
 pub fn depth_score(
@@ -230,6 +300,8 @@ pub struct RealFrameResult {
     /// The bundle's depth encoder on the resized real image (its depth head), against the real
     /// points.
     pub encoder_depth: Option<DepthScore>,
+    /// The same by image region ([`depth_by_region`]; empty without a depth head).
+    pub encoder_depth_regions: Vec<RegionDepth>,
     /// The flat-ground prior's camera depth at the same points.
     pub ground_depth: Option<DepthScore>,
     /// Real returns on the bundle's grid inside the camera's view.
@@ -356,20 +428,23 @@ pub fn evaluate(bundle: &Bundle, opts: &RealOptions<'_>, out: &Path) -> Result<R
         let prepared = prepare_views(&bundle.config, std::slice::from_ref(&view))?;
         let views = camera_views(&prepared);
         let (small_rgb, small_cam) = &prepared[0];
-        let encoder_depth = match bundle.depth.as_ref().and_then(|d| d.as_small_cnn()) {
+        let encoder_map = match bundle.depth.as_ref().and_then(|d| d.as_small_cnn()) {
             Some(net) => predict_depth(
                 net,
                 small_rgb,
                 small_cam,
                 bundle.config.image_height,
                 bundle.config.image_width,
-            )?
-            .and_then(|d| {
-                let d: Vec<Option<f32>> = d.into_iter().map(Some).collect();
-                depth_score(&d, small_cam, &xyz)
-            }),
+            )?,
             None => None,
         };
+        let encoder_depth = encoder_map.as_ref().and_then(|d| {
+            let d: Vec<Option<f32>> = d.iter().copied().map(Some).collect();
+            depth_score(&d, small_cam, &xyz)
+        });
+        let encoder_depth_regions = encoder_map
+            .as_ref()
+            .map_or_else(Vec::new, |d| depth_by_region(d, small_cam, &xyz));
         let ground_depth = depth_score(
             &flat_ground_depth(small_cam, f.lidar_height_m, sensor.max_range_m),
             small_cam,
@@ -450,6 +525,7 @@ pub fn evaluate(bundle: &Bundle, opts: &RealOptions<'_>, out: &Path) -> Result<R
         results.push(RealFrameResult {
             frame: f.name.clone(),
             encoder_depth,
+            encoder_depth_regions,
             ground_depth,
             real_view_returns: real_pts.len(),
             rows,
@@ -588,6 +664,22 @@ pub fn markdown(r: &RealReport) -> String {
             dep(&f.encoder_depth),
             dep(&f.ground_depth)
         );
+        if !f.encoder_depth_regions.is_empty() {
+            let _ = write!(
+                s,
+                "The depth encoder by image region (thirds across, halves down), real median / \
+                 encoder median depth (m), AbsRel:"
+            );
+            for r in &f.encoder_depth_regions {
+                let _ = write!(
+                    s,
+                    " {} {:.1} / {:.1}, {:.2};",
+                    r.region, r.real_median_m, r.predicted_median_m, r.abs_rel
+                );
+            }
+            s.pop();
+            s.push_str(".\n\n");
+        }
         let _ = writeln!(
             s,
             "| method | range MAE in view (m) | coverage | range MAE front half (m) | Chamfer in view (m²) |\n|---|---|---|---|---|"
@@ -657,6 +749,74 @@ mod tests {
         let near = flat_ground_depth(&cam, 1.73, 10.0);
         assert!(near.iter().flatten().all(|&x| x <= 10.0));
         assert!(near.iter().flatten().count() < hits);
+    }
+
+    #[test]
+    fn depth_by_region_splits_the_image_and_scores_each_part_apart() {
+        let k = [
+            [100.0, 0.0, 150.0, 0.0],
+            [0.0, 100.0, 50.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+        ];
+        // camera frame = LiDAR frame: z forward, x right, y down
+        let cam = PinholeCamera::new(k, Mat4::IDENTITY, 300, 100).unwrap();
+        // a map that is right everywhere but the upper left third, where it reads 10 m
+        let truth = |u: usize, v: usize| 5.0 + (u + v) as f32 * 0.1;
+        let mut map = vec![0.0f32; 300 * 100];
+        for v in 0..100 {
+            for u in 0..300 {
+                map[v * 300 + u] = if u < 100 && v < 50 { 10.0 } else { truth(u, v) };
+            }
+        }
+        // one point at every fifth pixel centre, at the true depth
+        let mut pts = Vec::new();
+        for v in (0..100).step_by(5) {
+            for u in (0..300).step_by(5) {
+                let z = truth(u, v);
+                pts.push(Vec3::new(
+                    (u as f32 - 150.0) * z / 100.0,
+                    (v as f32 - 50.0) * z / 100.0,
+                    z,
+                ));
+            }
+        }
+        let r = depth_by_region(&map, &cam, &pts);
+        let names: Vec<&str> = r.iter().map(|x| x.region.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "left upper",
+                "centre upper",
+                "right upper",
+                "left lower",
+                "centre lower",
+                "right lower"
+            ]
+        );
+        assert_eq!(r.iter().map(|x| x.points).sum::<usize>(), pts.len());
+        for x in &r[1..] {
+            assert!(x.abs_rel < 1e-4, "{x:?}");
+            assert!(
+                (x.real_median_m - x.predicted_median_m).abs() < 1e-3,
+                "{x:?}"
+            );
+        }
+        // brute force for the upper left: truths 5.0 + (u + v) / 10 over u, v in 0, 5, .., 45
+        let t: Vec<f64> = (0..100)
+            .step_by(5)
+            .flat_map(|u| (0..50).step_by(5).map(move |v| 5.0 + (u + v) as f64 * 0.1))
+            .collect();
+        let want = t.iter().map(|t| (10.0 - t).abs() / t).sum::<f64>() / t.len() as f64;
+        assert!(
+            (r[0].abs_rel - want).abs() < 1e-4,
+            "{} {want}",
+            r[0].abs_rel
+        );
+        assert_eq!(r[0].predicted_median_m, 10.0);
+        // a frame with points in one region reports only that one
+        let one = depth_by_region(&map, &cam, &pts[..1]);
+        assert_eq!(one.len(), 1);
+        assert_eq!(one[0].region, "left upper");
     }
 
     #[test]
