@@ -817,6 +817,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                     encoders_from: Some(model_dir.clone()),
                     init_from: (args.protocol == Protocol::Finetune).then(|| model_dir.clone()),
                     randomize: false,
+                    randomize_share: None,
                     augment_encoders: false,
                     ground_prior: false,
                     scenes: train_list.clone(),

@@ -197,6 +197,10 @@ pub struct RenderStyle {
     /// Sensor randomisation at the rendered resolution (exposure, vignetting, blur, white
     /// balance, noise, colour, JPEG), seeded per frame.
     pub sensor: Option<Photometric>,
+    /// The share of the frames, within `(0, 1]`, that the two randomisations apply to (chosen
+    /// per frame by a hash of its seed and place, so the same list gives the same choice); the
+    /// others keep the stock images. `None`: every frame.
+    pub share: Option<f32>,
 }
 
 impl RenderStyle {
@@ -205,7 +209,17 @@ impl RenderStyle {
         RenderStyle {
             randomize_appearance: on,
             sensor: on.then(Photometric::default),
+            share: None,
         }
+    }
+
+    /// Whether the randomisations apply to item `k` of a split, rendered from scene seed `seed`.
+    pub fn applies_to(&self, seed: u64, k: u64) -> bool {
+        self.share.is_none_or(|p| {
+            // the top 24 bits of the frame's hash as a uniform draw in [0, 1)
+            let u = (sensor_seed(seed, k ^ 0x5eed) >> 40) as f32 / (1u64 << 24) as f32;
+            u < p
+        })
     }
 }
 
@@ -224,12 +238,13 @@ pub fn render_split_styled(
         .enumerate()
         .map(|(k, (path, seed))| {
             let mut scene_cfg = SceneConfig::from_file(path)?;
-            scene_cfg.appearance.randomize |= style.randomize_appearance;
+            let on = style.applies_to(*seed, k as u64);
+            scene_cfg.appearance.randomize |= style.randomize_appearance && on;
             let scene = Scene::generate(&scene_cfg, *seed)?;
             let frames = scene_cfg.frames.count.max(1) as u64;
             let yaws = &RIG_YAWS_DEG[..views_of(cfg).clamp(1, RIG_YAWS_DEG.len() + 1) - 1];
             let (mut frame, mut views) = scene.render_frame_rig((*seed % frames) as u32, yaws)?;
-            if let Some(sensor) = &style.sensor {
+            if let Some(sensor) = style.sensor.as_ref().filter(|_| on) {
                 // one draw per frame (the rig's cameras share a sensor model, each its noise)
                 let frame_seed = sensor_seed(*seed, k as u64);
                 degrade(&mut frame.image, sensor, frame_seed)?;
@@ -297,6 +312,37 @@ pub fn mean_std(v: &[f64]) -> (f64, f64) {
 mod tests {
     use super::*;
     use veila_diffusion::app::bundle::Variant;
+
+    #[test]
+    fn a_randomize_share_picks_that_share_of_frames_the_same_way_each_time() {
+        let all = RenderStyle::randomized(true);
+        assert!((0..1000u64).all(|k| all.applies_to(k % 800, k)));
+        let half = RenderStyle {
+            share: Some(0.5),
+            ..all
+        };
+        let picked: Vec<bool> = (0..4000u64).map(|k| half.applies_to(k % 800, k)).collect();
+        let n = picked.iter().filter(|&&b| b).count();
+        // binomial(4000, 0.5): sd 32
+        assert!((1850..2150).contains(&n), "{n}");
+        let again: Vec<bool> = (0..4000u64).map(|k| half.applies_to(k % 800, k)).collect();
+        assert_eq!(picked, again);
+        // a smaller share picks a subset of a larger one's frames
+        let tenth = RenderStyle {
+            share: Some(0.1),
+            ..all
+        };
+        let m = (0..4000u64)
+            .filter(|&k| tenth.applies_to(k % 800, k))
+            .count();
+        assert!((330..470).contains(&m), "{m}");
+        assert!((0..4000u64).all(|k| !tenth.applies_to(k % 800, k) || half.applies_to(k % 800, k)));
+        let one = RenderStyle {
+            share: Some(1.0),
+            ..all
+        };
+        assert!((0..1000u64).all(|k| one.applies_to(k, k)));
+    }
 
     #[test]
     fn baselines_follow_the_bundles_own_training_list() {

@@ -82,6 +82,10 @@ pub struct TrainDefaultArgs {
     /// vignetting, JPEG).
     #[arg(long)]
     pub randomize: bool,
+    /// With --randomize: the share of the training frames, within (0, 1], that is randomised
+    /// (chosen per frame from its seed); the rest keep the stock images [default: 1, all]
+    #[arg(long, requires = "randomize")]
+    pub randomize_share: Option<f32>,
     /// Augment the encoders' training images (crop-and-zoom, colour, blur, noise, JPEG).
     #[arg(long)]
     pub augment_encoders: bool,
@@ -140,6 +144,12 @@ pub fn run(args: TrainDefaultArgs) -> Result<BundleConfig> {
 /// [`run`] on already simulated training frames (`None`: simulate `args.frames` of them).
 pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result<BundleConfig> {
     let t_all = Instant::now();
+    if let Some(p) = args.randomize_share {
+        anyhow::ensure!(
+            p > 0.0 && p <= 1.0,
+            "--randomize-share {p} is not a share within (0, 1]"
+        );
+    }
     let device = Device::Cpu;
     let root = workspace_root();
     let mut cfg = BundleConfig::cpu_default(args.variant);
@@ -169,7 +179,10 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
                 &root.join(&args.scenes),
                 args.frames,
                 &cfg,
-                &crate::simdata::RenderStyle::randomized(args.randomize),
+                &crate::simdata::RenderStyle {
+                    share: args.randomize_share,
+                    ..crate::simdata::RenderStyle::randomized(args.randomize)
+                },
                 "simulating train frames",
             )?;
             &rendered
@@ -226,6 +239,9 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     if args.ground_prior {
         run_key["ground_prior"] = serde_json::Value::Bool(true);
     }
+    if let Some(p) = args.randomize_share {
+        run_key["randomize_share"] = serde_json::json!(p);
+    }
     if args.scenes != std::path::Path::new(crate::simdata::DEFAULT_SCENES) {
         run_key["scenes"] = serde_json::json!(args.scenes);
     }
@@ -243,7 +259,11 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         args.seed,
         args.encoder_steps,
         examples.len(),
-        if args.randomize { "-randomized" } else { "" },
+        match (args.randomize, args.randomize_share) {
+            (false, _) => String::new(),
+            (true, None) => "-randomized".to_string(),
+            (true, Some(p)) => format!("-randomized{:.0}", 100.0 * p),
+        },
         if args.augment_encoders {
             "-augmented"
         } else {
