@@ -2028,19 +2028,8 @@ fn open_roadside_and_rig_values_are_validated_with_the_key_named() {
 fn v2_scene_lists_extend_the_v1_lists_with_disjoint_seeds() {
     let dir = scenes_dir();
     for (v1, v2) in [("train.txt", "train-v2.txt"), ("test.txt", "test-v2.txt")] {
-        let old = SceneList::read(&dir.join(v1)).unwrap();
-        let new = SceneList::read(&dir.join(v2)).unwrap();
         // every v1 entry is in v2 with the same seeds
-        for e in &old.entries {
-            assert!(
-                new.entries
-                    .iter()
-                    .any(|n| n.scene == e.scene && n.seeds == e.seeds),
-                "{v2} lacks {} {:?}",
-                e.scene.display(),
-                e.seeds
-            );
-        }
+        let (_, new) = list_extends(&dir, v1, v2);
         let names: Vec<String> = new
             .entries
             .iter()
@@ -2055,17 +2044,7 @@ fn v2_scene_lists_extend_the_v1_lists_with_disjoint_seeds() {
             SceneConfig::from_file(&e.scene).unwrap();
         }
     }
-    let train = SceneList::read(&dir.join("train-v2.txt")).unwrap();
-    let test = SceneList::read(&dir.join("test-v2.txt")).unwrap();
-    for a in &train.entries {
-        for b in test.entries.iter().filter(|b| b.scene == a.scene) {
-            assert!(
-                a.seeds.end() < b.seeds.start() || b.seeds.end() < a.seeds.start(),
-                "{} seeds overlap",
-                a.scene.display()
-            );
-        }
-    }
+    seeds_disjoint(&dir, "train-v2.txt", "test-v2.txt");
 }
 
 #[test]
@@ -2583,30 +2562,14 @@ fn the_curved_example_scene_bends_and_renders() {
         ("train-v2.txt", "train-v3.txt"),
         ("test-v2.txt", "test-v3.txt"),
     ] {
-        let old = SceneList::read(&dir.join(v2)).unwrap();
-        let new = SceneList::read(&dir.join(v3)).unwrap();
-        for e in &old.entries {
-            assert!(
-                new.entries
-                    .iter()
-                    .any(|n| n.scene == e.scene && n.seeds == e.seeds),
-                "{v3} lacks {}",
-                e.scene.display()
-            );
-        }
+        let (_, new) = list_extends(&dir, v2, v3);
         assert!(
             new.entries
                 .iter()
                 .any(|e| e.scene.file_name().unwrap() == "curved_road.toml")
         );
     }
-    let train = SceneList::read(&dir.join("train-v3.txt")).unwrap();
-    let test = SceneList::read(&dir.join("test-v3.txt")).unwrap();
-    for a in &train.entries {
-        for b in test.entries.iter().filter(|b| b.scene == a.scene) {
-            assert!(a.seeds.end() < b.seeds.start() || b.seeds.end() < a.seeds.start());
-        }
-    }
+    seeds_disjoint(&dir, "train-v3.txt", "test-v3.txt");
 }
 
 /// Whether a ray from `o` along `d` hits any triangle of `m`, brute force.
@@ -2751,17 +2714,7 @@ fn tree_line_keys_are_validated_and_the_v4_lists_extend_v1() {
     }
     let dir = scenes_dir();
     for (v1, v4) in [("train.txt", "train-v4.txt"), ("test.txt", "test-v4.txt")] {
-        let old = SceneList::read(&dir.join(v1)).unwrap();
-        let new = SceneList::read(&dir.join(v4)).unwrap();
-        for e in &old.entries {
-            assert!(
-                new.entries
-                    .iter()
-                    .any(|n| n.scene == e.scene && n.seeds == e.seeds),
-                "{v4} lacks {}",
-                e.scene.display()
-            );
-        }
+        let (old, new) = list_extends(&dir, v1, v4);
         assert_eq!(new.entries.len(), old.entries.len() + 1);
         assert!(
             new.entries
@@ -2769,11 +2722,38 @@ fn tree_line_keys_are_validated_and_the_v4_lists_extend_v1() {
                 .any(|e| e.scene.file_name().unwrap() == "tree_lined_road.toml")
         );
     }
-    let train = SceneList::read(&dir.join("train-v4.txt")).unwrap();
-    let test = SceneList::read(&dir.join("test-v4.txt")).unwrap();
+    seeds_disjoint(&dir, "train-v4.txt", "test-v4.txt");
+}
+
+/// Reads lists `old` and `new` of `dir` and checks that every entry of `old` is in `new` with the
+/// same seeds.
+fn list_extends(dir: &Path, old: &str, new: &str) -> (SceneList, SceneList) {
+    let a = SceneList::read(&dir.join(old)).unwrap();
+    let b = SceneList::read(&dir.join(new)).unwrap();
+    for e in &a.entries {
+        assert!(
+            b.entries
+                .iter()
+                .any(|n| n.scene == e.scene && n.seeds == e.seeds),
+            "{new} lacks {} {:?}",
+            e.scene.display(),
+            e.seeds
+        );
+    }
+    (a, b)
+}
+
+/// Checks that lists `train` and `test` of `dir` never share a seed of the same scene file.
+fn seeds_disjoint(dir: &Path, train: &str, test: &str) {
+    let train = SceneList::read(&dir.join(train)).unwrap();
+    let test = SceneList::read(&dir.join(test)).unwrap();
     for a in &train.entries {
         for b in test.entries.iter().filter(|b| b.scene == a.scene) {
-            assert!(a.seeds.end() < b.seeds.start() || b.seeds.end() < a.seeds.start());
+            assert!(
+                a.seeds.end() < b.seeds.start() || b.seeds.end() < a.seeds.start(),
+                "{} seeds overlap",
+                a.scene.display()
+            );
         }
     }
 }

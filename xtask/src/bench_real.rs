@@ -184,22 +184,11 @@ pub fn depth_by_region(
     camera: &PinholeCamera,
     points: &[Vec3],
 ) -> Vec<RegionDepth> {
-    let (w, h) = (camera.width as i64, camera.height as i64);
+    let (w, h) = (camera.width as usize, camera.height as usize);
     let mut cells: Vec<Vec<(f64, f64)>> = vec![Vec::new(); 6];
-    for p in points {
-        let Some(ip) = camera.try_project_in_image(*p) else {
-            continue;
-        };
-        let (u, v) = (
-            (ip.u_px + 0.5).floor() as i64,
-            (ip.v_px + 0.5).floor() as i64,
-        );
-        if ip.depth_m < 1.0 || u < 0 || v < 0 || u >= w || v >= h {
-            continue;
-        }
-        let (col, row) = ((3 * u / w) as usize, (2 * v / h) as usize);
-        let d = depth_m[(v * w + u) as usize] as f64;
-        cells[row * 3 + col].push((ip.depth_m as f64, d));
+    for (u, v, t) in pixels_hit(camera, points) {
+        let (col, row) = (3 * u / w, 2 * v / h);
+        cells[row * 3 + col].push((t, depth_m[v * w + u] as f64));
     }
     let median = |mut x: Vec<f64>| {
         x.sort_by(f64::total_cmp);
@@ -231,6 +220,27 @@ pub fn depth_by_region(
     out
 }
 
+/// The nearest pixel `(u, v)` of every point that projects into `camera`'s image at least 1 m in
+/// front of it, with the point's camera depth in metres.
+fn pixels_hit<'a>(
+    camera: &'a PinholeCamera,
+    points: &'a [Vec3],
+) -> impl Iterator<Item = (usize, usize, f64)> + 'a {
+    let (w, h) = (camera.width as i64, camera.height as i64);
+    points.iter().filter_map(move |p| {
+        let ip = camera.try_project_in_image(*p)?;
+        let (u, v) = (
+            (ip.u_px + 0.5).floor() as i64,
+            (ip.v_px + 0.5).floor() as i64,
+        );
+        (ip.depth_m >= 1.0 && u >= 0 && v >= 0 && u < w && v < h).then_some((
+            u as usize,
+            v as usize,
+            ip.depth_m as f64,
+        ))
+    })
+}
+
 /// Scores per-pixel camera depth (`None` = no prediction) against the points' camera depths,
 /// nearest pixel of a `width x height` map.
 pub fn depth_score(
@@ -238,22 +248,11 @@ pub fn depth_score(
     camera: &PinholeCamera,
     points: &[Vec3],
 ) -> Option<DepthScore> {
-    let (w, h) = (camera.width as i64, camera.height as i64);
+    let w = camera.width as usize;
     let (mut rel, mut abs, mut n, mut total) = (0.0f64, 0.0f64, 0usize, 0usize);
-    for p in points {
-        let Some(ip) = camera.try_project_in_image(*p) else {
-            continue;
-        };
-        let (u, v) = (
-            (ip.u_px + 0.5).floor() as i64,
-            (ip.v_px + 0.5).floor() as i64,
-        );
-        if ip.depth_m < 1.0 || u < 0 || v < 0 || u >= w || v >= h {
-            continue;
-        }
+    for (u, v, t) in pixels_hit(camera, points) {
         total += 1;
-        if let Some(d) = depth_m[(v * w + u) as usize] {
-            let t = ip.depth_m as f64;
+        if let Some(d) = depth_m[v * w + u] {
             rel += (d as f64 - t).abs() / t;
             abs += (d as f64 - t).abs();
             n += 1;
