@@ -19,16 +19,21 @@
 //! **flat-ground prior** (each ray below the horizon meets a flat ground plane at the LiDAR's
 //! mounting height; no return elsewhere).
 //!
-//! The model's LiDAR frame has `x` forward, as KITTI's and the simulator's. nuScenes' LIDAR_TOP has
-//! `y` forward, so its frame is turned about `z` by the multiple of 90° that brings the camera's
-//! optical axis nearest to `+x` (an exact identity for KITTI) before the scan is generated and
-//! compared.
+//! The frames: KITTI object 000000 and 000001, mmdet3d's demo frame 000008 and the nuScenes
+//! sample seen by each of its six cameras (CAM_FRONT, issue 18's frame, and five more views of the
+//! same sweep, one camera at a time).
+//!
+//! The model's LiDAR frame has `x` forward along the camera, as KITTI's and the simulator's.
+//! nuScenes' LIDAR_TOP has `y` forward, so its frame is turned about `z` by the multiple of 90°
+//! that brings the camera's optical axis nearest to `+x` (an exact identity for KITTI), or by the
+//! axis's own azimuth for a camera more than 10° off every quarter turn (nuScenes' oblique
+//! cameras), before the scan is generated and compared.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use glam::{Mat4, Vec3};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use veila_data::PointCloud;
 use veila_data::image;
 use veila_data::vis::render::{OverlayOptions, render_overlay};
@@ -40,6 +45,17 @@ use veila_nn::encoders::small_cnn::SmallCnn;
 
 /// KITTI's Velodyne HDL-64E sits 1.73 m above the ground (Geiger et al. 2013, fig. 3).
 const KITTI_LIDAR_HEIGHT_M: f32 = 1.73;
+
+/// The nuScenes sample's cameras, in report order: CAM_FRONT (issue 18's frame) first, then the
+/// other five views of the same sweep.
+const NUSCENES_CAMERAS: [&str; 6] = [
+    "CAM_FRONT",
+    "CAM_FRONT_LEFT",
+    "CAM_FRONT_RIGHT",
+    "CAM_BACK_LEFT",
+    "CAM_BACK_RIGHT",
+    "CAM_BACK",
+];
 
 /// One real frame: a camera image with its calibration and the LiDAR scan taken with it.
 #[derive(Debug, Clone)]
@@ -56,6 +72,9 @@ pub struct RealFrame {
     pub lidar_height_m: f32,
     /// The scan covers the camera's view only (mmdet3d's demo frame).
     pub cropped: bool,
+    /// The calibration's camera to use (`None`: the file's default, KITTI's image_2 or
+    /// nuScenes' CAM_FRONT).
+    pub camera: Option<String>,
 }
 
 /// The folder of the shared real samples beside the workspace.
@@ -75,6 +94,7 @@ pub fn real_frames(root: &Path) -> Result<(Vec<RealFrame>, Vec<String>)> {
             scan: base.join(format!("{scan_dir}/{id}.bin")),
             lidar_height_m: KITTI_LIDAR_HEIGHT_M,
             cropped,
+            camera: None,
         };
         if [&f.image, &f.calib, &f.scan].iter().all(|p| p.is_file()) {
             frames.push(f);
@@ -92,7 +112,8 @@ pub fn real_frames(root: &Path) -> Result<(Vec<RealFrame>, Vec<String>)> {
         "velodyne_reduced",
         true,
     );
-    // nuScenes: the one sample JSON, its CAM_FRONT image and LIDAR_TOP sweep
+    // nuScenes: the one sample JSON and its LIDAR_TOP sweep, seen by each of the six cameras
+    // (CAM_FRONT first, the frame of issue 18; the other five are more real views of the same sweep)
     let nus = root.join("nuscenes");
     let calib = std::fs::read_dir(nus.join("calib")).ok().and_then(|d| {
         d.filter_map(|e| e.ok().map(|e| e.path()))
@@ -101,20 +122,31 @@ pub fn real_frames(root: &Path) -> Result<(Vec<RealFrame>, Vec<String>)> {
     match calib {
         Some(calib) => {
             let sample = veila_data::nuscenes::NuScenesSample::read_json(&calib)?;
-            let cam = sample
-                .cameras
-                .get("CAM_FRONT")
-                .with_context(|| format!("{} has no CAM_FRONT", calib.display()))?;
             // lidar2ego's translation: the ego frame's origin lies on the ground
             let height = sample.ego_from_lidar.w_axis.z as f32;
-            frames.push(RealFrame {
-                name: "nuscenes-CAM_FRONT".to_string(),
-                image: nus.join(&cam.file),
-                calib: calib.clone(),
-                scan: nus.join(&sample.lidar_file),
-                lidar_height_m: height,
-                cropped: false,
-            });
+            for name in NUSCENES_CAMERAS {
+                let Some(cam) = sample.cameras.get(name) else {
+                    missing.push(format!("nuscenes-{name}: not in {}", calib.display()));
+                    continue;
+                };
+                let f = RealFrame {
+                    name: format!("nuscenes-{name}"),
+                    image: nus.join(&cam.file),
+                    calib: calib.clone(),
+                    scan: nus.join(&sample.lidar_file),
+                    lidar_height_m: height,
+                    cropped: false,
+                    camera: Some(name.to_string()),
+                };
+                if f.image.is_file() && f.scan.is_file() {
+                    frames.push(f);
+                } else {
+                    missing.push(format!(
+                        "nuscenes-{name}: image or sweep not found under {}",
+                        nus.display()
+                    ));
+                }
+            }
         }
         None => missing.push(format!("nuscenes: no calib JSON under {}", nus.display())),
     }
@@ -122,7 +154,7 @@ pub fn real_frames(root: &Path) -> Result<(Vec<RealFrame>, Vec<String>)> {
 }
 
 /// `mean ± std` of one figure over the samples of one frame.
-#[derive(Debug, Clone, Copy, Serialize)]
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
 pub struct Spread {
     /// Mean.
     pub mean: f64,
@@ -136,7 +168,7 @@ fn spread(v: &[f64]) -> Spread {
 }
 
 /// One method's figures on one frame.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RealRow {
     /// `model`, `mean-network`, `mean-scan` or `flat-ground`.
     pub method: String,
@@ -151,7 +183,7 @@ pub struct RealRow {
 }
 
 /// Camera depth against the real LiDAR points that project into the (resized) image.
-#[derive(Debug, Clone, Copy, Serialize)]
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
 pub struct DepthScore {
     /// Mean |predicted - true| / true.
     pub abs_rel: f64,
@@ -162,7 +194,7 @@ pub struct DepthScore {
 }
 
 /// Camera depth in one region of the image: which part of the picture the depth head gets wrong.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RegionDepth {
     /// `left`, `centre` or `right` third, `upper` or `lower` half: e.g. `left upper`.
     pub region: String,
@@ -292,14 +324,16 @@ pub fn flat_ground_depth(camera: &PinholeCamera, height_m: f32, max_m: f32) -> V
 }
 
 /// All rows of one frame.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RealFrameResult {
     /// The frame's name.
     pub frame: String,
     /// The bundle's depth encoder on the resized real image (its depth head), against the real
     /// points.
     pub encoder_depth: Option<DepthScore>,
-    /// The same by image region ([`depth_by_region`]; empty without a depth head).
+    /// The same by image region ([`depth_by_region`]; empty without a depth head, and in reports
+    /// written before 2026-11-25, which lack the field).
+    #[serde(default)]
     pub encoder_depth_regions: Vec<RegionDepth>,
     /// The flat-ground prior's camera depth at the same points.
     pub ground_depth: Option<DepthScore>,
@@ -312,7 +346,7 @@ pub struct RealFrameResult {
 }
 
 /// The real-frame section of a report.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RealReport {
     /// Samples per frame behind each generated row.
     pub seeds: usize,
@@ -324,15 +358,27 @@ pub struct RealReport {
     pub frames: Vec<RealFrameResult>,
 }
 
-/// Turn about `z` (a multiple of 90°) from the dataset's LiDAR frame into the model's (`x` along
-/// the camera's optical axis, to the nearest quarter turn).
+/// Largest angle between a camera's optical axis and the nearest quarter turn of the LiDAR's `x`
+/// for which the frame turns by that quarter turn exactly (sensor axes stay on the grid).
+const QUARTER_TURN_TOLERANCE_DEG: f32 = 10.0;
+
+/// Turn about `z` from the dataset's LiDAR frame into the model's, whose `x` is the camera's
+/// optical axis (as in training): the nearest multiple of 90° when the axis lies within
+/// [`QUARTER_TURN_TOLERANCE_DEG`] of it (KITTI: the identity; nuScenes CAM_FRONT and CAM_BACK),
+/// else the axis's own azimuth (nuScenes' four oblique cameras, 55-110° off the LiDAR's `y`).
 fn model_from_lidar(camera: &PinholeCamera) -> Mat4 {
     let axis = camera.cam_from_lidar.inverse().transform_vector3(Vec3::Z);
-    let quarter = (axis.y.atan2(axis.x) / std::f32::consts::FRAC_PI_2).round();
-    if quarter == 0.0 {
+    let yaw = axis.y.atan2(axis.x);
+    let quarter = (yaw / std::f32::consts::FRAC_PI_2).round() * std::f32::consts::FRAC_PI_2;
+    let turn = if (yaw - quarter).abs() <= QUARTER_TURN_TOLERANCE_DEG.to_radians() {
+        quarter
+    } else {
+        yaw
+    };
+    if turn == 0.0 {
         Mat4::IDENTITY
     } else {
-        Mat4::from_rotation_z(-quarter * std::f32::consts::FRAC_PI_2)
+        Mat4::from_rotation_z(-turn)
     }
 }
 
@@ -406,7 +452,7 @@ pub fn evaluate(bundle: &Bundle, opts: &RealOptions<'_>, out: &Path) -> Result<R
     let projector = Projector::new(sensor, ProjectionOptions::default())?;
     let mut results = Vec::new();
     for f in &frames {
-        let view = load_view(&f.image, &f.calib, None)
+        let view = load_view(&f.image, &f.calib, f.camera.as_deref())
             .with_context(|| format!("real frame {}", f.name))?;
         let model_from = model_from_lidar(&view.camera);
         let camera = PinholeCamera {
@@ -841,5 +887,92 @@ mod tests {
         let axis_lidar = nus.cam_from_lidar.inverse().transform_vector3(Vec3::Z);
         let axis_model = m.transform_vector3(axis_lidar);
         assert!((axis_model - Vec3::X).length() < 1e-5, "{axis_model}");
+    }
+
+    #[test]
+    fn every_nuscenes_camera_is_a_frame_and_faces_the_models_x() {
+        let root = real_root(&crate::simdata::workspace_root());
+        if !root.join("nuscenes").is_dir() {
+            eprintln!("skipped: no real samples under {}", root.display());
+            return;
+        }
+        let (frames, _) = real_frames(&root).unwrap();
+        let nus: Vec<&RealFrame> = frames
+            .iter()
+            .filter(|f| f.name.starts_with("nuscenes-"))
+            .collect();
+        let names: Vec<&str> = nus.iter().map(|f| f.name.as_str()).collect();
+        let want: Vec<String> = NUSCENES_CAMERAS
+            .iter()
+            .map(|c| format!("nuscenes-{c}"))
+            .collect();
+        assert_eq!(names, want);
+        let mut images = std::collections::HashSet::new();
+        for f in nus {
+            let view = load_view(&f.image, &f.calib, f.camera.as_deref()).unwrap();
+            assert!(
+                images.insert(f.image.clone()),
+                "{} repeats an image",
+                f.name
+            );
+            // the camera's optical axis, turned into the model's frame, is within 10 deg of +x
+            let axis = view
+                .camera
+                .cam_from_lidar
+                .inverse()
+                .transform_vector3(Vec3::Z);
+            let a = model_from_lidar(&view.camera).transform_vector3(axis);
+            let off = a.y.atan2(a.x).to_degrees().abs();
+            assert!(
+                off <= QUARTER_TURN_TOLERANCE_DEG + 1e-3,
+                "{}: {off} deg",
+                f.name
+            );
+        }
+    }
+
+    #[test]
+    fn an_oblique_camera_turns_by_its_own_azimuth_and_a_near_axis_one_by_the_quarter() {
+        let k = [
+            [700.0, 0.0, 600.0, 0.0],
+            [0.0, 700.0, 180.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+        ];
+        let axes = Mat4::from_cols(
+            glam::Vec4::new(0., 0., 1., 0.),
+            glam::Vec4::new(-1., 0., 0., 0.),
+            glam::Vec4::new(0., -1., 0., 0.),
+            glam::Vec4::W,
+        );
+        // a camera looking `deg` to the left of the LiDAR's +x
+        let looking = |deg: f32| {
+            let c = PinholeCamera::new(
+                k,
+                axes * Mat4::from_rotation_z(-deg.to_radians()),
+                1200,
+                360,
+            )
+            .unwrap();
+            let axis_lidar = c.cam_from_lidar.inverse().transform_vector3(Vec3::Z);
+            (model_from_lidar(&c), axis_lidar)
+        };
+        for deg in [55.0f32, -55.0, 110.0, -110.0, 135.0, 30.0] {
+            let (m, axis) = looking(deg);
+            let a = m.transform_vector3(axis);
+            assert!((a - Vec3::X).length() < 1e-5, "{deg}: {a}");
+        }
+        // within 10 degrees of a quarter turn: the quarter turn itself, the axis a little off +x
+        for (deg, quarter) in [(4.0f32, 0.0f32), (-8.0, 0.0), (95.0, 90.0), (183.0, 180.0)] {
+            let (m, axis) = looking(deg);
+            let want = Mat4::from_rotation_z(-quarter.to_radians());
+            let got = m.transform_vector3(Vec3::X);
+            assert!(
+                (got - want.transform_vector3(Vec3::X)).length() < 1e-5,
+                "{deg}: {got}"
+            );
+            let a = m.transform_vector3(axis);
+            let off = a.y.atan2(a.x).to_degrees();
+            assert!((off - (deg - quarter)).abs() < 1e-3, "{deg}: {off}");
+        }
     }
 }

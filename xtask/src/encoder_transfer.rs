@@ -235,7 +235,7 @@ pub fn run(args: EncoderTransferArgs) -> Result<()> {
     // the real frames at the encoder's input size, with their points in the LiDAR frame
     let mut real = Vec::new();
     for f in &frames {
-        let view = load_view(&f.image, &f.calib, None)?;
+        let view = load_view(&f.image, &f.calib, f.camera.as_deref())?;
         let prepared = prepare_views(&cfg, std::slice::from_ref(&view))?;
         let (rgb, cam) = prepared.into_iter().next().context("no view")?;
         let pts: Vec<Vec3> = veila_data::scan::read_points(&f.scan)?.cloud.xyz;

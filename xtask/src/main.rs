@@ -22,6 +22,7 @@ mod method_sweep; // cargo xtask method-sweep (generative methods at equal train
 mod overfit; // the bundled-size overfit check (an ignored test, run by hand)
 mod progress; // progress bars of the long commands
 mod sampler_name; // samplers by their command-line name
+mod seed_spread; // cargo xtask seed-spread (recipes by the mean over their seeds, real frames)
 mod simdata; // simulated examples for training and benchmarks
 #[cfg(test)]
 mod tidy;
@@ -67,6 +68,10 @@ enum Command {
     /// Generative methods (ε / v diffusion, residual diffusion, rectified flow, regression) at
     /// equal training compute: quality against training seconds.
     MethodSweep(method_sweep::MethodSweepArgs),
+    /// Recipes ranked by the mean over their seeds on the real frames: `bench-real` reports of each
+    /// recipe's seeds aggregated per frame (mean ± std, seeds below the mean scan, difference to the
+    /// first recipe with its standard error).
+    SeedSpread(seed_spread::SeedSpreadArgs),
     /// Print the workspace's crate layering rules (checked by `cargo test -p xtask`).
     Layers,
 }
@@ -94,6 +99,7 @@ fn run(command: Command) -> Result<()> {
         Command::BuildCuda(a) => build_cuda::run(a),
         Command::TrainDefault(a) => train_default::run(a).map(|_| ()),
         Command::TrainProbe(a) => train_probe::run(a),
+        Command::SeedSpread(a) => seed_spread::run(a),
         Command::Layers => {
             println!("see ARCHITECTURE.md, section 'Layering'");
             Ok(())
