@@ -7,7 +7,10 @@
 //! recipe, the chosen method's range MAE in view (mean ± sample std over the seeds and the number
 //! of seeds below the mean scan), its front-half MAE, the depth encoder's AbsRel, and the
 //! recipe's own mean scan; then each recipe's difference to the first one with its standard error
-//! `sqrt(s1²/n1 + s2²/n2)`. It reads the reports only: nothing is trained or sampled.
+//! `sqrt(s1²/n1 + s2²/n2)`. A last row per recipe averages each seed over every frame first (and
+//! counts the frames it wins against its mean scan), then over the seeds: one figure to rank
+//! recipes by, next to the per-frame rows it summarises. It reads the reports only: nothing is
+//! trained or sampled.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -186,6 +189,42 @@ pub fn difference(a: &Stat, b: &Stat) -> (f64, Option<f64>) {
     (a.mean - b.mean, se)
 }
 
+/// `recipe` over all of `frames` at once: per seed, the mean of the view MAE over the frames and
+/// the number of frames below its mean scan; then the mean ± std of the first and the mean of the
+/// second over the seeds. Seeds that lack a frame are left out; `None` when none has them all.
+pub fn overall(recipe: &Recipe, frames: &[String], method: &str) -> Option<(Stat, f64)> {
+    let (mut means, mut wins) = (Vec::new(), Vec::new());
+    for (_, rep) in &recipe.runs {
+        let mut sum = 0.0;
+        let mut below = 0usize;
+        let mut all = true;
+        for name in frames {
+            let Some(f) = rep.frames.iter().find(|f| &f.frame == name) else {
+                all = false;
+                break;
+            };
+            let row = f.rows.iter().find(|r| r.method == method);
+            let ms = f.rows.iter().find(|r| r.method == "mean-scan");
+            match (row, ms) {
+                (Some(r), Some(m)) => {
+                    sum += r.view_mae_m.mean;
+                    below += usize::from(r.view_mae_m.mean < m.view_mae_m.mean);
+                }
+                _ => {
+                    all = false;
+                    break;
+                }
+            }
+        }
+        if all && !frames.is_empty() {
+            means.push(sum / frames.len() as f64);
+            wins.push(below as f64);
+        }
+    }
+    let st = Stat::of(&means)?;
+    Some((st, wins.iter().sum::<f64>() / wins.len() as f64))
+}
+
 fn pm(s: &Stat) -> String {
     if s.n > 1 {
         format!("{:.2} ± {:.2}", s.mean, s.std)
@@ -248,6 +287,29 @@ pub fn markdown(recipes: &[Recipe], method: &str) -> String {
                 opt(&st.abs_rel),
             );
         }
+    }
+    let frames = frame_names(recipes);
+    let first = recipes.first().and_then(|r| overall(r, &frames, method));
+    for r in recipes {
+        let Some((st, wins)) = overall(r, &frames, method) else {
+            continue;
+        };
+        let delta = match &first {
+            Some((f, _)) if !std::ptr::eq(r, &recipes[0]) => match difference(&st, f) {
+                (d, Some(se)) => format!("{d:+.2} ± {se:.2}"),
+                (d, None) => format!("{d:+.2} (one seed)"),
+            },
+            _ => "-".to_string(),
+        };
+        let _ = writeln!(
+            s,
+            "| mean over the {} frames | {} | {} | {} | {wins:.1}/{} | {delta} | | | |",
+            frames.len(),
+            r.label,
+            st.n,
+            pm(&st),
+            frames.len(),
+        );
     }
     s
 }
@@ -394,6 +456,33 @@ mod tests {
             md.contains("| kitti-000001 | other | 2 | 3.00 ± 0.00 | 2/2 | -2.00 ± 1.00 |"),
             "{md}"
         );
+    }
+
+    #[test]
+    fn the_overall_row_averages_frames_per_seed_then_seeds() {
+        // two frames per seed: seed 0 views 4 and 6 (mean 5, one below its mean scan of 5.5),
+        // seed 1 views 2 and 4 (mean 3, both below)
+        let two = |a: f64, b: f64| {
+            let mut r = report(a, 5.5, 0.2);
+            let mut f = r.frames[0].clone();
+            f.frame = "kitti-000000".into();
+            f.rows[0].view_mae_m.mean = b;
+            r.frames.push(f);
+            r
+        };
+        let r = recipe("a", vec![two(4.0, 6.0), two(2.0, 4.0)]);
+        let frames = frame_names(std::slice::from_ref(&r));
+        let (st, wins) = overall(&r, &frames, "mean-network").unwrap();
+        assert_eq!(st.n, 2);
+        assert!((st.mean - 4.0).abs() < 1e-12);
+        assert!((st.std - 2f64.sqrt()).abs() < 1e-12);
+        assert!((wins - 1.5).abs() < 1e-12);
+        // a seed without one of the frames is left out of the overall row
+        let r = recipe("b", vec![two(4.0, 6.0), report(1.0, 5.5, 0.2)]);
+        let (st, _) = overall(&r, &frames, "mean-network").unwrap();
+        assert_eq!(st.n, 1);
+        assert!((st.mean - 5.0).abs() < 1e-12);
+        assert!(overall(&r, &frames, "model").is_none());
     }
 
     #[test]
