@@ -367,7 +367,7 @@ const QUARTER_TURN_TOLERANCE_DEG: f32 = 10.0;
 /// [`QUARTER_TURN_TOLERANCE_DEG`] of it (KITTI: the identity; nuScenes CAM_FRONT and CAM_BACK),
 /// else the axis's own azimuth (nuScenes' four oblique cameras, 55-110° off the LiDAR's `y`).
 fn model_from_lidar(camera: &PinholeCamera) -> Mat4 {
-    let axis = camera.cam_from_lidar.inverse().transform_vector3(Vec3::Z);
+    let axis = optical_axis_lidar(camera);
     let yaw = axis.y.atan2(axis.x);
     let quarter = (yaw / std::f32::consts::FRAC_PI_2).round() * std::f32::consts::FRAC_PI_2;
     let turn = if (yaw - quarter).abs() <= QUARTER_TURN_TOLERANCE_DEG.to_radians() {
@@ -380,6 +380,11 @@ fn model_from_lidar(camera: &PinholeCamera) -> Mat4 {
     } else {
         Mat4::from_rotation_z(-turn)
     }
+}
+
+/// The camera's optical axis (its `+z`) in the LiDAR frame.
+fn optical_axis_lidar(camera: &PinholeCamera) -> Vec3 {
+    camera.cam_from_lidar.inverse().transform_vector3(Vec3::Z)
 }
 
 /// Masks of the range grid: in the camera's view, in the front half.
@@ -755,6 +760,26 @@ pub fn markdown(r: &RealReport) -> String {
 mod tests {
     use super::*;
 
+    /// KITTI-like axes: camera `x` right = LiDAR `-y`, `y` down = LiDAR `-z`, `z` forward = LiDAR `+x`.
+    fn kitti_axes() -> Mat4 {
+        Mat4::from_cols(
+            glam::Vec4::new(0., 0., 1., 0.),
+            glam::Vec4::new(-1., 0., 0., 0.),
+            glam::Vec4::new(0., -1., 0., 0.),
+            glam::Vec4::W,
+        )
+    }
+
+    /// A 1200 x 360 KITTI-size pinhole camera (focal 700 px).
+    fn wide_camera(cam_from_lidar: Mat4) -> PinholeCamera {
+        let k = [
+            [700.0, 0.0, 600.0, 0.0],
+            [0.0, 700.0, 180.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+        ];
+        PinholeCamera::new(k, cam_from_lidar, 1200, 360).unwrap()
+    }
+
     #[test]
     fn flat_ground_depth_points_lie_on_the_plane() {
         let k = [
@@ -763,12 +788,7 @@ mod tests {
             [0.0, 0.0, 1.0, 0.0],
         ];
         // KITTI-like axes, the camera pitched down by 5 degrees and 0.1 m above the LiDAR
-        let axes = Mat4::from_cols(
-            glam::Vec4::new(0., 0., 1., 0.),
-            glam::Vec4::new(-1., 0., 0., 0.),
-            glam::Vec4::new(0., -1., 0., 0.),
-            glam::Vec4::W,
-        );
+        let axes = kitti_axes();
         let cam_from_lidar = Mat4::from_rotation_x(5f32.to_radians())
             * axes
             * Mat4::from_translation(Vec3::new(0.0, 0.0, -0.1));
@@ -866,25 +886,13 @@ mod tests {
 
     #[test]
     fn nuscenes_frame_turns_a_quarter_and_kitti_not_at_all() {
-        let k = [
-            [700.0, 0.0, 600.0, 0.0],
-            [0.0, 700.0, 180.0, 0.0],
-            [0.0, 0.0, 1.0, 0.0],
-        ];
-        let cam = |cam_from_lidar: Mat4| PinholeCamera::new(k, cam_from_lidar, 1200, 360).unwrap();
-        // KITTI-like: camera x right = LiDAR -y, y down = LiDAR -z, z forward = LiDAR +x
-        let axes = Mat4::from_cols(
-            glam::Vec4::new(0., 0., 1., 0.),
-            glam::Vec4::new(-1., 0., 0., 0.),
-            glam::Vec4::new(0., -1., 0., 0.),
-            glam::Vec4::W,
-        );
-        let kitti = cam(axes);
+        let axes = kitti_axes();
+        let kitti = wide_camera(axes);
         assert_eq!(model_from_lidar(&kitti), Mat4::IDENTITY);
         // nuScenes-like: the optical axis along the LiDAR's +y; the model's +x must be it
-        let nus = cam(axes * Mat4::from_rotation_z(-std::f32::consts::FRAC_PI_2));
+        let nus = wide_camera(axes * Mat4::from_rotation_z(-std::f32::consts::FRAC_PI_2));
         let m = model_from_lidar(&nus);
-        let axis_lidar = nus.cam_from_lidar.inverse().transform_vector3(Vec3::Z);
+        let axis_lidar = optical_axis_lidar(&nus);
         let axis_model = m.transform_vector3(axis_lidar);
         assert!((axis_model - Vec3::X).length() < 1e-5, "{axis_model}");
     }
@@ -916,11 +924,7 @@ mod tests {
                 f.name
             );
             // the camera's optical axis, turned into the model's frame, is within 10 deg of +x
-            let axis = view
-                .camera
-                .cam_from_lidar
-                .inverse()
-                .transform_vector3(Vec3::Z);
+            let axis = optical_axis_lidar(&view.camera);
             let a = model_from_lidar(&view.camera).transform_vector3(axis);
             let off = a.y.atan2(a.x).to_degrees().abs();
             assert!(
@@ -933,27 +937,10 @@ mod tests {
 
     #[test]
     fn an_oblique_camera_turns_by_its_own_azimuth_and_a_near_axis_one_by_the_quarter() {
-        let k = [
-            [700.0, 0.0, 600.0, 0.0],
-            [0.0, 700.0, 180.0, 0.0],
-            [0.0, 0.0, 1.0, 0.0],
-        ];
-        let axes = Mat4::from_cols(
-            glam::Vec4::new(0., 0., 1., 0.),
-            glam::Vec4::new(-1., 0., 0., 0.),
-            glam::Vec4::new(0., -1., 0., 0.),
-            glam::Vec4::W,
-        );
         // a camera looking `deg` to the left of the LiDAR's +x
         let looking = |deg: f32| {
-            let c = PinholeCamera::new(
-                k,
-                axes * Mat4::from_rotation_z(-deg.to_radians()),
-                1200,
-                360,
-            )
-            .unwrap();
-            let axis_lidar = c.cam_from_lidar.inverse().transform_vector3(Vec3::Z);
+            let c = wide_camera(kitti_axes() * Mat4::from_rotation_z(-deg.to_radians()));
+            let axis_lidar = optical_axis_lidar(&c);
             (model_from_lidar(&c), axis_lidar)
         };
         for deg in [55.0f32, -55.0, 110.0, -110.0, 135.0, 30.0] {

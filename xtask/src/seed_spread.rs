@@ -225,6 +225,17 @@ pub fn overall(recipe: &Recipe, frames: &[String], method: &str) -> Option<(Stat
     Some((st, wins.iter().sum::<f64>() / wins.len() as f64))
 }
 
+/// The Δ cell: `st` minus the first recipe's `first` (`-` on the first recipe's own row).
+fn delta_cell(st: &Stat, first: Option<&Stat>, is_first: bool) -> String {
+    match first {
+        Some(f) if !is_first => match difference(st, f) {
+            (d, Some(se)) => format!("{d:+.2} ± {se:.2}"),
+            (d, None) => format!("{d:+.2} (one seed)"),
+        },
+        _ => "-".to_string(),
+    }
+}
+
 fn pm(s: &Stat) -> String {
     if s.n > 1 {
         format!("{:.2} ± {:.2}", s.mean, s.std)
@@ -255,20 +266,15 @@ pub fn markdown(recipes: &[Recipe], method: &str) -> String {
         s,
         "\n| frame | recipe | seeds | view | < mean scan | Δ view | front | depth AbsRel | mean scan view / front |\n|---|---|---|---|---|---|---|---|---|"
     );
-    for frame in frame_names(recipes) {
-        let first = recipes.first().and_then(|r| frame_stat(r, &frame, method));
-        for r in recipes {
-            let Some(st) = frame_stat(r, &frame, method) else {
+    let frames = frame_names(recipes);
+    for frame in &frames {
+        let first = recipes.first().and_then(|r| frame_stat(r, frame, method));
+        for (i, r) in recipes.iter().enumerate() {
+            let Some(st) = frame_stat(r, frame, method) else {
                 let _ = writeln!(s, "| {frame} | {} | 0 | - | - | - | - | - | - |", r.label);
                 continue;
             };
-            let delta = match &first {
-                Some(f) if !std::ptr::eq(r, &recipes[0]) => match difference(&st.view, &f.view) {
-                    (d, Some(se)) => format!("{d:+.2} ± {se:.2}"),
-                    (d, None) => format!("{d:+.2} (one seed)"),
-                },
-                _ => "-".to_string(),
-            };
+            let delta = delta_cell(&st.view, first.as_ref().map(|f| &f.view), i == 0);
             let opt = |x: &Option<Stat>| x.as_ref().map_or("-".to_string(), pm);
             let ms = match (&st.mean_scan_view, &st.mean_scan_front) {
                 (Some(v), Some(f)) => format!("{:.2} / {:.2}", v.mean, f.mean),
@@ -288,19 +294,12 @@ pub fn markdown(recipes: &[Recipe], method: &str) -> String {
             );
         }
     }
-    let frames = frame_names(recipes);
     let first = recipes.first().and_then(|r| overall(r, &frames, method));
-    for r in recipes {
+    for (i, r) in recipes.iter().enumerate() {
         let Some((st, wins)) = overall(r, &frames, method) else {
             continue;
         };
-        let delta = match &first {
-            Some((f, _)) if !std::ptr::eq(r, &recipes[0]) => match difference(&st, f) {
-                (d, Some(se)) => format!("{d:+.2} ± {se:.2}"),
-                (d, None) => format!("{d:+.2} (one seed)"),
-            },
-            _ => "-".to_string(),
-        };
+        let delta = delta_cell(&st, first.as_ref().map(|(f, _)| f), i == 0);
         let _ = writeln!(
             s,
             "| mean over the {} frames | {} | {} | {} | {wins:.1}/{} | {delta} | | | |",
