@@ -1344,6 +1344,141 @@ fn appearance_never_changes_geometry_semantics_depth_or_lidar() {
 }
 
 #[test]
+fn randomized_lighting_is_the_drawn_sun_and_sky_over_the_stock_materials() {
+    // suns high enough never to stand in the small camera's view, whose disc clouds would dim
+    let mut lit = tiny_config();
+    lit.appearance.randomize_lighting = true;
+    lit.appearance.sun_elevation_deg = [45.0, 70.0];
+    let full = SceneConfig {
+        appearance: AppearanceConfig {
+            randomize: true,
+            randomize_lighting: false,
+            ..lit.appearance
+        },
+        ..lit.clone()
+    };
+    let base = Scene::generate(&lit, 11).unwrap();
+    let mesh = base.static_mesh().clone();
+    let pose = base.world_from_lidar(0.0);
+    let scene =
+        |cfg: &SceneConfig, seed: u64| Scene::from_parts(cfg, seed, mesh.clone(), Vec::new(), pose);
+    let mut images = Vec::new();
+    for seed in 0..4u64 {
+        let on = scene(&lit, seed);
+        let light = on.snapshot(0).lighting;
+        // the sun and sky the full randomisation draws for this seed, the same in every frame
+        assert_eq!(
+            light,
+            scene(&full, seed).snapshot(0).lighting,
+            "seed {seed}"
+        );
+        assert_eq!(light, on.snapshot(5).lighting, "seed {seed}");
+        assert_ne!(light, tiny_config().lighting, "seed {seed}");
+        // the stock scene lit by that sun and sky renders the same bytes: materials stay flat
+        let relit = SceneConfig {
+            lighting: light,
+            ..tiny_config()
+        };
+        let (a, b) = (
+            on.render_frame(0).unwrap(),
+            scene(&relit, seed).render_frame(0).unwrap(),
+        );
+        assert_eq!(a.image.rgb, b.image.rgb, "seed {seed}");
+        // and nothing but the colours changes
+        let stock = scene(&tiny_config(), seed).render_frame(0).unwrap();
+        assert!(
+            scan_bytes(&a.scan) == scan_bytes(&stock.scan),
+            "seed {seed}"
+        );
+        assert_eq!(depth_bytes(&a.image), depth_bytes(&stock.image));
+        assert_eq!(a.image.semantic, stock.image.semantic);
+        assert_ne!(
+            a.image.rgb, stock.image.rgb,
+            "seed {seed}: lighting had no effect"
+        );
+        images.push(a.image.rgb);
+    }
+    for (i, x) in images.iter().enumerate() {
+        assert!(
+            images[i + 1..].iter().all(|y| y != x),
+            "two seeds lit alike"
+        );
+    }
+    // the keys read from TOML, and a config without them keeps the stock images
+    let parsed = SceneConfig::from_toml_str(
+        "[appearance]\nrandomize_lighting = true\nrandomize_materials = true\n",
+        Path::new("halves.toml"),
+    )
+    .unwrap();
+    let a = parsed.appearance;
+    assert!(a.randomize_lighting && a.randomize_materials && !a.randomize);
+    let stock = SceneConfig::default().appearance;
+    assert!(!stock.randomize_lighting && !stock.randomize_materials);
+}
+
+#[test]
+fn randomized_materials_keep_the_stock_light_and_the_two_halves_make_the_whole() {
+    let mut mat = tiny_config();
+    mat.appearance.randomize_materials = true;
+    let lit = SceneConfig {
+        appearance: AppearanceConfig {
+            randomize_lighting: true,
+            randomize_materials: false,
+            ..mat.appearance
+        },
+        ..mat.clone()
+    };
+    let both = SceneConfig {
+        appearance: AppearanceConfig {
+            randomize_lighting: true,
+            ..mat.appearance
+        },
+        ..mat.clone()
+    };
+    let full = randomized(tiny_config());
+    let base = Scene::generate(&mat, 11).unwrap();
+    let mesh = base.static_mesh().clone();
+    let pose = base.world_from_lidar(0.0);
+    let scene =
+        |cfg: &SceneConfig, seed: u64| Scene::from_parts(cfg, seed, mesh.clone(), Vec::new(), pose);
+    let mut images = Vec::new();
+    for seed in 0..4u64 {
+        let on = scene(&mat, seed);
+        // the configured sun and sky, with no clouds drawn
+        assert_eq!(
+            on.snapshot(0).lighting,
+            tiny_config().lighting,
+            "seed {seed}"
+        );
+        assert_eq!(on.snapshot(0).overcast, 0.0);
+        let a = on.render_frame(0).unwrap();
+        let stock = scene(&tiny_config(), seed).render_frame(0).unwrap();
+        assert!(
+            scan_bytes(&a.scan) == scan_bytes(&stock.scan),
+            "seed {seed}"
+        );
+        assert_eq!(depth_bytes(&a.image), depth_bytes(&stock.image));
+        assert_eq!(a.image.semantic, stock.image.semantic);
+        assert_ne!(
+            a.image.rgb, stock.image.rgb,
+            "seed {seed}: no material drawn"
+        );
+        let l = scene(&lit, seed).render_frame(0).unwrap();
+        assert_ne!(a.image.rgb, l.image.rgb, "seed {seed}");
+        // both halves on render exactly what `randomize` renders
+        let (b, f) = (
+            scene(&both, seed).render_frame(0).unwrap(),
+            scene(&full, seed).render_frame(0).unwrap(),
+        );
+        assert_eq!(b.image.rgb, f.image.rgb, "seed {seed}");
+        images.push(a.image.rgb);
+    }
+    for (i, x) in images.iter().enumerate() {
+        assert!(images[i + 1..].iter().all(|y| y != x), "two seeds alike");
+    }
+}
+
+#[test]
 fn randomized_render_is_independent_of_thread_count() {
     let cfg = randomized(SceneConfig {
         layout: Layout::Junction,

@@ -11,7 +11,10 @@
 //! - **Chamfer distance in the camera's view** (m², PyTorch3D's convention, `veila-metrics`)
 //!   between the scans' points on the bundle's grid (the real scan projected onto the same grid,
 //!   so the two have the same density);
-//! - an overlay PNG: the generated points on the real image above the real scan's.
+//! - an overlay PNG: the generated points on the real image above the real scan's;
+//! - an encoder panel PNG (`real/<frame>_encoders.png`): the image at the encoders' input size,
+//!   the semantic head's labels in SemanticKITTI's colours and the depth head's map, so a wrong
+//!   depth read can be traced to what the encoders took the scene for.
 //!
 //! The generated rows are the mean ± standard deviation over `seeds` samples; the mean network
 //! alone (residual bundles) is deterministic. Baselines: the **mean simulated scan** (per-pixel
@@ -488,6 +491,12 @@ pub fn evaluate(bundle: &Bundle, opts: &RealOptions<'_>, out: &Path) -> Result<R
             )?,
             None => None,
         };
+        let stem: String = f.name.chars().take_while(|c| !c.is_whitespace()).collect();
+        if let Some(img) = encoder_maps_png(bundle, small_rgb, small_cam)? {
+            let file = out.join(format!("real/{stem}_encoders.png"));
+            img.save(&file)
+                .with_context(|| format!("writing {}", file.display()))?;
+        }
         let encoder_depth = encoder_map.as_ref().and_then(|d| {
             let d: Vec<Option<f32>> = d.iter().copied().map(Some).collect();
             depth_score(&d, small_cam, &xyz)
@@ -568,7 +577,6 @@ pub fn evaluate(bundle: &Bundle, opts: &RealOptions<'_>, out: &Path) -> Result<R
         let mut both = image::RgbImage::new(top.width(), top.height() * 2);
         image::imageops::replace(&mut both, &top, 0, 0);
         image::imageops::replace(&mut both, &bottom, 0, top.height() as i64);
-        let stem: String = f.name.chars().take_while(|c| !c.is_whitespace()).collect();
         let file = format!("real/{stem}_overlay.png");
         both.save(out.join(&file))
             .with_context(|| format!("writing {}", out.join(&file).display()))?;
@@ -588,6 +596,83 @@ pub fn evaluate(bundle: &Bundle, opts: &RealOptions<'_>, out: &Path) -> Result<R
         missing,
         frames: results,
     })
+}
+
+/// SemanticKITTI's train-id colours (`semantic-kitti.yaml`'s `color_map` through `learning_map_inv`,
+/// as RGB) for the encoder panel.
+const TRAIN_ID_RGB: [[u8; 3]; 20] = [
+    [0, 0, 0],
+    [100, 150, 245],
+    [100, 230, 245],
+    [30, 60, 150],
+    [80, 30, 180],
+    [0, 0, 255],
+    [255, 30, 30],
+    [255, 40, 200],
+    [150, 30, 90],
+    [255, 0, 255],
+    [255, 150, 255],
+    [75, 0, 75],
+    [175, 0, 75],
+    [255, 200, 0],
+    [255, 120, 50],
+    [0, 175, 0],
+    [135, 60, 0],
+    [150, 240, 80],
+    [255, 240, 150],
+    [255, 0, 0],
+];
+
+/// The encoders' view of one real image, at their input size and scaled up 3x: the image, the
+/// semantic head's labels (SemanticKITTI colours) and the depth head's map (viridis, log scale,
+/// 2 m bright to 80 m dark), stacked; `None` when the bundle's encoders are not small CNNs.
+fn encoder_maps_png(
+    bundle: &Bundle,
+    rgb: &[u8],
+    camera: &PinholeCamera,
+) -> Result<Option<image::RgbImage>> {
+    let (h, w) = (bundle.config.image_height, bundle.config.image_width);
+    let maps = |enc: Option<&veila_nn::encoders::kind::AnyEncoder>| -> Result<_> {
+        let Some(net) = enc.and_then(|e| e.as_small_cnn()) else {
+            return Ok(None);
+        };
+        let img = net
+            .config()
+            .input_tensor(rgb, h, w, Some(camera), &candle_core::Device::Cpu)?;
+        Ok(Some(net.predict_maps(&img)?.swap_remove(0)))
+    };
+    let (Some(sem), Some(dep)) = (
+        maps(bundle.semantic.as_ref())?,
+        maps(bundle.depth.as_ref())?,
+    ) else {
+        return Ok(None);
+    };
+    let panel = |f: &dyn Fn(usize) -> [u8; 3]| {
+        let img = image::RgbImage::from_fn(w as u32, h as u32, |x, y| {
+            image::Rgb(f(y as usize * w + x as usize))
+        });
+        image::imageops::resize(
+            &img,
+            3 * w as u32,
+            3 * h as u32,
+            image::imageops::FilterType::Nearest,
+        )
+    };
+    let photo = panel(&|k| [rgb[3 * k], rgb[3 * k + 1], rgb[3 * k + 2]]);
+    let labels = sem
+        .labels
+        .as_ref()
+        .map(|l| panel(&|k| TRAIN_ID_RGB[(l[k] as usize).min(TRAIN_ID_RGB.len() - 1)]));
+    let depth = dep.depth_m.as_ref().map(|d| {
+        panel(&|k| {
+            let t = (d[k].max(2.0) / 2.0).ln() / (80.0f32 / 2.0).ln();
+            veila_data::vis::render::Colormap::Viridis.rgb(1.0 - t)
+        })
+    });
+    let mut parts = vec![photo];
+    parts.extend(labels);
+    parts.extend(depth);
+    Ok(Some(veila_data::vis::render::stack_vertical(&parts)))
 }
 
 /// Arguments of `cargo xtask bench-real`.

@@ -818,6 +818,8 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                     init_from: (args.protocol == Protocol::Finetune).then(|| model_dir.clone()),
                     randomize: false,
                     randomize_share: None,
+                    randomize_lighting: false,
+                    randomize_materials: false,
                     augment_encoders: false,
                     ground_prior: false,
                     scenes: train_list.clone(),

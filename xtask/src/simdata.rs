@@ -194,6 +194,11 @@ pub fn render_split(
 pub struct RenderStyle {
     /// Scene appearance drawn per scene (`[appearance] randomize`: textures, palettes, sun, sky).
     pub randomize_appearance: bool,
+    /// The sun and sky alone drawn per scene (`[appearance] randomize_lighting`), stock materials.
+    pub randomize_lighting: bool,
+    /// The palettes and textures alone drawn per scene (`[appearance] randomize_materials`), the
+    /// scene's own sun and sky.
+    pub randomize_materials: bool,
     /// Sensor randomisation at the rendered resolution (exposure, vignetting, blur, white
     /// balance, noise, colour, JPEG), seeded per frame.
     pub sensor: Option<Photometric>,
@@ -208,6 +213,8 @@ impl RenderStyle {
     pub fn randomized(on: bool) -> Self {
         RenderStyle {
             randomize_appearance: on,
+            randomize_lighting: false,
+            randomize_materials: false,
             sensor: on.then(Photometric::default),
             share: None,
         }
@@ -240,6 +247,8 @@ pub fn render_split_styled(
             let mut scene_cfg = SceneConfig::from_file(path)?;
             let on = style.applies_to(*seed, k as u64);
             scene_cfg.appearance.randomize |= style.randomize_appearance && on;
+            scene_cfg.appearance.randomize_lighting |= style.randomize_lighting && on;
+            scene_cfg.appearance.randomize_materials |= style.randomize_materials && on;
             let scene = Scene::generate(&scene_cfg, *seed)?;
             let frames = scene_cfg.frames.count.max(1) as u64;
             let yaws = &RIG_YAWS_DEG[..views_of(cfg).clamp(1, RIG_YAWS_DEG.len() + 1) - 1];

@@ -86,6 +86,14 @@ pub struct TrainDefaultArgs {
     /// (chosen per frame from its seed); the rest keep the stock images [default: 1, all]
     #[arg(long, requires = "randomize")]
     pub randomize_share: Option<f32>,
+    /// Draw the sun and sky per training scene (elevation, azimuth, colour, cloud cover: low and
+    /// back-lit suns too) and keep the stock materials: the lighting half of --randomize.
+    #[arg(long, conflicts_with = "randomize")]
+    pub randomize_lighting: bool,
+    /// Draw the palettes and procedural textures per training scene and keep its stock sun and
+    /// sky: the material half of --randomize.
+    #[arg(long, conflicts_with = "randomize")]
+    pub randomize_materials: bool,
     /// Augment the encoders' training images (crop-and-zoom, colour, blur, noise, JPEG).
     #[arg(long)]
     pub augment_encoders: bool,
@@ -181,6 +189,8 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
                 &cfg,
                 &crate::simdata::RenderStyle {
                     share: args.randomize_share,
+                    randomize_lighting: args.randomize_lighting,
+                    randomize_materials: args.randomize_materials,
                     ..crate::simdata::RenderStyle::randomized(args.randomize)
                 },
                 "simulating train frames",
@@ -242,6 +252,12 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     if let Some(p) = args.randomize_share {
         run_key["randomize_share"] = serde_json::json!(p);
     }
+    if args.randomize_lighting {
+        run_key["randomize_lighting"] = serde_json::Value::Bool(true);
+    }
+    if args.randomize_materials {
+        run_key["randomize_materials"] = serde_json::Value::Bool(true);
+    }
     if args.scenes != std::path::Path::new(crate::simdata::DEFAULT_SCENES) {
         run_key["scenes"] = serde_json::json!(args.scenes);
     }
@@ -255,7 +271,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     // trained encoders are kept in the work folder, so a resumed run does not train them
     // again (their training is deterministic: the same seed gives the same weights)
     let enc_dir = work.join(format!(
-        "encoders-seed{}-steps{}-frames{}{}{}{}",
+        "encoders-seed{}-steps{}-frames{}{}{}{}{}{}",
         args.seed,
         args.encoder_steps,
         examples.len(),
@@ -263,6 +279,12 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             (false, _) => String::new(),
             (true, None) => "-randomized".to_string(),
             (true, Some(p)) => format!("-randomized{:.0}", 100.0 * p),
+        },
+        if args.randomize_lighting { "-lit" } else { "" },
+        if args.randomize_materials {
+            "-materials"
+        } else {
+            ""
         },
         if args.augment_encoders {
             "-augmented"
@@ -397,6 +419,18 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         "seed": args.seed,
         "train_split": args.scenes.display().to_string(),
         "frames": examples.len(),
+        "train_images": {
+            "appearance": match (args.randomize, args.randomize_lighting, args.randomize_materials) {
+                (true, _, _) => "randomized",
+                (false, true, true) => "lighting and materials randomized",
+                (false, true, false) => "lighting randomized",
+                (false, false, true) => "materials randomized",
+                (false, false, false) => "stock",
+            },
+            "sensor_randomized": args.randomize,
+            "randomized_share": args.randomize_share,
+            "encoder_augment": args.augment_encoders,
+        },
         "encoder_steps": if args.encoders_from.is_some() { 0 } else { args.encoder_steps },
         "encoders_from": args.encoders_from.as_ref().map(|p| p.display().to_string()),
         "denoiser_steps": args.steps,

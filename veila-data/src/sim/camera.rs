@@ -345,10 +345,7 @@ impl SceneSnapshot {
         );
         let sun = Vec3::from(l.sun_rgb);
         // clouds hide the disc (the stock lighting has none)
-        let clear = self
-            .appearance
-            .as_ref()
-            .map_or(1.0, |a| (1.0 - a.overcast).powi(2));
+        let clear = (1.0 - self.overcast).powi(2);
         Shading {
             sun_dir: Vec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin()),
             sun,

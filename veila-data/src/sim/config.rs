@@ -24,6 +24,8 @@
 //!
 //! [appearance]
 //! randomize = true             # textures, palettes, sun and sky drawn per scene (AppearanceConfig)
+//! # randomize_lighting = true   # or the sun and sky alone, over the stock materials
+//! # randomize_materials = true  # or the palettes and textures alone, under the stock sun and sky
 //!
 //! [rig]
 //! randomize = true             # LiDAR height, camera height and pitch drawn per scene (RigConfig)
@@ -639,8 +641,13 @@ impl Default for LightingConfig {
 /// [`crate::sim::camera`]). The draws are per scene, not per frame: nothing moves the sun or
 /// repaints a wall within a sequence. LiDAR scans, depth, semantics and instances never change.
 ///
-/// With `randomize = false` (the default) the ranges are ignored (but still validated) and images
-/// are exactly those of the flat stock materials under [`LightingConfig`].
+/// The two halves can be drawn alone (the same draws as `randomize` makes for that seed):
+/// `randomize_lighting = true` draws the sun and sky and shades the flat stock materials under
+/// them; `randomize_materials = true` draws the palettes and textures and shades them under the
+/// configured [`LightingConfig`].
+///
+/// With both `false` (the default) the ranges are ignored (but still validated) and images are
+/// exactly those of the flat stock materials under [`LightingConfig`].
 ///
 /// ```toml
 /// [appearance]
@@ -653,6 +660,14 @@ impl Default for LightingConfig {
 pub struct AppearanceConfig {
     /// Draw textures, colours, sun and sky per scene.
     pub randomize: bool,
+    /// Draw only the sun and sky per scene (the sun and overcast ranges below) and keep the stock
+    /// materials flat: the lighting half of `randomize`, which draws both.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub randomize_lighting: bool,
+    /// Draw only the palettes and textures per scene and keep the configured sun and sky: the
+    /// material half of `randomize`.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub randomize_materials: bool,
     /// Sun elevation range `[low, high]`, degrees above the horizon, within `[0, 90]`.
     pub sun_elevation_deg: [f32; 2],
     /// Sun azimuth range `[low, high]`, degrees counter-clockwise from the world +x axis (the main
@@ -683,6 +698,8 @@ impl Default for AppearanceConfig {
     fn default() -> Self {
         AppearanceConfig {
             randomize: false,
+            randomize_lighting: false,
+            randomize_materials: false,
             sun_elevation_deg: [8.0, 70.0],
             sun_azimuth_deg: [0.0, 360.0],
             sun_temperature_k: [4000.0, 6500.0],

@@ -20,6 +20,9 @@ pub struct SceneSnapshot {
     /// Lighting of the scene: the configured one, or the sun and sky drawn for the scene when its
     /// appearance is randomised ([`crate::sim::AppearanceConfig`]).
     pub lighting: LightingConfig,
+    /// Cloud cover of the drawn sky in `[0, 1]` (0 for the configured lighting): clouds hide the
+    /// sun's disc.
+    pub overcast: f32,
     /// Random stream of this frame (ray drop, range noise).
     pub noise_seed: u64,
     /// The scene's drawn appearance (palettes, textures) when randomised; `None` renders the stock

@@ -593,20 +593,22 @@ impl Scene {
     pub fn snapshot(&self, index: u32) -> SceneSnapshot {
         let time_s = self.frame_time_s(index);
         let mesh = self.mesh_at(time_s);
-        // the appearance is drawn per scene (from its seed): the same in every frame
-        let appearance =
-            self.config.appearance.randomize.then(|| {
-                Appearance::draw(&self.config.appearance, &self.config.lighting, self.seed)
-            });
+        // the appearance is drawn per scene (from its seed): the same in every frame; each half
+        // alone keeps only its part of the draw
+        let cfg = &self.config.appearance;
+        let drawn = (cfg.randomize || cfg.randomize_lighting || cfg.randomize_materials)
+            .then(|| Appearance::draw(cfg, &self.config.lighting, self.seed));
+        let light = drawn
+            .as_ref()
+            .filter(|_| cfg.randomize || cfg.randomize_lighting);
         SceneSnapshot {
             accel: Accel::build(&mesh),
             time_s,
             world_from_lidar: self.world_from_lidar(time_s),
-            lighting: appearance
-                .as_ref()
-                .map_or(self.config.lighting, |a| a.lighting),
+            lighting: light.map_or(self.config.lighting, |a| a.lighting),
+            overcast: light.map_or(0.0, |a| a.overcast),
             noise_seed: splitmix(self.seed ^ splitmix(u64::from(index).wrapping_add(0x5eed))),
-            appearance,
+            appearance: drawn.filter(|_| cfg.randomize || cfg.randomize_materials),
         }
     }
 
