@@ -1343,6 +1343,36 @@ fn appearance_never_changes_geometry_semantics_depth_or_lidar() {
     }
 }
 
+/// Scenes of any config and seed on the geometry `cfg` lays out from seed 11: only the seed's
+/// draws (appearance, noise) differ between them.
+fn on_fixed_geometry(cfg: &SceneConfig) -> impl Fn(&SceneConfig, u64) -> Scene {
+    let base = Scene::generate(cfg, 11).unwrap();
+    let mesh = base.static_mesh().clone();
+    let pose = base.world_from_lidar(0.0);
+    move |cfg, seed| Scene::from_parts(cfg, seed, mesh.clone(), Vec::new(), pose)
+}
+
+/// `frame` differs from `stock` in its colours and in nothing else (scan, depth, labels).
+fn assert_only_colours_differ(frame: &SimFrame, stock: &SimFrame, what: &str) {
+    assert!(scan_bytes(&frame.scan) == scan_bytes(&stock.scan), "{what}");
+    assert_eq!(
+        depth_bytes(&frame.image),
+        depth_bytes(&stock.image),
+        "{what}"
+    );
+    assert_eq!(frame.image.semantic, stock.image.semantic, "{what}");
+    assert_ne!(
+        frame.image.rgb, stock.image.rgb,
+        "{what}: the colours did not change"
+    );
+}
+
+fn assert_pairwise_distinct(images: &[Vec<u8>], what: &str) {
+    for (i, x) in images.iter().enumerate() {
+        assert!(images[i + 1..].iter().all(|y| y != x), "{what}");
+    }
+}
+
 #[test]
 fn randomized_lighting_is_the_drawn_sun_and_sky_over_the_stock_materials() {
     // suns high enough never to stand in the small camera's view, whose disc clouds would dim
@@ -1357,11 +1387,7 @@ fn randomized_lighting_is_the_drawn_sun_and_sky_over_the_stock_materials() {
         },
         ..lit.clone()
     };
-    let base = Scene::generate(&lit, 11).unwrap();
-    let mesh = base.static_mesh().clone();
-    let pose = base.world_from_lidar(0.0);
-    let scene =
-        |cfg: &SceneConfig, seed: u64| Scene::from_parts(cfg, seed, mesh.clone(), Vec::new(), pose);
+    let scene = on_fixed_geometry(&lit);
     let mut images = Vec::new();
     for seed in 0..4u64 {
         let on = scene(&lit, seed);
@@ -1386,24 +1412,10 @@ fn randomized_lighting_is_the_drawn_sun_and_sky_over_the_stock_materials() {
         assert_eq!(a.image.rgb, b.image.rgb, "seed {seed}");
         // and nothing but the colours changes
         let stock = scene(&tiny_config(), seed).render_frame(0).unwrap();
-        assert!(
-            scan_bytes(&a.scan) == scan_bytes(&stock.scan),
-            "seed {seed}"
-        );
-        assert_eq!(depth_bytes(&a.image), depth_bytes(&stock.image));
-        assert_eq!(a.image.semantic, stock.image.semantic);
-        assert_ne!(
-            a.image.rgb, stock.image.rgb,
-            "seed {seed}: lighting had no effect"
-        );
+        assert_only_colours_differ(&a, &stock, &format!("lighting, seed {seed}"));
         images.push(a.image.rgb);
     }
-    for (i, x) in images.iter().enumerate() {
-        assert!(
-            images[i + 1..].iter().all(|y| y != x),
-            "two seeds lit alike"
-        );
-    }
+    assert_pairwise_distinct(&images, "two seeds lit alike");
     // the keys read from TOML, and a config without them keeps the stock images
     let parsed = SceneConfig::from_toml_str(
         "[appearance]\nrandomize_lighting = true\nrandomize_materials = true\n",
@@ -1436,11 +1448,7 @@ fn randomized_materials_keep_the_stock_light_and_the_two_halves_make_the_whole()
         ..mat.clone()
     };
     let full = randomized(tiny_config());
-    let base = Scene::generate(&mat, 11).unwrap();
-    let mesh = base.static_mesh().clone();
-    let pose = base.world_from_lidar(0.0);
-    let scene =
-        |cfg: &SceneConfig, seed: u64| Scene::from_parts(cfg, seed, mesh.clone(), Vec::new(), pose);
+    let scene = on_fixed_geometry(&mat);
     let mut images = Vec::new();
     for seed in 0..4u64 {
         let on = scene(&mat, seed);
@@ -1453,16 +1461,7 @@ fn randomized_materials_keep_the_stock_light_and_the_two_halves_make_the_whole()
         assert_eq!(on.snapshot(0).overcast, 0.0);
         let a = on.render_frame(0).unwrap();
         let stock = scene(&tiny_config(), seed).render_frame(0).unwrap();
-        assert!(
-            scan_bytes(&a.scan) == scan_bytes(&stock.scan),
-            "seed {seed}"
-        );
-        assert_eq!(depth_bytes(&a.image), depth_bytes(&stock.image));
-        assert_eq!(a.image.semantic, stock.image.semantic);
-        assert_ne!(
-            a.image.rgb, stock.image.rgb,
-            "seed {seed}: no material drawn"
-        );
+        assert_only_colours_differ(&a, &stock, &format!("materials, seed {seed}"));
         let l = scene(&lit, seed).render_frame(0).unwrap();
         assert_ne!(a.image.rgb, l.image.rgb, "seed {seed}");
         // both halves on render exactly what `randomize` renders
@@ -1473,9 +1472,7 @@ fn randomized_materials_keep_the_stock_light_and_the_two_halves_make_the_whole()
         assert_eq!(b.image.rgb, f.image.rgb, "seed {seed}");
         images.push(a.image.rgb);
     }
-    for (i, x) in images.iter().enumerate() {
-        assert!(images[i + 1..].iter().all(|y| y != x), "two seeds alike");
-    }
+    assert_pairwise_distinct(&images, "two seeds alike");
 }
 
 #[test]

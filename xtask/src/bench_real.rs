@@ -39,12 +39,13 @@ use glam::{Mat4, Vec3};
 use serde::{Deserialize, Serialize};
 use veila_data::PointCloud;
 use veila_data::image;
+use veila_data::semantic_kitti::LabelMap;
 use veila_data::vis::render::{OverlayOptions, render_overlay};
 use veila_diffusion::SamplerConfig;
 use veila_diffusion::app::rig::{RigView, camera_views, load_view, prepare_views};
 use veila_diffusion::app::{Bundle, GenerateOptions};
 use veila_geom::{LidarSensor, PinholeCamera, ProjectionOptions, Projector, RangeImage, RayTable};
-use veila_nn::encoders::small_cnn::SmallCnn;
+use veila_nn::encoders::small_cnn::{DenseMaps, SmallCnn};
 
 /// KITTI's Velodyne HDL-64E sits 1.73 m above the ground (Geiger et al. 2013, fig. 3).
 const KITTI_LIDAR_HEIGHT_M: f32 = 1.73;
@@ -310,10 +311,21 @@ pub fn predict_depth(
     h: usize,
     w: usize,
 ) -> Result<Option<Vec<f32>>> {
+    Ok(predict_maps(net, rgb, camera, h, w)?.depth_m)
+}
+
+/// Both heads' maps of an `h x w` RGB image seen by `camera` (see [`predict_depth`]).
+fn predict_maps(
+    net: &SmallCnn,
+    rgb: &[u8],
+    camera: &PinholeCamera,
+    h: usize,
+    w: usize,
+) -> Result<DenseMaps> {
     let img = net
         .config()
         .input_tensor(rgb, h, w, Some(camera), &candle_core::Device::Cpu)?;
-    Ok(net.predict_maps(&img)?.swap_remove(0).depth_m)
+    Ok(net.predict_maps(&img)?.swap_remove(0))
 }
 
 /// The flat-ground prior in the image ([`veila_geom::flat_ground_depth_map_m`]): each pixel's ray
@@ -458,6 +470,8 @@ pub fn evaluate(bundle: &Bundle, opts: &RealOptions<'_>, out: &Path) -> Result<R
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let sensor = &bundle.config.denoiser.sensor;
     let projector = Projector::new(sensor, ProjectionOptions::default())?;
+    // the label colours of the encoder panels (the panels go without labels where it is absent)
+    let label_map = LabelMap::read(&root.join("semantickitti/semantic-kitti.yaml")).ok();
     let mut results = Vec::new();
     for f in &frames {
         let view = load_view(&f.image, &f.calib, f.camera.as_deref())
@@ -492,7 +506,13 @@ pub fn evaluate(bundle: &Bundle, opts: &RealOptions<'_>, out: &Path) -> Result<R
             None => None,
         };
         let stem: String = f.name.chars().take_while(|c| !c.is_whitespace()).collect();
-        if let Some(img) = encoder_maps_png(bundle, small_rgb, small_cam)? {
+        if let Some(img) = encoder_maps_png(
+            bundle,
+            small_rgb,
+            small_cam,
+            encoder_map.as_deref(),
+            label_map.as_ref(),
+        )? {
             let file = out.join(format!("real/{stem}_encoders.png"));
             img.save(&file)
                 .with_context(|| format!("writing {}", file.display()))?;
@@ -598,52 +618,21 @@ pub fn evaluate(bundle: &Bundle, opts: &RealOptions<'_>, out: &Path) -> Result<R
     })
 }
 
-/// SemanticKITTI's train-id colours (`semantic-kitti.yaml`'s `color_map` through `learning_map_inv`,
-/// as RGB) for the encoder panel.
-const TRAIN_ID_RGB: [[u8; 3]; 20] = [
-    [0, 0, 0],
-    [100, 150, 245],
-    [100, 230, 245],
-    [30, 60, 150],
-    [80, 30, 180],
-    [0, 0, 255],
-    [255, 30, 30],
-    [255, 40, 200],
-    [150, 30, 90],
-    [255, 0, 255],
-    [255, 150, 255],
-    [75, 0, 75],
-    [175, 0, 75],
-    [255, 200, 0],
-    [255, 120, 50],
-    [0, 175, 0],
-    [135, 60, 0],
-    [150, 240, 80],
-    [255, 240, 150],
-    [255, 0, 0],
-];
-
 /// The encoders' view of one real image, at their input size and scaled up 3x: the image, the
-/// semantic head's labels (SemanticKITTI colours) and the depth head's map (viridis, log scale,
-/// 2 m bright to 80 m dark), stacked; `None` when the bundle's encoders are not small CNNs.
+/// semantic head's labels (in `labels`' colours, when given) and the depth head's map
+/// `depth_m` (viridis, log scale, 2 m bright to 80 m dark), stacked; `None` when the bundle's
+/// encoders are not small CNNs.
 fn encoder_maps_png(
     bundle: &Bundle,
     rgb: &[u8],
     camera: &PinholeCamera,
+    depth_m: Option<&[f32]>,
+    labels: Option<&LabelMap>,
 ) -> Result<Option<image::RgbImage>> {
     let (h, w) = (bundle.config.image_height, bundle.config.image_width);
-    let maps = |enc: Option<&veila_nn::encoders::kind::AnyEncoder>| -> Result<_> {
-        let Some(net) = enc.and_then(|e| e.as_small_cnn()) else {
-            return Ok(None);
-        };
-        let img = net
-            .config()
-            .input_tensor(rgb, h, w, Some(camera), &candle_core::Device::Cpu)?;
-        Ok(Some(net.predict_maps(&img)?.swap_remove(0)))
-    };
-    let (Some(sem), Some(dep)) = (
-        maps(bundle.semantic.as_ref())?,
-        maps(bundle.depth.as_ref())?,
+    let (Some(net), Some(depth_m)) = (
+        bundle.semantic.as_ref().and_then(|e| e.as_small_cnn()),
+        depth_m,
     ) else {
         return Ok(None);
     };
@@ -658,20 +647,14 @@ fn encoder_maps_png(
             image::imageops::FilterType::Nearest,
         )
     };
-    let photo = panel(&|k| [rgb[3 * k], rgb[3 * k + 1], rgb[3 * k + 2]]);
-    let labels = sem
-        .labels
-        .as_ref()
-        .map(|l| panel(&|k| TRAIN_ID_RGB[(l[k] as usize).min(TRAIN_ID_RGB.len() - 1)]));
-    let depth = dep.depth_m.as_ref().map(|d| {
-        panel(&|k| {
-            let t = (d[k].max(2.0) / 2.0).ln() / (80.0f32 / 2.0).ln();
-            veila_data::vis::render::Colormap::Viridis.rgb(1.0 - t)
-        })
-    });
-    let mut parts = vec![photo];
-    parts.extend(labels);
-    parts.extend(depth);
+    let mut parts = vec![panel(&|k| [rgb[3 * k], rgb[3 * k + 1], rgb[3 * k + 2]])];
+    if let (Some(map), Some(ids)) = (labels, predict_maps(net, rgb, camera, h, w)?.labels) {
+        parts.push(panel(&|k| map.train_color_rgb(ids[k].min(255) as u8)));
+    }
+    parts.push(panel(&|k| {
+        let t = (depth_m[k].max(2.0) / 2.0).ln() / (80.0f32 / 2.0).ln();
+        veila_data::vis::render::Colormap::Viridis.rgb(1.0 - t)
+    }));
     Ok(Some(veila_data::vis::render::stack_vertical(&parts)))
 }
 

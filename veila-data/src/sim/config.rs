@@ -718,6 +718,16 @@ impl AppearanceConfig {
         *self == Self::default()
     }
 
+    /// Whether scenes draw their sun and sky (`randomize` or its lighting half).
+    pub(crate) fn draws_lighting(&self) -> bool {
+        self.randomize || self.randomize_lighting
+    }
+
+    /// Whether scenes draw their palettes and textures (`randomize` or its material half).
+    pub(crate) fn draws_materials(&self) -> bool {
+        self.randomize || self.randomize_materials
+    }
+
     /// Check every range (finite, `low <= high`, within its bounds); the error names the key.
     pub fn validate(&self) -> Result<()> {
         let bad = |key: &str, message: String| {

@@ -596,11 +596,9 @@ impl Scene {
         // the appearance is drawn per scene (from its seed): the same in every frame; each half
         // alone keeps only its part of the draw
         let cfg = &self.config.appearance;
-        let drawn = (cfg.randomize || cfg.randomize_lighting || cfg.randomize_materials)
+        let drawn = (cfg.draws_lighting() || cfg.draws_materials())
             .then(|| Appearance::draw(cfg, &self.config.lighting, self.seed));
-        let light = drawn
-            .as_ref()
-            .filter(|_| cfg.randomize || cfg.randomize_lighting);
+        let light = drawn.as_ref().filter(|_| cfg.draws_lighting());
         SceneSnapshot {
             accel: Accel::build(&mesh),
             time_s,
@@ -608,7 +606,7 @@ impl Scene {
             lighting: light.map_or(self.config.lighting, |a| a.lighting),
             overcast: light.map_or(0.0, |a| a.overcast),
             noise_seed: splitmix(self.seed ^ splitmix(u64::from(index).wrapping_add(0x5eed))),
-            appearance: drawn.filter(|_| cfg.randomize || cfg.randomize_materials),
+            appearance: drawn.filter(|_| cfg.draws_materials()),
         }
     }
 
