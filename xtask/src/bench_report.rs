@@ -768,11 +768,15 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
     let needs_training = variants
         .iter()
         .any(|v| !(args.protocol == Protocol::Finetune && *v == Variant::Unconditional));
+    // the variants train on images drawn as the bundle's own were (its provenance)
+    let train_style = crate::simdata::TrainImages::style_of_bundle(&base.config);
+    let train_images = crate::simdata::TrainImages::of_bundle(&base.config);
     let train_frames = if needs_training {
-        render_split(
+        crate::simdata::render_split_styled(
             &root.join(&train_list),
             args.train_frames,
             &rig_config,
+            &train_style,
             "simulating train frames",
         )?
     } else {
@@ -816,10 +820,8 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                     work: Some(work.join(format!("ckpt-{}-{tag}-{}", v.name(), args.train_steps))),
                     encoders_from: Some(model_dir.clone()),
                     init_from: (args.protocol == Protocol::Finetune).then(|| model_dir.clone()),
-                    randomize: false,
-                    randomize_share: None,
-                    randomize_lighting: false,
-                    randomize_materials: false,
+                    images: train_images,
+                    randomize_share: train_style.share,
                     augment_encoders: false,
                     ground_prior: false,
                     scenes: train_list.clone(),

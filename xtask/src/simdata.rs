@@ -188,6 +188,78 @@ pub fn render_split(
     render_split_styled(list, n, cfg, &RenderStyle::default(), label)
 }
 
+/// How a training run renders its camera images (issue 18's domain randomisation; `train-default
+/// --images`). Only the images change: scans, depth and labels are the same in every style.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum TrainImages {
+    /// The simulator's stock images.
+    Stock,
+    /// The sun and sky drawn per scene (elevation, azimuth, colour, cloud cover) over the stock
+    /// materials: the lighting half of `appearance`.
+    Lighting,
+    /// The palettes and procedural textures drawn per scene under its own sun and sky: the
+    /// material half of `appearance` (the recipe of `models/default` since 2026-11-25).
+    Materials,
+    /// Both halves: scene appearance drawn per scene, no sensor model.
+    Appearance,
+    /// Scene appearance and the sensor (exposure, white balance, noise, blur, vignetting, JPEG).
+    Randomized,
+}
+
+impl TrainImages {
+    /// The name a bundle's provenance records (`provenance.train_images.appearance`).
+    pub fn provenance_name(self) -> &'static str {
+        match self {
+            TrainImages::Stock => "stock",
+            TrainImages::Lighting => "lighting randomized",
+            TrainImages::Materials => "materials randomized",
+            TrainImages::Appearance => "lighting and materials randomized",
+            TrainImages::Randomized => "randomized",
+        }
+    }
+
+    /// The style a bundle was trained on, from its provenance (stock when it records none, as
+    /// bundles from before 2026-11-25 do).
+    pub fn of_bundle(cfg: &BundleConfig) -> Self {
+        let name = cfg
+            .provenance
+            .get("train_images")
+            .and_then(|t| t.get("appearance"))
+            .and_then(|v| v.as_str());
+        [
+            TrainImages::Lighting,
+            TrainImages::Materials,
+            TrainImages::Appearance,
+            TrainImages::Randomized,
+        ]
+        .into_iter()
+        .find(|t| Some(t.provenance_name()) == name)
+        .unwrap_or(TrainImages::Stock)
+    }
+
+    /// The render style a bundle's training images had: [`TrainImages::of_bundle`] on the share
+    /// its provenance records.
+    pub fn style_of_bundle(cfg: &BundleConfig) -> RenderStyle {
+        let share = cfg
+            .provenance
+            .get("train_images")
+            .and_then(|t| t.get("randomized_share"))
+            .and_then(|v| v.as_f64())
+            .map(|p| p as f32);
+        Self::of_bundle(cfg).style(share)
+    }
+
+    /// The render style of these images, on the given share of the frames (`None`: all).
+    pub fn style(self, share: Option<f32>) -> RenderStyle {
+        let mut style = RenderStyle::randomized(self == TrainImages::Randomized);
+        style.randomize_lighting = matches!(self, TrainImages::Lighting | TrainImages::Appearance);
+        style.randomize_materials =
+            matches!(self, TrainImages::Materials | TrainImages::Appearance);
+        style.share = share.filter(|_| self != TrainImages::Stock);
+        style
+    }
+}
+
 /// How simulated camera images look: the simulator's stock images by default, or with the
 /// domain randomisation of issue 18.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -351,6 +423,45 @@ mod tests {
             ..all
         };
         assert!((0..1000u64).all(|k| one.applies_to(k, k)));
+    }
+
+    #[test]
+    fn a_bundles_training_images_read_back_from_its_provenance() {
+        use clap::ValueEnum;
+        let mut cfg = BundleConfig::cpu_default(Variant::Full);
+        // bundles from before the style was recorded trained on the stock images
+        cfg.provenance = serde_json::Value::Null;
+        assert_eq!(TrainImages::of_bundle(&cfg), TrainImages::Stock);
+        assert_eq!(TrainImages::style_of_bundle(&cfg), RenderStyle::default());
+        for &t in TrainImages::value_variants() {
+            cfg.provenance = serde_json::json!({
+                "train_images": { "appearance": t.provenance_name(), "randomized_share": 0.5 }
+            });
+            assert_eq!(TrainImages::of_bundle(&cfg), t);
+            let style = TrainImages::style_of_bundle(&cfg);
+            assert_eq!(style, t.style(Some(0.5)));
+            // the stock images have nothing to share out
+            assert_eq!(style.share, (t != TrainImages::Stock).then_some(0.5));
+        }
+        // each style switches on exactly its own randomisations
+        assert_eq!(TrainImages::Stock.style(None), RenderStyle::default());
+        assert_eq!(
+            TrainImages::Randomized.style(None),
+            RenderStyle::randomized(true)
+        );
+        let flags = |t: TrainImages| {
+            let s = t.style(None);
+            (
+                s.randomize_appearance,
+                s.randomize_lighting,
+                s.randomize_materials,
+                s.sensor.is_some(),
+            )
+        };
+        assert_eq!(flags(TrainImages::Lighting), (false, true, false, false));
+        assert_eq!(flags(TrainImages::Materials), (false, false, true, false));
+        assert_eq!(flags(TrainImages::Appearance), (false, true, true, false));
+        assert_eq!(flags(TrainImages::Randomized), (true, false, false, true));
     }
 
     #[test]
