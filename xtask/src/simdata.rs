@@ -226,15 +226,11 @@ impl TrainImages {
             .get("train_images")
             .and_then(|t| t.get("appearance"))
             .and_then(|v| v.as_str());
-        [
-            TrainImages::Lighting,
-            TrainImages::Materials,
-            TrainImages::Appearance,
-            TrainImages::Randomized,
-        ]
-        .into_iter()
-        .find(|t| Some(t.provenance_name()) == name)
-        .unwrap_or(TrainImages::Stock)
+        <Self as clap::ValueEnum>::value_variants()
+            .iter()
+            .copied()
+            .find(|t| Some(t.provenance_name()) == name)
+            .unwrap_or(TrainImages::Stock)
     }
 
     /// The render style a bundle's training images had: [`TrainImages::of_bundle`] on the share
