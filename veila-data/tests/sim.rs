@@ -1299,6 +1299,63 @@ fn randomized_appearance_is_deterministic_and_seed_dependent() {
 }
 
 #[test]
+fn wide_facades_repaint_only_the_buildings() {
+    let mut mat = tiny_config();
+    mat.appearance.randomize_materials = true;
+    let wide = SceneConfig {
+        appearance: AppearanceConfig {
+            wide_facade_share: 1.0,
+            ..mat.appearance
+        },
+        ..mat.clone()
+    };
+    let scene = on_fixed_geometry(&mat);
+    let mut building_changed = 0;
+    for seed in 0..4u64 {
+        let (a, w) = (
+            scene(&mat, seed).render_frame(0).unwrap(),
+            scene(&wide, seed).render_frame(0).unwrap(),
+        );
+        assert_only_colours_differ(&w, &a, &format!("wide facades, seed {seed}"));
+        let (width, height) = (a.image.width as usize, a.image.height as usize);
+        let is_building = |x: usize, y: usize| a.image.semantic[y * width + x] == class::BUILDING;
+        for y in 0..height {
+            for x in 0..width {
+                let i = 3 * (y * width + x);
+                if a.image.rgb[i..i + 3] == w.image.rgb[i..i + 3] {
+                    continue;
+                }
+                // a pixel mixes its samples' colours: a changed one has a building in it or beside it
+                let near = (y.saturating_sub(1)..(y + 2).min(height)).any(|yy| {
+                    (x.saturating_sub(1)..(x + 2).min(width)).any(|xx| is_building(xx, yy))
+                });
+                assert!(
+                    near,
+                    "seed {seed}: pixel ({x}, {y}) changed with no building near"
+                );
+                building_changed += usize::from(is_building(x, y));
+            }
+        }
+    }
+    assert!(
+        building_changed > 100,
+        "{building_changed} building pixels repainted"
+    );
+    // share 0 is the stock palette draw, byte for byte
+    let zero = SceneConfig {
+        appearance: AppearanceConfig {
+            wide_facade_share: 0.0,
+            ..wide.appearance
+        },
+        ..mat.clone()
+    };
+    assert_eq!(
+        scene(&zero, 2).render_frame(0).unwrap().image.rgb,
+        scene(&mat, 2).render_frame(0).unwrap().image.rgb
+    );
+}
+
+#[test]
 fn appearance_never_changes_geometry_semantics_depth_or_lidar() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
     for (name, seed) in [
@@ -1607,6 +1664,10 @@ fn appearance_ranges_are_validated_with_the_key_named() {
             "saturation_jitter",
         ),
         ("[appearance]\ntexture_contrast = nan\n", "texture_contrast"),
+        (
+            "[appearance]\nwide_facade_share = 1.5\n",
+            "wide_facade_share",
+        ),
         ("[appearance]\nrandomise = true\n", "randomise"),
     ] {
         let e = SceneConfig::from_toml_str(text, p).unwrap_err().to_string();

@@ -822,6 +822,8 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                     init_from: (args.protocol == Protocol::Finetune).then(|| model_dir.clone()),
                     images: train_images,
                     randomize_share: train_style.share,
+                    wide_facades: (train_style.wide_facade_share > 0.0)
+                        .then_some(train_style.wide_facade_share),
                     augment_encoders: false,
                     ground_prior: false,
                     scenes: train_list.clone(),

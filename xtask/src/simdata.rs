@@ -236,13 +236,26 @@ impl TrainImages {
     /// The render style a bundle's training images had: [`TrainImages::of_bundle`] on the share
     /// its provenance records.
     pub fn style_of_bundle(cfg: &BundleConfig) -> RenderStyle {
-        let share = cfg
-            .provenance
-            .get("train_images")
-            .and_then(|t| t.get("randomized_share"))
-            .and_then(|v| v.as_f64())
-            .map(|p| p as f32);
-        Self::of_bundle(cfg).style(share)
+        let number = |key: &str| {
+            cfg.provenance
+                .get("train_images")
+                .and_then(|t| t.get(key))
+                .and_then(|v| v.as_f64())
+                .map(|p| p as f32)
+        };
+        let mut style = Self::of_bundle(cfg).style(number("randomized_share"));
+        if style.randomize_materials || style.randomize_appearance {
+            style.wide_facade_share = number("wide_facade_share").unwrap_or(0.0);
+        }
+        style
+    }
+
+    /// Whether these images draw palettes and textures (what `--wide-facades` widens).
+    pub fn draws_materials(self) -> bool {
+        matches!(
+            self,
+            TrainImages::Materials | TrainImages::Appearance | TrainImages::Randomized
+        )
     }
 
     /// The render style of these images, on the given share of the frames (`None`: all).
@@ -274,6 +287,9 @@ pub struct RenderStyle {
     /// per frame by a hash of its seed and place, so the same list gives the same choice); the
     /// others keep the stock images. `None`: every frame.
     pub share: Option<f32>,
+    /// The share of the facade looks drawn from the whole colour wheel where materials are drawn
+    /// (`[appearance] wide_facade_share`; 0: the stock palettes).
+    pub wide_facade_share: f32,
 }
 
 impl RenderStyle {
@@ -285,6 +301,7 @@ impl RenderStyle {
             randomize_materials: false,
             sensor: on.then(Photometric::default),
             share: None,
+            wide_facade_share: 0.0,
         }
     }
 
@@ -317,6 +334,9 @@ pub fn render_split_styled(
             scene_cfg.appearance.randomize |= style.randomize_appearance && on;
             scene_cfg.appearance.randomize_lighting |= style.randomize_lighting && on;
             scene_cfg.appearance.randomize_materials |= style.randomize_materials && on;
+            if on && style.wide_facade_share > 0.0 {
+                scene_cfg.appearance.wide_facade_share = style.wide_facade_share;
+            }
             let scene = Scene::generate(&scene_cfg, *seed)?;
             let frames = scene_cfg.frames.count.max(1) as u64;
             let yaws = &RIG_YAWS_DEG[..views_of(cfg).clamp(1, RIG_YAWS_DEG.len() + 1) - 1];
@@ -438,6 +458,18 @@ mod tests {
             assert_eq!(style, t.style(Some(0.5)));
             // the stock images have nothing to share out
             assert_eq!(style.share, (t != TrainImages::Stock).then_some(0.5));
+            // the wide facade palette reads back where the style draws materials
+            cfg.provenance["train_images"]["wide_facade_share"] = serde_json::json!(0.25);
+            let wide = TrainImages::style_of_bundle(&cfg);
+            let expected = if t.draws_materials() { 0.25 } else { 0.0 };
+            assert_eq!(wide.wide_facade_share, expected, "{t:?}");
+            assert_eq!(
+                RenderStyle {
+                    wide_facade_share: 0.0,
+                    ..wide
+                },
+                style
+            );
         }
         // each style switches on exactly its own randomisations
         assert_eq!(TrainImages::Stock.style(None), RenderStyle::default());

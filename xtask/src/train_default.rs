@@ -88,6 +88,11 @@ pub struct TrainDefaultArgs {
     /// style (chosen per frame from its seed); the rest keep the stock images [default: 1, all].
     #[arg(long)]
     pub randomize_share: Option<f32>,
+    /// The share of each drawn scene's facade looks, within (0, 1], drawn from the whole colour
+    /// wheel (saturated paint and glazed mosaic tiles) instead of the plaster, brick and cladding
+    /// palettes; needs an `--images` style that draws materials [default: none].
+    #[arg(long)]
+    pub wide_facades: Option<f32>,
     /// Augment the encoders' training images (crop-and-zoom, colour, blur, noise, JPEG).
     #[arg(long)]
     pub augment_encoders: bool,
@@ -156,6 +161,18 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             "--randomize-share needs an --images style other than stock"
         );
     }
+    if let Some(p) = args.wide_facades {
+        anyhow::ensure!(
+            p > 0.0 && p <= 1.0,
+            "--wide-facades {p} is not a share within (0, 1]"
+        );
+        anyhow::ensure!(
+            args.images.draws_materials(),
+            "--wide-facades needs an --images style that draws materials (materials, appearance or randomized)"
+        );
+    }
+    let mut render_style = args.images.style(args.randomize_share);
+    render_style.wide_facade_share = args.wide_facades.unwrap_or(0.0);
     let device = Device::Cpu;
     let root = workspace_root();
     let mut cfg = BundleConfig::cpu_default(args.variant);
@@ -185,7 +202,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
                 &root.join(&args.scenes),
                 args.frames,
                 &cfg,
-                &args.images.style(args.randomize_share),
+                &render_style,
                 "simulating train frames",
             )?;
             &rendered
@@ -245,6 +262,9 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     if let Some(p) = args.randomize_share {
         run_key["randomize_share"] = serde_json::json!(p);
     }
+    if let Some(p) = args.wide_facades {
+        run_key["wide_facade_share"] = serde_json::json!(p);
+    }
     let style = args.images.style(None);
     if style.randomize_lighting {
         run_key["randomize_lighting"] = serde_json::Value::Bool(true);
@@ -265,7 +285,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     // trained encoders are kept in the work folder, so a resumed run does not train them
     // again (their training is deterministic: the same seed gives the same weights)
     let enc_dir = work.join(format!(
-        "encoders-seed{}-steps{}-frames{}{}{}{}{}",
+        "encoders-seed{}-steps{}-frames{}{}{}{}{}{}",
         args.seed,
         args.encoder_steps,
         examples.len(),
@@ -278,6 +298,9 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         },
         args.randomize_share
             .map(|p| format!("{:.0}", 100.0 * p))
+            .unwrap_or_default(),
+        args.wide_facades
+            .map(|p| format!("-wide{:.0}", 100.0 * p))
             .unwrap_or_default(),
         if args.augment_encoders {
             "-augmented"
@@ -416,6 +439,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             "appearance": args.images.provenance_name(),
             "sensor_randomized": args.images == TrainImages::Randomized,
             "randomized_share": args.randomize_share,
+            "wide_facade_share": args.wide_facades,
             "encoder_augment": args.augment_encoders,
         },
         "encoder_steps": if args.encoders_from.is_some() { 0 } else { args.encoder_steps },

@@ -104,6 +104,9 @@ enum WallStyle {
     Brick { course_m: f32, brick_m: f32 },
     /// Cladding panels: width and height, metres, with dark joints.
     Panels { width_m: f32, height_m: f32 },
+    /// Square glazed tiles of side `size_m` (grout included), each a shade between the facade's
+    /// colour and `alt`, with light grout: a mosaic.
+    Tiles { size_m: f32, alt: Vec3 },
 }
 
 /// One facade look: colour and pattern.
@@ -174,6 +177,51 @@ pub(crate) fn blackbody_rgb(kelvin: f32) -> Vec3 {
 fn with_luminance(c: Vec3, lum: f32) -> Vec3 {
     let l = c.dot(LUMA);
     if l > 0.0 { c * (lum / l) } else { Vec3::ZERO }
+}
+
+/// Redraws `share` of the facade looks from the whole colour wheel, each look by its own stream
+/// of `seed` (so share 0 leaves the stock draw untouched, and a larger share keeps the looks a
+/// smaller one redrew): hue uniform, saturation `[0.3, 0.9]` and value `[0.15, 0.7]` of linear
+/// albedo; half the redrawn looks are mosaic tiles with a second colour near the first, the rest
+/// panels or render.
+fn wide_facades(
+    mut looks: [Facade; FACADE_LOOKS],
+    share: f32,
+    seed: u64,
+) -> [Facade; FACADE_LOOKS] {
+    if share <= 0.0 {
+        return looks;
+    }
+    for (i, look) in looks.iter_mut().enumerate() {
+        let mut rng = ChaCha8Rng::seed_from_u64(splitmix(seed ^ 0xFAC_ADE0 ^ i as u64));
+        if rng.random::<f32>() >= share {
+            continue;
+        }
+        let hue = rng.random::<f32>();
+        let sat = rng.random_range(0.3..=0.9f32);
+        let val = rng.random_range(0.15..=0.7f32);
+        let colour = hsv_to_rgb([hue, sat, val]);
+        let style = match rng.random_range(0..4u32) {
+            0 | 1 => {
+                let alt = [
+                    hue + rng.random_range(-0.04..=0.04f32),
+                    (sat * rng.random_range(0.6..=1.1f32)).min(1.0),
+                    val * rng.random_range(0.5..=1.3f32),
+                ];
+                WallStyle::Tiles {
+                    size_m: rng.random_range(0.1..=0.4f32),
+                    alt: hsv_to_rgb(alt).min(Vec3::ONE),
+                }
+            }
+            2 => WallStyle::Panels {
+                width_m: rng.random_range(0.6..1.6f32),
+                height_m: rng.random_range(0.4..1.2f32),
+            },
+            _ => WallStyle::Plaster,
+        };
+        *look = Facade { colour, style };
+    }
+    looks
 }
 
 impl Appearance {
@@ -266,6 +314,7 @@ impl Appearance {
                 }
             }
         });
+        let facades = wide_facades(facades, cfg.wide_facade_share, seed);
         Appearance {
             lighting,
             overcast,
@@ -480,6 +529,19 @@ impl Appearance {
                 let joint =
                     line_coverage(u, width_m, 0.015, fp).max(line_coverage(v, height_m, 0.015, fp));
                 (1.0 + 0.12 * shade * fade(width_m.min(height_m), fp)) * (1.0 - 0.6 * joint)
+            }
+            WallStyle::Tiles { size_m, alt } => {
+                let (col, row) = ((u / size_m).floor() as i64, (v / size_m).floor() as i64);
+                let fd = fade(size_m, fp);
+                // each tile a shade between the two colours, fading to their mean beyond the footprint
+                let t = 0.5 + (lattice(s ^ 8, col, row, 3) - 0.5) * fd;
+                let shade = (2.0 * lattice(s ^ 9, col, row, 4) - 1.0) * fd;
+                let tile = base.lerp(self.jitter(alt, key), t) * (1.0 + 0.15 * shade);
+                let grout =
+                    line_coverage(u, size_m, 0.006, fp).max(line_coverage(v, size_m, 0.006, fp));
+                let grout_rgb = Vec3::splat(0.5);
+                let f = self.tex((1.0 + 0.15 * broad) * plinth);
+                return (tile.lerp(grout_rgb, 0.8 * grout) * f).clamp(Vec3::ZERO, Vec3::ONE);
             }
         };
         base * self.tex(f * (1.0 + 0.15 * broad) * plinth)
@@ -765,7 +827,14 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         let mats = materials();
         let base = LightingConfig::default();
-        for (i, cfg) in [AppearanceConfig::default(), extreme()].iter().enumerate() {
+        let wide = AppearanceConfig {
+            wide_facade_share: 1.0,
+            ..extreme()
+        };
+        for (i, cfg) in [AppearanceConfig::default(), extreme(), wide]
+            .iter()
+            .enumerate()
+        {
             for seed in 0..8u64 {
                 let a = Appearance::draw(cfg, &base, seed);
                 for _ in 0..4000 {
@@ -879,6 +948,118 @@ mod tests {
             / 1000.0;
         assert!((mean - 0.02).abs() < 0.004, "{mean}");
         assert!((line_coverage(0.13, 0.5, 0.01, 5.0) - 0.02).abs() < 1e-6);
+    }
+
+    #[test]
+    fn wide_facades_redraw_their_share_of_looks_and_nothing_else() {
+        let base = LightingConfig::default();
+        let at = |share: f32, seed: u64| {
+            let cfg = AppearanceConfig {
+                randomize: true,
+                wide_facade_share: share,
+                ..AppearanceConfig::default()
+            };
+            Appearance::draw(&cfg, &base, seed)
+        };
+        let (mut redrawn, mut total, mut saturated, mut tiled) = (0, 0, 0, 0);
+        for seed in 0..40u64 {
+            let stock = at(0.0, seed);
+            let (half, all) = (at(0.5, seed), at(1.0, seed));
+            // everything but the facades is the stock draw, byte for byte
+            for a in [&half, &all] {
+                let mut same = a.clone();
+                same.facades = stock.facades;
+                assert_eq!(same, stock, "seed {seed}");
+            }
+            for i in 0..FACADE_LOOKS {
+                total += 1;
+                let (s, h, w) = (stock.facades[i], half.facades[i], all.facades[i]);
+                assert_ne!(w, s, "seed {seed} look {i}: share 1 keeps a stock look");
+                // a look the smaller share redrew is the same look at the larger one
+                if h != s {
+                    redrawn += 1;
+                    assert_eq!(h, w, "seed {seed} look {i}");
+                }
+                if rgb_to_hsv(w.colour)[1] > 0.6 {
+                    saturated += 1;
+                }
+                if let WallStyle::Tiles { size_m, alt } = w.style {
+                    tiled += 1;
+                    assert!((0.1..=0.4).contains(&size_m), "{size_m}");
+                    assert!(
+                        alt.min_element() >= 0.0 && alt.max_element() <= 1.0,
+                        "{alt}"
+                    );
+                }
+            }
+        }
+        let frac = |k: i32| k as f64 / total as f64;
+        // 320 looks: a binomial share of 0.5 lies within 0.5 +- 0.1 by over 3.5 sigma
+        assert!((frac(redrawn) - 0.5).abs() < 0.1, "{}", frac(redrawn));
+        assert!((frac(tiled) - 0.5).abs() < 0.1, "{}", frac(tiled));
+        // saturation uniform in [0.3, 0.9]: half above 0.6; the stock palettes have none
+        assert!((frac(saturated) - 0.5).abs() < 0.1, "{}", frac(saturated));
+        assert!(
+            FACADES
+                .iter()
+                .chain(BRICKS.iter())
+                .all(|&c| rgb_to_hsv(Vec3::from(c))[1] < 0.85)
+        );
+    }
+
+    #[test]
+    fn mosaic_tiles_vary_between_tiles_and_fade_to_their_mean_beyond_the_footprint() {
+        let mut a = Appearance::draw(
+            &AppearanceConfig {
+                randomize: true,
+                ..AppearanceConfig::default()
+            },
+            &LightingConfig::default(),
+            7,
+        );
+        let (blue, teal) = (Vec3::new(0.05, 0.3, 0.6), Vec3::new(0.05, 0.45, 0.5));
+        a.facades = [Facade {
+            colour: blue,
+            style: WallStyle::Tiles {
+                size_m: 0.2,
+                alt: teal,
+            },
+        }; FACADE_LOOKS];
+        let wall = Surface {
+            material: Material::new([0.5, 0.5, 0.5], 0.5, class::BUILDING),
+            instance: 3,
+        };
+        // a wall facing -y: plane coordinates (x, z); tile centres at odd multiples of 0.1 m,
+        // above the plinth
+        let at = |x: f32, z: f32, fp: f32| a.albedo(&wall, Vec3::new(x, 5.0, z), -Vec3::Y, fp);
+        let centres: Vec<Vec3> = (0..40)
+            .map(|k| at(0.1 + 0.2 * k as f32, 3.1, 1e-3))
+            .collect();
+        // inside one tile the colour is one shade (up to the broad 25 m variation)
+        let inside = at(0.13, 3.07, 1e-3);
+        assert!(
+            (inside - centres[0]).abs().max_element() < 0.01,
+            "{inside} {}",
+            centres[0]
+        );
+        let spread = centres
+            .iter()
+            .map(|c| (*c - centres[0]).abs().max_element())
+            .fold(0.0f32, f32::max);
+        assert!(spread > 0.05, "tiles all alike: {spread}");
+        // every tile is bluish: blue the largest channel, red the smallest
+        for c in &centres {
+            assert!(c.z > c.x && c.y > c.x, "{c}");
+        }
+        // seen from far (a footprint of several tiles) the wall is one even colour
+        let far: Vec<Vec3> = (0..10)
+            .map(|k| at(0.1 + 0.2 * k as f32, 3.1, 2.0))
+            .collect();
+        let far_spread = far
+            .iter()
+            .map(|c| (*c - far[0]).abs().max_element())
+            .fold(0.0f32, f32::max);
+        assert!(far_spread < 0.02, "{far_spread}");
     }
 
     #[test]

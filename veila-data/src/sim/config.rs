@@ -649,6 +649,10 @@ impl Default for LightingConfig {
 /// With both `false` (the default) the ranges are ignored (but still validated) and images are
 /// exactly those of the flat stock materials under [`LightingConfig`].
 ///
+/// `wide_facade_share` widens the facade palettes where they are drawn: that share of a scene's
+/// facade looks takes any hue and up to strong saturation (painted, clad or glazed-tile walls, a
+/// blue mosaic among them), which the plaster, brick and cladding palettes never do.
+///
 /// ```toml
 /// [appearance]
 /// randomize = true
@@ -692,6 +696,13 @@ pub struct AppearanceConfig {
     /// Contrast of the procedural textures within `[0, 2]`: 0 flat (palettes and jitter only), 1
     /// as designed.
     pub texture_contrast: f32,
+    /// Share of a scene's facade looks, within `[0, 1]`, drawn from the whole colour wheel (any
+    /// hue, up to strongly saturated: glazed tile, painted or clad walls, half of them as mosaic
+    /// tiles) instead of the plaster, brick and cladding palettes. It applies where the palettes
+    /// are drawn (`randomize` or `randomize_materials`); 0 (the default) draws the stock palettes
+    /// exactly as before.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub wide_facade_share: f32,
 }
 
 impl Default for AppearanceConfig {
@@ -709,6 +720,7 @@ impl Default for AppearanceConfig {
             hue_jitter_deg: 8.0,
             saturation_jitter: 0.2,
             texture_contrast: 1.0,
+            wide_facade_share: 0.0,
         }
     }
 }
@@ -762,6 +774,7 @@ impl AppearanceConfig {
             ("hue_jitter_deg", self.hue_jitter_deg, 180.0),
             ("saturation_jitter", self.saturation_jitter, 1.0),
             ("texture_contrast", self.texture_contrast, 2.0),
+            ("wide_facade_share", self.wide_facade_share, 1.0),
         ] {
             if !(v.is_finite() && (0.0..=max).contains(&v)) {
                 return bad(key, format!("{v} not in [0, {max}]"));
