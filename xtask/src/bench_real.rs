@@ -182,6 +182,10 @@ pub struct RealRow {
     pub view_coverage: f64,
     /// Range MAE of the front half (`x > 0`), m; `None` for a cropped scan.
     pub front_mae_m: Option<Spread>,
+    /// Range MAE of the front half outside the camera's view (what the image does not show), m;
+    /// `None` for a cropped scan and in reports from before 2026-11-26.
+    #[serde(default)]
+    pub front_unseen_mae_m: Option<Spread>,
     /// Chamfer distance in the camera's view, m².
     pub view_chamfer_m2: Spread,
 }
@@ -402,10 +406,12 @@ fn optical_axis_lidar(camera: &PinholeCamera) -> Vec3 {
     camera.cam_from_lidar.inverse().transform_vector3(Vec3::Z)
 }
 
-/// Masks of the range grid: in the camera's view, in the front half.
+/// Masks of the range grid: in the camera's view, in the front half, in the front half outside
+/// the view.
 struct Regions {
     view: Vec<bool>,
     front: Vec<bool>,
+    front_unseen: Vec<bool>,
     dirs: Vec<Vec3>,
 }
 
@@ -414,8 +420,14 @@ impl Regions {
         let rays = RayTable::new(sensor)?;
         let dirs = rays.dirs().to_vec();
         let view = camera.frustum_mask(&rays);
-        let front = dirs.iter().map(|d| d.x > 0.0).collect();
-        Ok(Regions { view, front, dirs })
+        let front: Vec<bool> = dirs.iter().map(|d| d.x > 0.0).collect();
+        let front_unseen = front.iter().zip(&view).map(|(&f, &v)| f && !v).collect();
+        Ok(Regions {
+            view,
+            front,
+            front_unseen,
+            dirs,
+        })
     }
 
     /// (MAE, coverage) of `scan` against `real` over `mask`.
@@ -533,12 +545,14 @@ pub fn evaluate(bundle: &Bundle, opts: &RealOptions<'_>, out: &Path) -> Result<R
             let mut view_mae = Vec::new();
             let mut coverage = Vec::new();
             let mut front = Vec::new();
+            let mut unseen = Vec::new();
             let mut chamfer = Vec::new();
             for s in scans {
                 let (m, c) = Regions::mae(&regions.view, s, &real);
                 view_mae.push(m);
                 coverage.push(c);
                 front.push(Regions::mae(&regions.front, s, &real).0);
+                unseen.push(Regions::mae(&regions.front_unseen, s, &real).0);
                 let pts = regions.points(s);
                 chamfer.push(
                     veila_metrics::chamfer::chamfer_distance(&pts, &real_pts)
@@ -551,6 +565,7 @@ pub fn evaluate(bundle: &Bundle, opts: &RealOptions<'_>, out: &Path) -> Result<R
                 view_mae_m: spread(&view_mae),
                 view_coverage: spread(&coverage).mean,
                 front_mae_m: (!f.cropped).then(|| spread(&front)),
+                front_unseen_mae_m: (!f.cropped).then(|| spread(&unseen)),
                 view_chamfer_m2: spread(&chamfer),
             })
         };
@@ -800,7 +815,7 @@ pub fn markdown(r: &RealReport) -> String {
         }
         let _ = writeln!(
             s,
-            "| method | range MAE in view (m) | coverage | range MAE front half (m) | Chamfer in view (m²) |\n|---|---|---|---|---|"
+            "| method | range MAE in view (m) | coverage | range MAE front half (m) | front half outside the view (m) | Chamfer in view (m²) |\n|---|---|---|---|---|---|"
         );
         for row in &f.rows {
             let pm = |x: &Spread| {
@@ -812,11 +827,12 @@ pub fn markdown(r: &RealReport) -> String {
             };
             let _ = writeln!(
                 s,
-                "| {} | {} | {:.0} % | {} | {} |",
+                "| {} | {} | {:.0} % | {} | {} | {} |",
                 row.method,
                 pm(&row.view_mae_m),
                 100.0 * row.view_coverage,
                 row.front_mae_m.as_ref().map_or("-".to_string(), pm),
+                row.front_unseen_mae_m.as_ref().map_or("-".to_string(), pm),
                 pm(&row.view_chamfer_m2)
             );
         }
@@ -846,6 +862,43 @@ mod tests {
             [0.0, 0.0, 1.0, 0.0],
         ];
         PinholeCamera::new(k, cam_from_lidar, 1200, 360).unwrap()
+    }
+
+    #[test]
+    fn the_front_half_splits_into_the_view_and_the_unseen_rest() {
+        let sensor = LidarSensor::hdl64e();
+        let cam = wide_camera(kitti_axes());
+        let r = Regions::new(&sensor, &cam).unwrap();
+        let n = r.front.len();
+        let count = |m: &[bool]| m.iter().filter(|&&b| b).count();
+        // a KITTI camera looks along +x: its view lies inside the front half, and the unseen part
+        // is the rest of it; 2 atan(600 / 700) = 81.2 degrees of the front half's 180
+        for i in 0..n {
+            assert!(!r.view[i] || r.front[i], "pixel {i} seen but behind");
+            assert_eq!(r.front_unseen[i], r.front[i] && !r.view[i], "pixel {i}");
+        }
+        // by columns: the camera's 28-degree height cuts the beams too
+        let (rows, cols) = (sensor.rows as usize, sensor.cols as usize);
+        let any_row = |m: &[bool], c: usize| (0..rows).any(|row| m[row * cols + c]);
+        let seen_cols = (0..cols).filter(|&c| any_row(&r.view, c)).count();
+        let front_cols = (0..cols).filter(|&c| any_row(&r.front, c)).count();
+        let seen_share = seen_cols as f64 / front_cols as f64;
+        let expected = 2.0 * (600.0f64 / 700.0).atan().to_degrees() / 180.0;
+        assert!(
+            (seen_share - expected).abs() < 0.03,
+            "{seen_share} vs {expected}"
+        );
+        // the front MAE is the returns-weighted mix of the seen and unseen parts' MAEs
+        let ranges = |k: usize| (0..n).map(|i| 5.0 + (i % k) as f32).collect::<Vec<f32>>();
+        let real = RangeImage::try_from_range_m(sensor.rows, sensor.cols, ranges(7)).unwrap();
+        let scan = RangeImage::try_from_range_m(sensor.rows, sensor.cols, ranges(5)).unwrap();
+        let seen_front: Vec<bool> = (0..n).map(|i| r.front[i] && r.view[i]).collect();
+        let (front, _) = Regions::mae(&r.front, &scan, &real);
+        let (seen, _) = Regions::mae(&seen_front, &scan, &real);
+        let (unseen, _) = Regions::mae(&r.front_unseen, &scan, &real);
+        let (ns, nu) = (count(&seen_front) as f64, count(&r.front_unseen) as f64);
+        let mix = (seen * ns + unseen * nu) / (ns + nu);
+        assert!((front - mix).abs() < 1e-9, "{front} vs {mix}");
     }
 
     #[test]

@@ -352,6 +352,7 @@ mod tests {
             view_mae_m: sp(view),
             view_coverage: 1.0,
             front_mae_m: front.map(sp),
+            front_unseen_mae_m: None,
             view_chamfer_m2: sp(1.0),
         }
     }
