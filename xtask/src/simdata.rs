@@ -250,6 +250,36 @@ impl TrainImages {
         style
     }
 
+    /// [`TrainImages::style`] with the wide facade palette on `wide` of the drawn facades, from
+    /// `train-default`'s flags: each share within (0, 1], `share` only with a randomised style and
+    /// `wide` only with one that draws materials.
+    pub fn checked_style(self, share: Option<f32>, wide: Option<f32>) -> Result<RenderStyle> {
+        let in_unit = |p: f32| p > 0.0 && p <= 1.0;
+        if let Some(p) = share {
+            anyhow::ensure!(
+                in_unit(p),
+                "--randomize-share {p} is not a share within (0, 1]"
+            );
+            anyhow::ensure!(
+                self != TrainImages::Stock,
+                "--randomize-share needs an --images style other than stock"
+            );
+        }
+        if let Some(p) = wide {
+            anyhow::ensure!(
+                in_unit(p),
+                "--wide-facades {p} is not a share within (0, 1]"
+            );
+            anyhow::ensure!(
+                self.draws_materials(),
+                "--wide-facades needs an --images style that draws materials (materials, appearance or randomized)"
+            );
+        }
+        let mut style = self.style(share);
+        style.wide_facade_share = wide.unwrap_or(0.0);
+        Ok(style)
+    }
+
     /// Whether these images draw palettes and textures (what `--wide-facades` widens).
     pub fn draws_materials(self) -> bool {
         matches!(
@@ -471,6 +501,29 @@ mod tests {
                 style
             );
         }
+        // the flags' checks: shares within (0, 1], each only where it means something
+        use TrainImages::*;
+        let wide = Materials.checked_style(Some(0.5), Some(0.25)).unwrap();
+        assert_eq!((wide.share, wide.wide_facade_share), (Some(0.5), 0.25));
+        assert!(wide.randomize_materials && !wide.randomize_lighting);
+        assert_eq!(
+            Stock.checked_style(None, None).unwrap(),
+            RenderStyle::default()
+        );
+        for (t, share, w, needle) in [
+            (Materials, Some(0.0), None, "--randomize-share 0"),
+            (Materials, Some(1.5), None, "--randomize-share 1.5"),
+            (Materials, Some(f32::NAN), None, "--randomize-share NaN"),
+            (Stock, Some(0.5), None, "other than stock"),
+            (Materials, None, Some(0.0), "--wide-facades 0"),
+            (Appearance, None, Some(2.0), "--wide-facades 2"),
+            (Stock, None, Some(0.5), "draws materials"),
+            (Lighting, None, Some(0.5), "draws materials"),
+        ] {
+            let e = t.checked_style(share, w).unwrap_err().to_string();
+            assert!(e.contains(needle), "{t:?} {share:?} {w:?}: {e}");
+        }
+        assert!(Randomized.checked_style(None, Some(1.0)).is_ok());
         // each style switches on exactly its own randomisations
         assert_eq!(TrainImages::Stock.style(None), RenderStyle::default());
         assert_eq!(

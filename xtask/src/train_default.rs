@@ -151,28 +151,9 @@ pub fn run(args: TrainDefaultArgs) -> Result<BundleConfig> {
 /// [`run`] on already simulated training frames (`None`: simulate `args.frames` of them).
 pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result<BundleConfig> {
     let t_all = Instant::now();
-    if let Some(p) = args.randomize_share {
-        anyhow::ensure!(
-            p > 0.0 && p <= 1.0,
-            "--randomize-share {p} is not a share within (0, 1]"
-        );
-        anyhow::ensure!(
-            args.images != TrainImages::Stock,
-            "--randomize-share needs an --images style other than stock"
-        );
-    }
-    if let Some(p) = args.wide_facades {
-        anyhow::ensure!(
-            p > 0.0 && p <= 1.0,
-            "--wide-facades {p} is not a share within (0, 1]"
-        );
-        anyhow::ensure!(
-            args.images.draws_materials(),
-            "--wide-facades needs an --images style that draws materials (materials, appearance or randomized)"
-        );
-    }
-    let mut render_style = args.images.style(args.randomize_share);
-    render_style.wide_facade_share = args.wide_facades.unwrap_or(0.0);
+    let render_style = args
+        .images
+        .checked_style(args.randomize_share, args.wide_facades)?;
     let device = Device::Cpu;
     let root = workspace_root();
     let mut cfg = BundleConfig::cpu_default(args.variant);
