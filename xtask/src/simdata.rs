@@ -243,8 +243,9 @@ impl TrainImages {
                 .and_then(|v| v.as_f64())
                 .map(|p| p as f32)
         };
-        let mut style = Self::of_bundle(cfg).style(number("randomized_share"));
-        if style.randomize_materials || style.randomize_appearance {
+        let images = Self::of_bundle(cfg);
+        let mut style = images.style(number("randomized_share"));
+        if images.draws_materials() {
             style.wide_facade_share = number("wide_facade_share").unwrap_or(0.0);
         }
         style
