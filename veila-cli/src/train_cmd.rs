@@ -40,6 +40,8 @@
 //! # views = 1                      # cameras per sample (3: the paper's front, front-left, front-right)
 //! # ground_prior = false           # true: the small-CNN encoders also take the flat-ground depth
 //! #                                #   from each image's calibration (LiDAR 1.73 m above the ground)
+//! # depth_features = false         # true: the small-CNN depth encoder's own depth reading is one
+//! #                                #   more channel of its feature maps (same weights)
 //!
 //! [train]
 //! steps = 1000                     # denoiser steps
@@ -185,6 +187,10 @@ struct ModelSection {
     /// (`false`); default: the config's (none for the CPU default).
     #[serde(default)]
     ground_prior: Option<bool>,
+    /// The small-CNN depth encoder's depth reading as one more channel of its feature maps
+    /// (`true`), or not (`false`); default: the config's (off for the CPU default).
+    #[serde(default)]
+    depth_features: Option<bool>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -459,6 +465,18 @@ fn bundle_config(file: &TrainFile, config_path: &Path) -> Result<BundleConfig> {
                 "{}: [model] ground_prior needs a small-cnn encoder (pretrained encoders take colours only)",
                 config_path.display()
             );
+        }
+    }
+    if let Some(on) = m.depth_features {
+        let small_depth = cfg
+            .depth_encoder
+            .as_ref()
+            .and_then(|s| s.small_cnn_config())
+            .is_some();
+        // off on a pretrained depth encoder is what it already is
+        if on || small_depth {
+            cfg.set_depth_features(on)
+                .with_context(|| format!("{}: [model] depth_features", config_path.display()))?;
         }
     }
     if let Some(views) = m.views {
@@ -1061,4 +1079,44 @@ fn peak_host_mib() -> Option<f64> {
     let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
     let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kib / 1024.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config(model: &str) -> Result<BundleConfig> {
+        let text = format!(
+            "[data]\nshards = \"shards\"\n\n[model]\n{model}\n\n[train]\n\n[output]\ndir = \"out\"\n"
+        );
+        let file: TrainFile = toml::from_str(&text)?;
+        bundle_config(&file, Path::new("train.toml"))
+    }
+
+    fn depth_channels(c: &BundleConfig) -> Vec<usize> {
+        c.denoiser
+            .conditioning
+            .as_ref()
+            .map(|k| k.depth_channels.clone())
+            .unwrap_or_default()
+    }
+
+    #[test]
+    fn depth_features_widen_the_depth_conditioning_and_refusals_name_the_file() {
+        let plain = config("").unwrap();
+        assert_eq!(config("depth_features = false").unwrap(), plain);
+        let on = config("depth_features = true").unwrap();
+        let widened: Vec<usize> = depth_channels(&plain).iter().map(|c| c + 1).collect();
+        assert_eq!(depth_channels(&on), widened);
+        let mean = on.residual.as_ref().unwrap().mean_net.conditioning.as_ref();
+        assert_eq!(mean.unwrap().depth_channels, widened);
+        // a model without a depth encoder cannot have it
+        let err = config("variant = \"semantic-only\"\ndepth_features = true")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("train.toml") && err.contains("depth_features"),
+            "{err}"
+        );
+    }
 }

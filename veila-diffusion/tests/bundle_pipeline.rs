@@ -1672,3 +1672,112 @@ fn encoders_with_the_ground_prior_train_from_memory_and_a_source_alike_and_need_
     let err = train(data.memory(false), "none").unwrap_err().to_string();
     assert!(err.contains("camera"), "{err}");
 }
+
+#[test]
+fn depth_features_are_a_bundle_switch_that_widens_the_conditioning() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cam = camera();
+    let img = image(4);
+    let off = small_config(Variant::Full);
+    assert!(
+        !serde_json::to_string(&off)
+            .unwrap()
+            .contains("depth_features")
+    );
+    let mut on = off.clone();
+    on.set_depth_features(true).unwrap();
+    // the depth encoder's maps and both networks' conditioning get one more channel each
+    let depth_channels = |c: &BundleConfig| {
+        let mut out = vec![
+            c.denoiser
+                .conditioning
+                .as_ref()
+                .unwrap()
+                .depth_channels
+                .clone(),
+        ];
+        if let Some(r) = &c.residual {
+            out.push(
+                r.mean_net
+                    .conditioning
+                    .as_ref()
+                    .unwrap()
+                    .depth_channels
+                    .clone(),
+            );
+        }
+        out
+    };
+    for (a, b) in depth_channels(&off).iter().zip(depth_channels(&on)) {
+        assert_eq!(a.iter().map(|c| c + 1).collect::<Vec<_>>(), b);
+    }
+    assert_eq!(
+        off.semantic_encoder, on.semantic_encoder,
+        "only the depth encoder changes"
+    );
+    save_random_bundle(&tmp.path().join("on"), &on, 3);
+    let text = std::fs::read_to_string(tmp.path().join("on/bundle.json")).unwrap();
+    assert_eq!(text.matches("\"depth_features\"").count(), 1, "{text}");
+    let b = Bundle::from_dir(&tmp.path().join("on"), &Device::Cpu).unwrap();
+    assert_eq!(b.config, on);
+    let view = [CameraView {
+        rgb: &img,
+        camera: &cam,
+    }];
+    let f = b.encode_views(&view).unwrap();
+    let want = &depth_channels(&on)[0];
+    for (t, c) in f.depth.unwrap().iter().zip(want) {
+        assert_eq!(t.dim(1).unwrap(), *c);
+    }
+    let scans = b.generate(&view, &opts(1, 1), |_, _| {}).unwrap();
+    assert!(scans[0].range_m.iter().all(|r| r.is_finite()));
+    // the encoders of a bundle made without it serve a run with it (same weights), and then
+    // return the wider maps
+    save_random_bundle(&tmp.path().join("off"), &off, 3);
+    let e = veila_diffusion::app::prepare_encoders(
+        &on,
+        veila_diffusion::app::EncoderSource::Bundle(&tmp.path().join("off")),
+        &encoder_settings(1, None),
+        &Device::Cpu,
+        |_| {},
+    )
+    .unwrap();
+    let d = e.depth.unwrap();
+    assert_eq!(d.channels().to_vec(), *want);
+    let plain = Bundle::from_dir(&tmp.path().join("off"), &Device::Cpu).unwrap();
+    let x = veila_nn::encoders::rgb8_to_tensor(
+        &img,
+        on.image_height,
+        on.image_width,
+        &veila_nn::encoders::Normalization::IMAGENET,
+        &Device::Cpu,
+    )
+    .unwrap();
+    use veila_nn::encoders::ImageEncoder;
+    let (wide, narrow) = (
+        d.forward(&x).unwrap(),
+        plain.depth.unwrap().forward(&x).unwrap(),
+    );
+    for (a, b) in wide.iter().zip(&narrow) {
+        let c = b.dim(1).unwrap();
+        assert_eq!(
+            a.narrow(1, 0, c)
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap(),
+            b.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+        );
+    }
+    // switching it back restores the original config exactly
+    let mut back = on.clone();
+    back.set_depth_features(false).unwrap();
+    assert_eq!(back, off);
+    // a model without a small-CNN depth encoder says so
+    let mut none = off.clone();
+    none.set_encoders(off.semantic_encoder.clone(), None)
+        .unwrap();
+    let err = none.set_depth_features(true).unwrap_err().to_string();
+    assert!(err.contains("depth encoder"), "{err}");
+}

@@ -1687,3 +1687,124 @@ fn small_cnn_loss_combines_heads_and_rejects_missing_targets() {
     let err = model.loss(&img, None, None, &lc).unwrap_err().to_string();
     assert!(err.contains("no target"), "{err}");
 }
+
+/// A small CNN with a 10 m depth prior, built twice from the same (untrained) weights: with and
+/// without the depth-feature channel.
+fn small_cnn_pair(min_depth_m: f32, max_depth_m: f32) -> (SmallCnn, SmallCnn) {
+    let cfg = SmallCnnConfig {
+        channels: [8, 8, 8, 8],
+        head_channels: 8,
+        semantic_head: false,
+        min_depth_m,
+        max_depth_m,
+        ..SmallCnnConfig::default()
+    };
+    let vm = VarMap::new();
+    let off = SmallCnn::new(
+        &cfg,
+        veila_nn::seeded_var_builder(&vm, 11, DType::F32, &DEV),
+    )
+    .unwrap();
+    let on_cfg = SmallCnnConfig {
+        depth_features: true,
+        ..cfg
+    };
+    let on = SmallCnn::new(&on_cfg, VarBuilder::from_varmap(&vm, DType::F32, &DEV)).unwrap();
+    (off, on)
+}
+
+#[test]
+fn depth_features_append_the_depth_heads_reading_to_every_map() {
+    // a depth range wide enough that the clamp never bites (the untrained head reads 2-240 m)
+    let (off, on) = small_cnn_pair(0.01, 1000.0);
+    assert_eq!(on.channels(), [9; 4]);
+    assert_eq!(off.channels(), [8; 4]);
+    let (h, w) = (40usize, 72usize);
+    let rgb: Vec<u8> = (0..h * w * 3).map(|i| (i * 53 % 251) as u8).collect();
+    let x = rgb8_to_tensor(&rgb, h, w, &Normalization::IMAGENET, &DEV).unwrap();
+    let plain = off.forward(&x).unwrap();
+    let with = on.forward(&x).unwrap();
+    let sizes = on.feature_sizes(h, w);
+    for (i, (p, q)) in plain.iter().zip(&with).enumerate() {
+        assert_eq!(q.dims(), &[1, 9, sizes[i].0, sizes[i].1]);
+        // the backbone's channels are untouched
+        let head = q.narrow(1, 0, 8).unwrap();
+        assert_eq!(
+            head.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+            p.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+        );
+    }
+    // the finest map's channel, brought to the image size by candle's own bilinear resize, is
+    // the head's log-depth relative to the 10 m prior (the head upsamples the same map)
+    let fine = with[0].narrow(1, 8, 1).unwrap();
+    let up = resize_bilinear(&fine, h, w).unwrap();
+    let log_depth = on.forward_all(&x).unwrap().log_depth.unwrap();
+    let want = (log_depth - 10f64.ln()).unwrap();
+    let diff = (up - want)
+        .unwrap()
+        .abs()
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .max(0)
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap();
+    assert!(diff < 1e-5, "max difference {diff}");
+    // on a 4 x 4 image every map is one pixel: the channel is ln(depth / prior) of the depth
+    // predict_maps reports
+    let x4 = rgb8_to_tensor(&rgb[..4 * 4 * 3], 4, 4, &Normalization::IMAGENET, &DEV).unwrap();
+    let d = on.predict_maps(&x4).unwrap()[0].depth_m.clone().unwrap();
+    for m in on.forward(&x4).unwrap() {
+        let v = m
+            .narrow(1, 8, 1)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap();
+        assert_eq!(v.len(), 1);
+        assert!(
+            (v[0] - (d[0] / 10.0).ln()).abs() < 1e-5,
+            "{} {}",
+            v[0],
+            d[0]
+        );
+    }
+}
+
+#[test]
+fn depth_features_are_clamped_to_the_depth_range_and_need_the_depth_head() {
+    // a lower clamp at the prior itself: the untrained head reads 2-240 m, partly below it
+    let (_, on) = small_cnn_pair(10.0, 80.0);
+    let (h, w) = (32usize, 64usize);
+    let rgb: Vec<u8> = (0..h * w * 3).map(|i| (i * 29 % 251) as u8).collect();
+    let x = rgb8_to_tensor(&rgb, h, w, &Normalization::IMAGENET, &DEV).unwrap();
+    let v = on.forward(&x).unwrap()[0]
+        .narrow(1, 8, 1)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap();
+    assert!(
+        v.iter()
+            .all(|&a| a.is_finite() && (0.0..=8f32.ln()).contains(&a)),
+        "{v:?}"
+    );
+    assert!(v.contains(&0.0), "the clamp never bit: {v:?}");
+    assert!(v.iter().any(|&a| a > 0.0), "{v:?}");
+    // the switch needs the head it reads, and is written to JSON only when on
+    let bad = SmallCnnConfig {
+        depth_head: false,
+        depth_features: true,
+        ..SmallCnnConfig::default()
+    };
+    assert!(bad.validate().is_err());
+    let json = serde_json::to_value(SmallCnnConfig::default()).unwrap();
+    assert!(json.get("depth_features").is_none(), "{json}");
+    let cfg = on.config().clone();
+    let json = serde_json::to_value(&cfg).unwrap();
+    assert_eq!(json["depth_features"], serde_json::Value::Bool(true));
+    assert_eq!(serde_json::from_value::<SmallCnnConfig>(json).unwrap(), cfg);
+}

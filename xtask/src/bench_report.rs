@@ -826,6 +826,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                         .then_some(train_style.wide_facade_share),
                     augment_encoders: false,
                     ground_prior: false,
+                    depth_features: false,
                     scenes: train_list.clone(),
                 },
                 Some(&train_frames),

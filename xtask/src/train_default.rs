@@ -100,6 +100,11 @@ pub struct TrainDefaultArgs {
     /// the flat ground's depth from each image's calibration; stored in `bundle.json`).
     #[arg(long)]
     pub ground_prior: bool,
+    /// Append the depth encoder's own depth reading to its feature maps as one more channel, so
+    /// the networks see the head's metric depth directly (issue 18; the encoder's weights are the
+    /// same either way; stored in `bundle.json`).
+    #[arg(long)]
+    pub depth_features: bool,
 }
 
 struct Progress {
@@ -160,6 +165,9 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     cfg = cfg.with_method(args.method);
     if args.ground_prior {
         cfg.set_ground_prior(Some(veila_nn::encoders::ground::GroundPrior::default()));
+    }
+    if args.depth_features {
+        cfg.set_depth_features(true)?;
     }
     let method = cfg.method();
     println!(
@@ -239,6 +247,9 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     let mut run_key = run_key;
     if args.ground_prior {
         run_key["ground_prior"] = serde_json::Value::Bool(true);
+    }
+    if args.depth_features {
+        run_key["depth_features"] = serde_json::Value::Bool(true);
     }
     if let Some(p) = args.randomize_share {
         run_key["randomize_share"] = serde_json::json!(p);

@@ -293,7 +293,7 @@ impl EncoderSpec {
     pub fn channels(&self) -> [usize; 4] {
         match (&self.config, self.kind.channels()) {
             (_, Some(c)) => c,
-            (Some(c), None) => c.channels,
+            (Some(c), None) => c.feature_channels(),
             (None, None) => [0; 4],
         }
     }
@@ -417,6 +417,36 @@ impl BundleConfig {
             }
         }
         n
+    }
+
+    /// Appends the small-CNN depth encoder's own reading to its feature maps (`true`) or not
+    /// ([`veila_nn::encoders::small_cnn::SmallCnnConfig::depth_features`], issue 18), and fits the
+    /// denoiser's and the mean network's conditioning to the new channel counts. The encoder's
+    /// weights are the same either way; the networks conditioned on it are not, so set it before
+    /// they are trained.
+    ///
+    /// # Errors
+    /// No depth encoder, a pretrained one, or a small CNN without a depth head.
+    pub fn set_depth_features(&mut self, on: bool) -> Result<()> {
+        let Some(spec) = self.depth_encoder.as_mut() else {
+            return Err(Error::Data(
+                "depth features: the model has no depth encoder".into(),
+            ));
+        };
+        let kind = spec.kind;
+        let Some(c) = spec.config.as_mut().filter(|_| !kind.is_pretrained()) else {
+            return Err(Error::Data(format!(
+                "depth features: the depth encoder is {kind}, not a small CNN with a depth head"
+            )));
+        };
+        if !c.depth_head {
+            return Err(Error::Data(
+                "depth features: the small-CNN depth encoder has no depth head".into(),
+            ));
+        }
+        c.depth_features = on;
+        let (semantic, depth) = (self.semantic_encoder.clone(), self.depth_encoder.clone());
+        self.set_encoders(semantic, depth)
     }
 
     /// Sets the encoders (either may be `None`, not both for a conditional denoiser) and fits the

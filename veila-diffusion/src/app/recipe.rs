@@ -295,7 +295,17 @@ pub fn prepare_encoders(
             });
         }
         for (which, c) in small {
-            if which.config(&b.config).and_then(|s| s.small_cnn_config()) != Some(c) {
+            // the depth channel changes what the encoder returns, not its weights
+            let weights_of = |c: &SmallCnnConfig| SmallCnnConfig {
+                depth_features: false,
+                ..c.clone()
+            };
+            if which
+                .config(&b.config)
+                .and_then(|s| s.small_cnn_config())
+                .map(weights_of)
+                != Some(weights_of(c))
+            {
                 return Err(Error::Checkpoint {
                     reason: format!(
                         "its {} does not match this model's encoder config",

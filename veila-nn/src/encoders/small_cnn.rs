@@ -24,6 +24,11 @@
 //! `stem.conv1` changes shape. Off by default, and configs without the field (every bundle made
 //! before it) read as off.
 //!
+//! **Depth features** (optional, [`SmallCnnConfig::depth_features`]): [`ImageEncoder::forward`]
+//! appends the depth head's reading, log-depth relative to the prior, as one more channel of each
+//! feature map, so a network conditioned on the features sees the head's metric depth directly.
+//! Off by default; it changes no weight.
+//!
 //! With the default config the backbone has 0.35 M parameters and each head about 16 k (0.38 M in
 //! all).
 
@@ -69,6 +74,13 @@ pub struct SmallCnnConfig {
     /// colours only). Such a network needs every image's camera ([`Self::input_tensor`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ground_prior: Option<GroundPrior>,
+    /// Append the depth head's reading to every feature map as one more channel (`false`, the
+    /// default: the backbone's features only). The channel is the head's log-depth relative to
+    /// `depth_prior_m`, clamped to `[min_depth_m, max_depth_m]`, at each map's resolution, so a
+    /// network conditioned on the features gets the metric depth the head reads directly. The
+    /// weights are the same either way: only what [`ImageEncoder::forward`] returns changes.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub depth_features: bool,
 }
 
 impl Default for SmallCnnConfig {
@@ -87,6 +99,7 @@ impl Default for SmallCnnConfig {
             min_depth_m: 0.5,
             max_depth_m: 80.0,
             ground_prior: None,
+            depth_features: false,
         }
     }
 }
@@ -103,6 +116,9 @@ impl SmallCnnConfig {
         if let Some(g) = &self.ground_prior {
             g.validate()?;
         }
+        if self.depth_features && !self.depth_head {
+            config_bail!("SmallCnnConfig: depth_features needs the depth head");
+        }
         if self.semantic_head && self.num_classes < 2 {
             config_bail!(
                 "SmallCnnConfig: the semantic head needs at least 2 classes, got {}",
@@ -116,6 +132,12 @@ impl SmallCnnConfig {
             );
         }
         Ok(())
+    }
+
+    /// Channels of the four maps [`ImageEncoder::forward`] returns: the backbone's, plus one for
+    /// the depth head's reading when [`Self::depth_features`] is on.
+    pub fn feature_channels(&self) -> [usize; 4] {
+        self.channels.map(|c| c + usize::from(self.depth_features))
     }
 
     /// Channels the network takes: the image's, plus one for the ground prior.
@@ -438,7 +460,8 @@ impl DenseHead {
 /// Everything [`SmallCnn::forward_all`] computes.
 #[derive(Debug, Clone)]
 pub struct SmallCnnOutput {
-    /// The four feature maps (what [`ImageEncoder::forward`] returns).
+    /// The backbone's four feature maps (what [`ImageEncoder::forward`] returns, without the
+    /// depth channel of [`SmallCnnConfig::depth_features`]).
     pub features: Vec<Tensor>,
     /// `[B, num_classes, H, W]` logits, when the semantic head exists.
     pub semantic_logits: Option<Tensor>,
@@ -704,4 +727,56 @@ impl SmallCnn {
     }
 }
 
-forward_image_encoder!([] SmallCnn, |s| s.encoder);
+impl SmallCnn {
+    /// The depth head's reading as one channel per feature map (see
+    /// [`SmallCnnConfig::depth_features`]): `ln(depth / depth_prior_m)`, clamped to the config's
+    /// depth range, computed at the finest map's resolution and resized bilinearly to the others.
+    fn depth_channels(&self, features: &[Tensor]) -> crate::Result<Vec<Tensor>> {
+        let Some(head) = &self.depth else {
+            config_bail!("SmallCnn: depth_features needs the depth head");
+        };
+        let (_, _, h0, w0) = features[0].dims4()?;
+        let prior = f64::from(self.cfg.depth_prior_m);
+        let lo = (f64::from(self.cfg.min_depth_m) / prior).ln();
+        let hi = (f64::from(self.cfg.max_depth_m) / prior).ln();
+        let fine = head.forward(features, h0, w0)?.clamp(lo, hi)?;
+        features
+            .iter()
+            .map(|f| {
+                let (_, _, h, w) = f.dims4()?;
+                if (h, w) == (h0, w0) {
+                    Ok(fine.clone())
+                } else {
+                    Ok(resize_bilinear_differentiable(&fine, h, w)?)
+                }
+            })
+            .collect()
+    }
+}
+
+impl ImageEncoder for SmallCnn {
+    fn forward(&self, image: &Tensor) -> crate::Result<Vec<Tensor>> {
+        let features = self.encoder.forward(image)?;
+        if !self.cfg.depth_features {
+            return Ok(features);
+        }
+        let depth = self.depth_channels(&features)?;
+        features
+            .iter()
+            .zip(&depth)
+            .map(|(f, d)| Ok(Tensor::cat(&[f, &d.to_dtype(f.dtype())?], 1)?))
+            .collect()
+    }
+    fn channels(&self) -> [usize; 4] {
+        self.cfg.feature_channels()
+    }
+    fn strides(&self) -> [f32; 4] {
+        self.encoder.strides()
+    }
+    fn feature_sizes(&self, height: usize, width: usize) -> [(usize, usize); 4] {
+        self.encoder.feature_sizes(height, width)
+    }
+    fn input_spec(&self) -> InputSpec {
+        self.encoder.input_spec()
+    }
+}
