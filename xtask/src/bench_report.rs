@@ -771,6 +771,13 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
     // the variants train on images drawn as the bundle's own were (its provenance)
     let train_style = crate::simdata::TrainImages::style_of_bundle(&base.config);
     let train_images = crate::simdata::TrainImages::of_bundle(&base.config);
+    // and with the bundle's depth features wherever a variant has the depth encoder
+    let depth_features = base
+        .config
+        .depth_encoder
+        .as_ref()
+        .and_then(|s| s.small_cnn_config())
+        .is_some_and(|c| c.depth_features);
     let train_frames = if needs_training {
         crate::simdata::render_split_styled(
             &root.join(&train_list),
@@ -826,7 +833,10 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                         .then_some(train_style.wide_facade_share),
                     augment_encoders: false,
                     ground_prior: false,
-                    depth_features: false,
+                    depth_features: depth_features
+                        && veila_diffusion::app::BundleConfig::cpu_default(v)
+                            .depth_encoder
+                            .is_some(),
                     scenes: train_list.clone(),
                 },
                 Some(&train_frames),
