@@ -468,16 +468,8 @@ fn bundle_config(file: &TrainFile, config_path: &Path) -> Result<BundleConfig> {
         }
     }
     if let Some(on) = m.depth_features {
-        let small_depth = cfg
-            .depth_encoder
-            .as_ref()
-            .and_then(|s| s.small_cnn_config())
-            .is_some();
-        // off on a pretrained depth encoder is what it already is
-        if on || small_depth {
-            cfg.set_depth_features(on)
-                .with_context(|| format!("{}: [model] depth_features", config_path.display()))?;
-        }
+        cfg.set_depth_features(on)
+            .with_context(|| format!("{}: [model] depth_features", config_path.display()))?;
     }
     if let Some(views) = m.views {
         if !(1..=6).contains(&views) {

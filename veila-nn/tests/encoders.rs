@@ -1729,10 +1729,7 @@ fn depth_features_append_the_depth_heads_reading_to_every_map() {
         assert_eq!(q.dims(), &[1, 9, sizes[i].0, sizes[i].1]);
         // the backbone's channels are untouched
         let head = q.narrow(1, 0, 8).unwrap();
-        assert_eq!(
-            head.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
-            p.flatten_all().unwrap().to_vec1::<f32>().unwrap()
-        );
+        assert_eq!(flat(&head), flat(p));
     }
     // the finest map's channel, brought to the image size by candle's own bilinear resize, is
     // the head's log-depth relative to the 10 m prior (the head upsamples the same map)
@@ -1740,29 +1737,14 @@ fn depth_features_append_the_depth_heads_reading_to_every_map() {
     let up = resize_bilinear(&fine, h, w).unwrap();
     let log_depth = on.forward_all(&x).unwrap().log_depth.unwrap();
     let want = (log_depth - 10f64.ln()).unwrap();
-    let diff = (up - want)
-        .unwrap()
-        .abs()
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .max(0)
-        .unwrap()
-        .to_scalar::<f32>()
-        .unwrap();
+    let diff = max_abs_diff(&flat(&up), &flat(&want));
     assert!(diff < 1e-5, "max difference {diff}");
     // on a 4 x 4 image every map is one pixel: the channel is ln(depth / prior) of the depth
     // predict_maps reports
     let x4 = rgb8_to_tensor(&rgb[..4 * 4 * 3], 4, 4, &Normalization::IMAGENET, &DEV).unwrap();
     let d = on.predict_maps(&x4).unwrap()[0].depth_m.clone().unwrap();
     for m in on.forward(&x4).unwrap() {
-        let v = m
-            .narrow(1, 8, 1)
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1::<f32>()
-            .unwrap();
+        let v = flat(&m.narrow(1, 8, 1).unwrap());
         assert_eq!(v.len(), 1);
         assert!(
             (v[0] - (d[0] / 10.0).ln()).abs() < 1e-5,
@@ -1780,13 +1762,7 @@ fn depth_features_are_clamped_to_the_depth_range_and_need_the_depth_head() {
     let (h, w) = (32usize, 64usize);
     let rgb: Vec<u8> = (0..h * w * 3).map(|i| (i * 29 % 251) as u8).collect();
     let x = rgb8_to_tensor(&rgb, h, w, &Normalization::IMAGENET, &DEV).unwrap();
-    let v = on.forward(&x).unwrap()[0]
-        .narrow(1, 8, 1)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1::<f32>()
-        .unwrap();
+    let v = flat(&on.forward(&x).unwrap()[0].narrow(1, 8, 1).unwrap());
     assert!(
         v.iter()
             .all(|&a| a.is_finite() && (0.0..=8f32.ln()).contains(&a)),

@@ -772,12 +772,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
     let train_style = crate::simdata::TrainImages::style_of_bundle(&base.config);
     let train_images = crate::simdata::TrainImages::of_bundle(&base.config);
     // and with the bundle's depth features wherever a variant has the depth encoder
-    let depth_features = base
-        .config
-        .depth_encoder
-        .as_ref()
-        .and_then(|s| s.small_cnn_config())
-        .is_some_and(|c| c.depth_features);
+    let depth_features = base.config.depth_features();
     let train_frames = if needs_training {
         crate::simdata::render_split_styled(
             &root.join(&train_list),

@@ -425,9 +425,15 @@ impl BundleConfig {
     /// weights are the same either way; the networks conditioned on it are not, so set it before
     /// they are trained.
     ///
+    /// Turning it off where it cannot be on (no depth encoder, a pretrained one) changes nothing.
+    ///
     /// # Errors
-    /// No depth encoder, a pretrained one, or a small CNN without a depth head.
+    /// Turning it on without a depth encoder, with a pretrained one, or with a small CNN without
+    /// a depth head.
     pub fn set_depth_features(&mut self, on: bool) -> Result<()> {
+        if !on && !self.depth_features() {
+            return Ok(());
+        }
         let Some(spec) = self.depth_encoder.as_mut() else {
             return Err(Error::Data(
                 "depth features: the model has no depth encoder".into(),
@@ -447,6 +453,15 @@ impl BundleConfig {
         c.depth_features = on;
         let (semantic, depth) = (self.semantic_encoder.clone(), self.depth_encoder.clone());
         self.set_encoders(semantic, depth)
+    }
+
+    /// Whether the small-CNN depth encoder appends its depth reading to its feature maps
+    /// ([`Self::set_depth_features`]).
+    pub fn depth_features(&self) -> bool {
+        self.depth_encoder
+            .as_ref()
+            .and_then(|s| s.small_cnn_config())
+            .is_some_and(|c| c.depth_features)
     }
 
     /// Sets the encoders (either may be `None`, not both for a conditional denoiser) and fits the

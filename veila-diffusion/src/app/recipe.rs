@@ -294,12 +294,12 @@ pub fn prepare_encoders(
                 path: dir.to_path_buf(),
             });
         }
+        // the depth channel changes what the encoder returns, not its weights
+        let weights_of = |c: &SmallCnnConfig| SmallCnnConfig {
+            depth_features: false,
+            ..c.clone()
+        };
         for (which, c) in small {
-            // the depth channel changes what the encoder returns, not its weights
-            let weights_of = |c: &SmallCnnConfig| SmallCnnConfig {
-                depth_features: false,
-                ..c.clone()
-            };
             if which
                 .config(&b.config)
                 .and_then(|s| s.small_cnn_config())

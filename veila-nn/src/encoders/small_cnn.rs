@@ -764,7 +764,7 @@ impl ImageEncoder for SmallCnn {
         features
             .iter()
             .zip(&depth)
-            .map(|(f, d)| Ok(Tensor::cat(&[f, &d.to_dtype(f.dtype())?], 1)?))
+            .map(|(f, d)| Ok(Tensor::cat(&[f, d], 1)?))
             .collect()
     }
     fn channels(&self) -> [usize; 4] {
