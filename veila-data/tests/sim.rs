@@ -869,7 +869,7 @@ fn example_scenes_parse_and_give_plausible_scans() {
         sem.dedup();
         assert!(sem.len() >= 5, "{}: image classes {sem:?}", f.display());
     }
-    assert_eq!(layouts.len(), 4, "{layouts:?}");
+    assert_eq!(layouts.len(), 5, "{layouts:?}");
 }
 
 #[test]
@@ -1047,23 +1047,141 @@ fn simulated_output_loads_as_a_semantic_kitti_sequence() {
     }
 }
 
+/// Ranges of the returns within `half_deg` of straight ahead and `[-1, 3]` degrees of the
+/// horizontal, from a scan's points (LiDAR frame, x forward).
+fn ranges_ahead(scan: &SimScan, half_deg: f32) -> Vec<f32> {
+    let mut out: Vec<f32> = scan
+        .points
+        .xyz
+        .iter()
+        .filter(|p| {
+            let az = p.y.atan2(p.x).to_degrees();
+            let el = p.z.atan2(p.x.hypot(p.y)).to_degrees();
+            p.x > 0.0 && az.abs() < half_deg && (-1.0..3.0).contains(&el)
+        })
+        .map(|p| p.length())
+        .collect();
+    out.sort_by(f32::total_cmp);
+    out
+}
+
+#[test]
+fn a_t_junction_ends_the_view_ahead_at_the_facades_across() {
+    let mut tee = tiny_config();
+    tee.layout = Layout::TJunction;
+    tee.road.building_frontage = Some(1.0);
+    tee.population.moving_vehicles = 0;
+    tee.population.pedestrians = 0;
+    tee.population.cyclists = 0;
+    tee.ego.start_x_range_m = Some([-40.0, -12.0]);
+    let mut crossing = tee.clone();
+    crossing.layout = Layout::Junction;
+    let r = tee.road_params();
+    let facade_x = r.half_carriageway_m() + r.sidewalk_width_m + r.setback_m;
+    let sensor = tee.lidar.sensor().unwrap();
+    for seed in 0..4u64 {
+        let ego_x = tee.ego.start_x(seed);
+        let expected = facade_x - ego_x;
+        let scan = |cfg: &SceneConfig| {
+            let scene = Scene::generate(cfg, seed).unwrap();
+            // the ego stands where the draw put it
+            let at = scene.world_from_lidar(0.0).translation;
+            assert!(
+                (at.x - ego_x).abs() < 1e-4,
+                "seed {seed}: {} vs {ego_x}",
+                at.x
+            );
+            scene
+                .snapshot(0)
+                .render_lidar(&sensor, &cfg.lidar.returns)
+                .unwrap()
+        };
+        let ahead = ranges_ahead(&scan(&tee), 4.0);
+        assert!(
+            ahead.len() >= 10,
+            "seed {seed}: {} returns ahead",
+            ahead.len()
+        );
+        let median = ahead[ahead.len() / 2];
+        // the facades across, seen square on (the camera's sector, not the side streets)
+        assert!(
+            (median - expected).abs() < 0.5,
+            "seed {seed}: returns ahead at {median} m, the facades at {expected} m"
+        );
+        // where the street crosses instead of ending, the view runs on past them
+        let through = ranges_ahead(&scan(&crossing), 4.0);
+        let near = through.iter().filter(|&&d| d < expected + 10.0).count();
+        assert!(
+            near * 5 < ahead.len(),
+            "seed {seed}: {near} of the crossing's returns ahead within {} m",
+            expected + 10.0
+        );
+    }
+}
+
+#[test]
+fn a_drawn_ego_start_stays_in_its_range_and_is_the_same_for_a_seed() {
+    let mut cfg = tiny_config();
+    assert_eq!(cfg.ego.start_x(7), cfg.ego.start_x_m);
+    cfg.ego.start_x_range_m = Some([-30.0, -10.0]);
+    let starts: Vec<f32> = (0..200u64).map(|s| cfg.ego.start_x(s)).collect();
+    assert!(starts.iter().all(|x| (-30.0..=-10.0).contains(x)));
+    assert_eq!(
+        starts,
+        (0..200u64).map(|s| cfg.ego.start_x(s)).collect::<Vec<_>>()
+    );
+    // uniform over the range: a quarter of the draws in each quarter (binomial sd 6)
+    for q in 0..4 {
+        let lo = -30.0 + 5.0 * q as f32;
+        let n = starts.iter().filter(|&&x| x >= lo && x < lo + 5.0).count();
+        assert!((25..=75).contains(&n), "quarter {q}: {n}");
+    }
+    // a range of one point is that point; the start's draw moves nothing else in the scene
+    cfg.ego.start_x_range_m = Some([-18.0, -18.0]);
+    assert_eq!(cfg.ego.start_x(3), -18.0);
+    let mut fixed = tiny_config();
+    fixed.ego.start_x_m = -18.0;
+    let a = Scene::generate(&cfg, 3).unwrap();
+    let b = Scene::generate(&fixed, 3).unwrap();
+    assert_eq!(a.static_mesh().len(), b.static_mesh().len());
+    assert_eq!(a.world_from_lidar(0.0), b.world_from_lidar(0.0));
+    // bad ranges are refused, the key named
+    for bad in [
+        [-10.0, -30.0],
+        [f32::NAN, 0.0],
+        [-500.0, 0.0],
+        [0.0, f32::INFINITY],
+    ] {
+        let mut c = tiny_config();
+        c.ego.start_x_range_m = Some(bad);
+        let e = c.validate().expect_err("bad range").to_string();
+        assert!(e.contains("ego.start_x_range_m"), "{bad:?}: {e}");
+        assert!(Scene::generate(&c, 0).is_err());
+    }
+}
+
 #[test]
 fn random_valid_configs_generate_and_render_without_panicking() {
     let mut rng = ChaCha8Rng::seed_from_u64(99);
     let mut generated = 0;
-    for i in 0..40 {
+    // (i >= 40: T junctions, after the recorded runs of the first four layouts)
+    for i in 0..52 {
         let mut cfg = tiny_config();
         cfg.lidar.sensor = Some(LidarSensor {
             rows: 8,
             cols: 64,
             ..LidarSensor::hdl64e()
         });
-        cfg.layout = [
-            Layout::Straight,
-            Layout::Junction,
-            Layout::NarrowStreet,
-            Layout::Open,
-        ][i % 4];
+        cfg.layout = if i >= 40 {
+            Layout::TJunction
+        } else {
+            [
+                Layout::Straight,
+                Layout::Junction,
+                Layout::NarrowStreet,
+                Layout::Open,
+            ][i % 4]
+        };
         cfg.road = RoadConfig {
             length_m: Some(rng.random_range(5.0..300.0)),
             lanes_per_direction: Some(rng.random_range(1..=4)),
@@ -1092,6 +1210,10 @@ fn random_valid_configs_generate_and_render_without_panicking() {
         cfg.population.cyclists = rng.random_range(0..10);
         cfg.population.trees_per_100m = rng.random_range(0.0..40.0);
         cfg.ego.start_x_m = 0.0;
+        if i >= 40 {
+            let h = cfg.road_params().length_m / 2.0;
+            cfg.ego.start_x_range_m = Some([-h, 0.0]);
+        }
         if cfg.validate().is_err() {
             continue; // e.g. a junction too short for its cross-section: rejected, not generated
         }

@@ -828,6 +828,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                         .then_some(train_style.wide_facade_share),
                     augment_encoders: false,
                     ground_prior: false,
+                    sky_depth: false,
                     depth_features: depth_features
                         && veila_diffusion::app::BundleConfig::cpu_default(v)
                             .depth_encoder

@@ -130,6 +130,17 @@ pub fn example_from_rig(
     Ok(ex)
 }
 
+/// The depth encoder's targets of a simulated image with its sky read as far (`train-default
+/// --sky-depth`): the pixels whose camera ray hits nothing carry depth 0 ("no ground truth", so
+/// the loss skips them); here they get `far_m`, every other pixel keeps its depth. In the
+/// simulator's images depth 0 is exactly the sky: every surface it draws has a depth above 0.
+pub fn depth_with_sky_at(depth_m: &[f32], far_m: f32) -> Vec<f32> {
+    depth_m
+        .iter()
+        .map(|&d| if d == 0.0 { far_m } else { d })
+        .collect()
+}
+
 /// The scene list of the shipped recipe (`train-default --scenes`), and of every bundle whose
 /// provenance does not name one.
 pub const DEFAULT_SCENES: &str = "scenes/train.txt";
@@ -544,6 +555,35 @@ mod tests {
         assert_eq!(flags(TrainImages::Materials), (false, false, true, false));
         assert_eq!(flags(TrainImages::Appearance), (false, true, true, false));
         assert_eq!(flags(TrainImages::Randomized), (true, false, false, true));
+    }
+
+    #[test]
+    fn the_sky_is_exactly_the_pixels_without_depth_and_reads_as_far() {
+        let list = workspace_root().join(DEFAULT_SCENES);
+        let (path, seed) = split_items(&list, 1).unwrap().remove(0);
+        let scene = Scene::generate(&SceneConfig::from_file(&path).unwrap(), seed).unwrap();
+        let frame = scene.render_frame(0).unwrap();
+        let img = &frame.image;
+        let sky: Vec<bool> = img.depth_m.iter().map(|&d| d == 0.0).collect();
+        let n_sky = sky.iter().filter(|&&s| s).count();
+        // a street scene shows both sky and surfaces
+        assert!(
+            n_sky > img.depth_m.len() / 20 && n_sky < img.depth_m.len() / 2,
+            "{n_sky}"
+        );
+        // depth 0 is the sky (class 0, nothing hit) and nothing else
+        for (i, &s) in sky.iter().enumerate() {
+            assert_eq!(s, img.semantic[i] == 0, "pixel {i}");
+            assert!(s || img.depth_m[i] > 0.0, "pixel {i}");
+        }
+        let t = depth_with_sky_at(&img.depth_m, 80.0);
+        for (i, (&d, &s)) in img.depth_m.iter().zip(&sky).enumerate() {
+            if s {
+                assert_eq!(t[i], 80.0);
+            } else {
+                assert_eq!(t[i].to_bits(), d.to_bits(), "pixel {i}");
+            }
+        }
     }
 
     #[test]

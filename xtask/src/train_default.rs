@@ -105,6 +105,11 @@ pub struct TrainDefaultArgs {
     /// same either way; stored in `bundle.json`).
     #[arg(long)]
     pub depth_features: bool,
+    /// Train the depth encoder to read the sky as far: the simulator's sky pixels (no surface,
+    /// depth 0) get the encoder's far limit (`max_depth_m`, 80 m) as their target instead of
+    /// none, so its features tell open sky from a facade (issue 18; stored in the provenance).
+    #[arg(long)]
+    pub sky_depth: bool,
 }
 
 struct Progress {
@@ -168,6 +173,11 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     }
     if args.depth_features {
         cfg.set_depth_features(true)?;
+    }
+    if args.sky_depth && args.encoders_from.is_some() {
+        anyhow::bail!(
+            "--sky-depth changes how the depth encoder trains, and --encoders-from reuses trained ones: pass one of them"
+        );
     }
     let method = cfg.method();
     println!(
@@ -251,6 +261,9 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     if args.depth_features {
         run_key["depth_features"] = serde_json::Value::Bool(true);
     }
+    if args.sky_depth {
+        run_key["sky_depth"] = serde_json::Value::Bool(true);
+    }
     if let Some(p) = args.randomize_share {
         run_key["randomize_share"] = serde_json::json!(p);
     }
@@ -272,12 +285,19 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
 
     let images: Vec<Vec<u8>> = examples.iter().map(|e| e.rgb.clone()).collect();
     let labels: Vec<Vec<u32>> = examples.iter().map(|e| e.labels.clone()).collect();
-    let depths: Vec<Vec<f32>> = examples.iter().map(|e| e.depth_m.clone()).collect();
+    let sky_m = sky_target_m(&cfg, args.sky_depth)?;
+    let depths: Vec<Vec<f32>> = examples
+        .iter()
+        .map(|e| match sky_m {
+            Some(far) => crate::simdata::depth_with_sky_at(&e.depth_m, far),
+            None => e.depth_m.clone(),
+        })
+        .collect();
     let cameras: Vec<veila_geom::PinholeCamera> = examples.iter().map(|e| e.camera).collect();
     // trained encoders are kept in the work folder, so a resumed run does not train them
     // again (their training is deterministic: the same seed gives the same weights)
     let enc_dir = work.join(format!(
-        "encoders-seed{}-steps{}-frames{}{}{}{}{}{}",
+        "encoders-seed{}-steps{}-frames{}{}{}{}{}{}{}",
         args.seed,
         args.encoder_steps,
         examples.len(),
@@ -300,6 +320,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             ""
         },
         if args.ground_prior { "-ground" } else { "" },
+        if args.sky_depth { "-sky" } else { "" },
     ));
     let encoders = match &args.encoders_from {
         Some(dir) => EncoderSource::Bundle(dir),
@@ -433,6 +454,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             "randomized_share": args.randomize_share,
             "wide_facade_share": args.wide_facades,
             "encoder_augment": args.augment_encoders,
+            "sky_depth_m": sky_m,
         },
         "encoder_steps": if args.encoders_from.is_some() { 0 } else { args.encoder_steps },
         "encoders_from": args.encoders_from.as_ref().map(|p| p.display().to_string()),
@@ -466,9 +488,51 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     Ok(cfg)
 }
 
+/// The depth target of the sky pixels under `--sky-depth`: the far limit of the depth encoder
+/// (`None` without the flag).
+fn sky_target_m(cfg: &BundleConfig, sky_depth: bool) -> Result<Option<f32>> {
+    if !sky_depth {
+        return Ok(None);
+    }
+    match cfg
+        .depth_encoder
+        .as_ref()
+        .and_then(|e| e.small_cnn_config())
+        .filter(|c| c.depth_head)
+    {
+        Some(c) => Ok(Some(c.max_depth_m)),
+        None => anyhow::bail!(
+            "--sky-depth trains the small-CNN depth encoder's depth head, and this variant has none"
+        ),
+    }
+}
+
 fn encoder_name(which: Encoder) -> &'static str {
     match which {
         Encoder::Semantic => "semantic encoder",
         Encoder::Depth => "depth encoder",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_sky_target_is_the_depth_encoders_far_limit_where_there_is_one() {
+        let full = BundleConfig::cpu_default(Variant::Full);
+        let far = full
+            .depth_encoder
+            .as_ref()
+            .and_then(|e| e.small_cnn_config())
+            .map(|c| c.max_depth_m)
+            .unwrap();
+        assert_eq!(sky_target_m(&full, true).unwrap(), Some(far));
+        assert_eq!(sky_target_m(&full, false).unwrap(), None);
+        // without a depth encoder the flag has nothing to train, and says so
+        let blind = BundleConfig::cpu_default(Variant::Unconditional);
+        assert_eq!(sky_target_m(&blind, false).unwrap(), None);
+        let e = sky_target_m(&blind, true).unwrap_err().to_string();
+        assert!(e.contains("--sky-depth"), "{e}");
     }
 }

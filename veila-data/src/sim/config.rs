@@ -5,7 +5,7 @@
 //!
 //! ```toml
 //! name = "junction"
-//! layout = "junction"          # straight | junction | narrow_street | open
+//! layout = "junction"          # straight | junction | t_junction | narrow_street | open
 //!
 //! [road]
 //! length_m = 240.0
@@ -66,6 +66,12 @@ pub enum Layout {
     Straight,
     /// Two streets crossing at the origin, with crosswalks, stop lines and traffic lights.
     Junction,
+    /// A T junction: the ego's street ends at a cross street, and a row of lots across it (its
+    /// facades where [`RoadConfig::building_frontage`] builds, fences, hedges and trees in the
+    /// gaps) faces the ego, so the view straight ahead ends at them rather than running on down
+    /// the street. Cross traffic, crosswalk and traffic lights as in [`Layout::Junction`]; with
+    /// [`EgoConfig::start_x_range_m`] the facades stand at a different distance in every scene.
+    TJunction,
     /// A narrow street: one lane per direction without markings, narrow sidewalks, facades close to
     /// the road and cars parked on the carriageway.
     NarrowStreet,
@@ -74,6 +80,14 @@ pub enum Layout {
     /// trees in rows, clusters and alone at every distance, field fences and hedges, guardrails,
     /// and only now and then a row of buildings far back.
     Open,
+}
+
+impl Layout {
+    /// Whether the scene has a cross street (the junction layouts), whose arms keep their lots
+    /// and whose main street never bends.
+    pub fn has_cross_street(self) -> bool {
+        matches!(self, Layout::Junction | Layout::TJunction)
+    }
 }
 
 /// A complete scene description (the root of a scene TOML file).
@@ -398,6 +412,11 @@ pub struct EgoConfig {
     pub start_x_m: f32,
     /// LiDAR height above the road, metres (KITTI: 1.73).
     pub lidar_height_m: f32,
+    /// Draw the position at frame 0 per scene, uniformly within `[low, high]` metres, instead of
+    /// `start_x_m` (default: none, `start_x_m`). On a [`Layout::TJunction`] this sets how far
+    /// ahead the facades across the cross street stand.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start_x_range_m: Option<[f32; 2]>,
 }
 
 impl Default for EgoConfig {
@@ -406,6 +425,28 @@ impl Default for EgoConfig {
             speed_mps: 8.0,
             start_x_m: -25.0,
             lidar_height_m: 1.73,
+            start_x_range_m: None,
+        }
+    }
+}
+
+/// The random stream of [`EgoConfig::start_x`] (its own, so drawing the start changes no other
+/// draw of a scene).
+const EGO_START_STREAM: u64 = 0x6567_0000;
+
+impl EgoConfig {
+    /// The ego's position along the main street at frame 0 for scene `seed`: `start_x_m`, or a
+    /// draw within `start_x_range_m` (the same seed always gives the same start).
+    pub fn start_x(&self, seed: u64) -> f32 {
+        use rand::{Rng, SeedableRng};
+        match self.start_x_range_m {
+            Some([lo, hi]) if hi > lo => {
+                let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+                rng.set_stream(EGO_START_STREAM);
+                lo + (hi - lo) * rng.random::<f32>()
+            }
+            Some([lo, _]) => lo,
+            None => self.start_x_m,
         }
     }
 }
@@ -1029,8 +1070,8 @@ impl SceneConfig {
             format!("[{a0}, {a1}] must satisfy 0 < low <= high <= 180"),
         )?;
         let min_len = match self.layout {
-            // the junction's four arms need room beyond the crossing street's sidewalks
-            Layout::Junction => {
+            // the junction's arms need room beyond the crossing street's sidewalks
+            Layout::Junction | Layout::TJunction => {
                 2.0 * (r.half_carriageway_m() + r.sidewalk_width_m + r.setback_m + 10.0)
             }
             _ => 20.0,
@@ -1119,6 +1160,20 @@ impl SceneConfig {
                 r.length_m / 2.0
             ),
         )?;
+        if let Some([lo, hi]) = e.start_x_range_m {
+            check(
+                lo.is_finite()
+                    && hi.is_finite()
+                    && lo <= hi
+                    && lo.abs() <= r.length_m / 2.0
+                    && hi.abs() <= r.length_m / 2.0,
+                "ego.start_x_range_m",
+                format!(
+                    "[{lo}, {hi}] must be low <= high, both on the street (|x| <= {})",
+                    r.length_m / 2.0
+                ),
+            )?;
+        }
         check(
             pos(e.lidar_height_m) && e.lidar_height_m <= 10.0,
             "ego.lidar_height_m",

@@ -353,9 +353,11 @@ impl Scene {
         let mut g = Gen::new(config, road, seed);
         match config.layout {
             Layout::Straight | Layout::NarrowStreet | Layout::Open => g.straight(),
-            Layout::Junction => g.junction(),
+            Layout::Junction => g.junction(false),
+            Layout::TJunction => g.junction(true),
         }
         g.populate();
+        let ego_x = g.ego_x;
         let ego_d = -(road.lanes_per_direction as f32 - 0.5) * road.lane_width_m;
         let (lidar_height_m, camera) =
             config
@@ -367,13 +369,13 @@ impl Scene {
                 let [lo, hi] = road.grade_percent;
                 let percent = lo + (hi - lo) * rng.random::<f32>();
                 Grade {
-                    x0: config.ego.start_x_m + rng.random_range(-30.0..50.0f32),
+                    x0: ego_x + rng.random_range(-30.0..50.0f32),
                     len: VERTICAL_CURVE_M,
                     g: percent / 100.0,
                 }
             })
             .filter(|grade| grade.g != 0.0);
-        let curve = (config.layout != Layout::Junction && road.curve_probability > 0.0)
+        let curve = (!config.layout.has_cross_street() && road.curve_probability > 0.0)
             .then(|| {
                 let mut rng = g.rng(CURVE_STREAM);
                 if rng.random::<f32>() >= road.curve_probability {
@@ -384,7 +386,7 @@ impl Scene {
                 let [a0, a1] = road.curve_angle_deg;
                 let angle = (a0 + (a1 - a0) * rng.random::<f32>()).to_radians();
                 let left = rng.random_bool(0.5);
-                let start = config.ego.start_x_m + rng.random_range(CURVE_START_M);
+                let start = ego_x + rng.random_range(CURVE_START_M);
                 Some(RoadCurve::new(
                     start,
                     radius.clamp(r0, r1),
@@ -403,11 +405,7 @@ impl Scene {
             seed,
             static_mesh,
             actors: g.actors,
-            ego_pose0: Affine3A::from_translation(Vec3::new(
-                config.ego.start_x_m,
-                ego_d,
-                lidar_height_m,
-            )),
+            ego_pose0: Affine3A::from_translation(Vec3::new(ego_x, ego_d, lidar_height_m)),
             ego_velocity: Vec3::new(config.ego.speed_mps, 0.0, 0.0),
             camera,
             lidar_height_m,
@@ -785,6 +783,8 @@ struct Gen<'a> {
     /// anchor and bends the others (buildings, fences, hedges, guardrails) along with it, like the
     /// ground and the markings.
     parts: Vec<Part>,
+    /// The ego's position along the main street at frame 0 ([`super::EgoConfig::start_x`]).
+    ego_x: f32,
 }
 
 impl<'a> Gen<'a> {
@@ -801,6 +801,7 @@ impl<'a> Gen<'a> {
             furniture: (0..4).map(|_| Occupancy::default()).collect(),
             lot_calls: 0,
             parts: Vec::new(),
+            ego_x: cfg.ego.start_x(seed),
         }
     }
 
@@ -847,7 +848,7 @@ impl<'a> Gen<'a> {
     /// may be open, to carry their far buildings and trees).
     fn outer_d(&self) -> f32 {
         let r = &self.road;
-        let back = if r.open_side_probability > 0.0 && self.cfg.layout != Layout::Junction {
+        let back = if r.open_side_probability > 0.0 && !self.cfg.layout.has_cross_street() {
             r.setback_m.max(r.open_setback_m[1] + 20.0)
         } else {
             r.setback_m
@@ -870,7 +871,9 @@ impl<'a> Gen<'a> {
         });
     }
 
-    fn junction(&mut self) {
+    /// Two streets crossing at the origin; with `tee`, the main street (the ego's) ends there and
+    /// the cross street's far side is one row of lots across its end, facing the ego.
+    fn junction(&mut self, tee: bool) {
         let h = self.half_len();
         let r = self.road;
         let wc = r.half_carriageway_m();
@@ -883,6 +886,10 @@ impl<'a> Gen<'a> {
         main.rect(&mut self.mesh, -wc, wc, -wc, wc, 0.0, road);
         for (f, is_main) in [(main, true), (cross, false)] {
             for (s0, s1) in [(-h, -wc), (wc, h)] {
+                if tee && is_main && s0 > 0.0 {
+                    // the main street ends at the cross street
+                    continue;
+                }
                 let (ts0, ts1) = if s0 < 0.0 {
                     (s0, -wc - sw)
                 } else {
@@ -894,7 +901,12 @@ impl<'a> Gen<'a> {
                 } else {
                     (wc + sw + r.setback_m + 1.0, s1)
                 };
-                self.lots(&mut rng, f, l0, l1);
+                if tee && !is_main {
+                    // the near side only: the far side is one row across, below
+                    self.lots_on(&mut rng, f, l0, l1, &[1.0]);
+                } else {
+                    self.lots(&mut rng, f, l0, l1);
+                }
                 self.furniture(
                     &mut rng,
                     f,
@@ -909,7 +921,33 @@ impl<'a> Gen<'a> {
                     main: is_main,
                 });
             }
-            self.crosswalks(f);
+            self.crosswalks(f, tee && is_main);
+        }
+        if tee {
+            // the cross street's far side (cross frame d < 0, world +x) across the end of the
+            // main street: kerb, sidewalk and ground, then the lots facing the ego
+            let kh = r.kerb_height_m;
+            let walk = self.mesh.surface(stock::SIDEWALK, 0);
+            let grass = self.mesh.surface(stock::TERRAIN, 0);
+            self.mesh.add_quad(
+                cross.p(-wc, -wc, 0.0),
+                cross.p(wc, -wc, 0.0),
+                cross.p(wc, -wc, kh),
+                cross.p(-wc, -wc, kh),
+                walk,
+            );
+            cross.rect(&mut self.mesh, -wc, wc, -wc, -(wc + sw), kh, walk);
+            let outer = self.outer_d();
+            cross.rect(
+                &mut self.mesh,
+                -wc - sw,
+                wc + sw,
+                -(wc + sw),
+                -outer,
+                kh,
+                grass,
+            );
+            self.lots_on(&mut rng, cross, -h, h, &[-1.0]);
         }
         self.no_parking.push((-wc - 12.0, wc + 12.0));
         // traffic lights on the four corners, facing the approaching traffic of the main street
@@ -1012,7 +1050,9 @@ impl<'a> Gen<'a> {
     }
 
     /// Zebra crossings and stop lines on both arms of a street at the junction.
-    fn crosswalks(&mut self, f: StreetFrame) {
+    /// Crosswalks and stop lines on both arms of `f` at the junction (the near arm alone with
+    /// `near_only`: a T junction's main street has no far arm).
+    fn crosswalks(&mut self, f: StreetFrame, near_only: bool) {
         let r = self.road;
         if !r.lane_markings {
             return;
@@ -1020,7 +1060,8 @@ impl<'a> Gen<'a> {
         let paint = self.mesh.surface(stock::LANE_MARKING, 0);
         let wl = r.lanes_per_direction as f32 * r.lane_width_m;
         let wc = r.half_carriageway_m();
-        for dir in [-1.0f32, 1.0] {
+        let arms: &[f32] = if near_only { &[-1.0] } else { &[-1.0, 1.0] };
+        for &dir in arms {
             let (a, b) = (wc + 1.0, wc + 4.0);
             let (a, b) = if dir > 0.0 { (a, b) } else { (-b, -a) };
             let mut d = -wl + 0.25;
@@ -1049,14 +1090,19 @@ impl<'a> Gen<'a> {
 
     /// Buildings and the gaps between them (fences, hedges, bushes) on both sides of `[s0, s1]`.
     fn lots(&mut self, rng: &mut ChaCha8Rng, f: StreetFrame, s0: f32, s1: f32) {
+        self.lots_on(rng, f, s0, s1, &[-1.0, 1.0]);
+    }
+
+    /// [`Self::lots`] on the given sides of the street (`-1`: `d < 0`, `1`: `d > 0`).
+    fn lots_on(&mut self, rng: &mut ChaCha8Rng, f: StreetFrame, s0: f32, s1: f32, sides: &[f32]) {
         let r = self.road;
         let front = r.half_carriageway_m() + r.sidewalk_width_m + r.setback_m;
         let [hmin, hmax] = r.building_height_m;
         let call = self.lot_calls;
         self.lot_calls += 1;
-        for side in [-1.0f32, 1.0] {
+        for &side in sides {
             // the junction's arms keep their lots (open ground there would run into the cross street)
-            if self.cfg.layout != Layout::Junction && self.side_open(call, side) {
+            if !self.cfg.layout.has_cross_street() && self.side_open(call, side) {
                 self.open_side(f, s0, s1, side, call);
                 continue;
             }
@@ -1416,7 +1462,16 @@ impl<'a> Gen<'a> {
             .copied()
             .collect::<Vec<_>>();
         let lanes_fwd = r.lanes_per_direction;
-        let mut lanes: Vec<(StreetFrame, f32, f32, f32, f32, bool)> = Vec::new(); // frame, d, dir, speed, s-range half, is ego lane
+        // frame, d, dir, speed, s-range where vehicles start, is ego lane
+        type Lane = (StreetFrame, f32, f32, f32, (f32, f32), bool);
+        let mut lanes: Vec<Lane> = Vec::new();
+        let all = (-self.half_len() * 0.8, self.half_len() * 0.8);
+        // a T junction's main street ends at the cross street: its traffic starts short of it
+        let main_range = if self.cfg.layout == Layout::TJunction {
+            (all.0, (-(wc + 16.0)).max(all.0))
+        } else {
+            all
+        };
         let ego_lane_d = -(lanes_fwd as f32 - 0.5) * lw;
         for k in 0..lanes_fwd {
             let d = -(k as f32 + 0.5) * lw;
@@ -1426,14 +1481,14 @@ impl<'a> Gen<'a> {
             } else {
                 rng.random_range(6.0..14.0f32)
             };
-            lanes.push((StreetFrame::main(), d, 1.0, speed, self.half_len(), ego));
+            lanes.push((StreetFrame::main(), d, 1.0, speed, main_range, ego));
             if !one_way {
                 lanes.push((
                     StreetFrame::main(),
                     -d,
                     -1.0,
                     rng.random_range(6.0..14.0f32),
-                    self.half_len(),
+                    main_range,
                     false,
                 ));
             }
@@ -1446,7 +1501,7 @@ impl<'a> Gen<'a> {
                     -d,
                     1.0,
                     rng.random_range(5.0..11.0f32),
-                    self.half_len(),
+                    all,
                     false,
                 ));
                 lanes.push((
@@ -1454,7 +1509,7 @@ impl<'a> Gen<'a> {
                     d,
                     -1.0,
                     rng.random_range(5.0..11.0f32),
-                    self.half_len(),
+                    all,
                     false,
                 ));
             }
@@ -1466,9 +1521,13 @@ impl<'a> Gen<'a> {
         {
             tries += 1;
             let li = rng.random_range(0..lanes.len());
-            let (frame, d, dir, speed, half, ego) = lanes[li];
-            let s = rng.random_range(-half * 0.8..half * 0.8);
-            if ego && (s - self.cfg.ego.start_x_m).abs() < 18.0 {
+            let (frame, d, dir, speed, (lo, hi), ego) = lanes[li];
+            let s = if hi > lo {
+                rng.random_range(lo..hi)
+            } else {
+                lo
+            };
+            if ego && (s - self.ego_x).abs() < 18.0 {
                 continue;
             }
             if taken[li].iter().any(|&o| (o - s).abs() < 16.0) {
@@ -1514,11 +1573,9 @@ impl<'a> Gen<'a> {
             };
             if crossing {
                 // on a crosswalk of the main street, walking across it
-                let s_cw = if rng.random_bool(0.5) {
-                    wc + 2.5
-                } else {
-                    -(wc + 2.5)
-                };
+                // (a T junction has the near crosswalk alone)
+                let far = rng.random_bool(0.5) && self.cfg.layout != Layout::TJunction;
+                let s_cw = if far { wc + 2.5 } else { -(wc + 2.5) };
                 let d0 = rng.random_range(-wl..wl);
                 let dir = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
                 self.actors.push(Actor {
