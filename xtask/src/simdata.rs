@@ -157,6 +157,25 @@ pub fn train_split_of(cfg: &BundleConfig) -> PathBuf {
     PathBuf::from(rel)
 }
 
+/// The held-out list that goes with a training list: `test-vN.txt` beside `train-vN.txt` (and
+/// `test.txt` beside `train.txt`), or [`DEFAULT_TEST_SCENES`] for a list without one. Relative
+/// paths are taken against the workspace root.
+pub fn test_list_for(train_list: &Path) -> PathBuf {
+    let root = workspace_root();
+    let sibling = train_list
+        .file_name()
+        .and_then(|n| n.to_str())
+        .and_then(|n| n.strip_prefix("train"))
+        .map(|rest| train_list.with_file_name(format!("test{rest}")));
+    match sibling {
+        Some(t) if root.join(&t).is_file() => t,
+        _ => PathBuf::from(DEFAULT_TEST_SCENES),
+    }
+}
+
+/// The held-out list of the shipped recipe.
+pub const DEFAULT_TEST_SCENES: &str = "scenes/test.txt";
+
 /// The first `n` frames of a split list, interleaving its scene files (scene 0 seed 0, scene 1
 /// seed 0, ..., scene 0 seed 1, ...); frame `seed % frames` of each scene.
 pub fn split_items(list: &Path, n: usize) -> Result<Vec<(PathBuf, u64)>> {
@@ -583,6 +602,31 @@ mod tests {
             } else {
                 assert_eq!(t[i].to_bits(), d.to_bits(), "pixel {i}");
             }
+        }
+    }
+
+    #[test]
+    fn each_training_list_has_its_held_out_list_beside_it() {
+        for (train, test) in [
+            ("scenes/train.txt", "scenes/test.txt"),
+            ("scenes/train-v4.txt", "scenes/test-v4.txt"),
+            ("scenes/train-v5.txt", "scenes/test-v5.txt"),
+            // a list of one's own has no sibling: the shipped held-out list
+            ("scenes/mine.txt", "scenes/test.txt"),
+            ("scenes/train-v99.txt", "scenes/test.txt"),
+        ] {
+            assert_eq!(test_list_for(Path::new(train)), Path::new(test), "{train}");
+        }
+        // and the scene files of every held-out list are those of its training list
+        for v in ["", "-v2", "-v3", "-v4", "-v5"] {
+            let scenes = |kind: &str| -> std::collections::BTreeSet<PathBuf> {
+                SceneList::read(&workspace_root().join(format!("scenes/{kind}{v}.txt")))
+                    .unwrap()
+                    .iter()
+                    .map(|(p, _)| p.to_path_buf())
+                    .collect()
+            };
+            assert_eq!(scenes("train"), scenes("test"), "v{v}");
         }
     }
 

@@ -40,9 +40,13 @@ pub struct TrainProbeArgs {
     /// The run's method.
     #[arg(long, default_value = "residual")]
     method: Method,
-    /// Held-out test frames (scenes/test.txt, interleaving its scene files).
+    /// Held-out test frames, interleaving the scene files of the held-out list (`--test-scenes`).
     #[arg(long, default_value_t = 24)]
     test_frames: usize,
+    /// The held-out list the test frames come from [default: the one beside the run's training
+    /// list: `scenes/test.txt` for `scenes/train.txt`, `test-v5.txt` for `train-v5.txt`].
+    #[arg(long)]
+    test_scenes: Option<PathBuf>,
     /// Split the probed frames come from: `test` (held out) or `train` (the first frames of the
     /// training split, which a run of at least that many frames has trained on: the gap between the
     /// two is the generalisation gap).
@@ -181,14 +185,31 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
             );
         }
     }
-    let enc_dir = std::fs::read_dir(&work)
+    // the encoders the run trained (its encoders-* folder), or the bundle it took them from
+    // (`train-default --encoders-from`, recorded in run.json)
+    let enc_dir = match std::fs::read_dir(&work)
         .with_context(|| format!("listing {}", work.display()))?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .find(|p| {
             p.file_name()
                 .is_some_and(|n| n.to_string_lossy().starts_with("encoders-"))
-        })
-        .with_context(|| format!("no encoders-* folder in {}", work.display()))?;
+        }) {
+        Some(dir) => dir,
+        None => match run.get("encoders_from").and_then(|v| v.as_str()) {
+            Some(from) => root.join(from),
+            None => bail!(
+                "no encoders-* folder in {}, and its run.json names no --encoders-from bundle",
+                work.display()
+            ),
+        },
+    };
+    // the run's training list (run.json records it when it is not the shipped one), and the
+    // held-out list beside it
+    let train_list = PathBuf::from(
+        run.get("scenes")
+            .and_then(|v| v.as_str())
+            .unwrap_or(crate::simdata::DEFAULT_SCENES),
+    );
     let mut files: HashMap<&str, HashMap<String, Tensor>> = HashMap::new();
     let mut encoder =
         |file: &'static str, c: &Option<veila_diffusion::app::bundle::EncoderSpec>| {
@@ -219,17 +240,21 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
     if mean_ckpt.is_none() && den_ckpt.is_none() {
         bail!("no checkpoint in {} yet", work.display());
     }
+    let test_list = match args.split {
+        ProbeSplit::Test => args
+            .test_scenes
+            .clone()
+            .unwrap_or_else(|| crate::simdata::test_list_for(&train_list)),
+        ProbeSplit::Train => train_list.clone(),
+    };
     let tests = render_split(
-        &root.join(match args.split {
-            ProbeSplit::Test => "scenes/test.txt",
-            ProbeSplit::Train => "scenes/train.txt",
-        }),
+        &root.join(&test_list),
         args.test_frames,
         &cfg,
         "simulating test frames",
     )?;
     let train = render_split(
-        &root.join("scenes/train.txt"),
+        &root.join(&train_list),
         args.baseline_frames,
         &cfg,
         "simulating baseline train frames",
@@ -342,6 +367,8 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
     let mut line = serde_json::json!({
         "test_frames": tests.len(),
         "split": format!("{:?}", args.split).to_lowercase(),
+        "test_scenes": test_list.display().to_string(),
+        "train_scenes": train_list.display().to_string(),
         "baseline_frames": train.len(),
         "mean": mean_ckpt.as_ref().map(|(_, s)| clock(s)),
         "denoiser": den_ckpt.as_ref().map(|(_, s)| clock(s)),
@@ -396,6 +423,7 @@ pub fn run(args: TrainProbeArgs) -> Result<()> {
         config.provenance = serde_json::json!({
             "trained_by": "cargo xtask train-probe (an unfinished run)",
             "work": work.display().to_string(),
+            "train_split": train_list.display().to_string(),
             "probe": line.clone(),
             "denoiser": if denoiser_trained { "the newest checkpoint's EMA weights" }
                 else { "untrained (the mean network alone: 0 sampler steps)" },
