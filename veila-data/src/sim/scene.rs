@@ -1049,7 +1049,6 @@ impl<'a> Gen<'a> {
         }
     }
 
-    /// Zebra crossings and stop lines on both arms of a street at the junction.
     /// Crosswalks and stop lines on both arms of `f` at the junction (the near arm alone with
     /// `near_only`: a T junction's main street has no far arm).
     fn crosswalks(&mut self, f: StreetFrame, near_only: bool) {
