@@ -47,10 +47,11 @@ pub struct BenchReportArgs {
     /// over folds and seeds.
     #[arg(long, default_value_t = 120)]
     test_frames: usize,
-    /// Scene list of the held-out test frames (`scenes/test-v3.txt` for a bundle trained on
-    /// `scenes/train-v3.txt`). The baselines are built from the bundle's own training list.
-    #[arg(long, default_value = "scenes/test.txt")]
-    test_scenes: PathBuf,
+    /// Scene list of the held-out test frames [default: the one beside the bundle's training list:
+    /// `scenes/test.txt` for `scenes/train.txt`, `test-v5.txt` for `train-v5.txt`]. The baselines
+    /// are built from the bundle's own training list.
+    #[arg(long)]
+    test_scenes: Option<PathBuf>,
     /// Disjoint folds of the test frames.
     #[arg(long, default_value_t = 3)]
     folds: usize,
@@ -598,6 +599,10 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         .with_context(|| format!("loading {}", model_dir.display()))?;
     // the baselines and every fine-tuned variant draw from the bundle's own training list
     let train_list = crate::simdata::train_split_of(&base.config);
+    let test_list = args
+        .test_scenes
+        .clone()
+        .unwrap_or_else(|| crate::simdata::test_list_for(&train_list));
     // frames carry as many cameras as the most-viewed variant takes (three-cameras: 3); every
     // other model reads the first
     let rig_views = if args.shipped_only {
@@ -616,7 +621,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         c.num_views = c.num_views.max(rig_views);
     }
     let tests = render_split(
-        &root.join(&args.test_scenes),
+        &root.join(&test_list),
         args.test_frames,
         &rig_config,
         "simulating test frames",
@@ -932,6 +937,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
             args.steps,
             base.config.sampler.guidance_scale,
         )?;
+        let recipe_scan = crate::bench_real::recipe_mean_scan(&base.config, baseline_train.len())?;
         Some(crate::bench_real::evaluate(
             &base,
             &crate::bench_real::RealOptions {
@@ -939,6 +945,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                 sampler_label: format!("{} {} steps", sampler_label(&args.sampler), args.steps),
                 seeds: args.real_seeds,
                 mean_scan: &median,
+                recipe_mean_scan: recipe_scan.as_ref(),
             },
             &out,
         )?)
@@ -950,7 +957,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
             .join(" "),
         date_utc: veila_data::stamp::report_time(),
         machine: format!("{} CPU cores (CPU only)", std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)),
-        test_split: args.test_scenes.display().to_string(),
+        test_split: test_list.display().to_string(),
         test_frames: tests.len(),
         folds: args.folds,
         baseline_frames: baseline_train.len(),
