@@ -2,7 +2,8 @@
 //! `veila_nn::fused` as with candle's own composition: the reference values in
 //! `tests/data/bundled_unconditional.json` were written by `regenerate_bundled_reference` with
 //! `VEILA_NN_REFERENCE_OPS=1` (candle's ops, none of the fused kernels) for the residual bundle shipped
-//! in session 18, 2026-11-25 (material-randomised training images; 12,500 updates of each network):
+//! in session 22, 2026-11-26 (T junctions in the training scenes, `scenes/train-v5.txt`; 12,500 updates
+//! of each network):
 //!
 //! ```text
 //! VEILA_NN_REFERENCE_OPS=1 cargo test -p veila-nn --test bundled_model -- --ignored

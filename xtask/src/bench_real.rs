@@ -464,31 +464,32 @@ pub struct RealOptions<'a> {
     pub seeds: usize,
     /// The mean simulated scan (the image-free baseline) of the bundle's own training list.
     pub mean_scan: &'a RangeImage,
-    /// The shipped recipe's mean scan (`scenes/train.txt`) with its row label, for a bundle trained
-    /// on another list: its baseline moves with the list, so both are reported.
-    pub recipe_mean_scan: Option<&'a (String, RangeImage)>,
+    /// The street list's mean scan (`scenes/train.txt`, which every training list extends) with its
+    /// row label, for a bundle trained on another list: the baseline moves with the list, so both
+    /// are reported.
+    pub reference_mean_scan: Option<&'a (String, RangeImage)>,
 }
 
-/// The mean scan of the shipped recipe's training list (`scenes/train.txt`, `frames` frames) and
-/// its row label, when the bundle trained on another list; `None` when it trained on that one.
-pub fn recipe_mean_scan(
+/// The mean scan of the street list (`scenes/train.txt`, `frames` frames) and its row label, when
+/// the bundle trained on another list; `None` when it trained on that one.
+pub fn reference_mean_scan(
     cfg: &veila_diffusion::app::bundle::BundleConfig,
     frames: usize,
 ) -> Result<Option<(String, RangeImage)>> {
     let own = crate::simdata::train_split_of(cfg);
-    let recipe = PathBuf::from(crate::simdata::DEFAULT_SCENES);
-    if own == recipe {
+    let streets = PathBuf::from(crate::simdata::DEFAULT_SCENES);
+    if own == streets {
         return Ok(None);
     }
     let train = crate::simdata::render_split(
-        &crate::simdata::workspace_root().join(&recipe),
+        &crate::simdata::workspace_root().join(&streets),
         frames,
         cfg,
-        "simulating the recipe list's baseline frames",
+        "simulating the street list's baseline frames",
     )?;
     let refs: Vec<&RangeImage> = train.iter().map(|e| &e.range).collect();
     Ok(Some((
-        format!("mean-scan ({})", recipe.display()),
+        format!("mean-scan ({})", streets.display()),
         veila_metrics::baseline::median_scan(&refs)?,
     )))
 }
@@ -618,7 +619,7 @@ pub fn evaluate(bundle: &Bundle, opts: &RealOptions<'_>, out: &Path) -> Result<R
             rows.push(scored("mean-network", &[generate(0, 0.0)?])?);
         }
         rows.push(scored("mean-scan", std::slice::from_ref(opts.mean_scan))?);
-        if let Some((label, scan)) = opts.recipe_mean_scan {
+        if let Some((label, scan)) = opts.reference_mean_scan {
             rows.push(scored(label, std::slice::from_ref(scan))?);
         }
         rows.push(scored(
@@ -748,7 +749,7 @@ pub fn run(args: BenchRealArgs) -> Result<()> {
     )?;
     let refs: Vec<&RangeImage> = train.iter().map(|e| &e.range).collect();
     let median = veila_metrics::baseline::median_scan(&refs)?;
-    let recipe = recipe_mean_scan(&bundle.config, args.baseline_frames)?;
+    let streets = reference_mean_scan(&bundle.config, args.baseline_frames)?;
     let sampler = crate::sampler_name::sampler_for(
         &args.sampler,
         args.steps,
@@ -765,7 +766,7 @@ pub fn run(args: BenchRealArgs) -> Result<()> {
             ),
             seeds: args.seeds,
             mean_scan: &median,
-            recipe_mean_scan: recipe.as_ref(),
+            reference_mean_scan: streets.as_ref(),
         },
         &out,
     )?;
@@ -798,7 +799,7 @@ pub fn markdown(r: &RealReport) -> String {
          against the real scan projected onto the bundle's grid. `model`: {} samples ({}), mean ± \
          std; `mean-network`: the residual bundle's mean network alone; `mean-scan`: the per-pixel \
          median of simulated scans of the bundle's training list (for a bundle trained on another \
-         list than the shipped recipe's, a second row has that of `scenes/train.txt`); `flat-ground`: a flat ground plane at the LiDAR's \
+         list than the streets of `scenes/train.txt`, a second row has theirs); `flat-ground`: a flat ground plane at the LiDAR's \
          height. View = the grid pixels the camera sees; coverage = share of the real returns \
          there that the scan also has (MAE counts only pixels where both have one). The overlays \
          (generated points above, real below, coloured by depth) are written under `real/` by the \
@@ -888,18 +889,18 @@ mod tests {
     }
 
     #[test]
-    fn the_recipe_mean_scan_joins_only_for_a_bundle_trained_on_another_list() {
+    fn the_street_mean_scan_joins_only_for_a_bundle_trained_on_another_list() {
         use veila_diffusion::app::bundle::BundleConfig;
         let mut cfg = BundleConfig::cpu_default(veila_diffusion::app::bundle::Variant::Full);
         cfg.provenance = serde_json::json!({ "train_split": "scenes/train.txt" });
-        assert!(recipe_mean_scan(&cfg, 3).unwrap().is_none());
-        // a bundle without a recorded list was trained on the recipe's
+        assert!(reference_mean_scan(&cfg, 3).unwrap().is_none());
+        // a bundle without a recorded list was trained on the street list
         cfg.provenance = serde_json::Value::Null;
-        assert!(recipe_mean_scan(&cfg, 3).unwrap().is_none());
+        assert!(reference_mean_scan(&cfg, 3).unwrap().is_none());
         cfg.provenance = serde_json::json!({ "train_split": "scenes/train-v5.txt" });
-        let (label, scan) = recipe_mean_scan(&cfg, 4).unwrap().unwrap();
+        let (label, scan) = reference_mean_scan(&cfg, 4).unwrap().unwrap();
         assert_eq!(label, "mean-scan (scenes/train.txt)");
-        // the per-pixel median of the recipe list's first frames, not of the bundle's own list (whose
+        // the per-pixel median of the street list's first frames, not of the bundle's own list (whose
         // fourth frame is a T junction)
         let render = |list: &str| {
             crate::simdata::render_split(&crate::simdata::workspace_root().join(list), 4, &cfg, "")

@@ -839,6 +839,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                             .depth_encoder
                             .is_some(),
                     scenes: train_list.clone(),
+                    encoder_scenes: None,
                 },
                 Some(&train_frames),
             )?;
@@ -937,7 +938,8 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
             args.steps,
             base.config.sampler.guidance_scale,
         )?;
-        let recipe_scan = crate::bench_real::recipe_mean_scan(&base.config, baseline_train.len())?;
+        let recipe_scan =
+            crate::bench_real::reference_mean_scan(&base.config, baseline_train.len())?;
         Some(crate::bench_real::evaluate(
             &base,
             &crate::bench_real::RealOptions {
@@ -945,7 +947,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                 sampler_label: format!("{} {} steps", sampler_label(&args.sampler), args.steps),
                 seeds: args.real_seeds,
                 mean_scan: &median,
-                recipe_mean_scan: recipe_scan.as_ref(),
+                reference_mean_scan: recipe_scan.as_ref(),
             },
             &out,
         )?)

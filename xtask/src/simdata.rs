@@ -141,9 +141,15 @@ pub fn depth_with_sky_at(depth_m: &[f32], far_m: f32) -> Vec<f32> {
         .collect()
 }
 
-/// The scene list of the shipped recipe (`train-default --scenes`), and of every bundle whose
-/// provenance does not name one.
+/// The street list (streets and a junction): what every bundle whose provenance names no list was
+/// trained on, the list the shipped recipe trains its encoders on (`train-default
+/// --encoder-scenes`), and that of the reference mean scan `bench-real` adds for bundles trained
+/// on another list.
 pub const DEFAULT_SCENES: &str = "scenes/train.txt";
+
+/// The list the shipped recipe trains its mean network and denoiser on (`train-default
+/// --scenes`): the streets plus T junctions (since 2026-11-26).
+pub const RECIPE_SCENES: &str = "scenes/train-v5.txt";
 
 /// The scene list a bundle was trained on, as its provenance's `train_split` names it (relative
 /// to the workspace; `scenes/train.txt` for bundles that do not say), so its baselines are built

@@ -39,12 +39,20 @@ pub struct TrainDefaultArgs {
     /// `models/default`.
     #[arg(long, default_value_t = 960)]
     pub frames: usize,
-    /// Scene list the training frames are drawn from (relative to the workspace): `scenes/train.txt`
-    /// (streets and a junction), `scenes/train-v3.txt` (also open roads, suburbs, curved roads
-    /// and a rig drawn per seed), `scenes/train-v4.txt` (the streets and a road between woodland
+    /// Scene list the mean network's and the denoiser's training frames are drawn from (relative to
+    /// the workspace): `scenes/train-v5.txt` (the shipped recipe: the streets plus T junctions,
+    /// whose view ahead ends at a row of facades), `scenes/train.txt` (streets and a junction, the
+    /// recipe until 2026-11-26), `scenes/train-v3.txt` (also open roads, suburbs, curved roads and
+    /// a rig drawn per seed), `scenes/train-v4.txt` (the streets and a road between woodland
     /// edges: tree lines, a rig drawn per seed).
-    #[arg(long, default_value = crate::simdata::DEFAULT_SCENES)]
+    #[arg(long, default_value = crate::simdata::RECIPE_SCENES)]
     pub scenes: PathBuf,
+    /// Scene list the encoders' training frames are drawn from (as many frames as --frames)
+    /// [default: `scenes/train.txt`, the shipped recipe's: its encoders were trained on the
+    /// streets and its networks on the streets plus T junctions]. Pass the --scenes list to train
+    /// everything on one list.
+    #[arg(long)]
+    pub encoder_scenes: Option<PathBuf>,
     /// Training steps of each encoder (4,000 since 2026-11-25: on 120 test frames 150 gave a
     /// front range MAE of 1.41 m, 1,500 gave 1.30 m, 4,000 gives 1.26 m).
     #[arg(long, default_value_t = 4000)]
@@ -153,6 +161,19 @@ impl<M: veila_diffusion::Denoiser> TrainObserver<M> for Progress {
     }
 }
 
+/// The list the encoders train on when it is not `--scenes` (`None`: the same frames as the
+/// networks, or encoders reused from `--encoders-from`).
+fn encoder_list(args: &TrainDefaultArgs) -> Option<PathBuf> {
+    if args.encoders_from.is_some() {
+        return None;
+    }
+    let list = args
+        .encoder_scenes
+        .clone()
+        .unwrap_or_else(|| PathBuf::from(crate::simdata::DEFAULT_SCENES));
+    (list != args.scenes).then_some(list)
+}
+
 /// Trains and writes a bundle; returns the bundle config written.
 pub fn run(args: TrainDefaultArgs) -> Result<BundleConfig> {
     run_with(args, None)
@@ -177,6 +198,17 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     if args.sky_depth && args.encoders_from.is_some() {
         anyhow::bail!(
             "--sky-depth changes how the depth encoder trains, and --encoders-from reuses trained ones: pass one of them"
+        );
+    }
+    if args.encoder_scenes.is_some() && args.encoders_from.is_some() {
+        anyhow::bail!(
+            "--encoder-scenes chooses the frames the encoders train on, and --encoders-from reuses trained ones: pass one of them"
+        );
+    }
+    let encoder_list = encoder_list(&args);
+    if encoder_list.is_some() && frames.is_some() {
+        anyhow::bail!(
+            "training on given frames trains the encoders on them too: pass --encoders-from, or --encoder-scenes equal to --scenes"
         );
     }
     let method = cfg.method();
@@ -207,8 +239,39 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             &rendered
         }
     };
+    // the encoders' own frames when they train on another list (same count, style and seeds)
+    let encoder_rendered;
+    let encoder_examples: &[SimExample] = match (&encoder_list, frames) {
+        (Some(list), None) => {
+            encoder_rendered = crate::simdata::render_split_styled(
+                &root.join(list),
+                args.frames,
+                &cfg,
+                &render_style,
+                "simulating the encoders' train frames",
+            )?;
+            &encoder_rendered
+        }
+        _ => examples,
+    };
     let sim_secs = t.elapsed().as_secs_f64();
-    println!("  simulated {} frames in {sim_secs:.1} s", examples.len());
+    println!(
+        "  simulated {} frames in {sim_secs:.1} s{}",
+        examples.len()
+            + if encoder_list.is_some() && frames.is_none() {
+                encoder_examples.len()
+            } else {
+                0
+            },
+        match &encoder_list {
+            Some(l) => format!(
+                " (networks: {}; encoders: {})",
+                args.scenes.display(),
+                l.display()
+            ),
+            None => String::new(),
+        }
+    );
 
     let work = args.work.clone().unwrap_or_else(|| {
         root.join("target/train-default")
@@ -280,20 +343,24 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     if args.scenes != std::path::Path::new(crate::simdata::DEFAULT_SCENES) {
         run_key["scenes"] = serde_json::json!(args.scenes);
     }
+    if let Some(list) = &encoder_list {
+        run_key["encoder_scenes"] = serde_json::json!(list);
+    }
     veila_diffusion::claim_checkpoint_dir(&work, &run_key)
         .with_context(|| "pass another --work to start a separate run")?;
 
-    let images: Vec<Vec<u8>> = examples.iter().map(|e| e.rgb.clone()).collect();
-    let labels: Vec<Vec<u32>> = examples.iter().map(|e| e.labels.clone()).collect();
+    let images: Vec<Vec<u8>> = encoder_examples.iter().map(|e| e.rgb.clone()).collect();
+    let labels: Vec<Vec<u32>> = encoder_examples.iter().map(|e| e.labels.clone()).collect();
     let sky_m = sky_target_m(&cfg, args.sky_depth)?;
-    let depths: Vec<Vec<f32>> = examples
+    let depths: Vec<Vec<f32>> = encoder_examples
         .iter()
         .map(|e| match sky_m {
             Some(far) => crate::simdata::depth_with_sky_at(&e.depth_m, far),
             None => e.depth_m.clone(),
         })
         .collect();
-    let cameras: Vec<veila_geom::PinholeCamera> = examples.iter().map(|e| e.camera).collect();
+    let cameras: Vec<veila_geom::PinholeCamera> =
+        encoder_examples.iter().map(|e| e.camera).collect();
     // trained encoders are kept in the work folder, so a resumed run does not train them
     // again (their training is deterministic: the same seed gives the same weights)
     let enc_dir = work.join(format!(
@@ -447,6 +514,11 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         "method": method.name(),
         "seed": args.seed,
         "train_split": args.scenes.display().to_string(),
+        "encoder_split": if args.encoders_from.is_some() {
+            None
+        } else {
+            Some(encoder_list.as_deref().unwrap_or(&args.scenes).display().to_string())
+        },
         "frames": examples.len(),
         "train_images": {
             "appearance": args.images.provenance_name(),
@@ -517,6 +589,7 @@ fn encoder_name(which: Encoder) -> &'static str {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::path::Path;
 
     #[test]
     fn the_sky_target_is_the_depth_encoders_far_limit_where_there_is_one() {
@@ -534,5 +607,63 @@ mod tests {
         assert_eq!(sky_target_m(&blind, false).unwrap(), None);
         let e = sky_target_m(&blind, true).unwrap_err().to_string();
         assert!(e.contains("--sky-depth"), "{e}");
+    }
+
+    fn parse(argv: &[&str]) -> TrainDefaultArgs {
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            args: TrainDefaultArgs,
+        }
+        <Cli as clap::Parser>::try_parse_from(
+            std::iter::once("train-default").chain(argv.iter().copied()),
+        )
+        .unwrap()
+        .args
+    }
+
+    #[test]
+    fn the_recipe_trains_its_encoders_on_the_streets_and_its_networks_with_t_junctions() {
+        // the shipped recipe: networks on train-v5, encoders on the street list
+        let a = parse(&[]);
+        assert_eq!(a.scenes, Path::new("scenes/train-v5.txt"));
+        assert_eq!(encoder_list(&a), Some(PathBuf::from("scenes/train.txt")));
+        // one list for everything: no second set of frames
+        let a = parse(&[
+            "--scenes",
+            "scenes/train-v5.txt",
+            "--encoder-scenes",
+            "scenes/train-v5.txt",
+        ]);
+        assert_eq!(encoder_list(&a), None);
+        let a = parse(&["--scenes", "scenes/train.txt"]);
+        assert_eq!(encoder_list(&a), None);
+        let a = parse(&[
+            "--scenes",
+            "scenes/train-v4.txt",
+            "--encoder-scenes",
+            "scenes/train-v3.txt",
+        ]);
+        assert_eq!(encoder_list(&a), Some(PathBuf::from("scenes/train-v3.txt")));
+        // reused encoders train on nothing
+        let a = parse(&["--encoders-from", "models/default"]);
+        assert_eq!(encoder_list(&a), None);
+    }
+
+    #[test]
+    fn encoder_scenes_with_reused_encoders_is_refused_before_any_work() {
+        let mut a = parse(&[
+            "--encoders-from",
+            "models/default",
+            "--encoder-scenes",
+            "scenes/train.txt",
+        ]);
+        a.out = std::env::temp_dir().join("veila-never-written");
+        let e = run(a).unwrap_err().to_string();
+        assert!(
+            e.contains("--encoder-scenes") && e.contains("--encoders-from"),
+            "{e}"
+        );
+        assert!(!std::env::temp_dir().join("veila-never-written").exists());
     }
 }
