@@ -799,8 +799,8 @@ pub fn markdown(r: &RealReport) -> String {
          against the real scan projected onto the bundle's grid. `model`: {} samples ({}), mean ± \
          std; `mean-network`: the residual bundle's mean network alone; `mean-scan`: the per-pixel \
          median of simulated scans of the bundle's training list (for a bundle trained on another \
-         list than the streets of `scenes/train.txt`, a second row has theirs); `flat-ground`: a flat ground plane at the LiDAR's \
-         height. View = the grid pixels the camera sees; coverage = share of the real returns \
+         list than the streets of `scenes/train.txt`, a second row has theirs); `flat-ground`: a \
+         flat ground plane at the LiDAR's height. View = the grid pixels the camera sees; coverage = share of the real returns \
          there that the scan also has (MAE counts only pixels where both have one). The overlays \
          (generated points above, real below, coloured by depth) are written under `real/` by the \
          command and are not committed: they contain the real images, which keep their licences.\n",

@@ -938,7 +938,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
             args.steps,
             base.config.sampler.guidance_scale,
         )?;
-        let recipe_scan =
+        let street_scan =
             crate::bench_real::reference_mean_scan(&base.config, baseline_train.len())?;
         Some(crate::bench_real::evaluate(
             &base,
@@ -947,7 +947,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                 sampler_label: format!("{} {} steps", sampler_label(&args.sampler), args.steps),
                 seeds: args.real_seeds,
                 mean_scan: &median,
-                reference_mean_scan: recipe_scan.as_ref(),
+                reference_mean_scan: street_scan.as_ref(),
             },
             &out,
         )?)

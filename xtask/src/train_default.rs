@@ -239,10 +239,11 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             &rendered
         }
     };
-    // the encoders' own frames when they train on another list (same count, style and seeds)
+    // the encoders' own frames when they train on another list (same count, style and seeds;
+    // never with given frames, refused above)
     let encoder_rendered;
-    let encoder_examples: &[SimExample] = match (&encoder_list, frames) {
-        (Some(list), None) => {
+    let encoder_examples: &[SimExample] = match &encoder_list {
+        Some(list) => {
             encoder_rendered = crate::simdata::render_split_styled(
                 &root.join(list),
                 args.frames,
@@ -252,26 +253,18 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             )?;
             &encoder_rendered
         }
-        _ => examples,
+        None => examples,
     };
     let sim_secs = t.elapsed().as_secs_f64();
-    println!(
-        "  simulated {} frames in {sim_secs:.1} s{}",
-        examples.len()
-            + if encoder_list.is_some() && frames.is_none() {
-                encoder_examples.len()
-            } else {
-                0
-            },
-        match &encoder_list {
-            Some(l) => format!(
-                " (networks: {}; encoders: {})",
-                args.scenes.display(),
-                l.display()
-            ),
-            None => String::new(),
-        }
-    );
+    match &encoder_list {
+        Some(l) => println!(
+            "  simulated {} frames in {sim_secs:.1} s (networks: {}; encoders: {})",
+            examples.len() + encoder_examples.len(),
+            args.scenes.display(),
+            l.display()
+        ),
+        None => println!("  simulated {} frames in {sim_secs:.1} s", examples.len()),
+    }
 
     let work = args.work.clone().unwrap_or_else(|| {
         root.join("target/train-default")
