@@ -14,7 +14,9 @@
 //!   sampler) at each step count, f32, as `veila generate` runs it.
 //!
 //! Prints a table, and with `--json FILE` writes one JSON object. Times are medians after two
-//! warm-up runs; the device is synchronised before every clock reading.
+//! warm-up runs; the device is synchronised before every clock reading. A network that does not fit
+//! the device's memory at `--batch` (the paper's at batch 8 on a 141 GB H200) is a result, not an
+//! abort: its row says so and the other rows are still measured.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -99,12 +101,32 @@ struct GenerateRow {
     seconds_per_scan: f64,
 }
 
+/// A measurement the device's memory could not hold.
+#[derive(Debug, Serialize)]
+struct OutOfMemory {
+    model: String,
+    precision: &'static str,
+    batch: usize,
+    error: String,
+}
+
 #[derive(Debug, Serialize)]
 struct Report {
     device: String,
     threads: usize,
     rows: Vec<Row>,
+    /// Networks and precisions that ran out of device memory.
+    out_of_memory: Vec<OutOfMemory>,
     generate: Vec<GenerateRow>,
+}
+
+/// Whether an error is the device running out of memory (candle's CUDA and CPU allocators word it
+/// differently; both say "out of memory").
+fn is_out_of_memory(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| {
+        let m = c.to_string().to_ascii_lowercase();
+        m.contains("out_of_memory") || m.contains("out of memory")
+    })
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -169,7 +191,7 @@ fn bench_network(
     image_hw: (usize, usize),
     args: &BenchArgs,
     dev: &Device,
-) -> Result<Vec<Row>> {
+) -> Result<(Vec<Row>, Vec<OutOfMemory>)> {
     let vm = VarMap::new();
     let net = veila_nn::Denoiser::new(
         cfg,
@@ -202,64 +224,96 @@ fn bench_network(
     let cond2 = features(cfg, 2, &mut rng, dev)?;
     let conditional = cfg.conditioning.is_some();
     let mut rows = Vec::new();
+    let mut oom = Vec::new();
     for &precision in &args.precision {
-        let dt = precision.dtype();
-        let mut opt = AdamW::new(
-            vm.all_vars(),
-            ParamsAdamW {
-                lr: 1e-5,
-                ..ParamsAdamW::default()
-            },
-        )?;
-        let mut train = Vec::new();
-        for i in 0..args.train_runs + 2 {
-            dev.synchronize()?;
-            let start = Instant::now();
+        let measured = (|| -> Result<Row> {
+            let dt = precision.dtype();
+            let mut opt = AdamW::new(
+                vm.all_vars(),
+                ParamsAdamW {
+                    lr: 1e-5,
+                    ..ParamsAdamW::default()
+                },
+            )?;
+            let mut train = Vec::new();
+            for i in 0..args.train_runs + 2 {
+                dev.synchronize()?;
+                let start = Instant::now();
+                let prepared = conditional
+                    .then(|| net.prepare_condition(&cond, geom.as_ref()))
+                    .transpose()?;
+                let y = net.forward(&x.to_dtype(dt)?, &t, prepared.as_ref())?;
+                let loss = (y.to_dtype(DType::F32)? - &target)?.sqr()?.mean_all()?;
+                let grads = loss.backward()?;
+                opt.step(&grads)?;
+                dev.synchronize()?;
+                if i >= 2 {
+                    train.push(start.elapsed().as_secs_f64());
+                }
+            }
             let prepared = conditional
-                .then(|| net.prepare_condition(&cond, geom.as_ref()))
+                .then(|| net.prepare_condition(&cond2, geom.as_ref()))
                 .transpose()?;
-            let y = net.forward(&x.to_dtype(dt)?, &t, prepared.as_ref())?;
-            let loss = (y.to_dtype(DType::F32)? - &target)?.sqr()?.mean_all()?;
-            let grads = loss.backward()?;
-            opt.step(&grads)?;
-            dev.synchronize()?;
-            if i >= 2 {
-                train.push(start.elapsed().as_secs_f64());
+            let x2 = x2.to_dtype(dt)?;
+            let mut eval = Vec::new();
+            for i in 0..args.forward_runs + 2 {
+                dev.synchronize()?;
+                let start = Instant::now();
+                let y = net.forward(&x2, &t2, prepared.as_ref())?.detach();
+                dev.synchronize()?;
+                drop(y);
+                if i >= 2 {
+                    eval.push(start.elapsed().as_secs_f64());
+                }
+            }
+            let (train_s, eval_s) = (median(train), median(eval));
+            Ok(Row {
+                model: name.to_string(),
+                precision: precision.name(),
+                grid: [h, w],
+                params,
+                batch: b,
+                train_step_ms: train_s * 1e3,
+                train_samples_per_s: b as f64 / train_s,
+                eval_b2_ms: eval_s * 1e3,
+                sample_s_per_scan: args
+                    .sample_steps
+                    .iter()
+                    .map(|&n| (n, n as f64 * eval_s))
+                    .collect(),
+            })
+        })();
+        match measured {
+            Ok(row) => {
+                eprintln!(
+                    "{name} {}: training update {:.1} ms at batch {b}, evaluation {:.1} ms at batch 2",
+                    row.precision, row.train_step_ms, row.eval_b2_ms
+                );
+                rows.push(row);
+            }
+            Err(e) if is_out_of_memory(&e) => {
+                eprintln!(
+                    "{name} {}: out of device memory at batch {b} (try a smaller --batch)",
+                    precision.name()
+                );
+                oom.push(OutOfMemory {
+                    model: name.to_string(),
+                    precision: precision.name(),
+                    batch: b,
+                    // the message without the backtrace candle may attach
+                    error: format!("{e:#}")
+                        .lines()
+                        .next()
+                        .unwrap_or_default()
+                        .to_string(),
+                });
+            }
+            Err(e) => {
+                return Err(e.context(format!("timing the {name} network in {}", precision.name())));
             }
         }
-        let prepared = conditional
-            .then(|| net.prepare_condition(&cond2, geom.as_ref()))
-            .transpose()?;
-        let x2 = x2.to_dtype(dt)?;
-        let mut eval = Vec::new();
-        for i in 0..args.forward_runs + 2 {
-            dev.synchronize()?;
-            let start = Instant::now();
-            let y = net.forward(&x2, &t2, prepared.as_ref())?.detach();
-            dev.synchronize()?;
-            drop(y);
-            if i >= 2 {
-                eval.push(start.elapsed().as_secs_f64());
-            }
-        }
-        let (train_s, eval_s) = (median(train), median(eval));
-        rows.push(Row {
-            model: name.to_string(),
-            precision: precision.name(),
-            grid: [h, w],
-            params,
-            batch: b,
-            train_step_ms: train_s * 1e3,
-            train_samples_per_s: b as f64 / train_s,
-            eval_b2_ms: eval_s * 1e3,
-            sample_s_per_scan: args
-                .sample_steps
-                .iter()
-                .map(|&n| (n, n as f64 * eval_s))
-                .collect(),
-        });
     }
-    Ok(rows)
+    Ok((rows, oom))
 }
 
 /// `Bundle::generate` end to end at each step count.
@@ -341,30 +395,24 @@ pub(crate) fn run(args: BenchArgs) -> Result<()> {
         device: format!("{dev:?}"),
         threads: rayon::current_num_threads(),
         rows: Vec::new(),
+        out_of_memory: Vec::new(),
         generate: Vec::new(),
     };
     for m in &args.models {
         if m == "bundled" {
             let bundle = model::load_bundle(args.checkpoint.as_deref(), &dev)?;
             let hw = (bundle.config.image_height, bundle.config.image_width);
-            report.rows.extend(bench_network(
-                "bundled",
-                &bundle.config.denoiser,
-                hw,
-                &args,
-                &dev,
-            )?);
+            let (rows, oom) = bench_network("bundled", &bundle.config.denoiser, hw, &args, &dev)?;
+            report.rows.extend(rows);
+            report.out_of_memory.extend(oom);
             if !args.no_generate {
                 report.generate = bench_generate(&bundle, &args, &dev)?;
             }
         } else {
-            report.rows.extend(bench_network(
-                "paper",
-                &DenoiserConfig::paper(),
-                (384, 1248),
-                &args,
-                &dev,
-            )?);
+            let (rows, oom) =
+                bench_network("paper", &DenoiserConfig::paper(), (384, 1248), &args, &dev)?;
+            report.rows.extend(rows);
+            report.out_of_memory.extend(oom);
         }
     }
     println!(
@@ -398,6 +446,12 @@ pub(crate) fn run(args: BenchArgs) -> Result<()> {
                 .join(" | ")
         );
     }
+    for o in &report.out_of_memory {
+        println!(
+            "| {} | | | {} | out of device memory at batch {} | | | |",
+            o.model, o.precision, o.batch
+        );
+    }
     if !report.generate.is_empty() {
         println!("bundled model end to end (Bundle::generate, f32, one scan):");
         for g in &report.generate {
@@ -415,4 +469,25 @@ pub(crate) fn run(args: BenchArgs) -> Result<()> {
         println!("wrote {}", path.display());
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn out_of_memory_is_told_from_other_errors_through_contexts() {
+        // the words of candle's CUDA backend on an H200 (2026-11-26) and of a host allocator
+        let cuda = anyhow::anyhow!("DriverError(CUDA_ERROR_OUT_OF_MEMORY, \"out of memory\")");
+        assert!(is_out_of_memory(&cuda.context("timing the paper network")));
+        assert!(is_out_of_memory(&anyhow::anyhow!(
+            "memory allocation of 4096 bytes failed: Out of memory"
+        )));
+        assert!(!is_out_of_memory(&anyhow::anyhow!(
+            "shape mismatch in conv2d, lhs: [8, 3, 64, 1024], rhs: [16, 4, 3, 3]"
+        )));
+        assert!(!is_out_of_memory(
+            &anyhow::anyhow!("no such GPU").context("--device cuda:3")
+        ));
+    }
 }

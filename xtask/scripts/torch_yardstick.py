@@ -10,6 +10,9 @@ with 2 threads by default.
     cargo xtask bench-model --export target/yardstick       # weights, config, input, candle output
     python3 xtask/scripts/torch_yardstick.py target/yardstick [--threads 2] [--json]
 
+On a GPU: `bench-model --device cuda` (a `build-cuda --xtask` build) and `--device cuda` here; PyTorch
+then computes in full f32 like candle unless `--tf32`.
+
 Needs `torch`, `numpy` and `safetensors` (`pip install torch numpy safetensors`; the CPU is enough).
 Another bundle's denoiser works too: pass `--weights models/default/denoiser.safetensors` and
 `--config` with the `denoiser` object of its `bundle.json` (the conditioning branches are skipped);
@@ -26,7 +29,26 @@ import time
 import numpy as np
 import torch
 import torch.nn.functional as F
-from safetensors.numpy import load_file
+
+try:
+    from safetensors.numpy import load_file
+except ImportError:  # a machine with torch but without the safetensors package (the GPU machine)
+
+    def load_file(path):
+        """The safetensors layout: u64 header length, JSON header, then the raw little-endian data."""
+        dtypes = {"F32": np.float32, "F64": np.float64, "F16": np.float16, "I64": np.int64, "U8": np.uint8}
+        with open(path, "rb") as f:
+            blob = f.read()
+        n = int.from_bytes(blob[:8], "little")
+        header = json.loads(blob[8 : 8 + n])
+        out = {}
+        for name, info in header.items():
+            if name == "__metadata__":
+                continue
+            a, b = info["data_offsets"]
+            raw = blob[8 + n + a : 8 + n + b]
+            out[name] = np.frombuffer(raw, dtype=dtypes[info["dtype"]]).reshape(info["shape"]).copy()
+        return out
 
 
 def groups_for(channels, max_groups):
@@ -163,7 +185,7 @@ class Denoiser(torch.nn.Module):
     def time_embedding(self, t):
         tc = self.cfg["time"]
         half = tc["dim"] // 2
-        j = torch.arange(half, dtype=torch.float64)
+        j = torch.arange(half, dtype=torch.float64, device=t.device)
         freqs = torch.exp(-math.log(tc["max_period"]) * j / half).to(torch.float32)
         args = (t.float() * tc["input_scale"])[:, None] * freqs[None]
         return torch.cat([torch.cos(args), torch.sin(args)], dim=1)
@@ -220,13 +242,20 @@ def load_weights(net, path):
     return used, len(tensors)
 
 
+def sync():
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+
+
 def median_ms(fn, runs, warmup=2):
     for _ in range(warmup):
         fn()
     times = []
     for _ in range(runs):
+        sync()
         t0 = time.perf_counter()
         fn()
+        sync()
         times.append((time.perf_counter() - t0) * 1e3)
     return statistics.median(times)
 
@@ -240,7 +269,16 @@ def main():
     ap.add_argument("--forward-runs", type=int, default=15)
     ap.add_argument("--train-runs", type=int, default=11)
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--device", default="cpu", help="cpu or cuda (compare with `bench-model --device cuda`)")
+    ap.add_argument(
+        "--tf32",
+        action="store_true",
+        help="let cuDNN and cuBLAS round f32 products to TF32 (PyTorch's default for convolutions; "
+        "candle computes in full f32, so the output check fails at about 7e-4)",
+    )
     a = ap.parse_args()
+    torch.backends.cudnn.allow_tf32 = a.tf32
+    torch.backends.cuda.matmul.allow_tf32 = a.tf32
     torch.set_num_threads(a.threads)
     torch.manual_seed(0)
     cfg = json.load(open(a.config or f"{a.export}/config.json"))
@@ -249,21 +287,23 @@ def main():
     net = Denoiser(cfg, ray)
     used, stored = load_weights(net, a.weights or f"{a.export}/weights.safetensors")
     params = sum(p.numel() for p in net.parameters())
+    dev = torch.device(a.device)
+    net = net.to(dev)
 
     # 1. same output as candle on the fixed input
-    x1 = torch.from_numpy(ref["x"])
-    t1 = torch.from_numpy(ref["t"])
+    x1 = torch.from_numpy(ref["x"]).to(dev)
+    t1 = torch.from_numpy(ref["t"]).to(dev)
     with torch.no_grad():
-        y = net(x1, t1)
+        y = net(x1, t1).cpu()
     y_ref = torch.from_numpy(ref["y"])
     rel_l2 = (torch.linalg.norm(y - y_ref) / torch.linalg.norm(y_ref)).item()
 
     # 2. timings (seeded inputs of the same shapes as bench-model)
     g = torch.Generator().manual_seed(1)
     c, h, w = x1.shape[1:]
-    x8 = torch.randn(8, c, h, w, generator=g)
-    t8 = torch.rand(8, generator=g) * 0.96 + 0.02
-    noise = torch.randn(8, c, h, w, generator=g)
+    x8 = torch.randn(8, c, h, w, generator=g).to(dev)
+    t8 = (torch.rand(8, generator=g) * 0.96 + 0.02).to(dev)
+    noise = torch.randn(8, c, h, w, generator=g).to(dev)
     with torch.no_grad():
         f1 = median_ms(lambda: net(x1, t1), a.forward_runs)
         f8 = median_ms(lambda: net(x8, t8), a.forward_runs)
@@ -280,6 +320,8 @@ def main():
     cpu_over_wall = (time.process_time() - cpu0) / (time.perf_counter() - wall0)
     out = {
         "torch": torch.__version__,
+        "device": a.device,
+        "tf32": a.tf32,
         "threads": a.threads,
         "params": params,
         "weights_loaded": used,
@@ -294,7 +336,7 @@ def main():
         for k, v in out.items():
             print(f"{k:28} {v}", file=sys.stderr)
     print(json.dumps(out))
-    if not rel_l2 < 1e-4:
+    if not rel_l2 < 1e-4 and not a.tf32:
         sys.exit(f"PyTorch output differs from candle's: relative L2 {rel_l2:.3g}")
 
 

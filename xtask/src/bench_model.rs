@@ -38,6 +38,10 @@ pub struct BenchModelArgs {
     /// `config.json`, `weights.safetensors` and `reference.safetensors` (`x`, `t`, `y`, `ray_features`).
     #[arg(long)]
     export: Option<std::path::PathBuf>,
+    /// Where the network runs: `cpu` (the benchmark's machine of record), `cuda` or `cuda:N`
+    /// (needs `cargo xtask build-cuda --xtask`); the clock waits for the device at every reading.
+    #[arg(long, default_value = "cpu", value_parser = crate::device::parse_device)]
+    device: crate::device::DeviceArg,
 }
 
 /// What `bench-model --json` prints.
@@ -60,6 +64,7 @@ struct BenchModelReport {
     forward_b1_rms: f64,
     threads: usize,
     params: usize,
+    device: String,
 }
 
 /// The frozen benchmark configuration.
@@ -105,10 +110,11 @@ fn inputs(cfg: &DenoiserConfig, b: usize, seed: u64, dev: &Device) -> Result<(Te
 fn time_forward(net: &Denoiser, x: &Tensor, t: &Tensor, runs: usize) -> Result<f64> {
     let mut times = Vec::with_capacity(runs);
     for i in 0..runs + 2 {
+        x.device().synchronize()?;
         let start = Instant::now();
         let y = net.forward(x, t, None)?;
-        // make sure the work is done (the CPU backend is synchronous; this is cheap)
-        let _ = y.dims();
+        // the work is done when the device says so (the CPU backend is synchronous)
+        y.device().synchronize()?;
         if i >= 2 {
             times.push(start.elapsed().as_secs_f64() * 1e3);
         }
@@ -118,7 +124,7 @@ fn time_forward(net: &Denoiser, x: &Tensor, t: &Tensor, runs: usize) -> Result<f
 
 /// Runs the benchmark.
 pub fn run(args: BenchModelArgs) -> Result<()> {
-    let dev = Device::Cpu;
+    let dev: Device = args.device.open()?;
     let cfg = bench_config()?;
     let varmap = VarMap::new();
     let net = Denoiser::new(
@@ -161,13 +167,17 @@ pub fn run(args: BenchModelArgs) -> Result<()> {
     let noise = inputs(&cfg, 8, args.seed + 2, &dev)?.0;
     // one step, timed by phase: [forward + loss, backward, optimizer] in ms
     let mut step = || -> Result<[f64; 3]> {
+        dev.synchronize()?;
         let t0 = Instant::now();
         let pred = net.forward(&x8, &t8, None)?;
         let loss = (pred - &noise)?.sqr()?.mean_all()?;
+        dev.synchronize()?;
         let t1 = Instant::now();
         let grads = loss.backward()?;
+        dev.synchronize()?;
         let t2 = Instant::now();
         opt.step(&grads)?;
+        dev.synchronize()?;
         let t3 = Instant::now();
         let ms = |a: Instant, b: Instant| (b - a).as_secs_f64() * 1e3;
         Ok([ms(t0, t1), ms(t1, t2), ms(t2, t3)])
@@ -211,14 +221,16 @@ pub fn run(args: BenchModelArgs) -> Result<()> {
         forward_b1_rms,
         threads: rayon::current_num_threads(),
         params,
+        device: args.device.name(),
     };
     if !args.json {
         eprintln!(
-            "DenoiserConfig::small() unconditional {}x{}, f32, {} params, {} threads",
+            "DenoiserConfig::small() unconditional {}x{}, f32, {} params, {} threads, on {}",
             cfg.height(),
             cfg.width(),
             params,
-            report.threads
+            report.threads,
+            report.device
         );
         eprintln!("forward b1   {forward_b1_ms:8.1} ms (median of {runs})");
         eprintln!(

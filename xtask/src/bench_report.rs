@@ -840,6 +840,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                             .is_some(),
                     scenes: train_list.clone(),
                     encoder_scenes: None,
+                    device: crate::device::DeviceArg::Cpu,
                 },
                 Some(&train_frames),
             )?;

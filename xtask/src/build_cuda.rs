@@ -11,7 +11,8 @@
 //!    no `libcuda` (the driver): `DIR/link/` gets the missing names as symbolic links, and
 //!    `libcuda.so` as a stub (soname `libcuda.so.1`) defining every `cu*` symbol cudarc's bindings
 //!    declare, compiled with the machine's `cc`. On the GPU machine the real driver answers.
-//! 3. **Build.** `cargo build --release -p veila-cli --features cuda` with `nvcc` on `PATH`,
+//! 3. **Build.** `cargo build --release -p veila-cli --features cuda` (with `--xtask` also
+//!    `-p xtask`, for `train-default --device cuda`) with `nvcc` on `PATH`,
 //!    `CUDA_COMPUTE_CAP` (default 90: H100 / H200) for candle's kernels, `CUDA_PATH` and
 //!    `-L DIR/link`. The binary is `target/release/veila`; `--target-dir` keeps it apart from the
 //!    CPU build.
@@ -71,6 +72,10 @@ pub struct BuildCudaArgs {
     /// and `xz`.
     #[arg(long)]
     pack: bool,
+    /// Also build `xtask` with its `cuda` feature (`train-default --device cuda`), in the same
+    /// cargo run; `--pack` then also writes `TARGET_DIR/xtask-cuda.xz`.
+    #[arg(long)]
+    xtask: bool,
 }
 
 /// The wheels of a build.
@@ -181,6 +186,27 @@ pub fn features(cudnn: bool, nccl: bool) -> String {
     f.join(",")
 }
 
+/// The `-p` and `--features` arguments of the cargo build: `veila` alone, or with `xtask` (the
+/// features then name their package, as cargo asks when several are built).
+pub fn package_args(cudnn: bool, nccl: bool, xtask: bool) -> Vec<String> {
+    let f = features(cudnn, nccl);
+    if !xtask {
+        return ["-p", "veila-cli", "--features", &f]
+            .map(String::from)
+            .to_vec();
+    }
+    let mut all: Vec<String> = f.split(',').map(|x| format!("veila-cli/{x}")).collect();
+    all.push("xtask/cuda".into());
+    vec![
+        "-p".into(),
+        "veila-cli".into(),
+        "-p".into(),
+        "xtask".into(),
+        "--features".into(),
+        all.join(","),
+    ]
+}
+
 /// Runs `build-cuda`.
 pub fn run(mut a: BuildCudaArgs) -> Result<()> {
     // build scripts run in their own folders: every path handed to them must be absolute
@@ -200,16 +226,10 @@ pub fn run(mut a: BuildCudaArgs) -> Result<()> {
         .args(&wheels);
     let mut cargo = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()));
     cargo
-        .args([
-            "build",
-            "--release",
-            "--locked",
-            "-p",
-            "veila-cli",
-            "--target-dir",
-        ])
-        .arg(&a.target_dir)
-        .args(["--features", &features(a.cudnn, a.nccl)]);
+        .args(["build", "--release", "--locked"])
+        .args(package_args(a.cudnn, a.nccl, a.xtask))
+        .arg("--target-dir")
+        .arg(&a.target_dir);
     let env = build_env(&a.toolkit, a.compute_cap);
     if a.dry_run {
         println!("1. {pip:?}");
@@ -222,8 +242,11 @@ pub fn run(mut a: BuildCudaArgs) -> Result<()> {
         }
         println!("3. {cargo:?}");
         if a.pack {
-            let [strip, xz] = pack_commands(&a.target_dir.join("release/veila"), &a.target_dir);
-            println!("4. {strip:?}\n   {xz:?}");
+            for name in packed_binaries(a.xtask) {
+                let [strip, xz] =
+                    pack_commands(&a.target_dir.join("release").join(name), &a.target_dir);
+                println!("4. {strip:?}\n   {xz:?}");
+            }
         }
         return Ok(());
     }
@@ -297,29 +320,49 @@ pub fn run(mut a: BuildCudaArgs) -> Result<()> {
     }
     let t = std::time::Instant::now();
     run_cmd(&mut cargo, "the CUDA build")?;
+    let built: Vec<String> = packed_binaries(a.xtask)
+        .iter()
+        .map(|n| a.target_dir.join("release").join(n).display().to_string())
+        .collect();
     println!(
         "built {} in {:.0} s (compute capability {}); on the GPU machine put the CUDA 13 libraries \
          (cublas, curand, nvrtc{}) on LD_LIBRARY_PATH",
-        a.target_dir.join("release/veila").display(),
+        built.join(" and "),
         t.elapsed().as_secs_f64(),
         a.compute_cap,
         if a.cudnn { ", cudnn" } else { "" }
     );
     if a.pack {
-        let packed = pack(&a.target_dir.join("release/veila"), &a.target_dir)?;
-        let mib = |p: &Path| std::fs::metadata(p).map(|m| m.len() as f64 / 1048576.0);
-        println!(
-            "packed {} ({:.0} MiB; `xz -d` it on the GPU machine)",
-            packed.display(),
-            mib(&packed)?
-        );
+        for name in packed_binaries(a.xtask) {
+            let packed = pack(&a.target_dir.join("release").join(name), &a.target_dir)?;
+            let mib = |p: &Path| std::fs::metadata(p).map(|m| m.len() as f64 / 1048576.0);
+            println!(
+                "packed {} ({:.0} MiB; `xz -d` it on the GPU machine)",
+                packed.display(),
+                mib(&packed)?
+            );
+        }
     }
     Ok(())
 }
 
-/// The commands that make `dir/veila-cuda.xz` from `binary`: a stripped copy, then xz.
+/// The binaries a build writes (`veila`, and `xtask` with `--xtask`).
+pub fn packed_binaries(xtask: bool) -> &'static [&'static str] {
+    if xtask {
+        &["veila", "xtask"]
+    } else {
+        &["veila"]
+    }
+}
+
+/// The commands that make `dir/NAME-cuda.xz` from `binary` (`dir/release/NAME`): a stripped copy,
+/// then xz.
 pub fn pack_commands(binary: &Path, dir: &Path) -> [Command; 2] {
-    let copy = dir.join("veila-cuda");
+    let name = binary
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "veila".into());
+    let copy = dir.join(format!("{name}-cuda"));
     let mut strip = Command::new("strip");
     strip.arg("-o").arg(&copy).arg(binary);
     let mut xz = Command::new("xz");
@@ -327,12 +370,16 @@ pub fn pack_commands(binary: &Path, dir: &Path) -> [Command; 2] {
     [strip, xz]
 }
 
-/// Strips and compresses `binary` into `dir/veila-cuda.xz` (the stripped copy is replaced by it).
+/// Strips and compresses `binary` into `dir/NAME-cuda.xz` (the stripped copy is replaced by it).
 fn pack(binary: &Path, dir: &Path) -> Result<PathBuf> {
     let [mut strip, mut xz] = pack_commands(binary, dir);
     run_cmd(&mut strip, "stripping the binary (binutils' `strip`)")?;
     run_cmd(&mut xz, "compressing the binary (`xz`)")?;
-    Ok(dir.join("veila-cuda.xz"))
+    let name = binary
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    Ok(dir.join(format!("{name}-cuda.xz")))
 }
 
 #[cfg(test)]
@@ -354,6 +401,34 @@ mod tests {
         );
         assert_eq!(xz.get_program(), "xz");
         assert_eq!(args(&xz), ["-6", "-T0", "-f", "/t/cuda/veila-cuda"]);
+    }
+
+    #[test]
+    fn xtask_is_built_beside_veila_with_package_qualified_features() {
+        assert_eq!(
+            package_args(false, false, false),
+            ["-p", "veila-cli", "--features", "cuda"]
+        );
+        assert_eq!(
+            package_args(true, true, true),
+            [
+                "-p",
+                "veila-cli",
+                "-p",
+                "xtask",
+                "--features",
+                "veila-cli/cuda,veila-cli/cudnn,veila-cli/nccl,xtask/cuda"
+            ]
+        );
+        assert_eq!(packed_binaries(true), ["veila", "xtask"]);
+        let [strip, _] = pack_commands(Path::new("/t/cuda/release/xtask"), Path::new("/t/cuda"));
+        let last = strip
+            .get_args()
+            .nth(1)
+            .unwrap()
+            .to_string_lossy()
+            .into_owned();
+        assert_eq!(last, "/t/cuda/xtask-cuda");
     }
 
     #[test]

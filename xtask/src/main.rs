@@ -15,6 +15,7 @@ mod bench_real; // cargo xtask bench-real (and bench-report's real-frame section
 mod bench_report; // cargo xtask bench-report
 mod build_cuda; // cargo xtask build-cuda (CUDA toolkit from PyPI)
 mod convert; // cargo xtask convert       (veila-data shards)
+mod device; // --device of the commands that run networks
 mod encoder_transfer; // cargo xtask encoder-transfer (depth encoder recipes, sim vs real)
 mod feature_nets; // cargo xtask train-feature-nets (veila-nn feature_nets)
 mod kitti_weather; // cargo xtask kitti-weather (veila-data weather)

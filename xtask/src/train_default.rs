@@ -9,7 +9,6 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use candle_core::Device;
 use clap::Args;
 use veila_diffusion::app::bundle::{Bundle, BundleConfig, Method, Variant};
 use veila_diffusion::app::{
@@ -18,6 +17,7 @@ use veila_diffusion::app::{
 };
 use veila_diffusion::{StepStats, TrainObserver};
 
+use crate::device::DeviceArg;
 use crate::simdata::{SimExample, TrainImages, workspace_root};
 
 /// Arguments of `cargo xtask train-default`.
@@ -118,6 +118,11 @@ pub struct TrainDefaultArgs {
     /// none, so its features tell open sky from a facade (issue 18; stored in the provenance).
     #[arg(long)]
     pub sky_depth: bool,
+    /// Where the networks train: `cpu` (the shipped recipe's), `cuda` (GPU 0) or `cuda:N`; a GPU
+    /// needs the `cuda` feature (`cargo xtask build-cuda --xtask`). A run may resume on another
+    /// device; the bundle records the device of the run that finished it.
+    #[arg(long, default_value = "cpu", value_parser = crate::device::parse_device)]
+    pub device: DeviceArg,
 }
 
 struct Progress {
@@ -185,7 +190,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     let render_style = args
         .images
         .checked_style(args.randomize_share, args.wide_facades)?;
-    let device = Device::Cpu;
+    let device = args.device.open()?;
     let root = workspace_root();
     let mut cfg = BundleConfig::cpu_default(args.variant);
     cfg = cfg.with_method(args.method);
@@ -503,6 +508,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
 
     cfg.provenance = serde_json::json!({
         "trained_by": "cargo xtask train-default",
+        "device": args.device.name(),
         "variant": args.variant.name(),
         "method": method.name(),
         "seed": args.seed,
@@ -658,5 +664,21 @@ mod tests {
             "{e}"
         );
         assert!(!std::env::temp_dir().join("veila-never-written").exists());
+    }
+
+    #[test]
+    fn the_device_flag_names_the_cpu_or_one_gpu() {
+        assert_eq!(parse(&[]).device, DeviceArg::Cpu);
+        assert_eq!(parse(&["--device", "cuda"]).device, DeviceArg::Cuda(0));
+        assert_eq!(parse(&["--device", "cuda:3"]).device, DeviceArg::Cuda(3));
+        for bad in ["gpu", "cuda:", "cuda:x", "cuda:-1", "CPU"] {
+            assert!(crate::device::parse_device(bad).is_err(), "{bad}");
+        }
+        assert_eq!(DeviceArg::Cuda(3).name(), "cuda:3");
+        // a build without the feature says how to get one, before any work
+        if !cfg!(feature = "cuda") {
+            let e = DeviceArg::Cuda(0).open().unwrap_err().to_string();
+            assert!(e.contains("build-cuda --xtask"), "{e}");
+        }
     }
 }
