@@ -333,9 +333,9 @@ pub fn run(mut a: BuildCudaArgs) -> Result<()> {
         if a.cudnn { ", cudnn" } else { "" }
     );
     if a.pack {
+        let mib = |p: &Path| std::fs::metadata(p).map(|m| m.len() as f64 / 1048576.0);
         for name in packed_binaries(a.xtask) {
             let packed = pack(&a.target_dir.join("release").join(name), &a.target_dir)?;
-            let mib = |p: &Path| std::fs::metadata(p).map(|m| m.len() as f64 / 1048576.0);
             println!(
                 "packed {} ({:.0} MiB; `xz -d` it on the GPU machine)",
                 packed.display(),
@@ -358,11 +358,7 @@ pub fn packed_binaries(xtask: bool) -> &'static [&'static str] {
 /// The commands that make `dir/NAME-cuda.xz` from `binary` (`dir/release/NAME`): a stripped copy,
 /// then xz.
 pub fn pack_commands(binary: &Path, dir: &Path) -> [Command; 2] {
-    let name = binary
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "veila".into());
-    let copy = dir.join(format!("{name}-cuda"));
+    let copy = stripped_copy(binary, dir);
     let mut strip = Command::new("strip");
     strip.arg("-o").arg(&copy).arg(binary);
     let mut xz = Command::new("xz");
@@ -375,11 +371,16 @@ fn pack(binary: &Path, dir: &Path) -> Result<PathBuf> {
     let [mut strip, mut xz] = pack_commands(binary, dir);
     run_cmd(&mut strip, "stripping the binary (binutils' `strip`)")?;
     run_cmd(&mut xz, "compressing the binary (`xz`)")?;
+    Ok(stripped_copy(binary, dir).with_extension("xz"))
+}
+
+/// `dir/NAME-cuda` for `binary` `.../NAME`: the stripped copy that xz then replaces by `.xz`.
+fn stripped_copy(binary: &Path, dir: &Path) -> PathBuf {
     let name = binary
         .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    Ok(dir.join(format!("{name}-cuda.xz")))
+        .unwrap_or("veila".as_ref())
+        .to_string_lossy();
+    dir.join(format!("{name}-cuda"))
 }
 
 #[cfg(test)]

@@ -1,5 +1,7 @@
 //! `--device` of the xtask commands that run networks (`train-default`, `bench-model`): the CPU or
-//! one GPU of a `cuda` build.
+//! one GPU of a `cuda` build. `veila`'s own `--device` differs on purpose: its `cuda` means the
+//! launcher's `LOCAL_RANK` in a data-parallel run, and without the flag it takes a GPU when one is
+//! there; these commands run one process and default to the CPU.
 
 use anyhow::{Context, Result};
 use candle_core::Device;
