@@ -664,9 +664,21 @@ fn stage_name(stage: Stage) -> &'static str {
 fn print_denoiser_summary(d: &veila_diffusion::app::DenoiserFitOutcome, steps: u64, secs: f64) {
     let s = &d.summary;
     println!(
-        "  denoiser: {} steps this run (now at {} of {steps}), mean loss {:.4}, {} skipped, {secs:.1} s",
-        s.steps_run, s.final_step, s.mean_loss, s.skipped
+        "  denoiser: {} steps this run (now at {} of {steps}), mean loss {}, {} skipped, {secs:.1} s",
+        s.steps_run,
+        s.final_step,
+        loss_text(s),
+        s.skipped
     );
+}
+
+/// A run's mean loss for the console; a resumed network that ran no update says so instead of NaN.
+fn loss_text(s: &veila_diffusion::FitSummary) -> String {
+    if s.steps_run == 0 {
+        "- (no update this run)".to_string()
+    } else {
+        format!("{:.4}", s.mean_loss)
+    }
 }
 
 fn encoder_name(which: Encoder) -> &'static str {
@@ -996,8 +1008,11 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
     let den_secs = t_den.elapsed().as_secs_f64() - enc_secs;
     if let Some(m) = &outcome.fit.mean {
         println!(
-            "  mean network: {} steps this run (now at {} of {mean_steps}), mean loss {:.4}, {:.1} s",
-            m.summary.steps_run, m.summary.final_step, m.summary.mean_loss, outcome.fit.seconds[0]
+            "  mean network: {} steps this run (now at {} of {mean_steps}), mean loss {}, {:.1} s",
+            m.summary.steps_run,
+            m.summary.final_step,
+            loss_text(&m.summary),
+            outcome.fit.seconds[0]
         );
     }
     let den = match &outcome.fit.denoiser {

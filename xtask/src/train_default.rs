@@ -492,16 +492,19 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     });
     if let Some(m) = &outcome.fit.mean {
         println!(
-            "  mean network: {} steps this run, mean loss {:.4}, {:.0} s; residual scale {:?}",
+            "  mean network: {} steps this run, mean loss {}, {:.0} s; residual scale {:?}",
             m.summary.steps_run,
-            m.summary.mean_loss,
+            loss_text(&m.summary),
             outcome.fit.seconds[0],
             cfg.residual.as_ref().map(|r| &r.scale)
         );
     }
     println!(
-        "  denoiser: {} steps this run, mean loss {:.4}, {} skipped, {:.0} s",
-        summary.steps_run, summary.mean_loss, summary.skipped, outcome.fit.seconds[1]
+        "  denoiser: {} steps this run, mean loss {}, {} skipped, {:.0} s",
+        summary.steps_run,
+        loss_text(&summary),
+        summary.skipped,
+        outcome.fit.seconds[1]
     );
     let seconds = outcome.fit.seconds;
     let weights = outcome.into_weights();
@@ -582,6 +585,16 @@ fn encoder_name(which: Encoder) -> &'static str {
     match which {
         Encoder::Semantic => "semantic encoder",
         Encoder::Depth => "depth encoder",
+    }
+}
+
+/// A run's mean loss for the console; a network resumed at its last step ran no update, and says so
+/// instead of printing NaN.
+fn loss_text(s: &veila_diffusion::FitSummary) -> String {
+    if s.steps_run == 0 {
+        "- (no update: already at its last step)".to_string()
+    } else {
+        format!("{:.4}", s.mean_loss)
     }
 }
 
