@@ -667,18 +667,9 @@ fn print_denoiser_summary(d: &veila_diffusion::app::DenoiserFitOutcome, steps: u
         "  denoiser: {} steps this run (now at {} of {steps}), mean loss {}, {} skipped, {secs:.1} s",
         s.steps_run,
         s.final_step,
-        loss_text(s),
+        s.mean_loss_text(),
         s.skipped
     );
-}
-
-/// A run's mean loss for the console; a resumed network that ran no update says so instead of NaN.
-fn loss_text(s: &veila_diffusion::FitSummary) -> String {
-    if s.steps_run == 0 {
-        "- (no update this run)".to_string()
-    } else {
-        format!("{:.4}", s.mean_loss)
-    }
 }
 
 fn encoder_name(which: Encoder) -> &'static str {
@@ -1011,7 +1002,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
             "  mean network: {} steps this run (now at {} of {mean_steps}), mean loss {}, {:.1} s",
             m.summary.steps_run,
             m.summary.final_step,
-            loss_text(&m.summary),
+            m.summary.mean_loss_text(),
             outcome.fit.seconds[0]
         );
     }

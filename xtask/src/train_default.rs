@@ -494,7 +494,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         println!(
             "  mean network: {} steps this run, mean loss {}, {:.0} s; residual scale {:?}",
             m.summary.steps_run,
-            loss_text(&m.summary),
+            m.summary.mean_loss_text(),
             outcome.fit.seconds[0],
             cfg.residual.as_ref().map(|r| &r.scale)
         );
@@ -502,7 +502,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     println!(
         "  denoiser: {} steps this run, mean loss {}, {} skipped, {:.0} s",
         summary.steps_run,
-        loss_text(&summary),
+        summary.mean_loss_text(),
         summary.skipped,
         outcome.fit.seconds[1]
     );
@@ -585,16 +585,6 @@ fn encoder_name(which: Encoder) -> &'static str {
     match which {
         Encoder::Semantic => "semantic encoder",
         Encoder::Depth => "depth encoder",
-    }
-}
-
-/// A run's mean loss for the console; a network resumed at its last step ran no update, and says so
-/// instead of printing NaN.
-fn loss_text(s: &veila_diffusion::FitSummary) -> String {
-    if s.steps_run == 0 {
-        "- (no update: already at its last step)".to_string()
-    } else {
-        format!("{:.4}", s.mean_loss)
     }
 }
 

@@ -403,6 +403,18 @@ pub struct FitSummary {
     pub clock: Clock,
 }
 
+impl FitSummary {
+    /// [`mean_loss`](Self::mean_loss) for a log line: four decimals, or `-` when this call ran no
+    /// update (a run resumed at its last step), instead of NaN.
+    pub fn mean_loss_text(&self) -> String {
+        if self.steps_run == 0 {
+            "- (no update this run)".to_string()
+        } else {
+            format!("{:.4}", self.mean_loss)
+        }
+    }
+}
+
 /// Wall time a training run has spent in [`Trainer::fit`], carried through its checkpoints.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Clock {

@@ -539,3 +539,20 @@ fn checkpoint_floats_read_back_to_the_bit() {
         x = x * 1.000_37 + 1.3e-7;
     }
 }
+
+#[test]
+fn a_call_without_updates_prints_no_nan_loss() {
+    let mut s = FitSummary {
+        steps_run: 0,
+        final_step: 12,
+        mean_loss: f64::NAN,
+        skipped: 0,
+        stopped_early: false,
+        checkpoints: Vec::new(),
+        clock: Clock::default(),
+    };
+    assert_eq!(s.mean_loss_text(), "- (no update this run)");
+    s.steps_run = 3;
+    s.mean_loss = 0.123_456;
+    assert_eq!(s.mean_loss_text(), "0.1235");
+}
