@@ -1,36 +1,48 @@
-//! `veila bench`: how fast the denoiser trains and samples on this machine's device.
+//! `veila bench`: how fast the denoiser trains and samples on this machine's device, and how much
+//! memory its training takes.
 //!
 //! For each network (`bundled`: the bundle's denoiser config; `paper`: `DenoiserConfig::paper()`,
-//! 64 x 1024 at the paper's widths) and each precision (`f32`; `bf16`: mixed precision, bf16
-//! activations on f32 master weights, as `[train] precision = "bf16"` trains), with seeded random
-//! weights, random encoder features of the right shapes and the GCMA geometry of a KITTI-like
-//! camera:
+//! 64 x 1024 at the paper's widths), each precision (`f32`; `bf16`: mixed precision, bf16
+//! activations on f32 master weights, as `[train] precision = "bf16"` trains), each activation
+//! checkpointing mode (`none`; `block`: every residual block, GCMA and PFC layer recomputed in the
+//! backward pass) and each batch size, with seeded random weights, random encoder features of the
+//! right shapes and the GCMA geometry of a KITTI-like camera:
 //!
-//! - one training update at `--batch` (the condition fusion, forward, MSE loss, backward, AdamW),
-//!   its median time and training samples per second;
-//! - one network evaluation for sampling at batch 2 (a classifier-free guidance pair), from which
-//!   a sampler of N steps costs N evaluations per scan (`--sample-steps`);
-//! - for `bundled`, also the real thing: `Bundle::generate` end to end (encoders, condition, the
-//!   sampler) at each step count, f32, as `veila generate` runs it.
+//! - one training update (the condition fusion, forward, MSE loss, backward, AdamW), its median time
+//!   and training samples per second;
+//! - unless `--no-eval`, one network evaluation for sampling at batch 2 (a classifier-free guidance
+//!   pair) on detached weights (no graph, as sampling runs), from which a sampler of N steps costs N
+//!   evaluations per scan (`--sample-steps`);
+//! - the row's peak memory: on the CPU the process's resident high-water mark (`VmHWM`, reset after
+//!   the network and its inputs are built, so weights and optimizer state count but not the setup's
+//!   transients); on CUDA the device's used memory, sampled every 10 ms by `nvidia-smi` while the row
+//!   runs;
+//! - for `bundled`, unless `--no-eval` or `--no-generate`, also the real thing: `Bundle::generate` end
+//!   to end (encoders, condition, the sampler) at each step count, f32, as `veila generate` runs it.
+//!
+//! Every row runs in a fresh process (this binary again, with a hidden `--worker-row`), so rows do
+//! not inherit each other's memory, and a row that does not fit is a result, not an abort: a failed
+//! allocation (the host allocator aborts the process) or the device running out of memory (the
+//! paper's network at batch 8 on a 141 GB H200 without checkpointing) becomes an `out_of_memory`
+//! entry naming the row, and the other rows are still measured. With two or more batch sizes the
+//! table ends with the per-sample training memory, the slope between the smallest and the largest.
 //!
 //! Prints a table, and with `--json FILE` writes one JSON object. Times are medians after two
-//! warm-up runs; the device is synchronised before every clock reading. A network that does not fit
-//! the device's memory at `--batch` (the paper's at batch 8 on a 141 GB H200) is a result, not an
-//! abort: its row says so and the other rows are still measured.
+//! warm-up runs; the device is synchronised before every clock reading.
 
 use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
+use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
 use clap::Args;
 use rand::{Rng, SeedableRng};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use veila_diffusion::Precision;
 use veila_diffusion::app::{CameraView, GenerateOptions};
 use veila_geom::{EpipolarConfig, PinholeCamera};
-use veila_nn::{ConditionInput, Cues, DenoiserConfig, GcmaGeometry};
+use veila_nn::{ActivationCheckpointing, ConditionInput, Cues, DenoiserConfig, GcmaGeometry};
 
 use crate::model;
 
@@ -44,9 +56,18 @@ pub(crate) struct BenchArgs {
     /// Precisions of the training update: f32, bf16 (mixed precision; for GPUs).
     #[arg(long, value_delimiter = ',', default_value = "f32,bf16", value_parser = parse_precision)]
     precision: Vec<Precision>,
-    /// Training batch size.
-    #[arg(long, value_name = "B", default_value_t = 8)]
-    batch: usize,
+    /// Training batch sizes (1-4096), comma-separated: each is a row; two or more also give the
+    /// per-sample training memory.
+    #[arg(long, value_name = "B", value_delimiter = ',', default_value = "8")]
+    batch: Vec<usize>,
+    /// Activation checkpointing of the training update: none, block (each residual block, GCMA
+    /// and PFC layer recomputed in the backward pass: less memory, one more forward pass).
+    #[arg(long, value_delimiter = ',', default_value = "none", value_parser = parse_checkpointing)]
+    activation_checkpointing: Vec<ActivationCheckpointing>,
+    /// Time and measure the training update alone: no sampling evaluation, no end-to-end
+    /// generation.
+    #[arg(long)]
+    no_eval: bool,
     /// Timed training updates (after 2 warm-up updates).
     #[arg(long, value_name = "N", default_value_t = 5)]
     train_runs: usize,
@@ -71,27 +92,45 @@ pub(crate) struct BenchArgs {
     /// Replace an existing --json file.
     #[arg(long)]
     force: bool,
+    /// Internal: measure row N of the plan in this process and print it as one JSON line (every
+    /// row runs in a fresh process).
+    #[arg(long, hide = true, value_name = "N")]
+    worker_row: Option<usize>,
 }
 
 fn parse_precision(s: &str) -> std::result::Result<Precision, String> {
     s.parse::<Precision>().map_err(|e| e.to_string())
 }
 
-/// One network at one precision.
-#[derive(Debug, Serialize)]
+fn parse_checkpointing(s: &str) -> std::result::Result<ActivationCheckpointing, String> {
+    s.parse::<ActivationCheckpointing>()
+        .map_err(|e| e.to_string())
+}
+
+/// The first line of a worker's JSON row on its standard output.
+const ROW_MARKER: &str = "veila-bench-row ";
+
+/// One measured row: a network at one precision, checkpointing mode and batch.
+#[derive(Debug, Serialize, Deserialize)]
 struct Row {
     model: String,
-    precision: &'static str,
+    precision: String,
+    activation_checkpointing: String,
     grid: [usize; 2],
     params: usize,
     batch: usize,
     /// Median of one training update (condition fusion, forward, loss, backward, AdamW).
     train_step_ms: f64,
     train_samples_per_s: f64,
-    /// Median of one network evaluation at batch 2 (a guidance pair), condition prepared once.
-    eval_b2_ms: f64,
+    /// Median of one network evaluation at batch 2 (a guidance pair), condition prepared once,
+    /// on detached weights (`None` with `--no-eval`).
+    eval_b2_ms: Option<f64>,
     /// `steps -> seconds per scan` from `eval_b2_ms` (network evaluations only).
     sample_s_per_scan: Vec<(usize, f64)>,
+    /// Peak memory of the row in MiB (see the module doc; `None` where it cannot be read).
+    peak_memory_mib: Option<f64>,
+    /// What `peak_memory_mib` is: `VmHWM` (host) or `nvidia-smi` (device).
+    peak_memory_source: String,
 }
 
 /// `Bundle::generate` end to end at each step count (f32, one scan, the bundle's sampler kind).
@@ -101,13 +140,24 @@ struct GenerateRow {
     seconds_per_scan: f64,
 }
 
-/// A measurement the device's memory could not hold.
+/// A row the memory could not hold.
 #[derive(Debug, Serialize)]
 struct OutOfMemory {
     model: String,
     precision: &'static str,
+    activation_checkpointing: &'static str,
     batch: usize,
     error: String,
+}
+
+/// Training memory per extra sample: the slope of the peak between two batch sizes.
+#[derive(Debug, Serialize)]
+struct PerSample {
+    model: String,
+    precision: String,
+    activation_checkpointing: String,
+    batches: [usize; 2],
+    mib_per_sample: f64,
 }
 
 #[derive(Debug, Serialize)]
@@ -115,18 +165,39 @@ struct Report {
     device: String,
     threads: usize,
     rows: Vec<Row>,
-    /// Networks and precisions that ran out of device memory.
+    /// Rows that ran out of host or device memory.
     out_of_memory: Vec<OutOfMemory>,
+    per_sample_memory: Vec<PerSample>,
     generate: Vec<GenerateRow>,
 }
 
-/// Whether an error is the device running out of memory (candle's CUDA and CPU allocators word it
-/// differently; both say "out of memory").
-fn is_out_of_memory(e: &anyhow::Error) -> bool {
-    e.chain().any(|c| {
-        let m = c.to_string().to_ascii_lowercase();
-        m.contains("out_of_memory") || m.contains("out of memory")
-    })
+/// One row of the plan.
+#[derive(Debug, Clone, Copy)]
+struct Spec<'a> {
+    model: &'a str,
+    precision: Precision,
+    checkpointing: ActivationCheckpointing,
+    batch: usize,
+}
+
+/// Every row, in the order measured: network, precision, checkpointing, batch.
+fn plan(args: &BenchArgs) -> Vec<Spec<'_>> {
+    let mut out = Vec::new();
+    for m in &args.models {
+        for &precision in &args.precision {
+            for &checkpointing in &args.activation_checkpointing {
+                for &batch in &args.batch {
+                    out.push(Spec {
+                        model: m,
+                        precision,
+                        checkpointing,
+                        batch,
+                    });
+                }
+            }
+        }
+    }
+    out
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -184,20 +255,106 @@ fn features(
     })
 }
 
-/// Times one network (`image_hw`: the encoders' input size its feature sizes come from).
-fn bench_network(
-    name: &str,
+/// The process's resident high-water mark in MiB (`VmHWM`; Linux only).
+fn vm_hwm_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let kb = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))?
+        .trim()
+        .trim_end_matches("kB")
+        .trim()
+        .parse::<f64>()
+        .ok()?;
+    Some(kb / 1024.0)
+}
+
+/// Resets `VmHWM` to the current resident size (Linux 4.0 and later); false where it cannot.
+fn reset_hwm() -> bool {
+    std::fs::write("/proc/self/clear_refs", "5").is_ok()
+}
+
+/// The device's used memory, sampled by `nvidia-smi` every 10 ms in a child process until
+/// [`Self::stop`]; the maximum in MiB.
+struct DeviceMemory {
+    child: std::process::Child,
+    reader: std::thread::JoinHandle<Option<f64>>,
+}
+
+impl DeviceMemory {
+    /// Starts sampling the GPU of `dev` (`None` for the CPU, or without `nvidia-smi`).
+    fn start(dev: &Device) -> Option<Self> {
+        use std::io::BufRead;
+        let candle_core::DeviceLocation::Cuda { gpu_id } = dev.location() else {
+            return None;
+        };
+        let mut child = std::process::Command::new("nvidia-smi")
+            .args([
+                "--query-gpu=memory.used",
+                "--format=csv,noheader,nounits",
+                "-lms",
+                "10",
+            ])
+            .arg(format!("--id={gpu_id}"))
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .ok()?;
+        let stdout = child.stdout.take()?;
+        let reader = std::thread::spawn(move || {
+            std::io::BufReader::new(stdout)
+                .lines()
+                .map_while(std::result::Result::ok)
+                .filter_map(|l| l.trim().parse::<f64>().ok())
+                .reduce(f64::max)
+        });
+        // the first sample is the memory before the row
+        std::thread::sleep(std::time::Duration::from_millis(50));
+        Some(Self { child, reader })
+    }
+
+    fn stop(mut self) -> Option<f64> {
+        // a last sample after the row's final synchronisation
+        std::thread::sleep(std::time::Duration::from_millis(30));
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        self.reader.join().ok().flatten()
+    }
+}
+
+/// The network on detached copies of `vm`'s weights: evaluating it builds no graph (as sampling
+/// runs), and shares the weights' storage.
+fn detached_network(cfg: &DenoiserConfig, vm: &VarMap, dev: &Device) -> Result<veila_nn::Denoiser> {
+    let tensors = vm
+        .data()
+        .lock()
+        .map_err(|_| anyhow::anyhow!("the benchmark's weights are poisoned"))?
+        .iter()
+        .map(|(n, v)| (n.clone(), v.as_tensor().detach()))
+        .collect();
+    Ok(veila_nn::Denoiser::new(
+        cfg,
+        VarBuilder::from_tensors(tensors, DType::F32, dev),
+    )?)
+}
+
+/// Measures one row (`image_hw`: the encoders' input size its feature sizes come from).
+fn bench_row(
     cfg: &DenoiserConfig,
     image_hw: (usize, usize),
+    spec: Spec<'_>,
     args: &BenchArgs,
     dev: &Device,
-) -> Result<(Vec<Row>, Vec<OutOfMemory>)> {
+) -> Result<Row> {
+    let name = spec.model;
     let vm = VarMap::new();
-    let net = veila_nn::Denoiser::new(
+    let mut net = veila_nn::Denoiser::new(
         cfg,
         veila_nn::seeded_var_builder(&vm, args.seed, DType::F32, dev),
     )
     .with_context(|| format!("building the {name} network"))?;
+    net.set_activation_checkpointing(spec.checkpointing);
     let params: usize = vm.all_vars().iter().map(|v| v.elem_count()).sum();
     let geom = match cfg.conditioning.as_ref().and_then(|c| c.gcma.as_ref()) {
         Some(_) => {
@@ -214,106 +371,179 @@ fn bench_network(
     };
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(args.seed);
     let (c, h, w) = (cfg.in_channels, cfg.height(), cfg.width());
-    let b = args.batch;
-    let x = rand_tensor(&mut rng, &[b, c, h, w], dev)?;
+    let b = spec.batch;
+    let dt = spec.precision.dtype();
+    let x = rand_tensor(&mut rng, &[b, c, h, w], dev)?.to_dtype(dt)?;
     let target = rand_tensor(&mut rng, &[b, cfg.out_channels, h, w], dev)?;
     let t = rand_tensor(&mut rng, &[b], dev)?.affine(0.45, 0.5)?;
     let cond = features(cfg, b, &mut rng, dev)?;
-    let x2 = rand_tensor(&mut rng, &[2, c, h, w], dev)?;
-    let t2 = Tensor::new(&[0.5f32, 0.5], dev)?;
-    let cond2 = features(cfg, 2, &mut rng, dev)?;
     let conditional = cfg.conditioning.is_some();
-    let mut rows = Vec::new();
-    let mut oom = Vec::new();
-    for &precision in &args.precision {
-        let measured = (|| -> Result<Row> {
-            let dt = precision.dtype();
-            let mut opt = AdamW::new(
-                vm.all_vars(),
-                ParamsAdamW {
-                    lr: 1e-5,
-                    ..ParamsAdamW::default()
-                },
-            )?;
-            let mut train = Vec::new();
-            for i in 0..args.train_runs + 2 {
-                dev.synchronize()?;
-                let start = Instant::now();
-                let prepared = conditional
-                    .then(|| net.prepare_condition(&cond, geom.as_ref()))
-                    .transpose()?;
-                let y = net.forward(&x.to_dtype(dt)?, &t, prepared.as_ref())?;
-                let loss = (y.to_dtype(DType::F32)? - &target)?.sqr()?.mean_all()?;
-                let grads = loss.backward()?;
-                opt.step(&grads)?;
-                dev.synchronize()?;
-                if i >= 2 {
-                    train.push(start.elapsed().as_secs_f64());
-                }
-            }
-            let prepared = conditional
-                .then(|| net.prepare_condition(&cond2, geom.as_ref()))
-                .transpose()?;
-            let x2 = x2.to_dtype(dt)?;
-            let mut eval = Vec::new();
-            for i in 0..args.forward_runs + 2 {
-                dev.synchronize()?;
-                let start = Instant::now();
-                let y = net.forward(&x2, &t2, prepared.as_ref())?.detach();
-                dev.synchronize()?;
-                drop(y);
-                if i >= 2 {
-                    eval.push(start.elapsed().as_secs_f64());
-                }
-            }
-            let (train_s, eval_s) = (median(train), median(eval));
-            Ok(Row {
-                model: name.to_string(),
-                precision: precision.name(),
-                grid: [h, w],
-                params,
-                batch: b,
-                train_step_ms: train_s * 1e3,
-                train_samples_per_s: b as f64 / train_s,
-                eval_b2_ms: eval_s * 1e3,
-                sample_s_per_scan: args
-                    .sample_steps
-                    .iter()
-                    .map(|&n| (n, n as f64 * eval_s))
-                    .collect(),
-            })
-        })();
-        match measured {
-            Ok(row) => {
-                eprintln!(
-                    "{name} {}: training update {:.1} ms at batch {b}, evaluation {:.1} ms at batch 2",
-                    row.precision, row.train_step_ms, row.eval_b2_ms
-                );
-                rows.push(row);
-            }
-            Err(e) if is_out_of_memory(&e) => {
-                eprintln!(
-                    "{name} {}: out of device memory at batch {b} (try a smaller --batch)",
-                    precision.name()
-                );
-                oom.push(OutOfMemory {
-                    model: name.to_string(),
-                    precision: precision.name(),
-                    batch: b,
-                    // the message without the backtrace candle may attach
-                    error: format!("{e:#}")
-                        .lines()
-                        .next()
-                        .unwrap_or_default()
-                        .to_string(),
-                });
-            }
-            Err(e) => {
-                return Err(e.context(format!("timing the {name} network in {}", precision.name())));
-            }
+    let mut opt = AdamW::new(
+        vm.all_vars(),
+        ParamsAdamW {
+            lr: 1e-5,
+            ..ParamsAdamW::default()
+        },
+    )?;
+    dev.synchronize()?;
+    // from here on the row's own memory: weights, optimizer state, inputs and the updates
+    let host_peak = !dev.is_cuda() && reset_hwm();
+    let sampler = DeviceMemory::start(dev);
+    let mut train = Vec::new();
+    for i in 0..args.train_runs + 2 {
+        dev.synchronize()?;
+        let start = Instant::now();
+        let prepared = conditional
+            .then(|| net.prepare_condition(&cond, geom.as_ref()))
+            .transpose()?;
+        let y = net.forward(&x, &t, prepared.as_ref())?;
+        let loss = (y.to_dtype(DType::F32)? - &target)?.sqr()?.mean_all()?;
+        let mut grads = loss.backward()?;
+        if let Some(tape) = net.recompute_tape() {
+            tape.merge_into(&mut grads)?;
+        }
+        opt.step(&grads)?;
+        dev.synchronize()?;
+        if i >= 2 {
+            train.push(start.elapsed().as_secs_f64());
         }
     }
-    Ok((rows, oom))
+    let eval_s = if args.no_eval {
+        None
+    } else {
+        let frozen = detached_network(cfg, &vm, dev)?;
+        let cond2 = features(cfg, 2, &mut rng, dev)?;
+        let x2 = rand_tensor(&mut rng, &[2, c, h, w], dev)?.to_dtype(dt)?;
+        let t2 = Tensor::new(&[0.5f32, 0.5], dev)?;
+        let prepared = conditional
+            .then(|| frozen.prepare_condition(&cond2, geom.as_ref()))
+            .transpose()?;
+        let mut eval = Vec::new();
+        for i in 0..args.forward_runs + 2 {
+            dev.synchronize()?;
+            let start = Instant::now();
+            let y = frozen.forward(&x2, &t2, prepared.as_ref())?;
+            dev.synchronize()?;
+            drop(y);
+            if i >= 2 {
+                eval.push(start.elapsed().as_secs_f64());
+            }
+        }
+        Some(median(eval))
+    };
+    let device_peak = sampler.and_then(DeviceMemory::stop);
+    let (peak_memory_mib, peak_memory_source) = match (device_peak, host_peak) {
+        (Some(p), _) => (Some(p), "nvidia-smi"),
+        (None, true) => (vm_hwm_mib(), "VmHWM"),
+        (None, false) => (None, "unavailable"),
+    };
+    let train_s = median(train);
+    Ok(Row {
+        model: name.to_string(),
+        precision: spec.precision.name().to_string(),
+        activation_checkpointing: spec.checkpointing.name().to_string(),
+        grid: [h, w],
+        params,
+        batch: b,
+        train_step_ms: train_s * 1e3,
+        train_samples_per_s: b as f64 / train_s,
+        eval_b2_ms: eval_s.map(|s| s * 1e3),
+        sample_s_per_scan: eval_s.map_or_else(Vec::new, |e| {
+            args.sample_steps
+                .iter()
+                .map(|&n| (n, n as f64 * e))
+                .collect()
+        }),
+        peak_memory_mib,
+        peak_memory_source: peak_memory_source.to_string(),
+    })
+}
+
+/// The network and image size of a row.
+fn network(
+    spec: Spec<'_>,
+    args: &BenchArgs,
+    dev: &Device,
+) -> Result<(DenoiserConfig, (usize, usize))> {
+    if spec.model == "bundled" {
+        let bundle = model::load_bundle(args.checkpoint.as_deref(), dev)?;
+        let hw = (bundle.config.image_height, bundle.config.image_width);
+        Ok((bundle.config.denoiser, hw))
+    } else {
+        Ok((DenoiserConfig::paper(), (384, 1248)))
+    }
+}
+
+/// Runs row `i` of the plan in a fresh process (this binary with the same arguments and
+/// `--worker-row i`): its row, or what ran out of memory.
+fn measure_in_child(i: usize, spec: Spec<'_>) -> Result<std::result::Result<Row, OutOfMemory>> {
+    let exe = std::env::current_exe().context("finding this veila binary to measure a row")?;
+    let out = std::process::Command::new(exe)
+        .args(std::env::args_os().skip(1))
+        .arg("--worker-row")
+        .arg(i.to_string())
+        .stdin(std::process::Stdio::null())
+        .output()
+        .context("starting a benchmark row's process")?;
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    eprint!("{stderr}");
+    let what = format!(
+        "{} {} (checkpointing {}) at batch {}",
+        spec.model,
+        spec.precision.name(),
+        spec.checkpointing.name(),
+        spec.batch
+    );
+    if out.status.success() {
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        let line = stdout
+            .lines()
+            .find_map(|l| l.strip_prefix(ROW_MARKER))
+            .with_context(|| format!("{what}: the row's process printed no result"))?;
+        return Ok(Ok(serde_json::from_str(line)
+            .with_context(|| format!("{what}: reading the row's result"))?));
+    }
+    #[cfg(unix)]
+    let signal = std::os::unix::process::ExitStatusExt::signal(&out.status);
+    #[cfg(not(unix))]
+    let signal: Option<i32> = None;
+    let last = stderr
+        .lines()
+        .rev()
+        .find(|l| !l.trim().is_empty())
+        .unwrap_or_default()
+        .trim()
+        .to_string();
+    let lower = stderr.to_ascii_lowercase();
+    // the host allocator's abort, the kernel's OOM killer (SIGKILL), or a device allocation
+    let oom = lower.contains("memory allocation of")
+        || lower.contains("out of memory")
+        || lower.contains("out_of_memory")
+        || signal == Some(9);
+    if oom {
+        let error = match signal {
+            Some(9) if last.is_empty() => {
+                "the process was killed (signal 9): out of host memory".to_string()
+            }
+            Some(n) => format!("{last} (the process ended on signal {n})"),
+            None => last,
+        };
+        eprintln!("{what}: out of memory: {error}");
+        return Ok(Err(OutOfMemory {
+            model: spec.model.to_string(),
+            precision: spec.precision.name(),
+            activation_checkpointing: spec.checkpointing.name(),
+            batch: spec.batch,
+            error,
+        }));
+    }
+    bail!(
+        "{what}: the row's process failed ({}): {last}",
+        match signal {
+            Some(n) => format!("signal {n}"),
+            None => format!("{}", out.status),
+        }
+    )
 }
 
 /// `Bundle::generate` end to end at each step count.
@@ -364,11 +594,14 @@ fn bench_generate(
 }
 
 pub(crate) fn run(args: BenchArgs) -> Result<()> {
-    if args.batch == 0 || args.train_runs == 0 || args.forward_runs == 0 {
-        bail!("--batch, --train-runs and --forward-runs must be at least 1");
+    if args.batch.is_empty() || args.batch.iter().any(|&b| b == 0 || b > 4096) {
+        bail!("--batch takes batch sizes in 1..=4096");
     }
-    if args.batch > 4096 || args.train_runs > 1000 || args.forward_runs > 1000 {
-        bail!("--batch is at most 4096, --train-runs and --forward-runs at most 1000");
+    if args.train_runs == 0 || args.forward_runs == 0 {
+        bail!("--train-runs and --forward-runs must be at least 1");
+    }
+    if args.train_runs > 1000 || args.forward_runs > 1000 {
+        bail!("--train-runs and --forward-runs are at most 1000");
     }
     if args.sample_steps.iter().any(|&n| n == 0 || n > 10_000) {
         bail!("--sample-steps must be in 1..=10000");
@@ -378,13 +611,30 @@ pub(crate) fn run(args: BenchArgs) -> Result<()> {
             bail!("--models: unknown network `{m}` (bundled, paper)");
         }
     }
+    let rows = plan(&args);
+    if rows.len() > 256 {
+        bail!(
+            "{} rows (--models x --precision x --activation-checkpointing x --batch): at most 256",
+            rows.len()
+        );
+    }
+    let dev = model::device()?;
+    if let Some(i) = args.worker_row {
+        let spec = *rows
+            .get(i)
+            .with_context(|| format!("--worker-row {i}: the plan has {} rows", rows.len()))?;
+        let (cfg, hw) = network(spec, &args, &dev)?;
+        let row = bench_row(&cfg, hw, spec, &args, &dev)
+            .with_context(|| format!("timing the {} network", spec.model))?;
+        println!("{ROW_MARKER}{}", serde_json::to_string(&row)?);
+        return Ok(());
+    }
     let mut inputs = crate::staging::Inputs::new();
     inputs.add_opt(args.checkpoint.as_ref());
     if let Some(path) = &args.json {
         // refuse the output before the minutes of timing
         crate::staging::check_outputs(&[path.as_path()], &inputs, args.force, false)?;
     }
-    let dev = model::device()?;
     if args.precision.contains(&Precision::Bf16) && dev.is_cpu() {
         eprintln!(
             "note: bf16 on the CPU runs candle's reference ops and widens its matrix products to \
@@ -396,68 +646,33 @@ pub(crate) fn run(args: BenchArgs) -> Result<()> {
         threads: rayon::current_num_threads(),
         rows: Vec::new(),
         out_of_memory: Vec::new(),
+        per_sample_memory: Vec::new(),
         generate: Vec::new(),
     };
-    for m in &args.models {
-        if m == "bundled" {
-            let bundle = model::load_bundle(args.checkpoint.as_deref(), &dev)?;
-            let hw = (bundle.config.image_height, bundle.config.image_width);
-            let (rows, oom) = bench_network("bundled", &bundle.config.denoiser, hw, &args, &dev)?;
-            report.rows.extend(rows);
-            report.out_of_memory.extend(oom);
-            if !args.no_generate {
-                report.generate = bench_generate(&bundle, &args, &dev)?;
+    for (i, &spec) in rows.iter().enumerate() {
+        match measure_in_child(i, spec)? {
+            Ok(row) => {
+                eprintln!(
+                    "{} {} (checkpointing {}): training update {:.1} ms at batch {}, peak memory {}",
+                    row.model,
+                    row.precision,
+                    row.activation_checkpointing,
+                    row.train_step_ms,
+                    row.batch,
+                    row.peak_memory_mib
+                        .map_or_else(|| "unavailable".to_string(), |m| format!("{m:.0} MiB"))
+                );
+                report.rows.push(row);
             }
-        } else {
-            let (rows, oom) =
-                bench_network("paper", &DenoiserConfig::paper(), (384, 1248), &args, &dev)?;
-            report.rows.extend(rows);
-            report.out_of_memory.extend(oom);
+            Err(oom) => report.out_of_memory.push(oom),
         }
     }
-    println!(
-        "veila bench on {} ({} threads), medians:",
-        report.device, report.threads
-    );
-    println!(
-        "| network | grid | params | precision | training update, batch {} (ms) | samples / s | evaluation, batch 2 (ms) | {} |",
-        args.batch,
-        args.sample_steps
-            .iter()
-            .map(|n| format!("s / scan, {n} steps"))
-            .collect::<Vec<_>>()
-            .join(" | ")
-    );
-    for r in &report.rows {
-        println!(
-            "| {} | {} x {} | {} | {} | {:.1} | {:.3} | {:.1} | {} |",
-            r.model,
-            r.grid[0],
-            r.grid[1],
-            r.params,
-            r.precision,
-            r.train_step_ms,
-            r.train_samples_per_s,
-            r.eval_b2_ms,
-            r.sample_s_per_scan
-                .iter()
-                .map(|(_, s)| format!("{s:.3}"))
-                .collect::<Vec<_>>()
-                .join(" | ")
-        );
+    report.per_sample_memory = per_sample(&report.rows);
+    if args.models.iter().any(|m| m == "bundled") && !args.no_generate && !args.no_eval {
+        let bundle = model::load_bundle(args.checkpoint.as_deref(), &dev)?;
+        report.generate = bench_generate(&bundle, &args, &dev)?;
     }
-    for o in &report.out_of_memory {
-        println!(
-            "| {} | | | {} | out of device memory at batch {} | | | |",
-            o.model, o.precision, o.batch
-        );
-    }
-    if !report.generate.is_empty() {
-        println!("bundled model end to end (Bundle::generate, f32, one scan):");
-        for g in &report.generate {
-            println!("  {} steps: {:.3} s", g.steps, g.seconds_per_scan);
-        }
-    }
+    print_report(&report, &args);
     if let Some(path) = &args.json {
         let text = serde_json::to_string_pretty(&report)?;
         crate::staging::publish_files(
@@ -471,23 +686,161 @@ pub(crate) fn run(args: BenchArgs) -> Result<()> {
     Ok(())
 }
 
+/// The per-sample training memory of every network, precision and checkpointing mode measured
+/// at two or more batch sizes: the slope between the smallest and the largest batch.
+fn per_sample(rows: &[Row]) -> Vec<PerSample> {
+    let mut out: Vec<PerSample> = Vec::new();
+    for r in rows {
+        let same = |o: &&Row| {
+            o.model == r.model
+                && o.precision == r.precision
+                && o.activation_checkpointing == r.activation_checkpointing
+        };
+        let group: Vec<&Row> = rows.iter().filter(same).collect();
+        let (Some(lo), Some(hi)) = (
+            group.iter().min_by_key(|o| o.batch),
+            group.iter().max_by_key(|o| o.batch),
+        ) else {
+            continue;
+        };
+        let (Some(a), Some(b)) = (lo.peak_memory_mib, hi.peak_memory_mib) else {
+            continue;
+        };
+        let done = out.iter().any(|p| {
+            p.model == r.model
+                && p.precision == r.precision
+                && p.activation_checkpointing == r.activation_checkpointing
+        });
+        if lo.batch < hi.batch && !done {
+            out.push(PerSample {
+                model: r.model.clone(),
+                precision: r.precision.clone(),
+                activation_checkpointing: r.activation_checkpointing.clone(),
+                batches: [lo.batch, hi.batch],
+                mib_per_sample: (b - a) / (hi.batch - lo.batch) as f64,
+            });
+        }
+    }
+    out
+}
+
+fn print_report(report: &Report, args: &BenchArgs) {
+    println!(
+        "veila bench on {} ({} threads), medians:",
+        report.device, report.threads
+    );
+    println!(
+        "| network | grid | params | precision | checkpointing | batch | training update (ms) | samples / s | peak memory (MiB) | evaluation, batch 2 (ms) | {} |",
+        args.sample_steps
+            .iter()
+            .map(|n| format!("s / scan, {n} steps"))
+            .collect::<Vec<_>>()
+            .join(" | ")
+    );
+    for r in &report.rows {
+        println!(
+            "| {} | {} x {} | {} | {} | {} | {} | {:.1} | {:.3} | {} | {} | {} |",
+            r.model,
+            r.grid[0],
+            r.grid[1],
+            r.params,
+            r.precision,
+            r.activation_checkpointing,
+            r.batch,
+            r.train_step_ms,
+            r.train_samples_per_s,
+            r.peak_memory_mib
+                .map_or_else(|| "-".to_string(), |m| format!("{m:.0}")),
+            r.eval_b2_ms
+                .map_or_else(|| "-".to_string(), |m| format!("{m:.1}")),
+            if r.sample_s_per_scan.is_empty() {
+                vec!["-"; args.sample_steps.len()].join(" | ")
+            } else {
+                r.sample_s_per_scan
+                    .iter()
+                    .map(|(_, s)| format!("{s:.3}"))
+                    .collect::<Vec<_>>()
+                    .join(" | ")
+            }
+        );
+    }
+    for o in &report.out_of_memory {
+        println!(
+            "| {} | | | {} | {} | {} | out of memory: {} | | | | |",
+            o.model, o.precision, o.activation_checkpointing, o.batch, o.error
+        );
+    }
+    for p in &report.per_sample_memory {
+        println!(
+            "training memory per sample, {} {} (checkpointing {}), batch {} to {}: {:.0} MiB",
+            p.model,
+            p.precision,
+            p.activation_checkpointing,
+            p.batches[0],
+            p.batches[1],
+            p.mib_per_sample
+        );
+    }
+    if !report.generate.is_empty() {
+        println!("bundled model end to end (Bundle::generate, f32, one scan):");
+        for g in &report.generate {
+            println!("  {} steps: {:.3} s", g.steps, g.seconds_per_scan);
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    fn row(model: &str, ckpt: &str, batch: usize, mib: Option<f64>) -> Row {
+        Row {
+            model: model.into(),
+            precision: "f32".into(),
+            activation_checkpointing: ckpt.into(),
+            grid: [64, 1024],
+            params: 1,
+            batch,
+            train_step_ms: 1.0,
+            train_samples_per_s: 1.0,
+            eval_b2_ms: None,
+            sample_s_per_scan: Vec::new(),
+            peak_memory_mib: mib,
+            peak_memory_source: "VmHWM".into(),
+        }
+    }
+
     #[test]
-    fn out_of_memory_is_told_from_other_errors_through_contexts() {
-        // the words of candle's CUDA backend on an H200 (2026-11-26) and of a host allocator
-        let cuda = anyhow::anyhow!("DriverError(CUDA_ERROR_OUT_OF_MEMORY, \"out of memory\")");
-        assert!(is_out_of_memory(&cuda.context("timing the paper network")));
-        assert!(is_out_of_memory(&anyhow::anyhow!(
-            "memory allocation of 4096 bytes failed: Out of memory"
-        )));
-        assert!(!is_out_of_memory(&anyhow::anyhow!(
-            "shape mismatch in conv2d, lhs: [8, 3, 64, 1024], rhs: [16, 4, 3, 3]"
-        )));
-        assert!(!is_out_of_memory(
-            &anyhow::anyhow!("no such GPU").context("--device cuda:3")
-        ));
+    fn per_sample_memory_is_the_slope_between_the_extreme_batches_of_one_setting() {
+        let rows = vec![
+            row("paper", "none", 1, Some(1000.0)),
+            row("paper", "none", 4, Some(2500.0)),
+            row("paper", "none", 2, Some(1400.0)),
+            row("paper", "block", 1, Some(800.0)),
+            row("paper", "block", 2, None),
+            row("bundled", "none", 2, Some(100.0)),
+        ];
+        let p = per_sample(&rows);
+        // one setting at two or more batches with both peaks: paper/none only
+        assert_eq!(p.len(), 1, "{p:?}");
+        assert_eq!(p[0].batches, [1, 4]);
+        assert!((p[0].mib_per_sample - 500.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn the_high_water_mark_reads_and_resets() {
+        if !reset_hwm() {
+            eprintln!("skipped: /proc/self/clear_refs is not writable here");
+            return;
+        }
+        let before = vm_hwm_mib().expect("VmHWM on Linux");
+        let big = vec![1u8; 256 << 20];
+        std::hint::black_box(&big);
+        let touched = vm_hwm_mib().unwrap();
+        assert!(touched >= before + 200.0, "{before} -> {touched} MiB");
+        drop(big);
+        assert!(reset_hwm());
+        let after = vm_hwm_mib().unwrap();
+        assert!(after < touched - 200.0, "reset: {touched} -> {after} MiB");
     }
 }

@@ -21,6 +21,16 @@ pub trait Denoiser {
         t: &Tensor,
         cond: Option<&Self::Cond>,
     ) -> candle_core::Result<Tensor>;
+
+    /// Completes the gradients of a backward pass through this network: a network that recomputes
+    /// activations ([`veila_nn::recompute`]) adds its parameters' gradients here. The trainer calls
+    /// it after every `backward()`; the default adds nothing.
+    fn finish_backward(
+        &self,
+        _grads: &mut candle_core::backprop::GradStore,
+    ) -> candle_core::Result<()> {
+        Ok(())
+    }
 }
 
 impl<D: Denoiser + ?Sized> Denoiser for &D {
@@ -33,6 +43,12 @@ impl<D: Denoiser + ?Sized> Denoiser for &D {
     ) -> candle_core::Result<Tensor> {
         (**self).forward(x_t, t, cond)
     }
+    fn finish_backward(
+        &self,
+        grads: &mut candle_core::backprop::GradStore,
+    ) -> candle_core::Result<()> {
+        (**self).finish_backward(grads)
+    }
 }
 
 impl<D: Denoiser + ?Sized> Denoiser for Box<D> {
@@ -44,6 +60,12 @@ impl<D: Denoiser + ?Sized> Denoiser for Box<D> {
         cond: Option<&Self::Cond>,
     ) -> candle_core::Result<Tensor> {
         (**self).forward(x_t, t, cond)
+    }
+    fn finish_backward(
+        &self,
+        grads: &mut candle_core::backprop::GradStore,
+    ) -> candle_core::Result<()> {
+        (**self).finish_backward(grads)
     }
 }
 
@@ -74,6 +96,12 @@ impl<D: Denoiser> Denoiser for Autocast<D> {
         self.inner
             .forward(&x_t.to_dtype(self.dtype)?, t, cond)?
             .to_dtype(x_t.dtype())
+    }
+    fn finish_backward(
+        &self,
+        grads: &mut candle_core::backprop::GradStore,
+    ) -> candle_core::Result<()> {
+        self.inner.finish_backward(grads)
     }
 }
 

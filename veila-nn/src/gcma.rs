@@ -57,6 +57,8 @@ pub struct LevelGeometry {
     corner_idx: Vec<Tensor>,
     /// 4 x `[P * S]` f32 bilinear weights (0 for taps outside the image or invalid samples).
     corner_w: Vec<Tensor>,
+    /// The same corners for the one-op gather ([`crate::gather`]).
+    taps: std::sync::Arc<crate::gather::GatherTaps>,
     /// `[P, S]` f32, `ln w_k` on valid samples, 0 elsewhere.
     log_w: Tensor,
     /// `[P, S]` u8, 1 where the sample is valid.
@@ -303,6 +305,7 @@ fn build_level(
     }
     let num_active = active.len();
     let gdim = enc.dim();
+    let taps = crate::gather::GatherTaps::new(idx, wts, device)?;
     Ok(LevelGeometry {
         level,
         height: h,
@@ -312,14 +315,9 @@ fn build_level(
         samples_per_pixel: s,
         active: Tensor::from_vec(active, num_active, device)?,
         num_active,
-        corner_idx: idx
-            .into_iter()
-            .map(|v| Tensor::from_vec(v, n, device))
-            .collect::<candle_core::Result<_>>()?,
-        corner_w: wts
-            .into_iter()
-            .map(|v| Tensor::from_vec(v, n, device))
-            .collect::<candle_core::Result<_>>()?,
+        corner_idx: taps.index_tensors().to_vec(),
+        corner_w: taps.weight_tensors().to_vec(),
+        taps: std::sync::Arc::new(taps),
         log_w: Tensor::from_vec(log_w, (num_active, s), device)?,
         valid: Tensor::from_vec(valid, (num_active, s), device)?,
         point_features: Tensor::from_vec(gamma, (n, gdim), device)?,
@@ -416,20 +414,8 @@ impl Gcma {
             .permute((0, 1, 3, 2))?
             .contiguous()?
             .reshape((b, views * fh * fw, 2 * d))?;
-        // bilinear gather at the samples (whole 2d-rows per tap): [B, P * S, 2d]
-        let mut g: Option<Tensor> = None;
-        for corner in 0..4 {
-            let sel = kv.index_select(&geom.corner_idx[corner], 1)?;
-            let wt = geom.corner_w[corner]
-                .to_dtype(dtype)?
-                .reshape((1, p * s, 1))?;
-            let term = sel.broadcast_mul(&wt)?;
-            g = Some(match g {
-                None => term,
-                Some(acc) => (acc + term)?,
-            });
-        }
-        let g = g.ok_or_else(|| Error::Config("internal: no bilinear taps".into()))?;
+        // bilinear gather at the samples (whole 2d-rows per tap, one op): [B, P * S, 2d]
+        let g = crate::gather::bilinear_gather(&kv, &geom.taps)?;
         let g = g.reshape((b, p, s, 2, heads, dh))?;
         let keys = g.narrow(3, 0, 1)?.squeeze(3)?; // [B, P, S, heads, dh]
         let vals = g.narrow(3, 1, 1)?.squeeze(3)?;
@@ -465,6 +451,18 @@ impl Gcma {
         let full =
             Tensor::zeros((b, d, h * w), dtype, r.device())?.index_add(&geom.active, &out, 2)?;
         Ok(full.reshape((b, d, h, w))?)
+    }
+
+    /// The trainable tensors (for activation checkpointing).
+    pub(crate) fn params(&self) -> Vec<Tensor> {
+        use crate::recompute::{push_linear, push_weights};
+        let mut out: Vec<Tensor> = self.norm.params().into_iter().cloned().collect();
+        push_weights(&mut out, self.q.weights());
+        push_weights(&mut out, self.kv.weights());
+        push_linear(&mut out, &self.pos0);
+        push_linear(&mut out, &self.pos2);
+        push_weights(&mut out, self.out.weights());
+        out
     }
 
     /// `R_hat = R + keep * ZeroConv(R~)`; `keep: [B]` (1 = conditioned, 0 = dropped for classifier-free

@@ -49,10 +49,12 @@ pub mod encoders;
 mod error;
 pub mod feature_nets;
 pub mod fused;
+pub mod gather;
 pub mod gcma;
 pub mod init;
 pub mod ops;
 pub mod pfc;
+pub mod recompute;
 pub mod unet;
 pub mod weights;
 
@@ -64,4 +66,5 @@ pub use error::{Error, Result, TensorReport};
 pub use gcma::{Gcma, GcmaGeometry, LevelGeometry};
 pub use init::seeded_var_builder;
 pub use pfc::Pfc;
+pub use recompute::{ActivationCheckpointing, RecomputeTape};
 pub use unet::{ConditionInput, Denoiser, PreparedCondition, ResBlock};

@@ -7,7 +7,6 @@ use candle_core::{D, DType, Device, Tensor};
 use candle_nn::{Init, VarBuilder};
 
 use crate::error::{Result, shape_err};
-use crate::fused::group_norm_act;
 pub use crate::fused::{Im2ColSpec, im2col};
 
 /// Pads `[B, C, H, W]` by `pad_w` columns on each side *circularly* (the azimuth axis wraps around a
@@ -251,13 +250,90 @@ pub fn conv2d_zero_pad(
 /// padding and strides of `spec`: [`crate::fused::conv2d`] (one op on the CPU: the columns of one
 /// sample at a time and one matrix product each, forward and backward; im2col and a matrix product
 /// elsewhere). `spec.kernel` and `spec.ones_row` are taken from the weights and the bias.
+///
+/// Where the CPU kernels do not run (GPUs, half precision) and a graph is being built, the im2col
+/// composition is recomputed in the backward pass ([`lean`]): the graph keeps the input, not its
+/// columns (about `27 C N` values per 3x3 convolution).
 pub fn conv2d_im2col(
     x: &Tensor,
     weight: &Tensor,
     bias: Option<&Tensor>,
     spec: Im2ColSpec,
 ) -> Result<Tensor> {
-    crate::fused::conv2d(x, weight, bias, spec)
+    let tracked = x.track_op() || weight.track_op() || bias.is_some_and(Tensor::track_op);
+    if crate::fused::takes_kernels(x) || !tracked {
+        return crate::fused::conv2d(x, weight, bias, spec);
+    }
+    let w_dims = weight.dims().to_vec();
+    let nw = weight.elem_count();
+    let has_bias = bias.is_some();
+    let mut parts = vec![weight.flatten_all()?];
+    if let Some(b) = bias {
+        parts.push(b.to_dtype(weight.dtype())?.flatten_all()?);
+    }
+    let packed = Tensor::cat(&parts, 0)?;
+    lean(x, &packed, move |x, p| {
+        let w = p.narrow(0, 0, nw)?.reshape(w_dims.as_slice())?;
+        let b = if has_bias {
+            Some(p.narrow(0, nw, p.dim(0)? - nw)?)
+        } else {
+            None
+        };
+        crate::fused::conv2d(x, &w, b.as_ref(), spec)
+    })
+}
+
+/// `op(x, packed)` recomputed in the backward pass: the graph keeps `x` and the small `packed`
+/// tensor (weights, per-sample scales), not the op's intermediates. Both get their gradients.
+fn lean(
+    x: &Tensor,
+    packed: &Tensor,
+    op: impl Fn(&Tensor, &Tensor) -> Result<Tensor> + Send + Sync + 'static,
+) -> Result<Tensor> {
+    crate::recompute::checkpoint(
+        x,
+        Some(packed),
+        Vec::new(),
+        &crate::recompute::RecomputeTape::new(),
+        std::sync::Arc::new(move |x: &Tensor, p: Option<&Tensor>| {
+            let p = p.ok_or_else(|| crate::Error::Config("internal: no packed input".into()))?;
+            op(x, p)
+        }),
+    )
+}
+
+/// GroupNorm with a per-sample `scale`, `shift: [B, C]` and an optional SiLU
+/// ([`crate::fused::group_norm_act`]). Where the CPU kernels do not run and a graph is being built,
+/// it is recomputed in the backward pass ([`lean`]): the graph keeps `x`, not the normalisation's
+/// chain of about six `C N` intermediates. Statistics of half-precision inputs are f32.
+fn group_norm_act(
+    x: &Tensor,
+    scale: &Tensor,
+    shift: &Tensor,
+    groups: usize,
+    eps: f64,
+    silu: bool,
+) -> Result<Tensor> {
+    let tracked = x.track_op() || scale.track_op() || shift.track_op();
+    if crate::fused::takes_kernels(x) || !tracked {
+        return crate::fused::group_norm_act(x, scale, shift, groups, eps, silu);
+    }
+    let bc = scale.elem_count();
+    let (s_dims, t_dims) = (scale.dims().to_vec(), shift.dims().to_vec());
+    let packed = Tensor::cat(
+        &[
+            scale.flatten_all()?,
+            shift.to_dtype(scale.dtype())?.flatten_all()?,
+        ],
+        0,
+    )?;
+    lean(x, &packed, move |x, p| {
+        let sc = p.narrow(0, 0, bc)?.reshape(s_dims.as_slice())?;
+        let sh = p
+            .narrow(0, bc, p.dim(0)? - bc)?
+            .reshape(t_dims.as_slice())?;
+        crate::fused::group_norm_act(x, &sc, &sh, groups, eps, silu)
+    })
 }
 
 /// Runs a `candle_nn::Conv2d` through [`conv2d_zero_pad`] (same weights, padding and stride, fast
@@ -554,6 +630,11 @@ impl GroupNorm {
     /// Variance epsilon.
     pub(crate) fn eps(&self) -> f64 {
         self.eps
+    }
+
+    /// The affine weight and bias (the trainable tensors).
+    pub(crate) fn params(&self) -> [&Tensor; 2] {
+        [&self.weight, &self.bias]
     }
 
     /// The affine weights broadcast to `[B, C]` (scale, shift).

@@ -48,6 +48,14 @@ impl Pfc {
     }
 
     /// `[B, C, H, W] -> [B, C, H, W]`.
+    /// The trainable tensors (for activation checkpointing).
+    pub(crate) fn params(&self) -> Vec<Tensor> {
+        let mut out: Vec<Tensor> = self.norm.params().into_iter().cloned().collect();
+        crate::recompute::push_weights(&mut out, self.qkv.weights());
+        crate::recompute::push_weights(&mut out, self.proj.weights());
+        out
+    }
+
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let _enter = self.span.enter();
         let (b, c, h, w) = x.dims4()?;

@@ -12,6 +12,7 @@ use crate::ops::{
     Conv1x1, GroupNorm, RingConv2d, group_norm, groups_for, silu, sinusoidal_embedding,
 };
 use crate::pfc::Pfc;
+use crate::recompute::{ActivationCheckpointing, RecomputeTape, checkpoint};
 
 /// Residual block: `GN -> SiLU -> conv3x3 -> AdaGN(t) -> SiLU -> conv3x3`, plus a (1x1-projected) skip,
 /// all scaled by `residual_scale`. Convolutions wrap around the azimuth axis ([`RingConv2d`]).
@@ -56,6 +57,20 @@ impl ResBlock {
             scale: f64::from(scale),
             span: tracing::span!(tracing::Level::TRACE, "res_block"),
         })
+    }
+
+    /// The trainable tensors (for activation checkpointing).
+    pub(crate) fn params(&self) -> Vec<Tensor> {
+        use crate::recompute::{push_linear, push_weights};
+        let mut out: Vec<Tensor> = self.norm1.params().into_iter().cloned().collect();
+        push_weights(&mut out, self.conv1.weights());
+        push_linear(&mut out, &self.emb);
+        out.extend(self.norm2.params().into_iter().cloned());
+        push_weights(&mut out, self.conv2.weights());
+        if let Some(s) = &self.skip {
+            push_weights(&mut out, s.weights());
+        }
+        out
     }
 
     /// `x: [B, in, H, W]`, `emb: [B, T]` (already through SiLU) `-> [B, out, H, W]`.
@@ -211,6 +226,8 @@ pub struct Denoiser {
     out_conv: RingConv2d,
     fusion: Option<ConditionFusion>,
     pool: Option<Linear>,
+    /// Set when residual blocks, GCMA and PFC recompute their activations in the backward pass.
+    recompute: Option<RecomputeTape>,
     span: tracing::Span,
 }
 
@@ -361,6 +378,7 @@ impl Denoiser {
             out_conv,
             fusion,
             pool,
+            recompute: None,
             span: tracing::span!(tracing::Level::TRACE, "denoiser"),
         })
     }
@@ -392,6 +410,73 @@ impl Denoiser {
                 "ray features are disabled in this model".into(),
             )),
         }
+    }
+
+    /// Chooses activation checkpointing for training ([`crate::recompute`]). With
+    /// [`ActivationCheckpointing::Block`], whoever calls `backward()` on a loss of this network's
+    /// output must merge [`Self::recompute_tape`] into the gradients afterwards.
+    pub fn set_activation_checkpointing(&mut self, mode: ActivationCheckpointing) {
+        self.recompute = match mode {
+            ActivationCheckpointing::None => None,
+            ActivationCheckpointing::Block => Some(RecomputeTape::new()),
+        };
+    }
+
+    /// The activation checkpointing in force.
+    pub fn activation_checkpointing(&self) -> ActivationCheckpointing {
+        match self.recompute {
+            Some(_) => ActivationCheckpointing::Block,
+            None => ActivationCheckpointing::None,
+        }
+    }
+
+    /// The tape on which recomputed blocks leave their parameters' gradients (`None` without
+    /// activation checkpointing); see [`RecomputeTape::merge_into`].
+    pub fn recompute_tape(&self) -> Option<&RecomputeTape> {
+        self.recompute.as_ref()
+    }
+
+    /// A residual block, recomputed in the backward pass when checkpointing is on.
+    fn res_block(&self, rb: &ResBlock, x: &Tensor, emb: &Tensor) -> Result<Tensor> {
+        let Some(tape) = &self.recompute else {
+            return rb.forward(x, emb);
+        };
+        let block = rb.clone();
+        checkpoint(
+            x,
+            Some(emb),
+            rb.params(),
+            tape,
+            std::sync::Arc::new(move |x: &Tensor, e: Option<&Tensor>| {
+                let e = e.ok_or_else(|| Error::Config("internal: no time embedding".into()))?;
+                block.forward(x, e)
+            }),
+        )
+    }
+
+    /// A GCMA layer, recomputed in the backward pass when checkpointing is on.
+    fn gcma_block(
+        &self,
+        blk: &Gcma,
+        r: &Tensor,
+        feat: &Tensor,
+        geom: &crate::gcma::LevelGeometry,
+        keep: Option<&Tensor>,
+    ) -> Result<Tensor> {
+        let Some(tape) = &self.recompute else {
+            return blk.forward(r, feat, geom, keep);
+        };
+        let (block, geom, keep) = (blk.clone(), geom.clone(), keep.cloned());
+        checkpoint(
+            r,
+            Some(feat),
+            blk.params(),
+            tape,
+            std::sync::Arc::new(move |r: &Tensor, f: Option<&Tensor>| {
+                let f = f.ok_or_else(|| Error::Config("internal: no GCMA features".into()))?;
+                block.forward(r, f, &geom, keep.as_ref())
+            }),
+        )
     }
 
     /// Whether the model takes an image condition.
@@ -624,7 +709,8 @@ impl Denoiser {
                 let geom = cd.geometry.ok_or_else(|| {
                     Error::Config("this model has GCMA: pass a GcmaGeometry".into())
                 })?;
-                return Ok(Some(blk.forward(
+                return Ok(Some(self.gcma_block(
+                    blk,
                     hcur,
                     feat,
                     level_of(geom, level)?,
@@ -639,7 +725,8 @@ impl Denoiser {
                     .as_ref()
                     .map(|k| k.index_select(&g.samples, 0))
                     .transpose()?;
-                outs.push(blk.forward(
+                outs.push(self.gcma_block(
+                    blk,
                     &hcur.index_select(&g.samples, 0)?,
                     &feat.index_select(&g.views, 0)?,
                     level_of(g.geometry, level)?,
@@ -662,7 +749,7 @@ impl Denoiser {
         let mut skips = vec![hcur.clone()];
         for (l, lev) in self.down.iter().enumerate() {
             for (j, rb) in lev.res.iter().enumerate() {
-                hcur = rb.forward(&hcur, &emb)?;
+                hcur = self.res_block(rb, &hcur, &emb)?;
                 if j + 1 == lev.res.len()
                     && let Some(g) = &lev.gcma
                     && let Some(out) = gcma(g, &hcur, l)?
@@ -682,11 +769,23 @@ impl Denoiser {
                 skips.push(hcur.clone());
             }
         }
-        hcur = self.mid0.forward(&hcur, &emb)?;
+        hcur = self.res_block(&self.mid0, &hcur, &emb)?;
         if let Some(p) = &self.pfc {
-            hcur = p.forward(&hcur)?;
+            hcur = match &self.recompute {
+                Some(tape) => {
+                    let block = p.clone();
+                    checkpoint(
+                        &hcur,
+                        None,
+                        p.params(),
+                        tape,
+                        std::sync::Arc::new(move |x: &Tensor, _: Option<&Tensor>| block.forward(x)),
+                    )?
+                }
+                None => p.forward(&hcur)?,
+            };
         }
-        hcur = self.mid1.forward(&hcur, &emb)?;
+        hcur = self.res_block(&self.mid1, &hcur, &emb)?;
         let nl = self.up.len();
         for (i, lev) in self.up.iter().enumerate() {
             let l = nl - 1 - i;
@@ -694,7 +793,7 @@ impl Denoiser {
                 let s = skips
                     .pop()
                     .ok_or_else(|| Error::Config("internal: skip bookkeeping".into()))?;
-                hcur = rb.forward(&Tensor::cat(&[&hcur, &s], 1)?, &emb)?;
+                hcur = self.res_block(rb, &Tensor::cat(&[&hcur, &s], 1)?, &emb)?;
             }
             if let Some(g) = &lev.gcma
                 && let Some(out) = gcma(g, &hcur, l)?

@@ -97,6 +97,16 @@ impl<'g> Denoiser for VeilaDenoiser<'g> {
             None => self.net.forward(x_t, t, image).map_err(to_candle),
         }
     }
+
+    fn finish_backward(
+        &self,
+        grads: &mut candle_core::backprop::GradStore,
+    ) -> candle_core::Result<()> {
+        match self.net.recompute_tape() {
+            Some(tape) => tape.merge_into(grads).map_err(to_candle),
+            None => Ok(()),
+        }
+    }
 }
 
 impl Conditioning for NetCond<'_> {

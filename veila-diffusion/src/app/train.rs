@@ -726,6 +726,8 @@ where
     }
     // the batches run the condition fusion through a clone that shares the trained variables
     let batch_net = net.clone();
+    let mut net = net;
+    net.set_activation_checkpointing(fit.train.activation_checkpointing);
     let mut trainer = Trainer::new(
         VeilaDenoiser::new(net),
         varmap,

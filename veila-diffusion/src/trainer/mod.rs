@@ -119,6 +119,15 @@ pub struct TrainConfig {
     /// f32, so the run records of runs made before this field existed still match.
     #[serde(default, skip_serializing_if = "Precision::is_f32")]
     pub precision: Precision,
+    /// Activation checkpointing of the network's blocks ([`veila_nn::recompute`]): `block`
+    /// recomputes each block in the backward pass, trading a second forward pass of it for
+    /// keeping only its inputs. The gradients are the same. Left out of the JSON when off.
+    #[serde(default, skip_serializing_if = "is_no_checkpointing")]
+    pub activation_checkpointing: veila_nn::ActivationCheckpointing,
+}
+
+fn is_no_checkpointing(a: &veila_nn::ActivationCheckpointing) -> bool {
+    *a == veila_nn::ActivationCheckpointing::None
 }
 
 /// The precision of a training run's forward and backward passes.
@@ -199,6 +208,7 @@ impl Default for TrainConfig {
             preview_every: None,
             grad_accum_steps: 1,
             precision: Precision::F32,
+            activation_checkpointing: veila_nn::ActivationCheckpointing::None,
         }
     }
 }
@@ -623,7 +633,9 @@ impl<M: Denoiser> Trainer<M> {
         let (lr, dropout) = self.begin_step();
         let (loss_t, loss) = self.batch_loss(batch, dropout)?;
         let grads = if loss.is_finite() {
-            Some(loss_t.backward()?)
+            let mut grads = loss_t.backward()?;
+            self.model.finish_backward(&mut grads)?;
+            Some(grads)
         } else {
             None
         };
@@ -663,7 +675,8 @@ impl<M: Denoiser> Trainer<M> {
                 continue;
             }
             loss_sum += loss * b as f64;
-            let grads = loss_t.backward()?;
+            let mut grads = loss_t.backward()?;
+            self.model.finish_backward(&mut grads)?;
             for (acc, v) in sum.iter_mut().zip(&self.vars) {
                 if let Some(g) = grads.get(v.as_tensor()) {
                     let g = g.to_dtype(candle_core::DType::F32)?.affine(b as f64, 0.0)?;
