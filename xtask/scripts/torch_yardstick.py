@@ -654,8 +654,10 @@ def check(net, ref, dev):
     with torch.no_grad():
         if "keep" in ref:
             n = len([k for k in ref if k.startswith("fused.")])
-            sem = [torch.from_numpy(ref[f"semantic.{i}"]).to(dev) for i in range(n)]
-            dep = [torch.from_numpy(ref[f"depth.{i}"]).to(dev) for i in range(n)]
+            def pyramid(cue):
+                return [torch.from_numpy(ref[f"{cue}.{i}"]).to(dev) if f"{cue}.{i}" in ref else None for i in range(n)]
+
+            sem, dep = pyramid("semantic"), pyramid("depth")
             fused = net.fuse(sem, dep)
             errs = []
             for i, f in enumerate(fused):

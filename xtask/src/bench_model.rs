@@ -454,8 +454,9 @@ fn export_conditioned(args: &BenchModelArgs, dir: &std::path::Path, dev: &Device
         .conditioning
         .clone()
         .context("the network is unconditional")?;
+    // the seeded variables of every parameter (what training optimises), by their names
     let varmap = VarMap::new();
-    let net = Denoiser::new(
+    Denoiser::new(
         &cfg,
         seeded_var_builder(&varmap, args.seed, DType::F32, dev),
     )?;
@@ -488,6 +489,19 @@ fn export_conditioned(args: &BenchModelArgs, dir: &std::path::Path, dev: &Device
         ),
     };
     let params: usize = varmap.all_vars().iter().map(|v| v.elem_count()).sum();
+    // the same network on the same weights without gradient tracking: a forward pass on the
+    // variables keeps every intermediate of the graph (15 GB for the paper's at batch 2)
+    let frozen: std::collections::HashMap<String, Tensor> = varmap
+        .data()
+        .lock()
+        .map_err(|_| anyhow::anyhow!("the weight map's lock is poisoned"))?
+        .iter()
+        .map(|(k, v)| (k.clone(), v.as_tensor().detach()))
+        .collect();
+    let net = Denoiser::new(
+        &cfg,
+        candle_nn::VarBuilder::from_tensors(frozen, DType::F32, dev),
+    )?;
     // the rig as training builds it: one camera per view through Denoiser::geometry
     let geometry = match &cc.gcma {
         Some(_) => {
@@ -499,27 +513,27 @@ fn export_conditioned(args: &BenchModelArgs, dir: &std::path::Path, dev: &Device
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(args.seed + 3);
     let (x, t) = inputs(&cfg, b, args.seed, dev)?;
     let n = b * cc.num_views;
-    let (mut semantic, mut depth) = (Vec::new(), Vec::new());
-    for i in 0..cc.num_scales() {
-        let [h, w] = cc.feature_sizes[i];
-        semantic.push(normal_tensor(
-            &mut rng,
-            &[n, cc.semantic_channels[i], h, w],
-            1.0,
-            dev,
-        )?);
-        depth.push(normal_tensor(
-            &mut rng,
-            &[n, cc.depth_channels[i], h, w],
-            1.0,
-            dev,
-        )?);
-    }
+    // random encoder pyramids of the cues the model takes
+    let mut pyramid = |channels: &[usize]| -> Result<Vec<Tensor>> {
+        channels
+            .iter()
+            .zip(&cc.feature_sizes)
+            .map(|(&c, &[h, w])| normal_tensor(&mut rng, &[n, c, h, w], 1.0, dev))
+            .collect()
+    };
+    let semantic = match cc.cues {
+        veila_nn::Cues::DepthOnly => None,
+        _ => Some(pyramid(&cc.semantic_channels)?),
+    };
+    let depth = match cc.cues {
+        veila_nn::Cues::SemanticOnly => None,
+        _ => Some(pyramid(&cc.depth_channels)?),
+    };
     let keep_v: Vec<f32> = (0..b).map(|i| if i % 2 == 0 { 1.0 } else { 0.0 }).collect();
     let keep = Tensor::from_vec(keep_v, b, dev)?;
     let input = veila_nn::ConditionInput {
-        semantic: (cc.cues != veila_nn::Cues::DepthOnly).then(|| semantic.clone()),
-        depth: (cc.cues != veila_nn::Cues::SemanticOnly).then(|| depth.clone()),
+        semantic: semantic.clone(),
+        depth: depth.clone(),
         keep: Some(keep.clone()),
     };
     // as training runs it: the fusion, then the network with the per-sample keep of condition dropout
@@ -538,10 +552,13 @@ fn export_conditioned(args: &BenchModelArgs, dir: &std::path::Path, dev: &Device
     if let Some(rf) = net.ray_features() {
         reference.insert("ray_features".to_string(), rf.clone());
     }
-    for i in 0..cc.num_scales() {
-        reference.insert(format!("semantic.{i}"), semantic[i].clone());
-        reference.insert(format!("depth.{i}"), depth[i].clone());
-        reference.insert(format!("fused.{i}"), prepared.fused[i].clone());
+    for (cue, pyramid) in [("semantic", &semantic), ("depth", &depth)] {
+        for (i, f) in pyramid.iter().flatten().enumerate() {
+            reference.insert(format!("{cue}.{i}"), f.clone());
+        }
+    }
+    for (i, f) in prepared.fused.iter().enumerate() {
+        reference.insert(format!("fused.{i}"), f.clone());
     }
     let mut gcma_levels = Vec::new();
     if let Some(g) = &geometry {
