@@ -38,7 +38,8 @@ NETWORK=$("$PY" -c 'import json,sys; print(json.load(open(sys.argv[1]))["network
 # candle: one `veila bench` process per batch
 if [ -x "$VEILA" ]; then
   no_eval=""
-  if "$VEILA" bench --help 2>/dev/null | grep -q -- '--no-eval'; then no_eval="--no-eval"; fi
+  help=$("$VEILA" bench --help 2>/dev/null || true)
+  if grep -q -- '--no-eval' <<< "$help"; then no_eval="--no-eval"; fi
   for b in ${BATCHES//,/ }; do
     for p in ${PRECISION//,/ }; do
       j="$OUT/candle-b$b-$p.json"
