@@ -10,7 +10,9 @@
 # target/yardstick-paper; written first when absent). Settings from the environment:
 #   BATCHES=1,2  PRECISION=f32  DEVICE=cpu  THREADS=2  TRAIN_RUNS=3
 #   VEILA=target/release/veila  PY=/work/venv-torch/bin/python3 (else python3)  OUT=target/side-by-side
-# candle's peak memory is the `peak_memory_mib` of each `veila bench --json` row (its own reading),
+# The candle side is `veila bench --models NETWORK` at that network's own grid (`paper`: 64 x 1024),
+# so a reduced export (--grid, --base-channels) gives PyTorch rows of another size: the table's grid
+# column says which. candle's peak memory is the `peak_memory_mib` of each `veila bench --json` row (its own reading),
 # else the peak RSS of the `veila bench` process (GNU time); a `veila bench` without `--no-eval`
 # also runs its batch-2 evaluations, so then its figure is only an upper bound for training.
 set -euo pipefail
