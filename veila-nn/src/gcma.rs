@@ -88,6 +88,24 @@ impl LevelGeometry {
     pub fn samples_per_pixel(&self) -> usize {
         self.samples_per_pixel
     }
+
+    /// The precomputed sampling tensors by name, for implementations of [`Gcma`] outside candle
+    /// (`cargo xtask bench-model --export` writes them for the PyTorch yardstick, so that it runs
+    /// on this exact geometry): `active` (`[P]` u32), `corner_idx.{c}` (`[P * S]` u32 into the
+    /// `views * H_f * W_f` flattened feature maps) and `corner_w.{c}` (`[P * S]` f32) for the
+    /// bilinear corners `c = 0..4`, `log_w` (`[P, S]` f32), `valid` (`[P, S]` u8) and
+    /// `point_features` (`[P * S, gamma_dim]` f32); see the module docs for their use.
+    pub fn named_tensors(&self) -> Vec<(String, Tensor)> {
+        let mut out = vec![("active".to_string(), self.active.clone())];
+        for (c, (i, w)) in self.corner_idx.iter().zip(&self.corner_w).enumerate() {
+            out.push((format!("corner_idx.{c}"), i.clone()));
+            out.push((format!("corner_w.{c}"), w.clone()));
+        }
+        out.push(("log_w".to_string(), self.log_w.clone()));
+        out.push(("valid".to_string(), self.valid.clone()));
+        out.push(("point_features".to_string(), self.point_features.clone()));
+        out
+    }
 }
 
 /// The sampling geometry of every GCMA level for one camera rig (one [`EpipolarTable`] per view and

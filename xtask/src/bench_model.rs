@@ -1,4 +1,5 @@
-//! `cargo xtask bench-model`: the CPU engine's speed on the denoiser the project trains and samples.
+//! `cargo xtask bench-model`: the CPU engine's speed on the denoiser the project trains and samples,
+//! and the export that lets PyTorch run the same networks.
 //!
 //! Times, for `DenoiserConfig::small()` as of issue 19 (unconditional, 32 x 256, f32, seeded random
 //! weights, all cores): the forward pass at batch 1 and batch 8 and one training step at batch 8
@@ -6,10 +7,18 @@
 //! figures stay comparable when the bundled default changes; `xtask/scripts/torch_yardstick.py` times
 //! the same network in PyTorch. Prints the medians as one JSON object on stdout, and the CPU time over
 //! wall time of the training steps (2.0 = both cores busy on this machine).
+//!
+//! `--network paper|bundled --export DIR` writes the whole conditioned network instead (issue 45):
+//! `DenoiserConfig::paper()` with seeded weights, or the bundle's denoiser with its trained
+//! weights; optionally on another `--grid` or at a reduced `--base-channels` for a quick check.
+//! The export runs the network as training does (condition fusion through
+//! `Denoiser::prepare_condition`, the per-sample `keep` factor of condition dropout, the GCMA
+//! geometry of a KITTI camera through `Denoiser::geometry`) and writes the inputs, the geometry
+//! tensors and candle's output; the candle side of these networks is timed by `veila bench`.
 
 use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarMap};
 use clap::Args;
@@ -42,6 +51,59 @@ pub struct BenchModelArgs {
     /// (needs `cargo xtask build-cuda --xtask`); the clock waits for the device at every reading.
     #[arg(long, default_value = "cpu", value_parser = crate::device::parse_device)]
     device: crate::device::DeviceArg,
+    /// The network: `small` (the frozen benchmark network, timed), or the conditioned `paper`
+    /// (`DenoiserConfig::paper()`, seeded weights) or `bundled` (the bundle's denoiser and trained
+    /// weights, --checkpoint), which are only exported (needs --export).
+    #[arg(long, value_enum, default_value_t = Network::Small)]
+    network: Network,
+    /// Range-image grid `HxW` of an exported `paper` or `bundled` network instead of its sensor's
+    /// (both divisible by 2^(levels-1); e.g. `16x256` for a quick check).
+    #[arg(long, value_name = "HxW", value_parser = parse_grid)]
+    grid: Option<(u32, u32)>,
+    /// Base channel count of an exported `paper` network instead of 64 (a reduced-width variant
+    /// for a quick check).
+    #[arg(long, value_name = "C")]
+    base_channels: Option<usize>,
+    /// Batch of the exported fixed input (the samples alternate keep = 1, 0: conditioned, dropped).
+    #[arg(long, value_name = "B", default_value_t = 2)]
+    export_batch: usize,
+    /// Bundle folder of `--network bundled`.
+    #[arg(long, value_name = "DIR", default_value = "models/default")]
+    checkpoint: std::path::PathBuf,
+}
+
+/// The networks `bench-model` knows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Network {
+    /// `bench_model_small.json`: unconditional, 32 x 256.
+    Small,
+    /// `DenoiserConfig::paper()`: 64 x 1024, CACM, GCMA at every level, PFC.
+    Paper,
+    /// The bundle's denoiser (`--checkpoint`).
+    Bundled,
+}
+
+impl Network {
+    fn name(self) -> &'static str {
+        match self {
+            Network::Small => "small",
+            Network::Paper => "paper",
+            Network::Bundled => "bundled",
+        }
+    }
+}
+
+fn parse_grid(s: &str) -> std::result::Result<(u32, u32), String> {
+    let bad = || format!("expected HxW with positive sizes (e.g. 16x256), got `{s}`");
+    let (h, w) = s.split_once(['x', 'X']).ok_or_else(bad)?;
+    let (h, w): (u32, u32) = (
+        h.trim().parse().map_err(|_| bad())?,
+        w.trim().parse().map_err(|_| bad())?,
+    );
+    if h == 0 || w == 0 {
+        return Err(bad());
+    }
+    Ok((h, w))
 }
 
 /// What `bench-model --json` prints.
@@ -125,6 +187,18 @@ fn time_forward(net: &Denoiser, x: &Tensor, t: &Tensor, runs: usize) -> Result<f
 /// Runs the benchmark.
 pub fn run(args: BenchModelArgs) -> Result<()> {
     let dev: Device = args.device.open()?;
+    if args.network != Network::Small {
+        let Some(dir) = &args.export else {
+            bail!(
+                "--network {} is only exported (--export DIR); `veila bench --models` times it in candle",
+                args.network.name()
+            );
+        };
+        return export_conditioned(&args, dir, &dev);
+    }
+    if args.grid.is_some() || args.base_channels.is_some() {
+        bail!("--grid and --base-channels apply to --network paper or bundled");
+    }
     let cfg = bench_config()?;
     let varmap = VarMap::new();
     let net = Denoiser::new(
@@ -251,9 +325,378 @@ pub fn run(args: BenchModelArgs) -> Result<()> {
     Ok(())
 }
 
+/// The simulator's KITTI-like `image_2` camera (the rig the bundled model trains on), for images of
+/// `w x h` pixels.
+fn sim_camera(w: usize, h: usize) -> Result<veila_geom::PinholeCamera> {
+    use veila_data::sim::{CameraConfig, SimCalib};
+    let cam = SimCalib::from_config(&CameraConfig::default()).camera()?;
+    cam.resized(w as u32, h as u32)
+        .with_context(|| format!("resizing the simulator's camera to {w} x {h}"))
+}
+
+/// Seeded standard-normal values of `shape` (Box-Muller, as [`inputs`]).
+fn normal_tensor(
+    rng: &mut rand_chacha::ChaCha8Rng,
+    shape: &[usize],
+    std: f64,
+    dev: &Device,
+) -> Result<Tensor> {
+    use rand::Rng;
+    let n: usize = shape.iter().product();
+    let v: Vec<f32> = (0..n)
+        .map(|_| {
+            let (u1, u2): (f64, f64) = (rng.random_range(1e-12..1.0), rng.random());
+            (std * (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()) as f32
+        })
+        .collect();
+    Ok(Tensor::from_vec(v, shape, dev)?)
+}
+
+/// Adds seeded noise to every parameter whose initial value is one constant (GroupNorm affines,
+/// the zero convolutions that close GCMA's residual branch), so that a comparison on the exported
+/// network sees every branch: with the zero convolutions at zero, GCMA adds exactly nothing.
+fn perturb_constant_parameters(varmap: &VarMap, seed: u64) -> Result<usize> {
+    use rand::SeedableRng;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_c0de);
+    let vars = varmap
+        .data()
+        .lock()
+        .map_err(|_| anyhow::anyhow!("the weight map's lock is poisoned"))?;
+    let mut names: Vec<&String> = vars.keys().collect();
+    names.sort();
+    let mut changed = 0;
+    for name in names {
+        let var = &vars[name];
+        let t = var.as_tensor();
+        let (lo, hi) = (
+            t.min_all()?.to_scalar::<f32>()?,
+            t.max_all()?.to_scalar::<f32>()?,
+        );
+        if lo != hi {
+            continue;
+        }
+        // a zero convolution's weight gets the scale of a fan-in init, everything else 0.1
+        let dims = t.dims();
+        let std = if name.ends_with(".weight") && dims.len() == 4 {
+            1.0 / ((dims[1] * dims[2] * dims[3]) as f64).sqrt()
+        } else {
+            0.1
+        };
+        var.set(&(t + normal_tensor(&mut rng, dims, std, t.device())?)?)?;
+        changed += 1;
+    }
+    Ok(changed)
+}
+
+/// What `--export` of a conditioned network writes next to the tensors (`export.json`).
+#[derive(Debug, Serialize)]
+struct ExportInfo {
+    network: &'static str,
+    grid: [usize; 2],
+    /// The encoders' input image `[H, W]` the feature sizes come from.
+    image: [usize; 2],
+    params: usize,
+    batch: usize,
+    /// Parameters of the seeded network that started as one constant and were perturbed.
+    perturbed_parameters: usize,
+    weights_from: String,
+    epipolar: veila_geom::EpipolarConfig,
+    gcma_levels: Vec<usize>,
+    num_views: usize,
+    /// Relative L2 of candle's output with the image against the same input with every keep 0
+    /// (how much the conditioning changes the output: near 0 would make the check blind to it).
+    conditioning_effect_rel_l2: f64,
+}
+
+/// `--network paper|bundled --export DIR`: the conditioned network, its fixed input and output.
+fn export_conditioned(args: &BenchModelArgs, dir: &std::path::Path, dev: &Device) -> Result<()> {
+    use rand::SeedableRng;
+    let b = args.export_batch;
+    if b == 0 || b > 64 {
+        bail!("--export-batch must be in 1..=64, got {b}");
+    }
+    let (mut cfg, image_hw, epipolar, trained) = match args.network {
+        Network::Paper => {
+            let cfg = DenoiserConfig::paper();
+            (
+                cfg,
+                (384, 1248),
+                veila_geom::EpipolarConfig::default(),
+                None,
+            )
+        }
+        Network::Bundled => {
+            if args.base_channels.is_some() {
+                bail!("--base-channels would not fit the bundle's trained weights");
+            }
+            let bundle = veila_diffusion::app::Bundle::from_dir(&args.checkpoint, dev)
+                .with_context(|| format!("loading the bundle {}", args.checkpoint.display()))?;
+            let c = &bundle.config;
+            (
+                c.denoiser.clone(),
+                (c.image_height, c.image_width),
+                c.epipolar,
+                Some(bundle.weights),
+            )
+        }
+        Network::Small => bail!("internal: the small network has no conditioned export"),
+    };
+    if let Some((h, w)) = args.grid {
+        cfg.sensor.rows = h;
+        cfg.sensor.cols = w;
+    }
+    if let Some(c) = args.base_channels {
+        cfg.base_channels = c;
+    }
+    cfg.validate()
+        .context("the exported network's configuration")?;
+    let cc = cfg
+        .conditioning
+        .clone()
+        .context("the network is unconditional")?;
+    // the seeded variables of every parameter (what training optimises), by their names
+    let varmap = VarMap::new();
+    Denoiser::new(
+        &cfg,
+        seeded_var_builder(&varmap, args.seed, DType::F32, dev),
+    )?;
+    let (perturbed, weights_from) = match &trained {
+        Some(weights) => {
+            let vars = varmap
+                .data()
+                .lock()
+                .map_err(|_| anyhow::anyhow!("the weight map's lock is poisoned"))?;
+            if vars.len() != weights.len() {
+                bail!(
+                    "{}: the bundle holds {} denoiser tensors, the network has {}",
+                    args.checkpoint.display(),
+                    weights.len(),
+                    vars.len()
+                );
+            }
+            for (name, var) in vars.iter() {
+                let w = weights.get(name).with_context(|| {
+                    format!("{}: no denoiser tensor `{name}`", args.checkpoint.display())
+                })?;
+                var.set(&w.to_device(dev)?.to_dtype(DType::F32)?)
+                    .with_context(|| format!("{}: tensor `{name}`", args.checkpoint.display()))?;
+            }
+            (0, args.checkpoint.display().to_string())
+        }
+        None => (
+            perturb_constant_parameters(&varmap, args.seed)?,
+            format!("seed {}", args.seed),
+        ),
+    };
+    let params: usize = varmap.all_vars().iter().map(|v| v.elem_count()).sum();
+    // the same network on the same weights without gradient tracking: a forward pass on the
+    // variables keeps every intermediate of the graph (15 GB for the paper's at batch 2)
+    let frozen: std::collections::HashMap<String, Tensor> = varmap
+        .data()
+        .lock()
+        .map_err(|_| anyhow::anyhow!("the weight map's lock is poisoned"))?
+        .iter()
+        .map(|(k, v)| (k.clone(), v.as_tensor().detach()))
+        .collect();
+    let net = Denoiser::new(
+        &cfg,
+        candle_nn::VarBuilder::from_tensors(frozen, DType::F32, dev),
+    )?;
+    // the rig as training builds it: one camera per view through Denoiser::geometry
+    let geometry = match &cc.gcma {
+        Some(_) => {
+            let cams = vec![sim_camera(image_hw.1, image_hw.0)?; cc.num_views];
+            Some(net.geometry(&cams, &epipolar, dev)?)
+        }
+        None => None,
+    };
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(args.seed + 3);
+    let (x, t) = inputs(&cfg, b, args.seed, dev)?;
+    let n = b * cc.num_views;
+    // random encoder pyramids of the cues the model takes
+    let mut pyramid = |channels: &[usize]| -> Result<Vec<Tensor>> {
+        channels
+            .iter()
+            .zip(&cc.feature_sizes)
+            .map(|(&c, &[h, w])| normal_tensor(&mut rng, &[n, c, h, w], 1.0, dev))
+            .collect()
+    };
+    let semantic = match cc.cues {
+        veila_nn::Cues::DepthOnly => None,
+        _ => Some(pyramid(&cc.semantic_channels)?),
+    };
+    let depth = match cc.cues {
+        veila_nn::Cues::SemanticOnly => None,
+        _ => Some(pyramid(&cc.depth_channels)?),
+    };
+    let keep_v: Vec<f32> = (0..b).map(|i| if i % 2 == 0 { 1.0 } else { 0.0 }).collect();
+    let keep = Tensor::from_vec(keep_v, b, dev)?;
+    let input = veila_nn::ConditionInput {
+        semantic: semantic.clone(),
+        depth: depth.clone(),
+        keep: Some(keep.clone()),
+    };
+    // as training runs it: the fusion, then the network with the per-sample keep of condition dropout
+    let prepared = net.prepare_condition(&input, geometry.as_ref())?;
+    let y = net.forward(&x, &t, Some(&prepared))?;
+    let dropped = prepared.clone().with_keep(Some(keep.zeros_like()?));
+    let y0 = net.forward(&x, &t, Some(&dropped))?;
+    let effect = ((&y - &y0)?.sqr()?.sum_all()?.sqrt()?.to_scalar::<f32>()?
+        / y.sqr()?.sum_all()?.sqrt()?.to_scalar::<f32>()?) as f64;
+
+    let mut reference = std::collections::HashMap::new();
+    reference.insert("x".to_string(), x);
+    reference.insert("t".to_string(), t);
+    reference.insert("y".to_string(), y);
+    reference.insert("keep".to_string(), keep);
+    if let Some(rf) = net.ray_features() {
+        reference.insert("ray_features".to_string(), rf.clone());
+    }
+    for (cue, pyramid) in [("semantic", &semantic), ("depth", &depth)] {
+        for (i, f) in pyramid.iter().flatten().enumerate() {
+            reference.insert(format!("{cue}.{i}"), f.clone());
+        }
+    }
+    for (i, f) in prepared.fused.iter().enumerate() {
+        reference.insert(format!("fused.{i}"), f.clone());
+    }
+    let mut gcma_levels = Vec::new();
+    if let Some(g) = &geometry {
+        for lg in g.levels() {
+            gcma_levels.push(lg.level());
+            for (name, tensor) in lg.named_tensors() {
+                reference.insert(format!("gcma.{}.{name}", lg.level()), tensor);
+            }
+        }
+    }
+    let info = ExportInfo {
+        network: args.network.name(),
+        grid: [cfg.height(), cfg.width()],
+        image: [image_hw.0, image_hw.1],
+        params,
+        batch: b,
+        perturbed_parameters: perturbed,
+        weights_from,
+        epipolar,
+        gcma_levels,
+        num_views: cc.num_views,
+        conditioning_effect_rel_l2: effect,
+    };
+    // everything is written into a staging folder beside DIR first, then moved in
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let stage = staging_dir_beside(dir)?;
+    let staged = (|| -> Result<()> {
+        std::fs::write(
+            stage.join("config.json"),
+            serde_json::to_string_pretty(&cfg)?,
+        )?;
+        std::fs::write(
+            stage.join("export.json"),
+            serde_json::to_string_pretty(&info)?,
+        )?;
+        varmap.save(stage.join("weights.safetensors"))?;
+        candle_core::safetensors::save(&reference, stage.join("reference.safetensors"))?;
+        Ok(())
+    })();
+    if let Err(e) = staged {
+        let _ = std::fs::remove_dir_all(&stage);
+        return Err(e.context(format!("writing the export into {}", stage.display())));
+    }
+    for f in [
+        "config.json",
+        "export.json",
+        "weights.safetensors",
+        "reference.safetensors",
+    ] {
+        std::fs::rename(stage.join(f), dir.join(f))
+            .with_context(|| format!("moving {f} into {}", dir.display()))?;
+    }
+    std::fs::remove_dir(&stage).with_context(|| format!("removing {}", stage.display()))?;
+    eprintln!(
+        "wrote {} ({}x{}, {params} parameters, batch {b}, keep alternating 1/0; the image \
+         changes the output by {effect:.3} relative L2) to {}",
+        info.network,
+        cfg.height(),
+        cfg.width(),
+        dir.display()
+    );
+    Ok(())
+}
+
+/// A fresh, empty folder beside `dir` (same file system, so its files can be renamed into `dir`).
+fn staging_dir_beside(dir: &std::path::Path) -> Result<std::path::PathBuf> {
+    let name = dir
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "export".into());
+    let stage = dir.with_file_name(format!(".{name}.partial-{}", std::process::id()));
+    if stage.exists() {
+        std::fs::remove_dir_all(&stage)
+            .with_context(|| format!("removing the stale {}", stage.display()))?;
+    }
+    std::fs::create_dir(&stage).with_context(|| format!("creating {}", stage.display()))?;
+    Ok(stage)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn grids_parse_and_bad_ones_are_refused() {
+        assert_eq!(parse_grid("16x256"), Ok((16, 256)));
+        assert_eq!(parse_grid("64X1024"), Ok((64, 1024)));
+        for bad in ["16", "0x256", "16x", "axb", "16x-4"] {
+            assert!(parse_grid(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn paper_export_holds_the_geometry_and_the_condition_moves_the_output() {
+        use clap::Parser;
+        #[derive(Parser)]
+        struct Cli {
+            #[command(flatten)]
+            args: BenchModelArgs,
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("ys");
+        let cli = Cli::try_parse_from([
+            "bench-model",
+            "--network",
+            "paper",
+            "--grid",
+            "8x64",
+            "--base-channels",
+            "8",
+            "--export",
+            out.to_str().unwrap(),
+        ])
+        .unwrap();
+        run(cli.args).unwrap();
+        let info: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("export.json")).unwrap())
+                .unwrap();
+        assert_eq!(info["grid"], serde_json::json!([8, 64]));
+        assert_eq!(info["gcma_levels"], serde_json::json!([0, 1, 2, 3]));
+        // GroupNorm affines and the four encoder + four decoder zero convolutions at least
+        assert!(info["perturbed_parameters"].as_u64().unwrap() > 16);
+        let effect = info["conditioning_effect_rel_l2"].as_f64().unwrap();
+        assert!(effect > 1e-3 && effect.is_finite(), "{effect}");
+        let reference =
+            candle_core::safetensors::load(out.join("reference.safetensors"), &Device::Cpu)
+                .unwrap();
+        for level in 0..4 {
+            let active = &reference[&format!("gcma.{level}.active")];
+            let valid = &reference[&format!("gcma.{level}.valid")];
+            assert_eq!(active.dtype(), DType::U32);
+            assert_eq!(valid.dim(0).unwrap(), active.dim(0).unwrap());
+            assert!(active.dim(0).unwrap() > 0, "level {level}: no active pixel");
+        }
+        assert_eq!(reference["keep"].to_vec1::<f32>().unwrap(), [1.0, 0.0]);
+        // no staging folder left behind
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
 
     #[test]
     fn frozen_config_is_the_small_unconditional_model() {
