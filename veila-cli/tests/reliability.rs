@@ -536,7 +536,7 @@ fn long_generate(tmp: &Path, sim: &Path) -> std::process::Child {
     let t = Instant::now();
     while leftovers(tmp)
         .iter()
-        .all(|n| !n.starts_with(".veila-staging-"))
+        .all(|n| !n.starts_with(".veila-staging."))
     {
         assert!(
             t.elapsed() < Duration::from_secs(120),
@@ -572,11 +572,16 @@ fn interrupts_leave_nothing_behind_and_killed_runs_are_swept() {
         );
         assert!(!tmp.path().join("out").exists());
     }
-    // SIGKILL cannot be caught: the staging folder stays until the next veila writes beside it
+    // SIGKILL cannot be caught: the staging folder and the lock file stay until the next veila
+    // writes beside them
     let mut child = long_generate(tmp.path(), &sim);
     kill(&child, "-KILL");
     child.wait().unwrap();
-    assert_eq!(leftovers(tmp.path()).len(), 1);
+    let mut left = leftovers(tmp.path());
+    left.sort();
+    assert_eq!(left.len(), 2, "{left:?}");
+    assert_eq!(left[0], ".veila-lock.out");
+    assert!(left[1].starts_with(".veila-staging.out."), "{left:?}");
     // a temporary file of another dead process, too
     std::fs::write(tmp.path().join(".veila-4194999-abc.tmp"), b"x").unwrap();
     let d = inputs();
