@@ -3,35 +3,9 @@
 //! id space it was told; `veila sensors` prints a valid sensor file for every preset.
 
 use std::path::{Path, PathBuf};
-use std::process::Output;
 
 mod common;
 use common::*;
-
-fn fails_with(o: &Output, needles: &[&str]) {
-    let e = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success(), "expected a failure:\n{e}");
-    for n in needles {
-        assert!(e.contains(n), "stderr lacks `{n}`:\n{e}");
-    }
-    assert!(!e.contains("panicked"), "panic:\n{e}");
-}
-
-/// A `.npy` (format 1.0) of float32 `values` with the Python tuple `shape`.
-fn npy_f32(path: &Path, shape: &str, values: &[f32]) {
-    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}");
-    while (10 + header.len() + 1) % 64 != 0 {
-        header.push(' ');
-    }
-    header.push('\n');
-    let mut out = b"\x93NUMPY\x01\x00".to_vec();
-    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
-    for v in values {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
-    std::fs::write(path, out).unwrap();
-}
 
 /// Seeded values in [0, 1) (a linear congruential generator).
 fn values(n: usize, seed: u64) -> Vec<f32> {

@@ -4,54 +4,13 @@
 //! run, and interrupts that say what was kept.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
-use std::time::{Duration, Instant};
+use std::process::Output;
 
 mod common;
 use common::*;
 
 fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
-}
-
-fn fails_with(o: &Output, needles: &[&str]) {
-    let e = stderr(o);
-    assert!(!o.status.success(), "expected a failure:\n{e}");
-    for n in needles {
-        assert!(e.contains(n), "stderr lacks `{n}`:\n{e}");
-    }
-    assert!(!e.contains("panicked"), "panic:\n{e}");
-}
-
-/// Every name in `dir`, sorted.
-fn names(dir: &Path) -> Vec<String> {
-    let mut v: Vec<String> = std::fs::read_dir(dir)
-        .unwrap()
-        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .collect();
-    v.sort();
-    v
-}
-
-/// Names in `dir` a veila process leaves while it works.
-fn leftovers(dir: &Path) -> Vec<String> {
-    names(dir)
-        .into_iter()
-        .filter(|n| n.starts_with(".veila-"))
-        .collect()
-}
-
-fn generate(sim: &Path, out: &Path, extra: &[&str]) -> Command {
-    let mut c = veila();
-    c.args(["generate", "--quiet", "--steps", "1"])
-        .args(extra)
-        .arg("--image")
-        .arg(sim.join("image_2/000000.png"))
-        .arg("--calib")
-        .arg(sim.join("calib/000000.txt"))
-        .arg("--out")
-        .arg(out);
-    c
 }
 
 fn simulate_into(scene: &Path, out: &Path, frames: u32, force: bool) -> Output {
@@ -72,11 +31,13 @@ fn force_replaces_the_commands_own_files_and_nothing_else() {
     let tmp = tempfile::tempdir().unwrap();
     let sim = simulate(tmp.path(), &tiny_scene(16, 128, 1), 0);
     let out = tmp.path().join("gen");
-    ok(&generate(&sim, &out, &["--samples", "2"]).output().unwrap());
+    ok(&generate_cmd(&sim, &out, &["--samples", "2"])
+        .output()
+        .unwrap());
     // a user's file named like an output (the issue's `scan_2024_notes.txt`) and another
     std::fs::write(out.join("scan_2024_notes.txt"), "mine").unwrap();
     std::fs::write(out.join("scan_001_notes.txt"), "mine too").unwrap();
-    ok(&generate(&sim, &out, &["--force"]).output().unwrap());
+    ok(&generate_cmd(&sim, &out, &["--force"]).output().unwrap());
     let n = names(&out);
     assert!(n.contains(&"scan_2024_notes.txt".to_string()), "{n:?}");
     assert!(n.contains(&"scan_001_notes.txt".to_string()), "{n:?}");
@@ -146,52 +107,18 @@ fn frames_beyond_the_scene_limit_are_refused_before_work() {
     assert!(names(tmp.path()) == ["tiny.toml"]);
 }
 
-/// Starts `veila generate` with many steps into `out`; returns once it holds the folder.
-fn long_generate(sim: &Path, out: &Path) -> std::process::Child {
-    let child = veila()
-        .args(["generate", "--quiet", "--steps", "1000", "--image"])
-        .arg(sim.join("image_2/000000.png"))
-        .arg("--calib")
-        .arg(sim.join("calib/000000.txt"))
-        .arg("--out")
-        .arg(out)
-        .arg("--force")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let parent = out.parent().unwrap();
-    let t = Instant::now();
-    while !leftovers(parent)
-        .iter()
-        .any(|n| n.starts_with(".veila-staging."))
-    {
-        assert!(t.elapsed() < Duration::from_secs(120), "no staging folder");
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    child
-}
-
-fn signal(child: &std::process::Child, sig: &str) {
-    let st = Command::new("kill")
-        .args([sig, &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(st.success());
-}
-
 #[cfg(unix)]
 #[test]
 fn a_second_writer_is_refused_and_a_killed_one_is_cleaned_up_by_the_next() {
     let tmp = tempfile::tempdir().unwrap();
     let sim = simulate(tmp.path(), &tiny_scene(16, 128, 1), 0);
     let out = tmp.path().join("gen");
-    ok(&generate(&sim, &out, &[]).output().unwrap());
+    ok(&generate_cmd(&sim, &out, &[]).output().unwrap());
     let old = std::fs::read(out.join("generate.json")).unwrap();
-    let mut first = long_generate(&sim, &out);
+    let mut first = long_generate(&sim, &out, &["--force"]);
     // the second writer of the same folder (another spelling of it) gets a clear error at once
     let other = tmp.path().join(".").join("gen");
-    let o = generate(&sim, &other, &["--force", "--seed", "7"])
+    let o = generate_cmd(&sim, &other, &["--force", "--seed", "7"])
         .output()
         .unwrap();
     fails_with(&o, &["another veila process is writing"]);
@@ -205,7 +132,7 @@ fn a_second_writer_is_refused_and_a_killed_one_is_cleaned_up_by_the_next() {
         .path()
         .join(format!(".veila-staging-{}-abc", std::process::id()));
     std::fs::create_dir(&fake).unwrap();
-    ok(&generate(&sim, &out, &["--force", "--seed", "7"])
+    ok(&generate_cmd(&sim, &out, &["--force", "--seed", "7"])
         .output()
         .unwrap());
     assert_ne!(std::fs::read(out.join("generate.json")).unwrap(), old);
@@ -218,10 +145,10 @@ fn an_interrupt_says_what_was_kept_and_leaves_nothing() {
     let tmp = tempfile::tempdir().unwrap();
     let sim = simulate(tmp.path(), &tiny_scene(16, 128, 1), 0);
     let out = tmp.path().join("gen");
-    ok(&generate(&sim, &out, &[]).output().unwrap());
+    ok(&generate_cmd(&sim, &out, &[]).output().unwrap());
     let old = std::fs::read(out.join("scan_000.bin")).unwrap();
     for sig in ["-INT", "-TERM"] {
-        let child = long_generate(&sim, &out);
+        let child = long_generate(&sim, &out, &["--force"]);
         signal(&child, sig);
         let o = child.wait_with_output().unwrap();
         assert!(!o.status.success());

@@ -51,14 +51,6 @@ fn tree(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
     out
 }
 
-fn leftovers(dir: &Path) -> Vec<String> {
-    std::fs::read_dir(dir)
-        .unwrap()
-        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .filter(|n| n.starts_with(".veila-"))
-        .collect()
-}
-
 #[derive(Default, Debug)]
 struct Tally {
     runs: usize,
@@ -213,17 +205,18 @@ fn signals_and_concurrent_writers_never_leave_a_mixed_output() {
     let generate = Job {
         name: "generate --force",
         make: Box::new(|k, out| {
-            let mut c = veila();
-            c.args(["generate", "--quiet", "--force", "--steps", "4", "--seed"])
-                .arg(k.to_string())
-                .args(["--samples", if k == 0 { "2" } else { "1" }])
-                .arg("--image")
-                .arg(sim.join("image_2/000000.png"))
-                .arg("--calib")
-                .arg(sim.join("calib/000000.txt"))
-                .arg("--out")
-                .arg(out);
-            c
+            let seed = k.to_string();
+            let samples = if k == 0 { "2" } else { "1" };
+            let args = [
+                "--force",
+                "--steps",
+                "4",
+                "--seed",
+                &seed,
+                "--samples",
+                samples,
+            ];
+            generate_cmd(&sim, out, &args)
         }),
     };
     let simulate = Job {
