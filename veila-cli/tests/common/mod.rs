@@ -115,12 +115,15 @@ pub fn leftovers(dir: &Path) -> Vec<String> {
         .collect()
 }
 
-/// `veila generate --quiet --steps 1` of frame 0 of the simulated folder `sim` into `out`, with
-/// `extra` arguments (later ones win).
+/// `veila generate --quiet` of frame 0 of the simulated folder `sim` into `out`, with `extra`
+/// arguments (`--steps 1` unless they give `--steps`).
 pub fn generate_cmd(sim: &Path, out: &Path, extra: &[&str]) -> Command {
     let mut c = veila();
-    c.args(["generate", "--quiet", "--steps", "1"])
-        .args(extra)
+    c.args(["generate", "--quiet"]);
+    if !extra.contains(&"--steps") {
+        c.args(["--steps", "1"]);
+    }
+    c.args(extra)
         .arg("--image")
         .arg(sim.join("image_2/000000.png"))
         .arg("--calib")
