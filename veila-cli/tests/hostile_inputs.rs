@@ -150,3 +150,75 @@ fn cm_sc_refuses_raw_ids_read_as_train_ids() {
         ],
     );
 }
+
+/// A KITTI frame of the real samples (`I`, `C` of the repros), or `None` with a message.
+fn kitti_frame() -> Option<(PathBuf, PathBuf, PathBuf)> {
+    let real =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/real/kitti_mmdet3d_demo");
+    if !real.is_dir() {
+        eprintln!("skipped: {} is absent", real.display());
+        return None;
+    }
+    Some((
+        real.join("velodyne_reduced/000008.bin"),
+        real.join("image_2/000008.png"),
+        real.join("calib/000008.txt"),
+    ))
+}
+
+#[test]
+fn weather_names_the_calibration_with_a_negative_focal_length() {
+    let Some((scan, image, calib)) = kitti_frame() else {
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(&calib).unwrap();
+    let bad = tmp.path().join("negative_focal.txt");
+    std::fs::write(&bad, text.replacen("P2: ", "P2: -", 1)).unwrap();
+    let o = veila()
+        .arg("weather")
+        .arg(&scan)
+        .arg("--image")
+        .arg(&image)
+        .arg("--calib")
+        .arg(&bad)
+        .args(["--preset", "fog-moderate", "--out"])
+        .arg(tmp.path().join("o"))
+        .output()
+        .unwrap();
+    fails_with(&o, &["negative_focal.txt", "invalid camera"]);
+    assert!(!tmp.path().join("o").exists());
+}
+
+#[test]
+fn a_one_pixel_depth_map_is_read_and_its_mismatch_named() {
+    let Some((scan, _, calib)) = kitti_frame() else {
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let (gen_, maps, cal) = (
+        tmp.path().join("g"),
+        tmp.path().join("d"),
+        tmp.path().join("c"),
+    );
+    for d in [&gen_, &maps, &cal] {
+        std::fs::create_dir(d).unwrap();
+    }
+    std::fs::copy(&scan, gen_.join("000008.bin")).unwrap();
+    std::fs::copy(&calib, cal.join("000008.txt")).unwrap();
+    // a (1, 1) array is a 1 x 1 map (not "must have shape [H, W], this one has [1, 1]"), and a
+    // map that small cannot be the camera image's: the calibration's principal point says so
+    npy_f32(&maps.join("000008.npy"), "(1, 1)", &[5.0]);
+    let o = veila()
+        .args(["eval", "--quiet", "--metrics", "cm-dc", "--generated"])
+        .arg(&gen_)
+        .arg("--reference")
+        .arg(&gen_)
+        .arg("--calib")
+        .arg(&cal)
+        .arg("--depth-maps")
+        .arg(&maps)
+        .output()
+        .unwrap();
+    fails_with(&o, &["000008.txt", "principal point", "1 x 1 image"]);
+}

@@ -74,6 +74,15 @@ pub fn read_camera(calib: &Path, width: u32, height: u32) -> Result<PinholeCamer
         Error::Invalid { message, .. } => Error::format(calib, message),
         other => other,
     })?;
+    let (fx, fy) = (cam.intrinsics.x_axis.x, cam.intrinsics.y_axis.y);
+    if !(fx > 0.0 && fy > 0.0) {
+        return Err(Error::format(
+            calib,
+            format!(
+                "calibration gives an invalid camera: focal lengths fx {fx}, fy {fy} must be positive"
+            ),
+        ));
+    }
     // a principal point outside the image: the calibration belongs to an image of another size
     // (a 1 x 1 map read as a camera image, say), and no point would ever project into it
     let (cx, cy) = (cam.intrinsics.z_axis.x, cam.intrinsics.z_axis.y);
