@@ -76,7 +76,7 @@ fn may_improve(lb: f32, best: f64) -> bool {
 }
 
 /// The most points one [`PointIndex`] takes (4 Mi: 30 times a KITTI scan). The index and its build
-/// need some [`INDEX_BYTES_PER_POINT`] bytes per point, and Chamfer and MMD-CD hold an index per
+/// need some 300 bytes per point, and Chamfer and MMD-CD hold an index per
 /// scan: two scans of 16 Mi points (what a scan file may hold) would need ~10 GB, so they are
 /// refused with an error naming the scan before anything is allocated.
 pub const MAX_INDEX_POINTS: usize = 1 << 22;
