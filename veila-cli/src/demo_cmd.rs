@@ -337,6 +337,7 @@ fn is_earlier_demo_output(dir: &Path) -> bool {
     };
     let names: Vec<String> = entries
         .filter_map(|e| e.ok().map(|e| e.file_name().to_string_lossy().into_owned()))
+        .filter(|n| n != crate::staging::MANIFEST)
         .collect();
     names.iter().any(|n| n == "metrics.json")
         && names.iter().all(|n| DEMO_FILES.contains(&n.as_str()))

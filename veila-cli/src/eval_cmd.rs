@@ -1344,6 +1344,13 @@ fn crossmodal_metrics(
                     let dir = a.semantic_maps.as_deref().expect("checked");
                     let mp = companion(dir, &stem, &["png"], "class map", f)?;
                     let mut map = veila_data::image_io::read_label_map(&mp)?;
+                    if a.semantic_ids == SemanticIdsArg::Train {
+                        veila_metrics::crossmodal::check_train_ids(
+                            &map.data,
+                            &mp.display().to_string(),
+                        )
+                        .context("--semantic-ids train (pass --semantic-ids raw for raw ids)")?;
+                    }
                     if a.semantic_ids == SemanticIdsArg::Raw {
                         for v in &mut map.data {
                             *v = u32::from(veila_data::sim::class::learning_id(

@@ -73,8 +73,13 @@ enum Command {
     /// Train a model bundle (encoders and denoiser) on converted shards from a TOML config;
     /// resumable: rerunning the same config continues from the newest checkpoint.
     Train(train_cmd::TrainArgs),
-    /// Print the built-in sensor presets as TOML (a starting point for `--sensor FILE.toml`).
-    Sensors,
+    /// Print a built-in sensor preset as a sensor file (TOML; a starting point for
+    /// `--sensor FILE.toml`).
+    Sensors {
+        /// The preset: hdl64e, hdl32e or hdl32e-per-beam.
+        #[arg(default_value = "hdl64e")]
+        preset: String,
+    },
     /// Print a shell completion script (e.g. `veila completions bash > ~/.local/share/bash-completion/completions/veila`).
     Completions {
         /// The shell.
@@ -140,7 +145,11 @@ fn main() {
     restore_default_sigpipe();
     process::tune_process();
     staging::install_signal_cleanup();
-    let cli = match Cli::from_arg_matches(&cli_command().get_matches()) {
+    let matches = cli_command().get_matches();
+    if let Some(name) = matches.subcommand_name() {
+        staging::set_command(name);
+    }
+    let cli = match Cli::from_arg_matches(&matches) {
         Ok(cli) => cli,
         Err(e) => e.exit(),
     };
@@ -185,13 +194,8 @@ fn run(command: Command) -> Result<()> {
             clap_complete::generate(shell, &mut cli_command(), "veila", &mut std::io::stdout());
             Ok(())
         }
-        Command::Sensors => {
-            for (name, sensor) in [
-                ("hdl64e", veila_geom::LidarSensor::hdl64e()),
-                ("hdl32e", veila_geom::LidarSensor::hdl32e()),
-            ] {
-                println!("# preset {name}\n{}", toml::to_string_pretty(&sensor)?);
-            }
+        Command::Sensors { preset } => {
+            print!("{}", veila_data::spec::sensor_preset_toml(&preset)?);
             Ok(())
         }
     }

@@ -33,7 +33,8 @@ pub(crate) struct SimulateArgs {
     /// Random seed of the scene layout and the sensor noise.
     #[arg(long, value_name = "S", default_value_t = 0)]
     seed: u64,
-    /// Write into an existing, non-empty output directory (same-named files are replaced).
+    /// Write into an existing, non-empty output directory: the files of an earlier `simulate` there
+    /// are replaced (none of its frames stays beside the new ones), every other file is kept.
     #[arg(long)]
     force: bool,
 }
@@ -47,8 +48,15 @@ pub(crate) fn run(cmd: SimCmd) -> Result<()> {
 fn simulate(args: SimulateArgs) -> Result<()> {
     let config = SceneConfig::from_file(&args.scene)?;
     let frames = args.frames.unwrap_or(config.frames.count);
-    if frames == 0 {
-        bail!("--frames must be at least 1");
+    let max = veila_data::sim::config::MAX_FRAMES;
+    if !(1..=max).contains(&frames) {
+        match args.frames {
+            Some(n) => bail!("--frames {n}: must be between 1 and {max}"),
+            None => bail!(
+                "{}: frames.count {frames}: must be between 1 and {max}",
+                args.scene.display()
+            ),
+        }
     }
     let out = &args.out;
     let mut inputs = staging::Inputs::new();

@@ -838,6 +838,12 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
             .as_ref()
             .map(|p| p.display().to_string()),
     };
+    // one writer per run folder; a killed earlier run's partial files go, checkpoints stay
+    let _run_lock = if group.is_main() {
+        Some(crate::staging::lock_train_run(out, &ck_dir)?)
+    } else {
+        None
+    };
     if group.is_main() {
         veila_diffusion::claim_checkpoint_dir(&ck_dir, &fingerprint).with_context(|| {
             format!(

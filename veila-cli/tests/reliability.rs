@@ -4,8 +4,7 @@
 //! leave nothing behind, and identical runs write identical bytes.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
-use std::time::{Duration, Instant};
+use std::process::{Command, Output};
 
 use veila_data::PointCloud;
 use veila_data::image::{Rgb, RgbImage};
@@ -17,20 +16,6 @@ use common::*;
 
 fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
-}
-
-/// Asserts a command failed with a message containing every one of `needles`.
-fn fails_with(o: &Output, needles: &[&str]) {
-    let e = stderr(o);
-    assert!(
-        !o.status.success(),
-        "expected a failure, got success; stdout:\n{}",
-        String::from_utf8_lossy(&o.stdout)
-    );
-    for n in needles {
-        assert!(e.contains(n), "stderr lacks `{n}`:\n{e}");
-    }
-    assert!(!e.contains("panicked"), "panic:\n{e}");
 }
 
 /// A small KITTI scan: a ring of points around the sensor.
@@ -66,17 +51,6 @@ fn inputs() -> tempfile::TempDir {
     std::fs::write(d.path().join("img.png"), png_bytes()).unwrap();
     std::fs::write(d.path().join("calib.txt"), KITTI_CALIB).unwrap();
     d
-}
-
-/// Names in `dir` that a veila process leaves while it works (staging folders, temporary files).
-fn leftovers(dir: &Path) -> Vec<String> {
-    std::fs::read_dir(dir)
-        .unwrap()
-        .filter_map(|e| {
-            let n = e.unwrap().file_name().to_string_lossy().into_owned();
-            n.starts_with(".veila-").then_some(n)
-        })
-        .collect()
 }
 
 fn read(p: &Path) -> Vec<u8> {
@@ -522,37 +496,7 @@ fn weather_without_effects_still_checks_its_inputs() {
 
 /// Starts a long `veila generate` into `tmp/out` and waits until its staging folder exists.
 fn long_generate(tmp: &Path, sim: &Path) -> std::process::Child {
-    let child = veila()
-        .args(["generate", "--quiet", "--steps", "1000", "--image"])
-        .arg(sim.join("image_2/000000.png"))
-        .arg("--calib")
-        .arg(sim.join("calib/000000.txt"))
-        .arg("--out")
-        .arg(tmp.join("out"))
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let t = Instant::now();
-    while leftovers(tmp)
-        .iter()
-        .all(|n| !n.starts_with(".veila-staging-"))
-    {
-        assert!(
-            t.elapsed() < Duration::from_secs(120),
-            "no staging folder appeared"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    child
-}
-
-fn kill(child: &std::process::Child, signal: &str) {
-    let st = Command::new("kill")
-        .args([signal, &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(st.success());
+    common::long_generate(sim, &tmp.join("out"), &[])
 }
 
 #[cfg(unix)]
@@ -562,7 +506,7 @@ fn interrupts_leave_nothing_behind_and_killed_runs_are_swept() {
     let sim = simulate(tmp.path(), &tiny_scene(16, 128, 1), 0);
     for signal in ["-INT", "-TERM"] {
         let mut child = long_generate(tmp.path(), &sim);
-        kill(&child, signal);
+        common::signal(&child, signal);
         let st = child.wait().unwrap();
         assert!(!st.success(), "{signal}");
         assert!(
@@ -572,11 +516,16 @@ fn interrupts_leave_nothing_behind_and_killed_runs_are_swept() {
         );
         assert!(!tmp.path().join("out").exists());
     }
-    // SIGKILL cannot be caught: the staging folder stays until the next veila writes beside it
+    // SIGKILL cannot be caught: the staging folder and the lock file stay until the next veila
+    // writes beside them
     let mut child = long_generate(tmp.path(), &sim);
-    kill(&child, "-KILL");
+    common::signal(&child, "-KILL");
     child.wait().unwrap();
-    assert_eq!(leftovers(tmp.path()).len(), 1);
+    let mut left = leftovers(tmp.path());
+    left.sort();
+    assert_eq!(left.len(), 2, "{left:?}");
+    assert_eq!(left[0], ".veila-lock.out");
+    assert!(left[1].starts_with(".veila-staging.out."), "{left:?}");
     // a temporary file of another dead process, too
     std::fs::write(tmp.path().join(".veila-4194999-abc.tmp"), b"x").unwrap();
     let d = inputs();

@@ -10,7 +10,7 @@
 //! - **Resumable**: a shard whose sidecar exists, was made with the same settings, from source files
 //!   with the same contents (SHA-256 of every file of every frame, [`Dataset::source_files`]: a frame
 //!   changed under the same id is noticed) and matches the shard file's size and SHA-256 is skipped;
-//!   anything else is rebuilt. Temporary files of a killed run (`.veila-PID-*.tmp`) are removed
+//!   anything else is rebuilt. Temporary files of a killed run (`.veila-*.tmp`, which nobody holds locked any more) are removed
 //!   when the next run starts.
 //! - **Shardable**: worker `i` of `n` converts the shards `k` with `k % n == i`, so the same command
 //!   runs as a Slurm array or a Kubernetes Indexed Job. Whichever worker finds every shard complete

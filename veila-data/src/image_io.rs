@@ -142,14 +142,18 @@ pub fn read_depth_map(path: &Path) -> Result<ImageMap<f32>> {
                 .into_iter()
                 .next()
                 .ok_or_else(|| Error::format(path, "no array"))?;
-            let dims: Vec<usize> = a.shape.iter().copied().skip_while(|&d| d == 1).collect();
-            let (h, w) = match dims.as_slice() {
+            // leading axes of size 1 go, down to the two of [H, W] (a 1 x 1 map keeps both)
+            let extra = a.shape.len().saturating_sub(2);
+            let lead = a.shape.iter().take(extra).take_while(|&&d| d == 1).count();
+            let dims = &a.shape[lead..];
+            let (h, w) = match dims {
                 [h, w] if *h > 0 && *w > 0 => (*h, *w),
                 _ => {
                     return Err(Error::format(
                         path,
                         format!(
-                            "a depth map must have shape [H, W], this one has {:?}",
+                            "a depth map must have shape [H, W] (leading axes of size 1 allowed) \
+                             with H, W > 0; this one has {:?}",
                             a.shape
                         ),
                     ));

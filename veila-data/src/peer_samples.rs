@@ -40,6 +40,11 @@ fn lower_name(path: &Path) -> String {
         .unwrap_or_default()
 }
 
+/// The most values one file may hold, all its arrays together (2 GiB as `float32`): a sample set
+/// beyond it is refused from its headers, before anything is allocated. A 10 MB `.npz` of zeros
+/// would otherwise unpack to 10 GB.
+pub const MAX_SAMPLE_VALUES: u64 = 1 << 29;
+
 /// Deflate's largest compression ratio (a run of one byte), rounded up.
 const MAX_DEFLATE_RATIO: u64 = 1032;
 
@@ -96,6 +101,11 @@ pub fn refuse_pickle(path: &Path) -> Result<()> {
 /// the file: pickles, object arrays, other dtypes, Fortran order, or a header whose shape does not fit
 /// the bytes present (memory is bounded by the file's size).
 pub fn read_sample_arrays(path: &Path) -> Result<Vec<SampleArray>> {
+    read_sample_arrays_within(path, MAX_SAMPLE_VALUES)
+}
+
+/// [`read_sample_arrays`] with at most `max_values` values in all.
+fn read_sample_arrays_within(path: &Path, max_values: u64) -> Result<Vec<SampleArray>> {
     refuse_pickle(path)?;
     let name = lower_name(path);
     if name.ends_with(".npz") {
@@ -110,6 +120,7 @@ pub fn read_sample_arrays(path: &Path) -> Result<Vec<SampleArray>> {
         }
         names.sort();
         let mut out = Vec::new();
+        let mut budget = max_values;
         for member in names {
             if member.ends_with(".pkl") {
                 return Err(pickle_error(path, &format!("member {member} is a pickle")));
@@ -133,7 +144,9 @@ pub fn read_sample_arrays(path: &Path) -> Result<Vec<SampleArray>> {
                 ));
             }
             let what = format!("member {member}");
-            out.push(read_npy(entry, size, path, stem.to_string(), &what)?);
+            let array = read_npy(entry, size, path, stem.to_string(), &what, budget)?;
+            budget -= array.data.len() as u64;
+            out.push(array);
         }
         if out.is_empty() {
             return Err(Error::format(path, "the .npz archive holds no .npy array"));
@@ -152,6 +165,7 @@ pub fn read_sample_arrays(path: &Path) -> Result<Vec<SampleArray>> {
             path,
             stem,
             "array",
+            max_values,
         )?])
     }
 }
@@ -162,6 +176,7 @@ fn read_npy<R: Read>(
     path: &Path,
     name: String,
     what: &str,
+    budget: u64,
 ) -> Result<SampleArray> {
     let npy = npyz::NpyFile::new(reader)
         .map_err(|e| Error::format(path, format!("{what}: not a valid .npy array: {e}")))?;
@@ -211,16 +226,42 @@ fn read_npy<R: Read>(
             ),
         ));
     }
-    let data: Vec<f32> = if is_f32 {
-        npy.into_vec::<f32>()
-            .map_err(|e| Error::format(path, format!("{what}: reading float32 data: {e}")))?
+    if count > budget {
+        return Err(Error::format(
+            path,
+            format!(
+                "{what}: shape {shape:?} holds {count} values, more than the {budget} left of the \
+                 {MAX_SAMPLE_VALUES} values a sample file may hold in all (split the set into several files)"
+            ),
+        ));
+    }
+    let mut data: Vec<f32> = Vec::new();
+    data.try_reserve_exact(count as usize).map_err(|_| {
+        Error::format(
+            path,
+            format!("{what}: not enough memory for shape {shape:?} ({count} values)"),
+        )
+    })?;
+    if is_f32 {
+        let values = npy
+            .data::<f32>()
+            .map_err(|e| Error::format(path, format!("{what}: reading float32 data: {e}")))?;
+        for v in values {
+            data.push(
+                v.map_err(|e| Error::format(path, format!("{what}: reading float32 data: {e}")))?,
+            );
+        }
     } else {
-        npy.into_vec::<f64>()
-            .map_err(|e| Error::format(path, format!("{what}: reading float64 data: {e}")))?
-            .into_iter()
-            .map(|v| v as f32)
-            .collect()
-    };
+        let values = npy
+            .data::<f64>()
+            .map_err(|e| Error::format(path, format!("{what}: reading float64 data: {e}")))?;
+        for v in values {
+            data.push(
+                v.map_err(|e| Error::format(path, format!("{what}: reading float64 data: {e}")))?
+                    as f32,
+            );
+        }
+    }
     if data.len() as u64 != count {
         return Err(Error::format(
             path,
@@ -304,6 +345,31 @@ pub(crate) mod tests {
                 "{name}: {e}"
             );
         }
+    }
+
+    #[test]
+    fn the_values_of_all_members_together_are_bounded_before_allocation() {
+        use std::io::Write;
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("two.npz");
+        let zeros = vec![0u8; 4 * 1000];
+        {
+            let mut z = zip::ZipWriter::new(std::fs::File::create(&p).unwrap());
+            let opts = zip::write::SimpleFileOptions::default()
+                .compression_method(zip::CompressionMethod::Deflated);
+            for m in ["a.npy", "b.npy"] {
+                z.start_file(m, opts).unwrap();
+                z.write_all(&npy_bytes("<f4", "(1000,)", &zeros)).unwrap();
+            }
+            z.finish().unwrap();
+        }
+        // each member fits, both together do not
+        assert_eq!(read_sample_arrays_within(&p, 2000).unwrap().len(), 2);
+        let e = read_sample_arrays_within(&p, 1500).unwrap_err().to_string();
+        assert!(
+            e.contains("two.npz") && e.contains("b.npy") && e.contains("500 left"),
+            "{e}"
+        );
     }
 
     #[test]

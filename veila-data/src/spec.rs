@@ -16,11 +16,10 @@ pub const SENSOR_PRESETS: [&str; 3] = ["hdl64e", "hdl32e", "hdl32e-per-beam"];
 /// A sensor from a preset name (`hdl64e`, `hdl32e`, `hdl32e-per-beam`) or a file: `*.toml` or
 /// `*.json` holding a [`LidarSensor`] (as `veila sensors` prints it). The sensor is validated.
 pub fn sensor_from_spec(spec: &str) -> Result<LidarSensor> {
-    let sensor = match spec {
-        "hdl64e" => LidarSensor::hdl64e(),
-        "hdl32e" => LidarSensor::hdl32e(),
-        "hdl32e-per-beam" => LidarSensor::hdl32e_per_beam(),
-        file => {
+    let sensor = match sensor_preset(spec) {
+        Some(s) => s,
+        None => {
+            let file = spec;
             let path = Path::new(file);
             let lower = file.to_lowercase();
             if !(lower.ends_with(".toml") || lower.ends_with(".json")) {
@@ -47,6 +46,38 @@ pub fn sensor_from_spec(spec: &str) -> Result<LidarSensor> {
         message: e.to_string(),
     })?;
     Ok(sensor)
+}
+
+/// The preset sensor of one of [`SENSOR_PRESETS`].
+pub fn sensor_preset(name: &str) -> Option<LidarSensor> {
+    match name {
+        "hdl64e" => Some(LidarSensor::hdl64e()),
+        "hdl32e" => Some(LidarSensor::hdl32e()),
+        "hdl32e-per-beam" => Some(LidarSensor::hdl32e_per_beam()),
+        _ => None,
+    }
+}
+
+/// A preset as a sensor file of its own (TOML, `*.toml` for [`sensor_from_spec`]), with a comment
+/// naming it and the other presets; an unknown name is an error listing them.
+pub fn sensor_preset_toml(name: &str) -> Result<String> {
+    let sensor = sensor_preset(name).ok_or_else(|| Error::Invalid {
+        what: "sensor preset".into(),
+        message: format!("`{name}`: the presets are {}", SENSOR_PRESETS.join(", ")),
+    })?;
+    let body = toml::to_string_pretty(&sensor).map_err(|e| Error::Invalid {
+        what: format!("sensor preset `{name}`"),
+        message: e.to_string(),
+    })?;
+    let others: Vec<&str> = SENSOR_PRESETS
+        .iter()
+        .copied()
+        .filter(|p| *p != name)
+        .collect();
+    Ok(format!(
+        "# veila sensor preset `{name}` (the others: {}; `veila sensors NAME` prints one)\n{body}",
+        others.join(", ")
+    ))
 }
 
 /// The kinds of calibration file [`camera_from_calib_file`] understands.
@@ -117,6 +148,22 @@ pub fn camera_from_calib_file(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_preset_prints_as_a_sensor_file_that_reads_back() {
+        let dir = tempfile::tempdir().unwrap();
+        for name in SENSOR_PRESETS {
+            let text = sensor_preset_toml(name).unwrap();
+            let p = dir.path().join(format!("{name}.toml"));
+            std::fs::write(&p, &text).unwrap();
+            let back = sensor_from_spec(p.to_str().unwrap()).unwrap();
+            assert_eq!(Some(back), sensor_preset(name), "{name}");
+        }
+        // the per-beam table survives (it is what sets this preset apart)
+        assert_ne!(sensor_preset("hdl32e-per-beam"), sensor_preset("hdl32e"),);
+        let e = sensor_preset_toml("vlp16").unwrap_err().to_string();
+        assert!(e.contains("vlp16") && e.contains("hdl32e-per-beam"), "{e}");
+    }
 
     #[test]
     fn presets_files_and_errors() {

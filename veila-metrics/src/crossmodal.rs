@@ -254,6 +254,37 @@ pub fn cm_depth_consistency<P: Copy + Into<Vec3>>(
     })
 }
 
+/// The largest SemanticKITTI train id (`0` ignored, `1..=19` the classes).
+pub const MAX_SEMANTIC_KITTI_TRAIN_ID: u32 = 19;
+
+/// The SemanticKITTI raw ids (`semantic-kitti.yaml`'s `labels`): what a raw-id map may hold.
+const SEMANTIC_KITTI_RAW_IDS: [u32; 34] = [
+    0, 1, 10, 11, 13, 15, 16, 18, 20, 30, 31, 32, 40, 44, 48, 49, 50, 51, 52, 60, 70, 71, 72, 80,
+    81, 99, 252, 253, 254, 255, 256, 257, 258, 259,
+];
+
+/// Refuse a class map for CM-SC that is not in SemanticKITTI train ids (`0..=19`), the space the
+/// per-point labels are in: comparing raw ids (10 car, 40 road, ..., what `veila simulate` writes
+/// to `semantic_2/`) with train ids would report near 0 % agreement as if it were a result. The
+/// error says whether the map looks like raw ids. `what` names the map.
+pub fn check_train_ids(labels: &[u32], what: &str) -> Result<()> {
+    let Some(index) = labels.iter().position(|&l| l > MAX_SEMANTIC_KITTI_TRAIN_ID) else {
+        return Ok(());
+    };
+    let raw = labels.iter().all(|l| SEMANTIC_KITTI_RAW_IDS.contains(l));
+    Err(Error::LabelSpace {
+        what: what.to_string(),
+        label: labels[index],
+        index,
+        space: "SemanticKITTI train (0..=19)",
+        hint: if raw {
+            "every value is a SemanticKITTI raw id (10 car, 40 road, ...): map it with the learning map (raw ids)".into()
+        } else {
+            "map the classes to SemanticKITTI train ids first".into()
+        },
+    })
+}
+
 /// CM-SC: semantic agreement between per-point labels of the generated points and a semantic map.
 pub fn cm_semantic_consistency<P: Copy + Into<Vec3>, L: Copy + Into<u32>, M: Copy + Into<u32>>(
     points: &[P],

@@ -58,6 +58,20 @@ pub enum Error {
         /// What is wrong with it.
         reason: String,
     },
+    /// A label map whose ids are not in the label space the metric compares in.
+    #[error("{what}: {label} at pixel {index} is not a {space} id; {hint}")]
+    LabelSpace {
+        /// Which map.
+        what: String,
+        /// The first offending label.
+        label: u32,
+        /// Its pixel (row-major index).
+        index: usize,
+        /// The expected label space, in words.
+        space: &'static str,
+        /// What the ids look like instead, in words.
+        hint: String,
+    },
     /// A dense linear-algebra routine failed (e.g. the eigensolver did not converge).
     #[error("linear algebra failure: {0}")]
     Linalg(String),

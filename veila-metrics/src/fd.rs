@@ -42,6 +42,35 @@ pub enum SqrtMethod {
     },
 }
 
+impl SqrtMethod {
+    /// The most Newton–Schulz iterations accepted (it converges quadratically: far fewer do).
+    pub const MAX_ITERATIONS: usize = 1000;
+
+    /// Refuse settings outside their sense: Newton–Schulz needs 1 to [`Self::MAX_ITERATIONS`]
+    /// iterations (0 would return the unconverged starting matrix's trace as if it were a result).
+    pub fn check(&self) -> Result<()> {
+        match *self {
+            SqrtMethod::NewtonSchulz { iterations }
+                if !(1..=Self::MAX_ITERATIONS).contains(&iterations) =>
+            {
+                Err(Error::InvalidParameter {
+                    name: "Newton-Schulz iterations",
+                    reason: format!(
+                        "{iterations}: must be between 1 and {}",
+                        Self::MAX_ITERATIONS
+                    ),
+                })
+            }
+            _ => Ok(()),
+        }
+    }
+}
+
+/// The largest feature dimension [`FeatureStats::try_new`] accepts: the statistics and the
+/// distance hold a few `dim x dim` matrices of `f64` (128 MiB each at this size). A wider feature
+/// row is refused before anything is allocated (a `(4, 65536)` array would need 34 GB per matrix).
+pub const MAX_FEATURE_DIM: usize = 4096;
+
 /// Streaming, mergeable first and second moments of feature rows (see the [module docs](self)).
 #[derive(Debug, Clone, PartialEq)]
 pub struct FeatureStats {
@@ -62,9 +91,24 @@ impl FeatureStats {
         }
     }
 
-    /// Statistics of a row-major `rows.len() / dim` x `dim` matrix.
+    /// Empty statistics for `dim`-dimensional rows, `dim` checked against [`MAX_FEATURE_DIM`]
+    /// (use this where the dimension comes from an input; `what` names it in the error).
+    pub fn try_new(dim: usize, what: &str) -> Result<Self> {
+        if dim > MAX_FEATURE_DIM {
+            let gb = (dim as f64).powi(2) * 8.0 / 1e9;
+            return Err(Error::ShapeMismatch {
+                what: what.to_string(),
+                expected: format!("at most {MAX_FEATURE_DIM} features per row"),
+                got: format!("{dim} (a {dim} x {dim} covariance would take {gb:.1} GB)"),
+            });
+        }
+        Ok(Self::new(dim))
+    }
+
+    /// Statistics of a row-major `rows.len() / dim` x `dim` matrix (`dim` at most
+    /// [`MAX_FEATURE_DIM`]).
     pub fn from_rows<T: Copy + Into<f64>>(rows: &[T], dim: usize, what: &str) -> Result<Self> {
-        let mut s = Self::new(dim);
+        let mut s = Self::try_new(dim, what)?;
         s.push_rows(rows, what)?;
         Ok(s)
     }
@@ -217,6 +261,7 @@ pub fn frechet_distance_with(
     b: &FeatureStats,
     method: SqrtMethod,
 ) -> Result<f64> {
+    method.check()?;
     if a.dim != b.dim {
         return Err(Error::ShapeMismatch {
             what: "second feature set".into(),
@@ -250,7 +295,15 @@ pub fn frechet_distance_from_moments(
     sigma2: &[f64],
     method: SqrtMethod,
 ) -> Result<f64> {
+    method.check()?;
     let d = mu1.len();
+    if d > MAX_FEATURE_DIM {
+        return Err(Error::ShapeMismatch {
+            what: "mu1".into(),
+            expected: format!("at most {MAX_FEATURE_DIM} features"),
+            got: d.to_string(),
+        });
+    }
     for (what, len, want) in [
         ("mu2", mu2.len(), d),
         ("sigma1", sigma1.len(), d * d),
@@ -290,6 +343,7 @@ fn fd_impl(
     s2: MatRef<'_, f64>,
     method: SqrtMethod,
 ) -> Result<f64> {
+    method.check()?;
     let d = mu1.len();
     if d == 0 {
         return Err(Error::empty("feature dimension"));

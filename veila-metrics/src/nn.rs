@@ -75,17 +75,31 @@ fn may_improve(lb: f32, best: f64) -> bool {
     !lb.is_finite() || (lb as f64) * (1.0 - 1e-6) < best
 }
 
+/// The most points one [`PointIndex`] takes (4 Mi: 30 times a KITTI scan). The index and its build
+/// need some 300 bytes per point, and Chamfer and MMD-CD hold an index per
+/// scan: two scans of 16 Mi points (what a scan file may hold) would need ~10 GB, so they are
+/// refused with an error naming the scan before anything is allocated.
+pub const MAX_INDEX_POINTS: usize = 1 << 22;
+
+/// Bytes per point of a [`PointIndex`] and its build, roughly (points, boxes, nodes, sort keys).
+const INDEX_BYTES_PER_POINT: usize = 300;
+
 impl PointIndex {
-    /// Builds the index. Errors on an empty set ([`Error::Empty`]), more than `u32::MAX` points, or a
+    /// Builds the index. Errors on an empty set ([`Error::Empty`]), more than [`MAX_INDEX_POINTS`] points, or a
     /// non-finite coordinate ([`Error::NonFinite`]); `what` names the input in errors.
     pub fn build<P: Copy + Into<Vec3>>(points: &[P], what: &str) -> Result<Self> {
         if points.is_empty() {
             return Err(Error::empty(what));
         }
-        if points.len() >= u32::MAX as usize {
+        if points.len() > MAX_INDEX_POINTS {
             return Err(Error::InvalidParameter {
                 name: "points",
-                reason: format!("{what}: too many points"),
+                reason: format!(
+                    "{what}: {} points, more than the {MAX_INDEX_POINTS} a nearest-neighbour index \
+                     takes (about {} GB of memory at that size)",
+                    points.len(),
+                    MAX_INDEX_POINTS * INDEX_BYTES_PER_POINT / (1 << 30)
+                ),
             });
         }
         let mut pts: Vec<Vec3A> = Vec::with_capacity(points.len());

@@ -80,3 +80,105 @@ pub fn simulate(dir: &Path, scene_toml: &str, seed: u64) -> PathBuf {
         .unwrap());
     out
 }
+
+/// Asserts that a command failed, without a panic, with a message containing every one of
+/// `needles`.
+pub fn fails_with(o: &Output, needles: &[&str]) {
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success(),
+        "expected a failure, got success; stdout:\n{}",
+        String::from_utf8_lossy(&o.stdout)
+    );
+    for n in needles {
+        assert!(e.contains(n), "stderr lacks `{n}`:\n{e}");
+    }
+    assert!(!e.contains("panicked"), "panic:\n{e}");
+}
+
+/// Every name in `dir`, sorted.
+pub fn names(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    v.sort();
+    v
+}
+
+/// Names in `dir` that a veila process leaves while it works (staging folders, backups, lock and
+/// temporary files).
+pub fn leftovers(dir: &Path) -> Vec<String> {
+    names(dir)
+        .into_iter()
+        .filter(|n| n.starts_with(".veila-"))
+        .collect()
+}
+
+/// `veila generate --quiet` of frame 0 of the simulated folder `sim` into `out`, with `extra`
+/// arguments (`--steps 1` unless they give `--steps`).
+pub fn generate_cmd(sim: &Path, out: &Path, extra: &[&str]) -> Command {
+    let mut c = veila();
+    c.args(["generate", "--quiet"]);
+    if !extra.contains(&"--steps") {
+        c.args(["--steps", "1"]);
+    }
+    c.args(extra)
+        .arg("--image")
+        .arg(sim.join("image_2/000000.png"))
+        .arg("--calib")
+        .arg(sim.join("calib/000000.txt"))
+        .arg("--out")
+        .arg(out);
+    c
+}
+
+/// Starts a long `veila generate` (1000 steps, `extra` arguments) into `out` and returns once
+/// its staging folder exists beside `out`.
+pub fn long_generate(sim: &Path, out: &Path, extra: &[&str]) -> std::process::Child {
+    let mut args = vec!["--steps", "1000"];
+    args.extend_from_slice(extra);
+    let child = generate_cmd(sim, out, &args)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let parent = out.parent().unwrap();
+    let t = std::time::Instant::now();
+    while !leftovers(parent)
+        .iter()
+        .any(|n| n.starts_with(".veila-staging."))
+    {
+        assert!(
+            t.elapsed() < std::time::Duration::from_secs(120),
+            "no staging folder appeared"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child
+}
+
+/// Sends `signal` (`-INT`, `-TERM`, `-KILL`) to `child`.
+pub fn signal(child: &std::process::Child, signal: &str) {
+    let st = Command::new("kill")
+        .args([signal, &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(st.success());
+}
+
+/// Writes a `.npy` (format 1.0) of float32 `values` with the Python tuple `shape`.
+pub fn npy_f32(path: &Path, shape: &str, values: &[f32]) {
+    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}");
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut out = b"\x93NUMPY\x01\x00".to_vec();
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    for v in values {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    std::fs::write(path, out).unwrap();
+}

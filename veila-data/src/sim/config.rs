@@ -52,6 +52,10 @@
 
 use std::path::Path;
 
+/// The most frames one simulation renders (a scene file's `frames.count`, or the frame count a
+/// caller passes to [`crate::sim::simulate_to_dir`]).
+pub const MAX_FRAMES: u32 = 100_000;
+
 use serde::{Deserialize, Serialize};
 use veila_geom::LidarSensor;
 
@@ -1240,9 +1244,9 @@ impl SceneConfig {
         )?;
         self.appearance.validate()?;
         check(
-            self.frames.count <= 100_000,
+            self.frames.count <= MAX_FRAMES,
             "frames.count",
-            format!("{} is more than 100000", self.frames.count),
+            format!("{} is more than {MAX_FRAMES}", self.frames.count),
         )?;
         check(
             pos(self.frames.interval_s) && self.frames.interval_s <= 10.0,

@@ -212,6 +212,15 @@ pub fn simulate_to_dir(
     dir: &Path,
     mut progress: impl FnMut(u32),
 ) -> Result<SimSummary> {
+    if !(1..=super::config::MAX_FRAMES).contains(&frames) {
+        return Err(Error::Invalid {
+            what: "frame count".into(),
+            message: format!(
+                "{frames}: must be between 1 and {}",
+                super::config::MAX_FRAMES
+            ),
+        });
+    }
     let scene = Scene::generate(config, seed)?;
     let sensor = config.lidar.sensor()?;
     // the scene's rig: the config's camera, or the one drawn for this seed ([rig])
