@@ -8,7 +8,7 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use candle_core::Device;
-use common::{model_dir, ok, veila};
+use common::{generate, model_dir, ok};
 use veila_data::range_exr::read_range_exr;
 use veila_data::scan::write_kitti_bin;
 use veila_diffusion::app::{Bundle, GenerateOptions, ScanPipeline, load_view};
@@ -62,17 +62,7 @@ fn the_cli_and_the_library_give_the_same_scan_bytes() {
     let bundle = Bundle::from_dir(&model_dir(), &Device::Cpu).unwrap();
     for (name, image, calib, turns) in rigs {
         let out = tmp.path().join(name);
-        ok(&veila()
-            .args(["generate", "--quiet", "--image"])
-            .arg(&image)
-            .arg("--calib")
-            .arg(&calib)
-            .arg("--checkpoint")
-            .arg(model_dir())
-            .arg("--out")
-            .arg(&out)
-            .output()
-            .unwrap());
+        ok(&generate(&image, &calib, &out, &[]));
         let json: serde_json::Value =
             serde_json::from_slice(&std::fs::read(out.join("generate.json")).unwrap()).unwrap();
         assert_eq!(json["model_frame_quarter_turns"], turns, "{name}");

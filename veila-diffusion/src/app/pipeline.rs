@@ -38,15 +38,15 @@
 //! ```
 
 use veila_data::PointCloud;
-use veila_geom::RangeImage;
+use veila_geom::{PinholeCamera, RangeImage};
 
 use super::bundle::Bundle;
 use super::generate::{CameraView, GenerateOptions, check_inpainting_input};
 use super::rig::{
     PreparedViews, RigImage, RigView, camera_in_model_frame, pixels_to_model_frame, prepare_view,
-    quarter_turns_to_model, range_to_lidar_frame, range_to_model_frame, scan_points,
+    prepare_views, quarter_turns_to_model, range_to_lidar_frame, range_to_model_frame, scan_points,
 };
-use crate::error::{Error, Result};
+use crate::error::Result;
 use crate::sampler::RepaintConfig;
 
 /// One generated scan, in the LiDAR frame of the rig's calibration.
@@ -73,43 +73,43 @@ impl<'b> ScanPipeline<'b> {
     /// Fits `rig` to `bundle`. An empty rig is accepted only where the bundle ignores images (an
     /// unconditional bundle); sampling with a conditional one then fails.
     pub fn new(bundle: &'b Bundle, rig: &[RigImage<'_>]) -> Result<Self> {
-        Self::fit(bundle, rig.iter().map(|v| (*v, None)))
+        let views = rig
+            .iter()
+            .map(|v| prepare_view(&bundle.config, v.image, v.camera))
+            .collect::<Result<PreparedViews>>()?;
+        Ok(Self::in_model_frame(
+            bundle,
+            views,
+            rig.first().map(|v| v.camera),
+        ))
     }
 
     /// [`ScanPipeline::new`] for views read from files: an error names the image it is about.
     pub fn from_views(bundle: &'b Bundle, views: &[RigView]) -> Result<Self> {
-        Self::fit(
+        let prepared = prepare_views(&bundle.config, views)?;
+        Ok(Self::in_model_frame(
             bundle,
-            views
-                .iter()
-                .map(|v| (v.rig_image(), Some(v.image_path.as_path()))),
-        )
+            prepared,
+            views.first().map(|v| &v.camera),
+        ))
     }
 
-    fn fit<'a>(
+    /// Resized views with their cameras turned into the model's frame, counted from the first
+    /// camera as it is in the LiDAR frame.
+    fn in_model_frame(
         bundle: &'b Bundle,
-        rig: impl Iterator<Item = (RigImage<'a>, Option<&'a std::path::Path>)>,
-    ) -> Result<Self> {
-        let mut turns = None;
-        let views = rig
-            .map(|(v, path)| {
-                let q = *turns.get_or_insert_with(|| quarter_turns_to_model(v.camera));
-                let (rgb, camera) =
-                    prepare_view(&bundle.config, v.image, v.camera).map_err(|e| match path {
-                        Some(p) => Error::Input {
-                            path: p.to_path_buf(),
-                            reason: e.to_string(),
-                        },
-                        None => e,
-                    })?;
-                Ok((rgb, camera_in_model_frame(&camera, q)))
-            })
-            .collect::<Result<PreparedViews>>()?;
-        Ok(Self {
+        mut views: PreparedViews,
+        first: Option<&PinholeCamera>,
+    ) -> Self {
+        let turns = first.map_or(0, quarter_turns_to_model);
+        for (_, camera) in &mut views {
+            *camera = camera_in_model_frame(camera, turns);
+        }
+        Self {
             bundle,
             views,
-            turns: turns.unwrap_or(0),
-        })
+            turns,
+        }
     }
 
     /// The bundle it samples with.
