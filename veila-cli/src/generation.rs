@@ -227,7 +227,7 @@ pub(crate) fn inpainting_sampler_help() -> String {
         .map(|w| format!("; the bundled model's is {w}"))
         .unwrap_or_default();
     format!(
-        "Sampler: ddpm or ddim (inpainting cannot follow a multistep solver; default: the bundle's{bundled}, with ddim (eta 0) in place of dpm)"
+        "Sampler: ddpm or ddim (default: the bundle's, with ddim (eta 0) in place of dpm, a multistep solver that cannot follow RePaint's jumps{bundled})"
     )
 }
 
