@@ -16,7 +16,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use veila_diffusion::app::bundle::Bundle;
-use veila_diffusion::app::{CameraView, GenerateOptions};
+use veila_diffusion::app::{GenerateOptions, RigImage, ScanPipeline};
 use veila_geom::{LidarSensor, PinholeCamera, RangeImage, RayTable, Region};
 use veila_metrics::protocol::{PeerProtocol, PeerSummary};
 
@@ -512,23 +512,10 @@ fn generate<'py>(
     let bundle = py
         .detach(|| load_bundle(model_dir.as_deref()))
         .map_err(value_err)?;
-    let out = py
+    let scan = py
         .detach(|| -> Result<_, String> {
-            let (bw, bh) = (
-                bundle.config.image_width as u32,
-                bundle.config.image_height as u32,
-            );
             let full = veila_data::image::RgbImage::from_raw(w as u32, h as u32, rgb)
                 .ok_or("image buffer size")?;
-            let small = veila_data::image::imageops::resize(
-                &full,
-                bw,
-                bh,
-                veila_data::image::imageops::FilterType::Triangle,
-            );
-            let cam = camera
-                .resized(bw, bh)
-                .ok_or("the model's image size has a zero dimension")?;
             let mut sampler = bundle.config.sampler.clone();
             if let Some(s) = steps {
                 sampler.steps = s;
@@ -540,24 +527,23 @@ fn generate<'py>(
                 unconditional: false,
                 residual_weight: 1.0,
             };
-            let raw = small.into_raw();
-            let views = [CameraView {
-                rgb: &raw,
-                camera: &cam,
+            // the library's one path: fitted to the encoders, sampled in the model's frame, the
+            // scan back in the calibration's LiDAR frame
+            let rig = [RigImage {
+                image: &full,
+                camera: &camera,
             }];
-            let scans = bundle
-                .generate(&views, &options, |_, _| {})
-                .map_err(|e| e.to_string())?;
-            let range = scans.into_iter().next().ok_or("no scan generated")?;
-            let un = RayTable::new(&bundle.config.denoiser.sensor)
-                .and_then(|r| r.unproject(&range))
-                .map_err(|e| e.to_string())?;
-            Ok((range, un))
+            ScanPipeline::new(&bundle, &rig)
+                .and_then(|p| p.generate(&options, |_, _| {}))
+                .map_err(|e| e.to_string())?
+                .into_iter()
+                .next()
+                .ok_or_else(|| "no scan generated".to_string())
         })
         .map_err(runtime_err)?;
-    let (range, un) = out;
+    let (range, points) = (&scan.range, &scan.points);
     let d = PyDict::new(py);
-    let (pts, inten) = points_and_intensity(py, &un.points, &un.intensity);
+    let (pts, inten) = points_and_intensity(py, &points.xyz, &points.intensity);
     d.set_item("points", pts)?;
     d.set_item("intensity", inten)?;
     d.set_item(
@@ -566,6 +552,19 @@ fn generate<'py>(
     )?;
     d.set_item("mask", image2d(py, &range.mask, range.rows, range.cols)?)?;
     Ok(d)
+}
+
+/// Reads a PNG or JPEG image as `(H, W, 3)` uint8 RGB.
+#[pyfunction]
+fn read_image(py: Python<'_>, path: PathBuf) -> PyResult<Py<numpy::PyArray3<u8>>> {
+    let img = veila_data::image_io::read_rgb_image(&path).map_err(value_err)?;
+    let (w, h) = img.dimensions();
+    Ok(
+        numpy::ndarray::Array3::from_shape_vec((h as usize, w as usize, 3), img.into_raw())
+            .map_err(runtime_err)?
+            .into_pyarray(py)
+            .unbind(),
+    )
 }
 
 /// The extension module.
@@ -590,6 +589,7 @@ fn _veila(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(read_points, m)?)?;
     m.add_function(wrap_pyfunction!(read_sample_arrays, m)?)?;
     m.add_function(wrap_pyfunction!(read_calibration, m)?)?;
+    m.add_function(wrap_pyfunction!(read_image, m)?)?;
     m.add_function(wrap_pyfunction!(generate, m)?)?;
     Ok(())
 }

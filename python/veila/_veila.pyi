@@ -98,6 +98,9 @@ def read_calibration(
     an image of ``width x height``: ``(K (3, 4), cam_from_lidar (4, 4))``. KITTI files give camera 2;
     nuScenes gives ``camera``."""
 
+def read_image(path: _Path) -> npt.NDArray[np.uint8]:
+    """A PNG or JPEG image as ``(H, W, 3)`` uint8 RGB (the input :func:`generate` takes)."""
+
 def generate(
     image: npt.NDArray[np.uint8],
     intrinsics: npt.NDArray[np.float32],
@@ -108,5 +111,7 @@ def generate(
 ) -> Dict[str, np.ndarray]:
     """Generates a 360° LiDAR scan from one RGB image ``(H, W, 3)`` uint8 and its calibration
     (``intrinsics`` ``(3, 3)`` or ``(3, 4)``, ``cam_from_lidar`` ``(4, 4)``), with the model bundled in
-    the wheel (or the bundle folder ``model_dir``). Same inputs and seed give the same scan. Returns
-    ``{"points": (M, 3), "intensity": (M,), "range": (rows, cols), "mask": (rows, cols)}``."""
+    the wheel (or the bundle folder ``model_dir``). Same inputs and seed give the same scan, byte for
+    byte the one ``veila generate`` writes for that image, calibration and seed. Returns
+    ``{"points": (M, 3), "intensity": (M,), "range": (rows, cols), "mask": (rows, cols)}``, all in
+    the LiDAR frame of ``cam_from_lidar`` (a nuScenes LiDAR, y forward, included)."""

@@ -22,7 +22,7 @@ use veila_data::vis::render::{self, BevOptions, OverlayOptions, RangePreview};
 use veila_data::weather::{
     CameraInput, DepthMap, Intrinsics, Preset, Weather, WeatherConfig, WeatherSim,
 };
-use veila_diffusion::app::{CameraView, GenerateOptions};
+use veila_diffusion::app::{GenerateOptions, RigImage, ScanPipeline};
 use veila_geom::{ProjectionOptions, Projector, RangeImage, Region};
 use veila_metrics::bev::{BevConfig, bev_histogram};
 use veila_metrics::crossmodal::{DepthAlignment, Map2d, ProjectionFilter, cm_depth_consistency};
@@ -163,7 +163,13 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
 
     pb.set_message("generating");
     let t = Instant::now();
-    let (small, small_cam) = model::prepare_view(&bundle, &rgb, &frame.camera)?;
+    let pipeline = ScanPipeline::new(
+        &bundle,
+        &[RigImage {
+            image: &rgb,
+            camera: &frame.camera,
+        }],
+    )?;
     let options = GenerateOptions {
         sampler: sampler.clone(),
         samples: 1,
@@ -171,20 +177,13 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         unconditional: false,
         residual_weight: args.residual_weight,
     };
-    let scans = bundle.generate(
-        &[CameraView {
-            rgb: &small,
-            camera: &small_cam,
-        }],
-        &options,
-        |_, _| pb.inc(1),
-    )?;
+    let scans = pipeline.generate(&options, |_, _| pb.inc(1))?;
     let seconds_generation = t.elapsed().as_secs_f64();
-    let generated_range = scans
+    let scan = scans
         .into_iter()
         .next()
         .context("the model returned no scan")?;
-    let generated = model::to_points(&bundle, &generated_range)?;
+    let (generated, generated_range) = (scan.points, scan.range);
 
     pb.set_message("writing views and metrics");
     let truth = &frame.scan.points;
@@ -201,15 +200,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
     )?;
     let metrics = demo_metrics(&frame, truth, &generated, &generated_range, &true_range)?;
     pb.set_message("baselines");
-    let baselines = baseline_scans(
-        &bundle,
-        &config,
-        args.baseline_frames,
-        CameraView {
-            rgb: &small,
-            camera: &small_cam,
-        },
-    )?;
+    let baselines = baseline_scans(&pipeline, &config, args.baseline_frames)?;
     let mut baseline_rows = Vec::new();
     let mut ring_spread_m = BTreeMap::new();
     let spread = |r: &RangeImage| veila_metrics::baseline::ring_spread(r, grid, -15.0, 0.5);
@@ -227,22 +218,18 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
     }
     // a residual bundle's sample next to its own mean network: what the texture costs in error
     if bundle.config.residual.is_some() && sampler.steps > 0 && args.residual_weight > 0.0 {
-        let mean_only = bundle.generate(
-            &[CameraView {
-                rgb: &small,
-                camera: &small_cam,
-            }],
+        let mean_only = pipeline.generate(
             &GenerateOptions {
                 residual_weight: 0.0,
                 ..options.clone()
             },
             |_, _| {},
         )?;
-        let range = mean_only
+        let scan = mean_only
             .into_iter()
             .next()
             .context("the model returned no scan")?;
-        let points = model::to_points(&bundle, &range)?;
+        let (points, range) = (scan.points, scan.range);
         let m = demo_metrics(&frame, truth, &points, &range, &true_range)?;
         ring_spread_m.insert("mean net", spread(&range));
         baseline_rows.push(BaselineSummary {
@@ -539,18 +526,18 @@ fn print_table(
 
 /// The zero-skill baselines of the demo scene, from `k` training frames of the same scene file
 /// (seeds `0..k` of the train split, rendered in parallel): their per-pixel median scan, and the
-/// frame whose image is nearest to the input's in the bundle's frozen encoder features
-/// (conditional bundles only).
+/// frame whose image is nearest to the input's (`query`, the rig the demo generates from) in the
+/// bundle's frozen encoder features (conditional bundles only).
 fn baseline_scans(
-    bundle: &veila_diffusion::app::bundle::Bundle,
+    query: &ScanPipeline<'_>,
     config: &SceneConfig,
     k: usize,
-    query: CameraView<'_>,
 ) -> Result<Vec<(&'static str, String, RangeImage)>> {
     use rayon::prelude::*;
     if k == 0 {
         return Ok(Vec::new());
     }
+    let bundle = query.bundle();
     let grid = &bundle.config.denoiser.sensor;
     let projector = Projector::new(grid, ProjectionOptions::default())?;
     let frames = config.frames.count.max(1) as u64;
@@ -572,16 +559,12 @@ fn baseline_scans(
         ),
         median,
     )];
-    let q = bundle.image_descriptor(query)?;
+    let q = query.image_descriptor()?;
     if !q.is_empty() {
         let keys = rendered
             .iter()
-            .map(|(_, img, cam)| {
-                let (small, small_cam) = model::prepare_view(bundle, img, cam)?;
-                Ok(bundle.image_descriptor(CameraView {
-                    rgb: &small,
-                    camera: &small_cam,
-                })?)
+            .map(|(_, image, camera)| {
+                Ok(ScanPipeline::new(bundle, &[RigImage { image, camera }])?.image_descriptor()?)
             })
             .collect::<Result<Vec<_>>>()?;
         let i = veila_metrics::baseline::nearest(&q, &keys)?;

@@ -14,15 +14,15 @@ use veila_data::image_io::write_png;
 use veila_data::range_exr::read_range_exr;
 use veila_data::scan::{PointFormat, read_points};
 use veila_data::vis::render::{self, render_range};
-use veila_diffusion::app::GenerateOptions;
 use veila_diffusion::app::bundle::Bundle;
+use veila_diffusion::app::{GenerateOptions, ScanPipeline};
 use veila_diffusion::{RepaintConfig, SamplerConfig, SamplerKind};
 use veila_geom::{ProjectionOptions, Projector, RangeImage, RayTable};
 
 use crate::generation::{
-    InputInfo, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerName, ScanRecord, Seconds, camera_views,
-    check_guidance, check_steps, input_info, is_generate_output, load_rig, model_info,
-    prepare_views, range_preview, resolve_sampler, sampler_label, write_scan,
+    InputInfo, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerName, ScanRecord, Seconds, check_guidance,
+    check_steps, inpainting_sampler_help, input_info, is_generate_output, load_rig, model_info,
+    range_preview, resolve_sampler, sampler_label, write_scan,
 };
 use crate::{model, progress, staging};
 
@@ -51,8 +51,8 @@ pub(crate) struct EditArgs {
     /// Model bundle folder (default: $VEILA_MODEL, else the bundled models/default).
     #[arg(long, value_name = "DIR", env = "VEILA_MODEL")]
     checkpoint: Option<PathBuf>,
-    /// Sampler: ddpm or ddim (inpainting cannot use the multistep dpm solver; default ddim).
-    #[arg(long, value_enum)]
+    // the help names the bundled model's sampler as its bundle.json does
+    #[arg(long, value_enum, help = inpainting_sampler_help())]
     sampler: Option<SamplerName>,
     /// Sampler steps (default: the bundle's).
     #[arg(long, value_name = "N")]
@@ -296,11 +296,8 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
     }
     // inpainted in the model's frame (camera along +x), like `generate`; the scan, the region and
     // the results stay in the calibration's LiDAR frame
-    let turns = veila_diffusion::app::quarter_turns_to_model(&views[0].camera);
-    let mut prepared = prepare_views(&bundle, &views)?;
-    for (_, cam) in &mut prepared {
-        *cam = veila_diffusion::app::camera_in_model_frame(cam, turns);
-    }
+    let pipeline = ScanPipeline::from_views(&bundle, &views)?;
+    let turns = pipeline.quarter_turns();
     let staging = staging::stage_checked(&args.out, args.force, &inputs)?;
     let load_secs = t0.elapsed().as_secs_f64();
 
@@ -324,21 +321,9 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
         unconditional: false,
         residual_weight: 1.0,
     };
-    let before_model = veila_diffusion::app::range_to_model_frame(&bundle.config, &before, turns)?;
-    let keep_model =
-        veila_diffusion::app::pixels_to_model_frame(&bundle.config, &keep, rows, cols, turns)?;
-    let scans = bundle
-        .inpaint(
-            &camera_views(&prepared),
-            &before_model,
-            &keep_model,
-            &options,
-            &repaint,
-        )
-        .context("inpainting")?
-        .iter()
-        .map(|s| veila_diffusion::app::range_to_lidar_frame(&bundle.config, s, turns))
-        .collect::<Result<Vec<_>, _>>()?;
+    let scans = pipeline
+        .inpaint(&before, &keep, &options, &repaint)
+        .context("inpainting")?;
     pb.finish_and_clear();
     let sampling_secs = t.elapsed().as_secs_f64();
 
@@ -364,7 +349,8 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
     let mut records = Vec::with_capacity(scans.len());
     for (i, after) in scans.iter().enumerate() {
         let stem = format!("scan_{i:03}");
-        let (record, _) = write_scan(out, &stem, &bundle, after, &views[0])?;
+        let record = write_scan(out, &stem, &bundle, after, &views[0])?;
+        let after = &after.range;
         write_png(
             &out.join(format!("{stem}_before_after.png")),
             &render::stack_vertical(&[

@@ -6,10 +6,10 @@
 //! previews. Everything goes to a staging folder first: a failure leaves no output behind.
 //!
 //! Calibration files carry no image size, so each camera takes the size of its image
-//! (`veila_diffusion::app::rig` reads and checks them). A LiDAR frame whose forward axis is not the
-//! first camera's (nuScenes: `y` forward) is turned by quarter turns into the model's frame for
-//! sampling (the bundled prior has the camera looking along `+x`), and every scan is turned back:
-//! the files are in the calibration's LiDAR frame.
+//! (`veila_diffusion::app::rig` reads and checks them). From the rig to the scans it is the
+//! library's `ScanPipeline`, the path every door takes: a LiDAR frame whose forward axis is not
+//! the first camera's (nuScenes: `y` forward) is sampled in the model's frame and every scan comes
+//! back in the calibration's LiDAR frame, as the files are.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -18,13 +18,12 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use serde::Serialize;
 use veila_diffusion::SamplerConfig;
-use veila_diffusion::app::GenerateOptions;
+use veila_diffusion::app::{GenerateOptions, ScanPipeline};
 
 use crate::generation::{
     InputInfo, MAX_SAMPLES, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerName, ScanRecord, Seconds,
-    batch_seed, camera_views, check_guidance, check_residual_weight, check_steps, input_info,
-    is_generate_output, load_rig, model_info, prepare_views, resolve_sampler, round3,
-    sampler_label, write_scan,
+    check_guidance, check_residual_weight, check_steps, input_info, is_generate_output, load_rig,
+    model_info, resolve_sampler, round3, sampler_help, sampler_label, write_scan,
 };
 use crate::{model, progress, staging};
 
@@ -36,8 +35,8 @@ pub(crate) struct GenerateArgs {
     /// Model bundle folder (default: $VEILA_MODEL, else the bundled models/default).
     #[arg(long, value_name = "DIR", env = "VEILA_MODEL")]
     pub(crate) checkpoint: Option<PathBuf>,
-    /// Sampler (default: the bundle's, DPM-Solver++(2M) for the bundled model).
-    #[arg(long, value_enum)]
+    // the help names the bundled model's sampler as its bundle.json does
+    #[arg(long, value_enum, help = sampler_help())]
     pub(crate) sampler: Option<SamplerName>,
     /// Sampler steps (network evaluations per conditioning branch, 1 to 1000; default: the
     /// bundle's).
@@ -115,15 +114,19 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
     let sampler = resolve_sampler(&bundle, args.sampler, args.steps, args.guidance)?;
     check_residual_weight(args.residual_weight, Some(&bundle))?;
     let views = load_rig(&args.rig)?;
-    let mut prepared = prepare_views(&bundle, &views)?;
-    let turns = veila_diffusion::app::quarter_turns_to_model(&views[0].camera);
-    for (_, cam) in &mut prepared {
-        *cam = veila_diffusion::app::camera_in_model_frame(cam, turns);
-    }
+    let pipeline = ScanPipeline::from_views(&bundle, &views)?;
+    let turns = pipeline.quarter_turns();
     // inputs are good: only now does the output folder get a staging directory
     let staging = staging::stage_checked(&args.out, args.force, &inputs)?;
     let load_secs = t0.elapsed().as_secs_f64();
 
+    let options = GenerateOptions {
+        sampler: sampler.clone(),
+        samples: args.samples,
+        seed: args.seed,
+        unconditional: false,
+        residual_weight: args.residual_weight,
+    };
     let batches = args.samples.div_ceil(SAMPLE_BATCH);
     let pb = progress::bar((sampler.steps * batches) as u64, "generate"); // <= 1000 * 12500
     pb.set_message(format!(
@@ -133,19 +136,10 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
     ));
     let (mut sampling_secs, mut writing_secs) = (0.0, 0.0);
     let mut records = Vec::new();
-    for b in 0..batches {
-        let first = b * SAMPLE_BATCH;
-        let count = SAMPLE_BATCH.min(args.samples - first);
-        let options = GenerateOptions {
-            sampler: sampler.clone(),
-            samples: count,
-            seed: batch_seed(args.seed, b),
-            unconditional: false,
-            residual_weight: args.residual_weight,
-        };
+    for (b, (first, batch)) in options.batches(SAMPLE_BATCH).enumerate() {
         let t = Instant::now();
-        let scans = bundle
-            .generate(&camera_views(&prepared), &options, |done, total| {
+        let scans = pipeline
+            .generate(&batch, |done, total| {
                 pb.set_length((total * batches) as u64);
                 pb.set_position((b * total + done) as u64);
             })
@@ -154,15 +148,13 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
         // each batch is written and dropped before the next is drawn
         let t = Instant::now();
         for (j, scan) in scans.iter().enumerate() {
-            let scan = veila_diffusion::app::range_to_lidar_frame(&bundle.config, scan, turns)?;
-            let (rec, _) = write_scan(
+            records.push(write_scan(
                 staging.path(),
                 &format!("scan_{:03}", first + j),
                 &bundle,
-                &scan,
+                scan,
                 &views[0],
-            )?;
-            records.push(rec);
+            )?);
         }
         writing_secs += t.elapsed().as_secs_f64();
     }

@@ -7,7 +7,6 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use serde::Serialize;
-use veila_data::PointCloud;
 use veila_data::image_io::write_png;
 use veila_data::ply::write_ply_rgb;
 use veila_data::range_exr::write_range_exr;
@@ -16,12 +15,9 @@ use veila_data::vis::render::{
     BevOptions, OverlayOptions, RangePreview, render_bev, render_overlay, render_range,
 };
 use veila_diffusion::app::bundle::{Bundle, DENOISER_FILE, Manifest, sha256_hex};
-pub(crate) use veila_diffusion::app::camera_views;
-use veila_diffusion::app::rig::PreparedViews;
 use veila_diffusion::app::rig::point_colours;
-use veila_diffusion::app::{RigView, load_view};
+use veila_diffusion::app::{RigView, Scan, load_view};
 use veila_diffusion::{SamplerConfig, SamplerKind};
-use veila_geom::RangeImage;
 
 use crate::model;
 
@@ -176,25 +172,13 @@ pub(crate) fn check_guidance(g: f64) -> Result<()> {
 }
 
 /// The largest number of scans sampled at once by `generate` (about 45 MB each on the bundled
-/// model): more are drawn in further batches, so memory does not grow with `--samples`.
+/// model): more are drawn in further batches (`GenerateOptions::batches`), so memory does not grow
+/// with `--samples`.
 pub(crate) const SAMPLE_BATCH: usize = 8;
 
 /// The most scans one `generate` run draws (memory stays bounded either way; this bounds the
 /// record and the time a typo can cost).
 pub(crate) const MAX_SAMPLES: usize = 100_000;
-
-/// The noise seed of batch `b` of a `--samples` run: batch 0 keeps `seed` (a run of up to
-/// [`SAMPLE_BATCH`] samples draws exactly what one batch of all samples drew before batching), later
-/// batches a SplitMix64 mix of the seed and the batch index.
-pub(crate) fn batch_seed(seed: u64, batch: usize) -> u64 {
-    if batch == 0 {
-        return seed;
-    }
-    let mut z = seed ^ (batch as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
 
 /// Whether `name` is a file `generate` writes into its output folder (for `--force` reruns).
 pub(crate) fn is_generate_output(name: &str) -> bool {
@@ -214,6 +198,37 @@ pub(crate) fn sampler_label(cfg: &SamplerConfig) -> String {
         SamplerKind::Ddim { eta } => format!("ddim (eta {eta})"),
         SamplerKind::DpmSolverPp2M => "dpm-solver++(2m)".into(),
     }
+}
+
+/// The bundled model's sampler in words (`ddpm, 4 steps, guidance 1.5`), read from the bundle
+/// this binary embeds, so that the help texts say what the bundle says.
+fn bundled_sampler_words() -> Option<String> {
+    let s = model::bundled_config()?.sampler;
+    Some(format!(
+        "{}, {} steps, guidance {}",
+        sampler_label(&s),
+        s.steps,
+        s.guidance_scale
+    ))
+}
+
+/// `--help` of `generate`'s `--sampler`.
+pub(crate) fn sampler_help() -> String {
+    match bundled_sampler_words() {
+        Some(w) => format!("Sampler (default: the bundle's; the bundled model's is {w})"),
+        None => "Sampler (default: the bundle's)".into(),
+    }
+}
+
+/// `--help` of `edit`'s `--sampler`: inpainting takes the bundle's sampler too, with DDIM in place
+/// of a multistep solver.
+pub(crate) fn inpainting_sampler_help() -> String {
+    let bundled = bundled_sampler_words()
+        .map(|w| format!("; the bundled model's is {w}"))
+        .unwrap_or_default();
+    format!(
+        "Sampler: ddpm or ddim (default: the bundle's, with ddim (eta 0) in place of dpm, a multistep solver that cannot follow RePaint's jumps{bundled})"
+    )
 }
 
 /// Where a bundle came from and its checksums (from its manifest).
@@ -267,12 +282,6 @@ pub(crate) fn input_info(views: &[RigView]) -> Vec<InputInfo> {
         .collect()
 }
 
-/// The views resized to the bundle's input size (bytes and cameras; borrow them as
-/// [`veila_diffusion::app::CameraView`]s with [`camera_views`]).
-pub(crate) fn prepare_views(bundle: &Bundle, views: &[RigView]) -> Result<PreparedViews> {
-    Ok(veila_diffusion::app::prepare_views(&bundle.config, views)?)
-}
-
 /// What was written for one scan.
 #[derive(Debug, Clone, Serialize)]
 pub(crate) struct ScanRecord {
@@ -293,22 +302,22 @@ pub(crate) fn range_preview(bundle: &Bundle) -> RangePreview {
 /// Writes `STEM.bin`, `STEM.ply` (binary little-endian: x, y, z, intensity, and red, green, blue
 /// from the `first` view's image where a point falls in it, else a grey of its intensity),
 /// `STEM.exr`, `STEM_range.png`, `STEM_bev.png` and `STEM_overlay.png` (points on `first` view's
-/// full-resolution image) into `dir`.
+/// full-resolution image) of `scan` into `dir`.
 pub(crate) fn write_scan(
     dir: &Path,
     stem: &str,
     bundle: &Bundle,
-    range: &RangeImage,
+    scan: &Scan,
     first: &RigView,
-) -> Result<(ScanRecord, PointCloud)> {
-    let cloud = model::to_points(bundle, range)?;
+) -> Result<ScanRecord> {
+    let (cloud, range) = (&scan.points, &scan.range);
     let sensor = &bundle.config.denoiser.sensor;
     let bin = format!("{stem}.bin");
-    write_kitti_bin(&dir.join(&bin), &cloud)?;
+    write_kitti_bin(&dir.join(&bin), cloud)?;
     write_ply_rgb(
         &dir.join(format!("{stem}.ply")),
-        &cloud,
-        &point_colours(first, &cloud),
+        cloud,
+        &point_colours(first, cloud),
     )?;
     write_range_exr(&dir.join(format!("{stem}.exr")), sensor, range)?;
     write_png(
@@ -317,7 +326,7 @@ pub(crate) fn write_scan(
     )?;
     write_png(
         &dir.join(format!("{stem}_bev.png")),
-        &render_bev(&cloud, &BevOptions::default())?,
+        &render_bev(cloud, &BevOptions::default())?,
     )?;
     let overlay = render_overlay(
         &first.image,
@@ -326,15 +335,12 @@ pub(crate) fn write_scan(
         &OverlayOptions::default(),
     )?;
     write_png(&dir.join(format!("{stem}_overlay.png")), &overlay.image)?;
-    Ok((
-        ScanRecord {
-            file: bin,
-            points: cloud.len(),
-            range_pixels: range.num_valid(),
-            points_in_first_image: overlay.drawn,
-        },
-        cloud,
-    ))
+    Ok(ScanRecord {
+        file: bin,
+        points: cloud.len(),
+        range_pixels: range.num_valid(),
+        points_in_first_image: overlay.drawn,
+    })
 }
 
 /// Wall-clock times of a run: in their own `timings.json`, so that every other output of two

@@ -6,9 +6,9 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use candle_core::Device;
 use veila_data::PointCloud;
-use veila_data::image::RgbImage;
-use veila_diffusion::app::bundle::{Bundle, MANIFEST_FILE};
-use veila_geom::{PinholeCamera, RangeImage};
+use veila_diffusion::app::BundleConfig;
+use veila_diffusion::app::bundle::{Bundle, CONFIG_FILE, MANIFEST_FILE};
+use veila_geom::RangeImage;
 
 /// Environment variable naming the default bundle folder.
 pub(crate) const MODEL_ENV: &str = "VEILA_MODEL";
@@ -64,6 +64,15 @@ pub(crate) fn manifest_bytes(checkpoint: Option<&Path>) -> Option<Vec<u8>> {
             .find(|(n, _)| *n == MANIFEST_FILE)
             .map(|(_, b)| b.to_vec()),
     }
+}
+
+/// The config of the default model embedded in this binary (`None` when it was built without
+/// one): what the help texts describe as "the bundled model".
+pub(crate) fn bundled_config() -> Option<BundleConfig> {
+    let (_, bytes) = embedded::EMBEDDED_MODEL
+        .iter()
+        .find(|(n, _)| *n == CONFIG_FILE)?;
+    serde_json::from_slice(bytes).ok()
 }
 
 /// `--device`.
@@ -156,20 +165,8 @@ pub(crate) fn load_bundle(checkpoint: Option<&Path>, device: &Device) -> Result<
     Bundle::from_dir(&dir, device).with_context(|| format!("loading model {}", dir.display()))
 }
 
-/// An image and its camera resized to the bundle's input size (triangle filter, antialiased).
-pub(crate) fn prepare_view(
-    bundle: &Bundle,
-    image: &RgbImage,
-    camera: &PinholeCamera,
-) -> Result<(Vec<u8>, PinholeCamera)> {
-    Ok(veila_diffusion::app::prepare_view(
-        &bundle.config,
-        image,
-        camera,
-    )?)
-}
-
-/// The points of a generated range image in the LiDAR frame (one per return).
+/// The points of a range image on the bundle's grid, in its frame (one per return): for scans that
+/// are not generated (the demo's baselines); generated scans come with their points.
 pub(crate) fn to_points(bundle: &Bundle, range: &RangeImage) -> Result<PointCloud> {
     Ok(veila_diffusion::app::scan_points(&bundle.config, range)?)
 }
@@ -207,6 +204,8 @@ mod tests {
         )
         .unwrap();
         assert_eq!(b.config.name, "default");
+        // the help texts' "bundled model" is this one
+        assert_eq!(bundled_config().unwrap().sampler, b.config.sampler);
         assert_eq!(manifest_bytes(Some(&dir)), manifest_bytes(None));
     }
 }

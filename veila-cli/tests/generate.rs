@@ -17,22 +17,6 @@ fn simulate(dir: &Path) -> (PathBuf, PathBuf) {
     (sim.join("image_2/000000.png"), sim.join("calib/000000.txt"))
 }
 
-/// A small scene (16 x 128 LiDAR, 124 x 38 camera with KITTI-like intrinsics) keeps simulation fast.
-fn generate(image: &Path, calib: &Path, out: &Path, extra: &[&str]) -> Output {
-    veila()
-        .args(["generate", "--quiet", "--image"])
-        .arg(image)
-        .arg("--calib")
-        .arg(calib)
-        .arg("--checkpoint")
-        .arg(model_dir())
-        .arg("--out")
-        .arg(out)
-        .args(extra)
-        .output()
-        .unwrap()
-}
-
 fn read(p: &Path) -> Vec<u8> {
     std::fs::read(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
 }

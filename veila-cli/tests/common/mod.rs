@@ -53,6 +53,22 @@ pub fn is_residual_bundle(bundle_json: &Path) -> bool {
     v.get("residual").is_some_and(|r| !r.is_null())
 }
 
+/// `veila generate --quiet` of one image with the bundled model into `out`, plus `extra` flags.
+pub fn generate(image: &Path, calib: &Path, out: &Path, extra: &[&str]) -> Output {
+    veila()
+        .args(["generate", "--quiet", "--image"])
+        .arg(image)
+        .arg("--calib")
+        .arg(calib)
+        .arg("--checkpoint")
+        .arg(model_dir())
+        .arg("--out")
+        .arg(out)
+        .args(extra)
+        .output()
+        .unwrap()
+}
+
 /// Asserts that a command succeeded, printing its output otherwise.
 pub fn ok(o: &Output) {
     assert!(

@@ -32,16 +32,15 @@ use std::path::{Path, PathBuf};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
-use veila_geom::{EpipolarConfig, RangeImage};
+use veila_geom::EpipolarConfig;
 use veila_nn::encoders::kind::{AnyEncoder, EncoderKind};
 use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
 use veila_nn::{Denoiser as Net, DenoiserConfig};
 
-use super::generate::{CameraView, GenerateOptions, ViewFeatures};
 use crate::encoding::RangeEncoding;
 use crate::error::{Error, Result};
 use crate::objective::DiffusionConfig;
-use crate::sampler::{RepaintConfig, SamplerConfig};
+use crate::sampler::SamplerConfig;
 
 /// Format tag of `bundle.json` this build writes.
 pub const BUNDLE_FORMAT: &str = "veila-bundle/2";
@@ -768,7 +767,9 @@ impl Bundle {
     }
 }
 
-/// Generation: the pipeline itself lives in [`super::generate`].
+/// What generation needs of a bundle (the generation methods themselves, [`Bundle::generate`],
+/// [`Bundle::inpaint`], [`Bundle::encode_views`], are in [`super::generate`], which uses this file
+/// and not the other way round).
 impl Bundle {
     /// The range-image grid `(rows, cols)`.
     pub fn grid(&self) -> (usize, usize) {
@@ -778,33 +779,6 @@ impl Bundle {
     /// Whether the denoiser uses the image.
     pub fn is_conditional(&self) -> bool {
         self.config.denoiser.conditioning.is_some()
-    }
-
-    /// Runs the frozen encoders on views at the bundle's image size.
-    pub fn encode_views(&self, views: &[CameraView<'_>]) -> Result<ViewFeatures> {
-        super::generate::encode_views(
-            &self.config,
-            self.semantic.as_ref(),
-            self.depth.as_ref(),
-            views,
-            self.denoiser_device(),
-        )
-    }
-
-    /// A retrieval descriptor of one view: the coarsest feature map of each frozen encoder,
-    /// flattened (the spatial layout stays: where things are matters), each scaled to unit norm.
-    /// Images whose descriptors are near by cosine look alike to the model (the retrieval baseline
-    /// picks the training scan of the nearest image).
-    pub fn image_descriptor(&self, view: CameraView<'_>) -> Result<Vec<f32>> {
-        let f = self.encode_views(&[view])?;
-        let mut out = Vec::new();
-        for pyramid in [&f.semantic, &f.depth].into_iter().flatten() {
-            let Some(last) = pyramid.last() else { continue };
-            let v = last.flatten_all()?.to_vec1::<f32>()?;
-            let n = v.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-12);
-            out.extend(v.iter().map(|x| x / n));
-        }
-        Ok(out)
     }
 
     pub(crate) fn denoiser_device(&self) -> &Device {
@@ -838,50 +812,6 @@ impl Bundle {
             )?)),
             _ => Ok(None),
         }
-    }
-
-    /// Draws `options.samples` scans for one camera rig. `on_step(done, total)` is called after each
-    /// sampler step. Views are ignored by unconditional bundles.
-    pub fn generate(
-        &self,
-        views: &[CameraView<'_>],
-        options: &GenerateOptions,
-        on_step: impl FnMut(usize, usize),
-    ) -> Result<Vec<RangeImage>> {
-        super::generate::sample(self, views, options, None, on_step)
-    }
-
-    /// Keeps the pixels where `known_mask` (`rows * cols`, row-major) is true at the values of
-    /// `known` and regenerates the rest, consistent with the kept part and the views (RePaint; the
-    /// sampler must be DDPM or DDIM).
-    pub fn inpaint(
-        &self,
-        views: &[CameraView<'_>],
-        known: &RangeImage,
-        known_mask: &[bool],
-        options: &GenerateOptions,
-        repaint: &RepaintConfig,
-    ) -> Result<Vec<RangeImage>> {
-        let (h, w) = self.grid();
-        if (known.rows as usize, known.cols as usize) != (h, w) || known_mask.len() != h * w {
-            return Err(Error::Shape {
-                what: "inpainting input",
-                expected: format!("a {h} x {w} scan and {} mask values", h * w),
-                got: format!(
-                    "a {} x {} scan and {} mask values",
-                    known.rows,
-                    known.cols,
-                    known_mask.len()
-                ),
-            });
-        }
-        super::generate::sample(
-            self,
-            views,
-            options,
-            Some((known, known_mask, repaint)),
-            |_, _| {},
-        )
     }
 }
 

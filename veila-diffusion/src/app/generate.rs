@@ -1,4 +1,6 @@
-//! Image-to-LiDAR generation with a [`Bundle`]: camera views in, panoramic range images out.
+//! Image-to-LiDAR generation with a [`Bundle`]: camera views in, panoramic range images out, in
+//! the model's frame. The path from a rig's own images and calibration to scans in the LiDAR's own
+//! frame is [`super::pipeline::ScanPipeline`], built on this.
 //!
 //! * [`Bundle::encode_views`] runs the frozen encoders on images already resized to the bundle's
 //!   `image_width x image_height` (resize with an antialiasing filter, e.g. `image`'s triangle filter,
@@ -16,7 +18,7 @@ use veila_geom::{PinholeCamera, RangeImage};
 use veila_nn::encoders::kind::AnyEncoder;
 use veila_nn::{ConditionInput, Denoiser as Net, GcmaGeometry};
 
-use super::bundle::{Bundle, BundleConfig};
+use super::bundle::{Bundle, BundleConfig, ResidualConfig};
 use super::nn::{NetCond, VeilaDenoiser};
 use crate::error::{Error, Result};
 use crate::noise::randn;
@@ -125,9 +127,131 @@ impl GenerateOptions {
     }
 }
 
+impl GenerateOptions {
+    /// The options of each batch when `self.samples` scans are drawn in batches of at most
+    /// `max_batch` (memory then does not grow with the number of samples): `(index of the batch's
+    /// first scan, options)`. Batch 0 keeps `self.seed`, so a run of up to `max_batch` samples draws
+    /// exactly what one batch of all of them would; later batches a SplitMix64 mix of the seed and the batch index. `veila
+    /// generate` draws its `--samples` this way (batches of 8), so the same options give the same
+    /// scans there and here.
+    pub fn batches(&self, max_batch: usize) -> impl Iterator<Item = (usize, GenerateOptions)> + '_ {
+        let max_batch = max_batch.max(1);
+        (0..self.samples.div_ceil(max_batch)).map(move |b| {
+            let first = b * max_batch;
+            (
+                first,
+                GenerateOptions {
+                    samples: max_batch.min(self.samples - first),
+                    seed: batch_seed(self.seed, b),
+                    ..self.clone()
+                },
+            )
+        })
+    }
+}
+
+/// The noise seed of batch `b` of [`GenerateOptions::batches`]: batch 0 keeps `seed`, later
+/// batches a SplitMix64 mix of the seed and the batch index.
+fn batch_seed(seed: u64, batch: usize) -> u64 {
+    if batch == 0 {
+        return seed;
+    }
+    let mut z = seed ^ (batch as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Generation with a bundle on views already fitted to it. These methods work in the model's
+/// frame: the cameras are taken as they are and the scans come out on the bundle's grid as
+/// sampled. [`super::pipeline::ScanPipeline`] is the path from a rig's own images and cameras to
+/// scans in the LiDAR's own frame, and what the doors (CLI, Python, example) call.
+impl Bundle {
+    /// Runs the frozen encoders on views at the bundle's image size.
+    pub fn encode_views(&self, views: &[CameraView<'_>]) -> Result<ViewFeatures> {
+        encode_views(
+            &self.config,
+            self.semantic.as_ref(),
+            self.depth.as_ref(),
+            views,
+            self.denoiser_device(),
+        )
+    }
+
+    /// A retrieval descriptor of one view: the coarsest feature map of each frozen encoder,
+    /// flattened (the spatial layout stays: where things are matters), each scaled to unit norm.
+    /// Images whose descriptors are near by cosine look alike to the model (the retrieval baseline
+    /// picks the training scan of the nearest image).
+    pub fn image_descriptor(&self, view: CameraView<'_>) -> Result<Vec<f32>> {
+        let f = self.encode_views(&[view])?;
+        let mut out = Vec::new();
+        for pyramid in [&f.semantic, &f.depth].into_iter().flatten() {
+            let Some(last) = pyramid.last() else { continue };
+            let v = last.flatten_all()?.to_vec1::<f32>()?;
+            let n = v.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-12);
+            out.extend(v.iter().map(|x| x / n));
+        }
+        Ok(out)
+    }
+
+    /// Draws `options.samples` scans for one camera rig, in the model's frame. `on_step(done,
+    /// total)` is called after each sampler step. Views are ignored by unconditional bundles.
+    pub fn generate(
+        &self,
+        views: &[CameraView<'_>],
+        options: &GenerateOptions,
+        on_step: impl FnMut(usize, usize),
+    ) -> Result<Vec<RangeImage>> {
+        sample(self, views, options, None, on_step)
+    }
+
+    /// Keeps the pixels where `known_mask` (`rows * cols`, row-major) is true at the values of
+    /// `known` and regenerates the rest, consistent with the kept part and the views (RePaint; the
+    /// sampler must be DDPM or DDIM). In the model's frame, like [`Bundle::generate`].
+    pub fn inpaint(
+        &self,
+        views: &[CameraView<'_>],
+        known: &RangeImage,
+        known_mask: &[bool],
+        options: &GenerateOptions,
+        repaint: &RepaintConfig,
+    ) -> Result<Vec<RangeImage>> {
+        check_inpainting_input(self, known, known_mask)?;
+        sample(
+            self,
+            views,
+            options,
+            Some((known, known_mask, repaint)),
+            |_, _| {},
+        )
+    }
+}
+
+/// A scan to inpaint is on the bundle's grid and its mask has a value per pixel.
+pub(crate) fn check_inpainting_input(
+    bundle: &Bundle,
+    known: &RangeImage,
+    known_mask: &[bool],
+) -> Result<()> {
+    let (h, w) = bundle.grid();
+    if (known.rows as usize, known.cols as usize) != (h, w) || known_mask.len() != h * w {
+        return Err(Error::Shape {
+            what: "inpainting input",
+            expected: format!("a {h} x {w} scan and {} mask values", h * w),
+            got: format!(
+                "a {} x {} scan and {} mask values",
+                known.rows,
+                known.cols,
+                known_mask.len()
+            ),
+        });
+    }
+    Ok(())
+}
+
 /// Draws scans for [`Bundle::generate`] and [`Bundle::inpaint`] (`inpainting`: the known scan,
 /// its mask and the RePaint settings).
-pub(crate) fn sample(
+fn sample(
     bundle: &Bundle,
     views: &[CameraView<'_>],
     options: &GenerateOptions,
@@ -209,7 +333,7 @@ pub(crate) fn sample(
                 Some((g, f)) => Some(mnet.prepare_condition(f, g.as_ref())?),
                 None => None,
             };
-            let mdiff = Diffusion::new(super::bundle::ResidualConfig::mean_diffusion())?;
+            let mdiff = Diffusion::new(ResidualConfig::mean_diffusion())?;
             let msampler = Sampler::new(
                 &mdiff,
                 SamplerConfig {
@@ -290,6 +414,8 @@ pub(crate) fn sample(
     };
     bundle.config.encoding.decode_batch(&x)
 }
+
+/// The frozen encoders' features of views at the bundle's image size (shared with training).
 pub(crate) fn encode_views(
     cfg: &BundleConfig,
     semantic: Option<&AnyEncoder>,
@@ -334,4 +460,46 @@ pub(crate) fn encode_views(
         semantic: run(semantic)?,
         depth: run(depth)?,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn batches_cover_every_sample_once_and_keep_the_first_seed() {
+        let options = GenerateOptions {
+            samples: 20,
+            seed: 42,
+            ..GenerateOptions::new(SamplerConfig::ddpm(4))
+        };
+        let batches: Vec<(usize, GenerateOptions)> = options.batches(8).collect();
+        let firsts: Vec<usize> = batches.iter().map(|(f, _)| *f).collect();
+        let sizes: Vec<usize> = batches.iter().map(|(_, o)| o.samples).collect();
+        assert_eq!(firsts, [0, 8, 16]);
+        assert_eq!(sizes, [8, 8, 4]);
+        // batch 0 draws what one batch of all samples would; the others their own noise
+        assert_eq!(batches[0].1.seed, 42);
+        let mut seeds: Vec<u64> = batches.iter().map(|(_, o)| o.seed).collect();
+        seeds.sort_unstable();
+        seeds.dedup();
+        assert_eq!(seeds.len(), 3);
+        // everything but the count and the seed is the run's
+        for (_, o) in &batches {
+            assert_eq!(o.sampler, options.sampler);
+            assert_eq!(o.residual_weight, options.residual_weight);
+        }
+        // a run that fits one batch is that batch
+        let small = GenerateOptions {
+            samples: 5,
+            ..options.clone()
+        };
+        let one: Vec<_> = small.batches(8).collect();
+        assert_eq!(one, [(0, small.clone())]);
+        assert_eq!(
+            options.batches(0).count(),
+            20,
+            "a batch holds at least one scan"
+        );
+    }
 }

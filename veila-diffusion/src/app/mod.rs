@@ -3,19 +3,24 @@
 //!
 //! * [`bundle`]: model bundles (encoders + denoiser + settings in one folder, sha256 manifest
 //!   verified on load) and the ablation [`Variant`]s and generative [`Method`]s as config switches.
-//! * [`generate`]: camera views to scans with a bundle (generation, RePaint inpainting).
+//! * [`pipeline`]: **the entry point**: a camera rig (images and calibrations) to scans in the
+//!   LiDAR's own frame ([`ScanPipeline`]: fit to the encoders, turn into the model's frame, sample,
+//!   turn back, unproject), for generation and RePaint edits. Every door calls it.
+//! * [`generate`]: the sampling underneath, on views already fitted to the bundle and in the
+//!   model's frame (generation, RePaint inpainting).
 //! * [`train`]: training a bundle's networks.
 //! * [`dataset`]: training examples in memory or read on demand (data of any size).
 //! * [`recipe`]: the one training recipe (encoders, mean network, residual scale, denoiser) that
 //!   `veila train` and `cargo xtask train-default` both run.
-//! * [`rig`]: camera images and their calibration files as views of a rig, resized to a bundle's
-//!   input; generated scans as points.
+//! * [`rig`]: camera images and their calibration files as views of a rig; the pipeline's steps
+//!   (resizing to a bundle's input, the model-frame turn, scans as points) one by one.
 //! * [`nn`]: the Veila U-Net from `veila-nn` as a [`crate::Denoiser`] ([`VeilaDenoiser`]).
 
 pub mod bundle;
 pub mod dataset;
 pub mod generate;
 pub mod nn;
+pub mod pipeline;
 pub mod recipe;
 pub mod rig;
 pub mod train;
@@ -24,14 +29,14 @@ pub use bundle::{Bundle, BundleConfig, Method, ResidualConfig, Variant};
 pub use dataset::{EncoderExample, ExampleSource, Examples, TrainView};
 pub use generate::{CameraView, GenerateOptions, ViewFeatures};
 pub use nn::{NetCond, VeilaDenoiser};
+pub use pipeline::{Scan, ScanPipeline};
 pub use recipe::{
     Encoder, EncoderData, EncoderEvent, EncoderSource, Encoders, RecipeInput, RecipeOutcome,
     RecipeSettings, prepare_encoders, run_recipe,
 };
-pub use rig::{
-    RigView, camera_in_model_frame, camera_views, load_view, pixels_to_model_frame, prepare_view,
-    prepare_views, quarter_turns_to_model, range_to_lidar_frame, range_to_model_frame, scan_points,
-};
+// the pipeline's steps one by one stay in `rig` (a door that calls them instead of the pipeline
+// gets scans in the wrong frame)
+pub use rig::{RigImage, RigView, load_view, scan_points};
 pub use train::{
     BundleFit, BundleFitOutcome, DenoiserFit, DenoiserFitOutcome, DenoiserTraining, EncoderAugment,
     EncoderStep, MeanPredictor, Stage, TrainExample, fit_bundle, fit_denoiser, predict_means,

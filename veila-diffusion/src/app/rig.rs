@@ -1,6 +1,11 @@
 //! Camera rigs from files: an image and its calibration (KITTI object, KITTI odometry /
-//! SemanticKITTI or a nuScenes per-sample JSON) become a [`RigView`]; [`prepare_view`] resizes it to
-//! a bundle's input; [`scan_points`] turns a generated scan into LiDAR-frame points.
+//! SemanticKITTI or a nuScenes per-sample JSON) become a [`RigView`] ([`load_view`]).
+//!
+//! Below that, the steps [`super::pipeline::ScanPipeline`] puts together, for tools that need one
+//! of them alone: [`prepare_view`] resizes a view to a bundle's input; [`quarter_turns_to_model`],
+//! [`camera_in_model_frame`] and [`range_to_lidar_frame`] move a rig into the model's frame and a
+//! scan back; [`scan_points`] turns a range image into LiDAR-frame points. To get scans from a rig,
+//! use the pipeline: a step left out gives scans in the wrong frame.
 //!
 //! Calibration files carry no image size, so each camera takes the size of its image. The image
 //! must be the one the calibration describes (full resolution): an image whose size puts the
@@ -37,6 +42,26 @@ pub struct RigView {
     pub image: RgbImage,
     /// The camera at the image's full resolution.
     pub camera: PinholeCamera,
+}
+
+impl RigView {
+    /// This view as one camera of a rig for [`super::pipeline::ScanPipeline`].
+    pub fn rig_image(&self) -> RigImage<'_> {
+        RigImage {
+            image: &self.image,
+            camera: &self.camera,
+        }
+    }
+}
+
+/// One camera of a rig in memory: an image at the resolution its calibration describes, and that
+/// camera (LiDAR frame to pixels). [`RigView::rig_image`] borrows one from a view read from files.
+#[derive(Debug, Clone, Copy)]
+pub struct RigImage<'a> {
+    /// The image, RGB.
+    pub image: &'a RgbImage,
+    /// Its camera: `width x height` the image's, `cam_from_lidar` from the LiDAR's own frame.
+    pub camera: &'a PinholeCamera,
 }
 
 fn input(path: &Path, reason: String) -> Error {
