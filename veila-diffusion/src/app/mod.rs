@@ -4,8 +4,12 @@
 //! * [`bundle`]: model bundles (encoders + denoiser + settings in one folder, sha256 manifest
 //!   verified on load) and the ablation [`Variant`]s and generative [`Method`]s as config switches.
 //! * [`generate`]: camera views to scans with a bundle (generation, RePaint inpainting).
-//! * [`train`]: training a bundle's networks.
+//! * [`train`]: training a bundle's denoiser and mean network ([`mean`]: the residual targets and
+//!   the frozen mean network); [`encoder_train`]: training the small CNN encoders.
 //! * [`dataset`]: training examples in memory or read on demand (data of any size).
+//! * [`train_config`]: the training config of `veila train` (`[data]`, `[model]`, `[train]`,
+//!   `[output]`) and the bundle config and recipe settings it gives.
+//! * [`train_data`]: converted shards as training examples, in memory or streamed.
 //! * [`recipe`]: the one training recipe (encoders, mean network, residual scale, denoiser) that
 //!   `veila train` and `cargo xtask train-default` both run.
 //! * [`rig`]: camera images and their calibration files as views of a rig, resized to a bundle's
@@ -14,15 +18,27 @@
 
 pub mod bundle;
 pub mod dataset;
+pub mod encoder_train;
 pub mod generate;
+pub mod mean;
 pub mod nn;
 pub mod recipe;
 pub mod rig;
+pub mod stage;
 pub mod train;
+pub mod train_config;
+pub mod train_data;
 
 pub use bundle::{Bundle, BundleConfig, Method, ResidualConfig, Variant};
 pub use dataset::{EncoderExample, ExampleSource, Examples, TrainView};
+pub use encoder_train::{
+    EncoderAugment, EncoderStep, train_small_cnn, train_small_cnn_from, varmap_tensors,
+};
 pub use generate::{CameraView, GenerateOptions, ViewFeatures};
+pub use mean::{
+    MeanPredictor, predict_means, raw_residual, regression_weight, residual_scale,
+    residual_scale_of, residual_target,
+};
 pub use nn::{NetCond, VeilaDenoiser};
 pub use recipe::{
     Encoder, EncoderData, EncoderEvent, EncoderSource, Encoders, RecipeInput, RecipeOutcome,
@@ -32,9 +48,8 @@ pub use rig::{
     RigView, camera_in_model_frame, camera_views, load_view, pixels_to_model_frame, prepare_view,
     prepare_views, quarter_turns_to_model, range_to_lidar_frame, range_to_model_frame, scan_points,
 };
+pub use stage::{Stage, stage_config};
 pub use train::{
-    BundleFit, BundleFitOutcome, DenoiserFit, DenoiserFitOutcome, DenoiserTraining, EncoderAugment,
-    EncoderStep, MeanPredictor, Stage, TrainExample, fit_bundle, fit_denoiser, predict_means,
-    raw_residual, regression_weight, residual_scale, residual_scale_of, residual_target,
-    stage_config, train_small_cnn, train_small_cnn_from, varmap_tensors,
+    BundleFit, BundleFitOutcome, DenoiserFit, DenoiserFitOutcome, DenoiserTraining, TrainExample,
+    fit_bundle, fit_denoiser,
 };

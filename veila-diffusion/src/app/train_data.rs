@@ -1,32 +1,50 @@
-//! The training shards of `veila train` as training examples: each sample projected to the
+//! The converted shards of `veila convert` as training examples: each sample projected to the
 //! model's grid and encoded, its image resized to the encoders' input with the LiDAR's sparse
-//! depth and labels projected into it ([`prepare_sample`]); and [`ShardSource`], which reads
-//! samples from the shards one at a time for streaming training (`[data] stream = true`).
+//! depth and labels projected into it ([`prepare_sample`]); all of them in memory
+//! ([`load_prepared`]), or [`ShardSource`], which reads samples from the shards one at a time for
+//! streaming training (`[data] stream = true`). Errors name the shard file and the sample.
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
-use anyhow::{Context, Result, bail};
 use veila_data::image::imageops;
-use veila_data::shard::{Manifest, ShardReader, ShardSample};
-use veila_diffusion::app::bundle::BundleConfig;
-use veila_diffusion::app::{EncoderExample, ExampleSource, TrainExample, TrainView};
-use veila_geom::{LidarSensor, PinholeCamera, Projector, RayTable};
+use veila_data::shard::{Manifest, ShardReader, ShardSample, read_shard};
+use veila_geom::{LidarSensor, PinholeCamera, ProjectionOptions, Projector, RayTable};
 
-/// One shard sample reduced to what training uses.
-pub(crate) struct Prepared {
-    pub(crate) rgb: Vec<u8>,
-    pub(crate) camera: PinholeCamera,
-    pub(crate) x0: Vec<f32>,
-    /// The sample's further cameras at the bundle image size (multi-view models).
-    pub(crate) extra_views: Vec<TrainView>,
-    /// Sparse camera depth at the bundle image size (0 = no return).
-    pub(crate) depth_m: Vec<f32>,
-    /// Sparse train ids at the bundle image size (0 = ignored), when the shard has labels.
-    pub(crate) labels: Option<Vec<u32>>,
+use super::bundle::BundleConfig;
+use super::dataset::{EncoderExample, ExampleSource, TrainView};
+use super::train::TrainExample;
+use crate::error::{Error, Result};
+
+/// The error of one sample of a shard file.
+fn sample_error(path: &Path, id: &str, reason: impl std::fmt::Display) -> Error {
+    Error::Input {
+        path: path.to_path_buf(),
+        reason: format!("sample {id}: {reason}"),
+    }
 }
 
-pub(crate) fn prepare_sample(
+/// One shard sample reduced to what training uses.
+#[derive(Debug, Clone)]
+pub struct Prepared {
+    /// RGB at the bundle image size (empty when the model never looks at the camera).
+    pub rgb: Vec<u8>,
+    /// The camera, fitted to the bundle image size.
+    pub camera: PinholeCamera,
+    /// The scan on the model's grid, encoded.
+    pub x0: Vec<f32>,
+    /// The sample's further cameras at the bundle image size (multi-view models).
+    pub extra_views: Vec<TrainView>,
+    /// Sparse camera depth at the bundle image size (0 = no return).
+    pub depth_m: Vec<f32>,
+    /// Sparse train ids at the bundle image size (0 = ignored), when the shard has labels.
+    pub labels: Option<Vec<u32>>,
+}
+
+/// Shard sample `s` (of the file `shard_path`, whose sensor is `shard_sensor`) as training uses it
+/// for the bundle `cfg`; `needs_camera`: whether the model or its encoders' training looks at the
+/// camera (without it the image is not read).
+pub fn prepare_sample(
     s: &ShardSample,
     shard_sensor: &LidarSensor,
     shard_rays: &RayTable,
@@ -35,7 +53,7 @@ pub(crate) fn prepare_sample(
     shard_path: &Path,
     needs_camera: bool,
 ) -> Result<Prepared> {
-    let at = || format!("{}: sample {}", shard_path.display(), s.id);
+    let err = |reason: String| sample_error(shard_path, &s.id, reason);
     let (iw, ih) = (cfg.image_width as u32, cfg.image_height as u32);
     let un = shard_rays.unproject(&s.scan)?;
     let projected;
@@ -63,24 +81,24 @@ pub(crate) fn prepare_sample(
         });
     }
     let Some(image) = &s.image else {
-        bail!(
-            "{}: has no camera image (convert the dataset with images: `cargo xtask convert` without --no-images)",
-            at()
-        );
+        return Err(err(
+            "has no camera image (convert the dataset with images: `veila convert` without --no-images)"
+                .into(),
+        ));
     };
     let Some(matrices) = &s.camera else {
-        bail!(
-            "{}: has no camera matrices (intrinsics / cam_from_lidar); the dataset needs a calibrated camera",
-            at()
-        );
+        return Err(err(
+            "has no camera matrices (intrinsics / cam_from_lidar); the dataset needs a calibrated camera"
+                .into(),
+        ));
     };
     let (w, h) = image.dimensions();
     let full = matrices
         .to_camera(w, h)
-        .with_context(|| format!("{}: invalid camera", at()))?;
+        .map_err(|e| err(format!("invalid camera: {e}")))?;
     let camera = full
         .resized(iw, ih)
-        .context("the model's image size has a zero dimension")?;
+        .ok_or_else(|| err("the model's image size has a zero dimension".into()))?;
     let rgb = imageops::resize(image, iw, ih, imageops::FilterType::Triangle).into_raw();
     // sparse supervision: returns projected into the resized image, nearest wins
     let npx = (iw * ih) as usize;
@@ -108,12 +126,11 @@ pub(crate) fn prepare_sample(
         .as_ref()
         .map_or(1, |c| c.num_views.max(1));
     if 1 + s.extra_views.len() < views {
-        bail!(
-            "{}: has {} camera(s), the model takes {views} views (convert with more cameras: \
-             `cargo xtask convert --camera CAM_FRONT,CAM_FRONT_LEFT,CAM_FRONT_RIGHT`)",
-            at(),
+        return Err(err(format!(
+            "has {} camera(s), the model takes {views} views (convert with more cameras: \
+             `veila convert --camera CAM_FRONT,CAM_FRONT_LEFT,CAM_FRONT_RIGHT`)",
             1 + s.extra_views.len()
-        );
+        )));
     }
     // the rig's further cameras the model takes, fitted to the encoders' input like the first
     let extra_views = s
@@ -126,9 +143,9 @@ pub(crate) fn prepare_sample(
             let camera = v
                 .camera
                 .to_camera(w, h)
-                .with_context(|| format!("{}: invalid camera of view {}", at(), j + 1))?
+                .map_err(|e| err(format!("invalid camera of view {}: {e}", j + 1)))?
                 .resized(iw, ih)
-                .context("the model's image size has a zero dimension")?;
+                .ok_or_else(|| err("the model's image size has a zero dimension".into()))?;
             let rgb = imageops::resize(&v.image, iw, ih, imageops::FilterType::Triangle).into_raw();
             Ok(TrainView { rgb, camera })
         })
@@ -149,7 +166,7 @@ const OPEN_SHARDS: usize = 8;
 /// The first `count` samples of a converted dataset, read from its shards one sample at a time
 /// ([`ShardReader`]) and prepared when training asks for them: memory does not grow with the
 /// dataset. Errors name the shard file and the sample.
-pub(crate) struct ShardSource {
+pub struct ShardSource {
     dir: PathBuf,
     files: Vec<String>,
     /// Sample `i` is sample `.1` of shard file `.0`.
@@ -164,10 +181,19 @@ pub(crate) struct ShardSource {
     open: Mutex<Vec<(u32, Arc<ShardReader>)>>,
 }
 
+impl std::fmt::Debug for ShardSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ShardSource")
+            .field("dir", &self.dir)
+            .field("samples", &self.index.len())
+            .finish_non_exhaustive()
+    }
+}
+
 impl ShardSource {
     /// The first `count` samples listed in `manifest` (in folder `dir`); a conditional model's
     /// samples keep their own cameras unless `unify_cameras` gives them the first one's.
-    pub(crate) fn new(
+    pub fn new(
         dir: &Path,
         manifest: &Manifest,
         count: usize,
@@ -186,7 +212,10 @@ impl ShardSource {
             }
         }
         if index.is_empty() {
-            bail!("{}: the manifest lists no samples", dir.display());
+            return Err(Error::Input {
+                path: dir.to_path_buf(),
+                reason: "the manifest lists no samples".into(),
+            });
         }
         let mut source = ShardSource {
             dir: dir.to_path_buf(),
@@ -194,10 +223,7 @@ impl ShardSource {
             index,
             sensor: manifest.sensor.clone(),
             rays: RayTable::new(&manifest.sensor)?,
-            projector: Projector::new(
-                &cfg.denoiser.sensor,
-                veila_geom::ProjectionOptions::default(),
-            )?,
+            projector: Projector::new(&cfg.denoiser.sensor, ProjectionOptions::default())?,
             cfg: cfg.clone(),
             needs_camera,
             camera: None,
@@ -210,7 +236,7 @@ impl ShardSource {
     }
 
     /// The first sample's shard sample as stored (what checks of the data look at).
-    pub(crate) fn first_sample(&self) -> Result<ShardSample> {
+    pub fn first_sample(&self) -> Result<ShardSample> {
         let (f, k) = self.index[0];
         Ok(self.reader(f)?.sample(k as usize)?)
     }
@@ -219,17 +245,17 @@ impl ShardSource {
         let mut open = self
             .open
             .lock()
-            .map_err(|_| anyhow::anyhow!("the shard reader cache lock is poisoned"))?;
+            .map_err(|_| Error::Data("the shard reader cache lock is poisoned".into()))?;
         if let Some((_, r)) = open.iter().find(|(g, _)| *g == f) {
             return Ok(r.clone());
         }
         let path = self.dir.join(&self.files[f as usize]);
         let r = Arc::new(ShardReader::open(&path)?);
         if r.sensor() != &self.sensor {
-            bail!(
-                "{}: the shard's sensor differs from the manifest's",
-                path.display()
-            );
+            return Err(Error::Input {
+                path,
+                reason: "the shard's sensor differs from the manifest's".into(),
+            });
         }
         if open.len() == OPEN_SHARDS {
             open.remove(0);
@@ -242,7 +268,7 @@ impl ShardSource {
         let &(f, k) = self
             .index
             .get(i)
-            .with_context(|| format!("sample {i} of {}", self.index.len()))?;
+            .ok_or_else(|| Error::Data(format!("sample {i} of {}", self.index.len())))?;
         let reader = self.reader(f)?;
         let s = reader.sample(k as usize)?;
         let path = self.dir.join(&self.files[f as usize]);
@@ -262,17 +288,13 @@ impl ShardSource {
     }
 }
 
-fn data_error(e: anyhow::Error) -> veila_diffusion::Error {
-    veila_diffusion::Error::Data(format!("{e:#}"))
-}
-
 impl ExampleSource for ShardSource {
     fn len(&self) -> usize {
         self.index.len()
     }
 
-    fn example(&self, index: usize) -> veila_diffusion::Result<TrainExample> {
-        let p = self.prepared(index).map_err(data_error)?;
+    fn example(&self, index: usize) -> Result<TrainExample> {
+        let p = self.prepared(index)?;
         Ok(TrainExample {
             rgb: p.rgb,
             camera: p.camera,
@@ -281,8 +303,8 @@ impl ExampleSource for ShardSource {
         })
     }
 
-    fn encoder_example(&self, index: usize) -> veila_diffusion::Result<EncoderExample> {
-        let p = self.prepared(index).map_err(data_error)?;
+    fn encoder_example(&self, index: usize) -> Result<EncoderExample> {
+        let p = self.prepared(index)?;
         Ok(EncoderExample {
             rgb: p.rgb,
             camera: Some(p.camera),
@@ -290,4 +312,55 @@ impl ExampleSource for ShardSource {
             depth_m: p.depth_m,
         })
     }
+}
+
+/// The first `want` samples of the shards in `dir` (listed in `manifest`), prepared for the bundle
+/// `cfg` and held in memory; `on_sample` is called after each. With `unify_cameras` a conditional
+/// model's samples all get the first one's camera.
+pub fn load_prepared(
+    dir: &Path,
+    manifest: &Manifest,
+    want: usize,
+    cfg: &BundleConfig,
+    needs_camera: bool,
+    unify_cameras: bool,
+    mut on_sample: impl FnMut(),
+) -> Result<Vec<Prepared>> {
+    let projector = Projector::new(&cfg.denoiser.sensor, ProjectionOptions::default())?;
+    let shard_rays = RayTable::new(&manifest.sensor)?;
+    let mut prepared = Vec::with_capacity(want);
+    'outer: for entry in &manifest.shards {
+        let path = dir.join(&entry.file);
+        let shard = read_shard(&path)?;
+        if shard.sensor != manifest.sensor {
+            return Err(Error::Input {
+                path,
+                reason: "the shard's sensor differs from the manifest's".into(),
+            });
+        }
+        for s in &shard.samples {
+            if prepared.len() == want {
+                break 'outer;
+            }
+            prepared.push(prepare_sample(
+                s,
+                &shard.sensor,
+                &shard_rays,
+                cfg,
+                &projector,
+                &path,
+                needs_camera,
+            )?);
+            on_sample();
+        }
+    }
+    if cfg.denoiser.conditioning.is_some()
+        && unify_cameras
+        && let Some(first) = prepared.first().map(|p| p.camera)
+    {
+        for p in &mut prepared {
+            p.camera = first;
+        }
+    }
+    Ok(prepared)
 }

@@ -1,4 +1,4 @@
-//! `cargo xtask convert` killed (SIGKILL) at random points and resumed gives byte-identical shards,
+//! `veila convert` killed (SIGKILL) at random points and resumed gives byte-identical shards,
 //! sidecars and manifest to an uninterrupted run, leaves no temporary shard behind, and notices a
 //! frame whose contents changed under the same id.
 
@@ -45,7 +45,7 @@ fn make_kitti(root: &Path, frames: usize) {
 }
 
 fn convert(root: &Path, out: &Path) -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_xtask"));
+    let mut c = Command::new(env!("CARGO_BIN_EXE_veila"));
     c.args([
         "convert",
         "--quiet",
@@ -93,7 +93,7 @@ fn assert_same(a: &Path, b: &Path) {
 
 #[cfg(unix)]
 #[test]
-#[ignore = "kill-and-resume (about a minute): cargo test -p xtask --test convert_resume -- --ignored"]
+#[ignore = "kill-and-resume (about a minute): cargo test -p veila-cli --test convert -- --ignored"]
 fn killed_conversions_resume_to_the_uninterrupted_bytes() {
     let tmp = tempfile::tempdir().unwrap();
     let root = tmp.path().join("kitti");
@@ -151,4 +151,32 @@ fn killed_conversions_resume_to_the_uninterrupted_bytes() {
         std::fs::read(reference.join("shard-00002.safetensors")).unwrap(),
         std::fs::read(out.join("shard-00002.safetensors")).unwrap()
     );
+}
+
+#[test]
+fn converts_a_small_kitti_tree_and_names_a_missing_root() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().join("kitti");
+    make_kitti(&root, 3);
+    let out = tmp.path().join("shards");
+    let summary = run_ok(&root, &out);
+    assert_eq!(summary["written_shards"], 2, "{summary}");
+    assert!(summary["manifest_written"].as_bool().unwrap());
+    let manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("manifest.json")).unwrap()).unwrap();
+    assert_eq!(
+        manifest["shards"].as_array().map(Vec::len),
+        Some(2),
+        "{manifest}"
+    );
+    assert_eq!(manifest["count"], 3, "{manifest}");
+
+    let missing = tmp.path().join("no-such-dataset");
+    let o = convert(&missing, &tmp.path().join("out2"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("no-such-dataset"), "{err}");
+    assert!(!tmp.path().join("out2").join("manifest.json").exists());
 }
