@@ -71,7 +71,7 @@ fn numbers_after(phrase: &str, word: &str) -> Vec<f64> {
     let toks: Vec<&str> = phrase.split_whitespace().collect();
     toks.windows(2)
         .filter(|w| w[0].trim_matches(|c: char| !c.is_alphanumeric()) == word)
-        .filter_map(|w| w[1].trim_end_matches([')', ',', ';']).parse().ok())
+        .filter_map(|w| w[1].trim_end_matches([')', ',', ';', '.']).parse().ok())
         .collect()
 }
 
@@ -96,54 +96,74 @@ fn option_block<'h>(help: &'h str, flag: &str) -> Option<&'h str> {
 }
 
 /// Every value a help text states for the bundled model: in the phrases that name it ("... for
-/// the bundled model", split at `.` and `;`), and in the `[default: ..]` of `--sampler`,
-/// `--steps` and `--guidance`.
+/// the bundled model", split at sentence ends and `;`), and in every default of `--sampler`, `--steps`
+/// and `--guidance` ("default ddim", "[default: 16]"; "default: the bundle's" names no value).
 fn claims(help: &str) -> Vec<Claim> {
-    let flat = help
-        .split_whitespace()
-        .collect::<Vec<_>>()
-        .join(" ")
-        .to_lowercase();
-    let mut out = Vec::new();
-    for phrase in flat.split(['.', ';']) {
-        if !phrase.contains("bundled") {
-            continue;
+    // paragraphs: an option's or a possible value's line (`-x`, `--x`, `- name:`) or a blank line
+    // starts a new one, so a phrase never runs from one option into the next
+    let mut paragraphs: Vec<String> = vec![String::new()];
+    for line in help.lines() {
+        let l = line.trim_start();
+        if l.is_empty() || l.starts_with('-') {
+            paragraphs.push(String::new());
         }
-        out.extend(samplers_in(phrase).into_iter().map(Claim::Sampler));
-        out.extend(
-            numbers_before(phrase, "steps")
-                .into_iter()
-                .map(|v| Claim::Steps(v as u64)),
-        );
-        out.extend(
-            numbers_after(phrase, "guidance")
-                .into_iter()
-                .map(Claim::Guidance),
-        );
+        let last = paragraphs.last_mut().expect("one paragraph");
+        last.push(' ');
+        last.push_str(&l.to_lowercase());
     }
-    for (flag, make) in [
-        (
-            "--sampler",
-            &(|v: &str| samplers_in(v).into_iter().map(Claim::Sampler).collect())
-                as &dyn Fn(&str) -> Vec<Claim>,
-        ),
-        ("--steps", &|v: &str| {
-            v.parse().map(|n| vec![Claim::Steps(n)]).unwrap_or_default()
-        }),
-        ("--guidance", &|v: &str| {
-            v.parse()
-                .map(|g| vec![Claim::Guidance(g)])
-                .unwrap_or_default()
-        }),
-    ] {
+    let mut out = Vec::new();
+    for paragraph in &paragraphs {
+        // sentences end at ". " or ";" (a bare "." may be a decimal point)
+        let flat = paragraph.split_whitespace().collect::<Vec<_>>().join(" ") + " ";
+        let flat = flat.replace(". ", "\u{1}");
+        for phrase in flat.split(['\u{1}', ';']) {
+            if !phrase.contains("bundled") {
+                continue;
+            }
+            out.extend(samplers_in(phrase).into_iter().map(Claim::Sampler));
+            out.extend(
+                numbers_before(phrase, "steps")
+                    .into_iter()
+                    .map(|v| Claim::Steps(v as u64)),
+            );
+            out.extend(
+                numbers_after(phrase, "guidance")
+                    .into_iter()
+                    .map(Claim::Guidance),
+            );
+        }
+    }
+    for flag in ["--sampler", "--steps", "--guidance"] {
         let Some(block) = option_block(help, flag) else {
             continue;
         };
-        let block = block.split_whitespace().collect::<Vec<_>>().join(" ");
-        if let Some(i) = block.find("[default: ") {
-            let rest = &block[i + "[default: ".len()..];
-            let value = rest.split(']').next().unwrap_or("").trim();
-            out.extend(make(&value.to_lowercase()));
+        let block = block
+            .split_whitespace()
+            .collect::<Vec<_>>()
+            .join(" ")
+            .to_lowercase();
+        // every "default X" of the option: what follows up to `)`, `]`, `;` or `.`
+        for (k, _) in block.match_indices("default") {
+            let rest = block[k + "default".len()..].trim_start_matches([':', ' ']);
+            let value = rest.split(". ").next().unwrap_or("");
+            let value = value.split([')', ']', ';']).next().unwrap_or("").trim();
+            match flag {
+                "--sampler" => out.extend(samplers_in(value).into_iter().map(Claim::Sampler)),
+                "--steps" => out.extend(
+                    value
+                        .split_whitespace()
+                        .next()
+                        .and_then(|v| v.parse().ok())
+                        .map(Claim::Steps),
+                ),
+                _ => out.extend(
+                    value
+                        .split_whitespace()
+                        .next()
+                        .and_then(|v| v.parse().ok())
+                        .map(Claim::Guidance),
+                ),
+            }
         }
     }
     out
@@ -180,23 +200,28 @@ fn the_checker_finds_a_wrong_default_and_passes_a_true_one() {
             Claim::Sampler("dpm".into()),
             Claim::Steps(8),
             Claim::Guidance(2.0),
+            Claim::Sampler("dpm".into()),
             Claim::Steps(16),
         ]
     );
+    let edit = "      --sampler <SAMPLER>\n          Sampler: ddpm or ddim (inpainting cannot use the multistep dpm\n          solver; default ddim)\n\n          Possible values:\n          - ddpm: Ancestral DDPM\n      --steps <N>\n";
+    assert_eq!(wrong(edit, &bundle), vec![Claim::Sampler("ddim".into())]);
     let good = "      --sampler <SAMPLER>\n          Sampler (default: the bundle's: DDPM, 4 steps, guidance 1.5\n          for the bundled model).\n      --steps <N>\n          Sampler steps (default: the bundle's).\n";
     assert_eq!(
         claims(good),
         vec![
             Claim::Sampler("ddpm".into()),
             Claim::Steps(4),
-            Claim::Guidance(1.5)
+            Claim::Guidance(1.5),
+            Claim::Sampler("ddpm".into()),
         ]
     );
     assert!(wrong(good, &bundle).is_empty());
 }
 
-/// `generate`'s `--sampler` help named DPM-Solver++(2M) as the bundled model's sampler while
-/// `models/default` samples with 4 DDPM steps; the fix is in `generate_cmd.rs`.
+/// `generate`'s `--sampler` help named DPM-Solver++(2M) as the bundled model's sampler, and
+/// `edit`'s a DDIM default, while `models/default` samples with 4 DDPM steps (which `edit` keeps);
+/// the fixes are in `generate_cmd.rs` and `edit_cmd.rs`.
 #[test]
 fn help_defaults_agree_with_the_bundled_model() {
     let bundle = bundled();
