@@ -9,9 +9,8 @@ use veila_nn::Denoiser as Net;
 use veila_nn::encoders::kind::AnyEncoder;
 
 use super::bundle::{BundleConfig, ResidualConfig};
-use super::dataset::Rigs;
+use super::dataset::{Rigs, TrainExample};
 use super::generate::{ViewFeatures, encode_views};
-use super::train::TrainExample;
 use crate::error::{Error, Result};
 
 /// Which network of a bundle a training run fits.

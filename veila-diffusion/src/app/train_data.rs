@@ -12,8 +12,7 @@ use veila_data::shard::{Manifest, ShardReader, ShardSample, read_shard};
 use veila_geom::{LidarSensor, PinholeCamera, ProjectionOptions, Projector, RayTable};
 
 use super::bundle::BundleConfig;
-use super::dataset::{EncoderExample, ExampleSource, TrainView};
-use super::train::TrainExample;
+use super::dataset::{EncoderExample, ExampleSource, TrainExample, TrainView};
 use crate::error::{Error, Result};
 
 /// The error of one sample of a shard file.
