@@ -1,33 +1,20 @@
-//! `veila eval` (distribution and point metrics between two folders of scans) and `veila fd` (Fréchet
-//! distance between two feature matrices stored as `.npy`). Both print a table and optionally write JSON
-//! `{"metrics": [...]}` atomically.
+//! `veila eval` (metrics between two folders of scans: `veila_metrics::suite`) and `veila fd` (Fréchet
+//! distance of two `.npy` feature matrices); both print a table and may write JSON atomically.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use crate::eval_features;
-use crate::staging::{self, Inputs, check_ext};
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand, ValueEnum};
-use glam::Vec3;
 use rayon::prelude::*;
+use veila_metrics::fd::{self, FeatureStats, SqrtMethod};
+use veila_metrics::protocol::PeerProtocol;
+use veila_metrics::suite::{Needs, ScanSummary, SetMetric, score_sets};
+use veila_metrics::{MetricReport, MetricValue, Protocol, Region};
 
-use veila_metrics::crossmodal::{
-    DepthAlignment, Map2d, ProjectionFilter, cm_depth_consistency, cm_semantic_consistency,
-};
-use veila_metrics::{
-    MetricReport, MetricValue, Protocol, Region,
-    bev::{BevConfig, BevHistogram, SparseBevHistogram, bev_histogram_sparse},
-    chamfer, dist,
-    fd::{self, FeatureStats, SqrtMethod},
-    lidm::{self, LidmBevConfig},
-    nn::PointIndex,
-    protocol::{PeerProtocol, PeerSummary},
-};
-use veila_nn::encoders::dinov2::{DepthAnythingV2, DepthKind};
-use veila_nn::encoders::kind::EncoderKind;
-use veila_nn::encoders::mit::SegFormer;
-use veila_nn::encoders::preprocess::ImageProcessor;
+use crate::eval_crossmodal::{self, CrossModalArgs};
+use crate::eval_features;
+use crate::staging::{self, Inputs, check_ext};
 
 /// Evaluation commands.
 #[derive(Debug, Subcommand)]
@@ -86,39 +73,30 @@ pub(crate) enum MetricName {
     CmSc,
 }
 
-/// How CM-DC aligns a depth map to the scan's depths.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub(crate) enum AlignmentArg {
-    /// Scale by median(scan depth) / median(map): relative monocular depth (the paper's protocol).
-    Median,
-    /// Scale and shift by least squares (MiDaS-style).
-    LeastSquares,
-    /// None: metric depth maps.
-    None,
-    /// Scale and shift of the map to inverse depth by least squares: relative disparity maps
-    /// (Depth-Anything-V2's relative checkpoints, MiDaS).
-    Disparity,
-}
-
-impl From<AlignmentArg> for DepthAlignment {
-    fn from(a: AlignmentArg) -> Self {
-        match a {
-            AlignmentArg::Median => DepthAlignment::Median,
-            AlignmentArg::LeastSquares => DepthAlignment::LeastSquares,
-            AlignmentArg::None => DepthAlignment::None,
-            AlignmentArg::Disparity => DepthAlignment::Disparity,
-        }
+impl MetricName {
+    /// The library's set metric, for the metrics [`score_sets`] computes.
+    fn set_metric(self) -> Option<SetMetric> {
+        Some(match self {
+            MetricName::Jsd => SetMetric::Jsd,
+            MetricName::Mmd => SetMetric::Mmd,
+            MetricName::JsdRaw => SetMetric::JsdRaw,
+            MetricName::MmdRaw => SetMetric::MmdRaw,
+            MetricName::MmdLidargenRaw => SetMetric::MmdLidargenRaw,
+            MetricName::MmdLidmRaw => SetMetric::MmdLidmRaw,
+            MetricName::MmdLidmNuscenesRaw => SetMetric::MmdLidmNuscenesRaw,
+            MetricName::MmdCd => SetMetric::MmdCd,
+            MetricName::Chamfer => SetMetric::Chamfer,
+            MetricName::Frd | MetricName::Fpd | MetricName::CmDc | MetricName::CmSc => return None,
+        })
     }
 }
 
-/// The id space of --semantic-maps.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub(crate) enum SemanticIdsArg {
-    /// SemanticKITTI train ids (0 = ignored, 1..=19).
-    Train,
-    /// SemanticKITTI raw ids (10 car, 40 road, ...), mapped to train ids by its learning map (what
-    /// `veila simulate` writes to `semantic_2/`).
-    Raw,
+/// Whether `metrics` ask for CM-DC and CM-SC.
+fn cross_modal(metrics: &[MetricName]) -> (bool, bool) {
+    (
+        metrics.contains(&MetricName::CmDc),
+        metrics.contains(&MetricName::CmSc),
+    )
 }
 
 /// The peer pipelines `jsd` and `mmd` follow.
@@ -202,62 +180,9 @@ pub(crate) struct EvalArgs {
     /// Replace existing --json / --report files (never an input).
     #[arg(long)]
     force: bool,
-    /// cm-dc / cm-sc: the generated scans' KITTI calibration (camera image_2): one file for every
-    /// scan, or a folder with `<scan stem>.txt` per scan (e.g. `veila simulate`'s `calib/`).
-    #[arg(long)]
-    calib: Option<PathBuf>,
-    /// cm-dc: a folder with a depth map per generated scan, `<scan stem>.png` (16-bit, metres x 256,
-    /// 0 = none: the KITTI convention, `veila simulate`'s `depth_2/`) or `<scan stem>.npy` (float
-    /// H x W, e.g. a monocular network's depth; not disparity).
-    #[arg(long)]
-    depth_maps: Option<PathBuf>,
-    /// cm-dc: how each depth map is aligned to the scan's depths before AbsRel.
-    #[arg(long, value_enum, default_value = "median")]
-    depth_alignment: AlignmentArg,
-    /// cm-sc: a folder with a class map per generated scan, `<scan stem>.png` (8- or 16-bit
-    /// greyscale class ids; e.g. a SegFormer's classes mapped to SemanticKITTI ids).
-    #[arg(long)]
-    semantic_maps: Option<PathBuf>,
-    /// cm-sc: the id space of --semantic-maps.
-    #[arg(long, value_enum, default_value = "train")]
-    semantic_ids: SemanticIdsArg,
-    /// cm-dc / cm-sc with networks instead of map files: a folder with the camera image of each
-    /// generated scan, `<scan stem>.png` (e.g. `veila simulate`'s `image_2/`).
-    #[arg(long)]
-    images: Option<PathBuf>,
-    /// cm-dc: predict each image's depth with Depth-Anything-V2 as the paper does, `KIND=PATH`
-    /// (`depth-anything-v2-small|base|large`, PATH its Hugging Face `model.safetensors`; the
-    /// reference processor and post-processing). A relative checkpoint's inverse depth is aligned to
-    /// the points' in disparity space; for a metric one pass --depth-model-max-m.
-    #[arg(long, value_name = "KIND=PATH")]
-    depth_model: Option<String>,
-    /// cm-dc: --depth-model is a metric checkpoint (`Metric-*-hf`) with this max depth in metres
-    /// (80 for the outdoor ones); its depth is compared as --depth-alignment says.
-    #[arg(long, value_name = "M")]
-    depth_model_max_m: Option<f32>,
-    /// cm-sc: segment each image with SegFormer, `KIND=PATH` (`segformer-b0` .. `-b5`, PATH a
-    /// Cityscapes checkpoint's `model.safetensors`, 1024 x 1024 processor); its 19 classes are
-    /// mapped to SemanticKITTI's (sky ignored).
-    #[arg(long, value_name = "KIND=PATH")]
-    semantic_model: Option<String>,
-    /// cm-dc / cm-sc: the camera image's size, WIDTHxHEIGHT, when the maps have another resolution
-    /// (default: each map's own size).
-    #[arg(long, value_parser = parse_size)]
-    image_size: Option<(u32, u32)>,
-}
-
-fn parse_size(s: &str) -> std::result::Result<(u32, u32), String> {
-    let (w, h) = s
-        .split_once(['x', 'X'])
-        .ok_or_else(|| format!("`{s}`: expected WIDTHxHEIGHT, e.g. 1242x375"))?;
-    let parse = |v: &str| {
-        v.trim()
-            .parse::<u32>()
-            .ok()
-            .filter(|&n| (1..=65_536).contains(&n))
-            .ok_or_else(|| format!("`{s}`: sizes are whole numbers from 1 to 65536"))
-    };
-    Ok((parse(w)?, parse(h)?))
+    /// The cross-modal metrics' inputs.
+    #[command(flatten)]
+    crossmodal: CrossModalArgs,
 }
 
 #[derive(Debug, Args)]
@@ -318,141 +243,7 @@ fn list_scans(dir: &Path, what: &str) -> Result<Vec<PathBuf>> {
     Ok(files)
 }
 
-/// What `veila eval` keeps of each scan: per-region summaries are computed while loading, and the points
-/// themselves only when a point metric (mmd-cd, chamfer) needs them, so memory stays small for large sets.
-struct ScanSummary {
-    /// `file` or `file[i]` for the i-th sample of a sample set.
-    label: String,
-    points: Option<Vec<Vec3>>,
-    /// Sparse R2DM BEV histogram of the raw points per requested region.
-    hist: Vec<SparseBevHistogram>,
-    /// LiDM occupancy of the raw points per requested region (64-beam grid).
-    occ: Vec<lidm::BevOccupancy>,
-    /// LiDM occupancy of the raw points per requested region (32-beam grid).
-    occ_nus: Vec<lidm::BevOccupancy>,
-    /// The --protocol's summary after its pipeline, per requested region.
-    peer: Vec<PeerSummary>,
-}
-
-#[derive(Debug, Clone, Copy)]
-struct Needs {
-    points: bool,
-    hist: bool,
-    occ: bool,
-    occ_nus: bool,
-    peer: bool,
-}
-
-impl Needs {
-    /// Whether anything but the protocol pipeline is asked for (sample sets have no raw points).
-    fn raw(&self) -> bool {
-        self.points || self.hist || self.occ || self.occ_nus
-    }
-}
-
-fn summarise_raw(
-    xyz: Vec<Vec3>,
-    label: String,
-    regions: &[Region],
-    needs: Needs,
-    protocol: PeerProtocol,
-) -> Result<ScanSummary> {
-    let (bev, lcfg, lnus) = (
-        BevConfig::r2dm(),
-        LidmBevConfig::kitti(),
-        LidmBevConfig::nuscenes(),
-    );
-    let prepared = if needs.peer {
-        Some(
-            protocol
-                .prepare_scan(&xyz, "scan")
-                .with_context(|| label.clone())?,
-        )
-    } else {
-        None
-    };
-    let mut s = ScanSummary {
-        label,
-        points: None,
-        hist: Vec::new(),
-        occ: Vec::new(),
-        occ_nus: Vec::new(),
-        peer: Vec::new(),
-    };
-    for &r in regions {
-        if needs.hist {
-            s.hist.push(
-                bev_histogram_sparse(&xyz, &bev, r, "scan").with_context(|| s.label.clone())?,
-            );
-        }
-        if needs.occ {
-            s.occ.push(
-                lidm::lidm_bev_occupancy(&xyz, &lcfg, r, "scan")
-                    .with_context(|| s.label.clone())?,
-            );
-        }
-        if needs.occ_nus {
-            s.occ_nus.push(
-                lidm::lidm_bev_occupancy(&xyz, &lnus, r, "scan")
-                    .with_context(|| s.label.clone())?,
-            );
-        }
-        if let Some(p) = &prepared {
-            s.peer.push(
-                protocol
-                    .summarise(p, r, "scan")
-                    .with_context(|| s.label.clone())?,
-            );
-        }
-    }
-    s.points = needs.points.then_some(xyz);
-    Ok(s)
-}
-
-/// The samples of one peer sample set (.npy / .npz), each reduced by the protocol's pipeline.
-fn summarise_samples(
-    f: &Path,
-    regions: &[Region],
-    protocol: PeerProtocol,
-) -> Result<Vec<ScanSummary>> {
-    let arrays = veila_data::peer_samples::read_sample_arrays(f)?;
-    let many = arrays.len() > 1;
-    let mut out = Vec::new();
-    for a in arrays {
-        let (n, c, h, w) = protocol
-            .split_samples(&a.shape)
-            .with_context(|| format!("{}: array {}", f.display(), a.name))?;
-        let per = c * h * w;
-        for i in 0..n {
-            let label = if many {
-                format!("{}[{}][{i}]", f.display(), a.name)
-            } else {
-                format!("{}[{i}]", f.display())
-            };
-            let pts = protocol
-                .points_from_image(&a.data[i * per..(i + 1) * per], c, h, w, "sample")
-                .with_context(|| label.clone())?;
-            let peer = regions
-                .iter()
-                .map(|&r| protocol.summarise(&pts, r, "sample"))
-                .collect::<std::result::Result<Vec<_>, _>>()
-                .with_context(|| label.clone())?;
-            out.push(ScanSummary {
-                label,
-                points: None,
-                hist: Vec::new(),
-                occ: Vec::new(),
-                occ_nus: Vec::new(),
-                peer,
-            });
-        }
-    }
-    if out.is_empty() {
-        bail!("{}: the sample set holds no sample", f.display());
-    }
-    Ok(out)
-}
-
+/// The scans and sample sets of `files`, each reduced to what the metrics need (in parallel).
 fn load_scans(
     files: &[PathBuf],
     what: &str,
@@ -473,14 +264,36 @@ fn load_scans(
                         f.display()
                     );
                 }
-                summarise_samples(f, regions, protocol)?
+                let arrays = veila_data::peer_samples::read_sample_arrays(f)?;
+                let many = arrays.len() > 1;
+                let mut out = Vec::new();
+                for a in arrays {
+                    let label = if many {
+                        format!("{label}[{}]", a.name)
+                    } else {
+                        label.clone()
+                    };
+                    out.extend(ScanSummary::of_sample_array(
+                        &label, &a.shape, &a.data, regions, protocol,
+                    )?);
+                }
+                if out.is_empty() {
+                    bail!("{}: the sample set holds no sample", f.display());
+                }
+                out
             } else {
                 let loaded = veila_data::scan::read_points_with(f, veila_data::scan::Keep::FiniteXyz)
                     .with_context(|| format!("reading {}", f.display()))?;
                 if loaded.cloud.xyz.is_empty() {
                     bail!("{}: the scan has no (finite) points", f.display());
                 }
-                vec![summarise_raw(loaded.cloud.xyz, label, regions, needs, protocol)?]
+                vec![ScanSummary::of_points(
+                    loaded.cloud.xyz,
+                    label,
+                    regions,
+                    needs,
+                    protocol,
+                )?]
             };
             pb.inc(1);
             Ok(s)
@@ -488,45 +301,6 @@ fn load_scans(
         .collect();
     pb.finish_and_clear();
     Ok(out?.into_iter().flatten().collect())
-}
-
-fn label_of(set: &[ScanSummary], i: usize) -> String {
-    set.get(i)
-        .map(|s| s.label.clone())
-        .unwrap_or_else(|| format!("scan {i}"))
-}
-
-/// Turns the library's "generated scan 3" into the file name.
-fn explain(
-    err: veila_metrics::Error,
-    generated: &[ScanSummary],
-    reference: &[ScanSummary],
-) -> anyhow::Error {
-    if let veila_metrics::Error::NoPointsInWindow { what, window } = &err {
-        for (prefix, set) in [
-            ("generated scan ", generated),
-            ("reference scan ", reference),
-        ] {
-            if let Some(i) = what
-                .strip_prefix(prefix)
-                .and_then(|s| s.parse::<usize>().ok())
-            {
-                return anyhow::anyhow!(
-                    "{}: no point inside the {window} window (this metric normalises every scan on its own)",
-                    label_of(set, i)
-                );
-            }
-        }
-    }
-    anyhow::Error::new(err)
-}
-
-/// Up to this many scans per set the R2DM MMD uses dense histograms (GEMM, faster); above, sparse ones
-/// (the same value up to rounding, ~9x less memory).
-const DENSE_MMD_MAX_SCANS: usize = 2000;
-
-fn points_of(s: &ScanSummary) -> &[Vec3] {
-    s.points.as_deref().unwrap_or(&[])
 }
 
 /// Checks the `--json` / `--report` destinations before any work: named for their format, not an
@@ -594,189 +368,35 @@ fn run_eval(a: EvalArgs) -> Result<()> {
     if metrics.contains(&MetricName::Chamfer) {
         check_pairing(&gen_files, &ref_files, &a.generated, &a.reference)?;
     }
-    check_crossmodal_args(&a, &metrics, &gen_files)?;
+    eval_crossmodal::check_args(&a.crossmodal, cross_modal(&metrics), &gen_files)?;
     let regions: Vec<Region> = a.regions.iter().map(|&r| Region::from(r)).collect();
-    let needs = Needs {
-        points: metrics
-            .iter()
-            .any(|m| matches!(m, MetricName::MmdCd | MetricName::Chamfer)),
-        hist: metrics.iter().any(|m| {
-            matches!(
-                m,
-                MetricName::JsdRaw | MetricName::MmdRaw | MetricName::MmdLidargenRaw
-            )
-        }),
-        occ: metrics.contains(&MetricName::MmdLidmRaw),
-        occ_nus: metrics.contains(&MetricName::MmdLidmNuscenesRaw),
-        peer: metrics
-            .iter()
-            .any(|m| matches!(m, MetricName::Jsd | MetricName::Mmd)),
-    };
+    let set_metrics: Vec<SetMetric> = metrics.iter().filter_map(|m| m.set_metric()).collect();
+    let needs = Needs::of(&set_metrics);
     let generated = load_scans(&gen_files, "generated", &regions, needs, protocol)?;
     let reference = load_scans(&ref_files, "reference", &regions, needs, protocol)?;
 
-    let mut report = MetricReport::default();
-    let (ng, nr) = (generated.len(), reference.len());
-    let value =
-        |name: &str, protocol: Protocol, region: Region, v: f64, scale: Option<f64>| MetricValue {
-            name: name.to_string(),
-            protocol,
-            region,
-            value: v,
-            generated: ng,
-            reference: nr,
-            paper_scale: scale,
-        };
     let pb = crate::progress::bar((metrics.len() * a.regions.len()) as u64, "metrics");
-    for (ri, &region) in regions.iter().enumerate() {
-        let sparse = |set: &[ScanSummary]| -> Vec<SparseBevHistogram> {
-            set.iter().map(|s| s.hist[ri].clone()).collect()
-        };
-        let dense = |set: &[ScanSummary]| -> Vec<BevHistogram> {
-            set.iter().map(|s| s.hist[ri].to_dense()).collect()
-        };
-        // the protocol's two metrics are computed together
-        let peer_scores = if needs.peer {
-            let pg: Vec<PeerSummary> = generated.iter().map(|s| s.peer[ri].clone()).collect();
-            let pr: Vec<PeerSummary> = reference.iter().map(|s| s.peer[ri].clone()).collect();
-            Some(
-                protocol
-                    .score(&pg, &pr)
-                    .map_err(|e| explain(e, &generated, &reference))
-                    .with_context(|| format!("protocol {protocol}, region {region}"))?,
-            )
-        } else {
-            None
-        };
-        for &m in &metrics {
+    let mut report = score_sets(
+        &set_metrics,
+        &regions,
+        &generated,
+        &reference,
+        protocol,
+        |m, region| {
             pb.set_message(format!("{m:?} {region}"));
-            let ex = |e| explain(e, &generated, &reference);
-            let v = match m {
-                // feature and cross-modal metrics: computed once below
-                MetricName::Frd | MetricName::Fpd | MetricName::CmDc | MetricName::CmSc => {
-                    pb.inc(1);
-                    continue;
-                }
-                MetricName::Jsd | MetricName::Mmd => {
-                    let want = if m == MetricName::Jsd { "jsd" } else { "mmd" };
-                    let pm = peer_scores
-                        .iter()
-                        .flatten()
-                        .find(|p| p.name == want)
-                        .expect("the protocol computes jsd and mmd");
-                    value(
-                        want,
-                        protocol.metric_protocol(),
-                        region,
-                        pm.value,
-                        pm.paper_scale,
-                    )
-                }
-                MetricName::JsdRaw => value(
-                    "jsd-raw",
-                    Protocol::R2dm,
-                    region,
-                    dist::jsd(&sparse(&generated), &sparse(&reference)).map_err(ex)?,
-                    None,
-                ),
-                MetricName::MmdRaw => {
-                    let mmd = if ng.max(nr) <= DENSE_MMD_MAX_SCANS {
-                        dist::mmd_r2dm_dense(
-                            &dense(&generated),
-                            &dense(&reference),
-                            dist::MMD_SIGMA,
-                        )
-                    } else {
-                        dist::mmd_r2dm_sparse(
-                            &sparse(&generated),
-                            &sparse(&reference),
-                            dist::MMD_SIGMA,
-                        )
-                    };
-                    value(
-                        "mmd-raw",
-                        Protocol::R2dm,
-                        region,
-                        mmd.map_err(ex)?,
-                        Some(dist::MMD_PAPER_SCALE),
-                    )
-                }
-                MetricName::MmdLidargenRaw => value(
-                    "mmd-lidargen-raw",
-                    Protocol::Lidargen,
-                    region,
-                    dist::mmd_lidargen(&dense(&generated), &dense(&reference), dist::MMD_SIGMA)
-                        .map_err(ex)?,
-                    None,
-                ),
-                MetricName::MmdLidmRaw | MetricName::MmdLidmNuscenesRaw => {
-                    let nus = m == MetricName::MmdLidmNuscenesRaw;
-                    let pick = |s: &ScanSummary| {
-                        if nus {
-                            s.occ_nus[ri].clone()
-                        } else {
-                            s.occ[ri].clone()
-                        }
-                    };
-                    let og: Vec<_> = generated.iter().map(pick).collect();
-                    let or: Vec<_> = reference.iter().map(pick).collect();
-                    value(
-                        if nus {
-                            "mmd-lidm-nuscenes-raw"
-                        } else {
-                            "mmd-lidm-raw"
-                        },
-                        if nus {
-                            Protocol::LidmNuscenes
-                        } else {
-                            Protocol::Lidm
-                        },
-                        region,
-                        lidm::mmd_lidm(&og, &or).map_err(ex)?,
-                        Some(lidm::LIDM_PAPER_SCALE),
-                    )
-                }
-                MetricName::MmdCd => {
-                    let ig = indexes(&generated, region)?;
-                    let ir = indexes(&reference, region)?;
-                    value(
-                        "mmd-cd",
-                        Protocol::Pytorch3d,
-                        region,
-                        chamfer::minimum_matching_distance(&ig, &ir)?,
-                        None,
-                    )
-                }
-                MetricName::Chamfer => {
-                    let mut sum = 0.0;
-                    for (g, r) in generated.iter().zip(&reference) {
-                        let gp = veila_metrics::filter_region(points_of(g), region);
-                        let rp = veila_metrics::filter_region(points_of(r), region);
-                        if gp.is_empty() || rp.is_empty() {
-                            bail!(
-                                "{} / {}: no points in region {region}; the Chamfer distance needs points on both sides",
-                                g.label,
-                                r.label
-                            );
-                        }
-                        sum += chamfer::chamfer_distance(&gp, &rp)?.value();
-                    }
-                    value(
-                        "chamfer",
-                        Protocol::Pytorch3d,
-                        region,
-                        sum / generated.len() as f64,
-                        None,
-                    )
-                }
-            };
-            report.metrics.push(v);
             pb.inc(1);
-        }
-    }
+        },
+    )
+    .with_context(|| format!("protocol {protocol}"))?;
     pb.finish_and_clear();
     feature_metrics(&a, &metrics, &gen_files, &ref_files, &mut report)?;
-    crossmodal_metrics(&a, &metrics, &gen_files, &mut report)?;
+    eval_crossmodal::metrics(
+        &a.crossmodal,
+        cross_modal(&metrics),
+        a.feature_nets.as_deref(),
+        &gen_files,
+        &mut report,
+    )?;
     // the files first (all or none), then the table: a reader that goes away early (`| head`)
     // cannot cost them
     let mut files = Vec::new();
@@ -857,19 +477,6 @@ fn feature_metrics(
     Ok(())
 }
 
-fn indexes(scans: &[ScanSummary], region: Region) -> Result<Vec<PointIndex>> {
-    scans
-        .par_iter()
-        .map(|s| {
-            let pts = veila_metrics::filter_region(points_of(s), region);
-            if pts.is_empty() {
-                bail!("{}: no points in region {region}", s.label);
-            }
-            PointIndex::build(&pts, "scan").with_context(|| s.label.clone())
-        })
-        .collect()
-}
-
 fn check_pairing(
     gen_files: &[PathBuf],
     ref_files: &[PathBuf],
@@ -934,87 +541,12 @@ fn print_table(report: &MetricReport) {
     }
 }
 
-/// A 2-D `.npy` feature matrix as `f64`, row-major.
-fn read_npy_matrix(path: &Path) -> Result<(Vec<f64>, usize, usize)> {
-    let file =
-        std::fs::File::open(path).with_context(|| format!("{}: cannot open", path.display()))?;
-    let npy = npyz::NpyFile::new(std::io::BufReader::new(file))
-        .with_context(|| format!("{}: not a valid .npy file", path.display()))?;
-    let shape = npy.shape().to_vec();
-    if shape.len() != 2 {
-        bail!(
-            "{}: expected a 2-D array (samples x features), got shape {shape:?}",
-            path.display()
-        );
-    }
-    let (rows, cols) = (shape[0] as usize, shape[1] as usize);
-    if rows == 0 || cols == 0 {
-        bail!(
-            "{}: the feature matrix is empty (shape {shape:?})",
-            path.display()
-        );
-    }
-    let order = npy.order();
-    let dtype = npy.dtype();
-    let data: Vec<f64> = match &dtype {
-        npyz::DType::Plain(ts)
-            if ts.type_char() == npyz::TypeChar::Float && ts.size_field() == 4 =>
-        {
-            npy.into_vec::<f32>()
-                .with_context(|| format!("{}: reading f32 data", path.display()))?
-                .into_iter()
-                .map(f64::from)
-                .collect()
-        }
-        npyz::DType::Plain(ts)
-            if ts.type_char() == npyz::TypeChar::Float && ts.size_field() == 8 =>
-        {
-            npy.into_vec::<f64>()
-                .with_context(|| format!("{}: reading f64 data", path.display()))?
-        }
-        other => bail!(
-            "{}: unsupported dtype {}; expected float32 or float64",
-            path.display(),
-            other.descr()
-        ),
-    };
-    if data.len() != rows * cols {
-        bail!(
-            "{}: expected {} values for shape {shape:?}, found {}",
-            path.display(),
-            rows * cols,
-            data.len()
-        );
-    }
-    let data = match order {
-        npyz::Order::C => data,
-        npyz::Order::Fortran => {
-            let mut c = vec![0.0; rows * cols];
-            for j in 0..cols {
-                for i in 0..rows {
-                    c[i * cols + j] = data[j * rows + i];
-                }
-            }
-            c
-        }
-    };
-    if let Some(k) = data.iter().position(|v| !v.is_finite()) {
-        bail!(
-            "{}: non-finite value at row {}, column {}",
-            path.display(),
-            k / cols,
-            k % cols
-        );
-    }
-    Ok((data, rows, cols))
-}
-
 fn run_fd(a: FdArgs) -> Result<()> {
     let mut inputs = Inputs::new();
     inputs.add(&a.a).add(&a.b);
     check_report_outputs(a.json.as_deref(), None, &inputs, a.force)?;
-    let (fa, ra, ca) = read_npy_matrix(&a.a)?;
-    let (fb, rb, cb) = read_npy_matrix(&a.b)?;
+    let (fa, ra, ca) = veila_data::npy::read_matrix_f64(&a.a)?;
+    let (fb, rb, cb) = veila_data::npy::read_matrix_f64(&a.b)?;
     if ca != cb {
         bail!(
             "{} has {ca} feature columns but {} has {cb}",
@@ -1064,340 +596,5 @@ fn run_fd(a: FdArgs) -> Result<()> {
         )?;
     }
     print_table(&report);
-    Ok(())
-}
-
-/// What the cross-modal metrics need, checked before any work: a calibration and the maps, and
-/// scans (not peer sample sets) to project.
-fn check_crossmodal_args(
-    a: &EvalArgs,
-    metrics: &[MetricName],
-    gen_files: &[PathBuf],
-) -> Result<()> {
-    let (dc, sc) = (
-        metrics.contains(&MetricName::CmDc),
-        metrics.contains(&MetricName::CmSc),
-    );
-    if !dc && !sc {
-        return Ok(());
-    }
-    if a.calib.is_none() {
-        bail!("cm-dc / cm-sc project the generated points into the camera: pass --calib FILE|DIR");
-    }
-    match (dc, a.depth_maps.is_some(), a.depth_model.is_some()) {
-        (true, false, false) => bail!(
-            "cm-dc compares with depth maps: pass --depth-maps DIR (<scan stem>.png or .npy), or \
-             --depth-model depth-anything-v2-small=PATH with --images DIR"
-        ),
-        (_, true, true) => bail!("pass either --depth-maps or --depth-model, not both"),
-        _ => {}
-    }
-    match (sc, a.semantic_maps.is_some(), a.semantic_model.is_some()) {
-        (true, false, false) => bail!(
-            "cm-sc compares with class maps: pass --semantic-maps DIR (<scan stem>.png), or \
-             --semantic-model segformer-b0=PATH with --images DIR"
-        ),
-        (_, true, true) => bail!("pass either --semantic-maps or --semantic-model, not both"),
-        _ => {}
-    }
-    if (a.depth_model.is_some() || a.semantic_model.is_some()) && a.images.is_none() {
-        bail!(
-            "--depth-model / --semantic-model run on the camera images: pass --images DIR (<scan stem>.png)"
-        );
-    }
-    if let Some(m) = a.depth_model_max_m
-        && !(m.is_finite() && m > 0.0)
-    {
-        bail!("--depth-model-max-m must be a positive number of metres, got {m}");
-    }
-    if let Some(f) = gen_files
-        .iter()
-        .find(|f| veila_data::peer_samples::is_sample_file(f))
-    {
-        bail!(
-            "{}: cm-dc / cm-sc project scans into the camera; peer sample sets have no camera",
-            f.display()
-        );
-    }
-    Ok(())
-}
-
-/// A scan file's name without its point-format extension (`000001.bin`, `x.pcd.bin` -> `000001`, `x`).
-fn scan_stem(path: &Path) -> String {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let lower = name.to_lowercase();
-    for ext in [".pcd.bin", ".bin", ".ply", ".exr"] {
-        if lower.ends_with(ext) {
-            return name[..name.len() - ext.len()].to_string();
-        }
-    }
-    name
-}
-
-/// `dir/<stem>.<ext>` for the first extension that exists, or an error naming what was looked for.
-fn companion(dir: &Path, stem: &str, exts: &[&str], what: &str, scan: &Path) -> Result<PathBuf> {
-    for ext in exts {
-        let p = dir.join(format!("{stem}.{ext}"));
-        if p.is_file() {
-            return Ok(p);
-        }
-    }
-    bail!(
-        "{}: no {what} for it: expected {} in {}",
-        scan.display(),
-        exts.iter()
-            .map(|e| format!("{stem}.{e}"))
-            .collect::<Vec<_>>()
-            .join(" or "),
-        dir.display()
-    )
-}
-
-/// `KIND=PATH` of --depth-model / --semantic-model.
-fn split_model_arg<'s>(flag: &str, spec: &'s str) -> Result<(EncoderKind, &'s Path)> {
-    let (kind, path) = spec
-        .split_once('=')
-        .with_context(|| format!("{flag} `{spec}`: expected KIND=PATH"))?;
-    let kind: EncoderKind = kind
-        .parse()
-        .map_err(|e: String| anyhow::anyhow!("{flag}: {e}"))?;
-    Ok((kind, Path::new(path)))
-}
-
-/// Depth-Anything-V2 with its head (relative, or metric with `max_m`); the flag says metric.
-fn load_depth_model(
-    spec: &str,
-    max_m: Option<f32>,
-    device: &candle_core::Device,
-) -> Result<(DepthAnythingV2, bool)> {
-    let (kind, path) = split_model_arg("--depth-model", spec)?;
-    let mut cfg = kind.depth_anything_config().with_context(|| {
-        format!("--depth-model: `{kind}` is not a Depth-Anything-V2 kind (depth-anything-v2-small|base|large)")
-    })?;
-    if let Some(m) = max_m {
-        cfg.depth_estimation_type = DepthKind::Metric;
-        cfg.max_depth = m;
-    }
-    let model =
-        DepthAnythingV2::load(&cfg, path, candle_core::DType::F32, device).with_context(|| {
-            format!(
-                "--depth-model {kind}: {} (the `model.safetensors` of {})",
-                path.display(),
-                kind.hub_repo().unwrap_or("-")
-            )
-        })?;
-    Ok((model, max_m.is_some()))
-}
-
-/// SegFormer with its Cityscapes head.
-fn load_semantic_model(spec: &str, device: &candle_core::Device) -> Result<SegFormer> {
-    let (kind, path) = split_model_arg("--semantic-model", spec)?;
-    let cfg = kind.segformer_cityscapes_config().with_context(|| {
-        format!("--semantic-model: `{kind}` is not a SegFormer kind (segformer-b0 .. segformer-b5)")
-    })?;
-    SegFormer::load(&cfg, path, candle_core::DType::F32, device).with_context(|| {
-        format!(
-            "--semantic-model {kind}: {} (the `model.safetensors` of {})",
-            path.display(),
-            kind.hub_repo().unwrap_or("-")
-        )
-    })
-}
-
-/// CM-DC and CM-SC (when requested) over the generated scans, appended to `report` (region front:
-/// the camera's field of view; the value is the mean over the scans that have points in it).
-fn crossmodal_metrics(
-    a: &EvalArgs,
-    metrics: &[MetricName],
-    gen_files: &[PathBuf],
-    report: &mut MetricReport,
-) -> Result<()> {
-    let (want_dc, want_sc) = (
-        metrics.contains(&MetricName::CmDc),
-        metrics.contains(&MetricName::CmSc),
-    );
-    if !want_dc && !want_sc {
-        return Ok(());
-    }
-    let calib = a
-        .calib
-        .as_deref()
-        .expect("checked by check_crossmodal_args");
-    let nets = if want_sc {
-        Some(eval_features::load_nets(a.feature_nets.as_deref())?)
-    } else {
-        None
-    };
-    // chosen once: on a CUDA build it opens the GPU
-    let device = crate::model::device()?;
-    let depth_model = match (&a.depth_model, want_dc) {
-        (Some(spec), true) => Some(load_depth_model(spec, a.depth_model_max_m, &device)?),
-        _ => None,
-    };
-    let semantic_model = match (&a.semantic_model, want_sc) {
-        (Some(spec), true) => Some(load_semantic_model(spec, &device)?),
-        _ => None,
-    };
-    let image_for = |stem: &str, f: &Path| -> Result<(PathBuf, veila_data::image::RgbImage)> {
-        let dir = a.images.as_deref().expect("checked");
-        let p = companion(dir, stem, &["png", "jpg"], "camera image", f)?;
-        let img = veila_data::image_io::read_rgb_image(&p)?;
-        Ok((p, img))
-    };
-    let (mut dc, mut sc) = (Vec::new(), Vec::new());
-    let pb = crate::progress::bar(gen_files.len() as u64, "cross-modal");
-    for f in gen_files {
-        let stem = scan_stem(f);
-        let calib_file = if calib.is_dir() {
-            companion(calib, &stem, &["txt"], "calibration", f)?
-        } else {
-            calib.to_path_buf()
-        };
-        let loaded = veila_data::scan::read_points(f)?;
-        let cloud = &loaded.cloud;
-        let camera_for = |w: u32, h: u32| -> Result<veila_geom::PinholeCamera> {
-            let (w, h) = a.image_size.unwrap_or((w, h));
-            Ok(veila_data::weather::files::read_camera(&calib_file, w, h)?)
-        };
-        if want_dc {
-            let (mp, map, alignment) = match &depth_model {
-                Some((model, metric)) => {
-                    let (p, img) = image_for(&stem, f)?;
-                    let (w, h) = img.dimensions();
-                    let data = model
-                        .predict_depth_map_rgb8(
-                            &ImageProcessor::depth_anything_v2(),
-                            img.as_raw(),
-                            h as usize,
-                            w as usize,
-                            &device,
-                        )
-                        .with_context(|| format!("{}: depth prediction", p.display()))?;
-                    let alignment = if *metric {
-                        a.depth_alignment.into()
-                    } else {
-                        DepthAlignment::Disparity
-                    };
-                    (
-                        p,
-                        veila_data::image_io::ImageMap {
-                            width: w,
-                            height: h,
-                            data,
-                        },
-                        alignment,
-                    )
-                }
-                None => {
-                    let dir = a.depth_maps.as_deref().expect("checked");
-                    let mp = companion(dir, &stem, &["png", "npy"], "depth map", f)?;
-                    let map = veila_data::image_io::read_depth_map(&mp)?;
-                    (mp, map, a.depth_alignment.into())
-                }
-            };
-            let cam = camera_for(map.width, map.height)?;
-            let m = Map2d::new(map.width, map.height, &map.data)
-                .with_context(|| mp.display().to_string())?;
-            match cm_depth_consistency(
-                &cloud.xyz,
-                &cam,
-                &m,
-                alignment,
-                &ProjectionFilter::default(),
-            ) {
-                Ok(c) if c.abs_rel.is_finite() => dc.push(c.abs_rel),
-                Ok(_) => tracing::warn!("{}: no point projects onto a depth value", f.display()),
-                Err(e) => tracing::warn!("{}: cm-dc skipped: {e}", f.display()),
-            }
-        }
-        if let Some(nets) = &nets {
-            let (mp, map) = match &semantic_model {
-                Some(model) => {
-                    let (p, img) = image_for(&stem, f)?;
-                    let (w, h) = img.dimensions();
-                    let labels = model
-                        .predict_label_map_rgb8(
-                            &ImageProcessor::segformer(1024, 1024),
-                            img.as_raw(),
-                            h as usize,
-                            w as usize,
-                            &device,
-                        )
-                        .with_context(|| format!("{}: segmentation", p.display()))?;
-                    let data = labels
-                        .into_iter()
-                        .map(veila_metrics::crossmodal::cityscapes_to_semantickitti)
-                        .collect();
-                    (
-                        p,
-                        veila_data::image_io::ImageMap {
-                            width: w,
-                            height: h,
-                            data,
-                        },
-                    )
-                }
-                None => {
-                    let dir = a.semantic_maps.as_deref().expect("checked");
-                    let mp = companion(dir, &stem, &["png"], "class map", f)?;
-                    let mut map = veila_data::image_io::read_label_map(&mp)?;
-                    if a.semantic_ids == SemanticIdsArg::Train {
-                        veila_metrics::crossmodal::check_train_ids(
-                            &map.data,
-                            &mp.display().to_string(),
-                        )
-                        .context("--semantic-ids train (pass --semantic-ids raw for raw ids)")?;
-                    }
-                    if a.semantic_ids == SemanticIdsArg::Raw {
-                        for v in &mut map.data {
-                            *v = u32::from(veila_data::sim::class::learning_id(
-                                u16::try_from(*v).unwrap_or(0),
-                            ));
-                        }
-                    }
-                    (mp, map)
-                }
-            };
-            let cam = camera_for(map.width, map.height)?;
-            let (pts, labels) = nets.segment_points(&cloud.xyz, Some(&cloud.intensity))?;
-            let m = Map2d::new(map.width, map.height, &map.data)
-                .with_context(|| mp.display().to_string())?;
-            let filter = ProjectionFilter {
-                ignore_label: Some(0),
-                ..ProjectionFilter::default()
-            };
-            match cm_semantic_consistency(&pts, &labels, &cam, &m, &filter) {
-                Ok(c) if c.percent.is_finite() => sc.push(c.percent),
-                Ok(_) => tracing::warn!("{}: no point projects onto a labelled pixel", f.display()),
-                Err(e) => tracing::warn!("{}: cm-sc skipped: {e}", f.display()),
-            }
-        }
-        pb.inc(1);
-    }
-    pb.finish_and_clear();
-    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
-    for (want, name, vals) in [(want_dc, "cm-dc", &dc), (want_sc, "cm-sc (%)", &sc)] {
-        if !want {
-            continue;
-        }
-        if vals.is_empty() {
-            bail!(
-                "{name}: no generated scan has points in the camera's view with a map value there \
-                 (check --calib and the maps)"
-            );
-        }
-        report.metrics.push(MetricValue {
-            name: name.into(),
-            protocol: Protocol::Veila,
-            region: Region::Front,
-            value: mean(vals),
-            generated: vals.len(),
-            reference: 0,
-            paper_scale: None,
-        });
-    }
     Ok(())
 }

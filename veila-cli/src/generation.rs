@@ -106,9 +106,13 @@ pub(crate) fn resolve_sampler(
             steps,
             ..base.clone()
         },
-        Some(SamplerName::Ddpm) => SamplerConfig::ddpm(steps),
-        Some(SamplerName::Ddim) => SamplerConfig::ddim(steps, 0.0),
-        Some(SamplerName::Dpm) => SamplerConfig::dpm_solver_pp_2m(steps),
+        // the library reads the name (`SamplerConfig::named`); clap only offers the choices
+        Some(name) => SamplerConfig::named(
+            name.to_possible_value()
+                .as_ref()
+                .map_or("", |v| v.get_name()),
+            steps,
+        )?,
     };
     cfg.guidance_scale = base.guidance_scale;
     if let Some(g) = guidance {

@@ -7,26 +7,30 @@
 use anyhow::Result;
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
+/// mimalloc keeps freed blocks for reuse (`veila_nn::process`).
+#[global_allocator]
+static GLOBAL: veila_nn::process::MiMalloc = veila_nn::process::MiMalloc;
+
 mod dist; // the TCP transport of data-parallel `veila train`
 #[cfg(feature = "nccl")]
 mod dist_nccl; // the NCCL transport on GPUs (bootstrapped by dist)
 mod generation; // what generate and edit share (rig and sampler arguments, scan files)
 mod model;
-mod process; // the global allocator and the process settings (shared with xtask)
 mod progress;
 mod report; // self-contained HTML reports (veila eval --report)
 mod staging; // the output discipline of every command
 // command modules (one per family):
 mod bench_cmd; // bench (training and sampling speed)  (veila-nn, veila-diffusion)
+mod convert_cmd; // convert (datasets into training shards) (veila-data::convert)
 mod data_cmd; // project, unproject, render           (veila-data)
 mod demo_cmd; // demo (the README's main job)
 mod edit_cmd; // edit (RePaint scene editing)         (veila-diffusion::pipeline)
 mod eval_cmd; // eval, fd                               (veila-metrics)
+mod eval_crossmodal; // CM-DC / CM-SC of eval (maps or networks) (veila-metrics::crossmodal)
 mod eval_features; // FRD / FPD features for eval          (veila-nn::feature_nets)
 mod generate_cmd; // generate                           (veila-diffusion::pipeline)
 mod sim_cmd; // simulate                               (veila-data::sim)
 mod train_cmd; // train (bundles from converted shards) (veila-diffusion::trainer)
-mod train_data; // the shards of train as examples, in memory or streamed
 mod weather_cmd; // weather                                (veila-data::weather)
 
 /// Panoramic LiDAR generation from a monocular RGB image, and the tools around it.
@@ -70,6 +74,9 @@ enum Command {
     /// Time the denoiser's training update (f32 and bf16 mixed precision) and its sampling on
     /// this machine's device, for the bundled network and the paper's 64 x 1024 one.
     Bench(bench_cmd::BenchArgs),
+    /// Convert a dataset (KITTI, SemanticKITTI, nuScenes) into training shards (safetensors +
+    /// manifest.json) for `veila train`; resumable and shardable across workers.
+    Convert(convert_cmd::ConvertArgs),
     /// Train a model bundle (encoders and denoiser) on converted shards from a TOML config;
     /// resumable: rerunning the same config continues from the newest checkpoint.
     Train(train_cmd::TrainArgs),
@@ -97,6 +104,10 @@ const EXAMPLES: &[(&str, &str)] = &[
     (
         "edit",
         "veila edit --image 000008.png --calib calib/000008.txt --scan out/gen/scan_000.bin \\\n    --remove-box \"5,-2,-2,15,2,1\" --out out/edit",
+    ),
+    (
+        "convert",
+        "veila convert --dataset semantickitti --root data/semantic-kitti --split train --out shards/train",
     ),
     (
         "train",
@@ -143,7 +154,11 @@ fn cli_command() -> clap::Command {
 
 fn main() {
     restore_default_sigpipe();
-    process::tune_process();
+    // SAFETY: first thing in `main`, before any other thread exists.
+    #[allow(unsafe_code)]
+    unsafe {
+        veila_nn::process::tune_process();
+    }
     staging::install_signal_cleanup();
     let matches = cli_command().get_matches();
     if let Some(name) = matches.subcommand_name() {
@@ -188,6 +203,7 @@ fn run(command: Command) -> Result<()> {
         Command::Demo(a) => demo_cmd::run(a),
         Command::Generate(a) => generate_cmd::run(a),
         Command::Edit(a) => edit_cmd::run(a),
+        Command::Convert(a) => convert_cmd::run(a),
         Command::Train(a) => train_cmd::run(a),
         Command::Bench(a) => bench_cmd::run(a),
         Command::Completions { shell } => {

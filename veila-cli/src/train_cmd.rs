@@ -1,5 +1,5 @@
 //! `veila train --config CONFIG.toml`: trains a model bundle on converted training shards
-//! (`cargo xtask convert`).
+//! (`veila convert`).
 //!
 //! The image encoders are trained first (or taken from another bundle), with sparse supervision
 //! from the LiDAR: each return of a shard's range image is projected into the camera image, giving
@@ -17,48 +17,10 @@
 //! gradients are averaged before each update, and rank 0 alone writes checkpoints, the log and the
 //! bundle (the other ranks log to `train_log.rank-N.jsonl`). The output folder must be shared.
 //!
-//! ```toml
-//! [data]
-//! shards = "data/kitti-shards"     # folder with manifest.json (relative to this file)
-//! # max_frames = 2000              # use the first N samples only
-//! # verify = true                  # check every shard's sha256 against the manifest
-//! # unify_cameras = false          # true: give every sample the first one's camera (approximation)
-//! # stream = false                 # true: read the shards batch by batch (any dataset size)
-//! # prefetch = 4                   # batches read ahead when streaming
-//!
-//! [model]
-//! variant = "full"                 # full, unconditional, no-cacm, no-gcma, no-pfc, semantic-only, depth-only
-//! # method = "residual"            # eps, v, residual (default), flow, regression
-//! # bundle = "models/default/bundle.json"  # start from a bundle config instead of the CPU default
-//! # encoders_from = "models/default"       # reuse trained encoders instead of training them
-//! # image_height = 96              # camera input size of the encoders
-//! # image_width = 320
-//! # semantic_encoder = "segformer-b0"     # a pretrained encoder by kind instead of a small CNN:
-//! # semantic_weights = "weights/segformer-b0/model.safetensors"   # its Hugging Face file
-//! # depth_encoder = "depth-anything-v2-small"
-//! # depth_weights = "weights/da2-small/model.safetensors"
-//! # views = 1                      # cameras per sample (3: the paper's front, front-left, front-right)
-//! # ground_prior = false           # true: the small-CNN encoders also take the flat-ground depth
-//! #                                #   from each image's calibration (LiDAR 1.73 m above the ground)
-//! # depth_features = false         # true: the small-CNN depth encoder's own depth reading is one
-//! #                                #   more channel of its feature maps (same weights)
-//!
-//! [train]
-//! steps = 1000                     # denoiser steps
-//! # mean_steps = 1000              # mean-network steps of the residual method (default: steps)
-//! batch = 4
-//! lr = 1e-3
-//! seed = 0
-//! encoder_steps = 250
-//! checkpoint_every = 250
-//! # grad_accum_steps = 1           # run each batch in this many parts (activation memory of one part)
-//! # precision = "f32"              # or "bf16": mixed precision (bf16 activations, f32 weights; GPUs)
-//! # [train.encoder_augment]        # augment the encoders' training images (crop-zoom, colour,
-//! # crop_zoom = { p = 0.5, scale = [1.0, 1.3] }   #  blur, noise, JPEG; veila_data::augment)
-//!
-//! [output]
-//! dir = "runs/my-model"            # OUTPUT/checkpoints, OUTPUT/bundle
-//! ```
+//! The config's schema and what it gives (the bundle config, the recipe settings) are
+//! `veila_diffusion::app::train_config`; the shards become examples in
+//! `veila_diffusion::app::train_data`. This module reads the TOML, draws the progress and writes
+//! the log.
 
 use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
@@ -67,19 +29,17 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use serde::{Deserialize, Serialize};
-use veila_data::shard::{Manifest, read_shard};
-use veila_diffusion::app::bundle::{Bundle, BundleConfig, EncoderSpec, Variant, sha256_hex};
+use veila_data::shard::Manifest;
+use veila_diffusion::app::bundle::{Bundle, sha256_hex};
+use veila_diffusion::app::train_config::{RunFingerprint, TrainFile};
+use veila_diffusion::app::train_data::{Prepared, ShardSource, load_prepared};
 use veila_diffusion::app::{
-    Encoder, EncoderData, EncoderEvent, EncoderSource, ExampleSource, Examples, RecipeInput,
-    RecipeSettings, Stage, TrainExample, run_recipe,
+    Encoder, EncoderData, EncoderEvent, EncoderSource, ExampleSource, Examples, RecipeInput, Stage,
+    TrainExample, run_recipe,
 };
 use veila_diffusion::trainer::distributed::{Parallel, ProcessGroup};
 use veila_diffusion::{Precision, StepStats, TrainObserver};
-use veila_geom::{ProjectionOptions, Projector, RayTable};
-use veila_nn::encoders::kind::EncoderKind;
 
-use crate::train_data::{Prepared, ShardSource, prepare_sample};
 use crate::{model, progress};
 
 /// Arguments of `veila train`.
@@ -95,477 +55,16 @@ pub(crate) struct TrainArgs {
     stop_after: Option<u64>,
 }
 
-/// The config file.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct TrainFile {
-    data: DataSection,
-    #[serde(default)]
-    model: ModelSection,
-    #[serde(default)]
-    train: TrainSection,
-    output: OutputSection,
-}
-
-#[derive(Debug, Clone, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct DataSection {
-    /// Folder with `manifest.json` and the shards.
-    shards: PathBuf,
-    /// Use only the first this many samples.
-    #[serde(default)]
-    max_frames: Option<usize>,
-    /// Check every shard against the manifest's sha256 before training.
-    #[serde(default = "yes")]
-    verify: bool,
-    /// Train every sample with the first sample's camera, an approximation (by default every
-    /// sample's own camera is used: the geometric attention of each camera is built once and
-    /// samples of several rigs share a batch).
-    #[serde(default)]
-    unify_cameras: bool,
-    /// Read the samples from the shards batch by batch (a loader thread reads ahead) and run the
-    /// frozen encoders per batch, instead of loading every sample and its features into memory:
-    /// for datasets of any size, at the cost of encoding each batch.
-    #[serde(default)]
-    stream: bool,
-    /// Batches the loader reads ahead when streaming.
-    #[serde(default = "d_prefetch")]
-    prefetch: usize,
-}
-
-fn d_prefetch() -> usize {
-    4
-}
-
-fn yes() -> bool {
-    true
-}
-
-#[derive(Debug, Clone, Default, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct ModelSection {
-    /// Model variant of `BundleConfig::cpu_default` (default `full`).
-    #[serde(default)]
-    variant: Option<String>,
-    /// Generative method (`eps`, `v`, `residual`, `flow`, `regression`; default: the CPU
-    /// default's).
-    #[serde(default)]
-    method: Option<String>,
-    /// A `bundle.json` to start from instead of the CPU default.
-    #[serde(default)]
-    bundle: Option<PathBuf>,
-    /// Reuse the encoders of this bundle folder.
-    #[serde(default)]
-    encoders_from: Option<PathBuf>,
-    /// Name written into the bundle.
-    #[serde(default)]
-    name: Option<String>,
-    /// Camera input height of the encoders.
-    #[serde(default)]
-    image_height: Option<usize>,
-    /// Camera input width of the encoders.
-    #[serde(default)]
-    image_width: Option<usize>,
-    /// The semantic encoder by kind (`small-cnn`, `segformer-b0` .. `segformer-b5`,
-    /// `depth-anything-v2-{small,base,large}`, `dinov2-{s,b,l}`); default: the config's.
-    #[serde(default)]
-    semantic_encoder: Option<String>,
-    /// The pretrained semantic encoder's `model.safetensors`.
-    #[serde(default)]
-    semantic_weights: Option<PathBuf>,
-    /// The depth encoder by kind, as `semantic_encoder`.
-    #[serde(default)]
-    depth_encoder: Option<String>,
-    /// The pretrained depth encoder's `model.safetensors`.
-    #[serde(default)]
-    depth_weights: Option<PathBuf>,
-    /// Camera views per sample (the paper's table 8: 1 or 3); the shards must carry as many
-    /// cameras per sample (`cargo xtask convert --camera CAM_FRONT,CAM_FRONT_LEFT,...`).
-    #[serde(default)]
-    views: Option<usize>,
-    /// The flat-ground prior as an input channel of the small-CNN encoders (`true`), or none
-    /// (`false`); default: the config's (none for the CPU default).
-    #[serde(default)]
-    ground_prior: Option<bool>,
-    /// The small-CNN depth encoder's depth reading as one more channel of its feature maps
-    /// (`true`), or not (`false`); default: the config's (off for the CPU default).
-    #[serde(default)]
-    depth_features: Option<bool>,
-}
-
-#[derive(Debug, Clone, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct TrainSection {
-    #[serde(default = "d_steps")]
-    steps: u64,
-    #[serde(default = "d_batch")]
-    batch: usize,
-    #[serde(default = "d_lr")]
-    lr: f64,
-    #[serde(default)]
-    seed: u64,
-    #[serde(default = "d_encoder_steps")]
-    encoder_steps: usize,
-    #[serde(default = "d_encoder_batch")]
-    encoder_batch: usize,
-    #[serde(default = "d_encoder_lr")]
-    encoder_lr: f64,
-    #[serde(default = "d_checkpoint_every")]
-    checkpoint_every: u64,
-    #[serde(default = "d_keep")]
-    keep_checkpoints: usize,
-    #[serde(default = "d_ema")]
-    ema_decay: f64,
-    /// Condition dropout for classifier-free guidance (default 0.1 for conditional models).
-    #[serde(default)]
-    cond_drop_prob: Option<f64>,
-    /// Steps of the residual method's mean network (default: `steps`).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    mean_steps: Option<u64>,
-    /// Gradient accumulation: each update runs its batch in this many parts (default 1: none).
-    /// The batch stays the global one; each part's activations are freed before the next.
-    #[serde(default = "d_one", skip_serializing_if = "is_one")]
-    grad_accum_steps: u64,
-    /// Image augmentation of the encoders' training (`[train.encoder_augment]`, any key of
-    /// `veila_data::augment::Photometric` under `photometric`, `p` / `scale` under `crop_zoom`;
-    /// absent: none).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    encoder_augment: Option<veila_diffusion::app::EncoderAugment>,
-    /// The activations' precision of the two networks' training: `f32` (default) or `bf16`
-    /// (mixed precision on f32 master weights; for GPUs).
-    #[serde(default, skip_serializing_if = "is_f32")]
-    precision: Precision,
-}
-
-fn is_f32(p: &Precision) -> bool {
-    *p == Precision::F32
-}
-
-fn d_one() -> u64 {
-    1
-}
-fn is_one(v: &u64) -> bool {
-    *v == 1
-}
-
-fn d_steps() -> u64 {
-    1000
-}
-fn d_batch() -> usize {
-    4
-}
-fn d_lr() -> f64 {
-    1e-3
-}
-fn d_encoder_steps() -> usize {
-    250
-}
-fn d_encoder_batch() -> usize {
-    8
-}
-fn d_encoder_lr() -> f64 {
-    2e-3
-}
-fn d_checkpoint_every() -> u64 {
-    250
-}
-fn d_keep() -> usize {
-    2
-}
-fn d_ema() -> f64 {
-    0.995
-}
-
-impl Default for TrainSection {
-    fn default() -> Self {
-        TrainSection {
-            steps: d_steps(),
-            batch: d_batch(),
-            lr: d_lr(),
-            seed: 0,
-            encoder_steps: d_encoder_steps(),
-            encoder_batch: d_encoder_batch(),
-            encoder_lr: d_encoder_lr(),
-            checkpoint_every: d_checkpoint_every(),
-            keep_checkpoints: d_keep(),
-            ema_decay: d_ema(),
-            cond_drop_prob: None,
-            mean_steps: None,
-            grad_accum_steps: 1,
-            encoder_augment: None,
-            precision: Precision::F32,
-        }
-    }
-}
-
-#[derive(Debug, Clone, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct OutputSection {
-    /// Output folder: `checkpoints/` and `bundle/` go inside.
-    dir: PathBuf,
-}
-
-/// Written to `OUTPUT/checkpoints/run.json`: a rerun resumes only with the same settings.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-struct RunFingerprint {
-    bundle: BundleConfig,
-    train: serde_json::Value,
-    data_manifest_sha256: String,
-    samples: usize,
-    encoders_from: Option<String>,
-}
-
 const ENCODER_DIR: &str = "encoders";
 
+/// The config file at `path`, its relative paths resolved and its values checked.
 fn read_config(path: &Path) -> Result<TrainFile> {
     let text = std::fs::read_to_string(path)
         .with_context(|| format!("{}: cannot read", path.display()))?;
     let mut cfg: TrainFile = toml::from_str(&text)
         .map_err(|e| anyhow::anyhow!("{}: not a valid training config: {e}", path.display()))?;
-    let base = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let resolve = |p: &Path| {
-        if p.is_absolute() {
-            p.to_path_buf()
-        } else {
-            base.join(p)
-        }
-    };
-    cfg.data.shards = resolve(&cfg.data.shards);
-    cfg.output.dir = resolve(&cfg.output.dir);
-    cfg.model.bundle = cfg.model.bundle.as_deref().map(resolve);
-    cfg.model.encoders_from = cfg.model.encoders_from.as_deref().map(resolve);
-    cfg.model.semantic_weights = cfg.model.semantic_weights.as_deref().map(resolve);
-    cfg.model.depth_weights = cfg.model.depth_weights.as_deref().map(resolve);
-    let t = &cfg.train;
-    let bad = |what: &str| anyhow::anyhow!("{}: [train] {what}", path.display());
-    if t.steps == 0 {
-        return Err(bad("steps must be at least 1"));
-    }
-    if t.batch == 0 || t.encoder_batch == 0 {
-        return Err(bad("batch and encoder_batch must be at least 1"));
-    }
-    if !(t.lr.is_finite() && t.lr > 0.0 && t.encoder_lr.is_finite() && t.encoder_lr > 0.0) {
-        return Err(bad("lr and encoder_lr must be finite and > 0"));
-    }
-    if t.checkpoint_every == 0 {
-        return Err(bad("checkpoint_every must be at least 1"));
-    }
-    if t.grad_accum_steps == 0 || t.grad_accum_steps as usize > t.batch {
-        return Err(bad(&format!(
-            "grad_accum_steps must be in 1..=batch ({}), got {}",
-            t.batch, t.grad_accum_steps
-        )));
-    }
-    if !(0.0..1.0).contains(&t.ema_decay) {
-        return Err(bad("ema_decay must be in [0, 1)"));
-    }
-    if let Some(p) = t.cond_drop_prob
-        && !(0.0..=1.0).contains(&p)
-    {
-        return Err(bad("cond_drop_prob must be in [0, 1]"));
-    }
-    if cfg.data.max_frames == Some(0) {
-        return Err(anyhow::anyhow!(
-            "{}: [data] max_frames must be at least 1",
-            path.display()
-        ));
-    }
+    cfg.resolve_and_check(path)?;
     Ok(cfg)
-}
-
-/// The bundle config the run trains.
-fn bundle_config(file: &TrainFile, config_path: &Path) -> Result<BundleConfig> {
-    let m = &file.model;
-    let mut cfg = match (&m.bundle, &m.variant) {
-        (Some(_), Some(_)) => bail!(
-            "{}: [model] give either `variant` or `bundle`, not both",
-            config_path.display()
-        ),
-        (Some(p), None) => {
-            let text = std::fs::read(p).with_context(|| format!("{}: cannot read", p.display()))?;
-            let mut c: BundleConfig = serde_json::from_slice(&text)
-                .with_context(|| format!("{}: not a bundle.json", p.display()))?;
-            c.provenance = serde_json::Value::Null;
-            c
-        }
-        (None, v) => {
-            let variant: Variant = v
-                .as_deref()
-                .unwrap_or("full")
-                .parse()
-                .map_err(|e: String| anyhow::anyhow!("{}: [model] {e}", config_path.display()))?;
-            BundleConfig::cpu_default(variant)
-        }
-    };
-    // a bundle.json keeps its own method unless one is named; the CPU default takes the
-    // default method
-    let method = match (&m.method, &m.bundle) {
-        (Some(name), _) => Some(
-            name.parse::<veila_diffusion::app::bundle::Method>()
-                .map_err(|e: String| anyhow::anyhow!("{}: [model] {e}", config_path.display()))?,
-        ),
-        (None, None) => Some(veila_diffusion::app::bundle::Method::DEFAULT),
-        (None, Some(_)) => None,
-    };
-    if let Some(method) = method {
-        cfg = cfg.with_method(method);
-    }
-    if let Some(name) = &m.name {
-        cfg.name = name.clone();
-    }
-    if m.image_height.is_some() || m.image_width.is_some() {
-        cfg.image_height = m.image_height.unwrap_or(cfg.image_height);
-        cfg.image_width = m.image_width.unwrap_or(cfg.image_width);
-        if cfg.image_height < 32 || cfg.image_width < 32 {
-            bail!(
-                "{}: [model] image_height and image_width must be at least 32",
-                config_path.display()
-            );
-        }
-        if let Some(c) = cfg.denoiser.conditioning.as_mut() {
-            c.feature_sizes =
-                veila_nn::ConditioningConfig::pyramid_sizes(cfg.image_height, cfg.image_width);
-        }
-    }
-    if m.semantic_encoder.is_some()
-        || m.depth_encoder.is_some()
-        || m.semantic_weights.is_some()
-        || m.depth_weights.is_some()
-    {
-        let semantic = encoder_spec(
-            "semantic",
-            m.semantic_encoder.as_deref(),
-            m.semantic_weights.as_deref(),
-            cfg.semantic_encoder.as_ref(),
-            config_path,
-        )?;
-        let depth = encoder_spec(
-            "depth",
-            m.depth_encoder.as_deref(),
-            m.depth_weights.as_deref(),
-            cfg.depth_encoder.as_ref(),
-            config_path,
-        )?;
-        if cfg.denoiser.conditioning.is_none() {
-            bail!(
-                "{}: [model] names encoders, but the model is unconditional",
-                config_path.display()
-            );
-        }
-        cfg.set_encoders(semantic, depth)
-            .with_context(|| format!("{}: [model] encoders", config_path.display()))?;
-    }
-    if let Some(on) = m.ground_prior {
-        let prior = on.then(veila_nn::encoders::ground::GroundPrior::default);
-        if cfg.set_ground_prior(prior) == 0 && on {
-            bail!(
-                "{}: [model] ground_prior needs a small-cnn encoder (pretrained encoders take colours only)",
-                config_path.display()
-            );
-        }
-    }
-    if let Some(on) = m.depth_features {
-        cfg.set_depth_features(on)
-            .with_context(|| format!("{}: [model] depth_features", config_path.display()))?;
-    }
-    if let Some(views) = m.views {
-        if !(1..=6).contains(&views) {
-            bail!("{}: [model] views must be 1 to 6", config_path.display());
-        }
-        let Some(c) = cfg.denoiser.conditioning.as_mut() else {
-            bail!(
-                "{}: [model] views, but the model is unconditional",
-                config_path.display()
-            );
-        };
-        c.num_views = views;
-        if let Some(c) = cfg
-            .residual
-            .as_mut()
-            .and_then(|r| r.mean_net.conditioning.as_mut())
-        {
-            c.num_views = views;
-        }
-    }
-    cfg.denoiser.validate().with_context(|| {
-        format!(
-            "{}: [model] gives an invalid denoiser",
-            config_path.display()
-        )
-    })?;
-    Ok(cfg)
-}
-
-/// One encoder of `[model]`: `kind` (default: the config's), with `weights` for pretrained kinds
-/// (hashed here, so the bundle records which file it was trained with).
-fn encoder_spec(
-    which: &str,
-    kind: Option<&str>,
-    weights: Option<&Path>,
-    current: Option<&EncoderSpec>,
-    config_path: &Path,
-) -> Result<Option<EncoderSpec>> {
-    let at = || format!("{}: [model] {which}_encoder", config_path.display());
-    let kind: Option<EncoderKind> = match kind {
-        Some(k) => Some(
-            k.parse()
-                .map_err(|e: String| anyhow::anyhow!("{}: {e}", at()))?,
-        ),
-        None => current.map(|c| c.kind),
-    };
-    let Some(kind) = kind else {
-        if weights.is_some() {
-            bail!("{}: `{which}_weights` without an encoder", at());
-        }
-        return Ok(None);
-    };
-    if !kind.is_pretrained() {
-        if weights.is_some() {
-            bail!(
-                "{}: a small-cnn is trained here; `{which}_weights` is for pretrained kinds",
-                at()
-            );
-        }
-        let config = current
-            .and_then(|c| c.small_cnn_config().cloned())
-            .unwrap_or_default();
-        return Ok(Some(EncoderSpec::small_cnn(config)));
-    }
-    let Some(path) = weights else {
-        if let Some(c) = current.filter(|c| c.kind == kind) {
-            return Ok(Some(c.clone()));
-        }
-        bail!(
-            "{}: `{kind}` needs `{which}_weights`, the path of `model.safetensors` from {}",
-            at(),
-            kind.hub_repo().unwrap_or("-")
-        );
-    };
-    let bytes = std::fs::read(path).with_context(|| {
-        format!(
-            "{}: cannot read {} (download `model.safetensors` of {} from the Hugging Face Hub)",
-            at(),
-            path.display(),
-            kind.hub_repo().unwrap_or("-")
-        )
-    })?;
-    // check it now rather than after the data is loaded
-    kind.load_pretrained(
-        &bytes,
-        path,
-        candle_core::DType::F32,
-        &candle_core::Device::Cpu,
-    )
-    .with_context(at)?;
-    let path = std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
-    Ok(Some(EncoderSpec::pretrained(
-        kind,
-        path,
-        Some(sha256_hex(&bytes)),
-    )))
 }
 
 struct Progress {
@@ -682,7 +181,7 @@ fn encoder_name(which: Encoder) -> &'static str {
 pub(crate) fn run(args: TrainArgs) -> Result<()> {
     let t_all = Instant::now();
     let file = read_config(&args.config)?;
-    let mut cfg = bundle_config(&file, &args.config)?;
+    let mut cfg = file.bundle_config(&args.config)?;
     let device = model::device()?;
     let t = &file.train;
     if t.precision == Precision::Bf16 && device.is_cpu() {
@@ -728,7 +227,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
     let manifest_path = shards.join("manifest.json");
     if !manifest_path.exists() {
         bail!(
-            "{}: no manifest.json: [data] shards must be a folder written by `cargo xtask convert`",
+            "{}: no manifest.json: [data] shards must be a folder written by `veila convert`",
             shards.display()
         );
     }
@@ -765,42 +264,17 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         first_has_labels = source.first_sample()?.train_ids.is_some();
         stream = Some(Arc::new(source));
     } else {
-        let projector = Projector::new(&cfg.denoiser.sensor, ProjectionOptions::default())?;
-        let shard_rays = RayTable::new(&manifest.sensor)?;
         let bar = progress::bar(want as u64, "loading");
-        prepared.reserve(want);
-        'outer: for entry in &manifest.shards {
-            let path = shards.join(&entry.file);
-            let shard = read_shard(&path)?;
-            if shard.sensor != manifest.sensor {
-                bail!(
-                    "{}: the shard's sensor differs from the manifest's",
-                    path.display()
-                );
-            }
-            for s in &shard.samples {
-                if prepared.len() == want {
-                    break 'outer;
-                }
-                prepared.push(prepare_sample(
-                    s,
-                    &shard.sensor,
-                    &shard_rays,
-                    &cfg,
-                    &projector,
-                    &path,
-                    needs_camera,
-                )?);
-                bar.inc(1);
-            }
-        }
+        prepared = load_prepared(
+            shards,
+            &manifest,
+            want,
+            &cfg,
+            needs_camera,
+            file.data.unify_cameras,
+            || bar.inc(1),
+        )?;
         bar.finish_and_clear();
-        if conditional && file.data.unify_cameras {
-            let first = prepared[0].camera;
-            for p in &mut prepared {
-                p.camera = first;
-            }
-        }
     }
     let samples = stream.as_ref().map_or(prepared.len(), |s| s.len());
     println!(
@@ -862,23 +336,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
     }
 
     // 3. encoders and 4. networks: the shared recipe
-    let settings = RecipeSettings {
-        seed: t.seed,
-        steps: t.steps,
-        mean_steps: t.mean_steps,
-        batch: t.batch,
-        lr: t.lr,
-        ema_decay: t.ema_decay,
-        cond_drop_prob: t.cond_drop_prob.unwrap_or(0.1),
-        checkpoint_every: t.checkpoint_every,
-        keep_checkpoints: t.keep_checkpoints,
-        encoder_steps: t.encoder_steps,
-        encoder_batch: t.encoder_batch,
-        encoder_lr: t.encoder_lr,
-        grad_accum_steps: t.grad_accum_steps,
-        encoder_augment: t.encoder_augment,
-        precision: t.precision,
-    };
+    let settings = t.recipe_settings();
     let mean_steps = settings.mean_steps();
     let enc_dir = ck_dir.join(ENCODER_DIR);
     let images: Vec<Vec<u8>> = prepared.iter().map(|p| p.rgb.clone()).collect();
@@ -1083,44 +541,4 @@ fn peak_host_mib() -> Option<f64> {
     let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
     let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kib / 1024.0)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn config(model: &str) -> Result<BundleConfig> {
-        let text = format!(
-            "[data]\nshards = \"shards\"\n\n[model]\n{model}\n\n[train]\n\n[output]\ndir = \"out\"\n"
-        );
-        let file: TrainFile = toml::from_str(&text)?;
-        bundle_config(&file, Path::new("train.toml"))
-    }
-
-    fn depth_channels(c: &BundleConfig) -> Vec<usize> {
-        c.denoiser
-            .conditioning
-            .as_ref()
-            .map(|k| k.depth_channels.clone())
-            .unwrap_or_default()
-    }
-
-    #[test]
-    fn depth_features_widen_the_depth_conditioning_and_refusals_name_the_file() {
-        let plain = config("").unwrap();
-        assert_eq!(config("depth_features = false").unwrap(), plain);
-        let on = config("depth_features = true").unwrap();
-        let widened: Vec<usize> = depth_channels(&plain).iter().map(|c| c + 1).collect();
-        assert_eq!(depth_channels(&on), widened);
-        let mean = on.residual.as_ref().unwrap().mean_net.conditioning.as_ref();
-        assert_eq!(mean.unwrap().depth_channels, widened);
-        // a model without a depth encoder cannot have it
-        let err = config("variant = \"semantic-only\"\ndepth_features = true")
-            .unwrap_err()
-            .to_string();
-        assert!(
-            err.contains("train.toml") && err.contains("depth_features"),
-            "{err}"
-        );
-    }
 }

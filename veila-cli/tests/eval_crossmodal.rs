@@ -188,8 +188,8 @@ fn networks_predict_the_maps_when_asked() {
         vm.save(weights.join(name)).unwrap();
     };
     save("da.safetensors", &|vb| {
-        veila_nn::encoders::dinov2::DepthAnythingV2::new(
-            &veila_nn::encoders::dinov2::DepthAnythingV2Config::small(),
+        veila_nn::encoders::depth_anything::DepthAnythingV2::new(
+            &veila_nn::encoders::depth_anything::DepthAnythingV2Config::small(),
             vb,
         )
         .unwrap();

@@ -12,7 +12,7 @@ mod common;
 use common::*;
 
 /// 16 x 128 LiDAR (not the model's grid: training re-projects), 124 x 38 camera.
-/// Writes `frames` simulated frames as shards (2 per shard) with a manifest, like `cargo xtask convert`.
+/// Writes `frames` simulated frames as shards (2 per shard) with a manifest, like `veila convert`.
 fn make_shards(dir: &Path, frames: u32, labels: bool, images: bool) {
     make_shards_with_views(dir, frames, labels, images, 0);
 }

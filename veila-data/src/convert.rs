@@ -412,3 +412,193 @@ pub fn open_dataset(
         }),
     }
 }
+
+/// Which dataset a conversion reads and how: what [`open_source`] opens.
+#[derive(Debug, Clone)]
+pub struct SourceSpec {
+    /// `kitti`, `semantickitti` or `nuscenes`.
+    pub kind: String,
+    /// Dataset root (KITTI: the folder with `training/`; SemanticKITTI: the folder with
+    /// `sequences/`; nuScenes: the data root with `v1.0-*/` tables or `calib/*.json`).
+    pub root: PathBuf,
+    /// Read the camera images (they are stored in every sample).
+    pub images: bool,
+    /// SemanticKITTI: the label map file (default: the dataset's own lookup beside the root).
+    pub label_map: Option<PathBuf>,
+    /// SemanticKITTI: which sequences.
+    pub sequences: crate::semantic_kitti::Sequences,
+    /// nuScenes: the camera channels paired with each sweep; the first is each sample's camera,
+    /// the others its further views.
+    pub cameras: Vec<String>,
+}
+
+impl SourceSpec {
+    /// A dataset of `kind` at `root` with images, every SemanticKITTI sequence and nuScenes'
+    /// `CAM_FRONT`.
+    pub fn new(kind: impl Into<String>, root: impl Into<PathBuf>) -> Self {
+        SourceSpec {
+            kind: kind.into(),
+            root: root.into(),
+            images: true,
+            label_map: None,
+            sequences: crate::semantic_kitti::Sequences::All,
+            cameras: vec!["CAM_FRONT".into()],
+        }
+    }
+}
+
+/// Opens the dataset `spec` names, with its label map when it has one (SemanticKITTI).
+pub fn open_source(spec: &SourceSpec) -> Result<(Box<dyn Dataset>, Option<LabelMap>)> {
+    use crate::semantic_kitti::SemanticKittiDataset;
+    match spec.kind.as_str() {
+        "semantickitti" => {
+            let map = spec.label_map.as_deref().map(LabelMap::read).transpose()?;
+            let sequences = spec.sequences.clone();
+            let ds = match map {
+                Some(m) => {
+                    SemanticKittiDataset::open_with_label_map(&spec.root, sequences, Some(m))?
+                }
+                None => SemanticKittiDataset::open(&spec.root, sequences)?,
+            }
+            .with_images(spec.images);
+            let map = ds.label_map().cloned();
+            Ok((Box::new(ds), map))
+        }
+        "nuscenes" => {
+            let cams: Vec<&str> = spec.cameras.iter().map(String::as_str).collect();
+            Ok((
+                Box::new(
+                    crate::nuscenes::NuScenesDataset::open_cameras(&spec.root, &cams)?
+                        .with_images(spec.images),
+                ),
+                None,
+            ))
+        }
+        other => open_dataset(other, &spec.root, spec.images),
+    }
+}
+
+/// This worker's `(index, count)` for [`ConvertOptions`]: from `index` / `count` when given, else
+/// from the environment (`env` looks a variable up): `SLURM_ARRAY_TASK_ID` (minus
+/// `SLURM_ARRAY_TASK_MIN`) of `SLURM_ARRAY_TASK_COUNT` (a Slurm array job), or
+/// `JOB_COMPLETION_INDEX` (a Kubernetes Indexed Job) with `count` or `VEILA_SHARD_COUNT` giving the
+/// number of workers; else worker 0 of `count` (default 1).
+pub fn worker_shard(
+    index: Option<usize>,
+    count: Option<usize>,
+    env: &dyn Fn(&str) -> Option<String>,
+) -> Result<(usize, usize)> {
+    let invalid = |message: String| Error::Invalid {
+        what: "conversion worker".into(),
+        message,
+    };
+    let env_usize = |name: &str| -> Result<Option<usize>> {
+        match env(name) {
+            Some(v) => v.trim().parse::<usize>().map(Some).map_err(|_| {
+                invalid(format!(
+                    "environment variable {name}={v:?} is not a non-negative integer"
+                ))
+            }),
+            None => Ok(None),
+        }
+    };
+    let check = |i: usize, n: usize, from: &str| -> Result<(usize, usize)> {
+        if n == 0 || i >= n {
+            return Err(invalid(format!(
+                "shard index {i} is not in 0..{n} (from {from})"
+            )));
+        }
+        Ok((i, n))
+    };
+    if let Some(i) = index {
+        return check(i, count.unwrap_or(1), "--shard-index/--shard-count");
+    }
+    if let Some(id) = env_usize("SLURM_ARRAY_TASK_ID")? {
+        let min = env_usize("SLURM_ARRAY_TASK_MIN")?.unwrap_or(0);
+        let n = match count {
+            Some(n) => n,
+            None => env_usize("SLURM_ARRAY_TASK_COUNT")?.ok_or_else(|| {
+                invalid(
+                    "SLURM_ARRAY_TASK_ID is set but SLURM_ARRAY_TASK_COUNT is not; pass --shard-count"
+                        .into(),
+                )
+            })?,
+        };
+        let i = id
+            .checked_sub(min)
+            .ok_or_else(|| invalid("SLURM_ARRAY_TASK_ID is below SLURM_ARRAY_TASK_MIN".into()))?;
+        return check(i, n, "SLURM_ARRAY_TASK_ID/SLURM_ARRAY_TASK_COUNT");
+    }
+    if let Some(i) = env_usize("JOB_COMPLETION_INDEX")? {
+        let n = match count {
+            Some(n) => n,
+            None => env_usize("VEILA_SHARD_COUNT")?.ok_or_else(|| {
+                invalid(
+                    "JOB_COMPLETION_INDEX is set: pass --shard-count (or VEILA_SHARD_COUNT) with the job's completions"
+                        .into(),
+                )
+            })?,
+        };
+        return check(i, n, "JOB_COMPLETION_INDEX");
+    }
+    check(0, count.unwrap_or(1), "--shard-count")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn env(vars: &'static [(&'static str, &'static str)]) -> impl Fn(&str) -> Option<String> {
+        move |k| {
+            vars.iter()
+                .find(|(n, _)| *n == k)
+                .map(|(_, v)| v.to_string())
+        }
+    }
+
+    #[test]
+    fn worker_from_flags_slurm_and_kubernetes() {
+        assert_eq!(worker_shard(None, None, &env(&[])).unwrap(), (0, 1));
+        assert_eq!(
+            worker_shard(Some(2), Some(4), &env(&[("SLURM_ARRAY_TASK_ID", "0")])).unwrap(),
+            (2, 4)
+        );
+        let slurm = env(&[
+            ("SLURM_ARRAY_TASK_ID", "3"),
+            ("SLURM_ARRAY_TASK_COUNT", "4"),
+        ]);
+        assert_eq!(worker_shard(None, None, &slurm).unwrap(), (3, 4));
+        // arrays numbered 1..=4
+        let slurm1 = env(&[
+            ("SLURM_ARRAY_TASK_ID", "4"),
+            ("SLURM_ARRAY_TASK_MIN", "1"),
+            ("SLURM_ARRAY_TASK_COUNT", "4"),
+        ]);
+        assert_eq!(worker_shard(None, None, &slurm1).unwrap(), (3, 4));
+        assert!(worker_shard(None, None, &env(&[("SLURM_ARRAY_TASK_ID", "3")])).is_err());
+        let k8s = env(&[("JOB_COMPLETION_INDEX", "5")]);
+        assert!(worker_shard(None, None, &k8s).is_err());
+        assert_eq!(worker_shard(None, Some(8), &k8s).unwrap(), (5, 8));
+        assert_eq!(
+            worker_shard(
+                None,
+                None,
+                &env(&[("JOB_COMPLETION_INDEX", "1"), ("VEILA_SHARD_COUNT", "2")])
+            )
+            .unwrap(),
+            (1, 2)
+        );
+        assert!(worker_shard(None, Some(5), &k8s).is_err());
+        assert!(
+            worker_shard(
+                None,
+                None,
+                &env(&[
+                    ("SLURM_ARRAY_TASK_ID", "x"),
+                    ("SLURM_ARRAY_TASK_COUNT", "4")
+                ])
+            )
+            .is_err()
+        );
+    }
+}

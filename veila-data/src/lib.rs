@@ -81,6 +81,7 @@ pub mod dataset;
 pub mod error;
 pub mod image_io;
 pub mod kitti;
+pub mod npy;
 pub mod nuscenes;
 pub mod peer_samples;
 pub mod ply;

@@ -674,7 +674,7 @@ fn a_residual_bundle_trained_on_one_scan_generates_it() {
 }
 
 /// Every method trains and samples through the same bundle pipeline (a few steps each: this
-/// checks the plumbing, shapes and seeding; quality is `cargo xtask method-sweep`'s job).
+/// checks the plumbing, shapes and seeding; quality was measured by the method sweep, BENCHMARKS.md).
 #[test]
 fn every_method_trains_and_generates_through_the_bundle_pipeline() {
     for method in [Method::Eps, Method::Flow, Method::Regression] {

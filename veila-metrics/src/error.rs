@@ -75,6 +75,15 @@ pub enum Error {
     /// A dense linear-algebra routine failed (e.g. the eigensolver did not converge).
     #[error("linear algebra failure: {0}")]
     Linalg(String),
+    /// One scan of a set (named by its file, or `file[i]` for a sample of a sample set) failed.
+    #[error("{label}: {source}")]
+    Scan {
+        /// The scan.
+        label: String,
+        /// What went wrong with it.
+        #[source]
+        source: Box<Error>,
+    },
 }
 
 /// The crate's result type.

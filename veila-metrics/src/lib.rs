@@ -58,6 +58,7 @@ pub mod metric;
 pub mod nn;
 pub mod protocol;
 pub mod range;
+pub mod suite;
 
 pub use error::{Error, Result};
 pub use metric::{MetricReport, MetricValue, Protocol};

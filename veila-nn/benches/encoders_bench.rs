@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;
 use criterion::{Criterion, criterion_group, criterion_main};
-use veila_nn::encoders::dinov2::{DepthAnythingV2Config, DepthAnythingV2Encoder};
+use veila_nn::encoders::depth_anything::{DepthAnythingV2Config, DepthAnythingV2Encoder};
 use veila_nn::encoders::mit::{MitConfig, MitEncoder};
 use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
 use veila_nn::encoders::{ImageEncoder, freeze_varmap};

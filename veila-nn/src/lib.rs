@@ -54,6 +54,7 @@ pub mod gcma;
 pub mod init;
 pub mod ops;
 pub mod pfc;
+pub mod process;
 pub mod recompute;
 pub mod unet;
 pub mod weights;

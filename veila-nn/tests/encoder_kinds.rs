@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use veila_nn::encoders::ImageEncoder;
-use veila_nn::encoders::dinov2::{DepthAnythingV2Config, DepthAnythingV2Encoder};
+use veila_nn::encoders::depth_anything::{DepthAnythingV2Config, DepthAnythingV2Encoder};
 use veila_nn::encoders::kind::{AnyEncoder, EncoderKind, VitSize};
 use veila_nn::encoders::mit::{MitConfig, MitEncoder};
 

@@ -16,7 +16,8 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor};
-use veila_nn::encoders::dinov2::{DepthAnythingV2, DepthAnythingV2Config, DepthKind, DinoV2Config};
+use veila_nn::encoders::depth_anything::{DepthAnythingV2, DepthAnythingV2Config, DepthKind};
+use veila_nn::encoders::dinov2::DinoV2Config;
 use veila_nn::encoders::mit::{MitConfig, SegFormer, SegFormerConfig};
 use veila_nn::encoders::preprocess::{ImageProcessor, ResizeRule};
 use veila_nn::encoders::{ImageEncoder, depth_anything_resize_size};

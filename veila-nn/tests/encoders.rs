@@ -8,10 +8,10 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::{Optimizer, VarBuilder, VarMap};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use veila_nn::encoders::dinov2::{
-    DepthAnythingV2, DepthAnythingV2Config, DepthAnythingV2Encoder, DinoV2Backbone, DinoV2Config,
-    bicubic_resize,
+use veila_nn::encoders::depth_anything::{
+    DepthAnythingV2, DepthAnythingV2Config, DepthAnythingV2Encoder,
 };
+use veila_nn::encoders::dinov2::{DinoV2Backbone, DinoV2Config, bicubic_resize};
 use veila_nn::encoders::losses::{log_depth_l1, pixel_accuracy, semantic_cross_entropy, silog};
 use veila_nn::encoders::mit::{
     MitAttention, MitConfig, MitEncoder, OverlapPatchEmbed, SegFormer, SegFormerConfig,

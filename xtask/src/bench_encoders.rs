@@ -20,7 +20,7 @@ use candle_nn::VarMap;
 use clap::Args;
 use serde::Serialize;
 use veila_nn::encoders::ImageEncoder;
-use veila_nn::encoders::dinov2::DepthAnythingV2Encoder;
+use veila_nn::encoders::depth_anything::DepthAnythingV2Encoder;
 use veila_nn::encoders::kind::EncoderKind;
 use veila_nn::encoders::mit::MitEncoder;
 

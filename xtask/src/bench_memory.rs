@@ -2,7 +2,7 @@
 //! the examples in memory and streamed from the shards (`[data] stream = true`).
 //!
 //! For each frame count it renders that many frames of the simulator's train split at full size
-//! (KITTI camera, 64-beam LiDAR), writes them as training shards like `cargo xtask convert`
+//! (KITTI camera, 64-beam LiDAR), writes them as training shards like `veila convert`
 //! (cached in `--work`), then runs the release `veila train` on them with the shipped bundle's
 //! recipe for a few updates of every stage (encoders, mean network, denoiser), once per mode, and
 //! reads the peak resident set it prints (`VmHWM`). What grows with the frames in memory mode is

@@ -750,7 +750,7 @@ pub fn run(args: BenchRealArgs) -> Result<()> {
     let refs: Vec<&RangeImage> = train.iter().map(|e| &e.range).collect();
     let median = veila_metrics::baseline::median_scan(&refs)?;
     let streets = reference_mean_scan(&bundle.config, args.baseline_frames)?;
-    let sampler = crate::sampler_name::sampler_for(
+    let sampler = sampler_for(
         &args.sampler,
         args.steps,
         bundle.config.sampler.guidance_scale,
@@ -759,11 +759,7 @@ pub fn run(args: BenchRealArgs) -> Result<()> {
         &bundle,
         &RealOptions {
             sampler: &sampler,
-            sampler_label: format!(
-                "{} {} steps",
-                crate::sampler_name::sampler_label(&args.sampler),
-                args.steps
-            ),
+            sampler_label: format!("{} {} steps", sampler.kind.title(), args.steps),
             seeds: args.seeds,
             mean_scan: &median,
             reference_mean_scan: streets.as_ref(),
@@ -872,6 +868,14 @@ pub fn markdown(r: &RealReport) -> String {
         }
     }
     s
+}
+
+/// The sampler a benchmark's `--sampler` names ([`SamplerConfig::named`]), with `steps` steps and
+/// the guidance scale `guidance`.
+pub fn sampler_for(name: &str, steps: usize, guidance: f64) -> Result<SamplerConfig> {
+    let mut s = SamplerConfig::named(name, steps)?;
+    s.guidance_scale = guidance;
+    Ok(s)
 }
 
 #[cfg(test)]

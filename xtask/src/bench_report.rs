@@ -29,7 +29,7 @@ use veila_metrics::fd::{self, FeatureStats};
 use veila_nn::encoders::small_cnn::SmallCnn;
 use veila_nn::feature_nets::FeatureNets;
 
-use crate::sampler_name::{sampler_for, sampler_label};
+use crate::bench_real::sampler_for;
 use crate::simdata::{SimExample, render_split, workspace_root};
 use crate::train_default::{self, TrainDefaultArgs};
 
@@ -714,7 +714,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
             format!(
                 "Veila, the bundled model as shipped ({} {} steps)",
                 args.steps,
-                sampler_label(&args.sampler)
+                sampler.kind.title()
             ),
             1.0,
             args.seeds,
@@ -945,7 +945,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
             &base,
             &crate::bench_real::RealOptions {
                 sampler: &sampler,
-                sampler_label: format!("{} {} steps", sampler_label(&args.sampler), args.steps),
+                sampler_label: format!("{} {} steps", sampler.kind.title(), args.steps),
                 seeds: args.real_seeds,
                 mean_scan: &median,
                 reference_mean_scan: street_scan.as_ref(),
@@ -1033,7 +1033,7 @@ fn write_report(out: &Path, r: &Report) -> Result<()> {
                 r.train_steps, r.train_frames
             )
         },
-        sampler_label(&r.sampler),
+        SamplerConfig::named(&r.sampler, 1).map_or_else(|_| r.sampler.clone(), |s| s.kind.title()),
         r.sampler_steps
     )?;
     if r.quick {

@@ -6,7 +6,9 @@
 //!   drawn with `plotters` onto PNG in an embedded font (no system fonts).
 //! - [`density`]: the building blocks of the HTML reports: BEV point-density grids and their
 //!   signed-difference image, a diverging colour map, and normalised histograms.
+//! - [`html`]: self-contained HTML report pages (inline CSS, images as `data:` URLs, escaped text).
 
 pub mod density;
+pub mod html;
 pub mod plot;
 pub mod render;

@@ -8,8 +8,12 @@
 //!   turn back, unproject), for generation and RePaint edits. Every door calls it.
 //! * [`generate`]: the sampling underneath, on views already fitted to the bundle and in the
 //!   model's frame (generation, RePaint inpainting).
-//! * [`train`]: training a bundle's networks.
+//! * [`train`]: training a bundle's denoiser and mean network ([`mean`]: the residual targets and
+//!   the frozen mean network); [`encoder_train`]: training the small CNN encoders.
 //! * [`dataset`]: training examples in memory or read on demand (data of any size).
+//! * [`train_config`]: the training config of `veila train` (`[data]`, `[model]`, `[train]`,
+//!   `[output]`) and the bundle config and recipe settings it gives.
+//! * [`train_data`]: converted shards as training examples, in memory or streamed.
 //! * [`recipe`]: the one training recipe (encoders, mean network, residual scale, denoiser) that
 //!   `veila train` and `cargo xtask train-default` both run.
 //! * [`rig`]: camera images and their calibration files as views of a rig; the pipeline's steps
@@ -18,16 +22,28 @@
 
 pub mod bundle;
 pub mod dataset;
+pub mod encoder_train;
 pub mod generate;
+pub mod mean;
 pub mod nn;
 pub mod pipeline;
 pub mod recipe;
 pub mod rig;
+pub mod stage;
 pub mod train;
+pub mod train_config;
+pub mod train_data;
 
 pub use bundle::{Bundle, BundleConfig, Method, ResidualConfig, Variant};
 pub use dataset::{EncoderExample, ExampleSource, Examples, TrainView};
+pub use encoder_train::{
+    EncoderAugment, EncoderStep, train_small_cnn, train_small_cnn_from, varmap_tensors,
+};
 pub use generate::{CameraView, GenerateOptions, ViewFeatures};
+pub use mean::{
+    MeanPredictor, predict_means, raw_residual, regression_weight, residual_scale,
+    residual_scale_of, residual_target,
+};
 pub use nn::{NetCond, VeilaDenoiser};
 pub use pipeline::{Scan, ScanPipeline};
 pub use recipe::{
@@ -37,9 +53,8 @@ pub use recipe::{
 // the pipeline's steps one by one stay in `rig` (a door that calls them instead of the pipeline
 // gets scans in the wrong frame)
 pub use rig::{RigImage, RigView, load_view, scan_points};
+pub use stage::{Stage, stage_config};
 pub use train::{
-    BundleFit, BundleFitOutcome, DenoiserFit, DenoiserFitOutcome, DenoiserTraining, EncoderAugment,
-    EncoderStep, MeanPredictor, Stage, TrainExample, fit_bundle, fit_denoiser, predict_means,
-    raw_residual, regression_weight, residual_scale, residual_scale_of, residual_target,
-    stage_config, train_small_cnn, train_small_cnn_from, varmap_tensors,
+    BundleFit, BundleFitOutcome, DenoiserFit, DenoiserFitOutcome, DenoiserTraining, TrainExample,
+    fit_bundle, fit_denoiser,
 };

@@ -2,7 +2,7 @@
 //! `cargo xtask train-default` (on simulator frames). Its five stages:
 //!
 //! 1. the semantic encoder `E_s` and 2. the depth encoder `E_d`, each trained on sparse LiDAR
-//!    supervision ([`super::train::train_small_cnn`]) or taken from another bundle ([`prepare_encoders`]);
+//!    supervision ([`super::encoder_train::train_small_cnn`]) or taken from another bundle ([`prepare_encoders`]);
 //! 3. for residual bundles the mean network (one-pass regression), 4. its predictions of every
 //!    example and the residual scale, 5. the denoiser on the frozen encoder features
 //!    ([`fit_bundle`]).
@@ -25,11 +25,10 @@ use super::bundle::{
     Bundle, BundleConfig, DENOISER_FILE, DEPTH_FILE, EncoderSpec, MEAN_FILE, SEMANTIC_FILE,
 };
 use super::dataset::{EncoderExample, ExampleSource, Examples};
+use super::encoder_train::{EncoderStep, train_small_cnn_from, varmap_tensors};
 use super::nn::VeilaDenoiser;
-use super::train::{
-    BundleFit, BundleFitOutcome, EncoderStep, Stage, fit_bundle, train_small_cnn_from,
-    varmap_tensors,
-};
+use super::stage::Stage;
+use super::train::{BundleFit, BundleFitOutcome, fit_bundle};
 use crate::error::{Error, Result};
 use crate::trainer::{TrainConfig, TrainObserver};
 
@@ -65,7 +64,7 @@ pub struct RecipeSettings {
     /// this many parts ([`TrainConfig::grad_accum_steps`]; 1: none).
     pub grad_accum_steps: u64,
     /// Image augmentation of the encoders' training (`None`: the images as they are).
-    pub encoder_augment: Option<super::train::EncoderAugment>,
+    pub encoder_augment: Option<super::encoder_train::EncoderAugment>,
     /// The activations' precision of the denoiser's and the mean network's training
     /// ([`TrainConfig::precision`]; the encoders train in f32).
     pub precision: crate::trainer::Precision,

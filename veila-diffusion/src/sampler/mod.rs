@@ -54,6 +54,20 @@ pub enum SamplerKind {
     DpmSolverPp2M,
 }
 
+impl SamplerKind {
+    /// How reports name the update rule: `DDPM`, `DDIM (η = 0)`, `DPM-Solver++(2M)`.
+    pub fn title(&self) -> String {
+        match self {
+            SamplerKind::Ddpm { .. } => "DDPM".into(),
+            SamplerKind::Ddim { eta } => format!("DDIM (η = {eta})"),
+            SamplerKind::DpmSolverPp2M => "DPM-Solver++(2M)".into(),
+        }
+    }
+}
+
+/// The samplers' command-line names, which [`SamplerConfig::named`] reads.
+pub const SAMPLER_NAMES: [&str; 3] = ["ddpm", "ddim", "dpm"];
+
 /// Sampler settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -102,6 +116,21 @@ impl SamplerConfig {
     /// asymptotically and can be better at 10 steps).
     pub fn dpm_solver_pp_2m(steps: usize) -> Self {
         Self::with_kind(SamplerKind::DpmSolverPp2M, steps)
+    }
+
+    /// The sampler a command line names (one of [`SAMPLER_NAMES`]): `ddpm` ([`Self::ddpm`]), `ddim`
+    /// (deterministic, [`Self::ddim`] with `eta = 0`) or `dpm` ([`Self::dpm_solver_pp_2m`]), with
+    /// `steps` steps and no guidance.
+    pub fn named(name: &str, steps: usize) -> Result<Self> {
+        match name {
+            "ddpm" => Ok(Self::ddpm(steps)),
+            "ddim" => Ok(Self::ddim(steps, 0.0)),
+            "dpm" => Ok(Self::dpm_solver_pp_2m(steps)),
+            other => Err(invalid(
+                "sampler",
+                format!("`{other}` is not one of {}", SAMPLER_NAMES.join(", ")),
+            )),
+        }
     }
 
     fn with_kind(kind: SamplerKind, steps: usize) -> Self {

@@ -36,7 +36,8 @@ use std::sync::Arc;
 use candle_core::{DType, Device, Tensor};
 use veila_geom::PinholeCamera;
 
-use super::dinov2::{DepthAnythingV2Config, DepthAnythingV2Encoder, DinoV2Config, DinoV2Encoder};
+use super::depth_anything::{DepthAnythingV2Config, DepthAnythingV2Encoder};
+use super::dinov2::{DinoV2Config, DinoV2Encoder};
 use super::mit::{MitConfig, MitEncoder};
 use super::preprocess::{ImageProcessor, Resample, ResizeRule};
 use super::small_cnn::SmallCnn;

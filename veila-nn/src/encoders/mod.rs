@@ -7,11 +7,11 @@
 //! | encoder | weights | channels | strides (input px per feature px) |
 //! |---|---|---|---|
 //! | [`mit::MitEncoder`] (SegFormer MiT-b0..b5) | HuggingFace `nvidia/mit-b0`, `nvidia/segformer-b0-*` | 32, 64, 160, 256 (b0) | 4, 8, 16, 32 |
-//! | [`dinov2::DepthAnythingV2Encoder`] (DINOv2 ViT-S/14 + DPT reassemble) | HuggingFace `depth-anything/Depth-Anything-V2-Small(-hf)` | 48, 96, 192, 384 | 3.5, 7, 14, 28 |
+//! | [`depth_anything::DepthAnythingV2Encoder`] (DINOv2 ViT-S/14 + DPT reassemble) | HuggingFace `depth-anything/Depth-Anything-V2-Small(-hf)` | 48, 96, 192, 384 | 3.5, 7, 14, 28 |
 //! | [`small_cnn::SmallCnn`] (GroupNorm + SiLU CNN with semantic and depth heads) | trained by this project | 16, 32, 64, 96 (default) | 4, 8, 16, 32 |
 //!
 //! The dense maps the cross-modal metrics need come from the heads: [`mit::SegFormer`] (MiT + the
-//! SegFormer decode head, label maps), [`dinov2::DepthAnythingV2`] (encoder + DPT fusion + depth
+//! SegFormer decode head, label maps), [`depth_anything::DepthAnythingV2`] (encoder + DPT fusion + depth
 //! head, relative or metric depth) and [`small_cnn::SmallCnn::predict_maps`] (labels and metric
 //! depth). These wrappers implement [`ImageEncoder`] too, returning their encoder's features.
 //! Losses for training the small CNN are in [`losses`] ([`small_cnn::SmallCnn::loss`] combines
@@ -34,8 +34,8 @@
 //!
 //! # Loading pretrained weights
 //!
-//! [`mit::MitEncoder::load`], [`mit::SegFormer::load`], [`dinov2::DepthAnythingV2Encoder::load`],
-//! [`dinov2::DepthAnythingV2::load`] and [`small_cnn::SmallCnn::load`] read a `.safetensors` file
+//! [`mit::MitEncoder::load`], [`mit::SegFormer::load`], [`depth_anything::DepthAnythingV2Encoder::load`],
+//! [`depth_anything::DepthAnythingV2::load`] and [`small_cnn::SmallCnn::load`] read a `.safetensors` file
 //! and verify it against the model before building it ([`load_checked`]): missing, mis-shaped and
 //! (within the encoder's namespace) unexpected tensors are reported together, by name, in
 //! [`crate::Error::CheckpointMismatch`]. `new(cfg, vb)` works with any `VarBuilder` as usual; a
@@ -128,6 +128,7 @@ macro_rules! forward_image_encoder {
     };
 }
 
+pub mod depth_anything;
 pub mod dinov2;
 pub mod ground;
 pub mod kind;
