@@ -1297,6 +1297,7 @@ fn encoder_settings(
         grad_accum_steps: 1,
         encoder_augment,
         precision: Precision::F32,
+        activation_checkpointing: veila_nn::ActivationCheckpointing::None,
     }
 }
 

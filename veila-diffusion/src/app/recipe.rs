@@ -68,6 +68,9 @@ pub struct RecipeSettings {
     /// The activations' precision of the denoiser's and the mean network's training
     /// ([`TrainConfig::precision`]; the encoders train in f32).
     pub precision: crate::trainer::Precision,
+    /// Activation checkpointing of the denoiser's and the mean network's training
+    /// ([`TrainConfig::activation_checkpointing`]).
+    pub activation_checkpointing: veila_nn::ActivationCheckpointing,
 }
 
 impl RecipeSettings {
@@ -95,6 +98,7 @@ impl RecipeSettings {
             keep_checkpoints: Some(self.keep_checkpoints.max(1)),
             grad_accum_steps: self.grad_accum_steps.max(1),
             precision: self.precision,
+            activation_checkpointing: self.activation_checkpointing,
             ..TrainConfig::default()
         };
         let mean_steps = self.mean_steps();

@@ -39,6 +39,7 @@
 //! checkpoint_every = 250
 //! # grad_accum_steps = 1           # run each batch in this many parts (activation memory of one part)
 //! # precision = "f32"              # or "bf16": mixed precision (bf16 activations, f32 weights; GPUs)
+//! # activation_checkpointing = "none"   # or "block": recompute each block in the backward pass
 //! # [train.encoder_augment]        # augment the encoders' training images (crop-zoom, colour,
 //! # crop_zoom = { p = 0.5, scale = [1.0, 1.3] }   #  blur, noise, JPEG; veila_data::augment)
 //!
@@ -214,6 +215,16 @@ pub struct TrainSection {
     /// (mixed precision on f32 master weights; for GPUs).
     #[serde(default, skip_serializing_if = "is_f32")]
     pub precision: Precision,
+    /// Activation checkpointing of the denoiser and the mean network: `none` (default) or
+    /// `block` (each residual block, GCMA and PFC layer recomputed in the backward pass: the same
+    /// gradients, less memory, one more forward pass; `veila bench --activation-checkpointing`
+    /// measures both).
+    #[serde(default, skip_serializing_if = "is_no_checkpointing")]
+    pub activation_checkpointing: veila_nn::ActivationCheckpointing,
+}
+
+fn is_no_checkpointing(a: &veila_nn::ActivationCheckpointing) -> bool {
+    *a == veila_nn::ActivationCheckpointing::None
 }
 
 fn is_f32(p: &Precision) -> bool {
@@ -273,6 +284,7 @@ impl Default for TrainSection {
             grad_accum_steps: 1,
             encoder_augment: None,
             precision: Precision::F32,
+            activation_checkpointing: veila_nn::ActivationCheckpointing::None,
         }
     }
 }
@@ -296,6 +308,7 @@ impl TrainSection {
             grad_accum_steps: self.grad_accum_steps,
             encoder_augment: self.encoder_augment,
             precision: self.precision,
+            activation_checkpointing: self.activation_checkpointing,
         }
     }
 }
