@@ -2,7 +2,7 @@
 //! reads (see `veila_data::convert` for the guarantees: bounded memory, atomic, resumable,
 //! shardable).
 //!
-//! Its output is the one exception to `staging.rs`'s all-or-nothing publishing: a conversion runs
+//! Its output is the one exception to `staging`'s all-or-nothing publishing: a conversion runs
 //! for hours over many workers, so every shard and its sidecar are written atomically on their own
 //! and `manifest.json` last, by whichever worker finds every shard complete; a rerun skips the
 //! complete shards and rebuilds the rest.
