@@ -26,32 +26,6 @@ fn rel_l2(a: &Tensor, b: &Tensor) -> f64 {
     (num / den).sqrt()
 }
 
-/// Gives every zero-initialised variable (the zero convolutions of GCMA and CACM's residuals)
-/// small random values, so that every branch contributes to the output and its gradient.
-fn wake_zero_branches(vm: &VarMap, seed: u64) {
-    let mut r = rng(seed);
-    let data = vm.data().lock().unwrap();
-    let mut names: Vec<&String> = data.keys().collect();
-    names.sort();
-    for name in names {
-        let v = &data[name];
-        let max = v
-            .as_tensor()
-            .abs()
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .max(0)
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap();
-        if max == 0.0 && !name.ends_with(".bias") {
-            let t = (rand_tensor(&mut r, v.dims()) * 0.2).unwrap();
-            v.set(&t).unwrap();
-        }
-    }
-}
-
 struct Setup {
     vm: VarMap,
     net: veila_nn::Denoiser,

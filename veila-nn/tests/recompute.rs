@@ -30,26 +30,7 @@ fn setup(dtype: DType) -> Setup {
         veila_nn::seeded_var_builder(&vm, 3, dtype, &Device::Cpu),
     )
     .unwrap();
-    {
-        let mut r = rng(4);
-        let data = vm.data().lock().unwrap();
-        let mut names: Vec<&String> = data.keys().collect();
-        names.sort();
-        for name in names {
-            let v = &data[name];
-            let zero = v.as_tensor().abs().unwrap().sum_all().unwrap();
-            let zero = zero
-                .to_dtype(DType::F64)
-                .unwrap()
-                .to_scalar::<f64>()
-                .unwrap()
-                == 0.0;
-            if zero && !name.ends_with(".bias") {
-                let t = (rand_tensor(&mut r, v.dims()) * 0.2).unwrap();
-                v.set(&t.to_dtype(dtype).unwrap()).unwrap();
-            }
-        }
-    }
+    wake_zero_branches(&vm, 4);
     let mut r = rng(5);
     let cast = |t: Tensor| t.to_dtype(dtype).unwrap();
     let x = cast(rand_tensor(&mut r, &[2, 3, 16, 128]));

@@ -182,3 +182,31 @@ pub fn all_finite(t: &Tensor) -> bool {
         .iter()
         .all(|v| v.is_finite())
 }
+
+/// Gives every zero-initialised variable (the zero convolutions of GCMA and CACM's residuals)
+/// small random values in the variable's dtype, so that every branch contributes to the output and
+/// its gradient.
+pub fn wake_zero_branches(vm: &VarMap, seed: u64) {
+    let mut r = rng(seed);
+    let data = vm.data().lock().unwrap();
+    let mut names: Vec<&String> = data.keys().collect();
+    names.sort();
+    for name in names {
+        let v = &data[name];
+        let zero = v
+            .as_tensor()
+            .abs()
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .to_dtype(DType::F64)
+            .unwrap()
+            .to_scalar::<f64>()
+            .unwrap()
+            == 0.0;
+        if zero && !name.ends_with(".bias") {
+            let t = (rand_tensor(&mut r, v.dims()) * 0.2).unwrap();
+            v.set(&t.to_dtype(v.dtype()).unwrap()).unwrap();
+        }
+    }
+}
