@@ -254,6 +254,9 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
     if args.jump_length == 0 || args.jump_n_sample == 0 {
         bail!("--jump-length and --jump-n-sample must be at least 1");
     }
+    if args.jump_length > 1000 || args.jump_n_sample > 100 {
+        bail!("--jump-length is at most 1000 and --jump-n-sample at most 100");
+    }
     let region_box = args.remove_box.as_deref().map(parse_box).transpose()?;
     let t0 = Instant::now();
     let mut inputs = staging::Inputs::new();

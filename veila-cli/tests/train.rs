@@ -760,3 +760,50 @@ fn a_two_view_model_trains_on_shards_with_two_cameras() {
         "{err}"
     );
 }
+
+#[test]
+fn sizes_that_would_be_allocations_are_refused_before_anything_is_built() {
+    // each once aborted the process on a failed allocation; now a clear error naming the file
+    let tmp = tempfile::tempdir().unwrap();
+    make_shards(&tmp.path().join("shards"), 2, false, true);
+    for (i, (section, line, want)) in [
+        ("data", "prefetch = 100000000", "prefetch"),
+        ("train", "batch = 100000000", "batch"),
+        (
+            "model",
+            "image_height = 100000\nimage_width = 100000",
+            "image_height",
+        ),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let (data, model, train_extra) = match section {
+            "data" => (line, "", ""),
+            "model" => ("", line, ""),
+            _ => ("", "", line),
+        };
+        let train_lines = if train_extra.is_empty() {
+            SMALL.to_string()
+        } else {
+            format!("steps = 4\nlr = 1e-3\nseed = 3\n{train_extra}")
+        };
+        let p = tmp.path().join(format!("bad{i}.toml"));
+        std::fs::write(
+            &p,
+            format!(
+                "[data]\nshards = \"shards\"\n{data}\n\n[model]\n{model}\n\n[train]\n{train_lines}\n\n\
+                 [output]\ndir = \"out{i}\"\n"
+            ),
+        )
+        .unwrap();
+        let o = train(&p, &[]);
+        assert!(!o.status.success(), "{line}");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            err.contains(want) && err.contains(&format!("bad{i}.toml")),
+            "{line}: {err}"
+        );
+        assert!(!tmp.path().join(format!("out{i}")).exists(), "{line}");
+    }
+}

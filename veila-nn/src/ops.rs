@@ -252,7 +252,7 @@ pub fn conv2d_zero_pad(
 /// elsewhere). `spec.kernel` and `spec.ones_row` are taken from the weights and the bias.
 ///
 /// Where the CPU kernels do not run (GPUs, half precision) and a graph is being built, the im2col
-/// composition is recomputed in the backward pass ([`lean`]): the graph keeps the input, not its
+/// composition is recomputed in the backward pass (`lean`): the graph keeps the input, not its
 /// columns (about `27 C N` values per 3x3 convolution).
 pub fn conv2d_im2col(
     x: &Tensor,
@@ -304,7 +304,7 @@ fn lean(
 
 /// GroupNorm with a per-sample `scale`, `shift: [B, C]` and an optional SiLU
 /// ([`crate::fused::group_norm_act`]). Where the CPU kernels do not run and a graph is being built,
-/// it is recomputed in the backward pass ([`lean`]): the graph keeps `x`, not the normalisation's
+/// it is recomputed in the backward pass (`lean`): the graph keeps `x`, not the normalisation's
 /// chain of about six `C N` intermediates. Statistics of half-precision inputs are f32.
 fn group_norm_act(
     x: &Tensor,

@@ -344,6 +344,15 @@ fn bad(config_path: &Path, reason: impl Into<String>) -> Error {
     }
 }
 
+/// The largest `[train] batch` and `encoder_batch`.
+pub const MAX_BATCH: usize = 4096;
+/// The largest `[train] steps` and `encoder_steps`.
+pub const MAX_STEPS: u64 = 100_000_000;
+/// The largest `[data] prefetch` (batches held ahead of the trainer).
+pub const MAX_PREFETCH: usize = 64;
+/// The largest encoder input side, `[model] image_height` / `image_width`, in pixels.
+pub const MAX_IMAGE_SIDE: usize = 4096;
+
 impl TrainFile {
     /// Makes the config's relative paths relative to the config file `config_path`, and checks
     /// the `[train]` and `[data]` values (errors name the file).
@@ -396,6 +405,36 @@ impl TrainFile {
         }
         if self.data.max_frames == Some(0) {
             return Err(bad(config_path, "[data] max_frames must be at least 1"));
+        }
+        // sizes that become allocations: bounded before anything is built
+        if t.batch > MAX_BATCH || t.encoder_batch > MAX_BATCH {
+            return Err(bad_train(&format!(
+                "batch and encoder_batch must be at most {MAX_BATCH}"
+            )));
+        }
+        if t.steps > MAX_STEPS || t.encoder_steps as u64 > MAX_STEPS {
+            return Err(bad_train(&format!(
+                "steps and encoder_steps must be at most {MAX_STEPS}"
+            )));
+        }
+        if !(1..=MAX_PREFETCH).contains(&self.data.prefetch) {
+            return Err(bad(
+                config_path,
+                format!("[data] prefetch must be in 1..={MAX_PREFETCH}"),
+            ));
+        }
+        for (what, v) in [
+            ("image_height", self.model.image_height),
+            ("image_width", self.model.image_width),
+        ] {
+            if let Some(v) = v
+                && !(8..=MAX_IMAGE_SIDE).contains(&v)
+            {
+                return Err(bad(
+                    config_path,
+                    format!("[model] {what} must be in 8..={MAX_IMAGE_SIDE}, got {v}"),
+                ));
+            }
         }
         Ok(())
     }

@@ -308,7 +308,7 @@ fn add_into(acc: &mut [f32], v: &[f32]) {
 /// f32 tensors (`skip` is a 1x1 convolution when given, the identity otherwise); `None` when a
 /// tensor is not CPU f32 or the kernels are off (then compose the layers instead). The GroupNorms'
 /// scales and shifts are per sample (`[B, C]`), with their affine weights and any modulation
-/// folded in, as in [`group_norm_act`]. Same arithmetic as that composition, kernel for kernel.
+/// folded in, as in [`crate::fused::group_norm_act`]. Same arithmetic as that composition, kernel for kernel.
 pub fn res_block(x: &Tensor, p: ResBlockParams<'_>, spec: ResBlockSpec) -> Result<Option<Tensor>> {
     let mut all = vec![
         x, p.norm1.0, p.norm1.1, p.norm2.0, p.norm2.1, p.conv1.0, p.conv2.0,
