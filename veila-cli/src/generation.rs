@@ -231,7 +231,7 @@ pub(crate) fn inpainting_sampler_help() -> String {
         .map(|w| format!("; the bundled model's is {w}"))
         .unwrap_or_default();
     format!(
-        "Sampler: ddpm or ddim (default: the bundle's, with ddim (eta 0) in place of dpm, a multistep solver that cannot follow RePaint's jumps{bundled})"
+        "Sampler: ddpm or ddim (default: the bundle's{bundled}). A bundle that samples with dpm, a multistep solver that cannot follow RePaint's jumps, inpaints with ddim (eta 0) instead"
     )
 }
 

@@ -23,7 +23,7 @@ pub trait Denoiser {
     ) -> candle_core::Result<Tensor>;
 
     /// Completes the gradients of a backward pass through this network: a network that recomputes
-    /// activations ([`veila_nn::recompute`]) adds its parameters' gradients here. The trainer calls
+    /// activations in its backward pass adds its parameters' gradients here. The trainer calls
     /// it after every `backward()`; the default adds nothing.
     fn finish_backward(
         &self,

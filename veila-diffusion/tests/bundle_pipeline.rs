@@ -1297,7 +1297,7 @@ fn encoder_settings(
         grad_accum_steps: 1,
         encoder_augment,
         precision: Precision::F32,
-        activation_checkpointing: veila_nn::ActivationCheckpointing::None,
+        activation_checkpointing: veila_diffusion::ActivationCheckpointing::None,
     }
 }
 

@@ -67,5 +67,5 @@ pub use error::{Error, Result, TensorReport};
 pub use gcma::{Gcma, GcmaGeometry, LevelGeometry};
 pub use init::seeded_var_builder;
 pub use pfc::Pfc;
-pub use recompute::{ActivationCheckpointing, RecomputeTape};
+pub use recompute::RecomputeTape;
 pub use unet::{ConditionInput, Denoiser, PreparedCondition, ResBlock};

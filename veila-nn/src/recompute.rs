@@ -29,40 +29,6 @@ use candle_core::{CpuStorage, CustomOp2, CustomOp3, Layout, Shape, Tensor, Tenso
 
 use crate::error::{Error, Result};
 
-/// Whether and where a network recomputes activations in its backward pass.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum ActivationCheckpointing {
-    /// Keep every activation (fastest, most memory).
-    #[default]
-    None,
-    /// Recompute each residual block, GCMA and PFC layer in the backward pass.
-    Block,
-}
-
-impl ActivationCheckpointing {
-    /// The name used in configs and on the command line (`none`, `block`).
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::None => "none",
-            Self::Block => "block",
-        }
-    }
-}
-
-impl std::str::FromStr for ActivationCheckpointing {
-    type Err = Error;
-    fn from_str(s: &str) -> Result<Self> {
-        match s {
-            "none" => Ok(Self::None),
-            "block" => Ok(Self::Block),
-            other => Err(Error::Config(format!(
-                "activation checkpointing `{other}`: expected `none` or `block`"
-            ))),
-        }
-    }
-}
-
 /// Parameter gradients found by recomputed blocks during a backward pass, waiting to be merged into
 /// that pass's [`GradStore`]. Clones share one tape.
 #[derive(Debug, Clone, Default)]

@@ -12,7 +12,7 @@ use crate::ops::{
     Conv1x1, GroupNorm, RingConv2d, group_norm, groups_for, silu, sinusoidal_embedding,
 };
 use crate::pfc::Pfc;
-use crate::recompute::{ActivationCheckpointing, RecomputeTape, checkpoint};
+use crate::recompute::{RecomputeTape, checkpoint};
 
 /// Residual block: `GN -> SiLU -> conv3x3 -> AdaGN(t) -> SiLU -> conv3x3`, plus a (1x1-projected) skip,
 /// all scaled by `residual_scale`. Convolutions wrap around the azimuth axis ([`RingConv2d`]).
@@ -412,22 +412,17 @@ impl Denoiser {
         }
     }
 
-    /// Chooses activation checkpointing for training ([`crate::recompute`]). With
-    /// [`ActivationCheckpointing::Block`], whoever calls `backward()` on a loss of this network's
-    /// output must merge [`Self::recompute_tape`] into the gradients afterwards.
-    pub fn set_activation_checkpointing(&mut self, mode: ActivationCheckpointing) {
-        self.recompute = match mode {
-            ActivationCheckpointing::None => None,
-            ActivationCheckpointing::Block => Some(RecomputeTape::new()),
-        };
+    /// Switches activation checkpointing for training ([`crate::recompute`]): with `on`, every
+    /// residual block, GCMA and PFC layer is recomputed in the backward pass, and whoever calls
+    /// `backward()` on a loss of this network's output must merge [`Self::recompute_tape`] into
+    /// the gradients afterwards.
+    pub fn set_recompute_blocks(&mut self, on: bool) {
+        self.recompute = on.then(RecomputeTape::new);
     }
 
-    /// The activation checkpointing in force.
-    pub fn activation_checkpointing(&self) -> ActivationCheckpointing {
-        match self.recompute {
-            Some(_) => ActivationCheckpointing::Block,
-            None => ActivationCheckpointing::None,
-        }
+    /// Whether the blocks are recomputed in the backward pass.
+    pub fn recomputes_blocks(&self) -> bool {
+        self.recompute.is_some()
     }
 
     /// The tape on which recomputed blocks leave their parameters' gradients (`None` without

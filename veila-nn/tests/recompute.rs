@@ -8,7 +8,7 @@ mod common;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarMap;
 use common::*;
-use veila_nn::{ActivationCheckpointing, ConditionInput, GcmaGeometry};
+use veila_nn::{ConditionInput, GcmaGeometry};
 
 struct Setup {
     vm: VarMap,
@@ -99,16 +99,10 @@ fn max_abs(t: &Tensor) -> f64 {
 /// relative to its tensor's largest gradient.
 fn compare(dtype: DType) -> f64 {
     let s = setup(dtype);
-    assert_eq!(
-        s.net.activation_checkpointing(),
-        ActivationCheckpointing::None
-    );
+    assert!(!s.net.recomputes_blocks());
     let mut ckpt = s.net.clone();
-    ckpt.set_activation_checkpointing(ActivationCheckpointing::Block);
-    assert_eq!(
-        ckpt.activation_checkpointing(),
-        ActivationCheckpointing::Block
-    );
+    ckpt.set_recompute_blocks(true);
+    assert!(ckpt.recomputes_blocks());
     let (y0, g0) = forward_backward(&s, &s.net);
     let (y1, g1) = forward_backward(&s, &ckpt);
     let dy = max_abs(&(&y1 - &y0).unwrap());
@@ -164,7 +158,7 @@ fn evaluation_without_a_graph_runs_the_blocks_directly() {
     // inputs and weights outside any graph: nothing to recompute, no node, nothing on the tape
     let s = setup(DType::F32);
     let mut ckpt = s.net.clone();
-    ckpt.set_activation_checkpointing(ActivationCheckpointing::Block);
+    ckpt.set_recompute_blocks(true);
     let vb = candle_nn::VarBuilder::from_tensors(
         s.vm.data()
             .lock()
@@ -176,7 +170,7 @@ fn evaluation_without_a_graph_runs_the_blocks_directly() {
         &Device::Cpu,
     );
     let mut frozen = veila_nn::Denoiser::new(&small_config(), vb).unwrap();
-    frozen.set_activation_checkpointing(ActivationCheckpointing::Block);
+    frozen.set_recompute_blocks(true);
     let prepared = frozen.prepare_condition(&s.input, Some(&s.geom)).unwrap();
     let y = frozen.forward(&s.x, &s.t, Some(&prepared)).unwrap();
     assert!(!y.track_op(), "a frozen network's output keeps no graph");

@@ -347,7 +347,22 @@ fn command_imports(dir: &Path) -> Vec<(String, String)> {
             let path = e.expect("directory entry").path();
             let stem = path.file_stem()?.to_str()?.to_string();
             stem.ends_with("_cmd").then(|| {
-                let text = std::fs::read_to_string(&path).expect("readable source file");
+                // a command is a file or a folder of files (`bench_cmd/`): all of its text
+                let text = if path.is_dir() {
+                    let mut files: Vec<_> = std::fs::read_dir(&path)
+                        .expect("readable command folder")
+                        .map(|e| e.expect("directory entry").path())
+                        .filter(|p| p.extension().is_some_and(|x| x == "rs"))
+                        .collect();
+                    files.sort();
+                    files
+                        .iter()
+                        .map(|f| std::fs::read_to_string(f).expect("readable source file"))
+                        .collect::<Vec<_>>()
+                        .join("\n")
+                } else {
+                    std::fs::read_to_string(&path).expect("readable source file")
+                };
                 (stem, text)
             })
         })

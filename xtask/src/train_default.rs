@@ -295,7 +295,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             .augment_encoders
             .then(veila_diffusion::app::EncoderAugment::default),
         precision: veila_diffusion::Precision::F32,
-        activation_checkpointing: veila_nn::ActivationCheckpointing::None,
+        activation_checkpointing: veila_diffusion::ActivationCheckpointing::None,
     };
     let (tc, mean_tc) = settings.train_configs(cfg.denoiser.conditioning.is_some());
     let mean_steps = settings.mean_steps();

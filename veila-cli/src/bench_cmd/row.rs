@@ -12,7 +12,7 @@ use veila_diffusion::app::{CameraView, GenerateOptions};
 use veila_geom::{EpipolarConfig, PinholeCamera};
 use veila_nn::{ConditionInput, Cues, DenoiserConfig, GcmaGeometry};
 
-use super::{BenchArgs, GenerateRow, Row, Spec};
+use super::args::{BenchArgs, GenerateRow, Row, Spec};
 use crate::model;
 
 pub(super) fn median(mut v: Vec<f64>) -> f64 {
@@ -177,7 +177,7 @@ pub(super) fn bench_row(
         veila_nn::seeded_var_builder(&vm, args.seed, DType::F32, dev),
     )
     .with_context(|| format!("building the {name} network"))?;
-    net.set_activation_checkpointing(spec.checkpointing);
+    net.set_recompute_blocks(spec.checkpointing == veila_diffusion::ActivationCheckpointing::Block);
     let params: usize = vm.all_vars().iter().map(|v| v.elem_count()).sum();
     let geom = match cfg.conditioning.as_ref().and_then(|c| c.gcma.as_ref()) {
         Some(_) => {

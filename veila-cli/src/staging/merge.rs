@@ -1,6 +1,10 @@
 //! Building the new output folder: the command's files, and the files of the old one that are not its own.
 
-use super::*;
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+
+use super::inputs::*;
+use anyhow::{Context, Result, bail};
 
 /// The staged folder gets the old folder's permissions, or the usual 0755 (a temporary folder is
 /// created private).

@@ -1,6 +1,12 @@
 //! Single files published beside their destinations (`--json` reports and the like).
 
-use super::*;
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+
+use super::inputs::*;
+use super::lock::*;
+use super::signals::*;
+use anyhow::{Context, Result, bail};
 
 /// Write every `(destination, bytes)` so that all appear or none does: all checks first (no
 /// destination is an input or listed twice, none exists unless `force`, every folder exists or is

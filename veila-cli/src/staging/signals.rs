@@ -1,6 +1,9 @@
 //! What a signal must clean up, and what the interrupted command says it kept.
 
-use super::*;
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Mutex, OnceLock};
 
 /// What lives on disk only while this process runs: removed on a signal.
 #[derive(Debug)]

@@ -70,7 +70,7 @@ pub struct RecipeSettings {
     pub precision: crate::trainer::Precision,
     /// Activation checkpointing of the denoiser's and the mean network's training
     /// ([`TrainConfig::activation_checkpointing`]).
-    pub activation_checkpointing: veila_nn::ActivationCheckpointing,
+    pub activation_checkpointing: crate::trainer::ActivationCheckpointing,
 }
 
 impl RecipeSettings {

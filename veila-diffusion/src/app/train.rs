@@ -583,7 +583,9 @@ where
     // the batches run the condition fusion through a clone that shares the trained variables
     let batch_net = net.clone();
     let mut net = net;
-    net.set_activation_checkpointing(fit.train.activation_checkpointing);
+    net.set_recompute_blocks(
+        fit.train.activation_checkpointing == crate::trainer::ActivationCheckpointing::Block,
+    );
     let mut trainer = Trainer::new(
         VeilaDenoiser::new(net),
         varmap,

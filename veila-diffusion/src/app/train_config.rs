@@ -220,11 +220,11 @@ pub struct TrainSection {
     /// gradients, less memory, one more forward pass; `veila bench --activation-checkpointing`
     /// measures both).
     #[serde(default, skip_serializing_if = "is_no_checkpointing")]
-    pub activation_checkpointing: veila_nn::ActivationCheckpointing,
+    pub activation_checkpointing: crate::trainer::ActivationCheckpointing,
 }
 
-fn is_no_checkpointing(a: &veila_nn::ActivationCheckpointing) -> bool {
-    *a == veila_nn::ActivationCheckpointing::None
+fn is_no_checkpointing(a: &crate::trainer::ActivationCheckpointing) -> bool {
+    *a == crate::trainer::ActivationCheckpointing::None
 }
 
 fn is_f32(p: &Precision) -> bool {
@@ -284,7 +284,7 @@ impl Default for TrainSection {
             grad_accum_steps: 1,
             encoder_augment: None,
             precision: Precision::F32,
-            activation_checkpointing: veila_nn::ActivationCheckpointing::None,
+            activation_checkpointing: crate::trainer::ActivationCheckpointing::None,
         }
     }
 }

@@ -119,15 +119,51 @@ pub struct TrainConfig {
     /// f32, so the run records of runs made before this field existed still match.
     #[serde(default, skip_serializing_if = "Precision::is_f32")]
     pub precision: Precision,
-    /// Activation checkpointing of the network's blocks ([`veila_nn::recompute`]): `block`
+    /// Activation checkpointing of the network's blocks (each block recomputed in the backward pass): `block`
     /// recomputes each block in the backward pass, trading a second forward pass of it for
     /// keeping only its inputs. The gradients are the same. Left out of the JSON when off.
     #[serde(default, skip_serializing_if = "is_no_checkpointing")]
-    pub activation_checkpointing: veila_nn::ActivationCheckpointing,
+    pub activation_checkpointing: ActivationCheckpointing,
 }
 
-fn is_no_checkpointing(a: &veila_nn::ActivationCheckpointing) -> bool {
-    *a == veila_nn::ActivationCheckpointing::None
+fn is_no_checkpointing(a: &ActivationCheckpointing) -> bool {
+    *a == ActivationCheckpointing::None
+}
+
+/// Whether and where the network recomputes activations in its backward pass (the app layer
+/// switches the network; the trainer merges what it leaves through [`Denoiser::finish_backward`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ActivationCheckpointing {
+    /// Keep every activation (fastest, most memory).
+    #[default]
+    None,
+    /// Recompute each residual block, GCMA and PFC layer in the backward pass.
+    Block,
+}
+
+impl ActivationCheckpointing {
+    /// The name used in configs and on the command line (`none`, `block`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::None => "none",
+            Self::Block => "block",
+        }
+    }
+}
+
+impl std::str::FromStr for ActivationCheckpointing {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "none" => Ok(Self::None),
+            "block" => Ok(Self::Block),
+            other => Err(invalid(
+                "activation_checkpointing",
+                format!("activation checkpointing `{other}`: expected `none` or `block`"),
+            )),
+        }
+    }
 }
 
 /// The precision of a training run's forward and backward passes.
@@ -208,7 +244,7 @@ impl Default for TrainConfig {
             preview_every: None,
             grad_accum_steps: 1,
             precision: Precision::F32,
-            activation_checkpointing: veila_nn::ActivationCheckpointing::None,
+            activation_checkpointing: ActivationCheckpointing::None,
         }
     }
 }

@@ -213,10 +213,10 @@ fn trains_and_samples_through_the_generic_api() {
 fn a_trainer_with_activation_checkpointing_takes_the_plain_updates() {
     // the recomputed blocks' parameter gradients reach the optimizer through finish_backward:
     // without it those weights would not move and the runs would part at the first update
-    let run = |mode: veila_nn::ActivationCheckpointing| {
+    let run = |mode: crate::trainer::ActivationCheckpointing| {
         let (model, vm) = build(2);
         let mut net = model.into_inner();
-        net.set_activation_checkpointing(mode);
+        net.set_recompute_blocks(mode == crate::trainer::ActivationCheckpointing::Block);
         let cond = NetCond::from(net.prepare_condition(&features(2, 5), None).unwrap());
         let x0 = (randn(
             &mut ChaCha8Rng::seed_from_u64(6),
@@ -252,8 +252,8 @@ fn a_trainer_with_activation_checkpointing_takes_the_plain_updates() {
             .collect();
         (losses, trainer.weights().unwrap())
     };
-    let (l0, w0) = run(veila_nn::ActivationCheckpointing::None);
-    let (l1, w1) = run(veila_nn::ActivationCheckpointing::Block);
+    let (l0, w0) = run(crate::trainer::ActivationCheckpointing::None);
+    let (l1, w1) = run(crate::trainer::ActivationCheckpointing::Block);
     for (a, b) in l0.iter().zip(&l1) {
         assert!(
             (a - b).abs() <= 1e-6 * b.abs(),
