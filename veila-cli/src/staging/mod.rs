@@ -10,7 +10,7 @@
 //! * **Folder outputs**: [`stage_output`] (or [`stage_checked`], which takes the command's name
 //!   from [`set_command`]) checks `--out` (absent, empty, or `--force`; not an input), takes the
 //!   folder's **exclusive lock** (a second writer of the same folder gets an error at once, never a
-//!   mix), finishes what a killed earlier owner left ([`OutputLock::recover`]) and returns a
+//!   mix), finishes what a killed earlier owner left ([`veila_data::atomic::OutputLock::recover`]) and returns a
 //!   [`Staged`] folder beside `--out` to write into; [`Staged::commit`] publishes it **atomically at
 //!   the folder level**: the complete new folder (the command's new files, plus hard links of every
 //!   file in the old folder that is not the command's own) is built first, then the old folder is
@@ -25,9 +25,9 @@
 //!   temporary files beside each destination, renamed when all are complete); [`check_outputs`]
 //!   runs its checks alone, so a command can refuse its outputs before it works.
 //! * **Other folders a command keeps writing** (`train`'s checkpoints): [`lock_folder`] takes the
-//!   same lock; [`remove_partial`] then removes the partial files a killed owner left in it.
+//!   same lock; [`lock::remove_partial`] then removes the partial files a killed owner left in it.
 //! * **Liveness is a lock, never a process id** (`veila_data::atomic`): staging folders, backups
-//!   and temporary files are removed only when their owner's lock is free ([`sweep_stale`], run by
+//!   and temporary files are removed only when their owner's lock is free ([`veila_data::atomic::sweep_stale`], run by
 //!   every command that writes beside them), so a veila in another PID namespace is never robbed.
 //! * **Interrupts** (SIGINT, SIGTERM, SIGHUP; [`install_signal_cleanup`]) wait for a swap in
 //!   progress, remove this process's staging folders, temporary files and locks, and say what was
