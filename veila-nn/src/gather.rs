@@ -25,6 +25,8 @@ pub struct GatherTaps {
     w: [Vec<f32>; 4],
     idx_t: [Tensor; 4],
     w_t: [Tensor; 4],
+    /// The largest corner index (checked against the source's rows on every call).
+    max_index: Option<u32>,
 }
 
 impl GatherTaps {
@@ -43,7 +45,9 @@ impl GatherTaps {
             ))
         };
         let (a, b, c, d) = (to_t(0)?, to_t(1)?, to_t(2)?, to_t(3)?);
+        let max_index = idx.iter().flat_map(|v| v.iter().copied()).max();
         Ok(Self {
+            max_index,
             idx_t: [a.0, b.0, c.0, d.0],
             w_t: [a.1, b.1, c.1, d.1],
             idx,
@@ -72,7 +76,7 @@ impl GatherTaps {
     }
 
     fn max_index(&self) -> Option<u32> {
-        self.idx.iter().flat_map(|v| v.iter().copied()).max()
+        self.max_index
     }
 }
 
