@@ -217,10 +217,9 @@ pub fn bilinear_gather(src: &Tensor, taps: &Arc<GatherTaps>) -> Result<Tensor> {
     }
     let t = taps.clone();
     crate::recompute::checkpoint(
-        src,
-        None,
+        &[src],
         Vec::new(),
         &crate::recompute::RecomputeTape::new(),
-        Arc::new(move |s: &Tensor, _: Option<&Tensor>| bilinear_gather_reference(s, &t)),
+        Arc::new(move |s: &[&Tensor]| bilinear_gather_reference(s[0], &t)),
     )
 }

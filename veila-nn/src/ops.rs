@@ -291,14 +291,10 @@ fn lean(
     op: impl Fn(&Tensor, &Tensor) -> Result<Tensor> + Send + Sync + 'static,
 ) -> Result<Tensor> {
     crate::recompute::checkpoint(
-        x,
-        Some(packed),
+        &[x, packed],
         Vec::new(),
         &crate::recompute::RecomputeTape::new(),
-        std::sync::Arc::new(move |x: &Tensor, p: Option<&Tensor>| {
-            let p = p.ok_or_else(|| crate::Error::Config("internal: no packed input".into()))?;
-            op(x, p)
-        }),
+        std::sync::Arc::new(move |t: &[&Tensor]| op(t[0], t[1])),
     )
 }
 

@@ -11,8 +11,10 @@
 //! its [`GradStore`] afterwards ([`RecomputeTape::merge_into`]); the trainer does this after every
 //! backward pass. Merging drains the tape, so the next pass starts empty.
 //!
-//! What the graph keeps per block is its inputs and its output (the next block's input): about
-//! `C_in·N + C_out·N` values instead of the block's every intermediate. The cost is a second forward
+//! What the graph keeps per block is its inputs and its output (the next block's input, held once:
+//! the node's forward pass copies the output into its own storage and drops the original): about
+//! `C_in·N + C_out·N` values instead of the block's every intermediate. A decoder block takes its
+//! skip connection as a separate input and concatenates inside, so the concatenation is not kept. The cost is a second forward
 //! pass of every block during the backward pass. It works the same on every device: the node's
 //! forward is a storage copy ([`BackendStorage::try_clone`]), its backward plain candle ops.
 //!
@@ -25,7 +27,9 @@ use std::sync::{Arc, Mutex};
 
 use candle_core::backend::BackendStorage;
 use candle_core::backprop::GradStore;
-use candle_core::{CpuStorage, CustomOp2, CustomOp3, Layout, Shape, Tensor, TensorId, Var};
+use candle_core::{
+    CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Shape, Storage, Tensor, TensorId, Var,
+};
 
 use crate::error::{Error, Result};
 
@@ -101,20 +105,17 @@ pub(crate) fn push_linear(out: &mut Vec<Tensor>, l: &candle_nn::Linear) {
     push_weights(out, (l.weight(), l.bias()));
 }
 
-/// A block as [`checkpoint`] runs it: the differentiable input, the optional second one.
-pub type BlockFn = dyn Fn(&Tensor, Option<&Tensor>) -> Result<Tensor> + Send + Sync;
+/// A block as [`checkpoint`] runs it: on its inputs (one to three), in order.
+pub type BlockFn = dyn Fn(&[&Tensor]) -> Result<Tensor> + Send + Sync;
 
-/// The graph node of a checkpointed block.
+/// The graph node of a checkpointed block. Its inputs are the block's; the block's output waits in
+/// `pending` until candle runs the node's forward pass, which copies it into the node's own storage
+/// and drops it, so the graph holds each block output once.
 struct Checkpoint {
     block: Arc<BlockFn>,
     params: Vec<Tensor>,
     tape: RecomputeTape,
-}
-
-/// The node's forward pass: the block's output, computed before the node was applied, copied into
-/// the node's own storage (it arrives contiguous from offset 0, see [`checkpoint`]).
-fn copy_out<S: BackendStorage>(s: &S, l: &Layout) -> candle_core::Result<(S, Shape)> {
-    Ok((s.try_clone(l)?, l.shape().clone()))
+    pending: Mutex<Option<Tensor>>,
 }
 
 fn to_candle(e: Error) -> candle_core::Error {
@@ -125,17 +126,67 @@ fn to_candle(e: Error) -> candle_core::Error {
 }
 
 impl Checkpoint {
-    /// Runs the block again on tracked copies of its inputs and back-propagates `grad` through
-    /// it: the inputs' gradients are returned, the parameters' go on the tape.
-    fn recompute(
+    /// The block's output, taken from `pending` (the node's forward pass runs once).
+    fn take_output(&self) -> candle_core::Result<Tensor> {
+        self.pending
+            .lock()
+            .map_err(|_| candle_core::Error::Msg("a checkpoint's lock is poisoned".into()))?
+            .take()
+            .ok_or_else(|| candle_core::Error::Msg("a checkpoint node ran twice".into()))
+    }
+
+    /// The node's forward pass: a copy of the block's output in this backend's storage.
+    fn copy_output<S>(
         &self,
-        x: &Tensor,
-        c: Option<&Tensor>,
-        grad: &Tensor,
-    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let xv = Var::from_tensor(&x.detach())?;
-        let cv = c.map(|c| Var::from_tensor(&c.detach())).transpose()?;
-        let y = (self.block)(xv.as_tensor(), cv.as_ref().map(Var::as_tensor))?;
+        pick: impl Fn(&Storage) -> Option<&S>,
+    ) -> candle_core::Result<(S, Shape)>
+    where
+        S: BackendStorage,
+    {
+        let out = self.take_output()?;
+        let (storage, layout) = out.storage_and_layout();
+        let Some(s) = pick(&storage) else {
+            candle_core::bail!("a checkpoint's output is on another device than its inputs")
+        };
+        Ok((s.try_clone(layout)?, layout.shape().clone()))
+    }
+
+    fn cpu_out(&self) -> candle_core::Result<(CpuStorage, Shape)> {
+        self.copy_output(|s| match s {
+            Storage::Cpu(c) => Some(c),
+            _ => None,
+        })
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_out(&self) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        self.copy_output(|s| match s {
+            Storage::Cuda(c) => Some(c),
+            _ => None,
+        })
+    }
+
+    /// Runs the block again on its inputs (tracked copies of those that take part in the graph)
+    /// and back-propagates `grad` through it: the inputs' gradients are returned (`None` for an
+    /// input outside the graph), the parameters' go on the tape.
+    fn recompute(&self, inputs: &[&Tensor], grad: &Tensor) -> Result<Vec<Option<Tensor>>> {
+        let vars = inputs
+            .iter()
+            .map(|t| {
+                t.track_op()
+                    .then(|| Var::from_tensor(&t.detach()))
+                    .transpose()
+            })
+            .collect::<std::result::Result<Vec<_>, _>>()?;
+        let fresh: Vec<Tensor> = inputs
+            .iter()
+            .zip(&vars)
+            .map(|(t, v)| {
+                v.as_ref()
+                    .map_or_else(|| t.detach(), |v| v.as_tensor().clone())
+            })
+            .collect();
+        let y = (self.block)(&fresh.iter().collect::<Vec<_>>())?;
         let surrogate = (y * grad.detach())?.sum_all()?;
         let grads = surrogate.backward()?;
         for p in &self.params {
@@ -143,10 +194,42 @@ impl Checkpoint {
                 self.tape.add(p, g)?;
             }
         }
-        Ok((
-            grads.get(xv.as_tensor()).cloned(),
-            cv.and_then(|cv| grads.get(cv.as_tensor()).cloned()),
-        ))
+        Ok(vars
+            .iter()
+            .map(|v| v.as_ref().and_then(|v| grads.get(v.as_tensor()).cloned()))
+            .collect())
+    }
+
+    fn recompute_candle(
+        &self,
+        inputs: &[&Tensor],
+        grad: &Tensor,
+    ) -> candle_core::Result<Vec<Option<Tensor>>> {
+        self.recompute(inputs, grad).map_err(to_candle)
+    }
+}
+
+impl CustomOp1 for Checkpoint {
+    fn name(&self) -> &'static str {
+        "veila-checkpoint"
+    }
+
+    fn cpu_fwd(&self, _: &CpuStorage, _: &Layout) -> candle_core::Result<(CpuStorage, Shape)> {
+        self.cpu_out()
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        _: &candle_core::CudaStorage,
+        _: &Layout,
+    ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
+        self.cuda_out()
+    }
+
+    fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> candle_core::Result<Option<Tensor>> {
+        let mut g = self.recompute_candle(&[x], grad)?;
+        Ok(g.swap_remove(0))
     }
 }
 
@@ -159,10 +242,10 @@ impl CustomOp2 for Checkpoint {
         &self,
         _: &CpuStorage,
         _: &Layout,
-        out: &CpuStorage,
-        l: &Layout,
+        _: &CpuStorage,
+        _: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        copy_out(out, l)
+        self.cpu_out()
     }
 
     #[cfg(feature = "cuda")]
@@ -170,21 +253,21 @@ impl CustomOp2 for Checkpoint {
         &self,
         _: &candle_core::CudaStorage,
         _: &Layout,
-        out: &candle_core::CudaStorage,
-        l: &Layout,
+        _: &candle_core::CudaStorage,
+        _: &Layout,
     ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        copy_out(out, l)
+        self.cuda_out()
     }
 
     fn bwd(
         &self,
-        x: &Tensor,
-        _out: &Tensor,
+        a: &Tensor,
+        b: &Tensor,
         _res: &Tensor,
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
-        let (gx, _) = self.recompute(x, None, grad).map_err(to_candle)?;
-        Ok((gx, None))
+        let mut g = self.recompute_candle(&[a, b], grad)?.into_iter();
+        Ok((g.next().flatten(), g.next().flatten()))
     }
 }
 
@@ -199,10 +282,10 @@ impl CustomOp3 for Checkpoint {
         _: &Layout,
         _: &CpuStorage,
         _: &Layout,
-        out: &CpuStorage,
-        l: &Layout,
+        _: &CpuStorage,
+        _: &Layout,
     ) -> candle_core::Result<(CpuStorage, Shape)> {
-        copy_out(out, l)
+        self.cpu_out()
     }
 
     #[cfg(feature = "cuda")]
@@ -212,40 +295,43 @@ impl CustomOp3 for Checkpoint {
         _: &Layout,
         _: &candle_core::CudaStorage,
         _: &Layout,
-        out: &candle_core::CudaStorage,
-        l: &Layout,
+        _: &candle_core::CudaStorage,
+        _: &Layout,
     ) -> candle_core::Result<(candle_core::CudaStorage, Shape)> {
-        copy_out(out, l)
+        self.cuda_out()
     }
 
     fn bwd(
         &self,
-        x: &Tensor,
+        a: &Tensor,
+        b: &Tensor,
         c: &Tensor,
-        _out: &Tensor,
         _res: &Tensor,
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let (gx, gc) = self.recompute(x, Some(c), grad).map_err(to_candle)?;
-        Ok((gx, gc, None))
+        let mut g = self.recompute_candle(&[a, b, c], grad)?.into_iter();
+        Ok((g.next().flatten(), g.next().flatten(), g.next().flatten()))
     }
 }
 
-/// Runs `block(x, c)` keeping only its output in the graph; the backward pass recomputes it.
+/// Runs `block(inputs)` keeping only its output in the graph; the backward pass recomputes it.
 ///
-/// `params` are the block's trainable tensors: their gradients go on `tape`. When neither input
-/// takes part in a graph (evaluation), the block simply runs: there is nothing to recompute for.
+/// `inputs`: one to three tensors, the block's differentiable inputs (a residual block's input,
+/// its skip connection and the time embedding, for example). `params` are the block's trainable
+/// tensors: their gradients go on `tape`. When no input takes part in a graph (evaluation), the
+/// block simply runs: there is nothing to recompute for.
 pub fn checkpoint(
-    x: &Tensor,
-    c: Option<&Tensor>,
+    inputs: &[&Tensor],
     params: Vec<Tensor>,
     tape: &RecomputeTape,
     block: Arc<BlockFn>,
 ) -> Result<Tensor> {
-    if !x.track_op() && !c.is_some_and(Tensor::track_op) {
-        return block(x, c);
+    if !inputs.iter().any(|t| t.track_op()) {
+        return block(inputs);
     }
-    let out = block(&x.detach(), c.map(Tensor::detach).as_ref())?.detach();
+    let detached: Vec<Tensor> = inputs.iter().map(|t| t.detach()).collect();
+    let out = block(&detached.iter().collect::<Vec<_>>())?.detach();
+    drop(detached);
     // the node copies the output's storage as it lies: make it exactly the output
     let out = if out.layout().contiguous_offsets() == Some((0, out.elem_count())) {
         out
@@ -256,9 +342,17 @@ pub fn checkpoint(
         block,
         params,
         tape: tape.clone(),
+        pending: Mutex::new(Some(out)),
     };
-    Ok(match c {
-        Some(c) => x.apply_op3(c, &out, op)?,
-        None => x.apply_op2(&out, op)?,
+    Ok(match inputs {
+        [a] => a.apply_op1(op)?,
+        [a, b] => a.apply_op2(b, op)?,
+        [a, b, c] => a.apply_op3(b, c, op)?,
+        _ => {
+            return Err(Error::Config(format!(
+                "a checkpointed block takes one to three inputs, not {}",
+                inputs.len()
+            )));
+        }
     })
 }

@@ -438,14 +438,53 @@ impl Denoiser {
         };
         let block = rb.clone();
         checkpoint(
-            x,
-            Some(emb),
+            &[x, emb],
             rb.params(),
             tape,
-            std::sync::Arc::new(move |x: &Tensor, e: Option<&Tensor>| {
-                let e = e.ok_or_else(|| Error::Config("internal: no time embedding".into()))?;
-                block.forward(x, e)
+            std::sync::Arc::new(move |t: &[&Tensor]| block.forward(t[0], t[1])),
+        )
+    }
+
+    /// A decoder's residual block on `[x, skip]` (concatenated in channels). When checkpointing is
+    /// on, the concatenation happens inside the recomputed block, so the graph keeps `x` and `skip`
+    /// (which it holds anyway) rather than a third, concatenated copy.
+    fn res_block_skip(
+        &self,
+        rb: &ResBlock,
+        x: &Tensor,
+        skip: &Tensor,
+        emb: &Tensor,
+    ) -> Result<Tensor> {
+        let Some(tape) = &self.recompute else {
+            return rb.forward(&Tensor::cat(&[x, skip], 1)?, emb);
+        };
+        let block = rb.clone();
+        checkpoint(
+            &[x, skip, emb],
+            rb.params(),
+            tape,
+            std::sync::Arc::new(move |t: &[&Tensor]| {
+                block.forward(&Tensor::cat(&[t[0], t[1]], 1)?, t[2])
             }),
+        )
+    }
+
+    /// A decoder's upsampling (nearest, then a convolution), recomputed in the backward pass when
+    /// checkpointing is on: the graph then keeps the small input, not the upsampled copy that the
+    /// convolution reads (4 x the input).
+    fn upsample(&self, conv: &RingConv2d, x: &Tensor) -> Result<Tensor> {
+        let up = |conv: &RingConv2d, x: &Tensor| conv.forward(&crate::ops::upsample_nearest(x, 2)?);
+        let Some(tape) = &self.recompute else {
+            return up(conv, x);
+        };
+        let mut params = Vec::new();
+        crate::recompute::push_weights(&mut params, conv.weights());
+        let conv = conv.clone();
+        checkpoint(
+            &[x],
+            params,
+            tape,
+            std::sync::Arc::new(move |t: &[&Tensor]| up(&conv, t[0])),
         )
     }
 
@@ -463,13 +502,11 @@ impl Denoiser {
         };
         let (block, geom, keep) = (blk.clone(), geom.clone(), keep.cloned());
         checkpoint(
-            r,
-            Some(feat),
+            &[r, feat],
             blk.params(),
             tape,
-            std::sync::Arc::new(move |r: &Tensor, f: Option<&Tensor>| {
-                let f = f.ok_or_else(|| Error::Config("internal: no GCMA features".into()))?;
-                block.forward(r, f, &geom, keep.as_ref())
+            std::sync::Arc::new(move |t: &[&Tensor]| {
+                block.forward(t[0], t[1], &geom, keep.as_ref())
             }),
         )
     }
@@ -770,11 +807,10 @@ impl Denoiser {
                 Some(tape) => {
                     let block = p.clone();
                     checkpoint(
-                        &hcur,
-                        None,
+                        &[&hcur],
                         p.params(),
                         tape,
-                        std::sync::Arc::new(move |x: &Tensor, _: Option<&Tensor>| block.forward(x)),
+                        std::sync::Arc::new(move |t: &[&Tensor]| block.forward(t[0])),
                     )?
                 }
                 None => p.forward(&hcur)?,
@@ -788,7 +824,7 @@ impl Denoiser {
                 let s = skips
                     .pop()
                     .ok_or_else(|| Error::Config("internal: skip bookkeeping".into()))?;
-                hcur = self.res_block(rb, &Tensor::cat(&[&hcur, &s], 1)?, &emb)?;
+                hcur = self.res_block_skip(rb, &hcur, &s, &emb)?;
             }
             if let Some(g) = &lev.gcma
                 && let Some(out) = gcma(g, &hcur, l)?
@@ -796,9 +832,7 @@ impl Denoiser {
                 hcur = out;
             }
             if let Some(us) = &lev.resample {
-                let (_, _, hh, ww) = hcur.dims4()?;
-                let _ = (hh, ww);
-                hcur = us.forward(&crate::ops::upsample_nearest(&hcur, 2)?)?;
+                hcur = self.upsample(us, &hcur)?;
             }
         }
         let out = self.out_conv.forward(&self.out_norm.forward_silu(&hcur)?)?;

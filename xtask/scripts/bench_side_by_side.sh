@@ -9,6 +9,8 @@
 # EXPORT_DIR: a `cargo xtask bench-model --network paper --export DIR` folder (default
 # target/yardstick-paper; written first when absent). Settings from the environment:
 #   BATCHES=1,2  PRECISION=f32  DEVICE=cpu  THREADS=2  TRAIN_RUNS=3
+#   CHECKPOINTING=none (or none,block: candle's activation checkpointing, each a row)
+#   OPS=fused (or fused,reference: candle also with VEILA_NN_REFERENCE_OPS=1, the ops a GPU runs)
 #   VEILA=target/release/veila  PY=/work/venv-torch/bin/python3 (else python3)  OUT=target/side-by-side
 # The candle side is `veila bench --models NETWORK` at that network's own grid (`paper`: 64 x 1024),
 # so a reduced export (--grid, --base-channels) gives PyTorch rows of another size: the table's grid
@@ -23,6 +25,8 @@ PRECISION=${PRECISION:-f32}
 DEVICE=${DEVICE:-cpu}
 THREADS=${THREADS:-2}
 TRAIN_RUNS=${TRAIN_RUNS:-3}
+CHECKPOINTING=${CHECKPOINTING:-none}
+OPS=${OPS:-fused}
 VEILA=${VEILA:-target/release/veila}
 OUT=${OUT:-target/side-by-side}
 if [ -z "${PY:-}" ]; then
@@ -42,15 +46,23 @@ if [ -x "$VEILA" ]; then
   no_eval=""
   help=$("$VEILA" bench --help 2>/dev/null || true)
   if grep -q -- '--no-eval' <<< "$help"; then no_eval="--no-eval"; fi
-  for b in ${BATCHES//,/ }; do
-    for p in ${PRECISION//,/ }; do
-      j="$OUT/candle-b$b-$p.json"
-      rm -f "$j"
-      echo "candle: $NETWORK batch $b $p" >&2
-      RAYON_NUM_THREADS=$THREADS /usr/bin/time -f '%M' -o "$OUT/candle-b$b-$p.rss" \
-        "$VEILA" bench --device "$DEVICE" --models "$NETWORK" --batch "$b" --precision "$p" \
-        --train-runs "$TRAIN_RUNS" --forward-runs 1 --no-generate $no_eval --json "$j" --force \
-        > "$OUT/candle-b$b-$p.log" 2>&1 || echo "candle batch $b $p failed: see $OUT/candle-b$b-$p.log" >&2
+  for ops in ${OPS//,/ }; do
+    reference=0; [ "$ops" = reference ] && reference=1
+    for ck in ${CHECKPOINTING//,/ }; do
+      for b in ${BATCHES//,/ }; do
+        for p in ${PRECISION//,/ }; do
+          tag="$ops-$ck-b$b-$p"
+          j="$OUT/candle-$tag.json"
+          rm -f "$j"
+          echo "candle ($ops ops, checkpointing $ck): $NETWORK batch $b $p" >&2
+          VEILA_NN_REFERENCE_OPS=$reference RAYON_NUM_THREADS=$THREADS \
+            /usr/bin/time -f '%M' -o "$OUT/candle-$tag.rss" \
+            "$VEILA" bench --device "$DEVICE" --models "$NETWORK" --batch "$b" --precision "$p" \
+            --activation-checkpointing "$ck" --train-runs "$TRAIN_RUNS" --forward-runs 1 \
+            --no-generate $no_eval --json "$j" --force \
+            > "$OUT/candle-$tag.log" 2>&1 || echo "candle $tag failed: see $OUT/candle-$tag.log" >&2
+        done
+      done
     done
   done
 else
@@ -63,13 +75,16 @@ echo "PyTorch: $NETWORK batches $BATCHES $PRECISION" >&2
   --device "$DEVICE" --threads "$THREADS" --train-runs "$TRAIN_RUNS" --json > "$OUT/torch.json" \
   || echo "the yardstick failed or its check did not pass: see $OUT/torch.json" >&2
 
-"$PY" - "$OUT" "$NETWORK" "$BATCHES" "$PRECISION" "$DEVICE" <<'EOF'
+"$PY" - "$OUT" "$NETWORK" "$BATCHES" "$PRECISION" "$DEVICE" "$OPS" "$CHECKPOINTING" <<'EOF'
 import json, os, sys
-out, network, batches, precisions, device = sys.argv[1:6]
+out, network, batches, precisions, device, opses, cks = sys.argv[1:8]
 rows = []
-for p in precisions.split(","):
-    for b in [int(x) for x in batches.split(",")]:
-        j = f"{out}/candle-b{b}-{p}.json"
+for ops in opses.split(","):
+  for ck in cks.split(","):
+    for p in precisions.split(","):
+      for b in [int(x) for x in batches.split(",")]:
+        tag = f"{ops}-{ck}-b{b}-{p}"
+        j = f"{out}/candle-{tag}.json"
         if not os.path.exists(j):
             continue
         rep = json.load(open(j))
@@ -79,11 +94,13 @@ for p in precisions.split(","):
             mem, src = r.get("peak_memory_mib"), "veila bench"
             if mem is None:
                 try:
-                    mem, src = int(open(f"{out}/candle-b{b}-{p}.rss").read().split()[-1]) / 1024, "process RSS"
+                    mem, src = int(open(f"{out}/candle-{tag}.rss").read().split()[-1]) / 1024, "process RSS"
                 except (OSError, ValueError, IndexError):
                     mem, src = None, ""
             grid = "x".join(str(g) for g in r["grid"])
-            rows.append(dict(ops="candle", grid=grid, batch=b, precision=p, device=device,
+            label = "candle" + (", reference ops" if ops == "reference" else "") + (
+                ", checkpointing" if ck == "block" else "")
+            rows.append(dict(ops=label, grid=grid, batch=b, precision=p, device=device,
                              mem=mem, src=src, ms=r["train_step_ms"]))
 t = os.path.join(out, "torch.json")
 check = ""

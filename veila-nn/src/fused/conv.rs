@@ -1,6 +1,6 @@
-//! The whole convolution as one op: the columns of one sample at a time and one `gemm` product per
-//! sample, forward and backward, samples in parallel when there are at least as many as threads,
-//! per-thread scratch.
+//! The whole convolution as one op: the columns of one sample at a time, a tile of output rows at a
+//! time, and one `gemm` product per tile, forward and backward; samples in parallel when there are
+//! at least as many as threads, per-thread scratch of one tile.
 
 use candle_core::{CpuStorage, CustomOp2, CustomOp3, Layout, Shape, Tensor};
 use rayon::prelude::*;
@@ -11,8 +11,8 @@ use super::{on_cpu_f32, slice_f32, with_f32, zeros};
 use crate::error::{Result, shape_err};
 
 thread_local! {
-    /// This thread's scratch for the fused convolution (one sample's columns and their gradient),
-    /// kept between calls at the size of the largest layer seen: every element is written before
+    /// This thread's scratch for the fused convolution (one tile of a sample's columns and their
+    /// gradient, at most 2 x [`TILE_FLOATS`](super::im2col::TILE_FLOATS)), kept between calls at the size of the largest seen: every element is written before
     /// it is read, so it is never zero-filled again (that fill cost about 9 % of a training step).
     static CONV_SCRATCH: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
 }
@@ -46,6 +46,9 @@ pub(super) struct Conv2dGemm {
     pub(super) cols: Im2Col,
     /// Forces one of the two paths (tests); `None` chooses by the batch and the thread count.
     pub(super) parallel: Option<bool>,
+    /// Forces the output rows per column tile (tests); `None`: as many as fit
+    /// [`TILE_FLOATS`](super::im2col::TILE_FLOATS).
+    pub(super) tile_rows: Option<usize>,
 }
 
 /// Shapes of a [`Conv2dGemm`] call.
@@ -102,7 +105,22 @@ impl Conv2dGemm {
         })
     }
 
-    /// One sample's output `[out, H_o W_o]` (`col`: a scratch buffer of `k * n`).
+    /// Output rows per column tile, and the scratch floats of one column buffer.
+    fn tiling(&self, d: &ConvDims) -> (usize, usize) {
+        let rows = self.tile_rows.map_or_else(
+            || self.cols.tile_rows(d.k, d.ho, d.wo),
+            |r| r.clamp(1, d.ho.max(1)),
+        );
+        (rows, self.cols.scratch_len(d.k, rows * d.wo))
+    }
+
+    /// The output-row ranges of the column tiles.
+    fn tiles(&self, d: &ConvDims) -> impl Iterator<Item = std::ops::Range<usize>> + use<> {
+        let (rows, ho) = (self.tiling(d).0, d.ho);
+        (0..ho).step_by(rows).map(move |oy| oy..(oy + rows).min(ho))
+    }
+
+    /// One sample's output `[out, H_o W_o]` (`col`: a scratch buffer of one tile).
     fn forward_sample(
         &self,
         d: &ConvDims,
@@ -112,14 +130,14 @@ impl Conv2dGemm {
         threaded: bool,
     ) -> candle_core::Result<()> {
         let ConvDims {
-            h, w, out_c, k, n, ..
+            h,
+            w,
+            out_c,
+            k,
+            n,
+            wo,
+            ..
         } = *d;
-        let col: &[f32] = if self.cols.is_identity() {
-            x
-        } else {
-            self.cols.fill_sample(col, x, (h, w, n), threaded);
-            col
-        };
         if let Some(bias) = bias {
             for (row, &v) in dst.chunks_mut(n).zip(bias) {
                 row.fill(v);
@@ -127,14 +145,30 @@ impl Conv2dGemm {
         }
         // computed transposed, outᵀ (N x O) = colᵀ (N x K) · Wᵀ (K x O): the big operand is then
         // column-major, which `gemm` reads in place instead of packing a copy of it
-        matmul_into(
-            (dst, 1, n),
-            (n, out_c, k),
-            bias.is_some(),
-            (col, 1, n),
-            (weight, 1, k),
-            threaded,
-        )
+        if self.cols.is_identity() {
+            return matmul_into(
+                (dst, 1, n),
+                (n, out_c, k),
+                bias.is_some(),
+                (x, 1, n),
+                (weight, 1, k),
+                threaded,
+            );
+        }
+        for oys in self.tiles(d) {
+            let (p0, tn) = (oys.start * wo, oys.len() * wo);
+            let col = &mut col[..k * tn];
+            self.cols.fill_sample(col, x, (h, w), oys, threaded);
+            matmul_into(
+                (&mut dst[p0..], 1, n),
+                (tn, out_c, k),
+                bias.is_some(),
+                (col, 1, tn),
+                (weight, 1, k),
+                threaded,
+            )?;
+        }
+        Ok(())
     }
 
     fn forward(
@@ -165,7 +199,6 @@ impl Conv2dGemm {
             h,
             w,
             out_c,
-            k,
             n,
             ..
         } = d;
@@ -174,16 +207,17 @@ impl Conv2dGemm {
         if out.is_empty() || plane == 0 {
             return Ok(out);
         }
+        let scratch = self.tiling(&d).1;
         if self.samples_in_parallel(&d) {
             out.par_chunks_mut(out_c * n)
                 .zip(x.par_chunks(plane))
                 .try_for_each(|(dst, xb)| {
-                    with_scratch(self.cols.scratch_len(k, n), |col, _| {
+                    with_scratch(scratch, |col, _| {
                         self.forward_sample(&d, (xb, weight, bias), dst, col, false)
                     })
                 })?;
         } else {
-            with_scratch(self.cols.scratch_len(k, n), |col, _| {
+            with_scratch(scratch, |col, _| {
                 for (dst, xb) in out.chunks_mut(out_c * n).zip(x.chunks(plane)) {
                     self.forward_sample(&d, (xb, weight, bias), dst, col, true)?;
                 }
@@ -206,37 +240,49 @@ impl Conv2dGemm {
         threaded: bool,
     ) -> candle_core::Result<()> {
         let ConvDims {
-            h, w, out_c, k, n, ..
+            h,
+            w,
+            out_c,
+            k,
+            n,
+            wo,
+            ..
         } = *d;
-        let identity = self.cols.is_identity();
-        let col: &[f32] = if identity {
-            x
-        } else {
-            self.cols.fill_sample(col, x, (h, w, n), threaded);
-            col
-        };
-        // dW (O x K) = g (O x N) · colᵀ (N x K): rows of g against rows of col, both in place
-        matmul_abt(dw, g, col, (out_c, k, n), threaded)?;
-        // dcol (K x N) = Wᵀ (K x O) · g (O x N), transposed as in the forward:
-        // dcolᵀ (N x K) = gᵀ (N x O) · W (O x K); a 1x1 convolution's dcol is dx itself
-        let dcol_into = |dst: &mut [f32]| {
+        for (acc, row) in db.iter_mut().zip(g.chunks(n)) {
+            *acc = row.iter().sum::<f32>();
+        }
+        // dcolᵀ (N x K) = gᵀ (N x O) · W (O x K), transposed as in the forward
+        let dcol_into = |dst: &mut [f32], g: &[f32], tn: usize| {
             matmul_into(
-                (dst, 1, n),
-                (n, k, out_c),
+                (dst, 1, tn),
+                (tn, k, out_c),
                 false,
                 (g, 1, n),
                 (weight, k, 1),
                 threaded,
             )
         };
-        if identity {
-            dcol_into(dx)?;
-        } else {
-            dcol_into(dcol)?;
-            self.cols.scatter_sample(dcol, dx, (h, w, n), threaded);
+        if self.cols.is_identity() {
+            // dW (O x K) = g (O x N) · xᵀ: rows of g against rows of x, both in place; a 1x1
+            // convolution's dcol is dx itself
+            matmul_abt(dw, (g, n), (x, n), (out_c, k, n), false, threaded)?;
+            return dcol_into(dx, g, n);
         }
-        for (acc, row) in db.iter_mut().zip(g.chunks(n)) {
-            *acc = row.iter().sum::<f32>();
+        for (t, oys) in self.tiles(d).enumerate() {
+            let (p0, tn) = (oys.start * wo, oys.len() * wo);
+            let (col, dcol) = (&mut col[..k * tn], &mut dcol[..k * tn]);
+            self.cols.fill_sample(col, x, (h, w), oys.clone(), threaded);
+            // dW (O x K) += g_tile (O x tile) · col_tileᵀ, both read in place
+            matmul_abt(
+                dw,
+                (&g[p0..], n),
+                (col, tn),
+                (out_c, k, tn),
+                t > 0,
+                threaded,
+            )?;
+            dcol_into(dcol, &g[p0..], tn)?;
+            self.cols.scatter_sample(dcol, dx, (h, w), oys, threaded);
         }
         Ok(())
     }
@@ -304,7 +350,7 @@ impl Conv2dGemm {
         let mut db_parts = vec![0f32; b * out_c];
         if !(dx.is_empty() || g.is_empty() || dw_parts.is_empty()) {
             let (dws, dbs) = (out_c * k, out_c);
-            let scratch = self.cols.scratch_len(k, n);
+            let scratch = self.tiling(d).1;
             if self.samples_in_parallel(d) {
                 dx.par_chunks_mut(plane)
                     .zip(dw_parts.par_chunks_mut(dws))
@@ -464,6 +510,7 @@ pub fn conv2d(
         let op = Conv2dGemm {
             cols: Im2Col { spec },
             parallel: None,
+            tile_rows: None,
         };
         let (x, weight) = (x.contiguous()?, weight.contiguous()?);
         return Ok(match bias {
@@ -528,6 +575,7 @@ mod tests {
             let op = Conv2dGemm {
                 cols: Im2Col { spec },
                 parallel: Some(parallel),
+                tile_rows: None,
             };
             let y = x.apply_op3(&w, &b, op).unwrap();
             let g = Tensor::from_vec(pattern(y.elem_count(), 0.53), y.dims(), &dev).unwrap();
@@ -547,5 +595,73 @@ mod tests {
             a[2].iter().any(|v| *v != 0.0),
             "the weight gradient is all zero"
         );
+    }
+
+    #[test]
+    fn column_tiles_give_the_whole_layers_convolution() {
+        // the columns filled and scattered a few output rows at a time (1, 2 and 4 of 6 rows: equal
+        // tiles, and a short last one) against one tile of the whole layer: the same output and
+        // gradients, up to the order in which the weight gradient sums the tiles
+        let dev = Device::Cpu;
+        for (spec, (h, w)) in [
+            (
+                Im2ColSpec {
+                    kernel: (3, 3),
+                    stride: (1, 2),
+                    pad_h: 1,
+                    pad_w: 1,
+                    ring: true,
+                    ones_row: false,
+                },
+                (6, 10),
+            ),
+            (
+                Im2ColSpec {
+                    kernel: (3, 3),
+                    stride: (2, 2),
+                    pad_h: 1,
+                    pad_w: 1,
+                    ring: false,
+                    ones_row: false,
+                },
+                (11, 8),
+            ),
+        ] {
+            let x = Tensor::from_vec(pattern(2 * 4 * h * w, 0.37), (2, 4, h, w), &dev).unwrap();
+            let wt = Tensor::from_vec(pattern(5 * 4 * 9, 0.11), (5, 4, 3, 3), &dev).unwrap();
+            let b = Tensor::from_vec(pattern(5, 0.7), 5, &dev).unwrap();
+            let run = |tile_rows: usize, parallel: bool| -> Vec<Vec<f32>> {
+                let op = Conv2dGemm {
+                    cols: Im2Col { spec },
+                    parallel: Some(parallel),
+                    tile_rows: Some(tile_rows),
+                };
+                let y = x.apply_op3(&wt, &b, op).unwrap();
+                let g = Tensor::from_vec(pattern(y.elem_count(), 0.53), y.dims(), &dev).unwrap();
+                let (dx, dw, db) = op.backward(&x, &wt, &g, true).unwrap();
+                [y, dx, dw, db.unwrap()]
+                    .iter()
+                    .map(|t| t.flatten_all().unwrap().to_vec1::<f32>().unwrap())
+                    .collect()
+            };
+            let whole = run(usize::MAX, false);
+            let ho = spec.out_size(h, w).unwrap().0;
+            for rows in [1, 2, 4] {
+                assert!(rows < ho, "{rows} rows make more than one tile of {ho}");
+                for parallel in [false, true] {
+                    let tiled = run(rows, parallel);
+                    for (i, (a, b)) in tiled.iter().zip(&whole).enumerate() {
+                        assert_eq!(a.len(), b.len());
+                        let scale = b.iter().fold(1f32, |m, v| m.max(v.abs()));
+                        for (p, q) in a.iter().zip(b) {
+                            assert!(
+                                (p - q).abs() <= 1e-5 * scale,
+                                "{spec:?}, {rows} rows a tile, output {i}: {p} against {q}"
+                            );
+                        }
+                    }
+                }
+            }
+        }
     }
 }

@@ -2,6 +2,8 @@
 //! convolution in one copy, with a col2im backward; and the per-sample column matrices the fused
 //! convolution fills and scatters.
 
+use std::ops::Range;
+
 use candle_core::{CpuStorage, CustomOp1, Layout, Shape, Tensor};
 use rayon::prelude::*;
 
@@ -91,14 +93,25 @@ pub(super) struct Im2Col {
 }
 
 impl Im2Col {
-    /// Fills one output row (`ho * wo` values) for channel plane `plane` (`h * w`) at kernel tap
-    /// `(ky, kx)`.
-    fn fill_row(&self, row: &mut [f32], plane: &[f32], h: usize, w: usize, ky: usize, kx: usize) {
+    /// Fills one row of the column matrix (`oys.len() * wo` values: the output rows `oys`) for
+    /// channel plane `plane` (`h * w`) at kernel tap `(ky, kx)`.
+    #[allow(clippy::too_many_arguments)]
+    fn fill_row(
+        &self,
+        row: &mut [f32],
+        plane: &[f32],
+        h: usize,
+        w: usize,
+        ky: usize,
+        kx: usize,
+        oys: Range<usize>,
+    ) {
         let s = &self.spec;
         let (sh, sw) = s.stride;
-        let (ho, wo) = s.out_size(h, w).unwrap_or((0, 0));
-        for oy in 0..ho {
-            let out = &mut row[oy * wo..(oy + 1) * wo];
+        let (_, wo) = s.out_size(h, w).unwrap_or((0, 0));
+        let first = oys.start;
+        for oy in oys {
+            let out = &mut row[(oy - first) * wo..(oy - first + 1) * wo];
             let iy = (oy * sh + ky) as isize - s.pad_h as isize;
             if iy < 0 || iy >= h as isize {
                 out.fill(0.0);
@@ -130,8 +143,10 @@ impl Im2Col {
         }
     }
 
-    /// Adds one gradient row back into the channel plane (the transpose of `Im2Col::fill_row`).
+    /// Adds one gradient row (the output rows `oys`) back into the channel plane (the transpose
+    /// of `Im2Col::fill_row`).
     #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
     fn scatter_row(
         &self,
         row: &[f32],
@@ -140,12 +155,14 @@ impl Im2Col {
         w: usize,
         ky: usize,
         kx: usize,
+        oys: Range<usize>,
     ) {
         let s = &self.spec;
         let (sh, sw) = s.stride;
-        let (ho, wo) = s.out_size(h, w).unwrap_or((0, 0));
-        for oy in 0..ho {
-            let g = &row[oy * wo..(oy + 1) * wo];
+        let (_, wo) = s.out_size(h, w).unwrap_or((0, 0));
+        let first = oys.start;
+        for oy in oys {
+            let g = &row[(oy - first) * wo..(oy - first + 1) * wo];
             let iy = (oy * sh + ky) as isize - s.pad_h as isize;
             if iy < 0 || iy >= h as isize {
                 continue;
@@ -202,7 +219,8 @@ impl CustomOp1 for Im2Col {
                     if r >= c * kk {
                         row.fill(1.0);
                     } else {
-                        self.fill_col_row(r, row, &x[bi * c * h * w..(bi + 1) * c * h * w], h, w);
+                        let xb = &x[bi * c * h * w..(bi + 1) * c * h * w];
+                        self.fill_col_row(r, row, xb, (h, w), 0..ho);
                     }
                 });
         }
@@ -266,7 +284,7 @@ impl CustomOp1 for Col2Im {
                 .for_each(|(i, plane)| {
                     let (bi, ci) = (i / c, i % c);
                     let sample = &g[bi * rows * n..(bi + 1) * rows * n];
-                    self.inner.scatter_plane(ci, plane, sample, (h, w, n));
+                    self.inner.scatter_plane(ci, plane, sample, (h, w), 0..ho);
                 });
         }
         Ok((CpuStorage::F32(dst), Shape::from((b, c, h, w))))
@@ -366,14 +384,31 @@ impl Im2Col {
         } == Im2ColSpec::POINTWISE
     }
 
-    /// Scratch floats per column buffer for a `k x n` column matrix (none for [`Self::is_identity`]).
-    pub(super) fn scratch_len(&self, k: usize, n: usize) -> usize {
-        if self.is_identity() { 0 } else { k * n }
+    /// Output rows per column tile of a convolution whose column matrix has `k` rows: as many
+    /// whole output rows as fit [`TILE_FLOATS`], at least one. Filling and scattering the columns
+    /// tile by tile bounds the scratch of a convolution by the tile, not by the layer: one sample's
+    /// full column matrix is `k` times its `H_o W_o` pixels (`9 C` for a 3x3 kernel: 432 MiB at
+    /// the paper network's 64 x 1024 level with 192 input channels, per thread).
+    pub(super) fn tile_rows(&self, k: usize, ho: usize, wo: usize) -> usize {
+        (TILE_FLOATS / (k * wo).max(1)).clamp(1, ho.max(1))
     }
 
-    /// The `[C kh kw, H_o W_o]` column matrix of one sample (`x`: its `C` planes of `h x w`).
-    /// Fills row `r` (below `C kh kw`) of one sample's column matrix from that sample's planes `x`.
-    fn fill_col_row(&self, r: usize, row: &mut [f32], x: &[f32], h: usize, w: usize) {
+    /// Scratch floats per column buffer for tiles of `tile_n` output pixels (none for
+    /// [`Self::is_identity`]).
+    pub(super) fn scratch_len(&self, k: usize, tile_n: usize) -> usize {
+        if self.is_identity() { 0 } else { k * tile_n }
+    }
+
+    /// Fills row `r` (below `C kh kw`) of one sample's column matrix, for the output rows `oys`,
+    /// from that sample's planes `x`.
+    fn fill_col_row(
+        &self,
+        r: usize,
+        row: &mut [f32],
+        x: &[f32],
+        (h, w): (usize, usize),
+        oys: Range<usize>,
+    ) {
         let (kh, kw) = self.spec.kernel;
         let (ci, tap) = (r / (kh * kw), r % (kh * kw));
         self.fill_row(
@@ -383,37 +418,48 @@ impl Im2Col {
             w,
             tap / kw,
             tap % kw,
+            oys,
         );
     }
 
-    /// Adds channel `ci`'s rows of one sample's column gradient `dcol` (`n` values a row) into that
-    /// channel's plane.
+    /// Adds channel `ci`'s rows of one sample's column gradient `dcol` (the output rows `oys`,
+    /// `oys.len() * W_o` values a row) into that channel's plane.
     #[inline(always)]
     fn scatter_plane(
         &self,
         ci: usize,
         plane: &mut [f32],
         dcol: &[f32],
-        (h, w, n): (usize, usize, usize),
+        (h, w): (usize, usize),
+        oys: Range<usize>,
     ) {
         let (kh, kw) = self.spec.kernel;
+        let wo = self.spec.out_size(h, w).map_or(0, |(_, wo)| wo);
+        let n = oys.len() * wo;
         for tap in 0..kh * kw {
             let r = ci * kh * kw + tap;
-            self.scatter_row(&dcol[r * n..(r + 1) * n], plane, h, w, tap / kw, tap % kw);
+            let row = &dcol[r * n..(r + 1) * n];
+            self.scatter_row(row, plane, h, w, tap / kw, tap % kw, oys.clone());
         }
     }
 
+    /// Fills one sample's column matrix for the output rows `oys` (`C kh kw` rows of
+    /// `oys.len() * W_o` values) from its planes `x`.
     pub(super) fn fill_sample(
         &self,
         col: &mut [f32],
         x: &[f32],
-        (h, w, n): (usize, usize, usize),
+        (h, w): (usize, usize),
+        oys: Range<usize>,
         parallel: bool,
     ) {
+        let wo = self.spec.out_size(h, w).map_or(0, |(_, wo)| wo);
+        let n = oys.len() * wo;
         if n == 0 {
             return;
         }
-        let fill = |(r, row): (usize, &mut [f32])| self.fill_col_row(r, row, x, h, w);
+        let fill =
+            |(r, row): (usize, &mut [f32])| self.fill_col_row(r, row, x, (h, w), oys.clone());
         if parallel {
             col.par_chunks_mut(n)
                 .with_min_len(min_len(n))
@@ -424,37 +470,45 @@ impl Im2Col {
         }
     }
 
-    /// Adds the column-matrix gradient `dcol` of one sample back into its planes `dx` (zeroed).
+    /// Adds the column-matrix gradient `dcol` of one sample's output rows `oys` back into its
+    /// planes `dx`.
     pub(super) fn scatter_sample(
         &self,
         dcol: &[f32],
         dx: &mut [f32],
-        (h, w, n): (usize, usize, usize),
+        (h, w): (usize, usize),
+        oys: Range<usize>,
         parallel: bool,
     ) {
-        if h * w == 0 {
+        if h * w == 0 || oys.is_empty() {
             return;
         }
         let (kh, kw) = self.spec.kernel;
         let kk = kh * kw;
-        let scatter =
-            |(ci, plane): (usize, &mut [f32])| self.scatter_plane(ci, plane, dcol, (h, w, n));
+        let scatter = |(ci, plane): (usize, &mut [f32])| {
+            self.scatter_plane(ci, plane, dcol, (h, w), oys.clone())
+        };
         if parallel {
             dx.par_chunks_mut(h * w)
                 .with_min_len(min_len(h * w * kk))
                 .enumerate()
                 .for_each(scatter);
         } else {
-            scatter_planes_simd(self, dcol, dx, h, w, n);
+            scatter_planes_simd(self, dcol, dx, h, w, oys);
         }
     }
 }
 
+/// The most floats of one column tile of the fused convolution (16 MiB; see
+/// [`Im2Col::tile_rows`]). The products over a tile are still large (a 64 x 1024 level with 64
+/// input channels takes 7 output rows, 7,168 pixels, at once).
+pub(super) const TILE_FLOATS: usize = 1 << 22;
+
 multiversion! {
     /// One sample's col2im on one thread: every channel's plane in turn.
-    fn scatter_planes(cols: &Im2Col, dcol: &[f32], dx: &mut [f32], h: usize, w: usize, n: usize) {
+    fn scatter_planes(cols: &Im2Col, dcol: &[f32], dx: &mut [f32], h: usize, w: usize, oys: Range<usize>) {
         for (ci, plane) in dx.chunks_mut(h * w).enumerate() {
-            cols.scatter_plane(ci, plane, dcol, (h, w, n));
+            cols.scatter_plane(ci, plane, dcol, (h, w), oys.clone());
         }
     }
 

@@ -76,8 +76,9 @@ pub(super) fn matmul_into(
     Ok(())
 }
 
-/// `dst (m x nb, row-major) = a (m x len) · bᵀ` for `b (nb x len)`, both row-major: every output
-/// is a dot product of two contiguous rows. This is the weight gradient of a convolution (`g ·
+/// `dst (m x nb, row-major) = a (m x len) · bᵀ` for `b (nb x len)` (or `dst +=` with
+/// `accumulate`), rows `a_rs` and `b_rs` floats apart: every output is a dot product of two
+/// contiguous rows. This is the weight gradient of a convolution (`g ·
 /// colᵀ`, summed over the pixels), for which `gemm` first copies both operands into packed panels
 /// (a transposing gather of the whole column matrix: most of that product's time, and more with
 /// AVX-512's wider panels); here the rows are read in place, 4 x 3 outputs at a time in vector
@@ -90,6 +91,9 @@ struct Abt<'a> {
     m: usize,
     nb: usize,
     len: usize,
+    a_rs: usize,
+    b_rs: usize,
+    accumulate: bool,
 }
 
 impl pulp::WithSimd for Abt<'_> {
@@ -104,8 +108,19 @@ impl pulp::WithSimd for Abt<'_> {
             m,
             nb,
             len,
+            a_rs,
+            b_rs,
+            accumulate,
         } = self;
-        let span = |i: usize| i * len..(i + 1) * len;
+        let a_span = |i: usize| i * a_rs..i * a_rs + len;
+        let b_span = |i: usize| i * b_rs..i * b_rs + len;
+        let put = |d: &mut f32, t: f32| {
+            if accumulate {
+                *d += t;
+            } else {
+                *d = t;
+            }
+        };
         let dot = |x: &[f32], y: &[f32]| -> f32 {
             let (xs, xt) = S::as_simd_f32s(x);
             let (ys, yt) = S::as_simd_f32s(y);
@@ -124,13 +139,13 @@ impl pulp::WithSimd for Abt<'_> {
                 if i + 4 > m || j + 3 > nb {
                     for ii in i..(i + 4).min(m) {
                         for jj in j..(j + 3).min(nb) {
-                            dst[ii * nb + jj] = dot(&a[span(ii)], &b[span(jj)]);
+                            put(&mut dst[ii * nb + jj], dot(&a[a_span(ii)], &b[b_span(jj)]));
                         }
                     }
                     continue;
                 }
-                let ar = |r: usize| S::as_simd_f32s(&a[span(i + r)]);
-                let br = |q: usize| S::as_simd_f32s(&b[span(j + q)]);
+                let ar = |r: usize| S::as_simd_f32s(&a[a_span(i + r)]);
+                let br = |q: usize| S::as_simd_f32s(&b[b_span(j + q)]);
                 let ((a0, a0t), (a1, a1t), (a2, a2t), (a3, a3t)) = (ar(0), ar(1), ar(2), ar(3));
                 let ((b0, b0t), (b1, b1t), (b2, b2t)) = (br(0), br(1), br(2));
                 let z = simd.splat_f32s(0.0);
@@ -171,7 +186,7 @@ impl pulp::WithSimd for Abt<'_> {
                         for (p, v) in at[r].iter().zip(bt[q]) {
                             t += p * v;
                         }
-                        dst[(i + r) * nb + j + q] = t;
+                        put(&mut dst[(i + r) * nb + j + q], t);
                     }
                 }
             }
@@ -179,22 +194,28 @@ impl pulp::WithSimd for Abt<'_> {
     }
 }
 
-/// [`Abt`] on the CPU's widest vector unit; with `threaded`, blocks of output rows are
-/// spread over rayon's threads (each output is one thread's, so the result does not depend on
-/// the thread count).
+/// [`Abt`] on the CPU's widest vector unit: `dst (m x nb) (+)= a · bᵀ`, `a`'s `m` and `b`'s `nb`
+/// rows of `len` floats starting `a_rs` and `b_rs` floats apart. With `threaded`, blocks of output
+/// rows are spread over rayon's threads (each output is one thread's, so the result does not
+/// depend on the thread count).
 pub(super) fn matmul_abt(
     dst: &mut [f32],
-    a: &[f32],
-    b: &[f32],
+    (a, a_rs): (&[f32], usize),
+    (b, b_rs): (&[f32], usize),
     (m, nb, len): (usize, usize, usize),
+    accumulate: bool,
     threaded: bool,
 ) -> candle_core::Result<()> {
-    if dst.len() != m * nb || a.len() < m * len || b.len() < nb * len {
+    let spans = |rows: usize, rs: usize| if rows == 0 { 0 } else { (rows - 1) * rs + len };
+    let (a_need, b_need) = (spans(m, a_rs), spans(nb, b_rs));
+    if dst.len() != m * nb || a.len() < a_need || b.len() < b_need || a_rs < len || b_rs < len {
         candle_core::bail!(
-            "matmul_abt: a matrix does not fit its slice ({m}x{len} · ({nb}x{len})ᵀ)"
+            "matmul_abt: a matrix does not fit its slice ({m}x{len} · ({nb}x{len})ᵀ, row \
+             strides {a_rs} and {b_rs})"
         )
     }
-    fn run(dst: &mut [f32], a: &[f32], b: &[f32], (m, nb, len): (usize, usize, usize)) {
+    let (a, b) = (&a[..a_need], &b[..b_need]);
+    let run = |dst: &mut [f32], a: &[f32], m: usize| {
         pulp::Arch::new().dispatch(Abt {
             dst,
             a,
@@ -202,15 +223,23 @@ pub(super) fn matmul_abt(
             m,
             nb,
             len,
+            a_rs,
+            b_rs,
+            accumulate,
         });
-    }
+    };
     const ROWS: usize = 4;
     if threaded && rayon::current_num_threads() > 1 && m > ROWS && nb > 0 {
+        // a block's rows of `a`: ROWS strides, the last block's up to the end of `a`
         dst.par_chunks_mut(ROWS * nb)
-            .zip(a.par_chunks(ROWS * len))
-            .for_each(|(d, a)| run(d, a, b, (d.len() / nb, nb, len)));
+            .enumerate()
+            .for_each(|(blk, d)| {
+                let start = blk * ROWS * a_rs;
+                let rows = d.len() / nb;
+                run(d, &a[start..start + spans(rows, a_rs)], rows)
+            });
     } else {
-        run(dst, a, b, (m, nb, len));
+        run(dst, a, m);
     }
     Ok(())
 }
@@ -245,8 +274,41 @@ mod tests {
             };
             for threaded in [false, true] {
                 let mut dst = vec![f32::NAN; m * nb];
-                matmul_abt(&mut dst, &a, &b, (m, nb, len), threaded).unwrap();
+                matmul_abt(
+                    &mut dst,
+                    (&a, len),
+                    (&b, len),
+                    (m, nb, len),
+                    false,
+                    threaded,
+                )
+                .unwrap();
                 check(&dst, "dispatched");
+                // the same rows inside wider ones (a column tile of a convolution), accumulated
+                // onto a start of one half of the product: the other half is added on top
+                let widen = |v: &[f32], rows: usize| -> Vec<f32> {
+                    let mut out = vec![f32::NAN; rows * (len + 3)];
+                    for r in 0..rows {
+                        out[r * (len + 3) + 1..r * (len + 3) + 1 + len]
+                            .copy_from_slice(&v[r * len..(r + 1) * len]);
+                    }
+                    out
+                };
+                let (wa, wb) = (widen(&a, m), widen(&b, nb));
+                let half = len / 2;
+                let mut acc = vec![0f32; m * nb];
+                for (lo, n) in [(0, half), (half, len - half)] {
+                    matmul_abt(
+                        &mut acc,
+                        (&wa[1 + lo..], len + 3),
+                        (&wb[1 + lo..], len + 3),
+                        (m, nb, n),
+                        true,
+                        threaded,
+                    )
+                    .unwrap();
+                }
+                check(&acc, "strided, accumulated");
             }
             let mut scalar = vec![f32::NAN; m * nb];
             pulp::Simd::vectorize(
@@ -258,11 +320,35 @@ mod tests {
                     m,
                     nb,
                     len,
+                    a_rs: len,
+                    b_rs: len,
+                    accumulate: false,
                 },
             );
             check(&scalar, "scalar");
         }
         let mut small = vec![0f32; 4];
-        assert!(matmul_abt(&mut small, &[0.0; 3], &[0.0; 6], (2, 2, 3), false).is_err());
+        assert!(
+            matmul_abt(
+                &mut small,
+                (&[0.0; 3], 3),
+                (&[0.0; 6], 3),
+                (2, 2, 3),
+                false,
+                false
+            )
+            .is_err()
+        );
+        assert!(
+            matmul_abt(
+                &mut small,
+                (&[0.0; 9], 2),
+                (&[0.0; 9], 3),
+                (2, 2, 3),
+                false,
+                false
+            )
+            .is_err()
+        );
     }
 }

@@ -419,12 +419,14 @@ pub fn res_block(x: &Tensor, p: ResBlockParams<'_>, spec: ResBlockSpec) -> Resul
                 },
             },
             parallel: None,
+            tile_rows: None,
         },
         skip: p.skip.map(|_| Conv2dGemm {
             cols: Im2Col {
                 spec: Im2ColSpec::POINTWISE,
             },
             parallel: None,
+            tile_rows: None,
         }),
         biases: [
             p.conv1.1.is_some(),
