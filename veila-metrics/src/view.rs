@@ -519,7 +519,7 @@ mod tests {
         );
         assert!(same.front_mae_m.is_some());
         assert!(
-            ViewScores::of(&r, &real, &[real.clone()], true)
+            ViewScores::of(&r, &real, std::slice::from_ref(&real), true)
                 .unwrap()
                 .front_mae_m
                 .is_none()

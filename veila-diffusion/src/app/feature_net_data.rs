@@ -18,13 +18,16 @@ use veila_nn::feature_nets::train::{COMPOSITION_CLASSES, FeatureSample};
 
 use crate::error::{Error, Result, invalid};
 
+/// (scene file, seed) pairs, one a scene.
+pub type ScenePairs = Vec<(PathBuf, u64)>;
+
 /// A seeded draw of `n` (scene file, seed) pairs from `list`, round-robin over its scene files
 /// so layouts stay balanced; also the list's scene files (a pair's layout is its file's index).
 pub fn draw_scene_pairs(
     list_path: &Path,
     n: usize,
     seed: u64,
-) -> Result<(Vec<(PathBuf, u64)>, Vec<PathBuf>)> {
+) -> Result<(ScenePairs, Vec<PathBuf>)> {
     let list = SceneList::read(list_path)?;
     let files: Vec<PathBuf> = list.entries.iter().map(|e| e.scene.clone()).collect();
     if files.is_empty() {
