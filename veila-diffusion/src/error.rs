@@ -73,6 +73,10 @@ pub enum Error {
     #[error(transparent)]
     Model(#[from] veila_nn::Error),
 
+    /// A metric could not be computed (the error names the metric and the input).
+    #[error(transparent)]
+    Metrics(#[from] veila_metrics::Error),
+
     /// A sensor or camera is invalid.
     #[error(transparent)]
     Geom(#[from] veila_geom::GeomError),

@@ -14,6 +14,7 @@
 //! | Chamfer distance (squared, means summed) and MMD-CD | PyTorch3D | [`chamfer`], BVH in [`nn`] |
 //! | CM-DC / CM-SC cross-modal consistency | Veila paper | [`crossmodal`] |
 //! | Range MAE of two range images on one grid, over pixels valid in both | — | [`range`] |
+//! | Range MAE and coverage in a camera's view, camera depth at LiDAR points | — | [`view`] |
 //!
 //! Every point-based metric can be restricted to the paper's front (`x > 0`) or rear (`x <= 0`) half with
 //! [`Region`] (re-exported from `veila-geom`). Results are collected as [`MetricValue`]s whose JSON form is
@@ -59,6 +60,7 @@ pub mod nn;
 pub mod protocol;
 pub mod range;
 pub mod suite;
+pub mod view;
 
 pub use error::{Error, Result};
 pub use metric::{MetricReport, MetricValue, Protocol};

@@ -21,7 +21,8 @@ use veila_data::shard::{CameraMatrices, MANIFEST_FORMAT, Manifest, ShardSample, 
 use veila_data::sim::{Scene, SceneConfig, class};
 use veila_geom::{ProjectionOptions, Projector};
 
-use crate::simdata::{split_items, workspace_root};
+use crate::progress::workspace_root;
+use veila_diffusion::app::sim_examples::split_items;
 
 /// Arguments of `cargo xtask bench-memory`.
 #[derive(Debug, Args)]

@@ -13,24 +13,22 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use candle_core::Device;
 use clap::Args;
-use glam::Vec3;
 use serde::Serialize;
 use veila_data::vis::plot::{BarChart, BarGroup, Plot, Series, SeriesStyle};
 use veila_diffusion::SamplerConfig;
+use veila_diffusion::app::GenerateOptions;
 use veila_diffusion::app::bundle::{Bundle, Variant};
-use veila_diffusion::app::{CameraView, GenerateOptions};
-use veila_geom::{RangeImage, RayTable, Region};
-use veila_metrics::bev::{BevConfig, BevHistogram, bev_histogram};
-use veila_metrics::crossmodal::{
-    DepthAlignment, Map2d, ProjectionFilter, cm_depth_consistency, cm_semantic_consistency,
+use veila_diffusion::app::scoring::{
+    Judges, SetMetrics, Stat, data_floor, metric_stats, set_metrics,
 };
-use veila_metrics::dist;
-use veila_metrics::fd::{self, FeatureStats};
-use veila_nn::encoders::small_cnn::SmallCnn;
+use veila_diffusion::app::sim_examples::{
+    RenderStyle, SimExample, TrainImages, retrieval_baseline, test_list_for, train_split_of,
+};
+use veila_geom::RangeImage;
 use veila_nn::feature_nets::FeatureNets;
 
 use crate::bench_real::sampler_for;
-use crate::simdata::{SimExample, render_split, workspace_root};
+use crate::progress::{render_split, workspace_root};
 use crate::train_default::{self, TrainDefaultArgs};
 
 /// Arguments of `cargo xtask bench-report`.
@@ -124,33 +122,6 @@ enum Protocol {
     Scratch,
 }
 
-/// A metric over several sets of scans (folds of the test frames, times sample seeds for a
-/// model): mean and standard deviation over the sets.
-#[derive(Debug, Clone, Serialize)]
-struct Stat {
-    mean: f64,
-    std: f64,
-    sets: usize,
-    scans_per_set: usize,
-}
-
-fn stat(values: &[f64], scans_per_set: usize) -> Stat {
-    let finite: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
-    let n = finite.len().max(1) as f64;
-    let mean = finite.iter().sum::<f64>() / n;
-    let var = if finite.len() > 1 {
-        finite.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0)
-    } else {
-        0.0
-    };
-    Stat {
-        mean: if finite.is_empty() { f64::NAN } else { mean },
-        std: var.sqrt(),
-        sets: values.len(),
-        scans_per_set,
-    }
-}
-
 #[derive(Debug, Serialize)]
 struct VariantResult {
     /// `model`, `baseline` or `floor`.
@@ -201,89 +172,6 @@ struct Report {
     notes: Vec<String>,
 }
 
-/// Judges shared by every variant: the bundled model's encoder heads (depth for CM-DC, semantics
-/// for CM-SC) and everything about the reference scans, computed once for all variants and seeds.
-struct Judges {
-    depth_pred: Vec<Vec<f32>>,
-    label_pred: Vec<Vec<u32>>,
-    /// Per region, in `Region::ALL` order.
-    reference: Vec<RegionReference>,
-}
-
-/// The reference side of the set metrics of one region.
-struct RegionReference {
-    histograms: Vec<BevHistogram>,
-    /// FRD and FPD feature rows (flattened), when the feature networks are present.
-    features: Option<(Vec<f32>, Vec<f32>)>,
-}
-
-fn make_judges(
-    bundle: &Bundle,
-    tests: &[SimExample],
-    nets: Option<&FeatureNets>,
-    device: &Device,
-) -> Result<Judges> {
-    let (h, w) = (bundle.config.image_height, bundle.config.image_width);
-    let mut depth_pred = Vec::new();
-    let mut label_pred = Vec::new();
-    let rays = RayTable::new(&bundle.config.denoiser.sensor)?;
-    let mut reference_points = Vec::new();
-    let mut reference_intensity = Vec::new();
-    // each judge's input: the image, and its camera's ground prior when the judge takes one
-    let input = |net: &SmallCnn, ex: &SimExample| -> Result<candle_core::Tensor> {
-        Ok(net
-            .config()
-            .input_tensor(&ex.rgb, h, w, Some(&ex.camera), device)?)
-    };
-    for ex in tests {
-        let d = match &bundle.depth {
-            Some(net) => {
-                let net = net
-                    .as_small_cnn()
-                    .context("the judge bundle's depth encoder is not a small CNN")?;
-                net.predict_maps(&input(net, ex)?)?[0].depth_m.clone()
-            }
-            None => None,
-        };
-        depth_pred.push(d.context("the judge bundle has no depth head")?);
-        let l = match &bundle.semantic {
-            Some(net) => {
-                let net = net
-                    .as_small_cnn()
-                    .context("the judge bundle's semantic encoder is not a small CNN")?;
-                net.predict_maps(&input(net, ex)?)?[0].labels.clone()
-            }
-            None => None,
-        };
-        label_pred.push(l.context("the judge bundle has no semantic head")?);
-        let un = rays.unproject(&ex.range)?;
-        reference_points.push(un.points);
-        reference_intensity.push(un.intensity);
-    }
-    let cfg = BevConfig::r2dm();
-    let reference = Region::ALL
-        .into_iter()
-        .map(|region| {
-            let histograms = reference_points
-                .iter()
-                .map(|p| bev_histogram(p, &cfg, region, "reference scan"))
-                .collect::<std::result::Result<Vec<_>, _>>()?;
-            let features = nets
-                .map(|n| region_features(n, &reference_points, &reference_intensity, region))
-                .transpose()?;
-            Ok(RegionReference {
-                histograms,
-                features,
-            })
-        })
-        .collect::<Result<Vec<_>>>()?;
-    Ok(Judges {
-        depth_pred,
-        label_pred,
-        reference,
-    })
-}
-
 /// Generates one scan per test frame with `bundle` and `sampler` and seed; returns range images and
 /// the seconds spent.
 fn generate_all(
@@ -306,15 +194,7 @@ fn generate_all(
             unconditional,
             residual_weight,
         };
-        let n = crate::simdata::views_of(&bundle.config);
-        let mut views = vec![CameraView {
-            rgb: &ex.rgb,
-            camera: &ex.camera,
-        }];
-        views.extend(ex.extra_views.iter().take(n - 1).map(|v| CameraView {
-            rgb: &v.rgb,
-            camera: &v.camera,
-        }));
+        let views = ex.views(bundle.config.num_views());
         let mut scans = bundle.generate(&views, &opts, |_, _| {})?;
         out.push(scans.swap_remove(0));
         bar.inc(1);
@@ -323,196 +203,15 @@ fn generate_all(
     Ok((out, t.elapsed().as_secs_f64()))
 }
 
-fn region_name(r: Region) -> &'static str {
-    r.name()
-}
-
-/// Per-seed metric values: name -> region -> value.
-fn seed_metrics(
-    bundle: &Bundle,
-    generated: &[RangeImage],
-    tests: &[SimExample],
-    judges: &Judges,
-    nets: Option<&FeatureNets>,
-) -> Result<BTreeMap<String, BTreeMap<String, f64>>> {
-    let rays = RayTable::new(&bundle.config.denoiser.sensor)?;
-    let unprojected = generated
-        .iter()
-        .map(|r| Ok(rays.unproject(r)?))
-        .collect::<Result<Vec<_>>>()?;
-    let gen_points: Vec<Vec<Vec3>> = unprojected.iter().map(|u| u.points.clone()).collect();
-    let gen_intensity: Vec<Vec<f32>> = unprojected.iter().map(|u| u.intensity.clone()).collect();
-    let mut m: BTreeMap<String, BTreeMap<String, f64>> = BTreeMap::new();
-    let cfg = BevConfig::r2dm();
-    for (region, reference) in Region::ALL.into_iter().zip(&judges.reference) {
-        let hg = gen_points
-            .iter()
-            .map(|p| bev_histogram(p, &cfg, region, "generated scan"))
-            .collect::<std::result::Result<Vec<_>, _>>()?;
-        let hr = &reference.histograms;
-        let rn = region_name(region).to_string();
-        m.entry("jsd".into())
-            .or_default()
-            .insert(rn.clone(), or_nan("jsd", dist::jsd(&hg, hr)));
-        m.entry("mmd (x1e4)".into()).or_default().insert(
-            rn.clone(),
-            1e4 * or_nan("mmd", dist::mmd_r2dm_dense(&hg, hr, 0.5)),
-        );
-        if let (Some(nets), Some(reference)) = (nets, &reference.features) {
-            let (frd, fpd) = frd_fpd(nets, &gen_points, &gen_intensity, reference, region)
-                .unwrap_or_else(|e| {
-                    eprintln!("  frd / fpd ({rn}): {e:#}; reported as n/a");
-                    (f64::NAN, f64::NAN)
-                });
-            m.entry("frd".into()).or_default().insert(rn.clone(), frd);
-            m.entry("fpd".into()).or_default().insert(rn.clone(), fpd);
-        }
-        let mut sum = 0.0;
-        let mut n = 0usize;
-        for (g, ex) in generated.iter().zip(tests) {
-            if let Some(v) = veila_metrics::range::range_mae(g, &ex.range, region) {
-                sum += v;
-                n += 1;
-            }
-        }
-        m.entry("range mae (m)".into())
-            .or_default()
-            .insert(rn, if n > 0 { sum / n as f64 } else { f64::NAN });
-    }
-    // cross-modal consistency in the camera's field of view, against the encoder heads
-    let filter = ProjectionFilter::default();
-    let (mut dc, mut sc, mut nd, mut ns) = (0.0, 0.0, 0usize, 0usize);
-    for (i, ex) in tests.iter().enumerate() {
-        let (w, h) = (ex.camera.width, ex.camera.height);
-        let depth = Map2d::new(w, h, &judges.depth_pred[i])?;
-        if let Ok(c) = cm_depth_consistency(
-            &gen_points[i],
-            &ex.camera,
-            &depth,
-            DepthAlignment::None,
-            &filter,
-        ) && c.abs_rel.is_finite()
-        {
-            dc += c.abs_rel;
-            nd += 1;
-        }
-        // CM-SC: the classes the range segmentation net gives the generated points against the
-        // image semantic head's classes where they project
-        if let Some(nets) = nets {
-            let (pts, labels) = nets.segment_points(&gen_points[i], Some(&gen_intensity[i]))?;
-            let pred = Map2d::new(w, h, &judges.label_pred[i])?;
-            let filter = ProjectionFilter {
-                ignore_label: Some(0),
-                ..ProjectionFilter::default()
-            };
-            if let Ok(c) = cm_semantic_consistency(&pts, &labels, &ex.camera, &pred, &filter)
-                && c.percent.is_finite()
-            {
-                sc += c.percent;
-                ns += 1;
-            }
-        }
-    }
-    let front = region_name(Region::Front).to_string();
-    m.entry("cm-dc (abs rel)".into()).or_default().insert(
-        front.clone(),
-        if nd > 0 { dc / nd as f64 } else { f64::NAN },
-    );
-    m.entry("cm-sc (%)".into())
-        .or_default()
-        .insert(front, if ns > 0 { sc / ns as f64 } else { f64::NAN });
-    Ok(m)
-}
-
-/// A metric's value, or NaN (reported as n/a) when it cannot be computed for this set, e.g. when a
-/// poorly trained variant generates no return inside the BEV window.
-fn or_nan<E: std::fmt::Display>(what: &str, r: std::result::Result<f64, E>) -> f64 {
-    r.unwrap_or_else(|e| {
-        eprintln!("  {what}: {e}; reported as n/a");
-        f64::NAN
-    })
-}
-
-/// Points of `region` (and their intensities).
-fn in_region(points: &[Vec3], intensity: &[f32], region: Region) -> (Vec<Vec3>, Vec<f32>) {
-    points
-        .iter()
-        .zip(intensity)
-        .filter(|(p, _)| region.contains(**p))
-        .map(|(p, i)| (*p, *i))
-        .unzip()
-}
-
-/// FRD and FPD feature rows (flattened) of the scans' points in `region`.
-fn region_features(
-    nets: &FeatureNets,
-    points: &[Vec<Vec3>],
-    intensity: &[Vec<f32>],
-    region: Region,
-) -> Result<(Vec<f32>, Vec<f32>)> {
-    let scans: Vec<(Vec<Vec3>, Vec<f32>)> = points
-        .iter()
-        .zip(intensity)
-        .map(|(p, i)| in_region(p, i, region))
-        .filter(|(p, _)| !p.is_empty())
-        .collect();
-    let range_in: Vec<(&[Vec3], Option<&[f32]>)> = scans
-        .iter()
-        .map(|(p, i)| (p.as_slice(), Some(i.as_slice())))
-        .collect();
-    let rf = nets.scan_range_features(&range_in)?;
-    let point_in: Vec<&[Vec3]> = scans.iter().map(|(p, _)| p.as_slice()).collect();
-    let pf = nets.point_features(&point_in)?;
-    Ok((rf.concat(), pf.concat()))
-}
-
-/// FRD and FPD of generated scans in `region` against the reference features of that region, with
-/// the shipped feature networks.
-fn frd_fpd(
-    nets: &FeatureNets,
-    points: &[Vec<Vec3>],
-    intensity: &[Vec<f32>],
-    (rr, rpf): &(Vec<f32>, Vec<f32>),
-    region: Region,
-) -> Result<(f64, f64)> {
-    let (gr, gpf) = region_features(nets, points, intensity, region)?;
-    let rd = nets.rangenet().config().feature_dim();
-    let pd = nets.pointnet().config().feature_dim();
-    let fd = |a: &[f32], b: &[f32], d: usize| -> Result<f64> {
-        if a.len() < 2 * d || b.len() < 2 * d {
-            return Ok(f64::NAN);
-        }
-        Ok(fd::frechet_distance(
-            &FeatureStats::from_rows(a, d, "generated features")?,
-            &FeatureStats::from_rows(b, d, "reference features")?,
-        )?)
-    };
-    Ok((fd(&gr, rr, rd)?, fd(&gpf, rpf, pd)?))
-}
-
-/// Segments a scan with the range net's semantic head: the points that won a range pixel and the
-/// class (learning map, 0 = unlabelled) of their pixel.
-/// A result row from per-set metric values (name -> region -> value per set).
+/// A result row from per-set metric values.
 fn row(
     kind: &str,
     name: &str,
     label: &str,
     model: &str,
-    per_set: &[BTreeMap<String, BTreeMap<String, f64>>],
+    per_set: &[SetMetrics],
     scans_per_set: usize,
 ) -> VariantResult {
-    let mut metrics: BTreeMap<String, BTreeMap<String, Stat>> = BTreeMap::new();
-    if let Some(first) = per_set.first() {
-        for (m, regions) in first {
-            for region in regions.keys() {
-                let vals: Vec<f64> = per_set.iter().map(|x| x[m][region]).collect();
-                metrics
-                    .entry(m.clone())
-                    .or_default()
-                    .insert(region.clone(), stat(&vals, scans_per_set));
-            }
-        }
-    }
     VariantResult {
         kind: kind.into(),
         variant: name.into(),
@@ -520,46 +219,8 @@ fn row(
         model: model.into(),
         train_steps: 0,
         seconds_per_scan: 0.0,
-        metrics,
+        metrics: metric_stats(per_set, scans_per_set),
     }
-}
-
-/// The data floor: the set metrics between the true scans of two disjoint folds (fold `f`
-/// against fold `f + 1`), what a perfect generator of this many scans would score.
-fn data_floor(folds: &[std::ops::Range<usize>], judges: &[Judges]) -> VariantResult {
-    let k = judges.len();
-    let per_set: Vec<BTreeMap<String, BTreeMap<String, f64>>> = (0..k)
-        .map(|f| {
-            let (a, b) = (&judges[f], &judges[(f + 1) % k]);
-            let mut m: BTreeMap<String, BTreeMap<String, f64>> = BTreeMap::new();
-            for (region, (ra, rb)) in Region::ALL
-                .into_iter()
-                .zip(a.reference.iter().zip(&b.reference))
-            {
-                let rn = region_name(region).to_string();
-                m.entry("jsd".into()).or_default().insert(
-                    rn.clone(),
-                    or_nan("jsd", dist::jsd(&ra.histograms, &rb.histograms)),
-                );
-                m.entry("mmd (x1e4)".into()).or_default().insert(
-                    rn,
-                    1e4 * or_nan(
-                        "mmd",
-                        dist::mmd_r2dm_dense(&ra.histograms, &rb.histograms, 0.5),
-                    ),
-                );
-            }
-            m
-        })
-        .collect();
-    row(
-        "floor",
-        "data-floor",
-        "data floor (true scans of one fold vs another)",
-        "-",
-        &per_set,
-        folds.first().map_or(0, |r| r.len()),
-    )
 }
 
 /// Runs the benchmark and writes the report.
@@ -598,11 +259,11 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
     let base = Bundle::from_dir(&model_dir, &device)
         .with_context(|| format!("loading {}", model_dir.display()))?;
     // the baselines and every fine-tuned variant draw from the bundle's own training list
-    let train_list = crate::simdata::train_split_of(&base.config);
+    let train_list = train_split_of(&base.config);
     let test_list = args
         .test_scenes
         .clone()
-        .unwrap_or_else(|| crate::simdata::test_list_for(&train_list));
+        .unwrap_or_else(|| test_list_for(&root, &train_list));
     // frames carry as many cameras as the most-viewed variant takes (three-cameras: 3); every
     // other model reads the first
     let rig_views = if args.shipped_only {
@@ -621,9 +282,10 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         c.num_views = c.num_views.max(rig_views);
     }
     let tests = render_split(
-        &root.join(&test_list),
+        &test_list,
         args.test_frames,
         &rig_config,
+        &RenderStyle::default(),
         "simulating test frames",
     )?;
     let nets_dir = root.join("models/feature-nets");
@@ -647,33 +309,24 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         .collect();
     let fold_judges = folds
         .iter()
-        .map(|r| make_judges(&base, &tests[r.clone()], nets.as_ref(), &device))
-        .collect::<Result<Vec<_>>>()?;
+        .map(|r| Judges::new(&base, &tests[r.clone()], nets.as_ref(), &device))
+        .collect::<veila_diffusion::Result<Vec<_>>>()?;
     let fold_size = folds[0].len();
-    let per_fold = |bundle: &Bundle,
-                    generated: &[RangeImage]|
-     -> Result<Vec<BTreeMap<String, BTreeMap<String, f64>>>> {
-        folds
-            .iter()
-            .zip(&fold_judges)
-            .map(|(r, j)| {
-                seed_metrics(
-                    bundle,
-                    &generated[r.clone()],
-                    &tests[r.clone()],
-                    j,
-                    nets.as_ref(),
-                )
-            })
-            .collect()
+    let per_fold = |bundle: &Bundle, generated: &[RangeImage]| -> Result<Vec<SetMetrics>> {
+        let sets = folds.iter().zip(&fold_judges).map(|(r, j)| {
+            let (g, t) = (&generated[r.clone()], &tests[r.clone()]);
+            set_metrics(bundle, g, t, j, nets.as_ref())
+        });
+        Ok(sets.collect::<veila_diffusion::Result<_>>()?)
     };
     let mut results = Vec::new();
 
     // the zero-skill baselines and the data floor
     let baseline_train = render_split(
-        &root.join(&train_list),
+        &train_list,
         args.baseline_frames,
         &base.config,
+        &RenderStyle::default(),
         "simulating baseline train frames",
     )?;
     let refs: Vec<&RangeImage> = baseline_train.iter().map(|e| &e.range).collect();
@@ -690,7 +343,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         fold_size,
     ));
     if base.is_conditional() {
-        let retrieved = crate::simdata::retrieval_baseline(&base, &baseline_train, &tests)?;
+        let retrieved = retrieval_baseline(&base, &baseline_train, &tests)?;
         results.push(row(
             "baseline",
             "retrieval",
@@ -700,7 +353,14 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
             fold_size,
         ));
     }
-    results.push(data_floor(&folds, &fold_judges));
+    results.push(row(
+        "floor",
+        "data-floor",
+        "data floor (true scans of one fold vs another)",
+        "-",
+        &data_floor(&fold_judges),
+        fold_size,
+    ));
 
     // the bundled model as shipped: its own sampler settings, no further training
     {
@@ -774,13 +434,13 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         .iter()
         .any(|v| !(args.protocol == Protocol::Finetune && *v == Variant::Unconditional));
     // the variants train on images drawn as the bundle's own were (its provenance)
-    let train_style = crate::simdata::TrainImages::style_of_bundle(&base.config);
-    let train_images = crate::simdata::TrainImages::of_bundle(&base.config);
+    let train_style = TrainImages::style_of_bundle(&base.config);
+    let train_images = TrainImages::of_bundle(&base.config);
     // and with the bundle's depth features wherever a variant has the depth encoder
     let depth_features = base.config.depth_features();
     let train_frames = if needs_training {
-        crate::simdata::render_split_styled(
-            &root.join(&train_list),
+        render_split(
+            &train_list,
             args.train_frames,
             &rig_config,
             &train_style,
@@ -852,7 +512,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
             1.0
         };
         let sampler = sampler_for(&args.sampler, args.steps, guidance)?;
-        let mut per_set: Vec<BTreeMap<String, BTreeMap<String, f64>>> = Vec::new();
+        let mut per_set: Vec<SetMetrics> = Vec::new();
         let mut secs = 0.0;
         for seed in 0..args.seeds {
             let (generated, s) = generate_all(
@@ -889,7 +549,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
 
     // sampler sweep on the bundled model
     let sweep_tests = &tests[..args.sweep_frames.min(tests.len())];
-    let sweep_judges = make_judges(&base, sweep_tests, nets.as_ref(), &device)?;
+    let sweep_judges = Judges::new(&base, sweep_tests, nets.as_ref(), &device)?;
     // (sampler, steps, residual weight, label): every sampler at every step count, then for a
     // residual bundle the texture's price in pixel error at the variants' step count
     let mut points: Vec<(&str, usize, f64, String)> = Vec::new();
@@ -913,7 +573,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         let sampler = sampler_for(name, steps, base.config.sampler.guidance_scale)?;
         let (generated, secs) =
             generate_all(&base, sweep_tests, &sampler, false, weight, 0, &label)?;
-        let m = seed_metrics(&base, &generated, sweep_tests, &sweep_judges, nets.as_ref())?;
+        let m = set_metrics(&base, &generated, sweep_tests, &sweep_judges, nets.as_ref())?;
         let p = SweepPoint {
             sampler: name.into(),
             steps: if weight == 0.0 { 0 } else { steps },

@@ -17,8 +17,7 @@ mod build_cuda; // cargo xtask build-cuda (CUDA toolkit from PyPI)
 mod device; // --device of the commands that run networks
 mod feature_nets; // cargo xtask train-feature-nets (veila-nn feature_nets)
 mod kitti_weather; // cargo xtask kitti-weather (veila-data weather)
-mod progress; // progress bars of the long commands
-mod simdata; // simulated examples for training and benchmarks
+mod progress; // progress bars of the long commands, the workspace root
 #[cfg(test)]
 mod tidy;
 mod train_default; // cargo xtask train-default (the bundled model)
@@ -94,7 +93,7 @@ fn run(command: Command) -> Result<()> {
 /// `cargo test -p xtask --bin xtask -- tidy::` in the workspace, its output passed through.
 fn tidy() -> Result<()> {
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-    let root = simdata::workspace_root();
+    let root = progress::workspace_root();
     let status = std::process::Command::new(cargo)
         .args(["test", "-p", "xtask", "--bin", "xtask", "--", "tidy::"])
         .current_dir(&root)

@@ -1,4 +1,17 @@
-//! Progress bars of the long commands.
+//! Progress bars of the long commands, and the workspace they run in.
+
+use std::path::{Path, PathBuf};
+
+use veila_diffusion::app::BundleConfig;
+use veila_diffusion::app::sim_examples::{self, RenderStyle, SimExample};
+
+/// The workspace root (xtask lives one level below it).
+pub(crate) fn workspace_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .map(Path::to_path_buf)
+        .unwrap_or_else(|| PathBuf::from("."))
+}
 
 /// A progress bar on stderr (hidden when stderr is not a terminal).
 pub(crate) fn progress_bar(len: u64, label: &str) -> indicatif::ProgressBar {
@@ -10,4 +23,22 @@ pub(crate) fn progress_bar(len: u64, label: &str) -> indicatif::ProgressBar {
     }
     bar.set_prefix(label.to_string());
     bar
+}
+
+/// [`sim_examples::render_split_styled`] of a list relative to the workspace, behind a progress
+/// bar named `label`.
+pub(crate) fn render_split(
+    list: &Path,
+    n: usize,
+    cfg: &BundleConfig,
+    style: &RenderStyle,
+    label: &str,
+) -> anyhow::Result<Vec<SimExample>> {
+    let bar = progress_bar(n as u64, label);
+    let out =
+        sim_examples::render_split_styled(&workspace_root().join(list), n, cfg, style, &|| {
+            bar.inc(1)
+        });
+    bar.finish_and_clear();
+    Ok(out?)
 }

@@ -15,7 +15,10 @@ const INTERNAL_ALLOWED: &[(&str, &[&str])] = &[
     ("veila-geom", &[]),
     ("veila-data", &["veila-geom"]),
     ("veila-nn", &["veila-geom"]),
-    ("veila-diffusion", &["veila-geom", "veila-data", "veila-nn"]),
+    (
+        "veila-diffusion",
+        &["veila-geom", "veila-data", "veila-nn", "veila-metrics"],
+    ),
     ("veila-metrics", &["veila-geom"]),
     (
         "veila-cli",

@@ -18,7 +18,8 @@ use veila_diffusion::app::{
 use veila_diffusion::{StepStats, TrainObserver};
 
 use crate::device::DeviceArg;
-use crate::simdata::{SimExample, TrainImages, workspace_root};
+use crate::progress::workspace_root;
+use veila_diffusion::app::sim_examples::{self, SimExample, TrainImages};
 
 /// Arguments of `cargo xtask train-default`.
 #[derive(Debug, Args, Clone)]
@@ -45,7 +46,7 @@ pub struct TrainDefaultArgs {
     /// recipe until 2026-11-26), `scenes/train-v3.txt` (also open roads, suburbs, curved roads and
     /// a rig drawn per seed), `scenes/train-v4.txt` (the streets and a road between woodland
     /// edges: tree lines, a rig drawn per seed).
-    #[arg(long, default_value = crate::simdata::RECIPE_SCENES)]
+    #[arg(long, default_value = sim_examples::RECIPE_SCENES)]
     pub scenes: PathBuf,
     /// Scene list the encoders' training frames are drawn from (as many frames as --frames)
     /// [default: `scenes/train.txt`, the shipped recipe's: its encoders were trained on the
@@ -90,7 +91,7 @@ pub struct TrainDefaultArgs {
     /// recipe: on the real KITTI frames it beats the image-blind baselines where the stock images
     /// did not), `appearance` (both) or `randomized` (both and the sensor model). Scans, depth and
     /// labels are the same in every style.
-    #[arg(long, value_enum, default_value_t = TrainImages::Materials)]
+    #[arg(long, default_value = "materials", value_parser = parse_images)]
     pub images: TrainImages,
     /// The share of the training frames, within (0, 1], whose images are drawn in the `--images`
     /// style (chosen per frame from its seed); the rest keep the stock images [default: 1, all].
@@ -175,7 +176,7 @@ fn encoder_list(args: &TrainDefaultArgs) -> Option<PathBuf> {
     let list = args
         .encoder_scenes
         .clone()
-        .unwrap_or_else(|| PathBuf::from(crate::simdata::DEFAULT_SCENES));
+        .unwrap_or_else(|| PathBuf::from(sim_examples::DEFAULT_SCENES));
     (list != args.scenes).then_some(list)
 }
 
@@ -234,8 +235,8 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     let examples: &[SimExample] = match frames {
         Some(f) => f,
         None => {
-            rendered = crate::simdata::render_split_styled(
-                &root.join(&args.scenes),
+            rendered = crate::progress::render_split(
+                &args.scenes,
                 args.frames,
                 &cfg,
                 &render_style,
@@ -249,8 +250,8 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     let encoder_rendered;
     let encoder_examples: &[SimExample] = match &encoder_list {
         Some(list) => {
-            encoder_rendered = crate::simdata::render_split_styled(
-                &root.join(list),
+            encoder_rendered = crate::progress::render_split(
+                list,
                 args.frames,
                 &cfg,
                 &render_style,
@@ -339,7 +340,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     if style.randomize_materials {
         run_key["randomize_materials"] = serde_json::Value::Bool(true);
     }
-    if args.scenes != std::path::Path::new(crate::simdata::DEFAULT_SCENES) {
+    if args.scenes != std::path::Path::new(sim_examples::DEFAULT_SCENES) {
         run_key["scenes"] = serde_json::json!(args.scenes);
     }
     if let Some(list) = &encoder_list {
@@ -354,7 +355,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     let depths: Vec<Vec<f32>> = encoder_examples
         .iter()
         .map(|e| match sky_m {
-            Some(far) => crate::simdata::depth_with_sky_at(&e.depth_m, far),
+            Some(far) => sim_examples::depth_with_sky_at(&e.depth_m, far),
             None => e.depth_m.clone(),
         })
         .collect();
@@ -412,7 +413,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     let train_examples: Vec<TrainExample> = examples
         .iter()
         .map(|e| e.train_example(&cfg))
-        .collect::<Result<_>>()?;
+        .collect::<veila_diffusion::Result<_>>()?;
     let t = Instant::now();
     let mut bar: Option<indicatif::ProgressBar> = None;
     let outcome = run_recipe(
@@ -580,6 +581,11 @@ fn sky_target_m(cfg: &BundleConfig, sky_depth: bool) -> Result<Option<f32>> {
             "--sky-depth trains the small-CNN depth encoder's depth head, and this variant has none"
         ),
     }
+}
+
+/// `--images`: a [`TrainImages`] style by its name.
+fn parse_images(s: &str) -> Result<TrainImages> {
+    Ok(s.parse()?)
 }
 
 fn encoder_name(which: Encoder) -> &'static str {

@@ -1050,6 +1050,14 @@ impl BundleConfig {
         self
     }
 
+    /// Camera views the denoiser takes (1 when it is unconditional).
+    pub fn num_views(&self) -> usize {
+        self.denoiser
+            .conditioning
+            .as_ref()
+            .map_or(1, |c| c.num_views.max(1))
+    }
+
     /// The method this config describes.
     pub fn method(&self) -> Method {
         use crate::objective::Objective;

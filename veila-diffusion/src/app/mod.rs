@@ -18,17 +18,28 @@
 //!   `veila train` and `cargo xtask train-default` both run.
 //! * [`rig`]: camera images and their calibration files as views of a rig; the pipeline's steps
 //!   (resizing to a bundle's input, the model-frame turn, scans as points) one by one.
+//! * [`scoring`]: generated scans scored against simulated frames (the set metrics per fold
+//!   with the encoders and feature networks that feed them; `cargo xtask bench-report`).
+//! * `sim_examples` (feature `sim`): simulated frames of a split list at a bundle's size, for
+//!   training and benchmarks (`cargo xtask train-default`, `bench-report`, `bench-real`).
+//! * `feature_net_data` (feature `sim`): simulated training scans of the FRD / FPD feature
+//!   networks (`cargo xtask train-feature-nets`).
 //! * [`nn`]: the Veila U-Net from `veila-nn` as a [`crate::Denoiser`] ([`VeilaDenoiser`]).
 
 pub mod bundle;
 pub mod dataset;
 pub mod encoder_train;
+#[cfg(feature = "sim")]
+pub mod feature_net_data;
 pub mod generate;
 pub mod mean;
 pub mod nn;
 pub mod pipeline;
 pub mod recipe;
 pub mod rig;
+pub mod scoring;
+#[cfg(feature = "sim")]
+pub mod sim_examples;
 pub mod stage;
 pub mod train;
 pub mod train_config;

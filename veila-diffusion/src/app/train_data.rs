@@ -119,11 +119,7 @@ pub fn prepare_sample(
             }
         }
     }
-    let views = cfg
-        .denoiser
-        .conditioning
-        .as_ref()
-        .map_or(1, |c| c.num_views.max(1));
+    let views = cfg.num_views();
     if 1 + s.extra_views.len() < views {
         return Err(err(format!(
             "has {} camera(s), the model takes {views} views (convert with more cameras: \

@@ -8,6 +8,7 @@
 //! * [`FeatureNets`]: the two nets as one verified bundle, loaded from a folder ([`FeatureNets::from_dir`])
 //!   or from in-memory files ([`FeatureNets::from_bytes`], e.g. `include_bytes!`), with batched feature
 //!   extraction from point clouds. [`save_bundle`] writes one.
+//! * [`train`]: their training on labelled scans (`cargo xtask train-feature-nets`).
 //!
 //! The Fréchet distance itself is `veila_metrics::fd` (this crate only produces feature vectors).
 //!
@@ -84,6 +85,7 @@
 
 pub mod pointnet;
 pub mod rangenet;
+pub mod train;
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};

@@ -1,24 +1,34 @@
-//! Simulated examples for training and benchmarking: camera image, ground-truth semantics and depth
-//! at the bundle's image size, the LiDAR scan and its range image on the bundle's grid.
+//! Simulated examples for training and benchmarking (feature `sim`): scenes of a split list
+//! rendered by `veila_data::sim` and reduced to what a bundle trains and is scored on, at its
+//! size. `cargo xtask train-default`, `bench-report`, `bench-real` and `bench-memory` draw their
+//! frames here.
+//!
+//! * [`SimExample`]: one frame: the camera image fitted to the encoders' input (the same
+//!   [`prepare_view`] every door uses), dense ground-truth semantics and depth at that size, the
+//!   scan on the bundle's range grid and the rig's further cameras; [`SimExample::train_example`]
+//!   turns it into a [`TrainExample`].
+//! * Split lists: [`split_items`] (the first frames of a list, its scene files interleaved),
+//!   [`train_split_of`] (the list a bundle's provenance names), [`test_list_for`] (the held-out
+//!   list beside a training list).
+//! * [`render_split`] / [`render_split_styled`]: the first `n` frames of a list, rendered in
+//!   parallel; byte-identical for a given list, bundle config and [`RenderStyle`] whatever the
+//!   thread count.
+//! * [`TrainImages`] and [`RenderStyle`]: issue 18's domain randomisation of the camera images
+//!   (scene appearance, sensor model), as a bundle's provenance records it.
+//! * [`retrieval_baseline`]: the zero-skill retrieval baseline on simulated frames.
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result};
 use rayon::prelude::*;
 use veila_data::augment::Photometric;
-use veila_data::image::{RgbImage, imageops};
-use veila_data::sim::{Scene, SceneConfig, SceneList, SimFrame, class};
-use veila_diffusion::app::bundle::BundleConfig;
-use veila_diffusion::app::{TrainExample, TrainView};
-use veila_geom::{LidarSensor, PinholeCamera, ProjectionOptions, Projector, RangeImage};
+use veila_data::sim::{Scene, SceneConfig, SceneList, SimFrame, SimImage, SimView, class};
+use veila_geom::{PinholeCamera, ProjectionOptions, Projector, RangeImage};
 
-/// The workspace root (xtask lives one level below it).
-pub fn workspace_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .map(Path::to_path_buf)
-        .unwrap_or_else(|| PathBuf::from("."))
-}
+use super::bundle::{Bundle, BundleConfig};
+use super::dataset::{TrainExample, TrainView};
+use super::generate::CameraView;
+use super::rig::prepare_view;
+use crate::error::{Error, Result, invalid};
 
 /// One simulated frame, reduced to what training and evaluation use.
 #[derive(Debug, Clone)]
@@ -42,14 +52,6 @@ pub struct SimExample {
 /// in view order: nuScenes' front-left and front-right cameras sit at about +-55 degrees.
 pub const RIG_YAWS_DEG: [f32; 5] = [55.0, -55.0, 110.0, -110.0, 180.0];
 
-/// Camera views `cfg` takes.
-pub fn views_of(cfg: &BundleConfig) -> usize {
-    cfg.denoiser
-        .conditioning
-        .as_ref()
-        .map_or(1, |c| c.num_views.max(1))
-}
-
 impl SimExample {
     /// The training example (encoded range image).
     pub fn train_example(&self, cfg: &BundleConfig) -> Result<TrainExample> {
@@ -59,12 +61,25 @@ impl SimExample {
             ..TrainExample::new(self.rgb.clone(), self.camera, x0)
         })
     }
-}
 
-/// Resizes RGB bytes with a triangle (antialiasing) filter.
-pub fn resize_rgb(rgb: &[u8], w: u32, h: u32, new_w: u32, new_h: u32) -> Result<Vec<u8>> {
-    let img = RgbImage::from_raw(w, h, rgb.to_vec()).context("RGB buffer of the wrong size")?;
-    Ok(imageops::resize(&img, new_w, new_h, imageops::FilterType::Triangle).into_raw())
+    /// The example's first `n` camera views (the front camera, then the rig's further ones), as
+    /// the bundle's sampling takes them.
+    pub fn views(&self, n: usize) -> Vec<CameraView<'_>> {
+        std::iter::once(CameraView {
+            rgb: &self.rgb,
+            camera: &self.camera,
+        })
+        .chain(
+            self.extra_views
+                .iter()
+                .take(n.saturating_sub(1))
+                .map(|v| CameraView {
+                    rgb: &v.rgb,
+                    camera: &v.camera,
+                }),
+        )
+        .collect()
+    }
 }
 
 fn nearest<T: Copy>(src: &[T], w: usize, h: usize, new_w: usize, new_h: usize) -> Vec<T> {
@@ -79,23 +94,24 @@ fn nearest<T: Copy>(src: &[T], w: usize, h: usize, new_w: usize, new_h: usize) -
     out
 }
 
+/// A simulated camera image and its camera fitted to `cfg`'s input ([`prepare_view`]).
+fn fitted(cfg: &BundleConfig, image: &SimImage, camera: &PinholeCamera) -> Result<TrainView> {
+    let (rgb, camera) = prepare_view(cfg, &image.to_rgb_image()?, camera)?;
+    Ok(TrainView { rgb, camera })
+}
+
 /// Reduces a rendered frame to a [`SimExample`] for `cfg`'s image size and range grid.
 pub fn example_from_frame(frame: &SimFrame, cfg: &BundleConfig) -> Result<SimExample> {
     let img = &frame.image;
     let (w, h) = (img.width as usize, img.height as usize);
     let (nw, nh) = (cfg.image_width, cfg.image_height);
-    let rgb = resize_rgb(&img.rgb, img.width, img.height, nw as u32, nh as u32)?;
+    let TrainView { rgb, camera } = fitted(cfg, img, &frame.camera)?;
     let labels: Vec<u32> = nearest(&img.semantic, w, h, nw, nh)
         .into_iter()
         .map(|r| class::learning_id(r) as u32)
         .collect();
     let depth_m = nearest(&img.depth_m, w, h, nw, nh);
-    let camera = frame
-        .camera
-        .resized(nw as u32, nh as u32)
-        .context("zero image size")?;
-    let sensor: &LidarSensor = &cfg.denoiser.sensor;
-    let projector = Projector::new(sensor, ProjectionOptions::default())?;
+    let projector = Projector::new(&cfg.denoiser.sensor, ProjectionOptions::default())?;
     let cloud = &frame.scan.points;
     let (range, _) = projector.project(&cloud.xyz, Some(&cloud.intensity), None)?;
     Ok(SimExample {
@@ -109,23 +125,16 @@ pub fn example_from_frame(frame: &SimFrame, cfg: &BundleConfig) -> Result<SimExa
 }
 
 /// [`example_from_frame`] with the rig's further cameras (`views` from
-/// [`Scene::render_frame_rig`]), each resized to `cfg`'s image size.
+/// [`Scene::render_frame_rig`]), each fitted to `cfg`'s image size.
 pub fn example_from_rig(
     frame: &SimFrame,
-    views: &[veila_data::sim::SimView],
+    views: &[SimView],
     cfg: &BundleConfig,
 ) -> Result<SimExample> {
     let mut ex = example_from_frame(frame, cfg)?;
-    let (nw, nh) = (cfg.image_width as u32, cfg.image_height as u32);
     ex.extra_views = views
         .iter()
-        .map(|v| -> Result<TrainView> {
-            let img = &v.image;
-            Ok(TrainView {
-                rgb: resize_rgb(&img.rgb, img.width, img.height, nw, nh)?,
-                camera: v.camera.resized(nw, nh).context("zero image size")?,
-            })
-        })
+        .map(|v| fitted(cfg, &v.image, &v.camera))
         .collect::<Result<_>>()?;
     Ok(ex)
 }
@@ -151,8 +160,11 @@ pub const DEFAULT_SCENES: &str = "scenes/train.txt";
 /// --scenes`): the streets plus T junctions (since 2026-11-26).
 pub const RECIPE_SCENES: &str = "scenes/train-v5.txt";
 
+/// The held-out list of the shipped recipe.
+pub const DEFAULT_TEST_SCENES: &str = "scenes/test.txt";
+
 /// The scene list a bundle was trained on, as its provenance's `train_split` names it (relative
-/// to the workspace; `scenes/train.txt` for bundles that do not say), so its baselines are built
+/// to the workspace; [`DEFAULT_SCENES`] for bundles that do not say), so its baselines are built
 /// from the same scenes.
 pub fn train_split_of(cfg: &BundleConfig) -> PathBuf {
     let rel = cfg
@@ -165,9 +177,8 @@ pub fn train_split_of(cfg: &BundleConfig) -> PathBuf {
 
 /// The held-out list that goes with a training list: `test-vN.txt` beside `train-vN.txt` (and
 /// `test.txt` beside `train.txt`), or [`DEFAULT_TEST_SCENES`] for a list without one. Relative
-/// paths are taken against the workspace root.
-pub fn test_list_for(train_list: &Path) -> PathBuf {
-    let root = workspace_root();
+/// paths are taken against `root` (the workspace).
+pub fn test_list_for(root: &Path, train_list: &Path) -> PathBuf {
     let sibling = train_list
         .file_name()
         .and_then(|n| n.to_str())
@@ -178,9 +189,6 @@ pub fn test_list_for(train_list: &Path) -> PathBuf {
         _ => PathBuf::from(DEFAULT_TEST_SCENES),
     }
 }
-
-/// The held-out list of the shipped recipe.
-pub const DEFAULT_TEST_SCENES: &str = "scenes/test.txt";
 
 /// The first `n` frames of a split list, interleaving its scene files (scene 0 seed 0, scene 1
 /// seed 0, ..., scene 0 seed 1, ...); frame `seed % frames` of each scene.
@@ -213,20 +221,21 @@ pub fn split_items(list: &Path, n: usize) -> Result<Vec<(PathBuf, u64)>> {
     Ok(out)
 }
 
-/// Renders the first `n` frames of a split for `cfg` in parallel (`label` names the progress bar),
-/// with as many cameras as `cfg` takes views (the front one, then [`RIG_YAWS_DEG`]).
+/// Renders the first `n` frames of a split for `cfg` in parallel, with as many cameras as `cfg`
+/// takes views (the front one, then [`RIG_YAWS_DEG`]); `on_frame` is called after each frame
+/// (from the rendering threads: a progress bar's tick).
 pub fn render_split(
     list: &Path,
     n: usize,
     cfg: &BundleConfig,
-    label: &str,
+    on_frame: &(dyn Fn() + Sync),
 ) -> Result<Vec<SimExample>> {
-    render_split_styled(list, n, cfg, &RenderStyle::default(), label)
+    render_split_styled(list, n, cfg, &RenderStyle::default(), on_frame)
 }
 
 /// How a training run renders its camera images (issue 18's domain randomisation; `train-default
 /// --images`). Only the images change: scans, depth and labels are the same in every style.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum TrainImages {
     /// The simulator's stock images.
     Stock,
@@ -242,7 +251,43 @@ pub enum TrainImages {
     Randomized,
 }
 
+impl std::str::FromStr for TrainImages {
+    type Err = Error;
+
+    /// A style by its [`name`](TrainImages::name).
+    fn from_str(s: &str) -> Result<Self> {
+        Self::ALL
+            .into_iter()
+            .find(|t| t.name() == s)
+            .ok_or_else(|| {
+                let names: Vec<&str> = Self::ALL.iter().map(|t| t.name()).collect();
+                invalid("images", format!("`{s}` is none of {}", names.join(", ")))
+            })
+    }
+}
+
 impl TrainImages {
+    /// Every style, in the order of [`name`](TrainImages::name)'s documentation.
+    pub const ALL: [TrainImages; 5] = [
+        TrainImages::Stock,
+        TrainImages::Lighting,
+        TrainImages::Materials,
+        TrainImages::Appearance,
+        TrainImages::Randomized,
+    ];
+
+    /// The style's name on the command line: `stock`, `lighting`, `materials`, `appearance` or
+    /// `randomized`.
+    pub fn name(self) -> &'static str {
+        match self {
+            TrainImages::Stock => "stock",
+            TrainImages::Lighting => "lighting",
+            TrainImages::Materials => "materials",
+            TrainImages::Appearance => "appearance",
+            TrainImages::Randomized => "randomized",
+        }
+    }
+
     /// The name a bundle's provenance records (`provenance.train_images.appearance`).
     pub fn provenance_name(self) -> &'static str {
         match self {
@@ -262,9 +307,8 @@ impl TrainImages {
             .get("train_images")
             .and_then(|t| t.get("appearance"))
             .and_then(|v| v.as_str());
-        <Self as clap::ValueEnum>::value_variants()
-            .iter()
-            .copied()
+        Self::ALL
+            .into_iter()
             .find(|t| Some(t.provenance_name()) == name)
             .unwrap_or(TrainImages::Stock)
     }
@@ -287,30 +331,38 @@ impl TrainImages {
         style
     }
 
-    /// [`TrainImages::style`] with the wide facade palette on `wide` of the drawn facades, from
-    /// `train-default`'s flags: each share within (0, 1], `share` only with a randomised style and
-    /// `wide` only with one that draws materials.
+    /// [`TrainImages::style`] with the wide facade palette on `wide` of the drawn facades
+    /// (`train-default`'s `--randomize-share` and `--wide-facades`): each share within (0, 1],
+    /// `share` only with a randomised style and `wide` only with one that draws materials.
     pub fn checked_style(self, share: Option<f32>, wide: Option<f32>) -> Result<RenderStyle> {
         let in_unit = |p: f32| p > 0.0 && p <= 1.0;
         if let Some(p) = share {
-            anyhow::ensure!(
-                in_unit(p),
-                "--randomize-share {p} is not a share within (0, 1]"
-            );
-            anyhow::ensure!(
-                self != TrainImages::Stock,
-                "--randomize-share needs an --images style other than stock"
-            );
+            if !in_unit(p) {
+                return Err(invalid(
+                    "randomize_share",
+                    format!("{p} is not a share within (0, 1]"),
+                ));
+            }
+            if self == TrainImages::Stock {
+                return Err(invalid(
+                    "randomize_share",
+                    "needs an images style other than stock",
+                ));
+            }
         }
-        if let Some(p) = wide {
-            anyhow::ensure!(
-                in_unit(p),
-                "--wide-facades {p} is not a share within (0, 1]"
-            );
-            anyhow::ensure!(
-                self.draws_materials(),
-                "--wide-facades needs an --images style that draws materials (materials, appearance or randomized)"
-            );
+        if let Some(w) = wide {
+            if !in_unit(w) {
+                return Err(invalid(
+                    "wide_facades",
+                    format!("{w} is not a share within (0, 1]"),
+                ));
+            }
+            if !self.draws_materials() {
+                return Err(invalid(
+                    "wide_facades",
+                    "needs an images style that draws materials (materials, appearance or randomized)",
+                ));
+            }
         }
         let mut style = self.style(share);
         style.wide_facade_share = wide.unwrap_or(0.0);
@@ -335,7 +387,6 @@ impl TrainImages {
         style
     }
 }
-
 /// How simulated camera images look: the simulator's stock images by default, or with the
 /// domain randomisation of issue 18.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -382,48 +433,59 @@ impl RenderStyle {
     }
 }
 
-/// [`render_split`] with a [`RenderStyle`] (the default style renders the same bytes).
+/// [`render_split`] with a [`RenderStyle`] (the default style renders the same bytes). Errors
+/// name the scene file and seed.
 pub fn render_split_styled(
     list: &Path,
     n: usize,
     cfg: &BundleConfig,
     style: &RenderStyle,
-    label: &str,
+    on_frame: &(dyn Fn() + Sync),
 ) -> Result<Vec<SimExample>> {
     let items = split_items(list, n)?;
-    let bar = crate::progress::progress_bar(items.len() as u64, label);
-    let out: Result<Vec<SimExample>> = items
+    items
         .par_iter()
         .enumerate()
         .map(|(k, (path, seed))| {
-            let mut scene_cfg = SceneConfig::from_file(path)?;
-            let on = style.applies_to(*seed, k as u64);
-            scene_cfg.appearance.randomize |= style.randomize_appearance && on;
-            scene_cfg.appearance.randomize_lighting |= style.randomize_lighting && on;
-            scene_cfg.appearance.randomize_materials |= style.randomize_materials && on;
-            if on && style.wide_facade_share > 0.0 {
-                scene_cfg.appearance.wide_facade_share = style.wide_facade_share;
-            }
-            let scene = Scene::generate(&scene_cfg, *seed)?;
-            let frames = scene_cfg.frames.count.max(1) as u64;
-            let yaws = &RIG_YAWS_DEG[..views_of(cfg).clamp(1, RIG_YAWS_DEG.len() + 1) - 1];
-            let (mut frame, mut views) = scene.render_frame_rig((*seed % frames) as u32, yaws)?;
-            if let Some(sensor) = style.sensor.as_ref().filter(|_| on) {
-                // one draw per frame (the rig's cameras share a sensor model, each its noise)
-                let frame_seed = sensor_seed(*seed, k as u64);
-                degrade(&mut frame.image, sensor, frame_seed)?;
-                for (j, v) in views.iter_mut().enumerate() {
-                    degrade(&mut v.image, sensor, frame_seed ^ (j as u64 + 1))?;
-                }
-            }
-            let ex = example_from_rig(&frame, &views, cfg)
-                .with_context(|| format!("{} seed {seed}", path.display()))?;
-            bar.inc(1);
+            let ex = render_item(path, *seed, k as u64, cfg, style).map_err(|e| Error::Input {
+                path: path.clone(),
+                reason: format!("seed {seed}: {e}"),
+            })?;
+            on_frame();
             Ok(ex)
         })
-        .collect();
-    bar.finish_and_clear();
-    out
+        .collect()
+}
+
+/// Item `k` of a split: scene file `path` at `seed`, rendered in `style`.
+fn render_item(
+    path: &Path,
+    seed: u64,
+    k: u64,
+    cfg: &BundleConfig,
+    style: &RenderStyle,
+) -> Result<SimExample> {
+    let mut scene_cfg = SceneConfig::from_file(path)?;
+    let on = style.applies_to(seed, k);
+    scene_cfg.appearance.randomize |= style.randomize_appearance && on;
+    scene_cfg.appearance.randomize_lighting |= style.randomize_lighting && on;
+    scene_cfg.appearance.randomize_materials |= style.randomize_materials && on;
+    if on && style.wide_facade_share > 0.0 {
+        scene_cfg.appearance.wide_facade_share = style.wide_facade_share;
+    }
+    let scene = Scene::generate(&scene_cfg, seed)?;
+    let frames = scene_cfg.frames.count.max(1) as u64;
+    let yaws = &RIG_YAWS_DEG[..cfg.num_views().clamp(1, RIG_YAWS_DEG.len() + 1) - 1];
+    let (mut frame, mut views) = scene.render_frame_rig((seed % frames) as u32, yaws)?;
+    if let Some(sensor) = style.sensor.as_ref().filter(|_| on) {
+        // one draw per frame (the rig's cameras share a sensor model, each its noise)
+        let frame_seed = sensor_seed(seed, k);
+        degrade(&mut frame.image, sensor, frame_seed)?;
+        for (j, v) in views.iter_mut().enumerate() {
+            degrade(&mut v.image, sensor, frame_seed ^ (j as u64 + 1))?;
+        }
+    }
+    example_from_rig(&frame, &views, cfg)
 }
 
 fn sensor_seed(scene_seed: u64, item: u64) -> u64 {
@@ -432,7 +494,7 @@ fn sensor_seed(scene_seed: u64, item: u64) -> u64 {
         .wrapping_add(item.wrapping_mul(0xD1B5_4A32_D192_ED03))
 }
 
-fn degrade(image: &mut veila_data::sim::SimImage, sensor: &Photometric, seed: u64) -> Result<()> {
+fn degrade(image: &mut SimImage, sensor: &Photometric, seed: u64) -> Result<()> {
     let img = image.to_rgb_image()?;
     image.rgb = sensor.augment(&img, seed)?.into_raw();
     Ok(())
@@ -441,20 +503,17 @@ fn degrade(image: &mut veila_data::sim::SimImage, sensor: &Photometric, seed: u6
 /// The retrieval baseline: for every test frame, the range image of the training frame whose
 /// camera image is nearest (cosine) in `bundle`'s frozen encoders' features.
 pub fn retrieval_baseline(
-    bundle: &veila_diffusion::app::Bundle,
+    bundle: &Bundle,
     train: &[SimExample],
     tests: &[SimExample],
 ) -> Result<Vec<RangeImage>> {
     let descriptor = |ex: &SimExample| {
-        bundle.image_descriptor(veila_diffusion::app::CameraView {
+        bundle.image_descriptor(CameraView {
             rgb: &ex.rgb,
             camera: &ex.camera,
         })
     };
-    let keys = train
-        .iter()
-        .map(descriptor)
-        .collect::<std::result::Result<Vec<_>, _>>()?;
+    let keys = train.iter().map(descriptor).collect::<Result<Vec<_>>>()?;
     tests
         .iter()
         .map(|ex| {
@@ -464,18 +523,18 @@ pub fn retrieval_baseline(
         .collect()
 }
 
-/// Mean and sample standard deviation (0 for fewer than two values; both 0 for none).
-pub fn mean_std(v: &[f64]) -> (f64, f64) {
-    let n = v.len().max(1) as f64;
-    let m = v.iter().sum::<f64>() / n;
-    let s = (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
-    (m, s)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use veila_diffusion::app::bundle::Variant;
+    use crate::app::bundle::Variant;
+
+    /// The workspace (this crate lives one level below it): the scene lists are relative to it.
+    fn workspace_root() -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .parent()
+            .expect("the crate sits in the workspace")
+            .to_path_buf()
+    }
 
     #[test]
     fn a_randomize_share_picks_that_share_of_frames_the_same_way_each_time() {
@@ -510,13 +569,13 @@ mod tests {
 
     #[test]
     fn a_bundles_training_images_read_back_from_its_provenance() {
-        use clap::ValueEnum;
         let mut cfg = BundleConfig::cpu_default(Variant::Full);
         // bundles from before the style was recorded trained on the stock images
         cfg.provenance = serde_json::Value::Null;
         assert_eq!(TrainImages::of_bundle(&cfg), TrainImages::Stock);
         assert_eq!(TrainImages::style_of_bundle(&cfg), RenderStyle::default());
-        for &t in TrainImages::value_variants() {
+        for t in TrainImages::ALL {
+            assert_eq!(t.name().parse::<TrainImages>().unwrap(), t);
             cfg.provenance = serde_json::json!({
                 "train_images": { "appearance": t.provenance_name(), "randomized_share": 0.5 }
             });
@@ -548,12 +607,12 @@ mod tests {
             RenderStyle::default()
         );
         for (t, share, w, needle) in [
-            (Materials, Some(0.0), None, "--randomize-share 0"),
-            (Materials, Some(1.5), None, "--randomize-share 1.5"),
-            (Materials, Some(f32::NAN), None, "--randomize-share NaN"),
+            (Materials, Some(0.0), None, "`randomize_share`: 0 is"),
+            (Materials, Some(1.5), None, "`randomize_share`: 1.5 is"),
+            (Materials, Some(f32::NAN), None, "`randomize_share`: NaN is"),
             (Stock, Some(0.5), None, "other than stock"),
-            (Materials, None, Some(0.0), "--wide-facades 0"),
-            (Appearance, None, Some(2.0), "--wide-facades 2"),
+            (Materials, None, Some(0.0), "`wide_facades`: 0 is"),
+            (Appearance, None, Some(2.0), "`wide_facades`: 2 is"),
             (Stock, None, Some(0.5), "draws materials"),
             (Lighting, None, Some(0.5), "draws materials"),
         ] {
@@ -561,6 +620,7 @@ mod tests {
             assert!(e.contains(needle), "{t:?} {share:?} {w:?}: {e}");
         }
         assert!(Randomized.checked_style(None, Some(1.0)).is_ok());
+        assert!("sunny".parse::<TrainImages>().is_err());
         // each style switches on exactly its own randomisations
         assert_eq!(TrainImages::Stock.style(None), RenderStyle::default());
         assert_eq!(
@@ -621,7 +681,11 @@ mod tests {
             ("scenes/mine.txt", "scenes/test.txt"),
             ("scenes/train-v99.txt", "scenes/test.txt"),
         ] {
-            assert_eq!(test_list_for(Path::new(train)), Path::new(test), "{train}");
+            assert_eq!(
+                test_list_for(&workspace_root(), Path::new(train)),
+                Path::new(test),
+                "{train}"
+            );
         }
         // and the scene files of every held-out list are those of its training list
         for v in ["", "-v2", "-v3", "-v4", "-v5"] {
@@ -649,5 +713,45 @@ mod tests {
         let items = split_items(&list, 6).unwrap();
         let files: std::collections::BTreeSet<_> = items.iter().map(|(p, _)| p.clone()).collect();
         assert_eq!(files.len(), 6, "{items:?}");
+    }
+
+    #[test]
+    fn a_rendered_frame_is_fitted_to_the_bundle_and_its_rig_to_the_views() {
+        let mut cfg = BundleConfig::cpu_default(Variant::Full);
+        if let Some(c) = cfg.denoiser.conditioning.as_mut() {
+            c.num_views = 3;
+        }
+        let list = workspace_root().join(DEFAULT_SCENES);
+        let frames = render_split(&list, 1, &cfg, &|| {}).unwrap();
+        let ex = &frames[0];
+        let npx = cfg.image_width * cfg.image_height;
+        assert_eq!(
+            (ex.rgb.len(), ex.labels.len(), ex.depth_m.len()),
+            (3 * npx, npx, npx)
+        );
+        assert_eq!(
+            (ex.camera.width as usize, ex.camera.height as usize),
+            (cfg.image_width, cfg.image_height)
+        );
+        let (rows, cols) = (cfg.denoiser.height(), cfg.denoiser.width());
+        assert_eq!(
+            (ex.range.rows as usize, ex.range.cols as usize),
+            (rows, cols)
+        );
+        assert!(ex.range.num_valid() > rows * cols / 4);
+        // two further cameras, turned by the rig's first yaws, and three views to sample with
+        assert_eq!(ex.extra_views.len(), 2);
+        assert_eq!(ex.views(3).len(), 3);
+        assert_eq!(ex.views(1).len(), 1);
+        assert_ne!(
+            ex.extra_views[0].camera.cam_from_lidar,
+            ex.camera.cam_from_lidar
+        );
+        // the same list renders the same bytes again
+        let again = render_split(&list, 1, &cfg, &|| {}).unwrap();
+        assert_eq!(again[0].rgb, ex.rgb);
+        assert_eq!(again[0].range.range_m, ex.range.range_m);
+        let train = ex.train_example(&cfg).unwrap();
+        assert_eq!(train.extra_views.len(), 2);
     }
 }
