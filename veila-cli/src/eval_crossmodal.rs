@@ -1,21 +1,22 @@
 //! The cross-modal metrics of `veila eval` (the paper's CM-DC and CM-SC): each generated scan
 //! projected into its camera against a depth or class map, from files or predicted by a pretrained
 //! network (Depth-Anything-V2, SegFormer) on the camera image. The metrics themselves are
-//! `veila_metrics::crossmodal`; this module finds each scan's calibration, maps and image, runs the
-//! networks and averages over the scans.
+//! `veila_metrics::crossmodal`; finding each scan's calibration, maps and image, running the
+//! networks and averaging over the scans is `veila_diffusion::app::crossmodal_eval`. This module
+//! holds the flags, checks them, loads the networks and draws the progress.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use veila_metrics::crossmodal::{
-    DepthAlignment, Map2d, ProjectionFilter, cm_depth_consistency, cm_semantic_consistency,
+use veila_diffusion::app::crossmodal_eval::{
+    ClassIds, CrossModalEval, CrossModalScores, DepthReference, SemanticReference,
 };
-use veila_metrics::{MetricReport, MetricValue, Protocol, Region};
+use veila_metrics::MetricReport;
+use veila_metrics::crossmodal::DepthAlignment;
 use veila_nn::encoders::depth_anything::{DepthAnythingV2, DepthKind};
 use veila_nn::encoders::kind::EncoderKind;
 use veila_nn::encoders::mit::SegFormer;
-use veila_nn::encoders::preprocess::ImageProcessor;
 
 use crate::eval_features;
 
@@ -166,40 +167,6 @@ pub(crate) fn check_args(
     Ok(())
 }
 
-/// A scan file's name without its point-format extension (`000001.bin`, `x.pcd.bin` -> `000001`, `x`).
-fn scan_stem(path: &Path) -> String {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let lower = name.to_lowercase();
-    for ext in [".pcd.bin", ".bin", ".ply", ".exr"] {
-        if lower.ends_with(ext) {
-            return name[..name.len() - ext.len()].to_string();
-        }
-    }
-    name
-}
-
-/// `dir/<stem>.<ext>` for the first extension that exists, or an error naming what was looked for.
-fn companion(dir: &Path, stem: &str, exts: &[&str], what: &str, scan: &Path) -> Result<PathBuf> {
-    for ext in exts {
-        let p = dir.join(format!("{stem}.{ext}"));
-        if p.is_file() {
-            return Ok(p);
-        }
-    }
-    bail!(
-        "{}: no {what} for it: expected {} in {}",
-        scan.display(),
-        exts.iter()
-            .map(|e| format!("{stem}.{e}"))
-            .collect::<Vec<_>>()
-            .join(" or "),
-        dir.display()
-    )
-}
-
 /// `KIND=PATH` of --depth-model / --semantic-model.
 fn split_model_arg<'s>(flag: &str, spec: &'s str) -> Result<(EncoderKind, &'s Path)> {
     let (kind, path) = spec
@@ -279,163 +246,58 @@ pub(crate) fn metrics(
         (Some(spec), true) => Some(load_semantic_model(spec, &device)?),
         _ => None,
     };
-    let image_for = |stem: &str, f: &Path| -> Result<(PathBuf, veila_data::image::RgbImage)> {
-        let dir = a.images.as_deref().context("--images")?;
-        let p = companion(dir, stem, &["png", "jpg"], "camera image", f)?;
-        let img = veila_data::image_io::read_rgb_image(&p)?;
-        Ok((p, img))
+    let depth = match (&depth_model, a.depth_maps.as_deref()) {
+        _ if !want_dc => None,
+        (Some((model, metric)), _) => Some(DepthReference::Model {
+            model,
+            metric: metric.then(|| a.depth_alignment.into()),
+        }),
+        (None, Some(dir)) => Some(DepthReference::Maps {
+            dir,
+            alignment: a.depth_alignment.into(),
+        }),
+        (None, None) => bail!("--depth-maps"),
     };
-    let (mut dc, mut sc) = (Vec::new(), Vec::new());
+    let semantic = match (&nets, &semantic_model, a.semantic_maps.as_deref()) {
+        (None, ..) => None,
+        (Some(nets), Some(model), _) => Some((SemanticReference::Model(model), nets)),
+        (Some(nets), None, Some(dir)) => {
+            let ids = match a.semantic_ids {
+                SemanticIdsArg::Train => ClassIds::Train,
+                SemanticIdsArg::Raw => ClassIds::Raw,
+            };
+            Some((SemanticReference::Maps { dir, ids }, nets))
+        }
+        (Some(_), None, None) => bail!("--semantic-maps"),
+    };
+    let eval = CrossModalEval {
+        calib,
+        image_size: a.image_size,
+        images: a.images.as_deref(),
+        depth,
+        semantic,
+    };
+    let mut scores = CrossModalScores::default();
     let pb = crate::progress::bar(gen_files.len() as u64, "cross-modal");
     for f in gen_files {
-        let stem = scan_stem(f);
-        let calib_file = if calib.is_dir() {
-            companion(calib, &stem, &["txt"], "calibration", f)?
-        } else {
-            calib.to_path_buf()
-        };
-        let loaded = veila_data::scan::read_points(f)?;
-        let cloud = &loaded.cloud;
-        let camera_for = |w: u32, h: u32| -> Result<veila_geom::PinholeCamera> {
-            let (w, h) = a.image_size.unwrap_or((w, h));
-            Ok(veila_data::weather::files::read_camera(&calib_file, w, h)?)
-        };
-        if want_dc {
-            let (mp, map, alignment) = match &depth_model {
-                Some((model, metric)) => {
-                    let (p, img) = image_for(&stem, f)?;
-                    let (w, h) = img.dimensions();
-                    let data = model
-                        .predict_depth_map_rgb8(
-                            &ImageProcessor::depth_anything_v2(),
-                            img.as_raw(),
-                            h as usize,
-                            w as usize,
-                            &device,
-                        )
-                        .with_context(|| format!("{}: depth prediction", p.display()))?;
-                    let alignment = if *metric {
-                        a.depth_alignment.into()
-                    } else {
-                        DepthAlignment::Disparity
-                    };
-                    (
-                        p,
-                        veila_data::image_io::ImageMap {
-                            width: w,
-                            height: h,
-                            data,
-                        },
-                        alignment,
-                    )
-                }
-                None => {
-                    let dir = a.depth_maps.as_deref().context("--depth-maps")?;
-                    let mp = companion(dir, &stem, &["png", "npy"], "depth map", f)?;
-                    let map = veila_data::image_io::read_depth_map(&mp)?;
-                    (mp, map, a.depth_alignment.into())
-                }
-            };
-            let cam = camera_for(map.width, map.height)?;
-            let m = Map2d::new(map.width, map.height, &map.data)
-                .with_context(|| mp.display().to_string())?;
-            match cm_depth_consistency(
-                &cloud.xyz,
-                &cam,
-                &m,
-                alignment,
-                &ProjectionFilter::default(),
-            ) {
-                Ok(c) if c.abs_rel.is_finite() => dc.push(c.abs_rel),
-                Ok(_) => tracing::warn!("{}: no point projects onto a depth value", f.display()),
-                Err(e) => tracing::warn!("{}: cm-dc skipped: {e}", f.display()),
-            }
-        }
-        if let Some(nets) = &nets {
-            let (mp, map) = match &semantic_model {
-                Some(model) => {
-                    let (p, img) = image_for(&stem, f)?;
-                    let (w, h) = img.dimensions();
-                    let labels = model
-                        .predict_label_map_rgb8(
-                            &ImageProcessor::segformer(1024, 1024),
-                            img.as_raw(),
-                            h as usize,
-                            w as usize,
-                            &device,
-                        )
-                        .with_context(|| format!("{}: segmentation", p.display()))?;
-                    let data = labels
-                        .into_iter()
-                        .map(veila_metrics::crossmodal::cityscapes_to_semantickitti)
-                        .collect();
-                    (
-                        p,
-                        veila_data::image_io::ImageMap {
-                            width: w,
-                            height: h,
-                            data,
-                        },
-                    )
-                }
-                None => {
-                    let dir = a.semantic_maps.as_deref().context("--semantic-maps")?;
-                    let mp = companion(dir, &stem, &["png"], "class map", f)?;
-                    let mut map = veila_data::image_io::read_label_map(&mp)?;
-                    if a.semantic_ids == SemanticIdsArg::Train {
-                        veila_metrics::crossmodal::check_train_ids(
-                            &map.data,
-                            &mp.display().to_string(),
-                        )
-                        .context("--semantic-ids train (pass --semantic-ids raw for raw ids)")?;
-                    }
-                    if a.semantic_ids == SemanticIdsArg::Raw {
-                        for v in &mut map.data {
-                            *v = u32::from(veila_data::sim::class::learning_id(
-                                u16::try_from(*v).unwrap_or(0),
-                            ));
-                        }
-                    }
-                    (mp, map)
-                }
-            };
-            let cam = camera_for(map.width, map.height)?;
-            let (pts, labels) = nets.segment_points(&cloud.xyz, Some(&cloud.intensity))?;
-            let m = Map2d::new(map.width, map.height, &map.data)
-                .with_context(|| mp.display().to_string())?;
-            let filter = ProjectionFilter {
-                ignore_label: Some(0),
-                ..ProjectionFilter::default()
-            };
-            match cm_semantic_consistency(&pts, &labels, &cam, &m, &filter) {
-                Ok(c) if c.percent.is_finite() => sc.push(c.percent),
-                Ok(_) => tracing::warn!("{}: no point projects onto a labelled pixel", f.display()),
-                Err(e) => tracing::warn!("{}: cm-sc skipped: {e}", f.display()),
-            }
+        match eval.score(f, &device) {
+            Ok(s) => scores.push(s),
+            // the library names the field; the flag is this binary's
+            Err(veila_diffusion::Error::InvalidConfig {
+                field: "semantic_ids",
+                reason,
+            }) => bail!("--semantic-ids train (pass --semantic-ids raw for raw ids): {reason}"),
+            Err(e) => return Err(e.into()),
         }
         pb.inc(1);
     }
     pb.finish_and_clear();
-    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
-    for (want, name, vals) in [(want_dc, "cm-dc", &dc), (want_sc, "cm-sc (%)", &sc)] {
-        if !want {
-            continue;
-        }
-        if vals.is_empty() {
-            bail!(
-                "{name}: no generated scan has points in the camera's view with a map value there \
-                 (check --calib and the maps)"
-            );
-        }
-        report.metrics.push(MetricValue {
-            name: name.into(),
-            protocol: Protocol::Veila,
-            region: Region::Front,
-            value: mean(vals),
-            generated: vals.len(),
-            reference: 0,
-            paper_scale: None,
-        });
+    match scores.metrics((want_dc, want_sc)) {
+        Ok(values) => report.metrics.extend(values),
+        Err(name) => bail!(
+            "{name}: no generated scan has points in the camera's view with a map value there \
+             (check --calib and the maps)"
+        ),
     }
     Ok(())
 }

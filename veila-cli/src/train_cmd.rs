@@ -34,11 +34,11 @@ use veila_diffusion::app::bundle::{Bundle, sha256_hex};
 use veila_diffusion::app::train_config::{RunFingerprint, TrainFile};
 use veila_diffusion::app::train_data::{Prepared, ShardSource, load_prepared};
 use veila_diffusion::app::{
-    Encoder, EncoderData, EncoderEvent, EncoderSource, ExampleSource, Examples, RecipeInput, Stage,
+    EncoderData, EncoderEvent, EncoderSource, ExampleSource, Examples, RecipeInput, Stage,
     TrainExample, run_recipe,
 };
 use veila_diffusion::trainer::distributed::{Parallel, ProcessGroup};
-use veila_diffusion::{Precision, StepStats, TrainObserver};
+use veila_diffusion::{LossAverage, Precision, StepStats, TrainObserver};
 
 use crate::{model, progress};
 
@@ -69,7 +69,7 @@ fn read_config(path: &Path) -> Result<TrainFile> {
 
 struct Progress {
     bar: indicatif::ProgressBar,
-    ema_loss: Option<f64>,
+    loss: LossAverage,
     stop_after: Option<u64>,
     /// Steps run by this invocation, over all stages.
     run: std::rc::Rc<std::cell::Cell<u64>>,
@@ -130,33 +130,14 @@ impl Drop for Progress {
 
 impl<M: veila_diffusion::Denoiser> TrainObserver<M> for Progress {
     fn on_step(&mut self, s: &StepStats) -> ControlFlow<()> {
-        if s.loss.is_finite() {
-            self.ema_loss = Some(match self.ema_loss {
-                None => s.loss,
-                Some(e) => 0.98 * e + 0.02 * s.loss,
-            });
-        }
         self.run.set(self.run.get() + 1);
         self.log.step(self.stage, s);
         self.bar.set_position(s.step);
-        self.bar.set_message(format!(
-            "loss {:.4} (avg {:.4}) lr {:.2e} {:.2} s/step",
-            s.loss,
-            self.ema_loss.unwrap_or(f64::NAN),
-            s.lr,
-            s.step_secs
-        ));
+        self.bar.set_message(self.loss.line(s));
         match self.stop_after {
             Some(n) if self.run.get() >= n => ControlFlow::Break(()),
             _ => ControlFlow::Continue(()),
         }
-    }
-}
-
-fn stage_name(stage: Stage) -> &'static str {
-    match stage {
-        Stage::Mean => "mean network",
-        Stage::Denoiser => "denoiser",
     }
 }
 
@@ -169,13 +150,6 @@ fn print_denoiser_summary(d: &veila_diffusion::app::DenoiserFitOutcome, steps: u
         s.mean_loss_text(),
         s.skipped
     );
-}
-
-fn encoder_name(which: Encoder) -> &'static str {
-    match which {
-        Encoder::Semantic => "semantic",
-        Encoder::Depth => "depth",
-    }
 }
 
 pub(crate) fn run(args: TrainArgs) -> Result<()> {
@@ -415,11 +389,10 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         &device,
         |event| match event {
             EncoderEvent::Reused(which, _) => {
-                encoder_note.push_str(&format!("{} resumed; ", encoder_name(which)))
+                encoder_note.push_str(&format!("{} resumed; ", which.name()))
             }
             EncoderEvent::Step(which, s, total) => {
-                let bar =
-                    enc_bar.get_or_insert_with(|| progress::bar(total as u64, encoder_name(which)));
+                let bar = enc_bar.get_or_insert_with(|| progress::bar(total as u64, which.name()));
                 bar.set_position(s.step as u64);
                 bar.set_message(format!("loss {:.4}", s.loss));
             }
@@ -427,22 +400,19 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
                 if let Some(bar) = enc_bar.take() {
                     bar.finish_and_clear();
                 }
-                encoder_note.push_str(&format!(
-                    "{}: final batch loss {last:.4}; ",
-                    encoder_name(which)
-                ));
+                encoder_note.push_str(&format!("{}: final batch loss {last:.4}; ", which.name()));
             }
         },
         |stage, p, step| {
             println!(
                 "  {}: resumed from {} (step {step})",
-                stage_name(stage),
+                stage.name(),
                 p.display()
             )
         },
         |stage, total| Progress {
-            bar: progress::bar(total, stage_name(stage)),
-            ema_loss: None,
+            bar: progress::bar(total, stage.name()),
+            loss: LossAverage::default(),
             stop_after: args.stop_after,
             run: run.clone(),
             stage,

@@ -81,6 +81,6 @@ pub use schedule::{
     CosineLogSnr, DiscreteSchedule, NoiseLevel, NoiseSchedule, ScheduleConfig, Spacing,
 };
 pub use trainer::{
-    ActivationCheckpointing, Batch, BatchSource, Clock, FitSummary, LrSchedule, Precision,
-    StepStats, TrainConfig, TrainObserver, Trainer, claim_checkpoint_dir,
+    ActivationCheckpointing, Batch, BatchSource, Clock, FitSummary, LossAverage, LrSchedule,
+    Precision, StepStats, TrainConfig, TrainObserver, Trainer, claim_checkpoint_dir,
 };

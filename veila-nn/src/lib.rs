@@ -3,7 +3,9 @@
 //! Mechanism ([`Cacm`], eqs. 4-6), Geometric Cross-Modal Alignment ([`Gcma`], eqs. 7-10, on
 //! [`veila_geom::EpipolarTable`]s precomputed into a [`GcmaGeometry`]) and Panoramic Feature Coherence
 //! ([`Pfc`], eq. 11) — plus image encoders ([`encoders`]), checkpoint IO ([`checkpoint`]) and the
-//! RangeNet / PointNet feature networks of the FRD and FPD metrics ([`feature_nets`]).
+//! RangeNet / PointNet feature networks of the FRD and FPD metrics ([`feature_nets`]), and the
+//! export of a network with a reference input and output for implementations outside candle
+//! ([`export`]).
 //!
 //! Every ablation of the paper is a switch in [`DenoiserConfig`]: `conditioning: None` (unconditional,
 //! R2DM-like), [`Fusion::Concat`] (w/o CACM), `gcma: None` (w/o GCMA), `pfc: None` (w/o PFC),
@@ -47,6 +49,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod encoders;
 mod error;
+pub mod export;
 pub mod feature_nets;
 pub mod fused;
 pub mod gather;

@@ -168,7 +168,7 @@ struct Report {
     variants: Vec<VariantResult>,
     sweep: Vec<SweepPoint>,
     /// The bundle on the real frames (issue 18), `None` with `--no-real`.
-    real: Option<crate::bench_real::RealReport>,
+    real: Option<veila_diffusion::app::real_frames::RealReport>,
     notes: Vec<String>,
 }
 
@@ -601,9 +601,10 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         )?;
         let street_scan =
             crate::bench_real::reference_mean_scan(&base.config, baseline_train.len())?;
-        Some(crate::bench_real::evaluate(
+        Some(veila_diffusion::app::real_frames::evaluate(
             &base,
-            &crate::bench_real::RealOptions {
+            &veila_diffusion::app::real_frames::RealOptions {
+                root: &veila_diffusion::app::real_frames::real_root(&root),
                 sampler: &sampler,
                 sampler_label: format!("{} {} steps", sampler.kind.title(), args.steps),
                 seeds: args.real_seeds,
@@ -789,7 +790,7 @@ fn write_report(out: &Path, r: &Report) -> Result<()> {
     writeln!(md, "![sampler trade-off](sampler_tradeoff.png)")?;
     writeln!(md)?;
     if let Some(real) = &r.real {
-        writeln!(md, "{}", crate::bench_real::markdown(real))?;
+        writeln!(md, "{}", real.markdown())?;
     }
     writeln!(md, "## Notes")?;
     writeln!(md)?;

@@ -11,11 +11,11 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use clap::Args;
 use veila_diffusion::app::bundle::{Bundle, BundleConfig, Method, Variant};
+use veila_diffusion::app::sim_recipe::SimRecipe;
 use veila_diffusion::app::{
-    Encoder, EncoderData, EncoderEvent, EncoderSource, RecipeInput, RecipeSettings, Stage,
-    TrainExample, run_recipe,
+    EncoderData, EncoderEvent, EncoderSource, RecipeInput, TrainExample, run_recipe,
 };
-use veila_diffusion::{StepStats, TrainObserver};
+use veila_diffusion::{LossAverage, StepStats, TrainObserver};
 
 use crate::device::DeviceArg;
 use crate::progress::workspace_root;
@@ -128,7 +128,7 @@ pub struct TrainDefaultArgs {
 
 struct Progress {
     bar: indicatif::ProgressBar,
-    ema_loss: Option<f64>,
+    loss: LossAverage,
 }
 
 impl Drop for Progress {
@@ -139,45 +139,43 @@ impl Drop for Progress {
 
 impl<M: veila_diffusion::Denoiser> TrainObserver<M> for Progress {
     fn on_step(&mut self, s: &StepStats) -> ControlFlow<()> {
-        if s.loss.is_finite() {
-            self.ema_loss = Some(match self.ema_loss {
-                None => s.loss,
-                Some(e) => 0.98 * e + 0.02 * s.loss,
-            });
-        }
+        let line = self.loss.line(s);
         self.bar.set_position(s.step);
-        self.bar.set_message(format!(
-            "loss {:.4} (avg {:.4}) lr {:.2e} {:.2} s/step",
-            s.loss,
-            self.ema_loss.unwrap_or(f64::NAN),
-            s.lr,
-            s.step_secs
-        ));
         if self.bar.is_hidden() && (s.step.is_multiple_of(50) || s.step == 1) {
-            eprintln!(
-                "  step {} loss {:.4} (avg {:.4}) lr {:.2e} {:.2} s/step",
-                s.step,
-                s.loss,
-                self.ema_loss.unwrap_or(f64::NAN),
-                s.lr,
-                s.step_secs
-            );
+            eprintln!("  step {} {line}", s.step);
         }
+        self.bar.set_message(line);
         ControlFlow::Continue(())
     }
 }
 
-/// The list the encoders train on when it is not `--scenes` (`None`: the same frames as the
-/// networks, or encoders reused from `--encoders-from`).
-fn encoder_list(args: &TrainDefaultArgs) -> Option<PathBuf> {
-    if args.encoders_from.is_some() {
-        return None;
+impl TrainDefaultArgs {
+    /// The recipe these flags ask for.
+    pub fn recipe(&self) -> SimRecipe {
+        SimRecipe {
+            variant: self.variant,
+            method: self.method,
+            frames: self.frames,
+            scenes: self.scenes.clone(),
+            encoder_scenes: self.encoder_scenes.clone(),
+            encoder_steps: self.encoder_steps,
+            steps: self.steps,
+            mean_steps: self.mean_steps,
+            batch: self.batch,
+            lr: self.lr,
+            seed: self.seed,
+            checkpoint_every: self.checkpoint_every,
+            encoders_from: self.encoders_from.clone(),
+            init_from: self.init_from.clone(),
+            images: self.images,
+            randomize_share: self.randomize_share,
+            wide_facades: self.wide_facades,
+            augment_encoders: self.augment_encoders,
+            ground_prior: self.ground_prior,
+            depth_features: self.depth_features,
+            sky_depth: self.sky_depth,
+        }
     }
-    let list = args
-        .encoder_scenes
-        .clone()
-        .unwrap_or_else(|| PathBuf::from(sim_examples::DEFAULT_SCENES));
-    (list != args.scenes).then_some(list)
 }
 
 /// Trains and writes a bundle; returns the bundle config written.
@@ -188,19 +186,13 @@ pub fn run(args: TrainDefaultArgs) -> Result<BundleConfig> {
 /// [`run`] on already simulated training frames (`None`: simulate `args.frames` of them).
 pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result<BundleConfig> {
     let t_all = Instant::now();
+    let recipe = args.recipe();
     let render_style = args
         .images
         .checked_style(args.randomize_share, args.wide_facades)?;
     let device = args.device.open()?;
     let root = workspace_root();
-    let mut cfg = BundleConfig::cpu_default(args.variant);
-    cfg = cfg.with_method(args.method);
-    if args.ground_prior {
-        cfg.set_ground_prior(Some(veila_nn::encoders::ground::GroundPrior::default()));
-    }
-    if args.depth_features {
-        cfg.set_depth_features(true)?;
-    }
+    let mut cfg = recipe.bundle_config()?;
     if args.sky_depth && args.encoders_from.is_some() {
         anyhow::bail!(
             "--sky-depth changes how the depth encoder trains, and --encoders-from reuses trained ones: pass one of them"
@@ -211,7 +203,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             "--encoder-scenes chooses the frames the encoders train on, and --encoders-from reuses trained ones: pass one of them"
         );
     }
-    let encoder_list = encoder_list(&args);
+    let encoder_list = recipe.encoder_list();
     if encoder_list.is_some() && frames.is_some() {
         anyhow::bail!(
             "training on given frames trains the encoders on them too: pass --encoders-from, or --encoder-scenes equal to --scenes"
@@ -276,82 +268,14 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         root.join("target/train-default")
             .join(format!("{}-{}", args.variant.name(), method.name()))
     });
-
-    // the recipe's settings (the flags above; the encoders' batch and learning rate are fixed)
-    let settings = RecipeSettings {
-        seed: args.seed,
-        steps: args.steps,
-        mean_steps: args.mean_steps,
-        batch: args.batch,
-        lr: args.lr,
-        ema_decay: 0.995,
-        cond_drop_prob: 0.1,
-        checkpoint_every: args.checkpoint_every,
-        keep_checkpoints: 2,
-        encoder_steps: args.encoder_steps,
-        encoder_batch: 8,
-        encoder_lr: 2e-3,
-        grad_accum_steps: 1,
-        encoder_augment: args
-            .augment_encoders
-            .then(veila_diffusion::app::EncoderAugment::default),
-        precision: veila_diffusion::Precision::F32,
-        activation_checkpointing: veila_diffusion::ActivationCheckpointing::None,
-    };
-    let (tc, mean_tc) = settings.train_configs(cfg.denoiser.conditioning.is_some());
-    let mean_steps = settings.mean_steps();
-    // a work folder resumes only the run it was made for: same model, diffusion and training
-    // settings, same data
-    let run_key = serde_json::json!({
-        "denoiser": cfg.denoiser,
-        "diffusion": cfg.diffusion,
-        "residual": cfg.residual.as_ref().map(|r| &r.mean_net),
-        "encoding": cfg.encoding,
-        "train": tc,
-        "mean_train": cfg.residual.as_ref().map(|_| &mean_tc),
-        "frames": examples.len(),
-        "batch": args.batch,
-        "encoders_from": args.encoders_from,
-        "init_from": args.init_from,
-        "randomize": args.images == TrainImages::Randomized,
-        "encoder_augment": settings.encoder_augment,
-    });
-    // (only when on: the work folders of earlier runs keep their key)
-    let mut run_key = run_key;
-    if args.ground_prior {
-        run_key["ground_prior"] = serde_json::Value::Bool(true);
-    }
-    if args.depth_features {
-        run_key["depth_features"] = serde_json::Value::Bool(true);
-    }
-    if args.sky_depth {
-        run_key["sky_depth"] = serde_json::Value::Bool(true);
-    }
-    if let Some(p) = args.randomize_share {
-        run_key["randomize_share"] = serde_json::json!(p);
-    }
-    if let Some(p) = args.wide_facades {
-        run_key["wide_facade_share"] = serde_json::json!(p);
-    }
-    let style = args.images.style(None);
-    if style.randomize_lighting {
-        run_key["randomize_lighting"] = serde_json::Value::Bool(true);
-    }
-    if style.randomize_materials {
-        run_key["randomize_materials"] = serde_json::Value::Bool(true);
-    }
-    if args.scenes != std::path::Path::new(sim_examples::DEFAULT_SCENES) {
-        run_key["scenes"] = serde_json::json!(args.scenes);
-    }
-    if let Some(list) = &encoder_list {
-        run_key["encoder_scenes"] = serde_json::json!(list);
-    }
+    let settings = recipe.settings();
+    let run_key = recipe.run_key(&cfg, &settings, examples.len());
     veila_diffusion::claim_checkpoint_dir(&work, &run_key)
         .with_context(|| "pass another --work to start a separate run")?;
 
     let images: Vec<Vec<u8>> = encoder_examples.iter().map(|e| e.rgb.clone()).collect();
     let labels: Vec<Vec<u32>> = encoder_examples.iter().map(|e| e.labels.clone()).collect();
-    let sky_m = sky_target_m(&cfg, args.sky_depth)?;
+    let sky_m = recipe.sky_target_m(&cfg).context("--sky-depth")?;
     let depths: Vec<Vec<f32>> = encoder_examples
         .iter()
         .map(|e| match sky_m {
@@ -361,34 +285,7 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         .collect();
     let cameras: Vec<veila_geom::PinholeCamera> =
         encoder_examples.iter().map(|e| e.camera).collect();
-    // trained encoders are kept in the work folder, so a resumed run does not train them
-    // again (their training is deterministic: the same seed gives the same weights)
-    let enc_dir = work.join(format!(
-        "encoders-seed{}-steps{}-frames{}{}{}{}{}{}{}",
-        args.seed,
-        args.encoder_steps,
-        examples.len(),
-        match args.images {
-            TrainImages::Stock => "",
-            TrainImages::Lighting => "-lit",
-            TrainImages::Materials => "-materials",
-            TrainImages::Appearance => "-lit-materials",
-            TrainImages::Randomized => "-randomized",
-        },
-        args.randomize_share
-            .map(|p| format!("{:.0}", 100.0 * p))
-            .unwrap_or_default(),
-        args.wide_facades
-            .map(|p| format!("-wide{:.0}", 100.0 * p))
-            .unwrap_or_default(),
-        if args.augment_encoders {
-            "-augmented"
-        } else {
-            ""
-        },
-        if args.ground_prior { "-ground" } else { "" },
-        if args.sky_depth { "-sky" } else { "" },
-    ));
+    let enc_dir = work.join(recipe.encoder_dir_name(examples.len()));
     let encoders = match &args.encoders_from {
         Some(dir) => EncoderSource::Bundle(dir),
         None => EncoderSource::Train {
@@ -430,11 +327,12 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         &device,
         |event| match event {
             EncoderEvent::Reused(which, path) => {
-                println!("  {}: reusing {}", encoder_name(which), path.display())
+                println!("  {} encoder: reusing {}", which.name(), path.display())
             }
             EncoderEvent::Step(which, s, total) => {
                 let b = bar.get_or_insert_with(|| {
-                    crate::progress::progress_bar(total as u64, encoder_name(which))
+                    let label = format!("{} encoder", which.name());
+                    crate::progress::progress_bar(total as u64, &label)
                 });
                 b.set_position(s.step as u64);
                 b.set_message(format!("loss {:.4}", s.loss));
@@ -443,27 +341,26 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
                 if let Some(b) = bar.take() {
                     b.finish_and_clear();
                 }
-                println!("  {}: final batch loss {last:.4}", encoder_name(which));
+                println!("  {} encoder: final batch loss {last:.4}", which.name());
             }
         },
-        |stage, p, step| println!("  {stage:?}: resumed from {} (step {step})", p.display()),
+        |stage, p, step| {
+            println!(
+                "  {}: resumed from {} (step {step})",
+                stage.name(),
+                p.display()
+            )
+        },
         |stage, total| Progress {
-            bar: crate::progress::progress_bar(
-                total,
-                match stage {
-                    Stage::Mean => "mean network",
-                    Stage::Denoiser => "denoiser",
-                },
-            ),
-            ema_loss: None,
+            bar: crate::progress::progress_bar(total, stage.name()),
+            loss: LossAverage::default(),
         },
     )
     .with_context(|| match &args.encoders_from {
         Some(dir) => format!("training (encoders from {})", dir.display()),
         None => format!("training in {}", work.display()),
     })?;
-    let enc_secs = outcome.encoder_seconds;
-    let den_secs = t.elapsed().as_secs_f64() - enc_secs;
+    let den_secs = t.elapsed().as_secs_f64() - outcome.encoder_seconds;
     let den = outcome
         .fit
         .denoiser
@@ -485,13 +382,6 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
             );
         }
     }
-    let summary = den.summary.clone();
-    // the runs' own clocks, summed over every resumed session (this process's seconds are below)
-    let clock = |c: veila_diffusion::Clock| serde_json::json!({ "seconds": c.seconds.round(), "from_step": c.from_step });
-    let train_clock = serde_json::json!({
-        "mean": outcome.fit.mean.as_ref().map(|m| clock(m.summary.clock)),
-        "denoiser": clock(summary.clock),
-    });
     if let Some(m) = &outcome.fit.mean {
         println!(
             "  mean network: {} steps this run, mean loss {}, {:.0} s; residual scale {:?}",
@@ -503,55 +393,20 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     }
     println!(
         "  denoiser: {} steps this run, mean loss {}, {} skipped, {:.0} s",
-        summary.steps_run,
-        summary.mean_loss_text(),
-        summary.skipped,
+        den.summary.steps_run,
+        den.summary.mean_loss_text(),
+        den.summary.skipped,
         outcome.fit.seconds[1]
     );
-    let seconds = outcome.fit.seconds;
-    let weights = outcome.into_weights();
-
-    cfg.provenance = serde_json::json!({
-        "trained_by": "cargo xtask train-default",
-        "device": args.device.name(),
-        "variant": args.variant.name(),
-        "method": method.name(),
-        "seed": args.seed,
-        "train_split": args.scenes.display().to_string(),
-        "encoder_split": if args.encoders_from.is_some() {
-            None
-        } else {
-            Some(encoder_list.as_deref().unwrap_or(&args.scenes).display().to_string())
-        },
-        "frames": examples.len(),
-        "train_images": {
-            "appearance": args.images.provenance_name(),
-            "sensor_randomized": args.images == TrainImages::Randomized,
-            "randomized_share": args.randomize_share,
-            "wide_facade_share": args.wide_facades,
-            "encoder_augment": args.augment_encoders,
-            "sky_depth_m": sky_m,
-        },
-        "encoder_steps": if args.encoders_from.is_some() { 0 } else { args.encoder_steps },
-        "encoders_from": args.encoders_from.as_ref().map(|p| p.display().to_string()),
-        "denoiser_steps": args.steps,
-        "mean_steps": cfg.residual.as_ref().map(|_| mean_steps),
-        "training_samples": (args.steps + cfg.residual.as_ref().map_or(0, |_| mean_steps)) * args.batch as u64,
-        "batch": args.batch,
-        "lr": args.lr,
-        "ema_decay": tc.ema_decay,
-        "cond_drop_prob": tc.cond_drop_prob,
-        "final_mean_loss": summary.mean_loss,
-        "train_wall_seconds": train_clock,
-        "seconds": {
-            "simulation": sim_secs.round(),
-            "encoders": enc_secs.round(),
-            "mean": seconds[0].round(),
-            "denoiser": seconds[1].round(),
-            "total": (sim_secs + enc_secs + den_secs).round(),
-        },
-    });
-    Bundle::save(&args.out, &cfg, &weights)?;
+    cfg.provenance = recipe.provenance(
+        &cfg,
+        &outcome,
+        &args.device.name(),
+        examples.len(),
+        sim_secs,
+        den_secs,
+    )?;
+    Bundle::save(&args.out, &cfg, &outcome.into_weights())?;
     // read back through the verifying loader
     Bundle::from_dir(&args.out, &device)
         .with_context(|| format!("re-reading {}", args.out.display()))?;
@@ -564,59 +419,15 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
     Ok(cfg)
 }
 
-/// The depth target of the sky pixels under `--sky-depth`: the far limit of the depth encoder
-/// (`None` without the flag).
-fn sky_target_m(cfg: &BundleConfig, sky_depth: bool) -> Result<Option<f32>> {
-    if !sky_depth {
-        return Ok(None);
-    }
-    match cfg
-        .depth_encoder
-        .as_ref()
-        .and_then(|e| e.small_cnn_config())
-        .filter(|c| c.depth_head)
-    {
-        Some(c) => Ok(Some(c.max_depth_m)),
-        None => anyhow::bail!(
-            "--sky-depth trains the small-CNN depth encoder's depth head, and this variant has none"
-        ),
-    }
-}
-
 /// `--images`: a [`TrainImages`] style by its name.
 fn parse_images(s: &str) -> Result<TrainImages> {
     Ok(s.parse()?)
-}
-
-fn encoder_name(which: Encoder) -> &'static str {
-    match which {
-        Encoder::Semantic => "semantic encoder",
-        Encoder::Depth => "depth encoder",
-    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use std::path::Path;
-
-    #[test]
-    fn the_sky_target_is_the_depth_encoders_far_limit_where_there_is_one() {
-        let full = BundleConfig::cpu_default(Variant::Full);
-        let far = full
-            .depth_encoder
-            .as_ref()
-            .and_then(|e| e.small_cnn_config())
-            .map(|c| c.max_depth_m)
-            .unwrap();
-        assert_eq!(sky_target_m(&full, true).unwrap(), Some(far));
-        assert_eq!(sky_target_m(&full, false).unwrap(), None);
-        // without a depth encoder the flag has nothing to train, and says so
-        let blind = BundleConfig::cpu_default(Variant::Unconditional);
-        assert_eq!(sky_target_m(&blind, false).unwrap(), None);
-        let e = sky_target_m(&blind, true).unwrap_err().to_string();
-        assert!(e.contains("--sky-depth"), "{e}");
-    }
 
     fn parse(argv: &[&str]) -> TrainDefaultArgs {
         #[derive(clap::Parser)]
@@ -632,31 +443,15 @@ mod tests {
     }
 
     #[test]
-    fn the_recipe_trains_its_encoders_on_the_streets_and_its_networks_with_t_junctions() {
+    fn the_flags_default_to_the_shipped_recipe() {
         // the shipped recipe: networks on train-v5, encoders on the street list
-        let a = parse(&[]);
-        assert_eq!(a.scenes, Path::new("scenes/train-v5.txt"));
-        assert_eq!(encoder_list(&a), Some(PathBuf::from("scenes/train.txt")));
-        // one list for everything: no second set of frames
-        let a = parse(&[
-            "--scenes",
-            "scenes/train-v5.txt",
-            "--encoder-scenes",
-            "scenes/train-v5.txt",
-        ]);
-        assert_eq!(encoder_list(&a), None);
-        let a = parse(&["--scenes", "scenes/train.txt"]);
-        assert_eq!(encoder_list(&a), None);
-        let a = parse(&[
-            "--scenes",
-            "scenes/train-v4.txt",
-            "--encoder-scenes",
-            "scenes/train-v3.txt",
-        ]);
-        assert_eq!(encoder_list(&a), Some(PathBuf::from("scenes/train-v3.txt")));
-        // reused encoders train on nothing
-        let a = parse(&["--encoders-from", "models/default"]);
-        assert_eq!(encoder_list(&a), None);
+        let r = parse(&[]).recipe();
+        assert_eq!(r.scenes, Path::new("scenes/train-v5.txt"));
+        assert_eq!(r.encoder_list(), Some(PathBuf::from("scenes/train.txt")));
+        assert_eq!(
+            (r.images, r.frames, r.steps),
+            (TrainImages::Materials, 960, 12500)
+        );
     }
 
     #[test]

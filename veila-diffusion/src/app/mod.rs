@@ -18,15 +18,26 @@
 //!   `veila train` and `cargo xtask train-default` both run.
 //! * [`rig`]: camera images and their calibration files as views of a rig; the pipeline's steps
 //!   (resizing to a bundle's input, the model-frame turn, scans as points) one by one.
+//! * `crossmodal_eval` (feature `crossmodal`): the cross-modal metrics (CM-DC, CM-SC) of
+//!   generated scan files for `veila eval`: each scan's calibration, maps or camera image found,
+//!   Depth-Anything-V2 / SegFormer run, the scores averaged (the math: `veila_metrics::crossmodal`).
 //! * [`scoring`]: generated scans scored against simulated frames (the set metrics per fold
 //!   with the encoders and feature networks that feed them; `cargo xtask bench-report`).
 //! * `sim_examples` (feature `sim`): simulated frames of a split list at a bundle's size, for
 //!   training and benchmarks (`cargo xtask train-default`, `bench-report`, `bench-real`).
+//! * `real_frames` (feature `sim`): a bundle on the real KITTI / nuScenes frames of the shared
+//!   samples against their real scans, with the image-free baselines (`cargo xtask bench-real`,
+//!   `bench-report`).
+//! * `sim_recipe` (feature `sim`): the bundled model's recipe on simulator frames (`cargo xtask
+//!   train-default`): its options, the run key of its work folder, the folder of its trained
+//!   encoders and the provenance it writes.
 //! * `feature_net_data` (feature `sim`): simulated training scans of the FRD / FPD feature
 //!   networks (`cargo xtask train-feature-nets`).
 //! * [`nn`]: the Veila U-Net from `veila-nn` as a [`crate::Denoiser`] ([`VeilaDenoiser`]).
 
 pub mod bundle;
+#[cfg(feature = "crossmodal")]
+pub mod crossmodal_eval;
 pub mod dataset;
 pub mod encoder_train;
 #[cfg(feature = "sim")]
@@ -35,11 +46,15 @@ pub mod generate;
 pub mod mean;
 pub mod nn;
 pub mod pipeline;
+#[cfg(feature = "sim")]
+pub mod real_frames;
 pub mod recipe;
 pub mod rig;
 pub mod scoring;
 #[cfg(feature = "sim")]
 pub mod sim_examples;
+#[cfg(feature = "sim")]
+pub mod sim_recipe;
 pub mod stage;
 pub mod train;
 pub mod train_config;

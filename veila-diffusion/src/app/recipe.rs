@@ -130,7 +130,14 @@ impl Encoder {
         }
     }
 
-    /// What seeds its training with the recipe's seed.
+    /// Its name in progress lines: `semantic` or `depth`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Encoder::Semantic => "semantic",
+            Encoder::Depth => "depth",
+        }
+    }
+
     /// Its field in `bundle.json`.
     pub fn field(self) -> &'static str {
         match self {

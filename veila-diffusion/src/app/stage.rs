@@ -25,6 +25,16 @@ pub enum Stage {
     Mean,
 }
 
+impl Stage {
+    /// Its name in progress lines: `denoiser` or `mean network`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::Denoiser => "denoiser",
+            Stage::Mean => "mean network",
+        }
+    }
+}
+
 /// The network config and process of one training stage of `config`.
 pub fn stage_config(
     config: &BundleConfig,

@@ -411,6 +411,36 @@ pub struct StepStats {
     pub samples_per_sec: f64,
 }
 
+/// The loss of a run's updates averaged for progress lines: an exponential moving average
+/// (weight 0.02 per update) of the finite losses.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct LossAverage(Option<f64>);
+
+impl LossAverage {
+    /// The average (NaN before the first finite loss).
+    pub fn value(&self) -> f64 {
+        self.0.unwrap_or(f64::NAN)
+    }
+
+    /// Takes in update `s` and returns its progress line:
+    /// `loss L (avg A) lr R S s/step`.
+    pub fn line(&mut self, s: &StepStats) -> String {
+        if s.loss.is_finite() {
+            self.0 = Some(match self.0 {
+                None => s.loss,
+                Some(e) => 0.98 * e + 0.02 * s.loss,
+            });
+        }
+        format!(
+            "loss {:.4} (avg {:.4}) lr {:.2e} {:.2} s/step",
+            s.loss,
+            self.value(),
+            s.lr,
+            s.step_secs
+        )
+    }
+}
+
 /// Callbacks from [`Trainer::fit`]; every method has a no-op default.
 pub trait TrainObserver<M: Denoiser> {
     /// After every update (draw the progress bar here). Return `Break` to stop early.
