@@ -75,6 +75,19 @@ fn may_improve(lb: f32, best: f64) -> bool {
     !lb.is_finite() || (lb as f64) * (1.0 - 1e-6) < best
 }
 
+/// [`may_improve`] for a child node of box `aabb` at squared distance `lb` (f32). A box of
+/// coincident points (`min == max`, the points themselves) is judged exactly: its points are all
+/// at the f64 distance of its corner, so a tie with `best` cannot improve. Without this, many
+/// duplicates of one point at the same distance as the best (two sets of coincident points)
+/// defeat the safety margin and every query visits every node: quadratic.
+#[inline]
+fn child_may_improve(aabb: &Aabb, lb: f32, q: Vec3A, best: f64) -> bool {
+    if aabb.min == aabb.max {
+        return dist2_f64(aabb.min, q) < best;
+    }
+    may_improve(lb, best)
+}
+
 /// The most points one [`PointIndex`] takes (4 Mi: 30 times a KITTI scan). The index and its build
 /// need some 300 bytes per point, and Chamfer and MMD-CD hold an index per
 /// scan: two scans of 16 Mi points (what a scan file may hold) would need ~10 GB, so they are
@@ -150,7 +163,7 @@ impl PointIndex {
     /// The nearest indexed point to `query`. A non-finite query gives `dist2 = NaN` or `inf`.
     pub fn nearest(&self, query: Vec3) -> Nearest {
         let mut stack = Vec::with_capacity(self.bvh.max_depth + 2);
-        let (d, k) = self.nearest_impl(query.into(), f64::INFINITY, u32::MAX, &mut stack);
+        let (d, k, _) = self.nearest_impl(query.into(), f64::INFINITY, u32::MAX, &mut stack);
         Nearest {
             dist2: d,
             index: self
@@ -160,22 +173,32 @@ impl PointIndex {
         }
     }
 
+    /// How many nodes the search for the nearest point to `query` visits (a diagnostic of the
+    /// tree's pruning: about its depth for well-spread points, never all of them for duplicates).
+    pub fn nodes_visited(&self, query: Vec3) -> usize {
+        let mut stack = Vec::with_capacity(self.bvh.max_depth + 2);
+        self.nearest_impl(query.into(), f64::INFINITY, u32::MAX, &mut stack)
+            .2
+    }
+
     /// Branch and bound from an initial upper bound `(best, best_k)` (`best_k` an internal point index or
-    /// `u32::MAX`). Returns the squared distance and the internal index.
+    /// `u32::MAX`). Returns the squared distance, the internal index and the nodes visited.
     fn nearest_impl(
         &self,
         q: Vec3A,
         mut best: f64,
         mut best_k: u32,
         stack: &mut Vec<(u32, f32)>,
-    ) -> (f64, u32) {
+    ) -> (f64, u32, usize) {
         let nodes = &self.bvh.nodes;
         stack.clear();
         stack.push((0, 0.0));
+        let mut visited = 0;
         while let Some((ni, lb)) = stack.pop() {
             if !may_improve(lb, best) {
                 continue;
             }
+            visited += 1;
             let node = &nodes[ni as usize];
             if node.is_leaf() {
                 let start = node.first_index as usize;
@@ -195,21 +218,22 @@ impl PointIndex {
             }
             let c0 = node.first_index;
             let c1 = c0 + 1;
-            let d0 = box_dist2(nodes[c0 as usize].aabb(), q);
-            let d1 = box_dist2(nodes[c1 as usize].aabb(), q);
-            let (near, dn, far, df) = if d0 <= d1 {
-                (c0, d0, c1, d1)
+            let (a0, a1) = (nodes[c0 as usize].aabb(), nodes[c1 as usize].aabb());
+            let d0 = box_dist2(a0, q);
+            let d1 = box_dist2(a1, q);
+            let (near, dn, an, far, df, af) = if d0 <= d1 {
+                (c0, d0, a0, c1, d1, a1)
             } else {
-                (c1, d1, c0, d0)
+                (c1, d1, a1, c0, d0, a0)
             };
-            if may_improve(df, best) {
+            if child_may_improve(af, df, q, best) {
                 stack.push((far, df));
             }
-            if may_improve(dn, best) {
+            if child_may_improve(an, dn, q, best) {
                 stack.push((near, dn));
             }
         }
-        (best, best_k)
+        (best, best_k, visited)
     }
 
     /// Squared nearest distances for every query point, in query order (parallel).
@@ -236,7 +260,8 @@ impl PointIndex {
             Some(&p) => (dist2_f64(p, q), hint),
             None => (f64::INFINITY, u32::MAX),
         };
-        self.nearest_impl(q, b, k, stack)
+        let (d, k, _) = self.nearest_impl(q, b, k, stack);
+        (d, k)
     }
 
     /// `Σ_q min_p ‖q - p‖²` over the query points (parallel; deterministic summation order). Consecutive
