@@ -14,6 +14,7 @@ use veila_metrics::{MetricReport, MetricValue, Protocol, Region};
 
 use crate::eval_crossmodal::{self, CrossModalArgs};
 use crate::eval_features;
+use crate::eval_files::list_scans;
 use crate::eval_regions::RegionArg;
 use crate::staging::{self, Inputs, check_ext};
 
@@ -188,40 +189,6 @@ pub(crate) fn run(cmd: EvalCmd) -> Result<()> {
         EvalCmd::Eval(a) => run_eval(*a),
         EvalCmd::Fd(a) => run_fd(a),
     }
-}
-
-fn is_scan_file(path: &Path) -> bool {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().to_lowercase())
-        .unwrap_or_default();
-    name.ends_with(".bin") || name.ends_with(".ply") || name.ends_with(".exr")
-}
-
-/// Scan and sample files of a folder, sorted by name. A pickle in the folder is an error naming it.
-fn list_scans(dir: &Path, what: &str) -> Result<Vec<PathBuf>> {
-    let entries = std::fs::read_dir(dir)
-        .with_context(|| format!("{what} folder {}: cannot read", dir.display()))?;
-    let mut files = Vec::new();
-    for e in entries {
-        let e = e.with_context(|| format!("{what} folder {}: cannot list", dir.display()))?;
-        let p = e.path();
-        if !p.is_file() {
-            continue;
-        }
-        veila_data::peer_samples::refuse_pickle(&p)?;
-        if is_scan_file(&p) || veila_data::peer_samples::is_sample_file(&p) {
-            files.push(p);
-        }
-    }
-    files.sort();
-    if files.is_empty() {
-        bail!(
-            "{what} folder {} has no scans (.bin, .pcd.bin, .ply, .exr) or sample sets (.npy, .npz)",
-            dir.display()
-        );
-    }
-    Ok(files)
 }
 
 /// The scans and sample sets of `files`, each reduced to what the metrics need (in parallel).

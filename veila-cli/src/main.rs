@@ -31,6 +31,7 @@ mod edit_cmd; // edit (RePaint scene editing)         (veila-diffusion::pipeline
 mod eval_cmd; // eval, fd                               (veila-metrics)
 mod eval_crossmodal; // CM-DC / CM-SC of eval (maps or networks) (veila-metrics::crossmodal)
 mod eval_features; // FRD / FPD features for eval          (veila-nn::feature_nets)
+mod eval_files; // which files of a folder eval reads (one per scan)
 mod eval_regions; // which regions eval scores (camera-cropped scans have no rear)
 mod generate_cmd; // generate                           (veila-diffusion::pipeline)
 mod sim_cmd; // simulate                               (veila-data::sim)
@@ -115,7 +116,7 @@ const EXAMPLES: &[(&str, &str)] = &[
     ),
     (
         "train",
-        "veila train --config runs/my-model.toml --stop-after 500",
+        "veila train --config examples/train.toml --stop-after 500",
     ),
     (
         "bench",
