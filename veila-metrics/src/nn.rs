@@ -40,12 +40,17 @@ pub struct PointIndex {
     points: Vec<Vec3A>,
     /// `original[k]` is the caller's index of `points[k]`.
     original: Vec<u32>,
+    /// Every point of the set in leaf order, duplicates included, when the set has coincident
+    /// points (`points` holds each once: a BVH over many copies of one point is a chain as deep
+    /// as the copies are many, and every query would walk it).
+    all: Option<Vec<Vec3A>>,
 }
 
 impl std::fmt::Debug for PointIndex {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("PointIndex")
-            .field("points", &self.points.len())
+            .field("points", &self.len())
+            .field("distinct", &self.points.len())
             .field("nodes", &self.bvh.nodes.len())
             .field("max_depth", &self.bvh.max_depth)
             .finish()
@@ -121,6 +126,34 @@ impl PointIndex {
             check_finite(p, what, i)?;
             pts.push(p.into());
         }
+        // coincident points once (with how many there are), in the order of the caller's first
+        let key = |p: Vec3A| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()];
+        let mut order: Vec<u32> = (0..pts.len() as u32).collect();
+        order.par_sort_by_key(|&i| key(pts[i as usize]));
+        let mut first: Vec<u32> = Vec::with_capacity(pts.len());
+        let mut copies: Vec<u32> = Vec::with_capacity(pts.len());
+        for &i in &order {
+            match first.last() {
+                Some(&f) if key(pts[f as usize]) == key(pts[i as usize]) => {
+                    *copies.last_mut().expect("one per first") += 1;
+                }
+                _ => {
+                    first.push(i);
+                    copies.push(1);
+                }
+            }
+        }
+        drop(order);
+        let duplicates = first.len() < pts.len();
+        let (pts, caller_index) = if duplicates {
+            let mut by_index: Vec<(u32, u32)> = first.iter().copied().zip(copies).collect();
+            by_index.sort_unstable();
+            copies = by_index.iter().map(|&(_, c)| c).collect();
+            let caller: Vec<u32> = by_index.iter().map(|&(i, _)| i).collect();
+            (caller.iter().map(|&i| pts[i as usize]).collect(), caller)
+        } else {
+            (pts, Vec::new())
+        };
         let aabbs: Vec<Aabb> = pts.iter().map(|&p| Aabb::from_point(p)).collect();
         let indices: Vec<u32> = (0..pts.len() as u32).collect();
         let mut bvh = PlocBuilder::with_capacity(aabbs.len()).build(
@@ -136,18 +169,29 @@ impl PointIndex {
         // KITTI scans
         ReinsertionOptimizer::default().run(&mut bvh, 0.05, None);
         collapse(&mut bvh, MAX_LEAF_POINTS, MAX_LEAF_POINTS as f32);
-        let original = bvh.primitive_indices.clone();
-        let points: Vec<Vec3A> = original.iter().map(|&i| pts[i as usize]).collect();
+        let prims = bvh.primitive_indices.clone();
+        let points: Vec<Vec3A> = prims.iter().map(|&i| pts[i as usize]).collect();
+        let (original, all) = if duplicates {
+            let all = prims
+                .iter()
+                .flat_map(|&i| std::iter::repeat_n(pts[i as usize], copies[i as usize] as usize))
+                .collect();
+            let original = prims.iter().map(|&i| caller_index[i as usize]).collect();
+            (original, Some(all))
+        } else {
+            (prims, None)
+        };
         Ok(Self {
             bvh,
             points,
             original,
+            all,
         })
     }
 
     /// Number of points.
     pub fn len(&self) -> usize {
-        self.points.len()
+        self.leaf_points().len()
     }
 
     /// Always `false` (an index is never empty).
@@ -157,7 +201,7 @@ impl PointIndex {
 
     /// The points in BVH leaf order: spatially coherent, the best order to query a whole set in.
     pub fn points_in_leaf_order(&self) -> impl ExactSizeIterator<Item = Vec3> + '_ {
-        self.points.iter().map(|&p| p.into())
+        self.leaf_points().iter().map(|&p| p.into())
     }
 
     /// The nearest indexed point to `query`. A non-finite query gives `dist2 = NaN` or `inf`.
@@ -290,8 +334,9 @@ impl PointIndex {
         partial.iter().sum()
     }
 
+    /// Every point (duplicates included) in leaf order.
     pub(crate) fn leaf_points(&self) -> &[Vec3A] {
-        &self.points
+        self.all.as_deref().unwrap_or(&self.points)
     }
 }
 
