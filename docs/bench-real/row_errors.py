@@ -6,7 +6,7 @@ within 40 degrees of the camera's axis, and prints range MAE and bias (generated
 of four beam rows and per side. An approximation of `bench-real`'s projection, for reading where
 the error is, not a benchmark figure.
 
-    veila generate --image IMG --calib CALIB --steps 0 --out /tmp/gen
+    veila generate --image IMG --calib CALIB --residual-weight 0 --out /tmp/gen
     python docs/bench-real/row_errors.py REAL.bin /tmp/gen/scan_000.bin
 """
 

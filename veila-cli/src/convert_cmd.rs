@@ -39,14 +39,16 @@ pub(crate) struct ConvertArgs {
     /// Sensor: hdl64e, hdl32e, hdl32e-per-beam or a .toml/.json file (default: the dataset's sensor).
     #[arg(long)]
     sensor: Option<String>,
-    /// This worker's index (default: from Slurm / Kubernetes environment variables, else 0).
-    #[arg(long)]
+    /// This worker's index, 0 to 65535, below --shard-count (default: from Slurm / Kubernetes
+    /// environment variables, else 0).
+    #[arg(long, value_parser = crate::bounds::int::<usize>(0, 65_535))]
     shard_index: Option<usize>,
-    /// Number of workers (default: from the environment, else 1).
-    #[arg(long)]
+    /// Number of workers, 1 to 65536 (default: from the environment, else 1).
+    #[arg(long, value_parser = crate::bounds::int::<usize>(1, 65_536))]
     shard_count: Option<usize>,
-    /// Frames per shard file; peak memory is about this many frames (~4 MiB each for KITTI with images).
-    #[arg(long, default_value_t = 32)]
+    /// Frames per shard file, 1 to 1024; peak memory is about this many frames (~4 MiB each for
+    /// KITTI with images).
+    #[arg(long, default_value_t = 32, value_parser = crate::bounds::int::<usize>(1, 1024))]
     frames_per_shard: usize,
     /// SemanticKITTI label map (default: ROOT/semantic-kitti.yaml or ROOT/../semantic-kitti.yaml).
     #[arg(long, value_name = "FILE")]
@@ -54,8 +56,8 @@ pub(crate) struct ConvertArgs {
     /// SemanticKITTI: convert one part of the official split only (needs the label map).
     #[arg(long, value_parser = ["train", "valid", "test"], conflicts_with = "sequences")]
     split: Option<String>,
-    /// SemanticKITTI: convert these sequences only (comma separated, e.g. 0,1,8).
-    #[arg(long, value_delimiter = ',')]
+    /// SemanticKITTI: convert these sequences only, 0 to 99 each (comma separated, e.g. 0,1,8).
+    #[arg(long, value_delimiter = ',', value_parser = crate::bounds::int::<u32>(0, 99))]
     sequences: Option<Vec<u32>>,
     /// nuScenes: the camera channels paired with each sweep, comma-separated; the first is each
     /// sample's camera, the others its further views (the paper's three:

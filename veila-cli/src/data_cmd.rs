@@ -100,11 +100,11 @@ pub(crate) struct RenderArgs {
     /// nuScenes camera channel of the calibration JSON.
     #[arg(long, default_value = "CAM_FRONT")]
     camera: String,
-    /// Half the side of the bird's-eye view, metres.
-    #[arg(long, default_value_t = 50.0)]
+    /// Half the side of the bird's-eye view, metres, 1 to 1000 (at most 16384 pixels a side).
+    #[arg(long, default_value_t = 50.0, value_parser = crate::bounds::float32(1.0, 1000.0))]
     bev_extent_m: f32,
-    /// Bird's-eye-view resolution, metres per pixel.
-    #[arg(long, default_value_t = 0.1)]
+    /// Bird's-eye-view resolution, metres per pixel, 0.01 to 100.
+    #[arg(long, default_value_t = 0.1, value_parser = crate::bounds::float32(0.01, 100.0))]
     bev_resolution_m: f32,
     /// Replace output files that exist.
     #[arg(long)]

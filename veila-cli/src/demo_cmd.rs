@@ -44,39 +44,40 @@ pub(crate) struct DemoArgs {
     /// Scene file (default: the bundled straight road of the test split).
     #[arg(long, value_name = "SCENE.toml")]
     scene: Option<PathBuf>,
-    /// Scene seed.
+    /// Scene seed, 0 to 18446744073709551615.
     #[arg(long, value_name = "S", default_value_t = DEFAULT_SEED)]
     seed: u64,
     /// Model bundle folder (default: $VEILA_MODEL, else the bundled models/default).
     #[arg(long, value_name = "DIR", env = "VEILA_MODEL")]
     checkpoint: Option<PathBuf>,
-    /// Sampler steps (default: the bundle's).
-    #[arg(long, value_name = "N")]
+    /// Sampler steps, 1 to 1000 (default: the bundle's).
+    #[arg(long, value_name = "N", value_parser = crate::bounds::steps())]
     steps: Option<usize>,
     /// Classifier-free guidance scale, 0 to 20 (default: the bundle's).
-    #[arg(long, value_name = "S", allow_negative_numbers = true)]
+    #[arg(long, value_name = "S", allow_negative_numbers = true, value_parser = crate::bounds::guidance())]
     guidance: Option<f64>,
     /// Residual-diffusion bundles: how much of the sampled residual goes on top of the mean
     /// network's scan, 0 to 1. 1 is a full sample (the data's texture); 0 is the smooth
-    /// conditional mean, the smallest pixel error (same as --steps 0).
+    /// conditional mean, the smallest pixel error.
     #[arg(
         long,
         value_name = "W",
         default_value_t = 1.0,
-        allow_negative_numbers = true
+        allow_negative_numbers = true,
+        value_parser = crate::bounds::unit()
     )]
     residual_weight: f64,
-    /// Seed of the generation noise.
+    /// Seed of the generation noise, 0 to 18446744073709551615.
     #[arg(long, value_name = "S", default_value_t = 0)]
     sample_seed: u64,
     /// Weather preset applied to the input camera image only (clear, kitti-night, kitti-fog,
     /// fog-moderate, rain-heavy, snow-light, ...). `clear` leaves the image untouched.
-    #[arg(long, value_name = "PRESET", default_value = "clear")]
+    #[arg(long, value_name = "PRESET", default_value = "clear", value_parser = weather_preset)]
     weather: String,
     /// Training frames of the same scene file behind the zero-skill baselines printed next to the
     /// model (their per-pixel median scan, and the one whose image is nearest to the input in the
-    /// frozen encoders' feature space); 0 leaves the baselines out.
-    #[arg(long, value_name = "N", default_value_t = 24)]
+    /// frozen encoders' feature space), 0 to 200; 0 leaves the baselines out.
+    #[arg(long, value_name = "N", default_value_t = 24, value_parser = crate::bounds::int::<usize>(0, 200))]
     baseline_frames: usize,
     /// Write into an existing, non-empty output folder. Not needed to refresh a folder that holds
     /// only an earlier demo's output: that is replaced.
@@ -110,6 +111,13 @@ struct BaselineSummary {
     name: &'static str,
     description: String,
     metrics: Vec<MetricValue>,
+}
+
+/// `--weather`: a preset name, checked by the parser (kept as given, for the summary).
+fn weather_preset(s: &str) -> std::result::Result<String, String> {
+    s.parse::<Preset>()
+        .map(|_| s.to_string())
+        .map_err(|e| e.to_string())
 }
 
 pub(crate) fn run(args: DemoArgs) -> Result<()> {

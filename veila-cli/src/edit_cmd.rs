@@ -54,23 +54,24 @@ pub(crate) struct EditArgs {
     // the help names the bundled model's sampler as its bundle.json does
     #[arg(long, value_enum, help = inpainting_sampler_help())]
     sampler: Option<SamplerName>,
-    /// Sampler steps (default: the bundle's).
-    #[arg(long, value_name = "N")]
+    /// Sampler steps, 1 to 1000 (default: the bundle's).
+    #[arg(long, value_name = "N", value_parser = crate::bounds::steps())]
     steps: Option<usize>,
     /// Classifier-free guidance scale, 0 to 20 (default: the bundle's).
-    #[arg(long, value_name = "S", allow_negative_numbers = true)]
+    #[arg(long, value_name = "S", allow_negative_numbers = true, value_parser = crate::bounds::guidance())]
     guidance: Option<f64>,
-    /// Seed.
+    /// Seed, 0 to 18446744073709551615.
     #[arg(long, value_name = "S", default_value_t = 0)]
     seed: u64,
-    /// Number of edited versions to draw (at most 8, drawn in one batch).
-    #[arg(long, value_name = "N", default_value_t = 1)]
+    /// Number of edited versions to draw, 1 to 8 (drawn in one batch).
+    #[arg(long, value_name = "N", default_value_t = 1, value_parser = crate::bounds::int::<usize>(1, 8))]
     samples: usize,
-    /// RePaint: levels each resampling jump goes back up.
-    #[arg(long, value_name = "N", default_value_t = 10)]
+    /// RePaint: levels each resampling jump goes back up, 1 to 1000.
+    #[arg(long, value_name = "N", default_value_t = 10, value_parser = crate::bounds::int::<usize>(1, 1000))]
     jump_length: usize,
-    /// RePaint: times each jump segment is traversed (1 = no resampling; 10 in the paper, slower).
-    #[arg(long, value_name = "N", default_value_t = 1)]
+    /// RePaint: times each jump segment is traversed, 1 to 100 (1 = no resampling; 10 in the
+    /// paper, slower).
+    #[arg(long, value_name = "N", default_value_t = 1, value_parser = crate::bounds::int::<usize>(1, 100))]
     jump_n_sample: usize,
     /// Output folder (created; must be absent or empty unless --force).
     #[arg(long, value_name = "DIR")]

@@ -14,6 +14,8 @@ use veila_metrics::{MetricReport, MetricValue, Protocol, Region};
 
 use crate::eval_crossmodal::{self, CrossModalArgs};
 use crate::eval_features;
+use crate::eval_files::list_scans;
+use crate::eval_regions::RegionArg;
 use crate::staging::{self, Inputs, check_ext};
 
 /// Evaluation commands.
@@ -126,27 +128,6 @@ impl From<ProtocolArg> for PeerProtocol {
     }
 }
 
-/// Regions to report.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub(crate) enum RegionArg {
-    /// The whole panorama.
-    All,
-    /// x > 0.
-    Front,
-    /// x <= 0.
-    Rear,
-}
-
-impl From<RegionArg> for Region {
-    fn from(r: RegionArg) -> Self {
-        match r {
-            RegionArg::All => Region::All,
-            RegionArg::Front => Region::Front,
-            RegionArg::Rear => Region::Rear,
-        }
-    }
-}
-
 #[derive(Debug, Args)]
 pub(crate) struct EvalArgs {
     /// Folder of generated scans (.bin, .pcd.bin, .ply or range .exr; format detected per file), or of
@@ -162,9 +143,10 @@ pub(crate) struct EvalArgs {
     /// The peer pipeline of `jsd` and `mmd` (projection to its range-image grid, range caps, metric).
     #[arg(long, value_enum, default_value = "r2dm")]
     protocol: ProtocolArg,
-    /// Comma-separated regions.
-    #[arg(long, value_delimiter = ',', default_value = "all,front,rear")]
-    regions: Vec<RegionArg>,
+    /// Comma-separated regions (default: all,front,rear, less a region no scan of a set reaches,
+    /// such as the rear of scans cropped to a camera's view, with a note).
+    #[arg(long, value_delimiter = ',')]
+    regions: Option<Vec<RegionArg>>,
     /// Also write the results as JSON `{"metrics": [...]}` (written atomically).
     #[arg(long)]
     json: Option<PathBuf>,
@@ -194,8 +176,8 @@ pub(crate) struct FdArgs {
     /// Also write the result as JSON `{"metrics": [...]}` (written atomically).
     #[arg(long)]
     json: Option<PathBuf>,
-    /// Newton-Schulz iterations instead of the exact eigendecomposition (approximate; for comparison).
-    #[arg(long)]
+    /// Newton-Schulz iterations, 1 to 1000, instead of the exact eigendecomposition (approximate).
+    #[arg(long, value_parser = crate::bounds::int::<usize>(1, 1000))]
     newton_schulz: Option<usize>,
     /// Replace an existing --json file (never an input).
     #[arg(long)]
@@ -207,40 +189,6 @@ pub(crate) fn run(cmd: EvalCmd) -> Result<()> {
         EvalCmd::Eval(a) => run_eval(*a),
         EvalCmd::Fd(a) => run_fd(a),
     }
-}
-
-fn is_scan_file(path: &Path) -> bool {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().to_lowercase())
-        .unwrap_or_default();
-    name.ends_with(".bin") || name.ends_with(".ply") || name.ends_with(".exr")
-}
-
-/// Scan and sample files of a folder, sorted by name. A pickle in the folder is an error naming it.
-fn list_scans(dir: &Path, what: &str) -> Result<Vec<PathBuf>> {
-    let entries = std::fs::read_dir(dir)
-        .with_context(|| format!("{what} folder {}: cannot read", dir.display()))?;
-    let mut files = Vec::new();
-    for e in entries {
-        let e = e.with_context(|| format!("{what} folder {}: cannot list", dir.display()))?;
-        let p = e.path();
-        if !p.is_file() {
-            continue;
-        }
-        veila_data::peer_samples::refuse_pickle(&p)?;
-        if is_scan_file(&p) || veila_data::peer_samples::is_sample_file(&p) {
-            files.push(p);
-        }
-    }
-    files.sort();
-    if files.is_empty() {
-        bail!(
-            "{what} folder {} has no scans (.bin, .pcd.bin, .ply, .exr) or sample sets (.npy, .npz)",
-            dir.display()
-        );
-    }
-    Ok(files)
 }
 
 /// The scans and sample sets of `files`, each reduced to what the metrics need (in parallel).
@@ -369,13 +317,18 @@ fn run_eval(a: EvalArgs) -> Result<()> {
         check_pairing(&gen_files, &ref_files, &a.generated, &a.reference)?;
     }
     eval_crossmodal::check_args(&a.crossmodal, cross_modal(&metrics), &gen_files)?;
-    let regions: Vec<Region> = a.regions.iter().map(|&r| Region::from(r)).collect();
+    let given = a
+        .regions
+        .as_deref()
+        .map(|r| r.iter().map(|&r| Region::from(r)).collect());
+    let regions: Vec<Region> = given.clone().unwrap_or_else(|| Region::ALL.to_vec());
     let set_metrics: Vec<SetMetric> = metrics.iter().filter_map(|m| m.set_metric()).collect();
     let needs = Needs::of(&set_metrics);
-    let generated = load_scans(&gen_files, "generated", &regions, needs, protocol)?;
-    let reference = load_scans(&ref_files, "reference", &regions, needs, protocol)?;
-
-    let pb = crate::progress::bar((metrics.len() * a.regions.len()) as u64, "metrics");
+    let mut generated = load_scans(&gen_files, "generated", &regions, needs, protocol)?;
+    let mut reference = load_scans(&ref_files, "reference", &regions, needs, protocol)?;
+    let regions =
+        crate::eval_regions::covered(given.is_some(), regions, &mut generated, &mut reference)?;
+    let pb = crate::progress::bar((metrics.len() * regions.len()) as u64, "metrics");
     let mut report = score_sets(
         &set_metrics,
         &regions,

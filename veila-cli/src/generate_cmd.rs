@@ -40,27 +40,29 @@ pub(crate) struct GenerateArgs {
     pub(crate) sampler: Option<SamplerName>,
     /// Sampler steps (network evaluations per conditioning branch, 1 to 1000; default: the
     /// bundle's).
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", value_parser = crate::bounds::steps())]
     pub(crate) steps: Option<usize>,
     /// Classifier-free guidance scale, 0 to 20 (1 = none; default: the bundle's).
-    #[arg(long, value_name = "S", allow_negative_numbers = true)]
+    #[arg(long, value_name = "S", allow_negative_numbers = true, value_parser = crate::bounds::guidance())]
     pub(crate) guidance: Option<f64>,
     /// Residual-diffusion bundles: how much of the sampled residual goes on top of the mean
     /// network's scan, 0 to 1. 1 is a full sample (the data's texture); 0 is the smooth
-    /// conditional mean, the smallest pixel error (same as --steps 0).
+    /// conditional mean, the smallest pixel error.
     #[arg(
         long,
         value_name = "W",
         default_value_t = 1.0,
-        allow_negative_numbers = true
+        allow_negative_numbers = true,
+        value_parser = crate::bounds::unit()
     )]
     pub(crate) residual_weight: f64,
-    /// Seed of the initial noise (same inputs, model and seed give identical files).
+    /// Seed of the initial noise, 0 to 18446744073709551615 (same inputs, model and seed give identical files;
+    /// scan `i` is the same whatever --samples).
     #[arg(long, value_name = "S", default_value_t = 0)]
     pub(crate) seed: u64,
-    /// Number of scans to draw for the rig (drawn in batches of at most 8: memory does not grow
-    /// with N).
-    #[arg(long, value_name = "N", default_value_t = 1)]
+    /// Number of scans to draw for the rig, 1 to 100000 (drawn in batches of at most 8: memory
+    /// does not grow with N).
+    #[arg(long, value_name = "N", default_value_t = 1, value_parser = crate::bounds::int::<usize>(1, crate::generation::MAX_SAMPLES as u64))]
     pub(crate) samples: usize,
     /// Output folder (created; must be absent or empty unless --force).
     #[arg(long, value_name = "DIR")]

@@ -11,6 +11,9 @@ use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 #[global_allocator]
 static GLOBAL: veila_nn::process::MiMalloc = veila_nn::process::MiMalloc;
 
+#[macro_use]
+mod out; // print! and println! that never panic (declared first: every module below uses them)
+mod bounds; // the parsers that hold numeric arguments to their stated ranges
 mod dist; // the TCP transport of data-parallel `veila train`
 #[cfg(feature = "nccl")]
 mod dist_nccl; // the NCCL transport on GPUs (bootstrapped by dist)
@@ -28,6 +31,8 @@ mod edit_cmd; // edit (RePaint scene editing)         (veila-diffusion::pipeline
 mod eval_cmd; // eval, fd                               (veila-metrics)
 mod eval_crossmodal; // CM-DC / CM-SC of eval (maps or networks) (veila-metrics::crossmodal)
 mod eval_features; // FRD / FPD features for eval          (veila-nn::feature_nets)
+mod eval_files; // which files of a folder eval reads (one per scan)
+mod eval_regions; // which regions eval scores (camera-cropped scans have no rear)
 mod generate_cmd; // generate                           (veila-diffusion::pipeline)
 mod sim_cmd; // simulate                               (veila-data::sim)
 mod train_cmd; // train (bundles from converted shards) (veila-diffusion::trainer)
@@ -96,7 +101,7 @@ enum Command {
 
 /// One example per command, shown at the end of its `--help`.
 const EXAMPLES: &[(&str, &str)] = &[
-    ("demo", "veila demo --out out/demo --weather fog"),
+    ("demo", "veila demo --out out/demo --weather fog-moderate"),
     (
         "generate",
         "veila generate --image 000008.png --calib calib/000008.txt --samples 2 --out out/gen",
@@ -111,7 +116,7 @@ const EXAMPLES: &[(&str, &str)] = &[
     ),
     (
         "train",
-        "veila train --config runs/my-model.toml --stop-after 500",
+        "veila train --config examples/train.toml --stop-after 500",
     ),
     (
         "bench",
@@ -171,7 +176,8 @@ fn main() {
     progress::set_quiet(cli.quiet);
     progress::init_logging(cli.verbose, cli.quiet);
     model::set_device(cli.device);
-    if let Err(err) = run(cli.command) {
+    // a failed write to standard output is an error too (after the command: its files stand)
+    if let Err(err) = run(cli.command).and_then(|()| out::finish()) {
         let err = staging::explain(err);
         eprintln!("error: {err:#}");
         std::process::exit(1);
@@ -207,7 +213,10 @@ fn run(command: Command) -> Result<()> {
         Command::Train(a) => train_cmd::run(a),
         Command::Bench(a) => bench_cmd::run(a),
         Command::Completions { shell } => {
-            clap_complete::generate(shell, &mut cli_command(), "veila", &mut std::io::stdout());
+            // into memory first: clap_complete panics on a failed write
+            let mut script = Vec::new();
+            clap_complete::generate(shell, &mut cli_command(), "veila", &mut script);
+            out::write_bytes(&script);
             Ok(())
         }
         Command::Sensors { preset } => {
@@ -247,6 +256,107 @@ mod tests {
                 panic!("the example of `{name}` does not parse: {e}");
             }
         }
+    }
+
+    /// The first "LO to HI" of a help text, as written.
+    fn stated_range(help: &str) -> Option<(String, String)> {
+        let words: Vec<&str> = help.split_whitespace().collect();
+        let num = |w: &str| -> Option<String> {
+            let w = w
+                .trim_start_matches('(')
+                .trim_end_matches([',', ';', ')', ':'])
+                .trim_end_matches('.');
+            w.parse::<f64>().is_ok().then(|| w.to_string())
+        };
+        words
+            .windows(3)
+            .find_map(|w| (w[1] == "to").then(|| Some((num(w[0])?, num(w[2])?)))?)
+    }
+
+    /// Options whose range is still checked when the command runs, not by the parser: `eval`'s
+    /// cross-modal arguments live in `eval_crossmodal.rs`, which is moving into the library.
+    const CHECKED_AT_RUN_TIME: &[&str] = &["depth-model-max-m"];
+
+    #[test]
+    fn every_numeric_option_states_its_range_and_the_parser_holds_it() {
+        use std::any::TypeId;
+        let ints = [
+            TypeId::of::<u64>(),
+            TypeId::of::<usize>(),
+            TypeId::of::<u32>(),
+        ];
+        let floats = [TypeId::of::<f64>(), TypeId::of::<f32>()];
+        let cmd = cli_command();
+        let mut checked = 0;
+        for sub in cmd.get_subcommands() {
+            // a parser of this subcommand alone, with nothing required
+            let mut lone = sub
+                .clone()
+                .no_binary_name(true)
+                .mut_args(|a| a.required(false));
+            for g in sub.get_groups() {
+                lone = lone.mut_group(g.get_id().clone(), |g| g.required(false));
+            }
+            let refused = |long: &str, v: &str| {
+                lone.clone()
+                    .try_get_matches_from([format!("--{long}={v}")])
+                    .err()
+                    .is_some_and(|e| {
+                        matches!(
+                            e.kind(),
+                            clap::error::ErrorKind::ValueValidation
+                                | clap::error::ErrorKind::InvalidValue
+                        )
+                    })
+            };
+            for arg in sub.get_arguments() {
+                let t = arg.get_value_parser().type_id();
+                let is_int = ints.iter().any(|id| t == *id);
+                let is_float = floats.iter().any(|id| t == *id);
+                let Some(long) = arg.get_long() else { continue };
+                if arg.is_hide_set() || !(is_int || is_float) || CHECKED_AT_RUN_TIME.contains(&long)
+                {
+                    continue;
+                }
+                let name = format!("veila {} --{long}", sub.get_name());
+                let help = arg.get_help().map(|h| h.to_string()).unwrap_or_default();
+                let (lo, hi) = stated_range(&help).unwrap_or_else(|| {
+                    panic!("{name}: its help states no range (LO to HI): {help}")
+                });
+                for v in [&lo, &hi] {
+                    assert!(
+                        !refused(long, v),
+                        "{name}: refuses {v}, in its stated range"
+                    );
+                }
+                let outside: Vec<String> = if is_int {
+                    let (lo, hi): (u128, u128) = (lo.parse().unwrap(), hi.parse().unwrap());
+                    let mut v = vec![(hi + 1).to_string()];
+                    if lo >= 1 {
+                        v.push((lo - 1).to_string());
+                    }
+                    v
+                } else {
+                    let (lo, hi): (f64, f64) = (lo.parse().unwrap(), hi.parse().unwrap());
+                    let d = ((hi - lo) * 1e-3).max(1e-6);
+                    vec![
+                        (lo - d).to_string(),
+                        (hi + d).to_string(),
+                        "NaN".into(),
+                        "inf".into(),
+                    ]
+                };
+                for v in outside {
+                    assert!(
+                        refused(long, &v),
+                        "{name}: takes {v}, outside its stated range {lo} to {hi}"
+                    );
+                }
+                checked += 1;
+            }
+        }
+        // the detection works: the commands have some thirty numeric options
+        assert!(checked >= 30, "only {checked} numeric options found");
     }
 
     #[test]

@@ -27,10 +27,10 @@ pub(crate) struct SimulateArgs {
     /// Output directory (created; must not exist or be empty unless --force).
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
-    /// Number of frames (default: the scene file's frames.count).
-    #[arg(long, value_name = "N")]
+    /// Number of frames, 1 to 100000 (default: the scene file's frames.count).
+    #[arg(long, value_name = "N", value_parser = crate::bounds::int::<u32>(1, veila_data::sim::config::MAX_FRAMES.into()))]
     frames: Option<u32>,
-    /// Random seed of the scene layout and the sensor noise.
+    /// Random seed of the scene layout and the sensor noise, 0 to 18446744073709551615.
     #[arg(long, value_name = "S", default_value_t = 0)]
     seed: u64,
     /// Write into an existing, non-empty output directory: the files of an earlier `simulate` there

@@ -50,8 +50,8 @@ pub(crate) struct TrainArgs {
     #[arg(long, value_name = "CONFIG.toml")]
     config: PathBuf,
     /// Stop after this many training steps of this run, the mean network's and the denoiser's
-    /// together (a checkpoint is written; rerun the same command to continue).
-    #[arg(long, value_name = "N")]
+    /// together, 1 to 1000000000 (a checkpoint is written; rerun the same command to continue).
+    #[arg(long, value_name = "N", value_parser = crate::bounds::int::<u64>(1, 1_000_000_000))]
     stop_after: Option<u64>,
 }
 
@@ -419,9 +419,13 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
             log: log.clone(),
         },
     )
-    .with_context(|| match &file.model.encoders_from {
-        Some(dir) => format!("[model] encoders_from: loading {}", dir.display()),
-        None => format!("training with checkpoints in {}", ck_dir.display()),
+    // only a failure to load `[model] encoders_from` is blamed on it; the others say what failed
+    .map_err(|e| match e {
+        e @ veila_diffusion::Error::EncodersFrom { .. } => anyhow::Error::new(e)
+            .context(format!("{}: [model] encoders_from", args.config.display())),
+        e => {
+            anyhow::Error::new(e).context(format!("training (checkpoints in {})", ck_dir.display()))
+        }
     })?;
     if let Some(dir) = &file.model.encoders_from {
         encoder_note = format!("from {}", dir.display());

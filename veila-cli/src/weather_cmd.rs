@@ -39,20 +39,20 @@ pub struct WeatherArgs {
     /// the options below override its fields.
     #[arg(long, value_parser = parse_preset)]
     pub preset: Option<Preset>,
-    /// Fog visibility (meteorological optical range), metres (>= 10).
-    #[arg(long, value_name = "M")]
+    /// Fog visibility (meteorological optical range), metres, 10 to 1000000.
+    #[arg(long, value_name = "M", value_parser = crate::bounds::float(10.0, 1e6))]
     pub fog_visibility: Option<f64>,
-    /// Rain rate, mm/h.
-    #[arg(long, value_name = "MM_H")]
+    /// Rain rate, mm/h, 0 to 300.
+    #[arg(long, value_name = "MM_H", value_parser = crate::bounds::float(0.0, 300.0))]
     pub rain_rate: Option<f64>,
-    /// Snowfall rate, mm/h.
-    #[arg(long, value_name = "MM_H")]
+    /// Snowfall rate, mm/h, 0 to 50.
+    #[arg(long, value_name = "MM_H", value_parser = crate::bounds::float(0.0, 50.0))]
     pub snowfall_rate: Option<f64>,
-    /// Snowflake terminal velocity, m/s (default 1.6).
-    #[arg(long, value_name = "M_S")]
+    /// Snowflake terminal velocity, m/s, 0.05 to 20 (default 1.6).
+    #[arg(long, value_name = "M_S", value_parser = crate::bounds::float(0.05, 20.0))]
     pub snow_terminal_velocity: Option<f64>,
-    /// Water film depth on the road, mm.
-    #[arg(long, value_name = "MM")]
+    /// Water film depth on the road, mm, 0 to 20.
+    #[arg(long, value_name = "MM", value_parser = crate::bounds::float(0.0, 20.0))]
     pub wet_ground_mm: Option<f64>,
     /// Time of day (camera only): day, dusk or night.
     #[arg(long, value_parser = parse_time)]
@@ -60,7 +60,7 @@ pub struct WeatherArgs {
     /// Switch the ego vehicle's headlights on at dusk / night.
     #[arg(long)]
     pub headlights: bool,
-    /// Seed of every random draw.
+    /// Seed of every random draw, 0 to 18446744073709551615.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Output folder (created if missing; may hold other files).

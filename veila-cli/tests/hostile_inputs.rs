@@ -43,7 +43,7 @@ fn fd_newton_schulz_iterations_are_range_checked() {
             .args(["--newton-schulz", n])
             .output()
             .unwrap();
-        fails_with(&o, &["Newton-Schulz", "between 1 and 1000"]);
+        fails_with(&o, &["--newton-schulz", "between 1 and 1000"]);
     }
     // a sane count agrees with the exact method (well-conditioned 3 x 3 covariances)
     let value = |extra: &[&str]| -> f64 {

@@ -102,7 +102,7 @@ fn frames_beyond_the_scene_limit_are_refused_before_work() {
     std::fs::write(&scene, tiny_scene(8, 64, 1)).unwrap();
     let out = tmp.path().join("sim");
     let o = simulate_into(&scene, &out, u32::MAX, false);
-    fails_with(&o, &["--frames 4294967295", "between 1 and 100000"]);
+    fails_with(&o, &["'4294967295' for '--frames", "between 1 and 100000"]);
     assert!(!out.exists());
     assert!(names(tmp.path()) == ["tiny.toml"]);
 }
@@ -202,4 +202,43 @@ fn the_manifest_is_the_same_for_identical_runs() {
     let v: serde_json::Value = serde_json::from_slice(&m[0]).unwrap();
     let files = v["commands"]["simulate"].as_array().unwrap();
     assert!(files.iter().any(|f| f == "velodyne/000001.bin"), "{v}");
+}
+
+/// Printing to a full disk (`/dev/full` as standard output) is an error with a clear message and a
+/// non-zero exit, never a panic; `generate` keeps what it published before the report failed.
+#[cfg(target_os = "linux")]
+#[test]
+fn printing_to_a_full_disk_is_an_error_not_a_panic() {
+    let full = || {
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open("/dev/full")
+            .unwrap()
+    };
+    let check = |what: &str, o: &Output| {
+        let e = stderr(o);
+        assert_eq!(o.status.code(), Some(1), "{what}: {e}");
+        assert!(
+            e.contains("cannot write to standard output") && e.contains("No space left"),
+            "{what}: {e}"
+        );
+        assert!(!e.contains("panicked"), "{what}: {e}");
+    };
+    for args in [
+        &["sensors"][..],
+        &["sensors", "hdl32e"],
+        &["completions", "bash"],
+    ] {
+        let o = veila().args(args).stdout(full()).output().unwrap();
+        check(&args.join(" "), &o);
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let sim = simulate(tmp.path(), &tiny_scene(16, 128, 1), 0);
+    let out = tmp.path().join("gen");
+    let o = generate_cmd(&sim, &out, &[])
+        .stdout(full())
+        .output()
+        .unwrap();
+    check("generate", &o);
+    assert!(out.join("scan_000.bin").is_file() && out.join("generate.json").is_file());
 }

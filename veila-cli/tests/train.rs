@@ -807,3 +807,159 @@ fn sizes_that_would_be_allocations_are_refused_before_anything_is_built() {
         assert!(!tmp.path().join(format!("out{i}")).exists(), "{line}");
     }
 }
+
+/// `examples/train.toml`, as shipped, trains (its data, output and budget pointed at a tiny run).
+#[test]
+fn the_shipped_example_config_trains() {
+    let tmp = tempfile::tempdir().unwrap();
+    make_shards(&tmp.path().join("shards"), 2, true, true);
+    let example = Path::new(env!("CARGO_MANIFEST_DIR")).join("../examples/train.toml");
+    let mut cfg: toml::Table = toml::from_str(&std::fs::read_to_string(&example).unwrap())
+        .expect("examples/train.toml is TOML");
+    let section = |cfg: &mut toml::Table, name: &str| -> toml::Table {
+        cfg[name].as_table().expect("a section").clone()
+    };
+    let mut data = section(&mut cfg, "data");
+    data.insert(
+        "shards".into(),
+        tmp.path().join("shards").display().to_string().into(),
+    );
+    let mut train_s = section(&mut cfg, "train");
+    for (k, v) in [
+        ("steps", 2),
+        ("encoder_steps", 2),
+        ("batch", 1),
+        ("checkpoint_every", 1),
+    ] {
+        assert!(train_s.contains_key(k), "the example sets [train] {k}");
+        train_s.insert(k.into(), v.into());
+    }
+    let mut output = section(&mut cfg, "output");
+    output.insert(
+        "dir".into(),
+        tmp.path().join("run").display().to_string().into(),
+    );
+    cfg.insert("data".into(), data.into());
+    cfg.insert("train".into(), train_s.into());
+    cfg.insert("output".into(), output.into());
+    let path = tmp.path().join("train.toml");
+    std::fs::write(&path, toml::to_string(&cfg).unwrap()).unwrap();
+    ok(&train(&path, &[]));
+    assert!(tmp.path().join("run/bundle/manifest.json").is_file());
+}
+
+/// An error inside the training loop says what failed: it is not blamed on `[model]
+/// encoders_from` (every such error once read "[model] encoders_from: loading models/default:
+/// bad checkpoint"), while a failure to load those encoders still names that key.
+#[test]
+fn training_errors_say_what_failed() {
+    let tmp = tempfile::tempdir().unwrap();
+    make_shards(&tmp.path().join("shards"), 4, false, true);
+    write_small_bundle_config(&tmp.path().join("small.json"));
+    let model = format!(
+        "bundle = \"small.json\"\nencoders_from = \"{}\"",
+        model_dir().display()
+    );
+    // a residual model's mean network cannot keep its checkpoints: a file holds their folder
+    if is_residual_bundle(&tmp.path().join("small.json")) {
+        let cfg = tmp.path().join("t.toml");
+        write_config(&cfg, "shards", "run", &model, SMALL);
+        std::fs::create_dir_all(tmp.path().join("run/checkpoints")).unwrap();
+        std::fs::write(tmp.path().join("run/checkpoints/mean"), "squat").unwrap();
+        let o = train(&cfg, &[]);
+        fails_with(&o, &["training (checkpoints in", "checkpoints/mean"]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            !err.contains("encoders_from") && !err.contains("bad checkpoint"),
+            "{err}"
+        );
+    }
+    // the encoders of a folder that is no bundle: blamed on the key, naming the folder
+    let cfg = tmp.path().join("e.toml");
+    write_config(
+        &cfg,
+        "shards",
+        "run-e",
+        "bundle = \"small.json\"\nencoders_from = \"no-such-bundle\"",
+        SMALL,
+    );
+    let o = train(&cfg, &[]);
+    fails_with(&o, &["[model] encoders_from", "no-such-bundle"]);
+    // a shard that turns out unreadable in the middle of a streamed run: a data error
+    std::fs::write(
+        tmp.path().join("shards/shard-00001.safetensors"),
+        b"garbage",
+    )
+    .unwrap();
+    let cfg = tmp.path().join("s.toml");
+    std::fs::write(
+        &cfg,
+        format!(
+            "[data]\nshards = \"shards\"\nstream = true\nverify = false\n\n[model]\n{model}\n\n\
+             [train]\nsteps = 8\nbatch = 2\nlr = 1e-3\nseed = 3\ncheckpoint_every = 4\n\n\
+             [output]\ndir = \"run-s\"\n"
+        ),
+    )
+    .unwrap();
+    let o = train(&cfg, &[]);
+    fails_with(&o, &["shard-00001.safetensors"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !err.contains("encoders_from") && !err.contains("bad checkpoint"),
+        "{err}"
+    );
+}
+
+/// An interrupted run says which checkpoints it kept (it once said "no output was written").
+#[cfg(unix)]
+#[test]
+fn an_interrupted_run_says_which_checkpoints_it_kept() {
+    let tmp = tempfile::tempdir().unwrap();
+    make_shards(&tmp.path().join("shards"), 2, false, true);
+    write_small_bundle_config(&tmp.path().join("small.json"));
+    let model = format!(
+        "bundle = \"small.json\"\nencoders_from = \"{}\"",
+        model_dir().display()
+    );
+    let cfg = tmp.path().join("t.toml");
+    write_config(
+        &cfg,
+        "shards",
+        "run",
+        &model,
+        "steps = 100000\nbatch = 1\nlr = 1e-3\nseed = 3\ncheckpoint_every = 1",
+    );
+    let child = veila()
+        .args(["train", "--quiet", "--config"])
+        .arg(&cfg)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let ck = tmp.path().join("run/checkpoints");
+    let has_step = |d: &Path| {
+        std::fs::read_dir(d).is_ok_and(|rd| {
+            rd.flatten()
+                .any(|e| e.file_name().to_string_lossy().starts_with("step-"))
+        })
+    };
+    let t = std::time::Instant::now();
+    while !(has_step(&ck) || has_step(&ck.join("mean"))) {
+        assert!(
+            t.elapsed() < std::time::Duration::from_secs(300),
+            "no checkpoint appeared"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    signal(&child, "-INT");
+    let o = child.wait_with_output().unwrap();
+    assert_eq!(o.status.code(), Some(130));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("checkpoints up to step")
+            && err.contains("kept in")
+            && err.contains("rerun the same command"),
+        "{err}"
+    );
+    assert!(!err.contains("no output was written"), "{err}");
+}

@@ -148,5 +148,10 @@ fn bad_input_fails_without_partial_output() {
         .output()
         .unwrap();
     assert!(!o.status.success());
-    assert!(String::from_utf8_lossy(&o.stderr).contains("fog_visibility_m"));
+    // refused by the parser, which states the range
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("--fog-visibility") && err.contains("between 10 and"),
+        "{err}"
+    );
 }

@@ -281,6 +281,8 @@ pub fn convert(
     crate::atomic::sweep_stale(out);
 
     let fp = fingerprint(dataset, opts)?;
+    // workers of this conversion share the folder; one with other settings is refused
+    let _run = join_conversion(out, &fp)?;
     let n = dataset.len();
     let fps = opts.frames_per_shard;
     let total_shards = n.div_ceil(fps);
@@ -332,6 +334,16 @@ pub fn convert(
             samples.push(s);
         }
         let path = out.join(shard_file_name(k));
+        if summary.written_shards == 0 {
+            // a dataset that changes is unpublished first: a killed run never leaves a manifest
+            // listing shards that are no longer the ones it describes
+            match std::fs::remove_file(out.join("manifest.json")) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                    return Err(Error::io(out.join("manifest.json"), e));
+                }
+                _ => {}
+            }
+        }
         let entry = write_shard(&path, &opts.sensor, dataset.name(), &samples)?;
         drop(samples);
         let sc = Sidecar {
@@ -374,9 +386,70 @@ pub fn convert(
         count: n,
         shards: entries,
     };
+    // shards of an earlier conversion into more shards are not part of this dataset
+    remove_shards_from(out, total_shards)?;
     manifest.write(&out.join("manifest.json"))?;
     summary.manifest_written = true;
     Ok(summary)
+}
+
+/// Remove `shard-NNNNN.safetensors` and their sidecars with `NNNNN >= first` from `out`.
+fn remove_shards_from(out: &Path, first: usize) -> Result<()> {
+    let rd = std::fs::read_dir(out).map_err(|e| Error::io(out, e))?;
+    for e in rd.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let k = name
+            .strip_prefix("shard-")
+            .and_then(|r| r.split_once(".safetensors"))
+            .filter(|(_, rest)| rest.is_empty() || *rest == ".json")
+            .and_then(|(k, _)| k.parse::<usize>().ok());
+        if k.is_some_and(|k| k >= first) {
+            std::fs::remove_file(e.path()).map_err(|err| Error::io(e.path(), err))?;
+        }
+    }
+    Ok(())
+}
+
+/// Join the conversion into `out` with settings fingerprint `fp`: the workers of one conversion
+/// share the folder (a shared `flock` on `.veila-convert.run`, which holds their fingerprint);
+/// a conversion with other settings while they run is refused. Held until dropped.
+fn join_conversion(out: &Path, fp: &str) -> Result<std::fs::File> {
+    let open = |name: &str| {
+        let p = out.join(name);
+        std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&p)
+            .map_err(|e| Error::io(p, e))
+    };
+    // the guard makes looking at the run file and joining it one step
+    let guard = open(".veila-convert.guard")?;
+    guard
+        .lock()
+        .map_err(|e| Error::io(out.join(".veila-convert.guard"), e))?;
+    let run_path = out.join(".veila-convert.run");
+    let run = open(".veila-convert.run")?;
+    if run.try_lock().is_ok() {
+        // nobody converts into `out`: the run is ours to describe
+        std::fs::write(&run_path, fp).map_err(|e| Error::io(&run_path, e))?;
+        run.unlock().map_err(|e| Error::io(&run_path, e))?;
+    } else {
+        let theirs = std::fs::read_to_string(&run_path).unwrap_or_default();
+        if theirs != fp {
+            return Err(Error::io(
+                out,
+                std::io::Error::new(
+                    std::io::ErrorKind::WouldBlock,
+                    "another veila process is writing this output (a conversion with other \
+                     settings; wait for it to finish or choose another output)",
+                ),
+            ));
+        }
+    }
+    run.lock_shared().map_err(|e| Error::io(&run_path, e))?;
+    Ok(run)
 }
 
 /// Open a dataset by name (`kitti`, `semantickitti`, `nuscenes`) for conversion; nuScenes pairs with

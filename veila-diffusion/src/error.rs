@@ -98,6 +98,16 @@ pub enum Error {
     #[error("data source: {0}")]
     Data(String),
 
+    /// Loading the encoders of another bundle for a training run failed (what failed follows).
+    #[error("loading the encoders of {}: {source}", dir.display())]
+    EncodersFrom {
+        /// The bundle folder the encoders come from.
+        dir: PathBuf,
+        /// What failed.
+        #[source]
+        source: Box<Error>,
+    },
+
     /// Data-parallel training: a rank could not reach, or lost, the others (the message names
     /// the rank and the address).
     #[error("data-parallel group: {0}")]

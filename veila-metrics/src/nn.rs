@@ -40,12 +40,17 @@ pub struct PointIndex {
     points: Vec<Vec3A>,
     /// `original[k]` is the caller's index of `points[k]`.
     original: Vec<u32>,
+    /// Every point of the set in leaf order, duplicates included, when the set has coincident
+    /// points (`points` holds each once: a BVH over many copies of one point is a chain as deep
+    /// as the copies are many, and every query would walk it).
+    all: Option<Vec<Vec3A>>,
 }
 
 impl std::fmt::Debug for PointIndex {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("PointIndex")
-            .field("points", &self.points.len())
+            .field("points", &self.len())
+            .field("distinct", &self.points.len())
             .field("nodes", &self.bvh.nodes.len())
             .field("max_depth", &self.bvh.max_depth)
             .finish()
@@ -73,6 +78,19 @@ fn box_dist2(aabb: &Aabb, q: Vec3A) -> f32 {
 #[inline]
 fn may_improve(lb: f32, best: f64) -> bool {
     !lb.is_finite() || (lb as f64) * (1.0 - 1e-6) < best
+}
+
+/// [`may_improve`] for a child node of box `aabb` at squared distance `lb` (f32). A box of
+/// coincident points (`min == max`, the points themselves) is judged exactly: its points are all
+/// at the f64 distance of its corner, so a tie with `best` cannot improve. Without this, many
+/// duplicates of one point at the same distance as the best (two sets of coincident points)
+/// defeat the safety margin and every query visits every node: quadratic.
+#[inline]
+fn child_may_improve(aabb: &Aabb, lb: f32, q: Vec3A, best: f64) -> bool {
+    if aabb.min == aabb.max {
+        return dist2_f64(aabb.min, q) < best;
+    }
+    may_improve(lb, best)
 }
 
 /// The most points one [`PointIndex`] takes (4 Mi: 30 times a KITTI scan). The index and its build
@@ -108,6 +126,34 @@ impl PointIndex {
             check_finite(p, what, i)?;
             pts.push(p.into());
         }
+        // coincident points once (with how many there are), in the order of the caller's first
+        let key = |p: Vec3A| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()];
+        let mut order: Vec<u32> = (0..pts.len() as u32).collect();
+        order.par_sort_by_key(|&i| key(pts[i as usize]));
+        let mut first: Vec<u32> = Vec::with_capacity(pts.len());
+        let mut copies: Vec<u32> = Vec::with_capacity(pts.len());
+        for &i in &order {
+            match first.last() {
+                Some(&f) if key(pts[f as usize]) == key(pts[i as usize]) => {
+                    *copies.last_mut().expect("one per first") += 1;
+                }
+                _ => {
+                    first.push(i);
+                    copies.push(1);
+                }
+            }
+        }
+        drop(order);
+        let duplicates = first.len() < pts.len();
+        let (pts, caller_index) = if duplicates {
+            let mut by_index: Vec<(u32, u32)> = first.iter().copied().zip(copies).collect();
+            by_index.sort_unstable();
+            copies = by_index.iter().map(|&(_, c)| c).collect();
+            let caller: Vec<u32> = by_index.iter().map(|&(i, _)| i).collect();
+            (caller.iter().map(|&i| pts[i as usize]).collect(), caller)
+        } else {
+            (pts, Vec::new())
+        };
         let aabbs: Vec<Aabb> = pts.iter().map(|&p| Aabb::from_point(p)).collect();
         let indices: Vec<u32> = (0..pts.len() as u32).collect();
         let mut bvh = PlocBuilder::with_capacity(aabbs.len()).build(
@@ -123,18 +169,29 @@ impl PointIndex {
         // KITTI scans
         ReinsertionOptimizer::default().run(&mut bvh, 0.05, None);
         collapse(&mut bvh, MAX_LEAF_POINTS, MAX_LEAF_POINTS as f32);
-        let original = bvh.primitive_indices.clone();
-        let points: Vec<Vec3A> = original.iter().map(|&i| pts[i as usize]).collect();
+        let prims = bvh.primitive_indices.clone();
+        let points: Vec<Vec3A> = prims.iter().map(|&i| pts[i as usize]).collect();
+        let (original, all) = if duplicates {
+            let all = prims
+                .iter()
+                .flat_map(|&i| std::iter::repeat_n(pts[i as usize], copies[i as usize] as usize))
+                .collect();
+            let original = prims.iter().map(|&i| caller_index[i as usize]).collect();
+            (original, Some(all))
+        } else {
+            (prims, None)
+        };
         Ok(Self {
             bvh,
             points,
             original,
+            all,
         })
     }
 
     /// Number of points.
     pub fn len(&self) -> usize {
-        self.points.len()
+        self.leaf_points().len()
     }
 
     /// Always `false` (an index is never empty).
@@ -144,13 +201,13 @@ impl PointIndex {
 
     /// The points in BVH leaf order: spatially coherent, the best order to query a whole set in.
     pub fn points_in_leaf_order(&self) -> impl ExactSizeIterator<Item = Vec3> + '_ {
-        self.points.iter().map(|&p| p.into())
+        self.leaf_points().iter().map(|&p| p.into())
     }
 
     /// The nearest indexed point to `query`. A non-finite query gives `dist2 = NaN` or `inf`.
     pub fn nearest(&self, query: Vec3) -> Nearest {
         let mut stack = Vec::with_capacity(self.bvh.max_depth + 2);
-        let (d, k) = self.nearest_impl(query.into(), f64::INFINITY, u32::MAX, &mut stack);
+        let (d, k, _) = self.nearest_impl(query.into(), f64::INFINITY, u32::MAX, &mut stack);
         Nearest {
             dist2: d,
             index: self
@@ -160,22 +217,32 @@ impl PointIndex {
         }
     }
 
+    /// How many nodes the search for the nearest point to `query` visits (a diagnostic of the
+    /// tree's pruning: about its depth for well-spread points, never all of them for duplicates).
+    pub fn nodes_visited(&self, query: Vec3) -> usize {
+        let mut stack = Vec::with_capacity(self.bvh.max_depth + 2);
+        self.nearest_impl(query.into(), f64::INFINITY, u32::MAX, &mut stack)
+            .2
+    }
+
     /// Branch and bound from an initial upper bound `(best, best_k)` (`best_k` an internal point index or
-    /// `u32::MAX`). Returns the squared distance and the internal index.
+    /// `u32::MAX`). Returns the squared distance, the internal index and the nodes visited.
     fn nearest_impl(
         &self,
         q: Vec3A,
         mut best: f64,
         mut best_k: u32,
         stack: &mut Vec<(u32, f32)>,
-    ) -> (f64, u32) {
+    ) -> (f64, u32, usize) {
         let nodes = &self.bvh.nodes;
         stack.clear();
         stack.push((0, 0.0));
+        let mut visited = 0;
         while let Some((ni, lb)) = stack.pop() {
             if !may_improve(lb, best) {
                 continue;
             }
+            visited += 1;
             let node = &nodes[ni as usize];
             if node.is_leaf() {
                 let start = node.first_index as usize;
@@ -195,21 +262,22 @@ impl PointIndex {
             }
             let c0 = node.first_index;
             let c1 = c0 + 1;
-            let d0 = box_dist2(nodes[c0 as usize].aabb(), q);
-            let d1 = box_dist2(nodes[c1 as usize].aabb(), q);
-            let (near, dn, far, df) = if d0 <= d1 {
-                (c0, d0, c1, d1)
+            let (a0, a1) = (nodes[c0 as usize].aabb(), nodes[c1 as usize].aabb());
+            let d0 = box_dist2(a0, q);
+            let d1 = box_dist2(a1, q);
+            let (near, dn, an, far, df, af) = if d0 <= d1 {
+                (c0, d0, a0, c1, d1, a1)
             } else {
-                (c1, d1, c0, d0)
+                (c1, d1, a1, c0, d0, a0)
             };
-            if may_improve(df, best) {
+            if child_may_improve(af, df, q, best) {
                 stack.push((far, df));
             }
-            if may_improve(dn, best) {
+            if child_may_improve(an, dn, q, best) {
                 stack.push((near, dn));
             }
         }
-        (best, best_k)
+        (best, best_k, visited)
     }
 
     /// Squared nearest distances for every query point, in query order (parallel).
@@ -236,7 +304,8 @@ impl PointIndex {
             Some(&p) => (dist2_f64(p, q), hint),
             None => (f64::INFINITY, u32::MAX),
         };
-        self.nearest_impl(q, b, k, stack)
+        let (d, k, _) = self.nearest_impl(q, b, k, stack);
+        (d, k)
     }
 
     /// `Σ_q min_p ‖q - p‖²` over the query points (parallel; deterministic summation order). Consecutive
@@ -265,8 +334,9 @@ impl PointIndex {
         partial.iter().sum()
     }
 
+    /// Every point (duplicates included) in leaf order.
     pub(crate) fn leaf_points(&self) -> &[Vec3A] {
-        &self.points
+        self.all.as_deref().unwrap_or(&self.points)
     }
 }
 

@@ -88,6 +88,8 @@ pub struct ScanSummary {
     occ_nus: Vec<lidm::BevOccupancy>,
     /// The protocol's summary after its pipeline, per requested region.
     peer: Vec<PeerSummary>,
+    /// Raw points in each requested region (`None` for a peer's sample, which has no raw points).
+    in_region: Vec<Option<usize>>,
 }
 
 /// `err` with the scan's label in front.
@@ -128,6 +130,10 @@ impl ScanSummary {
             occ: Vec::new(),
             occ_nus: Vec::new(),
             peer: Vec::new(),
+            in_region: regions
+                .iter()
+                .map(|r| Some(xyz.iter().filter(|&&p| r.contains(p)).count()))
+                .collect(),
         };
         for &r in regions {
             if needs.hist {
@@ -189,9 +195,26 @@ impl ScanSummary {
                 occ: Vec::new(),
                 occ_nus: Vec::new(),
                 peer,
+                in_region: vec![None; regions.len()],
             });
         }
         Ok(out)
+    }
+
+    /// Keeps the summaries of the regions whose `keep` entry is true (`keep` in the order of the
+    /// regions the summary was made for); [`score_sets`] then takes the kept regions.
+    pub fn retain_regions(&mut self, keep: &[bool]) {
+        fn retain<T>(v: &mut Vec<T>, keep: &[bool]) {
+            if v.len() == keep.len() {
+                let mut k = keep.iter();
+                v.retain(|_| *k.next().unwrap_or(&true));
+            }
+        }
+        retain(&mut self.hist, keep);
+        retain(&mut self.occ, keep);
+        retain(&mut self.occ_nus, keep);
+        retain(&mut self.peer, keep);
+        retain(&mut self.in_region, keep);
     }
 
     fn points(&self) -> &[Vec3] {
@@ -250,6 +273,29 @@ fn indexes(scans: &[ScanSummary], region: Region) -> Result<Vec<PointIndex>> {
             PointIndex::build(&pts, "scan").map_err(|e| at(&s.label, e))
         })
         .collect()
+}
+
+/// The regions of `regions` (those the summaries were made for, in order) in which no scan of a
+/// set has a raw point, with the set (`"generated"` or `"reference"`): scans cropped to a
+/// camera's view have no `rear`. Their set metrics would compare empty histograms.
+pub fn empty_regions(
+    regions: &[Region],
+    generated: &[ScanSummary],
+    reference: &[ScanSummary],
+) -> Vec<(Region, &'static str)> {
+    let none_in = |set: &[ScanSummary], ri: usize| {
+        !set.is_empty() && set.iter().all(|s| s.in_region.get(ri) == Some(&Some(0)))
+    };
+    let mut out = Vec::new();
+    for (ri, &r) in regions.iter().enumerate() {
+        for (set, what) in [(generated, "generated"), (reference, "reference")] {
+            if none_in(set, ri) {
+                out.push((r, what));
+                break;
+            }
+        }
+    }
+    out
 }
 
 /// Every metric of `metrics` for every region of `regions` (the regions the summaries were made

@@ -90,3 +90,27 @@ fn cm_sc_refuses_raw_ids_where_train_ids_are_expected() {
         .to_string();
     assert!(msg.contains("200") && !msg.contains("raw id"), "{msg}");
 }
+
+/// Many coincident points: a query at the same distance from every one of them (two sets of
+/// duplicates) once visited every node of the tree, so Chamfer on two such scans was quadratic.
+#[test]
+fn chamfer_on_large_sets_of_coincident_points_prunes_the_tree() {
+    let n = 200_000;
+    let p = Vec3::new(10.0, -3.0, 1.5);
+    let q = Vec3::new(11.0, -3.0, 1.5);
+    let a = vec![p; n];
+    let b = vec![q; n];
+    let index = PointIndex::build(&a, "a").unwrap();
+    // a query off the duplicates, and one on them: a handful of nodes, not the whole tree
+    for query in [q, p] {
+        let visited = index.nodes_visited(query);
+        assert!(
+            visited <= 256,
+            "{visited} nodes visited for {query} among {n} coincident points"
+        );
+    }
+    let identical = veila_metrics::chamfer::chamfer_distance(&a, &a).unwrap();
+    assert_eq!(identical.value(), 0.0);
+    let apart = veila_metrics::chamfer::chamfer_distance(&a, &b).unwrap();
+    assert_eq!((apart.a_to_b, apart.b_to_a), (1.0, 1.0));
+}

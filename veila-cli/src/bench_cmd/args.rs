@@ -17,9 +17,9 @@ pub(crate) struct BenchArgs {
     /// Precisions of the training update: f32, bf16 (mixed precision; for GPUs).
     #[arg(long, value_delimiter = ',', default_value = "f32,bf16", value_parser = parse_precision)]
     pub(super) precision: Vec<Precision>,
-    /// Training batch sizes (1-4096), comma-separated: each is a row; two or more also give the
-    /// per-sample training memory.
-    #[arg(long, value_name = "B", value_delimiter = ',', default_value = "8")]
+    /// Training batch sizes, 1 to 4096, comma-separated: each is a row; two or more also give
+    /// the per-sample training memory.
+    #[arg(long, value_name = "B", value_delimiter = ',', default_value = "8", value_parser = crate::bounds::int::<usize>(1, 4096))]
     pub(super) batch: Vec<usize>,
     /// Activation checkpointing of the training update: none, block (each residual block, GCMA
     /// and PFC layer recomputed in the backward pass: less memory, one more forward pass).
@@ -29,14 +29,14 @@ pub(crate) struct BenchArgs {
     /// generation.
     #[arg(long)]
     pub(super) no_eval: bool,
-    /// Timed training updates (after 2 warm-up updates).
-    #[arg(long, value_name = "N", default_value_t = 5)]
+    /// Timed training updates, 1 to 1000 (after 2 warm-up updates).
+    #[arg(long, value_name = "N", default_value_t = 5, value_parser = crate::bounds::int::<usize>(1, 1000))]
     pub(super) train_runs: usize,
-    /// Timed network evaluations for sampling (after 2 warm-up runs).
-    #[arg(long, value_name = "N", default_value_t = 5)]
+    /// Timed network evaluations for sampling, 1 to 1000 (after 2 warm-up runs).
+    #[arg(long, value_name = "N", default_value_t = 5, value_parser = crate::bounds::int::<usize>(1, 1000))]
     pub(super) forward_runs: usize,
-    /// Sampler step counts to cost.
-    #[arg(long, value_delimiter = ',', default_value = "16,32,64")]
+    /// Sampler step counts to cost, 1 to 10000 each, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "16,32,64", value_parser = crate::bounds::int::<usize>(1, 10_000))]
     pub(super) sample_steps: Vec<usize>,
     /// Skip `Bundle::generate` end to end (the bundled network's real sampling).
     #[arg(long)]
@@ -44,7 +44,7 @@ pub(crate) struct BenchArgs {
     /// Model bundle folder of `bundled` (default: $VEILA_MODEL, else the bundled models/default).
     #[arg(long, value_name = "DIR", env = "VEILA_MODEL")]
     pub(super) checkpoint: Option<PathBuf>,
-    /// Seed of the weights and inputs.
+    /// Seed of the weights and inputs, 0 to 18446744073709551615.
     #[arg(long, default_value_t = 0)]
     pub(super) seed: u64,
     /// Also write the results as one JSON object to this file.

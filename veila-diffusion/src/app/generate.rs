@@ -6,7 +6,8 @@
 //!   `image_width x image_height` (resize with an antialiasing filter, e.g. `image`'s triangle filter,
 //!   and adapt the camera with [`veila_geom::PinholeCamera::resized`]; [`super::rig`] does both).
 //! * [`Bundle::generate`] samples scans for one camera rig (one or more views); `samples > 1` draws
-//!   several scans in one batch.
+//!   several scans in one batch, each from its own noise stream of the seed (scan `i` is the
+//!   same whatever the number of samples drawn with it).
 //! * [`Bundle::inpaint`] regenerates the pixels a mask marks unknown and keeps the rest (RePaint).
 //!
 //! Everything is seeded: the same bundle, inputs and seed give the same scans.
@@ -21,7 +22,7 @@ use veila_nn::{ConditionInput, Denoiser as Net, GcmaGeometry};
 use super::bundle::{Bundle, BundleConfig, ResidualConfig};
 use super::nn::{NetCond, VeilaDenoiser};
 use crate::error::{Error, Result};
-use crate::noise::randn;
+use crate::noise::{NoiseSource, PerSample};
 use crate::objective::Diffusion;
 use crate::sampler::{RepaintConfig, Sampler, SamplerConfig, inpaint};
 
@@ -268,7 +269,17 @@ fn sample(
     let (h, w) = bundle.grid();
     let c = bundle.config.channels();
     let n = options.samples;
-    let mut rng = ChaCha8Rng::seed_from_u64(options.seed);
+    // one noise stream per sample (stream `i` of the seed): a scan does not depend on how many
+    // others are drawn with it, and a single scan draws what the seed's first stream gives
+    let mut rng = PerSample(
+        (0..n as u64)
+            .map(|i| {
+                let mut r = ChaCha8Rng::seed_from_u64(options.seed);
+                r.set_stream(i);
+                r
+            })
+            .collect(),
+    );
     let conditional = bundle.is_conditional() && !options.unconditional;
     if conditional && views.is_empty() {
         return Err(Error::InvalidConfig {
@@ -376,7 +387,7 @@ fn sample(
             let model = VeilaDenoiser::new(net);
             let x = match inpainting {
                 None => {
-                    let x_t = randn(&mut rng, &[n, c, h, w], &device)?;
+                    let x_t = rng.noise(&[n, c, h, w], &device)?;
                     sampler.sample_from(&model, x_t, cond.as_ref(), &mut rng, |info| {
                         on_step(info.index + 1, info.total)
                     })?

@@ -497,7 +497,16 @@ where
     O: for<'g> TrainObserver<VeilaDenoiser<'g>>,
 {
     let t = std::time::Instant::now();
-    let encoders = prepare_encoders(config, input.encoders, settings, device, on_encoder)?;
+    let encoders =
+        prepare_encoders(config, input.encoders, settings, device, on_encoder).map_err(|e| {
+            match input.encoders {
+                EncoderSource::Bundle(dir) => Error::EncodersFrom {
+                    dir: dir.to_path_buf(),
+                    source: Box::new(e),
+                },
+                EncoderSource::Train { .. } => e,
+            }
+        })?;
     let encoder_seconds = t.elapsed().as_secs_f64();
     let (tc, mean_tc) = settings.train_configs(config.denoiser.conditioning.is_some());
     let fit = fit_bundle(

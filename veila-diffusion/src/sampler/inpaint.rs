@@ -6,14 +6,13 @@
 //! generated region harmonise with the known one.
 
 use candle_core::Tensor;
-use rand::Rng;
 use serde::{Deserialize, Serialize};
 
 use super::steps::{beta_between, ddim_step, ddpm_step};
 use super::{Sampler, SamplerKind};
 use crate::denoiser::Denoiser;
 use crate::error::{Error, Result, invalid};
-use crate::noise::randn_like;
+use crate::noise::{NoiseSource, randn_like};
 use crate::schedule::NoiseLevel;
 
 /// Resampling settings; `jump_n_sample = 1` disables resampling.
@@ -77,7 +76,7 @@ pub fn repaint_schedule(n: usize, cfg: &RepaintConfig) -> Result<Vec<usize>> {
 /// * The sampler must be DDPM or DDIM (a multistep solver has no meaning across jumps).
 ///
 /// Returns the clean sample with the known pixels exactly equal to `known_x0`.
-pub fn inpaint<D: Denoiser, R: Rng + ?Sized>(
+pub fn inpaint<D: Denoiser, R: NoiseSource + ?Sized>(
     sampler: &Sampler<'_>,
     model: &D,
     known_x0: &Tensor,

@@ -13,12 +13,11 @@ pub use inpaint::{RepaintConfig, inpaint, repaint_schedule};
 pub use steps::{DpmSolverPp2M, ddim_step, ddpm_step};
 
 use candle_core::{Device, Tensor};
-use rand::Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::denoiser::{Conditioning, Denoiser};
 use crate::error::{Result, invalid};
-use crate::noise::{randn, randn_like};
+use crate::noise::{NoiseSource, randn_like};
 use crate::objective::{Denoised, Diffusion, Objective, flow_level};
 use crate::schedule::{NoiseLevel, Spacing};
 
@@ -243,7 +242,7 @@ impl<'a> Sampler<'a> {
     }
 
     /// Draws `x_T ~ N(0, I)` of `shape` from `rng` and samples.
-    pub fn sample<D: Denoiser, R: Rng + ?Sized>(
+    pub fn sample<D: Denoiser, R: NoiseSource + ?Sized>(
         &self,
         model: &D,
         shape: &[usize],
@@ -251,12 +250,12 @@ impl<'a> Sampler<'a> {
         cond: Option<&D::Cond>,
         rng: &mut R,
     ) -> Result<Tensor> {
-        let x_t = randn(rng, shape, device)?;
+        let x_t = rng.noise(shape, device)?;
         self.sample_from(model, x_t, cond, rng, |_| {})
     }
 
     /// Samples starting from a given `x_T` (at [`Self::levels`]`[0]`), calling `on_step` after each step.
-    pub fn sample_from<D: Denoiser, R: Rng + ?Sized>(
+    pub fn sample_from<D: Denoiser, R: NoiseSource + ?Sized>(
         &self,
         model: &D,
         x_t: Tensor,

@@ -1,4 +1,5 @@
 use super::*;
+use crate::noise::randn;
 use crate::objective::DiffusionConfig;
 use crate::oracle::GaussianOracle;
 use crate::prediction::{LossWeighting, Prediction, TimeInput};

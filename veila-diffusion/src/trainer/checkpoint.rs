@@ -110,8 +110,11 @@ fn bad(path: &Path, reason: impl Into<String>) -> Error {
 }
 
 fn save_tensors(map: &HashMap<String, Tensor>, path: &Path) -> Result<()> {
-    candle_core::safetensors::save(map, path)
-        .map_err(|e| bad(path, format!("writing safetensors: {e}")))?;
+    // a failed write (a full disk) is an I/O error, not a bad checkpoint
+    candle_core::safetensors::save(map, path).map_err(|e| match e {
+        candle_core::Error::Io(source) => io("writing checkpoint", path)(source),
+        e => io("writing checkpoint", path)(std::io::Error::other(e.to_string())),
+    })?;
     fs::File::open(path)
         .and_then(|f| f.sync_all())
         .map_err(io("syncing", path))

@@ -1,0 +1,69 @@
+//! The value parsers that hold every numeric argument to the range its help states: a value
+//! outside it is refused by the parser, before anything runs, with the range in the message.
+//! (Seeds take any 64-bit value: the `u64` parser holds them to it.)
+//!
+//! Every numeric option's help says its range as "`LO` to `HI`"; a test in `main.rs` reads it
+//! there and checks that the parser takes both ends and refuses the values just outside.
+
+/// A whole number from `lo` to `hi` (both included).
+pub(crate) fn int<T>(
+    lo: u64,
+    hi: u64,
+) -> impl Fn(&str) -> Result<T, String> + Clone + Send + Sync + 'static
+where
+    T: TryFrom<u64> + Clone + Send + Sync + 'static,
+{
+    move |s: &str| {
+        let range = || format!("must be a whole number between {lo} and {hi}");
+        let v: u64 = s.trim().parse().map_err(|_| range())?;
+        if !(lo..=hi).contains(&v) {
+            return Err(range());
+        }
+        T::try_from(v).map_err(|_| range())
+    }
+}
+
+/// A finite number from `lo` to `hi` (both included).
+pub(crate) fn float(
+    lo: f64,
+    hi: f64,
+) -> impl Fn(&str) -> Result<f64, String> + Clone + Send + Sync + 'static {
+    move |s: &str| {
+        let range = || format!("must be a number between {lo} and {hi}");
+        let v: f64 = s.trim().parse().map_err(|_| range())?;
+        if !(v.is_finite() && (lo..=hi).contains(&v)) {
+            return Err(range());
+        }
+        Ok(v)
+    }
+}
+
+/// [`float`] as an `f32` (the range is checked on the `f32` value).
+pub(crate) fn float32(
+    lo: f32,
+    hi: f32,
+) -> impl Fn(&str) -> Result<f32, String> + Clone + Send + Sync + 'static {
+    move |s: &str| {
+        let range = || format!("must be a number between {lo} and {hi}");
+        let v: f32 = s.trim().parse().map_err(|_| range())?;
+        if !(v.is_finite() && (lo..=hi).contains(&v)) {
+            return Err(range());
+        }
+        Ok(v)
+    }
+}
+
+/// Sampler steps of `generate`, `edit` and `demo`: 1 to [`crate::generation::MAX_STEPS`].
+pub(crate) fn steps() -> impl Fn(&str) -> Result<usize, String> + Clone + Send + Sync + 'static {
+    int(1, crate::generation::MAX_STEPS as u64)
+}
+
+/// A classifier-free guidance scale: 0 to [`crate::generation::MAX_GUIDANCE`].
+pub(crate) fn guidance() -> impl Fn(&str) -> Result<f64, String> + Clone + Send + Sync + 'static {
+    float(0.0, crate::generation::MAX_GUIDANCE)
+}
+
+/// A residual weight: 0 to 1.
+pub(crate) fn unit() -> impl Fn(&str) -> Result<f64, String> + Clone + Send + Sync + 'static {
+    float(0.0, 1.0)
+}
