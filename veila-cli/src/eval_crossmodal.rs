@@ -87,9 +87,9 @@ pub(crate) struct CrossModalArgs {
     /// the points' in disparity space; for a metric one pass --depth-model-max-m.
     #[arg(long, value_name = "KIND=PATH")]
     depth_model: Option<String>,
-    /// cm-dc: --depth-model is a metric checkpoint (`Metric-*-hf`) with this max depth in metres
-    /// (80 for the outdoor ones); its depth is compared as --depth-alignment says.
-    #[arg(long, value_name = "M")]
+    /// cm-dc: --depth-model is a metric checkpoint (`Metric-*-hf`) with this max depth in metres,
+    /// 0.1 to 1000 (80 for the outdoor ones); its depth is compared as --depth-alignment says.
+    #[arg(long, value_name = "M", value_parser = crate::bounds::float32(0.1, 1000.0))]
     depth_model_max_m: Option<f32>,
     /// cm-sc: segment each image with SegFormer, `KIND=PATH` (`segformer-b0` .. `-b5`, PATH a
     /// Cityscapes checkpoint's `model.safetensors`, 1024 x 1024 processor); its 19 classes are
@@ -149,11 +149,6 @@ pub(crate) fn check_args(
         bail!(
             "--depth-model / --semantic-model run on the camera images: pass --images DIR (<scan stem>.png)"
         );
-    }
-    if let Some(m) = a.depth_model_max_m
-        && !(m.is_finite() && m > 0.0)
-    {
-        bail!("--depth-model-max-m must be a positive number of metres, got {m}");
     }
     if let Some(f) = gen_files
         .iter()

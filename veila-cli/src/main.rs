@@ -273,9 +273,8 @@ mod tests {
             .find_map(|w| (w[1] == "to").then(|| Some((num(w[0])?, num(w[2])?)))?)
     }
 
-    /// Options whose range is still checked when the command runs, not by the parser: `eval`'s
-    /// cross-modal arguments live in `eval_crossmodal.rs`, which is moving into the library.
-    const CHECKED_AT_RUN_TIME: &[&str] = &["depth-model-max-m"];
+    /// Options whose range is checked when the command runs, not by the parser (none today).
+    const CHECKED_AT_RUN_TIME: &[&str] = &[];
 
     #[test]
     fn every_numeric_option_states_its_range_and_the_parser_holds_it() {

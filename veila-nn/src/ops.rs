@@ -252,8 +252,10 @@ pub fn conv2d_zero_pad(
 /// elsewhere). `spec.kernel` and `spec.ones_row` are taken from the weights and the bias.
 ///
 /// Where the CPU kernels do not run (GPUs, half precision) and a graph is being built, the im2col
-/// composition is recomputed in the backward pass (`lean`): the graph keeps the input, not its
-/// columns (about `27 C N` values per 3x3 convolution).
+/// composition is recomputed in the backward pass (`lean`), a tile of output rows at a time (each
+/// tile its own node, its columns at most 4 Mi values, [`conv2d_lean_tiles`]): the graph keeps
+/// the input and the output tiles, not the columns (about `27 C N` values per 3x3 convolution
+/// otherwise), and the backward pass builds one tile's columns at a time.
 pub fn conv2d_im2col(
     x: &Tensor,
     weight: &Tensor,
@@ -264,37 +266,75 @@ pub fn conv2d_im2col(
     if crate::fused::takes_kernels(x) || !tracked {
         return crate::fused::conv2d(x, weight, bias, spec);
     }
-    let w_dims = weight.dims().to_vec();
-    let nw = weight.elem_count();
-    let has_bias = bias.is_some();
-    let mut parts = vec![weight.flatten_all()?];
-    if let Some(b) = bias {
-        parts.push(b.to_dtype(weight.dtype())?.flatten_all()?);
-    }
-    let packed = Tensor::cat(&parts, 0)?;
-    lean(x, &packed, move |x, p| {
-        let w = p.narrow(0, 0, nw)?.reshape(w_dims.as_slice())?;
-        let b = if has_bias {
-            Some(p.narrow(0, nw, p.dim(0)? - nw)?)
-        } else {
-            None
-        };
-        crate::fused::conv2d(x, &w, b.as_ref(), spec)
-    })
+    conv2d_lean_tiles(x, weight, bias, spec, None)
 }
 
-/// `op(x, packed)` recomputed in the backward pass: the graph keeps `x` and the small `packed`
-/// tensor (weights, per-sample scales), not the op's intermediates. Both get their gradients.
-fn lean(
+/// [`conv2d_im2col`]'s lean path on any device: output rows in tiles of `tile_rows` (default: as
+/// many as keep a tile's columns within 4 Mi values), each recomputed in its own backward pass.
+/// Public for tests and for measuring what a tile size costs.
+pub fn conv2d_lean_tiles(
     x: &Tensor,
-    packed: &Tensor,
-    op: impl Fn(&Tensor, &Tensor) -> Result<Tensor> + Send + Sync + 'static,
+    weight: &Tensor,
+    bias: Option<&Tensor>,
+    spec: Im2ColSpec,
+    tile_rows: Option<usize>,
+) -> Result<Tensor> {
+    let (b, c, h, w) = x.dims4()?;
+    let (_, _, kh, kw) = weight.dims4()?;
+    let spec = Im2ColSpec {
+        kernel: (kh, kw),
+        ones_row: false,
+        ..spec
+    };
+    let Some((ho, wo)) = spec.out_size(h, w) else {
+        return Err(crate::error::shape_err(
+            "convolution input",
+            format!("a plane the {spec:?} fits"),
+            x.dims(),
+        ));
+    };
+    let per_row = (b * c * kh * kw * wo).max(1);
+    let rows = tile_rows
+        .unwrap_or(crate::fused::TILE_FLOATS / per_row)
+        .clamp(1, ho.max(1));
+    let conv = move |t: &[&Tensor]| crate::fused::conv2d(t[0], t[1], t.get(2).copied(), spec);
+    let inputs: Vec<&Tensor> = std::iter::once(x).chain([weight]).chain(bias).collect();
+    if rows >= ho {
+        return lean(&inputs, conv);
+    }
+    let (sh, pad_h) = (spec.stride.0, spec.pad_h);
+    let mut tiles = Vec::with_capacity(ho.div_ceil(rows));
+    for oy0 in (0..ho).step_by(rows) {
+        let oy1 = (oy0 + rows).min(ho);
+        // input rows [lo, hi) of the padded plane that these output rows read, as rows of `x`
+        // plus the zero rows above and below it
+        let lo = (oy0 * sh) as isize - pad_h as isize;
+        let hi = ((oy1 - 1) * sh + kh) as isize - pad_h as isize;
+        let (top, bottom) = ((-lo).max(0) as usize, (hi - h as isize).max(0) as usize);
+        let (r0, r1) = (lo.max(0) as usize, (hi.min(h as isize)) as usize);
+        let tile_spec = Im2ColSpec { pad_h: 0, ..spec };
+        tiles.push(lean(&inputs, move |t: &[&Tensor]| {
+            let rows = t[0]
+                .narrow(2, r0, r1 - r0)?
+                .pad_with_zeros(2, top, bottom)?;
+            crate::fused::conv2d(&rows, t[1], t.get(2).copied(), tile_spec)
+        })?);
+    }
+    Ok(Tensor::cat(&tiles, 2)?)
+}
+
+/// `op(inputs)` recomputed in the backward pass (one to three inputs): the graph keeps the inputs
+/// (an activation, weights, per-sample scales), not the op's intermediates. Every input that takes
+/// part in the graph gets its gradient.
+fn lean(
+    inputs: &[&Tensor],
+    op: impl Fn(&[&Tensor]) -> Result<Tensor> + Send + Sync + 'static,
 ) -> Result<Tensor> {
     crate::recompute::checkpoint(
-        &[x, packed],
+        inputs,
         Vec::new(),
         &crate::recompute::RecomputeTape::new(),
-        std::sync::Arc::new(move |t: &[&Tensor]| op(t[0], t[1])),
+        std::sync::Arc::new(op),
     )
 }
 
@@ -314,21 +354,8 @@ fn group_norm_act(
     if crate::fused::takes_kernels(x) || !tracked {
         return crate::fused::group_norm_act(x, scale, shift, groups, eps, silu);
     }
-    let bc = scale.elem_count();
-    let (s_dims, t_dims) = (scale.dims().to_vec(), shift.dims().to_vec());
-    let packed = Tensor::cat(
-        &[
-            scale.flatten_all()?,
-            shift.to_dtype(scale.dtype())?.flatten_all()?,
-        ],
-        0,
-    )?;
-    lean(x, &packed, move |x, p| {
-        let sc = p.narrow(0, 0, bc)?.reshape(s_dims.as_slice())?;
-        let sh = p
-            .narrow(0, bc, p.dim(0)? - bc)?
-            .reshape(t_dims.as_slice())?;
-        crate::fused::group_norm_act(x, &sc, &sh, groups, eps, silu)
+    lean(&[x, scale, shift], move |t: &[&Tensor]| {
+        crate::fused::group_norm_act(t[0], t[1], t[2], groups, eps, silu)
     })
 }
 

@@ -235,6 +235,34 @@ fn lean_convolutions_and_group_norms_equal_the_compositions_they_recompute() {
         let d = max_abs(&(a - z).unwrap()) / max_abs(z);
         assert!(d <= 1e-12, "convolution, gradient of {name}: {d:e}");
     }
+    // the lean path a few output rows at a time (each tile its own recomputed node), at stride 1
+    // and 2: the same output and gradients as the whole layer's composition
+    for stride in [1, 2] {
+        let spec = veila_nn::ops::Im2ColSpec {
+            stride: (stride, stride),
+            ..spec
+        };
+        let (ho, wo) = spec.out_size(5, 16).unwrap();
+        let probe = f64t(rand_tensor(&mut r, &[2, 4, ho, wo]));
+        let (y0, g0) = value_and_grads(&inputs, &probe, |t| {
+            veila_nn::fused::conv2d_reference(&t[0], &t[1], Some(&t[2]), spec, (2, ho, wo)).unwrap()
+        });
+        for rows in [1, 2] {
+            assert!(rows < ho);
+            let (y1, g1) = value_and_grads(&inputs, &probe, |t| {
+                veila_nn::ops::conv2d_lean_tiles(&t[0], &t[1], Some(&t[2]), spec, Some(rows))
+                    .unwrap()
+            });
+            assert!(max_abs(&(&y1 - &y0).unwrap()) <= 1e-12 * max_abs(&y0));
+            for (name, (a, z)) in ["x", "weight", "bias"].iter().zip(g1.iter().zip(&g0)) {
+                let d = max_abs(&(a - z).unwrap()) / max_abs(z);
+                assert!(
+                    d <= 1e-12,
+                    "stride {stride}, {rows} rows a tile, gradient of {name}: {d:e}"
+                );
+            }
+        }
+    }
     // GroupNorm with a per-sample modulation and SiLU
     let sc = f64t(rand_tensor(&mut r, &[2, 6]));
     let sh = f64t(rand_tensor(&mut r, &[2, 6]));

@@ -502,7 +502,7 @@ impl Im2Col {
 /// The most floats of one column tile of the fused convolution (16 MiB; see
 /// [`Im2Col::tile_rows`]). The products over a tile are still large (a 64 x 1024 level with 64
 /// input channels takes 7 output rows, 7,168 pixels, at once).
-pub(super) const TILE_FLOATS: usize = 1 << 22;
+pub(crate) const TILE_FLOATS: usize = 1 << 22;
 
 multiversion! {
     /// One sample's col2im on one thread: every channel's plane in turn.
