@@ -81,6 +81,16 @@ fn make_shards_with_views(dir: &Path, frames: u32, labels: bool, images: bool, e
 
 /// A bundle config with a 4x cheaper denoiser than the default's (base width 8, 32 x 128 grid),
 /// whose encoders are the default model's (so `encoders_from = models/default` fits).
+/// Writes `small.json` into `dir` and returns the `[model]` lines that train it with the shipped
+/// bundle's encoders.
+fn small_model_section(dir: &Path) -> String {
+    write_small_bundle_config(&dir.join("small.json"));
+    format!(
+        "bundle = \"small.json\"\nencoders_from = \"{}\"",
+        model_dir().display()
+    )
+}
+
 fn write_small_bundle_config(path: &Path) {
     let mut v: serde_json::Value =
         serde_json::from_slice(&std::fs::read(model_dir().join("bundle.json")).unwrap()).unwrap();
@@ -121,11 +131,7 @@ const SMALL: &str = "steps = 4\nbatch = 1\nlr = 1e-3\nseed = 3\ncheckpoint_every
 fn interrupted_and_resumed_run_matches_an_uninterrupted_one_bit_for_bit() {
     let tmp = tempfile::tempdir().unwrap();
     make_shards(&tmp.path().join("shards"), 3, false, true);
-    write_small_bundle_config(&tmp.path().join("small.json"));
-    let model = format!(
-        "bundle = \"small.json\"\nencoders_from = \"{}\"",
-        model_dir().display()
-    );
+    let model = small_model_section(tmp.path());
     // relative paths resolve against the config file's folder
     let a = tmp.path().join("a.toml");
     write_config(&a, "shards", "run-a", &model, SMALL);
@@ -319,11 +325,7 @@ fn shards_without_what_training_needs_fail_clearly() {
 fn a_bf16_run_trains_and_ships_f32_weights() {
     let tmp = tempfile::tempdir().unwrap();
     make_shards(&tmp.path().join("shards"), 2, false, true);
-    write_small_bundle_config(&tmp.path().join("small.json"));
-    let model = format!(
-        "bundle = \"small.json\"\nencoders_from = \"{}\"",
-        model_dir().display()
-    );
+    let model = small_model_section(tmp.path());
     let a = tmp.path().join("a.toml");
     write_config(
         &a,
@@ -359,11 +361,7 @@ fn killed_runs_resume_to_the_uninterrupted_weights() {
 
     let tmp = tempfile::tempdir().unwrap();
     make_shards(&tmp.path().join("shards"), 3, false, true);
-    write_small_bundle_config(&tmp.path().join("small.json"));
-    let model = format!(
-        "bundle = \"small.json\"\nencoders_from = \"{}\"",
-        model_dir().display()
-    );
+    let model = small_model_section(tmp.path());
     let steps = "steps = 6\nbatch = 1\nlr = 1e-3\nseed = 5\ncheckpoint_every = 1";
     let a = tmp.path().join("a.toml");
     write_config(&a, "shards", "run-a", &model, steps);
@@ -855,11 +853,7 @@ fn the_shipped_example_config_trains() {
 fn training_errors_say_what_failed() {
     let tmp = tempfile::tempdir().unwrap();
     make_shards(&tmp.path().join("shards"), 4, false, true);
-    write_small_bundle_config(&tmp.path().join("small.json"));
-    let model = format!(
-        "bundle = \"small.json\"\nencoders_from = \"{}\"",
-        model_dir().display()
-    );
+    let model = small_model_section(tmp.path());
     // a residual model's mean network cannot keep its checkpoints: a file holds their folder
     if is_residual_bundle(&tmp.path().join("small.json")) {
         let cfg = tmp.path().join("t.toml");
@@ -916,11 +910,7 @@ fn training_errors_say_what_failed() {
 fn an_interrupted_run_says_which_checkpoints_it_kept() {
     let tmp = tempfile::tempdir().unwrap();
     make_shards(&tmp.path().join("shards"), 2, false, true);
-    write_small_bundle_config(&tmp.path().join("small.json"));
-    let model = format!(
-        "bundle = \"small.json\"\nencoders_from = \"{}\"",
-        model_dir().display()
-    );
+    let model = small_model_section(tmp.path());
     let cfg = tmp.path().join("t.toml");
     write_config(
         &cfg,

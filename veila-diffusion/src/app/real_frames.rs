@@ -32,8 +32,9 @@
 //! Every frame goes from its image and calibration to scans through `ScanPipeline`, as every
 //! door does: a LiDAR frame whose forward axis is not the camera's (nuScenes: `y` forward) is
 //! turned by quarter turns into the model's frame for sampling and back. The scans are scored in
-//! the calibration's LiDAR frame (`veila_metrics::view`); the front half is the half that the
-//! pipeline's quarter turn brings forward. The oblique nuScenes cameras (55-110° off the LiDAR's
+//! the calibration's LiDAR frame (`veila_metrics::view`), the simulator's mean scans turned into
+//! it by the same quarter turns; the front half is the half that the pipeline's quarter turn brings
+//! forward. The oblique nuScenes cameras (55-110° off the LiDAR's
 //! `y`) are sampled the way `veila generate` samples them, with the camera off the model's axis.
 
 use std::path::{Path, PathBuf};
@@ -313,9 +314,14 @@ pub fn evaluate(bundle: &Bundle, opts: &RealOptions<'_>, out: &Path) -> Result<R
         if bundle.mean.is_some() {
             rows.push(scored("mean-network", &[generate(0, 0.0)?])?);
         }
-        rows.push(scored("mean-scan", std::slice::from_ref(opts.mean_scan))?);
+        // the mean scans are the simulator's, in the model's frame: turned into the LiDAR's as
+        // the pipeline turns its samples, so that every row is scored in one frame
+        let to_lidar = |scan: &RangeImage| {
+            super::rig::range_to_lidar_frame(&bundle.config, scan, pipeline.quarter_turns())
+        };
+        rows.push(scored("mean-scan", &[to_lidar(opts.mean_scan)?])?);
         if let Some((label, scan)) = opts.reference_mean_scan {
-            rows.push(scored(label, std::slice::from_ref(scan))?);
+            rows.push(scored(label, &[to_lidar(scan)?])?);
         }
         rows.push(scored(
             "flat-ground",
