@@ -273,6 +273,7 @@ pub fn convert(
     }
     let projector = Projector::new(&opts.sensor, opts.projection)?;
     let out = &opts.out_dir;
+    let created = !out.exists();
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     // probe writability up front, so a read-only folder fails before any work
     crate::atomic::write_atomic(&out.join(".veila-write-probe"), b"")?;
@@ -282,7 +283,55 @@ pub fn convert(
 
     let fp = fingerprint(dataset, opts)?;
     // workers of this conversion share the folder; one with other settings is refused
-    let _run = join_conversion(out, &fp)?;
+    let run = join_conversion(out, &fp)?;
+    let result = convert_joined(dataset, label_map, opts, progress, &projector, &fp);
+    if result.is_err() && created {
+        // a failed first conversion leaves its folder as empty as it found it
+        drop(run);
+        remove_if_only_locks(out);
+    }
+    result
+}
+
+/// Files a conversion keeps beside its shards to coordinate its workers ([`join_conversion`]).
+const LOCK_FILES: [&str; 2] = [".veila-convert.guard", ".veila-convert.run"];
+
+/// Removes the [`LOCK_FILES`] from `out` if it holds nothing else and no other conversion holds
+/// them.
+fn remove_if_only_locks(out: &Path) {
+    let Ok(entries) = std::fs::read_dir(out) else {
+        return;
+    };
+    let names: Vec<String> = entries
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    if !names.iter().all(|n| LOCK_FILES.contains(&n.as_str())) {
+        return;
+    }
+    let Ok(guard) = std::fs::File::open(out.join(LOCK_FILES[0])) else {
+        return;
+    };
+    let Ok(run) = std::fs::File::open(out.join(LOCK_FILES[1])) else {
+        return;
+    };
+    if guard.try_lock().is_ok() && run.try_lock().is_ok() {
+        for name in LOCK_FILES {
+            let _ = std::fs::remove_file(out.join(name));
+        }
+    }
+}
+
+/// [`convert`] once this process has joined the conversion into `opts.out_dir`.
+fn convert_joined(
+    dataset: &dyn Dataset,
+    label_map: Option<&LabelMap>,
+    opts: &ConvertOptions,
+    progress: &(dyn Fn(Progress) + Sync),
+    projector: &Projector,
+    fp: &str,
+) -> Result<ConvertSummary> {
+    let out = &opts.out_dir;
     let n = dataset.len();
     let fps = opts.frames_per_shard;
     let total_shards = n.div_ceil(fps);
@@ -302,7 +351,7 @@ pub fn convert(
         let range = k * fps..((k + 1) * fps).min(n);
         let count = range.len();
         let sources = sources_digest(dataset, range.clone())?;
-        if complete_entry(out, k, &fp, Some(&sources)).is_some() {
+        if complete_entry(out, k, fp, Some(&sources)).is_some() {
             summary.skipped_shards += 1;
             progress(Progress::Frames(count));
             continue;
@@ -313,7 +362,7 @@ pub fn convert(
                 let frame = dataset.load(i)?;
                 let (s, st) = frame_to_sample(
                     &frame,
-                    &projector,
+                    projector,
                     intensity_max,
                     label_map,
                     opts.include_images,
@@ -347,7 +396,7 @@ pub fn convert(
         let entry = write_shard(&path, &opts.sensor, dataset.name(), &samples)?;
         drop(samples);
         let sc = Sidecar {
-            fingerprint: fp.clone(),
+            fingerprint: fp.to_string(),
             sources,
             entry,
         };
@@ -371,7 +420,7 @@ pub fn convert(
                 .filter(|s| s.fingerprint == fp)
                 .map(|s| s.entry)
         } else {
-            complete_entry(out, k, &fp, None)
+            complete_entry(out, k, fp, None)
         };
         match entry {
             Some(e) => entries.push(e),
