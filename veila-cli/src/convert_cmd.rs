@@ -2,10 +2,10 @@
 //! reads (see `veila_data::convert` for the guarantees: bounded memory, atomic, resumable,
 //! shardable).
 //!
-//! Its output is the one exception to `staging`'s all-or-nothing publishing: a conversion runs
-//! for hours over many workers, so every shard and its sidecar are written atomically on their own
-//! and `manifest.json` last, by whichever worker finds every shard complete; a rerun skips the
-//! complete shards and rebuilds the rest.
+//! Its output publishes its own way rather than through `staging`: a conversion runs for hours over
+//! many workers, so every shard and its sidecar are written atomically on their own, under names
+//! that never collide with a published shard, and `manifest.json` last (one rename), by whichever
+//! worker finds every shard complete; a rerun skips the complete shards and rebuilds the rest.
 //!
 //! The worker's shard comes from `--shard-index/--shard-count`, else from the environment:
 //! `SLURM_ARRAY_TASK_ID` (minus `SLURM_ARRAY_TASK_MIN`) of `SLURM_ARRAY_TASK_COUNT` (a Slurm array

@@ -5,8 +5,15 @@
 //!
 //! - **Bounded memory**: frames are read, projected and written one shard (`frames_per_shard`
 //!   frames) at a time; nothing is kept across shards but small manifest entries.
-//! - **Atomic**: every shard and its sidecar (`shard-NNNNN.safetensors.json`) are written to a
+//! - **Atomic**: every shard and its sidecar (`shard-NNNNN-TAG.safetensors.json`) are written to a
 //!   temporary file and renamed; killing the process at any moment leaves complete files only.
+//! - **Wholly old or wholly new**: a shard's name carries a tag of its settings and sources
+//!   (`shard-00003-9f2c41d07a1b.safetensors`), so a conversion that changes a published dataset
+//!   writes its shards beside the old ones and never touches a file `manifest.json` lists. The new
+//!   manifest replaces the old one in one rename; only then are the shards no manifest lists
+//!   removed (by the last worker still running). Until then the folder needs room for both.
+//! - **Its own folder only**: a folder holding files no conversion wrote, or another dataset's
+//!   manifest, is refused before anything is written.
 //! - **Resumable**: a shard whose sidecar exists, was made with the same settings, from source files
 //!   with the same contents (SHA-256 of every file of every frame, [`Dataset::source_files`]: a frame
 //!   changed under the same id is noticed) and matches the shard file's size and SHA-256 is skipped;
@@ -228,25 +235,85 @@ fn fingerprint(dataset: &dyn Dataset, opts: &ConvertOptions) -> Result<String> {
     Ok(sha256_hex(desc.to_string().as_bytes())[..16].to_string())
 }
 
-/// File name of shard `k`.
-pub fn shard_file_name(k: usize) -> String {
-    format!("shard-{k:05}.safetensors")
+/// File name of shard `k` made with settings fingerprint `fp` from sources with digest `sources`:
+/// `shard-NNNNN-TAG.safetensors`, TAG the first 12 hex digits of their SHA-256. A shard that
+/// would hold other samples gets another name, so it never overwrites a published one.
+pub fn shard_file_name(k: usize, fp: &str, sources: &str) -> String {
+    let tag = &sha256_hex(format!("{fp}\n{sources}").as_bytes())[..12];
+    format!("shard-{k:05}-{tag}.safetensors")
 }
 
-fn sidecar_path(out: &Path, k: usize) -> PathBuf {
-    out.join(format!("{}.json", shard_file_name(k)))
+/// The shard index of a shard or sidecar file name (`shard-NNNNN[-TAG].safetensors[.json]`).
+fn shard_index(name: &str) -> Option<usize> {
+    let stem = name
+        .strip_suffix(".safetensors")
+        .or_else(|| name.strip_suffix(".safetensors.json"))?;
+    let rest = stem.strip_prefix("shard-")?;
+    let digits = rest.split_once('-').map_or(rest, |(k, _)| k);
+    (digits.len() >= 5 && digits.bytes().all(|b| b.is_ascii_digit()))
+        .then(|| digits.parse().ok())
+        .flatten()
 }
 
-/// The sidecar's entry when shard `k` is complete and was made with these settings (and from
-/// these sources, when `sources` is given).
-fn complete_entry(out: &Path, k: usize, fp: &str, sources: Option<&str>) -> Option<ShardEntry> {
-    let text = std::fs::read_to_string(sidecar_path(out, k)).ok()?;
+fn sidecar_path(out: &Path, file: &str) -> PathBuf {
+    out.join(format!("{file}.json"))
+}
+
+/// The sidecar's entry when shard file `file` is complete and was made with these settings (and
+/// from these sources, when `sources` is given).
+fn complete_entry(out: &Path, file: &str, fp: &str, sources: Option<&str>) -> Option<ShardEntry> {
+    let text = std::fs::read_to_string(sidecar_path(out, file)).ok()?;
     let sc: Sidecar = serde_json::from_str(&text).ok()?;
-    if sc.fingerprint != fp || sources.is_some_and(|s| s != sc.sources) {
+    if sc.fingerprint != fp || sources.is_some_and(|s| s != sc.sources) || sc.entry.file != file {
         return None;
     }
     let (sha, bytes) = sha256_file(&out.join(&sc.entry.file)).ok()?;
     (sha == sc.entry.sha256 && bytes == sc.entry.bytes).then_some(sc.entry)
+}
+
+/// Refuses an output folder that holds files no conversion wrote, or the manifest of another
+/// dataset: a conversion replaces only its own earlier output.
+fn check_own_folder(out: &Path, dataset: &str) -> Result<()> {
+    let refuse = |path: PathBuf, why: String| {
+        Err(Error::io(
+            path,
+            std::io::Error::new(std::io::ErrorKind::AlreadyExists, why),
+        ))
+    };
+    let rd = std::fs::read_dir(out).map_err(|e| Error::io(out, e))?;
+    let mut names: Vec<String> = rd
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    if let Some(n) = names.iter().find(|n| {
+        n.as_str() != "manifest.json"
+            && !n.starts_with(crate::atomic::HIDDEN_PREFIX)
+            && shard_index(n).is_none()
+    }) {
+        return refuse(
+            out.join(n),
+            "this file is not part of a converted dataset, and convert writes only into an \
+             empty folder or its own earlier output: choose another output folder (nothing was \
+             changed)"
+                .into(),
+        );
+    }
+    let manifest = out.join("manifest.json");
+    if manifest.exists() {
+        let m = Manifest::read(&manifest)?;
+        if m.dataset != dataset {
+            return refuse(
+                manifest,
+                format!(
+                    "the folder holds a converted `{}` dataset and this conversion is `{dataset}`: \
+                     choose another output folder (nothing was changed)",
+                    m.dataset
+                ),
+            );
+        }
+    }
+    Ok(())
 }
 
 /// Convert `dataset` into shards under `opts.out_dir` (see the module docs).
@@ -274,6 +341,9 @@ pub fn convert(
     let projector = Projector::new(&opts.sensor, opts.projection)?;
     let out = &opts.out_dir;
     let created = !out.exists();
+    if !created {
+        check_own_folder(out, dataset.name())?;
+    }
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     // probe writability up front, so a read-only folder fails before any work
     crate::atomic::write_atomic(&out.join(".veila-write-probe"), b"")?;
@@ -284,7 +354,7 @@ pub fn convert(
     let fp = fingerprint(dataset, opts)?;
     // workers of this conversion share the folder; one with other settings is refused
     let run = join_conversion(out, &fp)?;
-    let result = convert_joined(dataset, label_map, opts, progress, &projector, &fp);
+    let result = convert_joined(dataset, label_map, opts, progress, &projector, &fp, &run);
     if result.is_err() && created {
         // a failed first conversion leaves its folder as empty as it found it
         drop(run);
@@ -330,6 +400,7 @@ fn convert_joined(
     progress: &(dyn Fn(Progress) + Sync),
     projector: &Projector,
     fp: &str,
+    run: &std::fs::File,
 ) -> Result<ConvertSummary> {
     let out = &opts.out_dir;
     let n = dataset.len();
@@ -347,11 +418,15 @@ fn convert_joined(
     };
     let intensity_max = dataset.intensity_max();
 
+    // this worker's shards: their entries once verified or written
+    let mut own: std::collections::BTreeMap<usize, ShardEntry> = Default::default();
     for &k in &mine {
         let range = k * fps..((k + 1) * fps).min(n);
         let count = range.len();
         let sources = sources_digest(dataset, range.clone())?;
-        if complete_entry(out, k, fp, Some(&sources)).is_some() {
+        let file = shard_file_name(k, fp, &sources);
+        if let Some(entry) = complete_entry(out, &file, fp, Some(&sources)) {
+            own.insert(k, entry);
             summary.skipped_shards += 1;
             progress(Progress::Frames(count));
             continue;
@@ -382,45 +457,40 @@ fn convert_joined(
             summary.rejected += st.rejected.total();
             samples.push(s);
         }
-        let path = out.join(shard_file_name(k));
-        if summary.written_shards == 0 {
-            // a dataset that changes is unpublished first: a killed run never leaves a manifest
-            // listing shards that are no longer the ones it describes
-            match std::fs::remove_file(out.join("manifest.json")) {
-                Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
-                    return Err(Error::io(out.join("manifest.json"), e));
-                }
-                _ => {}
-            }
-        }
-        let entry = write_shard(&path, &opts.sensor, dataset.name(), &samples)?;
+        // a new name: the published shards stay as they are until the new manifest replaces theirs
+        let entry = write_shard(&out.join(&file), &opts.sensor, dataset.name(), &samples)?;
         drop(samples);
         let sc = Sidecar {
             fingerprint: fp.to_string(),
             sources,
-            entry,
+            entry: entry.clone(),
         };
         let text = serde_json::to_string_pretty(&sc).map_err(|e| Error::Invalid {
             what: "sidecar".into(),
             message: e.to_string(),
         })?;
-        crate::atomic::write_atomic(&sidecar_path(out, k), text.as_bytes())?;
+        crate::atomic::write_atomic(&sidecar_path(out, &file), text.as_bytes())?;
+        own.insert(k, entry);
         summary.written_shards += 1;
     }
 
     // the manifest, once every shard (from any worker) is complete
+    let mut files_of: std::collections::BTreeMap<usize, Vec<String>> = Default::default();
+    for e in std::fs::read_dir(out)
+        .map_err(|e| Error::io(out, e))?
+        .flatten()
+    {
+        let name = e.file_name().to_string_lossy().into_owned();
+        if let (Some(k), false) = (shard_index(&name), name.ends_with(".json")) {
+            files_of.entry(k).or_default().push(name);
+        }
+    }
     let mut entries = Vec::with_capacity(total_shards);
     for k in 0..total_shards {
-        let mine_now = k % opts.worker_count == opts.worker_index;
         // our own shards were verified or written above; re-hashing them would double the IO
-        let entry = if mine_now {
-            std::fs::read_to_string(sidecar_path(out, k))
-                .ok()
-                .and_then(|t| serde_json::from_str::<Sidecar>(&t).ok())
-                .filter(|s| s.fingerprint == fp)
-                .map(|s| s.entry)
-        } else {
-            complete_entry(out, k, fp, None)
+        let entry = match own.remove(&k) {
+            Some(e) => Some(e),
+            None => other_workers_shard(dataset, out, k, fps, fp, files_of.get(&k))?,
         };
         match entry {
             Some(e) => entries.push(e),
@@ -435,28 +505,50 @@ fn convert_joined(
         count: n,
         shards: entries,
     };
-    // shards of an earlier conversion into more shards are not part of this dataset
-    remove_shards_from(out, total_shards)?;
+    // one rename publishes the new dataset whole
     manifest.write(&out.join("manifest.json"))?;
     summary.manifest_written = true;
+    // then the shards it does not list (an earlier conversion's, or a killed one's) go, by the
+    // last worker of this conversion still running (one still writing holds the run lock shared)
+    if run.try_lock().is_ok() {
+        let listed: std::collections::BTreeSet<&str> =
+            manifest.shards.iter().map(|e| e.file.as_str()).collect();
+        let rd = std::fs::read_dir(out).map_err(|e| Error::io(out, e))?;
+        for e in rd.flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let shard = name.strip_suffix(".json").unwrap_or(&name);
+            if shard_index(&name).is_some() && !listed.contains(shard) {
+                std::fs::remove_file(e.path()).map_err(|err| Error::io(e.path(), err))?;
+            }
+        }
+    }
     Ok(summary)
 }
 
-/// Remove `shard-NNNNN.safetensors` and their sidecars with `NNNNN >= first` from `out`.
-fn remove_shards_from(out: &Path, first: usize) -> Result<()> {
-    let rd = std::fs::read_dir(out).map_err(|e| Error::io(out, e))?;
-    for e in rd.flatten() {
-        let name = e.file_name().to_string_lossy().into_owned();
-        let k = name
-            .strip_prefix("shard-")
-            .and_then(|r| r.split_once(".safetensors"))
-            .filter(|(_, rest)| rest.is_empty() || *rest == ".json")
-            .and_then(|(k, _)| k.parse::<usize>().ok());
-        if k.is_some_and(|k| k >= first) {
-            std::fs::remove_file(e.path()).map_err(|err| Error::io(e.path(), err))?;
-        }
+/// The entry of shard `k` of another worker, when one of its `files` is complete with these
+/// settings. Several complete candidates (the sources changed under the same settings) are told
+/// apart by hashing the sources.
+fn other_workers_shard(
+    dataset: &dyn Dataset,
+    out: &Path,
+    k: usize,
+    fps: usize,
+    fp: &str,
+    files: Option<&Vec<String>>,
+) -> Result<Option<ShardEntry>> {
+    let Some(files) = files else {
+        return Ok(None);
+    };
+    let mut complete: Vec<ShardEntry> = files
+        .iter()
+        .filter_map(|f| complete_entry(out, f, fp, None))
+        .collect();
+    if complete.len() <= 1 {
+        return Ok(complete.pop());
     }
-    Ok(())
+    let sources = sources_digest(dataset, k * fps..((k + 1) * fps).min(dataset.len()))?;
+    let want = shard_file_name(k, fp, &sources);
+    Ok(complete.into_iter().find(|e| e.file == want))
 }
 
 /// Join the conversion into `out` with settings fingerprint `fp`: the workers of one conversion

@@ -20,7 +20,7 @@
 //!
 //! The recomputed block runs the same kernels on the same inputs, so its gradients equal the plain
 //! path's up to the order in which a shared input's gradients are summed (tested in
-//! `tests/recompute.rs`). Blocks must be deterministic (no dropout).
+//! `tests/it/recompute.rs`). Blocks must be deterministic (no dropout).
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};

@@ -9,6 +9,7 @@ use std::process::Command;
 mod import_cycles;
 mod lean;
 mod sizes;
+mod wheel_features;
 
 /// Workspace crates each crate may depend on (any dependency kind). Anything above is a layering break.
 const INTERNAL_ALLOWED: &[(&str, &[&str])] = &[

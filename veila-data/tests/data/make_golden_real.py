@@ -1,4 +1,4 @@
-"""Reference numbers for veila-data/tests/real_data.rs, computed independently with numpy (+ PyYAML)
+"""Reference numbers for veila-data/tests/it/real_data.rs, computed independently with numpy (+ PyYAML)
 from the real sample files in ../shared/data/real (not copied into the repository).
 
 Run from the repository root:  python3 veila-data/tests/data/make_golden_real.py

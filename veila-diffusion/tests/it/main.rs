@@ -1,7 +1,9 @@
 //! Integration tests of veila-diffusion (one binary, modules per area).
-
+mod bundle_pipeline;
 mod common;
 mod device;
+mod encoder_augment;
 mod methods;
 mod samplers;
+mod scan_pipeline;
 mod training;

@@ -8,7 +8,7 @@
 //! output pixel and applied in 22-bit fixed point with rounding, each pass rounded and clamped to
 //! `u8`. It is hand-written rather than taken from an image crate because only Pillow's exact
 //! arithmetic reproduces the processors' bytes (`image`'s filters differ in support and rounding).
-//! `tests/preprocess.rs` checks every byte against Pillow, and the processors' pixel values
+//! `tests/it/preprocess.rs` checks every byte against Pillow, and the processors' pixel values
 //! against `SegformerImageProcessorPil` / `DPTImageProcessorPil`, with the script that made the
 //! references kept beside them.
 //!

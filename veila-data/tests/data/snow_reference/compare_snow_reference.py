@@ -1,5 +1,5 @@
 """Snowflake-return counts of the public reference LiDAR snowfall simulation (Hahner et al., CVPR 2022,
-github.com/SysCV/LiDAR_snow_sim) on a real KITTI scan, for veila-data/tests/weather_real.rs.
+github.com/SysCV/LiDAR_snow_sim) on a real KITTI scan, for veila-data/tests/it/weather_real.rs.
 
 Run by hand (not in CI), from the repository root, with numpy, scipy, PyYAML and tqdm installed:
 

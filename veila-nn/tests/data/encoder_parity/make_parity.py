@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Reference outputs of the Hugging Face SegFormer and Depth-Anything-V2 models for veila-nn's
-encoder parity tests (veila-nn/tests/encoder_parity.rs). Run by hand, never in CI.
+encoder parity tests (veila-nn/tests/it/encoder_parity.rs). Run by hand, never in CI.
 
 Setup (CPU wheels into a venv under the worktree's target/):
 
@@ -16,7 +16,7 @@ Real architecture configs (DINOv2-S/14 + Depth-Anything-V2-Small head, SegFormer
 random weights, hundreds of MB: written outside the repository, never committed):
 
     target/pyvenv/bin/python veila-nn/tests/data/encoder_parity/make_parity.py --real /tmp/veila-parity
-    VEILA_ENCODER_PARITY_DIR=/tmp/veila-parity cargo test --release -p veila-nn --test encoder_parity
+    VEILA_ENCODER_PARITY_DIR=/tmp/veila-parity cargo test --release -p veila-nn --test it encoder_parity::
 
 Each model gives two files: `<name>.safetensors` (the weights, Hugging Face names) and
 `<name>_io.safetensors` (`pixel_values` [1, 3, H, W] and the outputs: `stage{i}` the four

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Reference outputs of Pillow's resampling and of the Hugging Face image processors for veila-nn's
-preprocessing tests (veila-nn/tests/preprocess.rs). Run by hand, never in CI:
+preprocessing tests (veila-nn/tests/it/preprocess.rs). Run by hand, never in CI:
 
     python3 -m venv target/pyvenv
     target/pyvenv/bin/pip install numpy pillow safetensors transformers torch

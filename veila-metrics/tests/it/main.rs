@@ -1,0 +1,8 @@
+//! Integration tests of veila-metrics (one test binary, a module per area).
+
+mod bvh;
+mod crossmodal;
+mod golden;
+mod hard_cases;
+mod hostile_bounds;
+mod peer_protocols;
