@@ -68,21 +68,21 @@ fn bundle_weights(out: &Path) -> Tree {
         .collect()
 }
 
-/// The shard files `manifest.json` in `out` lists, with their sidecars (empty: no manifest).
-fn listed_shards(out: &Path) -> Vec<String> {
-    let Ok(bytes) = std::fs::read(out.join("manifest.json")) else {
-        return Vec::new();
-    };
-    let m: serde_json::Value = serde_json::from_slice(&bytes).unwrap();
-    m["shards"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .flat_map(|e| {
-            let f = e["file"].as_str().unwrap();
-            [f.to_string(), format!("{f}.json")]
-        })
-        .collect()
+/// The shard files a shard `manifest.json` in `out` lists, with their sidecars (`None`: no such
+/// manifest; other commands' folders may hold a `manifest.json` of another kind).
+fn listed_shards(out: &Path) -> Option<Vec<String>> {
+    let bytes = std::fs::read(out.join("manifest.json")).ok()?;
+    let m: serde_json::Value = serde_json::from_slice(&bytes).ok()?;
+    let shards = m.get("shards")?.as_array()?;
+    Some(
+        shards
+            .iter()
+            .flat_map(|e| {
+                let f = e["file"].as_str().unwrap();
+                [f.to_string(), format!("{f}.json")]
+            })
+            .collect(),
+    )
 }
 
 /// `convert`'s output: `manifest.json` and the shards it lists (a conversion in progress writes
@@ -92,7 +92,7 @@ fn published_dataset(out: &Path) -> Tree {
     if !out.join("manifest.json").is_file() {
         return Tree::new();
     }
-    let listed = listed_shards(out);
+    let listed = listed_shards(out).unwrap_or_default();
     tree(out)
         .into_iter()
         .filter(|(p, _)| {
@@ -117,9 +117,9 @@ fn deep_leftovers(dir: &Path) -> Vec<PathBuf> {
         for e in rd.flatten() {
             let n = e.file_name().to_string_lossy().into_owned();
             let kept = n == ".veila-outputs.json" || n.starts_with(".veila-convert.");
-            let stray_shard = d.join("manifest.json").is_file()
-                && n.starts_with("shard-")
-                && !listed.contains(&n);
+            let stray_shard = listed
+                .as_ref()
+                .is_some_and(|l| n.starts_with("shard-") && !l.contains(&n));
             if n.contains(".tmp")
                 || n.contains(".old-")
                 || (n.starts_with(".veila-") && !kept)
