@@ -92,7 +92,16 @@ fn demo_is_seeded_and_night_touches_only_the_camera() {
     let tmp = tempfile::tempdir().unwrap();
     let run = |name: &str, extra: &[&str]| {
         let out = tmp.path().join(name);
-        let mut args = vec!["demo", "--steps", "2", "--out", out.to_str().unwrap()];
+        // two baseline frames: the baselines run, at a twelfth of their default cost
+        let mut args = vec![
+            "demo",
+            "--steps",
+            "2",
+            "--baseline-frames",
+            "2",
+            "--out",
+            out.to_str().unwrap(),
+        ];
         args.extend_from_slice(extra);
         let o = veila(&args);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -159,7 +168,15 @@ fn bad_arguments_fail_cleanly_without_output() {
 fn rerunning_the_demo_refreshes_its_own_output_but_protects_other_folders() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("demo");
-    let args = ["demo", "--steps", "2", "--out", out.to_str().unwrap()];
+    let args = [
+        "demo",
+        "--steps",
+        "2",
+        "--baseline-frames",
+        "2",
+        "--out",
+        out.to_str().unwrap(),
+    ];
     assert!(veila(&args).status.success());
     let o = veila(&args);
     assert!(
@@ -191,6 +208,8 @@ fn a_closed_stdout_pipe_ends_the_process_quietly() {
             "demo",
             "--quiet",
             "--steps",
+            "2",
+            "--baseline-frames",
             "2",
             "--out",
             out.to_str().unwrap(),
@@ -245,7 +264,7 @@ fn the_residual_weight_moves_between_the_sample_and_the_mean_network() {
         return;
     }
     let run = |name: &str, extra: &[&str]| {
-        let mut args = vec!["demo", "--steps", "2", "--out"];
+        let mut args = vec!["demo", "--steps", "2", "--baseline-frames", "2", "--out"];
         let dir = out(name);
         args.push(dir.to_str().unwrap());
         args.extend_from_slice(extra);

@@ -337,7 +337,15 @@ fn demo_reruns_are_byte_identical_apart_from_timings() {
     let tmp = tempfile::tempdir().unwrap();
     let run = |out: &str| {
         ok(&veila()
-            .args(["demo", "--quiet", "--steps", "1", "--out"])
+            .args([
+                "demo",
+                "--quiet",
+                "--steps",
+                "1",
+                "--baseline-frames",
+                "2",
+                "--out",
+            ])
             .arg(tmp.path().join(out))
             .output()
             .unwrap());
