@@ -376,10 +376,10 @@ mod tests {
         assert!(touched >= before + 200.0, "{before} -> {touched} MiB");
         drop(big);
         // the allocator may keep the freed pages a while: a reset brings the mark down to what
-        // is resident now, never above it
+        // is resident now (the other tests of this process allocate meanwhile, hence the slack)
         assert!(reset_hwm());
         let (after, rss) = (vm_hwm_mib().unwrap(), vm_rss_mib());
-        assert!(after <= touched, "reset: {touched} -> {after} MiB");
+        assert!(after <= touched + 32.0, "reset: {touched} -> {after} MiB");
         assert!(
             (after - rss).abs() < 64.0,
             "reset: mark {after}, resident {rss} MiB"
