@@ -250,9 +250,13 @@ fn shard_index(name: &str) -> Option<usize> {
         .or_else(|| name.strip_suffix(".safetensors.json"))?;
     let rest = stem.strip_prefix("shard-")?;
     let digits = rest.split_once('-').map_or(rest, |(k, _)| k);
-    (digits.len() >= 5 && digits.bytes().all(|b| b.is_ascii_digit()))
-        .then(|| digits.parse().ok())
-        .flatten()
+    let well_formed = digits.len() >= 5 && digits.bytes().all(|b| b.is_ascii_digit());
+    digits.parse().ok().filter(|_| well_formed)
+}
+
+/// The frames of shard `k`: `frames_per_shard` of them, fewer in the last shard of `n`.
+fn shard_frames(k: usize, frames_per_shard: usize, n: usize) -> std::ops::Range<usize> {
+    k * frames_per_shard..((k + 1) * frames_per_shard).min(n)
 }
 
 fn sidecar_path(out: &Path, file: &str) -> PathBuf {
@@ -409,7 +413,7 @@ fn convert_joined(
     let mine: Vec<usize> = (0..total_shards)
         .filter(|k| k % opts.worker_count == opts.worker_index)
         .collect();
-    let my_frames: usize = mine.iter().map(|k| (n - k * fps).min(fps)).sum();
+    let my_frames: usize = mine.iter().map(|&k| shard_frames(k, fps, n).len()).sum();
     progress(Progress::Start { frames: my_frames });
     let mut summary = ConvertSummary {
         total_shards,
@@ -421,7 +425,7 @@ fn convert_joined(
     // this worker's shards: their entries once verified or written
     let mut own: std::collections::BTreeMap<usize, ShardEntry> = Default::default();
     for &k in &mine {
-        let range = k * fps..((k + 1) * fps).min(n);
+        let range = shard_frames(k, fps, n);
         let count = range.len();
         let sources = sources_digest(dataset, range.clone())?;
         let file = shard_file_name(k, fp, &sources);
@@ -546,7 +550,7 @@ fn other_workers_shard(
     if complete.len() <= 1 {
         return Ok(complete.pop());
     }
-    let sources = sources_digest(dataset, k * fps..((k + 1) * fps).min(dataset.len()))?;
+    let sources = sources_digest(dataset, shard_frames(k, fps, dataset.len()))?;
     let want = shard_file_name(k, fp, &sources);
     Ok(complete.into_iter().find(|e| e.file == want))
 }

@@ -120,26 +120,26 @@ fn workspace_root() -> PathBuf {
         .to_path_buf()
 }
 
-fn metadata() -> BTreeMap<String, Vec<Dep>> {
+/// Stdout of `cargo ARGS --offline` in the workspace root (the checks read cargo's own view).
+fn cargo_offline(args: &[&str]) -> String {
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
     let out = Command::new(cargo)
-        .args([
-            "metadata",
-            "--format-version",
-            "1",
-            "--no-deps",
-            "--offline",
-        ])
+        .args(args)
+        .arg("--offline")
         .current_dir(workspace_root())
         .output()
-        .expect("cargo metadata runs");
+        .expect("cargo runs");
     assert!(
         out.status.success(),
-        "cargo metadata failed: {}",
+        "cargo {args:?} failed: {}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let v: serde_json::Value =
-        serde_json::from_slice(&out.stdout).expect("cargo metadata prints JSON");
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+fn metadata() -> BTreeMap<String, Vec<Dep>> {
+    let out = cargo_offline(&["metadata", "--format-version", "1", "--no-deps"]);
+    let v: serde_json::Value = serde_json::from_str(&out).expect("cargo metadata prints JSON");
     let mut map = BTreeMap::new();
     for pkg in v["packages"].as_array().expect("packages array") {
         let name = pkg["name"].as_str().expect("package name").to_string();

@@ -1,8 +1,6 @@
 //! veila-data stays lean by default: a project that reads KITTI compiles no ray tracer, random-number
 //! stack or plotting library. Those come with the `sim`, `weather`, `augment` and `vis` features.
 
-use std::process::Command;
-
 /// Crates (name prefixes) that `veila-data` without features must not pull in, with the feature
 /// that brings each.
 const HEAVY: &[(&str, &str)] = &[
@@ -36,30 +34,18 @@ fn heavy_crates(tree: &str) -> Vec<String> {
 
 #[test]
 fn veila_data_without_features_is_lean() {
-    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-    let out = Command::new(cargo)
-        .args([
-            "tree",
-            "-p",
-            "veila-data",
-            "--no-default-features",
-            "-e",
-            "normal",
-            "--prefix",
-            "none",
-            "--format",
-            "{p}",
-            "--offline",
-        ])
-        .current_dir(super::workspace_root())
-        .output()
-        .expect("cargo tree runs");
-    assert!(
-        out.status.success(),
-        "cargo tree failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let tree = String::from_utf8_lossy(&out.stdout);
+    let tree = super::cargo_offline(&[
+        "tree",
+        "-p",
+        "veila-data",
+        "--no-default-features",
+        "-e",
+        "normal",
+        "--prefix",
+        "none",
+        "--format",
+        "{p}",
+    ]);
     assert!(
         tree.contains("veila-geom"),
         "unexpected cargo tree output:\n{tree}"

@@ -5,8 +5,6 @@
 //! dependencies it declares for their features alone.
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::path::Path;
-use std::process::Command;
 
 /// Registry crates whose features may differ, with the reason.
 const ALLOWED: &[(&str, &str)] = &[(
@@ -53,31 +51,22 @@ fn mismatches(
         .collect()
 }
 
-fn tree(root: &Path, args: &[&str]) -> String {
-    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-    let out = Command::new(cargo)
-        .arg("tree")
-        .args(args)
-        .args(["--prefix", "none", "--format", "{p}|{f}", "--offline"])
-        .current_dir(root)
-        .output()
-        .expect("cargo tree runs");
-    assert!(
-        out.status.success(),
-        "cargo tree {args:?} failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
+fn tree(args: &[&str]) -> String {
+    let mut all = vec!["tree"];
+    all.extend_from_slice(args);
+    all.extend_from_slice(&["--prefix", "none", "--format", "{p}|{f}"]);
+    super::cargo_offline(&all)
 }
 
 #[test]
 fn the_wheel_reuses_the_workspace_dependencies() {
-    let root = super::workspace_root();
-    let workspace = feature_sets(&tree(&root, &["--workspace", "-e", "normal,build,dev"]));
-    let wheel = feature_sets(&tree(
-        &root,
-        &["--manifest-path", "python/Cargo.toml", "-e", "normal,build"],
-    ));
+    let workspace = feature_sets(&tree(&["--workspace", "-e", "normal,build,dev"]));
+    let wheel = feature_sets(&tree(&[
+        "--manifest-path",
+        "python/Cargo.toml",
+        "-e",
+        "normal,build",
+    ]));
     assert!(
         wheel.keys().any(|p| p.starts_with("candle-core ")),
         "unexpected cargo tree output"
