@@ -2,7 +2,8 @@
 //! dependency as the workspace's test build, so that CI's wheel build reuses the dependencies
 //! `cargo test --workspace` compiled: one feature apart (syn's `full`, say) and cargo compiles that
 //! crate and everything above it a second time, minutes on two cores. `python/Cargo.toml` lists the
-//! dependencies it declares for their features alone.
+//! dependencies it declares for their features alone. The same holds for the dev profile: one
+//! opt-level apart and the crate is compiled again.
 
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -92,4 +93,61 @@ fn feature_check_finds_a_differing_feature_and_only_that() {
     let bad = mismatches(&ws, &py);
     assert_eq!(bad.len(), 1, "{bad:?}");
     assert!(bad[0].starts_with("syn v3.0.9"), "{bad:?}");
+}
+
+/// The `[profile.dev]` and `[profile.dev.package]` tables of a manifest, as their setting lines
+/// (comments and blank lines dropped), in order.
+fn dev_profile(manifest: &str) -> Vec<String> {
+    let mut out = Vec::new();
+    let mut inside = false;
+    for line in manifest.lines() {
+        let line = line.split('#').next().unwrap_or_default().trim();
+        if line.starts_with('[') {
+            inside = line == "[profile.dev]" || line == "[profile.dev.package]";
+            if inside {
+                out.push(line.to_string());
+            }
+        } else if inside && !line.is_empty() {
+            out.push(line.to_string());
+        }
+    }
+    out
+}
+
+#[test]
+fn the_wheel_builds_with_the_workspace_dev_profile() {
+    let read = |path: &str| {
+        std::fs::read_to_string(super::workspace_root().join(path))
+            .unwrap_or_else(|e| panic!("{path}: {e}"))
+    };
+    let (workspace, wheel) = (
+        dev_profile(&read("Cargo.toml")),
+        dev_profile(&read("python/Cargo.toml")),
+    );
+    assert!(
+        workspace.iter().any(|l| l.starts_with("\"*\"")),
+        "Cargo.toml: no [profile.dev.package] \"*\" line"
+    );
+    assert_eq!(
+        wheel, workspace,
+        "python/Cargo.toml's [profile.dev] and [profile.dev.package] must equal the workspace's, \
+         or CI's wheel build compiles every dependency whose settings differ a second time"
+    );
+}
+
+#[test]
+fn profile_check_reads_settings_and_skips_comments_and_other_tables() {
+    let a = "[profile.dev]\nopt-level = 1 # ours\n\n[profile.dev.package]\n# deps\n\"*\" = { opt-level = 1 }\n\
+             [profile.release]\nopt-level = 3\n";
+    let b = "[profile.dev]\nopt-level = 1\n[profile.dev.package]\n\"*\" = { opt-level = 2 }\n";
+    assert_eq!(
+        dev_profile(a),
+        [
+            "[profile.dev]",
+            "opt-level = 1",
+            "[profile.dev.package]",
+            "\"*\" = { opt-level = 1 }"
+        ]
+    );
+    assert_ne!(dev_profile(a), dev_profile(b));
 }
