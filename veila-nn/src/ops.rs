@@ -252,10 +252,9 @@ pub fn conv2d_zero_pad(
 /// elsewhere). `spec.kernel` and `spec.ones_row` are taken from the weights and the bias.
 ///
 /// Where the CPU kernels do not run (GPUs, half precision) and a graph is being built, the im2col
-/// composition is recomputed in the backward pass (`lean`), a tile of output rows at a time (each
-/// tile its own node, its columns at most 4 Mi values, [`conv2d_lean_tiles`]): the graph keeps
-/// the input and the output tiles, not the columns (about `27 C N` values per 3x3 convolution
-/// otherwise), and the backward pass builds one tile's columns at a time.
+/// composition is one node recomputed in the backward pass a tile of output rows at a time (a
+/// tile's columns at most 4 Mi values, [`conv2d_lean_tiles`]): the graph keeps the input and the
+/// output, not the columns (about `27 C N` values per 3x3 convolution otherwise).
 pub fn conv2d_im2col(
     x: &Tensor,
     weight: &Tensor,
@@ -270,7 +269,8 @@ pub fn conv2d_im2col(
 }
 
 /// [`conv2d_im2col`]'s lean path on any device: output rows in tiles of `tile_rows` (default: as
-/// many as keep a tile's columns within 4 Mi values), each recomputed in its own backward pass.
+/// many as keep a tile's columns within 4 Mi values), one graph node whose backward pass
+/// recomputes and back-propagates one tile at a time.
 /// Public for tests and for measuring what a tile size costs.
 pub fn conv2d_lean_tiles(
     x: &Tensor,
@@ -303,7 +303,8 @@ pub fn conv2d_lean_tiles(
         return lean(&inputs, conv);
     }
     let (sh, pad_h) = (spec.stride.0, spec.pad_h);
-    let mut tiles = Vec::with_capacity(ho.div_ceil(rows));
+    let mut tiles: Vec<std::sync::Arc<crate::recompute::BlockFn>> =
+        Vec::with_capacity(ho.div_ceil(rows));
     for oy0 in (0..ho).step_by(rows) {
         let oy1 = (oy0 + rows).min(ho);
         // input rows [lo, hi) of the padded plane that these output rows read, as rows of `x`
@@ -313,14 +314,22 @@ pub fn conv2d_lean_tiles(
         let (top, bottom) = ((-lo).max(0) as usize, (hi - h as isize).max(0) as usize);
         let (r0, r1) = (lo.max(0) as usize, (hi.min(h as isize)) as usize);
         let tile_spec = Im2ColSpec { pad_h: 0, ..spec };
-        tiles.push(lean(&inputs, move |t: &[&Tensor]| {
+        tiles.push(std::sync::Arc::new(move |t: &[&Tensor]| {
             let rows = t[0]
                 .narrow(2, r0, r1 - r0)?
                 .pad_with_zeros(2, top, bottom)?;
             crate::fused::conv2d(&rows, t[1], t.get(2).copied(), tile_spec)
-        })?);
+        }));
     }
-    Ok(Tensor::cat(&tiles, 2)?)
+    // one node for the whole layer: the graph keeps its input and its output once (a node per
+    // tile and their concatenation kept the output twice)
+    crate::recompute::checkpoint_pieces(
+        &inputs,
+        Vec::new(),
+        &crate::recompute::RecomputeTape::new(),
+        tiles,
+        2,
+    )
 }
 
 /// `op(inputs)` recomputed in the backward pass (one to three inputs): the graph keeps the inputs

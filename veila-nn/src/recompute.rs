@@ -112,7 +112,10 @@ pub type BlockFn = dyn Fn(&[&Tensor]) -> Result<Tensor> + Send + Sync;
 /// `pending` until candle runs the node's forward pass, which copies it into the node's own storage
 /// and drops it, so the graph holds each block output once.
 struct Checkpoint {
-    block: Arc<BlockFn>,
+    /// The block, or the pieces whose outputs are the node's output concatenated along `dim`
+    /// (each with its length along `dim`): the backward pass recomputes one piece at a time.
+    pieces: Vec<(Arc<BlockFn>, usize)>,
+    dim: usize,
     params: Vec<Tensor>,
     tape: RecomputeTape,
     pending: Mutex<Option<Tensor>>,
@@ -169,6 +172,8 @@ impl Checkpoint {
     /// Runs the block again on its inputs (tracked copies of those that take part in the graph)
     /// and back-propagates `grad` through it: the inputs' gradients are returned (`None` for an
     /// input outside the graph), the parameters' go on the tape.
+    /// A block of several pieces does this one piece at a time: each piece's gradients are added
+    /// up before the next piece is recomputed, so only one piece's graph exists at a time.
     fn recompute(&self, inputs: &[&Tensor], grad: &Tensor) -> Result<Vec<Option<Tensor>>> {
         let vars = inputs
             .iter()
@@ -186,18 +191,35 @@ impl Checkpoint {
                     .map_or_else(|| t.detach(), |v| v.as_tensor().clone())
             })
             .collect();
-        let y = (self.block)(&fresh.iter().collect::<Vec<_>>())?;
-        let surrogate = (y * grad.detach())?.sum_all()?;
-        let grads = surrogate.backward()?;
-        for p in &self.params {
-            if let Some(g) = grads.get(p) {
-                self.tape.add(p, g)?;
+        let fresh: Vec<&Tensor> = fresh.iter().collect();
+        let grad = grad.detach();
+        let mut sums: Vec<Option<Tensor>> = vec![None; vars.len()];
+        let mut start = 0;
+        for (piece, len) in &self.pieces {
+            let y = piece(&fresh)?;
+            let g = if self.pieces.len() == 1 {
+                grad.clone()
+            } else {
+                grad.narrow(self.dim, start, *len)?
+            };
+            start += len;
+            let grads = (y * g)?.sum_all()?.backward()?;
+            for p in &self.params {
+                if let Some(g) = grads.get(p) {
+                    self.tape.add(p, g)?;
+                }
+            }
+            for (sum, v) in sums.iter_mut().zip(&vars) {
+                let Some(g) = v.as_ref().and_then(|v| grads.get(v.as_tensor())) else {
+                    continue;
+                };
+                *sum = Some(match sum.take() {
+                    Some(prev) => (prev + g)?,
+                    None => g.clone(),
+                });
             }
         }
-        Ok(vars
-            .iter()
-            .map(|v| v.as_ref().and_then(|v| grads.get(v.as_tensor()).cloned()))
-            .collect())
+        Ok(sums)
     }
 
     fn recompute_candle(
@@ -332,6 +354,61 @@ pub fn checkpoint(
     let detached: Vec<Tensor> = inputs.iter().map(|t| t.detach()).collect();
     let out = block(&detached.iter().collect::<Vec<_>>())?.detach();
     drop(detached);
+    let len = out.dims().first().copied().unwrap_or(0);
+    checkpoint_node(inputs, params, tape, vec![(block, len)], 0, out)
+}
+
+/// [`checkpoint`] for a block computed in pieces: its output is the pieces' outputs concatenated
+/// along `dim`, and the backward pass recomputes and back-propagates one piece at a time, so that
+/// only one piece's intermediates exist at once (a convolution a tile of output rows at a time).
+/// The graph holds one node, one output; every piece reads all of `inputs`.
+pub fn checkpoint_pieces(
+    inputs: &[&Tensor],
+    params: Vec<Tensor>,
+    tape: &RecomputeTape,
+    pieces: Vec<Arc<BlockFn>>,
+    dim: usize,
+) -> Result<Tensor> {
+    let detached: Vec<Tensor> = inputs.iter().map(|t| t.detach()).collect();
+    let refs: Vec<&Tensor> = detached.iter().collect();
+    let outs = pieces
+        .iter()
+        .map(|p| p(&refs).map(|t| t.detach()))
+        .collect::<Result<Vec<_>>>()?;
+    drop(refs);
+    drop(detached);
+    let out = match outs.as_slice() {
+        [] => return Err(Error::Config("a checkpointed block has no pieces".into())),
+        [one] => one.clone(),
+        many => Tensor::cat(many, dim)?,
+    };
+    if !inputs.iter().any(|t| t.track_op()) {
+        return Ok(out);
+    }
+    let lens = outs
+        .iter()
+        .map(|t| t.dim(dim))
+        .collect::<candle_core::Result<Vec<_>>>()?;
+    drop(outs);
+    checkpoint_node(
+        inputs,
+        params,
+        tape,
+        pieces.into_iter().zip(lens).collect(),
+        dim,
+        out,
+    )
+}
+
+/// The graph node of [`checkpoint`] and [`checkpoint_pieces`] for their detached output `out`.
+fn checkpoint_node(
+    inputs: &[&Tensor],
+    params: Vec<Tensor>,
+    tape: &RecomputeTape,
+    pieces: Vec<(Arc<BlockFn>, usize)>,
+    dim: usize,
+    out: Tensor,
+) -> Result<Tensor> {
     // the node copies the output's storage as it lies: make it exactly the output
     let out = if out.layout().contiguous_offsets() == Some((0, out.elem_count())) {
         out
@@ -339,7 +416,8 @@ pub fn checkpoint(
         out.force_contiguous()?
     };
     let op = Checkpoint {
-        block,
+        pieces,
+        dim,
         params,
         tape: tape.clone(),
         pending: Mutex::new(Some(out)),
