@@ -261,12 +261,26 @@ pub fn conv2d_im2col(
     bias: Option<&Tensor>,
     spec: Im2ColSpec,
 ) -> Result<Tensor> {
-    let tracked = x.track_op() || weight.track_op() || bias.is_some_and(Tensor::track_op);
-    if crate::fused::takes_kernels(x) || !tracked {
+    if crate::fused::takes_kernels(x) {
         return crate::fused::conv2d(x, weight, bias, spec);
     }
-    conv2d_lean_tiles(x, weight, bias, spec, None)
+    let tracked = x.track_op() || weight.track_op() || bias.is_some_and(Tensor::track_op);
+    if tracked {
+        return conv2d_lean_tiles(x, weight, bias, spec, None);
+    }
+    // No graph (sampling, or a checkpointed block's forward pass): tiles too, so that the
+    // columns never exceed UNTRACKED_TILE_FLOATS values, whatever the batch and the grid.
+    let (b, c, _, _) = x.dims4()?;
+    let (_, _, kh, kw) = weight.dims4()?;
+    let wo = spec.out_size(x.dim(2)?, x.dim(3)?).map_or(1, |(_, wo)| wo);
+    let rows = UNTRACKED_TILE_FLOATS / (b * c * kh * kw * wo).max(1);
+    conv2d_lean_tiles(x, weight, bias, spec, Some(rows.max(1)))
 }
+
+/// The most values of im2col columns an untracked convolution builds at once (256 MiB of f32):
+/// larger tiles than a tracked one's, whose backward pass builds a tile's gradient too, because
+/// this is the sampling path and fewer, larger products run faster.
+const UNTRACKED_TILE_FLOATS: usize = 1 << 26;
 
 /// [`conv2d_im2col`]'s lean path on any device: output rows in tiles of `tile_rows` (default: as
 /// many as keep a tile's columns within 4 Mi values), one graph node whose backward pass
