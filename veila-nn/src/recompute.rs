@@ -348,14 +348,7 @@ pub fn checkpoint(
     tape: &RecomputeTape,
     block: Arc<BlockFn>,
 ) -> Result<Tensor> {
-    if !inputs.iter().any(|t| t.track_op()) {
-        return block(inputs);
-    }
-    let detached: Vec<Tensor> = inputs.iter().map(|t| t.detach()).collect();
-    let out = block(&detached.iter().collect::<Vec<_>>())?.detach();
-    drop(detached);
-    let len = out.dims().first().copied().unwrap_or(0);
-    checkpoint_node(inputs, params, tape, vec![(block, len)], 0, out)
+    checkpoint_pieces(inputs, params, tape, vec![block], 0)
 }
 
 /// [`checkpoint`] for a block computed in pieces: its output is the pieces' outputs concatenated
@@ -385,10 +378,14 @@ pub fn checkpoint_pieces(
     if !inputs.iter().any(|t| t.track_op()) {
         return Ok(out);
     }
-    let lens = outs
-        .iter()
-        .map(|t| t.dim(dim))
-        .collect::<candle_core::Result<Vec<_>>>()?;
+    // a single piece takes the whole gradient: its length is never read
+    let lens = match outs.as_slice() {
+        [_] => vec![0],
+        many => many
+            .iter()
+            .map(|t| t.dim(dim))
+            .collect::<candle_core::Result<Vec<_>>>()?,
+    };
     drop(outs);
     checkpoint_node(
         inputs,
@@ -400,7 +397,7 @@ pub fn checkpoint_pieces(
     )
 }
 
-/// The graph node of [`checkpoint`] and [`checkpoint_pieces`] for their detached output `out`.
+/// The graph node of [`checkpoint_pieces`] for its detached output `out`.
 fn checkpoint_node(
     inputs: &[&Tensor],
     params: Vec<Tensor>,
