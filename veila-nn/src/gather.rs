@@ -8,8 +8,9 @@
 //! pass scatters the gradient back into the source rows.
 //!
 //! On the CPU in f32 it runs as a kernel over the rayon pool. Every other device and dtype runs
-//! the candle composition ([`bilinear_gather_reference`]), recomputed in the backward pass
-//! ([`crate::recompute`]) so that its intermediates are not kept there either.
+//! the candle composition ([`bilinear_gather_reference`]) without a graph, as one node whose
+//! backward pass is the scatter in candle ops ([`crate::recompute::with_backward`]), so that
+//! neither its intermediates nor those of their gradients are kept there either.
 
 use std::sync::Arc;
 
@@ -187,8 +188,8 @@ impl CustomOp1 for Gather {
     }
 }
 
-/// The candle composition of [`bilinear_gather`]: the test oracle, and what every device but the
-/// CPU in f32 runs (there recomputed in the backward pass).
+/// The candle composition of [`bilinear_gather`]: the test oracle, and the forward pass of every
+/// device but the CPU in f32 (whose backward pass is a scatter, [`bilinear_scatter`]).
 pub fn bilinear_gather_reference(src: &Tensor, taps: &GatherTaps) -> Result<Tensor> {
     let n = taps.len();
     let mut acc: Option<Tensor> = None;
@@ -216,10 +217,27 @@ pub fn bilinear_gather(src: &Tensor, taps: &Arc<GatherTaps>) -> Result<Tensor> {
         return Ok(src.contiguous()?.apply_op1(Gather { taps: taps.clone() })?);
     }
     let t = taps.clone();
-    crate::recompute::checkpoint(
+    crate::recompute::with_backward(
         &[src],
-        Vec::new(),
-        &crate::recompute::RecomputeTape::new(),
-        Arc::new(move |s: &[&Tensor]| bilinear_gather_reference(s[0], &t)),
+        |s| bilinear_gather_reference(s[0], taps),
+        Arc::new(move |s: &[&Tensor], g: &Tensor| Ok(vec![Some(bilinear_scatter(s[0], &t, g)?)])),
     )
+}
+
+/// The gradient of [`bilinear_gather`] with respect to its source `src: [B, M, C]` for the
+/// output's gradient `grad: [B, n, C]`: each sample's gradient, times each corner's weight, added
+/// into that corner's row (`index_add`). What it keeps at once is the gradient, one weighted copy
+/// of it and the source-sized sum; the composition's own backward pass kept its four selections,
+/// products and partial sums, about ten times the output (at the paper's level 0, the largest
+/// part of a training step's peak on the path GPUs run).
+fn bilinear_scatter(src: &Tensor, taps: &GatherTaps, grad: &Tensor) -> Result<Tensor> {
+    let n = taps.len();
+    let mut acc = src.zeros_like()?;
+    for corner in 0..4 {
+        let wt = taps.w_t[corner]
+            .to_dtype(grad.dtype())?
+            .reshape((1, n, 1))?;
+        acc = acc.index_add(&taps.idx_t[corner], &grad.broadcast_mul(&wt)?, 1)?;
+    }
+    Ok(acc)
 }

@@ -342,6 +342,147 @@ fn build_level(
     })
 }
 
+/// GCMA's attention of every active pixel over its samples (the module docs' `s_k`, `a_k`, `R~`):
+/// `qr: [B, P, d]` (the pixel's query), `pos: [P, S, d]` (each sample's point encoding, added to
+/// it), `kv: [B, P * S, 2d]` (each sample's key then value), `log_w`/`valid: [P, S]` (the
+/// depth-aware log-prior and the mask) -> `[B, P, d]`, `heads` heads of `d / heads` channels.
+///
+/// One graph node ([`crate::recompute::with_backward`]) whose backward pass is written out
+/// ([`sample_attention_grad`]): candle's backward pass through the composition
+/// ([`sample_attention_reference`]) kept every `[B, P, S, d]` product and a gradient for each,
+/// and the largest of them at the paper's level 0 is most of a GCMA layer's backward peak.
+pub fn sample_attention(
+    qr: &Tensor,
+    pos: &Tensor,
+    kv: &Tensor,
+    log_w: &Tensor,
+    valid: &Tensor,
+    heads: usize,
+) -> Result<Tensor> {
+    let (lw, vd) = (log_w.clone(), valid.clone());
+    crate::recompute::with_backward(
+        &[qr, pos, kv],
+        |t| sample_attention_reference(t[0], t[1], t[2], log_w, valid, heads),
+        std::sync::Arc::new(move |t: &[&Tensor], g: &Tensor| {
+            let (gq, gp, gkv) = sample_attention_grad(t[0], t[1], t[2], &lw, &vd, heads, g)?;
+            Ok(vec![Some(gq), Some(gp), Some(gkv)])
+        }),
+    )
+}
+
+/// The query `[B, P, S, h, dh]`, keys and values `[B, P, S, h, dh]` and attention weights
+/// `[B, P, h, S]` of [`sample_attention`].
+fn attention_parts(
+    qr: &Tensor,
+    pos: &Tensor,
+    kv: &Tensor,
+    log_w: &Tensor,
+    valid: &Tensor,
+    heads: usize,
+) -> Result<(Tensor, Tensor, Tensor, Tensor)> {
+    let (b, p, d) = qr.dims3()?;
+    let (_, s, _) = pos.dims3()?;
+    if heads == 0
+        || !d.is_multiple_of(heads)
+        || pos.dims() != [p, s, d]
+        || kv.dims() != [b, p * s, 2 * d]
+    {
+        return Err(shape_err(
+            "GCMA attention inputs",
+            format!("[B, P, d], [P, S, d], [B, P * S, 2d] with d divisible by {heads} heads"),
+            kv.dims(),
+        ));
+    }
+    let dh = d / heads;
+    let g = kv.reshape((b, p, s, 2, heads, dh))?;
+    let keys = g.narrow(3, 0, 1)?.squeeze(3)?; // [B, P, S, heads, dh]
+    let vals = g.narrow(3, 1, 1)?.squeeze(3)?;
+    let q = qr
+        .reshape((b, p, 1, heads, dh))?
+        .broadcast_add(&pos.reshape((1, p, s, heads, dh))?)?;
+    let logits = ((&q * &keys)?.sum(D::Minus1)? / (dh as f64).sqrt())?; // [B, P, S, heads]
+    let logits = logits.transpose(2, 3)?; // [B, P, heads, S]
+    let log_w = log_w.to_dtype(qr.dtype())?.reshape((1, p, 1, s))?;
+    let a = masked_softmax_last_dim(&logits, &log_w, &valid.reshape((1, p, 1, s))?)?;
+    Ok((q, keys, vals, a))
+}
+
+/// [`sample_attention`] from candle ops, with candle's own backward pass: the test oracle.
+pub fn sample_attention_reference(
+    qr: &Tensor,
+    pos: &Tensor,
+    kv: &Tensor,
+    log_w: &Tensor,
+    valid: &Tensor,
+    heads: usize,
+) -> Result<Tensor> {
+    let (b, p, d) = qr.dims3()?;
+    let (_, s, _) = pos.dims3()?;
+    let dh = d / heads.max(1);
+    let (_, _, vals, a) = attention_parts(qr, pos, kv, log_w, valid, heads)?;
+    // [B, P, heads, 1, S] x [B, P, heads, S, dh] -> [B, P, heads, 1, dh]
+    let a = a.contiguous()?.reshape((b * p * heads, 1, s))?;
+    let vals = vals
+        .permute((0, 1, 3, 2, 4))?
+        .contiguous()?
+        .reshape((b * p * heads, s, dh))?;
+    Ok(a.matmul(&vals)?.reshape((b, p, d))?)
+}
+
+/// The gradients of [`sample_attention`] (`qr`, `pos`, `kv`) for the output's gradient
+/// `grad: [B, P, d]`, recomputing the attention weights: the softmax's backward pass
+/// `a (g_a - sum_j a_j g_a_j)` (masked samples have `a = 0` and get nothing), then the products'.
+/// Half-precision inputs are computed in f32, the gradients returned in their dtypes.
+pub fn sample_attention_grad(
+    qr: &Tensor,
+    pos: &Tensor,
+    kv: &Tensor,
+    log_w: &Tensor,
+    valid: &Tensor,
+    heads: usize,
+    grad: &Tensor,
+) -> Result<(Tensor, Tensor, Tensor)> {
+    let dt = if crate::fused::is_half(qr.dtype()) {
+        candle_core::DType::F32
+    } else {
+        qr.dtype()
+    };
+    let (b, p, d) = qr.dims3()?;
+    let (_, s, _) = pos.dims3()?;
+    if grad.dims() != [b, p, d] {
+        return Err(shape_err(
+            "GCMA attention gradient",
+            format!("[{b}, {p}, {d}]"),
+            grad.dims(),
+        ));
+    }
+    let (qr32, pos32, kv32) = (qr.to_dtype(dt)?, pos.to_dtype(dt)?, kv.to_dtype(dt)?);
+    let (q, keys, vals, a) = attention_parts(&qr32, &pos32, &kv32, log_w, valid, heads)?;
+    drop((qr32, pos32));
+    let dh = d / heads;
+    let at = a.transpose(2, 3)?.contiguous()?.unsqueeze(4)?; // [B, P, S, heads, 1]
+    drop(a);
+    let go = grad.to_dtype(dt)?.reshape((b, p, 1, heads, dh))?;
+    let g_vals = at.broadcast_mul(&go)?;
+    let g_a = vals.broadcast_mul(&go)?.sum_keepdim(4)?; // [B, P, S, heads, 1]
+    drop(vals);
+    let dot = (&at * &g_a)?.sum_keepdim(2)?;
+    let g_l = ((at * g_a.broadcast_sub(&dot)?)? / (dh as f64).sqrt())?;
+    let g_keys = g_l.broadcast_mul(&q)?;
+    drop(q);
+    let g_q = g_l.broadcast_mul(&keys)?;
+    drop((keys, kv32));
+    let g_qr = g_q.sum(2)?.reshape((b, p, d))?;
+    let g_pos = g_q.sum(0)?.reshape((p, s, d))?;
+    drop(g_q);
+    let g_kv = Tensor::stack(&[g_keys, g_vals], 3)?.reshape((b, p * s, 2 * d))?;
+    Ok((
+        g_qr.to_dtype(qr.dtype())?,
+        g_pos.to_dtype(pos.dtype())?,
+        g_kv.to_dtype(kv.dtype())?,
+    ))
+}
+
 /// One GCMA block: attends from every range pixel to the image features at its epipolar samples.
 ///
 /// Weights: `norm` (GroupNorm of `R`), `q` (1x1, `C -> d`), `kv` (1x1 without bias, `C_f -> 2d`, keys
@@ -420,7 +561,6 @@ impl Gcma {
             ));
         }
         let (d, heads) = (self.attn_dim, self.num_heads);
-        let dh = d / heads;
         let (p, s) = (geom.num_active, geom.samples_per_pixel);
         let dtype = r.dtype();
         if p == 0 {
@@ -434,38 +574,22 @@ impl Gcma {
             .reshape((b, views * fh * fw, 2 * d))?;
         // bilinear gather at the samples (whole 2d-rows per tap, one op): [B, P * S, 2d]
         let g = crate::gather::bilinear_gather(&kv, &geom.taps)?;
-        let g = g.reshape((b, p, s, 2, heads, dh))?;
-        let keys = g.narrow(3, 0, 1)?.squeeze(3)?; // [B, P, S, heads, dh]
-        let vals = g.narrow(3, 1, 1)?.squeeze(3)?;
-        // queries: W_q GN(R) at the active pixels + MLP(gamma(r_k)), [B, P, S, heads, dh]
+        // queries: W_q GN(R) at the active pixels [B, P, d], plus MLP(gamma(r_k)) [P, S, d]
         let qr = self
             .q
             .forward(&self.norm.forward(r)?)?
             .reshape((b, d, h * w))?;
-        let qr = qr
-            .index_select(&geom.active, 2)?
-            .transpose(1, 2)?
-            .reshape((b, p, 1, heads, dh))?;
+        let qr = qr.index_select(&geom.active, 2)?.transpose(1, 2)?;
         let pos = crate::ops::linear(
             &self.pos2,
             &silu(&crate::ops::linear(
                 &self.pos0,
                 &geom.point_features.to_dtype(dtype)?,
             )?)?,
-        )?;
-        let q = qr.broadcast_add(&pos.reshape((1, p, s, heads, dh))?)?;
-        let logits = ((q * &keys)?.sum(D::Minus1)? / (dh as f64).sqrt())?; // [B, P, S, heads]
-        let logits = logits.transpose(2, 3)?; // [B, P, heads, S]
-        let log_w = geom.log_w.to_dtype(dtype)?.reshape((1, p, 1, s))?;
-        let a = masked_softmax_last_dim(&logits, &log_w, &geom.valid.reshape((1, p, 1, s))?)?;
-        // [B, P, heads, 1, S] x [B, P, heads, S, dh] -> [B, P, heads, 1, dh]
-        let a = a.contiguous()?.reshape((b * p * heads, 1, s))?;
-        let vals = vals
-            .permute((0, 1, 3, 2, 4))?
-            .contiguous()?
-            .reshape((b * p * heads, s, dh))?;
-        let out = a.matmul(&vals)?;
-        let out = out.reshape((b, p, d))?.transpose(1, 2)?.contiguous()?; // [B, d, P]
+        )?
+        .reshape((p, s, d))?;
+        let out = sample_attention(&qr, &pos, &g, &geom.log_w, &geom.valid, heads)?;
+        let out = out.transpose(1, 2)?.contiguous()?; // [B, d, P]
         let full =
             Tensor::zeros((b, d, h * w), dtype, r.device())?.index_add(&geom.active, &out, 2)?;
         Ok(full.reshape((b, d, h, w))?)

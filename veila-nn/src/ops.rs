@@ -363,8 +363,10 @@ fn lean(
 
 /// GroupNorm with a per-sample `scale`, `shift: [B, C]` and an optional SiLU
 /// ([`crate::fused::group_norm_act`]). Where the CPU kernels do not run and a graph is being built,
-/// it is recomputed in the backward pass (`lean`): the graph keeps `x`, not the normalisation's
-/// chain of about six `C N` intermediates. Statistics of half-precision inputs are f32.
+/// it is one node whose backward pass recomputes the normalisation and applies its gradient by
+/// hand ([`crate::fused::group_norm_act_grad`]): the graph keeps `x`, not the normalisation's
+/// chain of about six `C N` intermediates, and its backward pass builds no graph of its own.
+/// Statistics of half-precision inputs are f32.
 fn group_norm_act(
     x: &Tensor,
     scale: &Tensor,
@@ -377,9 +379,15 @@ fn group_norm_act(
     if crate::fused::takes_kernels(x) || !tracked {
         return crate::fused::group_norm_act(x, scale, shift, groups, eps, silu);
     }
-    lean(&[x, scale, shift], move |t: &[&Tensor]| {
-        crate::fused::group_norm_act(t[0], t[1], t[2], groups, eps, silu)
-    })
+    crate::recompute::with_backward(
+        &[x, scale, shift],
+        |t| crate::fused::group_norm_act(t[0], t[1], t[2], groups, eps, silu),
+        std::sync::Arc::new(move |t: &[&Tensor], g: &Tensor| {
+            let (gx, gs, gt) =
+                crate::fused::group_norm_act_grad(t[0], t[1], t[2], groups, eps, silu, g)?;
+            Ok(vec![Some(gx), Some(gs), Some(gt)])
+        }),
+    )
 }
 
 /// Runs a `candle_nn::Conv2d` through [`conv2d_zero_pad`] (same weights, padding and stride, fast

@@ -18,6 +18,10 @@
 //! pass of every block during the backward pass. It works the same on every device: the node's
 //! forward is a storage copy ([`BackendStorage::try_clone`]), its backward plain candle ops.
 //!
+//! [`with_backward`] puts the same node in the graph with a hand-written gradient (candle ops)
+//! instead of a recomputation, for ops whose composition's backward pass keeps far more than the
+//! gradient needs (GCMA's bilinear gather: its gradient is a scatter).
+//!
 //! The recomputed block runs the same kernels on the same inputs, so its gradients equal the plain
 //! path's up to the order in which a shared input's gradients are summed (tested in
 //! `tests/it/recompute.rs`). Blocks must be deterministic (no dropout).
@@ -108,16 +112,31 @@ pub(crate) fn push_linear(out: &mut Vec<Tensor>, l: &candle_nn::Linear) {
 /// A block as [`checkpoint`] runs it: on its inputs (one to three), in order.
 pub type BlockFn = dyn Fn(&[&Tensor]) -> Result<Tensor> + Send + Sync;
 
-/// The graph node of a checkpointed block. Its inputs are the block's; the block's output waits in
-/// `pending` until candle runs the node's forward pass, which copies it into the node's own storage
-/// and drops it, so the graph holds each block output once.
+/// A gradient rule as [`with_backward`] takes it: from the node's inputs (detached) and the
+/// gradient of its output, the inputs' gradients in order (`None` for an input without one).
+pub type GradFn = dyn Fn(&[&Tensor], &Tensor) -> Result<Vec<Option<Tensor>>> + Send + Sync;
+
+/// How a node's backward pass finds its inputs' gradients.
+enum Rule {
+    /// Recompute the block (or its pieces, whose outputs are the node's output concatenated along
+    /// `dim`, each with its length along `dim`: one piece at a time) and back-propagate through it;
+    /// the parameters' gradients go on `tape`.
+    Recompute {
+        pieces: Vec<(Arc<BlockFn>, usize)>,
+        dim: usize,
+        params: Vec<Tensor>,
+        tape: RecomputeTape,
+    },
+    /// A hand-written gradient in candle ops.
+    Explicit(Arc<GradFn>),
+}
+
+/// The graph node of a checkpointed block (or of an op with a hand-written gradient). Its inputs
+/// are the block's; the block's output waits in `pending` until candle runs the node's forward
+/// pass, which copies it into the node's own storage and drops it, so the graph holds each block
+/// output once.
 struct Checkpoint {
-    /// The block, or the pieces whose outputs are the node's output concatenated along `dim`
-    /// (each with its length along `dim`): the backward pass recomputes one piece at a time.
-    pieces: Vec<(Arc<BlockFn>, usize)>,
-    dim: usize,
-    params: Vec<Tensor>,
-    tape: RecomputeTape,
+    rule: Rule,
     pending: Mutex<Option<Tensor>>,
 }
 
@@ -175,6 +194,32 @@ impl Checkpoint {
     /// A block of several pieces does this one piece at a time: each piece's gradients are added
     /// up before the next piece is recomputed, so only one piece's graph exists at a time.
     fn recompute(&self, inputs: &[&Tensor], grad: &Tensor) -> Result<Vec<Option<Tensor>>> {
+        let (pieces, dim, params, tape) = match &self.rule {
+            Rule::Recompute {
+                pieces,
+                dim,
+                params,
+                tape,
+            } => (pieces, *dim, params, tape),
+            Rule::Explicit(f) => {
+                let detached: Vec<Tensor> = inputs.iter().map(|t| t.detach()).collect();
+                let refs: Vec<&Tensor> = detached.iter().collect();
+                let grads = f(&refs, &grad.detach())?;
+                if grads.len() != inputs.len() {
+                    return Err(Error::Config(format!(
+                        "a gradient rule gave {} gradients for {} inputs",
+                        grads.len(),
+                        inputs.len()
+                    )));
+                }
+                // an input outside the graph gets none (candle would add it up for nothing)
+                return Ok(grads
+                    .into_iter()
+                    .zip(inputs)
+                    .map(|(g, t)| g.filter(|_| t.track_op()))
+                    .collect());
+            }
+        };
         let vars = inputs
             .iter()
             .map(|t| {
@@ -195,18 +240,18 @@ impl Checkpoint {
         let grad = grad.detach();
         let mut sums: Vec<Option<Tensor>> = vec![None; vars.len()];
         let mut start = 0;
-        for (piece, len) in &self.pieces {
+        for (piece, len) in pieces {
             let y = piece(&fresh)?;
-            let g = if self.pieces.len() == 1 {
+            let g = if pieces.len() == 1 {
                 grad.clone()
             } else {
-                grad.narrow(self.dim, start, *len)?
+                grad.narrow(dim, start, *len)?
             };
             start += len;
             let grads = (y * g)?.sum_all()?.backward()?;
-            for p in &self.params {
+            for p in params {
                 if let Some(g) = grads.get(p) {
-                    self.tape.add(p, g)?;
+                    tape.add(p, g)?;
                 }
             }
             for (sum, v) in sums.iter_mut().zip(&vars) {
@@ -389,23 +434,37 @@ pub fn checkpoint_pieces(
     drop(outs);
     checkpoint_node(
         inputs,
-        params,
-        tape,
-        pieces.into_iter().zip(lens).collect(),
-        dim,
+        Rule::Recompute {
+            pieces: pieces.into_iter().zip(lens).collect(),
+            dim,
+            params,
+            tape: tape.clone(),
+        },
         out,
     )
 }
 
-/// The graph node of [`checkpoint_pieces`] for its detached output `out`.
-fn checkpoint_node(
+/// `op(inputs)` (one to three inputs) as one graph node whose backward pass is `grad` (candle ops,
+/// so it runs on every device): the graph keeps the inputs and the output, and neither the op's
+/// intermediates nor those of a recomputation exist in the backward pass (a gather's gradient is
+/// a scatter, not the backward pass of four `index_select`s and their products). `op` runs on
+/// detached inputs; when no input takes part in a graph its output is returned as it is.
+pub fn with_backward(
     inputs: &[&Tensor],
-    params: Vec<Tensor>,
-    tape: &RecomputeTape,
-    pieces: Vec<(Arc<BlockFn>, usize)>,
-    dim: usize,
-    out: Tensor,
+    op: impl FnOnce(&[&Tensor]) -> Result<Tensor>,
+    grad: Arc<GradFn>,
 ) -> Result<Tensor> {
+    let detached: Vec<Tensor> = inputs.iter().map(|t| t.detach()).collect();
+    let out = op(&detached.iter().collect::<Vec<_>>())?.detach();
+    drop(detached);
+    if !inputs.iter().any(|t| t.track_op()) {
+        return Ok(out);
+    }
+    checkpoint_node(inputs, Rule::Explicit(grad), out)
+}
+
+/// The graph node of [`checkpoint_pieces`] or [`with_backward`] for its detached output `out`.
+fn checkpoint_node(inputs: &[&Tensor], rule: Rule, out: Tensor) -> Result<Tensor> {
     // the node copies the output's storage as it lies: make it exactly the output
     let out = if out.layout().contiguous_offsets() == Some((0, out.elem_count())) {
         out
@@ -413,10 +472,7 @@ fn checkpoint_node(
         out.force_contiguous()?
     };
     let op = Checkpoint {
-        pieces,
-        dim,
-        params,
-        tape: tape.clone(),
+        rule,
         pending: Mutex::new(Some(out)),
     };
     Ok(match inputs {

@@ -421,6 +421,80 @@ pub fn group_norm_act_reference(
     Ok(if silu { candle_nn::ops::silu(&y)? } else { y })
 }
 
+/// The gradients of [`group_norm_act`] (`x`, `scale`, `shift`) for the output's gradient `grad`,
+/// from candle ops (any device), recomputing the normalisation from `x`: what a backward pass
+/// needs without keeping the forward pass's chain. It holds about five `x`-sized tensors at once
+/// (the incoming gradient, `x̂`, the SiLU's derivative and two products), each dropped as soon as
+/// it is used; the composition's own backward pass kept its six intermediates and a gradient for
+/// each. Half-precision inputs are computed in f32 and the gradients returned in their dtypes.
+pub fn group_norm_act_grad(
+    x: &Tensor,
+    scale: &Tensor,
+    shift: &Tensor,
+    groups: usize,
+    eps: f64,
+    silu: bool,
+    grad: &Tensor,
+) -> Result<(Tensor, Tensor, Tensor)> {
+    let dims = x.dims().to_vec();
+    if dims.len() < 2 || groups == 0 || !dims[1].is_multiple_of(groups) || grad.dims() != dims {
+        return Err(shape_err(
+            "group norm input and its gradient",
+            format!("[B, C, ...] with C divisible by {groups}, both the same shape"),
+            grad.dims(),
+        ));
+    }
+    let (b, c) = (dims[0], dims[1]);
+    let dt = if is_half(x.dtype()) {
+        DType::F32
+    } else {
+        x.dtype()
+    };
+    let x32 = x.to_dtype(dt)?;
+    let (s, t) = (scale.to_dtype(dt)?, shift.to_dtype(dt)?);
+    let g = grad.to_dtype(dt)?;
+    // x̂ and 1 / sigma per group, as the forward pass computed them
+    let xr = x32.reshape((b, groups, ()))?;
+    drop(x32);
+    let m = xr.dim(2)? as f64;
+    let mean = (xr.sum_keepdim(2)? / m)?;
+    let xc = xr.broadcast_sub(&mean)?;
+    drop(xr);
+    let var = (xc.sqr()?.sum_keepdim(2)? / m)?;
+    let rstd = (var + eps)?.sqrt()?.recip()?;
+    let xhat = xc.broadcast_mul(&rstd)?.reshape((b, c, ()))?;
+    drop(xc);
+    let (s3, t3) = (s.reshape((b, c, 1))?, t.reshape((b, c, 1))?);
+    let g = g.reshape((b, c, ()))?;
+    // through the SiLU: d silu(a) / da = sig(a) (1 + a (1 - sig(a)))
+    let ga = if silu {
+        let a = xhat.broadcast_mul(&s3)?.broadcast_add(&t3)?;
+        let sig = candle_nn::ops::sigmoid(&a)?;
+        let d = ((&a * (1.0 - &sig)?)? + 1.0)?;
+        drop(a);
+        let d = (d * sig)?;
+        (g * d)?
+    } else {
+        g
+    };
+    let g_shift = ga.sum(2)?;
+    let g_scale = (&ga * &xhat)?.sum(2)?;
+    let gx = ga.broadcast_mul(&s3)?.reshape((b, groups, ()))?;
+    drop(ga);
+    let xhat = xhat.reshape((b, groups, ()))?;
+    let m1 = (gx.sum_keepdim(2)? / m)?;
+    let m2 = ((&gx * &xhat)?.sum_keepdim(2)? / m)?;
+    let gx = gx.broadcast_sub(&m1)?;
+    let gx = (gx - xhat.broadcast_mul(&m2)?)?;
+    drop(xhat);
+    let gx = gx.broadcast_mul(&rstd)?.reshape(dims.as_slice())?;
+    Ok((
+        gx.to_dtype(x.dtype())?,
+        g_scale.to_dtype(scale.dtype())?,
+        g_shift.to_dtype(shift.dtype())?,
+    ))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -210,7 +210,7 @@ mod upsample;
 
 pub use add_scaled::add_scaled;
 pub use conv::{conv2d, conv2d_reference};
-pub use group_norm::{group_norm_act, group_norm_act_reference};
+pub use group_norm::{group_norm_act, group_norm_act_grad, group_norm_act_reference};
 pub(crate) use im2col::TILE_FLOATS;
 pub use im2col::{Im2ColSpec, im2col, im2col_reference};
 pub use res_block::{ResBlockParams, ResBlockSpec, res_block};

@@ -299,3 +299,79 @@ fn lean_convolutions_and_group_norms_equal_the_compositions_they_recompute() {
         assert!(d <= 1e-12, "group norm, gradient of {name}: {d:e}");
     }
 }
+
+/// GroupNorm + scale/shift (+ SiLU)'s hand-written gradient (what the lean node's backward pass
+/// runs off the CPU kernels) against candle's backward pass through the composition: f64 to
+/// 1e-12, bf16 (f32 statistics) to its rounding, and a constant group (zero variance) finite.
+#[test]
+fn the_group_norm_gradient_by_hand_equals_the_compositions() {
+    let mut r = rng(12);
+    let f64t = |t: Tensor| t.to_dtype(DType::F64).unwrap();
+    for (shape, groups) in [(vec![2, 6, 5, 16], 3), (vec![3, 8, 40], 4)] {
+        let (b, c) = (shape[0], shape[1]);
+        let x = f64t(rand_tensor(&mut r, &shape));
+        let sc = f64t(rand_tensor(&mut r, &[b, c]));
+        let sh = f64t(rand_tensor(&mut r, &[b, c]));
+        let probe = f64t(rand_tensor(&mut r, &shape));
+        for silu in [true, false] {
+            let inputs = [x.clone(), sc.clone(), sh.clone()];
+            let (_, want) = value_and_grads(&inputs, &probe, |t| {
+                veila_nn::fused::group_norm_act_reference(&t[0], &t[1], &t[2], groups, 1e-5, silu)
+                    .unwrap()
+            });
+            let (gx, gs, gt) =
+                veila_nn::fused::group_norm_act_grad(&x, &sc, &sh, groups, 1e-5, silu, &probe)
+                    .unwrap();
+            for (name, (a, z)) in ["x", "scale", "shift"]
+                .iter()
+                .zip([&gx, &gs, &gt].into_iter().zip(&want))
+            {
+                assert_eq!(a.dims(), z.dims());
+                let d = max_abs(&(a - z).unwrap()) / max_abs(z);
+                assert!(
+                    d <= 1e-12,
+                    "{shape:?} silu {silu}, gradient of {name}: {d:e}"
+                );
+            }
+            // bf16 inputs: statistics and gradients in f32, returned in bf16
+            let bf = |t: &Tensor| t.to_dtype(DType::BF16).unwrap();
+            let (gx, gs, gt) = veila_nn::fused::group_norm_act_grad(
+                &bf(&x),
+                &bf(&sc),
+                &bf(&sh),
+                groups,
+                1e-5,
+                silu,
+                &bf(&probe),
+            )
+            .unwrap();
+            assert_eq!(gx.dtype(), DType::BF16);
+            let rounded: Vec<Tensor> = [&x, &sc, &sh].iter().map(|t| f64t(bf(t))).collect();
+            let (_, want) = value_and_grads(&rounded, &f64t(bf(&probe)), |t| {
+                veila_nn::fused::group_norm_act_reference(&t[0], &t[1], &t[2], groups, 1e-5, silu)
+                    .unwrap()
+            });
+            for (name, (a, z)) in ["x", "scale", "shift"]
+                .iter()
+                .zip([&gx, &gs, &gt].into_iter().zip(&want))
+            {
+                let d = max_abs(&(&f64t(a.clone()) - z).unwrap()) / max_abs(z);
+                assert!(
+                    d <= 1e-2,
+                    "bf16 {shape:?} silu {silu}, gradient of {name}: {d:e}"
+                );
+            }
+        }
+    }
+    // a constant input: every group has zero variance, the gradients stay finite
+    let x = Tensor::full(0.5f64, (1, 4, 3, 3), &Device::Cpu).unwrap();
+    let s = Tensor::ones((1, 4), DType::F64, &Device::Cpu).unwrap();
+    let g = f64t(rand_tensor(&mut r, &[1, 4, 3, 3]));
+    let (gx, gs, gt) =
+        veila_nn::fused::group_norm_act_grad(&x, &s, &s.zeros_like().unwrap(), 2, 1e-5, true, &g)
+            .unwrap();
+    for t in [gx, gs, gt] {
+        let v = t.flatten_all().unwrap().to_vec1::<f64>().unwrap();
+        assert!(v.iter().all(|x| x.is_finite()), "{v:?}");
+    }
+}
