@@ -189,7 +189,7 @@ impl CustomOp1 for Gather {
 }
 
 /// The candle composition of [`bilinear_gather`]: the test oracle, and the forward pass of every
-/// device but the CPU in f32 (whose backward pass is a scatter, [`bilinear_scatter`]).
+/// device but the CPU in f32 (whose backward pass is a scatter, `bilinear_scatter`).
 pub fn bilinear_gather_reference(src: &Tensor, taps: &GatherTaps) -> Result<Tensor> {
     let n = taps.len();
     let mut acc: Option<Tensor> = None;
