@@ -418,8 +418,8 @@ pub fn sample_attention_reference(
 ) -> Result<Tensor> {
     let (b, p, d) = qr.dims3()?;
     let (_, s, _) = pos.dims3()?;
-    let dh = d / heads.max(1);
     let (_, _, vals, a) = attention_parts(qr, pos, kv, log_w, valid, heads)?;
+    let dh = d / heads;
     // [B, P, heads, 1, S] x [B, P, heads, S, dh] -> [B, P, heads, 1, dh]
     let a = a.contiguous()?.reshape((b * p * heads, 1, s))?;
     let vals = vals

@@ -188,19 +188,16 @@ impl Checkpoint {
         })
     }
 
-    /// Runs the block again on its inputs (tracked copies of those that take part in the graph)
-    /// and back-propagates `grad` through it: the inputs' gradients are returned (`None` for an
-    /// input outside the graph), the parameters' go on the tape.
-    /// A block of several pieces does this one piece at a time: each piece's gradients are added
-    /// up before the next piece is recomputed, so only one piece's graph exists at a time.
-    fn recompute(&self, inputs: &[&Tensor], grad: &Tensor) -> Result<Vec<Option<Tensor>>> {
-        let (pieces, dim, params, tape) = match &self.rule {
+    /// The inputs' gradients for the output's gradient `grad` (`None` for an input outside the
+    /// graph), by the node's rule.
+    fn backward(&self, inputs: &[&Tensor], grad: &Tensor) -> Result<Vec<Option<Tensor>>> {
+        match &self.rule {
             Rule::Recompute {
                 pieces,
                 dim,
                 params,
                 tape,
-            } => (pieces, *dim, params, tape),
+            } => recompute(pieces, *dim, params, tape, inputs, grad),
             Rule::Explicit(f) => {
                 let detached: Vec<Tensor> = inputs.iter().map(|t| t.detach()).collect();
                 let refs: Vec<&Tensor> = detached.iter().collect();
@@ -213,67 +210,82 @@ impl Checkpoint {
                     )));
                 }
                 // an input outside the graph gets none (candle would add it up for nothing)
-                return Ok(grads
+                Ok(grads
                     .into_iter()
                     .zip(inputs)
                     .map(|(g, t)| g.filter(|_| t.track_op()))
-                    .collect());
-            }
-        };
-        let vars = inputs
-            .iter()
-            .map(|t| {
-                t.track_op()
-                    .then(|| Var::from_tensor(&t.detach()))
-                    .transpose()
-            })
-            .collect::<std::result::Result<Vec<_>, _>>()?;
-        let fresh: Vec<Tensor> = inputs
-            .iter()
-            .zip(&vars)
-            .map(|(t, v)| {
-                v.as_ref()
-                    .map_or_else(|| t.detach(), |v| v.as_tensor().clone())
-            })
-            .collect();
-        let fresh: Vec<&Tensor> = fresh.iter().collect();
-        let grad = grad.detach();
-        let mut sums: Vec<Option<Tensor>> = vec![None; vars.len()];
-        let mut start = 0;
-        for (piece, len) in pieces {
-            let y = piece(&fresh)?;
-            let g = if pieces.len() == 1 {
-                grad.clone()
-            } else {
-                grad.narrow(dim, start, *len)?
-            };
-            start += len;
-            let grads = (y * g)?.sum_all()?.backward()?;
-            for p in params {
-                if let Some(g) = grads.get(p) {
-                    tape.add(p, g)?;
-                }
-            }
-            for (sum, v) in sums.iter_mut().zip(&vars) {
-                let Some(g) = v.as_ref().and_then(|v| grads.get(v.as_tensor())) else {
-                    continue;
-                };
-                *sum = Some(match sum.take() {
-                    Some(prev) => (prev + g)?,
-                    None => g.clone(),
-                });
+                    .collect())
             }
         }
-        Ok(sums)
     }
 
-    fn recompute_candle(
+    fn backward_candle(
         &self,
         inputs: &[&Tensor],
         grad: &Tensor,
     ) -> candle_core::Result<Vec<Option<Tensor>>> {
-        self.recompute(inputs, grad).map_err(to_candle)
+        self.backward(inputs, grad).map_err(to_candle)
     }
+}
+
+/// Runs a block (its `pieces`, outputs concatenated along `dim`) again on its inputs (tracked
+/// copies of those that take part in the graph) and back-propagates `grad` through it: the
+/// inputs' gradients are returned (`None` for an input outside the graph), the parameters' go on
+/// `tape`. A block of several pieces does this one piece at a time: each piece's gradients are
+/// added up before the next piece is recomputed, so only one piece's graph exists at a time.
+fn recompute(
+    pieces: &[(Arc<BlockFn>, usize)],
+    dim: usize,
+    params: &[Tensor],
+    tape: &RecomputeTape,
+    inputs: &[&Tensor],
+    grad: &Tensor,
+) -> Result<Vec<Option<Tensor>>> {
+    let vars = inputs
+        .iter()
+        .map(|t| {
+            t.track_op()
+                .then(|| Var::from_tensor(&t.detach()))
+                .transpose()
+        })
+        .collect::<std::result::Result<Vec<_>, _>>()?;
+    let fresh: Vec<Tensor> = inputs
+        .iter()
+        .zip(&vars)
+        .map(|(t, v)| {
+            v.as_ref()
+                .map_or_else(|| t.detach(), |v| v.as_tensor().clone())
+        })
+        .collect();
+    let fresh: Vec<&Tensor> = fresh.iter().collect();
+    let grad = grad.detach();
+    let mut sums: Vec<Option<Tensor>> = vec![None; vars.len()];
+    let mut start = 0;
+    for (piece, len) in pieces {
+        let y = piece(&fresh)?;
+        let g = if pieces.len() == 1 {
+            grad.clone()
+        } else {
+            grad.narrow(dim, start, *len)?
+        };
+        start += len;
+        let grads = (y * g)?.sum_all()?.backward()?;
+        for p in params {
+            if let Some(g) = grads.get(p) {
+                tape.add(p, g)?;
+            }
+        }
+        for (sum, v) in sums.iter_mut().zip(&vars) {
+            let Some(g) = v.as_ref().and_then(|v| grads.get(v.as_tensor())) else {
+                continue;
+            };
+            *sum = Some(match sum.take() {
+                Some(prev) => (prev + g)?,
+                None => g.clone(),
+            });
+        }
+    }
+    Ok(sums)
 }
 
 impl CustomOp1 for Checkpoint {
@@ -295,7 +307,7 @@ impl CustomOp1 for Checkpoint {
     }
 
     fn bwd(&self, x: &Tensor, _res: &Tensor, grad: &Tensor) -> candle_core::Result<Option<Tensor>> {
-        let mut g = self.recompute_candle(&[x], grad)?;
+        let mut g = self.backward_candle(&[x], grad)?;
         Ok(g.swap_remove(0))
     }
 }
@@ -333,7 +345,7 @@ impl CustomOp2 for Checkpoint {
         _res: &Tensor,
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
-        let mut g = self.recompute_candle(&[a, b], grad)?.into_iter();
+        let mut g = self.backward_candle(&[a, b], grad)?.into_iter();
         Ok((g.next().flatten(), g.next().flatten()))
     }
 }
@@ -376,7 +388,7 @@ impl CustomOp3 for Checkpoint {
         _res: &Tensor,
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let mut g = self.recompute_candle(&[a, b, c], grad)?.into_iter();
+        let mut g = self.backward_candle(&[a, b, c], grad)?.into_iter();
         Ok((g.next().flatten(), g.next().flatten(), g.next().flatten()))
     }
 }

@@ -349,17 +349,9 @@ impl CustomOp3 for GroupNormAct {
     }
 }
 
-/// `act(GroupNorm(x) * scale + shift)` for `x: [B, C, ...]`, per-sample, per-channel `scale` and
-/// `shift` (`[B, C]`), `groups` groups, variance epsilon `eps`, `act` SiLU when `silu` (identity
-/// otherwise). GroupNorm itself has no affine weights here: fold them into `scale` and `shift`.
-pub fn group_norm_act(
-    x: &Tensor,
-    scale: &Tensor,
-    shift: &Tensor,
-    groups: usize,
-    eps: f64,
-    silu: bool,
-) -> Result<Tensor> {
+/// Checks the shapes [`group_norm_act`] and its gradient take: `x: [B, C, ...]` with `C` divisible
+/// by `groups`, `scale` and `shift` `[B, C]`.
+fn check_args(x: &Tensor, scale: &Tensor, shift: &Tensor, groups: usize) -> Result<()> {
     let dims = x.dims();
     if dims.len() < 2 || groups == 0 || !dims[1].is_multiple_of(groups) {
         return Err(shape_err(
@@ -376,6 +368,32 @@ pub fn group_norm_act(
             scale.dims(),
         ));
     }
+    Ok(())
+}
+
+/// `x - mean` per group (`[B, groups, M]`) and the group's `sqrt(var + eps)` (`[B, groups, 1]`),
+/// the biased variance as `candle_nn::GroupNorm` computes it.
+fn centred_and_std(x: &Tensor, groups: usize, eps: f64) -> Result<(Tensor, Tensor)> {
+    let xr = x.reshape((x.dim(0)?, groups, ()))?;
+    let m = xr.dim(2)? as f64;
+    let mean = (xr.sum_keepdim(2)? / m)?;
+    let xc = xr.broadcast_sub(&mean)?;
+    let var = (xc.sqr()?.sum_keepdim(2)? / m)?;
+    Ok((xc, (var + eps)?.sqrt()?))
+}
+
+/// `act(GroupNorm(x) * scale + shift)` for `x: [B, C, ...]`, per-sample, per-channel `scale` and
+/// `shift` (`[B, C]`), `groups` groups, variance epsilon `eps`, `act` SiLU when `silu` (identity
+/// otherwise). GroupNorm itself has no affine weights here: fold them into `scale` and `shift`.
+pub fn group_norm_act(
+    x: &Tensor,
+    scale: &Tensor,
+    shift: &Tensor,
+    groups: usize,
+    eps: f64,
+    silu: bool,
+) -> Result<Tensor> {
+    check_args(x, scale, shift, groups)?;
     if is_half(x.dtype()) {
         // statistics of half-precision activations in f32, the result back in their dtype
         let f = |t: &Tensor| t.to_dtype(DType::F32);
@@ -404,14 +422,8 @@ pub fn group_norm_act_reference(
 ) -> Result<Tensor> {
     let dims = x.dims().to_vec();
     let (b, c) = (dims[0], dims[1]);
-    let xr = x.reshape((b, groups, ()))?;
-    let m = xr.dim(2)? as f64;
-    let mean = (xr.sum_keepdim(2)? / m)?;
-    let xc = xr.broadcast_sub(&mean)?;
-    let var = (xc.sqr()?.sum_keepdim(2)? / m)?;
-    let xn = xc
-        .broadcast_div(&(var + eps)?.sqrt()?)?
-        .reshape(dims.as_slice())?;
+    let (xc, std) = centred_and_std(x, groups, eps)?;
+    let xn = xc.broadcast_div(&std)?.reshape(dims.as_slice())?;
     let mut bshape = vec![1; dims.len()];
     bshape[0] = b;
     bshape[1] = c;
@@ -436,11 +448,12 @@ pub fn group_norm_act_grad(
     silu: bool,
     grad: &Tensor,
 ) -> Result<(Tensor, Tensor, Tensor)> {
+    check_args(x, scale, shift, groups)?;
     let dims = x.dims().to_vec();
-    if dims.len() < 2 || groups == 0 || !dims[1].is_multiple_of(groups) || grad.dims() != dims {
+    if grad.dims() != dims {
         return Err(shape_err(
-            "group norm input and its gradient",
-            format!("[B, C, ...] with C divisible by {groups}, both the same shape"),
+            "group norm gradient",
+            format!("{dims:?}, the input's shape"),
             grad.dims(),
         ));
     }
@@ -450,18 +463,12 @@ pub fn group_norm_act_grad(
     } else {
         x.dtype()
     };
-    let x32 = x.to_dtype(dt)?;
     let (s, t) = (scale.to_dtype(dt)?, shift.to_dtype(dt)?);
     let g = grad.to_dtype(dt)?;
     // x̂ and 1 / sigma per group, as the forward pass computed them
-    let xr = x32.reshape((b, groups, ()))?;
-    drop(x32);
-    let m = xr.dim(2)? as f64;
-    let mean = (xr.sum_keepdim(2)? / m)?;
-    let xc = xr.broadcast_sub(&mean)?;
-    drop(xr);
-    let var = (xc.sqr()?.sum_keepdim(2)? / m)?;
-    let rstd = (var + eps)?.sqrt()?.recip()?;
+    let (xc, std) = centred_and_std(&x.to_dtype(dt)?, groups, eps)?;
+    let m = xc.dim(2)? as f64;
+    let rstd = std.recip()?;
     let xhat = xc.broadcast_mul(&rstd)?.reshape((b, c, ()))?;
     drop(xc);
     let (s3, t3) = (s.reshape((b, c, 1))?, t.reshape((b, c, 1))?);

@@ -82,17 +82,6 @@ fn forward_backward(s: &Setup, net: &veila_nn::Denoiser) -> (Tensor, Vec<(String
     (y.to_dtype(DType::F64).unwrap(), g)
 }
 
-fn max_abs(t: &Tensor) -> f64 {
-    t.abs()
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .max(0)
-        .unwrap()
-        .to_scalar::<f64>()
-        .unwrap()
-}
-
 /// Compares the checkpointed network with the plain one; returns the worst gradient difference
 /// relative to its tensor's largest gradient.
 fn compare(dtype: DType) -> f64 {
