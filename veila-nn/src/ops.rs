@@ -364,8 +364,9 @@ fn lean(
 /// GroupNorm with a per-sample `scale`, `shift: [B, C]` and an optional SiLU
 /// ([`crate::fused::group_norm_act`]). Where the CPU kernels do not run and a graph is being built,
 /// it is one node whose backward pass recomputes the normalisation and applies its gradient by
-/// hand ([`crate::fused::group_norm_act_grad`]): the graph keeps `x`, not the normalisation's
-/// chain of about six `C N` intermediates, and its backward pass builds no graph of its own.
+/// hand ([`crate::fused::group_norm_act_grad`]; on a GPU both passes are CUDA kernels): the graph
+/// keeps `x`, not the normalisation's chain of about six `C N` intermediates, and its backward
+/// pass builds no graph of its own.
 /// Statistics of half-precision inputs are f32.
 fn group_norm_act(
     x: &Tensor,

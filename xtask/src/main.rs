@@ -14,6 +14,7 @@ mod bench_model; // cargo xtask bench-model
 mod bench_real; // cargo xtask bench-real (and bench-report's real-frame section)
 mod bench_report; // cargo xtask bench-report
 mod build_cuda; // cargo xtask build-cuda (CUDA toolkit from PyPI)
+mod check_kernels; // cargo xtask check-kernels (fused ops against their compositions, on a GPU too)
 mod device; // --device of the commands that run networks
 mod feature_nets; // cargo xtask train-feature-nets (veila-nn feature_nets)
 mod kitti_weather; // cargo xtask kitti-weather (veila-data weather)
@@ -47,6 +48,9 @@ enum Command {
     /// Build `veila` with `--features cuda` without a local CUDA install (nvcc and libraries from
     /// PyPI wheels, a libcuda stub for linking), for a GPU machine.
     BuildCuda(build_cuda::BuildCudaArgs),
+    /// The fused ops (GroupNorm + SiLU, residual sum, AdamW) against their candle compositions on
+    /// one device, errors next to milliseconds: the CUDA kernels' check on a GPU.
+    CheckKernels(check_kernels::CheckKernelsArgs),
     /// Pretrained image encoders on the CPU: seconds per KITTI-size image in f32 / bf16 / f16, with
     /// the half-precision error next to the time.
     BenchEncoders(bench_encoders::BenchEncodersArgs),
@@ -81,6 +85,7 @@ fn run(command: Command) -> Result<()> {
         Command::BenchEncoders(a) => bench_encoders::run(a),
         Command::BenchMemory(a) => bench_memory::run(a),
         Command::BuildCuda(a) => build_cuda::run(a),
+        Command::CheckKernels(a) => check_kernels::run(a),
         Command::TrainDefault(a) => train_default::run(a).map(|_| ()),
         Command::Tidy => tidy(),
         Command::Layers => {

@@ -97,6 +97,16 @@ pub fn add_scaled(a: &Tensor, b: &Tensor, scale: f64) -> Result<Tensor> {
             },
         )?);
     }
+    #[cfg(feature = "cuda")]
+    if super::cuda::takes_kernels(a) && a.dtype() == b.dtype() && a.device().same_device(b.device())
+    {
+        return Ok(a.contiguous()?.apply_op2(
+            &b.contiguous()?,
+            super::cuda::AddScaledCuda {
+                scale: scale as f32,
+            },
+        )?);
+    }
     Ok(((a + b)? * scale)?)
 }
 

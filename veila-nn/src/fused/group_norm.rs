@@ -394,6 +394,10 @@ pub fn group_norm_act(
     silu: bool,
 ) -> Result<Tensor> {
     check_args(x, scale, shift, groups)?;
+    #[cfg(feature = "cuda")]
+    if super::cuda::takes_kernels(x) && on_one_device(x, scale, shift) {
+        return super::cuda::group_norm_act(x, scale, shift, groups, eps, silu);
+    }
     if is_half(x.dtype()) {
         // statistics of half-precision activations in f32, the result back in their dtype
         let f = |t: &Tensor| t.to_dtype(DType::F32);
@@ -433,12 +437,16 @@ pub fn group_norm_act_reference(
     Ok(if silu { candle_nn::ops::silu(&y)? } else { y })
 }
 
+/// Whether `scale` and `shift` are on `x`'s device (the CUDA kernels take them in `x`'s dtype).
+#[cfg(feature = "cuda")]
+fn on_one_device(x: &Tensor, scale: &Tensor, shift: &Tensor) -> bool {
+    scale.device().same_device(x.device()) && shift.device().same_device(x.device())
+}
+
 /// The gradients of [`group_norm_act`] (`x`, `scale`, `shift`) for the output's gradient `grad`,
-/// from candle ops (any device), recomputing the normalisation from `x`: what a backward pass
-/// needs without keeping the forward pass's chain. It holds about five `x`-sized tensors at once
-/// (the incoming gradient, `x̂`, the SiLU's derivative and two products), each dropped as soon as
-/// it is used; the composition's own backward pass kept its six intermediates and a gradient for
-/// each. Half-precision inputs are computed in f32 and the gradients returned in their dtypes.
+/// recomputing the normalisation from `x`: what a backward pass needs without keeping the forward
+/// pass's chain. On a GPU with the `cuda` feature, four kernels (statistics, per-channel sums,
+/// per-group sums, one elementwise pass); elsewhere [`group_norm_act_grad_reference`].
 pub fn group_norm_act_grad(
     x: &Tensor,
     scale: &Tensor,
@@ -448,15 +456,51 @@ pub fn group_norm_act_grad(
     silu: bool,
     grad: &Tensor,
 ) -> Result<(Tensor, Tensor, Tensor)> {
+    check_grad_args(x, scale, shift, groups, grad)?;
+    #[cfg(feature = "cuda")]
+    if super::cuda::takes_kernels(x)
+        && on_one_device(x, scale, shift)
+        && grad.device().same_device(x.device())
+    {
+        return super::cuda::group_norm_act_grad(x, scale, shift, groups, eps, silu, grad);
+    }
+    group_norm_act_grad_reference(x, scale, shift, groups, eps, silu, grad)
+}
+
+fn check_grad_args(
+    x: &Tensor,
+    scale: &Tensor,
+    shift: &Tensor,
+    groups: usize,
+    grad: &Tensor,
+) -> Result<()> {
     check_args(x, scale, shift, groups)?;
-    let dims = x.dims().to_vec();
-    if grad.dims() != dims {
+    if grad.dims() != x.dims() {
         return Err(shape_err(
             "group norm gradient",
-            format!("{dims:?}, the input's shape"),
+            format!("{:?}, the input's shape", x.dims()),
             grad.dims(),
         ));
     }
+    Ok(())
+}
+
+/// [`group_norm_act_grad`] from candle ops (any device). It holds about five `x`-sized tensors at
+/// once (the incoming gradient, `x̂`, the SiLU's derivative and two products), each dropped as
+/// soon as it is used; the composition's own backward pass kept its six intermediates and a
+/// gradient for each. Half-precision inputs are computed in f32 and the gradients returned in
+/// their dtypes.
+pub fn group_norm_act_grad_reference(
+    x: &Tensor,
+    scale: &Tensor,
+    shift: &Tensor,
+    groups: usize,
+    eps: f64,
+    silu: bool,
+    grad: &Tensor,
+) -> Result<(Tensor, Tensor, Tensor)> {
+    check_grad_args(x, scale, shift, groups, grad)?;
+    let dims = x.dims().to_vec();
     let (b, c) = (dims[0], dims[1]);
     let dt = if is_half(x.dtype()) {
         DType::F32

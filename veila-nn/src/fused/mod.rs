@@ -17,14 +17,18 @@
 //! * [`res_block`]: a whole residual block (the ops above, composed, with a hand-written backward), so
 //!   candle's backward handles one gradient for it instead of one per layer.
 //!
-//! Each public function dispatches: F32 tensors on the CPU take the kernels, every other device or dtype
-//! runs the plain candle composition (the `*_reference` functions), which is also what the tests compare
-//! against, gradients included.
+//! Each public function dispatches: F32 tensors on the CPU take the kernels; with the `cuda` feature,
+//! GroupNorm + scale/shift + SiLU and the scaled residual sum take CUDA kernels on a GPU (f32, bf16,
+//! f16; `cuda/kernels.cu`, see `cuda.rs`), and so does [`adamw_fused`], AdamW over all parameters in
+//! one launch; every other device, op or dtype runs the plain candle composition (the `*_reference`
+//! functions), which is also what the tests compare against, gradients included.
+//! [`REFERENCE_OPS_ENV`] turns every kernel off, CPU and GPU.
 //!
 //! One file per op: `im2col.rs` (and the column matrices the convolution reuses), `matmul.rs` (the
 //! matrix products, on `gemm` and `pulp`), `conv.rs`, `group_norm.rs`, `add_scaled.rs`,
-//! `res_block.rs` and `upsample.rs`; this file holds what they share (the dispatch test, slices of CPU
-//! storage, zero-filled buffers, and the vector-level dispatch of the kernels).
+//! `res_block.rs`, `upsample.rs` and `adamw.rs`; `cuda.rs` launches the CUDA kernels; this file
+//! holds what they share (the dispatch tests, slices of CPU storage, zero-filled buffers, and the
+//! vector-level dispatch of the kernels).
 
 use candle_core::{CpuStorage, DType, Layout, Tensor};
 use rayon::prelude::*;
@@ -200,17 +204,25 @@ fn simd_level() -> SimdLevel {
     })
 }
 
+mod adamw;
 mod add_scaled;
 mod conv;
+// kernel launches and device buffers are `unsafe` in cudarc; each block says why it holds
+#[cfg(feature = "cuda")]
+#[allow(unsafe_code)]
+mod cuda;
 mod group_norm;
 mod im2col;
 mod matmul;
 mod res_block;
 mod upsample;
 
+pub use adamw::{AdamScalars, AdamSlot, adamw_fused, adamw_fused_supported};
 pub use add_scaled::add_scaled;
 pub use conv::{conv2d, conv2d_reference};
-pub use group_norm::{group_norm_act, group_norm_act_grad, group_norm_act_reference};
+pub use group_norm::{
+    group_norm_act, group_norm_act_grad, group_norm_act_grad_reference, group_norm_act_reference,
+};
 pub(crate) use im2col::TILE_FLOATS;
 pub use im2col::{Im2ColSpec, im2col, im2col_reference};
 pub use res_block::{ResBlockParams, ResBlockSpec, res_block};

@@ -4,6 +4,7 @@ mod bundled_model;
 mod cacm;
 mod checkpoint;
 mod common;
+mod cuda_emu;
 mod denoiser;
 mod encoder_kinds;
 mod encoder_parity;
