@@ -6,9 +6,10 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use candle_core::{DType, Device, Tensor};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+use candle_nn::{VarBuilder, VarMap};
 use rand::{Rng, SeedableRng};
 use veila_diffusion::app::{CameraView, GenerateOptions};
+use veila_diffusion::trainer::{AdamW, ParamsAdamW};
 use veila_geom::{EpipolarConfig, PinholeCamera};
 use veila_nn::{ConditionInput, Cues, DenoiserConfig, GcmaGeometry};
 
@@ -201,13 +202,22 @@ pub(super) fn bench_row(
     let t = rand_tensor(&mut rng, &[b], dev)?.affine(0.45, 0.5)?;
     let cond = features(cfg, b, &mut rng, dev)?;
     let conditional = cfg.conditioning.is_some();
+    // the trainer's optimizer, as `veila train` sets it up (one fused launch on a GPU)
+    let named: Vec<(String, candle_core::Var)> = vm
+        .data()
+        .lock()
+        .map_err(|_| anyhow::anyhow!("the VarMap lock is poisoned"))?
+        .iter()
+        .map(|(k, v)| (k.clone(), v.clone()))
+        .collect();
     let mut opt = AdamW::new(
-        vm.all_vars(),
+        named,
         ParamsAdamW {
             lr: 1e-5,
             ..ParamsAdamW::default()
         },
     )?;
+    opt.set_fused(Some(veila_diffusion::app::nn::fused_adamw()));
     dev.synchronize()?;
     // from here on the row's own memory: weights, optimizer state, inputs and the updates
     let host_peak = !dev.is_cuda() && reset_hwm();
@@ -225,7 +235,7 @@ pub(super) fn bench_row(
         if let Some(tape) = net.recompute_tape() {
             tape.merge_into(&mut grads)?;
         }
-        opt.step(&grads)?;
+        opt.step(&grads, 1.0)?;
         dev.synchronize()?;
         if i >= 2 {
             train.push(start.elapsed().as_secs_f64());

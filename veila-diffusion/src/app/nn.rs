@@ -148,3 +148,31 @@ impl Conditioning for PreparedCondition<'_> {
 
 #[cfg(test)]
 mod tests;
+
+/// `veila-nn`'s AdamW over every parameter in one GPU launch
+/// ([`veila_nn::fused::adamw_fused`], the per-tensor update's roundings) as the trainer's fused
+/// update ([`crate::trainer::AdamW::set_fused`]): it runs where every parameter is an f32 tensor on
+/// a GPU of a `cuda` build, and declines elsewhere.
+pub fn fused_adamw() -> std::sync::Arc<crate::trainer::FusedAdamW> {
+    std::sync::Arc::new(
+        |slots: &[crate::trainer::AdamSlot<'_>],
+         params: &candle_nn::ParamsAdamW,
+         step_t: usize,
+         grad_scale: f64|
+         -> candle_core::Result<bool> {
+            let runs = !slots.is_empty()
+                && slots.iter().all(|(p, g, m, v)| {
+                    [p.as_tensor(), *g, m.as_tensor(), v.as_tensor()]
+                        .iter()
+                        .all(|t| veila_nn::fused::adamw_fused_supported(t))
+                });
+            if !runs {
+                return Ok(false);
+            }
+            let scalars = veila_nn::fused::AdamScalars::new(params, step_t, grad_scale);
+            veila_nn::fused::adamw_fused(slots, &scalars)
+                .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
+            Ok(true)
+        },
+    )
+}

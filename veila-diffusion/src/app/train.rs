@@ -592,6 +592,7 @@ where
         Diffusion::new(diffusion)?,
         fit.train.clone(),
     )?;
+    trainer.set_fused_adamw(Some(crate::app::nn::fused_adamw()));
     if let Some(p) = fit.parallel {
         trainer.set_communicator(p.communicator());
     }

@@ -53,7 +53,7 @@ pub use checkpoint::{
     CheckpointState, RUN_RECORD_FILE, RngState, claim_checkpoint_dir, find_latest_checkpoint,
 };
 pub use lr::LrSchedule;
-pub use optim::{AdamW, ParamsAdamW};
+pub use optim::{AdamSlot, AdamW, FusedAdamW, ParamsAdamW};
 
 use std::collections::HashMap;
 use std::ops::ControlFlow;
@@ -596,6 +596,12 @@ impl<M: Denoiser> Trainer<M> {
     /// world of one changes nothing.
     pub fn set_communicator(&mut self, comm: Box<dyn distributed::Communicator>) {
         self.comm = (comm.world_size() > 1).then_some(comm);
+    }
+
+    /// Runs the optimizer's updates through `fused` where it accepts the parameters
+    /// ([`AdamW::set_fused`]; the application layer passes `veila-nn`'s one-launch GPU AdamW).
+    pub fn set_fused_adamw(&mut self, fused: Option<std::sync::Arc<FusedAdamW>>) {
+        self.opt.set_fused(fused);
     }
 
     /// This trainer's rank (0 without a communicator).

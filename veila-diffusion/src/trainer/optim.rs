@@ -1,10 +1,11 @@
 //! AdamW with exportable state.
 //!
 //! The update is exactly candle-nn's `AdamW` (same operations in the same order; a test checks
-//! bit-for-bit agreement), but the moments and step counter can be saved and restored, which
+//! bit-for-bit agreement; a fused update, [`AdamW::set_fused`], must keep those roundings), but the moments and step counter can be saved and restored, which
 //! `candle_nn::AdamW` does not allow and exact resume needs.
 
 use std::collections::HashMap;
+use std::sync::Arc;
 
 use candle_core::backprop::GradStore;
 use candle_core::{Tensor, Var};
@@ -20,12 +21,29 @@ struct Slot {
     v: Var,
 }
 
+/// One parameter's tensors in a fused update: the parameter, its gradient, its two moments.
+pub type AdamSlot<'a> = (&'a Var, &'a Tensor, &'a Var, &'a Var);
+
+/// An AdamW update of every slot at once, with hyper-parameters, the step number (from 1) and
+/// the gradients' factor; `Ok(false)` where it does not run for these tensors.
+pub type FusedAdamW =
+    dyn Fn(&[AdamSlot<'_>], &ParamsAdamW, usize, f64) -> candle_core::Result<bool> + Send + Sync;
+
+struct Fused(Arc<FusedAdamW>);
+
+impl std::fmt::Debug for Fused {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("FusedAdamW")
+    }
+}
+
 /// AdamW over named variables (decoupled weight decay, bias-corrected moments).
 #[derive(Debug)]
 pub struct AdamW {
     slots: Vec<Slot>,
     step_t: usize,
     params: ParamsAdamW,
+    fused: Option<Fused>,
 }
 
 impl AdamW {
@@ -44,6 +62,7 @@ impl AdamW {
             slots,
             step_t: 0,
             params,
+            fused: None,
         })
     }
 
@@ -67,9 +86,32 @@ impl AdamW {
         self.step_t
     }
 
-    /// One update; every gradient is multiplied by `grad_scale` first (gradient clipping).
+    /// Runs every update through `fused` where it accepts the parameters (it returns `Ok(false)`
+    /// where it does not run, and the per-tensor update runs instead): the application layer
+    /// passes `veila-nn`'s one-launch GPU AdamW, which has this update's arithmetic.
+    pub fn set_fused(&mut self, fused: Option<Arc<FusedAdamW>>) {
+        self.fused = fused.map(Fused);
+    }
+
+    /// One update; every gradient is multiplied by `grad_scale` first (gradient clipping). With a
+    /// [fused update](Self::set_fused) that accepts the parameters (on a GPU: one launch for all of
+    /// them), that; otherwise about 14 tensor ops per parameter.
     pub fn step(&mut self, grads: &GradStore, grad_scale: f64) -> Result<()> {
         self.step_t += 1;
+        if let Some(Fused(f)) = &self.fused {
+            let slots: Vec<AdamSlot<'_>> = self
+                .slots
+                .iter()
+                .filter_map(|s| {
+                    grads
+                        .get(s.var.as_tensor())
+                        .map(|g| (&s.var, g, &s.m, &s.v))
+                })
+                .collect();
+            if f(&slots, &self.params, self.step_t, grad_scale)? {
+                return Ok(());
+            }
+        }
         let p = &self.params;
         let lr = p.lr;
         let lr_lambda = lr * p.weight_decay;

@@ -57,6 +57,55 @@ fn adamw_is_bit_identical_to_candle_nn_adamw() {
 }
 
 #[test]
+fn adamw_runs_a_fused_update_where_it_accepts_and_the_plain_one_where_it_declines() {
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let params = ParamsAdamW {
+        lr: 0.05,
+        ..ParamsAdamW::default()
+    };
+    // a stand-in fused update that sees every slot and the step, sets each parameter to
+    // step_t * grad_scale and accepts on odd steps only
+    let calls = Arc::new(AtomicUsize::new(0));
+    let seen = calls.clone();
+    let fused: Arc<FusedAdamW> = Arc::new(move |slots, p, step_t, grad_scale| {
+        seen.fetch_add(1, Ordering::SeqCst);
+        assert_eq!(p.lr, 0.05);
+        if step_t % 2 == 0 {
+            return Ok(false);
+        }
+        for (var, g, _, _) in slots {
+            assert_eq!(g.dims(), var.dims());
+            var.set(&(var.zeros_like()? + step_t as f64 * grad_scale)?)?;
+        }
+        Ok(true)
+    });
+    let (ours, x, y) = problem(4);
+    let (theirs, _, _) = problem(4);
+    let mut a = AdamW::new(ours.clone(), params.clone()).unwrap();
+    a.set_fused(Some(fused));
+    let mut plain = AdamW::new(theirs.clone(), params).unwrap();
+    // step 1: the fused update runs (every parameter becomes 1 * 0.5)
+    a.step(&loss(&ours, &x, &y).backward().unwrap(), 0.5)
+        .unwrap();
+    assert!(values(&ours).iter().flatten().all(|v| *v == 0.5));
+    // step 2: it declines, and the plain update runs on the same state as a plain optimizer
+    for (_, v) in &theirs {
+        v.set(&(v.zeros_like().unwrap() + 0.5).unwrap()).unwrap();
+    }
+    plain.load_state(&a.state_tensors(), 1).unwrap();
+    a.step(&loss(&ours, &x, &y).backward().unwrap(), 1.0)
+        .unwrap();
+    plain
+        .step(&loss(&theirs, &x, &y).backward().unwrap(), 1.0)
+        .unwrap();
+    assert_eq!(calls.load(Ordering::SeqCst), 2);
+    assert!(values(&ours).iter().flatten().any(|v| *v != 0.5));
+    assert_eq!(values(&ours), values(&theirs));
+    assert_eq!(a.step_count(), 2);
+}
+
+#[test]
 fn adamw_grad_scale_equals_scaling_the_gradients() {
     let params = ParamsAdamW {
         lr: 0.05,

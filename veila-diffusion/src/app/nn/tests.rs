@@ -267,3 +267,18 @@ fn a_trainer_with_activation_checkpointing_takes_the_plain_updates() {
     }
     assert!(worst <= 1e-5, "weights after 3 updates differ by {worst:e}");
 }
+
+#[test]
+fn the_fused_adamw_declines_off_the_gpu_and_leaves_the_parameters_alone() {
+    // on the CPU (and in a build without `cuda`) the trainer's per-tensor update must run
+    let dev = candle_core::Device::Cpu;
+    let p = candle_core::Var::ones(8, candle_core::DType::F32, &dev).unwrap();
+    let m = candle_core::Var::zeros(8, candle_core::DType::F32, &dev).unwrap();
+    let v = candle_core::Var::zeros(8, candle_core::DType::F32, &dev).unwrap();
+    let g = candle_core::Tensor::ones(8, candle_core::DType::F32, &dev).unwrap();
+    let f = super::fused_adamw();
+    let params = candle_nn::ParamsAdamW::default();
+    assert!(!f(&[(&p, &g, &m, &v)], &params, 1, 1.0).unwrap());
+    assert!(!f(&[], &params, 1, 1.0).unwrap());
+    assert_eq!(p.as_tensor().to_vec1::<f32>().unwrap(), vec![1.0; 8]);
+}
