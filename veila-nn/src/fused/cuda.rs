@@ -34,6 +34,19 @@ const ADAM_CHUNK: usize = 4096;
 /// At most this many blocks for the grid-stride kernels (16 per SM of an H100 / H200).
 const MAX_BLOCKS: usize = 132 * 16;
 
+/// `$op.run::<T>(args)` for the element type `T` of `$dtype` (f32, bf16 or f16); an error naming
+/// `$name` for any other dtype.
+macro_rules! by_dtype {
+    ($dtype:expr, $name:literal, $op:ident.run($($arg:expr),*)) => {
+        match $dtype {
+            DType::F32 => $op.run::<f32>($($arg),*),
+            DType::BF16 => $op.run::<half::bf16>($($arg),*),
+            DType::F16 => $op.run::<half::f16>($($arg),*),
+            d => Err(candle_core::Error::Msg(format!("{}: no {d:?} version", $name))),
+        }
+    };
+}
+
 /// Whether `t` takes the CUDA kernels: on a CUDA device, f32 / bf16 / f16, kernels on
 /// ([`super::REFERENCE_OPS_ENV`] turns these off too).
 pub fn takes_kernels(t: &Tensor) -> bool {
@@ -214,12 +227,11 @@ impl CustomOp3 for GroupNormActCuda {
         l3: &Layout,
     ) -> candle_core::Result<(CudaStorage, Shape)> {
         let a = ((s1, l1), (s2, l2), (s3, l3));
-        let out = match s1.dtype() {
-            DType::F32 => self.run::<f32>(a.0, a.1, a.2)?,
-            DType::BF16 => self.run::<half::bf16>(a.0, a.1, a.2)?,
-            DType::F16 => self.run::<half::f16>(a.0, a.1, a.2)?,
-            d => candle_core::bail!("veila-group-norm-act-cuda: no {d:?} version"),
-        };
+        let out = by_dtype!(
+            s1.dtype(),
+            "veila-group-norm-act-cuda",
+            self.run(a.0, a.1, a.2)
+        )?;
         Ok((out, l1.shape().clone()))
     }
 
@@ -363,12 +375,11 @@ impl CustomOp1 for GroupNormActGradCuda {
     }
 
     fn cuda_fwd(&self, s1: &CudaStorage, l1: &Layout) -> candle_core::Result<(CudaStorage, Shape)> {
-        let out = match s1.dtype() {
-            DType::F32 => self.run::<f32>(s1, l1)?,
-            DType::BF16 => self.run::<half::bf16>(s1, l1)?,
-            DType::F16 => self.run::<half::f16>(s1, l1)?,
-            d => candle_core::bail!("veila-group-norm-act-grad-cuda: no {d:?} version"),
-        };
+        let out = by_dtype!(
+            s1.dtype(),
+            "veila-group-norm-act-grad-cuda",
+            self.run(s1, l1)
+        )?;
         let shape = match self.sums {
             None => {
                 let d = GnDims::new(l1.shape(), self.groups)?;
@@ -494,12 +505,7 @@ impl CustomOp2 for AddScaledCuda {
             candle_core::bail!("add_scaled: {:?} and {:?} differ", l1.shape(), l2.shape())
         }
         let a = ((s1, l1), (s2, l2));
-        let out = match s1.dtype() {
-            DType::F32 => self.run::<f32>(a.0, a.1)?,
-            DType::BF16 => self.run::<half::bf16>(a.0, a.1)?,
-            DType::F16 => self.run::<half::f16>(a.0, a.1)?,
-            d => candle_core::bail!("veila-add-scaled-cuda: no {d:?} version"),
-        };
+        let out = by_dtype!(s1.dtype(), "veila-add-scaled-cuda", self.run(a.0, a.1))?;
         Ok((out, l1.shape().clone()))
     }
 
