@@ -442,11 +442,7 @@ pub fn sample_attention_grad(
     heads: usize,
     grad: &Tensor,
 ) -> Result<(Tensor, Tensor, Tensor)> {
-    let dt = if crate::fused::is_half(qr.dtype()) {
-        candle_core::DType::F32
-    } else {
-        qr.dtype()
-    };
+    let dt = crate::fused::compute_dtype(qr.dtype());
     let (b, p, d) = qr.dims3()?;
     let (_, s, _) = pos.dims3()?;
     if grad.dims() != [b, p, d] {

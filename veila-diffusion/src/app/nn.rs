@@ -160,19 +160,9 @@ pub fn fused_adamw() -> std::sync::Arc<crate::trainer::FusedAdamW> {
          step_t: usize,
          grad_scale: f64|
          -> candle_core::Result<bool> {
-            let runs = !slots.is_empty()
-                && slots.iter().all(|(p, g, m, v)| {
-                    [p.as_tensor(), *g, m.as_tensor(), v.as_tensor()]
-                        .iter()
-                        .all(|t| veila_nn::fused::adamw_fused_supported(t))
-                });
-            if !runs {
-                return Ok(false);
-            }
             let scalars = veila_nn::fused::AdamScalars::new(params, step_t, grad_scale);
             veila_nn::fused::adamw_fused(slots, &scalars)
-                .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
-            Ok(true)
+                .map_err(|e| candle_core::Error::Msg(e.to_string()))
         },
     )
 }

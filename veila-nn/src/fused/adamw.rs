@@ -86,31 +86,34 @@ pub fn adamw_fused_supported(t: &Tensor) -> bool {
 
 /// One AdamW step of every slot, in place, in one launch: `m = b1 m + (1 - b1) g`,
 /// `v = b2 v + (1 - b2) g^2`, `p = p (1 - lr wd) - lr m̂ / (sqrt(v̂) + eps)` with `g` the gradient
-/// times `grad_scale`. Every tensor f32 on one CUDA device, each slot's four of one size; an error
-/// where [`adamw_fused_supported`] is false.
-pub fn adamw_fused(slots: &[AdamSlot<'_>], scalars: &AdamScalars) -> Result<()> {
-    for (k, (param, grad, m, v)) in slots.iter().enumerate() {
-        let n = param.elem_count();
-        let ok = [param.as_tensor(), *grad, m.as_tensor(), v.as_tensor()]
-            .iter()
-            .all(|t| adamw_fused_supported(t) && t.elem_count() == n);
-        if !ok {
+/// times `grad_scale`. `Ok(false)`, changing nothing, where there are no slots or a tensor is not
+/// one [`adamw_fused_supported`] takes (the caller then runs the per-tensor update); an error where
+/// a slot's four tensors differ in size.
+pub fn adamw_fused(slots: &[AdamSlot<'_>], scalars: &AdamScalars) -> Result<bool> {
+    let quads: Vec<[&Tensor; 4]> = slots
+        .iter()
+        .map(|(p, g, m, v)| [p.as_tensor(), *g, m.as_tensor(), v.as_tensor()])
+        .collect();
+    if quads.is_empty() || !quads.iter().flatten().all(|t| adamw_fused_supported(t)) {
+        return Ok(false);
+    }
+    for (k, q) in quads.iter().enumerate() {
+        let n = q[0].elem_count();
+        if q.iter().any(|t| t.elem_count() != n) {
             return Err(crate::Error::Config(format!(
-                "fused AdamW: slot {k} is not four f32 CUDA tensors of {n} values"
+                "fused AdamW: slot {k}'s parameter, gradient and moments differ in size"
             )));
         }
     }
     #[cfg(feature = "cuda")]
     {
-        let quads: Vec<[&Tensor; 4]> = slots
-            .iter()
-            .map(|(p, g, m, v)| [p.as_tensor(), *g, m.as_tensor(), v.as_tensor()])
-            .collect();
-        super::cuda::adamw(&quads, scalars.to_array())
+        super::cuda::adamw(&quads, scalars.to_array())?;
+        Ok(true)
     }
     #[cfg(not(feature = "cuda"))]
     {
+        // unreachable: nothing is supported without the feature
         let _ = scalars;
-        Ok(())
+        Ok(false)
     }
 }

@@ -3,7 +3,7 @@
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Shape, Tensor};
 use rayon::prelude::*;
 
-use super::{is_half, on_cpu_f32, slice_f32, tensor_f32, with_f32, zeros};
+use super::{compute_dtype, is_half, on_cpu_f32, slice_f32, tensor_f32, with_f32, zeros};
 use crate::error::{Result, shape_err};
 
 #[derive(Debug, Clone, Copy)]
@@ -456,14 +456,15 @@ pub fn group_norm_act_grad(
     silu: bool,
     grad: &Tensor,
 ) -> Result<(Tensor, Tensor, Tensor)> {
-    check_grad_args(x, scale, shift, groups, grad)?;
     #[cfg(feature = "cuda")]
     if super::cuda::takes_kernels(x)
         && on_one_device(x, scale, shift)
         && grad.device().same_device(x.device())
     {
+        check_grad_args(x, scale, shift, groups, grad)?;
         return super::cuda::group_norm_act_grad(x, scale, shift, groups, eps, silu, grad);
     }
+    // (the reference checks the arguments itself)
     group_norm_act_grad_reference(x, scale, shift, groups, eps, silu, grad)
 }
 
@@ -502,11 +503,7 @@ pub fn group_norm_act_grad_reference(
     check_grad_args(x, scale, shift, groups, grad)?;
     let dims = x.dims().to_vec();
     let (b, c) = (dims[0], dims[1]);
-    let dt = if is_half(x.dtype()) {
-        DType::F32
-    } else {
-        x.dtype()
-    };
+    let dt = compute_dtype(x.dtype());
     let (s, t) = (scale.to_dtype(dt)?, shift.to_dtype(dt)?);
     let g = grad.to_dtype(dt)?;
     // x̂ and 1 / sigma per group, as the forward pass computed them

@@ -42,6 +42,12 @@ pub fn is_half(dtype: DType) -> bool {
     matches!(dtype, DType::BF16 | DType::F16)
 }
 
+/// The dtype normalisations, softmaxes and hand-written gradients compute in for `dtype`: f32 for
+/// bf16 and f16, the dtype itself otherwise.
+pub fn compute_dtype(dtype: DType) -> DType {
+    if is_half(dtype) { DType::F32 } else { dtype }
+}
+
 /// Whether the CPU kernels are on (they are unless [`REFERENCE_OPS_ENV`] is `1`; read once).
 pub fn kernels_enabled() -> bool {
     static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
