@@ -26,6 +26,7 @@ use veila_diffusion::app::{GenerateOptions, RigImage, ScanPipeline};
 use veila_geom::{ProjectionOptions, Projector, RangeImage, Region};
 use veila_metrics::bev::{BevConfig, bev_histogram};
 use veila_metrics::crossmodal::{DepthAlignment, Map2d, ProjectionFilter, cm_depth_consistency};
+use veila_metrics::texture::TextureSummary;
 use veila_metrics::{MetricReport, MetricValue, Protocol, chamfer, dist};
 
 use crate::{generation, model, progress, staging};
@@ -102,6 +103,9 @@ struct DemoSummary<'a> {
     metrics: &'a [MetricValue],
     /// Ring spread (median IQR of range in 0.5° bands below −15°, m) of each scan.
     ring_spread_m: BTreeMap<&'static str, Option<f64>>,
+    /// Texture figures of each scan against the true scan (`veila_metrics::texture`): depth
+    /// edges in the upper half, smooth ground in the lower half, the step distribution's distance.
+    texture: BTreeMap<&'static str, TextureSummary>,
     /// The zero-skill baselines' metrics against the same true scan.
     baselines: Vec<BaselineSummary>,
 }
@@ -214,10 +218,17 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
     let spread = |r: &RangeImage| veila_metrics::baseline::ring_spread(r, grid, -15.0, 0.5);
     ring_spread_m.insert("generated", spread(&generated_range));
     ring_spread_m.insert("true", spread(&true_range));
+    let mut texture = BTreeMap::new();
+    texture.insert(
+        "generated",
+        TextureSummary::of(&generated_range, &true_range)?,
+    );
+    texture.insert("true", TextureSummary::of(&true_range, &true_range)?);
     for (name, description, range) in &baselines {
         let points = model::to_points(&bundle, range)?;
         let m = demo_metrics(&frame, truth, &points, range, &true_range)?;
         ring_spread_m.insert(name, spread(range));
+        texture.insert(name, TextureSummary::of(range, &true_range)?);
         baseline_rows.push(BaselineSummary {
             name,
             description: description.clone(),
@@ -240,6 +251,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         let (points, range) = (scan.points, scan.range);
         let m = demo_metrics(&frame, truth, &points, &range, &true_range)?;
         ring_spread_m.insert("mean net", spread(&range));
+        texture.insert("mean net", TextureSummary::of(&range, &true_range)?);
         baseline_rows.push(BaselineSummary {
             name: "mean net",
             description: "the model's own mean network alone (--residual-weight 0): the smooth conditional mean, the smallest pixel error".into(),
@@ -263,6 +275,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         range_pixels_generated: generated_range.num_valid(),
         metrics: &metrics.metrics,
         ring_spread_m,
+        texture,
         baselines: baseline_rows,
     };
     veila_data::atomic::write_atomic(
@@ -301,6 +314,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         );
     }
     print_table(&metrics.metrics, &summary.baselines, &summary.ring_spread_m);
+    print_texture(&summary.baselines, &summary.texture);
     for b in &summary.baselines {
         println!("  {}: {}", b.name, b.description);
     }
@@ -530,6 +544,40 @@ fn print_table(
         print!(" {:>12}", fmt(ring_spread.get(b.name)));
     }
     println!("   (true scan: {})", fmt(ring_spread.get("true")));
+}
+
+/// The texture rows under the metrics table: each scan's figures, the true scan's in brackets
+/// (what a realistic scan matches).
+fn print_texture(baselines: &[BaselineSummary], texture: &BTreeMap<&'static str, TextureSummary>) {
+    type Pick = fn(&TextureSummary) -> f64;
+    let rows: [(&str, &str, Pick); 3] = [
+        ("depth edges (% of pairs, > 100 % jump)", "upper", |t| {
+            t.depth_edges_upper_pct
+        }),
+        ("smooth pairs (% of pairs, < 0.03 %)", "lower", |t| {
+            t.smooth_lower_pct
+        }),
+        ("texture distance to true (decades)", "all", |t| {
+            t.w1_along_decades
+        }),
+    ];
+    for (name, band, pick) in rows {
+        let cell = |k: &str| {
+            texture
+                .get(k)
+                .map(pick)
+                .map_or("n/a".into(), |v| format!("{v:.4}"))
+        };
+        print!(
+            "{name:<38} {:<10} {band:<6} {:>12}",
+            "veila",
+            cell("generated")
+        );
+        for b in baselines {
+            print!(" {:>12}", cell(b.name));
+        }
+        println!("   (true scan: {})", cell("true"));
+    }
 }
 
 /// The zero-skill baselines of the demo scene, from `k` training frames of the same scene file

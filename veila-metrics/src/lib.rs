@@ -15,6 +15,7 @@
 //! | CM-DC / CM-SC cross-modal consistency | Veila paper | [`crossmodal`] |
 //! | Range MAE of two range images on one grid, over pixels valid in both | — | [`range`] |
 //! | Range MAE and coverage in a camera's view, camera depth at LiDAR points | — | [`view`] |
+//! | Range-image realism: relative range-step histograms (log10, 0.25 decade) and smooth / edge shares, their W1 / JSD texture distance, ray drop per row, pairwise diversity, nearest-scan memorisation | — | [`texture`] |
 //!
 //! Every point-based metric can be restricted to the paper's front (`x > 0`) or rear (`x <= 0`) half with
 //! [`Region`] (re-exported from `veila-geom`). Results are collected as [`MetricValue`]s whose JSON form is
@@ -60,6 +61,7 @@ pub mod nn;
 pub mod protocol;
 pub mod range;
 pub mod suite;
+pub mod texture;
 pub mod view;
 
 pub use error::{Error, Result};

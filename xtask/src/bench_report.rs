@@ -358,7 +358,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         "data-floor",
         "data floor (true scans of one fold vs another)",
         "-",
-        &data_floor(&fold_judges),
+        &data_floor(&fold_judges, nets.as_ref()),
         fold_size,
     ));
 
@@ -501,6 +501,11 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                     scenes: train_list.clone(),
                     encoder_scenes: None,
                     device: crate::device::DeviceArg::Cpu,
+                    base_channels: None,
+                    res_blocks: None,
+                    channel_mults: None,
+                    ema_decay: veila_diffusion::app::sim_recipe::RECIPE_EMA_DECAY,
+                    snapshot_every: None,
                 },
                 Some(&train_frames),
             )?;

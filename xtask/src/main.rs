@@ -12,6 +12,7 @@ mod bench_encoders; // cargo xtask bench-encoders
 mod bench_memory; // cargo xtask bench-memory (peak host memory of veila train)
 mod bench_model; // cargo xtask bench-model
 mod bench_real; // cargo xtask bench-real (and bench-report's real-frame section)
+mod bench_realism; // cargo xtask bench-realism (veila-diffusion app::realism)
 mod bench_report; // cargo xtask bench-report
 mod build_cuda; // cargo xtask build-cuda (CUDA toolkit from PyPI)
 mod check_kernels; // cargo xtask check-kernels (fused ops against their compositions, on a GPU too)
@@ -43,6 +44,10 @@ enum Command {
     /// A bundle on the real KITTI / nuScenes frames of ../shared/data/real against the real scans
     /// and two image-free baselines (bench-report's real-frame section alone, in seconds).
     BenchReal(bench_real::BenchRealArgs),
+    /// Generators judged as generators: realism, texture, faithfulness, memorisation, diversity
+    /// and time of every model row and sampler setting, next to the mean scan, retrieval and the
+    /// data floor, on held-out simulated frames.
+    BenchRealism(bench_realism::BenchRealismArgs),
     /// CPU engine speed: forward b1/b8 and a b8 training step of the small denoiser (medians, JSON).
     BenchModel(bench_model::BenchModelArgs),
     /// Build `veila` with `--features cuda` without a local CUDA install (nvcc and libraries from
@@ -81,6 +86,7 @@ fn run(command: Command) -> Result<()> {
         Command::TrainFeatureNets(a) => feature_nets::run(a),
         Command::BenchReport(a) => bench_report::run(a),
         Command::BenchReal(a) => bench_real::run(a),
+        Command::BenchRealism(a) => bench_realism::run(a),
         Command::BenchModel(a) => bench_model::run(a),
         Command::BenchEncoders(a) => bench_encoders::run(a),
         Command::BenchMemory(a) => bench_memory::run(a),

@@ -124,11 +124,63 @@ pub struct TrainDefaultArgs {
     /// device; the bundle records the device of the run that finished it.
     #[arg(long, default_value = "cpu", value_parser = crate::device::parse_device)]
     pub device: DeviceArg,
+    /// Width of the networks' first U-Net level [default: the shipped recipe's 16].
+    #[arg(long, value_parser = clap::value_parser!(u64).range(4..=512))]
+    pub base_channels: Option<u64>,
+    /// Residual blocks per U-Net level [default: the shipped recipe's 1].
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..=8))]
+    pub res_blocks: Option<u64>,
+    /// Width multipliers of the U-Net levels, comma-separated [default: the shipped recipe's
+    /// 1,2,2,4]; as many levels as given.
+    #[arg(long, value_delimiter = ',', value_parser = clap::value_parser!(u64).range(1..=64))]
+    pub channel_mults: Option<Vec<u64>>,
+    /// EMA decay of the shipped weights, in [0, 1).
+    #[arg(long, default_value_t = veila_diffusion::app::sim_recipe::RECIPE_EMA_DECAY)]
+    pub ema_decay: f64,
+    /// Every this many denoiser updates (a multiple of --checkpoint-every), also write a model
+    /// bundle of the EMA weights to WORK/snapshots/step-NNNNNNNNNN, for learning curves
+    /// (`cargo xtask bench-realism --model`). Not for the residual method, whose mean network
+    /// trains first.
+    #[arg(long)]
+    pub snapshot_every: Option<u64>,
 }
 
 struct Progress {
     bar: indicatif::ProgressBar,
     loss: LossAverage,
+    /// Bundles of the EMA weights written along the run (the denoiser's stage only).
+    snapshots: Option<Snapshots>,
+}
+
+/// What a learning-curve snapshot needs besides the checkpoint's EMA weights.
+#[derive(Clone)]
+struct Snapshots {
+    every: u64,
+    dir: PathBuf,
+    config: BundleConfig,
+    /// The encoders' weights by bundle file (none for an unconditional model).
+    encoders: Vec<(
+        &'static str,
+        std::collections::HashMap<String, candle_core::Tensor>,
+    )>,
+}
+
+impl Snapshots {
+    fn write(&self, step: u64, checkpoint: &std::path::Path) -> Result<PathBuf> {
+        let ema = candle_core::safetensors::load(
+            checkpoint.join("ema.safetensors"),
+            &candle_core::Device::Cpu,
+        )
+        .with_context(|| format!("reading {}", checkpoint.display()))?;
+        let mut weights: std::collections::HashMap<&str, _> =
+            self.encoders.iter().map(|(f, w)| (*f, w.clone())).collect();
+        weights.insert(veila_diffusion::app::bundle::DENOISER_FILE, ema);
+        let mut config = self.config.clone();
+        config.provenance = serde_json::json!({ "snapshot_of_step": step, "trained_by": "cargo xtask train-default" });
+        let out = self.dir.join(format!("step-{step:010}"));
+        Bundle::save(&out, &config, &weights)?;
+        Ok(out)
+    }
 }
 
 impl Drop for Progress {
@@ -146,6 +198,19 @@ impl<M: veila_diffusion::Denoiser> TrainObserver<M> for Progress {
         }
         self.bar.set_message(line);
         ControlFlow::Continue(())
+    }
+
+    fn on_checkpoint(&mut self, step: u64, path: &std::path::Path) {
+        if let Some(s) = &self.snapshots
+            && step.is_multiple_of(s.every)
+        {
+            match s.write(step, path) {
+                Ok(out) => self.bar.println(format!("  snapshot {}", out.display())),
+                Err(e) => self
+                    .bar
+                    .println(format!("  snapshot of step {step} failed: {e:#}")),
+            }
+        }
     }
 }
 
@@ -174,6 +239,13 @@ impl TrainDefaultArgs {
             ground_prior: self.ground_prior,
             depth_features: self.depth_features,
             sky_depth: self.sky_depth,
+            base_channels: self.base_channels.map(|c| c as usize),
+            res_blocks: self.res_blocks.map(|n| n as usize),
+            channel_mults: self
+                .channel_mults
+                .as_ref()
+                .map(|m| m.iter().map(|&x| x as usize).collect()),
+            ema_decay: self.ema_decay,
         }
     }
 }
@@ -311,6 +383,10 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         .iter()
         .map(|e| e.train_example(&cfg))
         .collect::<veila_diffusion::Result<_>>()?;
+    let snapshots = match args.snapshot_every {
+        None => None,
+        Some(every) => Some(snapshot_plan(&args, &cfg, &work, every)?),
+    };
     let t = Instant::now();
     let mut bar: Option<indicatif::ProgressBar> = None;
     let outcome = run_recipe(
@@ -354,6 +430,9 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
         |stage, total| Progress {
             bar: crate::progress::progress_bar(total, stage.name()),
             loss: LossAverage::default(),
+            snapshots: snapshots
+                .clone()
+                .filter(|_| stage == veila_diffusion::app::Stage::Denoiser),
         },
     )
     .with_context(|| match &args.encoders_from {
@@ -420,6 +499,49 @@ pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result
 }
 
 /// `--images`: a [`TrainImages`] style by its name.
+/// The snapshots `--snapshot-every` asks for: refused for the residual method and for encoders
+/// trained in this run (a snapshot takes them from `--encoders-from`).
+fn snapshot_plan(
+    args: &TrainDefaultArgs,
+    cfg: &BundleConfig,
+    work: &std::path::Path,
+    every: u64,
+) -> Result<Snapshots> {
+    if every == 0 || !every.is_multiple_of(args.checkpoint_every.max(1)) {
+        anyhow::bail!(
+            "--snapshot-every {every} must be a positive multiple of --checkpoint-every {}",
+            args.checkpoint_every
+        );
+    }
+    if cfg.residual.is_some() {
+        anyhow::bail!(
+            "--snapshot-every: the residual method's bundle needs its finished mean network"
+        );
+    }
+    let mut encoders = Vec::new();
+    if cfg.denoiser.conditioning.is_some() {
+        let Some(dir) = &args.encoders_from else {
+            anyhow::bail!("--snapshot-every with a conditional model needs --encoders-from");
+        };
+        for file in [
+            veila_diffusion::app::bundle::SEMANTIC_FILE,
+            veila_diffusion::app::bundle::DEPTH_FILE,
+        ] {
+            if cfg.weight_files().contains(&file) {
+                let w = candle_core::safetensors::load(dir.join(file), &candle_core::Device::Cpu)
+                    .with_context(|| format!("reading {}", dir.join(file).display()))?;
+                encoders.push((file, w));
+            }
+        }
+    }
+    Ok(Snapshots {
+        every,
+        dir: work.join("snapshots"),
+        config: cfg.clone(),
+        encoders,
+    })
+}
+
 fn parse_images(s: &str) -> Result<TrainImages> {
     Ok(s.parse()?)
 }

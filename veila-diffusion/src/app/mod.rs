@@ -28,6 +28,9 @@
 //! * `real_frames` (feature `sim`): a bundle on the real KITTI / nuScenes frames of the shared
 //!   samples against their real scans, with the image-free baselines (`cargo xtask bench-real`,
 //!   `bench-report`).
+//! * `realism` (feature `sim`): the realism benchmark: realism, texture, faithfulness,
+//!   memorisation and diversity of generated scans against their data floors (`cargo xtask
+//!   bench-realism`).
 //! * `sim_recipe` (feature `sim`): the bundled model's recipe on simulator frames (`cargo xtask
 //!   train-default`): its options, the run key of its work folder, the folder of its trained
 //!   encoders and the provenance it writes.
@@ -48,6 +51,8 @@ pub mod nn;
 pub mod pipeline;
 #[cfg(feature = "sim")]
 pub mod real_frames;
+#[cfg(feature = "sim")]
+pub mod realism;
 pub mod recipe;
 pub mod rig;
 pub mod scoring;

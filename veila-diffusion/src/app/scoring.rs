@@ -255,16 +255,22 @@ mod sets {
         let (gr, gpf) = region_features(nets, points, intensity, region)?;
         let rd = nets.rangenet().config().feature_dim();
         let pd = nets.pointnet().config().feature_dim();
-        let fd = |a: &[f32], b: &[f32], d: usize| -> Result<f64> {
-            if a.len() < 2 * d || b.len() < 2 * d {
-                return Ok(f64::NAN);
-            }
-            Ok(fd::frechet_distance(
-                &FeatureStats::from_rows(a, d, "generated features")?,
-                &FeatureStats::from_rows(b, d, "reference features")?,
-            )?)
-        };
-        Ok((fd(&gr, rr, rd)?, fd(&gpf, rpf, pd)?))
+        Ok((
+            feature_distance(&gr, rr, rd)?,
+            feature_distance(&gpf, rpf, pd)?,
+        ))
+    }
+
+    /// The Fréchet distance of two sets of `d`-dimensional feature rows (flattened), NaN for
+    /// fewer than two rows per dimension on a side.
+    fn feature_distance(a: &[f32], b: &[f32], d: usize) -> Result<f64> {
+        if a.len() < 2 * d || b.len() < 2 * d {
+            return Ok(f64::NAN);
+        }
+        Ok(fd::frechet_distance(
+            &FeatureStats::from_rows(a, d, "generated features")?,
+            &FeatureStats::from_rows(b, d, "reference features")?,
+        )?)
     }
 
     /// The metrics of one set of generated scans (one per frame of `tests`, on `bundle`'s grid)
@@ -374,10 +380,12 @@ mod sets {
         Ok(m)
     }
 
-    /// The data floor: the set metrics (JSD, MMD) between the true scans of neighbouring folds
-    /// (fold `f` against fold `f + 1`, the last against the first): what a perfect generator of
-    /// this many scans would score. One set per fold.
-    pub fn data_floor(judges: &[Judges]) -> Vec<SetMetrics> {
+    /// The data floor: the set metrics (JSD, MMD, and FRD / FPD where the judges hold feature
+    /// rows) between the true scans of neighbouring folds (fold `f` against fold `f + 1`, the last
+    /// against the first): what a perfect generator of this many scans would score. One set per
+    /// fold. The Fréchet distances are biased by the number of scans, so a floor is comparable
+    /// with rows scored on folds of the same size.
+    pub fn data_floor(judges: &[Judges], nets: Option<&FeatureNets>) -> Vec<SetMetrics> {
         let k = judges.len();
         (0..k)
             .map(|f| {
@@ -393,12 +401,22 @@ mod sets {
                         or_nan("jsd", dist::jsd(&ra.histograms, &rb.histograms)),
                     );
                     m.entry("mmd (x1e4)".into()).or_default().insert(
-                        rn,
+                        rn.clone(),
                         1e4 * or_nan(
                             "mmd",
                             dist::mmd_r2dm_dense(&ra.histograms, &rb.histograms, 0.5),
                         ),
                     );
+                    if let (Some(nets), Some((ar, ap)), Some((br, bp))) =
+                        (nets, &ra.features, &rb.features)
+                    {
+                        let rd = nets.rangenet().config().feature_dim();
+                        let pd = nets.pointnet().config().feature_dim();
+                        let frd = or_nan("frd", feature_distance(ar, br, rd));
+                        let fpd = or_nan("fpd", feature_distance(ap, bp, pd));
+                        m.entry("frd".into()).or_default().insert(rn.clone(), frd);
+                        m.entry("fpd".into()).or_default().insert(rn, fpd);
+                    }
                 }
                 m
             })

@@ -61,13 +61,37 @@ pub struct SimRecipe {
     pub depth_features: bool,
     /// Train the depth encoder to read the sky as its far limit.
     pub sky_depth: bool,
+    /// Width of the networks' first level (`None`: the CPU default's 16 channels).
+    pub base_channels: Option<usize>,
+    /// Residual blocks per U-Net level (`None`: the CPU default's 1).
+    pub res_blocks: Option<usize>,
+    /// Width multipliers of the U-Net levels (`None`: the CPU default's 1, 2, 2, 4).
+    pub channel_mults: Option<Vec<usize>>,
+    /// EMA decay of the shipped weights (the shipped recipe's: 0.995).
+    pub ema_decay: f64,
 }
+
+/// The EMA decay of the shipped recipe.
+pub const RECIPE_EMA_DECAY: f64 = 0.995;
 
 impl SimRecipe {
     /// The bundle config the run trains: the variant's CPU default with the method, the ground
     /// prior and the depth features switched as asked.
     pub fn bundle_config(&self) -> Result<BundleConfig> {
-        let mut cfg = BundleConfig::cpu_default(self.variant).with_method(self.method);
+        let mut cfg = BundleConfig::cpu_default(self.variant);
+        if let Some(c) = self.base_channels {
+            cfg.denoiser.base_channels = c;
+        }
+        if let Some(n) = self.res_blocks {
+            cfg.denoiser.num_res_blocks = n;
+        }
+        if let Some(m) = &self.channel_mults {
+            cfg.denoiser.channel_mults = m.clone();
+        }
+        cfg.denoiser
+            .validate()
+            .map_err(|e| invalid("base_channels / res_blocks / channel_mults", e.to_string()))?;
+        let mut cfg = cfg.with_method(self.method);
         if self.ground_prior {
             cfg.set_ground_prior(Some(veila_nn::encoders::ground::GroundPrior::default()));
         }
@@ -98,7 +122,7 @@ impl SimRecipe {
             mean_steps: self.mean_steps,
             batch: self.batch,
             lr: self.lr,
-            ema_decay: 0.995,
+            ema_decay: self.ema_decay,
             cond_drop_prob: 0.1,
             checkpoint_every: self.checkpoint_every,
             keep_checkpoints: 2,
@@ -313,6 +337,10 @@ mod tests {
             ground_prior: false,
             depth_features: false,
             sky_depth: false,
+            base_channels: None,
+            res_blocks: None,
+            channel_mults: None,
+            ema_decay: RECIPE_EMA_DECAY,
         }
     }
 

@@ -6,3 +6,4 @@ mod golden;
 mod hard_cases;
 mod hostile_bounds;
 mod peer_protocols;
+mod texture;
