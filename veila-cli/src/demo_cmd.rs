@@ -313,8 +313,13 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
             summary.camera_effects.join(", ")
         );
     }
-    print_table(&metrics.metrics, &summary.baselines, &summary.ring_spread_m);
-    print_texture(&summary.baselines, &summary.texture);
+    let columns: Vec<(&str, &[MetricValue])> = summary
+        .baselines
+        .iter()
+        .map(|b| (b.name, b.metrics.as_slice()))
+        .collect();
+    crate::demo_table::print_table(&metrics.metrics, &columns, &summary.ring_spread_m);
+    crate::demo_table::print_texture(&columns, &summary.texture);
     for b in &summary.baselines {
         println!("  {}: {}", b.name, b.description);
     }
@@ -491,92 +496,6 @@ fn depth_map(frame: &SimFrame) -> DepthMap {
             .iter()
             .map(|z| if *z > 0.0 { *z } else { f32::INFINITY })
             .collect(),
-    }
-}
-
-/// The metrics table: one column for the generated scan and one per baseline (lower is better
-/// for every row; the cm-dc rows of the true scan are the floor), then the ring spread.
-fn print_table(
-    metrics: &[MetricValue],
-    baselines: &[BaselineSummary],
-    ring_spread: &BTreeMap<&'static str, Option<f64>>,
-) {
-    print!(
-        "{:<38} {:<10} {:<6} {:>12}",
-        "metric", "protocol", "region", "generated"
-    );
-    for b in baselines {
-        print!(" {:>12}", b.name);
-    }
-    println!();
-    for m in metrics {
-        print!(
-            "{:<38} {:<10} {:<6} {:>12.4}",
-            m.name,
-            m.protocol.name(),
-            m.region.name(),
-            m.value
-        );
-        for b in baselines {
-            match b
-                .metrics
-                .iter()
-                .find(|x| x.name == m.name && x.region == m.region)
-            {
-                Some(x) if !m.name.contains("true scan") => print!(" {:>12.4}", x.value),
-                _ => print!(" {:>12}", "-"),
-            }
-        }
-        println!();
-    }
-    let fmt = |v: Option<&Option<f64>>| match v {
-        Some(Some(x)) => format!("{x:.3}"),
-        _ => "n/a".to_string(),
-    };
-    print!(
-        "{:<38} {:<10} {:<6} {:>12}",
-        "ring spread (m)",
-        "veila",
-        "all",
-        fmt(ring_spread.get("generated"))
-    );
-    for b in baselines {
-        print!(" {:>12}", fmt(ring_spread.get(b.name)));
-    }
-    println!("   (true scan: {})", fmt(ring_spread.get("true")));
-}
-
-/// The texture rows under the metrics table: each scan's figures, the true scan's in brackets
-/// (what a realistic scan matches).
-fn print_texture(baselines: &[BaselineSummary], texture: &BTreeMap<&'static str, TextureSummary>) {
-    type Pick = fn(&TextureSummary) -> f64;
-    let rows: [(&str, &str, Pick); 3] = [
-        ("depth edges (% of pairs, > 100 % jump)", "upper", |t| {
-            t.depth_edges_upper_pct
-        }),
-        ("smooth pairs (% of pairs, < 0.03 %)", "lower", |t| {
-            t.smooth_lower_pct
-        }),
-        ("texture distance to true (decades)", "all", |t| {
-            t.w1_along_decades
-        }),
-    ];
-    for (name, band, pick) in rows {
-        let cell = |k: &str| {
-            texture
-                .get(k)
-                .map(pick)
-                .map_or("n/a".into(), |v| format!("{v:.4}"))
-        };
-        print!(
-            "{name:<38} {:<10} {band:<6} {:>12}",
-            "veila",
-            cell("generated")
-        );
-        for b in baselines {
-            print!(" {:>12}", cell(b.name));
-        }
-        println!("   (true scan: {})", cell("true"));
     }
 }
 

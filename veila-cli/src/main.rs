@@ -27,6 +27,7 @@ mod bench_cmd; // bench (training and sampling speed)  (veila-nn, veila-diffusio
 mod convert_cmd; // convert (datasets into training shards) (veila-data::convert)
 mod data_cmd; // project, unproject, render           (veila-data)
 mod demo_cmd; // demo (the README's main job)
+mod demo_table; // the tables demo prints
 mod edit_cmd; // edit (RePaint scene editing)         (veila-diffusion::pipeline)
 mod eval_cmd; // eval, fd                               (veila-metrics)
 mod eval_crossmodal; // CM-DC / CM-SC of eval (maps or networks) (veila-metrics::crossmodal)

