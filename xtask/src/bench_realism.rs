@@ -113,17 +113,15 @@ pub fn run(args: BenchRealismArgs) -> Result<()> {
             root.join(p)
         }
     };
-    let bundles = args
-        .models
-        .iter()
-        .map(|p| {
-            Bundle::from_dir(&abs(p), &device).with_context(|| format!("loading {}", p.display()))
-        })
-        .collect::<Result<Vec<_>>>()?;
-    let judge = &bundles[0];
+    let load = |p: &PathBuf| {
+        Bundle::from_dir(&abs(p), &device).with_context(|| format!("loading {}", p.display()))
+    };
+    let bundles = args.models.iter().map(load).collect::<Result<Vec<_>>>()?;
+    let judge = &load(&args.judge)?;
     anyhow::ensure!(
         judge.is_conditional(),
-        "the first --model judges the image agreement: it must be conditional"
+        "--judge {}: the judge must be conditional",
+        args.judge.display()
     );
     let train_list = train_split_of(&judge.config);
     let test_list = test_list_for(&root, &train_list);

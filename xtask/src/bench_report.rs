@@ -505,6 +505,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
                     res_blocks: None,
                     channel_mults: None,
                     ema_decay: veila_diffusion::app::sim_recipe::RECIPE_EMA_DECAY,
+                    loss_weighting: "min-snr".into(),
                     snapshot_every: None,
                 },
                 Some(&train_frames),

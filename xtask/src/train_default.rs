@@ -134,6 +134,11 @@ pub struct TrainDefaultArgs {
     /// 1,2,2,4]; as many levels as given.
     #[arg(long, value_delimiter = ',', value_parser = clap::value_parser!(u64).range(1..=64))]
     pub channel_mults: Option<Vec<u64>>,
+    /// Loss weighting over noise levels of the diffusion methods: `min-snr` (min-SNR-5, the
+    /// shipped recipe's) or `uniform` (every level alike in the prediction's MSE: for
+    /// v-prediction the x₀-space weight SNR + 1).
+    #[arg(long, default_value = "min-snr", value_parser = ["min-snr", "uniform"])]
+    pub loss_weighting: String,
     /// EMA decay of the shipped weights, in [0, 1).
     #[arg(long, default_value_t = veila_diffusion::app::sim_recipe::RECIPE_EMA_DECAY)]
     pub ema_decay: f64,
@@ -246,6 +251,7 @@ impl TrainDefaultArgs {
                 .as_ref()
                 .map(|m| m.iter().map(|&x| x as usize).collect()),
             ema_decay: self.ema_decay,
+            uniform_loss_weighting: self.loss_weighting == "uniform",
         }
     }
 }

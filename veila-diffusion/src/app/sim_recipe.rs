@@ -69,6 +69,8 @@ pub struct SimRecipe {
     pub channel_mults: Option<Vec<usize>>,
     /// EMA decay of the shipped weights (the shipped recipe's: 0.995).
     pub ema_decay: f64,
+    /// Weigh every noise level alike in the prediction's MSE instead of min-SNR-5.
+    pub uniform_loss_weighting: bool,
 }
 
 /// The EMA decay of the shipped recipe.
@@ -91,6 +93,9 @@ impl SimRecipe {
         cfg.denoiser
             .validate()
             .map_err(|e| invalid("base_channels / res_blocks / channel_mults", e.to_string()))?;
+        if self.uniform_loss_weighting {
+            cfg.diffusion.loss_weighting = crate::prediction::LossWeighting::Uniform;
+        }
         let mut cfg = cfg.with_method(self.method);
         if self.ground_prior {
             cfg.set_ground_prior(Some(veila_nn::encoders::ground::GroundPrior::default()));
@@ -341,6 +346,7 @@ mod tests {
             res_blocks: None,
             channel_mults: None,
             ema_decay: RECIPE_EMA_DECAY,
+            uniform_loss_weighting: false,
         }
     }
 
