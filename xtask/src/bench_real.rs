@@ -67,13 +67,7 @@ pub struct BenchRealArgs {
 pub fn run(args: BenchRealArgs) -> Result<()> {
     let t = std::time::Instant::now();
     let root = workspace_root();
-    let abs = |p: &Path| {
-        if p.is_absolute() {
-            p.to_path_buf()
-        } else {
-            root.join(p)
-        }
-    };
+    let abs = |p: &Path| crate::progress::in_workspace(p);
     let (model_dir, out) = (abs(&args.model), abs(&args.out));
     let bundle = Bundle::from_dir(&model_dir, &candle_core::Device::Cpu)
         .with_context(|| format!("loading {}", model_dir.display()))?;

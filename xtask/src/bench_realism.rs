@@ -106,13 +106,7 @@ fn stats_row(
 pub fn run(args: BenchRealismArgs) -> Result<()> {
     let root = workspace_root();
     let device = Device::Cpu;
-    let abs = |p: &PathBuf| {
-        if p.is_absolute() {
-            p.clone()
-        } else {
-            root.join(p)
-        }
-    };
+    let abs = |p: &PathBuf| crate::progress::in_workspace(p);
     let load = |p: &PathBuf| {
         Bundle::from_dir(&abs(p), &device).with_context(|| format!("loading {}", p.display()))
     };

@@ -246,13 +246,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
     let t_all = Instant::now();
     let root = workspace_root();
     let device = Device::Cpu;
-    let abs = |p: &Path| {
-        if p.is_absolute() {
-            p.to_path_buf()
-        } else {
-            root.join(p)
-        }
-    };
+    let abs = |p: &Path| crate::progress::in_workspace(p);
     let model_dir = abs(&args.model);
     let out = abs(&args.out);
     let work = abs(&args.work);

@@ -13,6 +13,12 @@ pub(crate) fn workspace_root() -> PathBuf {
         .unwrap_or_else(|| PathBuf::from("."))
 }
 
+/// A path a command was given, relative to the workspace root (an absolute path stays as it is:
+/// `Path::join` keeps it).
+pub(crate) fn in_workspace(p: &Path) -> PathBuf {
+    workspace_root().join(p)
+}
+
 /// A progress bar on stderr (hidden when stderr is not a terminal).
 pub(crate) fn progress_bar(len: u64, label: &str) -> indicatif::ProgressBar {
     let bar = indicatif::ProgressBar::new(len);

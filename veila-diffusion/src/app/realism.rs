@@ -42,6 +42,8 @@ pub const TEXTURE_REGIONS: [&str; 2] = ["view", "outside"];
 #[derive(Debug)]
 struct Fold {
     frames: Vec<SimExample>,
+    /// The frames' true scans.
+    scans: Vec<RangeImage>,
     /// Per texture region, per direction: the true scans' step histogram.
     true_steps: Vec<[StepHistogram; 2]>,
     true_raydrop: Vec<f64>,
@@ -56,15 +58,17 @@ pub struct RealismBench {
     judges: Vec<Judges>,
     train_scans: Vec<RangeImage>,
     nets: Option<FeatureNets>,
-    /// Per pixel: inside the camera's view (the first test frame's camera: the simulator's
-    /// frames share one rig).
-    view: Vec<bool>,
-    /// Per pixel: the ray points ahead (`x > 0`).
-    front: Vec<bool>,
+    /// Per pixel, in [`TEXTURE_REGIONS`] order: inside the camera's view (the first test
+    /// frame's camera: the simulator's frames share one rig), and outside it.
+    view: [Vec<bool>; 2],
+    /// Per pixel: the ray points ahead (`x > 0`), and behind.
+    front_rear: [Vec<bool>; 2],
 }
 
-fn not(mask: &[bool]) -> Vec<bool> {
-    mask.iter().map(|m| !m).collect()
+/// A mask and its complement.
+fn and_not(mask: Vec<bool>) -> [Vec<bool>; 2] {
+    let other = mask.iter().map(|m| !m).collect();
+    [mask, other]
 }
 
 impl RealismBench {
@@ -92,9 +96,8 @@ impl RealismBench {
         }
         let first = tests.first().ok_or_else(|| invalid("tests", "no frame"))?;
         let rays = RayTable::new(&judge.config.denoiser.sensor)?;
-        let view = first.camera.frustum_mask(&rays);
-        let front: Vec<bool> = rays.dirs().iter().map(|d| d.x > 0.0).collect();
-        let masks = [view.clone(), not(&view)];
+        let view = and_not(first.camera.frustum_mask(&rays));
+        let front_rear = and_not(rays.dirs().iter().map(|d| d.x > 0.0).collect());
         let mut out = Vec::with_capacity(folds);
         let mut all_judges = Vec::with_capacity(folds);
         let mut rest = tests;
@@ -103,13 +106,14 @@ impl RealismBench {
             let frames = std::mem::replace(&mut rest, tail);
             all_judges.push(Judges::new(judge, &frames, nets.as_ref(), device)?);
             let scans: Vec<RangeImage> = frames.iter().map(|f| f.range.clone()).collect();
-            let true_steps = masks
+            let true_steps = view
                 .iter()
                 .map(|m| steps_of(&scans, m))
                 .collect::<Result<Vec<_>>>()?;
             let true_raydrop = raydrop_per_row(&scans, None)?;
             out.push(Fold {
                 frames,
+                scans,
                 true_steps,
                 true_raydrop,
             });
@@ -120,7 +124,7 @@ impl RealismBench {
             train_scans: train.iter().map(|e| e.range.clone()).collect(),
             nets,
             view,
-            front,
+            front_rear,
         })
     }
 
@@ -144,11 +148,6 @@ impl RealismBench {
         self.folds.iter().flat_map(|f| &f.frames)
     }
 
-    /// The pixel mask of the camera's view on the grid.
-    pub fn view_mask(&self) -> &[bool] {
-        &self.view
-    }
-
     fn fold(&self, f: usize) -> Result<&Fold> {
         self.folds
             .get(f)
@@ -169,7 +168,7 @@ impl RealismBench {
         let mut sum = 0.0;
         let mut n = 0usize;
         for (g, ex) in generated.iter().zip(&fold.frames) {
-            let (mae, _) = veila_metrics::view::masked_range_mae(&self.view, g, &ex.range)?;
+            let (mae, _) = veila_metrics::view::masked_range_mae(&self.view[0], g, &ex.range)?;
             if mae.is_finite() {
                 sum += mae;
                 n += 1;
@@ -185,8 +184,7 @@ impl RealismBench {
 
     /// The texture metrics of `scans` against fold `fold`'s true scans.
     fn texture_into(&self, m: &mut SetMetrics, fold: &Fold, scans: &[RangeImage]) -> Result<()> {
-        let masks = [self.view.clone(), not(&self.view)];
-        for ((name, mask), truth) in TEXTURE_REGIONS.iter().zip(&masks).zip(&fold.true_steps) {
+        for ((name, mask), truth) in TEXTURE_REGIONS.iter().zip(&self.view).zip(&fold.true_steps) {
             let [along, across] = steps_of(scans, mask)?;
             let mut put = |metric: &str, v: f64| {
                 m.entry(metric.into())
@@ -236,18 +234,8 @@ impl RealismBench {
         let mut sets = data_floor(&self.judges, self.nets.as_ref());
         let k = self.folds.len();
         for (f, m) in sets.iter_mut().enumerate() {
-            let next: Vec<RangeImage> = self.folds[(f + 1) % k]
-                .frames
-                .iter()
-                .map(|e| e.range.clone())
-                .collect();
-            self.texture_into(m, &self.folds[f], &next)?;
-            let own: Vec<RangeImage> = self.folds[f]
-                .frames
-                .iter()
-                .map(|e| e.range.clone())
-                .collect();
-            self.memorisation_into(m, &own)?;
+            self.texture_into(m, &self.folds[f], &self.folds[(f + 1) % k].scans)?;
+            self.memorisation_into(m, &self.folds[f].scans)?;
         }
         Ok(sets)
     }
@@ -269,7 +257,8 @@ impl RealismBench {
     /// The diversity floor of fold `f`: the range MAE between the true scans of each frame and
     /// of the other frame of the fold whose image is nearest in `judge`'s image descriptor.
     pub fn diversity_floor(&self, judge: &Bundle, f: usize) -> Result<SetMetrics> {
-        let frames = &self.fold(f)?.frames;
+        let fold = self.fold(f)?;
+        let frames = &fold.frames;
         let keys = frames
             .iter()
             .map(|e| {
@@ -289,7 +278,7 @@ impl RealismBench {
                 .collect();
             let j = veila_metrics::baseline::nearest(k, &others)?;
             let j = if j >= i { j + 1 } else { j };
-            pairs.push((&frames[i].range, &frames[j].range));
+            pairs.push((&fold.scans[i], &fold.scans[j]));
         }
         self.spread(pairs.into_iter())
     }
@@ -298,15 +287,15 @@ impl RealismBench {
         &self,
         pairs: impl Iterator<Item = (&'a RangeImage, &'a RangeImage)>,
     ) -> Result<SetMetrics> {
-        let rear = not(&self.front);
+        let [front, rear] = &self.front_rear;
         let (mut sf, mut sr, mut nf, mut nr) = (0.0, 0.0, 0usize, 0usize);
         for (a, b) in pairs {
-            let f = pairwise_range_mae(a, b, Some(&self.front))?;
+            let f = pairwise_range_mae(a, b, Some(front))?;
             if f.is_finite() {
                 sf += f;
                 nf += 1;
             }
-            let r = pairwise_range_mae(a, b, Some(&rear))?;
+            let r = pairwise_range_mae(a, b, Some(rear))?;
             if r.is_finite() {
                 sr += r;
                 nr += 1;

@@ -66,31 +66,28 @@ fn wheel_tree() -> Option<String> {
     let manifest = "python/Cargo.toml";
     let args = ["--manifest-path", manifest, "-e", "normal,build"];
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-    let offline = std::process::Command::new(&cargo)
-        .args([
-            "tree",
-            "--offline",
-            "--manifest-path",
-            manifest,
-            "--prefix",
-            "none",
-        ])
-        .current_dir(super::workspace_root())
-        .output()
-        .expect("cargo runs");
-    if !offline.status.success() {
-        let fetched = std::process::Command::new(&cargo)
-            .args(["fetch", "--locked", "--manifest-path", manifest])
+    let run = |args: &[&str]| {
+        std::process::Command::new(&cargo)
+            .args(args)
             .current_dir(super::workspace_root())
             .output()
-            .expect("cargo runs");
-        if !fetched.status.success() {
-            eprintln!(
-                "skipped: the wheel's dependencies are not in the local registry and could not be                  fetched ({}); run `cargo fetch --locked --manifest-path {manifest}` once online",
-                String::from_utf8_lossy(&fetched.stderr).trim()
-            );
-            return None;
-        }
+            .expect("cargo runs")
+    };
+    let mut offline = vec!["tree", "--offline"];
+    offline.extend_from_slice(&args);
+    offline.extend_from_slice(&["--prefix", "none", "--format", "{p}|{f}"]);
+    let first = run(&offline);
+    if first.status.success() {
+        return Some(String::from_utf8_lossy(&first.stdout).into_owned());
+    }
+    let fetched = run(&["fetch", "--locked", "--manifest-path", manifest]);
+    if !fetched.status.success() {
+        eprintln!(
+            "skipped: the wheel's dependencies are not in the local registry and could not be \
+             fetched ({}); run `cargo fetch --locked --manifest-path {manifest}` once online",
+            String::from_utf8_lossy(&fetched.stderr).trim()
+        );
+        return None;
     }
     Some(tree(&args))
 }
