@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use candle_core::Device;
 use veila_data::PointCloud;
+use veila_data::read_capped::{MAX_JSON_METADATA_BYTES, read_metadata};
 use veila_diffusion::app::BundleConfig;
 use veila_diffusion::app::bundle::{Bundle, CONFIG_FILE, MANIFEST_FILE};
 use veila_geom::RangeImage;
@@ -58,7 +59,12 @@ pub(crate) fn model_source(checkpoint: Option<&Path>) -> ModelSource {
 /// The bytes of the model's `manifest.json`, when it has one.
 pub(crate) fn manifest_bytes(checkpoint: Option<&Path>) -> Option<Vec<u8>> {
     match model_source(checkpoint) {
-        ModelSource::Dir(dir) => std::fs::read(dir.join(MANIFEST_FILE)).ok(),
+        ModelSource::Dir(dir) => read_metadata(
+            &dir.join(MANIFEST_FILE),
+            MAX_JSON_METADATA_BYTES,
+            "a bundle's manifest.json",
+        )
+        .ok(),
         ModelSource::Embedded => embedded::EMBEDDED_MODEL
             .iter()
             .find(|(n, _)| *n == MANIFEST_FILE)

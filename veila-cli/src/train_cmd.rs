@@ -29,6 +29,9 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use veila_data::read_capped::{
+    MAX_CONFIG_BYTES, MAX_JSON_METADATA_BYTES, read_metadata, read_metadata_string,
+};
 use veila_data::shard::Manifest;
 use veila_diffusion::app::bundle::{Bundle, sha256_hex};
 use veila_diffusion::app::train_config::{RunFingerprint, TrainFile};
@@ -59,8 +62,7 @@ const ENCODER_DIR: &str = "encoders";
 
 /// The config file at `path`, its relative paths resolved and its values checked.
 fn read_config(path: &Path) -> Result<TrainFile> {
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("{}: cannot read", path.display()))?;
+    let text = read_metadata_string(path, MAX_CONFIG_BYTES, "a training config")?;
     let mut cfg: TrainFile = toml::from_str(&text)
         .map_err(|e| anyhow::anyhow!("{}: not a valid training config: {e}", path.display()))?;
     cfg.resolve_and_check(path)?;
@@ -273,8 +275,8 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
     let ck_dir = out.join("checkpoints");
     std::fs::create_dir_all(&ck_dir)
         .with_context(|| format!("{}: cannot create", ck_dir.display()))?;
-    let manifest_bytes = std::fs::read(&manifest_path)
-        .with_context(|| format!("{}: cannot read", manifest_path.display()))?;
+    let manifest_bytes =
+        read_metadata(&manifest_path, MAX_JSON_METADATA_BYTES, "a shard manifest")?;
     let fingerprint = RunFingerprint {
         bundle: cfg.clone(),
         train: serde_json::to_value(t)?,
@@ -515,4 +517,41 @@ fn peak_host_mib() -> Option<f64> {
     let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
     let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kib / 1024.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[cfg(unix)]
+    #[test]
+    fn a_train_config_linked_to_dev_zero_is_refused_naming_it() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("train.toml");
+        std::os::unix::fs::symlink("/dev/zero", &p).unwrap();
+        let e = format!("{:#}", read_config(&p).err().unwrap());
+        assert!(
+            e.contains("train.toml") && e.contains("not a regular file (a character device)"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_sparse_train_config_over_the_cap_is_refused_unread() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("train.toml");
+        std::fs::File::create(&p)
+            .unwrap()
+            .set_len(MAX_CONFIG_BYTES + 1)
+            .unwrap();
+        let e = format!("{:#}", read_config(&p).err().unwrap());
+        assert!(
+            e.contains("train.toml")
+                && e.contains(&format!(
+                    "{} bytes, more than the cap of {MAX_CONFIG_BYTES} bytes for a training config",
+                    MAX_CONFIG_BYTES + 1
+                )),
+            "{e}"
+        );
+    }
 }

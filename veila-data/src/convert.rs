@@ -137,7 +137,7 @@ fn sources_digest(dataset: &dyn Dataset, frames: std::ops::Range<usize>) -> Resu
             h.update(name.as_bytes());
             h.update([0]);
             if f.is_file() {
-                let (sha, bytes) = sha256_file(&f)?;
+                let (sha, bytes) = sha256_source(&f)?;
                 h.update(sha.as_bytes());
                 h.update(bytes.to_le_bytes());
             } else {
@@ -145,7 +145,56 @@ fn sources_digest(dataset: &dyn Dataset, frames: std::ops::Range<usize>) -> Resu
             }
         }
     }
-    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
+    Ok(sha256_hex_of(h))
+}
+
+/// The cap of a dataset's source file, by its name (scans, `.label`, calibrations, images), with
+/// what it is in words: the readers' own limits, so a 100 GB sparse scan is refused from its
+/// length before it is hashed.
+fn source_cap(path: &Path) -> (u64, &'static str) {
+    use crate::read_capped::*;
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().to_lowercase())
+        .unwrap_or_default();
+    if name.ends_with(".pcd.bin") {
+        (MAX_NUSCENES_SCAN_BYTES, "a nuScenes scan")
+    } else if name.ends_with(".bin") {
+        (MAX_KITTI_SCAN_BYTES, "a KITTI scan")
+    } else if name.ends_with(".label") {
+        (MAX_LABEL_FILE_BYTES, "a `.label` file")
+    } else if name.ends_with(".txt") || name.ends_with(".json") {
+        (MAX_CALIBRATION_BYTES, "a calibration file")
+    } else {
+        (MAX_CAMERA_IMAGE_BYTES, "a camera image")
+    }
+}
+
+/// SHA-256 and length of the source file `path`, within its [`source_cap`] (checked before
+/// anything is read; a FIFO or device is refused unopened).
+fn sha256_source(path: &Path) -> Result<(String, u64)> {
+    use sha2::Digest;
+    use std::io::Read;
+    let (cap, kind) = source_cap(path);
+    let mut file = crate::read_capped::open_capped_take(path, cap, kind)?;
+    let mut h = sha2::Sha256::new();
+    let mut buf = vec![0u8; 1 << 20];
+    let mut total = 0u64;
+    loop {
+        let k = file.read(&mut buf).map_err(|e| Error::io(path, e))?;
+        if k == 0 {
+            break;
+        }
+        total += k as u64;
+        h.update(&buf[..k]);
+    }
+    crate::read_capped::check_len(path, total, cap, kind)?;
+    Ok((sha256_hex_of(h), total))
+}
+
+fn sha256_hex_of(h: sha2::Sha256) -> String {
+    use sha2::Digest;
+    h.finalize().iter().map(|b| format!("{b:02x}")).collect()
 }
 
 /// Project one frame into a training sample. Intensity is divided by `intensity_max`; labels become
@@ -266,7 +315,12 @@ fn sidecar_path(out: &Path, file: &str) -> PathBuf {
 /// The sidecar's entry when shard file `file` is complete and was made with these settings (and
 /// from these sources, when `sources` is given).
 fn complete_entry(out: &Path, file: &str, fp: &str, sources: Option<&str>) -> Option<ShardEntry> {
-    let text = std::fs::read_to_string(sidecar_path(out, file)).ok()?;
+    let text = crate::read_capped::read_metadata_string(
+        &sidecar_path(out, file),
+        crate::read_capped::MAX_JSON_METADATA_BYTES,
+        "a shard sidecar",
+    )
+    .ok()?;
     let sc: Sidecar = serde_json::from_str(&text).ok()?;
     if sc.fingerprint != fp || sources.is_some_and(|s| s != sc.sources) || sc.entry.file != file {
         return None;
@@ -305,7 +359,8 @@ fn check_own_folder(out: &Path, dataset: &str) -> Result<()> {
     }
     let manifest = out.join("manifest.json");
     if manifest.exists() {
-        let m = Manifest::read(&manifest)?;
+        // the listing names the dataset; the shards are checked where they are reused
+        let m = Manifest::read_listing(&manifest)?;
         if m.dataset != dataset {
             return refuse(
                 manifest,
@@ -581,7 +636,12 @@ fn join_conversion(out: &Path, fp: &str) -> Result<std::fs::File> {
         std::fs::write(&run_path, fp).map_err(|e| Error::io(&run_path, e))?;
         run.unlock().map_err(|e| Error::io(&run_path, e))?;
     } else {
-        let theirs = std::fs::read_to_string(&run_path).unwrap_or_default();
+        let theirs = crate::read_capped::read_metadata_string(
+            &run_path,
+            crate::read_capped::MAX_CONFIG_BYTES,
+            "a conversion's run file",
+        )
+        .unwrap_or_default();
         if theirs != fp {
             return Err(Error::io(
                 out,

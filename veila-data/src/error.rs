@@ -26,6 +26,15 @@ pub enum Error {
         /// What is wrong, in words.
         message: String,
     },
+    /// A file refused before its content was read: not a regular file (a FIFO, a device, a
+    /// directory), or larger than the cap for its kind (see [`crate::read_capped`]).
+    #[error("{}: {message}", path.display())]
+    Refused {
+        /// The file.
+        path: PathBuf,
+        /// Why it was refused, in words.
+        message: String,
+    },
     /// Inputs that do not fit together (point and label counts, image sizes, ...).
     #[error("{context}: {message}")]
     Mismatch {

@@ -73,7 +73,11 @@ impl KittiCalib {
 
     /// Read `calib/NNNNNN.txt`.
     pub fn read(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let text = crate::read_capped::read_metadata_string(
+            path,
+            crate::read_capped::MAX_CALIBRATION_BYTES,
+            "a calibration file",
+        )?;
         Self::parse(&text, path)
     }
 
@@ -174,7 +178,11 @@ pub fn parse_kitti_labels(text: &str, path: &Path) -> Result<Vec<KittiObjectLabe
 
 /// Read a `label_2` file.
 pub fn read_kitti_labels(path: &Path) -> Result<Vec<KittiObjectLabel>> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let text = crate::read_capped::read_metadata_string(
+        path,
+        crate::read_capped::MAX_CALIBRATION_BYTES,
+        "a KITTI label file",
+    )?;
     parse_kitti_labels(&text, path)
 }
 

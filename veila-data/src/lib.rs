@@ -15,6 +15,9 @@
 //!   [`nuscenes::NuScenesSample`], each giving a [`veila_geom::PinholeCamera`]; any of them by content
 //!   with [`spec::camera_from_calib_file`]. Sensors by preset or file: [`spec::sensor_from_spec`].
 //! - Images: [`image_io::read_rgb_image`] (PNG / JPEG).
+//! - Metadata read whole (manifests, configs, calibrations, label maps, `.label` files):
+//!   [`read_capped::read_metadata`], which refuses anything but a regular file, and a file over the
+//!   cap for its kind, before reading it.
 //!
 //! # Writing
 //!
@@ -87,6 +90,7 @@ pub mod peer_samples;
 pub mod ply;
 pub mod points;
 pub mod range_exr;
+pub mod read_capped;
 pub mod scan;
 pub mod semantic_kitti;
 pub mod shard;

@@ -230,7 +230,11 @@ pub struct NuScenesSample {
 impl NuScenesSample {
     /// Read the simple per-sample JSON (`calib/<sample_token>.json`).
     pub fn read_json(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let text = crate::read_capped::read_metadata_string(
+            path,
+            crate::read_capped::MAX_CALIBRATION_BYTES,
+            "a nuScenes sample JSON",
+        )?;
         let j: JsonSample = serde_json::from_str(&python_json_to_strict(&text)).map_err(|e| {
             Error::format(path, format!("not a nuScenes sample calibration JSON: {e}"))
         })?;
@@ -431,6 +435,8 @@ impl<'de, T: DeserializeOwned, F: FnMut(&T) -> bool> DeserializeSeed<'de> for Fi
 }
 
 fn read_table<T: DeserializeOwned>(path: &Path, keep: impl FnMut(&T) -> bool) -> Result<Vec<T>> {
+    // streamed, so not capped; but opening a FIFO would block
+    crate::read_capped::check_regular_file(path)?;
     let f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
     let mut de =
         serde_json::Deserializer::from_reader(std::io::BufReader::with_capacity(1 << 20, f));

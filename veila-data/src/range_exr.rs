@@ -144,48 +144,38 @@ pub fn write_range_exr(path: &Path, sensor: &LidarSensor, image: &RangeImage) ->
     write_atomic_with(path, |w| std::io::Write::write_all(w, &bytes))
 }
 
-/// Decode EXR bytes written by [`encode_range_exr`] (`path` names the source in errors).
-pub fn decode_range_exr(bytes: &[u8], path: &Path) -> Result<RangeExr> {
+/// The sensor of range-image EXR bytes, from the header alone (no pixel is decoded): the magic
+/// number, the format tag (layer name or `veila_format`), the stored sensor, and the data window
+/// of every layer, which must be the sensor's `cols x rows` (width x height).
+fn read_header(bytes: &[u8], path: &Path) -> Result<LidarSensor> {
     let fmt = |m: String| Error::format(path, m);
     if !bytes.starts_with(&EXR_MAGIC) {
         return Err(fmt("not an OpenEXR file (bad magic number)".into()));
     }
-    let img = read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .first_valid_layer()
-        .all_attributes()
-        .from_buffered(Cursor::new(bytes))
-        .map_err(|e| fmt(format!("cannot read EXR: {e}")))?;
-    let layer = &img.layer_data;
+    let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(bytes), false)
+        .map_err(|e| fmt(format!("cannot read EXR header: {e}")))?;
+    let header = meta
+        .headers
+        .first()
+        .ok_or_else(|| fmt("EXR has no layer".into()))?;
     let text_attr = |name: &str| -> Option<String> {
-        match layer
-            .attributes
+        let key = Text::from(name);
+        match header
+            .own_attributes
             .other
-            .get(&Text::from(name))
-            .or_else(|| img.attributes.other.get(&Text::from(name)))
+            .get(&key)
+            .or_else(|| header.shared_attributes.other.get(&key))
         {
             Some(AttributeValue::Text(t)) => Some(t.to_string()),
             _ => None,
         }
     };
-    let layer_name = layer.attributes.layer_name.as_ref().map(|t| t.to_string());
-    let format_tag = text_attr(ATTR_FORMAT)
-        .or_else(|| layer_name.filter(|n| n.starts_with("veila-range-image/")));
-    match format_tag {
-        Some(tag) if tag == FORMAT_TAG => {}
-        Some(tag) => {
-            return Err(fmt(format!(
-                "unsupported range-image version `{tag}` (expected `{FORMAT_TAG}`)"
-            )));
-        }
-        None => {
-            return Err(fmt(format!(
-                "EXR has neither a `{ATTR_FORMAT}` attribute nor a layer named `{FORMAT_TAG}`: not a Veila range image"
-            )));
-        }
-    }
+    let layer_name = header
+        .own_attributes
+        .layer_name
+        .as_ref()
+        .map(|t| t.to_string());
+    check_format_tag(text_attr(ATTR_FORMAT), layer_name, path)?;
     let sensor_json = text_attr(ATTR_SENSOR).ok_or_else(|| {
         fmt(format!(
             "EXR has no `{ATTR_SENSOR}` attribute (the sensor description)"
@@ -199,13 +189,59 @@ pub fn decode_range_exr(bytes: &[u8], path: &Path) -> Result<RangeExr> {
     sensor
         .validate()
         .map_err(|e| fmt(format!("stored sensor is invalid: {e}")))?;
-    let (w, h) = (layer.size.width(), layer.size.height());
-    if w != sensor.cols as usize || h != sensor.rows as usize {
-        return Err(fmt(format!(
-            "image is {w}x{h} (width x height) but its sensor is {} cols x {} rows",
-            sensor.cols, sensor.rows
-        )));
+    for (i, h) in meta.headers.iter().enumerate() {
+        let (w, hh) = (h.layer_size.width(), h.layer_size.height());
+        if w != sensor.cols as usize || hh != sensor.rows as usize {
+            let which = if i == 0 {
+                String::new()
+            } else {
+                format!("layer {i}: ")
+            };
+            return Err(fmt(format!(
+                "{which}image is {w}x{hh} (width x height) but its sensor is {} cols x {} rows",
+                sensor.cols, sensor.rows
+            )));
+        }
     }
+    Ok(sensor)
+}
+
+/// The format tag, from the `veila_format` attribute or else a `veila-range-image/*` layer name,
+/// must be [`FORMAT_TAG`].
+fn check_format_tag(attr: Option<String>, layer_name: Option<String>, path: &Path) -> Result<()> {
+    let format_tag = attr.or_else(|| layer_name.filter(|n| n.starts_with("veila-range-image/")));
+    match format_tag {
+        Some(tag) if tag == FORMAT_TAG => Ok(()),
+        Some(tag) => Err(Error::format(
+            path,
+            format!("unsupported range-image version `{tag}` (expected `{FORMAT_TAG}`)"),
+        )),
+        None => Err(Error::format(
+            path,
+            format!(
+                "EXR has neither a `{ATTR_FORMAT}` attribute nor a layer named `{FORMAT_TAG}`: not a Veila range image"
+            ),
+        )),
+    }
+}
+
+/// Decode EXR bytes written by [`encode_range_exr`] (`path` names the source in errors).
+///
+/// The header is read and checked first: a file whose data window differs from
+/// its sensor's `rows x cols` (say one claiming 2^20 x 1024 pixels in a few bytes) is refused
+/// before any pixel storage is allocated.
+pub fn decode_range_exr(bytes: &[u8], path: &Path) -> Result<RangeExr> {
+    let fmt = |m: String| Error::format(path, m);
+    let sensor = read_header(bytes, path)?;
+    let img = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_buffered(Cursor::new(bytes))
+        .map_err(|e| fmt(format!("cannot read EXR: {e}")))?;
+    let layer = &img.layer_data;
     let find = |name: &str| layer.channel_data.list.iter().find(|c| c.name.eq(name));
     let f32_channel = |name: &str| -> Result<Vec<f32>> {
         match find(name).map(|c| &c.sample_data) {
@@ -241,7 +277,7 @@ pub fn decode_range_exr(bytes: &[u8], path: &Path) -> Result<RangeExr> {
             )));
         }
     }
-    let n = w * h;
+    let n = sensor.num_pixels();
     let image = RangeImage {
         rows: sensor.rows,
         cols: sensor.cols,
@@ -413,5 +449,67 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("cut.exr"), "{e}");
+    }
+
+    /// `bytes` with the data window of its (first) header replaced by `width x height`.
+    fn with_data_window(bytes: &[u8], width: i32, height: i32) -> Vec<u8> {
+        let key = b"dataWindow\0box2i\0";
+        let at = bytes
+            .windows(key.len())
+            .position(|w| w == key)
+            .expect("a dataWindow attribute")
+            + key.len()
+            + 4; // the attribute's size
+        let mut out = bytes.to_vec();
+        // x_min, y_min stay 0; x_max, y_max
+        out[at + 8..at + 12].copy_from_slice(&(width - 1).to_le_bytes());
+        out[at + 12..at + 16].copy_from_slice(&(height - 1).to_le_bytes());
+        out
+    }
+
+    const HUGE_WINDOW_TEST: &str =
+        "range_exr::tests::a_header_claiming_a_huge_window_is_refused_before_decoding";
+
+    #[test]
+    fn a_header_claiming_a_huge_window_is_refused_before_decoding() {
+        let sensor = LidarSensor {
+            rows: 4,
+            cols: 16,
+            ..LidarSensor::hdl64e()
+        };
+        let good = encode_range_exr(&sensor, &random_image(&sensor, 5, true)).unwrap();
+        assert!(decode_range_exr(&with_data_window(&good, 16, 4), Path::new("same.exr")).is_ok());
+        // 1024 x 2^20 pixels: four 4 GiB channels if the pixels were allocated before the check
+        let huge = with_data_window(&good, 1024, 1 << 20);
+        let e = decode_range_exr(&huge, Path::new("huge.exr"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("huge.exr") && e.contains("1024x1048576") && e.contains("16 cols x 4 rows"),
+            "{e}"
+        );
+        let e = decode_range_exr(&with_data_window(&good, 16, 5), Path::new("one_more.exr"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("one_more.exr") && e.contains("16x5"), "{e}");
+        // and no allocation of that size happens: the same decode in a child process whose
+        // address space is limited to 1 GiB (an allocation of the claimed pixels aborts it)
+        #[cfg(target_os = "linux")]
+        if std::env::var_os("VEILA_EXR_HUGE_WINDOW_CHILD").is_none() {
+            let exe = std::env::current_exe().unwrap();
+            let status = std::process::Command::new("sh")
+                .arg("-c")
+                .arg("ulimit -v 1048576 && exec \"$0\" --exact \"$1\" --test-threads=1 --quiet")
+                .arg(exe)
+                .arg(HUGE_WINDOW_TEST)
+                .env("VEILA_EXR_HUGE_WINDOW_CHILD", "1")
+                .stdout(std::process::Stdio::null())
+                .status()
+                .unwrap();
+            assert!(
+                status.success(),
+                "the decode in a 1 GiB address space failed: {status}"
+            );
+        }
     }
 }

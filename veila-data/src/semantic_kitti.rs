@@ -47,7 +47,11 @@ impl OdometryCalib {
 
     /// Read `calib.txt`.
     pub fn read(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let text = crate::read_capped::read_metadata_string(
+            path,
+            crate::read_capped::MAX_CALIBRATION_BYTES,
+            "a calibration file",
+        )?;
         Self::parse(&text, path)
     }
 
@@ -110,7 +114,11 @@ pub fn parse_labels(bytes: &[u8], expected_points: Option<usize>, path: &Path) -
 
 /// Read a `.label` file; see [`parse_labels`].
 pub fn read_labels(path: &Path, expected_points: Option<usize>) -> Result<Vec<u32>> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let bytes = crate::read_capped::read_metadata(
+        path,
+        crate::read_capped::MAX_LABEL_FILE_BYTES,
+        "a `.label` file",
+    )?;
     parse_labels(&bytes, expected_points, path)
 }
 
@@ -324,7 +332,11 @@ impl LabelMap {
 
     /// Read `semantic-kitti.yaml`.
     pub fn read(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let text = crate::read_capped::read_metadata_string(
+            path,
+            crate::read_capped::MAX_CONFIG_BYTES,
+            "a label map",
+        )?;
         Self::parse(&text, path)
     }
 

@@ -701,6 +701,29 @@ pub struct ShardEntry {
     pub ids: Vec<String>,
 }
 
+impl ShardEntry {
+    /// The shard file (in `dir`, listed by `manifest`) holds this entry's samples: its header's
+    /// count and ids are the entry's. Only the header is read.
+    fn check_against_file(&self, dir: &Path, manifest: &Path) -> Result<()> {
+        let bad = |m: String| Error::format(manifest, format!("shard {}: {m}", self.file));
+        let file = dir.join(&self.file);
+        let reader = ShardReader::open(&file).map_err(|e| bad(format!("{e}")))?;
+        if reader.len() != self.count {
+            return Err(bad(format!(
+                "the manifest lists {} samples, the shard file holds {}",
+                self.count,
+                reader.len()
+            )));
+        }
+        if reader.ids() != self.ids.as_slice() {
+            return Err(bad(
+                "the manifest's frame ids differ from the shard file's".into()
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// The manifest of a converted dataset (`manifest.json`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Manifest {
@@ -718,10 +741,33 @@ pub struct Manifest {
     pub shards: Vec<ShardEntry>,
 }
 
+/// The most samples a manifest may list, in all (2^24, about 16.8 million: SemanticKITTI has 43 552
+/// scans, nuScenes 390 000 sweeps): a manifest claiming more is refused before anything sized by
+/// its counts is allocated.
+pub const MAX_MANIFEST_SAMPLES: usize = 1 << 24;
+
 impl Manifest {
-    /// Read `manifest.json`.
+    /// Read `manifest.json` and check it against its shards: [`Self::read_listing`]'s checks,
+    /// then every shard's header (the file in the manifest's folder; its header alone is read)
+    /// must hold the samples the manifest lists for it. Errors name the manifest and the shard.
     pub fn read(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let m = Self::read_listing(path)?;
+        let dir = path.parent().unwrap_or(Path::new("."));
+        for entry in &m.shards {
+            entry.check_against_file(dir, path)?;
+        }
+        Ok(m)
+    }
+
+    /// Read `manifest.json` alone, without opening the shards: its format, each shard's count
+    /// against its listed ids, and the counts' total (summed without overflow, at most
+    /// [`MAX_MANIFEST_SAMPLES`]) against `count`.
+    pub fn read_listing(path: &Path) -> Result<Self> {
+        let text = crate::read_capped::read_metadata_string(
+            path,
+            crate::read_capped::MAX_JSON_METADATA_BYTES,
+            "a shard manifest",
+        )?;
         let m: Manifest = serde_json::from_str(&text)
             .map_err(|e| Error::format(path, format!("not a shard manifest: {e}")))?;
         if m.format != MANIFEST_FORMAT {
@@ -730,14 +776,44 @@ impl Manifest {
                 format!("unsupported manifest format `{}`", m.format),
             ));
         }
-        let sum: usize = m.shards.iter().map(|s| s.count).sum();
-        if sum != m.count {
-            return Err(Error::format(
-                path,
-                format!("count {} but the shards hold {sum}", m.count),
+        m.check_counts(path)?;
+        Ok(m)
+    }
+
+    /// Each shard's `count` equals its number of ids, the counts sum (checked) to `count`, and
+    /// that is at most [`MAX_MANIFEST_SAMPLES`].
+    fn check_counts(&self, path: &Path) -> Result<()> {
+        let bad = |m: String| Err(Error::format(path, m));
+        if self.count > MAX_MANIFEST_SAMPLES {
+            return bad(format!(
+                "count {} is more than the limit of {MAX_MANIFEST_SAMPLES} samples",
+                self.count
             ));
         }
-        Ok(m)
+        let mut sum = 0usize;
+        for s in &self.shards {
+            if s.count != s.ids.len() {
+                return bad(format!(
+                    "shard {}: count {} but {} ids",
+                    s.file,
+                    s.count,
+                    s.ids.len()
+                ));
+            }
+            match sum.checked_add(s.count) {
+                Some(t) if t <= MAX_MANIFEST_SAMPLES => sum = t,
+                _ => {
+                    return bad(format!(
+                        "the shards' counts add up to more than the limit of {MAX_MANIFEST_SAMPLES} samples (at shard {})",
+                        s.file
+                    ));
+                }
+            }
+        }
+        if sum != self.count {
+            return bad(format!("count {} but the shards hold {sum}", self.count));
+        }
+        Ok(())
     }
 
     /// Write atomically.
@@ -938,6 +1014,94 @@ mod tests {
         let e = write_shard(&dir.path().join("s.safetensors"), &sensor, "d", &samples).unwrap();
         assert_eq!(e.sha256, sha256_hex(&a));
         assert_eq!(std::fs::read(dir.path().join("s.safetensors")).unwrap(), a);
+    }
+
+    /// A folder with one 2-sample shard and the text of its valid manifest.
+    fn two_sample_dataset() -> (tempfile::TempDir, serde_json::Value) {
+        let sensor = LidarSensor {
+            rows: 2,
+            cols: 4,
+            ..LidarSensor::hdl64e()
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let samples = vec![sample("a", &sensor, 1), sample("b", &sensor, 2)];
+        let p = dir.path().join("shard-00000.safetensors");
+        let entry = write_shard(&p, &sensor, "test", &samples).unwrap();
+        let m = Manifest {
+            format: MANIFEST_FORMAT.into(),
+            dataset: "test".into(),
+            sensor,
+            frames_per_shard: 2,
+            count: 2,
+            shards: vec![entry],
+        };
+        (dir, serde_json::to_value(&m).unwrap())
+    }
+
+    /// Writes `manifest` to `dir/manifest.json` and reads it back.
+    fn read_back(dir: &Path, manifest: &serde_json::Value) -> Result<Manifest> {
+        let p = dir.join("manifest.json");
+        std::fs::write(&p, manifest.to_string()).unwrap();
+        Manifest::read(&p)
+    }
+
+    #[test]
+    fn a_manifest_must_match_the_headers_of_its_shards() {
+        let (dir, good) = two_sample_dataset();
+        assert_eq!(read_back(dir.path(), &good).unwrap().count, 2);
+        // 5 samples (with 5 ids) claimed for the 2-sample shard
+        let mut m = good.clone();
+        m["count"] = 5.into();
+        m["shards"][0]["count"] = 5.into();
+        m["shards"][0]["ids"] = serde_json::json!(["a", "b", "c", "d", "e"]);
+        let e = read_back(dir.path(), &m).unwrap_err().to_string();
+        assert!(
+            e.contains("manifest.json")
+                && e.contains("shard-00000.safetensors")
+                && e.contains("lists 5 samples, the shard file holds 2"),
+            "{e}"
+        );
+        // other ids, a count without its ids, a missing shard
+        let mut m = good.clone();
+        m["shards"][0]["ids"] = serde_json::json!(["a", "z"]);
+        let e = read_back(dir.path(), &m).unwrap_err().to_string();
+        assert!(e.contains("frame ids differ"), "{e}");
+        let mut m = good.clone();
+        m["count"] = 3.into();
+        m["shards"][0]["count"] = 3.into();
+        let e = read_back(dir.path(), &m).unwrap_err().to_string();
+        assert!(e.contains("count 3 but 2 ids"), "{e}");
+        std::fs::remove_file(dir.path().join("shard-00000.safetensors")).unwrap();
+        let e = read_back(dir.path(), &good).unwrap_err().to_string();
+        assert!(
+            e.contains("manifest.json") && e.contains("shard-00000.safetensors"),
+            "{e}"
+        );
+        // the listing alone does not open the shards
+        assert!(Manifest::read_listing(&dir.path().join("manifest.json")).is_ok());
+    }
+
+    #[test]
+    fn huge_or_wrapping_manifest_counts_are_refused() {
+        let (dir, good) = two_sample_dataset();
+        let entry = good["shards"][0].clone();
+        let shard_with = |count: u64| {
+            let mut e = entry.clone();
+            e["count"] = count.into();
+            e
+        };
+        // 10^15 samples (an allocation of ~10^17 bytes downstream), and counts of 2^63 and
+        // 2^63 + 2 that a wrapping sum adds up to 2
+        let mut m = good.clone();
+        m["count"] = 1_000_000_000_000_000u64.into();
+        m["shards"][0]["count"] = 1_000_000_000_000_000u64.into();
+        let e = read_back(dir.path(), &m).unwrap_err().to_string();
+        assert!(e.contains("manifest.json") && e.contains("limit"), "{e}");
+        let mut m = good.clone();
+        m["shards"] = serde_json::json!([shard_with(1 << 63), shard_with((1 << 63) + 2)]);
+        let e = read_back(dir.path(), &m).unwrap_err().to_string();
+        assert!(e.contains("manifest.json") && e.contains("count"), "{e}");
+        assert!(Manifest::read_listing(&dir.path().join("manifest.json")).is_err());
     }
 
     #[test]

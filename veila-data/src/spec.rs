@@ -31,7 +31,11 @@ pub fn sensor_from_spec(spec: &str) -> Result<LidarSensor> {
                     ),
                 });
             }
-            let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+            let text = crate::read_capped::read_metadata_string(
+                path,
+                crate::read_capped::MAX_CONFIG_BYTES,
+                "a sensor file",
+            )?;
             if lower.ends_with(".toml") {
                 toml::from_str(&text)
                     .map_err(|e| Error::format(path, format!("not a sensor description: {e}")))?
@@ -94,7 +98,11 @@ pub enum CalibKind {
 /// Detect the calibration kind from the content: JSON (first non-space character `{`) is nuScenes; a
 /// text file with an `R0_rect`/`R_rect` key is KITTI object; one with a `Tr` key is KITTI odometry.
 pub fn detect_calib_kind(path: &Path) -> Result<CalibKind> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let text = crate::read_capped::read_metadata_string(
+        path,
+        crate::read_capped::MAX_CALIBRATION_BYTES,
+        "a calibration file",
+    )?;
     calib_kind_of(&text, path)
 }
 
@@ -129,7 +137,11 @@ pub fn camera_from_calib_file(
     height: u32,
     nuscenes_channel: &str,
 ) -> Result<PinholeCamera> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let text = crate::read_capped::read_metadata_string(
+        path,
+        crate::read_capped::MAX_CALIBRATION_BYTES,
+        "a calibration file",
+    )?;
     let cam = match calib_kind_of(&text, path)? {
         CalibKind::KittiObject => KittiCalib::parse(&text, path)?.camera(2, width, height),
         CalibKind::KittiOdometry => OdometryCalib::parse(&text, path)?.camera(2, width, height),

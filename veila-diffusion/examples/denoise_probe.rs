@@ -4,10 +4,17 @@
 //! about that). A diffusion model samples well only where its `x̂₀` beats both; the noisiest levels
 //! decide the layout of a sample, the cleanest its fine texture.
 //!
+//! With `--sample N` it also draws `N` scans with the bundle's own sampler and prints each one's
+//! distance (mean |Δ log2(1 + r)|) to its nearest probe frame, next to the frames' distances to
+//! each other: the overfit check. A model trained on a handful of frames (`train-default --frames
+//! 8`) and probed on those frames (`--scenes scenes/train-v5.txt`) must draw near-copies of them;
+//! if it cannot, the encoding, loss, sampler or decoding disagree.
+//!
 //! ```sh
-//! cargo run --release -p veila-diffusion --features sim --example denoise_probe -- BUNDLE_DIR [FRAMES]
+//! cargo run --release -p veila-diffusion --features sim --example denoise_probe -- \
+//!     BUNDLE_DIR [FRAMES] [--scenes LIST] [--sample N]
 //! ```
-//! Run from the workspace root (it reads `scenes/test-v5.txt`).
+//! Run from the workspace root (it reads `scenes/test-v5.txt` unless `--scenes`).
 
 use std::path::Path;
 
@@ -19,17 +26,27 @@ use veila_diffusion::app::bundle::Bundle;
 use veila_diffusion::app::sim_examples::render_split;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
+    const USAGE: &str = "usage: denoise_probe BUNDLE_DIR [FRAMES] [--scenes LIST] [--sample N]";
+    let mut dir = None;
+    let mut n = 8usize;
+    let mut scenes = String::from("scenes/test-v5.txt");
+    let mut draws = 0usize;
     let mut args = std::env::args().skip(1);
-    let dir = args
-        .next()
-        .ok_or("usage: denoise_probe BUNDLE_DIR [FRAMES]")?;
-    let n: usize = args.next().map_or(Ok(8), |s| s.parse())?;
+    while let Some(a) = args.next() {
+        match a.as_str() {
+            "--scenes" => scenes = args.next().ok_or(USAGE)?,
+            "--sample" => draws = args.next().ok_or(USAGE)?.parse()?,
+            _ if dir.is_none() => dir = Some(a),
+            _ => n = a.parse()?,
+        }
+    }
+    let dir = dir.ok_or(USAGE)?;
     let device = Device::Cpu;
     let bundle = Bundle::from_dir(Path::new(&dir), &device)?;
     if bundle.is_conditional() || bundle.config.residual.is_some() {
         return Err("the probe feeds no image: give an unconditional, non-residual bundle".into());
     }
-    let frames = render_split(Path::new("scenes/test-v5.txt"), n, &bundle.config, &|| {})?;
+    let frames = render_split(Path::new(&scenes), n, &bundle.config, &|| {})?;
     let scans: Vec<_> = frames.iter().map(|f| &f.range).collect();
     let x0 = bundle.config.encoding.encode_batch(&scans, &device)?;
     let diffusion = Diffusion::new(bundle.config.diffusion.clone())?;
@@ -39,7 +56,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         (a - &x0)?.sqr()?.mean_all()?.to_scalar::<f32>()
     };
     let mean = x0.mean_keepdim(0)?.broadcast_as(x0.shape())?.contiguous()?;
-    println!("{dir}: {n} frames of scenes/test-v5.txt");
+    println!("{dir}: {n} frames of {scenes}");
     println!("| t | log-SNR | x̂₀ MSE | α·x_t MSE | frames' mean MSE |\n|---|---|---|---|---|");
     for t in [0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9, 0.98] {
         let level = diffusion.schedule().level(t);
@@ -53,6 +70,55 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             mse(&(&x_t * level.alpha())?)?,
             mse(&mean)?
         );
+    }
+    if draws > 0 {
+        sample_check(&bundle, &frames, draws)?;
+    }
+    Ok(())
+}
+
+/// Draws `draws` scans and prints each one's distance to its nearest frame, next to how far the
+/// frames lie from each other (the nearest other frame, median over frames).
+fn sample_check(
+    bundle: &Bundle,
+    frames: &[veila_diffusion::app::sim_examples::SimExample],
+    draws: usize,
+) -> Result<(), Box<dyn std::error::Error>> {
+    use veila_diffusion::app::generate::GenerateOptions;
+    use veila_metrics::texture::nearest_scan;
+    let pool: Vec<_> = frames.iter().map(|f| f.range.clone()).collect();
+    let mut between = Vec::new();
+    for i in 0..pool.len() {
+        let others: Vec<_> = (0..pool.len())
+            .filter(|&j| j != i)
+            .map(|j| pool[j].clone())
+            .collect();
+        if !others.is_empty() {
+            between.push(nearest_scan(&pool[i], &others)?.1);
+        }
+    }
+    between.sort_by(f64::total_cmp);
+    let valid_share = |scan: &veila_geom::RangeImage| {
+        scan.mask.iter().filter(|&&m| m).count() as f64 / scan.mask.len().max(1) as f64
+    };
+    let frames_valid = pool.iter().map(valid_share).sum::<f64>() / pool.len().max(1) as f64;
+    let mut options = GenerateOptions::new(bundle.config.sampler.clone());
+    options.samples = draws;
+    options.seed = 7;
+    let t = std::time::Instant::now();
+    let scans = bundle.generate(&[], &options, |_, _| {})?;
+    println!(
+        "\n{draws} samples ({:?}, {} steps) in {:.1} s; the frames' nearest other frame: median {:.4}; \
+         the frames' valid share {frames_valid:.3}",
+        bundle.config.sampler.kind,
+        bundle.config.sampler.steps,
+        t.elapsed().as_secs_f64(),
+        between.get(between.len() / 2).copied().unwrap_or(f64::NAN)
+    );
+    println!("| sample | nearest frame | distance | valid share |\n|---|---|---|---|");
+    for (s, scan) in scans.iter().enumerate() {
+        let (i, d) = nearest_scan(scan, &pool)?;
+        println!("| {s} | {i} | {d:.4} | {:.3} |", valid_share(scan));
     }
     Ok(())
 }

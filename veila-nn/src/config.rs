@@ -6,6 +6,40 @@ use veila_geom::{BeamLayout, FourierEncoding, LidarSensor};
 
 use crate::error::{Error, Result};
 
+/// Upper bounds on the sizes of a [`DenoiserConfig`] (checked by [`DenoiserConfig::validate`]):
+/// about 50 times what the [`DenoiserConfig::paper`] preset uses, so that no config a bundle or
+/// checkpoint carries can ask for an absurd network (the weights of a valid config are bounded
+/// again, in total, by [`crate::weights::MAX_PARAMETERS`]).
+///
+/// Input and output channels of the range image (the presets use 3, residual models 6).
+pub const MAX_IO_CHANNELS: usize = 256;
+/// Channels of the first level (`paper`: 64).
+pub const MAX_BASE_CHANNELS: usize = 4096;
+/// Channels of any level, `base_channels * channel_mults[l]` (`paper`: 512).
+pub const MAX_LEVEL_CHANNELS: usize = 16_384;
+/// U-Net levels, the length of `channel_mults` (the presets use 4; the range image must be
+/// divisible by `2^(levels - 1)`).
+pub const MAX_LEVELS: usize = 8;
+/// Residual blocks per level (`paper`: 3).
+pub const MAX_RES_BLOCKS: usize = 128;
+/// The GroupNorm group bound `norm_groups` (the presets use 8).
+pub const MAX_NORM_GROUPS: usize = 1024;
+/// Width of the sinusoidal time features, `time.dim` (`paper`: 128).
+pub const MAX_TIME_DIM: usize = 8192;
+/// Attention heads of PFC and GCMA (`paper`: 8 and 4).
+pub const MAX_HEADS: usize = 512;
+/// Width of GCMA's queries, keys and values, `gcma.attn_dim` (`paper`: 64).
+pub const MAX_ATTN_DIM: usize = 4096;
+/// Channels of an encoder feature map or a fused map (`semantic_channels`, `depth_channels`,
+/// `cond_channels`; `paper`: at most 384).
+pub const MAX_FEATURE_CHANNELS: usize = 16_384;
+/// Feature scales, the length of `feature_sizes` (the presets use 4).
+pub const MAX_FEATURE_SCALES: usize = 16;
+/// Pixels `H_i * W_i` of one feature map (`paper`: 96 x 312 = 29 952).
+pub const MAX_FEATURE_PIXELS: usize = 1 << 21;
+/// Camera views per sample, `conditioning.num_views` (the presets use 1 or 3).
+pub const MAX_VIEWS: usize = 64;
+
 /// Sinusoidal embedding of the per-sample noise level.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -369,51 +403,25 @@ impl DenoiserConfig {
         serde_json::from_str(text)
     }
 
-    /// Checks every invariant; [`crate::Denoiser::new`] calls it.
+    /// Checks every invariant, sizes included (the `MAX_*` bounds of this module);
+    /// [`crate::Denoiser::new`] calls it.
     pub fn validate(&self) -> Result<()> {
-        let bad = |m: String| Err(Error::Config(m));
         self.sensor.validate()?;
-        if self.in_channels == 0 || self.out_channels == 0 || self.base_channels == 0 {
-            return bad("in_channels, out_channels and base_channels must be positive".into());
-        }
-        if self.channel_mults.is_empty() || self.channel_mults.contains(&0) {
-            return bad(format!(
-                "channel_mults must be non-empty and positive, got {:?}",
-                self.channel_mults
-            ));
-        }
-        let f = 1usize << (self.num_levels() - 1);
-        if !self.height().is_multiple_of(f) || !self.width().is_multiple_of(f) {
-            return bad(format!(
-                "range image {}x{} must be divisible by 2^(levels-1) = {f} for {} levels",
-                self.height(),
-                self.width(),
-                self.num_levels()
-            ));
-        }
-        if self.norm_groups == 0 {
-            return bad("norm_groups must be positive".into());
-        }
+        self.validate_sizes()?;
+        self.validate_levels()?;
         if !(self.residual_scale.is_finite() && self.residual_scale > 0.0) {
             return bad(format!(
                 "residual_scale must be finite and positive, got {}",
                 self.residual_scale
             ));
         }
-        if self.time.dim == 0
-            || !self.time.dim.is_multiple_of(2)
-            || self.time.max_period.partial_cmp(&1.0) != Some(std::cmp::Ordering::Greater)
-        {
-            return bad(format!(
-                "time embedding needs an even dim and max_period > 1, got {:?}",
-                self.time
-            ));
-        }
+        self.validate_time()?;
         if let Some(rf) = &self.ray_features {
             rf.validate()?;
         }
         if let Some(pfc) = &self.pfc {
             let c = self.level_channels(self.num_levels() - 1);
+            check_max("pfc.num_heads", pfc.num_heads, MAX_HEADS)?;
             if pfc.num_heads == 0 || !c.is_multiple_of(pfc.num_heads) {
                 return bad(format!(
                     "pfc.num_heads {} must divide the deepest channels {c}",
@@ -422,56 +430,188 @@ impl DenoiserConfig {
             }
         }
         if let Some(cc) = &self.conditioning {
-            let n = cc.feature_sizes.len();
-            if n == 0 {
-                return bad("conditioning.feature_sizes must list at least one scale".into());
-            }
-            if cc.cond_channels.len() != n {
+            cc.validate(self.num_levels())?;
+        }
+        Ok(())
+    }
+
+    /// Channel counts, blocks and groups: positive and within their bounds.
+    fn validate_sizes(&self) -> Result<()> {
+        if self.in_channels == 0 || self.out_channels == 0 || self.base_channels == 0 {
+            return bad("in_channels, out_channels and base_channels must be positive".into());
+        }
+        check_max("in_channels", self.in_channels, MAX_IO_CHANNELS)?;
+        check_max("out_channels", self.out_channels, MAX_IO_CHANNELS)?;
+        check_max("base_channels", self.base_channels, MAX_BASE_CHANNELS)?;
+        check_max("num_res_blocks", self.num_res_blocks, MAX_RES_BLOCKS)?;
+        if self.norm_groups == 0 {
+            return bad("norm_groups must be positive".into());
+        }
+        check_max("norm_groups", self.norm_groups, MAX_NORM_GROUPS)
+    }
+
+    /// `channel_mults`: 1 to [`MAX_LEVELS`] positive multipliers whose level widths stay within
+    /// [`MAX_LEVEL_CHANNELS`], and a range image divisible by `2^(levels - 1)`.
+    fn validate_levels(&self) -> Result<()> {
+        let n = self.num_levels();
+        if n > MAX_LEVELS {
+            return bad(format!(
+                "channel_mults lists {n} U-Net levels, more than the limit of {MAX_LEVELS}"
+            ));
+        }
+        if n == 0 || self.channel_mults.contains(&0) {
+            return bad(format!(
+                "channel_mults must be non-empty and positive, got {:?}",
+                self.channel_mults
+            ));
+        }
+        for (l, m) in self.channel_mults.iter().enumerate() {
+            let c = self.base_channels.checked_mul(*m);
+            if c.is_none_or(|c| c > MAX_LEVEL_CHANNELS) {
                 return bad(format!(
-                    "conditioning.cond_channels needs {n} entries (one per scale)"
+                    "channel_mults[{l}] = {m}: level {l} would have base_channels {} x {m} channels, more than the limit of {MAX_LEVEL_CHANNELS}",
+                    self.base_channels
                 ));
             }
-            if cc.cues != Cues::DepthOnly && cc.semantic_channels.len() != n {
-                return bad(format!(
-                    "conditioning.semantic_channels needs {n} entries (one per scale)"
-                ));
-            }
-            if cc.cues != Cues::SemanticOnly && cc.depth_channels.len() != n {
-                return bad(format!(
-                    "conditioning.depth_channels needs {n} entries (one per scale)"
-                ));
-            }
-            if cc.feature_sizes.iter().any(|s| s[0] == 0 || s[1] == 0)
-                || cc.cond_channels.contains(&0)
+        }
+        let f = 1usize << (n - 1);
+        if !self.height().is_multiple_of(f) || !self.width().is_multiple_of(f) {
+            return bad(format!(
+                "range image {}x{} must be divisible by 2^(levels-1) = {f} for {n} levels",
+                self.height(),
+                self.width(),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The time embedding: an even `dim` within [`MAX_TIME_DIM`], finite `max_period > 1` and a
+    /// finite `input_scale`.
+    fn validate_time(&self) -> Result<()> {
+        let t = &self.time;
+        if t.dim == 0
+            || !t.dim.is_multiple_of(2)
+            || !t.max_period.is_finite()
+            || t.max_period.partial_cmp(&1.0) != Some(std::cmp::Ordering::Greater)
+            || !t.input_scale.is_finite()
+        {
+            return bad(format!(
+                "time embedding needs an even dim, a finite max_period > 1 and a finite input_scale, got {t:?}"
+            ));
+        }
+        check_max("time.dim", t.dim, MAX_TIME_DIM)
+    }
+}
+
+impl ConditioningConfig {
+    /// Checks the conditioning of a U-Net of `num_levels` levels (what
+    /// [`DenoiserConfig::validate`] calls).
+    fn validate(&self, num_levels: usize) -> Result<()> {
+        let n = self.feature_sizes.len();
+        if n == 0 {
+            return bad("conditioning.feature_sizes must list at least one scale".into());
+        }
+        check_max("conditioning.feature_sizes (scales)", n, MAX_FEATURE_SCALES)?;
+        if self.cond_channels.len() != n {
+            return bad(format!(
+                "conditioning.cond_channels needs {n} entries (one per scale)"
+            ));
+        }
+        if self.cues != Cues::DepthOnly && self.semantic_channels.len() != n {
+            return bad(format!(
+                "conditioning.semantic_channels needs {n} entries (one per scale)"
+            ));
+        }
+        if self.cues != Cues::SemanticOnly && self.depth_channels.len() != n {
+            return bad(format!(
+                "conditioning.depth_channels needs {n} entries (one per scale)"
+            ));
+        }
+        if self.feature_sizes.iter().any(|s| s[0] == 0 || s[1] == 0)
+            || self.cond_channels.contains(&0)
+        {
+            return bad("conditioning feature sizes and channels must be positive".into());
+        }
+        self.validate_feature_bounds()?;
+        if self.num_views == 0 {
+            return bad("conditioning.num_views must be at least 1".into());
+        }
+        check_max("conditioning.num_views", self.num_views, MAX_VIEWS)?;
+        if !(self.cacm_delta.is_finite() && self.cacm_delta > 0.0) {
+            return bad(format!(
+                "cacm_delta must be finite and positive, got {}",
+                self.cacm_delta
+            ));
+        }
+        if let Some(g) = &self.gcma {
+            g.validate(num_levels)?;
+        }
+        Ok(())
+    }
+
+    /// Channel counts within [`MAX_FEATURE_CHANNELS`] and feature maps within
+    /// [`MAX_FEATURE_PIXELS`].
+    fn validate_feature_bounds(&self) -> Result<()> {
+        for (field, list) in [
+            ("conditioning.semantic_channels", &self.semantic_channels),
+            ("conditioning.depth_channels", &self.depth_channels),
+            ("conditioning.cond_channels", &self.cond_channels),
+        ] {
+            if let Some((i, c)) = list
+                .iter()
+                .enumerate()
+                .find(|(_, c)| **c > MAX_FEATURE_CHANNELS)
             {
-                return bad("conditioning feature sizes and channels must be positive".into());
-            }
-            if cc.num_views == 0 {
-                return bad("conditioning.num_views must be at least 1".into());
-            }
-            if !(cc.cacm_delta.is_finite() && cc.cacm_delta > 0.0) {
                 return bad(format!(
-                    "cacm_delta must be finite and positive, got {}",
-                    cc.cacm_delta
+                    "{field}[{i}] = {c} is more than the limit of {MAX_FEATURE_CHANNELS}"
                 ));
             }
-            if let Some(g) = &cc.gcma {
-                if g.levels.iter().any(|l| *l >= self.num_levels()) {
-                    return bad(format!(
-                        "gcma.levels {:?} out of range for {} levels",
-                        g.levels,
-                        self.num_levels()
-                    ));
-                }
-                if g.num_heads == 0 || g.attn_dim == 0 || !g.attn_dim.is_multiple_of(g.num_heads) {
-                    return bad(format!(
-                        "gcma.num_heads {} must divide attn_dim {}",
-                        g.num_heads, g.attn_dim
-                    ));
-                }
-                g.point_encoding.validate()?;
+        }
+        for (i, [h, w]) in self.feature_sizes.iter().enumerate() {
+            if h.checked_mul(*w).is_none_or(|p| p > MAX_FEATURE_PIXELS) {
+                return bad(format!(
+                    "conditioning.feature_sizes[{i}] = {h}x{w} is more than the limit of {MAX_FEATURE_PIXELS} pixels"
+                ));
             }
         }
         Ok(())
     }
+}
+
+impl GcmaConfig {
+    /// Checks the alignment of a U-Net of `num_levels` levels.
+    fn validate(&self, num_levels: usize) -> Result<()> {
+        if self.levels.iter().any(|l| *l >= num_levels) {
+            return bad(format!(
+                "gcma.levels {:?} out of range for {num_levels} levels",
+                self.levels
+            ));
+        }
+        check_max("gcma.attn_dim", self.attn_dim, MAX_ATTN_DIM)?;
+        check_max("gcma.num_heads", self.num_heads, MAX_HEADS)?;
+        if self.num_heads == 0
+            || self.attn_dim == 0
+            || !self.attn_dim.is_multiple_of(self.num_heads)
+        {
+            return bad(format!(
+                "gcma.num_heads {} must divide attn_dim {}",
+                self.num_heads, self.attn_dim
+            ));
+        }
+        Ok(self.point_encoding.validate()?)
+    }
+}
+
+/// A config error.
+fn bad(message: String) -> Result<()> {
+    Err(Error::Config(message))
+}
+
+/// [`Error::Config`] naming `field` when `value` exceeds its bound `max` (the configs of every
+/// network of the crate check their sizes with it).
+pub(crate) fn check_max(field: &str, value: usize, max: usize) -> Result<()> {
+    if value > max {
+        return bad(format!("{field} = {value} is more than the limit of {max}"));
+    }
+    Ok(())
 }

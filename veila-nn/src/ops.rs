@@ -743,9 +743,10 @@ impl GroupNorm {
     }
 }
 
-/// Largest group count `<= max_groups` that divides `channels` (at least 1).
+/// Largest group count `<= max_groups` that divides `channels` (at least 1). The scan stops at
+/// `channels` (no larger count divides it), so a huge `max_groups` from a config costs nothing.
 pub fn groups_for(channels: usize, max_groups: usize) -> usize {
-    (1..=max_groups.max(1))
+    (1..=max_groups.min(channels).max(1))
         .rev()
         .find(|g| channels.is_multiple_of(*g))
         .unwrap_or(1)

@@ -21,9 +21,56 @@ pub struct TensorSpec {
     pub shape: Vec<usize>,
 }
 
+/// The most weights (tensor elements, summed over every tensor) a model may ask for when its
+/// tensors are recorded ([`record_tensor_specs`], which every checked load runs first): 2^30,
+/// 4 GiB of `f32`. The shipped models have a few million, the largest pretrained encoder
+/// (Depth-Anything-V2-Large) about 335 million; a config from a file that asks for more fails
+/// with [`Error::Config`] before anything of that size is allocated.
+pub const MAX_PARAMETERS: usize = 1 << 30;
+
+/// What the recorder has seen: the specs in request order, their total element count, and the
+/// reason it refused a tensor (if it did).
+#[derive(Debug, Default)]
+struct Recording {
+    specs: Vec<TensorSpec>,
+    total: usize,
+    refused: Option<String>,
+}
+
+impl Recording {
+    /// Adds `name` of shape `dims` to the list, or refuses it (keeping the reason) when its
+    /// element count overflows or the running total passes [`MAX_PARAMETERS`].
+    fn add(&mut self, name: &str, dims: &[usize]) -> std::result::Result<(), String> {
+        let elems = dims.iter().try_fold(1usize, |a, d| a.checked_mul(*d));
+        let total = elems.and_then(|e| self.total.checked_add(e));
+        match total {
+            Some(t) if t <= MAX_PARAMETERS => {
+                self.total = t;
+                self.specs.push(TensorSpec {
+                    name: name.to_string(),
+                    shape: dims.to_vec(),
+                });
+                Ok(())
+            }
+            _ => {
+                let size = elems.map_or_else(|| "more than usize::MAX".into(), |e| e.to_string());
+                let why = format!(
+                    "the model's weights pass the limit of {MAX_PARAMETERS} elements at tensor \
+                     `{name}` of shape {dims:?} ({size} elements, after {} in the tensors before it)",
+                    self.total
+                );
+                self.refused = Some(why.clone());
+                Err(why)
+            }
+        }
+    }
+}
+
+/// A `VarBuilder` backend that records every tensor asked for and hands out zeros: one scalar
+/// zero broadcast to the shape, so recording allocates nothing of the model's size.
 #[derive(Debug, Default)]
 struct RecordingBackend {
-    seen: Arc<Mutex<Vec<TensorSpec>>>,
+    seen: Arc<Mutex<Recording>>,
 }
 
 impl candle_nn::var_builder::SimpleBackend for RecordingBackend {
@@ -35,13 +82,13 @@ impl candle_nn::var_builder::SimpleBackend for RecordingBackend {
         dtype: DType,
         dev: &Device,
     ) -> candle_core::Result<Tensor> {
-        if let Ok(mut seen) = self.seen.lock() {
-            seen.push(TensorSpec {
-                name: name.to_string(),
-                shape: s.dims().to_vec(),
-            });
-        }
-        Tensor::zeros(s, dtype, dev)
+        let mut seen = self
+            .seen
+            .lock()
+            .map_err(|_| candle_core::Error::Msg("record_tensor_specs: lock poisoned".into()))?;
+        seen.add(name, s.dims()).map_err(candle_core::Error::Msg)?;
+        drop(seen);
+        Tensor::zeros((), dtype, dev)?.broadcast_as(s)
     }
     fn get_unchecked(&self, name: &str, _: DType, _: &Device) -> candle_core::Result<Tensor> {
         candle_core::bail!("record_tensor_specs: tensor {name} requested without a shape")
@@ -52,21 +99,30 @@ impl candle_nn::var_builder::SimpleBackend for RecordingBackend {
 }
 
 /// Lists every tensor (name and shape) that `build` reads, in request order, by running it on a
-/// recording `VarBuilder` that hands out zeros. Use it to compare a checkpoint's keys against a model
-/// (missing, unexpected and mis-shaped tensors) before loading, e.g.
+/// recording `VarBuilder` that hands out zeros (broadcast from one scalar: nothing of the model's
+/// size is allocated). Use it to compare a checkpoint's keys against a model (missing,
+/// unexpected and mis-shaped tensors) before loading, e.g.
 /// `record_tensor_specs(|vb| MitEncoder::new(&cfg, vb))`.
+///
+/// # Errors
+/// [`Error::Config`] when the tensors together have more than [`MAX_PARAMETERS`] elements (or a
+/// shape's element count overflows), before anything of that size is allocated; any error of
+/// `build`.
 pub fn record_tensor_specs<T>(
     build: impl FnOnce(VarBuilder<'static>) -> crate::Result<T>,
 ) -> crate::Result<Vec<TensorSpec>> {
-    let seen = Arc::new(Mutex::new(Vec::new()));
+    let seen = Arc::new(Mutex::new(Recording::default()));
     let backend = RecordingBackend { seen: seen.clone() };
     let vb = VarBuilder::from_backend(Box::new(backend), DType::F32, Device::Cpu);
-    build(vb)?;
-    let specs = seen
+    let built = build(vb).map(drop);
+    let mut rec = seen
         .lock()
-        .map_err(|_| candle_core::Error::Msg("record_tensor_specs: lock poisoned".into()))?
-        .clone();
-    Ok(specs)
+        .map_err(|_| candle_core::Error::Msg("record_tensor_specs: lock poisoned".into()))?;
+    if let Some(why) = rec.refused.take() {
+        return Err(Error::Config(why));
+    }
+    built?;
+    Ok(std::mem::take(&mut rec.specs))
 }
 
 /// Loads the weights of a model from a safetensors file, verifying them first.

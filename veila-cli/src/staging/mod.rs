@@ -40,6 +40,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
+use veila_data::read_capped::MAX_JSON_METADATA_BYTES;
 
 mod inputs;
 mod lock;
@@ -52,6 +53,8 @@ pub(crate) use inputs::{Inputs, MANIFEST, check_ext};
 use lock::remove_partial;
 pub(crate) use lock::{FolderLock, lock_folder, lock_train_run};
 use merge::*;
+#[cfg(test)]
+use publish::special_file_kind;
 pub(crate) use publish::{check_outputs, publish_files};
 use signals::*;
 pub(crate) use signals::{explain, install_signal_cleanup, set_command};
@@ -67,15 +70,20 @@ const MANIFEST_FORMAT: &str = "veila-outputs/1";
 
 fn read_manifest(dir: &Path) -> Result<Manifest> {
     let p = dir.join(MANIFEST);
-    match std::fs::read(&p) {
+    let what = "a record of a folder's outputs";
+    match veila_data::read_capped::read_metadata(&p, MAX_JSON_METADATA_BYTES, what) {
         Ok(bytes) => serde_json::from_slice(&bytes).with_context(|| {
             format!(
                 "{}: unreadable record of this folder's outputs",
                 p.display()
             )
         }),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Manifest::default()),
-        Err(e) => Err(e).with_context(|| format!("{}: cannot read", p.display())),
+        Err(veila_data::Error::Io { source, .. })
+            if source.kind() == std::io::ErrorKind::NotFound =>
+        {
+            Ok(Manifest::default())
+        }
+        Err(e) => Err(e.into()),
     }
 }
 

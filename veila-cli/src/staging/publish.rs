@@ -103,6 +103,32 @@ pub(super) fn try_lock_files_folder(dir: &Path) -> Result<Option<FolderLock>> {
     }
 }
 
+/// What `path` is when it exists and is neither a regular file, a directory nor a symbolic link
+/// (a rename replaces a link itself, never what it points to): "a character device", "a FIFO"...
+pub(super) fn special_file_kind(path: &Path) -> Option<&'static str> {
+    let t = std::fs::symlink_metadata(path).ok()?.file_type();
+    if t.is_file() || t.is_dir() || t.is_symlink() {
+        return None;
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if t.is_char_device() {
+            return Some("a character device");
+        }
+        if t.is_block_device() {
+            return Some("a block device");
+        }
+        if t.is_fifo() {
+            return Some("a FIFO");
+        }
+        if t.is_socket() {
+            return Some("a socket");
+        }
+    }
+    Some("a special file")
+}
+
 /// The checks of [`publish_files`] alone, so a command can refuse its outputs before it works.
 pub(crate) fn check_outputs(
     dests: &[&Path],
@@ -115,6 +141,13 @@ pub(crate) fn check_outputs(
         inputs.check_output(dest)?;
         if dest.is_dir() {
             bail!("{}: exists and is a directory", dest.display());
+        }
+        if let Some(kind) = special_file_kind(dest) {
+            bail!(
+                "{}: exists and is {kind}, not a regular file: outputs replace only regular \
+                 files, with or without --force",
+                dest.display()
+            );
         }
         if dest.exists() && !force {
             bail!("{}: exists (pass --force to replace it)", dest.display());

@@ -219,3 +219,46 @@ fn partial_files_of_a_killed_owner_go_under_the_lock() {
     assert_eq!(n, 1);
     assert_eq!(names(&ck), ["step-0000000005"]);
 }
+
+#[cfg(unix)]
+#[test]
+fn an_outputs_record_linked_to_dev_zero_is_refused_unread() {
+    let d = tempfile::tempdir().unwrap();
+    assert!(read_manifest(d.path()).unwrap().commands.is_empty());
+    std::os::unix::fs::symlink("/dev/zero", d.path().join(MANIFEST)).unwrap();
+    let e = format!("{:#}", read_manifest(d.path()).unwrap_err());
+    assert!(
+        e.contains(MANIFEST) && e.contains("not a regular file (a character device)"),
+        "{e}"
+    );
+}
+
+#[cfg(unix)]
+#[test]
+fn force_never_replaces_a_fifo_or_a_device_with_a_file() {
+    use std::os::unix::fs::FileTypeExt;
+    let d = tempfile::tempdir().unwrap();
+    let fifo = d.path().join("report.json");
+    let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+    if !made.is_ok_and(|s| s.success()) {
+        eprintln!("skipped: `mkfifo` is not available to make the FIFO");
+        return;
+    }
+    let files = vec![(fifo.clone(), b"{}".to_vec())];
+    for force in [false, true] {
+        let e = publish_files(&files, &Inputs::new(), force, false).unwrap_err();
+        assert!(
+            e.to_string().contains("is a FIFO, not a regular file"),
+            "{e}"
+        );
+        let t = std::fs::symlink_metadata(&fifo).unwrap().file_type();
+        assert!(t.is_fifo(), "the FIFO is still there");
+    }
+    // the kind of a character device is named without touching it
+    assert_eq!(
+        special_file_kind(Path::new("/dev/null")),
+        Some("a character device")
+    );
+    assert_eq!(special_file_kind(d.path()), None);
+    assert_eq!(special_file_kind(&d.path().join("absent")), None);
+}

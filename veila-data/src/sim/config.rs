@@ -961,7 +961,11 @@ impl SceneConfig {
 
     /// Read and validate a scene file.
     pub fn from_file(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let text = crate::read_capped::read_metadata_string(
+            path,
+            crate::read_capped::MAX_CONFIG_BYTES,
+            "a scene file",
+        )?;
         Self::from_toml_str(&text, path)
     }
 

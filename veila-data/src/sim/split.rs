@@ -75,7 +75,11 @@ impl SceneList {
 
     /// Read a list file.
     pub fn read(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let text = crate::read_capped::read_metadata_string(
+            path,
+            crate::read_capped::MAX_CONFIG_BYTES,
+            "a scene list",
+        )?;
         Self::parse(&text, path)
     }
 

@@ -10,6 +10,7 @@ mod learning_map;
 mod real_data;
 #[cfg(feature = "sim")]
 mod sim;
+mod untrusted;
 #[cfg(feature = "weather")]
 mod weather_identity;
 #[cfg(feature = "weather")]

@@ -32,6 +32,7 @@ use std::path::{Path, PathBuf};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
+use veila_data::read_capped::{MAX_JSON_METADATA_BYTES, read_metadata};
 use veila_geom::EpipolarConfig;
 use veila_nn::encoders::kind::{AnyEncoder, EncoderKind};
 use veila_nn::encoders::small_cnn::{SmallCnn, SmallCnnConfig};
@@ -541,7 +542,8 @@ pub struct Bundle {
 }
 
 impl Bundle {
-    /// Reads and verifies a bundle folder.
+    /// Reads and verifies a bundle folder. Its `manifest.json` and `bundle.json` must be regular
+    /// files of at most [`MAX_JSON_METADATA_BYTES`] (checked before they are read).
     pub fn from_dir(dir: &Path, device: &Device) -> Result<Self> {
         let read = |name: &str| -> Result<Vec<u8>> {
             let p = dir.join(name);
@@ -551,8 +553,16 @@ impl Bundle {
                 source,
             })
         };
-        let manifest = read(MANIFEST_FILE)?;
-        let config = read(CONFIG_FILE)?;
+        let read_json = |name: &str| -> Result<Vec<u8>> {
+            let what = format!("a bundle's {name}");
+            Ok(read_metadata(
+                &dir.join(name),
+                MAX_JSON_METADATA_BYTES,
+                &what,
+            )?)
+        };
+        let manifest = read_json(MANIFEST_FILE)?;
+        let config = read_json(CONFIG_FILE)?;
         let cfg: BundleConfig = serde_json::from_slice(&config).map_err(|source| Error::Json {
             path: dir.join(CONFIG_FILE),
             source,
@@ -1155,5 +1165,49 @@ impl BundleConfig {
             residual: None,
             provenance: serde_json::Value::Null,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A bundle folder whose `bundle.json` is `make(path)` (its manifest a small placeholder:
+    /// the files are refused before anything is parsed).
+    fn bundle_dir_with_config(make: impl FnOnce(&Path)) -> tempfile::TempDir {
+        let dir = tempfile::tempdir().unwrap();
+        fs::write(dir.path().join(MANIFEST_FILE), b"{}").unwrap();
+        make(&dir.path().join(CONFIG_FILE));
+        dir
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_bundle_json_linked_to_dev_zero_is_refused_naming_it() {
+        let dir = bundle_dir_with_config(|p| std::os::unix::fs::symlink("/dev/zero", p).unwrap());
+        let e = Bundle::from_dir(dir.path(), &Device::Cpu)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains(CONFIG_FILE) && e.contains("not a regular file (a character device)"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_sparse_3_gb_bundle_json_is_refused_unread() {
+        let dir = bundle_dir_with_config(|p| {
+            fs::File::create(p).unwrap().set_len(3 << 30).unwrap();
+        });
+        let e = Bundle::from_dir(dir.path(), &Device::Cpu)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains(CONFIG_FILE)
+                && e.contains(&format!(
+                    "3221225472 bytes, more than the cap of {MAX_JSON_METADATA_BYTES} bytes"
+                )),
+            "{e}"
+        );
     }
 }

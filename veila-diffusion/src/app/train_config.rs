@@ -450,11 +450,11 @@ impl TrainFile {
                 ));
             }
             (Some(p), None) => {
-                let text = std::fs::read(p).map_err(|source| Error::Io {
-                    action: "reading [model] bundle",
-                    path: p.clone(),
-                    source,
-                })?;
+                let text = veila_data::read_capped::read_metadata(
+                    p,
+                    veila_data::read_capped::MAX_JSON_METADATA_BYTES,
+                    "a bundle.json",
+                )?;
                 let mut c: BundleConfig =
                     serde_json::from_slice(&text).map_err(|e| Error::Input {
                         path: p.clone(),

@@ -17,6 +17,7 @@ use std::path::{Path, PathBuf};
 use candle_core::Tensor;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
+use veila_data::read_capped::{MAX_JSON_METADATA_BYTES, read_metadata_string};
 
 use super::{TrainConfig, Trainer};
 use crate::denoiser::Denoiser;
@@ -142,7 +143,7 @@ pub fn claim_checkpoint_dir<T: Serialize>(dir: &Path, settings: &T) -> Result<()
         path: path.clone(),
         source,
     })?;
-    match fs::read_to_string(&path) {
+    match read_metadata_string(&path, MAX_JSON_METADATA_BYTES, "a run record") {
         Ok(old) if old == text => Ok(()),
         Ok(_) => Err(bad(
             dir,
@@ -150,13 +151,15 @@ pub fn claim_checkpoint_dir<T: Serialize>(dir: &Path, settings: &T) -> Result<()
                 "its checkpoints were made with other settings (see {RUN_RECORD_FILE}); use another folder or delete this one"
             ),
         )),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+        Err(veila_data::Error::Io { source, .. })
+            if source.kind() == std::io::ErrorKind::NotFound =>
+        {
             fs::create_dir_all(dir).map_err(io("creating checkpoint folder", dir))?;
             let tmp = dir.join(format!(".{RUN_RECORD_FILE}.tmp-{}", std::process::id()));
             fs::write(&tmp, text).map_err(io("writing run record", &tmp))?;
             fs::rename(&tmp, &path).map_err(io("writing run record", &path))
         }
-        Err(e) => Err(io("reading run record", &path)(e)),
+        Err(e) => Err(e.into()),
     }
 }
 
@@ -273,7 +276,8 @@ impl<M: Denoiser> Trainer<M> {
     /// modified when validation fails.
     pub fn load_checkpoint(&mut self, path: &Path) -> Result<()> {
         let state_path = path.join(STATE_FILE);
-        let text = fs::read_to_string(&state_path).map_err(io("reading", &state_path))?;
+        let text =
+            read_metadata_string(&state_path, MAX_JSON_METADATA_BYTES, "a checkpoint state")?;
         let state: CheckpointState = serde_json::from_str(&text).map_err(|source| Error::Json {
             path: state_path.clone(),
             source,

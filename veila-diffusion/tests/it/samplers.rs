@@ -394,3 +394,92 @@ fn inpainting_keeps_known_pixels_and_fills_the_rest() {
         .is_err()
     );
 }
+
+/// With the exact denoiser of a finite data set, every sampler must end on the data points
+/// themselves (not on their mean, which the noisiest steps predict) and reach every one of them.
+#[test]
+fn samplers_end_on_the_points_of_a_finite_data_set() {
+    use veila_diffusion::oracle::EmpiricalOracle;
+    const K: usize = 4;
+    const D: usize = 32;
+    let points: Vec<Vec<f64>> = (0..K)
+        .map(|k| {
+            let x = randn(
+                &mut ChaCha8Rng::seed_from_u64(100 + k as u64),
+                &[D],
+                &Device::Cpu,
+            );
+            let v = x.unwrap().to_vec1::<f32>().unwrap();
+            v.iter().map(|&e| 0.5 * e as f64).collect()
+        })
+        .collect();
+    let centre: Vec<f64> = (0..D)
+        .map(|i| points.iter().map(|p| p[i]).sum::<f64>() / K as f64)
+        .collect();
+    let rms = |a: &[f64], b: &[f64]| {
+        (a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>() / D as f64).sqrt()
+    };
+    let centre_to_points = points
+        .iter()
+        .map(|p| rms(p, &centre))
+        .fold(f64::INFINITY, f64::min);
+    assert!(
+        centre_to_points > 0.2,
+        "the points' mean must lie away from them"
+    );
+    for pred in [Prediction::Epsilon, Prediction::V] {
+        let d = diffusion(ScheduleConfig::cosine_logsnr(), pred);
+        let oracle = EmpiricalOracle::new(points.clone(), d.clone()).unwrap();
+        for (kind, steps) in [
+            (
+                SamplerKind::Ddpm {
+                    variance: Default::default(),
+                },
+                100,
+            ),
+            (SamplerKind::Ddim { eta: 0.0 }, 50),
+            (SamplerKind::DpmSolverPp2M, 25),
+        ] {
+            let cfg = SamplerConfig {
+                kind,
+                steps,
+                spacing: Spacing::default(),
+                guidance_scale: 1.0,
+                clip_x0: None,
+            };
+            let sampler = Sampler::new(&d, cfg).unwrap();
+            let x = sampler
+                .sample(
+                    &oracle,
+                    &[24, 1, 4, 8],
+                    &Device::Cpu,
+                    None,
+                    &mut ChaCha8Rng::seed_from_u64(5),
+                )
+                .unwrap();
+            let xs = x.to_dtype(DType::F64).unwrap().flatten_all().unwrap();
+            let xs = xs.to_vec1::<f64>().unwrap();
+            let mut hits = [0usize; K];
+            let mut worst: f64 = 0.0;
+            for s in xs.chunks(D) {
+                let (k, e) = points
+                    .iter()
+                    .enumerate()
+                    .map(|(k, p)| (k, rms(s, p)))
+                    .min_by(|a, b| a.1.total_cmp(&b.1))
+                    .unwrap();
+                hits[k] += 1;
+                worst = worst.max(e);
+            }
+            eprintln!("{pred:?} {kind:?} x{steps}: worst distance {worst:.2e}, hits {hits:?}");
+            assert!(
+                worst < 1e-2 * centre_to_points,
+                "{pred:?} {kind:?}: {worst}"
+            );
+            assert!(
+                hits.iter().all(|&h| h > 0),
+                "{pred:?} {kind:?}: modes {hits:?}"
+            );
+        }
+    }
+}

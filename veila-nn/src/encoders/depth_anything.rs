@@ -22,6 +22,7 @@ use candle_nn::{Conv2d, Conv2dConfig, ConvTranspose2d, ConvTranspose2dConfig, Va
 
 use super::dinov2::{DinoV2Backbone, DinoV2Config, bicubic_resize};
 use super::{ImageEncoder, InputSpec, Normalization, conv_out};
+use crate::config::check_max;
 
 /// What a Depth-Anything head predicts.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -31,6 +32,19 @@ pub enum DepthKind {
     /// Metric depth, `sigmoid * max_depth` (the `Metric-*` checkpoints).
     Metric,
 }
+
+/// Upper bounds on a [`DepthAnythingV2Config`] beyond its backbone's (checked by
+/// [`DepthAnythingV2Config::validate`]), 16 to 50 times the Large model's sizes.
+///
+/// Channels of a reassemble projection, each of `neck_hidden_sizes` (Large: at most 1024).
+pub const MAX_NECK_HIDDEN_SIZE: usize = 16_384;
+/// Channels of the fusion stage, `fusion_hidden_size` (Large: 256).
+pub const MAX_FUSION_HIDDEN_SIZE: usize = 16_384;
+/// Channels of the head's second conv, `head_hidden_size` (32).
+pub const MAX_HEAD_HIDDEN_SIZE: usize = 4096;
+/// Up- or down-sampling factor of a reassemble layer, `k` or `1 / k` of `reassemble_factors`
+/// (at most 4).
+pub const MAX_RESIZE_FACTOR: usize = 64;
 
 /// Configuration of the Depth-Anything-V2 feature extractor (transformers' `DepthAnythingConfig`).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -108,10 +122,44 @@ impl DepthAnythingV2Config {
             }
         }
         for i in 0..4 {
-            resize_kind(self.reassemble_factors[i])?;
+            let factor = match resize_kind(self.reassemble_factors[i])? {
+                Resize::Up(k) | Resize::Down(k) => k,
+                Resize::Identity => 1,
+            };
+            check_max(
+                &format!("DepthAnythingV2Config.reassemble_factors[{i}] (k or 1/k)"),
+                factor,
+                MAX_RESIZE_FACTOR,
+            )?;
             if self.neck_hidden_sizes[i] == 0 {
                 config_bail!("DepthAnythingV2Config: neck_hidden_sizes[{i}] must be positive");
             }
+            check_max(
+                &format!("DepthAnythingV2Config.neck_hidden_sizes[{i}]"),
+                self.neck_hidden_sizes[i],
+                MAX_NECK_HIDDEN_SIZE,
+            )?;
+        }
+        self.validate_head()
+    }
+
+    /// The depth head's sizes within their bounds and a finite positive `max_depth`.
+    fn validate_head(&self) -> crate::Result<()> {
+        check_max(
+            "DepthAnythingV2Config.fusion_hidden_size",
+            self.fusion_hidden_size,
+            MAX_FUSION_HIDDEN_SIZE,
+        )?;
+        check_max(
+            "DepthAnythingV2Config.head_hidden_size",
+            self.head_hidden_size,
+            MAX_HEAD_HIDDEN_SIZE,
+        )?;
+        if !(self.max_depth.is_finite() && self.max_depth > 0.0) {
+            config_bail!(
+                "DepthAnythingV2Config: max_depth must be finite and positive, got {}",
+                self.max_depth
+            );
         }
         Ok(())
     }

@@ -29,6 +29,24 @@ use candle_nn::{Conv2d, Conv2dConfig, LayerNorm, Linear, VarBuilder};
 
 use super::{ImageEncoder, InputSpec, Normalization, check_image};
 
+/// Upper bounds on a [`DinoV2Config`] (checked by [`DinoV2Config::validate`]), 16 to 50 times
+/// ViT-L/14's sizes, so that no config from a file can ask for an absurd network.
+///
+/// Token width, `hidden_size` (ViT-L: 1024).
+pub const MAX_HIDDEN_SIZE: usize = 16_384;
+/// Transformer layers, `num_hidden_layers` (ViT-L: 24).
+pub const MAX_LAYERS: usize = 1024;
+/// Attention heads, `num_attention_heads` (ViT-L: 16).
+pub const MAX_HEADS: usize = 512;
+/// Patch size in pixels, `patch_size` (14).
+pub const MAX_PATCH_SIZE: usize = 256;
+/// Side of the stored position grid, `image_size / patch_size` (37).
+pub const MAX_GRID_SIZE: usize = 1024;
+/// MLP expansion, `mlp_ratio` (4).
+pub const MAX_MLP_RATIO: usize = 64;
+/// Input channels, `num_channels` (3).
+pub const MAX_NUM_CHANNELS: usize = 256;
+
 /// Configuration of a DINOv2 ViT (field names as in transformers' `Dinov2Config`).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct DinoV2Config {
@@ -105,6 +123,22 @@ impl DinoV2Config {
         }
         if self.layer_norm_eps.is_nan() || self.layer_norm_eps <= 0.0 {
             config_bail!("DinoV2Config: layer_norm_eps must be positive");
+        }
+        self.validate_bounds()
+    }
+
+    /// Every size within its `MAX_*` bound of this module.
+    fn validate_bounds(&self) -> crate::Result<()> {
+        for (field, value, max) in [
+            ("hidden_size", self.hidden_size, MAX_HIDDEN_SIZE),
+            ("num_hidden_layers", self.num_hidden_layers, MAX_LAYERS),
+            ("num_attention_heads", self.num_attention_heads, MAX_HEADS),
+            ("patch_size", self.patch_size, MAX_PATCH_SIZE),
+            ("image_size / patch_size", self.grid_size(), MAX_GRID_SIZE),
+            ("mlp_ratio", self.mlp_ratio, MAX_MLP_RATIO),
+            ("num_channels", self.num_channels, MAX_NUM_CHANNELS),
+        ] {
+            crate::config::check_max(&format!("DinoV2Config.{field}"), value, max)?;
         }
         Ok(())
     }

@@ -30,6 +30,31 @@ use super::{
 /// HuggingFace prefix of the encoder in `nvidia/mit-b*` and `nvidia/segformer-b*-*` checkpoints.
 pub const HF_SEGFORMER_PREFIX: &str = "segformer.encoder";
 
+/// Upper bounds on a [`MitConfig`] (checked by [`MitConfig::validate`]), 16 to 50 times MiT-b5's
+/// sizes, so that no config from a file can ask for an absurd network.
+///
+/// Input channels, `num_channels` (3).
+pub const MAX_NUM_CHANNELS: usize = 256;
+/// Channels of a stage, each of `hidden_sizes` (MiT-b5: at most 512).
+pub const MAX_HIDDEN_SIZE: usize = 16_384;
+/// Transformer layers of a stage, each of `depths` (MiT-b5: at most 40).
+pub const MAX_DEPTH: usize = 2048;
+/// Attention heads of a stage, each of `num_attention_heads` (at most 8).
+pub const MAX_HEADS: usize = 512;
+/// Spatial-reduction ratio of a stage, each of `sr_ratios` (at most 8).
+pub const MAX_SR_RATIO: usize = 64;
+/// Kernel of a patch embedding, each of `patch_sizes` (at most 7).
+pub const MAX_PATCH_SIZE: usize = 64;
+/// Stride of a patch embedding, each of `strides` (at most 4; kept small so that
+/// [`MitConfig::min_input_size`]'s search stays short).
+pub const MAX_STRIDE: usize = 8;
+/// Mix-FFN expansion of a stage, each of `mlp_ratios` (4).
+pub const MAX_MLP_RATIO: usize = 64;
+/// Width of the SegFormer decode head, `decoder_hidden_size` (at most 768).
+pub const MAX_DECODER_HIDDEN_SIZE: usize = 16_384;
+/// Classes of the SegFormer decode head, `num_labels` (ADE20k: 150).
+pub const MAX_LABELS: usize = 8192;
+
 /// Configuration of a MiT encoder (field names as in transformers' `SegformerConfig`).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct MitConfig {
@@ -116,9 +141,35 @@ impl MitConfig {
             if self.mlp_ratios[i] == 0 {
                 config_bail!("MitConfig: stage {i}: mlp_ratio must be positive");
             }
+            self.validate_stage_bounds(i)?;
         }
+        crate::config::check_max(
+            "MitConfig.num_channels",
+            self.num_channels,
+            MAX_NUM_CHANNELS,
+        )?;
         if self.layer_norm_eps.is_nan() || self.layer_norm_eps <= 0.0 {
             config_bail!("MitConfig: layer_norm_eps must be positive");
+        }
+        Ok(())
+    }
+
+    /// The sizes of stage `i` within their `MAX_*` bounds of this module.
+    fn validate_stage_bounds(&self, i: usize) -> crate::Result<()> {
+        for (field, value, max) in [
+            ("hidden_sizes", self.hidden_sizes[i], MAX_HIDDEN_SIZE),
+            ("depths", self.depths[i], MAX_DEPTH),
+            (
+                "num_attention_heads",
+                self.num_attention_heads[i],
+                MAX_HEADS,
+            ),
+            ("sr_ratios", self.sr_ratios[i], MAX_SR_RATIO),
+            ("patch_sizes", self.patch_sizes[i], MAX_PATCH_SIZE),
+            ("strides", self.strides[i], MAX_STRIDE),
+            ("mlp_ratios", self.mlp_ratios[i], MAX_MLP_RATIO),
+        ] {
+            crate::config::check_max(&format!("MitConfig.{field}[{i}]"), value, max)?;
         }
         Ok(())
     }
@@ -537,6 +588,30 @@ impl SegFormerConfig {
             batch_norm_eps: 1e-5,
         }
     }
+
+    /// Checks the encoder ([`MitConfig::validate`]) and the head: a positive width and class
+    /// count within [`MAX_DECODER_HIDDEN_SIZE`] and [`MAX_LABELS`], a positive finite epsilon.
+    pub fn validate(&self) -> crate::Result<()> {
+        self.encoder.validate()?;
+        check_head(self.decoder_hidden_size, self.num_labels)?;
+        if !(self.batch_norm_eps.is_finite() && self.batch_norm_eps > 0.0) {
+            config_bail!("SegFormerConfig: batch_norm_eps must be finite and positive");
+        }
+        Ok(())
+    }
+}
+
+/// The decode head's width and class count: positive and within their bounds.
+fn check_head(hidden: usize, num_labels: usize) -> crate::Result<()> {
+    if hidden == 0 || num_labels == 0 {
+        config_bail!("SegFormerConfig: decoder_hidden_size and num_labels must be positive");
+    }
+    crate::config::check_max(
+        "SegFormerConfig.decoder_hidden_size",
+        hidden,
+        MAX_DECODER_HIDDEN_SIZE,
+    )?;
+    crate::config::check_max("SegFormerConfig.num_labels", num_labels, MAX_LABELS)
 }
 
 /// SegFormer's decode head (`decode_head.*`): per-scale `Linear` to the head width
@@ -561,9 +636,7 @@ impl SegFormerDecodeHead {
         bn_eps: f64,
         vb: VarBuilder<'_>,
     ) -> crate::Result<Self> {
-        if hidden == 0 || num_labels == 0 {
-            config_bail!("SegFormerConfig: decoder_hidden_size and num_labels must be positive");
-        }
+        check_head(hidden, num_labels)?;
         let linear_c = (0..4)
             .map(|i| candle_nn::linear(in_channels[i], hidden, vb.pp("linear_c").pp(i).pp("proj")))
             .collect::<candle_core::Result<Vec<_>>>()?;
@@ -643,6 +716,7 @@ pub struct SegFormer {
 impl SegFormer {
     /// Reads `{encoder.weight_prefix}.*` and `{head_prefix}.*`.
     pub fn new(cfg: &SegFormerConfig, vb: VarBuilder<'_>) -> crate::Result<Self> {
+        cfg.validate()?;
         let encoder = MitEncoder::new(&cfg.encoder, vb.clone())?;
         let vh = if cfg.head_prefix.is_empty() {
             vb

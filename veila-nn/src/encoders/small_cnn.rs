@@ -42,6 +42,23 @@ use super::{
     ImageEncoder, InputSpec, Normalization, check_image_channels, conv_out,
     resize_bilinear_differentiable, rgb8_to_tensor,
 };
+use crate::ops::groups_for;
+
+/// Upper bounds on a [`SmallCnnConfig`] (checked by [`SmallCnnConfig::validate`]), about 50 times
+/// the default's, so that no config a bundle carries can ask for an absurd network.
+///
+/// Image channels, `in_channels` (the default: 3).
+pub const MAX_IN_CHANNELS: usize = 256;
+/// Channels of a stage, each of `channels` (the default: at most 96).
+pub const MAX_CHANNELS: usize = 8192;
+/// Residual blocks of a stage, each of `blocks` (the default: 1).
+pub const MAX_BLOCKS: usize = 64;
+/// The GroupNorm group bound `norm_groups` (the default: 8).
+pub const MAX_NORM_GROUPS: usize = 1024;
+/// Width of the heads, `head_channels` (the default: 32).
+pub const MAX_HEAD_CHANNELS: usize = 2048;
+/// Semantic classes, `num_classes` (the default: 20).
+pub const MAX_CLASSES: usize = 1024;
 
 /// Configuration of [`SmallCnn`].
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -113,6 +130,7 @@ impl SmallCnnConfig {
         if self.norm_groups == 0 {
             config_bail!("SmallCnnConfig: norm_groups must be positive");
         }
+        self.validate_bounds()?;
         if let Some(g) = &self.ground_prior {
             g.validate()?;
         }
@@ -126,12 +144,47 @@ impl SmallCnnConfig {
             );
         }
         let (lo, hi, prior) = (self.min_depth_m, self.max_depth_m, self.depth_prior_m);
-        if self.depth_head && !(lo > 0.0 && hi > lo && prior > 0.0 && hi.is_finite()) {
+        if self.depth_head
+            && !(lo > 0.0 && hi > lo && prior > 0.0 && hi.is_finite() && prior.is_finite())
+        {
             config_bail!(
-                "SmallCnnConfig: need 0 < min_depth_m < max_depth_m < inf and depth_prior_m > 0, got {lo}, {hi}, {prior}"
+                "SmallCnnConfig: need 0 < min_depth_m < max_depth_m < inf and 0 < depth_prior_m < inf, got {lo}, {hi}, {prior}"
             );
         }
         Ok(())
+    }
+
+    /// Every size within its `MAX_*` bound of this module.
+    fn validate_bounds(&self) -> crate::Result<()> {
+        use crate::config::check_max;
+        check_max(
+            "SmallCnnConfig.in_channels",
+            self.in_channels,
+            MAX_IN_CHANNELS,
+        )?;
+        for i in 0..4 {
+            check_max(
+                &format!("SmallCnnConfig.channels[{i}]"),
+                self.channels[i],
+                MAX_CHANNELS,
+            )?;
+            check_max(
+                &format!("SmallCnnConfig.blocks[{i}]"),
+                self.blocks[i],
+                MAX_BLOCKS,
+            )?;
+        }
+        check_max(
+            "SmallCnnConfig.norm_groups",
+            self.norm_groups,
+            MAX_NORM_GROUPS,
+        )?;
+        check_max(
+            "SmallCnnConfig.head_channels",
+            self.head_channels,
+            MAX_HEAD_CHANNELS,
+        )?;
+        check_max("SmallCnnConfig.num_classes", self.num_classes, MAX_CLASSES)
     }
 
     /// Channels of the four maps [`ImageEncoder::forward`] returns: the backbone's, plus one for
@@ -192,13 +245,6 @@ impl SmallCnnConfig {
         }
         sizes
     }
-}
-
-fn groups_for(channels: usize, max_groups: usize) -> usize {
-    (1..=max_groups.min(channels))
-        .rev()
-        .find(|g| channels.is_multiple_of(*g))
-        .unwrap_or(1)
 }
 
 /// Conv + GroupNorm (+ SiLU in `forward_act`).

@@ -42,6 +42,20 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result, shape_err};
 
+/// Upper bounds on a [`PointNetConfig`] (`pointnet.json`; checked by
+/// [`PointNetConfig::validate`]), about 30 to 50 times the SpareNet classifier's sizes, so that no
+/// config from a file can ask for an absurd network.
+///
+/// Width of a layer, each of `mlp` and `head` (SpareNet: at most 1024).
+pub const MAX_WIDTH: usize = 32_768;
+/// Layers of the shared MLP or of the head, the length of `mlp` and of `head` (at most 3).
+pub const MAX_LAYERS: usize = 64;
+/// Output classes, `num_classes` (SpareNet: 16, the project's: 23).
+pub const MAX_CLASSES: usize = 1024;
+/// Points per scan, `num_points` (the project's: 2048; a scan of up to this many points is
+/// padded to it).
+pub const MAX_POINTS: usize = 1 << 22;
+
 /// Configuration of a [`PointNet`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PointNetConfig {
@@ -149,7 +163,22 @@ impl PointNetConfig {
                 self.bn_momentum
             ));
         }
-        Ok(())
+        self.validate_bounds()
+    }
+
+    /// Every size within its `MAX_*` bound of this module (the message names the field).
+    fn validate_bounds(&self) -> Result<()> {
+        let check = |field: &str, value: usize, max: usize| {
+            crate::config::check_max(&format!("pointnet {}: {field}", self.name), value, max)
+        };
+        for (field, widths) in [("mlp", &self.mlp), ("head", &self.head)] {
+            check(&format!("{field} (layers)"), widths.len(), MAX_LAYERS)?;
+            for (i, w) in widths.iter().enumerate() {
+                check(&format!("{field}[{i}]"), *w, MAX_WIDTH)?;
+            }
+        }
+        check("num_classes", self.num_classes, MAX_CLASSES)?;
+        check("num_points", self.num_points.unwrap_or(0), MAX_POINTS)
     }
 }
 

@@ -67,6 +67,24 @@ pub const RANGENET_MEAN: [f32; 5] = [12.12, 10.88, 0.23, -1.04, 0.21];
 /// RangeNet++'s SemanticKITTI input standard deviations (range, x, y, z, remission).
 pub const RANGENET_STD: [f32; 5] = [12.32, 11.47, 6.91, 0.86, 0.16];
 
+/// Upper bounds on a [`RangeNetConfig`] (`rangenet.json`; checked by
+/// [`RangeNetConfig::validate`]), about 50 times DarkNet-53's sizes, so that no config from a
+/// file can ask for an absurd network.
+///
+/// Channels of the stem conv, `stem_channels` (DarkNet: 32).
+pub const MAX_STEM_CHANNELS: usize = 2048;
+/// Encoder stages, the length of `stages` (5; each halves the width, so more than about 20 leave
+/// no column of even the widest sensor).
+pub const MAX_STAGES: usize = 32;
+/// Channels of a stage, `stages[i].channels` (DarkNet: at most 1024).
+pub const MAX_STAGE_CHANNELS: usize = 32_768;
+/// Residual blocks of a stage, `stages[i].blocks` (DarkNet-53: at most 8).
+pub const MAX_STAGE_BLOCKS: usize = 512;
+/// Classes of the semantic head, `num_classes` (20).
+pub const MAX_CLASSES: usize = 1024;
+/// Channels of the semantic head, `head_channels` (32).
+pub const MAX_HEAD_CHANNELS: usize = 2048;
+
 /// One encoder stage: a stride-(1, 2) 3x3 conv to `channels`, then `blocks` residual blocks.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct RangeStage {
@@ -196,6 +214,7 @@ impl RangeNetConfig {
                 return bad("head_channels must be > 0".into());
             }
         }
+        self.validate_bounds()?;
         for c in 0..IN_CHANNELS {
             let (m, s) = (self.input_mean[c], self.input_std[c]);
             if !(m.is_finite() && s.is_finite() && s > 0.0) {
@@ -221,6 +240,27 @@ impl RangeNetConfig {
         }
         self.sensor.validate()?;
         Ok(())
+    }
+}
+
+impl RangeNetConfig {
+    /// Every size within its `MAX_*` bound of this module (the message names the field).
+    fn validate_bounds(&self) -> Result<()> {
+        let check = |field: &str, value: usize, max: usize| {
+            crate::config::check_max(&format!("rangenet {}: {field}", self.name), value, max)
+        };
+        check("stem_channels", self.stem_channels, MAX_STEM_CHANNELS)?;
+        check("stages (count)", self.stages.len(), MAX_STAGES)?;
+        for (i, st) in self.stages.iter().enumerate() {
+            check(
+                &format!("stages[{i}].channels"),
+                st.channels,
+                MAX_STAGE_CHANNELS,
+            )?;
+            check(&format!("stages[{i}].blocks"), st.blocks, MAX_STAGE_BLOCKS)?;
+        }
+        check("head_channels", self.head_channels, MAX_HEAD_CHANNELS)?;
+        check("num_classes", self.num_classes.unwrap_or(0), MAX_CLASSES)
     }
 }
 

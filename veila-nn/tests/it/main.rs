@@ -17,4 +17,5 @@ mod mixed_precision;
 mod ops;
 mod preprocess;
 mod recompute;
+mod untrusted;
 mod with_encoders;

@@ -140,6 +140,46 @@ fn checkpointed_blocks_give_the_plain_gradients_on_the_reference_ops() {
     compare(DType::F64);
 }
 
+/// The whole network's training gradients on the CPU kernels (f32: fused residual blocks, group
+/// norms, convolutions, each with a hand-written backward) against candle's plain compositions of
+/// the same weights and inputs in f64 (which the kernels do not take): a wrong backward anywhere in
+/// the kernels would train slowly rather than fail, so it is checked end to end here.
+#[test]
+fn the_cpu_kernels_give_the_reference_gradients_of_the_whole_network() {
+    let fast = setup(DType::F32);
+    let exact = setup(DType::F64);
+    let (y32, g32) = forward_backward(&fast, &fast.net);
+    let (y64, g64) = forward_backward(&exact, &exact.net);
+    let dy = max_abs(&(&y32 - &y64).unwrap());
+    assert!(dy <= 1e-4 * max_abs(&y64), "outputs differ by {dy}");
+    assert_eq!(g32.len(), g64.len());
+    let (mut worst, mut worst_name, mut nonzero) = (0.0f64, String::new(), 0);
+    for ((n, a), (m, b)) in g32.iter().zip(&g64) {
+        assert_eq!(n, m);
+        let scale = max_abs(b);
+        if scale > 0.0 {
+            nonzero += 1;
+        }
+        let d = max_abs(&(a - b).unwrap()) / scale.max(1e-30);
+        if d > worst {
+            (worst, worst_name) = (d, n.clone());
+        }
+    }
+    assert!(
+        nonzero + 2 >= g64.len(),
+        "only {nonzero} of {} gradients are non-zero",
+        g64.len()
+    );
+    eprintln!(
+        "{} gradients, worst relative difference {worst:.2e} ({worst_name})",
+        g64.len()
+    );
+    assert!(
+        worst <= 3e-3,
+        "{worst_name} differs by {worst:.2e} of its largest gradient"
+    );
+}
+
 #[test]
 fn evaluation_without_a_graph_runs_the_blocks_directly() {
     // inputs and weights outside any graph: nothing to recompute, no node, nothing on the tape
