@@ -145,7 +145,7 @@ fn sources_digest(dataset: &dyn Dataset, frames: std::ops::Range<usize>) -> Resu
             }
         }
     }
-    Ok(sha256_hex_of(h))
+    Ok(h.finalize().iter().map(|b| format!("{b:02x}")).collect())
 }
 
 /// The cap of a dataset's source file, by its name (scans, `.label`, calibrations, images), with
@@ -173,28 +173,11 @@ fn source_cap(path: &Path) -> (u64, &'static str) {
 /// SHA-256 and length of the source file `path`, within its [`source_cap`] (checked before
 /// anything is read; a FIFO or device is refused unopened).
 fn sha256_source(path: &Path) -> Result<(String, u64)> {
-    use sha2::Digest;
-    use std::io::Read;
     let (cap, kind) = source_cap(path);
-    let mut file = crate::read_capped::open_capped_take(path, cap, kind)?;
-    let mut h = sha2::Sha256::new();
-    let mut buf = vec![0u8; 1 << 20];
-    let mut total = 0u64;
-    loop {
-        let k = file.read(&mut buf).map_err(|e| Error::io(path, e))?;
-        if k == 0 {
-            break;
-        }
-        total += k as u64;
-        h.update(&buf[..k]);
-    }
+    let file = crate::read_capped::open_capped_take(path, cap, kind)?;
+    let (sha, total) = crate::shard::sha256_read(file, path)?;
     crate::read_capped::check_len(path, total, cap, kind)?;
-    Ok((sha256_hex_of(h), total))
-}
-
-fn sha256_hex_of(h: sha2::Sha256) -> String {
-    use sha2::Digest;
-    h.finalize().iter().map(|b| format!("{b:02x}")).collect()
+    Ok((sha, total))
 }
 
 /// Project one frame into a training sample. Intensity is divided by `intensity_max`; labels become

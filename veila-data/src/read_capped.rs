@@ -112,11 +112,13 @@ pub(crate) fn check_len(path: &Path, len: u64, cap: u64, kind: &str) -> Result<(
 fn not_regular(path: &Path, meta: &std::fs::Metadata) -> Error {
     Error::Refused {
         path: path.to_path_buf(),
-        message: format!("not a regular file ({})", type_name(&meta.file_type())),
+        message: format!("not a regular file ({})", file_type_name(&meta.file_type())),
     }
 }
 
-fn type_name(t: &std::fs::FileType) -> &'static str {
+/// What a file that is not a regular file is, in words with its article: "a FIFO", "a character
+/// device", "a block device", "a socket", "a directory", else "a special file".
+pub fn file_type_name(t: &std::fs::FileType) -> &'static str {
     #[cfg(unix)]
     {
         use std::os::unix::fs::FileTypeExt;
@@ -136,7 +138,7 @@ fn type_name(t: &std::fs::FileType) -> &'static str {
     if t.is_dir() {
         "a directory"
     } else {
-        "not a plain file"
+        "a special file"
     }
 }
 

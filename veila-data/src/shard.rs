@@ -291,7 +291,12 @@ fn hex(d: &[u8]) -> String {
 
 /// Hex SHA-256 and size of a file, streamed.
 pub fn sha256_file(path: &Path) -> Result<(String, u64)> {
-    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    sha256_read(f, path)
+}
+
+/// Hex SHA-256 and size of what `f` yields, streamed; `path` names it in errors.
+pub(crate) fn sha256_read(mut f: impl Read, path: &Path) -> Result<(String, u64)> {
     let mut h = Sha256::new();
     let mut buf = vec![0u8; 1 << 20];
     let mut total = 0u64;

@@ -85,16 +85,18 @@ fn sample_check(
     draws: usize,
 ) -> Result<(), Box<dyn std::error::Error>> {
     use veila_diffusion::app::generate::GenerateOptions;
-    use veila_metrics::texture::nearest_scan;
+    use veila_metrics::texture::{nearest_scan, scan_distance};
     let pool: Vec<_> = frames.iter().map(|f| f.range.clone()).collect();
     let mut between = Vec::new();
-    for i in 0..pool.len() {
-        let others: Vec<_> = (0..pool.len())
-            .filter(|&j| j != i)
-            .map(|j| pool[j].clone())
-            .collect();
-        if !others.is_empty() {
-            between.push(nearest_scan(&pool[i], &others)?.1);
+    for (i, a) in pool.iter().enumerate() {
+        let mut nearest = f64::INFINITY;
+        for (j, b) in pool.iter().enumerate() {
+            if j != i {
+                nearest = nearest.min(scan_distance(a, b)?);
+            }
+        }
+        if nearest.is_finite() {
+            between.push(nearest);
         }
     }
     between.sort_by(f64::total_cmp);

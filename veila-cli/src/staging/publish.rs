@@ -110,23 +110,7 @@ pub(super) fn special_file_kind(path: &Path) -> Option<&'static str> {
     if t.is_file() || t.is_dir() || t.is_symlink() {
         return None;
     }
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::FileTypeExt;
-        if t.is_char_device() {
-            return Some("a character device");
-        }
-        if t.is_block_device() {
-            return Some("a block device");
-        }
-        if t.is_fifo() {
-            return Some("a FIFO");
-        }
-        if t.is_socket() {
-            return Some("a socket");
-        }
-    }
-    Some("a special file")
+    Some(veila_data::read_capped::file_type_name(&t))
 }
 
 /// The checks of [`publish_files`] alone, so a command can refuse its outputs before it works.
