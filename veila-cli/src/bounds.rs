@@ -53,17 +53,20 @@ pub(crate) fn float32(
     }
 }
 
-/// Sampler steps of `generate`, `edit` and `demo`: 1 to [`crate::generation::MAX_STEPS`].
+/// Sampler steps of `generate`, `edit` and `demo`: 1 to the library's
+/// [`veila_diffusion::MAX_STEPS`], the bound of a bundle's `sampler.steps` too.
 pub(crate) fn steps() -> impl Fn(&str) -> Result<usize, String> + Clone + Send + Sync + 'static {
-    int(1, crate::generation::MAX_STEPS as u64)
+    int(1, veila_diffusion::MAX_STEPS as u64)
 }
 
-/// A classifier-free guidance scale: 0 to [`crate::generation::MAX_GUIDANCE`].
+/// A classifier-free guidance scale: 0 to the library's [`veila_diffusion::MAX_GUIDANCE`], the
+/// bound of a bundle's `sampler.guidance_scale` too.
 pub(crate) fn guidance() -> impl Fn(&str) -> Result<f64, String> + Clone + Send + Sync + 'static {
-    float(0.0, crate::generation::MAX_GUIDANCE)
+    float(0.0, veila_diffusion::MAX_GUIDANCE)
 }
 
-/// A residual weight: 0 to 1.
+/// A residual weight: the library's [`veila_diffusion::app::RESIDUAL_WEIGHT`], 0 to 1.
 pub(crate) fn unit() -> impl Fn(&str) -> Result<f64, String> + Clone + Send + Sync + 'static {
-    float(0.0, 1.0)
+    let (lo, hi) = veila_diffusion::app::RESIDUAL_WEIGHT;
+    float(lo, hi)
 }

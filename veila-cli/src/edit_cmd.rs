@@ -9,7 +9,7 @@ use anyhow::{Context, Result, bail};
 use clap::{ArgGroup, Args};
 use glam::Vec3;
 use serde::Serialize;
-use veila_data::image::{GrayImage, ImageReader, RgbImage, imageops};
+use veila_data::image::{GrayImage, RgbImage, imageops};
 use veila_data::image_io::write_png;
 use veila_data::range_exr::read_range_exr;
 use veila_data::scan::{PointFormat, read_points};
@@ -154,12 +154,9 @@ fn scan_on_grid(bundle: &Bundle, path: &Path) -> Result<RangeImage> {
 
 /// `true` = regenerate, from a mask image (white = regenerate).
 fn mask_from_image(path: &Path, rows: usize, cols: usize) -> Result<Vec<bool>> {
-    let img: GrayImage = ImageReader::open(path)
-        .with_context(|| format!("{}: cannot open", path.display()))?
-        .with_guessed_format()
-        .with_context(|| format!("{}: cannot read", path.display()))?
-        .decode()
-        .with_context(|| format!("{}: not a readable mask image", path.display()))?
+    // read strictly (a truncated PNG or JPEG is an error naming the file)
+    let img: GrayImage = veila_data::image_io::read_image(path)
+        .context("not a readable mask image")?
         .into_luma8();
     let img = if img.dimensions() == (cols as u32, rows as u32) {
         img

@@ -198,7 +198,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
         args.samples,
         report.model.grid[0],
         report.model.grid[1],
-        report.model.name,
+        crate::out::untrusted(&report.model.name),
         views.len(),
         report.sampler_name,
         sampler.steps,

@@ -14,9 +14,11 @@ use veila_data::scan::write_kitti_bin;
 use veila_data::vis::render::{
     BevOptions, OverlayOptions, RangePreview, render_bev, render_overlay, render_range,
 };
+pub(crate) use veila_diffusion::app::RESIDUAL_WEIGHT;
 use veila_diffusion::app::bundle::{Bundle, DENOISER_FILE, Manifest, sha256_hex};
 use veila_diffusion::app::rig::point_colours;
 use veila_diffusion::app::{RigView, Scan, load_view};
+pub(crate) use veila_diffusion::{MAX_GUIDANCE, MAX_STEPS};
 use veila_diffusion::{SamplerConfig, SamplerKind};
 
 use crate::model;
@@ -84,23 +86,27 @@ pub(crate) fn load_rig(rig: &RigArgs) -> Result<Vec<RigView>> {
     Ok(views)
 }
 
-/// The sampler: the bundle's unless `name` is given; `steps` and `guidance` override.
+/// The sampler: the bundle's unless `name` is given; `steps` and `guidance` (the flags) override.
+/// The bundle's own values were checked against the same bounds when it was loaded (an error
+/// there names `bundle.json` and the field); a flag's error names the flag.
 pub(crate) fn resolve_sampler(
     bundle: &Bundle,
     name: Option<SamplerName>,
-    steps: Option<usize>,
+    flag_steps: Option<usize>,
     guidance: Option<f64>,
 ) -> Result<SamplerConfig> {
     let base = &bundle.config.sampler;
-    let steps = steps.unwrap_or(base.steps);
-    if steps == 0 && bundle.config.residual.is_none() {
-        bail!(
-            "--steps must be at least 1 (0 steps, the mean network alone, needs a residual-diffusion bundle)"
-        );
+    if let Some(steps) = flag_steps {
+        if steps == 0 && bundle.config.residual.is_none() {
+            bail!(
+                "--steps must be at least 1 (0 steps, the mean network alone, needs a residual-diffusion bundle)"
+            );
+        }
+        if steps != 0 {
+            check_steps(steps)?;
+        }
     }
-    if steps != 0 {
-        check_steps(steps)?;
-    }
+    let steps = flag_steps.unwrap_or(base.steps);
     let mut cfg = match name {
         None => SamplerConfig {
             steps,
@@ -128,15 +134,21 @@ pub(crate) fn resolve_sampler(
         }
         cfg.guidance_scale = 1.0;
     }
-    cfg.validate().context("sampler settings")?;
+    cfg.validate().with_context(|| {
+        format!(
+            "the sampler settings of --sampler / --steps / --guidance over the bundle's (`sampler` of {})",
+            bundle.origin.join(veila_diffusion::app::bundle::CONFIG_FILE).display()
+        )
+    })?;
     Ok(cfg)
 }
 
 /// `--residual-weight`: between 0 and 1, and other than 1 only for residual-diffusion bundles
 /// (checked against `bundle` once it is loaded).
 pub(crate) fn check_residual_weight(w: f64, bundle: Option<&Bundle>) -> Result<()> {
-    if !(0.0..=1.0).contains(&w) {
-        bail!("--residual-weight {w}: must be between 0 and 1");
+    let (lo, hi) = RESIDUAL_WEIGHT;
+    if !(lo..=hi).contains(&w) {
+        bail!("--residual-weight {w}: must be between {lo} and {hi}");
     }
     if let Some(b) = bundle
         && w != 1.0
@@ -150,15 +162,8 @@ pub(crate) fn check_residual_weight(w: f64, bundle: Option<&Bundle>) -> Result<(
     Ok(())
 }
 
-/// The most sampler steps a command accepts: far beyond any useful count (samplers converge in
-/// 10-50), and it bounds the time a typo can cost.
-pub(crate) const MAX_STEPS: usize = 1000;
-
-/// The largest classifier-free guidance scale accepted. Scales beyond ~10 only amplify the
-/// difference of the two branches into saturated garbage (1e300 gave a 633-point scan).
-pub(crate) const MAX_GUIDANCE: f64 = 20.0;
-
-/// Refuse a step count outside 1..=[`MAX_STEPS`].
+/// Refuse a `--steps` outside 1..=[`MAX_STEPS`] (the library's bound, which a bundle's
+/// `sampler.steps` is held to as well).
 pub(crate) fn check_steps(steps: usize) -> Result<()> {
     if !(1..=MAX_STEPS).contains(&steps) {
         bail!("--steps {steps}: must be between 1 and {MAX_STEPS}");
@@ -166,8 +171,9 @@ pub(crate) fn check_steps(steps: usize) -> Result<()> {
     Ok(())
 }
 
-/// Refuse a guidance scale outside 0..=[`MAX_GUIDANCE`] (0 = the unconditional branch only,
-/// 1 = no guidance; negative scales push away from the image).
+/// Refuse a `--guidance` outside 0..=[`MAX_GUIDANCE`] (0 = the unconditional branch only,
+/// 1 = no guidance; the library's bound, which a bundle's `sampler.guidance_scale` is held to as
+/// well).
 pub(crate) fn check_guidance(g: f64) -> Result<()> {
     if !(g.is_finite() && (0.0..=MAX_GUIDANCE).contains(&g)) {
         bail!("--guidance {g}: must be a number between 0 and {MAX_GUIDANCE} (1 = no guidance)");

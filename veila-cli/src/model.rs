@@ -155,20 +155,34 @@ pub(crate) fn load_bundle(checkpoint: Option<&Path>, device: &Device) -> Result<
         }
         ModelSource::Dir(dir) => dir,
     };
-    if !dir.join(MANIFEST_FILE).exists() {
-        if checkpoint.is_none() && std::env::var_os(MODEL_ENV).is_none_or(|v| v.is_empty()) {
+    // `exists()` is false for any error: a link loop (ELOOP) or a folder that cannot be read
+    // (EACCES) would read "no model bundle"; only a missing file is that, the others say why
+    match std::fs::metadata(dir.join(MANIFEST_FILE)) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
             bail!(
-                "no model: this veila was built without models/default embedded and {} does not exist; \
-                 pass --checkpoint DIR or set {MODEL_ENV} to a bundle folder (bundle.json, manifest.json, weights)",
+                "cannot read the model bundle at {}: {e} (reading {MANIFEST_FILE})",
                 dir.display()
             );
         }
-        bail!(
-            "no model bundle at {} (expected bundle.json, manifest.json and weights; pass --checkpoint DIR or set {MODEL_ENV})",
+        Ok(_) => {}
+        Err(_) => return Err(no_bundle(checkpoint, &dir)),
+    }
+    Bundle::from_dir(&dir, device).with_context(|| format!("loading model {}", dir.display()))
+}
+
+/// The error for a model folder without a `manifest.json`.
+fn no_bundle(checkpoint: Option<&Path>, dir: &Path) -> anyhow::Error {
+    if checkpoint.is_none() && std::env::var_os(MODEL_ENV).is_none_or(|v| v.is_empty()) {
+        return anyhow::anyhow!(
+            "no model: this veila was built without models/default embedded and {} does not exist; \
+             pass --checkpoint DIR or set {MODEL_ENV} to a bundle folder (bundle.json, manifest.json, weights)",
             dir.display()
         );
     }
-    Bundle::from_dir(&dir, device).with_context(|| format!("loading model {}", dir.display()))
+    anyhow::anyhow!(
+        "no model bundle at {} (expected bundle.json, manifest.json and weights; pass --checkpoint DIR or set {MODEL_ENV})",
+        dir.display()
+    )
 }
 
 /// The points of a range image on the bundle's grid, in its frame (one per return): for scans that

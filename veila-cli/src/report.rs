@@ -53,9 +53,12 @@ pub(crate) fn metric_table(report: &MetricReport) -> (Vec<String>, Vec<Vec<Cell>
     (header, rows)
 }
 
-/// The command line, with arguments quoted where a shell would need it.
+/// The command line, with arguments quoted where a shell would need it. An argument that is not
+/// UTF-8 (a path of another encoding) is shown with U+FFFD for its invalid bytes: `args()` would
+/// panic on it.
 pub(crate) fn command_line() -> String {
-    std::env::args()
+    std::env::args_os()
+        .map(|a| a.to_string_lossy().into_owned())
         .map(|a| {
             let plain = !a.is_empty()
                 && a.chars()

@@ -8,7 +8,9 @@
 //! and the denoiser checkpoints live in `OUTPUT/checkpoints`, and rerunning the same config picks
 //! up the newest checkpoint (the result is bit-identical to an uninterrupted run). The finished
 //! bundle is written to `OUTPUT/bundle` (verified by reading it back). Every update appends a line
-//! to `OUTPUT/train_log.jsonl` (stage, step, loss, learning rate, samples/s).
+//! to `OUTPUT/train_log.jsonl` (stage, step, loss, learning rate, samples/s). `OUTPUT` must be new,
+//! empty or train's own run folder, and none of the run's inputs; a finished run's bundle is
+//! replaced only with `--force` (`crate::staging`'s `train_run`).
 //!
 //! Data-parallel: started by a launcher as several processes (torchrun's `RANK` / `WORLD_SIZE` /
 //! `LOCAL_RANK` / `MASTER_ADDR` / `MASTER_PORT`, or Slurm's `SLURM_PROCID` / `SLURM_NTASKS` /
@@ -56,6 +58,10 @@ pub(crate) struct TrainArgs {
     /// together, 1 to 1000000000 (a checkpoint is written; rerun the same command to continue).
     #[arg(long, value_name = "N", value_parser = crate::bounds::int::<u64>(1, 1_000_000_000))]
     stop_after: Option<u64>,
+    /// Replace the bundle of a finished run in `[output] dir` (`OUTPUT/bundle`) with this run's.
+    /// The folder itself must still be empty, new or train's own run.
+    #[arg(long)]
+    force: bool,
 }
 
 const ENCODER_DIR: &str = "encoders";
@@ -198,6 +204,36 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         None
     };
 
+    // the run folder: train's own, none of its inputs, locked for the whole run; a killed earlier
+    // run's partial files go, checkpoints stay
+    let out = &file.output.dir;
+    let _run_lock = if group.is_main() {
+        let mut inputs = crate::staging::TrainInputs::default();
+        inputs
+            .folder("[data] shards folder", &file.data.shards)
+            .file("training config", &args.config);
+        let m = &file.model;
+        if let Some(p) = &m.encoders_from {
+            inputs.folder("[model] encoders_from bundle", p);
+        }
+        for (what, p) in [
+            ("[model] bundle", &m.bundle),
+            ("[model] semantic_weights", &m.semantic_weights),
+            ("[model] depth_weights", &m.depth_weights),
+        ] {
+            if let Some(p) = p {
+                inputs.file(what, p);
+            }
+        }
+        Some(crate::staging::claim_train_run(
+            out,
+            group.world_size,
+            &inputs,
+        )?)
+    } else {
+        None
+    };
+
     // 1. data
     let shards = &file.data.shards;
     let manifest_path = shards.join("manifest.json");
@@ -262,19 +298,16 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
         } else {
             String::new()
         },
-        manifest.dataset,
+        crate::out::untrusted(&manifest.dataset),
         manifest.sensor.rows,
         manifest.sensor.cols,
         cfg.denoiser.sensor.rows,
         cfg.denoiser.sensor.cols,
-        cfg.name
+        crate::out::untrusted(&cfg.name)
     );
 
     // 2. resumability: the run's fingerprint
-    let out = &file.output.dir;
     let ck_dir = out.join("checkpoints");
-    std::fs::create_dir_all(&ck_dir)
-        .with_context(|| format!("{}: cannot create", ck_dir.display()))?;
     let manifest_bytes =
         read_metadata(&manifest_path, MAX_JSON_METADATA_BYTES, "a shard manifest")?;
     let fingerprint = RunFingerprint {
@@ -288,12 +321,6 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
             .as_ref()
             .map(|p| p.display().to_string()),
     };
-    // one writer per run folder; a killed earlier run's partial files go, checkpoints stay
-    let _run_lock = if group.is_main() {
-        Some(crate::staging::lock_train_run(out, &ck_dir)?)
-    } else {
-        None
-    };
     if group.is_main() {
         veila_diffusion::claim_checkpoint_dir(&ck_dir, &fingerprint).with_context(|| {
             format!(
@@ -301,6 +328,8 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
                 out.display()
             )
         })?;
+        // a finished run's bundle is replaced only with --force (checked before the work)
+        crate::staging::check_train_bundle(out, args.force)?;
     }
     if let Some(p) = &parallel {
         // the others wait for rank 0's claim (and learn whether it failed: a zero sum)

@@ -35,6 +35,20 @@ pub enum Error {
         /// Why it was refused, in words.
         message: String,
     },
+    /// A path read from an artifact (a calibration's image, a manifest's shard, a bundle's
+    /// weights) that is absolute, climbs out with `..`, or leads out of its folder through a link:
+    /// refused before anything at it is opened (see [`crate::contained`]).
+    #[error("{}: {field} `{value}`: {reason}", file.display())]
+    PathOutside {
+        /// The file that names the path (or the folder, for a folder's fixed files).
+        file: PathBuf,
+        /// The field that holds it (`cameras.CAM_FRONT.file`, `shards[0].file`, ...).
+        field: String,
+        /// The path as written, control characters escaped.
+        value: String,
+        /// Why it was refused, in words.
+        reason: String,
+    },
     /// Inputs that do not fit together (point and label counts, image sizes, ...).
     #[error("{context}: {message}")]
     Mismatch {

@@ -20,6 +20,8 @@ type FileImageReader = ImageReader<std::io::BufReader<std::fs::File>>;
 /// An image file opened with its format detected from the content (`format()` is `None` for content
 /// the `image` crate does not know).
 fn open_image(path: &Path) -> Result<FileImageReader> {
+    // a FIFO would block the open, a device would be read as an image
+    crate::read_capped::check_regular_file(path)?;
     ImageReader::open(path)
         .map_err(|e| Error::io(path, e))?
         .with_guessed_format()
@@ -38,13 +40,170 @@ fn open_camera_image(path: &Path) -> Result<FileImageReader> {
     Ok(reader)
 }
 
-/// Read a PNG or JPEG camera image as 8-bit RGB (format detected from the content). A truncated or
-/// corrupt file is an error naming the file.
+/// The decoded image of a PNG or JPEG file (format detected from the content), read strictly: the
+/// file must be a regular file of at most [`MAX_CAMERA_IMAGE_BYTES`], and complete
+/// ([`check_complete`]: the `image` crate's JPEG decoder fills a truncated image with grey
+/// without an error). Errors name the file.
+///
+/// [`MAX_CAMERA_IMAGE_BYTES`]: crate::read_capped::MAX_CAMERA_IMAGE_BYTES
+pub fn read_image(path: &Path) -> Result<image::DynamicImage> {
+    read_image_as(path, None)
+}
+
+/// [`read_image`], refusing any format but `only` when it is given (before decoding).
+fn read_image_as(path: &Path, only: Option<ImageFormat>) -> Result<image::DynamicImage> {
+    let bytes = crate::read_capped::read_metadata(
+        path,
+        crate::read_capped::MAX_CAMERA_IMAGE_BYTES,
+        "an image",
+    )?;
+    let mut reader = ImageReader::new(std::io::Cursor::new(bytes.as_slice()))
+        .with_guessed_format()
+        .map_err(|e| Error::io(path, e))?;
+    // content the crate does not recognise is decoded as its extension says, so that a broken
+    // `x.png` is "cannot decode" with the decoder's reason (as a reader on the file does)
+    let recognised = reader.format().is_some();
+    if !recognised && let Ok(f) = ImageFormat::from_path(path) {
+        reader.set_format(f);
+    }
+    let format = match (reader.format(), only) {
+        (None, _) => {
+            return Err(Error::format(
+                path,
+                "not a PNG or JPEG image (unrecognised content)",
+            ));
+        }
+        (Some(f), Some(want)) if f != want => {
+            let name = if want == ImageFormat::Png {
+                "PNG".to_string()
+            } else {
+                format!("{want:?}")
+            };
+            return Err(Error::format(path, format!("not a {name} image")));
+        }
+        (Some(f), _) => f,
+    };
+    if recognised {
+        check_complete(&bytes, format).map_err(|why| Error::format(path, why))?;
+    }
+    reader.decode().map_err(|e| image_error(path, e))
+}
+
+/// Read a PNG or JPEG camera image as 8-bit RGB ([`read_image`]: a truncated or corrupt file is an
+/// error naming the file).
 pub fn read_rgb_image(path: &Path) -> Result<RgbImage> {
-    let img = open_camera_image(path)?
-        .decode()
-        .map_err(|e| image_error(path, e))?;
-    Ok(img.into_rgb8())
+    Ok(read_image(path)?.into_rgb8())
+}
+
+/// Checks that the bytes of a PNG or JPEG image hold the whole image, by walking the file's
+/// structure (no pixel is decoded): a PNG's chunks up to `IEND`, a JPEG's segments and
+/// entropy-coded scans up to the end-of-image marker (what follows it, a trailer some cameras
+/// append, is ignored). Other formats pass. The `Err` says where the data end.
+pub fn check_complete(bytes: &[u8], format: ImageFormat) -> std::result::Result<(), String> {
+    match format {
+        ImageFormat::Png => png_complete(bytes),
+        ImageFormat::Jpeg => jpeg_complete(bytes),
+        _ => Ok(()),
+    }
+}
+
+/// A PNG's chunks: `length (4, big-endian) | type (4) | data | CRC (4)` after the 8-byte signature,
+/// up to the `IEND` chunk.
+fn png_complete(bytes: &[u8]) -> std::result::Result<(), String> {
+    let truncated = |what: String| {
+        Err(format!(
+            "truncated PNG: the file ({} bytes) ends {what} (no IEND chunk)",
+            bytes.len()
+        ))
+    };
+    if !bytes.starts_with(b"\x89PNG\r\n\x1a\n") {
+        return Err("not a PNG image (no PNG signature)".into());
+    }
+    let mut pos = 8usize;
+    loop {
+        let Some(head) = bytes.get(pos..pos + 8) else {
+            return truncated(format!("at byte {pos}, where a chunk should start"));
+        };
+        let len = u32::from_be_bytes([head[0], head[1], head[2], head[3]]) as usize;
+        let kind = String::from_utf8_lossy(&head[4..8]).into_owned();
+        let end = pos.saturating_add(12).saturating_add(len);
+        if end > bytes.len() {
+            return truncated(format!(
+                "inside its {} chunk at byte {pos} ({len} bytes of data)",
+                kind.escape_debug()
+            ));
+        }
+        if &head[4..8] == b"IEND" {
+            return Ok(());
+        }
+        pos = end;
+    }
+}
+
+/// A JPEG's segments from SOI to EOI: markers `FF xx` with a 2-byte length, except the standalone
+/// ones (`RSTn`, `TEM`), and after each start of scan its entropy-coded data, which ends at the
+/// first `FF` followed by neither `00` (a stuffed byte) nor a restart marker.
+fn jpeg_complete(bytes: &[u8]) -> std::result::Result<(), String> {
+    let truncated = |what: &str| {
+        Err(format!(
+            "truncated JPEG: the file ({} bytes) ends {what}, before its end-of-image marker",
+            bytes.len()
+        ))
+    };
+    if !bytes.starts_with(&[0xFF, 0xD8]) {
+        return Err("not a JPEG image (no start-of-image marker)".into());
+    }
+    let mut pos = 2usize; // after SOI (FF D8)
+    loop {
+        // the next marker: FF (fill bytes FF allowed), then its code; stray bytes are skipped, as
+        // decoders do
+        let Some(ff) = bytes[pos.min(bytes.len())..]
+            .iter()
+            .position(|&b| b == 0xFF)
+        else {
+            return truncated("between two segments");
+        };
+        pos += ff;
+        while bytes.get(pos) == Some(&0xFF) {
+            pos += 1;
+        }
+        let Some(&code) = bytes.get(pos) else {
+            return truncated("inside a marker");
+        };
+        pos += 1;
+        match code {
+            0xD9 => return Ok(()),
+            0xD0..=0xD7 | 0x01 | 0x00 => continue,
+            _ => {}
+        }
+        let Some(len) = bytes.get(pos..pos + 2) else {
+            return truncated(&format!("inside the length of segment FF{code:02X}"));
+        };
+        let len = usize::from(u16::from_be_bytes([len[0], len[1]]));
+        let end = pos + len;
+        if len < 2 || end > bytes.len() {
+            return truncated(&format!(
+                "inside segment FF{code:02X} at byte {} ({len} bytes)",
+                pos - 2
+            ));
+        }
+        pos = end;
+        if code == 0xDA {
+            // entropy-coded data up to the next marker
+            loop {
+                let Some(ff) = bytes[pos..].iter().position(|&b| b == 0xFF) else {
+                    return truncated("inside its image data");
+                };
+                pos += ff;
+                match bytes.get(pos + 1) {
+                    None => return truncated("inside its image data"),
+                    Some(0x00 | 0xD0..=0xD7) => pos += 2,
+                    Some(0xFF) => pos += 1,
+                    Some(_) => break,
+                }
+            }
+        }
+    }
 }
 
 /// Width and height of an image from its header only (cheap; the pixels are not decoded).
@@ -100,13 +259,10 @@ fn lower_ext(path: &Path) -> String {
         .unwrap_or_default()
 }
 
-/// Decodes a PNG map (any other content is an error naming the file).
+/// Decodes a PNG map (any other content is an error naming the file; read as [`read_image`]
+/// reads, a truncated file is one too).
 fn decode_png(path: &Path) -> Result<image::DynamicImage> {
-    let reader = open_image(path)?;
-    if reader.format() != Some(ImageFormat::Png) {
-        return Err(Error::format(path, "not a PNG image"));
-    }
-    reader.decode().map_err(|e| image_error(path, e))
+    read_image_as(path, Some(ImageFormat::Png))
 }
 
 /// Read a depth map aligned with a camera image:

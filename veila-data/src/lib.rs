@@ -18,6 +18,9 @@
 //! - Metadata read whole (manifests, configs, calibrations, label maps, `.label` files):
 //!   [`read_capped::read_metadata`], which refuses anything but a regular file, and a file over the
 //!   cap for its kind, before reading it.
+//! - Paths named inside artifacts (a calibration's image and sweep, a manifest's shards, a bundle's
+//!   weights): [`contained::contained`], which refuses one that is absolute, climbs out with `..`
+//!   or leads out of its folder through a link, before anything at it is opened.
 //!
 //! # Writing
 //!
@@ -79,6 +82,7 @@ pub mod atomic;
 #[cfg(feature = "augment")]
 pub mod augment;
 mod calib;
+pub mod contained;
 pub mod convert;
 pub mod dataset;
 pub mod error;

@@ -306,12 +306,12 @@ impl NuScenesSample {
                 )
             },
         })?;
-        Ok(PinholeCamera::from_nuscenes(
-            c.intrinsic,
-            dmat4_to_mat4(&c.cam_from_lidar),
-            width,
-            height,
-        )?)
+        // focal lengths, principal point and translation: `PinholeCamera::check_calibration`
+        PinholeCamera::from_nuscenes(c.intrinsic, dmat4_to_mat4(&c.cam_from_lidar), width, height)
+            .map_err(|e| Error::Invalid {
+                what: "nuScenes camera".into(),
+                message: format!("sample {}, camera {channel}: {e}", self.token),
+            })
     }
 }
 
@@ -749,6 +749,28 @@ impl NuScenesDataset {
         self
     }
 
+    /// The file `rel` that sample `index` names for `channel` (`None`: the LiDAR sweep), inside
+    /// the data root ([`crate::contained::contained`]): else an error naming the field
+    /// (`lidar.file`, `cameras.CAM_FRONT.file` of a sample JSON, a `sample_data.json` record's
+    /// `filename`) and the file holding it, before anything at the path is opened.
+    fn sample_file(&self, index: usize, channel: Option<&str>, rel: &str) -> Result<PathBuf> {
+        let (file, field) = match (&self.source, channel) {
+            (Source::SampleJson(jsons), None) => (jsons[index].clone(), "lidar.file".to_string()),
+            (Source::SampleJson(jsons), Some(ch)) => {
+                (jsons[index].clone(), format!("cameras.{ch}.file"))
+            }
+            (Source::Tables(t), ch) => (
+                t.table_dir.join("sample_data.json"),
+                format!(
+                    "filename (the {} record of sample {})",
+                    ch.unwrap_or("LIDAR_TOP"),
+                    self.ids[index].escape_debug()
+                ),
+            ),
+        };
+        crate::contained::contained(&self.dataroot, Path::new(rel), &field, &file)
+    }
+
     /// Calibration of sample `index` (the dataset's camera only, for tables; all cameras for JSON).
     pub fn sample(&self, index: usize) -> Result<NuScenesSample> {
         match &self.source {
@@ -808,7 +830,7 @@ impl Dataset for NuScenesDataset {
     }
     fn load(&self, index: usize) -> Result<Frame> {
         let sample = self.sample(index)?;
-        let scan_path = self.dataroot.join(&sample.lidar_file);
+        let scan_path = self.sample_file(index, None, &sample.lidar_file)?;
         let loaded = read_nuscenes_pcd_bin(&scan_path)?;
         let mut views = Vec::with_capacity(self.channels.len());
         for channel in &self.channels {
@@ -816,7 +838,7 @@ impl Dataset for NuScenesDataset {
                 what: "nuScenes camera channel".into(),
                 message: format!("sample {} has no camera {channel}", sample.token),
             })?;
-            let image_path = self.dataroot.join(&cam.file);
+            let image_path = self.sample_file(index, Some(channel.as_str()), &cam.file)?;
             let (image, (w, h)) =
                 crate::image_io::read_rgb_image_if(&image_path, self.load_images)?;
             views.push(FrameView {
@@ -846,10 +868,10 @@ impl Dataset for NuScenesDataset {
     }
     fn source_files(&self, index: usize) -> Result<Vec<PathBuf>> {
         let sample = self.sample(index)?;
-        let mut files = vec![self.dataroot.join(&sample.lidar_file)];
+        let mut files = vec![self.sample_file(index, None, &sample.lidar_file)?];
         for channel in &self.channels {
             if let Some(cam) = sample.cameras.get(channel) {
-                files.push(self.dataroot.join(&cam.file));
+                files.push(self.sample_file(index, Some(channel.as_str()), &cam.file)?);
             }
         }
         if let Source::SampleJson(jsons) = &self.source {

@@ -707,11 +707,23 @@ pub struct ShardEntry {
 }
 
 impl ShardEntry {
-    /// The shard file (in `dir`, listed by `manifest`) holds this entry's samples: its header's
-    /// count and ids are the entry's. Only the header is read.
-    fn check_against_file(&self, dir: &Path, manifest: &Path) -> Result<()> {
+    /// This entry's file in `dir`, the folder of the manifest `manifest` that lists it as shard
+    /// `index`: relative and inside `dir`, links included ([`crate::contained::contained`]), or an
+    /// error naming `shards[index].file` and the manifest; nothing is opened.
+    fn path_in(&self, dir: &Path, index: usize, manifest: &Path) -> Result<std::path::PathBuf> {
+        crate::contained::contained(
+            dir,
+            Path::new(&self.file),
+            &format!("shards[{index}].file"),
+            manifest,
+        )
+    }
+
+    /// The shard file (in `dir`, listed by `manifest` as shard `index`) holds this entry's
+    /// samples: its header's count and ids are the entry's. Only the header is read.
+    fn check_against_file(&self, dir: &Path, index: usize, manifest: &Path) -> Result<()> {
         let bad = |m: String| Error::format(manifest, format!("shard {}: {m}", self.file));
-        let file = dir.join(&self.file);
+        let file = self.path_in(dir, index, manifest)?;
         let reader = ShardReader::open(&file).map_err(|e| bad(format!("{e}")))?;
         if reader.len() != self.count {
             return Err(bad(format!(
@@ -746,6 +758,17 @@ pub struct Manifest {
     pub shards: Vec<ShardEntry>,
 }
 
+/// The name of a converted dataset's manifest in its folder.
+pub const MANIFEST_FILE: &str = "manifest.json";
+
+/// The folder of the file `path` (`.` for a bare name).
+fn dir_of(path: &Path) -> &Path {
+    match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    }
+}
+
 /// The most samples a manifest may list, in all (2^24, about 16.8 million: SemanticKITTI has 43 552
 /// scans, nuScenes 390 000 sweeps): a manifest claiming more is refused before anything sized by
 /// its counts is allocated.
@@ -757,16 +780,28 @@ impl Manifest {
     /// must hold the samples the manifest lists for it. Errors name the manifest and the shard.
     pub fn read(path: &Path) -> Result<Self> {
         let m = Self::read_listing(path)?;
-        let dir = path.parent().unwrap_or(Path::new("."));
-        for entry in &m.shards {
-            entry.check_against_file(dir, path)?;
+        let dir = dir_of(path);
+        for (i, entry) in m.shards.iter().enumerate() {
+            entry.check_against_file(dir, i, path)?;
         }
         Ok(m)
     }
 
+    /// The file of shard `index` in `dir`, the folder holding this manifest (`manifest.json`):
+    /// relative and inside `dir`, links included, else an error naming `shards[index].file` and
+    /// the manifest, before the file is opened ([`crate::contained::contained`]).
+    pub fn shard_path(&self, dir: &Path, index: usize) -> Result<std::path::PathBuf> {
+        let entry = self.shards.get(index).ok_or_else(|| Error::Invalid {
+            what: "shard index".into(),
+            message: format!("no shard {index}: the manifest lists {}", self.shards.len()),
+        })?;
+        entry.path_in(dir, index, &dir.join(MANIFEST_FILE))
+    }
+
     /// Read `manifest.json` alone, without opening the shards: its format, each shard's count
-    /// against its listed ids, and the counts' total (summed without overflow, at most
-    /// [`MAX_MANIFEST_SAMPLES`]) against `count`.
+    /// against its listed ids, the counts' total (summed without overflow, at most
+    /// [`MAX_MANIFEST_SAMPLES`]) against `count`, and each shard's `file` a relative path inside
+    /// the manifest's folder (links included; see [`Self::shard_path`]).
     pub fn read_listing(path: &Path) -> Result<Self> {
         let text = crate::read_capped::read_metadata_string(
             path,
@@ -782,6 +817,10 @@ impl Manifest {
             ));
         }
         m.check_counts(path)?;
+        let dir = dir_of(path);
+        for (i, entry) in m.shards.iter().enumerate() {
+            entry.path_in(dir, i, path)?;
+        }
         Ok(m)
     }
 
@@ -830,10 +869,11 @@ impl Manifest {
         crate::atomic::write_atomic(path, text.as_bytes())
     }
 
-    /// Check every shard file in `dir` against its size and checksum.
+    /// Check every shard file in `dir` against its size and checksum (each file inside `dir`
+    /// first, see [`Self::shard_path`]: nothing outside is hashed).
     pub fn verify(&self, dir: &Path) -> Result<()> {
-        for s in &self.shards {
-            let p = dir.join(&s.file);
+        for (i, s) in self.shards.iter().enumerate() {
+            let p = self.shard_path(dir, i)?;
             let (sha, bytes) = sha256_file(&p)?;
             if bytes != s.bytes || sha != s.sha256 {
                 return Err(Error::format(

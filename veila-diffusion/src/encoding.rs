@@ -20,6 +20,15 @@ use veila_geom::RangeImage;
 
 use crate::error::{Error, Result, invalid};
 
+/// The range interval [`RangeEncoding::max_range_m`] may take, metres: from 1 m (the encoding
+/// divides by `log2(max_range_m + 1)`: 1e-30 made every return saturate) to 1000 m (no LiDAR
+/// reaches further; the presets use 80 m).
+pub const ENCODED_RANGE_M: (f32, f32) = (1.0, 1000.0);
+
+/// The interval [`RangeEncoding::intensity_max`] may take: KITTI's intensities are in `[0, 1]`,
+/// nuScenes' in `[0, 255]`; 1e-3 to 1e6 holds any sensor's unit.
+pub const INTENSITY_MAX: (f32, f32) = (1e-3, 1e6);
+
 /// How range images are mapped to and from the network's `[-1, 1]` channels.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -57,12 +66,15 @@ impl RangeEncoding {
         }
     }
 
-    /// Checks that every field is in its domain.
+    /// Checks that every field is in its domain: `max_range_m` within [`ENCODED_RANGE_M`],
+    /// `min_range_m` in `[0, max_range_m)`, `intensity_max` within [`INTENSITY_MAX`],
+    /// `raydrop_threshold` in `(-1, 1)`.
     pub fn validate(&self) -> Result<()> {
-        if !(self.max_range_m.is_finite() && self.max_range_m > 0.0) {
+        let (lo, hi) = ENCODED_RANGE_M;
+        if !(self.max_range_m.is_finite() && (lo..=hi).contains(&self.max_range_m)) {
             return Err(invalid(
                 "max_range_m",
-                format!("must be finite and > 0, got {}", self.max_range_m),
+                format!("must be between {lo} and {hi} m, got {}", self.max_range_m),
             ));
         }
         if !(self.min_range_m.is_finite()
@@ -74,10 +86,11 @@ impl RangeEncoding {
                 format!("must be in [0, max_range_m), got {}", self.min_range_m),
             ));
         }
-        if !(self.intensity_max.is_finite() && self.intensity_max > 0.0) {
+        let (lo, hi) = INTENSITY_MAX;
+        if !(self.intensity_max.is_finite() && (lo..=hi).contains(&self.intensity_max)) {
             return Err(invalid(
                 "intensity_max",
-                format!("must be finite and > 0, got {}", self.intensity_max),
+                format!("must be between {lo} and {hi}, got {}", self.intensity_max),
             ));
         }
         if !(self.raydrop_threshold.is_finite() && self.raydrop_threshold.abs() < 1.0) {

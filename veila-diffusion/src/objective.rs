@@ -162,12 +162,14 @@ impl Diffusion {
                 format!("need finite values and logit_std >= 0, got {logit_mean}, {logit_std}"),
             ));
         }
+        // the network multiplies this value by its own `time.input_scale`: the same bound
+        let max = veila_nn::config::MAX_TIME_INPUT_SCALE;
         if let TimeInput::Scaled { scale } = config.time_input
-            && !(scale.is_finite() && scale > 0.0)
+            && !(scale.is_finite() && scale > 0.0 && scale <= max)
         {
             return Err(invalid(
                 "time_input.scale",
-                format!("must be finite and > 0, got {scale}"),
+                format!("must be above 0 and at most {max}, got {scale}"),
             ));
         }
         Ok(Self { config, schedule })

@@ -54,9 +54,40 @@ fn rows3x4(m: [[f32; 4]; 3]) -> Mat4 {
     ])
 }
 
+/// The farthest a calibration file may put its camera from the LiDAR, metres: the length of the
+/// translation of `T` (camera from LiDAR), and that of the offset a KITTI projection matrix carries
+/// in its fourth column (`K⁻¹ p₄`, the stereo baseline: 0.06 m for `P2`), each on its own. Real
+/// rigs mount camera and LiDAR within a few metres of each other (KITTI: 0.3 m, nuScenes: 1.8 m);
+/// 100 m is far beyond any vehicle and well inside what `f32` holds exactly enough to project.
+pub const MAX_CAMERA_OFFSET_M: f32 = 100.0;
+
+/// How far the third row of a calibration's 3x3 `K` may be from `(0, 0, 1)` (the row that makes
+/// the projective depth `w` the camera-frame depth in metres; files print it exactly).
+const K_ROW3_TOLERANCE: f32 = 1e-3;
+
 impl PinholeCamera {
     /// Default near plane, metres.
     pub const DEFAULT_NEAR_M: f32 = 0.1;
+
+    /// A camera from a calibration file: [`Self::check_calibration`] first (so a bad value is
+    /// named as what it is), then [`Self::validate`].
+    fn from_calibration(
+        intrinsics_3x4: [[f32; 4]; 3],
+        cam_from_lidar: Mat4,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, GeomError> {
+        let cam = PinholeCamera {
+            intrinsics: rows3x4(intrinsics_3x4),
+            cam_from_lidar,
+            width,
+            height,
+            near_m: Self::DEFAULT_NEAR_M,
+        };
+        cam.check_calibration()?;
+        cam.validate()?;
+        Ok(cam)
+    }
 
     /// Build from a row-major 3x4 `K` and `T = cam_from_lidar`; validates both.
     pub fn new(
@@ -85,7 +116,7 @@ impl PinholeCamera {
         height: u32,
     ) -> Result<Self, GeomError> {
         let t = Mat4::from_mat3(r0_rect) * rows3x4(velo_to_cam);
-        Self::new(p2, t, width, height)
+        Self::from_calibration(p2, t, width, height)
     }
 
     /// KITTI odometry / SemanticKITTI: `K = P2`, `T = Tr` (already to the rectified frame, no R0_rect).
@@ -95,7 +126,7 @@ impl PinholeCamera {
         width: u32,
         height: u32,
     ) -> Result<Self, GeomError> {
-        Self::new(p2, rows3x4(tr), width, height)
+        Self::from_calibration(p2, rows3x4(tr), width, height)
     }
 
     /// nuScenes: a 3x3 intrinsic matrix and the 4x4 `lidar2cam` transform.
@@ -111,7 +142,7 @@ impl PinholeCamera {
             [k[1][0], k[1][1], k[1][2], 0.0],
             [k[2][0], k[2][1], k[2][2], 0.0],
         ];
-        Self::new(k34, lidar2cam, width, height)
+        Self::from_calibration(k34, lidar2cam, width, height)
     }
 
     /// The same camera for the image resized to `width x height` pixels: `K` is scaled per axis in the
@@ -176,6 +207,68 @@ impl PinholeCamera {
         }
         if Mat3::from_mat4(self.cam_from_lidar).determinant().abs() < 1e-6 {
             return bad("the rotation part of T is singular".into());
+        }
+        Ok(())
+    }
+
+    /// Checks that the camera is one a calibration file can describe for its `width x height`
+    /// image, beyond what [`Self::validate`] checks of every camera: finite matrices; `K`'s 3x3
+    /// part with third row `(0, 0, 1)`, positive focal lengths `fx`, `fy` and the principal point
+    /// `(cx, cy)` inside the image `[0, W] x [0, H]` (a calibration made for the image puts it
+    /// near the centre; outside, it belongs to an image of another size, or is corrupt); the
+    /// translation of `T` and the offset in `K`'s fourth column each within
+    /// [`MAX_CAMERA_OFFSET_M`]. The constructors from KITTI and nuScenes calibrations
+    /// ([`Self::from_kitti`], [`Self::from_kitti_odometry`], [`Self::from_nuscenes`]) run it.
+    pub fn check_calibration(&self) -> Result<(), GeomError> {
+        let bad = |m: String| Err(GeomError::InvalidCamera(m));
+        if !self.intrinsics.is_finite() || !self.cam_from_lidar.is_finite() {
+            return bad("matrices must be finite".into());
+        }
+        let k = self.intrinsics;
+        let row3 = Vec3::new(k.x_axis.z, k.y_axis.z, k.z_axis.z);
+        if (row3 - Vec3::Z).abs().max_element() > K_ROW3_TOLERANCE {
+            return bad(format!(
+                "the third row of K is ({}, {}, {}), it must be (0, 0, 1)",
+                row3.x, row3.y, row3.z
+            ));
+        }
+        let (fx, fy) = (k.x_axis.x, k.y_axis.y);
+        if !(fx > 0.0 && fy > 0.0) {
+            return bad(format!(
+                "focal lengths fx {fx}, fy {fy} px: both must be positive"
+            ));
+        }
+        let (cx, cy) = (k.z_axis.x, k.z_axis.y);
+        let (w, h) = (self.width as f32, self.height as f32);
+        if !((0.0..=w).contains(&cx) && (0.0..=h).contains(&cy)) {
+            return bad(format!(
+                "the principal point ({cx}, {cy}) px lies outside the {} x {} image: the \
+                 calibration is for an image of another size, or corrupt",
+                self.width, self.height
+            ));
+        }
+        let t = self.cam_from_lidar.w_axis.truncate();
+        if t.length() > MAX_CAMERA_OFFSET_M {
+            return bad(format!(
+                "the LiDAR-to-camera translation ({}, {}, {}) m is {} m long, more than the \
+                 limit of {MAX_CAMERA_OFFSET_M} m",
+                t.x,
+                t.y,
+                t.z,
+                t.length()
+            ));
+        }
+        // K's fourth column (a KITTI stereo camera's baseline): the offset K⁻¹ p₄, in metres
+        let off = Mat3::from_mat4(k).inverse() * k.w_axis.truncate();
+        if off.is_nan() || off.length() > MAX_CAMERA_OFFSET_M {
+            return bad(format!(
+                "the fourth column of the projection matrix ({}, {}, {}) moves the camera by {} m, \
+                 more than the limit of {MAX_CAMERA_OFFSET_M} m",
+                k.w_axis.x,
+                k.w_axis.y,
+                k.w_axis.z,
+                off.length()
+            ));
         }
         Ok(())
     }
@@ -255,5 +348,87 @@ impl PinholeCamera {
                 q.z > 0.0 && self.contains(q.x / q.z, q.y / q.z)
             })
             .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// KITTI's `P2` and `Tr_velo_to_cam` of frame 000008 (rounded), for a 1242 x 375 image.
+    const P2: [[f32; 4]; 3] = [
+        [721.5377, 0.0, 609.5593, 44.85728],
+        [0.0, 721.5377, 172.854, 0.2163791],
+        [0.0, 0.0, 1.0, 0.002745884],
+    ];
+    const TR: [[f32; 4]; 3] = [
+        [7.533745e-3, -0.9999714, -6.16602e-4, -4.069766e-3],
+        [1.480249e-2, 7.280733e-4, -0.9998902, -7.631618e-2],
+        [0.9998621, 7.52379e-3, 1.480755e-2, -0.2717806],
+    ];
+
+    fn kitti(p2: [[f32; 4]; 3], tr: [[f32; 4]; 3]) -> Result<PinholeCamera, GeomError> {
+        PinholeCamera::from_kitti_odometry(p2, tr, 1242, 375)
+    }
+
+    fn refused(p2: [[f32; 4]; 3], tr: [[f32; 4]; 3], words: &[&str]) {
+        let e = kitti(p2, tr).unwrap_err().to_string();
+        for w in words {
+            assert!(e.contains(w), "`{w}` not in: {e}");
+        }
+    }
+
+    #[test]
+    fn a_real_calibration_is_plausible() {
+        let cam = kitti(P2, TR).unwrap();
+        cam.check_calibration().unwrap();
+        // a camera that is not from a file keeps only validate's checks
+        let mut k = P2;
+        k[0][2] = 1e7;
+        assert!(PinholeCamera::new(k, Mat4::IDENTITY, 1242, 375).is_err());
+    }
+
+    #[test]
+    fn implausible_calibrations_are_refused_saying_what_is_wrong() {
+        for (i, j) in [(0, 0), (1, 1)] {
+            for v in [-721.5377, 0.0] {
+                let mut k = P2;
+                k[i][j] = v;
+                refused(k, TR, &["focal lengths", "must be positive"]);
+            }
+        }
+        // the principal point of 1e7 was "the 3x3 part of K is singular"
+        let mut k = P2;
+        k[0][2] = 1e7;
+        refused(
+            k,
+            TR,
+            &["principal point (10000000, 172.854)", "1242 x 375 image"],
+        );
+        let mut k = P2;
+        k[1][2] = -3.0;
+        refused(k, TR, &["principal point", "outside"]);
+        let mut k = P2;
+        k[2] = [0.0, 0.0, -1.0, 0.0];
+        refused(k, TR, &["third row of K", "(0, 0, 1)"]);
+        let mut t = TR;
+        t[0][3] = 1e30;
+        refused(P2, t, &["LiDAR-to-camera translation", "limit of 100 m"]);
+        // 99 m is allowed, 101 m is not
+        t[0][3] = 99.0;
+        assert!(kitti(P2, t).is_ok());
+        t[0][3] = 101.0;
+        refused(P2, t, &["translation", "limit of 100 m"]);
+        let mut k = P2;
+        k[0][3] = 721.5377 * 500.0;
+        refused(
+            k,
+            TR,
+            &[
+                "fourth column",
+                "moves the camera by 499.99",
+                "limit of 100 m",
+            ],
+        );
     }
 }

@@ -53,7 +53,7 @@ mod rays;
 mod region;
 mod sensor;
 
-pub use camera::{ImagePoint, PinholeCamera};
+pub use camera::{ImagePoint, MAX_CAMERA_OFFSET_M, PinholeCamera};
 pub use epipolar::{BilinearGather, DepthSpacing, EpipolarConfig, EpipolarTable};
 pub use error::GeomError;
 pub use fourier::FourierEncoding;

@@ -39,6 +39,10 @@ pub const MAX_FEATURE_SCALES: usize = 16;
 pub const MAX_FEATURE_PIXELS: usize = 1 << 21;
 /// Camera views per sample, `conditioning.num_views` (the presets use 1 or 3).
 pub const MAX_VIEWS: usize = 64;
+/// The multiplier of the time input, `time.input_scale` (the presets use 1000 for a time in
+/// `[0, 1]`; 1 suits a step index or a log-SNR): at most 100 times the presets'. Beyond, the
+/// sinusoids of the time embedding are noise in `f32` (1e300 gave an empty scan).
+pub const MAX_TIME_INPUT_SCALE: f64 = 1e5;
 
 /// Sinusoidal embedding of the per-sample noise level.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -485,18 +489,23 @@ impl DenoiserConfig {
         Ok(())
     }
 
-    /// The time embedding: an even `dim` within [`MAX_TIME_DIM`], finite `max_period > 1` and a
-    /// finite `input_scale`.
+    /// The time embedding: an even `dim` within [`MAX_TIME_DIM`], finite `max_period > 1` and an
+    /// `input_scale` above 0 and at most [`MAX_TIME_INPUT_SCALE`].
     fn validate_time(&self) -> Result<()> {
         let t = &self.time;
         if t.dim == 0
             || !t.dim.is_multiple_of(2)
             || !t.max_period.is_finite()
             || t.max_period.partial_cmp(&1.0) != Some(std::cmp::Ordering::Greater)
-            || !t.input_scale.is_finite()
         {
             return bad(format!(
-                "time embedding needs an even dim, a finite max_period > 1 and a finite input_scale, got {t:?}"
+                "time embedding needs an even dim and a finite max_period > 1, got {t:?}"
+            ));
+        }
+        let s = t.input_scale;
+        if !(s.is_finite() && s > 0.0 && s <= MAX_TIME_INPUT_SCALE) {
+            return bad(format!(
+                "time.input_scale = {s} must be above 0 and at most {MAX_TIME_INPUT_SCALE}"
             ));
         }
         check_max("time.dim", t.dim, MAX_TIME_DIM)

@@ -77,6 +77,18 @@ pub enum Error {
         message: String,
     },
 
+    /// A tensor of a weights file has a dtype the model does not take, or values that are not
+    /// finite or beyond [`crate::weights::MAX_ABS_WEIGHT`].
+    #[error("bad weights: tensor `{tensor}`: {reason}: {}", path.display())]
+    BadWeights {
+        /// The weights file.
+        path: PathBuf,
+        /// The tensor's name.
+        tensor: String,
+        /// What is wrong with it.
+        reason: String,
+    },
+
     /// The tensors of a checkpoint do not match the model built from its config.
     #[error("checkpoint does not match the model: {report}: {}", path.display())]
     CheckpointMismatch {

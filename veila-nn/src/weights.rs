@@ -28,6 +28,127 @@ pub struct TensorSpec {
 /// with [`Error::Config`] before anything of that size is allocated.
 pub const MAX_PARAMETERS: usize = 1 << 30;
 
+/// The largest magnitude a weight may have when a file is loaded: far beyond any trained weight
+/// (the bundled model's largest is 1.9, a batch-norm running variance of the feature networks'
+/// 60), and small enough that no single weight overflows an activation by itself; a file with a
+/// 3e38 (or infinite, or NaN) weight generated empty scans without a word.
+pub const MAX_ABS_WEIGHT: f32 = 1e8;
+
+/// The dtypes a weight tensor may be stored in when the model takes it in a float type: the IEEE
+/// float precisions (a published checkpoint may be in half precision; it is converted to the
+/// model's dtype). Integers, booleans and the 8-bit and microscaling floats are refused.
+const FLOAT_DTYPES: [safetensors::Dtype; 4] = [
+    safetensors::Dtype::F32,
+    safetensors::Dtype::F16,
+    safetensors::Dtype::BF16,
+    safetensors::Dtype::F64,
+];
+
+/// Which stored dtypes [`read_checked_scoped`] accepts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Stored {
+    /// Exactly `f32`: the files this crate writes ([`safetensors_bytes`], checkpoints).
+    F32,
+    /// Any of [`FLOAT_DTYPES`] (pretrained checkpoints, encoder and feature-network files).
+    Float,
+}
+
+/// Checks one tensor of a file about to be loaded: its dtype is one `stored` accepts, and every
+/// value is finite and within [`MAX_ABS_WEIGHT`]. One pass over its bytes, nothing allocated.
+fn check_weight(
+    name: &str,
+    view: &safetensors::tensor::TensorView<'_>,
+    stored: Stored,
+    path: &Path,
+) -> Result<()> {
+    use safetensors::Dtype;
+    let bad = |reason: String| Error::BadWeights {
+        path: path.to_path_buf(),
+        tensor: name.to_string(),
+        reason,
+    };
+    let dtype = view.dtype();
+    let ok = match stored {
+        Stored::F32 => dtype == Dtype::F32,
+        Stored::Float => FLOAT_DTYPES.contains(&dtype),
+    };
+    if !ok {
+        let want = match stored {
+            Stored::F32 => "F32 (the model's weights are f32, as this crate writes them)".into(),
+            Stored::Float => {
+                format!("a float type, one of {FLOAT_DTYPES:?} (the model's weights are floats)")
+            }
+        };
+        return Err(bad(format!("stored as {dtype:?}, must be {want}")));
+    }
+    let data = view.data();
+    // the first value that is not finite or too large, as f64 (exact for every float type)
+    let first_bad: Option<(usize, f64)> = match dtype {
+        // the fast pass: the largest magnitude's bits (NaN's are above infinity's, which are
+        // above every finite value's), a branch-free fold that vectorises; the values are
+        // searched only when that is over the limit
+        Dtype::F32 if f32_abs_bits_max(data) <= MAX_ABS_WEIGHT.to_bits() => None,
+        Dtype::F32 => data
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .enumerate()
+            .find(|(_, v)| v.is_nan() || v.abs() > MAX_ABS_WEIGHT)
+            .map(|(i, v)| (i, f64::from(v))),
+        // half precision: at most 65504, so only the all-ones exponent (inf, NaN) is refused
+        Dtype::F16 => data
+            .chunks_exact(2)
+            .map(|b| u16::from_le_bytes([b[0], b[1]]))
+            .enumerate()
+            .find(|(_, h)| h & 0x7c00 == 0x7c00)
+            .map(|(i, h)| {
+                (
+                    i,
+                    if h & 0x03ff == 0 {
+                        f64::INFINITY
+                    } else {
+                        f64::NAN
+                    },
+                )
+            }),
+        // bfloat16 is the upper half of an f32
+        Dtype::BF16 => data
+            .chunks_exact(2)
+            .map(|b| f32::from_bits(u32::from(u16::from_le_bytes([b[0], b[1]])) << 16))
+            .enumerate()
+            .find(|(_, v)| v.is_nan() || v.abs() > MAX_ABS_WEIGHT)
+            .map(|(i, v)| (i, f64::from(v))),
+        Dtype::F64 => data
+            .chunks_exact(8)
+            .map(|b| f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]))
+            .enumerate()
+            .find(|(_, v)| v.is_nan() || v.abs() > f64::from(MAX_ABS_WEIGHT)),
+        _ => None,
+    };
+    let Some((i, v)) = first_bad else {
+        return Ok(());
+    };
+    // shown in the file's own precision (an f32 of 3e38 as `3e38`)
+    let shown = if dtype == Dtype::F64 {
+        format!("{v:e}")
+    } else {
+        format!("{:e}", v as f32)
+    };
+    Err(bad(if v.is_finite() {
+        format!("value {i} is {shown}, beyond the limit of {MAX_ABS_WEIGHT:e} in magnitude")
+    } else {
+        format!("value {i} is {shown}: weights must be finite")
+    }))
+}
+
+/// The largest `bits & 0x7fff_ffff` of the little-endian `f32` values in `data`: for magnitudes,
+/// the bit patterns order as the values do, with infinity above every finite value and NaN above
+/// infinity.
+fn f32_abs_bits_max(data: &[u8]) -> u32 {
+    data.chunks_exact(4)
+        .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) & 0x7fff_ffff)
+        .fold(0, u32::max)
+}
+
 /// What the recorder has seen: the specs in request order, their total element count, and the
 /// reason it refused a tensor (if it did).
 #[derive(Debug, Default)]
@@ -158,7 +279,15 @@ pub fn load_checked_bytes<T>(
     build: impl Fn(VarBuilder<'static>) -> crate::Result<T>,
 ) -> crate::Result<T> {
     let expected = record_tensors(|vb| build(vb).map(|_| ()))?;
-    let tensors = read_checked_scoped(bytes, path, &expected, in_scope, dtype, device)?;
+    let tensors = read_checked_scoped(
+        bytes,
+        path,
+        &expected,
+        in_scope,
+        Stored::Float,
+        dtype,
+        device,
+    )?;
     build(VarBuilder::from_tensors(tensors, dtype, device))
 }
 
@@ -174,34 +303,47 @@ pub fn record_tensors(
 }
 
 /// Parses safetensors bytes (`path` names them in errors), checks them against `expected` (every
-/// tensor present with its shape, nothing else) and converts them to `f32`.
+/// tensor present with its shape, nothing else; stored as `f32`, as this crate writes them, with
+/// finite values within [`MAX_ABS_WEIGHT`]) and loads them as `f32`.
 pub fn read_checked_bytes(
     bytes: &[u8],
     path: &Path,
     expected: &BTreeMap<String, Vec<usize>>,
     device: &Device,
 ) -> Result<HashMap<String, Tensor>> {
-    read_checked_scoped(bytes, path, expected, |_| true, DType::F32, device)
+    read_checked_scoped(
+        bytes,
+        path,
+        expected,
+        |_| true,
+        Stored::F32,
+        DType::F32,
+        device,
+    )
 }
 
 /// [`read_checked_bytes`] where tensors of the file that `expected` lacks are reported only when
-/// `in_scope(name)` is true (and otherwise dropped), converted to `dtype`.
+/// `in_scope(name)` is true (and otherwise dropped, unread), stored as `stored` allows and
+/// converted to `dtype`. Names, shapes, dtypes and values are all checked before any tensor is
+/// made: a refused file allocates nothing of its size.
 pub(crate) fn read_checked_scoped(
     bytes: &[u8],
     path: &Path,
     expected: &BTreeMap<String, Vec<usize>>,
     in_scope: impl Fn(&str) -> bool,
+    stored: Stored,
     dtype: DType,
     device: &Device,
 ) -> Result<HashMap<String, Tensor>> {
-    let tensors =
-        candle_core::safetensors::load_buffer(bytes, device).map_err(|e| Error::SafeTensors {
-            path: path.to_path_buf(),
-            message: e.to_string(),
-        })?;
-    let found: BTreeMap<String, Vec<usize>> = tensors
+    let st_err = |message: String| Error::SafeTensors {
+        path: path.to_path_buf(),
+        message,
+    };
+    let file = safetensors::SafeTensors::deserialize(bytes).map_err(|e| st_err(e.to_string()))?;
+    let views = file.tensors();
+    let found: BTreeMap<String, Vec<usize>> = views
         .iter()
-        .map(|(k, v)| (k.clone(), v.dims().to_vec()))
+        .map(|(k, v)| (k.clone(), v.shape().to_vec()))
         .collect();
     let mut report = compare_tensors(expected, &found);
     report.unexpected.retain(|n| in_scope(n));
@@ -211,10 +353,22 @@ pub(crate) fn read_checked_scoped(
             report,
         });
     }
-    tensors
+    let mut kept: Vec<(String, safetensors::tensor::TensorView<'_>)> = views
         .into_iter()
         .filter(|(k, _)| expected.contains_key(k))
-        .map(|(k, v)| Ok((k, v.to_dtype(dtype)?)))
+        .collect();
+    kept.sort_by(|a, b| a.0.cmp(&b.0));
+    for (name, view) in &kept {
+        check_weight(name, view, stored, path)?;
+    }
+    use candle_core::safetensors::Load;
+    kept.into_iter()
+        .map(|(name, view)| {
+            let t = view
+                .load(device)
+                .map_err(|e| st_err(format!("tensor `{name}`: {e}")))?;
+            Ok((name, t.to_dtype(dtype)?))
+        })
         .collect()
 }
 

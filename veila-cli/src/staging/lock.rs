@@ -75,35 +75,6 @@ pub(crate) fn remove_partial(
     Ok(n)
 }
 
-/// `train`'s discipline for its run folder `out`: its lock ([`lock_folder`]) for the whole run,
-/// the partial checkpoints and bundles of a killed earlier run removed (`.NAME.tmp-PID`,
-/// `.NAME.old-PID` in `out`, `checkpoints` and the folders in it), and an interrupt that says which
-/// checkpoints were kept.
-pub(crate) fn lock_train_run(out: &Path, checkpoints: &Path) -> Result<FolderLock> {
-    let held = lock_folder(out)?;
-    let is_partial = |n: &str| n.starts_with('.') && (n.contains(".tmp-") || n.contains(".old-"));
-    let mut dirs = vec![out.to_path_buf(), checkpoints.to_path_buf()];
-    if let Ok(rd) = std::fs::read_dir(checkpoints) {
-        dirs.extend(
-            rd.flatten()
-                .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()))
-                .map(|e| e.path()),
-        );
-    }
-    for d in &dirs {
-        remove_partial(&held, d, is_partial)?;
-    }
-    let ck = checkpoints.to_path_buf();
-    set_interrupt_note(move || match newest_checkpoint_step(&ck) {
-        Some(step) => format!(
-            "checkpoints up to step {step} kept in {} (rerun the same command to resume)",
-            ck.display()
-        ),
-        None => format!("no checkpoint was written yet in {}", ck.display()),
-    });
-    Ok(held)
-}
-
 /// The highest `N` of the `step-N` checkpoint folders in `dir` or a folder inside it.
 pub(super) fn newest_checkpoint_step(dir: &Path) -> Option<u64> {
     let step = |p: &Path| -> Option<u64> {

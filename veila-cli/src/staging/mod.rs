@@ -24,8 +24,10 @@
 //! * **File outputs**: [`publish_files`] writes a set of single files all or nothing (locked,
 //!   temporary files beside each destination, renamed when all are complete); [`check_outputs`]
 //!   runs its checks alone, so a command can refuse its outputs before it works.
-//! * **Other folders a command keeps writing** (`train`'s checkpoints): [`lock_folder`] takes the
-//!   same lock; [`lock::remove_partial`] then removes the partial files a killed owner left in it.
+//! * **`train`'s run folder**, written over hours rather than published at once
+//!   ([`claim_train_run`], [`check_train_bundle`]; see [`train_run`]): absent, empty or carrying
+//!   train's marker (`.veila-train.json`), never one of its inputs, locked like any output, cleaned
+//!   of only the exact partial files train's writers leave, its bundle replaced only with `--force`.
 //! * **Liveness is a lock, never a process id** (`veila_data::atomic`): staging folders, backups
 //!   and temporary files are removed only when their owner's lock is free ([`veila_data::atomic::sweep_stale`], run by
 //!   every command that writes beside them), so a veila in another PID namespace is never robbed.
@@ -47,17 +49,19 @@ mod lock;
 mod merge;
 mod publish;
 mod signals;
+mod train_run;
 
 pub(crate) use inputs::{Inputs, MANIFEST, check_ext};
 #[cfg(test)]
 use lock::remove_partial;
-pub(crate) use lock::{FolderLock, lock_folder, lock_train_run};
+pub(crate) use lock::{FolderLock, lock_folder};
 use merge::*;
 #[cfg(test)]
 use publish::special_file_kind;
 pub(crate) use publish::{check_outputs, publish_files};
 use signals::*;
 pub(crate) use signals::{explain, install_signal_cleanup, set_command};
+pub(crate) use train_run::{TrainInputs, check_train_bundle, claim_train_run};
 
 /// The manifest of a folder output: each command's files (relative paths with `/`).
 #[derive(Debug, Default, Serialize, Deserialize)]

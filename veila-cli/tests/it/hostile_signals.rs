@@ -419,7 +419,8 @@ fn signals_and_concurrent_writers_never_leave_a_mixed_output() {
             )
             .unwrap();
             let mut c = veila();
-            c.args(["train", "--quiet", "--config"]).arg(cfg);
+            // a run folder whose bundle a finished run left is replaced with --force
+            c.args(["train", "--quiet", "--force", "--config"]).arg(cfg);
             c
         }),
         view: bundle_weights,

@@ -21,4 +21,5 @@ mod reliability;
 mod report_html;
 mod simulate;
 mod train;
+mod untrusted_values;
 mod weather_cmd;

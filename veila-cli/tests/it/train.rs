@@ -453,6 +453,11 @@ fn pretrained_encoders_are_named_by_kind_through_train_and_generate() {
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(bundle.join("bundle.json")).unwrap()).unwrap();
     assert_eq!(json["semantic_encoder"]["kind"], "segformer-b0");
+    // the weights came into the bundle: it names no file outside itself
+    assert_eq!(
+        json["semantic_encoder"]["weights"],
+        "semantic_encoder.segformer-b0.safetensors"
+    );
     assert_eq!(
         json["semantic_encoder"]["sha256"].as_str().unwrap().len(),
         64
@@ -518,12 +523,15 @@ fn pretrained_encoders_are_named_by_kind_through_train_and_generate() {
         .unwrap());
     assert!(tmp.path().join("demo").read_dir().unwrap().count() > 0);
 
+    // the bundle carries the file: the one the config named may go
     std::fs::remove_file(tmp.path().join("weights/model.safetensors")).unwrap();
+    ok(&generate(&tmp.path().join("gen1")));
+    std::fs::remove_file(bundle.join("semantic_encoder.segformer-b0.safetensors")).unwrap();
     let o = generate(&tmp.path().join("gen2"));
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     for want in [
-        "weights/model.safetensors",
+        "semantic_encoder.segformer-b0.safetensors",
         "nvidia/segformer-b0-finetuned-cityscapes-1024-1024",
         "semantic_encoder",
     ] {
@@ -951,4 +959,194 @@ fn an_interrupted_run_says_which_checkpoints_it_kept() {
         "{err}"
     );
     assert!(!err.contains("no output was written"), "{err}");
+}
+
+/// Every file and folder under `dir` (relative paths, `/` for folders) with the bytes of each file.
+fn tree(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            let rel = p.strip_prefix(dir).unwrap().display().to_string();
+            if p.is_dir() {
+                out.push((format!("{rel}/"), Vec::new()));
+                stack.push(p);
+            } else {
+                out.push((rel, std::fs::read(&p).unwrap()));
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+/// The user files of issue 58's hostile run, planted in `dir`.
+fn plant_user_files(dir: &Path) {
+    std::fs::create_dir_all(dir.join(".mydata.tmp-keep")).unwrap();
+    std::fs::write(dir.join(".mydata.tmp-keep/data"), b"mine").unwrap();
+    std::fs::write(dir.join(".bashrc.old-2023"), b"alias ll='ls -l'\n").unwrap();
+}
+
+/// Issue 58, case 1: a downloaded config whose `[output] dir = "../.."` is the user's home, with
+/// `.bashrc.old-2023`, `.mydata.tmp-keep/` and `bundle/README.txt` there. Train refuses the folder
+/// (it is neither empty nor train's), naming it, before anything is written, with or without
+/// `--force`; not one file there changes.
+#[test]
+fn a_config_pointing_train_at_a_users_folder_is_refused_and_changes_nothing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let shards = tmp.path().join("shards");
+    make_shards(&shards, 2, false, true);
+    let home = tmp.path().join("home");
+    plant_user_files(&home);
+    std::fs::create_dir_all(home.join("bundle")).unwrap();
+    std::fs::write(home.join("bundle/README.txt"), b"my notes").unwrap();
+    let downloaded = home.join("Downloads/model");
+    std::fs::create_dir_all(&downloaded).unwrap();
+    let model = small_model_section(&downloaded);
+    let cfg = downloaded.join("train.toml");
+    write_config(&cfg, &shards.display().to_string(), "../..", &model, SMALL);
+    let before = tree(&home);
+    for extra in [&[][..], &["--force"]] {
+        let o = train(&cfg, extra);
+        fails_with(
+            &o,
+            &[
+                "Downloads/model/../..",
+                &home.canonicalize().unwrap().display().to_string(),
+                "is not a folder `veila train` made",
+                "`.bashrc.old-2023`",
+                "nothing was changed",
+            ],
+        );
+        assert_eq!(tree(&home), before, "train changed the user's folder");
+        assert!(
+            leftovers(tmp.path()).is_empty(),
+            "{:?}",
+            leftovers(tmp.path())
+        );
+    }
+}
+
+/// In its own folder, train removes only the partial files its own writers leave (`.bundle.tmp-PID`,
+/// `checkpoints/.step-N.tmp-PID`), never a user's `.bashrc.old-2023` or `.mydata.tmp-keep/`, and
+/// replaces a finished run's bundle only with `--force`.
+#[test]
+fn train_removes_only_its_own_partial_files_and_replaces_a_bundle_only_with_force() {
+    let tmp = tempfile::tempdir().unwrap();
+    make_shards(&tmp.path().join("shards"), 2, false, true);
+    let model = small_model_section(tmp.path());
+    let cfg = tmp.path().join("t.toml");
+    let steps = "steps = 1\nbatch = 1\nlr = 1e-3\nseed = 3\ncheckpoint_every = 1";
+    write_config(&cfg, "shards", "run", &model, steps);
+    ok(&train(&cfg, &[]));
+    let run = tmp.path().join("run");
+    assert!(run.join(".veila-train.json").is_file());
+    let bundle_before = std::fs::read(run.join("bundle/denoiser.safetensors")).unwrap();
+    // a user's files beside the run, and the partial files of a killed run
+    plant_user_files(&run);
+    plant_user_files(&run.join("checkpoints"));
+    std::fs::write(run.join("notes.txt"), b"lr 1e-3 looked fine").unwrap();
+    for partial in [
+        ".bundle.tmp-4242",
+        ".bundle.old-4242",
+        "checkpoints/.step-0000000001.tmp-4242",
+        "checkpoints/.step-0000000001.old-4242",
+        "checkpoints/.run.json.tmp-4242",
+    ] {
+        std::fs::create_dir_all(run.join(partial)).unwrap();
+        std::fs::write(run.join(partial).join("x"), b"partial").unwrap();
+    }
+    let user = |run: &Path| {
+        let mut t = tree(&run.join(".mydata.tmp-keep"));
+        t.extend(tree(&run.join("checkpoints/.mydata.tmp-keep")));
+        t.push((
+            "rc".into(),
+            std::fs::read(run.join(".bashrc.old-2023")).unwrap(),
+        ));
+        t.push((
+            "ck rc".into(),
+            std::fs::read(run.join("checkpoints/.bashrc.old-2023")).unwrap(),
+        ));
+        t.push((
+            "notes".into(),
+            std::fs::read(run.join("notes.txt")).unwrap(),
+        ));
+        t
+    };
+    let mine = user(&run);
+    assert_eq!(mine.len(), 5);
+    let o = train(&cfg, &[]);
+    fails_with(&o, &["run/bundle", "a bundle is already there", "--force"]);
+    for partial in [".bundle.tmp-4242", ".bundle.old-4242"] {
+        assert!(!run.join(partial).exists(), "{partial} kept");
+    }
+    let ck = names(&run.join("checkpoints"));
+    assert!(!ck.iter().any(|n| n.contains("4242")), "{ck:?}");
+    assert_eq!(user(&run), mine, "a user's file changed");
+    assert_eq!(
+        std::fs::read(run.join("bundle/denoiser.safetensors")).unwrap(),
+        bundle_before
+    );
+    // with --force the finished run's bundle is written again, and the user's files stay
+    std::fs::write(run.join("bundle/README.txt"), b"replaced with the bundle").unwrap();
+    ok(&train(&cfg, &["--force"]));
+    assert!(!run.join("bundle/README.txt").exists());
+    assert!(run.join("bundle/manifest.json").is_file());
+    assert_eq!(user(&run), mine, "a user's file changed");
+}
+
+/// `[output] dir` may not be, hold or lie inside the shards folder or the `encoders_from` bundle,
+/// nor put the config where train writes; each is refused naming both, before anything is written.
+#[test]
+fn train_refuses_an_output_that_is_holds_or_is_inside_an_input() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path();
+    make_shards(&t.join("data/shards"), 2, false, true);
+    write_small_bundle_config(&t.join("small.json"));
+    std::fs::create_dir_all(t.join("enc")).unwrap();
+    std::fs::write(t.join("enc/bundle.json"), b"{}").unwrap();
+    let cfg = t.join("t.toml");
+    let model = "bundle = \"small.json\"\nencoders_from = \"enc\"";
+    for (shards, out, want) in [
+        (
+            "data/shards",
+            "data/shards",
+            "[output] dir is the [data] shards folder",
+        ),
+        (
+            "data/shards",
+            "data/shards/run",
+            "is inside the [data] shards folder",
+        ),
+        ("data/shards", "data", "holds the [data] shards folder"),
+        ("data/shards", "enc", "is the [model] encoders_from bundle"),
+        (
+            "data/shards",
+            "enc/run",
+            "is inside the [model] encoders_from bundle",
+        ),
+    ] {
+        write_config(&cfg, shards, out, model, SMALL);
+        let before = tree(t);
+        fails_with(&train(&cfg, &[]), &[out, want, "nothing was changed"]);
+        assert_eq!(tree(t), before, "{out}: something was written");
+    }
+    // the config inside the run's checkpoints, which train writes
+    let ck = t.join("run/checkpoints");
+    std::fs::create_dir_all(&ck).unwrap();
+    let inner = ck.join("t.toml");
+    write_config(
+        &inner,
+        "../../data/shards",
+        "..",
+        "bundle = \"../../small.json\"",
+        SMALL,
+    );
+    let before = tree(t);
+    fails_with(
+        &train(&inner, &[]),
+        &["the training config", "lies where train writes"],
+    );
+    assert_eq!(tree(t), before);
 }

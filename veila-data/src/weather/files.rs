@@ -60,7 +60,8 @@ pub fn depth_from_scan(cloud: &PointCloud, cam: &PinholeCamera) -> DepthMap {
 }
 
 /// Read a KITTI object or odometry calibration and build the `image_2` camera.
-/// Every error names the file (an invalid camera too: a negative focal length, say).
+/// Every error names the file (an invalid camera too: a negative focal length, a principal point
+/// outside the image, a translation beyond `veila_geom::MAX_CAMERA_OFFSET_M`).
 pub fn read_camera(calib: &Path, width: u32, height: u32) -> Result<PinholeCamera> {
     let cam = match crate::kitti::KittiCalib::read(calib) {
         Ok(c) => c.camera(2, width, height),
@@ -69,33 +70,13 @@ pub fn read_camera(calib: &Path, width: u32, height: u32) -> Result<PinholeCamer
             Err(_) => Err(first),
         },
     };
-    let cam = cam.map_err(|e| match e {
+    // focal lengths, principal point and translations are checked where every calibration
+    // reader builds its camera (`PinholeCamera::check_calibration`)
+    cam.map_err(|e| match e {
         Error::Geom(g) => Error::format(calib, format!("calibration gives an invalid camera: {g}")),
         Error::Invalid { message, .. } => Error::format(calib, message),
         other => other,
-    })?;
-    let (fx, fy) = (cam.intrinsics.x_axis.x, cam.intrinsics.y_axis.y);
-    if !(fx > 0.0 && fy > 0.0) {
-        return Err(Error::format(
-            calib,
-            format!(
-                "calibration gives an invalid camera: focal lengths fx {fx}, fy {fy} must be positive"
-            ),
-        ));
-    }
-    // a principal point outside the image: the calibration belongs to an image of another size
-    // (a 1 x 1 map read as a camera image, say), and no point would ever project into it
-    let (cx, cy) = (cam.intrinsics.z_axis.x, cam.intrinsics.z_axis.y);
-    if !(0.0..=width as f32).contains(&cx) || !(0.0..=height as f32).contains(&cy) {
-        return Err(Error::format(
-            calib,
-            format!(
-                "its principal point ({cx:.1}, {cy:.1}) lies outside a {width} x {height} image: \
-                 the calibration is for an image of another size"
-            ),
-        ));
-    }
-    Ok(cam)
+    })
 }
 
 fn encode_nuscenes(cloud: &PointCloud) -> Vec<u8> {

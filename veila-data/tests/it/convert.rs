@@ -11,7 +11,9 @@ use veila_data::kitti::KittiObjectDataset;
 use veila_data::shard::{Manifest, read_shard};
 use veila_geom::{LidarSensor, NO_POINT, ProjectionOptions, Projector};
 
-const CALIB: &str = "P0: 100 0 50 0 0 100 20 0 0 0 1 0\nP1: 100 0 50 0 0 100 20 0 0 0 1 0\nP2: 100 0 50 0 0 100 20 0 0 0 1 0\nP3: 100 0 50 0 0 100 20 0 0 0 1 0\nR0_rect: 1 0 0 0 1 0 0 0 1\nTr_velo_to_cam: 0 -1 0 0 0 0 -1 0 1 0 0 0\nTr_imu_to_velo: 1 0 0 0 0 1 0 0 0 0 1 0\n";
+/// A calibration for the 20 x 10 (to 24 x 10) images of [`make_kitti`]: its principal point lies
+/// in the image, as a real one does.
+const CALIB: &str = "P0: 10 0 10 0 0 10 5 0 0 0 1 0\nP1: 10 0 10 0 0 10 5 0 0 0 1 0\nP2: 10 0 10 0 0 10 5 0 0 0 1 0\nP3: 10 0 10 0 0 10 5 0 0 0 1 0\nR0_rect: 1 0 0 0 1 0 0 0 1\nTr_velo_to_cam: 0 -1 0 0 0 0 -1 0 1 0 0 0\nTr_imu_to_velo: 1 0 0 0 0 1 0 0 0 0 1 0\n";
 
 fn make_kitti(root: &Path, frames: usize) {
     let t = root.join("training");
@@ -207,7 +209,7 @@ fn a_failed_reconversion_leaves_the_published_dataset_whole() {
     // other settings, and frame 4 (the last shard's) unreadable: shards 0 and 1 are written
     // beside the published ones, then the run fails, as a killed one would stop
     let calib4 = dir.path().join("training/calib/000004.txt");
-    std::fs::write(&calib4, CALIB.replace("P2: 100", "P2: x100")).unwrap();
+    std::fs::write(&calib4, CALIB.replace("P2: 10 ", "P2: x10 ")).unwrap();
     let ds = KittiObjectDataset::open(dir.path()).unwrap();
     let mut o = opts(&out);
     o.include_images = false;
@@ -361,7 +363,7 @@ fn a_bad_frame_fails_the_run_with_its_file_and_writes_no_shard() {
     let t = dir.path().join("training");
     std::fs::write(
         t.join("calib/000001.txt"),
-        CALIB.replace("P2: 100", "P2: x100"),
+        CALIB.replace("P2: 10 ", "P2: x10 "),
     )
     .unwrap();
     let ds = KittiObjectDataset::open(dir.path())
@@ -371,7 +373,7 @@ fn a_bad_frame_fails_the_run_with_its_file_and_writes_no_shard() {
     let results: Vec<_> = frames(&ds).collect();
     assert!(results[0].is_ok() && results[2].is_ok());
     let e = results[1].as_ref().unwrap_err().to_string();
-    assert!(e.contains("000001.txt") && e.contains("x100"), "{e}");
+    assert!(e.contains("000001.txt") && e.contains("x10"), "{e}");
     let out = dir.path().join("out");
     let mut o = opts(&out);
     o.frames_per_shard = 3;

@@ -11,6 +11,7 @@ mod real_data;
 #[cfg(feature = "sim")]
 mod sim;
 mod untrusted;
+mod untrusted_paths;
 #[cfg(feature = "weather")]
 mod weather_identity;
 #[cfg(feature = "weather")]

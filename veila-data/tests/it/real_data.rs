@@ -435,8 +435,21 @@ fn nuscenes_tables_chain_matches_lidar2cam() {
         .iter()
         .fold(0.0f64, |a, b| a.max(b.abs()));
     assert!(d < 1e-4, "{d}");
-    // frames through the tables land the same points in CAM_FRONT as the per-sample JSON
+    // the sample files must lie inside the data root, links included: a `samples` linked in from
+    // elsewhere is refused unread, a copy is read
     symlink_dir(&root.join("nuscenes/samples"), &dir.path().join("samples"));
+    let e = NuScenesDataset::open(dir.path(), "CAM_FRONT")
+        .unwrap()
+        .load(0)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("sample_data.json") && e.contains("leads through the link `samples`"),
+        "{e}"
+    );
+    std::fs::remove_file(dir.path().join("samples")).unwrap();
+    copy_dir(&root.join("nuscenes/samples"), &dir.path().join("samples"));
+    // frames through the tables land the same points in CAM_FRONT as the per-sample JSON
     let via_tables = NuScenesDataset::open(dir.path(), "CAM_FRONT")
         .unwrap()
         .with_images(false);
@@ -462,6 +475,19 @@ fn nuscenes_tables_chain_matches_lidar2cam() {
 #[cfg(unix)]
 fn symlink_dir(src: &Path, dst: &Path) {
     std::os::unix::fs::symlink(src, dst).unwrap();
+}
+
+fn copy_dir(src: &Path, dst: &Path) {
+    std::fs::create_dir_all(dst).unwrap();
+    for e in std::fs::read_dir(src).unwrap() {
+        let e = e.unwrap();
+        let to = dst.join(e.file_name());
+        if e.path().is_dir() {
+            copy_dir(&e.path(), &to);
+        } else {
+            std::fs::copy(e.path(), to).unwrap();
+        }
+    }
 }
 
 #[test]

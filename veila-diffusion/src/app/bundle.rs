@@ -21,9 +21,12 @@
 //! Each encoder is named by kind ([`EncoderSpec`]): `small-cnn` (trained with the bundle, weights
 //! inside it) or a pretrained `segformer-b{0..5}`, `depth-anything-v2-{small,base,large}` or
 //! `dinov2-{s,b,l}`, whose Hugging Face `model.safetensors` stays outside the manifest: the config
-//! names its path (absolute, or relative to the bundle folder) and its sha256. A file missing there
-//! is also looked for under its file name inside the bundle folder; a missing, replaced or
-//! mis-shaped file is an error naming the file, the tensors and where to get it.
+//! names its path, relative to the bundle folder and inside it ([`Bundle::save`] brings a file
+//! given by an absolute path in), and its sha256. A file missing there is also looked for under its
+//! file name inside the bundle folder; a path that is absolute, climbs out with `..` or leads out
+//! through a link is refused without opening it (unless a file of its name is in the folder); a
+//! missing, replaced or mis-shaped file is an error naming the file, the tensors and where to get
+//! it.
 
 use std::collections::{BTreeMap, HashMap};
 use std::fs;
@@ -32,6 +35,7 @@ use std::path::{Path, PathBuf};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
+use veila_data::contained::contained;
 use veila_data::read_capped::{MAX_JSON_METADATA_BYTES, read_metadata};
 use veila_geom::EpipolarConfig;
 use veila_nn::encoders::kind::{AnyEncoder, EncoderKind};
@@ -61,6 +65,10 @@ pub const DEPTH_FILE: &str = "depth_encoder.safetensors";
 pub const DENOISER_FILE: &str = "denoiser.safetensors";
 /// File name of the residual-diffusion mean network's weights.
 pub const MEAN_FILE: &str = "mean.safetensors";
+
+/// The interval of each value of [`ResidualConfig::scale`]: training sets it to the residual's
+/// standard deviation in encoded units, at least 1e-3 and at most 2 (the data lie in `[-1, 1]`).
+pub const RESIDUAL_SCALE: (f32, f32) = (1e-4, 10.0);
 
 /// Everything about a bundle except its weights.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -188,15 +196,48 @@ impl BundleConfig {
                     "the mean network's grid differs from the denoiser's".into()
                 ));
             }
-            if r.scale.len() != c || r.scale.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+            let (lo, hi) = RESIDUAL_SCALE;
+            if r.scale.len() != c || r.scale.iter().any(|s| !(lo..=hi).contains(s)) {
                 return Err(bad(format!(
-                    "residual.scale needs {c} finite values > 0, got {:?}",
+                    "residual.scale needs {c} values between {lo} and {hi}, got {:?}",
                     r.scale
                 )));
             }
         }
-        self.encoding.validate()?;
-        self.sampler.validate()?;
+        self.check_values().map_err(bad)
+    }
+
+    /// The values of the networks, the process and the sampler against the library's bounds (the
+    /// same the command-line flags are held to): every error names the field.
+    fn check_values(&self) -> std::result::Result<(), String> {
+        let at = |section: &str| {
+            let section = section.to_string();
+            move |e: Error| match e {
+                Error::InvalidConfig { field, reason } => format!("{section}.{field}: {reason}"),
+                other => format!("{section}: {other}"),
+            }
+        };
+        self.denoiser
+            .validate()
+            .map_err(|e| format!("denoiser: {e}"))?;
+        if let Some(r) = &self.residual {
+            r.mean_net
+                .validate()
+                .map_err(|e| format!("residual.mean_net: {e}"))?;
+        }
+        crate::Diffusion::new(self.diffusion.clone()).map_err(at("diffusion"))?;
+        self.epipolar
+            .validate()
+            .map_err(|e| format!("epipolar: {e}"))?;
+        self.encoding.validate().map_err(at("encoding"))?;
+        self.sampler.validate().map_err(at("sampler"))?;
+        if self.sampler.steps == 0 && self.residual.is_none() {
+            return Err(format!(
+                "sampler.steps: 0 steps (the mean network alone) need a residual-diffusion bundle; \
+                 must be between 1 and {}",
+                crate::MAX_STEPS
+            ));
+        }
         Ok(())
     }
 }
@@ -206,7 +247,7 @@ impl BundleConfig {
 ///
 /// ```json
 /// {"kind": "small-cnn", "config": {"channels": [16, 32, 64, 96], ...}}
-/// {"kind": "depth-anything-v2-small", "weights": "../weights/model.safetensors", "sha256": "..."}
+/// {"kind": "depth-anything-v2-small", "weights": "depth_encoder.depth-anything-v2-small.safetensors", "sha256": "..."}
 /// ```
 ///
 /// A `small-cnn` has its architecture here and its weights in the bundle; a pretrained kind has
@@ -220,8 +261,8 @@ pub struct EncoderSpec {
     /// The small CNN's architecture (`small-cnn` only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub config: Option<SmallCnnConfig>,
-    /// Pretrained kinds: the Hugging Face `model.safetensors`, absolute or relative to the bundle
-    /// folder.
+    /// Pretrained kinds: the Hugging Face `model.safetensors`, relative to the bundle folder and
+    /// inside it (an absolute path only until [`Bundle::save`] brings the file in).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub weights: Option<PathBuf>,
     /// Pretrained kinds: the weights' sha256 (lowercase hex), checked on every load when given.
@@ -273,8 +314,9 @@ impl EncoderSpec {
         }
     }
 
-    /// A pretrained encoder whose weights are at `weights` (absolute or relative to the bundle
-    /// folder), with their sha256 when known.
+    /// A pretrained encoder whose weights are at `weights` (an absolute path, which
+    /// [`Bundle::save`] brings into the bundle, or one relative to the bundle folder), with their
+    /// sha256 when known.
     pub fn pretrained(kind: EncoderKind, weights: PathBuf, sha256: Option<String>) -> Self {
         Self {
             kind,
@@ -328,23 +370,44 @@ impl EncoderSpec {
         }
     }
 
-    /// Where the pretrained weights are: the configured path (relative to `bundle_dir`), else the
-    /// file of that name inside the bundle folder.
-    pub fn resolve_weights(&self, bundle_dir: &Path) -> Option<PathBuf> {
-        let w = self.weights.as_ref()?;
-        let primary = if w.is_absolute() {
-            w.clone()
-        } else {
-            bundle_dir.join(w)
-        };
-        if primary.is_file() {
-            return Some(primary);
-        }
-        let fallback = bundle_dir.join(w.file_name()?);
-        fallback.is_file().then_some(fallback)
+    /// Where the pretrained weights are in the bundle folder `bundle_dir` (`field` names the spec
+    /// in errors): the configured path when it is a file there, else the file of its name in the
+    /// folder (weights copied in beside a moved bundle). The configured path must be relative and
+    /// lie inside the folder, links included ([`veila_data::contained::contained`]): one that does
+    /// not is an error naming `FIELD.weights` and `bundle.json` (unless a file of its name is in the
+    /// folder), and nothing outside the folder is opened. `None` when no file is there.
+    pub fn resolve_weights(&self, bundle_dir: &Path, field: &str) -> Result<Option<PathBuf>> {
+        self.resolve_weights_from(&bundle_dir.join(CONFIG_FILE), field)
     }
 
-    /// Loads a pretrained encoder (its weights resolved against `bundle_dir`, see
+    /// [`Self::resolve_weights`] for the spec of the bundle config file `config` (a `bundle.json`
+    /// by another name too): its weights in the folder holding `config`.
+    pub fn resolve_weights_from(&self, config: &Path, field: &str) -> Result<Option<PathBuf>> {
+        let Some(w) = self.weights.as_ref() else {
+            return Ok(None);
+        };
+        let bundle_dir = match config.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p,
+            _ => Path::new("."),
+        };
+        let key = format!("{field}.weights");
+        let primary = contained(bundle_dir, w, &key, config);
+        if let Ok(p) = &primary
+            && p.is_file()
+        {
+            return Ok(Some(p.clone()));
+        }
+        if let Some(name) = w.file_name() {
+            let by_name = contained(bundle_dir, Path::new(name), &key, config)?;
+            if by_name.is_file() {
+                return Ok(Some(by_name));
+            }
+        }
+        primary?;
+        Ok(None)
+    }
+
+    /// Loads a pretrained encoder of a bundle (its weights found in `bundle_dir`, see
     /// [`Self::resolve_weights`]; `field` names the spec in errors), checking the sha256 when the
     /// spec has one.
     pub fn load(&self, bundle_dir: &Path, field: &str, device: &Device) -> Result<AnyEncoder> {
@@ -353,12 +416,9 @@ impl EncoderSpec {
             path: bundle_dir.join(CONFIG_FILE),
         })?;
         let repo = self.kind.hub_repo().unwrap_or("-");
-        let Some(path) = self.resolve_weights(bundle_dir) else {
-            let primary = if w.is_absolute() {
-                w.clone()
-            } else {
-                bundle_dir.join(w)
-            };
+        let Some(path) = self.resolve_weights(bundle_dir, field)? else {
+            // relative and inside: `resolve_weights` refused anything else
+            let primary = bundle_dir.join(w);
             let name = w.file_name().map(PathBuf::from).unwrap_or_default();
             return Err(Error::Checkpoint {
                 reason: format!(
@@ -371,9 +431,17 @@ impl EncoderSpec {
                 path: primary,
             });
         };
-        let bytes = fs::read(&path).map_err(|source| Error::Io {
+        self.load_at(&path, field, device)
+    }
+
+    /// Loads the pretrained encoder from `path`, a file the caller chose (a training config's
+    /// `[model] semantic_weights`; a bundle's own go through [`Self::load`]), checking the sha256
+    /// when the spec has one.
+    pub fn load_at(&self, path: &Path, field: &str, device: &Device) -> Result<AnyEncoder> {
+        let repo = self.kind.hub_repo().unwrap_or("-");
+        let bytes = fs::read(path).map_err(|source| Error::Io {
             action: "reading encoder weights",
-            path: path.clone(),
+            path: path.to_path_buf(),
             source,
         })?;
         if let Some(want) = &self.sha256 {
@@ -384,13 +452,13 @@ impl EncoderSpec {
                         "{field} `{}`: sha256 {got}, the bundle was made with {want} (another file, or another revision of {repo})",
                         self.kind
                     ),
-                    path,
+                    path: path.to_path_buf(),
                 });
             }
         }
         Ok(self
             .kind
-            .load_pretrained(&bytes, &path, DType::F32, device)?)
+            .load_pretrained(&bytes, path, DType::F32, device)?)
     }
 }
 
@@ -543,10 +611,16 @@ pub struct Bundle {
 
 impl Bundle {
     /// Reads and verifies a bundle folder. Its `manifest.json` and `bundle.json` must be regular
-    /// files of at most [`MAX_JSON_METADATA_BYTES`] (checked before they are read).
+    /// files of at most [`MAX_JSON_METADATA_BYTES`] (checked before they are read). Every file it
+    /// reads, pretrained weights included, lies inside `dir` after links are followed
+    /// ([`veila_data::contained::contained`]): one that leads out is refused unread.
     pub fn from_dir(dir: &Path, device: &Device) -> Result<Self> {
+        // every file of the folder lies in it: a link out of it is refused unread
+        let inside = |name: &str| -> Result<PathBuf> {
+            Ok(contained(dir, Path::new(name), "bundle file", dir)?)
+        };
         let read = |name: &str| -> Result<Vec<u8>> {
-            let p = dir.join(name);
+            let p = inside(name)?;
             fs::read(&p).map_err(|source| Error::Io {
                 action: "reading bundle file",
                 path: p,
@@ -556,7 +630,7 @@ impl Bundle {
         let read_json = |name: &str| -> Result<Vec<u8>> {
             let what = format!("a bundle's {name}");
             Ok(read_metadata(
-                &dir.join(name),
+                &inside(name)?,
                 MAX_JSON_METADATA_BYTES,
                 &what,
             )?)
@@ -700,7 +774,10 @@ impl Bundle {
 
     /// Writes a bundle folder: every file into a hidden temporary folder beside `dir`, the manifest
     /// last, then one rename (an existing `dir` is replaced only after the new one is complete).
-    /// `weights` maps each of [`BundleConfig::weight_files`] to its tensors.
+    /// `weights` maps each of [`BundleConfig::weight_files`] to its tensors. A pretrained encoder
+    /// whose `weights` is an absolute path (a file the caller chose) is put into the bundle as
+    /// `FIELD.KIND.safetensors` (a hard link where the file system allows, else a copy), and
+    /// `bundle.json` names it there: a bundle names no file outside itself.
     pub fn save(
         dir: &Path,
         config: &BundleConfig,
@@ -741,10 +818,33 @@ impl Bundle {
             manifest.files.insert(file.into(), sha256_hex(bytes));
             Ok(())
         };
-        let config = &BundleConfig {
+        let mut config = BundleConfig {
             format: BUNDLE_FORMAT.into(),
             ..config.clone()
         };
+        // pretrained weights the caller gave by an absolute path (a training config's) come into
+        // the bundle, which then names no file outside itself
+        for (field, spec) in [
+            ("semantic_encoder", &mut config.semantic_encoder),
+            ("depth_encoder", &mut config.depth_encoder),
+        ] {
+            let Some(spec) = spec.as_mut().filter(|s| s.kind.is_pretrained()) else {
+                continue;
+            };
+            let Some(src) = spec.weights.clone().filter(|w| w.is_absolute()) else {
+                continue;
+            };
+            let file = format!("{field}.{}.safetensors", spec.kind);
+            let dst = tmp.join(&file);
+            fs::hard_link(&src, &dst)
+                .or_else(|_| fs::copy(&src, &dst).map(|_| ()))
+                .map_err(io(
+                    "copying pretrained encoder weights into the bundle",
+                    &src,
+                ))?;
+            spec.weights = Some(file.into());
+        }
+        let config = &config;
         let json = serde_json::to_vec_pretty(config).map_err(|source| Error::Json {
             path: dir.join(CONFIG_FILE),
             source,
@@ -1188,8 +1288,9 @@ mod tests {
         let e = Bundle::from_dir(dir.path(), &Device::Cpu)
             .unwrap_err()
             .to_string();
+        // a link out of the bundle folder is refused before the size and type checks look at it
         assert!(
-            e.contains(CONFIG_FILE) && e.contains("not a regular file (a character device)"),
+            e.contains(CONFIG_FILE) && e.contains("leads through the link `bundle.json`"),
             "{e}"
         );
     }

@@ -95,6 +95,10 @@ impl ViewFeatures {
     }
 }
 
+/// The interval of [`GenerateOptions::residual_weight`] (`--residual-weight` of the commands):
+/// 0 (the mean network alone) to 1 (a full sample).
+pub const RESIDUAL_WEIGHT: (f64, f64) = (0.0, 1.0);
+
 /// Generation settings.
 #[derive(Debug, Clone, PartialEq)]
 pub struct GenerateOptions {
@@ -297,10 +301,11 @@ fn sample(
         });
     }
     let weight = options.residual_weight;
-    if !(0.0..=1.0).contains(&weight) {
+    let (lo, hi) = RESIDUAL_WEIGHT;
+    if !(lo..=hi).contains(&weight) {
         return Err(Error::InvalidConfig {
             field: "residual_weight",
-            reason: format!("must be in [0, 1], got {weight}"),
+            reason: format!("must be between {lo} and {hi}, got {weight}"),
         });
     }
     if weight != 1.0 && residual.is_none() {

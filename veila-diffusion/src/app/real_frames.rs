@@ -143,11 +143,15 @@ pub fn real_frames(root: &Path) -> Result<(Vec<RealFrame>, Vec<String>)> {
                     missing.push(format!("nuscenes-{name}: not in {}", calib.display()));
                     continue;
                 };
+                // the files the sample names lie in the data folder
+                let inside = |rel: &str, field: &str| {
+                    veila_data::contained::contained(&nus, Path::new(rel), field, &calib)
+                };
                 let f = RealFrame {
                     name: format!("nuscenes-{name}"),
-                    image: nus.join(&cam.file),
+                    image: inside(&cam.file, &format!("cameras.{name}.file"))?,
                     calib: calib.clone(),
-                    scan: nus.join(&sample.lidar_file),
+                    scan: inside(&sample.lidar_file, "lidar.file")?,
                     lidar_height_m: height,
                     cropped: false,
                     camera: Some(name.to_string()),

@@ -280,7 +280,12 @@ pub fn prepare_encoders(
         match spec.small_cnn_config() {
             Some(c) => small.push((which, c)),
             None => {
-                let net = spec.load(Path::new("."), which.field(), device)?;
+                // the run's own config names pretrained weights by an absolute path (a training
+                // config's, resolved when it was read)
+                let net = match spec.weights.as_deref() {
+                    Some(w) if w.is_absolute() => spec.load_at(w, which.field(), device)?,
+                    _ => spec.load(Path::new("."), which.field(), device)?,
+                };
                 put(&mut out, which, net);
             }
         }

@@ -461,6 +461,24 @@ impl TrainFile {
                         reason: format!("not a bundle.json: {e}"),
                     })?;
                 c.provenance = serde_json::Value::Null;
+                // its pretrained weights lie in its folder (it may be a downloaded bundle's):
+                // checked there now, and named by an absolute path from here on
+                for (field, spec) in [
+                    ("semantic_encoder", &mut c.semantic_encoder),
+                    ("depth_encoder", &mut c.depth_encoder),
+                ] {
+                    let Some(spec) = spec.as_mut().filter(|s| s.kind.is_pretrained()) else {
+                        continue;
+                    };
+                    let Some(w) = spec.weights.clone() else {
+                        continue;
+                    };
+                    let found = match spec.resolve_weights_from(p, field)? {
+                        Some(f) => f,
+                        None => p.parent().unwrap_or(Path::new(".")).join(w),
+                    };
+                    spec.weights = Some(std::path::absolute(&found).unwrap_or(found));
+                }
                 c
             }
             (None, v) => {

@@ -163,7 +163,8 @@ const OPEN_SHARDS: usize = 8;
 /// dataset. Errors name the shard file and the sample.
 pub struct ShardSource {
     dir: PathBuf,
-    files: Vec<String>,
+    /// The shard files, each checked to lie inside `dir` ([`Manifest::shard_path`]).
+    files: Vec<PathBuf>,
     /// Sample `i` is sample `.1` of shard file `.0`.
     index: Vec<(u32, u32)>,
     sensor: LidarSensor,
@@ -214,7 +215,9 @@ impl ShardSource {
         }
         let mut source = ShardSource {
             dir: dir.to_path_buf(),
-            files: manifest.shards.iter().map(|e| e.file.clone()).collect(),
+            files: (0..manifest.shards.len())
+                .map(|i| manifest.shard_path(dir, i))
+                .collect::<std::result::Result<_, _>>()?,
             index,
             sensor: manifest.sensor.clone(),
             rays: RayTable::new(&manifest.sensor)?,
@@ -244,7 +247,7 @@ impl ShardSource {
         if let Some((_, r)) = open.iter().find(|(g, _)| *g == f) {
             return Ok(r.clone());
         }
-        let path = self.dir.join(&self.files[f as usize]);
+        let path = self.files[f as usize].clone();
         let r = Arc::new(ShardReader::open(&path)?);
         if r.sensor() != &self.sensor {
             return Err(Error::Input {
@@ -266,7 +269,7 @@ impl ShardSource {
             .ok_or_else(|| Error::Data(format!("sample {i} of {}", self.index.len())))?;
         let reader = self.reader(f)?;
         let s = reader.sample(k as usize)?;
-        let path = self.dir.join(&self.files[f as usize]);
+        let path = self.files[f as usize].clone();
         let mut p = prepare_sample(
             &s,
             &self.sensor,
@@ -324,8 +327,8 @@ pub fn load_prepared(
     let projector = Projector::new(&cfg.denoiser.sensor, ProjectionOptions::default())?;
     let shard_rays = RayTable::new(&manifest.sensor)?;
     let mut prepared = Vec::with_capacity(want);
-    'outer: for entry in &manifest.shards {
-        let path = dir.join(&entry.file);
+    'outer: for i in 0..manifest.shards.len() {
+        let path = manifest.shard_path(dir, i)?;
         let shard = read_shard(&path)?;
         if shard.sensor != manifest.sensor {
             return Err(Error::Input {

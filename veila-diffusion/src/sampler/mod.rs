@@ -64,6 +64,18 @@ impl SamplerKind {
     }
 }
 
+/// The most sampler steps (network evaluations per branch) a [`SamplerConfig`] may ask for,
+/// whether from a command-line flag, a config or a bundle's `sampler.steps`: far beyond any useful
+/// count (the samplers converge in 10-50), and it bounds the time a typo or a hostile file can
+/// cost.
+pub const MAX_STEPS: usize = 1000;
+
+/// The largest classifier-free guidance scale a [`SamplerConfig`] may have (flag, config or a
+/// bundle's `sampler.guidance_scale`; the smallest is 0, the unconditional branch alone). Scales
+/// beyond ~10 only amplify the difference of the two branches into saturated garbage (1e300 gave
+/// an empty scan).
+pub const MAX_GUIDANCE: f64 = 20.0;
+
 /// The samplers' command-line names, which [`SamplerConfig::named`] reads.
 pub const SAMPLER_NAMES: [&str; 3] = ["ddpm", "ddim", "dpm"];
 
@@ -142,10 +154,25 @@ impl SamplerConfig {
         }
     }
 
-    /// Checks the settings.
+    /// Checks the settings: at most [`MAX_STEPS`] steps (0 is left to the caller: it is valid
+    /// only for a residual bundle's mean network alone, which [`Sampler::new`] is not), a guidance
+    /// scale from 0 to [`MAX_GUIDANCE`], a finite `eta >= 0` and a finite `clip_x0 > 0`.
     pub fn validate(&self) -> Result<()> {
-        if !self.guidance_scale.is_finite() {
-            return Err(invalid("guidance_scale", "must be finite"));
+        if self.steps > MAX_STEPS {
+            return Err(invalid(
+                "steps",
+                format!(
+                    "{} is more than the limit of {MAX_STEPS} (must be between 1 and {MAX_STEPS})",
+                    self.steps
+                ),
+            ));
+        }
+        let g = self.guidance_scale;
+        if !(g.is_finite() && (0.0..=MAX_GUIDANCE).contains(&g)) {
+            return Err(invalid(
+                "guidance_scale",
+                format!("{g} is not a number between 0 and {MAX_GUIDANCE} (1 = no guidance)"),
+            ));
         }
         if let SamplerKind::Ddim { eta } = self.kind
             && !(eta.is_finite() && eta >= 0.0)

@@ -826,12 +826,15 @@ fn random_segformer_b0(path: &std::path::Path, seed: u64) {
     vm.save(path).unwrap();
 }
 
-#[test]
-fn a_bundle_names_a_pretrained_encoder_by_kind() {
+/// The name [`Bundle::save`] gives the semantic SegFormer-b0's weights inside a bundle.
+const SEGFORMER_IN_BUNDLE: &str = "semantic_encoder.segformer-b0.safetensors";
+
+/// A bundle at `tmp/bundle` whose semantic encoder is a random SegFormer-b0 given to
+/// [`Bundle::save`] by the absolute path `tmp/weights/segformer-b0.safetensors`.
+fn segformer_bundle(tmp: &std::path::Path) -> (BundleConfig, std::path::PathBuf) {
     use veila_diffusion::app::bundle::EncoderSpec;
     use veila_nn::encoders::kind::EncoderKind;
-    let tmp = tempfile::tempdir().unwrap();
-    let weights = tmp.path().join("weights/segformer-b0.safetensors");
+    let weights = tmp.join("weights/segformer-b0.safetensors");
     random_segformer_b0(&weights, 3);
     let sha = veila_diffusion::app::bundle::sha256_hex(&std::fs::read(&weights).unwrap());
     let mut cfg = small_config(Variant::Full);
@@ -839,23 +842,38 @@ fn a_bundle_names_a_pretrained_encoder_by_kind() {
     cfg.set_encoders(
         Some(EncoderSpec::pretrained(
             EncoderKind::SegFormer(0),
-            "../weights/segformer-b0.safetensors".into(),
+            weights.clone(),
             Some(sha),
         )),
         depth,
     )
     .unwrap();
+    save_random_bundle(&tmp.join("bundle"), &cfg, 5);
+    (cfg, weights)
+}
+
+#[test]
+fn a_bundle_names_a_pretrained_encoder_by_kind() {
+    use veila_nn::encoders::kind::EncoderKind;
+    let tmp = tempfile::tempdir().unwrap();
+    let (cfg, weights) = segformer_bundle(tmp.path());
     let cc = cfg.denoiser.conditioning.as_ref().unwrap();
     assert_eq!(cc.semantic_channels, vec![32, 64, 160, 256]);
     assert_eq!(cc.feature_sizes[0], [IH / 4, IW / 4]);
     // the semantic weights are not a bundle file; the depth CNN's are
     assert_eq!(cfg.weight_files(), vec![DEPTH_FILE, DENOISER_FILE]);
     let dir = tmp.path().join("bundle");
-    save_random_bundle(&dir, &cfg, 5);
     let json = std::fs::read_to_string(dir.join("bundle.json")).unwrap();
     assert!(
         json.contains("\"kind\": \"segformer-b0\"") && json.contains("veila-bundle/2"),
         "{json}"
+    );
+    // the file given by an absolute path came into the bundle, and bundle.json names it there
+    let v: serde_json::Value = serde_json::from_str(&json).unwrap();
+    assert_eq!(v["semantic_encoder"]["weights"], SEGFORMER_IN_BUNDLE);
+    assert_eq!(
+        std::fs::read(dir.join(SEGFORMER_IN_BUNDLE)).unwrap(),
+        std::fs::read(&weights).unwrap()
     );
 
     let b = Bundle::from_dir(&dir, &Device::Cpu).unwrap();
@@ -883,15 +901,15 @@ fn a_bundle_names_a_pretrained_encoder_by_kind() {
     assert_eq!(fa[3].dims(), &[1, 256, IH / 32, IW / 32]);
     let d = (&fa[3] - &fc[3]).unwrap().abs().unwrap().sum_all().unwrap();
     assert!(d.to_scalar::<f32>().unwrap() > 0.0);
-    // weights moved into the bundle folder are found there by file name
-    std::fs::rename(&weights, dir.join("segformer-b0.safetensors")).unwrap();
+    // the bundle is whole without the file it was made from
+    std::fs::remove_file(&weights).unwrap();
     let moved = Bundle::from_dir(&dir, &Device::Cpu).unwrap();
     assert_eq!(
         moved.generate(&views, &opts(4, 1), |_, _| {}).unwrap()[0].range_m,
         a[0].range_m
     );
     // missing: which file, which encoder, where to get it and where to put it
-    std::fs::remove_file(dir.join("segformer-b0.safetensors")).unwrap();
+    std::fs::remove_file(dir.join(SEGFORMER_IN_BUNDLE)).unwrap();
     let err = Bundle::from_dir(&dir, &Device::Cpu)
         .unwrap_err()
         .to_string();
@@ -899,19 +917,120 @@ fn a_bundle_names_a_pretrained_encoder_by_kind() {
         "semantic_encoder `segformer-b0`",
         "weights not found",
         "nvidia/segformer-b0-finetuned-cityscapes-1024-1024",
-        "weights/segformer-b0.safetensors",
+        SEGFORMER_IN_BUNDLE,
     ] {
         assert!(err.contains(want), "`{want}` missing from: {err}");
     }
     // another file than the bundle was made with
-    random_segformer_b0(&weights, 4);
+    random_segformer_b0(&dir.join(SEGFORMER_IN_BUNDLE), 4);
     let err = Bundle::from_dir(&dir, &Device::Cpu)
         .unwrap_err()
         .to_string();
     assert!(
-        err.contains("sha256") && err.contains("segformer-b0.safetensors"),
+        err.contains("sha256") && err.contains(SEGFORMER_IN_BUNDLE),
         "{err}"
     );
+}
+
+/// Sets `bundle.json`'s `semantic_encoder.weights` to `value` and re-records the file's sha256 in
+/// the manifest (as a hostile publisher would).
+fn set_semantic_weights(dir: &std::path::Path, value: &str) {
+    let cp = dir.join("bundle.json");
+    let mut c: serde_json::Value = serde_json::from_slice(&std::fs::read(&cp).unwrap()).unwrap();
+    c["semantic_encoder"]["weights"] = value.into();
+    let bytes = serde_json::to_vec_pretty(&c).unwrap();
+    std::fs::write(&cp, &bytes).unwrap();
+    let mp = dir.join(MANIFEST_FILE);
+    let mut m: serde_json::Value = serde_json::from_slice(&std::fs::read(&mp).unwrap()).unwrap();
+    m["files"]["bundle.json"] = veila_diffusion::app::bundle::sha256_hex(&bytes).into();
+    std::fs::write(&mp, serde_json::to_vec_pretty(&m).unwrap()).unwrap();
+}
+
+/// Issue 58, case 4: a bundle's pretrained `weights` that is absolute, climbs out with `..` or
+/// leads out through a link is refused naming the field and `bundle.json`, without the file
+/// being hashed (the outside copy is the right file: followed, it would load); a nested path
+/// inside loads; an absolute path is still served by a file of its name copied into the bundle.
+#[test]
+fn pretrained_weights_outside_the_bundle_are_refused_unread() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (_, weights) = segformer_bundle(tmp.path());
+    let dir = tmp.path().join("bundle");
+    let outside = tmp.path().join("outside");
+    std::fs::create_dir_all(&outside).unwrap();
+    std::fs::rename(
+        dir.join(SEGFORMER_IN_BUNDLE),
+        outside.join("model.safetensors"),
+    )
+    .unwrap();
+    std::fs::remove_file(&weights).unwrap();
+    let refused = |value: &str, want: &str| {
+        set_semantic_weights(&dir, value);
+        let err = Bundle::from_dir(&dir, &Device::Cpu)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("bundle.json")
+                && err.contains(&format!("semantic_encoder.weights `{value}`"))
+                && err.contains(want)
+                && err.contains("nothing read"),
+            "{value}: {err}"
+        );
+        assert!(!err.contains("sha256"), "{value}: {err}");
+    };
+    let abs = outside.join("model.safetensors");
+    refused(abs.to_str().unwrap(), "an absolute path");
+    refused("../outside/model.safetensors", "climbs out");
+    #[cfg(unix)]
+    {
+        std::os::unix::fs::symlink(&outside, dir.join("linked")).unwrap();
+        refused(
+            "linked/model.safetensors",
+            "leads through the link `linked`",
+        );
+        std::fs::remove_file(dir.join("linked")).unwrap();
+    }
+    // a nested relative path inside the bundle loads
+    std::fs::create_dir_all(dir.join("pretrained")).unwrap();
+    std::fs::copy(&abs, dir.join("pretrained/b0.safetensors")).unwrap();
+    set_semantic_weights(&dir, "pretrained/b0.safetensors");
+    Bundle::from_dir(&dir, &Device::Cpu).unwrap();
+    // an absolute path of an older bundle: a file of its name in the bundle serves, the outside
+    // one is never read
+    std::fs::rename(
+        dir.join("pretrained/b0.safetensors"),
+        dir.join("model.safetensors"),
+    )
+    .unwrap();
+    random_segformer_b0(&abs, 9);
+    set_semantic_weights(&dir, abs.to_str().unwrap());
+    Bundle::from_dir(&dir, &Device::Cpu).unwrap();
+}
+
+/// A bundle's own file that is a link out of its folder is refused unread, even when what it
+/// points to is the right file.
+#[cfg(unix)]
+#[test]
+fn a_bundle_file_linked_out_of_the_folder_is_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("bundle");
+    save_random_bundle(&dir, &small_config(Variant::Full), 2);
+    Bundle::from_dir(&dir, &Device::Cpu).unwrap();
+    let outside = tmp.path().join("denoiser.safetensors");
+    std::fs::rename(dir.join(DENOISER_FILE), &outside).unwrap();
+    std::os::unix::fs::symlink(&outside, dir.join(DENOISER_FILE)).unwrap();
+    let err = Bundle::from_dir(&dir, &Device::Cpu)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("bundle file `denoiser.safetensors`")
+            && err.contains("leads through the link `denoiser.safetensors`"),
+        "{err}"
+    );
+    // a link that stays inside is followed
+    std::fs::rename(&outside, dir.join("real-denoiser.safetensors")).unwrap();
+    std::fs::remove_file(dir.join(DENOISER_FILE)).unwrap();
+    std::os::unix::fs::symlink("real-denoiser.safetensors", dir.join(DENOISER_FILE)).unwrap();
+    Bundle::from_dir(&dir, &Device::Cpu).unwrap();
 }
 
 #[test]

@@ -267,3 +267,208 @@ fn a_valid_config_whose_model_is_too_large_fails_the_recording() {
     let m = config_err(veila_nn::checkpoint::expected_tensors(&cfg));
     assert!(m.contains(&MAX_PARAMETERS.to_string()), "{m}");
 }
+
+// ------------------------------------------------------------------------------------------------
+// issue 58, case 9: weights must be stored as the model declares them, and be finite
+
+/// The tensors of a tiny unconditional denoiser, name -> shape.
+fn tiny_denoiser() -> (
+    DenoiserConfig,
+    std::collections::BTreeMap<String, Vec<usize>>,
+) {
+    let cfg = DenoiserConfig::tiny().unconditional();
+    let expected = veila_nn::checkpoint::expected_tensors(&cfg).unwrap();
+    (cfg, expected)
+}
+
+/// Safetensors bytes of `expected`, every tensor F32 filled with 0.01, except `target`, which is
+/// stored as `dtype` with the raw bytes `fill(element count)`.
+fn weights_with(
+    expected: &std::collections::BTreeMap<String, Vec<usize>>,
+    target: &str,
+    dtype: safetensors::Dtype,
+    fill: &dyn Fn(usize) -> Vec<u8>,
+) -> Vec<u8> {
+    let data: Vec<(String, safetensors::Dtype, Vec<usize>, Vec<u8>)> = expected
+        .iter()
+        .map(|(name, shape)| {
+            let n: usize = shape.iter().product();
+            if name == target {
+                (name.clone(), dtype, shape.clone(), fill(n))
+            } else {
+                let bytes = (0..n).flat_map(|_| 0.01f32.to_le_bytes()).collect();
+                (name.clone(), safetensors::Dtype::F32, shape.clone(), bytes)
+            }
+        })
+        .collect();
+    let views: Vec<(String, safetensors::tensor::TensorView<'_>)> = data
+        .iter()
+        .map(|(n, d, s, b)| {
+            (
+                n.clone(),
+                safetensors::tensor::TensorView::new(*d, s.clone(), b).unwrap(),
+            )
+        })
+        .collect();
+    safetensors::serialize(views, None).unwrap()
+}
+
+fn f32s(v: f32) -> impl Fn(usize) -> Vec<u8> {
+    move |n| (0..n).flat_map(|_| v.to_le_bytes()).collect()
+}
+
+/// The denoiser's read ([`veila_nn::checkpoint::read_checked_bytes`], what bundles load with).
+fn read_denoiser(
+    bytes: &[u8],
+    expected: &std::collections::BTreeMap<String, Vec<usize>>,
+) -> veila_nn::Result<usize> {
+    let path = std::path::Path::new("/bundles/x/denoiser.safetensors");
+    veila_nn::checkpoint::read_checked_bytes(bytes, path, expected, &candle_core::Device::Cpu)
+        .map(|t| t.len())
+}
+
+fn bad_weights(r: veila_nn::Result<usize>, tensor: &str, words: &[&str]) {
+    match r {
+        Err(e @ Error::BadWeights { .. }) => {
+            let m = e.to_string();
+            assert!(
+                m.contains(&format!("tensor `{tensor}`")) && m.contains("denoiser.safetensors"),
+                "{m}"
+            );
+            for w in words {
+                assert!(m.contains(w), "`{w}` not in: {m}");
+            }
+        }
+        other => panic!("expected bad weights, got {other:?}"),
+    }
+}
+
+#[test]
+fn denoiser_weights_of_another_dtype_are_refused_naming_the_tensor() {
+    use safetensors::Dtype;
+    let (_, expected) = tiny_denoiser();
+    let target = expected.keys().nth(3).unwrap().clone();
+    let ok = weights_with(&expected, &target, Dtype::F32, &f32s(0.5));
+    assert_eq!(read_denoiser(&ok, &expected).unwrap(), expected.len());
+    // U8 and I64 tensors were converted to f32 without a word
+    let u8s = weights_with(&expected, &target, Dtype::U8, &|n| vec![200; n]);
+    bad_weights(
+        read_denoiser(&u8s, &expected),
+        &target,
+        &["stored as U8", "F32"],
+    );
+    let i64s = weights_with(&expected, &target, Dtype::I64, &|n| {
+        (0..n).flat_map(|_| 7i64.to_le_bytes()).collect()
+    });
+    bad_weights(read_denoiser(&i64s, &expected), &target, &["stored as I64"]);
+    // a bundle's denoiser is f32 as the workspace writes it: half precision is another dtype too
+    let f16s = weights_with(&expected, &target, Dtype::F16, &|n| {
+        (0..n).flat_map(|_| 0x3c00u16.to_le_bytes()).collect()
+    });
+    bad_weights(read_denoiser(&f16s, &expected), &target, &["stored as F16"]);
+}
+
+#[test]
+fn non_finite_or_huge_weights_are_refused_naming_the_tensor() {
+    use safetensors::Dtype;
+    let (_, expected) = tiny_denoiser();
+    let target = expected.keys().last().unwrap().clone();
+    for (v, words) in [
+        (f32::NAN, &["value 0 is NaN", "must be finite"][..]),
+        (f32::INFINITY, &["value 0 is inf"][..]),
+        (f32::NEG_INFINITY, &["value 0 is -inf"][..]),
+        (3e38, &["value 0 is 3e38", "limit of 1e8"][..]),
+    ] {
+        let bytes = weights_with(&expected, &target, Dtype::F32, &f32s(v));
+        bad_weights(read_denoiser(&bytes, &expected), &target, words);
+    }
+    // one bad value among good ones is found, by its index
+    let one_nan = weights_with(&expected, &target, Dtype::F32, &|n| {
+        (0..n)
+            .flat_map(|i| if i == n - 1 { f32::NAN } else { 0.1 }.to_le_bytes())
+            .collect()
+    });
+    let n: usize = expected[&target].iter().product();
+    bad_weights(
+        read_denoiser(&one_nan, &expected),
+        &target,
+        &[&format!("value {} is NaN", n - 1)],
+    );
+    // the limit itself is allowed
+    let at_limit = weights_with(
+        &expected,
+        &target,
+        Dtype::F32,
+        &f32s(veila_nn::weights::MAX_ABS_WEIGHT),
+    );
+    read_denoiser(&at_limit, &expected).unwrap();
+}
+
+#[test]
+fn encoder_files_take_any_float_precision_and_refuse_integers() {
+    use safetensors::Dtype;
+    let cfg = SmallCnnConfig::default();
+    let build = |vb| veila_nn::encoders::small_cnn::SmallCnn::new(&cfg, vb);
+    let expected = veila_nn::weights::record_tensors(|vb| build(vb).map(|_| ())).unwrap();
+    let target = expected.keys().next().unwrap().clone();
+    let path = std::path::Path::new("enc/semantic_encoder.safetensors");
+    let load = |bytes: &[u8]| {
+        veila_nn::encoders::load_checked_bytes(
+            bytes,
+            path,
+            candle_core::DType::F32,
+            &candle_core::Device::Cpu,
+            |_| true,
+            build,
+        )
+        .map(drop)
+    };
+    // a published checkpoint in half precision loads (converted to the model's f32)
+    let bf16 = weights_with(&expected, &target, Dtype::BF16, &|n| {
+        (0..n).flat_map(|_| 0x3f80u16.to_le_bytes()).collect()
+    });
+    load(&bf16).unwrap();
+    let f16 = weights_with(&expected, &target, Dtype::F16, &|n| {
+        (0..n).flat_map(|_| 0x3c00u16.to_le_bytes()).collect()
+    });
+    load(&f16).unwrap();
+    // integers and a non-finite half are refused, naming the tensor and the file
+    let half = |bits: u16| {
+        move |n: usize| -> Vec<u8> { (0..n).flat_map(|_| bits.to_le_bytes()).collect() }
+    };
+    type Fill = Box<dyn Fn(usize) -> Vec<u8>>;
+    let cases: [(Dtype, Fill, &str); 4] = [
+        (Dtype::I32, Box::new(|n| vec![1; 4 * n]), "stored as I32"),
+        (Dtype::BOOL, Box::new(|n| vec![1; n]), "stored as BOOL"),
+        (Dtype::F16, Box::new(half(0x7e00)), "is NaN"),
+        (Dtype::BF16, Box::new(half(0xff80)), "is -inf"),
+    ];
+    for (dtype, fill, word) in cases {
+        let bytes = weights_with(&expected, &target, dtype, &fill);
+        let m = load(&bytes).unwrap_err().to_string();
+        assert!(
+            m.contains(&format!("tensor `{target}`"))
+                && m.contains("semantic_encoder.safetensors")
+                && m.contains(word),
+            "{m}"
+        );
+    }
+}
+
+#[test]
+fn the_time_input_scale_is_bounded() {
+    let mut cfg = DenoiserConfig::tiny();
+    for bad in [
+        1e300,
+        f64::INFINITY,
+        0.0,
+        -1000.0,
+        veila_nn::config::MAX_TIME_INPUT_SCALE * 1.01,
+    ] {
+        cfg.time.input_scale = bad;
+        let m = config_err(cfg.validate());
+        assert!(m.contains("time.input_scale"), "{bad}: {m}");
+    }
+    cfg.time.input_scale = veila_nn::config::MAX_TIME_INPUT_SCALE;
+    cfg.validate().unwrap();
+}
