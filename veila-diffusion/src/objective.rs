@@ -139,6 +139,11 @@ pub struct Denoised {
     pub eps: Tensor,
 }
 
+/// The largest `time_input.scale`. The network multiplies it by its own `time.input_scale`, whose
+/// bound is the same (the network crate's `config::MAX_TIME_INPUT_SCALE`; the application layer
+/// asserts the two agree, since this core does not name the network crate).
+pub const MAX_TIME_INPUT_SCALE: f64 = 1e5;
+
 impl Diffusion {
     /// Builds and validates a diffusion process.
     pub fn new(config: DiffusionConfig) -> Result<Self> {
@@ -162,8 +167,7 @@ impl Diffusion {
                 format!("need finite values and logit_std >= 0, got {logit_mean}, {logit_std}"),
             ));
         }
-        // the network multiplies this value by its own `time.input_scale`: the same bound
-        let max = veila_nn::config::MAX_TIME_INPUT_SCALE;
+        let max = MAX_TIME_INPUT_SCALE;
         if let TimeInput::Scaled { scale } = config.time_input
             && !(scale.is_finite() && scale > 0.0 && scale <= max)
         {

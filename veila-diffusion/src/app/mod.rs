@@ -89,3 +89,9 @@ pub use train::{
     BundleFit, BundleFitOutcome, DenoiserFit, DenoiserFitOutcome, DenoiserTraining, TrainExample,
     fit_bundle, fit_denoiser,
 };
+
+// the diffusion core bounds the time input's scale as the network does, without naming it
+const _: () = assert!(
+    crate::objective::MAX_TIME_INPUT_SCALE == veila_nn::config::MAX_TIME_INPUT_SCALE,
+    "the time input's scale has one bound"
+);
