@@ -302,7 +302,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         summary.range_pixels_generated,
         summary.range_pixels_true,
         seconds_generation,
-        generation::sampler_label(&sampler),
+        sampler.kind.to_string(),
         sampler.steps,
         sampler.guidance_scale
     );

@@ -16,13 +16,13 @@ use veila_data::scan::{PointFormat, read_points};
 use veila_data::vis::render::{self, render_range};
 use veila_diffusion::app::bundle::Bundle;
 use veila_diffusion::app::{GenerateOptions, ScanPipeline};
-use veila_diffusion::{RepaintConfig, SamplerConfig, SamplerKind};
+use veila_diffusion::{RepaintConfig, SamplerConfig, SamplerKind, SamplerName};
 use veila_geom::{ProjectionOptions, Projector, RangeImage, RayTable};
 
 use crate::generation::{
-    InputInfo, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerName, ScanRecord, Seconds, check_guidance,
-    check_steps, inpainting_sampler_help, input_info, is_generate_output, load_rig, model_info,
-    range_preview, resolve_sampler, sampler_label, write_scan,
+    InputInfo, ModelInfo, RigArgs, SAMPLE_BATCH, ScanRecord, Seconds, check_guidance, check_steps,
+    inpainting_sampler_help, input_info, is_generate_output, load_rig, model_info, range_preview,
+    resolve_sampler, sampler_parser, write_scan,
 };
 use crate::{model, progress, staging};
 
@@ -52,7 +52,7 @@ pub(crate) struct EditArgs {
     #[arg(long, value_name = "DIR", env = "VEILA_MODEL")]
     checkpoint: Option<PathBuf>,
     // the help names the bundled model's sampler as its bundle.json does
-    #[arg(long, value_enum, help = inpainting_sampler_help())]
+    #[arg(long, value_parser = sampler_parser(), help = inpainting_sampler_help())]
     sampler: Option<SamplerName>,
     /// Sampler steps, 1 to 1000 (default: the bundle's).
     #[arg(long, value_name = "N", value_parser = crate::bounds::steps())]
@@ -311,7 +311,7 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
     let pb = progress::bar(args.samples as u64, "edit");
     pb.set_message(format!(
         "inpainting {regenerated} pixels, {} x {} steps",
-        sampler_label(&sampler),
+        sampler.kind.to_string(),
         sampler.steps
     ));
     pb.enable_steady_tick(Duration::from_millis(250));
@@ -403,7 +403,7 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
         scan: args.scan.display().to_string(),
         region,
         model: model_info(&bundle, args.checkpoint.as_deref()),
-        sampler_name: sampler_label(&sampler),
+        sampler_name: sampler.kind.to_string(),
         sampler,
         repaint,
         seed: args.seed,

@@ -17,13 +17,13 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use serde::Serialize;
-use veila_diffusion::SamplerConfig;
 use veila_diffusion::app::{GenerateOptions, ScanPipeline};
+use veila_diffusion::{SamplerConfig, SamplerName};
 
 use crate::generation::{
-    InputInfo, MAX_SAMPLES, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerName, ScanRecord, Seconds,
-    check_guidance, check_residual_weight, check_steps, input_info, is_generate_output, load_rig,
-    model_info, resolve_sampler, round3, sampler_help, sampler_label, write_scan,
+    InputInfo, MAX_SAMPLES, ModelInfo, RigArgs, SAMPLE_BATCH, ScanRecord, Seconds, check_guidance,
+    check_residual_weight, check_steps, input_info, is_generate_output, load_rig, model_info,
+    resolve_sampler, round3, sampler_help, sampler_parser, write_scan,
 };
 use crate::{model, progress, staging};
 
@@ -36,7 +36,7 @@ pub(crate) struct GenerateArgs {
     #[arg(long, value_name = "DIR", env = "VEILA_MODEL")]
     pub(crate) checkpoint: Option<PathBuf>,
     // the help names the bundled model's sampler as its bundle.json does
-    #[arg(long, value_enum, help = sampler_help())]
+    #[arg(long, value_parser = sampler_parser(), help = sampler_help())]
     pub(crate) sampler: Option<SamplerName>,
     /// Sampler steps (network evaluations per conditioning branch, 1 to 1000; default: the
     /// bundle's).
@@ -134,7 +134,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
     pb.set_message(format!(
         "{} scan(s), {}",
         args.samples,
-        sampler_label(&sampler)
+        sampler.kind.to_string()
     ));
     let (mut sampling_secs, mut writing_secs) = (0.0, 0.0);
     let mut records = Vec::new();
@@ -167,7 +167,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
         inputs: input_info(&views),
         model: model_info(&bundle, args.checkpoint.as_deref()),
         sampler: &sampler,
-        sampler_name: sampler_label(&sampler),
+        sampler_name: sampler.kind.to_string(),
         model_frame_quarter_turns: turns,
         steps: sampler.steps,
         guidance: sampler.guidance_scale,

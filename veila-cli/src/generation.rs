@@ -5,7 +5,8 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
-use clap::{Args, ValueEnum};
+use clap::Args;
+use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser};
 use serde::Serialize;
 use veila_data::image_io::write_png;
 use veila_data::ply::write_ply_rgb;
@@ -19,7 +20,7 @@ use veila_diffusion::app::bundle::{Bundle, DENOISER_FILE, Manifest, sha256_hex};
 use veila_diffusion::app::rig::point_colours;
 use veila_diffusion::app::{RigView, Scan, load_view};
 pub(crate) use veila_diffusion::{MAX_GUIDANCE, MAX_STEPS};
-use veila_diffusion::{SamplerConfig, SamplerKind};
+use veila_diffusion::{SamplerConfig, SamplerName};
 
 use crate::model;
 
@@ -41,16 +42,13 @@ pub(crate) struct RigArgs {
     pub(crate) cameras: Vec<String>,
 }
 
-/// Sampler names on the command line.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
-#[serde(rename_all = "lowercase")]
-pub(crate) enum SamplerName {
-    /// Ancestral DDPM (stochastic).
-    Ddpm,
-    /// DDIM with eta = 0 (deterministic).
-    Ddim,
-    /// DPM-Solver++(2M) (deterministic, good in 10-25 steps).
-    Dpm,
+/// `--sampler`'s parser: the choices (with their help) are the library's one list,
+/// [`SamplerName::ALL`].
+pub(crate) fn sampler_parser() -> impl TypedValueParser<Value = SamplerName> {
+    PossibleValuesParser::new(
+        SamplerName::ALL.map(|n| PossibleValue::new(n.as_str()).help(n.help())),
+    )
+    .try_map(|name| name.parse::<SamplerName>())
 }
 
 /// Reads every image and its camera (errors name the file and the problem).
@@ -112,13 +110,7 @@ pub(crate) fn resolve_sampler(
             steps,
             ..base.clone()
         },
-        // the library reads the name (`SamplerConfig::named`); clap only offers the choices
-        Some(name) => SamplerConfig::named(
-            name.to_possible_value()
-                .as_ref()
-                .map_or("", |v| v.get_name()),
-            steps,
-        )?,
+        Some(name) => name.config(steps),
     };
     cfg.guidance_scale = base.guidance_scale;
     if let Some(g) = guidance {
@@ -201,24 +193,13 @@ pub(crate) fn is_generate_output(name: &str) -> bool {
     })
 }
 
-/// Short name of a sampler kind.
-pub(crate) fn sampler_label(cfg: &SamplerConfig) -> String {
-    match cfg.kind {
-        SamplerKind::Ddpm { .. } => "ddpm".into(),
-        SamplerKind::Ddim { eta } => format!("ddim (eta {eta})"),
-        SamplerKind::DpmSolverPp2M => "dpm-solver++(2m)".into(),
-    }
-}
-
 /// The bundled model's sampler in words (`ddpm, 4 steps, guidance 1.5`), read from the bundle
 /// this binary embeds, so that the help texts say what the bundle says.
 fn bundled_sampler_words() -> Option<String> {
     let s = model::bundled_config()?.sampler;
     Some(format!(
         "{}, {} steps, guidance {}",
-        sampler_label(&s),
-        s.steps,
-        s.guidance_scale
+        s.kind, s.steps, s.guidance_scale
     ))
 }
 

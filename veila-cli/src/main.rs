@@ -259,6 +259,35 @@ mod tests {
         }
     }
 
+    /// Every `--sampler` of every command offers exactly the library's samplers
+    /// ([`veila_diffusion::SamplerName::ALL`]), in its order: a door cannot forget one.
+    #[test]
+    fn every_sampler_option_offers_the_librarys_samplers() {
+        let library: Vec<String> = veila_diffusion::SamplerName::ALL
+            .iter()
+            .map(|n| n.to_string())
+            .collect();
+        let mut doors = 0;
+        for sub in cli_command().get_subcommands() {
+            for arg in sub.get_arguments() {
+                if arg.get_long() != Some("sampler") {
+                    continue;
+                }
+                let offered: Vec<String> = arg
+                    .get_possible_values()
+                    .iter()
+                    .map(|v| v.get_name().to_string())
+                    .collect();
+                assert_eq!(offered, library, "`veila {} --sampler`", sub.get_name());
+                doors += 1;
+            }
+        }
+        assert!(
+            doors >= 2,
+            "generate and edit take --sampler; found {doors}"
+        );
+    }
+
     /// The first "LO to HI" of a help text, as written.
     fn stated_range(help: &str) -> Option<(String, String)> {
         let words: Vec<&str> = help.split_whitespace().collect();

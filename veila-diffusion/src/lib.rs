@@ -74,8 +74,8 @@ pub use error::{Error, Result};
 pub use objective::{Denoised, Diffusion, DiffusionConfig, LossOutput, Objective};
 pub use prediction::{LossWeighting, Prediction, TimeInput};
 pub use sampler::{
-    DdpmVariance, DpmSolverPp2M, MAX_GUIDANCE, MAX_STEPS, RepaintConfig, SAMPLER_NAMES, Sampler,
-    SamplerConfig, SamplerKind, StepInfo, inpaint,
+    DdpmVariance, DpmSolverPp2M, MAX_GUIDANCE, MAX_STEPS, RepaintConfig, Sampler, SamplerConfig,
+    SamplerKind, SamplerName, StepInfo, inpaint,
 };
 pub use schedule::{
     CosineLogSnr, DiscreteSchedule, NoiseLevel, NoiseSchedule, ScheduleConfig, Spacing,

@@ -7,11 +7,11 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
-use veila_diffusion::SamplerConfig;
 use veila_diffusion::app::Bundle;
 use veila_diffusion::app::BundleConfig;
 use veila_diffusion::app::real_frames::{RealOptions, evaluate, real_root};
 use veila_diffusion::app::sim_examples::{DEFAULT_SCENES, RenderStyle, train_split_of};
+use veila_diffusion::{SamplerConfig, SamplerName};
 use veila_geom::RangeImage;
 
 use crate::progress::{render_split, workspace_root};
@@ -53,8 +53,8 @@ pub struct BenchRealArgs {
     #[arg(long, default_value_t = 4)]
     seeds: usize,
     /// Sampler: ddpm, ddim or dpm.
-    #[arg(long, default_value = "ddpm", value_parser = ["ddpm", "ddim", "dpm"])]
-    sampler: String,
+    #[arg(long, default_value = "ddpm", value_parser = sampler_parser())]
+    sampler: SamplerName,
     /// Sampler steps.
     #[arg(long, default_value_t = 4)]
     steps: usize,
@@ -82,10 +82,10 @@ pub fn run(args: BenchRealArgs) -> Result<()> {
     let median = veila_metrics::baseline::median_scan(&refs)?;
     let streets = reference_mean_scan(&bundle.config, args.baseline_frames)?;
     let sampler = sampler_for(
-        &args.sampler,
+        args.sampler,
         args.steps,
         bundle.config.sampler.guidance_scale,
-    )?;
+    );
     let report = evaluate(
         &bundle,
         &RealOptions {
@@ -120,17 +120,52 @@ pub fn run(args: BenchRealArgs) -> Result<()> {
     Ok(())
 }
 
-/// The sampler a benchmark's `--sampler` names ([`SamplerConfig::named`]), with `steps` steps and
+/// The sampler a benchmark's `--sampler` names ([`SamplerName::config`]), with `steps` steps and
 /// the guidance scale `guidance`.
-pub fn sampler_for(name: &str, steps: usize, guidance: f64) -> Result<SamplerConfig> {
-    let mut s = SamplerConfig::named(name, steps)?;
+pub fn sampler_for(name: SamplerName, steps: usize, guidance: f64) -> SamplerConfig {
+    let mut s = name.config(steps);
     s.guidance_scale = guidance;
-    Ok(s)
+    s
+}
+
+/// A benchmark's `--sampler` parser: the choices are the library's list, [`SamplerName::ALL`].
+pub fn sampler_parser() -> impl clap::builder::TypedValueParser<Value = SamplerName> {
+    use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser};
+    PossibleValuesParser::new(
+        SamplerName::ALL.map(|n| PossibleValue::new(n.as_str()).help(n.help())),
+    )
+    .try_map(|name| name.parse::<SamplerName>())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Every benchmark's `--sampler` offers exactly the library's samplers, in its order.
+    #[test]
+    fn every_benchmark_sampler_option_offers_the_librarys_samplers() {
+        use clap::CommandFactory;
+        let library: Vec<String> = SamplerName::ALL.iter().map(|n| n.to_string()).collect();
+        let mut doors = 0;
+        for sub in crate::Cli::command().get_subcommands() {
+            for arg in sub
+                .get_arguments()
+                .filter(|a| a.get_long() == Some("sampler"))
+            {
+                let offered: Vec<String> = arg
+                    .get_possible_values()
+                    .iter()
+                    .map(|v| v.get_name().to_string())
+                    .collect();
+                assert_eq!(offered, library, "`xtask {} --sampler`", sub.get_name());
+                doors += 1;
+            }
+        }
+        assert!(
+            doors >= 3,
+            "bench-real, bench-report and bench-realism take --sampler; found {doors}"
+        );
+    }
 
     #[test]
     fn the_street_mean_scan_joins_only_for_a_bundle_trained_on_another_list() {

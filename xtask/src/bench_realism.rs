@@ -17,8 +17,9 @@ use veila_diffusion::app::scoring::{SetMetrics, Stat, metric_stats};
 use veila_diffusion::app::sim_examples::{RenderStyle, test_list_for, train_split_of};
 use veila_nn::feature_nets::FeatureNets;
 
-use crate::bench_real::sampler_for;
+use crate::bench_real::{sampler_for, sampler_parser};
 use crate::progress::{progress_bar, render_split, workspace_root};
+use veila_diffusion::SamplerName;
 
 /// Arguments of `cargo xtask bench-realism`.
 #[derive(Debug, Args)]
@@ -33,8 +34,8 @@ pub struct BenchRealismArgs {
     judge: PathBuf,
     /// Samplers of the model rows: ddpm, ddim, dpm (comma-separated; every one at every step
     /// count) [default: each bundle's own].
-    #[arg(long, value_delimiter = ',')]
-    sampler: Vec<String>,
+    #[arg(long, value_delimiter = ',', value_parser = sampler_parser())]
+    sampler: Vec<SamplerName>,
     /// Sampler step counts of the model rows [default: each bundle's own].
     #[arg(long, value_delimiter = ',')]
     steps: Vec<usize>,
@@ -241,23 +242,22 @@ fn row_specs(bundle: &Bundle, args: &BenchRealismArgs) -> Result<Vec<(RowSpec, S
         args.guidance.clone()
     };
     let mut out = Vec::new();
-    let own_kind = [String::new()];
-    let samplers = if args.sampler.is_empty() {
-        &own_kind[..]
+    // `None`: the bundle's own sampler
+    let samplers: Vec<Option<SamplerName>> = if args.sampler.is_empty() {
+        vec![None]
     } else {
-        &args.sampler[..]
+        args.sampler.iter().copied().map(Some).collect()
     };
     for name in samplers {
         for &s in &steps {
             for &g in &guidance {
-                let sampler = if name.is_empty() {
-                    veila_diffusion::SamplerConfig {
+                let sampler = match name {
+                    None => veila_diffusion::SamplerConfig {
                         steps: s,
                         guidance_scale: g,
                         ..own.clone()
-                    }
-                } else {
-                    sampler_for(name, s, g)?
+                    },
+                    Some(name) => sampler_for(name, s, g),
                 };
                 let label = format!("{} x {s}, guidance {g}", sampler.kind.title());
                 out.push((

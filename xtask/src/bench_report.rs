@@ -15,7 +15,6 @@ use candle_core::Device;
 use clap::Args;
 use serde::Serialize;
 use veila_data::vis::plot::{BarChart, BarGroup, Plot, Series, SeriesStyle};
-use veila_diffusion::SamplerConfig;
 use veila_diffusion::app::GenerateOptions;
 use veila_diffusion::app::bundle::{Bundle, Variant};
 use veila_diffusion::app::scoring::{
@@ -24,10 +23,11 @@ use veila_diffusion::app::scoring::{
 use veila_diffusion::app::sim_examples::{
     RenderStyle, SimExample, TrainImages, retrieval_baseline, test_list_for, train_split_of,
 };
+use veila_diffusion::{SamplerConfig, SamplerName};
 use veila_geom::RangeImage;
 use veila_nn::feature_nets::FeatureNets;
 
-use crate::bench_real::sampler_for;
+use crate::bench_real::{sampler_for, sampler_parser};
 use crate::progress::{render_split, workspace_root};
 use crate::train_default::{self, TrainDefaultArgs};
 
@@ -75,8 +75,8 @@ pub struct BenchReportArgs {
     train_frames: usize,
     /// Sampler of the model rows (the bundled model, its variants and the residual-weight
     /// sweep): ddpm, ddim (η = 0) or dpm (DPM-Solver++(2M), the bundle's default).
-    #[arg(long, default_value = "dpm", value_parser = ["ddpm", "ddim", "dpm"])]
-    sampler: String,
+    #[arg(long, default_value = "dpm", value_parser = sampler_parser())]
+    sampler: SamplerName,
     /// Sampler steps of the model rows.
     #[arg(long, default_value_t = 16)]
     steps: usize,
@@ -358,11 +358,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
 
     // the bundled model as shipped: its own sampler settings, no further training
     {
-        let sampler = sampler_for(
-            &args.sampler,
-            args.steps,
-            base.config.sampler.guidance_scale,
-        )?;
+        let sampler = sampler_for(args.sampler, args.steps, base.config.sampler.guidance_scale);
         let mut shipped: Vec<(&str, String, f64, u64)> = vec![(
             "shipped",
             format!(
@@ -511,7 +507,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         } else {
             1.0
         };
-        let sampler = sampler_for(&args.sampler, args.steps, guidance)?;
+        let sampler = sampler_for(args.sampler, args.steps, guidance);
         let mut per_set: Vec<SetMetrics> = Vec::new();
         let mut secs = 0.0;
         for seed in 0..args.seeds {
@@ -552,8 +548,8 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
     let sweep_judges = Judges::new(&base, sweep_tests, nets.as_ref(), &device)?;
     // (sampler, steps, residual weight, label): every sampler at every step count, then for a
     // residual bundle the texture's price in pixel error at the variants' step count
-    let mut points: Vec<(&str, usize, f64, String)> = Vec::new();
-    for name in ["ddpm", "ddim", "dpm"] {
+    let mut points: Vec<(SamplerName, usize, f64, String)> = Vec::new();
+    for name in SamplerName::ALL {
         for &steps in &args.sweep_steps {
             points.push((name, steps, 1.0, format!("{name:>4} x {steps:>3}")));
         }
@@ -561,7 +557,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
     if base.config.residual.is_some() {
         for &weight in &args.sweep_residual_weights {
             points.push((
-                args.sampler.as_str(),
+                args.sampler,
                 args.steps,
                 weight,
                 format!("residual weight {weight}"),
@@ -570,12 +566,12 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
     }
     let mut sweep = Vec::new();
     for (name, steps, weight, label) in points {
-        let sampler = sampler_for(name, steps, base.config.sampler.guidance_scale)?;
+        let sampler = sampler_for(name, steps, base.config.sampler.guidance_scale);
         let (generated, secs) =
             generate_all(&base, sweep_tests, &sampler, false, weight, 0, &label)?;
         let m = set_metrics(&base, &generated, sweep_tests, &sweep_judges, nets.as_ref())?;
         let p = SweepPoint {
-            sampler: name.into(),
+            sampler: name.to_string(),
             steps: if weight == 0.0 { 0 } else { steps },
             residual_weight: weight,
             seconds_per_scan: secs / sweep_tests.len() as f64,
@@ -594,11 +590,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
     let real = if args.no_real {
         None
     } else {
-        let sampler = sampler_for(
-            &args.sampler,
-            args.steps,
-            base.config.sampler.guidance_scale,
-        )?;
+        let sampler = sampler_for(args.sampler, args.steps, base.config.sampler.guidance_scale);
         let street_scan =
             crate::bench_real::reference_mean_scan(&base.config, baseline_train.len())?;
         Some(veila_diffusion::app::real_frames::evaluate(
@@ -629,7 +621,7 @@ pub fn run(mut args: BenchReportArgs) -> Result<()> {
         train_steps: args.train_steps,
         train_frames: args.train_frames,
         protocol: args.protocol,
-        sampler: args.sampler.clone(),
+        sampler: args.sampler.to_string(),
         sampler_steps: args.steps,
         quick: args.quick,
         shipped_only: args.shipped_only,
@@ -694,7 +686,9 @@ fn write_report(out: &Path, r: &Report) -> Result<()> {
                 r.train_steps, r.train_frames
             )
         },
-        SamplerConfig::named(&r.sampler, 1).map_or_else(|_| r.sampler.clone(), |s| s.kind.title()),
+        r.sampler
+            .parse::<SamplerName>()
+            .map_or_else(|_| r.sampler.clone(), |n| n.config(1).kind.title()),
         r.sampler_steps
     )?;
     if r.quick {
@@ -840,7 +834,7 @@ fn write_report(out: &Path, r: &Report) -> Result<()> {
     }
     .write_png(&out.join("variants.png"), 960, 480)?;
     let mut series = Vec::new();
-    for name in ["ddpm", "ddim", "dpm"] {
+    for name in SamplerName::ALL.map(SamplerName::as_str) {
         let pts: Vec<(f64, f64)> = r
             .sweep
             .iter()

@@ -62,6 +62,97 @@ impl SamplerKind {
             SamplerKind::DpmSolverPp2M => "DPM-Solver++(2M)".into(),
         }
     }
+
+    /// The name a command line gives this rule.
+    pub fn name(&self) -> SamplerName {
+        match self {
+            SamplerKind::Ddpm { .. } => SamplerName::Ddpm,
+            SamplerKind::Ddim { .. } => SamplerName::Ddim,
+            SamplerKind::DpmSolverPp2M => SamplerName::Dpm,
+        }
+    }
+}
+
+/// The short label of logs and records: `ddpm`, `ddim (eta 0)`, `dpm-solver++(2m)`.
+impl std::fmt::Display for SamplerKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SamplerKind::Ddpm { .. } => f.write_str("ddpm"),
+            SamplerKind::Ddim { eta } => write!(f, "ddim (eta {eta})"),
+            SamplerKind::DpmSolverPp2M => f.write_str("dpm-solver++(2m)"),
+        }
+    }
+}
+
+/// A sampler as a command line, a config or a benchmark names it. [`SamplerName::ALL`] is the one
+/// list of samplers: the CLI's and xtask's `--sampler` choices are built from it (and a test of
+/// each door checks that they are). A new sampler is a [`SamplerKind`], a variant here and its
+/// arm in [`SamplerName::config`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SamplerName {
+    /// Ancestral DDPM (stochastic).
+    Ddpm,
+    /// DDIM with `eta = 0` (deterministic).
+    Ddim,
+    /// DPM-Solver++(2M) (deterministic, good in 10-25 steps).
+    Dpm,
+}
+
+impl SamplerName {
+    /// Every sampler, in the order help texts list them.
+    pub const ALL: [SamplerName; 3] = [SamplerName::Ddpm, SamplerName::Ddim, SamplerName::Dpm];
+
+    /// The command-line name: `ddpm`, `ddim`, `dpm`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            SamplerName::Ddpm => "ddpm",
+            SamplerName::Ddim => "ddim",
+            SamplerName::Dpm => "dpm",
+        }
+    }
+
+    /// One line for a `--help` text.
+    pub fn help(self) -> &'static str {
+        match self {
+            SamplerName::Ddpm => "ancestral DDPM (stochastic)",
+            SamplerName::Ddim => "DDIM with eta = 0 (deterministic)",
+            SamplerName::Dpm => "DPM-Solver++(2M) (deterministic, good in 10-25 steps)",
+        }
+    }
+
+    /// The sampler with `steps` steps and no guidance: `ddpm` is [`SamplerConfig::ddpm`], `ddim`
+    /// [`SamplerConfig::ddim`] with `eta = 0`, `dpm` [`SamplerConfig::dpm_solver_pp_2m`].
+    pub fn config(self, steps: usize) -> SamplerConfig {
+        match self {
+            SamplerName::Ddpm => SamplerConfig::ddpm(steps),
+            SamplerName::Ddim => SamplerConfig::ddim(steps, 0.0),
+            SamplerName::Dpm => SamplerConfig::dpm_solver_pp_2m(steps),
+        }
+    }
+}
+
+impl std::fmt::Display for SamplerName {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for SamplerName {
+    type Err = crate::Error;
+
+    fn from_str(name: &str) -> Result<Self> {
+        SamplerName::ALL
+            .into_iter()
+            .find(|n| n.as_str() == name)
+            .ok_or_else(|| {
+                let names: Vec<&str> = SamplerName::ALL.map(SamplerName::as_str).into();
+                invalid(
+                    "sampler",
+                    format!("`{name}` is not one of {}", names.join(", ")),
+                )
+            })
+    }
 }
 
 /// The most sampler steps (network evaluations per branch) a [`SamplerConfig`] may ask for,
@@ -75,9 +166,6 @@ pub const MAX_STEPS: usize = 1000;
 /// beyond ~10 only amplify the difference of the two branches into saturated garbage (1e300 gave
 /// an empty scan).
 pub const MAX_GUIDANCE: f64 = 20.0;
-
-/// The samplers' command-line names, which [`SamplerConfig::named`] reads.
-pub const SAMPLER_NAMES: [&str; 3] = ["ddpm", "ddim", "dpm"];
 
 /// Sampler settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -127,21 +215,6 @@ impl SamplerConfig {
     /// asymptotically and can be better at 10 steps).
     pub fn dpm_solver_pp_2m(steps: usize) -> Self {
         Self::with_kind(SamplerKind::DpmSolverPp2M, steps)
-    }
-
-    /// The sampler a command line names (one of [`SAMPLER_NAMES`]): `ddpm` ([`Self::ddpm`]), `ddim`
-    /// (deterministic, [`Self::ddim`] with `eta = 0`) or `dpm` ([`Self::dpm_solver_pp_2m`]), with
-    /// `steps` steps and no guidance.
-    pub fn named(name: &str, steps: usize) -> Result<Self> {
-        match name {
-            "ddpm" => Ok(Self::ddpm(steps)),
-            "ddim" => Ok(Self::ddim(steps, 0.0)),
-            "dpm" => Ok(Self::dpm_solver_pp_2m(steps)),
-            other => Err(invalid(
-                "sampler",
-                format!("`{other}` is not one of {}", SAMPLER_NAMES.join(", ")),
-            )),
-        }
     }
 
     fn with_kind(kind: SamplerKind, steps: usize) -> Self {
