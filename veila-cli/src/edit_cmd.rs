@@ -311,8 +311,7 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
     let pb = progress::bar(args.samples as u64, "edit");
     pb.set_message(format!(
         "inpainting {regenerated} pixels, {} x {} steps",
-        sampler.kind.to_string(),
-        sampler.steps
+        sampler.kind, sampler.steps
     ));
     pb.enable_steady_tick(Duration::from_millis(250));
     let options = GenerateOptions {

@@ -131,11 +131,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
     };
     let batches = args.samples.div_ceil(SAMPLE_BATCH);
     let pb = progress::bar((sampler.steps * batches) as u64, "generate"); // <= 1000 * 12500
-    pb.set_message(format!(
-        "{} scan(s), {}",
-        args.samples,
-        sampler.kind.to_string()
-    ));
+    pb.set_message(format!("{} scan(s), {}", args.samples, sampler.kind));
     let (mut sampling_secs, mut writing_secs) = (0.0, 0.0);
     let mut records = Vec::new();
     for (b, (first, batch)) in options.batches(SAMPLE_BATCH).enumerate() {
