@@ -302,7 +302,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         summary.range_pixels_generated,
         summary.range_pixels_true,
         seconds_generation,
-        sampler.kind.to_string(),
+        sampler.kind,
         sampler.steps,
         sampler.guidance_scale
     );

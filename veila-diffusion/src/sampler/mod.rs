@@ -62,15 +62,6 @@ impl SamplerKind {
             SamplerKind::DpmSolverPp2M => "DPM-Solver++(2M)".into(),
         }
     }
-
-    /// The name a command line gives this rule.
-    pub fn name(&self) -> SamplerName {
-        match self {
-            SamplerKind::Ddpm { .. } => SamplerName::Ddpm,
-            SamplerKind::Ddim { .. } => SamplerName::Ddim,
-            SamplerKind::DpmSolverPp2M => SamplerName::Dpm,
-        }
-    }
 }
 
 /// The short label of logs and records: `ddpm`, `ddim (eta 0)`, `dpm-solver++(2m)`.
