@@ -504,7 +504,9 @@ fn generate<'py>(
         )));
     }
     let t = Mat4::from_cols_array_2d(&std::array::from_fn(|j| std::array::from_fn(|i| t[[i, j]])));
-    let camera = PinholeCamera::new(k34, t, w as u32, h as u32).map_err(value_err)?;
+    // a calibration handed in: checked as one read from a file is (positive focal lengths, the
+    // principal point in the image, sane offsets)
+    let camera = PinholeCamera::from_calibration(k34, t, w as u32, h as u32).map_err(value_err)?;
     if steps == Some(0) {
         return Err(value_err("steps must be at least 1"));
     }

@@ -312,6 +312,19 @@ def test_generate_checks_its_input(tmp_path):
         veila.generate(image, k, t, steps=0)
     with pytest.raises(ValueError, match="no-model"):
         veila.generate(image, k, t, steps=2, model_dir=tmp_path / "no-model")
+    # implausible calibrations are refused before the model is loaded, saying what is wrong
+    bad = k.copy()
+    bad[0, 0] = -bad[0, 0]
+    with pytest.raises(ValueError, match="focal lengths"):
+        veila.generate(image, bad, t, steps=2, model_dir=tmp_path / "no-model")
+    bad = k.copy()
+    bad[0, 2] = 1e7
+    with pytest.raises(ValueError, match="principal point"):
+        veila.generate(image, bad, t, steps=2, model_dir=tmp_path / "no-model")
+    far = t.copy()
+    far[0, 3] = 1e30
+    with pytest.raises(ValueError, match="translation"):
+        veila.generate(image, k, far, steps=2, model_dir=tmp_path / "no-model")
 
 
 def test_import_turns_candles_spinning_pool_off_unless_the_user_chose():

@@ -225,6 +225,9 @@ pub struct NuScenesSample {
     pub cameras: BTreeMap<String, NuScenesCameraCalib>,
     /// Annotated boxes (empty when the source has none).
     pub boxes: Vec<NuScenesBox>,
+    /// Where the sample was read from (its JSON file, or the release's `calibrated_sensor.json`):
+    /// what an error about its calibration names.
+    pub source: PathBuf,
 }
 
 impl NuScenesSample {
@@ -286,6 +289,7 @@ impl NuScenesSample {
                 .to_dmat4("ego2global_at_lidar_time", path)?,
             cameras,
             boxes,
+            source: path.to_path_buf(),
         })
     }
 
@@ -308,9 +312,11 @@ impl NuScenesSample {
         })?;
         // focal lengths, principal point and translation: `PinholeCamera::check_calibration`
         PinholeCamera::from_nuscenes(c.intrinsic, dmat4_to_mat4(&c.cam_from_lidar), width, height)
-            .map_err(|e| Error::Invalid {
-                what: "nuScenes camera".into(),
-                message: format!("sample {}, camera {channel}: {e}", self.token),
+            .map_err(|e| {
+                Error::format(
+                    &self.source,
+                    format!("sample {}, camera {channel}: {e}", self.token),
+                )
             })
     }
 }
@@ -637,6 +643,7 @@ impl NuScenesTables {
             global_from_ego: lidar_pose.to_matrix(),
             cameras,
             boxes: Vec::new(),
+            source: cs_path.clone(),
         })
     }
 

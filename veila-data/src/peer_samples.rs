@@ -178,6 +178,7 @@ fn read_npy<R: Read>(
     what: &str,
     budget: u64,
 ) -> Result<SampleArray> {
+    let reader = crate::npy::checked_npy_reader(reader, path, what)?;
     let npy = npyz::NpyFile::new(reader)
         .map_err(|e| Error::format(path, format!("{what}: not a valid .npy array: {e}")))?;
     let shape: Vec<usize> = npy.shape().iter().map(|&d| d as usize).collect();

@@ -86,10 +86,18 @@ impl CameraMatrices {
         }
     }
 
-    /// Back to a pinhole camera for an image of `width x height`.
+    /// Back to a pinhole camera for an image of `width x height`. The matrices come from a file (a
+    /// shard), so they are checked as a calibration is
+    /// ([`PinholeCamera::from_calibration`]: positive focal lengths, the principal point in the
+    /// image, sane offsets).
     pub fn to_camera(&self, width: u32, height: u32) -> Result<PinholeCamera> {
         let t = Mat4::from_cols_array_2d(&self.cam_from_lidar).transpose();
-        Ok(PinholeCamera::new(self.intrinsics, t, width, height)?)
+        Ok(PinholeCamera::from_calibration(
+            self.intrinsics,
+            t,
+            width,
+            height,
+        )?)
     }
 }
 
@@ -555,8 +563,9 @@ fn decode_sample<'a>(
     })
 }
 
-/// Read a shard file.
+/// Read a shard file (a regular file, links followed: a FIFO or device is refused unopened).
 pub fn read_shard(path: &Path) -> Result<Shard> {
+    crate::read_capped::check_regular_file(path)?;
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
     decode_shard(&bytes, path)
 }
@@ -578,10 +587,13 @@ pub struct ShardReader {
 }
 
 impl ShardReader {
-    /// Opens a shard and reads its header (at most 100 MB, as safetensors allows).
+    /// Opens a shard and reads its header (at most 100 MB, as safetensors allows). The shard must
+    /// be a regular file, links followed: a FIFO (which a downloaded archive can hold) would
+    /// block the open, a device never end; both are refused before opening.
     pub fn open(path: &Path) -> Result<Self> {
         use std::io::Seek;
         let fmt = |m: String| Error::format(path, m);
+        crate::read_capped::check_regular_file(path)?;
         let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
         let file_len = file.metadata().map_err(|e| Error::io(path, e))?.len();
         let mut n = [0u8; 8];
@@ -1155,5 +1167,22 @@ mod tests {
         let c = s.camera.unwrap();
         let cam = c.to_camera(1242, 375).unwrap();
         assert_eq!(CameraMatrices::from_camera(&cam), c);
+    }
+
+    #[test]
+    fn shard_cameras_are_checked_as_calibrations() {
+        let c = sample("a", &LidarSensor::hdl64e(), 0).camera.unwrap();
+        // a negative focal length (a camera `PinholeCamera::new` takes) and a principal point
+        // outside the image are refused, saying what is wrong
+        let mut neg = c;
+        neg.intrinsics[1][1] = -neg.intrinsics[1][1];
+        let e = neg.to_camera(1242, 375).unwrap_err().to_string();
+        assert!(e.contains("focal lengths"), "{e}");
+        let e = c.to_camera(100, 100).unwrap_err().to_string();
+        assert!(e.contains("principal point"), "{e}");
+        let mut far = c;
+        far.cam_from_lidar[0][3] = 1e30;
+        let e = far.to_camera(1242, 375).unwrap_err().to_string();
+        assert!(e.contains("translation"), "{e}");
     }
 }

@@ -69,40 +69,49 @@ impl PinholeCamera {
     /// Default near plane, metres.
     pub const DEFAULT_NEAR_M: f32 = 0.1;
 
-    /// A camera from a calibration file: [`Self::check_calibration`] first (so a bad value is
-    /// named as what it is), then [`Self::validate`].
-    fn from_calibration(
+    /// The camera of these matrices with the default near plane, unchecked: what [`Self::new`] and
+    /// [`Self::from_calibration`] build before their checks.
+    fn assemble(
         intrinsics_3x4: [[f32; 4]; 3],
         cam_from_lidar: Mat4,
         width: u32,
         height: u32,
-    ) -> Result<Self, GeomError> {
-        let cam = PinholeCamera {
+    ) -> Self {
+        PinholeCamera {
             intrinsics: rows3x4(intrinsics_3x4),
             cam_from_lidar,
             width,
             height,
             near_m: Self::DEFAULT_NEAR_M,
-        };
+        }
+    }
+
+    /// A camera from calibration data (a file, a shard, an array handed in by a user): a
+    /// row-major 3x4 `K` and `T = cam_from_lidar` for a `width x height` image, checked by
+    /// [`Self::check_calibration`] first (so a bad value is named as what it is), then by
+    /// [`Self::validate`]. The KITTI and nuScenes constructors build on it.
+    pub fn from_calibration(
+        intrinsics_3x4: [[f32; 4]; 3],
+        cam_from_lidar: Mat4,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, GeomError> {
+        let cam = Self::assemble(intrinsics_3x4, cam_from_lidar, width, height);
         cam.check_calibration()?;
         cam.validate()?;
         Ok(cam)
     }
 
-    /// Build from a row-major 3x4 `K` and `T = cam_from_lidar`; validates both.
+    /// Build from a row-major 3x4 `K` and `T = cam_from_lidar`; validates both
+    /// ([`Self::validate`]: finite, invertible). Matrices that come from calibration data take
+    /// [`Self::from_calibration`], which also checks that they are plausible.
     pub fn new(
         intrinsics_3x4: [[f32; 4]; 3],
         cam_from_lidar: Mat4,
         width: u32,
         height: u32,
     ) -> Result<Self, GeomError> {
-        let cam = PinholeCamera {
-            intrinsics: rows3x4(intrinsics_3x4),
-            cam_from_lidar,
-            width,
-            height,
-            near_m: Self::DEFAULT_NEAR_M,
-        };
+        let cam = Self::assemble(intrinsics_3x4, cam_from_lidar, width, height);
         cam.validate()?;
         Ok(cam)
     }
@@ -217,8 +226,9 @@ impl PinholeCamera {
     /// `(cx, cy)` inside the image `[0, W] x [0, H]` (a calibration made for the image puts it
     /// near the centre; outside, it belongs to an image of another size, or is corrupt); the
     /// translation of `T` and the offset in `K`'s fourth column each within
-    /// [`MAX_CAMERA_OFFSET_M`]. The constructors from KITTI and nuScenes calibrations
-    /// ([`Self::from_kitti`], [`Self::from_kitti_odometry`], [`Self::from_nuscenes`]) run it.
+    /// [`MAX_CAMERA_OFFSET_M`]. [`Self::from_calibration`] and the constructors from KITTI and
+    /// nuScenes calibrations ([`Self::from_kitti`], [`Self::from_kitti_odometry`],
+    /// [`Self::from_nuscenes`]) run it.
     pub fn check_calibration(&self) -> Result<(), GeomError> {
         let bad = |m: String| Err(GeomError::InvalidCamera(m));
         if !self.intrinsics.is_finite() || !self.cam_from_lidar.is_finite() {
@@ -386,6 +396,30 @@ mod tests {
         let mut k = P2;
         k[0][2] = 1e7;
         assert!(PinholeCamera::new(k, Mat4::IDENTITY, 1242, 375).is_err());
+    }
+
+    #[test]
+    fn from_calibration_checks_what_new_leaves_alone() {
+        let t = rows3x4(TR);
+        // a negative focal length is a valid (mirroring) camera, not a plausible calibration
+        let mut k = P2;
+        k[0][0] = -721.5377;
+        assert!(PinholeCamera::new(k, t, 1242, 375).is_ok());
+        let e = PinholeCamera::from_calibration(k, t, 1242, 375).unwrap_err();
+        assert!(e.to_string().contains("focal lengths"), "{e}");
+        // the same matrices build the same camera either way
+        let a = PinholeCamera::new(P2, t, 1242, 375).unwrap();
+        let b = PinholeCamera::from_calibration(P2, t, 1242, 375).unwrap();
+        assert_eq!(a, b);
+        assert_eq!(b, kitti(P2, TR).unwrap());
+        // validate's checks still run after the plausibility checks
+        let mut singular = t;
+        singular.x_axis = Vec4::ZERO;
+        let e = PinholeCamera::from_calibration(P2, singular, 1242, 375).unwrap_err();
+        assert!(
+            e.to_string().contains("rotation part of T is singular"),
+            "{e}"
+        );
     }
 
     #[test]

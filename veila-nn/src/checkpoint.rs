@@ -16,7 +16,8 @@ use crate::error::{Error, Result};
 use crate::unet::Denoiser;
 use crate::weights::tmp_path;
 pub use crate::weights::{
-    compare_tensors, read_checked_bytes, record_tensors, safetensors_bytes, sha256_hex,
+    MAX_WEIGHTS_FILE_BYTES, compare_tensors, read_checked_bytes, read_checked_float_bytes,
+    read_weights_file, record_tensors, safetensors_bytes, sha256_hex,
 };
 
 /// File name of the config inside a checkpoint directory.
@@ -102,8 +103,12 @@ pub fn save_varmap(dir: &Path, cfg: &DenoiserConfig, varmap: &VarMap) -> Result<
 /// Reads `config.json` of a checkpoint directory.
 pub fn read_config(dir: &Path) -> Result<DenoiserConfig> {
     let path = dir.join(CONFIG_FILE);
-    let text = std::fs::read_to_string(&path).map_err(io_err(&path))?;
-    let cfg: DenoiserConfig = serde_json::from_str(&text).map_err(|source| Error::Json {
+    let text = crate::weights::read_capped(
+        &path,
+        crate::weights::MAX_MODEL_JSON_BYTES,
+        "a checkpoint config",
+    )?;
+    let cfg: DenoiserConfig = serde_json::from_slice(&text).map_err(|source| Error::Json {
         path: path.clone(),
         source,
     })?;
@@ -121,7 +126,7 @@ pub fn read_checkpoint(
 ) -> Result<(DenoiserConfig, HashMap<String, Tensor>)> {
     let cfg = read_config(dir)?;
     let path = dir.join(WEIGHTS_FILE);
-    let bytes = std::fs::read(&path).map_err(io_err(&path))?;
+    let bytes = read_weights_file(&path)?;
     let tensors = read_checked_bytes(&bytes, &path, &expected_tensors(&cfg)?, device)?
         .into_iter()
         .map(|(k, v)| Ok((k, v.to_dtype(dtype)?)))

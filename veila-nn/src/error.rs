@@ -58,6 +58,16 @@ pub enum Error {
         source: serde_json::Error,
     },
 
+    /// A weights file was refused before it was read: not a regular file (a link to `/dev/zero`,
+    /// a FIFO, a directory), or larger than [`crate::weights::MAX_WEIGHTS_FILE_BYTES`].
+    #[error("refused: {message}: {}", path.display())]
+    Refused {
+        /// The file involved.
+        path: PathBuf,
+        /// Why it was refused.
+        message: String,
+    },
+
     /// A safetensors file could not be parsed or written.
     #[error("safetensors: {message}: {}", path.display())]
     SafeTensors {

@@ -34,6 +34,12 @@ pub const MAX_PARAMETERS: usize = 1 << 30;
 /// 3e38 (or infinite, or NaN) weight generated empty scans without a word.
 pub const MAX_ABS_WEIGHT: f32 = 1e8;
 
+/// The largest weights file (safetensors) read: [`MAX_PARAMETERS`] `f32` values and the largest
+/// header the safetensors parser takes (100 MB), about 4.1 GiB. A file that is larger holds more
+/// than any model may ask for (or lies in its header); it is refused from its length, before
+/// anything is read ([`read_weights_file`]).
+pub const MAX_WEIGHTS_FILE_BYTES: u64 = MAX_PARAMETERS as u64 * 4 + 100_000_000;
+
 /// The dtypes a weight tensor may be stored in when the model takes it in a float type: the IEEE
 /// float precisions (a published checkpoint may be in half precision; it is converted to the
 /// model's dtype). Integers, booleans and the 8-bit and microscaling floats are refused.
@@ -261,11 +267,73 @@ pub fn load_checked<T>(
     in_scope: impl Fn(&str) -> bool,
     build: impl Fn(VarBuilder<'static>) -> crate::Result<T>,
 ) -> crate::Result<T> {
-    let bytes = std::fs::read(path).map_err(|source| crate::Error::Io {
+    let bytes = read_weights_file(path)?;
+    load_checked_bytes(&bytes, path, dtype, device, in_scope, build)
+}
+
+/// The bytes of the weights file `path`, refused before anything is read unless it is, links
+/// followed, a regular file (not a link to `/dev/zero`, a FIFO or a device) of at most
+/// [`MAX_WEIGHTS_FILE_BYTES`]; at most that many bytes are read (a file that grows meanwhile is
+/// refused too). Every weights file this crate and its users load is read through it; the
+/// tensors are then checked by [`read_checked_bytes`] (or [`load_checked_bytes`]).
+///
+/// # Errors
+/// [`Error::Refused`] for a file of another kind or size, [`Error::Io`] when it cannot be read;
+/// both name the file.
+pub fn read_weights_file(path: &Path) -> Result<Vec<u8>> {
+    read_capped(path, MAX_WEIGHTS_FILE_BYTES, "a weights file")
+}
+
+/// The largest JSON file of a model this crate reads (a checkpoint's `config.json`, the feature
+/// networks' manifest and configs): 64 MiB, as `veila-data`'s cap of JSON metadata.
+pub(crate) const MAX_MODEL_JSON_BYTES: u64 = 64 << 20;
+
+/// The bytes of `path`, a regular file (links followed; checked on the path before it is opened,
+/// since opening a FIFO blocks, and again on the open file) of at most `cap` bytes; `what` names
+/// the kind of file, with its article, in errors.
+pub(crate) fn read_capped(path: &Path, cap: u64, what: &str) -> Result<Vec<u8>> {
+    use std::io::Read;
+    let io = |source| Error::Io {
         path: path.to_path_buf(),
         source,
-    })?;
-    load_checked_bytes(&bytes, path, dtype, device, in_scope, build)
+    };
+    let refused = |message: String| Error::Refused {
+        path: path.to_path_buf(),
+        message,
+    };
+    let check = |meta: &std::fs::Metadata| -> Result<()> {
+        if !meta.is_file() {
+            let kind = if meta.is_dir() {
+                "a directory"
+            } else {
+                "a FIFO, device or socket"
+            };
+            return Err(refused(format!(
+                "{what} must be a regular file, this is {kind}"
+            )));
+        }
+        if meta.len() > cap {
+            return Err(refused(format!(
+                "{} bytes, more than the cap of {cap} bytes for {what}",
+                meta.len()
+            )));
+        }
+        Ok(())
+    };
+    check(&std::fs::metadata(path).map_err(io)?)?;
+    let file = std::fs::File::open(path).map_err(io)?;
+    let meta = file.metadata().map_err(io)?;
+    check(&meta)?;
+    let mut bytes = Vec::with_capacity(usize::try_from(meta.len()).unwrap_or(0));
+    file.take(cap.saturating_add(1))
+        .read_to_end(&mut bytes)
+        .map_err(io)?;
+    if bytes.len() as u64 > cap {
+        return Err(refused(format!(
+            "grew past the cap of {cap} bytes for {what} while it was read"
+        )));
+    }
+    Ok(bytes)
 }
 
 /// [`load_checked`] on the bytes of a safetensors file already in memory (e.g. embedded in a
@@ -318,6 +386,28 @@ pub fn read_checked_bytes(
         |_| true,
         Stored::F32,
         DType::F32,
+        device,
+    )
+}
+
+/// [`read_checked_bytes`] for a file whose tensors may be stored in any IEEE float type (`f32`,
+/// `f16`, `bf16`, `f64`: a training checkpoint keeps its variables' own dtype), with the same
+/// checks (names and shapes against `expected`, finite values within [`MAX_ABS_WEIGHT`], before
+/// any tensor is made), converted to `dtype`.
+pub fn read_checked_float_bytes(
+    bytes: &[u8],
+    path: &Path,
+    expected: &BTreeMap<String, Vec<usize>>,
+    dtype: DType,
+    device: &Device,
+) -> Result<HashMap<String, Tensor>> {
+    read_checked_scoped(
+        bytes,
+        path,
+        expected,
+        |_| true,
+        Stored::Float,
+        dtype,
         device,
     )
 }

@@ -4,7 +4,6 @@
 #[cfg(feature = "augment")]
 mod augment;
 mod convert;
-mod fuzz_readers;
 #[cfg(feature = "sim")]
 mod learning_map;
 mod real_data;

@@ -394,3 +394,47 @@ fn truncated_jpeg_and_png_images_are_refused_naming_the_file() {
         }
     }
 }
+
+/// A shard that is a FIFO inside the manifest's folder (a downloaded archive can hold one) was
+/// opened, which blocks until a writer comes: refused unopened, by the manifest check, the shard
+/// reader and the whole-file reader.
+#[cfg(unix)]
+#[test]
+fn a_shard_that_is_a_fifo_is_refused_without_blocking() {
+    use veila_data::shard::{Manifest, ShardReader, read_shard};
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("shard-00000.safetensors");
+    match std::process::Command::new("mkfifo").arg(&p).status() {
+        Ok(s) if s.success() => {}
+        other => {
+            eprintln!("skipped: mkfifo is unavailable ({other:?})");
+            return;
+        }
+    }
+    let (tx, rx) = std::sync::mpsc::channel();
+    let (q, d) = (p.clone(), dir.path().to_path_buf());
+    std::thread::spawn(move || {
+        let manifest = serde_json::json!({
+            "format": veila_data::shard::MANIFEST_FORMAT, "dataset": "x",
+            "sensor": veila_geom::LidarSensor::hdl64e(), "frames_per_shard": 1, "count": 1,
+            "shards": [{"file": "shard-00000.safetensors", "count": 1, "bytes": 0,
+                        "sha256": "00", "ids": ["000000"]}],
+        });
+        let mp = d.join("manifest.json");
+        std::fs::write(&mp, manifest.to_string()).unwrap();
+        let _ = tx.send((
+            ShardReader::open(&q).map(drop).map_err(|e| e.to_string()),
+            read_shard(&q).map(drop).map_err(|e| e.to_string()),
+            Manifest::read(&mp).map(drop).map_err(|e| e.to_string()),
+        ));
+    });
+    let (a, b, c) = rx
+        .recv_timeout(std::time::Duration::from_secs(10))
+        .expect("blocked on the FIFO");
+    for e in [a.unwrap_err(), b.unwrap_err(), c.unwrap_err()] {
+        assert!(
+            e.contains("shard-00000.safetensors") && e.contains("(a FIFO)"),
+            "{e}"
+        );
+    }
+}

@@ -439,11 +439,9 @@ impl EncoderSpec {
     /// when the spec has one.
     pub fn load_at(&self, path: &Path, field: &str, device: &Device) -> Result<AnyEncoder> {
         let repo = self.kind.hub_repo().unwrap_or("-");
-        let bytes = fs::read(path).map_err(|source| Error::Io {
-            action: "reading encoder weights",
-            path: path.to_path_buf(),
-            source,
-        })?;
+        // a regular file under the weights cap, checked before anything is read (a pretrained
+        // encoder's file is the largest a bundle names: Depth-Anything-V2-Large is 1.3 GB)
+        let bytes = veila_nn::checkpoint::read_weights_file(path)?;
         if let Some(want) = &self.sha256 {
             let got = sha256_hex(&bytes);
             if !want.eq_ignore_ascii_case(&got) {
@@ -619,13 +617,9 @@ impl Bundle {
         let inside = |name: &str| -> Result<PathBuf> {
             Ok(contained(dir, Path::new(name), "bundle file", dir)?)
         };
+        // weights: regular files under veila-nn's cap, checked before reading
         let read = |name: &str| -> Result<Vec<u8>> {
-            let p = inside(name)?;
-            fs::read(&p).map_err(|source| Error::Io {
-                action: "reading bundle file",
-                path: p,
-                source,
-            })
+            Ok(veila_nn::checkpoint::read_weights_file(&inside(name)?)?)
         };
         let read_json = |name: &str| -> Result<Vec<u8>> {
             let what = format!("a bundle's {name}");
@@ -1057,7 +1051,7 @@ impl std::str::FromStr for Variant {
 }
 
 /// How a bundle turns noise into a scan: the methods the benchmark compares at equal training
-/// compute (see `BENCHMARKS.md`).
+/// compute (`docs/lab/method-sweep/report.md`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Method {
@@ -1075,7 +1069,8 @@ pub enum Method {
 
 impl Method {
     /// The method of the bundled model and of `veila train` / `cargo xtask train-default` unless
-    /// told otherwise: the one that measured best at equal training compute (`BENCHMARKS.md`).
+    /// told otherwise: the one that measured best at equal training compute
+    /// (`docs/lab/method-sweep/report.md`; issue 55 reranks them by realism).
     pub const DEFAULT: Method = Method::Residual;
 
     /// Every method, in benchmark order.

@@ -166,3 +166,50 @@ pub fn fused_adamw() -> std::sync::Arc<crate::trainer::FusedAdamW> {
         },
     )
 }
+
+/// The trainer's checkpoint reader ([`crate::trainer::TensorFileReader`]) with the checks a model
+/// bundle's weights get, by `veila-nn`'s one weights reader: a regular file under its size cap
+/// (checked before reading), its tensors exactly `expected` by name and shape, of a float dtype,
+/// finite and within [`veila_nn::weights::MAX_ABS_WEIGHT`], before any tensor is made; then
+/// converted to `dtype` on `device`.
+pub fn read_checkpoint_tensors(
+    path: &std::path::Path,
+    expected: &std::collections::BTreeMap<String, Vec<usize>>,
+    dtype: candle_core::DType,
+    device: &Device,
+) -> crate::Result<std::collections::HashMap<String, Tensor>> {
+    let bad = |reason: String| crate::Error::Checkpoint {
+        reason,
+        path: path.to_path_buf(),
+    };
+    let bytes = veila_nn::checkpoint::read_weights_file(path).map_err(|e| match e {
+        veila_nn::Error::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
+            bad("file missing".into())
+        }
+        e => e.into(),
+    })?;
+    veila_nn::checkpoint::read_checked_float_bytes(&bytes, path, expected, dtype, device).map_err(
+        |e| match e {
+            veila_nn::Error::CheckpointMismatch { report, .. } => bad(mismatch_reason(&report)),
+            veila_nn::Error::SafeTensors { message, .. } => {
+                bad(format!("reading safetensors: {message}"))
+            }
+            e => e.into(),
+        },
+    )
+}
+
+/// A tensor report in the words of a training checkpoint (every name, the file's shape first).
+fn mismatch_reason(r: &veila_nn::TensorReport) -> String {
+    let mis_shaped: Vec<String> = r
+        .mis_shaped
+        .iter()
+        .map(|(n, model, file)| format!("{n} {file:?} (model {model:?})"))
+        .collect();
+    format!(
+        "tensors do not match the model: missing [{}], unexpected [{}], mis-shaped [{}]",
+        r.missing.join(", "),
+        r.unexpected.join(", "),
+        mis_shaped.join(", ")
+    )
+}

@@ -232,29 +232,30 @@ pub struct Encoders {
     pub weights: HashMap<&'static str, HashMap<String, Tensor>>,
 }
 
-fn read_tensors(path: &Path) -> Result<HashMap<String, Tensor>> {
-    let bytes = std::fs::read(path).map_err(|source| Error::Io {
-        action: "reading encoder weights",
-        path: path.to_path_buf(),
-        source,
-    })?;
-    Ok(candle_core::safetensors::load_buffer(&bytes, &Device::Cpu)?)
-}
-
-fn load_cnn(c: &SmallCnnConfig, path: &Path, device: &Device) -> Result<SmallCnn> {
-    let bytes = std::fs::read(path).map_err(|source| Error::Io {
-        action: "reading encoder weights",
-        path: path.to_path_buf(),
-        source,
-    })?;
-    Ok(veila_nn::encoders::load_checked_bytes(
+/// A small CNN saved at `path` (a bundle's encoder file, or one this recipe wrote), with its
+/// weights by name (what [`Bundle::save`] takes). Read once, as a bundle's weights are: a regular
+/// file under veila-nn's cap, checked before reading, then its tensors against the network of `c`
+/// (names and shapes, a float dtype, finite, within `MAX_ABS_WEIGHT`) before any is made.
+fn read_cnn(
+    c: &SmallCnnConfig,
+    path: &Path,
+    device: &Device,
+) -> Result<(SmallCnn, HashMap<String, Tensor>)> {
+    let bytes = veila_nn::checkpoint::read_weights_file(path)?;
+    let expected = veila_nn::checkpoint::record_tensors(|vb| SmallCnn::new(c, vb).map(drop))?;
+    // any float dtype, as a bundle's own encoder files (`load_checked_bytes`), loaded as f32
+    let tensors = veila_nn::checkpoint::read_checked_float_bytes(
         &bytes,
         path,
+        &expected,
         DType::F32,
         device,
-        |_| true,
-        |vb| SmallCnn::new(c, vb),
-    )?)
+    )?;
+    let net = SmallCnn::new(
+        c,
+        candle_nn::VarBuilder::from_tensors(tensors.clone(), DType::F32, device),
+    )?;
+    Ok((net, tensors))
 }
 
 /// Stages 1 and 2: the encoders `config` asks for, semantic first. Pretrained encoders are read
@@ -330,8 +331,8 @@ pub fn prepare_encoders(
                 });
             }
             let path = dir.join(which.file());
-            out.weights.insert(which.file(), read_tensors(&path)?);
-            let net = load_cnn(c, &path, device)?;
+            let (net, tensors) = read_cnn(c, &path, device)?;
+            out.weights.insert(which.file(), tensors);
             put(&mut out, which, net.into());
         }
         return Ok(out);
@@ -342,9 +343,11 @@ pub fn prepare_encoders(
     let hw = (config.image_height, config.image_width);
     for (which, c) in small {
         let saved = dir.join(which.file());
-        let (net, tensors) = if saved.is_file() {
+        // anything at the path is reused and so checked (a link to a device or a FIFO is refused
+        // by the weights reader, never trained over)
+        let (net, tensors) = if saved.symlink_metadata().is_ok() {
             on_event(EncoderEvent::Reused(which, &saved));
-            (load_cnn(c, &saved, device)?, read_tensors(&saved)?)
+            read_cnn(c, &saved, device)?
         } else {
             if let EncoderData::Memory { labels: None, .. } = data
                 && c.semantic_head

@@ -596,7 +596,8 @@ where
     if let Some(p) = fit.parallel {
         trainer.set_communicator(p.communicator());
     }
-    let resumed: Option<PathBuf> = trainer.resume_latest(fit.checkpoint_dir)?;
+    let resumed: Option<PathBuf> =
+        trainer.resume_latest(fit.checkpoint_dir, super::nn::read_checkpoint_tensors)?;
     if let Some(p) = &resumed {
         on_resume(p, trainer.step());
     }

@@ -622,12 +622,16 @@ fn encoder_spec(
             kind.hub_repo().unwrap_or("-")
         )));
     };
-    let bytes = std::fs::read(path).map_err(|e| {
-        bad(format!(
-            "cannot read {} (download `model.safetensors` of {} from the Hugging Face Hub): {e}",
-            path.display(),
-            kind.hub_repo().unwrap_or("-")
-        ))
+    // a regular file under the weights cap, checked before anything is read
+    let bytes = veila_nn::checkpoint::read_weights_file(path).map_err(|e| {
+        let hint = match &e {
+            veila_nn::Error::Io { .. } => format!(
+                " (download `model.safetensors` of {} from the Hugging Face Hub)",
+                kind.hub_repo().unwrap_or("-")
+            ),
+            _ => String::new(),
+        };
+        bad(format!("cannot read {}{hint}: {e}", path.display()))
     })?;
     // check it now rather than after the data is loaded
     kind.load_pretrained(

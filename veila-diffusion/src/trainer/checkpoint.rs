@@ -8,9 +8,11 @@
 //! * `state.json`: [`CheckpointState`] (step, optimizer counter, RNG position, configs).
 //!
 //! It is written into a hidden temporary directory beside the final one and renamed into place,
-//! so a crash never leaves a partial checkpoint under a `step-*` name.
+//! so a crash never leaves a partial checkpoint under a `step-*` name. It is read back with the
+//! reader the caller hands in ([`TensorFileReader`]), which is told the exact names and shapes
+//! the model needs; the application's applies the checks a model bundle's weights get.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::fs;
 use std::path::{Path, PathBuf};
 
@@ -121,13 +123,17 @@ fn save_tensors(map: &HashMap<String, Tensor>, path: &Path) -> Result<()> {
         .map_err(io("syncing", path))
 }
 
-fn load_tensors(path: &Path, device: &candle_core::Device) -> Result<HashMap<String, Tensor>> {
-    if !path.is_file() {
-        return Err(bad(path, "file missing"));
-    }
-    candle_core::safetensors::load(path, device)
-        .map_err(|e| bad(path, format!("reading safetensors: {e}")))
-}
+/// Reads one tensor file of a checkpoint: the file at `path` must hold exactly `expected`
+/// (name -> shape), its values converted to `dtype` on `device`. The generic core takes the reader
+/// from its caller, which decides how strictly a file is checked; the application's is
+/// [`crate::app::nn::read_checkpoint_tensors`] (the checks a model bundle's weights get). A missing
+/// file should be an [`Error::Checkpoint`] saying so.
+pub type TensorFileReader = fn(
+    &Path,
+    &BTreeMap<String, Vec<usize>>,
+    candle_core::DType,
+    &candle_core::Device,
+) -> Result<HashMap<String, Tensor>>;
 
 /// The checkpoint directory name for `step`.
 /// Name of the run record [`claim_checkpoint_dir`] keeps in a checkpoint folder.
@@ -274,7 +280,8 @@ impl<M: Denoiser> Trainer<M> {
     /// the diffusion configuration must be the one this trainer uses. The trainer's current
     /// [`TrainConfig`] is kept (so a run can be continued with, e.g., more steps). Nothing is
     /// modified when validation fails.
-    pub fn load_checkpoint(&mut self, path: &Path) -> Result<()> {
+    /// Each tensor file is read by `read`, told the names and shapes it must hold.
+    pub fn load_checkpoint(&mut self, path: &Path, read: TensorFileReader) -> Result<()> {
         let state_path = path.join(STATE_FILE);
         let text =
             read_metadata_string(&state_path, MAX_JSON_METADATA_BYTES, "a checkpoint state")?;
@@ -300,20 +307,27 @@ impl<M: Denoiser> Trainer<M> {
             .first()
             .map(|v| v.device().clone())
             .unwrap_or(candle_core::Device::Cpu);
-        let model = load_tensors(&path.join(MODEL_FILE), &device)?;
-        let ema = load_tensors(&path.join(EMA_FILE), &device)?;
-        let opt = load_tensors(&path.join(OPT_FILE), &device)?;
-        self.check_names(&model, &path.join(MODEL_FILE))?;
-        self.check_names(&ema, &path.join(EMA_FILE))?;
+        // read in the variables' own dtype (an f64 model resumes exactly)
+        let dtype = self
+            .vars
+            .first()
+            .map(|v| v.dtype())
+            .unwrap_or(candle_core::DType::F32);
+        let weights: BTreeMap<String, Vec<usize>> = self
+            .names
+            .iter()
+            .zip(&self.vars)
+            .map(|(n, v)| (n.clone(), v.dims().to_vec()))
+            .collect();
+        let moments: BTreeMap<String, Vec<usize>> = weights
+            .iter()
+            .flat_map(|(n, d)| ["m", "v"].map(|p| (format!("{p}.{n}"), d.clone())))
+            .collect();
+        // every file validated before anything is touched
+        let model = read(&path.join(MODEL_FILE), &weights, dtype, &device)?;
+        let ema = read(&path.join(EMA_FILE), &weights, dtype, &device)?;
         let opt_path = path.join(OPT_FILE);
-        // validate the optimizer state before touching anything
-        for n in &self.names {
-            for prefix in ["m", "v"] {
-                if !opt.contains_key(&format!("{prefix}.{n}")) {
-                    return Err(bad(&opt_path, format!("missing {prefix}.{n}")));
-                }
-            }
-        }
+        let opt = read(&opt_path, &moments, dtype, &device)?;
         self.opt
             .load_state(&opt, state.optimizer_steps)
             .map_err(|e| bad(&opt_path, e.to_string()))?;
@@ -342,46 +356,13 @@ impl<M: Denoiser> Trainer<M> {
     }
 
     /// Loads the newest checkpoint in `dir`, if any, and returns its path.
-    pub fn resume_latest(&mut self, dir: &Path) -> Result<Option<PathBuf>> {
+    pub fn resume_latest(&mut self, dir: &Path, read: TensorFileReader) -> Result<Option<PathBuf>> {
         match find_latest_checkpoint(dir)? {
             Some(p) => {
-                self.load_checkpoint(&p)?;
+                self.load_checkpoint(&p, read)?;
                 Ok(Some(p))
             }
             None => Ok(None),
         }
-    }
-
-    fn check_names(&self, tensors: &HashMap<String, Tensor>, path: &Path) -> Result<()> {
-        let mut missing = Vec::new();
-        let mut mis_shaped = Vec::new();
-        for (n, v) in self.names.iter().zip(&self.vars) {
-            match tensors.get(n) {
-                None => missing.push(n.clone()),
-                Some(t) if t.dims() != v.dims() => {
-                    mis_shaped.push(format!("{n} {:?} (model {:?})", t.dims(), v.dims()))
-                }
-                Some(_) => {}
-            }
-        }
-        let mut unexpected: Vec<&String> =
-            tensors.keys().filter(|k| !self.names.contains(k)).collect();
-        unexpected.sort();
-        if missing.is_empty() && mis_shaped.is_empty() && unexpected.is_empty() {
-            return Ok(());
-        }
-        Err(bad(
-            path,
-            format!(
-                "tensors do not match the model: missing [{}], unexpected [{}], mis-shaped [{}]",
-                missing.join(", "),
-                unexpected
-                    .iter()
-                    .map(|s| s.as_str())
-                    .collect::<Vec<_>>()
-                    .join(", "),
-                mis_shaped.join(", ")
-            ),
-        ))
     }
 }

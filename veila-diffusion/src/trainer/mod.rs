@@ -50,7 +50,8 @@ mod lr;
 mod optim;
 
 pub use checkpoint::{
-    CheckpointState, RUN_RECORD_FILE, RngState, claim_checkpoint_dir, find_latest_checkpoint,
+    CheckpointState, RUN_RECORD_FILE, RngState, TensorFileReader, claim_checkpoint_dir,
+    find_latest_checkpoint,
 };
 pub use lr::LrSchedule;
 pub use optim::{AdamSlot, AdamW, FusedAdamW, ParamsAdamW};

@@ -1454,6 +1454,133 @@ fn trained_encoder_weights(
     Ok(all)
 }
 
+/// Encoder files a training run finds in its folder are read with a bundle's checks (issue 58):
+/// finite, within `MAX_ABS_WEIGHT`, of a float dtype, a regular file under the cap.
+#[test]
+fn reused_encoder_files_are_checked_as_a_bundles_are() {
+    use veila_diffusion::app::{EncoderData, EncoderSource, prepare_encoders};
+    let cfg = small_config(Variant::Full);
+    let data = EncoderFixture::new(&cfg);
+    let settings = encoder_settings(1, None);
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("encoders");
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut saved = HashMap::new();
+    for (file, spec) in [
+        (SEMANTIC_FILE, &cfg.semantic_encoder),
+        (DEPTH_FILE, &cfg.depth_encoder),
+    ] {
+        let vm = VarMap::new();
+        let c = spec.as_ref().unwrap().small_cnn_config().unwrap();
+        SmallCnn::new(
+            c,
+            veila_nn::seeded_var_builder(&vm, 9, DType::F32, &Device::Cpu),
+        )
+        .unwrap();
+        let t = varmap_tensors(&vm).unwrap();
+        let p = dir.join(file);
+        std::fs::write(&p, veila_nn::checkpoint::safetensors_bytes(&t, &p).unwrap()).unwrap();
+        saved.insert(file, t);
+    }
+    let prepare = |data: EncoderData<'_>| {
+        prepare_encoders(
+            &cfg,
+            EncoderSource::Train { data, dir: &dir },
+            &settings,
+            &Device::Cpu,
+            |_| {},
+        )
+    };
+    // the files are reused as they are
+    let e = prepare(data.memory(true)).unwrap();
+    let name = saved[SEMANTIC_FILE].keys().min().unwrap().clone();
+    let got = e.weights[SEMANTIC_FILE][&name].flatten_all().unwrap();
+    let want = saved[SEMANTIC_FILE][&name].flatten_all().unwrap();
+    assert_eq!(
+        got.to_vec1::<f32>().unwrap(),
+        want.to_vec1::<f32>().unwrap()
+    );
+    // a NaN or a 3e38 weight is refused naming the file and the tensor
+    let p = dir.join(SEMANTIC_FILE);
+    for (v, word) in [(f64::NAN, "must be finite"), (3e38, "beyond the limit")] {
+        let mut t = saved[SEMANTIC_FILE].clone();
+        let w = t.get_mut(&name).unwrap();
+        *w = (w.ones_like().unwrap() * v).unwrap();
+        candle_core::safetensors::save(&t, &p).unwrap();
+        let m = prepare(data.memory(true)).unwrap_err().to_string();
+        assert!(
+            m.contains(SEMANTIC_FILE) && m.contains(&name) && m.contains(word),
+            "{m}"
+        );
+    }
+    // a link to /dev/zero is refused unread
+    #[cfg(unix)]
+    {
+        std::fs::remove_file(&p).unwrap();
+        std::os::unix::fs::symlink("/dev/zero", &p).unwrap();
+        let t0 = std::time::Instant::now();
+        let m = prepare(data.memory(true)).unwrap_err().to_string();
+        assert!(
+            m.contains(SEMANTIC_FILE) && m.contains("regular file"),
+            "{m}"
+        );
+        assert!(t0.elapsed().as_secs() < 5);
+    }
+}
+
+/// Pretrained encoder weights are read only when they are a regular file under the cap, checked
+/// before anything is read (a 5 GB file was read whole, a link to /dev/zero until memory ran out).
+#[test]
+fn pretrained_weights_are_capped_before_reading() {
+    use veila_diffusion::app::bundle::EncoderSpec;
+    use veila_nn::encoders::kind::EncoderKind;
+    let tmp = tempfile::tempdir().unwrap();
+    let spec = EncoderSpec::pretrained(EncoderKind::SegFormer(0), "w.safetensors".into(), None);
+    let big = tmp.path().join("w.safetensors");
+    std::fs::File::create(&big)
+        .unwrap()
+        .set_len(veila_nn::checkpoint::MAX_WEIGHTS_FILE_BYTES + 1)
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    let m = spec
+        .load_at(&big, "semantic_encoder", &Device::Cpu)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        m.contains("w.safetensors") && m.contains("more than the cap"),
+        "{m}"
+    );
+    #[cfg(unix)]
+    {
+        let zero = tmp.path().join("zero.safetensors");
+        std::os::unix::fs::symlink("/dev/zero", &zero).unwrap();
+        let m = spec
+            .load_at(&zero, "semantic_encoder", &Device::Cpu)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            m.contains("zero.safetensors") && m.contains("regular file"),
+            "{m}"
+        );
+    }
+    assert!(t0.elapsed().as_secs() < 5, "{:?}", t0.elapsed());
+    // the training config's `[model] semantic_weights` is read the same way
+    let cfg_path = tmp.path().join("train.toml");
+    let mut file: veila_diffusion::app::train_config::TrainFile =
+        serde_json::from_value(serde_json::json!({
+            "data": {"shards": "s"},
+            "model": {"semantic_encoder": "segformer-b0", "semantic_weights": "w.safetensors"},
+            "output": {"dir": "out"},
+        }))
+        .unwrap();
+    file.resolve_and_check(&cfg_path).unwrap();
+    let m = file.bundle_config(&cfg_path).unwrap_err().to_string();
+    assert!(
+        m.contains("train.toml") && m.contains("w.safetensors") && m.contains("more than the cap"),
+        "{m}"
+    );
+}
+
 #[test]
 fn encoders_train_to_the_same_weights_from_a_source() {
     let cfg = small_config(Variant::Full);

@@ -7,6 +7,7 @@ use std::path::Path;
 use candle_core::{Device, Tensor};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+use veila_diffusion::app::nn::read_checkpoint_tensors;
 use veila_diffusion::noise::randn;
 use veila_diffusion::trainer::find_latest_checkpoint;
 use veila_diffusion::{
@@ -196,7 +197,9 @@ fn resume_is_exact() {
     let ckpt = find_latest_checkpoint(dir.path()).unwrap().unwrap();
     let mut c = trainer(6, "other_init");
     // different names: loading must fail and say which tensors do not match
-    let err = c.load_checkpoint(&ckpt).unwrap_err();
+    let err = c
+        .load_checkpoint(&ckpt, read_checkpoint_tensors)
+        .unwrap_err();
     assert!(matches!(err, Error::Checkpoint { .. }), "{err}");
     assert!(err.to_string().contains("missing [other_init."), "{err}");
     let (net, vm) = TinyNet::build_seeded(CFG, "net", 99);
@@ -206,7 +209,11 @@ fn resume_is_exact() {
         flat(&b.weights().unwrap()),
         "fresh trainer starts elsewhere"
     );
-    assert_eq!(c.resume_latest(dir.path()).unwrap(), Some(ckpt.clone()));
+    assert_eq!(
+        c.resume_latest(dir.path(), read_checkpoint_tensors)
+            .unwrap(),
+        Some(ckpt.clone())
+    );
     assert_eq!(c.step(), 3);
     let mut rec_c = Recorder::default();
     c.fit(&mut source, None, &mut rec_c).unwrap();
@@ -271,7 +278,8 @@ fn the_training_clock_survives_resume_and_skips_observer_time() {
     assert_eq!(state["train_seconds"].as_f64(), Some(s.clock.seconds));
 
     let mut c = trainer(4, "net");
-    c.resume_latest(dir.path()).unwrap();
+    c.resume_latest(dir.path(), read_checkpoint_tensors)
+        .unwrap();
     assert_eq!(c.clock(), s.clock, "the clock is restored");
     let s2 = c.fit(&mut slow_source, None, &mut ()).unwrap();
     assert!(s2.clock.seconds >= s.clock.seconds + 0.06, "{:?}", s2.clock);
@@ -284,7 +292,8 @@ fn the_training_clock_survives_resume_and_skips_observer_time() {
     obj.remove("clock_from_step");
     std::fs::write(ckpt.join("state.json"), serde_json::to_vec(&state).unwrap()).unwrap();
     let mut d = trainer(4, "net");
-    d.resume_latest(dir.path()).unwrap();
+    d.resume_latest(dir.path(), read_checkpoint_tensors)
+        .unwrap();
     assert_eq!(d.clock().from_step, 2);
     assert_eq!(d.clock().seconds, 0.0);
     let s3 = d.fit(&mut slow_source, None, &mut ()).unwrap();
@@ -348,11 +357,15 @@ fn checkpoints_are_atomic_complete_and_pruned() {
     // broken checkpoints are reported with the file, and leave the trainer untouched
     let before = flat(&t.weights().unwrap());
     std::fs::write(last.join("state.json"), b"{ not json").unwrap();
-    let err = t.load_checkpoint(&last).unwrap_err();
+    let err = t
+        .load_checkpoint(&last, read_checkpoint_tensors)
+        .unwrap_err();
     assert!(err.to_string().contains("state.json"), "{err}");
     let six = dir.path().join("step-0000000006");
     std::fs::remove_file(six.join("optimizer.safetensors")).unwrap();
-    let err = t.load_checkpoint(&six).unwrap_err();
+    let err = t
+        .load_checkpoint(&six, read_checkpoint_tensors)
+        .unwrap_err();
     assert!(err.to_string().contains("optimizer.safetensors"), "{err}");
     assert_eq!(flat(&t.weights().unwrap()), before);
     // a model of another shape: mis-shaped tensors are named
@@ -363,7 +376,9 @@ fn checkpoints_are_atomic_complete_and_pruned() {
         Trainer::new(n, v, diffusion(Prediction::V), config(7)).unwrap()
     };
     let good = t_good.save_checkpoint(&dir.path().join("other")).unwrap();
-    let err = t3.load_checkpoint(&good).unwrap_err();
+    let err = t3
+        .load_checkpoint(&good, read_checkpoint_tensors)
+        .unwrap_err();
     assert!(
         err.to_string()
             .contains("mis-shaped [net.cond.bias [24] (model [10])"),
@@ -373,11 +388,112 @@ fn checkpoints_are_atomic_complete_and_pruned() {
     let (n4, v4) = TinyNet::build(CFG, "net");
     let mut t4 = Trainer::new(n4, v4, diffusion(Prediction::Epsilon), config(7)).unwrap();
     assert!(
-        t4.load_checkpoint(&good)
+        t4.load_checkpoint(&good, read_checkpoint_tensors)
             .unwrap_err()
             .to_string()
             .contains("diffusion config")
     );
+}
+
+/// `file` of the checkpoint `ckpt` rewritten with `edit` applied to its tensors.
+fn tamper(ckpt: &Path, file: &str, edit: impl FnOnce(&mut HashMap<String, Tensor>)) {
+    let p = ckpt.join(file);
+    let mut t = candle_core::safetensors::load(&p, &Device::Cpu).unwrap();
+    edit(&mut t);
+    candle_core::safetensors::save(&t, &p).unwrap();
+}
+
+/// Checkpoint weights get the checks of a model bundle's (issue 58): a float dtype, finite values
+/// within `MAX_ABS_WEIGHT`, a regular file under the cap, named in the error; the trainer is left
+/// as it was.
+#[test]
+fn checkpoint_weights_are_checked_as_a_bundles_are() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = trainer(4, "net");
+    let good = t.save_checkpoint(dir.path()).unwrap();
+    let copy = |name: &str| -> std::path::PathBuf {
+        let to = dir.path().join(name);
+        std::fs::create_dir_all(&to).unwrap();
+        for e in std::fs::read_dir(&good).unwrap() {
+            let e = e.unwrap();
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+        to
+    };
+    let name = "net.conv_in.weight";
+    let mut fresh = trainer(4, "net");
+    let before = flat(&fresh.weights().unwrap());
+    let refused = |fresh: &mut Trainer<TinyNet>, ckpt: &Path, words: &[&str]| {
+        let e = fresh
+            .load_checkpoint(ckpt, read_checkpoint_tensors)
+            .unwrap_err()
+            .to_string();
+        for w in words {
+            assert!(e.contains(w), "`{w}` not in: {e}");
+        }
+    };
+    // a NaN, a 3e38 and an integer tensor in the weights, the EMA and the optimizer state
+    let nan = copy("nan");
+    tamper(&nan, "model.safetensors", |m| {
+        let w = m.get_mut(name).unwrap();
+        *w = (w.ones_like().unwrap() * f64::NAN).unwrap();
+    });
+    refused(
+        &mut fresh,
+        &nan,
+        &["model.safetensors", name, "must be finite"],
+    );
+    let huge = copy("huge");
+    tamper(&huge, "ema.safetensors", |m| {
+        let w = m.get_mut(name).unwrap();
+        *w = (w.ones_like().unwrap() * 3e38).unwrap();
+    });
+    refused(
+        &mut fresh,
+        &huge,
+        &["ema.safetensors", name, "beyond the limit"],
+    );
+    let ints = copy("ints");
+    let moment = format!("v.{name}");
+    tamper(&ints, "optimizer.safetensors", |m| {
+        let w = m.get_mut(&moment).unwrap();
+        *w = w.to_dtype(candle_core::DType::U8).unwrap();
+    });
+    refused(
+        &mut fresh,
+        &ints,
+        &["optimizer.safetensors", &moment, "stored as U8"],
+    );
+    // an optimizer state with a tensor the model lacks is a mismatch, as the weights' are
+    let extra = copy("extra");
+    tamper(&extra, "optimizer.safetensors", |m| {
+        let w = m[&moment].clone();
+        m.insert("m.net.ghost".into(), w);
+    });
+    refused(
+        &mut fresh,
+        &extra,
+        &["optimizer.safetensors", "unexpected [m.net.ghost]"],
+    );
+    // a link to /dev/zero is refused unread, at once
+    #[cfg(unix)]
+    {
+        let zero = copy("zero");
+        std::fs::remove_file(zero.join("ema.safetensors")).unwrap();
+        std::os::unix::fs::symlink("/dev/zero", zero.join("ema.safetensors")).unwrap();
+        let t0 = std::time::Instant::now();
+        refused(&mut fresh, &zero, &["ema.safetensors", "regular file"]);
+        assert!(t0.elapsed().as_secs() < 5);
+    }
+    assert_eq!(
+        flat(&fresh.weights().unwrap()),
+        before,
+        "nothing was loaded"
+    );
+    fresh
+        .load_checkpoint(&good, read_checkpoint_tensors)
+        .unwrap();
+    assert_eq!(flat(&fresh.weights().unwrap()), flat(&t.weights().unwrap()));
 }
 
 #[test]

@@ -157,10 +157,16 @@ impl FeatureNets {
         let mut files = Vec::new();
         for name in [MANIFEST].iter().chain(BUNDLE_FILES.iter()) {
             let path = dir.join(name);
-            let bytes = std::fs::read(&path).map_err(|source| Error::Io {
-                path: path.clone(),
-                source,
-            })?;
+            // regular files under a cap, checked before reading (a link to /dev/zero, a FIFO)
+            let bytes = if name.ends_with(".safetensors") {
+                crate::weights::read_weights_file(&path)?
+            } else {
+                crate::weights::read_capped(
+                    &path,
+                    crate::weights::MAX_MODEL_JSON_BYTES,
+                    "a feature-network bundle file",
+                )?
+            };
             files.push((path, bytes));
         }
         Self::from_paths(files, device)

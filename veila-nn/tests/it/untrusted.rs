@@ -472,3 +472,174 @@ fn the_time_input_scale_is_bounded() {
     cfg.time.input_scale = veila_nn::config::MAX_TIME_INPUT_SCALE;
     cfg.validate().unwrap();
 }
+
+// ------------------------------------------------------------------------------------------------
+// issue 58, case 8: weights files are regular files under a cap, checked before they are read
+
+/// A FIFO at `p` (`mkfifo`), or `false` where the tool is missing.
+fn make_fifo(p: &std::path::Path) -> bool {
+    match std::process::Command::new("mkfifo").arg(p).status() {
+        Ok(s) if s.success() => true,
+        other => {
+            eprintln!("skipped the FIFO case: mkfifo is unavailable ({other:?})");
+            false
+        }
+    }
+}
+
+/// The message of a refusal (panics on success or on another error).
+fn refused<T: std::fmt::Debug>(r: veila_nn::Result<T>) -> String {
+    match r {
+        Err(e @ Error::Refused { .. }) => e.to_string(),
+        other => panic!("expected a refusal, got {other:?}"),
+    }
+}
+
+#[test]
+fn weights_files_are_refused_unread_unless_regular_and_under_the_cap() {
+    use veila_nn::weights::{MAX_WEIGHTS_FILE_BYTES, read_weights_file};
+    let dir = tempfile::tempdir().unwrap();
+    // a regular file reads back whole
+    let ok = dir.path().join("ok.safetensors");
+    std::fs::write(&ok, b"0123456789").unwrap();
+    assert_eq!(read_weights_file(&ok).unwrap(), b"0123456789");
+    // a sparse file one byte over the cap: refused from its length (reading it would take
+    // 4 GiB and seconds)
+    let big = dir.path().join("big.safetensors");
+    std::fs::File::create(&big)
+        .unwrap()
+        .set_len(MAX_WEIGHTS_FILE_BYTES + 1)
+        .unwrap();
+    let m = within_seconds({
+        let big = big.clone();
+        move || refused(read_weights_file(&big))
+    });
+    assert!(
+        m.contains("big.safetensors") && m.contains("more than the cap"),
+        "{m}"
+    );
+    // a link to /dev/zero reads forever, a FIFO blocks, a directory is none
+    #[cfg(unix)]
+    {
+        let zero = dir.path().join("zero.safetensors");
+        std::os::unix::fs::symlink("/dev/zero", &zero).unwrap();
+        let m = within_seconds(move || refused(read_weights_file(&zero)));
+        assert!(
+            m.contains("zero.safetensors") && m.contains("regular file"),
+            "{m}"
+        );
+        let fifo = dir.path().join("fifo.safetensors");
+        if make_fifo(&fifo) {
+            let m = within_seconds(move || refused(read_weights_file(&fifo)));
+            assert!(m.contains("fifo.safetensors") && m.contains("FIFO"), "{m}");
+        }
+    }
+    let m = refused(read_weights_file(dir.path()));
+    assert!(m.contains("directory"), "{m}");
+    // and every loader reads through it: a checkpoint whose weights or config are links to
+    // /dev/zero, an encoder file over the cap
+    #[cfg(unix)]
+    {
+        let ckpt = dir.path().join("ckpt");
+        std::fs::create_dir(&ckpt).unwrap();
+        std::os::unix::fs::symlink("/dev/zero", ckpt.join("config.json")).unwrap();
+        let c = ckpt.clone();
+        let m = within_seconds(move || {
+            refused(veila_nn::checkpoint::read_checkpoint(
+                &c,
+                candle_core::DType::F32,
+                &candle_core::Device::Cpu,
+            ))
+        });
+        assert!(m.contains("config.json"), "{m}");
+        let (cfg, _) = tiny_denoiser();
+        std::fs::remove_file(ckpt.join("config.json")).unwrap();
+        std::fs::write(ckpt.join("config.json"), serde_json::to_vec(&cfg).unwrap()).unwrap();
+        std::os::unix::fs::symlink("/dev/zero", ckpt.join("model.safetensors")).unwrap();
+        let m = within_seconds(move || {
+            refused(veila_nn::checkpoint::read_checkpoint(
+                &ckpt,
+                candle_core::DType::F32,
+                &candle_core::Device::Cpu,
+            ))
+        });
+        assert!(m.contains("model.safetensors"), "{m}");
+    }
+    let cfg = SmallCnnConfig::default();
+    let m = within_seconds(move || {
+        refused(veila_nn::encoders::load_checked(
+            &big,
+            candle_core::DType::F32,
+            &candle_core::Device::Cpu,
+            |_| true,
+            |vb| veila_nn::encoders::small_cnn::SmallCnn::new(&cfg, vb),
+        ))
+    });
+    assert!(m.contains("big.safetensors"), "{m}");
+}
+
+#[test]
+fn float_checkpoints_load_in_the_dtype_asked_with_the_bundles_checks() {
+    use safetensors::Dtype;
+    let (_, expected) = tiny_denoiser();
+    let target = expected.keys().next().unwrap().clone();
+    let path = std::path::Path::new("/runs/x/step-0000000010/model.safetensors");
+    let read = |bytes: &[u8], dtype: candle_core::DType| {
+        veila_nn::weights::read_checked_float_bytes(
+            bytes,
+            path,
+            &expected,
+            dtype,
+            &candle_core::Device::Cpu,
+        )
+    };
+    // f64 weights stay f64 when asked (a resumed f64 run is exact), f16 ones convert
+    let f64s = weights_with(&expected, &target, Dtype::F64, &|n| {
+        (0..n).flat_map(|_| 0.1f64.to_le_bytes()).collect()
+    });
+    let t = read(&f64s, candle_core::DType::F64).unwrap();
+    assert_eq!(t[&target].dtype(), candle_core::DType::F64);
+    let v = t[&target].flatten_all().unwrap().to_vec1::<f64>().unwrap();
+    assert!(v.iter().all(|x| *x == 0.1), "{:?}", &v[..4]);
+    let f16 = weights_with(&expected, &target, Dtype::F16, &|n| {
+        (0..n).flat_map(|_| 0x3c00u16.to_le_bytes()).collect()
+    });
+    let t = read(&f16, candle_core::DType::F32).unwrap();
+    assert_eq!(t[&target].dtype(), candle_core::DType::F32);
+    // refused as a bundle's weights are: integers, NaN, too large, a missing tensor
+    let cases: [(Vec<u8>, &str); 3] = [
+        (
+            weights_with(&expected, &target, Dtype::I64, &|n| vec![0; 8 * n]),
+            "stored as I64",
+        ),
+        (
+            weights_with(&expected, &target, Dtype::F32, &f32s(f32::NAN)),
+            "must be finite",
+        ),
+        (
+            weights_with(&expected, &target, Dtype::F32, &f32s(3e38)),
+            "beyond the limit",
+        ),
+    ];
+    for (bytes, word) in cases {
+        let m = read(&bytes, candle_core::DType::F32)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            m.contains(word) && m.contains(&target) && m.contains("model.safetensors"),
+            "{m}"
+        );
+    }
+    let mut fewer = expected.clone();
+    fewer.insert("extra.weight".into(), vec![2]);
+    let good = weights_with(&expected, &target, Dtype::F32, &f32s(0.5));
+    let e = veila_nn::weights::read_checked_float_bytes(
+        &good,
+        path,
+        &fewer,
+        candle_core::DType::F32,
+        &candle_core::Device::Cpu,
+    )
+    .unwrap_err();
+    assert!(matches!(e, Error::CheckpointMismatch { .. }), "{e}");
+}

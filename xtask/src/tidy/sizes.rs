@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 pub(super) const CLI_MAX_LINES: usize = 600;
 
 /// The `.rs` files under `dir`, recursively, sorted.
-fn rust_files(dir: &Path) -> Vec<PathBuf> {
+pub(super) fn rust_files(dir: &Path) -> Vec<PathBuf> {
     let mut out = Vec::new();
     let mut stack = vec![dir.to_path_buf()];
     while let Some(d) = stack.pop() {

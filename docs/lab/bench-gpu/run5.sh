@@ -6,9 +6,9 @@
 # checkpointing, at batch 1 and 8 (per-sample memory = the slope). One tar back.
 #
 #   here:   cargo xtask build-cuda --xtask --pack        # target/cuda/{veila,xtask}-cuda.xz
-#   there:  bash docs/bench-gpu/run5.sh                  # carry target/cuda; at most 9.5 minutes
+#   there:  bash docs/lab/bench-gpu/run5.sh                  # carry target/cuda; at most 9.5 minutes
 set -u
-cd "$(dirname "$0")/../.."
+cd "$(dirname "$0")/../../.."
 G=target/cuda
 R=$OUT/r; mkdir -p "$R"
 for b in veila xtask; do xz -dc -T0 "$G/$b-cuda.xz" > "$G/$b" && chmod +x "$G/$b"; done

@@ -3,7 +3,7 @@
 set -u
 T0=$(date +%s)
 G=target/gpu
-cd "$(dirname "$0")/../.."
+cd "$(dirname "$0")/../../.."
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv > $OUT/gpu.txt 2>&1
 for b in veila xtask; do xz -dc -T0 $G/$b-cuda.xz > $G/$b && chmod +x $G/$b; done
 LIBS=$(python3 - <<'PY'

@@ -3,7 +3,7 @@
 # PyTorch in strict f32 and in TF32; one tar back
 set -u
 G=target/gpu
-cd "$(dirname "$0")/../.."
+cd "$(dirname "$0")/../../.."
 R=$OUT/r; mkdir -p $R
 for b in veila xtask; do xz -dc -T0 $G/$b-cudnn.xz > $G/$b && chmod +x $G/$b; done
 PY=$(command -v python3)

@@ -3,7 +3,7 @@
 # xtask/scripts/torch_yardstick.py), on the H200 and on its 16 CPU cores; one tar back
 set -u
 G=target/gpu
-cd "$(dirname "$0")/../.."
+cd "$(dirname "$0")/../../.."
 R=$OUT/r; mkdir -p $R
 xz -dc -T0 $G/xtask-cuda.xz > $G/xtask && chmod +x $G/xtask
 PY=$(command -v python3)

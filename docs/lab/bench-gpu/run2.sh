@@ -4,7 +4,7 @@
 set -u
 T0=$(date +%s)
 G=target/gpu
-cd "$(dirname "$0")/../.."
+cd "$(dirname "$0")/../../.."
 R=$OUT/r; mkdir -p $R
 xz -dc -T0 $G/veila-cuda.xz > $G/veila && chmod +x $G/veila
 LIBS=$(python3 -c "import site,glob,os;print(':'.join(sorted({d for sp in site.getsitepackages() for d in glob.glob(os.path.join(sp,'nvidia','*','lib'))})))")
