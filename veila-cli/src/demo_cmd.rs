@@ -51,6 +51,9 @@ pub(crate) struct DemoArgs {
     /// Model bundle folder (default: $VEILA_MODEL, else the bundled models/default).
     #[arg(long, value_name = "DIR", env = "VEILA_MODEL")]
     checkpoint: Option<PathBuf>,
+    /// Where the sampler's steps lie on the noise schedule (default: the bundle's).
+    #[arg(long, value_parser = crate::generation::spacing_parser())]
+    spacing: Option<veila_diffusion::Spacing>,
     /// Sampler steps, 1 to 1000 (default: the bundle's).
     #[arg(long, value_name = "N", value_parser = crate::bounds::steps())]
     steps: Option<usize>,
@@ -138,7 +141,15 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         .map_err(|e| anyhow::anyhow!("--weather {}: {e}", args.weather))?;
     let device = model::device()?;
     let bundle = model::load_bundle(args.checkpoint.as_deref(), &device)?;
-    let sampler = generation::resolve_sampler(&bundle, None, args.steps, args.guidance)?;
+    let sampler = generation::resolve_sampler(
+        &bundle,
+        generation::SamplerFlags {
+            spacing: args.spacing,
+            steps: args.steps,
+            guidance: args.guidance,
+            ..Default::default()
+        },
+    )?;
     generation::check_residual_weight(args.residual_weight, Some(&bundle))?;
     let mut inputs = staging::Inputs::new();
     inputs.add_opt(args.scene.as_ref());

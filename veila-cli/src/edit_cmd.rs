@@ -20,9 +20,9 @@ use veila_diffusion::{RepaintConfig, SamplerConfig, SamplerKind, SamplerName};
 use veila_geom::{ProjectionOptions, Projector, RangeImage, RayTable};
 
 use crate::generation::{
-    InputInfo, ModelInfo, RigArgs, SAMPLE_BATCH, ScanRecord, Seconds, check_guidance, check_steps,
-    inpainting_sampler_help, input_info, is_generate_output, load_rig, model_info, range_preview,
-    resolve_sampler, sampler_parser, write_scan,
+    InputInfo, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerFlags, ScanRecord, Seconds, check_guidance,
+    check_steps, inpainting_sampler_help, input_info, is_generate_output, load_rig, model_info,
+    range_preview, resolve_sampler, sampler_parser, write_scan,
 };
 use crate::{model, progress, staging};
 
@@ -54,6 +54,9 @@ pub(crate) struct EditArgs {
     // the help names the bundled model's sampler as its bundle.json does
     #[arg(long, value_parser = sampler_parser(), help = inpainting_sampler_help())]
     sampler: Option<SamplerName>,
+    /// Where the sampler's steps lie on the noise schedule (default: the bundle's).
+    #[arg(long, value_parser = crate::generation::spacing_parser())]
+    spacing: Option<veila_diffusion::Spacing>,
     /// Sampler steps, 1 to 1000 (default: the bundle's).
     #[arg(long, value_name = "N", value_parser = crate::bounds::steps())]
     steps: Option<usize>,
@@ -266,7 +269,15 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
     let views = load_rig(&args.rig)?;
     let device = model::device()?;
     let bundle = model::load_bundle(args.checkpoint.as_deref(), &device)?;
-    let mut sampler = resolve_sampler(&bundle, args.sampler, args.steps, args.guidance)?;
+    let mut sampler = resolve_sampler(
+        &bundle,
+        SamplerFlags {
+            name: args.sampler,
+            spacing: args.spacing,
+            steps: args.steps,
+            guidance: args.guidance,
+        },
+    )?;
     if matches!(sampler.kind, SamplerKind::DpmSolverPp2M) {
         // the bundle's default: keep steps and guidance, switch to deterministic DDIM
         sampler = SamplerConfig {

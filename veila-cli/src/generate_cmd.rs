@@ -21,9 +21,9 @@ use veila_diffusion::app::{GenerateOptions, ScanPipeline};
 use veila_diffusion::{SamplerConfig, SamplerName};
 
 use crate::generation::{
-    InputInfo, MAX_SAMPLES, ModelInfo, RigArgs, SAMPLE_BATCH, ScanRecord, Seconds, check_guidance,
-    check_residual_weight, check_steps, input_info, is_generate_output, load_rig, model_info,
-    resolve_sampler, round3, sampler_help, sampler_parser, write_scan,
+    InputInfo, MAX_SAMPLES, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerFlags, ScanRecord, Seconds,
+    check_guidance, check_residual_weight, check_steps, input_info, is_generate_output, load_rig,
+    model_info, resolve_sampler, round3, sampler_help, sampler_parser, write_scan,
 };
 use crate::{model, progress, staging};
 
@@ -38,6 +38,9 @@ pub(crate) struct GenerateArgs {
     // the help names the bundled model's sampler as its bundle.json does
     #[arg(long, value_parser = sampler_parser(), help = sampler_help())]
     pub(crate) sampler: Option<SamplerName>,
+    /// Where the sampler's steps lie on the noise schedule (default: the bundle's).
+    #[arg(long, value_parser = crate::generation::spacing_parser())]
+    pub(crate) spacing: Option<veila_diffusion::Spacing>,
     /// Sampler steps (network evaluations per conditioning branch, 1 to 1000; default: the
     /// bundle's).
     #[arg(long, value_name = "N", value_parser = crate::bounds::steps())]
@@ -113,7 +116,15 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
     // the model first: whether 0 sampler steps are allowed depends on it
     let device = model::device()?;
     let bundle = model::load_bundle(args.checkpoint.as_deref(), &device)?;
-    let sampler = resolve_sampler(&bundle, args.sampler, args.steps, args.guidance)?;
+    let sampler = resolve_sampler(
+        &bundle,
+        SamplerFlags {
+            name: args.sampler,
+            spacing: args.spacing,
+            steps: args.steps,
+            guidance: args.guidance,
+        },
+    )?;
     check_residual_weight(args.residual_weight, Some(&bundle))?;
     let views = load_rig(&args.rig)?;
     let pipeline = ScanPipeline::from_views(&bundle, &views)?;

@@ -20,7 +20,7 @@ use veila_diffusion::app::bundle::{Bundle, DENOISER_FILE, Manifest, sha256_hex};
 use veila_diffusion::app::rig::point_colours;
 use veila_diffusion::app::{RigView, Scan, load_view};
 pub(crate) use veila_diffusion::{MAX_GUIDANCE, MAX_STEPS};
-use veila_diffusion::{SamplerConfig, SamplerName};
+use veila_diffusion::{SamplerConfig, SamplerName, Spacing};
 
 use crate::model;
 
@@ -49,6 +49,13 @@ pub(crate) fn sampler_parser() -> impl TypedValueParser<Value = SamplerName> {
         SamplerName::ALL.map(|n| PossibleValue::new(n.as_str()).help(n.help())),
     )
     .try_map(|name| name.parse::<SamplerName>())
+}
+
+/// `--spacing`'s parser: the choices (with their help) are the library's one list,
+/// [`Spacing::ALL`].
+pub(crate) fn spacing_parser() -> impl TypedValueParser<Value = Spacing> {
+    PossibleValuesParser::new(Spacing::ALL.map(|s| PossibleValue::new(s.as_str()).help(s.help())))
+        .try_map(|name| name.parse::<Spacing>())
 }
 
 /// Reads every image and its camera (errors name the file and the problem).
@@ -84,15 +91,29 @@ pub(crate) fn load_rig(rig: &RigArgs) -> Result<Vec<RigView>> {
     Ok(views)
 }
 
-/// The sampler: the bundle's unless `name` is given; `steps` and `guidance` (the flags) override.
-/// The bundle's own values were checked against the same bounds when it was loaded (an error
-/// there names `bundle.json` and the field); a flag's error names the flag.
-pub(crate) fn resolve_sampler(
-    bundle: &Bundle,
-    name: Option<SamplerName>,
-    flag_steps: Option<usize>,
-    guidance: Option<f64>,
-) -> Result<SamplerConfig> {
+/// The sampler flags `generate`, `edit` and `demo` share.
+#[derive(Debug, Clone, Copy, Default)]
+pub(crate) struct SamplerFlags {
+    /// `--sampler` (`None`: the bundle's).
+    pub(crate) name: Option<SamplerName>,
+    /// `--spacing` (`None`: the bundle's, or the named sampler's default).
+    pub(crate) spacing: Option<Spacing>,
+    /// `--steps`.
+    pub(crate) steps: Option<usize>,
+    /// `--guidance`.
+    pub(crate) guidance: Option<f64>,
+}
+
+/// The sampler: the bundle's unless `--sampler` is given; `--spacing`, `--steps` and
+/// `--guidance` override. The bundle's own values were checked against the same bounds when it
+/// was loaded (an error there names `bundle.json` and the field); a flag's error names the flag.
+pub(crate) fn resolve_sampler(bundle: &Bundle, flags: SamplerFlags) -> Result<SamplerConfig> {
+    let SamplerFlags {
+        name,
+        spacing,
+        steps: flag_steps,
+        guidance,
+    } = flags;
     let base = &bundle.config.sampler;
     if let Some(steps) = flag_steps {
         if steps == 0 && bundle.config.residual.is_none() {
@@ -112,6 +133,9 @@ pub(crate) fn resolve_sampler(
         },
         Some(name) => name.config(steps),
     };
+    if let Some(spacing) = spacing {
+        cfg.spacing = spacing;
+    }
     cfg.guidance_scale = base.guidance_scale;
     if let Some(g) = guidance {
         check_guidance(g)?;
@@ -128,7 +152,7 @@ pub(crate) fn resolve_sampler(
     }
     cfg.validate().with_context(|| {
         format!(
-            "the sampler settings of --sampler / --steps / --guidance over the bundle's (`sampler` of {})",
+            "the sampler settings of --sampler / --spacing / --steps / --guidance over the bundle's (`sampler` of {})",
             bundle.origin.join(veila_diffusion::app::bundle::CONFIG_FILE).display()
         )
     })?;

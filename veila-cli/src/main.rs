@@ -288,6 +288,37 @@ mod tests {
         );
     }
 
+    /// Every `--spacing` of every command offers exactly the library's spacings
+    /// ([`veila_diffusion::Spacing::ALL`]), in its order.
+    #[test]
+    fn every_spacing_option_offers_the_librarys_spacings() {
+        let library: Vec<String> = veila_diffusion::Spacing::ALL
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        let mut doors = Vec::new();
+        for sub in cli_command().get_subcommands() {
+            for arg in sub.get_arguments() {
+                if arg.get_long() != Some("spacing") {
+                    continue;
+                }
+                let offered: Vec<String> = arg
+                    .get_possible_values()
+                    .iter()
+                    .map(|v| v.get_name().to_string())
+                    .collect();
+                assert_eq!(offered, library, "`veila {} --spacing`", sub.get_name());
+                doors.push(sub.get_name().to_string());
+            }
+        }
+        doors.sort();
+        assert_eq!(
+            doors,
+            ["demo", "edit", "generate"],
+            "the commands with --spacing"
+        );
+    }
+
     /// The first "LO to HI" of a help text, as written.
     fn stated_range(help: &str) -> Option<(String, String)> {
         let words: Vec<&str> = help.split_whitespace().collect();

@@ -545,5 +545,62 @@ pub enum Spacing {
     LogSnr,
 }
 
+impl Spacing {
+    /// Every spacing, in the order help texts list them: the one list the doors' `--spacing`
+    /// choices are built from.
+    pub const ALL: [Spacing; 4] = [
+        Spacing::Trailing,
+        Spacing::Leading,
+        Spacing::Linspace,
+        Spacing::LogSnr,
+    ];
+
+    /// The name a command line, a config and a bundle use (`trailing`, `leading`, `linspace`,
+    /// `log_snr`: the serialized name).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Spacing::Trailing => "trailing",
+            Spacing::Leading => "leading",
+            Spacing::Linspace => "linspace",
+            Spacing::LogSnr => "log_snr",
+        }
+    }
+
+    /// One line of help for the name.
+    pub fn help(self) -> &'static str {
+        match self {
+            Spacing::Trailing => "t = 1 - i/N: the last step jumps to clean data from t = 1/N",
+            Spacing::Leading => "DDIM's original grid (never the noisiest level)",
+            Spacing::Linspace => "N points over [1/T, 1], both ends included",
+            Spacing::LogSnr => {
+                "uniform in log-SNR down to t = 1e-3: the last steps refine the fine texture"
+            }
+        }
+    }
+}
+
+impl std::fmt::Display for Spacing {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for Spacing {
+    type Err = crate::Error;
+
+    fn from_str(name: &str) -> Result<Self> {
+        Spacing::ALL
+            .into_iter()
+            .find(|s| s.as_str() == name)
+            .ok_or_else(|| {
+                let names: Vec<&str> = Spacing::ALL.map(Spacing::as_str).into();
+                invalid(
+                    "spacing",
+                    format!("`{name}` is not one of {}", names.join(", ")),
+                )
+            })
+    }
+}
+
 #[cfg(test)]
 mod tests;

@@ -11,7 +11,7 @@ use veila_diffusion::app::Bundle;
 use veila_diffusion::app::BundleConfig;
 use veila_diffusion::app::real_frames::{RealOptions, evaluate, real_root};
 use veila_diffusion::app::sim_examples::{DEFAULT_SCENES, RenderStyle, train_split_of};
-use veila_diffusion::{SamplerConfig, SamplerName};
+use veila_diffusion::{SamplerConfig, SamplerName, Spacing};
 use veila_geom::RangeImage;
 
 use crate::progress::{render_split, workspace_root};
@@ -137,34 +137,38 @@ pub fn sampler_parser() -> impl clap::builder::TypedValueParser<Value = SamplerN
     .try_map(|name| name.parse::<SamplerName>())
 }
 
+/// A benchmark's `--spacing` parser: the choices are the library's list, [`Spacing::ALL`].
+pub fn spacing_parser() -> impl clap::builder::TypedValueParser<Value = Spacing> {
+    use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser};
+    PossibleValuesParser::new(Spacing::ALL.map(|s| PossibleValue::new(s.as_str()).help(s.help())))
+        .try_map(|name| name.parse::<Spacing>())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    /// Every benchmark's `--sampler` offers exactly the library's samplers, in its order.
+    /// Every benchmark's `--sampler` and `--spacing` offer exactly the library's lists, in order.
     #[test]
     fn every_benchmark_sampler_option_offers_the_librarys_samplers() {
         use clap::CommandFactory;
-        let library: Vec<String> = SamplerName::ALL.iter().map(|n| n.to_string()).collect();
-        let mut doors = 0;
-        for sub in crate::Cli::command().get_subcommands() {
-            for arg in sub
-                .get_arguments()
-                .filter(|a| a.get_long() == Some("sampler"))
-            {
-                let offered: Vec<String> = arg
-                    .get_possible_values()
-                    .iter()
-                    .map(|v| v.get_name().to_string())
-                    .collect();
-                assert_eq!(offered, library, "`xtask {} --sampler`", sub.get_name());
-                doors += 1;
+        let samplers: Vec<String> = SamplerName::ALL.iter().map(|n| n.to_string()).collect();
+        let spacings: Vec<String> = Spacing::ALL.iter().map(|s| s.to_string()).collect();
+        for (flag, library, at_least) in [("sampler", samplers, 3), ("spacing", spacings, 1)] {
+            let mut doors = 0;
+            for sub in crate::Cli::command().get_subcommands() {
+                for arg in sub.get_arguments().filter(|a| a.get_long() == Some(flag)) {
+                    let offered: Vec<String> = arg
+                        .get_possible_values()
+                        .iter()
+                        .map(|v| v.get_name().to_string())
+                        .collect();
+                    assert_eq!(offered, library, "`xtask {} --{flag}`", sub.get_name());
+                    doors += 1;
+                }
             }
+            assert!(doors >= at_least, "--{flag}: {doors} benchmarks take it");
         }
-        assert!(
-            doors >= 3,
-            "bench-real, bench-report and bench-realism take --sampler; found {doors}"
-        );
     }
 
     #[test]

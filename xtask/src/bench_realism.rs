@@ -39,6 +39,10 @@ pub struct BenchRealismArgs {
     /// Sampler step counts of the model rows [default: each bundle's own].
     #[arg(long, value_delimiter = ',')]
     steps: Vec<usize>,
+    /// Where the sampler's steps lie on the schedule: trailing, leading, linspace, log_snr
+    /// (comma-separated; every one at every step count) [default: each bundle's own].
+    #[arg(long, value_delimiter = ',', value_parser = crate::bench_real::spacing_parser())]
+    spacing: Vec<veila_diffusion::Spacing>,
     /// Guidance scales of the conditional model rows [default: each bundle's own].
     #[arg(long, value_delimiter = ',')]
     guidance: Vec<f64>,
@@ -222,7 +226,10 @@ pub fn run(args: BenchRealismArgs) -> Result<()> {
         serde_json::to_string_pretty(&report)?,
     )?;
     std::fs::write(out.join("report.md"), markdown(&report))?;
-    frontier(&report).write_png(&out.join("frontier.png"), 900, 560)?;
+    // the legend stacks above the axes: grow the canvas with it so the axes keep their height
+    let plot = frontier(&report);
+    let height = 420 + 26 * plot.series.len() as u32;
+    plot.write_png(&out.join("frontier.png"), 900, height)?;
     println!("wrote {}", out.display());
     Ok(())
 }
@@ -248,26 +255,41 @@ fn row_specs(bundle: &Bundle, args: &BenchRealismArgs) -> Result<Vec<(RowSpec, S
     } else {
         args.sampler.iter().copied().map(Some).collect()
     };
+    // `None`: the sampler's own spacing
+    let spacings: Vec<Option<veila_diffusion::Spacing>> = if args.spacing.is_empty() {
+        vec![None]
+    } else {
+        args.spacing.iter().copied().map(Some).collect()
+    };
     for name in samplers {
-        for &s in &steps {
-            for &g in &guidance {
-                let sampler = match name {
-                    None => veila_diffusion::SamplerConfig {
-                        steps: s,
-                        guidance_scale: g,
-                        ..own.clone()
-                    },
-                    Some(name) => sampler_for(name, s, g),
-                };
-                let label = format!("{} x {s}, guidance {g}", sampler.kind.title());
-                out.push((
-                    RowSpec {
-                        sampler,
-                        seeds: args.seeds,
-                        residual_weight: 1.0,
-                    },
-                    label,
-                ));
+        for &spacing in &spacings {
+            for &s in &steps {
+                for &g in &guidance {
+                    let mut sampler = match name {
+                        None => veila_diffusion::SamplerConfig {
+                            steps: s,
+                            guidance_scale: g,
+                            ..own.clone()
+                        },
+                        Some(name) => sampler_for(name, s, g),
+                    };
+                    if let Some(spacing) = spacing {
+                        sampler.spacing = spacing;
+                    }
+                    let label = format!(
+                        "{} x {s} ({} spacing), guidance {g}",
+                        sampler.kind.title(),
+                        sampler.spacing
+                    );
+                    out.push((
+                        RowSpec {
+                            sampler,
+                            seeds: args.seeds,
+                            residual_weight: 1.0,
+                        },
+                        label,
+                    ));
+                }
             }
         }
     }

@@ -377,7 +377,14 @@ fn sample(
         }
         _ => {
             let diffusion = Diffusion::new(bundle.config.diffusion.clone())?;
-            let sampler = Sampler::new(&diffusion, options.sampler.clone())?;
+            let mut sampler = Sampler::new(&diffusion, options.sampler.clone())?;
+            // a residual's clip is the data's `[-c, c]`, mapped to each pixel's residual interval
+            if let (Some(mu), Some(r), Some(clip)) = (&mean, residual, options.sampler.clip_x0) {
+                let s = Tensor::from_slice(&r.scale, (1, c, 1, 1), &device)?;
+                let lo = mu.affine(-1.0, -clip)?.broadcast_div(&s)?;
+                let hi = mu.affine(-1.0, clip)?.broadcast_div(&s)?;
+                sampler = sampler.with_x0_bounds(lo, hi);
+            }
             let net = bundle.net_for_views(nv)?;
             let prep = condition(&net)?;
             let image = match &prep {

@@ -173,6 +173,8 @@ pub struct SamplerConfig {
     #[serde(default = "one")]
     pub guidance_scale: f64,
     /// Clamp `x̂_0` to `[-c, c]` at every step (data are encoded to `[-1, 1]`, so `Some(1.0)`).
+    /// A residual bundle clamps its data, `μ + s·r̂₀`, to `[-c, c]`: each pixel's residual gets its
+    /// own interval ([`Sampler::with_x0_bounds`]).
     #[serde(default = "clip_one")]
     pub clip_x0: Option<f64>,
 }
@@ -283,6 +285,9 @@ pub struct Sampler<'a> {
     levels: Vec<NoiseLevel>,
     /// Rectified flow / regression: the times `t` of the steps (1 first).
     flow_times: Vec<f64>,
+    /// Per-element bounds of `x̂₀` that replace the symmetric `clip_x0` (see
+    /// [`Sampler::with_x0_bounds`]).
+    x0_bounds: Option<(Tensor, Tensor)>,
 }
 
 impl<'a> Sampler<'a> {
@@ -314,6 +319,27 @@ impl<'a> Sampler<'a> {
             config,
             levels,
             flow_times,
+            x0_bounds: None,
+        })
+    }
+
+    /// Clamps `x̂₀` between `lo` and `hi` (element-wise, broadcast to the sample's shape) at
+    /// every step, in place of the symmetric `[-clip_x0, clip_x0]`; `ε̂` is recomputed from the
+    /// clamped `x̂₀`. For a model of a transformed variable, such as a residual diffusion's
+    /// `(x₀ − μ) / s`, whose data bound `[-c, c]` is a different interval at every pixel:
+    /// `lo = (−c − μ) / s`, `hi = (c − μ) / s`. Clamping the transformed variable to `[-c, c]`
+    /// instead would cut its tails, which hold the edges the mean network blurs.
+    pub fn with_x0_bounds(mut self, lo: Tensor, hi: Tensor) -> Self {
+        self.x0_bounds = Some((lo, hi));
+        self
+    }
+
+    /// `x̂₀` clamped by the bounds or `clip_x0` (`true` when anything was applied).
+    fn clamp_x0(&self, x0: Tensor) -> Result<(Tensor, bool)> {
+        Ok(match (&self.x0_bounds, self.config.clip_x0) {
+            (Some((lo, hi)), _) => (x0.broadcast_maximum(lo)?.broadcast_minimum(hi)?, true),
+            (None, Some(c)) => (x0.clamp(-c as f32, c as f32)?, true),
+            (None, None) => (x0, false),
         })
     }
 
@@ -432,10 +458,7 @@ impl<'a> Sampler<'a> {
                 });
             }
             let x0 = if regression { out } else { (&x - (&out * t)?)? };
-            let (x0, clipped) = match self.config.clip_x0 {
-                Some(c) => (x0.clamp(-c as f32, c as f32)?, true),
-                None => (x0, false),
-            };
+            let (x0, clipped) = self.clamp_x0(x0)?;
             x = if regression || t_next == 0.0 {
                 x0.clone()
             } else {
@@ -485,8 +508,19 @@ impl<'a> Sampler<'a> {
         uncond: Option<&D::Cond>,
     ) -> Result<Denoised> {
         let guidance = uncond.map(|u| (self.config.guidance_scale, u));
-        self.diffusion
-            .denoise(model, x, level, cond, guidance, self.config.clip_x0)
+        if self.x0_bounds.is_none() {
+            return self
+                .diffusion
+                .denoise(model, x, level, cond, guidance, self.config.clip_x0);
+        }
+        let d = self
+            .diffusion
+            .denoise(model, x, level, cond, guidance, None)?;
+        let (x0, _) = self.clamp_x0(d.x0)?;
+        let alpha = crate::objective::scalar(level.alpha(), x)?;
+        let sigma = crate::objective::scalar(level.sigma(), x)?;
+        let eps = crate::prediction::eps_from_x0(x, &x0, &alpha, &sigma)?;
+        Ok(Denoised { x0, eps })
     }
 }
 

@@ -280,3 +280,18 @@ fn training_levels_cover_the_grid() {
     assert_eq!(seen[0], 0, "never trains on clean data");
     assert!(seen[1..].iter().all(|&c| c > 150), "{seen:?}");
 }
+
+/// Every spacing's name parses back to it, matches its serialized name (one spelling in
+/// bundles and on command lines), and an unknown name is refused with the list.
+#[test]
+fn spacing_names_round_trip_and_match_serde() {
+    for s in Spacing::ALL {
+        assert_eq!(s.as_str().parse::<Spacing>().unwrap(), s);
+        assert_eq!(
+            serde_json::to_string(&s).unwrap(),
+            format!("\"{}\"", s.as_str())
+        );
+    }
+    let err = "log-snr".parse::<Spacing>().unwrap_err().to_string();
+    assert!(err.contains("log_snr"), "{err}");
+}
