@@ -12,6 +12,10 @@ _Points = npt.NDArray[np.floating]
 PROTOCOLS: List[str]
 """The protocol names: ``r2dm``, ``text2lidar``, ``lidargen``, ``lidm``, ``lidm-nuscenes``."""
 
+SENSOR_PRESETS: List[str]
+"""The sensor presets ``project`` and ``unproject`` take (``veila_geom::SensorPreset::ALL``):
+``hdl64e``, ``hdl32e``, ``hdl32e-per-beam``."""
+
 def prepare_scan(points: _Points, protocol: str = "r2dm") -> npt.NDArray[np.float64]:
     """The points a protocol's metric sees for one raw scan.
 
@@ -69,10 +73,13 @@ def project(
     sensor: str = "hdl64e",
     rows: Optional[int] = None,
     cols: Optional[int] = None,
+    rings: Optional[Sequence[int]] = None,
 ) -> Dict[str, np.ndarray]:
-    """Veila's spherical projection (``hdl64e`` or ``hdl32e`` field of view, optionally another grid):
+    """Veila's spherical projection (a sensor of ``SENSOR_PRESETS``, optionally on another grid):
     ``{"range": (H, W) float32 metres, 0 where empty, "intensity": (H, W), "mask": (H, W) bool}``.
-    Nearest point wins; points outside the field of view are dropped."""
+    Nearest point wins; points outside the field of view are dropped. ``rings`` (one beam index per
+    point, as nuScenes stores it) places the points of ``hdl32e-per-beam``, which drops points
+    without one."""
 
 def unproject(
     range: npt.NDArray[np.float32],

@@ -36,8 +36,7 @@ pub(crate) struct ConvertArgs {
     /// Output folder for shards and manifest.json (created; a rerun resumes it).
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
-    /// Sensor: hdl64e, hdl32e, hdl32e-per-beam or a .toml/.json file (default: the dataset's sensor).
-    #[arg(long)]
+    #[arg(long, help = crate::choices::sensor_spec_help("Default: the dataset's sensor."))]
     sensor: Option<String>,
     /// This worker's index, 0 to 65535, below --shard-count (default: from Slurm / Kubernetes
     /// environment variables, else 0).

@@ -36,9 +36,9 @@ pub(crate) enum DataCmd {
 pub(crate) struct ProjectArgs {
     /// The scan: KITTI .bin, nuScenes .pcd.bin, .ply or a range .exr (format detected).
     scan: PathBuf,
-    /// Sensor: hdl64e, hdl32e, hdl32e-per-beam or a .toml/.json sensor file. Default: hdl32e for
-    /// nuScenes scans, the stored sensor for .exr, hdl64e otherwise.
-    #[arg(long)]
+    #[arg(long, help = crate::choices::sensor_spec_help(
+        "Default: hdl32e for nuScenes scans, the stored sensor for .exr, hdl64e otherwise."
+    ))]
     sensor: Option<String>,
     /// Output range image (.exr).
     #[arg(long)]
@@ -85,8 +85,9 @@ pub(crate) struct RenderArgs {
     /// Range-image preview PNG.
     #[arg(long)]
     range: Option<PathBuf>,
-    /// Sensor for the range preview (as for `project`).
-    #[arg(long)]
+    #[arg(long, help = crate::choices::sensor_spec_help(
+        "For the range preview; default as for `project`."
+    ))]
     sensor: Option<String>,
     /// Camera image for the overlay.
     #[arg(long, requires_all = ["calib", "overlay"])]

@@ -3,22 +3,19 @@
 
 use std::path::Path;
 
-use veila_geom::{LidarSensor, PinholeCamera};
+use veila_geom::{LidarSensor, PinholeCamera, SensorPreset};
 
 use crate::kitti::KittiCalib;
 use crate::nuscenes::NuScenesSample;
 use crate::semantic_kitti::OdometryCalib;
 use crate::{Error, Result};
 
-/// Names accepted by [`sensor_from_spec`] besides file paths.
-pub const SENSOR_PRESETS: [&str; 3] = ["hdl64e", "hdl32e", "hdl32e-per-beam"];
-
-/// A sensor from a preset name (`hdl64e`, `hdl32e`, `hdl32e-per-beam`) or a file: `*.toml` or
-/// `*.json` holding a [`LidarSensor`] (as `veila sensors` prints it). The sensor is validated.
+/// A sensor from a preset name (one of [`SensorPreset::ALL`]) or a file: `*.toml` or `*.json`
+/// holding a [`LidarSensor`] (as `veila sensors` prints it). The sensor is validated.
 pub fn sensor_from_spec(spec: &str) -> Result<LidarSensor> {
-    let sensor = match sensor_preset(spec) {
-        Some(s) => s,
-        None => {
+    let sensor = match spec.parse::<SensorPreset>() {
+        Ok(preset) => preset.sensor(),
+        Err(_) => {
             let file = spec;
             let path = Path::new(file);
             let lower = file.to_lowercase();
@@ -27,7 +24,7 @@ pub fn sensor_from_spec(spec: &str) -> Result<LidarSensor> {
                     what: "sensor".into(),
                     message: format!(
                         "`{file}` is neither a preset ({}) nor a .toml / .json sensor file",
-                        SENSOR_PRESETS.join(", ")
+                        SensorPreset::names()
                     ),
                 });
             }
@@ -52,34 +49,20 @@ pub fn sensor_from_spec(spec: &str) -> Result<LidarSensor> {
     Ok(sensor)
 }
 
-/// The preset sensor of one of [`SENSOR_PRESETS`].
-pub fn sensor_preset(name: &str) -> Option<LidarSensor> {
-    match name {
-        "hdl64e" => Some(LidarSensor::hdl64e()),
-        "hdl32e" => Some(LidarSensor::hdl32e()),
-        "hdl32e-per-beam" => Some(LidarSensor::hdl32e_per_beam()),
-        _ => None,
-    }
-}
-
 /// A preset as a sensor file of its own (TOML, `*.toml` for [`sensor_from_spec`]), with a comment
-/// naming it and the other presets; an unknown name is an error listing them.
-pub fn sensor_preset_toml(name: &str) -> Result<String> {
-    let sensor = sensor_preset(name).ok_or_else(|| Error::Invalid {
-        what: "sensor preset".into(),
-        message: format!("`{name}`: the presets are {}", SENSOR_PRESETS.join(", ")),
-    })?;
-    let body = toml::to_string_pretty(&sensor).map_err(|e| Error::Invalid {
-        what: format!("sensor preset `{name}`"),
+/// naming it and the other presets.
+pub fn sensor_preset_toml(preset: SensorPreset) -> Result<String> {
+    let body = toml::to_string_pretty(&preset.sensor()).map_err(|e| Error::Invalid {
+        what: format!("sensor preset `{preset}`"),
         message: e.to_string(),
     })?;
-    let others: Vec<&str> = SENSOR_PRESETS
-        .iter()
-        .copied()
-        .filter(|p| *p != name)
+    let others: Vec<&str> = SensorPreset::ALL
+        .into_iter()
+        .filter(|p| *p != preset)
+        .map(SensorPreset::as_str)
         .collect();
     Ok(format!(
-        "# veila sensor preset `{name}` (the others: {}; `veila sensors NAME` prints one)\n{body}",
+        "# veila sensor preset `{preset}` (the others: {}; `veila sensors NAME` prints one)\n{body}",
         others.join(", ")
     ))
 }
@@ -164,16 +147,21 @@ mod tests {
     #[test]
     fn every_preset_prints_as_a_sensor_file_that_reads_back() {
         let dir = tempfile::tempdir().unwrap();
-        for name in SENSOR_PRESETS {
-            let text = sensor_preset_toml(name).unwrap();
-            let p = dir.path().join(format!("{name}.toml"));
+        for preset in SensorPreset::ALL {
+            let text = sensor_preset_toml(preset).unwrap();
+            let p = dir.path().join(format!("{preset}.toml"));
             std::fs::write(&p, &text).unwrap();
             let back = sensor_from_spec(p.to_str().unwrap()).unwrap();
-            assert_eq!(Some(back), sensor_preset(name), "{name}");
+            assert_eq!(back, preset.sensor(), "{preset}");
+            // and by name
+            assert_eq!(sensor_from_spec(preset.as_str()).unwrap(), back, "{preset}");
         }
         // the per-beam table survives (it is what sets this preset apart)
-        assert_ne!(sensor_preset("hdl32e-per-beam"), sensor_preset("hdl32e"),);
-        let e = sensor_preset_toml("vlp16").unwrap_err().to_string();
+        assert_ne!(
+            SensorPreset::Hdl32ePerBeam.sensor(),
+            SensorPreset::Hdl32e.sensor()
+        );
+        let e = sensor_from_spec("vlp16").unwrap_err().to_string();
         assert!(e.contains("vlp16") && e.contains("hdl32e-per-beam"), "{e}");
     }
 

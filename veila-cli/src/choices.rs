@@ -1,0 +1,25 @@
+//! The choices of options that name an entry of a library's list, built from that list: a sensor
+//! preset ([`SensorPreset::ALL`]). (`--sampler`'s parser is in `generation.rs`.) A test in
+//! `main.rs` checks that every door offers exactly the library's list.
+
+use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser};
+use veila_geom::SensorPreset;
+
+/// A sensor preset's parser: the choices (with their help) are [`SensorPreset::ALL`].
+pub(crate) fn sensor_preset_parser() -> impl TypedValueParser<Value = SensorPreset> {
+    PossibleValuesParser::new(
+        SensorPreset::ALL.map(|p| PossibleValue::new(p.as_str()).help(p.help())),
+    )
+    .try_map(|name| name.parse::<SensorPreset>())
+}
+
+/// The help of a `--sensor` that takes a preset or a sensor file (resolved by
+/// [`veila_data::spec::sensor_from_spec`]), naming the presets of [`SensorPreset::ALL`];
+/// `default` says what an absent `--sensor` means.
+pub(crate) fn sensor_spec_help(default: &str) -> String {
+    format!(
+        "Sensor: a preset ({}; `veila sensors NAME` prints one as a file) or a .toml/.json sensor \
+         file. {default}",
+        SensorPreset::names()
+    )
+}
