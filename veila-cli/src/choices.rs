@@ -1,8 +1,9 @@
 //! The choices of options that name an entry of a library's list, built from that list: a sensor
-//! preset ([`SensorPreset::ALL`]). (`--sampler`'s parser is in `generation.rs`.) A test in
-//! `main.rs` checks that every door offers exactly the library's list.
+//! preset ([`SensorPreset::ALL`]), a dataset ([`DatasetName::ALL`]). (`--sampler`'s parser is in
+//! `generation.rs`.) Tests in `main.rs` check that every door offers exactly the library's list.
 
 use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser};
+use veila_data::dataset::DatasetName;
 use veila_geom::SensorPreset;
 
 /// A sensor preset's parser: the choices (with their help) are [`SensorPreset::ALL`].

@@ -342,6 +342,24 @@ mod tests {
         );
     }
 
+    /// Every `--dataset` offers exactly the library's datasets
+    /// ([`veila_data::dataset::DatasetName::ALL`]), in its order.
+    #[test]
+    fn every_dataset_option_offers_the_librarys_datasets() {
+        let library: Vec<String> = veila_data::dataset::DatasetName::ALL
+            .iter()
+            .map(|d| d.to_string())
+            .collect();
+        let mut args = Vec::new();
+        every_argument(&cli_command(), "veila", &mut args);
+        let mut doors = 0;
+        for (path, arg) in args.iter().filter(|(_, a)| a.get_long() == Some("dataset")) {
+            assert_eq!(offered(arg), library, "`{path} --dataset`");
+            doors += 1;
+        }
+        assert!(doors >= 1, "convert takes --dataset; found {doors}");
+    }
+
     /// The first "LO to HI" of a help text, as written.
     fn stated_range(help: &str) -> Option<(String, String)> {
         let words: Vec<&str> = help.split_whitespace().collect();

@@ -7,6 +7,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use veila_data::convert::{ConvertOptions, convert, open_dataset};
+use veila_data::dataset::DatasetName;
 use veila_data::kitti::KittiCalib;
 use veila_data::read_capped::{MAX_KITTI_SCAN_BYTES, MAX_LABEL_FILE_BYTES};
 use veila_data::semantic_kitti::{LabelMap, read_labels};
@@ -138,7 +139,7 @@ fn convert_refuses_a_sparse_100_gb_scan_before_hashing_it() {
     let Some(()) = kitti_with_scan(dir.path(), 100_000_000_000) else {
         return;
     };
-    let (ds, map) = open_dataset("kitti", dir.path(), false).unwrap();
+    let (ds, map) = open_dataset(DatasetName::Kitti, dir.path(), false).unwrap();
     let sensor = LidarSensor {
         rows: 16,
         cols: 64,
