@@ -14,7 +14,7 @@ static GLOBAL: veila_nn::process::MiMalloc = veila_nn::process::MiMalloc;
 #[macro_use]
 mod out; // print! and println! that never panic (declared first: every module below uses them)
 mod bounds; // the parsers that hold numeric arguments to their stated ranges
-mod choices; // the parsers whose choices are a library's list (sensor presets, datasets)
+mod choices; // the parsers whose choices are a library's list (sensor presets, datasets, metrics)
 mod dist; // the TCP transport of data-parallel `veila train`
 #[cfg(feature = "nccl")]
 mod dist_nccl; // the NCCL transport on GPUs (bootstrapped by dist)
@@ -358,6 +358,24 @@ mod tests {
             doors += 1;
         }
         assert!(doors >= 1, "convert takes --dataset; found {doors}");
+    }
+
+    /// Every `--metrics` offers exactly the library's metrics
+    /// ([`veila_metrics::MetricName::ALL`]), in its order.
+    #[test]
+    fn every_metric_option_offers_the_librarys_metrics() {
+        let library: Vec<String> = veila_metrics::MetricName::ALL
+            .iter()
+            .map(|m| m.to_string())
+            .collect();
+        let mut args = Vec::new();
+        every_argument(&cli_command(), "veila", &mut args);
+        let mut doors = 0;
+        for (path, arg) in args.iter().filter(|(_, a)| a.get_long() == Some("metrics")) {
+            assert_eq!(offered(arg), library, "`{path} --metrics`");
+            doors += 1;
+        }
+        assert!(doors >= 1, "eval takes --metrics; found {doors}");
     }
 
     /// The first "LO to HI" of a help text, as written.
