@@ -433,16 +433,17 @@ fn read_sample_arrays<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py
 
 /// A calibration file's camera for an image of `width x height`: `(K 3x4, cam_from_lidar 4x4)`.
 #[pyfunction]
-#[pyo3(signature = (path, width, height, camera = "CAM_FRONT"))]
+#[pyo3(signature = (path, width, height, camera = None))]
 fn read_calibration(
     py: Python<'_>,
     path: PathBuf,
     width: u32,
     height: u32,
-    camera: &str,
+    camera: Option<&str>,
 ) -> PyResult<(Py<PyArray2<f32>>, Py<PyArray2<f32>>)> {
-    let cam = veila_data::spec::camera_from_calib_file(&path, width, height, camera)
-        .map_err(value_err)?;
+    let cam = veila_data::spec::read_calib_camera(&path, camera, width, height)
+        .map_err(value_err)?
+        .camera;
     let k = cam.intrinsics.transpose().to_cols_array_2d(); // rows
     let t = cam.cam_from_lidar.transpose().to_cols_array_2d();
     let k34 = Array2::from_shape_fn((3, 4), |(i, j)| k[i][j]);

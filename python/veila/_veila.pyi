@@ -99,11 +99,12 @@ def read_sample_arrays(path: _Path) -> Dict[str, npt.NDArray[np.float32]]:
     (``.pth``, ``.pkl``, object arrays ...) are refused with ``ValueError`` naming the file."""
 
 def read_calibration(
-    path: _Path, width: int, height: int, camera: str = "CAM_FRONT"
+    path: _Path, width: int, height: int, camera: Optional[str] = None
 ) -> Tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
     """The camera of a KITTI object, KITTI odometry / SemanticKITTI or nuScenes-JSON calibration file for
-    an image of ``width x height``: ``(K (3, 4), cam_from_lidar (4, 4))``. KITTI files give camera 2;
-    nuScenes gives ``camera``."""
+    an image of ``width x height``: ``(K (3, 4), cam_from_lidar (4, 4))``. ``camera`` is a KITTI
+    projection index (``"0"`` to ``"3"``, default ``"2"`` = image_2) or a nuScenes channel (default
+    ``"CAM_FRONT"``); the same reader as the ``veila`` binary's."""
 
 def read_image(path: _Path) -> npt.NDArray[np.uint8]:
     """A PNG or JPEG image as ``(H, W, 3)`` uint8 RGB (the input :func:`generate` takes)."""
