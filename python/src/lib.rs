@@ -17,7 +17,7 @@ use pyo3::types::PyDict;
 
 use veila_diffusion::app::bundle::Bundle;
 use veila_diffusion::app::{GenerateOptions, RigImage, ScanPipeline};
-use veila_geom::{LidarSensor, PinholeCamera, RangeImage, RayTable, Region};
+use veila_geom::{LidarSensor, PinholeCamera, RangeImage, RayTable, Region, SensorPreset};
 use veila_metrics::protocol::{PeerProtocol, PeerSummary};
 
 fn value_err(e: impl std::fmt::Display) -> PyErr {
@@ -289,15 +289,11 @@ fn frechet_distance(
 }
 
 fn sensor_of(name: &str, rows: Option<u32>, cols: Option<u32>) -> PyResult<LidarSensor> {
-    let mut s = match name {
-        "hdl64e" => LidarSensor::hdl64e(),
-        "hdl32e" => LidarSensor::hdl32e(),
-        _ => {
-            return Err(value_err(format!(
-                "unknown sensor {name:?}; one of hdl64e, hdl32e"
-            )));
-        }
-    };
+    // the presets are the library's one list (`SENSOR_PRESETS`)
+    let mut s = name
+        .parse::<SensorPreset>()
+        .map_err(|e| value_err(format!("unknown sensor: {e}")))?
+        .sensor();
     if let Some(r) = rows {
         s.rows = r;
     }
@@ -324,7 +320,7 @@ fn image2d<T: numpy::Element + Copy>(
 
 /// Spherical projection of points to a Veila range image.
 #[pyfunction]
-#[pyo3(signature = (points, intensity = None, sensor = "hdl64e", rows = None, cols = None))]
+#[pyo3(signature = (points, intensity = None, sensor = "hdl64e", rows = None, cols = None, rings = None))]
 fn project<'py>(
     py: Python<'py>,
     points: &Bound<'py, PyAny>,
@@ -332,10 +328,13 @@ fn project<'py>(
     sensor: &str,
     rows: Option<u32>,
     cols: Option<u32>,
+    rings: Option<Vec<u16>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let s = sensor_of(sensor, rows, cols)?;
     let pts = points_of(points, "points")?;
-    let (img, _) = veila_geom::project(&s, &pts, intensity.as_deref()).map_err(value_err)?;
+    let (img, _) = veila_geom::Projector::new(&s, veila_geom::ProjectionOptions::default())
+        .and_then(|p| p.project(&pts, intensity.as_deref(), rings.as_deref()))
+        .map_err(value_err)?;
     let d = PyDict::new(py);
     d.set_item("range", image2d(py, &img.range_m, img.rows, img.cols)?)?;
     d.set_item(
@@ -434,16 +433,17 @@ fn read_sample_arrays<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py
 
 /// A calibration file's camera for an image of `width x height`: `(K 3x4, cam_from_lidar 4x4)`.
 #[pyfunction]
-#[pyo3(signature = (path, width, height, camera = "CAM_FRONT"))]
+#[pyo3(signature = (path, width, height, camera = None))]
 fn read_calibration(
     py: Python<'_>,
     path: PathBuf,
     width: u32,
     height: u32,
-    camera: &str,
+    camera: Option<&str>,
 ) -> PyResult<(Py<PyArray2<f32>>, Py<PyArray2<f32>>)> {
-    let cam = veila_data::spec::camera_from_calib_file(&path, width, height, camera)
-        .map_err(value_err)?;
+    let cam = veila_data::spec::read_calib_camera(&path, camera, width, height)
+        .map_err(value_err)?
+        .camera;
     let k = cam.intrinsics.transpose().to_cols_array_2d(); // rows
     let t = cam.cam_from_lidar.transpose().to_cols_array_2d();
     let k34 = Array2::from_shape_fn((3, 4), |(i, j)| k[i][j]);
@@ -578,6 +578,10 @@ fn _veila(m: &Bound<'_, PyModule>) -> PyResult<()> {
             .iter()
             .map(|p| p.name())
             .collect::<Vec<_>>(),
+    )?;
+    m.add(
+        "SENSOR_PRESETS",
+        SensorPreset::ALL.map(SensorPreset::as_str).to_vec(),
     )?;
     m.add_function(wrap_pyfunction!(prepare_scan, m)?)?;
     m.add_function(wrap_pyfunction!(points_from_image, m)?)?;

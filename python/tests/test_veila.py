@@ -196,6 +196,16 @@ def test_project_drops_out_of_view_and_checks_its_input():
         veila.unproject(np.ones((64, 1024), np.float32), np.ones((64, 8), np.float32))
 
 
+@pytest.mark.parametrize("preset", veila.SENSOR_PRESETS)
+def test_every_sensor_preset_projects_and_unprojects(preset):
+    # the wheel's presets are the library's list, each one a sensor (hdl32e-per-beam included)
+    # ring 18 of the HDL-32E looks 6.7 deg down; the uniform presets ignore rings
+    img = veila.project(np.array([[10.0, 0.0, -1.0]]), sensor=preset, rings=[18])
+    assert img["mask"].sum() == 1
+    back, _ = veila.unproject(img["range"], sensor=preset)
+    assert back.shape == (1, 3)
+
+
 # -------------------------------------------------------------------- readers (files written by numpy)
 
 

@@ -25,6 +25,7 @@ _os.environ.setdefault("CANDLE_NUM_THREADS", "1")
 
 from ._veila import (  # noqa: E402
     PROTOCOLS,
+    SENSOR_PRESETS,
     chamfer_distance,
     frechet_distance,
     generate,
@@ -43,6 +44,7 @@ from ._veila import (  # noqa: E402
 
 __all__ = [
     "PROTOCOLS",
+    "SENSOR_PRESETS",
     "chamfer_distance",
     "frechet_distance",
     "generate",

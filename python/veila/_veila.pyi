@@ -12,6 +12,10 @@ _Points = npt.NDArray[np.floating]
 PROTOCOLS: List[str]
 """The protocol names: ``r2dm``, ``text2lidar``, ``lidargen``, ``lidm``, ``lidm-nuscenes``."""
 
+SENSOR_PRESETS: List[str]
+"""The sensor presets ``project`` and ``unproject`` take (``veila_geom::SensorPreset::ALL``):
+``hdl64e``, ``hdl32e``, ``hdl32e-per-beam``."""
+
 def prepare_scan(points: _Points, protocol: str = "r2dm") -> npt.NDArray[np.float64]:
     """The points a protocol's metric sees for one raw scan.
 
@@ -69,10 +73,13 @@ def project(
     sensor: str = "hdl64e",
     rows: Optional[int] = None,
     cols: Optional[int] = None,
+    rings: Optional[Sequence[int]] = None,
 ) -> Dict[str, np.ndarray]:
-    """Veila's spherical projection (``hdl64e`` or ``hdl32e`` field of view, optionally another grid):
+    """Veila's spherical projection (a sensor of ``SENSOR_PRESETS``, optionally on another grid):
     ``{"range": (H, W) float32 metres, 0 where empty, "intensity": (H, W), "mask": (H, W) bool}``.
-    Nearest point wins; points outside the field of view are dropped."""
+    Nearest point wins; points outside the field of view are dropped. ``rings`` (one beam index per
+    point, as nuScenes stores it) places the points of ``hdl32e-per-beam``, which drops points
+    without one."""
 
 def unproject(
     range: npt.NDArray[np.float32],
@@ -92,11 +99,12 @@ def read_sample_arrays(path: _Path) -> Dict[str, npt.NDArray[np.float32]]:
     (``.pth``, ``.pkl``, object arrays ...) are refused with ``ValueError`` naming the file."""
 
 def read_calibration(
-    path: _Path, width: int, height: int, camera: str = "CAM_FRONT"
+    path: _Path, width: int, height: int, camera: Optional[str] = None
 ) -> Tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
     """The camera of a KITTI object, KITTI odometry / SemanticKITTI or nuScenes-JSON calibration file for
-    an image of ``width x height``: ``(K (3, 4), cam_from_lidar (4, 4))``. KITTI files give camera 2;
-    nuScenes gives ``camera``."""
+    an image of ``width x height``: ``(K (3, 4), cam_from_lidar (4, 4))``. ``camera`` is a KITTI
+    projection index (``"0"`` to ``"3"``, default ``"2"`` = image_2) or a nuScenes channel (default
+    ``"CAM_FRONT"``); the same reader as the ``veila`` binary's."""
 
 def read_image(path: _Path) -> npt.NDArray[np.uint8]:
     """A PNG or JPEG image as ``(H, W, 3)`` uint8 RGB (the input :func:`generate` takes)."""

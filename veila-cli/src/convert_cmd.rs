@@ -19,6 +19,7 @@ use clap::Args;
 use veila_data::convert::{
     ConvertOptions, Progress, SourceSpec, convert, open_source, worker_shard,
 };
+use veila_data::dataset::DatasetName;
 use veila_data::semantic_kitti::{Sequences, SplitPart};
 
 use crate::progress;
@@ -27,8 +28,8 @@ use crate::progress;
 #[derive(Debug, Args)]
 pub(crate) struct ConvertArgs {
     /// Dataset kind.
-    #[arg(long, value_parser = ["semantickitti", "kitti", "nuscenes"])]
-    dataset: String,
+    #[arg(long, value_parser = crate::choices::dataset_parser())]
+    dataset: DatasetName,
     /// Dataset root (KITTI: the folder with training/; SemanticKITTI: the folder with sequences/;
     /// nuScenes: the data root with v1.0-*/ tables or calib/*.json).
     #[arg(long, value_name = "DIR")]
@@ -36,8 +37,7 @@ pub(crate) struct ConvertArgs {
     /// Output folder for shards and manifest.json (created; a rerun resumes it).
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
-    /// Sensor: hdl64e, hdl32e, hdl32e-per-beam or a .toml/.json file (default: the dataset's sensor).
-    #[arg(long)]
+    #[arg(long, help = crate::choices::sensor_spec_help("Default: the dataset's sensor."))]
     sensor: Option<String>,
     /// This worker's index, 0 to 65535, below --shard-count (default: from Slurm / Kubernetes
     /// environment variables, else 0).
@@ -86,7 +86,7 @@ pub(crate) fn run(args: ConvertArgs) -> Result<()> {
             (None, None) => Sequences::All,
         },
         cameras: args.camera.clone(),
-        ..SourceSpec::new(args.dataset.clone(), args.root.clone())
+        ..SourceSpec::new(args.dataset, args.root.clone())
     };
     let (dataset, label_map) = open_source(&spec).with_context(|| {
         format!(
@@ -95,7 +95,7 @@ pub(crate) fn run(args: ConvertArgs) -> Result<()> {
             args.root.display()
         )
     })?;
-    if args.dataset == "semantickitti" && label_map.is_none() {
+    if args.dataset == DatasetName::SemanticKitti && label_map.is_none() {
         eprintln!(
             "warning: no semantic-kitti.yaml found (pass --label-map): shards get raw labels only"
         );

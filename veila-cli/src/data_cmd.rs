@@ -12,7 +12,7 @@ use veila_data::image_io::{encode_png, read_rgb_image};
 use veila_data::range_exr::{encode_range_exr, read_range_exr};
 use veila_data::scan::{LoadedPoints, PointFormat, read_points};
 use veila_data::semantic_kitti::{LabelMap, read_labels};
-use veila_data::spec::{camera_from_calib_file, sensor_from_spec};
+use veila_data::spec::{read_calib_camera, sensor_from_spec};
 use veila_data::vis::render::{
     BevOptions, OverlayOptions, RangePreview, render_bev, render_intensity, render_labels,
     render_overlay, render_range,
@@ -36,9 +36,9 @@ pub(crate) enum DataCmd {
 pub(crate) struct ProjectArgs {
     /// The scan: KITTI .bin, nuScenes .pcd.bin, .ply or a range .exr (format detected).
     scan: PathBuf,
-    /// Sensor: hdl64e, hdl32e, hdl32e-per-beam or a .toml/.json sensor file. Default: hdl32e for
-    /// nuScenes scans, the stored sensor for .exr, hdl64e otherwise.
-    #[arg(long)]
+    #[arg(long, help = crate::choices::sensor_spec_help(
+        "Default: hdl32e for nuScenes scans, the stored sensor for .exr, hdl64e otherwise."
+    ))]
     sensor: Option<String>,
     /// Output range image (.exr).
     #[arg(long)]
@@ -85,8 +85,9 @@ pub(crate) struct RenderArgs {
     /// Range-image preview PNG.
     #[arg(long)]
     range: Option<PathBuf>,
-    /// Sensor for the range preview (as for `project`).
-    #[arg(long)]
+    #[arg(long, help = crate::choices::sensor_spec_help(
+        "For the range preview; default as for `project`."
+    ))]
     sensor: Option<String>,
     /// Camera image for the overlay.
     #[arg(long, requires_all = ["calib", "overlay"])]
@@ -97,9 +98,10 @@ pub(crate) struct RenderArgs {
     /// Overlay PNG: LiDAR points on the camera image, coloured by depth.
     #[arg(long, requires_all = ["image", "calib"])]
     overlay: Option<PathBuf>,
-    /// nuScenes camera channel of the calibration JSON.
-    #[arg(long, default_value = "CAM_FRONT")]
-    camera: String,
+    /// Which camera of the calibration: the KITTI projection matrix index (0-3, default 2 =
+    /// image_2) or the nuScenes channel (default CAM_FRONT).
+    #[arg(long, value_name = "N")]
+    camera: Option<String>,
     /// Half the side of the bird's-eye view, metres, 1 to 1000 (at most 16384 pixels a side).
     #[arg(long, default_value_t = 50.0, value_parser = crate::bounds::float32(1.0, 1000.0))]
     bev_extent_m: f32,
@@ -337,7 +339,8 @@ fn render(a: RenderArgs) -> Result<()> {
     }
     if let (Some(ip), Some(cp), Some(op)) = (&a.image, &a.calib, &a.overlay) {
         let image = read_rgb_image(ip)?;
-        let camera = camera_from_calib_file(cp, image.width(), image.height(), &a.camera)?;
+        let camera =
+            read_calib_camera(cp, a.camera.as_deref(), image.width(), image.height())?.camera;
         let min_depth = if loaded.format == PointFormat::NuScenesPcdBin {
             1.0
         } else {

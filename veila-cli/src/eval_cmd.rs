@@ -9,8 +9,8 @@ use clap::{Args, Subcommand, ValueEnum};
 use rayon::prelude::*;
 use veila_metrics::fd::{self, FeatureStats, SqrtMethod};
 use veila_metrics::protocol::PeerProtocol;
-use veila_metrics::suite::{Needs, ScanSummary, SetMetric, score_sets};
-use veila_metrics::{MetricReport, MetricValue, Protocol, Region};
+use veila_metrics::suite::{Needs, ScanSummary, score_sets};
+use veila_metrics::{MetricName, MetricReport, MetricValue, Protocol, Region};
 
 use crate::eval_crossmodal::{self, CrossModalArgs};
 use crate::eval_features;
@@ -32,65 +32,6 @@ pub(crate) enum EvalCmd {
     Eval(Box<EvalArgs>),
     /// Fréchet distance between two feature matrices (.npy, f32 or f64, one row per sample).
     Fd(FdArgs),
-}
-
-/// Metrics `veila eval` can compute.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, ValueEnum)]
-pub(crate) enum MetricName {
-    /// The --protocol's JSD after its whole pipeline (R2DM / Text2LiDAR / LiDARGen: summed 100 x 100
-    /// BEV histograms; LiDM: summed 0.05 m occupancy).
-    Jsd,
-    /// The --protocol's MMD after its whole pipeline (R2DM / Text2LiDAR: Gaussian kernel, Frobenius,
-    /// printed x 1e4; LiDARGen: spectral norm; LiDM: minimum matching 2-D Chamfer, printed x 1e4).
-    Mmd,
-    /// R2DM's BEV JSD on the raw points (no projection, no range caps).
-    JsdRaw,
-    /// R2DM's BEV MMD on the raw points (no projection, no range caps).
-    MmdRaw,
-    /// LiDARGen's spectral-norm BEV MMD on the raw points (O(N^2) SVDs).
-    MmdLidargenRaw,
-    /// LiDM's minimum matching distance on the raw points, 64-beam grid (+-50 m).
-    MmdLidmRaw,
-    /// LiDM's minimum matching distance on the raw points, 32-beam nuScenes grid (+-30 m).
-    MmdLidmNuscenesRaw,
-    /// Minimum matching distance with the 3-D Chamfer distance (PyTorch3D convention).
-    MmdCd,
-    /// Chamfer distance of scans paired by file name, averaged over pairs (PyTorch3D convention).
-    Chamfer,
-    /// Fréchet Range Distance: Fréchet distance of RangeNet features (global average of the deepest
-    /// encoder map) of each scan's range image, whole panorama only. With the built-in simulator-trained
-    /// net, NOT comparable with published FRD values (different weights and feature layer).
-    Frd,
-    /// Fréchet Point Distance: Fréchet distance of PointNet max-pooled features of each scan (points
-    /// / 80 m), whole panorama only. With the built-in simulator-trained net, NOT comparable with
-    /// published FPD values (different weights and feature layer).
-    Fpd,
-    /// Cross-modal depth consistency (the paper's CM-DC): each generated scan's points projected into
-    /// its camera (--calib) against a depth map (--depth-maps), AbsRel after --depth-alignment,
-    /// averaged over the scans; the camera's field of view only.
-    CmDc,
-    /// Cross-modal semantic consistency (the paper's CM-SC): the percentage of generated points whose
-    /// class from the built-in range segmentation net (SemanticKITTI train ids) equals the class map's
-    /// (--semantic-maps) where they project; averaged over the scans.
-    CmSc,
-}
-
-impl MetricName {
-    /// The library's set metric, for the metrics [`score_sets`] computes.
-    fn set_metric(self) -> Option<SetMetric> {
-        Some(match self {
-            MetricName::Jsd => SetMetric::Jsd,
-            MetricName::Mmd => SetMetric::Mmd,
-            MetricName::JsdRaw => SetMetric::JsdRaw,
-            MetricName::MmdRaw => SetMetric::MmdRaw,
-            MetricName::MmdLidargenRaw => SetMetric::MmdLidargenRaw,
-            MetricName::MmdLidmRaw => SetMetric::MmdLidmRaw,
-            MetricName::MmdLidmNuscenesRaw => SetMetric::MmdLidmNuscenesRaw,
-            MetricName::MmdCd => SetMetric::MmdCd,
-            MetricName::Chamfer => SetMetric::Chamfer,
-            MetricName::Frd | MetricName::Fpd | MetricName::CmDc | MetricName::CmSc => return None,
-        })
-    }
 }
 
 /// Whether `metrics` ask for CM-DC and CM-SC.
@@ -138,7 +79,8 @@ pub(crate) struct EvalArgs {
     #[arg(long)]
     reference: PathBuf,
     /// Comma-separated metrics.
-    #[arg(long, value_delimiter = ',', default_value = "jsd,mmd")]
+    #[arg(long, value_delimiter = ',', default_value = "jsd,mmd",
+          value_parser = crate::choices::metric_parser())]
     metrics: Vec<MetricName>,
     /// The peer pipeline of `jsd` and `mmd` (projection to its range-image grid, range caps, metric).
     #[arg(long, value_enum, default_value = "r2dm")]
@@ -322,7 +264,11 @@ fn run_eval(a: EvalArgs) -> Result<()> {
         .as_deref()
         .map(|r| r.iter().map(|&r| Region::from(r)).collect());
     let regions: Vec<Region> = given.clone().unwrap_or_else(|| Region::ALL.to_vec());
-    let set_metrics: Vec<SetMetric> = metrics.iter().filter_map(|m| m.set_metric()).collect();
+    let set_metrics: Vec<MetricName> = metrics
+        .iter()
+        .copied()
+        .filter(|m| m.is_set_metric())
+        .collect();
     let needs = Needs::of(&set_metrics);
     let mut generated = load_scans(&gen_files, "generated", &regions, needs, protocol)?;
     let mut reference = load_scans(&ref_files, "reference", &regions, needs, protocol)?;

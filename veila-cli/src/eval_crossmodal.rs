@@ -58,8 +58,9 @@ pub(crate) enum SemanticIdsArg {
 /// The arguments of the cross-modal metrics (flattened into `veila eval`'s).
 #[derive(Debug, Args)]
 pub(crate) struct CrossModalArgs {
-    /// cm-dc / cm-sc: the generated scans' KITTI calibration (camera image_2): one file for every
-    /// scan, or a folder with `<scan stem>.txt` per scan (e.g. `veila simulate`'s `calib/`).
+    /// cm-dc / cm-sc: the generated scans' calibration (KITTI camera image_2, or a nuScenes
+    /// per-sample JSON's CAM_FRONT): one file for every scan, or a folder with `<scan stem>.txt`
+    /// per scan (e.g. `veila simulate`'s `calib/`).
     #[arg(long)]
     pub(crate) calib: Option<PathBuf>,
     /// cm-dc: a folder with a depth map per generated scan, `<scan stem>.png` (16-bit, metres x 256,

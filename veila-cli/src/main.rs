@@ -14,6 +14,7 @@ static GLOBAL: veila_nn::process::MiMalloc = veila_nn::process::MiMalloc;
 #[macro_use]
 mod out; // print! and println! that never panic (declared first: every module below uses them)
 mod bounds; // the parsers that hold numeric arguments to their stated ranges
+mod choices; // the parsers whose choices are a library's list (sensor presets, datasets, metrics)
 mod dist; // the TCP transport of data-parallel `veila train`
 #[cfg(feature = "nccl")]
 mod dist_nccl; // the NCCL transport on GPUs (bootstrapped by dist)
@@ -89,9 +90,10 @@ enum Command {
     /// Print a built-in sensor preset as a sensor file (TOML; a starting point for
     /// `--sensor FILE.toml`).
     Sensors {
-        /// The preset: hdl64e, hdl32e or hdl32e-per-beam.
-        #[arg(default_value = "hdl64e")]
-        preset: String,
+        /// The preset.
+        #[arg(default_value_t = veila_geom::SensorPreset::default(),
+              value_parser = choices::sensor_preset_parser())]
+        preset: veila_geom::SensorPreset,
     },
     /// Print a shell completion script (e.g. `veila completions bash > ~/.local/share/bash-completion/completions/veila`).
     Completions {
@@ -221,7 +223,7 @@ fn run(command: Command) -> Result<()> {
             Ok(())
         }
         Command::Sensors { preset } => {
-            print!("{}", veila_data::spec::sensor_preset_toml(&preset)?);
+            print!("{}", veila_data::spec::sensor_preset_toml(preset)?);
             Ok(())
         }
     }
@@ -317,6 +319,94 @@ mod tests {
             ["demo", "edit", "generate"],
             "the commands with --spacing"
         );
+    }
+
+    /// Every argument of every command and subcommand, with the command's path.
+    fn every_argument(cmd: &clap::Command, path: &str, out: &mut Vec<(String, clap::Arg)>) {
+        for arg in cmd.get_arguments() {
+            out.push((path.to_string(), arg.clone()));
+        }
+        for sub in cmd.get_subcommands() {
+            every_argument(sub, &format!("{path} {}", sub.get_name()), out);
+        }
+    }
+
+    /// The names an argument offers (its possible values).
+    fn offered(arg: &clap::Arg) -> Vec<String> {
+        arg.get_possible_values()
+            .iter()
+            .map(|v| v.get_name().to_string())
+            .collect()
+    }
+
+    /// Every option that takes a sensor preset offers exactly the library's presets
+    /// ([`veila_geom::SensorPreset::ALL`]), in its order: `veila sensors PRESET` as its choices,
+    /// and every `--sensor PRESET|FILE` in its help.
+    #[test]
+    fn every_sensor_option_offers_the_librarys_presets() {
+        use veila_geom::SensorPreset;
+        let library: Vec<String> = SensorPreset::ALL.iter().map(|p| p.to_string()).collect();
+        let mut args = Vec::new();
+        every_argument(&cli_command(), "veila", &mut args);
+        let (mut choices, mut files) = (0, 0);
+        for (path, arg) in &args {
+            if path == "veila sensors" && arg.get_id() == "preset" {
+                assert_eq!(offered(arg), library, "`{path} PRESET`");
+                choices += 1;
+            }
+            if arg.get_long() == Some("sensor") {
+                // a preset or a file: no choices, the presets named in the help
+                assert!(offered(arg).is_empty(), "`{path} --sensor` takes files too");
+                let help = arg.get_help().map(|h| h.to_string()).unwrap_or_default();
+                assert!(
+                    help.contains(&library.join(", ")),
+                    "`{path} --sensor` names the presets {} in its help: {help}",
+                    library.join(", ")
+                );
+                files += 1;
+            }
+        }
+        assert_eq!(choices, 1, "veila sensors PRESET");
+        assert!(
+            files >= 3,
+            "convert, project and render take --sensor; found {files}"
+        );
+    }
+
+    /// Every `--dataset` offers exactly the library's datasets
+    /// ([`veila_data::dataset::DatasetName::ALL`]), in its order.
+    #[test]
+    fn every_dataset_option_offers_the_librarys_datasets() {
+        let library: Vec<String> = veila_data::dataset::DatasetName::ALL
+            .iter()
+            .map(|d| d.to_string())
+            .collect();
+        let mut args = Vec::new();
+        every_argument(&cli_command(), "veila", &mut args);
+        let mut doors = 0;
+        for (path, arg) in args.iter().filter(|(_, a)| a.get_long() == Some("dataset")) {
+            assert_eq!(offered(arg), library, "`{path} --dataset`");
+            doors += 1;
+        }
+        assert!(doors >= 1, "convert takes --dataset; found {doors}");
+    }
+
+    /// Every `--metrics` offers exactly the library's metrics
+    /// ([`veila_metrics::MetricName::ALL`]), in its order.
+    #[test]
+    fn every_metric_option_offers_the_librarys_metrics() {
+        let library: Vec<String> = veila_metrics::MetricName::ALL
+            .iter()
+            .map(|m| m.to_string())
+            .collect();
+        let mut args = Vec::new();
+        every_argument(&cli_command(), "veila", &mut args);
+        let mut doors = 0;
+        for (path, arg) in args.iter().filter(|(_, a)| a.get_long() == Some("metrics")) {
+            assert_eq!(offered(arg), library, "`{path} --metrics`");
+            doors += 1;
+        }
+        assert!(doors >= 1, "eval takes --metrics; found {doors}");
     }
 
     /// The first "LO to HI" of a help text, as written.

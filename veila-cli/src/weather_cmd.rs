@@ -28,8 +28,9 @@ pub struct WeatherArgs {
     /// The camera image (PNG or JPEG) seen with the scan.
     #[arg(long)]
     pub image: Option<PathBuf>,
-    /// KITTI calibration (calib/NNNNNN.txt or odometry calib.txt): intrinsics and the depth map that
-    /// camera fog, particles and headlights need.
+    /// Calibration (KITTI calib/NNNNNN.txt, odometry calib.txt or a nuScenes per-sample JSON;
+    /// camera image_2 / CAM_FRONT): intrinsics and the depth map that camera fog, particles and
+    /// headlights need.
     #[arg(long)]
     pub calib: Option<PathBuf>,
     /// SemanticKITTI .label file: the road mask for wet ground (else a plane fit).

@@ -218,12 +218,14 @@ pub fn bench_camera_effects(c: &mut Criterion) {
         veila_data::scan::read_points(&root.join("velodyne/000001.bin")),
     ) {
         (Ok(img), Ok(scan)) => {
-            let cam = veila_data::weather::files::read_camera(
+            let cam = veila_data::spec::read_calib_camera(
                 &root.join("calib/000001.txt"),
+                None,
                 img.width(),
                 img.height(),
             )
-            .expect("calib");
+            .expect("calib")
+            .camera;
             let depth = veila_data::weather::files::depth_from_scan(&scan.cloud, &cam);
             (img, depth, Intrinsics::from_camera(&cam))
         }

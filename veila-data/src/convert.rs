@@ -31,7 +31,7 @@ use veila_geom::{
     BeamLayout, LidarSensor, ProjectionOptions, ProjectionStats, Projector, RowSource,
 };
 
-use crate::dataset::{Dataset, Frame};
+use crate::dataset::{Dataset, DatasetName, Frame};
 use crate::semantic_kitti::LabelMap;
 use crate::shard::{
     CameraMatrices, MANIFEST_FORMAT, Manifest, ShardEntry, ShardSample, ShardView, sha256_file,
@@ -640,45 +640,24 @@ fn join_conversion(out: &Path, fp: &str) -> Result<std::fs::File> {
     Ok(run)
 }
 
-/// Open a dataset by name (`kitti`, `semantickitti`, `nuscenes`) for conversion; nuScenes pairs with
-/// `CAM_FRONT`. Returns the dataset and its label map (SemanticKITTI with `semantic-kitti.yaml`).
+/// Open a dataset for conversion with every SemanticKITTI sequence (and its label map, from
+/// `semantic-kitti.yaml`) and nuScenes' `CAM_FRONT`: [`open_source`] of [`SourceSpec::new`].
 pub fn open_dataset(
-    name: &str,
+    name: DatasetName,
     root: &Path,
     load_images: bool,
 ) -> Result<(Box<dyn Dataset>, Option<LabelMap>)> {
-    match name {
-        "kitti" => Ok((
-            Box::new(crate::kitti::KittiObjectDataset::open(root)?.with_images(load_images)),
-            None,
-        )),
-        "semantickitti" => {
-            let ds = crate::semantic_kitti::SemanticKittiDataset::open(
-                root,
-                crate::semantic_kitti::Sequences::All,
-            )?
-            .with_images(load_images);
-            let map = ds.label_map().cloned();
-            Ok((Box::new(ds), map))
-        }
-        "nuscenes" => Ok((
-            Box::new(
-                crate::nuscenes::NuScenesDataset::open(root, "CAM_FRONT")?.with_images(load_images),
-            ),
-            None,
-        )),
-        other => Err(Error::Invalid {
-            what: "dataset".into(),
-            message: format!("`{other}` is not one of kitti, semantickitti, nuscenes"),
-        }),
-    }
+    open_source(&SourceSpec {
+        images: load_images,
+        ..SourceSpec::new(name, root)
+    })
 }
 
 /// Which dataset a conversion reads and how: what [`open_source`] opens.
 #[derive(Debug, Clone)]
 pub struct SourceSpec {
-    /// `kitti`, `semantickitti` or `nuscenes`.
-    pub kind: String,
+    /// The dataset.
+    pub kind: DatasetName,
     /// Dataset root (KITTI: the folder with `training/`; SemanticKITTI: the folder with
     /// `sequences/`; nuScenes: the data root with `v1.0-*/` tables or `calib/*.json`).
     pub root: PathBuf,
@@ -696,9 +675,9 @@ pub struct SourceSpec {
 impl SourceSpec {
     /// A dataset of `kind` at `root` with images, every SemanticKITTI sequence and nuScenes'
     /// `CAM_FRONT`.
-    pub fn new(kind: impl Into<String>, root: impl Into<PathBuf>) -> Self {
+    pub fn new(kind: DatasetName, root: impl Into<PathBuf>) -> Self {
         SourceSpec {
-            kind: kind.into(),
+            kind,
             root: root.into(),
             images: true,
             label_map: None,
@@ -711,8 +690,8 @@ impl SourceSpec {
 /// Opens the dataset `spec` names, with its label map when it has one (SemanticKITTI).
 pub fn open_source(spec: &SourceSpec) -> Result<(Box<dyn Dataset>, Option<LabelMap>)> {
     use crate::semantic_kitti::SemanticKittiDataset;
-    match spec.kind.as_str() {
-        "semantickitti" => {
+    match spec.kind {
+        DatasetName::SemanticKitti => {
             let map = spec.label_map.as_deref().map(LabelMap::read).transpose()?;
             let sequences = spec.sequences.clone();
             let ds = match map {
@@ -725,7 +704,11 @@ pub fn open_source(spec: &SourceSpec) -> Result<(Box<dyn Dataset>, Option<LabelM
             let map = ds.label_map().cloned();
             Ok((Box::new(ds), map))
         }
-        "nuscenes" => {
+        DatasetName::Kitti => Ok((
+            Box::new(crate::kitti::KittiObjectDataset::open(&spec.root)?.with_images(spec.images)),
+            None,
+        )),
+        DatasetName::NuScenes => {
             let cams: Vec<&str> = spec.cameras.iter().map(String::as_str).collect();
             Ok((
                 Box::new(
@@ -735,7 +718,6 @@ pub fn open_source(spec: &SourceSpec) -> Result<(Box<dyn Dataset>, Option<LabelM
                 None,
             ))
         }
-        other => open_dataset(other, &spec.root, spec.images),
     }
 }
 

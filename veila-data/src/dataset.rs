@@ -44,9 +44,78 @@ pub struct FrameView {
     pub camera: PinholeCamera,
 }
 
+/// A dataset, as a command line names it. [`DatasetName::ALL`] is the one list of datasets:
+/// `veila convert --dataset`'s choices are built from it (and a test of that door checks that
+/// they are), and every reader's [`Dataset::name`] is its entry's name. A new dataset is a reader
+/// implementing [`Dataset`], a variant here with its arms, and its arm in
+/// [`crate::convert::open_source`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum DatasetName {
+    /// SemanticKITTI (KITTI odometry sequences with point labels): [`crate::semantic_kitti`].
+    SemanticKitti,
+    /// KITTI object detection (`training/`): [`crate::kitti`].
+    Kitti,
+    /// nuScenes (tables or per-sample calibration JSON): [`crate::nuscenes`].
+    NuScenes,
+}
+
+impl DatasetName {
+    /// Every dataset, in the order help texts list them.
+    pub const ALL: [DatasetName; 3] = [
+        DatasetName::SemanticKitti,
+        DatasetName::Kitti,
+        DatasetName::NuScenes,
+    ];
+
+    /// The name: `semantickitti`, `kitti`, `nuscenes`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DatasetName::SemanticKitti => "semantickitti",
+            DatasetName::Kitti => "kitti",
+            DatasetName::NuScenes => "nuscenes",
+        }
+    }
+
+    /// One line for a `--help` text.
+    pub fn help(self) -> &'static str {
+        match self {
+            DatasetName::SemanticKitti => {
+                "SemanticKITTI: the folder with sequences/ (HDL-64E, point labels)"
+            }
+            DatasetName::Kitti => "KITTI object detection: the folder with training/ (HDL-64E)",
+            DatasetName::NuScenes => {
+                "nuScenes: the data root with v1.0-*/ tables or calib/*.json (HDL-32E)"
+            }
+        }
+    }
+}
+
+impl std::fmt::Display for DatasetName {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for DatasetName {
+    type Err = crate::Error;
+
+    fn from_str(name: &str) -> Result<Self> {
+        DatasetName::ALL
+            .into_iter()
+            .find(|d| d.as_str() == name)
+            .ok_or_else(|| {
+                let names: Vec<&str> = DatasetName::ALL.map(DatasetName::as_str).into();
+                crate::Error::Invalid {
+                    what: "dataset".into(),
+                    message: format!("`{name}` is not one of {}", names.join(", ")),
+                }
+            })
+    }
+}
+
 /// A dataset of frames read lazily.
 pub trait Dataset: Send + Sync + std::fmt::Debug {
-    /// Short name (`kitti`, `semantickitti`, `nuscenes`).
+    /// Short name: its [`DatasetName`]'s.
     fn name(&self) -> &'static str;
     /// Number of frames.
     fn len(&self) -> usize;
@@ -100,4 +169,25 @@ impl ExactSizeIterator for Frames<'_> {}
 /// Lazy iteration over any dataset.
 pub fn frames(dataset: &dyn Dataset) -> Frames<'_> {
     Frames { dataset, next: 0 }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_dataset_has_one_name_that_parses_back() {
+        for d in DatasetName::ALL {
+            assert_eq!(d.as_str().parse::<DatasetName>().unwrap(), d);
+            assert_eq!(d.to_string(), d.as_str());
+            assert!(!d.help().is_empty());
+            let same = DatasetName::ALL.iter().filter(|e| e.as_str() == d.as_str());
+            assert_eq!(same.count(), 1, "{d}");
+        }
+        let e = "waymo".parse::<DatasetName>().unwrap_err().to_string();
+        assert!(
+            e.contains("waymo") && e.contains("semantickitti, kitti, nuscenes"),
+            "{e}"
+        );
+    }
 }

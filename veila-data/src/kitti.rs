@@ -273,7 +273,7 @@ impl KittiObjectDataset {
 
 impl Dataset for KittiObjectDataset {
     fn name(&self) -> &'static str {
-        "kitti"
+        crate::dataset::DatasetName::Kitti.as_str()
     }
     fn len(&self) -> usize {
         self.ids.len()

@@ -13,7 +13,8 @@
 //!   the devkit's LiDAR -> ego -> global -> ego -> camera chain, or per-sample JSON).
 //! - Calibration: [`kitti::KittiCalib`], [`semantic_kitti::OdometryCalib`],
 //!   [`nuscenes::NuScenesSample`], each giving a [`veila_geom::PinholeCamera`]; any of them by content
-//!   with [`spec::camera_from_calib_file`]. Sensors by preset or file: [`spec::sensor_from_spec`].
+//!   with [`spec::read_calib_camera`], the one reader every door uses. Sensors by preset or file:
+//!   [`spec::sensor_from_spec`].
 //! - Images: [`image_io::read_rgb_image`] (PNG / JPEG).
 //! - Metadata read whole (manifests, configs, calibrations, label maps, `.label` files):
 //!   [`read_capped::read_metadata`], which refuses anything but a regular file, and a file over the

@@ -827,7 +827,7 @@ fn find_table_dir(dataroot: &Path) -> Result<Option<PathBuf>> {
 
 impl Dataset for NuScenesDataset {
     fn name(&self) -> &'static str {
-        "nuscenes"
+        crate::dataset::DatasetName::NuScenes.as_str()
     }
     fn len(&self) -> usize {
         self.ids.len()

@@ -567,7 +567,7 @@ impl SemanticKittiDataset {
 
 impl Dataset for SemanticKittiDataset {
     fn name(&self) -> &'static str {
-        "semantickitti"
+        crate::dataset::DatasetName::SemanticKitti.as_str()
     }
     fn len(&self) -> usize {
         self.frames.len()

@@ -4,7 +4,8 @@
 //! `thiserror`):
 //!
 //! - [`LidarSensor`]: spinning-LiDAR models, uniform or with a per-beam elevation table, with the
-//!   presets [`LidarSensor::hdl64e`] (KITTI / SemanticKITTI) and [`LidarSensor::hdl32e`] (nuScenes).
+//!   presets [`LidarSensor::hdl64e`] (KITTI / SemanticKITTI) and [`LidarSensor::hdl32e`] (nuScenes),
+//!   named by [`SensorPreset`] (the one list of presets every door offers).
 //! - [`Projector`]: spherical projection of point clouds into [`RangeImage`]s (equation 1 of the
 //!   paper), nearest point wins, rejected points counted by reason.
 //! - [`RayTable`]: the unit ray of every range pixel (the inverse of equation 1) and unprojection.
@@ -64,4 +65,4 @@ pub use projection::{
 };
 pub use rays::{RayTable, Unprojected};
 pub use region::Region;
-pub use sensor::{BeamLayout, LidarSensor, MAX_SENSOR_PIXELS, RowSource};
+pub use sensor::{BeamLayout, LidarSensor, MAX_SENSOR_PIXELS, RowSource, SensorPreset};

@@ -4,6 +4,112 @@ use serde::{Deserialize, Serialize};
 
 use crate::GeomError;
 
+/// A built-in sensor by name. [`SensorPreset::ALL`] is the one list of presets: the data crate's
+/// `--sensor` specs and sensor files, the simulator's `lidar.preset`, the CLI's `veila sensors` and
+/// the Python wheel's `sensor=` all take their names from it (and a test of each door checks that
+/// they do). A new preset is a constructor on [`LidarSensor`], a variant here and its arms in
+/// [`SensorPreset::as_str`], [`SensorPreset::help`] and [`SensorPreset::sensor`].
+///
+/// Serialised as its name ([`SensorPreset::as_str`]); reading also takes `hdl32e_per_beam`, the
+/// spelling scene files used before the presets had one list.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum SensorPreset {
+    /// [`LidarSensor::hdl64e`].
+    #[default]
+    Hdl64e,
+    /// [`LidarSensor::hdl32e`].
+    Hdl32e,
+    /// [`LidarSensor::hdl32e_per_beam`].
+    Hdl32ePerBeam,
+}
+
+impl SensorPreset {
+    /// Every preset, in the order help texts list them.
+    pub const ALL: [SensorPreset; 3] = [
+        SensorPreset::Hdl64e,
+        SensorPreset::Hdl32e,
+        SensorPreset::Hdl32ePerBeam,
+    ];
+
+    /// The one spelling of the preset's name: `hdl64e`, `hdl32e`, `hdl32e-per-beam`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            SensorPreset::Hdl64e => "hdl64e",
+            SensorPreset::Hdl32e => "hdl32e",
+            SensorPreset::Hdl32ePerBeam => "hdl32e-per-beam",
+        }
+    }
+
+    /// One line for a `--help` text.
+    pub fn help(self) -> &'static str {
+        match self {
+            SensorPreset::Hdl64e => {
+                "Velodyne HDL-64E (KITTI, SemanticKITTI): 64 x 1024, uniform rows"
+            }
+            SensorPreset::Hdl32e => "Velodyne HDL-32E (nuScenes): 32 x 1024, uniform rows",
+            SensorPreset::Hdl32ePerBeam => {
+                "HDL-32E with its per-beam elevation table, rows from the scan's ring index"
+            }
+        }
+    }
+
+    /// The sensor.
+    pub fn sensor(self) -> LidarSensor {
+        match self {
+            SensorPreset::Hdl64e => LidarSensor::hdl64e(),
+            SensorPreset::Hdl32e => LidarSensor::hdl32e(),
+            SensorPreset::Hdl32ePerBeam => LidarSensor::hdl32e_per_beam(),
+        }
+    }
+
+    /// Every preset's name, `, `-separated, in [`SensorPreset::ALL`]'s order (for help texts and
+    /// error messages).
+    pub fn names() -> String {
+        SensorPreset::ALL.map(SensorPreset::as_str).join(", ")
+    }
+
+    /// The preset of a file written before the presets had one list: `hdl32e_per_beam`.
+    fn from_old_spelling(name: &str) -> Option<SensorPreset> {
+        (name == "hdl32e_per_beam").then_some(SensorPreset::Hdl32ePerBeam)
+    }
+}
+
+impl std::fmt::Display for SensorPreset {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for SensorPreset {
+    type Err = GeomError;
+
+    /// A preset by its one name; an unknown name is an error listing the presets.
+    fn from_str(name: &str) -> Result<Self, GeomError> {
+        SensorPreset::ALL
+            .into_iter()
+            .find(|p| p.as_str() == name)
+            .ok_or_else(|| GeomError::InvalidConfig {
+                what: "sensor preset",
+                message: format!("`{name}` is not one of {}", SensorPreset::names()),
+            })
+    }
+}
+
+impl Serialize for SensorPreset {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.as_str())
+    }
+}
+
+impl<'de> Deserialize<'de> for SensorPreset {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let name = String::deserialize(d)?;
+        SensorPreset::from_old_spelling(&name)
+            .map_or_else(|| name.parse(), Ok)
+            .map_err(serde::de::Error::custom)
+    }
+}
+
 /// How the rows (beams) of a range image are laid out in elevation.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 #[serde(tag = "kind", rename_all = "snake_case")]
@@ -258,5 +364,53 @@ impl LidarSensor {
             BeamLayout::PerBeam { elevations_deg, .. } => Some(elevations_deg),
             BeamLayout::Uniform => None,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_preset_has_one_name_that_parses_back_and_a_valid_sensor() {
+        for p in SensorPreset::ALL {
+            assert_eq!(p.as_str().parse::<SensorPreset>(), Ok(p));
+            assert_eq!(p.to_string(), p.as_str());
+            assert!(!p.help().is_empty());
+            p.sensor().validate().unwrap();
+            assert_eq!(
+                SensorPreset::ALL
+                    .iter()
+                    .filter(|q| q.as_str() == p.as_str())
+                    .count(),
+                1
+            );
+        }
+        let e = "vlp16".parse::<SensorPreset>().unwrap_err().to_string();
+        assert!(
+            e.contains("vlp16") && e.contains(&SensorPreset::names()),
+            "{e}"
+        );
+        // the old spelling is a file's alias only, not a second name
+        assert!("hdl32e_per_beam".parse::<SensorPreset>().is_err());
+    }
+
+    #[test]
+    fn presets_serialise_as_their_name_and_old_files_still_read() {
+        #[derive(Debug, PartialEq, Serialize, Deserialize)]
+        struct File {
+            preset: SensorPreset,
+        }
+        for preset in SensorPreset::ALL {
+            let text = toml::to_string(&File { preset }).unwrap();
+            assert_eq!(text.trim(), format!("preset = \"{preset}\""));
+            assert_eq!(toml::from_str::<File>(&text).unwrap(), File { preset });
+        }
+        let old: File = toml::from_str("preset = \"hdl32e_per_beam\"").unwrap();
+        assert_eq!(old.preset, SensorPreset::Hdl32ePerBeam);
+        let e = toml::from_str::<File>("preset = \"vlp16\"")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("vlp16") && e.contains("hdl32e-per-beam"), "{e}");
     }
 }

@@ -65,7 +65,7 @@ pub mod texture;
 pub mod view;
 
 pub use error::{Error, Result};
-pub use metric::{MetricReport, MetricValue, Protocol};
+pub use metric::{MetricName, MetricReport, MetricValue, Protocol};
 pub use veila_geom::Region;
 
 use glam::Vec3;

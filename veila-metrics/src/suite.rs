@@ -8,34 +8,10 @@ use rayon::prelude::*;
 
 use crate::bev::{BevConfig, BevHistogram, SparseBevHistogram, bev_histogram_sparse};
 use crate::lidm::{self, LidmBevConfig};
-use crate::metric::{MetricReport, MetricValue, Protocol};
+use crate::metric::{MetricName, MetricReport, MetricValue, Protocol};
 use crate::nn::PointIndex;
 use crate::protocol::{PeerProtocol, PeerSummary};
 use crate::{Error, Region, Result, chamfer, dist, filter_region};
-
-/// The set metrics of [`score_sets`] (the feature and cross-modal metrics need networks and
-/// cameras and are computed beside them).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
-pub enum SetMetric {
-    /// The protocol's JSD after its whole pipeline.
-    Jsd,
-    /// The protocol's MMD after its whole pipeline.
-    Mmd,
-    /// R2DM's BEV JSD on the raw points.
-    JsdRaw,
-    /// R2DM's BEV MMD on the raw points.
-    MmdRaw,
-    /// LiDARGen's spectral-norm BEV MMD on the raw points.
-    MmdLidargenRaw,
-    /// LiDM's minimum matching distance on the raw points, 64-beam grid.
-    MmdLidmRaw,
-    /// LiDM's minimum matching distance on the raw points, 32-beam nuScenes grid.
-    MmdLidmNuscenesRaw,
-    /// Minimum matching distance with the 3-D Chamfer distance.
-    MmdCd,
-    /// Chamfer distance of scans paired in order, averaged over pairs.
-    Chamfer,
-}
 
 /// What the summaries must hold for a set of metrics.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -54,9 +30,9 @@ pub struct Needs {
 
 impl Needs {
     /// What `metrics` need.
-    pub fn of(metrics: &[SetMetric]) -> Self {
-        use SetMetric as M;
-        let any = |f: &dyn Fn(SetMetric) -> bool| metrics.iter().any(|m| f(*m));
+    pub fn of(metrics: &[MetricName]) -> Self {
+        use MetricName as M;
+        let any = |f: &dyn Fn(MetricName) -> bool| metrics.iter().any(|m| f(*m));
         Needs {
             points: any(&|m| matches!(m, M::MmdCd | M::Chamfer)),
             hist: any(&|m| matches!(m, M::JsdRaw | M::MmdRaw | M::MmdLidargenRaw)),
@@ -300,16 +276,16 @@ pub fn empty_regions(
 
 /// Every metric of `metrics` for every region of `regions` (the regions the summaries were made
 /// for, in their order) between the generated and the reference summaries; `on_metric` is called
-/// after each (metric, region).
+/// after each (metric, region). Every metric must be a set metric ([`MetricName::is_set_metric`]).
 pub fn score_sets(
-    metrics: &[SetMetric],
+    metrics: &[MetricName],
     regions: &[Region],
     generated: &[ScanSummary],
     reference: &[ScanSummary],
     protocol: PeerProtocol,
-    mut on_metric: impl FnMut(SetMetric, Region),
+    mut on_metric: impl FnMut(MetricName, Region),
 ) -> Result<MetricReport> {
-    use SetMetric as M;
+    use MetricName as M;
     let mut report = MetricReport::default();
     let (ng, nr) = (generated.len(), reference.len());
     let value =
@@ -346,7 +322,7 @@ pub fn score_sets(
             let ex = |e| explain(e, generated, reference);
             let v = match m {
                 M::Jsd | M::Mmd => {
-                    let want = if m == M::Jsd { "jsd" } else { "mmd" };
+                    let want = m.as_str();
                     let pm = peer_scores
                         .iter()
                         .flatten()
@@ -363,7 +339,7 @@ pub fn score_sets(
                     )
                 }
                 M::JsdRaw => value(
-                    "jsd-raw",
+                    m.as_str(),
                     Protocol::R2dm,
                     region,
                     dist::jsd(&sparse(generated), &sparse(reference)).map_err(ex)?,
@@ -380,7 +356,7 @@ pub fn score_sets(
                         )
                     };
                     value(
-                        "mmd-raw",
+                        m.as_str(),
                         Protocol::R2dm,
                         region,
                         mmd.map_err(ex)?,
@@ -388,7 +364,7 @@ pub fn score_sets(
                     )
                 }
                 M::MmdLidargenRaw => value(
-                    "mmd-lidargen-raw",
+                    m.as_str(),
                     Protocol::Lidargen,
                     region,
                     dist::mmd_lidargen(&dense(generated), &dense(reference), dist::MMD_SIGMA)
@@ -407,11 +383,7 @@ pub fn score_sets(
                     let og: Vec<_> = generated.iter().map(pick).collect();
                     let or: Vec<_> = reference.iter().map(pick).collect();
                     value(
-                        if nus {
-                            "mmd-lidm-nuscenes-raw"
-                        } else {
-                            "mmd-lidm-raw"
-                        },
+                        m.as_str(),
                         if nus {
                             Protocol::LidmNuscenes
                         } else {
@@ -426,7 +398,7 @@ pub fn score_sets(
                     let ig = indexes(generated, region)?;
                     let ir = indexes(reference, region)?;
                     value(
-                        "mmd-cd",
+                        m.as_str(),
                         Protocol::Pytorch3d,
                         region,
                         chamfer::minimum_matching_distance(&ig, &ir)?,
@@ -449,12 +421,18 @@ pub fn score_sets(
                         sum += chamfer::chamfer_distance(&gp, &rp)?.value();
                     }
                     value(
-                        "chamfer",
+                        m.as_str(),
                         Protocol::Pytorch3d,
                         region,
                         sum / generated.len() as f64,
                         None,
                     )
+                }
+                M::Frd | M::Fpd | M::CmDc | M::CmSc => {
+                    return Err(Error::InvalidParameter {
+                        name: "metric",
+                        reason: format!("{m} is not a set metric (computed beside score_sets)"),
+                    });
                 }
             };
             report.metrics.push(v);

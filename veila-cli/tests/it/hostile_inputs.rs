@@ -71,11 +71,11 @@ fn fd_newton_schulz_iterations_are_range_checked() {
 #[test]
 fn sensors_prints_a_valid_file_for_every_preset() {
     let tmp = tempfile::tempdir().unwrap();
-    for (name, default) in [
-        ("hdl64e", true),
-        ("hdl32e", false),
-        ("hdl32e-per-beam", false),
-    ] {
+    for preset in veila_geom::SensorPreset::ALL {
+        let (name, default) = (
+            preset.as_str(),
+            preset == veila_geom::SensorPreset::default(),
+        );
         let mut c = veila();
         c.arg("sensors");
         if !default {
@@ -87,11 +87,7 @@ fn sensors_prints_a_valid_file_for_every_preset() {
         let text = String::from_utf8(o.stdout).unwrap();
         let parsed: veila_geom::LidarSensor =
             toml::from_str(&text).unwrap_or_else(|e| panic!("{name}: {e}\n{text}"));
-        assert_eq!(
-            Some(parsed.clone()),
-            veila_data::spec::sensor_preset(name),
-            "{name}"
-        );
+        assert_eq!(parsed, preset.sensor(), "{name}");
         // and the file works where a sensor file is taken
         let p = tmp.path().join(format!("{name}.toml"));
         std::fs::write(&p, &text).unwrap();

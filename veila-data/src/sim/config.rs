@@ -57,7 +57,7 @@ use std::path::Path;
 pub const MAX_FRAMES: u32 = 100_000;
 
 use serde::{Deserialize, Serialize};
-use veila_geom::LidarSensor;
+use veila_geom::{LidarSensor, SensorPreset};
 
 use crate::{Error, Result};
 
@@ -456,25 +456,16 @@ impl EgoConfig {
 }
 
 /// The LiDAR sensor and its return model.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct LidarConfig {
-    /// A sensor preset: `hdl64e` (default), `hdl32e`, `hdl32e_per_beam`. Ignored when `sensor` is given.
-    pub preset: String,
+    /// A sensor preset (one of [`SensorPreset::ALL`]; `hdl64e` by default). Ignored when `sensor`
+    /// is given.
+    pub preset: SensorPreset,
     /// A full sensor description (overrides `preset`).
     pub sensor: Option<LidarSensor>,
     /// Return model (intensity, ray drop).
     pub returns: LidarReturnModel,
-}
-
-impl Default for LidarConfig {
-    fn default() -> Self {
-        LidarConfig {
-            preset: "hdl64e".into(),
-            sensor: None,
-            returns: LidarReturnModel::default(),
-        }
-    }
 }
 
 impl LidarConfig {
@@ -482,19 +473,7 @@ impl LidarConfig {
     pub fn sensor(&self) -> Result<LidarSensor> {
         let s = match &self.sensor {
             Some(s) => s.clone(),
-            None => match self.preset.as_str() {
-                "hdl64e" => LidarSensor::hdl64e(),
-                "hdl32e" => LidarSensor::hdl32e(),
-                "hdl32e_per_beam" => LidarSensor::hdl32e_per_beam(),
-                other => {
-                    return Err(Error::Invalid {
-                        what: "lidar.preset".into(),
-                        message: format!(
-                            "unknown preset {other:?} (expected hdl64e, hdl32e or hdl32e_per_beam)"
-                        ),
-                    });
-                }
-            },
+            None => self.preset.sensor(),
         };
         s.validate()?;
         Ok(s)

@@ -3,7 +3,7 @@
 //!
 //! * An empty pipeline copies the input bytes verbatim (a PNG image too): byte-identical outputs.
 //! * The camera's depth map comes from the scan itself, projected into the image with the calibration
-//!   (`P2`, `R0_rect`, `Tr_velo_to_cam`, or an odometry `calib.txt` with `Tr`) and densified with
+//!   ([`crate::spec::read_calib_camera`]: KITTI camera 2 or nuScenes `CAM_FRONT`) and densified with
 //!   [`DepthMap::from_sparse`]; the camera record notes it. Camera effects that need depth fail without
 //!   a calibration file.
 //! * Rings: from the file (nuScenes), else the HDL-64E elevation table (noted in the snow record).
@@ -31,8 +31,8 @@ pub struct FrameFiles {
     pub scan: PathBuf,
     /// The camera image (PNG or JPEG), optional.
     pub image: Option<PathBuf>,
-    /// KITTI object `calib/NNNNNN.txt` or odometry `calib.txt` (needed for camera fog, headlights,
-    /// particles).
+    /// KITTI object `calib/NNNNNN.txt`, odometry `calib.txt` or nuScenes per-sample JSON (needed
+    /// for camera fog, headlights, particles).
     pub calib: Option<PathBuf>,
     /// SemanticKITTI `.label` file (ground mask for wet ground), optional.
     pub labels: Option<PathBuf>,
@@ -57,26 +57,6 @@ pub fn depth_from_scan(cloud: &PointCloud, cam: &PinholeCamera) -> DepthMap {
         .map(|ip| (ip.u_px, ip.v_px, ip.depth_m))
         .collect();
     DepthMap::from_sparse(cam.width, cam.height, &samples)
-}
-
-/// Read a KITTI object or odometry calibration and build the `image_2` camera.
-/// Every error names the file (an invalid camera too: a negative focal length, a principal point
-/// outside the image, a translation beyond `veila_geom::MAX_CAMERA_OFFSET_M`).
-pub fn read_camera(calib: &Path, width: u32, height: u32) -> Result<PinholeCamera> {
-    let cam = match crate::kitti::KittiCalib::read(calib) {
-        Ok(c) => c.camera(2, width, height),
-        Err(first) => match crate::semantic_kitti::OdometryCalib::read(calib) {
-            Ok(c) => c.camera(2, width, height),
-            Err(_) => Err(first),
-        },
-    };
-    // focal lengths, principal point and translations are checked where every calibration
-    // reader builds its camera (`PinholeCamera::check_calibration`)
-    cam.map_err(|e| match e {
-        Error::Geom(g) => Error::format(calib, format!("calibration gives an invalid camera: {g}")),
-        Error::Invalid { message, .. } => Error::format(calib, message),
-        other => other,
-    })
 }
 
 fn encode_nuscenes(cloud: &PointCloud) -> Vec<u8> {
@@ -232,7 +212,8 @@ pub fn compute_frame(sim: &WeatherSim, files: &FrameFiles, out_scan: &Path) -> R
                     input: "a calibration file (for the intrinsics and a depth map from the scan)"
                         .into(),
                 })?;
-                let cam = read_camera(calib, img.width(), img.height())?;
+                let cam =
+                    crate::spec::read_calib_camera(calib, None, img.width(), img.height())?.camera;
                 intr = Some(Intrinsics::from_camera(&cam));
                 if needs(Input::DepthMap) {
                     let cloud = match &clean_cloud {

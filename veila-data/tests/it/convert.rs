@@ -5,6 +5,7 @@ use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use veila_data::convert::{ConvertOptions, Progress, convert, open_dataset};
+use veila_data::dataset::DatasetName;
 use veila_data::dataset::frames;
 use veila_data::image::{Rgb, RgbImage};
 use veila_data::kitti::KittiObjectDataset;
@@ -56,7 +57,7 @@ fn opts(out: &Path) -> ConvertOptions {
 fn shards_hold_exactly_the_projected_frames() {
     let dir = tempfile::tempdir().unwrap();
     make_kitti(dir.path(), 5);
-    let (ds, map) = open_dataset("kitti", dir.path(), true).unwrap();
+    let (ds, map) = open_dataset(DatasetName::Kitti, dir.path(), true).unwrap();
     assert_eq!(ds.len(), 5);
     let out = dir.path().join("out");
     let seen = AtomicUsize::new(0);

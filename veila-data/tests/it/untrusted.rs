@@ -7,6 +7,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use veila_data::convert::{ConvertOptions, convert, open_dataset};
+use veila_data::dataset::DatasetName;
 use veila_data::kitti::KittiCalib;
 use veila_data::read_capped::{MAX_KITTI_SCAN_BYTES, MAX_LABEL_FILE_BYTES};
 use veila_data::semantic_kitti::{LabelMap, read_labels};
@@ -96,7 +97,7 @@ fn a_calibration_linked_to_dev_zero_is_refused() {
         e.contains("000000.txt") && e.contains("not a regular file"),
         "{e}"
     );
-    let e = veila_data::spec::camera_from_calib_file(&p, 100, 50, "CAM_FRONT")
+    let e = veila_data::spec::read_calib_camera(&p, None, 100, 50)
         .unwrap_err()
         .to_string();
     assert!(
@@ -138,7 +139,7 @@ fn convert_refuses_a_sparse_100_gb_scan_before_hashing_it() {
     let Some(()) = kitti_with_scan(dir.path(), 100_000_000_000) else {
         return;
     };
-    let (ds, map) = open_dataset("kitti", dir.path(), false).unwrap();
+    let (ds, map) = open_dataset(DatasetName::Kitti, dir.path(), false).unwrap();
     let sensor = LidarSensor {
         rows: 16,
         cols: 64,
@@ -180,7 +181,7 @@ fn kitti_calib(p2: &str, tr: &str) -> String {
 }
 
 /// The error of camera 2 of the KITTI calibration `text` for a 1242 x 375 image, through every
-/// reader: the object and odometry parsers, `camera_from_calib_file` and the weather files'.
+/// reader: the object and odometry parsers, and `read_calib_camera` (every door's) of both.
 fn kitti_camera_errors(dir: &Path, text: &str) -> Vec<String> {
     let object = dir.join("calib_object.txt");
     std::fs::write(&object, text).unwrap();
@@ -196,29 +197,14 @@ fn kitti_camera_errors(dir: &Path, text: &str) -> Vec<String> {
         Ok(c) => panic!("accepted: {c:?}"),
         Err(e) => e.to_string(),
     };
-    #[allow(unused_mut)]
-    let mut errors = vec![
+    let read = |p: &Path| veila_data::spec::read_calib_camera(p, None, 1242, 375).map(|c| c.camera);
+    vec![
         err(KittiCalib::read(&object).and_then(|c| c.camera(2, 1242, 375))),
         err(veila_data::semantic_kitti::OdometryCalib::read(&odometry)
             .and_then(|c| c.camera(2, 1242, 375))),
-        err(veila_data::spec::camera_from_calib_file(
-            &object,
-            1242,
-            375,
-            "CAM_FRONT",
-        )),
-        err(veila_data::spec::camera_from_calib_file(
-            &odometry,
-            1242,
-            375,
-            "CAM_FRONT",
-        )),
-    ];
-    #[cfg(feature = "weather")]
-    errors.push(err(veila_data::weather::files::read_camera(
-        &object, 1242, 375,
-    )));
-    errors
+        err(read(&object)),
+        err(read(&odometry)),
+    ]
 }
 
 #[test]
@@ -228,7 +214,9 @@ fn the_real_kitti_calibration_is_accepted_by_every_reader() {
     std::fs::write(&p, kitti_calib(KITTI_P2, KITTI_TR)).unwrap();
     let cam = KittiCalib::read(&p).unwrap().camera(2, 1242, 375).unwrap();
     assert_eq!(
-        veila_data::spec::camera_from_calib_file(&p, 1242, 375, "CAM_FRONT").unwrap(),
+        veila_data::spec::read_calib_camera(&p, None, 1242, 375)
+            .unwrap()
+            .camera,
         cam
     );
     cam.check_calibration().unwrap();
@@ -305,7 +293,9 @@ fn nuscenes_calibrations_with_implausible_cameras_are_refused_saying_why() {
     let good_k = "[[1266,0,816],[0,1266,491],[0,0,1]]";
     let good_t = ["0", "0.3", "-0.7"];
     std::fs::write(&p, nuscenes_json(good_k, good_t)).unwrap();
-    let read = |p: &Path| veila_data::spec::camera_from_calib_file(p, 1600, 900, "CAM_FRONT");
+    let read = |p: &Path| {
+        veila_data::spec::read_calib_camera(p, Some("CAM_FRONT"), 1600, 900).map(|c| c.camera)
+    };
     read(&p).unwrap();
     let cases: [(&str, [&str; 3], &[&str]); 4] = [
         (

@@ -7,6 +7,7 @@ use std::path::{Path, PathBuf};
 
 use veila_data::convert::{ConvertOptions, convert, open_dataset};
 use veila_data::dataset::Dataset;
+use veila_data::dataset::DatasetName;
 use veila_data::nuscenes::NuScenesDataset;
 use veila_data::shard::{MANIFEST_FORMAT, Manifest, ShardSample, write_shard};
 use veila_geom::LidarSensor;
@@ -79,7 +80,7 @@ fn nuscenes_refused(root: &Path, want: &[&str]) {
             "{e}"
         );
     }
-    let (ds, map) = open_dataset("nuscenes", root, true).unwrap();
+    let (ds, map) = open_dataset(DatasetName::NuScenes, root, true).unwrap();
     let sensor = LidarSensor {
         rows: 8,
         cols: 32,

@@ -2,9 +2,8 @@
 
 use std::path::{Path, PathBuf};
 
-use veila_data::weather::files::{
-    FrameFiles, FrameOutputs, depth_from_scan, process_frame, read_camera,
-};
+use veila_data::spec::read_calib_camera;
+use veila_data::weather::files::{FrameFiles, FrameOutputs, depth_from_scan, process_frame};
 use veila_data::weather::{
     BeamTable, LidarInput, PointOrigin, Preset, Weather, WeatherConfig, WeatherSim,
 };
@@ -82,7 +81,9 @@ fn kitti_weather_variants_on_a_real_scan() {
 
     // the camera depth map from the scan covers the road and leaves no NaN
     let img = veila_data::image_io::read_rgb_image(&k.join("image_2/000000.png")).unwrap();
-    let cam = read_camera(&k.join("calib/000000.txt"), img.width(), img.height()).unwrap();
+    let cam = read_calib_camera(&k.join("calib/000000.txt"), None, img.width(), img.height())
+        .unwrap()
+        .camera;
     let depth = depth_from_scan(&cloud, &cam);
     depth.validate(img.width(), img.height()).unwrap();
     let w = img.width() as usize;

@@ -163,7 +163,7 @@ impl CrossModalEval<'_> {
         let cloud = &loaded.cloud;
         let camera_for = |w: u32, h: u32| -> Result<veila_geom::PinholeCamera> {
             let (w, h) = self.image_size.unwrap_or((w, h));
-            Ok(veila_data::weather::files::read_camera(&calib_file, w, h)?)
+            Ok(veila_data::spec::read_calib_camera(&calib_file, None, w, h)?.camera)
         };
         let mut scores = ScanScores::default();
         if let Some(depth) = &self.depth {

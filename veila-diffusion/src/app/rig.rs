@@ -17,10 +17,7 @@ use std::path::{Path, PathBuf};
 use veila_data::PointCloud;
 use veila_data::image::{RgbImage, imageops};
 use veila_data::image_io::read_rgb_image;
-use veila_data::kitti::KittiCalib;
-use veila_data::nuscenes::NuScenesSample;
-use veila_data::semantic_kitti::OdometryCalib;
-use veila_data::spec::{CalibKind, detect_calib_kind};
+use veila_data::spec::read_calib_camera;
 use veila_geom::{PinholeCamera, RangeImage, RayTable};
 
 use super::bundle::BundleConfig;
@@ -72,63 +69,22 @@ fn input(path: &Path, reason: String) -> Error {
 }
 
 /// Reads `image` and camera `camera` of `calib` (default: KITTI camera 2 = `image_2`, nuScenes
-/// `CAM_FRONT`), and checks that the calibration is for an image of this size.
+/// `CAM_FRONT`) with the one calibration reader, [`read_calib_camera`], and checks that the
+/// calibration is for an image of this size.
 pub fn load_view(image_path: &Path, calib_path: &Path, camera: Option<&str>) -> Result<RigView> {
     let image = read_rgb_image(image_path)?;
     let (w, h) = image.dimensions();
-    let kind = detect_calib_kind(calib_path)?;
-    let name = camera.map(str::to_string).unwrap_or_else(|| match kind {
-        CalibKind::NuScenesJson => "CAM_FRONT".to_string(),
-        _ => "2".to_string(),
-    });
-    let (cam, kind_name) = match kind {
-        CalibKind::KittiObject => (
-            KittiCalib::read(calib_path)?.camera(kitti_index(&name, calib_path)?, w, h),
-            "kitti-object",
-        ),
-        CalibKind::KittiOdometry => (
-            OdometryCalib::read(calib_path)?.camera(kitti_index(&name, calib_path)?, w, h),
-            "kitti-odometry",
-        ),
-        CalibKind::NuScenesJson => (
-            NuScenesSample::read_json(calib_path)?.camera(&name, w, h),
-            "nuscenes-json",
-        ),
-    };
-    let camera = cam.map_err(|e| {
-        input(
-            calib_path,
-            format!(
-                "camera {name} for the {w}x{h} image {}: {e}",
-                image_path.display()
-            ),
-        )
-    })?;
-    check_principal_point(&camera, image_path, calib_path)?;
+    let read = read_calib_camera(calib_path, camera, w, h)
+        .map_err(|e| input(image_path, format!("the camera of this {w}x{h} image: {e}")))?;
+    check_principal_point(&read.camera, image_path, calib_path)?;
     Ok(RigView {
         image_path: image_path.to_path_buf(),
         calib_path: calib_path.to_path_buf(),
-        calib_kind: kind_name,
-        camera_name: name,
+        calib_kind: read.kind.name(),
+        camera_name: read.name,
         image,
-        camera,
+        camera: read.camera,
     })
-}
-
-fn kitti_index(name: &str, calib: &Path) -> Result<usize> {
-    let digits = name
-        .strip_prefix("image_")
-        .or_else(|| name.strip_prefix('P'))
-        .unwrap_or(name);
-    match digits.parse::<usize>() {
-        Ok(i) if i <= 3 => Ok(i),
-        _ => Err(input(
-            calib,
-            format!(
-                "--camera {name}: a KITTI calibration has cameras 0 to 3 (P0..P3; 2 = image_2, 3 = image_3)"
-            ),
-        )),
-    }
 }
 
 /// A calibration's principal point lies near the centre of the image it was made for (KITTI: 49% /

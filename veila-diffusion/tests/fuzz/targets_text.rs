@@ -39,7 +39,7 @@ fn kitti_calibration() {
         let object = veila_data::kitti::KittiCalib::read(&path).and_then(|c| c.camera(2, w, h));
         let odometry =
             veila_data::semantic_kitti::OdometryCalib::read(&path).and_then(|c| c.camera(2, w, h));
-        let any = veila_data::spec::camera_from_calib_file(&path, w, h, "CAM_FRONT");
+        let any = veila_data::spec::read_calib_camera(&path, None, w, h);
         let quiet = |r: veila_data::Result<_>| match Verdict::of(r, &[&name]) {
             v @ Verdict::Violation(_) => v,
             _ => Verdict::Ok,
@@ -129,7 +129,7 @@ fn nuscenes_calibration() {
         put(&json, bytes);
         let (w, h) = (64, 36);
         let sample = NuScenesSample::read_json(&json).and_then(|s| s.camera("CAM_FRONT", w, h));
-        let any = veila_data::spec::camera_from_calib_file(&json, w, h, "CAM_FRONT");
+        let any = veila_data::spec::read_calib_camera(&json, None, w, h);
         let frame = NuScenesDataset::open(&root, "CAM_FRONT").and_then(|d| d.load(0));
         let outside_read = match &frame {
             Ok(f) if f.points.len() == decoy_points => {
