@@ -1138,11 +1138,12 @@ impl BundleConfig {
                     scale: vec![1.0; c],
                 });
                 self.denoiser.in_channels = 2 * c;
-                // measured on the 120 held-out frames (docs/bench-report): 4 DDPM steps against
-                // 16 DPM-Solver++(2M) steps, JSD 0.140 vs 0.145, MMD 6.6 vs 7.3 e-4, range MAE
-                // 1.30 vs 1.38 m, at 0.33 vs 2.1 s per scan (FPD 14.7 vs 12.5: the price)
+                // the realism-faithfulness frontier's rule (BENCHMARKS.md, "The residual's clip
+                // and the default sampler"): the lowest FPD whose range error and CM-DC stay
+                // inside the faithfulness bounds; 16 DDPM steps, FPD 10.5 against 13.2 for 4
+                // steps (80 held-out frames), at 1.4 against 0.46 s per scan
                 let guidance = self.sampler.guidance_scale;
-                self.sampler = crate::SamplerConfig::ddpm(4);
+                self.sampler = crate::SamplerConfig::ddpm(16);
                 self.sampler.guidance_scale = guidance;
             }
             Method::Flow => self.diffusion.objective = Objective::rectified_flow(),
@@ -1183,7 +1184,7 @@ impl BundleConfig {
     /// at 96 x 320, KITTI range encoding, cosine log-SNR schedule with v-prediction and min-SNR-5
     /// weighting, DPM-Solver++(2M)
     /// with 16 steps and guidance 1.5 by default; [`with_method`](Self::with_method) gives the
-    /// residual method 4 DDPM steps), turned into `variant`.
+    /// residual method 16 DDPM steps), turned into `variant`.
     pub fn cpu_default(variant: Variant) -> Self {
         let mut denoiser = DenoiserConfig::small();
         let sem = SmallCnnConfig {
