@@ -261,6 +261,20 @@ mod tests {
         }
     }
 
+    /// The commands (paths) whose `--long` option offers exactly `library`, in its order; an
+    /// option that offers anything else fails the test.
+    fn doors_offering(long: &str, library: &[String]) -> Vec<String> {
+        let mut args = Vec::new();
+        every_argument(&cli_command(), "veila", &mut args);
+        let mut doors = Vec::new();
+        for (path, arg) in args.iter().filter(|(_, a)| a.get_long() == Some(long)) {
+            assert_eq!(offered(arg), library, "`{path} --{long}`");
+            doors.push(path.clone());
+        }
+        doors.sort();
+        doors
+    }
+
     /// Every `--sampler` of every command offers exactly the library's samplers
     /// ([`veila_diffusion::SamplerName::ALL`]), in its order: a door cannot forget one.
     #[test]
@@ -269,24 +283,11 @@ mod tests {
             .iter()
             .map(|n| n.to_string())
             .collect();
-        let mut doors = 0;
-        for sub in cli_command().get_subcommands() {
-            for arg in sub.get_arguments() {
-                if arg.get_long() != Some("sampler") {
-                    continue;
-                }
-                let offered: Vec<String> = arg
-                    .get_possible_values()
-                    .iter()
-                    .map(|v| v.get_name().to_string())
-                    .collect();
-                assert_eq!(offered, library, "`veila {} --sampler`", sub.get_name());
-                doors += 1;
-            }
-        }
-        assert!(
-            doors >= 2,
-            "generate and edit take --sampler; found {doors}"
+        let doors = doors_offering("sampler", &library);
+        assert_eq!(
+            doors,
+            ["veila edit", "veila generate"],
+            "the commands with --sampler"
         );
     }
 
@@ -298,25 +299,10 @@ mod tests {
             .iter()
             .map(|s| s.to_string())
             .collect();
-        let mut doors = Vec::new();
-        for sub in cli_command().get_subcommands() {
-            for arg in sub.get_arguments() {
-                if arg.get_long() != Some("spacing") {
-                    continue;
-                }
-                let offered: Vec<String> = arg
-                    .get_possible_values()
-                    .iter()
-                    .map(|v| v.get_name().to_string())
-                    .collect();
-                assert_eq!(offered, library, "`veila {} --spacing`", sub.get_name());
-                doors.push(sub.get_name().to_string());
-            }
-        }
-        doors.sort();
+        let doors = doors_offering("spacing", &library);
         assert_eq!(
             doors,
-            ["demo", "edit", "generate"],
+            ["veila demo", "veila edit", "veila generate"],
             "the commands with --spacing"
         );
     }
@@ -381,14 +367,8 @@ mod tests {
             .iter()
             .map(|d| d.to_string())
             .collect();
-        let mut args = Vec::new();
-        every_argument(&cli_command(), "veila", &mut args);
-        let mut doors = 0;
-        for (path, arg) in args.iter().filter(|(_, a)| a.get_long() == Some("dataset")) {
-            assert_eq!(offered(arg), library, "`{path} --dataset`");
-            doors += 1;
-        }
-        assert!(doors >= 1, "convert takes --dataset; found {doors}");
+        let doors = doors_offering("dataset", &library);
+        assert_eq!(doors, ["veila convert"], "the commands with --dataset");
     }
 
     /// Every `--metrics` offers exactly the library's metrics
@@ -399,14 +379,8 @@ mod tests {
             .iter()
             .map(|m| m.to_string())
             .collect();
-        let mut args = Vec::new();
-        every_argument(&cli_command(), "veila", &mut args);
-        let mut doors = 0;
-        for (path, arg) in args.iter().filter(|(_, a)| a.get_long() == Some("metrics")) {
-            assert_eq!(offered(arg), library, "`{path} --metrics`");
-            doors += 1;
-        }
-        assert!(doors >= 1, "eval takes --metrics; found {doors}");
+        let doors = doors_offering("metrics", &library);
+        assert_eq!(doors, ["veila eval"], "the commands with --metrics");
     }
 
     /// The first "LO to HI" of a help text, as written.
