@@ -226,7 +226,8 @@ pub fn run(args: BenchRealismArgs) -> Result<()> {
         serde_json::to_string_pretty(&report)?,
     )?;
     std::fs::write(out.join("report.md"), markdown(&report))?;
-    // the legend stacks above the axes: grow the canvas with it so the axes keep their height
+    // a legend that fits no free corner stacks above the axes: grow the canvas with the rows so
+    // the axes keep their height either way
     let plot = frontier(&report);
     let height = 420 + 26 * plot.series.len() as u32;
     plot.write_png(&out.join("frontier.png"), 900, height)?;

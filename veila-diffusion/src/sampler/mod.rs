@@ -508,14 +508,17 @@ impl<'a> Sampler<'a> {
         uncond: Option<&D::Cond>,
     ) -> Result<Denoised> {
         let guidance = uncond.map(|u| (self.config.guidance_scale, u));
-        if self.x0_bounds.is_none() {
-            return self
-                .diffusion
-                .denoise(model, x, level, cond, guidance, self.config.clip_x0);
-        }
+        // the symmetric clip is the process's own; per-element bounds are applied here
+        let symmetric = match self.x0_bounds {
+            None => self.config.clip_x0,
+            Some(_) => None,
+        };
         let d = self
             .diffusion
-            .denoise(model, x, level, cond, guidance, None)?;
+            .denoise(model, x, level, cond, guidance, symmetric)?;
+        if self.x0_bounds.is_none() {
+            return Ok(d);
+        }
         let (x0, _) = self.clamp_x0(d.x0)?;
         let alpha = crate::objective::scalar(level.alpha(), x)?;
         let sigma = crate::objective::scalar(level.sigma(), x)?;
