@@ -217,7 +217,7 @@ pub(crate) fn is_generate_output(name: &str) -> bool {
     })
 }
 
-/// The bundled model's sampler in words (`ddpm, 16 steps, guidance 1.5`), read from the bundle
+/// The bundled model's sampler in words (`ddpm, 16 steps, guidance 1`), read from the bundle
 /// this binary embeds, so that the help texts say what the bundle says.
 fn bundled_sampler_words() -> Option<String> {
     let s = model::bundled_config()?.sampler;
