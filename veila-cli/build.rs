@@ -1,6 +1,6 @@
 //! Embeds the bundled default model (`models/default`, a few MiB) into the `veila` binary, so that
 //! `cargo install --path veila-cli` gives a binary that generates from any directory. A checkout
-//! without the folder builds a binary without it (it then asks for `--checkpoint` / `$VEILA_MODEL`).
+//! without the folder builds a binary without it (it then asks for `--model` / `$VEILA_MODEL`).
 
 use std::fmt::Write;
 use std::path::Path;

@@ -43,7 +43,7 @@ def test_generate_gives_the_cli_scan_byte_for_byte(name, tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "VEILA_MODEL"}
     run = subprocess.run(
         [str(VEILA), "generate", "--quiet", "--image", str(image_path), "--calib", str(calib),
-         "--camera", camera, "--checkpoint", str(MODEL), "--seed", "0", "--out", str(out)],
+         "--camera", camera, "--model", str(MODEL), "--seed", "0", "--out", str(out)],
         env=env, capture_output=True, text=True,
     )
     assert run.returncode == 0, run.stderr

@@ -2,7 +2,7 @@
 //!
 //! It simulates a scene of the test split (camera image + LiDAR scan with ground-truth depth and
 //! semantics), generates the panoramic scan from the camera image alone with the bundled model
-//! (`models/default`, or `--checkpoint`), and writes to one folder the input image, the generated and
+//! (`models/default`, or `--model`), and writes to one folder the input image, the generated and
 //! the true range images and BEV views side by side, the generated points drawn on the image, PLY /
 //! EXR / KITTI `.bin` files, and the metrics of this scene (JSON and a printed table). `--weather`
 //! degrades the input image with a weather preset (camera effects only: the true scan stays the
@@ -48,9 +48,10 @@ pub(crate) struct DemoArgs {
     /// Scene seed, 0 to 18446744073709551615.
     #[arg(long, value_name = "S", default_value_t = DEFAULT_SEED)]
     seed: u64,
-    /// Model bundle folder (default: $VEILA_MODEL, else the bundled models/default).
-    #[arg(long, value_name = "DIR", env = "VEILA_MODEL")]
-    checkpoint: Option<PathBuf>,
+    /// Model bundle folder (default: $VEILA_MODEL, else the bundled models/default;
+    /// `--checkpoint` is an alias).
+    #[arg(long, value_name = "DIR", env = "VEILA_MODEL", alias = "checkpoint")]
+    model: Option<PathBuf>,
     /// Where the sampler's steps lie on the noise schedule (default: the bundle's).
     #[arg(long, value_parser = crate::generation::spacing_parser())]
     spacing: Option<veila_diffusion::Spacing>,
@@ -140,7 +141,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         .parse()
         .map_err(|e| anyhow::anyhow!("--weather {}: {e}", args.weather))?;
     let device = model::device()?;
-    let bundle = model::load_bundle(args.checkpoint.as_deref(), &device)?;
+    let bundle = model::load_bundle(args.model.as_deref(), &device)?;
     let sampler = generation::resolve_sampler(
         &bundle,
         generation::SamplerFlags {

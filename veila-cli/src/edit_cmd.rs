@@ -48,9 +48,10 @@ pub(crate) struct EditArgs {
         allow_hyphen_values = true
     )]
     remove_box: Option<String>,
-    /// Model bundle folder (default: $VEILA_MODEL, else the bundled models/default).
-    #[arg(long, value_name = "DIR", env = "VEILA_MODEL")]
-    checkpoint: Option<PathBuf>,
+    /// Model bundle folder (default: $VEILA_MODEL, else the bundled models/default;
+    /// `--checkpoint` is an alias).
+    #[arg(long, value_name = "DIR", env = "VEILA_MODEL", alias = "checkpoint")]
+    model: Option<PathBuf>,
     // the help names the bundled model's sampler as its bundle.json does
     #[arg(long, value_parser = sampler_parser(), help = inpainting_sampler_help())]
     sampler: Option<SamplerName>,
@@ -268,7 +269,7 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
         .add_opt(args.mask.as_ref());
     let views = load_rig(&args.rig)?;
     let device = model::device()?;
-    let bundle = model::load_bundle(args.checkpoint.as_deref(), &device)?;
+    let bundle = model::load_bundle(args.model.as_deref(), &device)?;
     let mut sampler = resolve_sampler(
         &bundle,
         SamplerFlags {
@@ -412,7 +413,7 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
         inputs: input_info(&views),
         scan: args.scan.display().to_string(),
         region,
-        model: model_info(&bundle, args.checkpoint.as_deref()),
+        model: model_info(&bundle, args.model.as_deref()),
         sampler_name: sampler.kind.to_string(),
         sampler,
         repaint,

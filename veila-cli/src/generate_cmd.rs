@@ -32,9 +32,10 @@ use crate::{model, progress, staging};
 pub(crate) struct GenerateArgs {
     #[command(flatten)]
     pub(crate) rig: RigArgs,
-    /// Model bundle folder (default: $VEILA_MODEL, else the bundled models/default).
-    #[arg(long, value_name = "DIR", env = "VEILA_MODEL")]
-    pub(crate) checkpoint: Option<PathBuf>,
+    /// Model bundle folder (default: $VEILA_MODEL, else the bundled models/default;
+    /// `--checkpoint` is an alias).
+    #[arg(long, value_name = "DIR", env = "VEILA_MODEL", alias = "checkpoint")]
+    pub(crate) model: Option<PathBuf>,
     // the help names the bundled model's sampler as its bundle.json does
     #[arg(long, value_parser = sampler_parser(), help = sampler_help())]
     pub(crate) sampler: Option<SamplerName>,
@@ -115,7 +116,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
     inputs.extend(&args.rig.images).extend(&args.rig.calibs);
     // the model first: whether 0 sampler steps are allowed depends on it
     let device = model::device()?;
-    let bundle = model::load_bundle(args.checkpoint.as_deref(), &device)?;
+    let bundle = model::load_bundle(args.model.as_deref(), &device)?;
     let sampler = resolve_sampler(
         &bundle,
         SamplerFlags {
@@ -172,7 +173,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
         command: "generate",
         veila_version: env!("CARGO_PKG_VERSION"),
         inputs: input_info(&views),
-        model: model_info(&bundle, args.checkpoint.as_deref()),
+        model: model_info(&bundle, args.model.as_deref()),
         sampler: &sampler,
         sampler_name: sampler.kind.to_string(),
         model_frame_quarter_turns: turns,

@@ -492,8 +492,47 @@ mod tests {
             for (name, _) in EXAMPLES {
                 assert!(text.contains(name), "{shell}: no `{name}`");
             }
-            assert!(text.contains("--checkpoint"), "{shell}: no flags");
+            assert!(text.contains("--model"), "{shell}: no flags");
         }
+    }
+
+    /// `--model DIR` names a bundle wherever one is loaded; `--checkpoint`, its old name, still
+    /// works (scripts written before the rename), without showing in the help.
+    #[test]
+    fn every_bundle_flag_is_model_with_checkpoint_as_its_alias() {
+        let mut with_model = Vec::new();
+        for sub in cli_command().get_subcommands() {
+            for arg in sub.get_arguments() {
+                let aliases = arg.get_all_aliases().unwrap_or_default();
+                match arg.get_long() {
+                    Some("model") => {
+                        assert!(
+                            aliases.contains(&"checkpoint"),
+                            "`veila {} --model` lacks the --checkpoint alias",
+                            sub.get_name()
+                        );
+                        with_model.push(sub.get_name().to_string());
+                    }
+                    Some("checkpoint") => {
+                        panic!(
+                            "`veila {} --checkpoint` is a flag of its own",
+                            sub.get_name()
+                        )
+                    }
+                    _ => {}
+                }
+            }
+        }
+        with_model.sort();
+        assert_eq!(with_model, ["bench", "demo", "edit", "generate"]);
+        let matches = cli_command()
+            .try_get_matches_from(["veila", "demo", "--checkpoint", "some/bundle"])
+            .unwrap();
+        let (_, demo) = matches.subcommand().unwrap();
+        assert_eq!(
+            demo.get_one::<std::path::PathBuf>("model"),
+            Some(&std::path::PathBuf::from("some/bundle"))
+        );
     }
 
     #[test]

@@ -36,7 +36,7 @@ pub(crate) enum ModelSource {
     Embedded,
 }
 
-/// Where the model comes from: `--checkpoint` (which clap also fills from `$VEILA_MODEL`), else
+/// Where the model comes from: `--model` (which clap also fills from `$VEILA_MODEL`), else
 /// `$VEILA_MODEL`, else the source tree's `models/default` while it exists (a retrained model is
 /// used at once), else the copy embedded in the binary (an installed `veila` works anywhere).
 /// Embedding was chosen over a folder beside the binary because `cargo install` copies only the
@@ -175,12 +175,12 @@ fn no_bundle(checkpoint: Option<&Path>, dir: &Path) -> anyhow::Error {
     if checkpoint.is_none() && std::env::var_os(MODEL_ENV).is_none_or(|v| v.is_empty()) {
         return anyhow::anyhow!(
             "no model: this veila was built without models/default embedded and {} does not exist; \
-             pass --checkpoint DIR or set {MODEL_ENV} to a bundle folder (bundle.json, manifest.json, weights)",
+             pass --model DIR or set {MODEL_ENV} to a bundle folder (bundle.json, manifest.json, weights)",
             dir.display()
         );
     }
     anyhow::anyhow!(
-        "no model bundle at {} (expected bundle.json, manifest.json and weights; pass --checkpoint DIR or set {MODEL_ENV})",
+        "no model bundle at {} (expected bundle.json, manifest.json and weights; pass --model DIR or set {MODEL_ENV})",
         dir.display()
     )
 }

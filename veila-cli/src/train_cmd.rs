@@ -528,7 +528,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
     Bundle::from_dir(&bundle_dir, &device)
         .with_context(|| format!("re-reading {}", bundle_dir.display()))?;
     println!(
-        "wrote {} in {:.0} s ({} denoiser parameters); generate with `veila generate --checkpoint {} ...`",
+        "wrote {} in {:.0} s ({} denoiser parameters); generate with `veila generate --model {} ...`",
         bundle_dir.display(),
         t_all.elapsed().as_secs_f64(),
         veila_nn::checkpoint::parameter_count(&cfg.denoiser)?,

@@ -9,7 +9,8 @@
 
 use std::path::{Path, PathBuf};
 
-use veila_data::sim::{Scene, SceneConfig, SimScan, class};
+use veila_data::semantic_kitti::class;
+use veila_data::sim::{Scene, SceneConfig, SimScan};
 
 /// A 400 x 400 px bird's-eye view of a scan (80 m ahead and behind, 80 m to each side), coloured by
 /// class: buildings red, vegetation green, terrain olive, fences (guardrails) yellow, road grey.

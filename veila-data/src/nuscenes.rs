@@ -295,20 +295,23 @@ impl NuScenesSample {
 
     /// The pinhole camera of `channel` for an image of `width x height`.
     pub fn camera(&self, channel: &str, width: u32, height: u32) -> Result<PinholeCamera> {
-        let c = self.cameras.get(channel).ok_or_else(|| Error::Invalid {
-            what: "nuScenes camera channel".into(),
-            message: if self.cameras.is_empty() {
-                format!(
-                    "sample {} has no camera {channel}: it lists no camera at all",
-                    self.token
-                )
-            } else {
-                format!(
-                    "sample {} has no camera {channel} (has {})",
-                    self.token,
-                    self.cameras.keys().cloned().collect::<Vec<_>>().join(", ")
-                )
-            },
+        // the sample's file is named: the channel list came from it
+        let c = self.cameras.get(channel).ok_or_else(|| {
+            Error::format(
+                &self.source,
+                if self.cameras.is_empty() {
+                    format!(
+                        "sample {} has no camera {channel}: it lists no camera at all",
+                        self.token
+                    )
+                } else {
+                    format!(
+                        "sample {} has no camera {channel} (has {})",
+                        self.token,
+                        self.cameras.keys().cloned().collect::<Vec<_>>().join(", ")
+                    )
+                },
+            )
         })?;
         // focal lengths, principal point and translation: `PinholeCamera::check_calibration`
         PinholeCamera::from_nuscenes(c.intrinsic, dmat4_to_mat4(&c.cam_from_lidar), width, height)
@@ -841,9 +844,11 @@ impl Dataset for NuScenesDataset {
         let loaded = read_nuscenes_pcd_bin(&scan_path)?;
         let mut views = Vec::with_capacity(self.channels.len());
         for channel in &self.channels {
-            let cam = sample.cameras.get(channel).ok_or_else(|| Error::Invalid {
-                what: "nuScenes camera channel".into(),
-                message: format!("sample {} has no camera {channel}", sample.token),
+            let cam = sample.cameras.get(channel).ok_or_else(|| {
+                Error::format(
+                    &sample.source,
+                    format!("sample {} has no camera {channel}", sample.token),
+                )
             })?;
             let image_path = self.sample_file(index, Some(channel.as_str()), &cam.file)?;
             let (image, (w, h)) =

@@ -17,6 +17,139 @@ use crate::scan::read_kitti_records;
 use crate::yaml::{self, Yaml};
 use crate::{Error, Result};
 
+/// SemanticKITTI raw class ids (the `labels:` table of `semantic-kitti.yaml`), the built-in
+/// learning map and the class names: what the simulator labels its surfaces with, and what the
+/// cross-modal metrics and segmentation read, with no label-map file at hand.
+pub mod class {
+    /// Unlabelled (sky and no-return pixels in the semantic maps).
+    pub const UNLABELED: u16 = 0;
+    /// Car (also vans with a continuous body, following the SemanticKITTI definition).
+    pub const CAR: u16 = 10;
+    /// Bicycle without a rider.
+    pub const BICYCLE: u16 = 11;
+    /// Bus.
+    pub const BUS: u16 = 13;
+    /// Truck (cabin separate from the cargo body).
+    pub const TRUCK: u16 = 18;
+    /// Other vehicle (trailers, caravans).
+    pub const OTHER_VEHICLE: u16 = 20;
+    /// Person.
+    pub const PERSON: u16 = 30;
+    /// Bicyclist (the rider together with the bicycle).
+    pub const BICYCLIST: u16 = 31;
+    /// Road.
+    pub const ROAD: u16 = 40;
+    /// Parking area.
+    pub const PARKING: u16 = 44;
+    /// Sidewalk (kerb included).
+    pub const SIDEWALK: u16 = 48;
+    /// Building.
+    pub const BUILDING: u16 = 50;
+    /// Fence (also guardrails and other low barriers).
+    pub const FENCE: u16 = 51;
+    /// Lane marking.
+    pub const LANE_MARKING: u16 = 60;
+    /// Vegetation (tree crowns, bushes, hedges).
+    pub const VEGETATION: u16 = 70;
+    /// Tree trunk.
+    pub const TRUNK: u16 = 71;
+    /// Terrain (grass, soil).
+    pub const TERRAIN: u16 = 72;
+    /// Pole.
+    pub const POLE: u16 = 80;
+    /// Traffic sign (the plate; its post is a pole).
+    pub const TRAFFIC_SIGN: u16 = 81;
+    /// Moving car.
+    pub const MOVING_CAR: u16 = 252;
+    /// Moving bicyclist.
+    pub const MOVING_BICYCLIST: u16 = 253;
+    /// Moving person.
+    pub const MOVING_PERSON: u16 = 254;
+    /// Moving bus.
+    pub const MOVING_BUS: u16 = 257;
+    /// Moving truck.
+    pub const MOVING_TRUCK: u16 = 258;
+    /// Moving other vehicle.
+    pub const MOVING_OTHER_VEHICLE: u16 = 259;
+
+    /// The `moving-*` id of a movable class, or the class itself when SemanticKITTI has none.
+    pub fn moving(class: u16) -> u16 {
+        match class {
+            CAR => MOVING_CAR,
+            BICYCLIST => MOVING_BICYCLIST,
+            PERSON => MOVING_PERSON,
+            BUS => MOVING_BUS,
+            TRUCK => MOVING_TRUCK,
+            OTHER_VEHICLE => MOVING_OTHER_VEHICLE,
+            c => c,
+        }
+    }
+
+    /// Number of classes of SemanticKITTI's learning map (0 = unlabelled / ignored, 1..=19 the
+    /// evaluated classes).
+    pub const NUM_LEARNING_CLASSES: usize = 20;
+
+    /// SemanticKITTI's `learning_map` (raw id -> train id in `0..20`, `semantic-kitti.yaml`): moving
+    /// classes fold into their static class, lane marking into road, bus into other-vehicle, ids
+    /// without a train class (outliers, other-structure, other-object, unknown ids) into 0.
+    pub fn learning_id(raw: u16) -> u8 {
+        match raw {
+            10 | 252 => 1,
+            11 => 2,
+            15 => 3,
+            18 | 258 => 4,
+            13 | 16 | 20 | 256 | 257 | 259 => 5,
+            30 | 254 => 6,
+            31 | 253 => 7,
+            32 | 255 => 8,
+            40 | 60 => 9,
+            44 => 10,
+            48 => 11,
+            49 => 12,
+            50 => 13,
+            51 => 14,
+            70 => 15,
+            71 => 16,
+            72 => 17,
+            80 => 18,
+            81 => 19,
+            _ => 0,
+        }
+    }
+
+    /// The class name used in `semantic-kitti.yaml`, or `None` for ids the simulator never emits.
+    pub fn name(class: u16) -> Option<&'static str> {
+        Some(match class {
+            UNLABELED => "unlabeled",
+            CAR => "car",
+            BICYCLE => "bicycle",
+            BUS => "bus",
+            TRUCK => "truck",
+            OTHER_VEHICLE => "other-vehicle",
+            PERSON => "person",
+            BICYCLIST => "bicyclist",
+            ROAD => "road",
+            PARKING => "parking",
+            SIDEWALK => "sidewalk",
+            BUILDING => "building",
+            FENCE => "fence",
+            LANE_MARKING => "lane-marking",
+            VEGETATION => "vegetation",
+            TRUNK => "trunk",
+            TERRAIN => "terrain",
+            POLE => "pole",
+            TRAFFIC_SIGN => "traffic-sign",
+            MOVING_CAR => "moving-car",
+            MOVING_BICYCLIST => "moving-bicyclist",
+            MOVING_PERSON => "moving-person",
+            MOVING_BUS => "moving-bus",
+            MOVING_TRUCK => "moving-truck",
+            MOVING_OTHER_VEHICLE => "moving-other-vehicle",
+            _ => return None,
+        })
+    }
+}
+
 /// Calibration of a KITTI odometry sequence (`sequences/NN/calib.txt`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct OdometryCalib {

@@ -70,10 +70,12 @@ pub enum Error {
     },
 
     /// The `veila-nn` network failed.
+    #[cfg(feature = "app")]
     #[error(transparent)]
     Model(#[from] veila_nn::Error),
 
     /// A metric could not be computed (the error names the metric and the input).
+    #[cfg(feature = "app")]
     #[error(transparent)]
     Metrics(#[from] veila_metrics::Error),
 
@@ -91,6 +93,7 @@ pub enum Error {
     },
 
     /// Reading or writing a file of `veila-data`'s formats failed (the error names the file).
+    #[cfg(feature = "app")]
     #[error(transparent)]
     Files(#[from] veila_data::Error),
 

@@ -14,9 +14,11 @@
 //! * [`trainer`]: AdamW, warm-up + cosine LR, EMA, gradient clipping, atomic checkpoints with exact
 //!   resume, progress and preview callbacks.
 //!
-//! Everything above is the generic diffusion core: it never names `veila-nn`. The [`app`] module
-//! beside it is the application: model bundles, the generate and inpaint pipeline, rig and
-//! calibration loading, and the one training recipe the binaries share.
+//! Everything above is the generic diffusion core, on candle and `veila-geom` alone. The `app`
+//! module beside it (the default feature `app`, which brings `veila-nn`, `veila-data` and
+//! `veila-metrics`) is the application: model bundles, the generate and inpaint pipeline, rig and
+//! calibration loading, and the one training recipe the binaries share. A project that wants the
+//! schedules, samplers and trainer alone depends on the crate with `default-features = false`.
 //!
 //! All randomness comes from caller-provided RNGs (use `rand_chacha::ChaCha8Rng` with a fixed seed);
 //! noise is drawn on the CPU, so a seed gives the same samples on every device.
@@ -55,6 +57,7 @@
 //! # }
 //! ```
 
+#[cfg(feature = "app")]
 pub mod app;
 pub mod denoiser;
 pub mod encoding;
@@ -67,6 +70,7 @@ pub mod sampler;
 pub mod schedule;
 pub mod trainer;
 
+#[cfg(feature = "app")]
 pub use app::nn::{NetCond, VeilaDenoiser};
 pub use denoiser::{Autocast, CondDropout, Conditioning, Denoiser, guide};
 pub use encoding::RangeEncoding;

@@ -17,8 +17,9 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use rayon::prelude::*;
 use serde::Serialize;
+use veila_data::semantic_kitti::class;
 use veila_data::shard::{CameraMatrices, MANIFEST_FORMAT, Manifest, ShardSample, write_shard};
-use veila_data::sim::{Scene, SceneConfig, class};
+use veila_data::sim::{Scene, SceneConfig};
 use veila_geom::{ProjectionOptions, Projector};
 
 use crate::progress::workspace_root;

@@ -56,7 +56,7 @@ pub struct BenchModelArgs {
     device: crate::device::DeviceArg,
     /// The network: `small` (the frozen benchmark network, timed), or the conditioned `paper`
     /// (`DenoiserConfig::paper()`, seeded weights) or `bundled` (the bundle's denoiser and trained
-    /// weights, --checkpoint), which are only exported (needs --export).
+    /// weights, --model), which are only exported (needs --export).
     #[arg(long, value_enum, default_value_t = Network::Small)]
     network: Network,
     /// Range-image grid `HxW` of an exported `paper` or `bundled` network instead of its sensor's
@@ -70,9 +70,14 @@ pub struct BenchModelArgs {
     /// Batch of the exported fixed input (the samples alternate keep = 1, 0: conditioned, dropped).
     #[arg(long, value_name = "B", default_value_t = 2)]
     export_batch: usize,
-    /// Bundle folder of `--network bundled`.
-    #[arg(long, value_name = "DIR", default_value = "models/default")]
-    checkpoint: std::path::PathBuf,
+    /// Bundle folder of `--network bundled` (`--checkpoint` is an alias).
+    #[arg(
+        long,
+        value_name = "DIR",
+        default_value = "models/default",
+        alias = "checkpoint"
+    )]
+    model: std::path::PathBuf,
 }
 
 /// The networks `bench-model` knows.
@@ -82,7 +87,7 @@ enum Network {
     Small,
     /// `DenoiserConfig::paper()`: 64 x 1024, CACM, GCMA at every level, PFC.
     Paper,
-    /// The bundle's denoiser (`--checkpoint`).
+    /// The bundle's denoiser (`--model`).
     Bundled,
 }
 
@@ -317,8 +322,8 @@ fn export_conditioned(args: &BenchModelArgs, dir: &std::path::Path, dev: &Device
             bail!("--base-channels would not fit the bundle's trained weights")
         }
         Network::Bundled => Some(
-            veila_diffusion::app::Bundle::from_dir(&args.checkpoint, dev)
-                .with_context(|| format!("loading the bundle {}", args.checkpoint.display()))?,
+            veila_diffusion::app::Bundle::from_dir(&args.model, dev)
+                .with_context(|| format!("loading the bundle {}", args.model.display()))?,
         ),
         Network::Small => bail!("internal: the small network has no conditioned export"),
     };
@@ -335,7 +340,7 @@ fn export_conditioned(args: &BenchModelArgs, dir: &std::path::Path, dev: &Device
             b.config.epipolar,
             ExportWeights::Trained {
                 tensors: &b.weights,
-                source: &args.checkpoint,
+                source: &args.model,
             },
         ),
     };

@@ -313,12 +313,16 @@ fn every_library_has_crate_docs_with_an_example() {
     }
 }
 
-/// Files of `veila-diffusion/src` outside the application module (`src/app/`) that name
-/// `veila_nn`. The crate's one error enum (`error.rs`) is the single exception: it wraps the
-/// network crate's errors.
-fn diffusion_core_naming_nn() -> Vec<String> {
+/// The crates only the application module (`src/app/`, the `app` feature) of `veila-diffusion`
+/// may name.
+const APP_ONLY_CRATES: [&str; 3] = ["veila_nn", "veila_data", "veila_metrics"];
+
+/// Files of `veila-diffusion/src` outside the application module (`src/app/`) that name one of
+/// [`APP_ONLY_CRATES`]. The crate's one error enum (`error.rs`) is the single exception: it wraps
+/// their errors, each variant behind the `app` feature.
+fn diffusion_core_naming_app_crates() -> Vec<String> {
     let src = workspace_root().join("veila-diffusion/src");
-    grep(&src, &["veila_nn"])
+    grep(&src, &APP_ONLY_CRATES)
         .into_iter()
         .filter(|hit| {
             let path = Path::new(hit.split(": ").next().unwrap_or(""));
@@ -328,19 +332,18 @@ fn diffusion_core_naming_nn() -> Vec<String> {
 }
 
 #[test]
-fn diffusion_core_does_not_name_veila_nn() {
-    let hits = diffusion_core_naming_nn();
+fn diffusion_core_names_no_application_crate() {
+    let hits = diffusion_core_naming_app_crates();
     assert!(
         hits.is_empty(),
-        "the generic diffusion core must not name veila-nn (the network belongs in src/app/):\n{}",
+        "the generic diffusion core must not name veila-nn, veila-data or veila-metrics (they belong in src/app/, behind the `app` feature):\n{}",
         hits.join("\n")
     );
-    // the check looks where the network is named: the application module does
-    let app = grep(
-        &workspace_root().join("veila-diffusion/src/app"),
-        &["veila_nn"],
-    );
-    assert!(!app.is_empty(), "the grep finds no veila_nn in src/app/");
+    // the check looks where those crates are named: the application module names each
+    for krate in APP_ONLY_CRATES {
+        let app = grep(&workspace_root().join("veila-diffusion/src/app"), &[krate]);
+        assert!(!app.is_empty(), "the grep finds no {krate} in src/app/");
+    }
 }
 
 /// `(importer, imported)` for every command module of `dir` (`*_cmd.rs`) that names another

@@ -10,7 +10,7 @@ use veila_diffusion::Precision;
 /// Arguments of `veila bench`.
 #[derive(Debug, Args)]
 pub(crate) struct BenchArgs {
-    /// Networks to time: `bundled` (the bundle's denoiser, --checkpoint), `paper`
+    /// Networks to time: `bundled` (the bundle's denoiser, --model), `paper`
     /// (DenoiserConfig::paper(): 64 x 1024, the paper's widths; slow on a CPU).
     #[arg(long, value_delimiter = ',', default_value = "bundled,paper")]
     pub(super) models: Vec<String>,
@@ -41,9 +41,10 @@ pub(crate) struct BenchArgs {
     /// Skip `Bundle::generate` end to end (the bundled network's real sampling).
     #[arg(long)]
     pub(super) no_generate: bool,
-    /// Model bundle folder of `bundled` (default: $VEILA_MODEL, else the bundled models/default).
-    #[arg(long, value_name = "DIR", env = "VEILA_MODEL")]
-    pub(super) checkpoint: Option<PathBuf>,
+    /// Model bundle folder of `bundled` (default: $VEILA_MODEL, else the bundled models/default;
+    /// `--checkpoint` is an alias).
+    #[arg(long, value_name = "DIR", env = "VEILA_MODEL", alias = "checkpoint")]
+    pub(super) model: Option<PathBuf>,
     /// Seed of the weights and inputs, 0 to 18446744073709551615.
     #[arg(long, default_value_t = 0)]
     pub(super) seed: u64,

@@ -150,7 +150,7 @@ pub(crate) fn run(args: BenchArgs) -> Result<()> {
         return Ok(());
     }
     let mut inputs = crate::staging::Inputs::new();
-    inputs.add_opt(args.checkpoint.as_ref());
+    inputs.add_opt(args.model.as_ref());
     if let Some(path) = &args.json {
         // refuse the output before the minutes of timing
         crate::staging::check_outputs(&[path.as_path()], &inputs, args.force, false)?;
@@ -189,7 +189,7 @@ pub(crate) fn run(args: BenchArgs) -> Result<()> {
     }
     report.per_sample_memory = per_sample(&report.rows);
     if args.models.iter().any(|m| m == "bundled") && !args.no_generate && !args.no_eval {
-        let bundle = model::load_bundle(args.checkpoint.as_deref(), &dev)?;
+        let bundle = model::load_bundle(args.model.as_deref(), &dev)?;
         report.generate = bench_generate(&bundle, &args, &dev)?;
     }
     print_report(&report, &args);

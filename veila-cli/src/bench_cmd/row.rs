@@ -299,7 +299,7 @@ pub(super) fn network(
     dev: &Device,
 ) -> Result<(DenoiserConfig, (usize, usize))> {
     if spec.model == "bundled" {
-        let bundle = model::load_bundle(args.checkpoint.as_deref(), dev)?;
+        let bundle = model::load_bundle(args.model.as_deref(), dev)?;
         let hw = (bundle.config.image_height, bundle.config.image_width);
         Ok((bundle.config.denoiser, hw))
     } else {

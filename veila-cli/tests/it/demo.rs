@@ -152,7 +152,7 @@ fn bad_arguments_fail_cleanly_without_output() {
     assert!(!out.exists(), "no partial output");
     let o = veila(&[
         "demo",
-        "--checkpoint",
+        "--model",
         "/nonexistent/model",
         "--out",
         out.to_str().unwrap(),

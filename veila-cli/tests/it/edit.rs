@@ -35,7 +35,7 @@ fn edit(image: &Path, calib: &Path, scan: &Path, out: &Path, extra: &[&str]) -> 
         .arg(calib)
         .arg("--scan")
         .arg(scan)
-        .arg("--checkpoint")
+        .arg("--model")
         .arg(model_dir())
         .arg("--out")
         .arg(out)

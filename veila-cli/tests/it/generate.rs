@@ -192,7 +192,7 @@ fn odometry_calib_two_cameras_and_sampler_flags() {
         .arg(&image)
         .args(["--camera", "2", "--camera", "3", "--calib"])
         .arg(&calib)
-        .arg("--checkpoint")
+        .arg("--model")
         .arg(model_dir())
         .arg("--out")
         .arg(&out)
@@ -309,7 +309,7 @@ fn bad_input_fails_with_the_file_named_and_no_output() {
         .arg(&image)
         .arg("--calib")
         .arg(&calib)
-        .arg("--checkpoint")
+        .arg("--model")
         .arg(&model)
         .arg("--out")
         .arg(&out)
@@ -344,7 +344,7 @@ fn real_nuscenes_rig_and_kitti_frame() {
     let mut cmd = veila();
     cmd.args(["generate", "--quiet", "--steps", "1", "--calib"])
         .arg(&calib)
-        .arg("--checkpoint")
+        .arg("--model")
         .arg(model_dir())
         .arg("--out")
         .arg(tmp.path().join("nus"));

@@ -4,8 +4,9 @@
 use std::path::Path;
 use std::process::Output;
 
+use veila_data::semantic_kitti::class;
 use veila_data::shard::{CameraMatrices, MANIFEST_FORMAT, Manifest, ShardSample, write_shard};
-use veila_data::sim::{Scene, SceneConfig, class};
+use veila_data::sim::{Scene, SceneConfig};
 use veila_geom::{ProjectionOptions, Projector};
 
 use crate::common::*;
@@ -227,7 +228,7 @@ fn interrupted_and_resumed_run_matches_an_uninterrupted_one_bit_for_bit() {
         .arg(sim.join("image_2/000000.png"))
         .arg("--calib")
         .arg(sim.join("calib/000000.txt"))
-        .arg("--checkpoint")
+        .arg("--model")
         .arg(&bundle_a)
         .arg("--out")
         .arg(tmp.path().join("gen"))
@@ -475,7 +476,7 @@ fn pretrained_encoders_are_named_by_kind_through_train_and_generate() {
             .arg(sim.join("image_2/000000.png"))
             .arg("--calib")
             .arg(sim.join("calib/000000.txt"))
-            .arg("--checkpoint")
+            .arg("--model")
             .arg(&bundle)
             .arg("--out")
             .arg(out)
@@ -500,7 +501,7 @@ fn pretrained_encoders_are_named_by_kind_through_train_and_generate() {
         .arg(sim.join("calib/000000.txt"))
         .arg("--scan")
         .arg(sim.join("velodyne/000000.bin"))
-        .arg("--checkpoint")
+        .arg("--model")
         .arg(&bundle)
         .arg("--out")
         .arg(tmp.path().join("edit"))
@@ -514,7 +515,7 @@ fn pretrained_encoders_are_named_by_kind_through_train_and_generate() {
             "1",
             "--baseline-frames",
             "0",
-            "--checkpoint",
+            "--model",
         ])
         .arg(&bundle)
         .arg("--out")

@@ -1,7 +1,7 @@
 //! Issue 58, cases 9 to 12 against the binary: a bundle's values are held to the bounds of the
 //! flags, with the bundle file and field named (never a flag nobody gave); weights of another
 //! dtype or not finite are refused naming the tensor; implausible calibrations and truncated
-//! images are refused saying what is wrong; a link loop as `--checkpoint` reports the OS error;
+//! images are refused saying what is wrong; a link loop as `--model` reports the OS error;
 //! text from files is printed with its control characters escaped; a path that is not UTF-8 does
 //! not panic.
 
@@ -63,7 +63,7 @@ fn generate_with(
         c.args(["--steps", "1"]);
     }
     c.args(extra.iter().filter(|a| **a != "--no-steps"))
-        .arg("--checkpoint")
+        .arg("--model")
         .arg(checkpoint)
         .arg("--image")
         .arg(image)
@@ -283,7 +283,7 @@ fn a_link_loop_as_checkpoint_reports_the_os_error() {
         .args(["generate", "--quiet", "--steps", "1", "--image", "x.png"])
         .args(["--calib", "x.txt", "--out"])
         .arg(tmp.path().join("o"))
-        .arg("--checkpoint")
+        .arg("--model")
         .arg(&lp)
         .output()
         .unwrap();
@@ -295,7 +295,7 @@ fn a_link_loop_as_checkpoint_reports_the_os_error() {
         .args(["generate", "--quiet", "--steps", "1", "--image", "x.png"])
         .args(["--calib", "x.txt", "--out"])
         .arg(tmp.path().join("o"))
-        .arg("--checkpoint")
+        .arg("--model")
         .arg(tmp.path().join("absent"))
         .output()
         .unwrap();

@@ -18,9 +18,10 @@ use rand_chacha::ChaCha8Rng;
 
 use super::config::{AppearanceConfig, LightingConfig};
 use super::hash::splitmix;
-use super::material::{Material, class, stock};
+use super::material::{Material, stock};
 use super::mesh::Surface;
 use super::objects;
+use crate::semantic_kitti::class;
 
 /// Rec. 709 luminance weights of linear RGB.
 const LUMA: Vec3 = Vec3::new(0.2126, 0.7152, 0.0722);

@@ -60,7 +60,7 @@ pub use config::{
 pub use curve::RoadCurve;
 pub use frame::SceneSnapshot;
 pub use lidar::{RayOutcome, SimScan};
-pub use material::{Material, class};
+pub use material::Material;
 pub use mesh::{Mesh, Surface};
 pub use output::{FramePaths, SimSummary, simulate_to_dir, write_frame};
 pub use raycast::{Accel, Hit};

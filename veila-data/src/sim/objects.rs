@@ -5,8 +5,9 @@ use glam::{Affine3A, Mat3, Quat, Vec3};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
-use super::material::{Material, class, stock};
+use super::material::{Material, stock};
 use super::mesh::Mesh;
+use crate::semantic_kitti::class;
 
 /// Kinds of vehicles the generator places.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

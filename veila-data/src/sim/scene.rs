@@ -18,11 +18,12 @@ use super::curve::RoadCurve;
 use super::frame::SceneSnapshot;
 use super::hash::splitmix;
 use super::lidar::SimScan;
-use super::material::{class, stock};
+use super::material::stock;
 use super::mesh::Mesh;
 use super::objects::{self, VehicleKind, yaw};
 use super::raycast::Accel;
 use crate::Result;
+use crate::semantic_kitti::class;
 
 /// Tile size of ground rectangles, metres.
 const TILE_M: f32 = 10.0;

@@ -1,10 +1,9 @@
-//! The simulator's built-in SemanticKITTI learning map against the official `semantic-kitti.yaml`
+//! The built-in SemanticKITTI learning map against the official `semantic-kitti.yaml`
 //! shipped with the real sample data.
 
 use std::path::Path;
 
-use veila_data::semantic_kitti::LabelMap;
-use veila_data::sim::class;
+use veila_data::semantic_kitti::{LabelMap, class};
 
 #[test]
 fn builtin_learning_map_matches_semantic_kitti_yaml() {

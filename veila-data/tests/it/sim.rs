@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use glam::{DVec3, Vec3, Vec3A};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use veila_data::semantic_kitti::class;
 use veila_data::sim::material::stock;
 use veila_data::sim::raycast::intersect_triangle;
 use veila_data::sim::*;

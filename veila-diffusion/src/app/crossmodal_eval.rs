@@ -231,7 +231,7 @@ impl CrossModalEval<'_> {
                         ClassIds::Raw => {
                             for v in &mut map.data {
                                 let raw = u16::try_from(*v).unwrap_or(0);
-                                *v = u32::from(veila_data::sim::class::learning_id(raw));
+                                *v = u32::from(veila_data::semantic_kitti::class::learning_id(raw));
                             }
                         }
                     }

@@ -18,7 +18,7 @@
 //!   `veila train` and `cargo xtask train-default` both run.
 //! * [`rig`]: camera images and their calibration files as views of a rig; the pipeline's steps
 //!   (resizing to a bundle's input, the model-frame turn, scans as points) one by one.
-//! * `crossmodal_eval` (feature `crossmodal`): the cross-modal metrics (CM-DC, CM-SC) of
+//! * [`crossmodal_eval`]: the cross-modal metrics (CM-DC, CM-SC) of
 //!   generated scan files for `veila eval`: each scan's calibration, maps or camera image found,
 //!   Depth-Anything-V2 / SegFormer run, the scores averaged (the math: `veila_metrics::crossmodal`).
 //! * [`scoring`]: generated scans scored against simulated frames (the set metrics per fold
@@ -39,7 +39,6 @@
 //! * [`nn`]: the Veila U-Net from `veila-nn` as a [`crate::Denoiser`] ([`VeilaDenoiser`]).
 
 pub mod bundle;
-#[cfg(feature = "crossmodal")]
 pub mod crossmodal_eval;
 pub mod dataset;
 pub mod encoder_train;

@@ -21,7 +21,8 @@ use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 use veila_data::augment::Photometric;
-use veila_data::sim::{Scene, SceneConfig, SceneList, SimFrame, SimImage, SimView, class};
+use veila_data::semantic_kitti::class;
+use veila_data::sim::{Scene, SceneConfig, SceneList, SimFrame, SimImage, SimView};
 use veila_geom::{PinholeCamera, ProjectionOptions, Projector, RangeImage};
 
 use super::bundle::{Bundle, BundleConfig};

@@ -450,16 +450,16 @@ impl TrainFile {
                 ));
             }
             (Some(p), None) => {
+                // the error names the config and its field too: the path came from there
+                let from_field = |e: &dyn std::fmt::Display| bad(format!("[model] bundle: {e}"));
                 let text = veila_data::read_capped::read_metadata(
                     p,
                     veila_data::read_capped::MAX_JSON_METADATA_BYTES,
                     "a bundle.json",
-                )?;
-                let mut c: BundleConfig =
-                    serde_json::from_slice(&text).map_err(|e| Error::Input {
-                        path: p.clone(),
-                        reason: format!("not a bundle.json: {e}"),
-                    })?;
+                )
+                .map_err(|e| from_field(&e))?;
+                let mut c: BundleConfig = serde_json::from_slice(&text)
+                    .map_err(|e| from_field(&format!("{}: not a bundle.json: {e}", p.display())))?;
                 c.provenance = serde_json::Value::Null;
                 // its pretrained weights lie in its folder (it may be a downloaded bundle's):
                 // checked there now, and named by an absolute path from here on

@@ -19,7 +19,6 @@ use std::path::{Path, PathBuf};
 use candle_core::Tensor;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
-use veila_data::read_capped::{MAX_JSON_METADATA_BYTES, read_metadata_string};
 
 use super::{TrainConfig, Trainer};
 use crate::denoiser::Denoiser;
@@ -105,6 +104,42 @@ fn io<'a>(action: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -
     }
 }
 
+/// Cap of the JSON a checkpoint folder holds (`run.json`, `state.json`): a few KiB in practice.
+/// The same cap as `veila-data`'s for JSON metadata.
+pub const MAX_STATE_JSON_BYTES: u64 = 64 << 20;
+
+/// The text of a checkpoint's JSON file `path` (`kind` names it in errors), read the way
+/// `veila-data`'s `read_capped` reads metadata, which this crate's core does not depend on: only a
+/// regular file after following links (a link to `/dev/zero` or a FIFO would never end), checked
+/// before it is opened and again on the open file, at most [`MAX_STATE_JSON_BYTES`] of it.
+fn read_state_text(path: &Path, kind: &str) -> Result<String> {
+    use std::io::Read;
+    let refuse = |what: String| bad(path, format!("{kind} {what}"));
+    let check = |meta: &fs::Metadata| {
+        if !meta.is_file() {
+            return Err(refuse("is not a regular file".into()));
+        }
+        if meta.len() > MAX_STATE_JSON_BYTES {
+            return Err(refuse(format!(
+                "has {} bytes, more than the cap of {MAX_STATE_JSON_BYTES}",
+                meta.len()
+            )));
+        }
+        Ok(())
+    };
+    check(&fs::metadata(path).map_err(io("reading", path))?)?;
+    let file = fs::File::open(path).map_err(io("reading", path))?;
+    check(&file.metadata().map_err(io("reading", path))?)?;
+    let mut text = String::new();
+    file.take(MAX_STATE_JSON_BYTES + 1)
+        .read_to_string(&mut text)
+        .map_err(io("reading", path))?;
+    if text.len() as u64 > MAX_STATE_JSON_BYTES {
+        return Err(refuse("grew past its cap while it was read".into()));
+    }
+    Ok(text)
+}
+
 fn bad(path: &Path, reason: impl Into<String>) -> Error {
     Error::Checkpoint {
         reason: reason.into(),
@@ -126,7 +161,7 @@ fn save_tensors(map: &HashMap<String, Tensor>, path: &Path) -> Result<()> {
 /// Reads one tensor file of a checkpoint: the file at `path` must hold exactly `expected`
 /// (name -> shape), its values converted to `dtype` on `device`. The generic core takes the reader
 /// from its caller, which decides how strictly a file is checked; the application's is
-/// [`crate::app::nn::read_checkpoint_tensors`] (the checks a model bundle's weights get). A missing
+/// `app::nn::read_checkpoint_tensors` (the checks a model bundle's weights get). A missing
 /// file should be an [`Error::Checkpoint`] saying so.
 pub type TensorFileReader = fn(
     &Path,
@@ -149,7 +184,7 @@ pub fn claim_checkpoint_dir<T: Serialize>(dir: &Path, settings: &T) -> Result<()
         path: path.clone(),
         source,
     })?;
-    match read_metadata_string(&path, MAX_JSON_METADATA_BYTES, "a run record") {
+    match read_state_text(&path, "the run record") {
         Ok(old) if old == text => Ok(()),
         Ok(_) => Err(bad(
             dir,
@@ -157,15 +192,13 @@ pub fn claim_checkpoint_dir<T: Serialize>(dir: &Path, settings: &T) -> Result<()
                 "its checkpoints were made with other settings (see {RUN_RECORD_FILE}); use another folder or delete this one"
             ),
         )),
-        Err(veila_data::Error::Io { source, .. })
-            if source.kind() == std::io::ErrorKind::NotFound =>
-        {
+        Err(Error::Io { source, .. }) if source.kind() == std::io::ErrorKind::NotFound => {
             fs::create_dir_all(dir).map_err(io("creating checkpoint folder", dir))?;
             let tmp = dir.join(format!(".{RUN_RECORD_FILE}.tmp-{}", std::process::id()));
             fs::write(&tmp, text).map_err(io("writing run record", &tmp))?;
             fs::rename(&tmp, &path).map_err(io("writing run record", &path))
         }
-        Err(e) => Err(e.into()),
+        Err(e) => Err(e),
     }
 }
 
@@ -283,8 +316,7 @@ impl<M: Denoiser> Trainer<M> {
     /// Each tensor file is read by `read`, told the names and shapes it must hold.
     pub fn load_checkpoint(&mut self, path: &Path, read: TensorFileReader) -> Result<()> {
         let state_path = path.join(STATE_FILE);
-        let text =
-            read_metadata_string(&state_path, MAX_JSON_METADATA_BYTES, "a checkpoint state")?;
+        let text = read_state_text(&state_path, "the checkpoint state")?;
         let state: CheckpointState = serde_json::from_str(&text).map_err(|source| Error::Json {
             path: state_path.clone(),
             source,

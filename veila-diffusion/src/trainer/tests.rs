@@ -264,6 +264,57 @@ fn a_checkpoint_folder_belongs_to_one_run() {
     claim_checkpoint_dir(&dir, &settings).unwrap();
 }
 
+/// The core reads its checkpoint JSON itself (it does not depend on `veila-data`), with the same
+/// discipline: a folder, an oversized (sparse) file or a FIFO where the run record should be is
+/// refused before it is read, naming the file, and nothing is written over it.
+#[test]
+fn checkpoint_json_is_read_only_from_a_small_regular_file() {
+    use crate::trainer::{RUN_RECORD_FILE, checkpoint::MAX_STATE_JSON_BYTES, claim_checkpoint_dir};
+    let settings = serde_json::json!({ "steps": 7 });
+    let tmp = tempfile::tempdir().unwrap();
+
+    let dir = tmp.path().join("folder");
+    std::fs::create_dir_all(dir.join(RUN_RECORD_FILE)).unwrap();
+    let e = claim_checkpoint_dir(&dir, &settings)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("not a regular file") && e.contains(RUN_RECORD_FILE),
+        "{e}"
+    );
+    assert!(dir.join(RUN_RECORD_FILE).is_dir());
+
+    let dir = tmp.path().join("huge");
+    std::fs::create_dir_all(&dir).unwrap();
+    let f = std::fs::File::create(dir.join(RUN_RECORD_FILE)).unwrap();
+    f.set_len(MAX_STATE_JSON_BYTES + 1).unwrap();
+    let e = claim_checkpoint_dir(&dir, &settings)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("more than the cap") && e.contains(RUN_RECORD_FILE),
+        "{e}"
+    );
+    assert_eq!(f.metadata().unwrap().len(), MAX_STATE_JSON_BYTES + 1);
+
+    // a FIFO would block a plain read forever (mkfifo may be missing: then that case is skipped)
+    let dir = tmp.path().join("fifo");
+    std::fs::create_dir_all(&dir).unwrap();
+    let fifo = dir.join(RUN_RECORD_FILE);
+    if std::process::Command::new("mkfifo")
+        .arg(&fifo)
+        .status()
+        .is_ok_and(|s| s.success())
+    {
+        let e = claim_checkpoint_dir(&dir, &settings)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("not a regular file"), "{e}");
+    } else {
+        eprintln!("skipped the FIFO case: `mkfifo` is not available");
+    }
+}
+
 #[test]
 fn an_f32_run_record_is_the_one_written_before_precision_existed() {
     use crate::trainer::{Precision, claim_checkpoint_dir};

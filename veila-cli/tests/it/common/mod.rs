@@ -60,7 +60,7 @@ pub fn generate(image: &Path, calib: &Path, out: &Path, extra: &[&str]) -> Outpu
         .arg(image)
         .arg("--calib")
         .arg(calib)
-        .arg("--checkpoint")
+        .arg("--model")
         .arg(model_dir())
         .arg("--out")
         .arg(out)
