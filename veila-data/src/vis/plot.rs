@@ -1,16 +1,19 @@
 //! Line, scatter and grouped-bar plots rendered to PNG with [`plotters`] (bitmap backend) and an
-//! embedded font, so no system fonts are needed: axes with "nice" ticks (1-2-5 steps, decades on
-//! logarithmic axes), grid, tick and axis labels, a title, a legend placed in a corner free of data
-//! (else in a band above the plot), markers and error bars.
+//! embedded font, so no system fonts are needed.
+//!
+//! Plotters does the charting: `ChartBuilder` lays out the plot area and its label areas,
+//! `configure_mesh` draws the grid, axes, ticks (1-2-5 steps), tick labels and axis labels,
+//! `log_scale()` maps logarithmic axes, `ErrorBar` draws error bars and `configure_series_labels`
+//! the legend. This module adds only what plotters lacks, each part saying why where it is: axis
+//! ranges fitted to the data, tick labels written alike along an axis, log ticks on a range
+//! holding fewer than two powers of ten, lines clipped at the plot area, and a legend placed where
+//! it covers no data (a free corner, else a band above the plot area).
 //!
 //! Text is DejaVu Sans (`assets/DejaVuSans.ttf`, Bitstream Vera licence next to it), drawn by
 //! plotters' `ab_glyph` font backend at a size that grows with the image. Non-finite points (and
 //! points <= 0 on a logarithmic axis) are skipped and break a line, as in common plotting
 //! libraries; a single point, equal values or no data at all render an ordinary frame rather than
 //! failing.
-//!
-//! Plotters draws what it is given; this module chooses what: axis ranges, tick values and labels,
-//! layout, and where the legend goes.
 //!
 //! ```
 //! use veila_data::vis::plot::{Plot, Series, SeriesStyle};
@@ -34,19 +37,23 @@
 //! # Ok::<(), veila_data::Error>(())
 //! ```
 
-use std::ops::Range;
 use std::path::Path;
 
 use image::{Rgb, RgbImage};
 use plotters::backend::BitMapBackend;
-use plotters::chart::{ChartBuilder, ChartContext};
+use plotters::chart::{ChartBuilder, ChartContext, SeriesLabelPosition};
 use plotters::coord::Shift;
 use plotters::coord::cartesian::Cartesian2d;
-use plotters::coord::ranged1d::{KeyPointHint, NoDefaultFormatting, Ranged, ValueFormatter};
+use plotters::coord::combinators::{BindKeyPoints, IntoLogRange, LogCoord, WithKeyPoints};
+use plotters::coord::ranged1d::{BoldPoints, LightPoints, Ranged, ValueFormatter};
+use plotters::coord::types::RangedCoordf64;
+use plotters::data::float::pretty_print_float;
 use plotters::drawing::{DrawingArea, IntoDrawingArea};
-use plotters::element::{Circle, PathElement, Polygon, Rectangle, Text};
+use plotters::element::{
+    EmptyElement, ErrorBar, MultiLineText, PathElement, Polygon, Rectangle, Text,
+};
 use plotters::style::text_anchor::{HPos, Pos, VPos};
-use plotters::style::{Color, FontDesc, FontStyle, IntoFont, RGBColor, ShapeStyle, TextStyle};
+use plotters::style::{Color, FontDesc, FontStyle, IntoFont, RGBColor, TextStyle};
 
 use crate::{Error, Result};
 
@@ -172,213 +179,10 @@ fn rgb(c: [u8; 3]) -> RGBColor {
 }
 
 // ------------------------------------------------------------------------------------------------
-// ticks
-
-/// A "nice" step `m * 10^e` with `m` in {1, 2, 5}.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-struct Step {
-    m: i64,
-    e: i32,
-}
-
-impl Step {
-    /// The smallest nice step >= `raw` (`raw` positive and finite).
-    fn at_least(raw: f64) -> Step {
-        let mut e = raw.log10().floor() as i32;
-        // guard the floor against rounding (log10(1000) may come out as 2.9999...)
-        if pow10(e + 1) <= raw {
-            e += 1;
-        }
-        if pow10(e) > raw {
-            e -= 1;
-        }
-        let mut s = Step { m: 1, e };
-        while s.value() < raw * (1.0 - 1e-12) {
-            s = s.next();
-        }
-        s
-    }
-
-    fn next(self) -> Step {
-        match self.m {
-            1 => Step { m: 2, e: self.e },
-            2 => Step { m: 5, e: self.e },
-            _ => Step {
-                m: 1,
-                e: self.e + 1,
-            },
-        }
-    }
-
-    fn value(self) -> f64 {
-        self.m as f64 * pow10(self.e)
-    }
-
-    /// `k * step`, rounded like the decimal it stands for (0.1 * 3 is 0.3, not 0.30000000000000004).
-    fn multiple(self, k: i64) -> f64 {
-        let n = (k * self.m) as f64;
-        if self.e >= 0 {
-            n * pow10(self.e)
-        } else {
-            n / pow10(-self.e)
-        }
-    }
-}
-
-/// 10^e, exact for every power of ten a double can hold (parsed from its decimal form).
-fn pow10(e: i32) -> f64 {
-    format!("1e{e}").parse().unwrap_or(f64::NAN)
-}
-
-/// At most `max_ticks` (at least 2) tick values on a linear axis from `lo` to `hi`: multiples of the
-/// smallest step of the form 1, 2 or 5 times a power of ten that keeps the count within the limit.
-/// Values are exact decimals (0.3, not 0.30000000000000004). Returns `[lo]` when `lo == hi` and
-/// nothing for non-finite or reversed bounds.
-///
-/// ```
-/// use veila_data::vis::plot::linear_ticks;
-/// assert_eq!(linear_ticks(0.0, 1.0, 6), [0.0, 0.2, 0.4, 0.6, 0.8, 1.0]);
-/// assert_eq!(linear_ticks(0.0, 1.0, 5), [0.0, 0.5, 1.0]);
-/// ```
-pub fn linear_ticks(lo: f64, hi: f64, max_ticks: usize) -> Vec<f64> {
-    linear_ticks_step(lo, hi, max_ticks)
-        .map(|(t, _)| t)
-        .unwrap_or_else(|| {
-            if lo == hi && lo.is_finite() {
-                vec![lo]
-            } else {
-                Vec::new()
-            }
-        })
-}
-
-fn linear_ticks_step(lo: f64, hi: f64, max_ticks: usize) -> Option<(Vec<f64>, Step)> {
-    let span = hi - lo;
-    if !(lo.is_finite() && hi.is_finite() && span.is_finite() && span > 0.0) {
-        return None;
-    }
-    let max_ticks = max_ticks.max(2);
-    let raw = span / max_ticks as f64;
-    if !(raw.is_normal() && raw > 0.0) {
-        // a range so narrow that its step underflows
-        return None;
-    }
-    let mut step = Step::at_least(raw);
-    loop {
-        let v = step.value();
-        let (k0, k1) = ((lo / v - 1e-9).ceil(), (hi / v + 1e-9).floor());
-        if !(k0.is_finite() && k1.is_finite()) || k0.abs() > 1e15 || k1.abs() > 1e15 {
-            return None;
-        }
-        if k1 - k0 + 1.0 <= max_ticks as f64 {
-            let ticks = (k0 as i64..=k1 as i64).map(|k| step.multiple(k)).collect();
-            return Some((ticks, step));
-        }
-        step = step.next();
-    }
-}
-
-/// At most `max_ticks` (at least 2) tick values on a logarithmic axis from `lo` to `hi` (both > 0):
-/// powers of ten (every n-th decade when there are too many); when fewer than two decades lie in the
-/// range, 1-2-5 multiples of powers of ten; when even those are fewer than two, linear ticks.
-///
-/// ```
-/// use veila_data::vis::plot::log_ticks;
-/// assert_eq!(log_ticks(0.5, 2000.0, 10), [1.0, 10.0, 100.0, 1000.0]);
-/// assert_eq!(log_ticks(2.0, 60.0, 10), [2.0, 5.0, 10.0, 20.0, 50.0]);
-/// ```
-pub fn log_ticks(lo: f64, hi: f64, max_ticks: usize) -> Vec<f64> {
-    if !(lo > 0.0 && hi >= lo && hi.is_finite()) {
-        return Vec::new();
-    }
-    let max_ticks = max_ticks.max(2);
-    let (d0, d1) = decade_bounds(lo, hi);
-    let decades = d1 - d0 + 1;
-    if decades >= 2 {
-        let stride = (decades as usize).div_ceil(max_ticks) as i32;
-        return (d0..=d1)
-            .filter(|k| k.rem_euclid(stride) == 0)
-            .map(pow10)
-            .collect();
-    }
-    let (e0, e1) = (lo.log10().floor() as i32 - 1, hi.log10().floor() as i32 + 1);
-    let mut v: Vec<f64> = (e0..=e1)
-        .flat_map(|e| [1, 2, 5].map(|m| Step { m, e }.multiple(1)))
-        .filter(|&t| t >= lo * (1.0 - 1e-12) && t <= hi * (1.0 + 1e-12))
-        .collect();
-    if v.len() >= 2 && v.len() <= max_ticks {
-        return v;
-    }
-    v = linear_ticks(lo, hi, max_ticks);
-    v.retain(|&t| t > 0.0);
-    v
-}
-
-/// First and last power-of-ten exponent inside `[lo, hi]` (robust to log10 rounding).
-fn decade_bounds(lo: f64, hi: f64) -> (i32, i32) {
-    let mut d0 = lo.log10().ceil() as i32;
-    if pow10(d0 - 1) >= lo * (1.0 - 1e-12) {
-        d0 -= 1;
-    }
-    let mut d1 = hi.log10().floor() as i32;
-    if pow10(d1 + 1) <= hi * (1.0 + 1e-12) {
-        d1 += 1;
-    }
-    (d0, d1)
-}
-
-/// Tick labels for linear ticks with the given step: fixed decimals as the step needs them, or
-/// scientific notation (`2.5e-5`) for very large or very small values.
-fn linear_labels(ticks: &[f64], step: Step) -> Vec<String> {
-    let max_abs = ticks.iter().fold(0.0f64, |m, t| m.max(t.abs()));
-    let scientific = max_abs >= 1e6 || (max_abs > 0.0 && max_abs < 1e-3);
-    ticks
-        .iter()
-        .map(|&t| {
-            if t == 0.0 && scientific {
-                "0".to_string()
-            } else if scientific {
-                let digits = (t.abs().log10().floor() as i32 - step.e).clamp(0, 8) as usize;
-                trim_scientific(&format!("{t:.digits$e}"))
-            } else {
-                let decimals = (-step.e).max(0) as usize;
-                // `t + 0.0` turns -0.0 into 0.0
-                format!("{:.decimals$}", t + 0.0)
-            }
-        })
-        .collect()
-}
-
-/// Tick labels on a logarithmic axis: plain decimals from 0.001 to 10000, scientific otherwise.
-fn log_labels(ticks: &[f64]) -> Vec<String> {
-    ticks
-        .iter()
-        .map(|&t| {
-            if (1e-3..1e5).contains(&t) {
-                format!("{t}")
-            } else {
-                trim_scientific(&format!("{t:e}"))
-            }
-        })
-        .collect()
-}
-
-/// `1.50e-5` -> `1.5e-5`, `2.0e3` -> `2e3`.
-fn trim_scientific(s: &str) -> String {
-    match s.split_once('e') {
-        Some((mant, exp)) if mant.contains('.') => {
-            let mant = mant.trim_end_matches('0').trim_end_matches('.');
-            format!("{mant}e{exp}")
-        }
-        _ => s.to_string(),
-    }
-}
-
-// ------------------------------------------------------------------------------------------------
-// axes and layout
+// axes
 
 /// A data axis: the value range shown and whether it is logarithmic.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Axis {
     /// Value at the low end (left or bottom).
     pub lo: f64,
@@ -392,22 +196,182 @@ impl Axis {
     /// Position of `v` along the axis, 0 at `lo` and 1 at `hi` (outside [0, 1] beyond the range);
     /// `None` for non-finite values and, on a logarithmic axis, values <= 0.
     pub fn fraction(&self, v: f64) -> Option<f64> {
-        let f = if self.log {
-            if v <= 0.0 {
-                return None;
-            }
-            (v.log10() - self.lo.log10()) / (self.hi.log10() - self.lo.log10())
-        } else {
-            (v - self.lo) / (self.hi - self.lo)
+        let f = match self.log {
+            true if v <= 0.0 => return None,
+            true => (v.log10() - self.lo.log10()) / (self.hi.log10() - self.lo.log10()),
+            false => (v - self.lo) / (self.hi - self.lo),
         };
         f.is_finite().then_some(f)
+    }
+
+    /// The value at fraction `f` (the inverse of [`Axis::fraction`]).
+    fn value(&self, f: f64) -> f64 {
+        match self.log {
+            true => 10f64.powf(self.lo.log10() + f * (self.hi.log10() - self.lo.log10())),
+            false => self.lo + f * (self.hi - self.lo),
+        }
+    }
+
+    /// Whether plotters can draw `lo..hi`: its tick search steps through the span, so the span
+    /// must be finite and not vanish next to the values (on a log axis: in decades, `lo > 0`).
+    fn usable(lo: f64, hi: f64, log: bool) -> bool {
+        let (a, b) = if log {
+            (lo.log10(), hi.log10())
+        } else {
+            (lo, hi)
+        };
+        let span = b - a;
+        (!log || lo > 0.0)
+            && span.is_finite()
+            && span > 1e-12 * a.abs().max(b.abs())
+            && span > 1e-200
+    }
+
+    /// `fixed` where usable, else the range of `values` with a 4 % margin (in decades on a log
+    /// axis) or a window around a single value: plotters takes a range, fitting it is ours.
+    fn fit(values: impl Iterator<Item = f64>, log: bool, fixed: Option<(f64, f64)>) -> Axis {
+        let (lo, hi) = match fixed {
+            Some((lo, hi)) if Axis::usable(lo, hi, log) => (lo, hi),
+            _ => {
+                let t = |v: f64| if log { v.log10() } else { v };
+                let kept = values
+                    .filter(|v| v.is_finite() && (!log || *v > 0.0))
+                    .map(t);
+                let (lo, hi) = kept.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+                    (lo.min(v), hi.max(v))
+                });
+                let (c, span) = (0.5 * lo + 0.5 * hi, hi - lo);
+                let (lo, hi) = if lo > hi {
+                    (f64::NAN, f64::NAN) // no data: the plain frame below
+                } else if span <= 1e-12 * lo.abs().max(hi.abs()) {
+                    // one value (or a range too narrow to show): a window around it
+                    let d = match (log, c == 0.0) {
+                        (true, _) => 0.5,
+                        (false, true) => 1.0,
+                        (false, false) => 0.1 * c.abs(),
+                    };
+                    (c - d, c + d)
+                } else {
+                    (lo - 0.04 * span, hi + 0.04 * span)
+                };
+                let v = |t: f64| if log { 10f64.powf(t) } else { t };
+                (v(lo), v(hi))
+            }
+        };
+        match (Axis::usable(lo, hi, log), log) {
+            (true, _) => Axis { lo, hi, log },
+            // no data, or values at the very ends of the floating-point range: a plain frame
+            (false, false) => Axis {
+                lo: 0.0,
+                hi: 1.0,
+                log,
+            },
+            (false, true) => Axis {
+                lo: 1.0,
+                hi: 10.0,
+                log,
+            },
+        }
+    }
+
+    /// At most about `n` major ticks with their labels. Plotters picks them (1-2-5 steps; powers
+    /// of ten on a log axis), except on a log range holding fewer than two powers of ten, where
+    /// plotters finds one tick or none: there 1-2-5 multiples of powers of ten, or linear ticks.
+    fn ticks(&self, n: usize) -> Vec<(f64, String)> {
+        let linear = || RangedCoordf64::from(self.lo..self.hi).key_points(BoldPoints(n));
+        let ticks = match self.log {
+            false => linear(),
+            true => {
+                let decades = self.log_coord().key_points(BoldPoints(n));
+                let (e0, e1) = (
+                    self.lo.log10().floor() as i32,
+                    self.hi.log10().ceil() as i32,
+                );
+                let steps = (e0..=e1).flat_map(|e| [1.0, 2.0, 5.0].map(|m| m * 10f64.powi(e)));
+                let steps: Vec<f64> = steps.filter(|v| (self.lo..=self.hi).contains(v)).collect();
+                if decades.len() >= 2 {
+                    decades
+                } else if (2..=n.max(2)).contains(&steps.len()) {
+                    steps
+                } else {
+                    linear()
+                }
+            }
+        };
+        let format = LabelFormat::of(&ticks, self.log);
+        ticks.into_iter().map(|t| (t, format.label(t))).collect()
+    }
+
+    /// Plotters' log coordinate for choosing ticks, a hair wider than the axis: plotters' decade
+    /// search loses a power of ten at either end to rounding (log10 0.001 = -2.9999999999999996).
+    fn log_coord(&self) -> LogCoord<f64> {
+        let (lo, hi) = (self.lo * (1.0 - 1e-9), self.hi * (1.0 + 1e-9));
+        (lo..hi).log_scale().into()
+    }
+
+    /// Plotters' log scale with this axis' ticks for hint `n` and its minor grid (plotters' light
+    /// points: the multiples of each power of ten).
+    fn log_scale(self, n: usize) -> WithKeyPoints<LogCoord<f64>> {
+        let ticks = self.ticks(n).into_iter().map(|t| t.0).collect();
+        let minor = self.log_coord().key_points(LightPoints::new(n, 10 * n));
+        (self.lo..self.hi)
+            .log_scale()
+            .with_key_points(ticks)
+            .with_light_points(minor)
+    }
+}
+
+/// How an axis writes its tick labels. Plotters formats each value on its own (20000 as
+/// "20000.0", 5e-6 as "0.00001"); these share their decimals and notation along a linear axis.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum LabelFormat {
+    /// Fixed-point with this many decimals.
+    Fixed(usize),
+    /// `2.5e-5` (very large or very small values).
+    Scientific,
+    /// Each value on its own: plain from 0.001 to 10000, scientific otherwise.
+    Log,
+}
+
+impl LabelFormat {
+    fn of(ticks: &[f64], log: bool) -> LabelFormat {
+        let max = ticks.iter().fold(0.0f64, |m, t| m.max(t.abs()));
+        let decimals = |t: &f64| {
+            let s = pretty_print_float(*t, false);
+            s.split_once('.').map_or(0, |(_, d)| d.len())
+        };
+        match log {
+            true => LabelFormat::Log,
+            false if max >= 1e6 || (max > 0.0 && max < 1e-3) => LabelFormat::Scientific,
+            false => LabelFormat::Fixed(ticks.iter().map(decimals).max().unwrap_or(0)),
+        }
+    }
+
+    fn label(self, v: f64) -> String {
+        match self {
+            // plotters' ticks may miss zero by a rounding error: no "-0.0"
+            LabelFormat::Fixed(d) if v.abs() < 0.5 * 10f64.powi(-(d as i32)) => {
+                format!("{:.d$}", 0.0)
+            }
+            LabelFormat::Fixed(d) => format!("{v:.d$}"),
+            LabelFormat::Log if (1e-3..1e5).contains(&v) => pretty_print_float(v, false),
+            _ if v == 0.0 => "0".into(),
+            _ => {
+                let mut e = v.abs().log10().floor();
+                let mut m = (v / 10f64.powf(e) * 1e6).round() / 1e6;
+                if m.abs() >= 10.0 {
+                    (m, e) = (m / 10.0, e + 1.0);
+                }
+                format!("{}e{e}", pretty_print_float(m, false))
+            }
+        }
     }
 }
 
 /// The plot area in image pixel coordinates: `left` / `top` are the first pixel column / row inside
 /// it, `right` / `bottom` the last (`lo` of the x axis maps to `left`, `hi` to `right`; `lo` of the
 /// y axis to `bottom`, `hi` to `top`).
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct PixelRect {
     /// First column.
     pub left: f64,
@@ -419,23 +383,11 @@ pub struct PixelRect {
     pub bottom: f64,
 }
 
-impl PixelRect {
-    fn width(&self) -> f64 {
-        self.right - self.left
-    }
-    fn height(&self) -> f64 {
-        self.bottom - self.top
-    }
-    fn contains(&self, (x, y): (f64, f64)) -> bool {
-        x >= self.left && x <= self.right && y >= self.top && y <= self.bottom
-    }
-}
-
 /// Where a plot's data lands in the image: the plot area, the two axes and their ticks.
 /// [`Plot::layout`] gives the layout [`Plot::render`] uses, so callers (and tests) can map data to
-/// pixels: the point `(x, y)` is drawn at `(x_to_px(x), y_to_px(y))` in continuous pixel
-/// coordinates, i.e. in pixel `(floor(px), floor(py))`.
-#[derive(Debug, Clone, PartialEq)]
+/// pixels: the point `(x, y)` is drawn in pixel `(floor(px), floor(py))` of
+/// `(px, py) = (x_to_px(x), y_to_px(y))`, as plotters rounds.
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct PlotLayout {
     /// The plot area (inside the frame).
     pub area: PixelRect,
@@ -454,150 +406,24 @@ pub struct PlotLayout {
 impl PlotLayout {
     /// Horizontal pixel coordinate of data value `x` (`None` if the axis cannot show it).
     pub fn x_to_px(&self, x: f64) -> Option<f64> {
+        let a = self.area;
         self.x
             .fraction(x)
-            .map(|f| self.area.left + f * self.area.width())
+            .map(|f| a.left + f * (a.right - a.left) + 1e-3)
     }
 
     /// Vertical pixel coordinate of data value `y` (`None` if the axis cannot show it).
     pub fn y_to_px(&self, y: f64) -> Option<f64> {
-        self.y
-            .fraction(y)
-            .map(|f| self.area.bottom - f * self.area.height())
+        let a = self.area;
+        // plotters counts whole pixels up from the bottom row
+        let up = |f: f64| f * (a.bottom - a.top) + 1e-3;
+        self.y.fraction(y).map(|f| a.bottom + 1.0 - up(f))
     }
 
     /// Pixel coordinates of a data point.
     pub fn to_px(&self, (x, y): (f64, f64)) -> Option<(f64, f64)> {
         Some((self.x_to_px(x)?, self.y_to_px(y)?))
     }
-}
-
-/// Font size in pixels for an image: 3.6 % of the short side (18 px at 800 x 500), at least 9.
-fn text_px_for(width: u32, height: u32) -> f64 {
-    (0.036 * width.min(height) as f64).clamp(9.0, 64.0)
-}
-
-/// Fit a range to the given values with a 4 % margin (in log10 space on logarithmic axes); a fixed
-/// range is used as given when it is usable.
-fn fit_axis(values: impl Iterator<Item = f64>, log: bool, fixed: Option<(f64, f64)>) -> Axis {
-    if let Some((lo, hi)) = fixed {
-        let usable = lo.is_finite() && hi.is_finite() && hi > lo && (!log || lo > 0.0);
-        if usable {
-            return Axis { lo, hi, log };
-        }
-    }
-    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-    for v in values {
-        if v.is_finite() && (!log || v > 0.0) {
-            let t = if log { v.log10() } else { v };
-            lo = lo.min(t);
-            hi = hi.max(t);
-        }
-    }
-    if lo > hi {
-        // no data
-        return if log {
-            Axis {
-                lo: 1.0,
-                hi: 10.0,
-                log,
-            }
-        } else {
-            Axis {
-                lo: 0.0,
-                hi: 1.0,
-                log,
-            }
-        };
-    }
-    let span = hi - lo;
-    if !span.is_finite() || span <= 1e-12 * lo.abs().max(hi.abs()) {
-        // one value (or a range too small or too large to show): a window around it
-        let c = if span.is_finite() {
-            0.5 * (lo + hi)
-        } else {
-            lo
-        };
-        let d = if log {
-            0.5
-        } else if c == 0.0 {
-            1.0
-        } else {
-            0.1 * c.abs()
-        };
-        (lo, hi) = (c - d, c + d);
-        if !(hi - lo).is_finite() {
-            (lo, hi) = (c * 0.9, c * 1.1);
-            if lo > hi {
-                std::mem::swap(&mut lo, &mut hi);
-            }
-        }
-    } else {
-        let m = 0.04 * span;
-        (lo, hi) = (lo - m, hi + m);
-        if !(hi - lo).is_finite() {
-            (lo, hi) = (lo + m, hi - m);
-        }
-    }
-    let (lo, hi) = if log {
-        (10f64.powf(lo), 10f64.powf(hi).min(f64::MAX))
-    } else {
-        (lo, hi)
-    };
-    let usable = lo.is_finite() && hi.is_finite() && hi > lo && (!log || lo > 0.0);
-    match (usable, log) {
-        (true, _) => Axis { lo, hi, log },
-        // values at the very ends of the floating-point range: a plain frame
-        (false, true) => Axis {
-            lo: 1.0,
-            hi: 10.0,
-            log,
-        },
-        (false, false) => Axis {
-            lo: 0.0,
-            hi: 1.0,
-            log,
-        },
-    }
-}
-
-/// Ticks within the axis with labels, at most `max_ticks`.
-fn axis_ticks(axis: &Axis, max_ticks: usize) -> Vec<(f64, String)> {
-    if axis.log {
-        let t = log_ticks(axis.lo, axis.hi, max_ticks);
-        let l = log_labels(&t);
-        t.into_iter().zip(l).collect()
-    } else {
-        match linear_ticks_step(axis.lo, axis.hi, max_ticks) {
-            Some((t, step)) => {
-                let l = linear_labels(&t, step);
-                t.into_iter().zip(l).collect()
-            }
-            None => Vec::new(),
-        }
-    }
-}
-
-/// Minor ticks on a logarithmic axis (2..9 times each shown decade) when every decade is labelled.
-fn log_minor_ticks(axis: &Axis, major: &[(f64, String)]) -> Vec<f64> {
-    if !axis.log || major.len() < 2 {
-        return Vec::new();
-    }
-    let ratio = major[1].0 / major[0].0;
-    if (ratio - 10.0).abs() > 1e-6 {
-        return Vec::new();
-    }
-    let (d0, d1) = (
-        axis.lo.log10().floor() as i32,
-        axis.hi.log10().floor() as i32,
-    );
-    if d1 - d0 > 40 {
-        return Vec::new();
-    }
-    (d0..=d1)
-        .flat_map(|e| (2..=9).map(move |m| Step { m, e }.multiple(1)))
-        .filter(|&v| v > axis.lo && v < axis.hi)
-        .collect()
 }
 
 // ------------------------------------------------------------------------------------------------
@@ -626,8 +452,8 @@ fn font(px: f64) -> FontDesc<'static> {
     (FAMILY, px).into_font()
 }
 
-fn text_style(px: f64, color: [u8; 3]) -> TextStyle<'static> {
-    font(px).color(&rgb(color))
+fn text_style(px: f64) -> TextStyle<'static> {
+    font(px).color(&rgb(TEXT))
 }
 
 /// Width in pixels of `text` in the plot font at `size_px`.
@@ -635,107 +461,43 @@ pub fn text_width(text: &str, size_px: f64) -> u32 {
     font(size_px).box_size(text).map_or(0, |(w, _)| w)
 }
 
-type Root<'b> = DrawingArea<BitMapBackend<'b>, Shift>;
-type DrawResult<T = ()> = std::result::Result<T, Box<dyn std::error::Error + Send + Sync>>;
-
-/// Draw `text` with the top of its capitals at `y`; `x` is its left end, centre or right end as
-/// `h` says.
-fn put_text(
-    root: &Root<'_>,
-    text: &str,
-    px: f64,
-    color: [u8; 3],
-    (x, y): (f64, f64),
-    h: HPos,
-) -> DrawResult {
-    if text.is_empty() {
-        return Ok(());
-    }
-    let anchor = (x.round() as i32, (y + (CAP - BASELINE) * px).round() as i32);
-    let style = text_style(px, color).pos(Pos::new(h, VPos::Top));
-    root.draw(&Text::new(text.to_string(), anchor, style))?;
-    Ok(())
-}
-
 /// Draw `text` onto `img` in the plot font at `size_px`, with the top-left corner of its capital
 /// letters at `(x, y)`. Pixels outside the image are skipped.
 pub fn draw_text(img: &mut RgbImage, x: i64, y: i64, text: &str, size_px: f64, color: Rgb<u8>) {
     let (w, h) = img.dimensions();
-    if w == 0 || h == 0 || !(size_px > 0.0 && size_px.is_finite()) {
+    if w == 0 || h == 0 || text.is_empty() || !(size_px > 0.0 && size_px.is_finite()) {
         return;
     }
     let root = BitMapBackend::with_buffer(img, (w, h)).into_drawing_area();
-    let at = (
-        x.clamp(-1 << 24, 1 << 24) as f64,
-        y.clamp(-1 << 24, 1 << 24) as f64,
-    );
-    if let Err(e) = put_text(&root, text, size_px, color.0, at, HPos::Left) {
+    let y = y.clamp(-1 << 24, 1 << 24) as f64 + (CAP - BASELINE) * size_px;
+    let at = (x.clamp(-1 << 24, 1 << 24) as i32, y.round() as i32);
+    let style = font(size_px).color(&rgb(color.0));
+    let style = style.pos(Pos::new(HPos::Left, VPos::Top));
+    if let Err(e) = root.draw(&Text::new(text, at, style)) {
         tracing::warn!("drawing text {text:?}: {e}");
     }
 }
 
-/// `text` shortened with ".." so that it fits `max_w` pixels at `px`.
+/// `text` shortened with ".." so that it fits `max_w` pixels at `px` (plotters draws text whole).
 fn fit_text(text: &str, max_w: f64, px: f64) -> String {
-    if text_width(text, px) as f64 <= max_w {
-        return text.to_string();
-    }
     let chars: Vec<char> = text.chars().collect();
-    for keep in (0..chars.len()).rev() {
-        let t: String = chars[..keep].iter().chain(['.', '.'].iter()).collect();
-        if text_width(&t, px) as f64 <= max_w {
-            return t;
-        }
-    }
-    String::new()
+    let cut = |keep: usize| match keep == chars.len() {
+        true => text.to_string(),
+        false => chars[..keep].iter().chain(&['.', '.']).collect(),
+    };
+    let fits = |t: &String| text_width(t, px) as f64 <= max_w;
+    (0..=chars.len())
+        .rev()
+        .map(cut)
+        .find(fits)
+        .unwrap_or_default()
 }
 
 // ------------------------------------------------------------------------------------------------
-// frames: sizes, ticks and the plotters chart
+// marks
 
-/// One axis as a plotters coordinate: the range mapping of [`Axis`], with our ticks and labels.
-#[derive(Debug, Clone)]
-struct AxisCoord {
-    axis: Axis,
-    ticks: Vec<(f64, String)>,
-    minor: Vec<f64>,
-}
-
-impl Ranged for AxisCoord {
-    type FormatOption = NoDefaultFormatting;
-    type ValueType = f64;
-
-    fn map(&self, v: &f64, limit: (i32, i32)) -> i32 {
-        let f = self.axis.fraction(*v).unwrap_or(0.0);
-        let px = limit.0 as f64 + f * (limit.1 - limit.0) as f64;
-        px.floor().clamp(-1e6, 1e6) as i32
-    }
-
-    fn key_points<H: KeyPointHint>(&self, hint: H) -> Vec<f64> {
-        if hint.weight().allow_light_points() {
-            self.minor.clone()
-        } else {
-            self.ticks.iter().map(|t| t.0).collect()
-        }
-    }
-
-    fn range(&self) -> Range<f64> {
-        self.axis.lo..self.axis.hi
-    }
-}
-
-impl ValueFormatter<f64> for AxisCoord {
-    fn format_ext(&self, v: &f64) -> String {
-        self.ticks
-            .iter()
-            .find(|t| t.0 == *v)
-            .map(|t| t.1.clone())
-            .unwrap_or_default()
-    }
-}
-
-type Chart<'a, 'b> = ChartContext<'a, BitMapBackend<'b>, Cartesian2d<AxisCoord, AxisCoord>>;
-
-/// Sizes in pixels that follow the font size `s`.
+/// Sizes in pixels that follow the font size `s`: 3.6 % of the image's short side (18 px at
+/// 800 x 500), at least 9.
 #[derive(Debug, Clone, Copy)]
 struct Metrics {
     s: f64,
@@ -746,7 +508,8 @@ struct Metrics {
 }
 
 impl Metrics {
-    fn new(s: f64) -> Self {
+    fn new(width: u32, height: u32) -> Self {
+        let s = (0.036 * width.min(height) as f64).clamp(9.0, 64.0);
         Metrics {
             s,
             pad: (0.6 * s).round(),
@@ -756,239 +519,6 @@ impl Metrics {
         }
     }
 }
-
-/// What goes along the x axis.
-enum XSpec<'a> {
-    Numeric(Axis),
-    Categories(&'a [String]),
-}
-
-/// What a chart shows besides its data.
-struct ChartSpec<'a> {
-    title: &'a str,
-    x_label: &'a str,
-    y_label: &'a str,
-    x: XSpec<'a>,
-    y: Axis,
-}
-
-/// The chart's layout before plotters places it: margins, label areas, axes and (fitted) texts.
-struct Frame {
-    m: Metrics,
-    /// ChartBuilder margins (top, right, bottom, left) and label area sizes (x below, y left).
-    margins: [u32; 4],
-    x_area: u32,
-    y_area: u32,
-    x: AxisCoord,
-    y: AxisCoord,
-    title: String,
-    x_label: String,
-    y_label: String,
-    /// Top of the band reserved for a legend above the plot area (when one was asked for).
-    legend_top: f64,
-    vertical_grid: bool,
-}
-
-fn widest(ticks: &[(f64, String)], s: f64) -> f64 {
-    ticks
-        .iter()
-        .map(|(_, l)| text_width(l, s))
-        .max()
-        .unwrap_or(0) as f64
-}
-
-fn compute_frame(width: u32, height: u32, spec: &ChartSpec<'_>, legend_band: f64) -> Frame {
-    let m = Metrics::new(text_px_for(width, height));
-    let (s, pad, tick) = (m.s, m.pad, m.tick as f64);
-    let (w, h) = (width as f64, height as f64);
-    let title_px = 1.2 * s;
-    let title = fit_text(spec.title, w - 2.0 * pad, title_px);
-    let mut top = pad;
-    if !title.is_empty() {
-        top += (CAP + 0.2) * title_px + 0.6 * s;
-    }
-    let legend_top = top;
-    top += legend_band;
-    // tick labels hang from twice the tick length below the axis (plotters' spacing); the axis
-    // label sits at the bottom of the label area
-    let mut x_area = 2.0 * tick + 0.75 * s;
-    if !spec.x_label.is_empty() {
-        x_area += 1.3 * s;
-    }
-    let bottom = (0.4 * s).round();
-    let plot_h = h - top - x_area - bottom;
-    let y_axis = spec.y;
-    let mut y_ticks = axis_ticks(&y_axis, ((plot_h / (2.0 * s)) as usize).clamp(2, 10));
-    while y_ticks.len() > 2 && plot_h / (y_ticks.len() as f64) < 1.6 * s {
-        let n = y_ticks.len() - 1;
-        y_ticks = axis_ticks(&y_axis, n);
-    }
-    let mut y_area = 2.0 * tick + widest(&y_ticks, s);
-    if !spec.y_label.is_empty() {
-        y_area += 1.2 * s;
-    }
-    let mut right = pad.max(0.5 * s);
-    let (x_coord, vertical_grid) = match spec.x {
-        XSpec::Numeric(xa) => {
-            let mut x_ticks = Vec::new();
-            for _pass in 0..2 {
-                let plot_w = w - pad - y_area - right;
-                let mut max_ticks = ((plot_w / (3.0 * s)) as usize).clamp(2, 12);
-                loop {
-                    x_ticks = axis_ticks(&xa, max_ticks);
-                    let spacing = plot_w / (x_ticks.len().max(1) as f64);
-                    if max_ticks <= 2 || widest(&x_ticks, s) + 1.2 * s <= spacing {
-                        break;
-                    }
-                    max_ticks -= 1;
-                }
-                // the last label is centred on its tick: keep it inside the image
-                let need = x_ticks
-                    .last()
-                    .map_or(0.0, |(_, l)| text_width(l, s) as f64 / 2.0 + 0.2 * s);
-                if need <= right {
-                    break;
-                }
-                right = need;
-            }
-            let minor = log_minor_ticks(&xa, &x_ticks);
-            let coord = AxisCoord {
-                axis: xa,
-                ticks: x_ticks,
-                minor,
-            };
-            (coord, true)
-        }
-        XSpec::Categories(names) => {
-            let n = names.len().max(1) as f64;
-            let slot = (w - pad - y_area - right) / n;
-            let ticks = names
-                .iter()
-                .enumerate()
-                .map(|(i, name)| (i as f64 + 0.5, fit_text(name, slot - 0.3 * s, s)))
-                .collect();
-            let axis = Axis {
-                lo: 0.0,
-                hi: n,
-                log: false,
-            };
-            let coord = AxisCoord {
-                axis,
-                ticks,
-                minor: Vec::new(),
-            };
-            (coord, false)
-        }
-    };
-    let plot_w = w - pad - y_area - right;
-    let y_minor = log_minor_ticks(&y_axis, &y_ticks);
-    let mut frame = Frame {
-        m,
-        margins: [top, right, bottom, pad].map(|v| v.round().max(0.0) as u32),
-        x_area: x_area.round() as u32,
-        y_area: y_area.round() as u32,
-        x: x_coord,
-        y: AxisCoord {
-            axis: y_axis,
-            ticks: y_ticks,
-            minor: y_minor,
-        },
-        title,
-        x_label: fit_text(spec.x_label, plot_w.max(0.0), s),
-        y_label: fit_text(spec.y_label, plot_h.max(0.0), s),
-        legend_top,
-        vertical_grid,
-    };
-    if plot_w < 4.0 * s || plot_h < 3.0 * s {
-        // too small for text: the plot area fills the image
-        frame.margins = [0; 4];
-        frame.x_area = 0;
-        frame.y_area = 0;
-        frame.title.clear();
-        frame.x_label.clear();
-        frame.y_label.clear();
-        frame.x.ticks.clear();
-        frame.y.ticks.clear();
-    }
-    frame
-}
-
-fn build<'a, 'b>(root: &'a Root<'b>, f: &Frame) -> DrawResult<Chart<'a, 'b>> {
-    let [top, right, bottom, left] = f.margins;
-    let mut b = ChartBuilder::on(root);
-    b.margin_top(top)
-        .margin_right(right)
-        .margin_bottom(bottom)
-        .margin_left(left)
-        .x_label_area_size(f.x_area)
-        .y_label_area_size(f.y_area);
-    Ok(b.build_cartesian_2d(f.x.clone(), f.y.clone())?)
-}
-
-fn layout_of(chart: &Chart<'_, '_>, f: &Frame) -> PlotLayout {
-    let (xr, yr) = chart.plotting_area().get_pixel_range();
-    PlotLayout {
-        area: PixelRect {
-            left: xr.start as f64,
-            top: yr.start as f64,
-            right: (xr.end - 1).max(xr.start) as f64,
-            bottom: (yr.end - 1).max(yr.start) as f64,
-        },
-        x: f.x.axis,
-        y: f.y.axis,
-        x_ticks: f.x.ticks.clone(),
-        y_ticks: f.y.ticks.clone(),
-        text_px: f.m.s,
-    }
-}
-
-/// Grid, axes, ticks and their labels, axis labels (plotters' mesh).
-fn draw_axes(chart: &mut Chart<'_, '_>, f: &Frame) -> DrawResult {
-    let s = f.m.s;
-    let mut mesh = chart.configure_mesh();
-    mesh.bold_line_style(rgb(GRID).stroke_width(1))
-        .light_line_style(rgb(MINOR_GRID).stroke_width(1))
-        .axis_style(rgb(FRAME).stroke_width(1))
-        .label_style(text_style(s, TEXT))
-        .axis_desc_style(text_style(s, TEXT))
-        .set_all_tick_mark_size(f.m.tick)
-        // centre the capitals of the y tick labels on their ticks (see BASELINE)
-        .y_label_offset(((1.0 / 2.48 + CAP / 2.0 - BASELINE) * s).round() as i32);
-    if !f.x_label.is_empty() {
-        mesh.x_desc(f.x_label.as_str());
-    }
-    if !f.y_label.is_empty() {
-        mesh.y_desc(f.y_label.as_str());
-    }
-    if !f.vertical_grid {
-        mesh.disable_x_mesh();
-    }
-    mesh.draw()?;
-    Ok(())
-}
-
-/// The frame around the plot area, and the title.
-fn draw_frame_and_title(root: &Root<'_>, layout: &PlotLayout, f: &Frame) -> DrawResult {
-    let a = layout.area;
-    let (l, t, r, b) = (a.left as i32, a.top as i32, a.right as i32, a.bottom as i32);
-    root.draw(&Rectangle::new(
-        [(l - 1, t - 1), (r + 1, b + 1)],
-        rgb(FRAME).stroke_width(1),
-    ))?;
-    if !f.title.is_empty() {
-        let px = 1.2 * f.m.s;
-        let (w, _) = root.dim_in_pixel();
-        let tw = text_width(&f.title, px) as f64;
-        let x = (a.left + 0.5 * a.width() - 0.5 * tw)
-            .min(w as f64 - f.m.pad - tw)
-            .max(f.m.pad);
-        put_text(root, &f.title, px, TEXT, (x, f.m.pad), HPos::Left)?;
-    }
-    Ok(())
-}
-
-// ------------------------------------------------------------------------------------------------
-// marks
 
 /// Marker shapes, cycled through by series index.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -1008,432 +538,730 @@ const MARKERS: [Marker; 5] = [
     Marker::TriangleDown,
 ];
 
-fn px_i((x, y): (f64, f64)) -> (i32, i32) {
-    (
-        x.floor().clamp(-1e6, 1e6) as i32,
-        y.floor().clamp(-1e6, 1e6) as i32,
-    )
+/// The corners of a marker of radius about `r` pixels around its centre, for plotters' polygon
+/// (plotters' own markers are circles, triangles and crosses, not this set of five).
+fn outline(shape: Marker, r: f64) -> Vec<(i32, i32)> {
+    let circle: Vec<(f64, f64)>;
+    let corners: &[(f64, f64)] = match shape {
+        Marker::Circle => {
+            circle = (0..16)
+                .map(|k| (k as f64 * std::f64::consts::PI / 8.0).sin_cos())
+                .collect();
+            &circle
+        }
+        Marker::Square => &[(-0.85, -0.85), (0.85, -0.85), (0.85, 0.85), (-0.85, 0.85)],
+        Marker::Diamond => &[(0.0, -1.2), (1.2, 0.0), (0.0, 1.2), (-1.2, 0.0)],
+        Marker::TriangleUp => &[(0.0, -1.25), (1.1, 0.65), (-1.1, 0.65)],
+        Marker::TriangleDown => &[(0.0, 1.25), (1.1, -0.65), (-1.1, -0.65)],
+    };
+    let px = |v: f64| (v * r).round() as i32;
+    corners.iter().map(|&(x, y)| (px(x), px(y))).collect()
 }
 
-fn draw_marker(root: &Root<'_>, p: (f64, f64), shape: Marker, r: f64, c: [u8; 3]) -> DrawResult {
-    let (x, y) = px_i(p);
-    let style = rgb(c).filled();
-    let pt = |dx: f64, dy: f64| (x + (dx * r).round() as i32, y + (dy * r).round() as i32);
-    match shape {
-        Marker::Circle => root.draw(&Circle::new((x, y), r.round() as i32, style))?,
-        Marker::Square => root.draw(&Rectangle::new([pt(-0.85, -0.85), pt(0.85, 0.85)], style))?,
-        Marker::Diamond => root.draw(&Polygon::new(
-            vec![pt(0.0, -1.2), pt(1.2, 0.0), pt(0.0, 1.2), pt(-1.2, 0.0)],
-            style,
-        ))?,
-        Marker::TriangleUp => root.draw(&Polygon::new(
-            vec![pt(0.0, -1.25), pt(1.1, 0.65), pt(-1.1, 0.65)],
-            style,
-        ))?,
-        Marker::TriangleDown => root.draw(&Polygon::new(
-            vec![pt(0.0, 1.25), pt(1.1, -0.65), pt(-1.1, -0.65)],
-            style,
-        ))?,
-    }
-    Ok(())
-}
+/// A rectangle `(x0, y0, x1, y1)` in fractions of the plot area (y up); [`UNIT`] is the area.
+type Frac = (f64, f64, f64, f64);
+const UNIT: Frac = (0.0, 0.0, 1.0, 1.0);
 
-/// The part of segment `a`-`b` inside `r` (Liang-Barsky); `None` when none is.
-fn clip_segment(a: (f64, f64), b: (f64, f64), r: &PixelRect) -> Option<((f64, f64), (f64, f64))> {
+/// The parameters `(t0, t1)` of the part of segment `a`-`b` inside `r` (Liang-Barsky); `None` when
+/// none is. Plotters clamps points outside the plot area onto its edge instead of clipping lines.
+fn clip(a: (f64, f64), b: (f64, f64), r: Frac) -> Option<(f64, f64)> {
     let (dx, dy) = (b.0 - a.0, b.1 - a.1);
-    if !(dx.is_finite() && dy.is_finite()) {
-        return None;
-    }
     let (mut t0, mut t1) = (0.0f64, 1.0f64);
     for (p, q) in [
-        (-dx, a.0 - r.left),
-        (dx, r.right - a.0),
-        (-dy, a.1 - r.top),
-        (dy, r.bottom - a.1),
+        (-dx, a.0 - r.0),
+        (dx, r.2 - a.0),
+        (-dy, a.1 - r.1),
+        (dy, r.3 - a.1),
     ] {
-        if p == 0.0 {
-            if q < 0.0 {
-                return None;
-            }
+        if !(p.is_finite() && q.is_finite()) || p == 0.0 && q < 0.0 {
+            return None;
         } else if p < 0.0 {
             t0 = t0.max(q / p);
-        } else {
+        } else if p > 0.0 {
             t1 = t1.min(q / p);
         }
     }
-    (t0 <= t1).then_some((
-        (a.0 + t0 * dx, a.1 + t0 * dy),
-        (a.0 + t1 * dx, a.1 + t1 * dy),
-    ))
+    (t0 <= t1).then_some((t0, t1))
 }
 
-/// A polyline through the given pixel points (`None` breaks it), clipped to `area`.
-fn draw_polyline(
-    root: &Root<'_>,
-    pts: &[Option<(f64, f64)>],
-    area: &PixelRect,
-    style: ShapeStyle,
-) -> DrawResult {
-    let mut path: Vec<(i32, i32)> = Vec::new();
-    let mut last: Option<(f64, f64)> = None;
-    let flush = |path: &mut Vec<(i32, i32)>| -> DrawResult {
-        if path.len() >= 2 {
-            root.draw(&PathElement::new(std::mem::take(path), style))?;
-        }
-        path.clear();
-        Ok(())
-    };
-    for w in pts.windows(2) {
-        let (Some(a), Some(b)) = (w[0], w[1]) else {
-            continue;
-        };
-        let Some((ca, cb)) = clip_segment(a, b, area) else {
-            continue;
-        };
-        if last != Some(ca) {
-            flush(&mut path)?;
-            path.push(px_i(ca));
-        }
-        path.push(px_i(cb));
-        last = Some(cb);
-    }
-    flush(&mut path)
-}
-
-/// A vertical error bar from `top` to `bot` at `x` with caps `cap` pixels to either side, clipped
-/// to `area` (caps only where the bar ends inside).
-fn draw_error_bar(
-    root: &Root<'_>,
-    x: f64,
-    (top, bot): (f64, f64),
+/// An error bar from `y - e` to `y + e` at `x` with caps reaching `cap` pixels to either side:
+/// plotters' `ErrorBar` where `ring` allows its ring around the mean (a series' marker covers it).
+/// A bar of a bar chart (whose top is the mean) and a bar leaving the plot area (plotters would
+/// clamp its end onto the edge and cap it there) get a stem with caps on the ends inside instead.
+fn error_bar<X, Y>(
+    chart: &mut Chart<'_, '_, X, Y>,
+    ya: &Axis,
+    at: (f64, f64),
+    e: f64,
     cap: f64,
-    area: &PixelRect,
-) -> DrawResult {
-    let style = rgb(ERROR_BAR).stroke_width(1);
-    if !(x >= area.left && x <= area.right) {
+    ring: bool,
+) -> DrawResult
+where
+    X: Ranged<ValueType = f64>,
+    Y: Ranged<ValueType = f64>,
+{
+    let ((x, y), style, half) = (at, rgb(ERROR_BAR).stroke_width(1), cap.round() as i32);
+    // on a log axis a bar reaching zero or below runs out of the bottom
+    let lo = ya.fraction(y - e).unwrap_or(f64::NEG_INFINITY);
+    let hi = ya.fraction(y + e).unwrap_or(f64::NAN);
+    if !(hi >= 0.0 && lo <= 1.0) {
         return Ok(());
     }
-    let (t, b) = (top.max(area.top), bot.min(area.bottom));
-    if t > b {
+    if ring && lo >= 0.0 && hi <= 1.0 {
+        let w = 2 * half as u32 + 1;
+        chart.draw_series([ErrorBar::new_vertical(x, y - e, y, y + e, style, w)])?;
         return Ok(());
     }
-    let xi = x.floor() as i32;
-    let (ti, bi) = (t.floor() as i32, b.floor() as i32);
-    root.draw(&PathElement::new(vec![(xi, ti), (xi, bi)], style))?;
-    let c = cap.round() as i32;
-    for (end, inside) in [(ti, top >= area.top), (bi, bot <= area.bottom)] {
-        if inside {
-            root.draw(&PathElement::new(vec![(xi - c, end), (xi + c, end)], style))?;
-        }
-    }
+    let (a, b) = (ya.value(lo.max(0.0)), ya.value(hi.min(1.0)));
+    chart.draw_series([PathElement::new(vec![(x, a), (x, b)], style)])?;
+    let caps = [(lo >= 0.0, a), (hi <= 1.0, b)].into_iter().filter(|c| c.0);
+    let cap = |v: f64| EmptyElement::at((x, v)) + PathElement::new([(-half, 0), (half, 0)], style);
+    chart.draw_series(caps.map(|(_, v)| cap(v)))?;
     Ok(())
 }
 
 // ------------------------------------------------------------------------------------------------
-// legends
+// charts
 
-/// A legend entry's key.
-#[derive(Debug, Clone, Copy)]
-enum Key {
-    Series {
-        color: [u8; 3],
-        line: bool,
-        marker: Option<Marker>,
-    },
-    Bar([u8; 3]),
+type Root<'b> = DrawingArea<BitMapBackend<'b>, Shift>;
+type Chart<'a, 'b, X, Y> = ChartContext<'a, BitMapBackend<'b>, Cartesian2d<X, Y>>;
+type DrawResult<T = ()> = std::result::Result<T, Box<dyn std::error::Error + Send + Sync>>;
+
+/// A legend entry's key: a line across the key area and / or a shape (corners around its middle).
+#[derive(Debug, Clone)]
+struct Key {
+    color: [u8; 3],
+    line: bool,
+    shape: Vec<(i32, i32)>,
 }
 
-/// Where the legend goes.
-#[derive(Debug, Clone, Copy)]
-enum LegendPlace {
-    /// A boxed legend with its top-left corner here, inside the plot area.
-    Inside(f64, f64),
-    /// Rows of entries in the band above the plot area.
-    Above,
+/// What a chart shows besides its data. Bar charts have categories along x.
+struct Spec<'a> {
+    title: &'a str,
+    x_label: &'a str,
+    y_label: &'a str,
+    x: Axis,
+    categories: Option<&'a [String]>,
+    y: Axis,
 }
 
-/// Legend sizes, following the font size.
-struct LegendMetrics {
+/// A kind of chart: its frame, legend and data (drawn on plotters' chart context).
+trait Marks {
+    fn spec(&self) -> Spec<'_>;
+    fn legend(&self, m: &Metrics) -> Vec<(String, Key)>;
+    /// Whether the data covers any part of `r`, for legend placement.
+    fn covers(&self, x: &Axis, y: &Axis, r: Frac) -> bool;
+    fn draw<X, Y>(&self, chart: &mut Chart<'_, '_, X, Y>, f: &Frame) -> DrawResult
+    where
+        X: Ranged<ValueType = f64>,
+        Y: Ranged<ValueType = f64>;
+}
+
+/// The chart's layout before plotters places it: label area sizes, axes, ticks and fitted texts.
+struct Frame {
     m: Metrics,
-    key_w: f64,
-    gap: f64,
-    pad: f64,
-    row_h: f64,
-    spacing: f64,
+    x: Axis,
+    y: Axis,
+    /// Tick count hints handed to plotters (which then picks `x_ticks` / `y_ticks` again).
+    x_n: usize,
+    y_n: usize,
+    x_ticks: Vec<(f64, String)>,
+    y_ticks: Vec<(f64, String)>,
+    categories: bool,
+    x_area: u32,
+    y_area: u32,
+    /// ChartBuilder margins (top, bottom, left, right): the top one leaves room for the frame.
+    margins: [u32; 4],
+    x_label: String,
+    y_label: String,
+    /// Size of the plot area in pixels.
+    plot: (f64, f64),
 }
 
-impl LegendMetrics {
-    fn new(m: Metrics) -> Self {
-        let s = m.s;
-        LegendMetrics {
-            m,
-            key_w: 1.8 * s,
-            gap: 0.4 * s,
-            pad: 0.5 * s,
-            row_h: 1.3 * s,
-            spacing: 1.2 * s,
-        }
-    }
-
-    /// Width of one entry (key, gap, name).
-    fn entry_w(&self, name: &str) -> f64 {
-        self.key_w + self.gap + text_width(name, self.m.s) as f64
-    }
-
-    /// Size of the boxed legend.
-    fn box_size(&self, names: &[String]) -> (f64, f64) {
-        let w = names.iter().map(|n| self.entry_w(n)).fold(0.0, f64::max) + 2.0 * self.pad;
-        let rows = names.len().max(1) as f64;
-        let h = 2.0 * self.pad + (rows - 1.0) * self.row_h + 0.85 * self.m.s;
-        (w.round(), h.round())
-    }
-
-    /// Entries of the legend above the plot, wrapped into rows that fit `max_w`.
-    fn rows(&self, names: &[String], max_w: f64) -> Vec<Vec<usize>> {
-        let mut rows: Vec<Vec<usize>> = Vec::new();
-        let mut used = 0.0;
-        for (i, n) in names.iter().enumerate() {
-            let w = self.entry_w(n);
-            match rows.last_mut() {
-                Some(row) if used + self.spacing + w <= max_w => {
-                    row.push(i);
-                    used += self.spacing + w;
-                }
-                _ => {
-                    rows.push(vec![i]);
-                    used = w;
-                }
-            }
-        }
-        rows
-    }
-
-    fn above_width(&self, width: u32) -> f64 {
-        width as f64 - 2.0 * self.m.pad
-    }
-}
-
-/// Legend names shortened to fit the image.
-fn legend_names(entries: &[(String, Key)], width: u32, lm: &LegendMetrics) -> Vec<String> {
-    let max_text = (lm.above_width(width) - lm.key_w - lm.gap - 2.0 * lm.pad).max(0.0);
-    entries
-        .iter()
-        .map(|(n, _)| fit_text(n, max_text, lm.m.s))
-        .collect()
-}
-
-/// The first corner of the plot area (top right, top left, bottom right, bottom left) where a boxed
-/// legend covers none of the `occupied` points; `None` when every corner covers data.
-fn free_corner(
-    layout: &PlotLayout,
-    lm: &LegendMetrics,
-    names: &[String],
-    occupied: &[(f64, f64)],
-) -> Option<(f64, f64)> {
-    let a = layout.area;
-    let (w, h) = lm.box_size(names);
-    let inset = 0.5 * lm.m.s;
-    if w + 2.0 * inset > a.width() || h + 2.0 * inset > a.height() {
-        return None;
-    }
-    let corners = [
-        (a.right - inset - w, a.top + inset),
-        (a.left + inset, a.top + inset),
-        (a.right - inset - w, a.bottom - inset - h),
-        (a.left + inset, a.bottom - inset - h),
-    ];
-    let margin = 0.25 * lm.m.s;
-    corners.into_iter().find(|&(x, y)| {
-        let r = PixelRect {
-            left: x - margin,
-            top: y - margin,
-            right: x + w + margin,
-            bottom: y + h + margin,
-        };
-        !occupied.iter().any(|p| r.contains(*p))
-    })
-}
-
-/// One entry: its key from `kx` and its name after it, capitals centred on `cy`.
-fn draw_entry(
-    root: &Root<'_>,
-    lm: &LegendMetrics,
-    key: Key,
-    name: &str,
-    kx: f64,
-    cy: f64,
-) -> DrawResult {
-    let s = lm.m.s;
-    match key {
-        Key::Series {
-            color,
-            line,
-            marker,
-        } => {
-            if line {
-                let y = cy.floor() as i32;
-                let pts = vec![(kx.round() as i32, y), ((kx + lm.key_w).round() as i32, y)];
-                root.draw(&PathElement::new(pts, rgb(color).stroke_width(lm.m.line_w)))?;
-            }
-            if let Some(mk) = marker {
-                draw_marker(root, (kx + lm.key_w / 2.0, cy), mk, lm.m.marker_r, color)?;
-            }
-        }
-        Key::Bar(color) => {
-            let side = CAP * s;
-            let (x0, y0) = (kx + lm.key_w / 2.0 - side / 2.0, cy - side / 2.0);
-            root.draw(&Rectangle::new(
-                [px_i((x0, y0)), px_i((x0 + side, y0 + side))],
-                rgb(color).filled(),
-            ))?;
-        }
-    }
-    let tx = kx + lm.key_w + lm.gap;
-    put_text(root, name, s, TEXT, (tx, cy - CAP * s / 2.0), HPos::Left)
-}
-
-fn draw_legend(
-    root: &Root<'_>,
-    frame: &Frame,
-    layout: &PlotLayout,
-    entries: &[(String, Key)],
-    place: LegendPlace,
-) -> DrawResult {
-    if entries.is_empty() {
-        return Ok(());
-    }
-    let (width, _) = root.dim_in_pixel();
-    let lm = LegendMetrics::new(frame.m);
-    let names = legend_names(entries, width, &lm);
-    // capitals of the first row: centred this far below the top of the first row
-    let first = 0.4 * lm.m.s;
-    match place {
-        LegendPlace::Inside(x, y) => {
-            let (w, h) = lm.box_size(&names);
-            let (x0, y0) = (x.round() as i32, y.round() as i32);
-            let (x1, y1) = (x0 + w as i32, y0 + h as i32);
-            root.draw(&Rectangle::new(
-                [(x0, y0), (x1, y1)],
-                rgb(BACKGROUND).mix(0.9).filled(),
-            ))?;
-            root.draw(&Rectangle::new(
-                [(x0, y0), (x1, y1)],
-                rgb(LEGEND_BORDER).stroke_width(1),
-            ))?;
-            for (i, ((_, key), name)) in entries.iter().zip(&names).enumerate() {
-                let cy = y0 as f64 + lm.pad + first + i as f64 * lm.row_h;
-                draw_entry(root, &lm, *key, name, x0 as f64 + lm.pad, cy)?;
-            }
-        }
-        LegendPlace::Above => {
-            let a = layout.area;
-            for (r, row) in lm.rows(&names, lm.above_width(width)).iter().enumerate() {
-                let total: f64 = row.iter().map(|&i| lm.entry_w(&names[i])).sum::<f64>()
-                    + lm.spacing * (row.len().saturating_sub(1)) as f64;
-                let mut x = (a.left + 0.5 * (a.width() - total))
-                    .min(width as f64 - lm.m.pad - total)
-                    .max(lm.m.pad);
-                let cy = frame.legend_top + first + r as f64 * lm.row_h;
-                for &i in row {
-                    draw_entry(root, &lm, entries[i].1, &names[i], x, cy)?;
-                    x += lm.entry_w(&names[i]) + lm.spacing;
-                }
-            }
-        }
-    }
-    Ok(())
-}
-
-/// Lay out a chart: the frame without a legend band when a corner of the plot area is free of
-/// data, otherwise with the legend above the plot area.
-fn plan<'a, 'b>(
-    root: &'a Root<'b>,
-    spec: &ChartSpec<'_>,
-    entries: &[(String, Key)],
-    occupancy: impl Fn(&PlotLayout) -> Vec<(f64, f64)>,
-) -> DrawResult<(Frame, Chart<'a, 'b>, PlotLayout, Option<LegendPlace>)> {
-    let (width, height) = root.dim_in_pixel();
-    let frame = compute_frame(width, height, spec, 0.0);
-    let chart = build(root, &frame)?;
-    let layout = layout_of(&chart, &frame);
-    if entries.is_empty() || frame.title.is_empty() && frame.x_area == 0 && frame.y_area == 0 {
-        return Ok((frame, chart, layout, None));
-    }
-    let lm = LegendMetrics::new(frame.m);
-    let names = legend_names(entries, width, &lm);
-    if let Some((x, y)) = free_corner(&layout, &lm, &names, &occupancy(&layout)) {
-        return Ok((frame, chart, layout, Some(LegendPlace::Inside(x, y))));
-    }
-    let band = lm.rows(&names, lm.above_width(width)).len() as f64 * lm.row_h;
-    let frame = compute_frame(width, height, spec, band);
-    let chart = build(root, &frame)?;
-    let layout = layout_of(&chart, &frame);
-    Ok((frame, chart, layout, Some(LegendPlace::Above)))
-}
-
-/// Render with `paint` onto a white image of the given size; drawing errors are logged and leave
-/// what was drawn (use [`try_render`] to see them).
-fn render_with(
-    width: u32,
-    height: u32,
-    paint: impl FnOnce(&Root<'_>) -> DrawResult,
-) -> std::result::Result<RgbImage, String> {
-    let mut img = RgbImage::from_pixel(width, height, Rgb(BACKGROUND));
-    if width == 0 || height == 0 {
-        return Ok(img);
-    }
-    let res = {
-        let root = BitMapBackend::with_buffer(&mut img, (width, height)).into_drawing_area();
-        paint(&root).and_then(|()| Ok(root.present()?))
+/// Of the tick sets for hints `n_max` down to 2, the first whose neighbouring ticks lie `gap`
+/// pixels apart (plotters takes a tick count, not the room its labels need).
+fn spaced_ticks(
+    axis: &Axis,
+    len: f64,
+    n_max: usize,
+    gap: impl Fn(&[(f64, String)]) -> f64,
+) -> (usize, Vec<(f64, String)>) {
+    let fits = |t: &[(f64, String)]| {
+        let f: Vec<f64> = t.iter().filter_map(|t| axis.fraction(t.0)).collect();
+        f.windows(2).all(|w| (w[1] - w[0]) * len >= gap(t))
     };
-    res.map(|()| img).map_err(|e| e.to_string())
+    let mut n = n_max.max(2);
+    loop {
+        let t = axis.ticks(n);
+        if n == 2 || fits(&t) {
+            return (n, t);
+        }
+        n -= 1;
+    }
 }
 
-/// `render_with`, turning a drawing error into the crate's error.
-fn try_render(
-    width: u32,
-    height: u32,
-    paint: impl FnOnce(&Root<'_>) -> DrawResult,
-) -> Result<RgbImage> {
-    render_with(width, height, paint).map_err(|message| Error::Invalid {
-        what: "plot".into(),
-        message: format!("drawing failed: {message}"),
-    })
-}
-
-/// A layout without drawing: the chart planned on a scratch image of the size (at least 1 x 1).
-fn layout_only(
-    width: u32,
-    height: u32,
-    plan_of: impl FnOnce(&Root<'_>) -> DrawResult<PlotLayout>,
-) -> PlotLayout {
-    let (w, h) = (width.max(1), height.max(1));
-    let mut buf = vec![0u8; w as usize * h as usize * 3];
-    let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
-    plan_of(&root).unwrap_or_else(|e| {
-        tracing::warn!("plot layout: {e}");
-        let unit = Axis {
-            lo: 0.0,
-            hi: 1.0,
-            log: false,
+impl Frame {
+    /// The layout in an area of `w` x `h` pixels; when that is too small for text, one without
+    /// text whose plot area fills all of `full`.
+    fn new(w: f64, h: f64, spec: &Spec<'_>, m: Metrics, full: (u32, u32)) -> Frame {
+        let (s, tick) = (m.s, m.tick as f64);
+        let room = |text: &str, px: f64| if text.is_empty() { 0.0 } else { px };
+        let widest =
+            |t: &[(f64, String)]| t.iter().map(|t| text_width(&t.1, s)).max().unwrap_or(0) as f64;
+        // tick labels hang from twice the tick length below the axis (plotters' spacing); the axis
+        // label sits at the bottom of the label area
+        let x_area = 2.0 * tick + 0.75 * s + room(spec.x_label, 1.3 * s);
+        let bottom = (0.4 * s).round();
+        let plot_h = h - x_area - bottom;
+        let n_y = ((plot_h / (2.0 * s)) as usize).clamp(2, 10);
+        let (y_n, y_ticks) = spaced_ticks(&spec.y, plot_h, n_y, |_| 1.6 * s);
+        let y_area = 2.0 * tick + widest(&y_ticks) + room(spec.y_label, 1.2 * s);
+        let mut right = m.pad.max(0.5 * s);
+        let plot_w = |right: f64| w - m.pad - y_area - right;
+        let (x_n, x_ticks) = match spec.categories {
+            None => {
+                let mut out = (2, Vec::new());
+                for _pass in 0..2 {
+                    let n_x = ((plot_w(right) / (3.0 * s)) as usize).clamp(2, 12);
+                    out = spaced_ticks(&spec.x, plot_w(right), n_x, |t| widest(t) + 1.2 * s);
+                    // the last label is centred on its tick: keep it inside the image
+                    let last = out.1.last().map_or(0, |(_, l)| text_width(l, s));
+                    let need = last as f64 / 2.0 + 0.2 * s;
+                    if need <= right {
+                        break;
+                    }
+                    right = need;
+                }
+                out
+            }
+            Some(names) => {
+                // category i sits on x = i: plotters' ticks with one per category
+                let slot = plot_w(right) / names.len().max(1) as f64;
+                let name = |(i, n): (usize, &String)| (i as f64, fit_text(n, slot - 0.3 * s, s));
+                (
+                    names.len().max(1),
+                    names.iter().enumerate().map(name).collect(),
+                )
+            }
         };
-        PlotLayout {
-            area: PixelRect {
-                left: 0.0,
-                top: 0.0,
-                right: (w - 1) as f64,
-                bottom: (h - 1) as f64,
-            },
-            x: unit,
-            y: unit,
+        let plot = (plot_w(right), plot_h);
+        let frame = Frame {
+            m,
+            x: spec.x,
+            y: spec.y,
+            x_n,
+            y_n,
+            x_ticks,
+            y_ticks,
+            categories: spec.categories.is_some(),
+            x_area: x_area.round() as u32,
+            y_area: y_area.round() as u32,
+            margins: [1, bottom as u32, m.pad as u32, right.round() as u32],
+            x_label: fit_text(spec.x_label, plot.0, s),
+            y_label: fit_text(spec.y_label, plot.1, s),
+            plot,
+        };
+        if plot.0 >= 4.0 * s && plot.1 >= 3.0 * s {
+            return frame;
+        }
+        Frame {
+            x_n: 0,
+            y_n: 0,
             x_ticks: Vec::new(),
             y_ticks: Vec::new(),
-            text_px: text_px_for(w, h),
+            x_area: 0,
+            y_area: 0,
+            margins: [0; 4],
+            x_label: String::new(),
+            y_label: String::new(),
+            plot: (full.0 as f64, full.1 as f64),
+            ..frame
         }
+    }
+
+    fn has_text(&self) -> bool {
+        self.x_area > 0
+    }
+}
+
+/// A legend as plotters draws it: a box with a key area, then the names.
+struct Legend {
+    names: Vec<String>,
+    keys: Vec<Key>,
+    m: Metrics,
+    key_w: f64,
+    margin: u32,
+    size: (f64, f64),
+}
+
+impl Legend {
+    fn new(entries: Vec<(String, Key)>, max_w: f64, m: Metrics) -> DrawResult<Legend> {
+        let (key_w, margin) = (1.8 * m.s, (0.5 * m.s).round() as u32);
+        let max_text = max_w - key_w - 0.4 * m.s - 2.0 * margin as f64;
+        let fit = |(n, k): (String, Key)| (fit_text(&n, max_text, m.s), k);
+        let (names, keys): (Vec<String>, Vec<Key>) = entries.into_iter().map(fit).unzip();
+        // the size of the box plotters draws: the names' block plus the key area and margins
+        let mut block = MultiLineText::<(i32, i32), &str>::new((0, 0), text_style(m.s));
+        names.iter().for_each(|n| block.push_line(n.as_str()));
+        let (w, h) = block.estimate_dimension()?;
+        let key_area = (key_w + 0.4 * m.s).round();
+        let size = (
+            w as f64 + key_area + 2.0 * margin as f64,
+            h as f64 + 2.0 * margin as f64,
+        );
+        Ok(Legend {
+            names,
+            keys,
+            m,
+            key_w,
+            margin,
+            size,
+        })
+    }
+
+    /// The top-left corner (pixels in the plot area) of the first corner of the plot area (top
+    /// right, top left, bottom right, bottom left) where the legend covers no data: plotters
+    /// places a legend where told, not where it is free.
+    fn free_corner<M: Marks>(&self, marks: &M, f: &Frame) -> Option<SeriesLabelPosition> {
+        let ((w, h), (pw, ph), inset) = (self.size, f.plot, 0.5 * self.m.s);
+        if w + 2.0 * inset > pw || h + 2.0 * inset > ph {
+            return None;
+        }
+        let (x0, x1, y0, y1) = (inset, pw - inset - w, inset, ph - inset - h);
+        let margin = 0.25 * self.m.s;
+        let corners = [(x1, y0), (x0, y0), (x1, y1), (x0, y1)].into_iter();
+        corners
+            .map(|(x, y)| (x.round() as i32, y.round() as i32))
+            .find(|&(x, y)| {
+                let (x, y) = (x as f64 - margin, y as f64 - margin);
+                let (xe, ye) = (x + w + 2.0 * margin, y + h + 2.0 * margin);
+                !marks.covers(&f.x, &f.y, (x / pw, 1.0 - ye / ph, xe / pw, 1.0 - y / ph))
+            })
+            .map(|(x, y)| SeriesLabelPosition::Coordinate(x, y))
+    }
+
+    /// Draw with plotters' series labels on `chart` at `at`, `boxed` or not.
+    fn draw<'a, 'b: 'a, X, Y>(
+        &self,
+        chart: &mut Chart<'a, 'b, X, Y>,
+        at: SeriesLabelPosition,
+        boxed: bool,
+    ) -> DrawResult
+    where
+        X: Ranged<ValueType = f64>,
+        Y: Ranged<ValueType = f64>,
+    {
+        let m = self.m;
+        // plotters hands a key the left end of its area at the middle of the name's box; the
+        // capitals' middle is higher (see BASELINE)
+        let dy = ((BASELINE - CAP / 2.0 - 0.5 / 1.24) * m.s).round() as i32;
+        let (key_w, mid) = (self.key_w.round() as i32, (self.key_w / 2.0).round() as i32);
+        for (name, key) in self.names.iter().zip(&self.keys) {
+            let stroke = if key.line {
+                vec![(0, 0), (key_w, 0)]
+            } else {
+                Vec::new()
+            };
+            let shape: Vec<(i32, i32)> = key.shape.iter().map(|&(x, y)| (x + mid, y)).collect();
+            let (line, fill) = (
+                rgb(key.color).stroke_width(m.line_w),
+                rgb(key.color).filled(),
+            );
+            // plotters lists the series drawn with a label: an empty one per entry
+            let anno = chart.draw_series(std::iter::empty::<PathElement<(f64, f64)>>())?;
+            anno.label(name.as_str()).legend(move |(x, y)| {
+                EmptyElement::at((x, y + dy))
+                    + PathElement::new(stroke.clone(), line)
+                    + Polygon::new(shape.clone(), fill)
+            });
+        }
+        let mut labels = chart.configure_series_labels();
+        labels
+            .position(at)
+            .label_font(text_style(m.s))
+            .legend_area_size((self.key_w + 0.4 * m.s).round() as u32)
+            .margin(self.margin);
+        if boxed {
+            labels
+                .background_style(rgb(BACKGROUND).mix(0.9).filled())
+                .border_style(rgb(LEGEND_BORDER).stroke_width(1));
+        }
+        labels.draw()?;
+        Ok(())
+    }
+}
+
+/// Draw the chart of `marks` on `root` and say where its plot area went.
+fn paint<M: Marks>(marks: &M, root: &Root<'_>) -> DrawResult<PlotLayout> {
+    root.fill(&rgb(BACKGROUND))?;
+    let (w, h) = root.dim_in_pixel();
+    let (m, spec) = (Metrics::new(w, h), marks.spec());
+    let title_style = text_style(1.2 * m.s);
+    let title = fit_text(spec.title, w as f64 - 2.0 * m.pad, 1.2 * m.s);
+    // the height plotters' `titled` takes: the title is drawn once there is room for text
+    let (_, th) = root.estimate_text_size(&title, &title_style)?;
+    let title_h = if title.is_empty() {
+        0
+    } else {
+        th + 2 * (th / 2).min(5)
+    };
+    let frame = Frame::new(
+        w as f64,
+        h as f64 - m.pad - title_h as f64,
+        &spec,
+        m,
+        (w, h),
+    );
+    if !frame.has_text() {
+        return build(marks, root, &frame, None);
+    }
+    let mut area = root.margin(m.pad as u32, 0, 0, 0);
+    if !title.is_empty() {
+        area = area.titled(&title, title_style)?;
+    }
+    let entries = marks.legend(&m);
+    if entries.is_empty() {
+        return build(marks, &area, &frame, None);
+    }
+    let legend = Legend::new(entries, w as f64 - 2.0 * m.pad, m)?;
+    if let Some(at) = legend.free_corner(marks, &frame) {
+        return build(marks, &area, &frame, Some((&legend, at)));
+    }
+    // no free corner: the legend goes into a band above the plot area, on a chart of its own
+    // (plotters draws a legend only inside a chart's plot area); with no room for that either,
+    // it covers the top right corner
+    let (band_h, (aw, ah)) = (legend.size.1.round() as u32, area.dim_in_pixel());
+    let below = (ah as f64 - band_h as f64, aw as f64);
+    let rest = Frame::new(below.1, below.0, &spec, m, (w, h));
+    if below.0 <= 0.0 || !rest.has_text() {
+        return build(
+            marks,
+            &area,
+            &frame,
+            Some((&legend, SeriesLabelPosition::UpperRight)),
+        );
+    }
+    let (band, area) = area.split_vertically(band_h);
+    let mut band_chart = ChartBuilder::on(&band).build_cartesian_2d(0.0..1.0, 0.0..1.0)?;
+    let x = ((aw as f64 - legend.size.0) / 2.0).max(m.pad) as i32;
+    legend.draw(
+        &mut band_chart,
+        SeriesLabelPosition::Coordinate(x, 0),
+        false,
+    )?;
+    build(marks, &area, &rest, None)
+}
+
+/// Plotters' chart on `area` laid out as `frame`: the axes on their scales (linear or
+/// logarithmic, each pair a chart type of its own), then the data, the frame and the legend.
+fn build<M: Marks>(
+    marks: &M,
+    area: &Root<'_>,
+    frame: &Frame,
+    legend: Option<(&Legend, SeriesLabelPosition)>,
+) -> DrawResult<PlotLayout> {
+    let [top, bottom, left, right] = frame.margins;
+    let mut b = ChartBuilder::on(area);
+    b.margin_top(top)
+        .margin_bottom(bottom)
+        .margin_left(left)
+        .margin_right(right)
+        .x_label_area_size(frame.x_area)
+        .y_label_area_size(frame.y_area);
+    let (x, y, xn, yn) = (frame.x, frame.y, frame.x_n, frame.y_n);
+    let (xl, yl) = (x.lo..x.hi, y.lo..y.hi);
+    let (b, f) = (&mut b, frame);
+    match (x.log, y.log) {
+        (false, false) => draw(marks, area, b.build_cartesian_2d(xl, yl)?, f, legend),
+        (true, false) => draw(
+            marks,
+            area,
+            b.build_cartesian_2d(x.log_scale(xn), yl)?,
+            f,
+            legend,
+        ),
+        (false, true) => draw(
+            marks,
+            area,
+            b.build_cartesian_2d(xl, y.log_scale(yn))?,
+            f,
+            legend,
+        ),
+        (true, true) => {
+            let chart = b.build_cartesian_2d(x.log_scale(xn), y.log_scale(yn))?;
+            draw(marks, area, chart, f, legend)
+        }
+    }
+}
+
+/// The label of the tick nearest `v` (plotters asks for the ticks the frame was sized for).
+fn tick_label(ticks: &[(f64, String)], v: f64) -> String {
+    let d = |t: &&(f64, String)| (t.0 - v).abs();
+    let nearest = ticks.iter().min_by(|a, b| d(a).total_cmp(&d(b)));
+    nearest.map(|t| t.1.clone()).unwrap_or_default()
+}
+
+/// Plotters' mesh (grid, axes, ticks and their labels, axis labels), the data, a frame around the
+/// plot area and the legend.
+fn draw<'a, 'b: 'a, M, X, Y>(
+    marks: &M,
+    area: &Root<'_>,
+    mut chart: Chart<'a, 'b, X, Y>,
+    f: &Frame,
+    legend: Option<(&Legend, SeriesLabelPosition)>,
+) -> DrawResult<PlotLayout>
+where
+    M: Marks,
+    X: Ranged<ValueType = f64> + ValueFormatter<f64>,
+    Y: Ranged<ValueType = f64> + ValueFormatter<f64>,
+{
+    let s = f.m.s;
+    let (fx, fy) = (
+        |v: &f64| tick_label(&f.x_ticks, *v),
+        |v: &f64| tick_label(&f.y_ticks, *v),
+    );
+    let mut mesh = chart.configure_mesh();
+    mesh.bold_line_style(rgb(GRID).stroke_width(1))
+        .light_line_style(rgb(MINOR_GRID).stroke_width(1))
+        .max_light_lines(0) // linear axes: no minor grid (log axes bring theirs)
+        .axis_style(rgb(FRAME).stroke_width(1))
+        .label_style(text_style(s))
+        .axis_desc_style(text_style(s))
+        .set_all_tick_mark_size(f.m.tick)
+        // centre the capitals of the y tick labels on their ticks (see BASELINE)
+        .y_label_offset(((1.0 / 2.48 + CAP / 2.0 - BASELINE) * s).round() as i32)
+        .x_labels(f.x_n)
+        .y_labels(f.y_n)
+        .x_label_formatter(&fx)
+        .y_label_formatter(&fy);
+    if !f.x_label.is_empty() {
+        mesh.x_desc(f.x_label.as_str());
+    }
+    if !f.y_label.is_empty() {
+        mesh.y_desc(f.y_label.as_str());
+    }
+    if f.categories {
+        mesh.disable_x_mesh();
+    }
+    mesh.draw()?;
+    marks.draw(&mut chart, f)?;
+    let (xr, yr) = chart.plotting_area().get_pixel_range();
+    let corners = [(xr.start - 1, yr.start - 1), (xr.end, yr.end)];
+    area.use_screen_coord()
+        .draw(&Rectangle::new(corners, rgb(FRAME).stroke_width(1)))?;
+    if let Some((legend, at)) = legend {
+        legend.draw(&mut chart, at, true)?;
+    }
+    let area = PixelRect {
+        left: xr.start as f64,
+        top: yr.start as f64,
+        right: (xr.end - 1).max(xr.start) as f64,
+        bottom: (yr.end - 1).max(yr.start) as f64,
+    };
+    let (x_ticks, y_ticks) = (f.x_ticks.clone(), f.y_ticks.clone());
+    Ok(PlotLayout {
+        area,
+        x: f.x,
+        y: f.y,
+        x_ticks,
+        y_ticks,
+        text_px: s,
     })
 }
+
+/// The chart of `marks` on a white image of the given size (empty for a size of 0), with the
+/// layout, or with a drawing error (and what was drawn).
+fn render<M: Marks>(marks: &M, width: u32, height: u32) -> (RgbImage, DrawResult<PlotLayout>) {
+    let (w, h) = (width.max(1), height.max(1));
+    let mut img = RgbImage::from_pixel(w, h, Rgb(BACKGROUND));
+    let res = {
+        let root = BitMapBackend::with_buffer(&mut img, (w, h)).into_drawing_area();
+        paint(marks, &root).and_then(|l| Ok((l, root.present()?)).map(|(l, ())| l))
+    };
+    match width == 0 || height == 0 {
+        true => (RgbImage::new(width, height), res),
+        false => (img, res),
+    }
+}
+
+/// The image and the layout, a drawing error logged (the image keeps what was drawn, the layout
+/// is empty).
+fn render_logged<M: Marks>(marks: &M, title: &str, w: u32, h: u32) -> (RgbImage, PlotLayout) {
+    let (img, res) = render(marks, w, h);
+    let layout = res.unwrap_or_else(|e| {
+        tracing::warn!("plot '{title}': {e}");
+        PlotLayout::default()
+    });
+    (img, layout)
+}
+
+/// The image, after checking the size; a drawing error is the crate's error.
+fn try_render<M: Marks>(marks: &M, width: u32, height: u32) -> Result<RgbImage> {
+    if width == 0 || height == 0 || width > 16384 || height > 16384 {
+        return Err(Error::Invalid {
+            what: "plot size".into(),
+            message: format!("{width} x {height} px is outside 1..=16384 per side"),
+        });
+    }
+    let (img, res) = render(marks, width, height);
+    let message = |e: Box<dyn std::error::Error + Send + Sync>| format!("drawing failed: {e}");
+    res.map(|_| img).map_err(|e| Error::Invalid {
+        what: "plot".into(),
+        message: message(e),
+    })
+}
+
 // ------------------------------------------------------------------------------------------------
 // line / scatter plots
+
+/// The usable error bar half-length of entry `i` (0 when absent, non-finite or not positive).
+fn error_of(errors: &Option<Vec<f64>>, i: usize) -> f64 {
+    let e = errors.as_ref().and_then(|e| e.get(i).copied());
+    e.filter(|e| e.is_finite() && *e > 0.0).unwrap_or(0.0)
+}
+
+/// Per point: its position in plot-area fractions (`None`: not drawable).
+fn fractions(s: &Series, x: &Axis, y: &Axis) -> Vec<Option<(f64, f64)>> {
+    let frac = |&(px, py): &(f64, f64)| Some((x.fraction(px)?, y.fraction(py)?));
+    s.points.iter().map(frac).collect()
+}
+
+fn has_line(s: &Series) -> bool {
+    matches!(s.style, SeriesStyle::Line | SeriesStyle::LineMarkers)
+}
+
+impl Marks for Plot {
+    fn spec(&self) -> Spec<'_> {
+        let xs = self
+            .series
+            .iter()
+            .flat_map(|s| s.points.iter().map(|p| p.0));
+        let x = Axis::fit(xs, self.x_log, self.x_range);
+        // y over the points x can show, error bars included (on a log axis not below the point
+        // where the bar reaches zero)
+        let ys = self.series.iter().flat_map(|s| {
+            let shown = s
+                .points
+                .iter()
+                .enumerate()
+                .filter(|(_, p)| x.fraction(p.0).is_some());
+            shown.flat_map(|(i, &(_, y))| {
+                let e = error_of(&s.error_bars, i);
+                [if self.y_log && y - e <= 0.0 { y } else { y - e }, y + e]
+            })
+        });
+        let y = Axis::fit(ys, self.y_log, self.y_range);
+        let (title, x_label, y_label) = (&*self.title, &*self.x_label, &*self.y_label);
+        Spec {
+            title,
+            x_label,
+            y_label,
+            x,
+            categories: None,
+            y,
+        }
+    }
+
+    fn legend(&self, m: &Metrics) -> Vec<(String, Key)> {
+        let named = self
+            .series
+            .iter()
+            .enumerate()
+            .filter(|(_, s)| !s.name.is_empty());
+        let key = |(i, s): (usize, &Series)| {
+            let shape = match s.style {
+                SeriesStyle::Line => Vec::new(),
+                _ => outline(MARKERS[i % MARKERS.len()], m.marker_r),
+            };
+            let key = Key {
+                color: series_color(i).0,
+                line: has_line(s),
+                shape,
+            };
+            (s.name.clone(), key)
+        };
+        named.map(key).collect()
+    }
+
+    fn covers(&self, x: &Axis, y: &Axis, r: Frac) -> bool {
+        self.series.iter().any(|s| {
+            let f = fractions(s, x, y);
+            let points = f.iter().enumerate().filter_map(|(i, p)| Some((i, (*p)?)));
+            let bar = |(i, p): (usize, (f64, f64))| {
+                let (py, e) = (s.points[i].1, error_of(&s.error_bars, i));
+                let lo = y.fraction(py - e).unwrap_or(-1.0).max(-1.0);
+                let hi = y.fraction(py + e).unwrap_or(p.1);
+                e > 0.0 && clip((p.0, lo), (p.0, hi), r).is_some()
+            };
+            let segment = |w: &[Option<(f64, f64)>]| match w {
+                [Some(a), Some(b)] => clip(*a, *b, r).is_some(),
+                _ => false,
+            };
+            points.clone().any(|(_, p)| clip(p, p, r).is_some())
+                || points.clone().any(bar)
+                || has_line(s) && f.windows(2).any(segment)
+        })
+    }
+
+    fn draw<X, Y>(&self, chart: &mut Chart<'_, '_, X, Y>, f: &Frame) -> DrawResult
+    where
+        X: Ranged<ValueType = f64>,
+        Y: Ranged<ValueType = f64>,
+    {
+        let m = f.m;
+        for (si, s) in self.series.iter().enumerate() {
+            let color = series_color(si).0;
+            let frac = fractions(s, &f.x, &f.y);
+            for (i, p) in frac.iter().enumerate() {
+                let e = error_of(&s.error_bars, i);
+                if e > 0.0 && p.is_some_and(|p| (0.0..=1.0).contains(&p.0)) {
+                    error_bar(chart, &f.y, s.points[i], e, 0.25 * m.s, true)?;
+                }
+            }
+            if has_line(s) {
+                // runs of clipped segments, broken at skipped points and where the line leaves
+                let (mut runs, mut open) = (Vec::<Vec<(f64, f64)>>::new(), false);
+                for i in 1..frac.len() {
+                    let seg = frac[i - 1].zip(frac[i]);
+                    let Some(((a, b), (t0, t1))) =
+                        seg.and_then(|(a, b)| Some(((a, b), clip(a, b, UNIT)?)))
+                    else {
+                        open = false;
+                        continue;
+                    };
+                    let at = |t: f64| {
+                        (
+                            f.x.value(a.0 + t * (b.0 - a.0)),
+                            f.y.value(a.1 + t * (b.1 - a.1)),
+                        )
+                    };
+                    if !(open && t0 == 0.0) {
+                        runs.push(vec![if t0 == 0.0 { s.points[i - 1] } else { at(t0) }]);
+                    }
+                    runs.last_mut().expect("a run").push(if t1 == 1.0 {
+                        s.points[i]
+                    } else {
+                        at(t1)
+                    });
+                    open = t1 == 1.0;
+                }
+                let style = rgb(color).stroke_width(m.line_w);
+                chart.draw_series(runs.into_iter().map(|r| PathElement::new(r, style)))?;
+            }
+            if s.style != SeriesStyle::Line {
+                let shape = outline(MARKERS[si % MARKERS.len()], m.marker_r);
+                let inside =
+                    |p: &&Option<(f64, f64)>| p.is_some_and(|p| clip(p, p, UNIT).is_some());
+                let shown = frac.iter().zip(&s.points).filter(|(p, _)| inside(p));
+                let mark = |p: (f64, f64)| {
+                    EmptyElement::at(p) + Polygon::new(shape.clone(), rgb(color).filled())
+                };
+                chart.draw_series(shown.map(|(_, &p)| mark(p)))?;
+            }
+        }
+        Ok(())
+    }
+}
 
 impl Plot {
     /// Check what [`Plot::render`] tolerates silently: error bars must have one entry per point and
@@ -1458,440 +1286,180 @@ impl Plot {
         Ok(())
     }
 
-    fn axes(&self) -> (Axis, Axis) {
-        let xs = self
-            .series
-            .iter()
-            .flat_map(|s| s.points.iter().map(|p| p.0));
-        let x = fit_axis(xs, self.x_log, self.x_range);
-        let accepts = |v: f64| v.is_finite() && (!x.log || v > 0.0);
-        let ys = self.series.iter().flat_map(|s| {
-            s.points.iter().enumerate().flat_map(move |(i, &(px, py))| {
-                let e = error_of(s, i);
-                let keep = accepts(px);
-                let lo = if self.y_log && py - e <= 0.0 {
-                    py
-                } else {
-                    py - e
-                };
-                [(keep, lo), (keep, py + e)]
-            })
-        });
-        let ys = ys.filter(|(k, _)| *k).map(|(_, v)| v);
-        let y = fit_axis(ys, self.y_log, self.y_range);
-        (x, y)
-    }
-
-    fn spec(&self) -> ChartSpec<'_> {
-        let (x, y) = self.axes();
-        ChartSpec {
-            title: &self.title,
-            x_label: &self.x_label,
-            y_label: &self.y_label,
-            x: XSpec::Numeric(x),
-            y,
-        }
-    }
-
-    fn legend_entries(&self) -> Vec<(String, Key)> {
-        self.series
-            .iter()
-            .enumerate()
-            .filter(|(_, s)| !s.name.is_empty())
-            .map(|(i, s)| {
-                let line = matches!(s.style, SeriesStyle::Line | SeriesStyle::LineMarkers);
-                let marker = matches!(s.style, SeriesStyle::Markers | SeriesStyle::LineMarkers)
-                    .then_some(MARKERS[i % MARKERS.len()]);
-                (
-                    s.name.clone(),
-                    Key::Series {
-                        color: series_color(i).0,
-                        line,
-                        marker,
-                    },
-                )
-            })
-            .collect()
-    }
-
-    /// Pixels the data covers (points, samples along lines and error bars), for legend placement.
-    fn occupancy(&self, layout: &PlotLayout) -> Vec<(f64, f64)> {
-        let step = 0.3 * layout.text_px;
-        let mut out = Vec::new();
-        let mut sample = |a: (f64, f64), b: (f64, f64)| {
-            let len = ((b.0 - a.0).powi(2) + (b.1 - a.1).powi(2)).sqrt();
-            let n = (len / step).ceil().clamp(1.0, 500.0) as usize;
-            for k in 0..=n {
-                let t = k as f64 / n as f64;
-                out.push((a.0 + t * (b.0 - a.0), a.1 + t * (b.1 - a.1)));
-            }
-        };
-        for s in &self.series {
-            let px: Vec<Option<(f64, f64)>> = s.points.iter().map(|&p| layout.to_px(p)).collect();
-            for (i, p) in px.iter().enumerate() {
-                let Some(p) = *p else { continue };
-                sample(p, p);
-                let e = error_of(s, i);
-                if e > 0.0 {
-                    let y = s.points[i].1;
-                    let top = layout.y_to_px(y + e).unwrap_or(p.1);
-                    let bot = layout.y_to_px(y - e).unwrap_or(layout.area.bottom);
-                    sample((p.0, top), (p.0, bot));
-                }
-            }
-            if matches!(s.style, SeriesStyle::Line | SeriesStyle::LineMarkers) {
-                for w in px.windows(2) {
-                    if let [Some(a), Some(b)] = w {
-                        sample(*a, *b);
-                    }
-                }
-            }
-        }
-        out
-    }
-
     /// The layout [`Plot::render`] uses at this size (plot area, axes, ticks).
     pub fn layout(&self, width: u32, height: u32) -> PlotLayout {
-        let entries = self.legend_entries();
-        layout_only(width, height, |root| {
-            Ok(plan(root, &self.spec(), &entries, |l| self.occupancy(l))?.2)
-        })
+        render_logged(self, &self.title, width, height).1
     }
 
     /// Render to an RGB image of the given size. Never fails: non-finite or out-of-domain points are
     /// skipped, degenerate ranges get a window around the data, and a size of 0 gives an empty image.
     pub fn render(&self, width: u32, height: u32) -> RgbImage {
-        match render_with(width, height, |root| self.paint(root)) {
-            Ok(img) => img,
-            Err(e) => {
-                tracing::warn!("plot '{}': {e}", self.title);
-                RgbImage::from_pixel(width, height, Rgb(BACKGROUND))
-            }
-        }
-    }
-
-    fn paint(&self, root: &Root<'_>) -> DrawResult {
-        root.fill(&rgb(BACKGROUND))?;
-        let entries = self.legend_entries();
-        let (frame, mut chart, layout, place) =
-            plan(root, &self.spec(), &entries, |l| self.occupancy(l))?;
-        draw_axes(&mut chart, &frame)?;
-        let m = frame.m;
-        let area = layout.area;
-        for (si, series) in self.series.iter().enumerate() {
-            let color = series_color(si).0;
-            let px: Vec<Option<(f64, f64)>> =
-                series.points.iter().map(|&p| layout.to_px(p)).collect();
-            let cap = 0.25 * m.s;
-            for (i, p) in px.iter().enumerate() {
-                let (Some((cx, _)), e) = (*p, error_of(series, i)) else {
-                    continue;
-                };
-                if e <= 0.0 {
-                    continue;
-                }
-                let y = series.points[i].1;
-                let bot = if self.y_log && y - e <= 0.0 {
-                    Some(area.bottom + 2.0 * cap)
-                } else {
-                    layout.y_to_px(y - e)
-                };
-                if let (Some(top), Some(bot)) = (layout.y_to_px(y + e), bot) {
-                    draw_error_bar(root, cx, (top, bot), cap, &area)?;
-                }
-            }
-            if matches!(series.style, SeriesStyle::Line | SeriesStyle::LineMarkers) {
-                draw_polyline(root, &px, &area, rgb(color).stroke_width(m.line_w))?;
-            }
-            if matches!(
-                series.style,
-                SeriesStyle::Markers | SeriesStyle::LineMarkers
-            ) {
-                let marker = MARKERS[si % MARKERS.len()];
-                for p in px.iter().flatten() {
-                    // markers on the edge of the area are drawn whole
-                    let inside = p.0 >= area.left - 0.5
-                        && p.0 <= area.right + 0.5
-                        && p.1 >= area.top - 0.5
-                        && p.1 <= area.bottom + 0.5;
-                    if inside {
-                        draw_marker(root, *p, marker, m.marker_r, color)?;
-                    }
-                }
-            }
-        }
-        draw_frame_and_title(root, &layout, &frame)?;
-        if let Some(place) = place {
-            draw_legend(root, &frame, &layout, &entries, place)?;
-        }
-        Ok(())
+        render_logged(self, &self.title, width, height).0
     }
 
     /// Render and encode as PNG bytes (after [`Plot::validate`]).
     pub fn to_png(&self, width: u32, height: u32) -> Result<Vec<u8>> {
         self.validate()?;
-        check_size(width, height)?;
-        crate::image_io::encode_png(&try_render(width, height, |root| self.paint(root))?)
+        crate::image_io::encode_png(&try_render(self, width, height)?)
     }
 
     /// Render and write as PNG, atomically (after [`Plot::validate`]).
     pub fn write_png(&self, path: &Path, width: u32, height: u32) -> Result<()> {
         self.validate()?;
-        check_size(width, height)?;
-        crate::image_io::write_png(path, &try_render(width, height, |root| self.paint(root))?)
+        crate::image_io::write_png(path, &try_render(self, width, height)?)
     }
-}
-
-/// The usable error bar half-length of point `i` (0 when absent, non-finite or not positive).
-fn error_of(s: &Series, i: usize) -> f64 {
-    s.error_bars
-        .as_ref()
-        .and_then(|e| e.get(i).copied())
-        .filter(|e| e.is_finite() && *e > 0.0)
-        .unwrap_or(0.0)
-}
-
-fn check_size(width: u32, height: u32) -> Result<()> {
-    if width == 0 || height == 0 || width > 16384 || height > 16384 {
-        return Err(Error::Invalid {
-            what: "plot size".into(),
-            message: format!("{width} x {height} px is outside 1..=16384 per side"),
-        });
-    }
-    Ok(())
 }
 
 // ------------------------------------------------------------------------------------------------
 // bar charts
 
-/// One bar in pixels: left, right, value end, zero end, error bar ends.
-struct BarGeom {
-    group: usize,
-    x0: f64,
-    x1: f64,
-    value_px: f64,
-    zero_px: f64,
-    error_px: Option<(f64, f64)>,
-}
-
 impl BarChart {
     /// Check what [`BarChart::render`] tolerates silently: every group has one value (and error, if
     /// any) per category, and errors are not negative.
     pub fn validate(&self) -> Result<()> {
+        let n = self.categories.len();
         for g in &self.groups {
-            if g.values.len() != self.categories.len() {
-                return Err(Error::Mismatch {
-                    context: format!("bar group '{}'", g.name),
-                    message: format!(
-                        "{} values for {} categories",
-                        g.values.len(),
-                        self.categories.len()
-                    ),
-                });
+            let context = format!("bar group '{}'", g.name);
+            if g.values.len() != n {
+                let message = format!("{} values for {n} categories", g.values.len());
+                return Err(Error::Mismatch { context, message });
             }
-            if let Some(e) = &g.errors {
-                if e.len() != self.categories.len() {
-                    return Err(Error::Mismatch {
-                        context: format!("bar group '{}'", g.name),
-                        message: format!(
-                            "{} errors for {} categories",
-                            e.len(),
-                            self.categories.len()
-                        ),
-                    });
-                }
-                if let Some(k) = e.iter().position(|v| *v < 0.0) {
-                    return Err(Error::Invalid {
-                        what: format!("errors of bar group '{}'", g.name),
-                        message: format!("entry {k} is negative ({})", e[k]),
-                    });
-                }
+            let Some(e) = &g.errors else { continue };
+            if e.len() != n {
+                let message = format!("{} errors for {n} categories", e.len());
+                return Err(Error::Mismatch { context, message });
+            }
+            if let Some(k) = e.iter().position(|v| *v < 0.0) {
+                return Err(Error::Invalid {
+                    what: format!("errors of bar group '{}'", g.name),
+                    message: format!("entry {k} is negative ({})", e[k]),
+                });
             }
         }
         Ok(())
     }
 
-    fn error(&self, g: &BarGroup, i: usize) -> f64 {
-        g.errors
-            .as_ref()
-            .and_then(|e| e.get(i).copied())
-            .filter(|e| e.is_finite() && *e > 0.0)
-            .unwrap_or(0.0)
+    /// Every drawable bar: group, category, value and error half-length.
+    fn bars(&self) -> impl Iterator<Item = (usize, usize, f64, f64)> + '_ {
+        self.groups.iter().enumerate().flat_map(move |(gi, g)| {
+            let values = g.values.iter().enumerate().take(self.categories.len());
+            let values = values.filter(|(_, v)| v.is_finite());
+            values.map(move |(ci, &v)| (gi, ci, v, error_of(&g.errors, ci)))
+        })
     }
 
-    fn value_axis(&self) -> Axis {
-        let (mut lo, mut hi) = (0.0f64, 0.0f64);
-        for g in &self.groups {
-            for (i, v) in g.values.iter().enumerate().take(self.categories.len()) {
-                if !v.is_finite() {
-                    continue;
-                }
-                let e = self.error(g, i);
-                lo = lo.min(v - e);
-                hi = hi.max(v + e);
-            }
-        }
-        let span = hi - lo;
-        if !span.is_finite() || span <= 0.0 {
-            return Axis {
-                lo: 0.0,
-                hi: 1.0,
-                log: false,
-            };
-        }
+    /// Left and right end of a bar along x: category `ci` spans `ci - 0.5 .. ci + 0.5`, its bars
+    /// the middle 80 %.
+    fn bar_x(&self, gi: usize, ci: usize) -> (f64, f64) {
+        let w = 0.8 / self.groups.len().max(1) as f64;
+        let x0 = ci as f64 - 0.4 + gi as f64 * w;
+        (x0, x0 + w)
+    }
+}
+
+impl Marks for BarChart {
+    fn spec(&self) -> Spec<'_> {
+        let ends = self.bars().flat_map(|(_, _, v, e)| [v - e, v + e]);
+        let (lo, hi) = ends.fold((0.0f64, 0.0f64), |(lo, hi), v| (lo.min(v), hi.max(v)));
         // bars stand on zero: margins only on the side(s) away from it
-        let m = 0.06 * span;
-        Axis {
-            lo: if lo < 0.0 { lo - m } else { 0.0 },
-            hi: if hi > 0.0 { hi + m } else { 0.0 },
-            log: false,
-        }
-    }
-
-    fn spec(&self) -> ChartSpec<'_> {
-        ChartSpec {
+        let m = 0.06 * (hi - lo);
+        let y = (
+            if lo < 0.0 { lo - m } else { 0.0 },
+            if hi > 0.0 { hi + m } else { 0.0 },
+        );
+        let n = self.categories.len().max(1) as f64;
+        Spec {
             title: &self.title,
             x_label: "",
             y_label: &self.y_label,
-            x: XSpec::Categories(&self.categories),
-            y: self.value_axis(),
+            x: Axis {
+                lo: -0.5,
+                hi: n - 0.5,
+                log: false,
+            },
+            categories: Some(&self.categories),
+            y: Axis::fit(std::iter::empty(), false, Some(y)),
         }
     }
 
-    fn legend_entries(&self) -> Vec<(String, Key)> {
-        self.groups
+    fn legend(&self, m: &Metrics) -> Vec<(String, Key)> {
+        let named = self
+            .groups
             .iter()
             .enumerate()
-            .filter(|(_, g)| !g.name.is_empty())
-            .map(|(i, g)| (g.name.clone(), Key::Bar(series_color(i).0)))
-            .collect()
+            .filter(|(_, g)| !g.name.is_empty());
+        let shape = outline(Marker::Square, CAP * m.s / 1.7);
+        let key = |(i, g): (usize, &BarGroup)| {
+            let key = Key {
+                color: series_color(i).0,
+                line: false,
+                shape: shape.clone(),
+            };
+            (g.name.clone(), key)
+        };
+        named.map(key).collect()
     }
 
-    fn bars(&self, layout: &PlotLayout) -> Vec<BarGeom> {
-        let n_cat = self.categories.len().max(1) as f64;
-        let n_grp = self.groups.len().max(1) as f64;
-        let slot = layout.area.width() / n_cat;
-        let bar_w = 0.8 * slot / n_grp;
-        let zero_px = layout.y_to_px(0.0).unwrap_or(layout.area.bottom);
-        let mut out = Vec::new();
-        for (gi, g) in self.groups.iter().enumerate() {
-            for (ci, &v) in g.values.iter().enumerate().take(self.categories.len()) {
-                let Some(value_px) = layout.y_to_px(v) else {
-                    continue;
-                };
-                let x0 = layout.area.left + ci as f64 * slot + 0.1 * slot + gi as f64 * bar_w;
-                let e = self.error(g, ci);
-                let error_px = if e > 0.0 {
-                    layout.y_to_px(v + e).zip(layout.y_to_px(v - e))
-                } else {
-                    None
-                };
-                out.push(BarGeom {
-                    group: gi,
-                    x0,
-                    x1: x0 + bar_w,
-                    value_px,
-                    zero_px,
-                    error_px,
-                });
-            }
-        }
-        out
-    }
-
-    fn occupancy(&self, layout: &PlotLayout) -> Vec<(f64, f64)> {
-        let step = 0.3 * layout.text_px;
-        let mut out = Vec::new();
-        for b in self.bars(layout) {
-            let (ya, yb) = (b.value_px.min(b.zero_px), b.value_px.max(b.zero_px));
-            let top = b.error_px.map_or(ya, |(t, _)| t.min(ya));
-            let ny = ((yb - top) / step).ceil().clamp(1.0, 200.0) as usize;
-            let nx = ((b.x1 - b.x0) / step).ceil().clamp(1.0, 200.0) as usize;
-            for i in 0..=nx {
-                for j in 0..=ny {
-                    let x = b.x0 + (b.x1 - b.x0) * i as f64 / nx as f64;
-                    out.push((x, top + (yb - top) * j as f64 / ny as f64));
-                }
-            }
-        }
-        out
-    }
-
-    /// The layout [`BarChart::render`] uses (the x axis runs from 0 to the number of categories,
-    /// category `i` centred on `i + 0.5`).
-    pub fn layout(&self, width: u32, height: u32) -> PlotLayout {
-        let entries = self.legend_entries();
-        layout_only(width, height, |root| {
-            Ok(plan(root, &self.spec(), &entries, |l| self.occupancy(l))?.2)
+    fn covers(&self, x: &Axis, y: &Axis, r: Frac) -> bool {
+        let f = |a: &Axis, v: f64| a.fraction(v).unwrap_or(0.0);
+        self.bars().any(|(gi, ci, v, e)| {
+            let (x0, x1) = self.bar_x(gi, ci);
+            let (y0, y1) = (f(y, v.min(0.0).min(v - e)), f(y, v.max(0.0).max(v + e)));
+            f(x, x0) <= r.2 && f(x, x1) >= r.0 && y0 <= r.3 && y1 >= r.1
         })
+    }
+
+    fn draw<X, Y>(&self, chart: &mut Chart<'_, '_, X, Y>, f: &Frame) -> DrawResult
+    where
+        X: Ranged<ValueType = f64>,
+        Y: Ranged<ValueType = f64>,
+    {
+        let n = self.categories.len().max(1) * self.groups.len().max(1);
+        let bar_px = 0.8 * f.plot.0 / n as f64;
+        // a hairline gap between neighbouring bars (plotters' rectangle margin)
+        let gap = u32::from(bar_px > 6.0);
+        let bar = |(gi, ci, v, _): (usize, usize, f64, f64)| {
+            let (x0, x1) = self.bar_x(gi, ci);
+            let mut bar = Rectangle::new([(x0, 0.0), (x1, v)], rgb(series_color(gi).0).filled());
+            bar.set_margin(0, 0, 0, gap);
+            bar
+        };
+        chart.draw_series(self.bars().map(bar))?;
+        let cap = (0.25 * bar_px).min(0.3 * f.m.s);
+        for (gi, ci, v, e) in self.bars().filter(|b| b.3 > 0.0) {
+            let (x0, x1) = self.bar_x(gi, ci);
+            error_bar(chart, &f.y, (0.5 * (x0 + x1), v), e, cap, false)?;
+        }
+        if f.y.lo < 0.0 {
+            let zero = PathElement::new([(f.x.lo, 0.0), (f.x.hi, 0.0)], rgb(FRAME).stroke_width(1));
+            chart.draw_series([zero])?;
+        }
+        Ok(())
+    }
+}
+
+impl BarChart {
+    /// The layout [`BarChart::render`] uses (category `i` centred on x = `i`, spanning `i - 0.5 ..
+    /// i + 0.5`).
+    pub fn layout(&self, width: u32, height: u32) -> PlotLayout {
+        render_logged(self, &self.title, width, height).1
     }
 
     /// Render to an RGB image of the given size. Never fails; non-finite values draw no bar.
     pub fn render(&self, width: u32, height: u32) -> RgbImage {
-        match render_with(width, height, |root| self.paint(root)) {
-            Ok(img) => img,
-            Err(e) => {
-                tracing::warn!("bar chart '{}': {e}", self.title);
-                RgbImage::from_pixel(width, height, Rgb(BACKGROUND))
-            }
-        }
-    }
-
-    fn paint(&self, root: &Root<'_>) -> DrawResult {
-        root.fill(&rgb(BACKGROUND))?;
-        let entries = self.legend_entries();
-        let (frame, mut chart, layout, place) =
-            plan(root, &self.spec(), &entries, |l| self.occupancy(l))?;
-        draw_axes(&mut chart, &frame)?;
-        let area = layout.area;
-        let bars = self.bars(&layout);
-        for b in &bars {
-            // a hairline gap between neighbouring bars
-            let gap = if b.x1 - b.x0 > 6.0 { 1.0 } else { 0.0 };
-            let ya = b.value_px.min(b.zero_px).max(area.top);
-            let yb = b.value_px.max(b.zero_px).min(area.bottom);
-            let (x0, x1) = (b.x0.round(), (b.x1.round() - gap - 1.0).max(b.x0.round()));
-            root.draw(&Rectangle::new(
-                [px_i((x0, ya)), px_i((x1, yb))],
-                rgb(series_color(b.group).0).filled(),
-            ))?;
-        }
-        for b in &bars {
-            if let Some((t, bot)) = b.error_px {
-                let gap = if b.x1 - b.x0 > 6.0 { 1.0 } else { 0.0 };
-                let cap = (0.25 * (b.x1 - b.x0)).min(0.3 * frame.m.s);
-                draw_error_bar(root, 0.5 * (b.x0 + b.x1 - gap), (t, bot), cap, &area)?;
-            }
-        }
-        if layout.y.lo < 0.0 {
-            // the zero line
-            if let Some(zero) = layout.y_to_px(0.0) {
-                let zy = zero.floor() as i32;
-                root.draw(&PathElement::new(
-                    vec![(area.left as i32, zy), (area.right as i32, zy)],
-                    rgb(FRAME).stroke_width(1),
-                ))?;
-            }
-        }
-        draw_frame_and_title(root, &layout, &frame)?;
-        if let Some(place) = place {
-            draw_legend(root, &frame, &layout, &entries, place)?;
-        }
-        Ok(())
+        render_logged(self, &self.title, width, height).0
     }
 
     /// Render and encode as PNG bytes (after [`BarChart::validate`]).
     pub fn to_png(&self, width: u32, height: u32) -> Result<Vec<u8>> {
         self.validate()?;
-        check_size(width, height)?;
-        crate::image_io::encode_png(&try_render(width, height, |root| self.paint(root))?)
+        crate::image_io::encode_png(&try_render(self, width, height)?)
     }
 
     /// Render and write as PNG, atomically (after [`BarChart::validate`]).
     pub fn write_png(&self, path: &Path, width: u32, height: u32) -> Result<()> {
         self.validate()?;
-        check_size(width, height)?;
-        crate::image_io::write_png(path, &try_render(width, height, |root| self.paint(root))?)
+        crate::image_io::write_png(path, &try_render(self, width, height)?)
     }
 }
 

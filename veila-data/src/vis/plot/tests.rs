@@ -1,106 +1,138 @@
 use super::*;
 
+fn values(t: &[(f64, String)]) -> Vec<f64> {
+    t.iter().map(|t| t.0).collect()
+}
+
+fn labels(t: &[(f64, String)]) -> Vec<&str> {
+    t.iter().map(|t| t.1.as_str()).collect()
+}
+
 fn close(a: &[f64], b: &[f64]) -> bool {
     a.len() == b.len()
         && a.iter()
             .zip(b)
-            .all(|(x, y)| (x - y).abs() <= 1e-12 * x.abs().max(1.0))
+            .all(|(x, y)| (x - y).abs() <= 1e-9 * x.abs().max(1.0))
+}
+
+fn lin(lo: f64, hi: f64) -> Axis {
+    Axis { lo, hi, log: false }
+}
+
+fn log(lo: f64, hi: f64) -> Axis {
+    Axis { lo, hi, log: true }
 }
 
 #[test]
-fn linear_ticks_hand_computed() {
-    // exact decimals, not accumulated floating-point sums
-    assert_eq!(linear_ticks(0.0, 1.0, 6), [0.0, 0.2, 0.4, 0.6, 0.8, 1.0]);
-    assert_eq!(linear_ticks(0.0, 1.0, 11).len(), 11);
-    assert_eq!(linear_ticks(0.0, 1.0, 11)[3], 0.3);
+fn linear_ticks_are_plotters_1_2_5_steps_with_labels_alike() {
+    let t = lin(0.0, 1.0).ticks(6);
+    assert!(close(&values(&t), &[0.0, 0.2, 0.4, 0.6, 0.8, 1.0]), "{t:?}");
+    // one decimal for all, even where plotters' sums drift (0.6000000000000001)
+    assert_eq!(labels(&t), ["0.0", "0.2", "0.4", "0.6", "0.8", "1.0"]);
     // 6 ticks of 0.2 exceed 5: the next step, 0.5
-    assert_eq!(linear_ticks(0.0, 1.0, 5), [0.0, 0.5, 1.0]);
-    // range -3.7..12.1 with at most 8: raw step 1.975 -> 2 -> -2, 0, ..., 12 (8 ticks)
+    assert_eq!(labels(&lin(0.0, 1.0).ticks(5)), ["0.0", "0.5", "1.0"]);
     assert_eq!(
-        linear_ticks(-3.7, 12.1, 8),
-        [-2.0, 0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 12.0]
+        labels(&lin(-3.7, 12.1).ticks(8)),
+        ["-2", "0", "2", "4", "6", "8", "10", "12"]
     );
-    // 0.013..0.087, at most 5: raw 0.0148 -> 0.02
-    assert_eq!(linear_ticks(0.013, 0.087, 5), [0.02, 0.04, 0.06, 0.08]);
-    // large magnitudes: 0..2.4e6, at most 6: raw 4e5 -> 5e5
-    assert_eq!(linear_ticks(0.0, 2.4e6, 6), [0.0, 5e5, 1e6, 1.5e6, 2e6]);
-    // tiny magnitudes
-    assert_eq!(linear_ticks(1e-9, 9.9e-9, 5), [2e-9, 4e-9, 6e-9, 8e-9]);
-    // ticks at the exact ends are kept despite rounding of lo / step
-    assert_eq!(linear_ticks(0.1, 0.3, 3), [0.1, 0.2, 0.3]);
-    // degenerate and invalid bounds
-    assert_eq!(linear_ticks(2.5, 2.5, 5), [2.5]);
-    assert!(linear_ticks(1.0, 0.0, 5).is_empty());
-    assert!(linear_ticks(f64::NAN, 1.0, 5).is_empty());
-    assert!(linear_ticks(0.0, f64::INFINITY, 5).is_empty());
-    assert!(linear_ticks(-f64::MAX, f64::MAX, 5).is_empty()); // span overflows
-    assert!(linear_ticks(5e-324, 1e-323, 5).is_empty()); // step underflows
-    assert!(log_ticks(5e-324, 1e-323, 5).len() <= 5);
-    // max_ticks below 2 is taken as 2
-    assert_eq!(linear_ticks(0.0, 10.0, 0), [0.0, 10.0]);
-}
-
-#[test]
-fn nice_steps_are_the_smallest_1_2_5_step() {
-    for (raw, want) in [
-        (0.2, 0.2),
-        (0.21, 0.5),
-        (1.0, 1.0),
-        (1.000001, 2.0),
-        (3.0, 5.0),
-        (7.0, 10.0),
-        (1000.0, 1000.0),
-        (0.001, 0.001),
-        (4.5e-7, 5e-7),
+    assert_eq!(
+        labels(&lin(0.013, 0.087).ticks(5)),
+        ["0.02", "0.04", "0.06", "0.08"]
+    );
+    // very large and very small values: scientific notation
+    assert_eq!(
+        labels(&lin(0.0, 2.4e6).ticks(6)),
+        ["0", "5e5", "1e6", "1.5e6", "2e6"]
+    );
+    assert_eq!(
+        labels(&lin(1e-9, 9.9e-9).ticks(5)),
+        ["2e-9", "4e-9", "6e-9", "8e-9"]
+    );
+    // no "-0.0" where a tick misses zero by a rounding error
+    assert_eq!(LabelFormat::Fixed(1).label(-1.4e-17), "0.0");
+    assert_eq!(LabelFormat::Fixed(2).label(-0.25), "-0.25");
+    assert_eq!(LabelFormat::Scientific.label(-2.5e-5), "-2.5e-5");
+    assert_eq!(LabelFormat::Scientific.label(9.9999999e-4), "1e-3");
+    for (lo, hi, n) in [
+        (0.0, 1.0, 11),
+        (-5.0, 5.0, 3),
+        (1e300, 2e300, 6),
+        (7.0, 7.5, 2),
     ] {
-        let s = Step::at_least(raw).value();
-        assert!((s - want).abs() <= 1e-12 * want, "{raw}: {s} vs {want}");
+        let t = values(&lin(lo, hi).ticks(n));
+        assert!(
+            t.len() >= 2 && t.len() <= n.max(2) && t.iter().all(|v| (lo..=hi).contains(v)),
+            "{lo}..{hi} at most {n}: {t:?}"
+        );
     }
 }
 
 #[test]
-fn log_ticks_hand_computed() {
-    assert_eq!(log_ticks(0.5, 2000.0, 10), [1.0, 10.0, 100.0, 1000.0]);
-    // exact decades at the ends are included
-    assert_eq!(log_ticks(1.0, 1000.0, 10), [1.0, 10.0, 100.0, 1000.0]);
-    assert_eq!(log_ticks(1e-3, 1e-1, 10), [1e-3, 1e-2, 1e-1]);
-    // fewer than two decades: 1-2-5 multiples
-    assert_eq!(log_ticks(2.0, 60.0, 10), [2.0, 5.0, 10.0, 20.0, 50.0]);
-    assert_eq!(log_ticks(0.3, 3.0, 10), [0.5, 1.0, 2.0]);
-    // too many decades: every third decade of 1e-6..1e6 (13 decades, at most 5 ticks)
-    assert_eq!(log_ticks(1e-6, 1e6, 5), [1e-6, 1e-3, 1.0, 1e3, 1e6]);
-    // within one 1-2-5 gap: linear ticks
+fn log_ticks_are_decades_or_a_fallback_on_short_ranges() {
+    // plotters' decades (with multiples where there is room)
+    assert_eq!(labels(&log(0.3, 3.0).ticks(10)), ["1", "2", "3"]);
+    let t = log(0.5, 2000.0).ticks(10);
+    assert!(close(&values(&t), &[1.0, 10.0, 100.0, 1000.0]), "{t:?}");
+    assert_eq!(labels(&t), ["1", "10", "100", "1000"]);
+    assert_eq!(labels(&log(1e-3, 1e-1).ticks(10)), ["0.001", "0.01", "0.1"]);
+    // too many decades for 5 ticks: every other one
+    let t = log(1e-6, 1e6).ticks(5);
+    assert!(t.len() <= 7 && t.len() >= 4, "{t:?}");
+    assert!(
+        labels(&t).contains(&"1e-6") && labels(&t).contains(&"1"),
+        "{t:?}"
+    );
+    // fewer than two powers of ten (plotters finds one or none): 1-2-5 multiples ...
+    assert_eq!(labels(&log(0.15, 0.6).ticks(10)), ["0.2", "0.5"]);
+    assert_eq!(labels(&log(0.04, 0.4).ticks(6)), ["0.05", "0.1", "0.2"]);
+    // ... or, within one 1-2-5 gap, linear ticks
     assert!(close(
-        &log_ticks(3.0, 4.0, 6),
+        &values(&log(3.0, 4.0).ticks(6)),
         &[3.0, 3.2, 3.4, 3.6, 3.8, 4.0]
     ));
-    assert!(log_ticks(0.0, 10.0, 5).is_empty());
-    assert!(log_ticks(-1.0, 10.0, 5).is_empty());
-    assert!(log_ticks(1.0, f64::NAN, 5).is_empty());
+    let t = log(0.2361, 0.2428).ticks(8);
+    assert!(t.len() >= 2, "{t:?}");
+    assert_eq!(t[0].1, "0.237");
+    // labels outside 0.001..10000 are scientific
+    assert_eq!(
+        [1e-6, 1e-3, 0.5, 1.0, 20.0, 1e4, 1e5].map(|v| LabelFormat::Log.label(v)),
+        ["1e-6", "0.001", "0.5", "1", "20", "10000", "1e5"]
+    );
 }
 
 #[test]
-fn tick_labels_hand_computed() {
-    let (t, s) = linear_ticks_step(0.0, 1.0, 6).unwrap();
+fn fitted_axes_stay_drawable() {
+    let fit = |v: &[f64], log: bool| Axis::fit(v.iter().copied(), log, None);
+    // 4 % margins (in decades on a log axis)
+    assert_eq!(fit(&[0.0, 1.0], false), lin(-0.04, 1.04));
+    let l = fit(&[1.0, 100.0], true);
+    assert!((l.lo.log10() + 0.08).abs() < 1e-12 && (l.hi.log10() - 2.08).abs() < 1e-12);
+    // one value: a window around it; no value: a plain frame
+    assert_eq!(fit(&[2.0, 2.0], false), lin(1.8, 2.2));
+    assert_eq!(fit(&[0.0], false), lin(-1.0, 1.0));
+    assert_eq!(fit(&[], false), lin(0.0, 1.0));
+    assert_eq!(fit(&[-1.0, 0.0, f64::NAN], true), log(1.0, 10.0));
+    // ranges plotters cannot step through fall back to a plain frame
+    for v in [
+        vec![-1e308, 1e308],
+        vec![5e-324, 1e-323],
+        vec![f64::MAX],
+        vec![f64::MIN_POSITIVE, 2.0 * f64::MIN_POSITIVE],
+    ] {
+        for log in [false, true] {
+            let a = fit(&v, log);
+            assert!(Axis::usable(a.lo, a.hi, log), "{v:?} log {log}: {a:?}");
+            assert!(!a.ticks(5).is_empty(), "{v:?} log {log}: {a:?}");
+        }
+    }
+    // a usable fixed range is kept; an unusable one fits the data
     assert_eq!(
-        linear_labels(&t, s),
-        ["0.0", "0.2", "0.4", "0.6", "0.8", "1.0"]
+        Axis::fit([5.0].into_iter(), false, Some((0.0, 10.0))),
+        lin(0.0, 10.0)
     );
-    let (t, s) = linear_ticks_step(-3.7, 12.1, 8).unwrap();
-    assert_eq!(
-        linear_labels(&t, s),
-        ["-2", "0", "2", "4", "6", "8", "10", "12"]
-    );
-    let (t, s) = linear_ticks_step(0.0, 2.4e6, 6).unwrap();
-    assert_eq!(linear_labels(&t, s), ["0", "5e5", "1e6", "1.5e6", "2e6"]);
-    let (t, s) = linear_ticks_step(1e-9, 9.9e-9, 5).unwrap();
-    assert_eq!(linear_labels(&t, s), ["2e-9", "4e-9", "6e-9", "8e-9"]);
-    let (t, s) = linear_ticks_step(0.013, 0.087, 5).unwrap();
-    assert_eq!(linear_labels(&t, s), ["0.02", "0.04", "0.06", "0.08"]);
-    assert_eq!(
-        log_labels(&[1e-6, 1e-3, 0.5, 1.0, 20.0, 1e4, 1e5]),
-        ["1e-6", "0.001", "0.5", "1", "20", "10000", "1e5"]
-    );
+    let a = Axis::fit([5.0].into_iter(), true, Some((0.0, 10.0)));
+    let c = 5f64.log10();
+    assert!((a.lo.log10() - (c - 0.5)).abs() < 1e-12 && (a.hi.log10() - (c + 0.5)).abs() < 1e-12);
 }
 
 /// Pixels dark enough to be text (the frame, grey 90, is lighter).
@@ -301,14 +333,101 @@ fn legend_goes_into_a_free_corner() {
     let img = plot.render(600, 400);
     let a = l.area;
     let in_quadrant = |x0: f64, x1: f64| {
-        (a.top as u32..(a.top + 0.3 * a.height()) as u32)
+        (a.top as u32..(a.top + 0.3 * (a.bottom - a.top)) as u32)
             .flat_map(|y| (x0 as u32..x1 as u32).map(move |x| (x, y)))
             .filter(|&(x, y)| is_dark(img.get_pixel(x, y)))
             .count()
     };
-    let mid = a.left + 0.5 * a.width();
+    let mid = 0.5 * (a.left + a.right);
     assert!(in_quadrant(mid, a.right) > 50, "legend not top right");
     assert_eq!(in_quadrant(a.left, mid), 0);
+    // the legend hides no data: every pixel of the line stays the line's colour
+    let plain = nameless.render(600, 400);
+    let c = series_color(0);
+    let line = plain.enumerate_pixels().filter(|p| *p.2 == c);
+    assert!(line.clone().count() > 200);
+    assert!(line.clone().all(|(x, y, _)| *img.get_pixel(x, y) == c));
+    // data in every corner but a legend that would fit: pushed above, hiding nothing either
+    let full = Plot {
+        series: vec![Series::new(
+            "everywhere",
+            (0..=40).map(|k| (k as f64, (k % 2) as f64)).collect(),
+            SeriesStyle::Markers,
+        )],
+        ..Plot::default()
+    };
+    let (l, l0) = (full.layout(600, 400), {
+        let mut f = full.clone();
+        f.series[0].name.clear();
+        f.layout(600, 400)
+    });
+    assert!(
+        l.area.top > l0.area.top + l.text_px,
+        "{:?} vs {:?}",
+        l.area,
+        l0.area
+    );
+    let img = full.render(600, 400);
+    for p in &full.series[0].points {
+        let (x, y) = l.to_px(*p).unwrap();
+        assert_eq!(*img.get_pixel(x as u32, y as u32), c, "marker at {p:?}");
+    }
+}
+
+#[test]
+fn log_axis_error_bars_reaching_zero_run_out_of_the_bottom() {
+    let plot = Plot {
+        y_log: true,
+        series: vec![
+            unnamed_line(
+                vec![(0.0, 1.0), (1.0, 10.0), (2.0, 100.0)],
+                SeriesStyle::Markers,
+            )
+            .with_error_bars(vec![2.0, 1.0, 10.0]),
+        ],
+        ..Plot::default()
+    };
+    let (img, l) = (plot.render(400, 300), plot.layout(400, 300));
+    let ink = |x: f64, y: f64| img.get_pixel(x as u32, y as u32).0 == ERROR_BAR;
+    // the first bar (1 - 2 < 0) runs down to the bottom row, without a cap there ...
+    let x = l.x_to_px(0.0).unwrap();
+    let bottom = l.area.bottom + 0.5;
+    assert!(ink(x, bottom) && ink(x, l.y_to_px(0.9).unwrap()));
+    assert!(!ink(x + 3.0, bottom) && !ink(x - 3.0, bottom));
+    // ... but has one at 1 + 2 = 3, like the bars inside the axes at both ends
+    assert!(ink(x + 3.0, l.y_to_px(3.0).unwrap()));
+    let x = l.x_to_px(1.0).unwrap();
+    assert!(ink(x + 3.0, l.y_to_px(9.0).unwrap()) && ink(x + 3.0, l.y_to_px(11.0).unwrap()));
+    // the axis spans the bars' tops and, below, the points themselves
+    assert!(l.y.lo < 0.9 && l.y.lo > 0.5 && l.y.hi > 110.0, "{:?}", l.y);
+}
+
+#[test]
+fn a_narrow_log_axis_still_gets_labelled_ticks() {
+    // no power of ten between 0.236 and 0.243 (plotters' log ticks: none)
+    let plot = Plot {
+        x_log: true,
+        series: vec![unnamed_line(
+            vec![(0.2361, 0.324), (0.2372, 0.3241), (0.2428, 0.3131)],
+            SeriesStyle::Markers,
+        )],
+        ..Plot::default()
+    };
+    let l = plot.layout(800, 500);
+    assert!(l.x_ticks.len() >= 3, "{:?}", l.x_ticks);
+    assert!(
+        labels(&l.x_ticks).iter().all(|s| s.starts_with("0.2")),
+        "{:?}",
+        l.x_ticks
+    );
+    // and the labels are drawn: text below the plot area under the first tick
+    let img = plot.render(800, 500);
+    let x = l.x_to_px(l.x_ticks[0].0).unwrap() as u32;
+    let below = (l.area.bottom as u32 + 5..l.area.bottom as u32 + 30)
+        .flat_map(|y| (x - 12..x + 12).map(move |x| (x, y)))
+        .filter(|&(x, y)| is_dark(img.get_pixel(x, y)))
+        .count();
+    assert!(below > 10, "{below} label pixels");
 }
 
 #[test]
@@ -394,6 +513,28 @@ fn degenerate_inputs_render_without_panicking() {
             }
         }
     }
+    // a legend taller than the image: no free corner, a band above with no room left below
+    let crowded = Plot {
+        title: "t".into(),
+        series: (0..30)
+            .map(|i| {
+                Series::new(
+                    format!("series {i}"),
+                    vec![(0.0, 0.0), (1.0, 1.0), (0.0, 1.0)],
+                    SeriesStyle::LineMarkers,
+                )
+            })
+            .collect(),
+        ..Plot::default()
+    };
+    for (w, h) in [(320, 200), (120, 400), (900, 60)] {
+        assert_eq!(crowded.render(w, h).dimensions(), (w, h));
+        let l = crowded.layout(w, h);
+        assert!(
+            l.area.bottom < h as f64 && l.area.right < w as f64,
+            "{w} x {h}: {l:?}"
+        );
+    }
     // unusable fixed ranges fall back to the data
     let plot = Plot {
         x_range: Some((1.0, 1.0)),
@@ -434,7 +575,8 @@ fn log_axes_map_decades_evenly() {
         .map(|&v| l.x_to_px(v).unwrap())
         .collect();
     assert!((xs[1] - xs[0] - (xs[3] - xs[2])).abs() < 1e-9);
-    assert!((xs[0] - l.area.left).abs() < 1e-9 && (xs[3] - l.area.right).abs() < 1e-9);
+    // the ends in the first and last column (plotters rounds up by 1e-3 px)
+    assert!((xs[0] - l.area.left).abs() < 1e-2 && (xs[3] - l.area.right).abs() < 1e-2);
     assert_eq!(l.x_to_px(-1.0), None);
     assert_eq!(l.x_to_px(0.0), None);
     let labels: Vec<&str> = l.x_ticks.iter().map(|(_, s)| s.as_str()).collect();
@@ -516,11 +658,14 @@ fn bar_chart_bars_land_where_the_layout_says() {
     let l = chart.layout(w, h);
     // the axis spans the negative bar and the top error bar
     assert!(l.y.lo < -0.1 && l.y.hi > 0.33, "{:?}", l.y);
-    let slot = l.area.width() / 3.0;
-    let bar_w = 0.8 * slot / 2.0;
+    // category i spans i - 0.5 .. i + 0.5; its bars fill the middle 80 %
+    assert_eq!((l.x.lo, l.x.hi), (-0.5, 2.5));
+    assert_eq!(labels(&l.x_ticks), ["all", "front", "rear"]);
     for (gi, g) in chart.groups.iter().enumerate() {
         for (ci, &v) in g.values.iter().enumerate() {
-            let cx = l.area.left + ci as f64 * slot + 0.1 * slot + (gi as f64 + 0.25) * bar_w;
+            let cx = l
+                .x_to_px(ci as f64 - 0.4 + (gi as f64 + 0.25) * 0.4)
+                .unwrap();
             let cy = 0.5
                 * (l.y_to_px(0.0).unwrap()
                     + l.y_to_px(if v.is_finite() { v } else { 0.1 }).unwrap());
