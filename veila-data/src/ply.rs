@@ -234,12 +234,26 @@ pub fn parse_ply(bytes: &[u8], path: &Path) -> Result<PointCloud> {
     let pr = find_prop(&["ring"]);
     let pl = find_prop(&["label", "scalar_label"]);
     let n = vertex.count;
+    // reserve no more vertices than the body can hold (a header's count is a claim): each takes
+    // at least its stride in binary, a character and a separator per property in ASCII
+    let props = vertex.properties.len().max(1);
+    let min_vertex_bytes = match header.encoding {
+        Encoding::Ascii => 2 * props,
+        Encoding::BinaryLe | Encoding::BinaryBe => vertex
+            .properties
+            .iter()
+            .map(|p| p.scalar.size())
+            .sum::<usize>()
+            .max(1),
+    };
+    let body_len = bytes.len().saturating_sub(header.body_offset);
+    let reserve = n.min(body_len / min_vertex_bytes).min(1 << 24);
 
     let mut cloud = PointCloud {
-        xyz: Vec::with_capacity(n.min(1 << 24)),
-        intensity: Vec::with_capacity(n.min(1 << 24)),
-        ring: pr.map(|_| Vec::with_capacity(n.min(1 << 24))),
-        label: pl.map(|_| Vec::with_capacity(n.min(1 << 24))),
+        xyz: Vec::with_capacity(reserve),
+        intensity: Vec::with_capacity(reserve),
+        ring: pr.map(|_| Vec::with_capacity(reserve)),
+        label: pl.map(|_| Vec::with_capacity(reserve)),
     };
     let mut row = vec![0f64; vertex.properties.len()];
     let push = |row: &[f64], cloud: &mut PointCloud, idx: usize| -> Result<()> {
