@@ -35,7 +35,7 @@ use crate::train_default::{self, TrainDefaultArgs};
 #[derive(Debug, Args)]
 pub struct BenchReportArgs {
     /// Output folder (report.md, report.json, *.png).
-    #[arg(long, default_value = "docs/bench-report")]
+    #[arg(long, default_value = "target/bench-report")]
     out: PathBuf,
     /// The bundle whose encoders every variant shares (and whose denoiser the sampler sweep uses).
     #[arg(long, default_value = "models/default")]
