@@ -150,8 +150,15 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
             guidance: args.guidance,
             ..Default::default()
         },
-    )?;
-    generation::check_residual_weight(args.residual_weight, Some(&bundle))?;
+    );
+    let options = GenerateOptions {
+        sampler: sampler.clone(),
+        samples: 1,
+        seed: args.sample_seed,
+        unconditional: false,
+        residual_weight: args.residual_weight,
+    };
+    generation::check_options(&options, &bundle)?;
     let mut inputs = staging::Inputs::new();
     inputs.add_opt(args.scene.as_ref());
     let staging = staging::stage_checked(
@@ -194,13 +201,6 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
             camera: &frame.camera,
         }],
     )?;
-    let options = GenerateOptions {
-        sampler: sampler.clone(),
-        samples: 1,
-        seed: args.sample_seed,
-        unconditional: false,
-        residual_weight: args.residual_weight,
-    };
     let scans = pipeline.generate(&options, |_, _| pb.inc(1))?;
     let seconds_generation = t.elapsed().as_secs_f64();
     let scan = scans

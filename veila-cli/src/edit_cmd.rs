@@ -20,9 +20,9 @@ use veila_diffusion::{RepaintConfig, SamplerConfig, SamplerKind, SamplerName};
 use veila_geom::{ProjectionOptions, Projector, RangeImage, RayTable};
 
 use crate::generation::{
-    InputInfo, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerFlags, ScanRecord, Seconds, check_guidance,
-    check_steps, inpainting_sampler_help, input_info, is_generate_output, load_rig, model_info,
-    range_preview, resolve_sampler, sampler_parser, write_scan,
+    InputInfo, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerFlags, ScanRecord, Seconds, check_options,
+    inpainting_sampler_help, input_info, load_rig, model_info, range_preview, resolve_sampler,
+    sampler_parser, write_scan,
 };
 use crate::{model, progress, staging};
 
@@ -68,7 +68,7 @@ pub(crate) struct EditArgs {
     #[arg(long, value_name = "S", default_value_t = 0)]
     seed: u64,
     /// Number of edited versions to draw, 1 to 8 (drawn in one batch).
-    #[arg(long, value_name = "N", default_value_t = 1, value_parser = crate::bounds::int::<usize>(1, 8))]
+    #[arg(long, value_name = "N", default_value_t = 1, value_parser = crate::bounds::int::<usize>(1, SAMPLE_BATCH as u64))]
     samples: usize,
     /// RePaint: levels each resampling jump goes back up, 1 to 1000.
     #[arg(long, value_name = "N", default_value_t = 10, value_parser = crate::bounds::int::<usize>(1, 1000))]
@@ -236,28 +236,12 @@ struct EditReport {
 }
 
 pub(crate) fn run(args: EditArgs) -> Result<()> {
-    if !(1..=SAMPLE_BATCH).contains(&args.samples) {
-        bail!(
-            "--samples {}: must be between 1 and {SAMPLE_BATCH} (they are drawn in one batch; run again with another --seed for more)",
-            args.samples
-        );
-    }
-    if let Some(steps) = args.steps {
-        check_steps(steps)?;
-    }
-    if let Some(g) = args.guidance {
-        check_guidance(g)?;
-    }
+    // the parsers hold every flag to its range; what depends on the model is checked once it is
+    // loaded, before the output folder is staged
     if args.sampler == Some(SamplerName::Dpm) {
         bail!(
             "--sampler dpm: inpainting needs ddpm or ddim (a multistep solver cannot follow RePaint's jumps)"
         );
-    }
-    if args.jump_length == 0 || args.jump_n_sample == 0 {
-        bail!("--jump-length and --jump-n-sample must be at least 1");
-    }
-    if args.jump_length > 1000 || args.jump_n_sample > 100 {
-        bail!("--jump-length is at most 1000 and --jump-n-sample at most 100");
     }
     let region_box = args.remove_box.as_deref().map(parse_box).transpose()?;
     let t0 = Instant::now();
@@ -278,7 +262,7 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
             steps: args.steps,
             guidance: args.guidance,
         },
-    )?;
+    );
     if matches!(sampler.kind, SamplerKind::DpmSolverPp2M) {
         // the bundle's default: keep steps and guidance, switch to deterministic DDIM
         sampler = SamplerConfig {
@@ -286,6 +270,14 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
             ..sampler
         };
     }
+    let options = GenerateOptions {
+        sampler: sampler.clone(),
+        samples: args.samples,
+        seed: args.seed,
+        unconditional: false,
+        residual_weight: 1.0,
+    };
+    check_options(&options, &bundle)?;
     let (rows, cols) = bundle.grid();
     let before = scan_on_grid(&bundle, &args.scan)?;
     let regen = match (&args.mask, &region_box) {
@@ -326,13 +318,6 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
         sampler.kind, sampler.steps
     ));
     pb.enable_steady_tick(Duration::from_millis(250));
-    let options = GenerateOptions {
-        sampler: sampler.clone(),
-        samples: args.samples,
-        seed: args.seed,
-        unconditional: false,
-        residual_weight: 1.0,
-    };
     let scans = pipeline
         .inpaint(&before, &keep, &options, &repaint)
         .context("inpainting")?;
@@ -444,9 +429,7 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
         &out.join("timings.json"),
         serde_json::to_string_pretty(&timings)?.as_bytes(),
     )?;
-    staging.commit_owning(|n| {
-        matches!(n, "edit.json" | "mask.png" | "before_range.png") || is_generate_output(n)
-    })?;
+    staging.commit()?;
 
     println!(
         "edited {}: regenerated {} of {} pixels ({} returns before) with {} x {} steps (RePaint jumps {} x {}), seed {}",

@@ -14,7 +14,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 use clap::Args;
 use serde::Serialize;
 use veila_diffusion::app::{GenerateOptions, ScanPipeline};
@@ -22,8 +22,8 @@ use veila_diffusion::{SamplerConfig, SamplerName};
 
 use crate::generation::{
     InputInfo, MAX_SAMPLES, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerFlags, ScanRecord, Seconds,
-    check_guidance, check_residual_weight, check_steps, input_info, is_generate_output, load_rig,
-    model_info, resolve_sampler, round3, sampler_help, sampler_parser, write_scan,
+    check_options, input_info, load_rig, model_info, resolve_sampler, round3, sampler_help,
+    sampler_parser, write_scan,
 };
 use crate::{model, progress, staging};
 
@@ -66,7 +66,7 @@ pub(crate) struct GenerateArgs {
     pub(crate) seed: u64,
     /// Number of scans to draw for the rig, 1 to 100000 (drawn in batches of at most 8: memory
     /// does not grow with N).
-    #[arg(long, value_name = "N", default_value_t = 1, value_parser = crate::bounds::int::<usize>(1, crate::generation::MAX_SAMPLES as u64))]
+    #[arg(long, value_name = "N", default_value_t = 1, value_parser = crate::bounds::int::<usize>(1, MAX_SAMPLES as u64))]
     pub(crate) samples: usize,
     /// Output folder (created; must be absent or empty unless --force).
     #[arg(long, value_name = "DIR")]
@@ -97,24 +97,11 @@ struct GenerateReport<'a> {
 }
 
 pub(crate) fn run(args: GenerateArgs) -> Result<()> {
-    if !(1..=MAX_SAMPLES).contains(&args.samples) {
-        bail!(
-            "--samples {}: must be between 1 and {MAX_SAMPLES}",
-            args.samples
-        );
-    }
-    // 0 steps is checked against the bundle (residual bundles only) once it is loaded
-    if let Some(steps) = args.steps.filter(|&s| s != 0) {
-        check_steps(steps)?;
-    }
-    if let Some(g) = args.guidance {
-        check_guidance(g)?;
-    }
-    check_residual_weight(args.residual_weight, None)?;
+    // the parsers hold every flag to its range; what depends on the model is checked once it is
+    // loaded, before the rig is read
     let t0 = Instant::now();
     let mut inputs = staging::Inputs::new();
     inputs.extend(&args.rig.images).extend(&args.rig.calibs);
-    // the model first: whether 0 sampler steps are allowed depends on it
     let device = model::device()?;
     let bundle = model::load_bundle(args.model.as_deref(), &device)?;
     let sampler = resolve_sampler(
@@ -125,15 +112,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
             steps: args.steps,
             guidance: args.guidance,
         },
-    )?;
-    check_residual_weight(args.residual_weight, Some(&bundle))?;
-    let views = load_rig(&args.rig)?;
-    let pipeline = ScanPipeline::from_views(&bundle, &views)?;
-    let turns = pipeline.quarter_turns();
-    // inputs are good: only now does the output folder get a staging directory
-    let staging = staging::stage_checked(&args.out, args.force, &inputs)?;
-    let load_secs = t0.elapsed().as_secs_f64();
-
+    );
     let options = GenerateOptions {
         sampler: sampler.clone(),
         samples: args.samples,
@@ -141,6 +120,14 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
         unconditional: false,
         residual_weight: args.residual_weight,
     };
+    check_options(&options, &bundle)?;
+    let views = load_rig(&args.rig)?;
+    let pipeline = ScanPipeline::from_views(&bundle, &views)?;
+    let turns = pipeline.quarter_turns();
+    // inputs are good: only now does the output folder get a staging directory
+    let staging = staging::stage_checked(&args.out, args.force, &inputs)?;
+    let load_secs = t0.elapsed().as_secs_f64();
+
     let batches = args.samples.div_ceil(SAMPLE_BATCH);
     let pb = progress::bar((sampler.steps * batches) as u64, "generate"); // <= 1000 * 12500
     pb.set_message(format!("{} scan(s), {}", args.samples, sampler.kind));
@@ -199,7 +186,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
         &staging.path().join("timings.json"),
         serde_json::to_string_pretty(&timings)?.as_bytes(),
     )?;
-    staging.commit_owning(is_generate_output)?;
+    staging.commit()?;
 
     println!(
         "generated {} scan(s) on the {}x{} grid of model `{}` from {} view(s): {} x {} steps, guidance {}, seed {}",

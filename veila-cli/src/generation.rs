@@ -15,11 +15,8 @@ use veila_data::scan::write_kitti_bin;
 use veila_data::vis::render::{
     BevOptions, OverlayOptions, RangePreview, render_bev, render_overlay, render_range,
 };
-pub(crate) use veila_diffusion::app::RESIDUAL_WEIGHT;
 use veila_diffusion::app::bundle::{Bundle, DENOISER_FILE, Manifest, sha256_hex};
-use veila_diffusion::app::rig::point_colours;
-use veila_diffusion::app::{RigView, Scan, load_view};
-pub(crate) use veila_diffusion::{MAX_GUIDANCE, MAX_STEPS};
+use veila_diffusion::app::{GenerateOptions, RigView, Scan, load_view, point_colours};
 use veila_diffusion::{SamplerConfig, SamplerName, Spacing};
 
 use crate::model;
@@ -105,27 +102,19 @@ pub(crate) struct SamplerFlags {
 }
 
 /// The sampler: the bundle's unless `--sampler` is given; `--spacing`, `--steps` and
-/// `--guidance` override. The bundle's own values were checked against the same bounds when it
-/// was loaded (an error there names `bundle.json` and the field); a flag's error names the flag.
-pub(crate) fn resolve_sampler(bundle: &Bundle, flags: SamplerFlags) -> Result<SamplerConfig> {
+/// `--guidance` override. The flags' parsers hold them to the library's bounds, and the bundle's
+/// own values were checked against the same bounds when it was loaded (an error there names
+/// `bundle.json` and the field); what depends on the bundle is checked by
+/// [`GenerateOptions::check`](veila_diffusion::app::GenerateOptions::check).
+pub(crate) fn resolve_sampler(bundle: &Bundle, flags: SamplerFlags) -> SamplerConfig {
     let SamplerFlags {
         name,
         spacing,
-        steps: flag_steps,
+        steps,
         guidance,
     } = flags;
     let base = &bundle.config.sampler;
-    if let Some(steps) = flag_steps {
-        if steps == 0 && bundle.config.residual.is_none() {
-            bail!(
-                "--steps must be at least 1 (0 steps, the mean network alone, needs a residual-diffusion bundle)"
-            );
-        }
-        if steps != 0 {
-            check_steps(steps)?;
-        }
-    }
-    let steps = flag_steps.unwrap_or(base.steps);
+    let steps = steps.unwrap_or(base.steps);
     let mut cfg = match name {
         None => SamplerConfig {
             steps,
@@ -136,11 +125,7 @@ pub(crate) fn resolve_sampler(bundle: &Bundle, flags: SamplerFlags) -> Result<Sa
     if let Some(spacing) = spacing {
         cfg.spacing = spacing;
     }
-    cfg.guidance_scale = base.guidance_scale;
-    if let Some(g) = guidance {
-        check_guidance(g)?;
-        cfg.guidance_scale = g;
-    }
+    cfg.guidance_scale = guidance.unwrap_or(base.guidance_scale);
     if !bundle.is_conditional() && cfg.guidance_scale != 1.0 {
         if guidance.is_some() {
             eprintln!(
@@ -150,51 +135,18 @@ pub(crate) fn resolve_sampler(bundle: &Bundle, flags: SamplerFlags) -> Result<Sa
         }
         cfg.guidance_scale = 1.0;
     }
-    cfg.validate().with_context(|| {
+    cfg
+}
+
+/// `options` checked against `bundle` before any work (the library's check; its error names the
+/// field, this the flags and the model).
+pub(crate) fn check_options(options: &GenerateOptions, bundle: &Bundle) -> Result<()> {
+    options.check(bundle).with_context(|| {
         format!(
-            "the sampler settings of --sampler / --spacing / --steps / --guidance over the bundle's (`sampler` of {})",
-            bundle.origin.join(veila_diffusion::app::bundle::CONFIG_FILE).display()
+            "the sampler and residual-weight flags with model `{}`",
+            bundle.origin.display()
         )
-    })?;
-    Ok(cfg)
-}
-
-/// `--residual-weight`: between 0 and 1, and other than 1 only for residual-diffusion bundles
-/// (checked against `bundle` once it is loaded).
-pub(crate) fn check_residual_weight(w: f64, bundle: Option<&Bundle>) -> Result<()> {
-    let (lo, hi) = RESIDUAL_WEIGHT;
-    if !(lo..=hi).contains(&w) {
-        bail!("--residual-weight {w}: must be between {lo} and {hi}");
-    }
-    if let Some(b) = bundle
-        && w != 1.0
-        && b.config.residual.is_none()
-    {
-        bail!(
-            "--residual-weight {w}: model `{}` is not a residual-diffusion bundle (no mean network to add a weighted residual to); leave it at 1",
-            b.origin.display()
-        );
-    }
-    Ok(())
-}
-
-/// Refuse a `--steps` outside 1..=[`MAX_STEPS`] (the library's bound, which a bundle's
-/// `sampler.steps` is held to as well).
-pub(crate) fn check_steps(steps: usize) -> Result<()> {
-    if !(1..=MAX_STEPS).contains(&steps) {
-        bail!("--steps {steps}: must be between 1 and {MAX_STEPS}");
-    }
-    Ok(())
-}
-
-/// Refuse a `--guidance` outside 0..=[`MAX_GUIDANCE`] (0 = the unconditional branch only,
-/// 1 = no guidance; the library's bound, which a bundle's `sampler.guidance_scale` is held to as
-/// well).
-pub(crate) fn check_guidance(g: f64) -> Result<()> {
-    if !(g.is_finite() && (0.0..=MAX_GUIDANCE).contains(&g)) {
-        bail!("--guidance {g}: must be a number between 0 and {MAX_GUIDANCE} (1 = no guidance)");
-    }
-    Ok(())
+    })
 }
 
 /// The largest number of scans sampled at once by `generate` (about 45 MB each on the bundled
@@ -205,17 +157,6 @@ pub(crate) const SAMPLE_BATCH: usize = 8;
 /// The most scans one `generate` run draws (memory stays bounded either way; this bounds the
 /// record and the time a typo can cost).
 pub(crate) const MAX_SAMPLES: usize = 100_000;
-
-/// Whether `name` is a file `generate` writes into its output folder (for `--force` reruns).
-pub(crate) fn is_generate_output(name: &str) -> bool {
-    if name == "generate.json" || name == "timings.json" {
-        return true;
-    }
-    name.strip_prefix("scan_").is_some_and(|rest| {
-        let digits = rest.bytes().take_while(u8::is_ascii_digit).count();
-        digits >= 3 && rest[digits..].starts_with(['.', '_'])
-    })
-}
 
 /// The bundled model's sampler in words (`ddpm, 16 steps, guidance 1`), read from the bundle
 /// this binary embeds, so that the help texts say what the bundle says.

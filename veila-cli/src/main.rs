@@ -15,14 +15,17 @@ static GLOBAL: veila_nn::process::MiMalloc = veila_nn::process::MiMalloc;
 mod out; // print! and println! that never panic (declared first: every module below uses them)
 mod bounds; // the parsers that hold numeric arguments to their stated ranges
 mod choices; // the parsers whose choices are a library's list (sensor presets, datasets, metrics)
-mod dist; // the TCP transport of data-parallel `veila train`
-#[cfg(feature = "nccl")]
-mod dist_nccl; // the NCCL transport on GPUs (bootstrapped by dist)
 mod generation; // what generate and edit share (rig and sampler arguments, scan files)
 mod model;
 mod progress;
 mod report; // self-contained HTML reports (veila eval --report)
 mod staging; // the output discipline of every command
+mod transport; // the all-reduce of data-parallel `veila train` (TCP on the CPU, NCCL on GPUs)
+// the old paths of the transports, until train_cmd.rs (being split in another branch) names
+// `transport::tcp` and `transport::nccl` itself
+mod dist;
+#[cfg(feature = "nccl")]
+mod dist_nccl;
 // command modules (one per family):
 mod bench_cmd; // bench (training and sampling speed)  (veila-nn, veila-diffusion)
 mod convert_cmd; // convert (datasets into training shards) (veila-data::convert)

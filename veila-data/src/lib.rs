@@ -111,7 +111,15 @@ pub mod vis;
 pub mod weather;
 mod yaml;
 
+// the main types at the root; the modules stay public for their functions and the rest
+pub use dataset::{Dataset, DatasetName, Frame};
 pub use error::{Error, Result};
 /// The `image` crate, whose `RgbImage` appears in this crate's API.
 pub use image;
+pub use kitti::KittiObjectDataset;
+pub use nuscenes::NuScenesDataset;
 pub use points::PointCloud;
+pub use range_exr::RangeExr;
+pub use scan::{LoadedPoints, PointFormat};
+pub use shard::{Shard, ShardReader};
+pub use spec::CalibCamera;

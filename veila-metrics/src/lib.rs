@@ -64,8 +64,15 @@ pub mod suite;
 pub mod texture;
 pub mod view;
 
+// the main types at the root; the modules stay public for the rest
+pub use bev::{BevConfig, BevHistogram};
+pub use chamfer::Chamfer;
 pub use error::{Error, Result};
+pub use fd::{FeatureStats, SqrtMethod};
 pub use metric::{MetricName, MetricReport, MetricValue, Protocol};
+pub use nn::PointIndex;
+pub use protocol::PeerProtocol;
+pub use texture::TextureSummary;
 pub use veila_geom::Region;
 
 use glam::Vec3;

@@ -197,12 +197,6 @@ impl Staged {
         result
     }
 
-    /// [`commit`](Self::commit), for callers written before the manifest: which files are the
-    /// command's own is now what the manifest records, not a guess from their names.
-    pub(crate) fn commit_owning(self, _owned: impl Fn(&str) -> bool) -> Result<()> {
-        self.commit()
-    }
-
     fn publish(&self, staged: &Path) -> Result<()> {
         let target = self.lock.held().output();
         let mut new_files = Vec::new();

@@ -7,7 +7,7 @@
 //!   markings, kerbs, sidewalks, parking strips, buildings with windows, open roadsides, fences,
 //!   hedges, guardrails, trees, bushes, terrain, street lights, signs, traffic lights, parked and moving cars, vans, trucks,
 //!   buses, trailers, pedestrians and cyclists; every surface has a [`Material`] (albedo, LiDAR
-//!   reflectivity) and a SemanticKITTI raw class ([`class`]).
+//!   reflectivity) and a SemanticKITTI raw class ([`class`](crate::semantic_kitti::class)).
 //! - [`Scene::snapshot`]: the world at one frame with its BVH ([`Accel`]) and the ego's LiDAR pose;
 //!   [`SceneSnapshot::render_lidar`] gives a [`SimScan`] (points with intensity, ring and label, range
 //!   image, per-ray outcome), [`SceneSnapshot::render_camera`] a [`SimImage`] (RGB, depth, semantics);

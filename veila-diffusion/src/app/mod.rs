@@ -16,8 +16,8 @@
 //! * [`train_data`]: converted shards as training examples, in memory or streamed.
 //! * [`recipe`]: the one training recipe (encoders, mean network, residual scale, denoiser) that
 //!   `veila train` and `cargo xtask train-default` both run.
-//! * [`rig`]: camera images and their calibration files as views of a rig; the pipeline's steps
-//!   (resizing to a bundle's input, the model-frame turn, scans as points) one by one.
+//! * [`rig`]: camera images and their calibration files as views of a rig, range images as points;
+//!   the pipeline's steps (resizing to a bundle's input, the model-frame turn), private to the crate.
 //! * [`crossmodal_eval`]: the cross-modal metrics (CM-DC, CM-SC) of
 //!   generated scan files for `veila eval`: each scan's calibration, maps or camera image found,
 //!   Depth-Anything-V2 / SegFormer run, the scores averaged (the math: `veila_metrics::crossmodal`).
@@ -80,9 +80,9 @@ pub use recipe::{
     Encoder, EncoderData, EncoderEvent, EncoderSource, Encoders, RecipeInput, RecipeOutcome,
     RecipeSettings, prepare_encoders, run_recipe,
 };
-// the pipeline's steps one by one stay in `rig` (a door that calls them instead of the pipeline
-// gets scans in the wrong frame)
-pub use rig::{RigImage, RigView, load_view, scan_points};
+// the pipeline's steps are private to the crate (a door that called them instead of the pipeline
+// would get scans in the wrong frame)
+pub use rig::{RigImage, RigView, load_view, point_colours, scan_points};
 pub use stage::{Stage, stage_config};
 pub use train::{
     BundleFit, BundleFitOutcome, DenoiserFit, DenoiserFitOutcome, DenoiserTraining, TrainExample,

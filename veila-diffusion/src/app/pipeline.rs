@@ -8,11 +8,12 @@
 //! both from files), and
 //!
 //! 1. fits every image to the encoders' input (`image_width x image_height` of the bundle, triangle
-//!    filter, the camera rescaled with it: [`super::rig::prepare_view`]);
+//!    filter, the camera rescaled with it);
 //! 2. turns the rig into the model's frame: the bundled prior was learnt with the front camera
 //!    looking along `+x` (KITTI's LiDAR frame), so a LiDAR frame whose forward axis is another
-//!    (nuScenes: `+y`) is turned by quarter turns about `z`, counted from the first camera
-//!    ([`super::rig::quarter_turns_to_model`]).
+//!    (nuScenes: `+y`) is turned by quarter turns about `z`, counted from the first camera.
+//!
+//! The steps themselves live in [`super::rig`], private to the crate: no door can leave one out.
 //!
 //! [`ScanPipeline::generate`] then samples, turns every range image back into the LiDAR frame (a
 //! roll of its columns, exact) and unprojects it: each [`Scan`] is a range image and its points,
@@ -41,12 +42,12 @@ use veila_data::PointCloud;
 use veila_geom::{PinholeCamera, RangeImage};
 
 use super::bundle::Bundle;
-use super::generate::{CameraView, GenerateOptions, check_inpainting_input};
+use super::generate::{CameraView, GenerateOptions, RESIDUAL_WEIGHT, check_inpainting_input};
 use super::rig::{
     PreparedViews, RigImage, RigView, camera_in_model_frame, pixels_to_model_frame, prepare_view,
     prepare_views, quarter_turns_to_model, range_to_lidar_frame, range_to_model_frame, scan_points,
 };
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::sampler::RepaintConfig;
 
 /// One generated scan, in the LiDAR frame of the rig's calibration.
@@ -57,6 +58,51 @@ pub struct Scan {
     pub range: RangeImage,
     /// Its points, one per return, with intensity.
     pub points: PointCloud,
+}
+
+// (beside `GenerateOptions` in generate.rs once that file's split lands, where `sample` then calls
+// it in place of its own copy of these checks)
+impl GenerateOptions {
+    /// Checks these options against `bundle`, as sampling with them does, for a door to call
+    /// before any work: the sampler's settings ([`crate::SamplerConfig::validate`]; 0 steps, the mean
+    /// network alone, only for a residual-diffusion bundle), at least one sample, and a
+    /// [`residual_weight`](Self::residual_weight) in [`RESIDUAL_WEIGHT`], other than 1 only for a
+    /// residual-diffusion bundle.
+    pub fn check(&self, bundle: &Bundle) -> Result<()> {
+        self.sampler.validate()?;
+        let residual = bundle.config.residual.is_some();
+        if self.sampler.steps == 0 && !residual {
+            return Err(Error::InvalidConfig {
+                field: "steps",
+                reason: "0 sampler steps (the mean network alone) need a residual-diffusion bundle"
+                    .into(),
+            });
+        }
+        if self.samples == 0 {
+            return Err(Error::InvalidConfig {
+                field: "samples",
+                reason: "must be at least 1".into(),
+            });
+        }
+        let w = self.residual_weight;
+        let (lo, hi) = RESIDUAL_WEIGHT;
+        if !(lo..=hi).contains(&w) {
+            return Err(Error::InvalidConfig {
+                field: "residual_weight",
+                reason: format!("must be between {lo} and {hi}, got {w}"),
+            });
+        }
+        if w != 1.0 && !residual {
+            return Err(Error::InvalidConfig {
+                field: "residual_weight",
+                reason: format!(
+                    "{w} needs a residual-diffusion bundle (one with a mean network to add a \
+                     weighted residual to); leave it at 1"
+                ),
+            });
+        }
+        Ok(())
+    }
 }
 
 /// A camera rig fitted to a bundle: the views resized to the encoders' input and turned into the
@@ -184,5 +230,52 @@ impl<'b> ScanPipeline<'b> {
             out.extend(self.bundle.image_descriptor(v)?);
         }
         Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use candle_core::Device;
+
+    use super::*;
+    use crate::MAX_STEPS;
+
+    #[test]
+    fn options_are_checked_against_the_bundle() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/default");
+        let mut bundle = Bundle::from_dir(&dir, &Device::Cpu).unwrap();
+        assert!(
+            bundle.config.residual.is_some(),
+            "the bundled model is residual"
+        );
+        let ok = GenerateOptions::new(bundle.config.sampler.clone());
+        let with = |f: &dyn Fn(&mut GenerateOptions)| {
+            let mut o = ok.clone();
+            f(&mut o);
+            o
+        };
+        ok.check(&bundle).unwrap();
+        // a residual bundle: the mean network alone, by 0 steps or weight 0
+        with(&|o| o.sampler.steps = 0).check(&bundle).unwrap();
+        with(&|o| o.residual_weight = 0.0).check(&bundle).unwrap();
+        for bad in [
+            with(&|o| o.sampler.steps = MAX_STEPS + 1),
+            with(&|o| o.sampler.guidance_scale = -1.0),
+            with(&|o| o.samples = 0),
+            with(&|o| o.residual_weight = 1.5),
+            with(&|o| o.residual_weight = f64::NAN),
+        ] {
+            assert!(bad.check(&bundle).is_err(), "{bad:?}");
+        }
+        // without a mean network, neither
+        bundle.config.residual = None;
+        ok.check(&bundle).unwrap();
+        for bad in [
+            with(&|o| o.sampler.steps = 0),
+            with(&|o| o.residual_weight = 0.5),
+        ] {
+            let e = bad.check(&bundle).unwrap_err().to_string();
+            assert!(e.contains("residual-diffusion"), "{e}");
+        }
     }
 }

@@ -1,11 +1,11 @@
 //! Camera rigs from files: an image and its calibration (KITTI object, KITTI odometry /
-//! SemanticKITTI or a nuScenes per-sample JSON) become a [`RigView`] ([`load_view`]).
+//! SemanticKITTI or a nuScenes per-sample JSON) become a [`RigView`] ([`load_view`]); a rig in
+//! memory is a slice of [`RigImage`]s. [`scan_points`] turns a range image on a bundle's grid into
+//! points, and [`point_colours`] colours them from a view.
 //!
-//! Below that, the steps [`super::pipeline::ScanPipeline`] puts together, for tools that need one
-//! of them alone: [`prepare_view`] resizes a view to a bundle's input; [`quarter_turns_to_model`],
-//! [`camera_in_model_frame`] and [`range_to_lidar_frame`] move a rig into the model's frame and a
-//! scan back; [`scan_points`] turns a range image into LiDAR-frame points. To get scans from a rig,
-//! use the pipeline: a step left out gives scans in the wrong frame.
+//! Below that, crate-private, the steps [`super::pipeline::ScanPipeline`] puts together (resizing a
+//! view to a bundle's input, the turn into the model's frame and the scan's turn back): a door gets
+//! scans from a rig through the pipeline only, since a step left out gives scans in the wrong frame.
 //!
 //! Calibration files carry no image size, so each camera takes the size of its image. The image
 //! must be the one the calibration describes (full resolution): an image whose size puts the
@@ -91,7 +91,11 @@ pub fn load_view(image_path: &Path, calib_path: &Path, camera: Option<&str>) -> 
 /// 46% of width / height, nuScenes: 50% / 50%). Outside the central 20-80% band, the image was
 /// almost certainly resized (a 2x change moves it to ~25% or ~100%) or cropped without adapting the
 /// calibration, and the scan would be generated for the wrong rays.
-pub fn check_principal_point(camera: &PinholeCamera, image: &Path, calib: &Path) -> Result<()> {
+pub(crate) fn check_principal_point(
+    camera: &PinholeCamera,
+    image: &Path,
+    calib: &Path,
+) -> Result<()> {
     let k = camera.intrinsics;
     let (cx, cy) = (k.z_axis.x, k.z_axis.y);
     let (w, h) = (camera.width as f32, camera.height as f32);
@@ -115,7 +119,7 @@ pub fn check_principal_point(camera: &PinholeCamera, image: &Path, calib: &Path)
 }
 
 /// An image and its camera resized to the bundle's input size (triangle filter, antialiased).
-pub fn prepare_view(
+pub(crate) fn prepare_view(
     config: &BundleConfig,
     image: &RgbImage,
     camera: &PinholeCamera,
@@ -140,10 +144,10 @@ pub fn prepare_view(
 }
 
 /// Resized views of a rig, owned; borrow them with [`camera_views`].
-pub type PreparedViews = Vec<(Vec<u8>, PinholeCamera)>;
+pub(crate) type PreparedViews = Vec<(Vec<u8>, PinholeCamera)>;
 
 /// [`prepare_view`] for every view of a rig (errors name the image).
-pub fn prepare_views(config: &BundleConfig, views: &[RigView]) -> Result<PreparedViews> {
+pub(crate) fn prepare_views(config: &BundleConfig, views: &[RigView]) -> Result<PreparedViews> {
     views
         .iter()
         .map(|v| {
@@ -154,7 +158,7 @@ pub fn prepare_views(config: &BundleConfig, views: &[RigView]) -> Result<Prepare
 }
 
 /// Borrowed [`CameraView`]s of prepared images.
-pub fn camera_views(prepared: &[(Vec<u8>, PinholeCamera)]) -> Vec<CameraView<'_>> {
+pub(crate) fn camera_views(prepared: &[(Vec<u8>, PinholeCamera)]) -> Vec<CameraView<'_>> {
     prepared
         .iter()
         .map(|(rgb, camera)| CameraView { rgb, camera })
@@ -165,7 +169,7 @@ pub fn camera_views(prepared: &[(Vec<u8>, PinholeCamera)]) -> Vec<CameraView<'_>
 /// whose `x` axis is the camera's optical axis (to the nearest quarter turn): the bundled models
 /// learnt their prior with the front camera looking along `+x` (KITTI's LiDAR frame), while
 /// nuScenes' LiDAR frame has `y` forward (`q = 1`). `p_model = R_z(-q·90°) p_lidar`; `0` for KITTI.
-pub fn quarter_turns_to_model(camera: &PinholeCamera) -> i32 {
+pub(crate) fn quarter_turns_to_model(camera: &PinholeCamera) -> i32 {
     let axis = camera
         .cam_from_lidar
         .inverse()
@@ -176,7 +180,7 @@ pub fn quarter_turns_to_model(camera: &PinholeCamera) -> i32 {
 
 /// `camera` seeing the model frame of [`quarter_turns_to_model`]: `cam_from_model =
 /// cam_from_lidar · R_z(q·90°)`.
-pub fn camera_in_model_frame(camera: &PinholeCamera, q: i32) -> PinholeCamera {
+pub(crate) fn camera_in_model_frame(camera: &PinholeCamera, q: i32) -> PinholeCamera {
     let mut cam = *camera;
     if q.rem_euclid(4) != 0 {
         let turn = glam::Mat4::from_rotation_z(q as f32 * std::f32::consts::FRAC_PI_2);
@@ -188,7 +192,7 @@ pub fn camera_in_model_frame(camera: &PinholeCamera, q: i32) -> PinholeCamera {
 /// A range image of the model frame turned back into the LiDAR frame (`p_lidar = R_z(q·90°)
 /// p_model`): a roll of the columns by a quarter of the width per turn, exact because the grid's
 /// columns are uniform in azimuth. Needs a width divisible by 4 when `q` is not a multiple of 4.
-pub fn range_to_lidar_frame(
+pub(crate) fn range_to_lidar_frame(
     config: &BundleConfig,
     range: &RangeImage,
     q: i32,
@@ -198,7 +202,7 @@ pub fn range_to_lidar_frame(
 
 /// The inverse of [`range_to_lidar_frame`]: a range image of the LiDAR frame (a scan to edit)
 /// turned into the model frame, `p_model = R_z(-q·90°) p_lidar`.
-pub fn range_to_model_frame(
+pub(crate) fn range_to_model_frame(
     config: &BundleConfig,
     range: &RangeImage,
     q: i32,
@@ -208,7 +212,7 @@ pub fn range_to_model_frame(
 
 /// Per-pixel values (row-major, `rows x cols`, e.g. an edit's keep mask) of the LiDAR frame moved
 /// into the model frame, as [`range_to_model_frame`] moves a range image.
-pub fn pixels_to_model_frame<T: Copy>(
+pub(crate) fn pixels_to_model_frame<T: Copy>(
     config: &BundleConfig,
     values: &[T],
     rows: usize,

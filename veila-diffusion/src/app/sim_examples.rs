@@ -4,7 +4,7 @@
 //! frames here.
 //!
 //! * [`SimExample`]: one frame: the camera image fitted to the encoders' input (the same
-//!   [`prepare_view`] every door uses), dense ground-truth semantics and depth at that size, the
+//!   resize every door gets from `ScanPipeline`), dense ground-truth semantics and depth at that size, the
 //!   scan on the bundle's range grid and the rig's further cameras; [`SimExample::train_example`]
 //!   turns it into a [`TrainExample`].
 //! * Split lists: [`split_items`] (the first frames of a list, its scene files interleaved),
