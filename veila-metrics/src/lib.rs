@@ -14,6 +14,7 @@
 //! | Chamfer distance (squared, means summed) and MMD-CD | PyTorch3D | [`chamfer`], BVH in [`nn`] |
 //! | CM-DC / CM-SC cross-modal consistency | Veila paper | [`crossmodal`] |
 //! | Range MAE of two range images on one grid, over pixels valid in both | — | [`range`] |
+//! | Semantic segmentation IoU / mIoU / accuracy from one confusion matrix, class 0 ignored | SemanticKITTI (`semantic-kitti-api`'s `iouEval`) | [`segmentation`] |
 //! | Range MAE and coverage in a camera's view, camera depth at LiDAR points | — | [`view`] |
 //! | Range-image realism: relative range-step histograms (log10, 0.25 decade) and smooth / edge shares, their W1 / JSD texture distance, ray drop per row, pairwise diversity, nearest-scan memorisation | — | [`texture`] |
 //!
@@ -60,6 +61,7 @@ pub mod metric;
 pub mod nn;
 pub mod protocol;
 pub mod range;
+pub mod segmentation;
 pub mod suite;
 pub mod texture;
 pub mod view;

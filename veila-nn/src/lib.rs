@@ -3,7 +3,8 @@
 //! Mechanism ([`Cacm`], eqs. 4-6), Geometric Cross-Modal Alignment ([`Gcma`], eqs. 7-10, on
 //! [`veila_geom::EpipolarTable`]s precomputed into a [`GcmaGeometry`]) and Panoramic Feature Coherence
 //! ([`Pfc`], eq. 11) — plus image encoders ([`encoders`]), checkpoint IO ([`checkpoint`]) and the
-//! RangeNet / PointNet feature networks of the FRD and FPD metrics ([`feature_nets`]), and the
+//! RangeNet / PointNet feature networks of the FRD and FPD metrics ([`feature_nets`]), a range-view
+//! semantic segmenter with RangeNet++'s point-label clean-up ([`segmenter`]), and the
 //! export of a network with a reference input and output for implementations outside candle
 //! ([`export`]).
 //!
@@ -59,6 +60,7 @@ pub mod ops;
 pub mod pfc;
 pub mod process;
 pub mod recompute;
+pub mod segmenter;
 pub mod unet;
 pub mod weights;
 

@@ -6,4 +6,5 @@ mod golden;
 mod hard_cases;
 mod hostile_bounds;
 mod peer_protocols;
+mod segmentation;
 mod texture;

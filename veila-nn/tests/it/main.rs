@@ -17,5 +17,6 @@ mod mixed_precision;
 mod ops;
 mod preprocess;
 mod recompute;
+mod segmenter;
 mod untrusted;
 mod with_encoders;
