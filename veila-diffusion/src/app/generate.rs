@@ -17,7 +17,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use veila_geom::{PinholeCamera, RangeImage};
 use veila_nn::encoders::kind::AnyEncoder;
-use veila_nn::{ConditionInput, Denoiser as Net, GcmaGeometry};
+use veila_nn::{ConditionInput, Denoiser as Net, GcmaGeometry, PreparedCondition};
 
 use super::bundle::{Bundle, BundleConfig, ResidualConfig};
 use super::nn::{NetCond, VeilaDenoiser};
@@ -263,27 +263,39 @@ fn sample(
     inpainting: Option<(&RangeImage, &[bool], &RepaintConfig)>,
     mut on_step: impl FnMut(usize, usize),
 ) -> Result<Vec<RangeImage>> {
+    let conditional = check_options(bundle, views, options)?;
+    let mut rng = per_sample_rng(options.seed, options.samples);
+    let known = encode_known(bundle, inpainting, options.samples)?;
+    let batch = Batch::new(bundle, views, options, conditional)?;
+    let mean = batch.mean_pass(&mut rng)?;
+    let x = match (&mean, bundle.config.residual.as_ref()) {
+        (Some(mu), Some(_)) if options.sampler.steps == 0 || options.residual_weight == 0.0 => {
+            on_step(0, 0);
+            mu.clone()
+        }
+        _ => {
+            let repaint = inpainting.map(|(_, _, r)| r).zip(known.as_ref());
+            batch.denoise(mean.as_ref(), repaint, &mut rng, &mut on_step)?
+        }
+    };
+    let x = paste_known(x, known.as_ref())?;
+    bundle.config.encoding.decode_batch(&x)
+}
+
+/// The options against the bundle: at least one sample, views for an image-conditioned bundle,
+/// zero steps and a residual weight only for residual bundles. Returns whether the draw is
+/// image-conditioned.
+fn check_options(
+    bundle: &Bundle,
+    views: &[CameraView<'_>],
+    options: &GenerateOptions,
+) -> Result<bool> {
     if options.samples == 0 {
         return Err(Error::InvalidConfig {
             field: "samples",
             reason: "must be at least 1".into(),
         });
     }
-    let device = bundle.denoiser_device().clone();
-    let (h, w) = bundle.grid();
-    let c = bundle.config.channels();
-    let n = options.samples;
-    // one noise stream per sample (stream `i` of the seed): a scan does not depend on how many
-    // others are drawn with it, and a single scan draws what the seed's first stream gives
-    let mut rng = PerSample(
-        (0..n as u64)
-            .map(|i| {
-                let mut r = ChaCha8Rng::seed_from_u64(options.seed);
-                r.set_stream(i);
-                r
-            })
-            .collect(),
-    );
     let conditional = bundle.is_conditional() && !options.unconditional;
     if conditional && views.is_empty() {
         return Err(Error::InvalidConfig {
@@ -291,7 +303,6 @@ fn sample(
             reason: "this bundle is image-conditioned: give at least one camera view".into(),
         });
     }
-    let nv = if conditional { views.len() } else { 1 };
     let residual = bundle.config.residual.as_ref();
     if options.sampler.steps == 0 && residual.is_none() {
         return Err(Error::InvalidConfig {
@@ -314,128 +325,225 @@ fn sample(
             reason: "only residual-diffusion bundles have a residual to weight".into(),
         });
     }
-    // inpainting: the known scan, encoded, and its mask (1 = keep)
-    let known = match inpainting {
-        Some((scan, mask, _)) => {
-            let view: Vec<&RangeImage> = vec![scan; n];
-            let x0 = bundle.config.encoding.encode_batch(&view, &device)?;
-            let m: Vec<f32> = mask.iter().map(|&k| if k { 1.0 } else { 0.0 }).collect();
-            Some((x0, Tensor::from_vec(m, (1, 1, h, w), &device)?))
-        }
-        None => None,
+    Ok(conditional)
+}
+
+/// One noise stream per sample (stream `i` of the seed): a scan does not depend on how many
+/// others are drawn with it, and a single scan draws what the seed's first stream gives.
+fn per_sample_rng(seed: u64, samples: usize) -> PerSample<ChaCha8Rng> {
+    PerSample(
+        (0..samples as u64)
+            .map(|i| {
+                let mut r = ChaCha8Rng::seed_from_u64(seed);
+                r.set_stream(i);
+                r
+            })
+            .collect(),
+    )
+}
+
+/// Inpainting: the known scan, encoded for each of `samples`, and its mask (1 = keep).
+fn encode_known(
+    bundle: &Bundle,
+    inpainting: Option<(&RangeImage, &[bool], &RepaintConfig)>,
+    samples: usize,
+) -> Result<Option<(Tensor, Tensor)>> {
+    let Some((scan, mask, _)) = inpainting else {
+        return Ok(None);
     };
-    let feats = if conditional {
-        Some(bundle.encode_views(views)?.repeat(n)?)
-    } else {
-        None
+    let device = bundle.denoiser_device();
+    let (h, w) = bundle.grid();
+    let view: Vec<&RangeImage> = vec![scan; samples];
+    let x0 = bundle.config.encoding.encode_batch(&view, device)?;
+    let m: Vec<f32> = mask.iter().map(|&k| if k { 1.0 } else { 0.0 }).collect();
+    Ok(Some((x0, Tensor::from_vec(m, (1, 1, h, w), device)?)))
+}
+
+/// The known pixels exactly as given (a residual bundle's sum would round them).
+fn paste_known(x: Tensor, known: Option<&(Tensor, Tensor)>) -> Result<Tensor> {
+    let Some((x0, m)) = known else {
+        return Ok(x);
     };
-    let cams: Vec<PinholeCamera> = views.iter().map(|v| *v.camera).collect();
-    // the image condition of one network (its own CACM weights; GCMA geometry when it has it)
-    let condition = |net: &Net| -> Result<Option<(Option<GcmaGeometry>, ConditionInput)>> {
-        let Some(f) = &feats else { return Ok(None) };
+    let m = m.broadcast_as(x.shape())?;
+    Ok((x0.broadcast_mul(&m)? + x.broadcast_mul(&m.affine(-1.0, 1.0)?)?)?)
+}
+
+/// An image condition as one network takes it (its GCMA geometry when it has GCMA, and the
+/// views' features).
+type Condition = Option<(Option<GcmaGeometry>, ConditionInput)>;
+
+/// `condition` prepared for `net` (its own CACM weights).
+fn prepare<'g>(net: &Net, condition: &'g Condition) -> Result<Option<PreparedCondition<'g>>> {
+    match condition {
+        Some((g, f)) => Ok(Some(net.prepare_condition(f, g.as_ref())?)),
+        None => Ok(None),
+    }
+}
+
+/// What the steps of one [`sample`] draw share: the bundle, the options, the batch's shape and the
+/// views' features.
+struct Batch<'a> {
+    bundle: &'a Bundle,
+    options: &'a GenerateOptions,
+    device: Device,
+    /// `[samples, channels, rows, cols]`.
+    shape: [usize; 4],
+    /// Camera views the networks take (1 when the draw is unconditional).
+    views: usize,
+    /// The views' features, repeated for every sample (`None`: unconditional).
+    features: Option<ConditionInput>,
+    cameras: Vec<PinholeCamera>,
+}
+
+impl<'a> Batch<'a> {
+    /// Encodes the views when the draw is `conditional`.
+    fn new(
+        bundle: &'a Bundle,
+        views: &[CameraView<'_>],
+        options: &'a GenerateOptions,
+        conditional: bool,
+    ) -> Result<Self> {
+        let n = options.samples;
+        let (h, w) = bundle.grid();
+        let features = if conditional {
+            Some(bundle.encode_views(views)?.repeat(n)?)
+        } else {
+            None
+        };
+        Ok(Self {
+            bundle,
+            options,
+            device: bundle.denoiser_device().clone(),
+            shape: [n, bundle.config.channels(), h, w],
+            views: if conditional { views.len() } else { 1 },
+            features,
+            cameras: views.iter().map(|v| *v.camera).collect(),
+        })
+    }
+
+    fn residual(&self) -> Option<&'a ResidualConfig> {
+        self.bundle.config.residual.as_ref()
+    }
+
+    /// One value per channel as a `[1, C, 1, 1]` tensor.
+    fn per_channel(&self, values: &[f32]) -> Result<Tensor> {
+        Ok(Tensor::from_slice(
+            values,
+            (1, self.shape[1], 1, 1),
+            &self.device,
+        )?)
+    }
+
+    /// The image condition of one network (its GCMA geometry when it has GCMA).
+    fn condition(&self, net: &Net) -> Result<Condition> {
+        let Some(f) = &self.features else {
+            return Ok(None);
+        };
         let geometry = match &net.config().conditioning {
             Some(cc) if cc.gcma.is_some() => {
-                Some(net.geometry(&cams, &bundle.config.epipolar, &device)?)
+                Some(net.geometry(&self.cameras, &self.bundle.config.epipolar, &self.device)?)
             }
             _ => None,
         };
         Ok(Some((geometry, f.clone())))
-    };
-    // residual diffusion: the mean network's one pass first
-    let mean = match bundle.mean_for_views(nv)? {
-        Some(mnet) => {
-            let prep = condition(&mnet)?;
-            let image = match &prep {
-                Some((g, f)) => Some(mnet.prepare_condition(f, g.as_ref())?),
-                None => None,
-            };
-            let mdiff = Diffusion::new(ResidualConfig::mean_diffusion())?;
-            let msampler = Sampler::new(
-                &mdiff,
-                SamplerConfig {
-                    steps: 1,
-                    guidance_scale: 1.0,
-                    ..options.sampler.clone()
-                },
-            )?;
-            let zeros = Tensor::zeros((n, c, h, w), DType::F32, &device)?;
-            let cond = NetCond { image, mean: None };
-            Some(msampler.sample_from(
-                &VeilaDenoiser::new(mnet),
-                zeros,
-                Some(&cond),
-                &mut rng,
-                |_| {},
-            )?)
-        }
-        None => None,
-    };
-    let x = match (&mean, residual) {
-        (Some(mu), Some(_)) if options.sampler.steps == 0 || weight == 0.0 => {
-            on_step(0, 0);
-            mu.clone()
-        }
-        _ => {
-            let diffusion = Diffusion::new(bundle.config.diffusion.clone())?;
-            let mut sampler = Sampler::new(&diffusion, options.sampler.clone())?;
-            // a residual's clip is the data's `[-c, c]`, mapped to each pixel's residual interval
-            if let (Some(mu), Some(r), Some(clip)) = (&mean, residual, options.sampler.clip_x0) {
-                let s = Tensor::from_slice(&r.scale, (1, c, 1, 1), &device)?;
-                let lo = mu.affine(-1.0, -clip)?.broadcast_div(&s)?;
-                let hi = mu.affine(-1.0, clip)?.broadcast_div(&s)?;
-                sampler = sampler.with_x0_bounds(lo, hi);
+    }
+
+    /// Residual diffusion: the mean network's one pass (`None` for direct diffusion).
+    fn mean_pass(&self, rng: &mut PerSample<ChaCha8Rng>) -> Result<Option<Tensor>> {
+        let Some(mnet) = self.bundle.mean_for_views(self.views)? else {
+            return Ok(None);
+        };
+        let condition = self.condition(&mnet)?;
+        let image = prepare(&mnet, &condition)?;
+        let mdiff = Diffusion::new(ResidualConfig::mean_diffusion())?;
+        let msampler = Sampler::new(
+            &mdiff,
+            SamplerConfig {
+                steps: 1,
+                guidance_scale: 1.0,
+                ..self.options.sampler.clone()
+            },
+        )?;
+        let zeros = Tensor::zeros(&self.shape, DType::F32, &self.device)?;
+        let cond = NetCond { image, mean: None };
+        Ok(Some(msampler.sample_from(
+            &VeilaDenoiser::new(mnet),
+            zeros,
+            Some(&cond),
+            rng,
+            |_| {},
+        )?))
+    }
+
+    /// The denoiser's sampler run from noise, or RePaint on the known scan (`repaint`: its
+    /// settings and the encoded scan and mask), then the residual added to the mean.
+    fn denoise(
+        &self,
+        mean: Option<&Tensor>,
+        repaint: Option<(&RepaintConfig, &(Tensor, Tensor))>,
+        rng: &mut PerSample<ChaCha8Rng>,
+        on_step: &mut impl FnMut(usize, usize),
+    ) -> Result<Tensor> {
+        let diffusion = Diffusion::new(self.bundle.config.diffusion.clone())?;
+        let sampler = self.sampler(&diffusion, mean)?;
+        let net = self.bundle.net_for_views(self.views)?;
+        let condition = self.condition(&net)?;
+        let cond = NetCond {
+            image: prepare(&net, &condition)?,
+            mean: mean.cloned(),
+        };
+        let cond = (cond.image.is_some() || cond.mean.is_some()).then_some(cond);
+        let model = VeilaDenoiser::new(net);
+        let x = match repaint {
+            None => {
+                let x_t = rng.noise(&self.shape, &self.device)?;
+                sampler.sample_from(&model, x_t, cond.as_ref(), rng, |info| {
+                    on_step(info.index + 1, info.total)
+                })?
             }
-            let net = bundle.net_for_views(nv)?;
-            let prep = condition(&net)?;
-            let image = match &prep {
-                Some((g, f)) => Some(net.prepare_condition(f, g.as_ref())?),
-                None => None,
-            };
-            let cond = NetCond {
-                image,
-                mean: mean.clone(),
-            };
-            let cond = (cond.image.is_some() || cond.mean.is_some()).then_some(cond);
-            let model = VeilaDenoiser::new(net);
-            let x = match inpainting {
-                None => {
-                    let x_t = rng.noise(&[n, c, h, w], &device)?;
-                    sampler.sample_from(&model, x_t, cond.as_ref(), &mut rng, |info| {
-                        on_step(info.index + 1, info.total)
-                    })?
-                }
-                Some((_, _, repaint)) => {
-                    let (x0, m) = known.as_ref().expect("encoded above");
-                    // a residual denoiser inpaints the known scan's scaled residual
-                    let x0 = match (&mean, residual) {
-                        (Some(mu), Some(r)) => {
-                            let s = Tensor::from_slice(&r.scale, (1, c, 1, 1), &device)?;
-                            (x0 - mu)?.broadcast_div(&s)?
-                        }
-                        _ => x0.clone(),
-                    };
-                    inpaint(&sampler, &model, &x0, m, cond.as_ref(), repaint, &mut rng)?
-                }
-            };
-            match (&mean, residual) {
-                (Some(mu), Some(r)) => {
-                    let scale: Vec<f32> = r.scale.iter().map(|&s| s * weight as f32).collect();
-                    let s = Tensor::from_slice(&scale, (1, c, 1, 1), &device)?;
-                    (mu + x.broadcast_mul(&s)?)?
-                }
-                _ => x,
+            Some((repaint, (x0, m))) => {
+                let x0 = self.known_residual(x0, mean)?;
+                inpaint(&sampler, &model, &x0, m, cond.as_ref(), repaint, rng)?
             }
+        };
+        self.add_mean(x, mean)
+    }
+
+    /// The denoiser's sampler; a residual's clip is the data's `[-c, c]`, mapped to each pixel's
+    /// residual interval.
+    fn sampler<'d>(&self, diffusion: &'d Diffusion, mean: Option<&Tensor>) -> Result<Sampler<'d>> {
+        let mut sampler = Sampler::new(diffusion, self.options.sampler.clone())?;
+        if let (Some(mu), Some(r), Some(clip)) =
+            (mean, self.residual(), self.options.sampler.clip_x0)
+        {
+            let s = self.per_channel(&r.scale)?;
+            let lo = mu.affine(-1.0, -clip)?.broadcast_div(&s)?;
+            let hi = mu.affine(-1.0, clip)?.broadcast_div(&s)?;
+            sampler = sampler.with_x0_bounds(lo, hi);
         }
-    };
-    // the known pixels exactly as given (a residual bundle's sum would round them)
-    let x = match &known {
-        Some((x0, m)) => {
-            let m = m.broadcast_as(x.shape())?;
-            (x0.broadcast_mul(&m)? + x.broadcast_mul(&m.affine(-1.0, 1.0)?)?)?
+        Ok(sampler)
+    }
+
+    /// What a residual denoiser inpaints: the known scan's scaled residual (the scan itself for
+    /// direct diffusion).
+    fn known_residual(&self, x0: &Tensor, mean: Option<&Tensor>) -> Result<Tensor> {
+        match (mean, self.residual()) {
+            (Some(mu), Some(r)) => Ok((x0 - mu)?.broadcast_div(&self.per_channel(&r.scale)?)?),
+            _ => Ok(x0.clone()),
         }
-        None => x,
-    };
-    bundle.config.encoding.decode_batch(&x)
+    }
+
+    /// `μ + weight · scale · x` for a residual bundle (`x` itself for direct diffusion).
+    fn add_mean(&self, x: Tensor, mean: Option<&Tensor>) -> Result<Tensor> {
+        match (mean, self.residual()) {
+            (Some(mu), Some(r)) => {
+                let weight = self.options.residual_weight as f32;
+                let scale: Vec<f32> = r.scale.iter().map(|&s| s * weight).collect();
+                Ok((mu + x.broadcast_mul(&self.per_channel(&scale)?)?)?)
+            }
+            _ => Ok(x),
+        }
+    }
 }
 
 /// The frozen encoders' features of views at the bundle's image size (shared with training).

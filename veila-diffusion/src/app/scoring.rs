@@ -5,9 +5,9 @@
 //! themselves are `veila-metrics`'; this module runs the networks they are fed from.
 //!
 //! * [`encoder_maps`]: a small-CNN encoder's semantic and depth heads on one image.
-//! * [`Judges`] (feature `sim`): everything about one fold's reference frames, computed once for
-//!   every model scored against it; [`set_metrics`]: one set of generated scans against them;
-//!   [`data_floor`]: the true scans of neighbouring folds against each other.
+//! * `Judges` (feature `sim`): everything about one fold's reference frames, computed once for
+//!   every model scored against it; `set_metrics`: one set of generated scans against them;
+//!   `data_floor`: the true scans of neighbouring folds against each other.
 //! * [`Stat`] / [`metric_stats`]: a metric's mean and spread over sets.
 
 use std::collections::BTreeMap;

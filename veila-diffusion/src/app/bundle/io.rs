@@ -1,0 +1,430 @@
+//! Bundle IO: reading a bundle folder (or its files from memory), verifying every file against
+//! the manifest before it is parsed, and saving a bundle folder atomically.
+
+use std::collections::{BTreeMap, HashMap};
+use std::fs;
+use std::path::{Path, PathBuf};
+
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarBuilder;
+use serde::{Deserialize, Serialize};
+use veila_data::contained::contained;
+use veila_data::read_capped::{MAX_JSON_METADATA_BYTES, read_metadata};
+use veila_nn::Denoiser as Net;
+use veila_nn::encoders::kind::AnyEncoder;
+use veila_nn::encoders::small_cnn::SmallCnn;
+
+use super::{
+    BUNDLE_FORMAT, BundleConfig, CONFIG_FILE, DENOISER_FILE, DEPTH_FILE, EncoderSpec,
+    MANIFEST_FILE, MANIFEST_FORMAT, MEAN_FILE, SEMANTIC_FILE, safetensors_bytes, sha256_hex,
+};
+use crate::error::{Error, Result};
+
+/// `manifest.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Manifest {
+    /// [`MANIFEST_FORMAT`].
+    pub format: String,
+    /// File name → lowercase hex sha256.
+    pub files: BTreeMap<String, String>,
+}
+
+/// A loaded bundle: config, networks (on one device, `f32`).
+#[derive(Debug, Clone)]
+pub struct Bundle {
+    /// The config.
+    pub config: BundleConfig,
+    /// `E_s`.
+    pub semantic: Option<AnyEncoder>,
+    /// `E_d`.
+    pub depth: Option<AnyEncoder>,
+    /// The denoiser.
+    pub denoiser: Net,
+    /// The denoiser's weights by name (to rebuild it for another number of views).
+    pub weights: HashMap<String, Tensor>,
+    /// The mean network of residual diffusion and its weights by name.
+    pub mean: Option<(Net, HashMap<String, Tensor>)>,
+    /// Where it was loaded from (a folder, or a label for embedded bundles).
+    pub origin: PathBuf,
+}
+
+impl Bundle {
+    /// Reads and verifies a bundle folder. Its `manifest.json` and `bundle.json` must be regular
+    /// files of at most [`MAX_JSON_METADATA_BYTES`] (checked before they are read). Every file it
+    /// reads, pretrained weights included, lies inside `dir` after links are followed
+    /// ([`veila_data::contained::contained`]): one that leads out is refused unread.
+    pub fn from_dir(dir: &Path, device: &Device) -> Result<Self> {
+        // every file of the folder lies in it: a link out of it is refused unread
+        let inside = |name: &str| -> Result<PathBuf> {
+            Ok(contained(dir, Path::new(name), "bundle file", dir)?)
+        };
+        // weights: regular files under veila-nn's cap, checked before reading
+        let read = |name: &str| -> Result<Vec<u8>> {
+            Ok(veila_nn::checkpoint::read_weights_file(&inside(name)?)?)
+        };
+        let read_json = |name: &str| -> Result<Vec<u8>> {
+            let what = format!("a bundle's {name}");
+            Ok(read_metadata(
+                &inside(name)?,
+                MAX_JSON_METADATA_BYTES,
+                &what,
+            )?)
+        };
+        let manifest = read_json(MANIFEST_FILE)?;
+        let config = read_json(CONFIG_FILE)?;
+        let cfg: BundleConfig = serde_json::from_slice(&config).map_err(|source| Error::Json {
+            path: dir.join(CONFIG_FILE),
+            source,
+        })?;
+        let mut files: Vec<(String, Vec<u8>)> = vec![
+            (MANIFEST_FILE.into(), manifest),
+            (CONFIG_FILE.into(), config),
+        ];
+        for name in cfg.weight_files() {
+            files.push((name.into(), read(name)?));
+        }
+        let refs: Vec<(&str, &[u8])> = files
+            .iter()
+            .map(|(n, b)| (n.as_str(), b.as_slice()))
+            .collect();
+        Self::from_files(&refs, dir, device)
+    }
+
+    /// Builds a bundle from its files in memory (`(file name, bytes)`); `origin` names the source in
+    /// errors. Every file is checked against `manifest.json` first.
+    pub fn from_files(files: &[(&str, &[u8])], origin: &Path, device: &Device) -> Result<Self> {
+        let get = |name: &str| -> Result<&[u8]> {
+            files
+                .iter()
+                .find(|(n, _)| *n == name)
+                .map(|(_, b)| *b)
+                .ok_or_else(|| Error::Checkpoint {
+                    reason: format!("missing file `{name}`"),
+                    path: origin.to_path_buf(),
+                })
+        };
+        let manifest: Manifest =
+            serde_json::from_slice(get(MANIFEST_FILE)?).map_err(|source| Error::Json {
+                path: origin.join(MANIFEST_FILE),
+                source,
+            })?;
+        if manifest.format != MANIFEST_FORMAT {
+            return Err(Error::Checkpoint {
+                reason: format!(
+                    "manifest format `{}`, expected `{MANIFEST_FORMAT}`",
+                    manifest.format
+                ),
+                path: origin.join(MANIFEST_FILE),
+            });
+        }
+        let verified = |name: &str| -> Result<&[u8]> {
+            let bytes = get(name)?;
+            let want = manifest.files.get(name).ok_or_else(|| Error::Checkpoint {
+                reason: format!("`{name}` is not listed in the manifest"),
+                path: origin.join(MANIFEST_FILE),
+            })?;
+            let got = sha256_hex(bytes);
+            if !want.eq_ignore_ascii_case(&got) {
+                return Err(Error::Checkpoint {
+                    reason: format!(
+                        "sha256 mismatch: the manifest says {want}, the file hashes to {got} (corrupted or replaced)"
+                    ),
+                    path: origin.join(name),
+                });
+            }
+            Ok(bytes)
+        };
+        let cfg: BundleConfig =
+            serde_json::from_slice(verified(CONFIG_FILE)?).map_err(|source| Error::Json {
+                path: origin.join(CONFIG_FILE),
+                source,
+            })?;
+        cfg.check(origin)?;
+        let load_encoder = |spec: &EncoderSpec, field: &str, name: &str| -> Result<AnyEncoder> {
+            match &spec.config {
+                Some(c) if !spec.kind.is_pretrained() => {
+                    let bytes = verified(name)?;
+                    Ok(AnyEncoder::from(veila_nn::encoders::load_checked_bytes(
+                        bytes,
+                        &origin.join(name),
+                        DType::F32,
+                        device,
+                        |_| true,
+                        |vb| SmallCnn::new(c, vb),
+                    )?))
+                }
+                _ => spec.load(origin, field, device),
+            }
+        };
+        let semantic = cfg
+            .semantic_encoder
+            .as_ref()
+            .map(|c| load_encoder(c, "semantic_encoder", SEMANTIC_FILE))
+            .transpose()?;
+        let depth = cfg
+            .depth_encoder
+            .as_ref()
+            .map(|c| load_encoder(c, "depth_encoder", DEPTH_FILE))
+            .transpose()?;
+        let path = origin.join(DENOISER_FILE);
+        let expected = veila_nn::checkpoint::expected_tensors(&cfg.denoiser)?;
+        let weights = veila_nn::checkpoint::read_checked_bytes(
+            verified(DENOISER_FILE)?,
+            &path,
+            &expected,
+            device,
+        )?;
+        let denoiser = Net::new(
+            &cfg.denoiser,
+            candle_nn::VarBuilder::from_tensors(weights.clone(), DType::F32, device),
+        )?;
+        let mean = match &cfg.residual {
+            Some(r) => {
+                let path = origin.join(MEAN_FILE);
+                let expected = veila_nn::checkpoint::expected_tensors(&r.mean_net)?;
+                let w = veila_nn::checkpoint::read_checked_bytes(
+                    verified(MEAN_FILE)?,
+                    &path,
+                    &expected,
+                    device,
+                )?;
+                let net = Net::new(
+                    &r.mean_net,
+                    candle_nn::VarBuilder::from_tensors(w.clone(), DType::F32, device),
+                )?;
+                Some((net, w))
+            }
+            None => None,
+        };
+        Ok(Self {
+            config: cfg,
+            semantic,
+            depth,
+            denoiser,
+            weights,
+            mean,
+            origin: origin.to_path_buf(),
+        })
+    }
+
+    /// Writes a bundle folder: every file into a hidden temporary folder beside `dir`, the manifest
+    /// last, then one rename (an existing `dir` is replaced only after the new one is complete).
+    /// `weights` maps each of [`BundleConfig::weight_files`] to its tensors. A pretrained encoder
+    /// whose `weights` is an absolute path (a file the caller chose) is put into the bundle as
+    /// `FIELD.KIND.safetensors` (a hard link where the file system allows, else a copy), and
+    /// `bundle.json` names it there: a bundle names no file outside itself.
+    pub fn save(
+        dir: &Path,
+        config: &BundleConfig,
+        weights: &HashMap<&str, HashMap<String, Tensor>>,
+    ) -> Result<()> {
+        config.check(dir)?;
+        let parent = dir
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        fs::create_dir_all(parent).map_err(|source| Error::Io {
+            action: "creating bundle parent folder",
+            path: parent.to_path_buf(),
+            source,
+        })?;
+        let name = dir
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "bundle".into());
+        let tmp = parent.join(format!(".{name}.tmp-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&tmp);
+        let io = |action: &'static str, path: &Path| {
+            let path = path.to_path_buf();
+            move |source| Error::Io {
+                action,
+                path,
+                source,
+            }
+        };
+        fs::create_dir_all(&tmp).map_err(io("creating bundle folder", &tmp))?;
+        let mut manifest = Manifest {
+            format: MANIFEST_FORMAT.into(),
+            files: BTreeMap::new(),
+        };
+        let mut put = |file: &str, bytes: &[u8]| -> Result<()> {
+            let p = tmp.join(file);
+            fs::write(&p, bytes).map_err(io("writing bundle file", &p))?;
+            manifest.files.insert(file.into(), sha256_hex(bytes));
+            Ok(())
+        };
+        let mut config = BundleConfig {
+            format: BUNDLE_FORMAT.into(),
+            ..config.clone()
+        };
+        // pretrained weights the caller gave by an absolute path (a training config's) come into
+        // the bundle, which then names no file outside itself
+        for (field, spec) in [
+            ("semantic_encoder", &mut config.semantic_encoder),
+            ("depth_encoder", &mut config.depth_encoder),
+        ] {
+            let Some(spec) = spec.as_mut().filter(|s| s.kind.is_pretrained()) else {
+                continue;
+            };
+            let Some(src) = spec.weights.clone().filter(|w| w.is_absolute()) else {
+                continue;
+            };
+            let file = format!("{field}.{}.safetensors", spec.kind);
+            let dst = tmp.join(&file);
+            fs::hard_link(&src, &dst)
+                .or_else(|_| fs::copy(&src, &dst).map(|_| ()))
+                .map_err(io(
+                    "copying pretrained encoder weights into the bundle",
+                    &src,
+                ))?;
+            spec.weights = Some(file.into());
+        }
+        let config = &config;
+        let json = serde_json::to_vec_pretty(config).map_err(|source| Error::Json {
+            path: dir.join(CONFIG_FILE),
+            source,
+        })?;
+        put(CONFIG_FILE, &json)?;
+        for file in config.weight_files() {
+            let tensors = weights.get(file).ok_or_else(|| Error::Checkpoint {
+                reason: format!("no weights given for `{file}`"),
+                path: dir.to_path_buf(),
+            })?;
+            let bytes = safetensors_bytes(tensors, &dir.join(file))?;
+            put(file, &bytes)?;
+        }
+        let json = serde_json::to_vec_pretty(&manifest).map_err(|source| Error::Json {
+            path: dir.join(MANIFEST_FILE),
+            source,
+        })?;
+        let p = tmp.join(MANIFEST_FILE);
+        fs::write(&p, json).map_err(io("writing bundle file", &p))?;
+        if dir.exists() {
+            let old = parent.join(format!(".{name}.old-{}", std::process::id()));
+            let _ = fs::remove_dir_all(&old);
+            fs::rename(dir, &old).map_err(io("replacing bundle", dir))?;
+            fs::rename(&tmp, dir).map_err(io("replacing bundle", dir))?;
+            let _ = fs::remove_dir_all(&old);
+        } else {
+            fs::rename(&tmp, dir).map_err(io("writing bundle", dir))?;
+        }
+        Ok(())
+    }
+}
+
+/// What generation needs of a bundle (the generation methods themselves, [`Bundle::generate`],
+/// [`Bundle::inpaint`], [`Bundle::encode_views`], are in [`crate::app::generate`], which uses this module
+/// and not the other way round).
+impl Bundle {
+    /// The range-image grid `(rows, cols)`.
+    pub fn grid(&self) -> (usize, usize) {
+        (self.config.denoiser.height(), self.config.denoiser.width())
+    }
+
+    /// Whether the denoiser uses the image.
+    pub fn is_conditional(&self) -> bool {
+        self.config.denoiser.conditioning.is_some()
+    }
+
+    pub(crate) fn denoiser_device(&self) -> &Device {
+        self.denoiser
+            .ray_features()
+            .map(|t| t.device())
+            .unwrap_or(&Device::Cpu)
+    }
+
+    /// The denoiser for `views` camera views (a model trained with one view runs on several: no
+    /// weight depends on the number of views).
+    pub(crate) fn net_for_views(&self, views: usize) -> Result<Net> {
+        rebuild_for_views(
+            &self.denoiser,
+            &self.config.denoiser,
+            &self.weights,
+            views,
+            self.denoiser_device(),
+        )
+    }
+
+    /// The mean network of a residual bundle for `views` camera views.
+    pub(crate) fn mean_for_views(&self, views: usize) -> Result<Option<Net>> {
+        match (&self.mean, &self.config.residual) {
+            (Some((net, weights)), Some(r)) => Ok(Some(rebuild_for_views(
+                net,
+                &r.mean_net,
+                weights,
+                views,
+                self.denoiser_device(),
+            )?)),
+            _ => Ok(None),
+        }
+    }
+}
+
+fn rebuild_for_views(
+    net: &Net,
+    cfg: &veila_nn::DenoiserConfig,
+    weights: &HashMap<String, Tensor>,
+    views: usize,
+    device: &Device,
+) -> Result<Net> {
+    let Some(cc) = &cfg.conditioning else {
+        return Ok(net.clone());
+    };
+    if cc.num_views == views {
+        return Ok(net.clone());
+    }
+    let mut cfg = cfg.clone();
+    if let Some(c) = cfg.conditioning.as_mut() {
+        c.num_views = views;
+    }
+    Ok(Net::new(
+        &cfg,
+        VarBuilder::from_tensors(weights.clone(), DType::F32, device),
+    )?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A bundle folder whose `bundle.json` is `make(path)` (its manifest a small placeholder:
+    /// the files are refused before anything is parsed).
+    fn bundle_dir_with_config(make: impl FnOnce(&Path)) -> tempfile::TempDir {
+        let dir = tempfile::tempdir().unwrap();
+        fs::write(dir.path().join(MANIFEST_FILE), b"{}").unwrap();
+        make(&dir.path().join(CONFIG_FILE));
+        dir
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_bundle_json_linked_to_dev_zero_is_refused_naming_it() {
+        let dir = bundle_dir_with_config(|p| std::os::unix::fs::symlink("/dev/zero", p).unwrap());
+        let e = Bundle::from_dir(dir.path(), &Device::Cpu)
+            .unwrap_err()
+            .to_string();
+        // a link out of the bundle folder is refused before the size and type checks look at it
+        assert!(
+            e.contains(CONFIG_FILE) && e.contains("leads through the link `bundle.json`"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_sparse_3_gb_bundle_json_is_refused_unread() {
+        let dir = bundle_dir_with_config(|p| {
+            fs::File::create(p).unwrap().set_len(3 << 30).unwrap();
+        });
+        let e = Bundle::from_dir(dir.path(), &Device::Cpu)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains(CONFIG_FILE)
+                && e.contains(&format!(
+                    "3221225472 bytes, more than the cap of {MAX_JSON_METADATA_BYTES} bytes"
+                )),
+            "{e}"
+        );
+    }
+}
