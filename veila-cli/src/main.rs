@@ -21,11 +21,6 @@ mod progress;
 mod report; // self-contained HTML reports (veila eval --report)
 mod staging; // the output discipline of every command
 mod transport; // the all-reduce of data-parallel `veila train` (TCP on the CPU, NCCL on GPUs)
-// the old paths of the transports, until train_cmd.rs (being split in another branch) names
-// `transport::tcp` and `transport::nccl` itself
-mod dist;
-#[cfg(feature = "nccl")]
-mod dist_nccl;
 // command modules (one per family):
 mod bench_cmd; // bench (training and sampling speed)  (veila-nn, veila-diffusion)
 mod convert_cmd; // convert (datasets into training shards) (veila-data::convert)

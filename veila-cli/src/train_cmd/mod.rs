@@ -15,7 +15,7 @@
 //! Data-parallel: started by a launcher as several processes (torchrun's `RANK` / `WORLD_SIZE` /
 //! `LOCAL_RANK` / `MASTER_ADDR` / `MASTER_PORT`, or Slurm's `SLURM_PROCID` / `SLURM_NTASKS` /
 //! `SLURM_LOCALID` with `MASTER_ADDR` / `MASTER_PORT` exported), the ranks meet at rank 0 over TCP
-//! ([`crate::dist`]), each trains on its share of every global batch of `[train] batch`, the
+//! ([`crate::transport::tcp`]), each trains on its share of every global batch of `[train] batch`, the
 //! gradients are averaged before each update, and rank 0 alone writes checkpoints, the log and the
 //! bundle (the other ranks log to `train_log.rank-N.jsonl`). The output folder must be shared.
 //!
@@ -146,12 +146,14 @@ fn join_ranks(
             group.world_size
         );
     }
-    let tcp = crate::dist::TcpGroup::connect(group, std::time::Duration::from_secs(300))?;
+    let tcp = crate::transport::tcp::TcpGroup::connect(group, std::time::Duration::from_secs(300))?;
     // on GPUs of an NCCL build the gradients go over NCCL (the TCP group only bootstraps it)
     #[cfg(feature = "nccl")]
     let comm: Box<dyn veila_diffusion::trainer::distributed::Communicator> = if device.is_cuda() {
         let mut tcp = tcp;
-        Box::new(crate::dist_nccl::NcclGroup::connect(device, &mut tcp)?)
+        Box::new(crate::transport::nccl::NcclGroup::connect(
+            device, &mut tcp,
+        )?)
     } else {
         Box::new(tcp)
     };

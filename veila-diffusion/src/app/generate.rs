@@ -130,6 +130,47 @@ impl GenerateOptions {
             residual_weight: 1.0,
         }
     }
+
+    /// Checks these options against `bundle`, as sampling with them does, for a door to call
+    /// before any work: the sampler's settings ([`crate::SamplerConfig::validate`]; 0 steps, the mean
+    /// network alone, only for a residual-diffusion bundle), at least one sample, and a
+    /// [`residual_weight`](Self::residual_weight) in [`RESIDUAL_WEIGHT`], other than 1 only for a
+    /// residual-diffusion bundle.
+    pub fn check(&self, bundle: &Bundle) -> Result<()> {
+        self.sampler.validate()?;
+        let residual = bundle.config.residual.is_some();
+        if self.sampler.steps == 0 && !residual {
+            return Err(Error::InvalidConfig {
+                field: "steps",
+                reason: "0 sampler steps (the mean network alone) need a residual-diffusion bundle"
+                    .into(),
+            });
+        }
+        if self.samples == 0 {
+            return Err(Error::InvalidConfig {
+                field: "samples",
+                reason: "must be at least 1".into(),
+            });
+        }
+        let w = self.residual_weight;
+        let (lo, hi) = RESIDUAL_WEIGHT;
+        if !(lo..=hi).contains(&w) {
+            return Err(Error::InvalidConfig {
+                field: "residual_weight",
+                reason: format!("must be between {lo} and {hi}, got {w}"),
+            });
+        }
+        if w != 1.0 && !residual {
+            return Err(Error::InvalidConfig {
+                field: "residual_weight",
+                reason: format!(
+                    "{w} needs a residual-diffusion bundle (one with a mean network to add a \
+                     weighted residual to); leave it at 1"
+                ),
+            });
+        }
+        Ok(())
+    }
 }
 
 impl GenerateOptions {
@@ -282,47 +323,19 @@ fn sample(
     bundle.config.encoding.decode_batch(&x)
 }
 
-/// The options against the bundle: at least one sample, views for an image-conditioned bundle,
-/// zero steps and a residual weight only for residual bundles. Returns whether the draw is
-/// image-conditioned.
+/// The options against the bundle ([`GenerateOptions::check`]) and views for an image-conditioned
+/// bundle. Returns whether the draw is image-conditioned.
 fn check_options(
     bundle: &Bundle,
     views: &[CameraView<'_>],
     options: &GenerateOptions,
 ) -> Result<bool> {
-    if options.samples == 0 {
-        return Err(Error::InvalidConfig {
-            field: "samples",
-            reason: "must be at least 1".into(),
-        });
-    }
+    options.check(bundle)?;
     let conditional = bundle.is_conditional() && !options.unconditional;
     if conditional && views.is_empty() {
         return Err(Error::InvalidConfig {
             field: "views",
             reason: "this bundle is image-conditioned: give at least one camera view".into(),
-        });
-    }
-    let residual = bundle.config.residual.as_ref();
-    if options.sampler.steps == 0 && residual.is_none() {
-        return Err(Error::InvalidConfig {
-            field: "steps",
-            reason: "0 sampler steps work only for residual bundles (their mean network alone)"
-                .into(),
-        });
-    }
-    let weight = options.residual_weight;
-    let (lo, hi) = RESIDUAL_WEIGHT;
-    if !(lo..=hi).contains(&weight) {
-        return Err(Error::InvalidConfig {
-            field: "residual_weight",
-            reason: format!("must be between {lo} and {hi}, got {weight}"),
-        });
-    }
-    if weight != 1.0 && residual.is_none() {
-        return Err(Error::InvalidConfig {
-            field: "residual_weight",
-            reason: "only residual-diffusion bundles have a residual to weight".into(),
         });
     }
     Ok(conditional)

@@ -42,12 +42,12 @@ use veila_data::PointCloud;
 use veila_geom::{PinholeCamera, RangeImage};
 
 use super::bundle::Bundle;
-use super::generate::{CameraView, GenerateOptions, RESIDUAL_WEIGHT, check_inpainting_input};
+use super::generate::{CameraView, GenerateOptions, check_inpainting_input};
 use super::rig::{
     PreparedViews, RigImage, RigView, camera_in_model_frame, pixels_to_model_frame, prepare_view,
     prepare_views, quarter_turns_to_model, range_to_lidar_frame, range_to_model_frame, scan_points,
 };
-use crate::error::{Error, Result};
+use crate::error::Result;
 use crate::sampler::RepaintConfig;
 
 /// One generated scan, in the LiDAR frame of the rig's calibration.
@@ -58,51 +58,6 @@ pub struct Scan {
     pub range: RangeImage,
     /// Its points, one per return, with intensity.
     pub points: PointCloud,
-}
-
-// (beside `GenerateOptions` in generate.rs once that file's split lands, where `sample` then calls
-// it in place of its own copy of these checks)
-impl GenerateOptions {
-    /// Checks these options against `bundle`, as sampling with them does, for a door to call
-    /// before any work: the sampler's settings ([`crate::SamplerConfig::validate`]; 0 steps, the mean
-    /// network alone, only for a residual-diffusion bundle), at least one sample, and a
-    /// [`residual_weight`](Self::residual_weight) in [`RESIDUAL_WEIGHT`], other than 1 only for a
-    /// residual-diffusion bundle.
-    pub fn check(&self, bundle: &Bundle) -> Result<()> {
-        self.sampler.validate()?;
-        let residual = bundle.config.residual.is_some();
-        if self.sampler.steps == 0 && !residual {
-            return Err(Error::InvalidConfig {
-                field: "steps",
-                reason: "0 sampler steps (the mean network alone) need a residual-diffusion bundle"
-                    .into(),
-            });
-        }
-        if self.samples == 0 {
-            return Err(Error::InvalidConfig {
-                field: "samples",
-                reason: "must be at least 1".into(),
-            });
-        }
-        let w = self.residual_weight;
-        let (lo, hi) = RESIDUAL_WEIGHT;
-        if !(lo..=hi).contains(&w) {
-            return Err(Error::InvalidConfig {
-                field: "residual_weight",
-                reason: format!("must be between {lo} and {hi}, got {w}"),
-            });
-        }
-        if w != 1.0 && !residual {
-            return Err(Error::InvalidConfig {
-                field: "residual_weight",
-                reason: format!(
-                    "{w} needs a residual-diffusion bundle (one with a mean network to add a \
-                     weighted residual to); leave it at 1"
-                ),
-            });
-        }
-        Ok(())
-    }
 }
 
 /// A camera rig fitted to a bundle: the views resized to the encoders' input and turned into the
