@@ -203,17 +203,9 @@ pub fn run(args: BenchRealismArgs) -> Result<()> {
     let out = abs(&args.out);
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let report = Report {
-        command: std::iter::once("cargo xtask".to_string())
-            .chain(std::env::args().skip(1))
-            .collect::<Vec<_>>()
-            .join(" "),
+        command: crate::progress::command_line(),
         date_utc: veila_data::stamp::report_time(),
-        machine: format!(
-            "{} CPU cores",
-            std::thread::available_parallelism()
-                .map(|n| n.get())
-                .unwrap_or(1)
-        ),
+        machine: format!("{} CPU cores", crate::progress::cpu_cores()),
         test_split: test_list.display().to_string(),
         folds: bench.num_folds(),
         fold_size: n,

@@ -762,17 +762,9 @@ impl Bench {
     ) -> Report {
         let args = &self.args;
         Report {
-            command: std::iter::once("cargo xtask".to_string())
-                .chain(std::env::args().skip(1))
-                .collect::<Vec<_>>()
-                .join(" "),
+            command: crate::progress::command_line(),
             date_utc: veila_data::stamp::report_time(),
-            machine: format!(
-                "{} CPU cores (CPU only)",
-                std::thread::available_parallelism()
-                    .map(|n| n.get())
-                    .unwrap_or(1)
-            ),
+            machine: format!("{} CPU cores (CPU only)", crate::progress::cpu_cores()),
             test_split: self.test_list.display().to_string(),
             test_frames: self.tests.len(),
             folds: args.folds,

@@ -1,4 +1,4 @@
-//! Progress bars of the long commands, and the workspace they run in.
+//! Progress bars of the long commands, the workspace they run in, and the run a report states.
 
 use std::path::{Path, PathBuf};
 
@@ -11,6 +11,21 @@ pub(crate) fn workspace_root() -> PathBuf {
         .parent()
         .map(Path::to_path_buf)
         .unwrap_or_else(|| PathBuf::from("."))
+}
+
+/// This run's command line as a report states it (`cargo xtask bench-realism --model ...`).
+pub(crate) fn command_line() -> String {
+    std::iter::once("cargo xtask".to_string())
+        .chain(std::env::args().skip(1))
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+/// The CPU cores this run may use, as a report states them.
+pub(crate) fn cpu_cores() -> usize {
+    std::thread::available_parallelism()
+        .map(|n| n.get())
+        .unwrap_or(1)
 }
 
 /// A path a command was given, relative to the workspace root (an absolute path stays as it is:

@@ -80,11 +80,6 @@ pub const MAX_ROWS: usize = 1024;
 /// Columns of the input grid, `cols`.
 pub const MAX_COLS: usize = 16_384;
 
-/// RangeNet++'s SemanticKITTI input means (range, x, y, z, remission).
-pub const SEMANTIC_KITTI_MEAN: [f32; 5] = [12.12, 10.88, 0.23, -1.04, 0.21];
-/// RangeNet++'s SemanticKITTI input standard deviations (range, x, y, z, remission).
-pub const SEMANTIC_KITTI_STD: [f32; 5] = [12.32, 11.47, 6.91, 0.86, 0.16];
-
 /// One encoder stage: `blocks` residual blocks of `channels`, the first with `stride`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct SegStage {
@@ -150,8 +145,9 @@ impl SegmenterConfig {
                 stage(256, 2, 2),
             ],
             head_channels: 128,
-            input_mean: SEMANTIC_KITTI_MEAN,
-            input_std: SEMANTIC_KITTI_STD,
+            // RangeNet++'s SemanticKITTI statistics, as the FRD network normalises
+            input_mean: crate::feature_nets::rangenet::RANGENET_MEAN,
+            input_std: crate::feature_nets::rangenet::RANGENET_STD,
             leaky_slope: 0.1,
             bn_eps: 1e-5,
             bn_momentum: 0.01,
