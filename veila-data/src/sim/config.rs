@@ -498,7 +498,12 @@ pub struct LidarReturnModel {
     /// Incidence knee `c0` of the intensity: `g(c) = (1 + c0^2) c^2 / (c^2 + c0^2)`, `c = cos(theta)`;
     /// near 1 down to `c ~ 2 c0`, falling like `c^2` at grazing incidence (0 = no incidence effect).
     pub incidence_knee: f32,
-    /// Standard deviation of the range noise, metres (0 = exact ranges).
+    /// Standard deviation of the range noise, metres (0 = exact ranges). The default, 1 cm, lies
+    /// within the HDL-64E datasheet's "< 2 cm" accuracy. It gives the ground rings the texture of
+    /// real KITTI scans (median relative step between neighbours along a beam: 0.12-0.16 % in four
+    /// real scans, 0.21 % here at 64 x 1024), where exact ranges put 77 % of those pairs within
+    /// 0.03 % of each other against 11-14 % in the real scans (BENCHMARKS.md, "The simulator's
+    /// range noise").
     pub range_noise_m: f32,
 }
 
@@ -511,7 +516,7 @@ impl Default for LidarReturnModel {
             random_drop: 0.005,
             intensity_half_range_m: 45.0,
             incidence_knee: 0.15,
-            range_noise_m: 0.0,
+            range_noise_m: 0.01,
         }
     }
 }
