@@ -37,8 +37,9 @@
 //! pyramids once per image ([`Denoiser::prepare_condition`]), then call [`Denoiser::forward`] with the
 //! prepared condition at every denoising step.
 //!
-//! **Speed on the CPU** (measured in BENCHMARKS.md, `cargo xtask bench-model`): the convolutions,
-//! GroupNorms and residual sums run as the multi-threaded kernels of [`fused`]. A program of its own
+//! **Speed on the CPU** (measured in BENCHMARKS.md by [`speed::measure`], `cargo xtask
+//! bench-model`): the convolutions, GroupNorms and residual sums run as the multi-threaded kernels
+//! of [`fused`]. A program of its own
 //! gets the `veila` binary's speed with two process settings: a global allocator that keeps freed
 //! memory (mimalloc, with a purge delay of seconds), and two environment variables set before the
 //! first candle operation: `RAYON_NUM_THREADS` (candle 0.11 otherwise counts the cores from
@@ -61,6 +62,7 @@ pub mod pfc;
 pub mod process;
 pub mod recompute;
 pub mod segmenter;
+pub mod speed;
 pub mod unet;
 pub mod weights;
 

@@ -1,7 +1,8 @@
 //! The process settings the engine runs best with, for the programs built on this crate (the
 //! `veila` and `xtask` binaries call [`tune_process`] first in `main`): candle and the allocator
 //! read them from the environment or their option tables once, so they must be set before any
-//! other thread exists.
+//! other thread exists. Also what the benchmarks state of the process: its cores
+//! ([`cpu_cores`]) and its CPU time ([`cpu_seconds`]).
 //!
 //! With the `mimalloc` feature the module also names the allocator the binaries install
 //! (`#[global_allocator] static GLOBAL: veila_nn::process::MiMalloc = veila_nn::process::MiMalloc;`):
@@ -17,6 +18,24 @@ pub use mimalloc::MiMalloc;
 const MI_OPTION_PURGE_DELAY: libmimalloc_sys::mi_option_t = 15;
 #[cfg(feature = "mimalloc")]
 const _: () = assert!(libmimalloc_sys::mi_option_use_numa_nodes == MI_OPTION_PURGE_DELAY + 1);
+
+/// User and system CPU time of this process in seconds (Linux `/proc/self/stat`, 100 ticks per
+/// second; `None` where it cannot be read), for the benchmarks' CPU time over wall time.
+pub fn cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // fields after the parenthesised command name; utime and stime are fields 14 and 15 (1-based)
+    let rest = stat.get(stat.rfind(')')? + 2..)?;
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ut: f64 = f.get(11)?.parse().ok()?;
+    let st: f64 = f.get(12)?.parse().ok()?;
+    Some((ut + st) / 100.0)
+}
+
+/// The CPU cores this process may use (the available parallelism; 1 where it is unknown), as
+/// rayon's default and the benchmark reports count them.
+pub fn cpu_cores() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
+}
 
 /// Process settings that candle and mimalloc read from the environment, set where the user has
 /// not.
@@ -41,7 +60,7 @@ const _: () = assert!(libmimalloc_sys::mi_option_use_numa_nodes == MI_OPTION_PUR
 #[allow(unsafe_code)]
 pub unsafe fn tune_process() {
     if std::env::var_os("RAYON_NUM_THREADS").is_none() {
-        let n = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let n = cpu_cores();
         // SAFETY: the caller guarantees that no other thread exists (nothing reads the
         // environment concurrently).
         unsafe {

@@ -1,44 +1,23 @@
 //! `cargo xtask bench-real`: a bundle on the real frames the tests can reach
 //! (`../shared/data/real`) against their real scans, next to two image-free baselines; also the
 //! real-frame section of `cargo xtask bench-report`. The frames, the scoring and the section's
-//! Markdown are `veila_diffusion::app::real_frames`; this module simulates the mean-scan
-//! baselines and writes the report.
+//! Markdown, and the mean-scan baselines, are `veila_diffusion::app::real_frames`; this module
+//! writes the report. Also the benchmarks' parsers of the libraries' lists (`--sampler`,
+//! `--spacing`, `--protocol`).
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use veila_diffusion::app::Bundle;
-use veila_diffusion::app::BundleConfig;
-use veila_diffusion::app::real_frames::{RealOptions, evaluate, real_root};
-use veila_diffusion::app::sim_examples::{DEFAULT_SCENES, RenderStyle, train_split_of};
-use veila_diffusion::{SamplerConfig, SamplerName, Spacing};
-use veila_geom::RangeImage;
+use veila_diffusion::app::bench_report::Protocol;
+use veila_diffusion::app::real_frames::{
+    RealOptions, evaluate, mean_scan_of, real_root, reference_mean_scan,
+};
+use veila_diffusion::app::report_files::write_report_files;
+use veila_diffusion::app::sim_examples::train_split_of;
+use veila_diffusion::{SamplerName, Spacing};
 
-use crate::progress::{render_split, workspace_root};
-
-/// The mean scan of the street list (`scenes/train.txt`, `frames` frames) and its row label, when
-/// the bundle trained on another list; `None` when it trained on that one.
-pub fn reference_mean_scan(
-    cfg: &BundleConfig,
-    frames: usize,
-) -> Result<Option<(String, RangeImage)>> {
-    let streets = PathBuf::from(DEFAULT_SCENES);
-    if train_split_of(cfg) == streets {
-        return Ok(None);
-    }
-    let train = render_split(
-        &streets,
-        frames,
-        cfg,
-        &RenderStyle::default(),
-        "simulating the street list's baseline frames",
-    )?;
-    let refs: Vec<&RangeImage> = train.iter().map(|e| &e.range).collect();
-    Ok(Some((
-        format!("mean-scan ({})", streets.display()),
-        veila_metrics::baseline::median_scan(&refs)?,
-    )))
-}
+use crate::progress::{Terminal, workspace_root};
 
 /// Arguments of `cargo xtask bench-real`.
 #[derive(Debug, clap::Args)]
@@ -71,21 +50,13 @@ pub fn run(args: BenchRealArgs) -> Result<()> {
     let (model_dir, out) = (abs(&args.model), abs(&args.out));
     let bundle = Bundle::from_dir(&model_dir, &candle_core::Device::Cpu)
         .with_context(|| format!("loading {}", model_dir.display()))?;
-    let train = render_split(
-        &train_split_of(&bundle.config),
-        args.baseline_frames,
-        &bundle.config,
-        &RenderStyle::default(),
-        "simulating baseline train frames",
-    )?;
-    let refs: Vec<&RangeImage> = train.iter().map(|e| &e.range).collect();
-    let median = veila_metrics::baseline::median_scan(&refs)?;
-    let streets = reference_mean_scan(&bundle.config, args.baseline_frames)?;
-    let sampler = sampler_for(
-        args.sampler,
-        args.steps,
-        bundle.config.sampler.guidance_scale,
-    );
+    let cfg = &bundle.config;
+    let progress = Terminal::default();
+    let label = "simulating baseline train frames";
+    let list = train_split_of(cfg);
+    let median = mean_scan_of(&root, &list, args.baseline_frames, cfg, label, &progress)?;
+    let streets = reference_mean_scan(&root, cfg, args.baseline_frames, &progress)?;
+    let sampler = args.sampler.guided(args.steps, cfg.sampler.guidance_scale);
     let report = evaluate(
         &bundle,
         &RealOptions {
@@ -106,11 +77,7 @@ pub fn run(args: BenchRealArgs) -> Result<()> {
         args.model.display(),
         report.markdown()
     );
-    veila_data::atomic::write_atomic(&out.join("report.md"), md.as_bytes())?;
-    veila_data::atomic::write_atomic(
-        &out.join("report.json"),
-        serde_json::to_string_pretty(&report)?.as_bytes(),
-    )?;
+    write_report_files(&out, &report, &md)?;
     print!("{}", report.markdown());
     println!(
         "wrote {} in {:.0} s",
@@ -120,41 +87,51 @@ pub fn run(args: BenchRealArgs) -> Result<()> {
     Ok(())
 }
 
-/// The sampler a benchmark's `--sampler` names ([`SamplerName::config`]), with `steps` steps and
-/// the guidance scale `guidance`.
-pub fn sampler_for(name: SamplerName, steps: usize, guidance: f64) -> SamplerConfig {
-    let mut s = name.config(steps);
-    s.guidance_scale = guidance;
-    s
+/// A benchmark's parser of a flag whose choices are a library's list (`ALL`), by name with help.
+fn list_parser<T>(
+    all: impl IntoIterator<Item = (&'static str, &'static str)>,
+) -> impl clap::builder::TypedValueParser<Value = T>
+where
+    T: std::str::FromStr + Clone + Send + Sync + 'static,
+    T::Err: Into<Box<dyn std::error::Error + Send + Sync>>,
+{
+    use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser};
+    PossibleValuesParser::new(all.into_iter().map(|(n, h)| PossibleValue::new(n).help(h)))
+        .try_map(|name| name.parse::<T>())
 }
 
 /// A benchmark's `--sampler` parser: the choices are the library's list, [`SamplerName::ALL`].
 pub fn sampler_parser() -> impl clap::builder::TypedValueParser<Value = SamplerName> {
-    use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser};
-    PossibleValuesParser::new(
-        SamplerName::ALL.map(|n| PossibleValue::new(n.as_str()).help(n.help())),
-    )
-    .try_map(|name| name.parse::<SamplerName>())
+    list_parser(SamplerName::ALL.map(|n| (n.as_str(), n.help())))
 }
 
 /// A benchmark's `--spacing` parser: the choices are the library's list, [`Spacing::ALL`].
 pub fn spacing_parser() -> impl clap::builder::TypedValueParser<Value = Spacing> {
-    use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser};
-    PossibleValuesParser::new(Spacing::ALL.map(|s| PossibleValue::new(s.as_str()).help(s.help())))
-        .try_map(|name| name.parse::<Spacing>())
+    list_parser(Spacing::ALL.map(|s| (s.as_str(), s.help())))
+}
+
+/// `bench-report --protocol`: the choices are the library's list, [`Protocol::ALL`].
+pub fn protocol_parser() -> impl clap::builder::TypedValueParser<Value = Protocol> {
+    list_parser(Protocol::ALL.map(|p| (p.as_str(), p.help())))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    /// Every benchmark's `--sampler` and `--spacing` offer exactly the library's lists, in order.
+    /// Every benchmark's `--sampler`, `--spacing` and `--protocol` offer exactly the library's
+    /// lists, in order.
     #[test]
     fn every_benchmark_sampler_option_offers_the_librarys_samplers() {
         use clap::CommandFactory;
         let samplers: Vec<String> = SamplerName::ALL.iter().map(|n| n.to_string()).collect();
         let spacings: Vec<String> = Spacing::ALL.iter().map(|s| s.to_string()).collect();
-        for (flag, library, at_least) in [("sampler", samplers, 3), ("spacing", spacings, 1)] {
+        let protocols: Vec<String> = Protocol::ALL.iter().map(|p| p.to_string()).collect();
+        for (flag, library, at_least) in [
+            ("sampler", samplers, 3),
+            ("spacing", spacings, 1),
+            ("protocol", protocols, 1),
+        ] {
             let mut doors = 0;
             for sub in crate::Cli::command().get_subcommands() {
                 for arg in sub.get_arguments().filter(|a| a.get_long() == Some(flag)) {
@@ -169,29 +146,5 @@ mod tests {
             }
             assert!(doors >= at_least, "--{flag}: {doors} benchmarks take it");
         }
-    }
-
-    #[test]
-    fn the_street_mean_scan_joins_only_for_a_bundle_trained_on_another_list() {
-        use veila_diffusion::app::bundle::Variant;
-        let mut cfg = BundleConfig::cpu_default(Variant::Full);
-        cfg.provenance = serde_json::json!({ "train_split": "scenes/train.txt" });
-        assert!(reference_mean_scan(&cfg, 3).unwrap().is_none());
-        // a bundle without a recorded list was trained on the street list
-        cfg.provenance = serde_json::Value::Null;
-        assert!(reference_mean_scan(&cfg, 3).unwrap().is_none());
-        cfg.provenance = serde_json::json!({ "train_split": "scenes/train-v5.txt" });
-        let (label, scan) = reference_mean_scan(&cfg, 4).unwrap().unwrap();
-        assert_eq!(label, "mean-scan (scenes/train.txt)");
-        // the per-pixel median of the street list's first frames, not of the bundle's own list (whose
-        // fourth frame is a T junction)
-        let median = |list: &str| {
-            let frames =
-                render_split(Path::new(list), 4, &cfg, &RenderStyle::default(), "").unwrap();
-            let refs: Vec<&RangeImage> = frames.iter().map(|e| &e.range).collect();
-            veila_metrics::baseline::median_scan(&refs).unwrap()
-        };
-        assert_eq!(scan.range_m, median("scenes/train.txt").range_m);
-        assert_ne!(scan.range_m, median("scenes/train-v5.txt").range_m);
     }
 }

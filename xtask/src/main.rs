@@ -10,10 +10,10 @@ static GLOBAL: veila_nn::process::MiMalloc = veila_nn::process::MiMalloc;
 
 mod bench_encoders; // cargo xtask bench-encoders
 mod bench_memory; // cargo xtask bench-memory (peak host memory of veila train)
-mod bench_model; // cargo xtask bench-model
-mod bench_real; // cargo xtask bench-real (and bench-report's real-frame section)
+mod bench_model; // cargo xtask bench-model (veila-nn speed)
+mod bench_real; // cargo xtask bench-real (veila-diffusion app::real_frames), the list parsers
 mod bench_realism; // cargo xtask bench-realism (veila-diffusion app::realism)
-mod bench_report; // cargo xtask bench-report
+mod bench_report; // cargo xtask bench-report (veila-diffusion app::bench_report)
 mod build_cuda; // cargo xtask build-cuda (CUDA toolkit from PyPI)
 mod check_kernels; // cargo xtask check-kernels (fused ops against their compositions, on a GPU too)
 mod device; // --device of the commands that run networks
@@ -22,7 +22,7 @@ mod kitti_weather; // cargo xtask kitti-weather (veila-data weather)
 mod progress; // progress bars of the long commands, the workspace root
 #[cfg(test)]
 mod tidy;
-mod train_default; // cargo xtask train-default (the bundled model)
+mod train_default; // cargo xtask train-default (the bundled model; veila-diffusion app::sim_recipe)
 
 #[derive(Debug, Parser)]
 #[command(name = "xtask", about = "Veila project automation")]

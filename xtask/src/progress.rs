@@ -1,9 +1,10 @@
-//! Progress bars of the long commands, the workspace they run in, and the run a report states.
+//! Progress bars of the long commands, the workspace they run in, and the command line a report
+//! states.
 
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 
-use veila_diffusion::app::BundleConfig;
-use veila_diffusion::app::sim_examples::{self, RenderStyle, SimExample};
+use veila_diffusion::app::progress::{Bar, Progress};
 
 /// The workspace root (xtask lives one level below it).
 pub(crate) fn workspace_root() -> PathBuf {
@@ -19,13 +20,6 @@ pub(crate) fn command_line() -> String {
         .chain(std::env::args().skip(1))
         .collect::<Vec<_>>()
         .join(" ")
-}
-
-/// The CPU cores this run may use, as a report states them.
-pub(crate) fn cpu_cores() -> usize {
-    std::thread::available_parallelism()
-        .map(|n| n.get())
-        .unwrap_or(1)
 }
 
 /// A path a command was given, relative to the workspace root (an absolute path stays as it is:
@@ -46,20 +40,52 @@ pub(crate) fn progress_bar(len: u64, label: &str) -> indicatif::ProgressBar {
     bar
 }
 
-/// [`sim_examples::render_split_styled`] of a list relative to the workspace, behind a progress
-/// bar named `label`.
-pub(crate) fn render_split(
-    list: &Path,
-    n: usize,
-    cfg: &BundleConfig,
-    style: &RenderStyle,
-    label: &str,
-) -> anyhow::Result<Vec<SimExample>> {
-    let bar = progress_bar(n as u64, label);
-    let out =
-        sim_examples::render_split_styled(&workspace_root().join(list), n, cfg, style, &|| {
-            bar.inc(1)
-        });
-    bar.finish_and_clear();
-    Ok(out?)
+/// The long runs of the libraries (`veila_diffusion::app::progress`) on the terminal: their lines
+/// on stdout, their bars on stderr (hidden, with a line every 50 units of a bar with a status,
+/// when stderr is not a terminal).
+#[derive(Debug, Default)]
+pub(crate) struct Terminal {
+    /// The bar drawn now: lines are printed above it.
+    current: Mutex<Option<indicatif::ProgressBar>>,
+}
+
+impl Progress for Terminal {
+    fn line(&self, text: &str) {
+        let current = self.current.lock().ok().and_then(|b| b.clone());
+        match current.filter(|b| !b.is_finished()) {
+            Some(bar) => bar.suspend(|| println!("{text}")),
+            None => println!("{text}"),
+        }
+    }
+
+    fn bar(&self, label: &str, total: u64) -> Box<dyn Bar + '_> {
+        let bar = progress_bar(total, label);
+        if let Ok(mut current) = self.current.lock() {
+            *current = Some(bar.clone());
+        }
+        Box::new(TerminalBar(bar))
+    }
+}
+
+/// A bar of [`Terminal`], cleared when dropped.
+struct TerminalBar(indicatif::ProgressBar);
+
+impl Bar for TerminalBar {
+    fn inc(&self) {
+        self.0.inc(1);
+    }
+
+    fn set(&self, done: u64, status: &str) {
+        self.0.set_position(done);
+        if self.0.is_hidden() && !status.is_empty() && (done.is_multiple_of(50) || done == 1) {
+            eprintln!("  step {done} {status}");
+        }
+        self.0.set_message(status.to_string());
+    }
+}
+
+impl Drop for TerminalBar {
+    fn drop(&mut self) {
+        self.0.finish_and_clear();
+    }
 }

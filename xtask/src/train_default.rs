@@ -2,24 +2,19 @@
 //! the simulator's train split with the recipe `veila train` runs too
 //! (`veila_diffusion::app::recipe`): the two small CNN encoders first (semantics, depth), then the
 //! mean network and the denoiser on their frozen features. Resumable: checkpoints and the trained
-//! encoders go to `--work` and a rerun picks up the newest ones.
+//! encoders go to `--work` and a rerun picks up the newest ones. The recipe and its run are
+//! `veila_diffusion::app::sim_recipe`; this driver parses the flags and shows the run.
 
-use std::ops::ControlFlow;
 use std::path::PathBuf;
-use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::Args;
-use veila_diffusion::app::bundle::{Bundle, BundleConfig, Method, Variant};
-use veila_diffusion::app::sim_recipe::SimRecipe;
-use veila_diffusion::app::{
-    EncoderData, EncoderEvent, EncoderSource, RecipeInput, TrainExample, run_recipe,
-};
-use veila_diffusion::{LossAverage, StepStats, TrainObserver};
+use veila_diffusion::app::bundle::{BundleConfig, Method, Variant};
+use veila_diffusion::app::sim_examples::{self, TrainImages};
+use veila_diffusion::app::sim_recipe::{SimRecipe, SimRun};
 
 use crate::device::DeviceArg;
-use crate::progress::workspace_root;
-use veila_diffusion::app::sim_examples::{self, SimExample, TrainImages};
+use crate::progress::{Terminal, workspace_root};
 
 /// Arguments of `cargo xtask train-default`.
 #[derive(Debug, Args, Clone)]
@@ -150,75 +145,6 @@ pub struct TrainDefaultArgs {
     pub snapshot_every: Option<u64>,
 }
 
-struct Progress {
-    bar: indicatif::ProgressBar,
-    loss: LossAverage,
-    /// Bundles of the EMA weights written along the run (the denoiser's stage only).
-    snapshots: Option<Snapshots>,
-}
-
-/// What a learning-curve snapshot needs besides the checkpoint's EMA weights.
-#[derive(Clone)]
-struct Snapshots {
-    every: u64,
-    dir: PathBuf,
-    config: BundleConfig,
-    /// The encoders' weights by bundle file (none for an unconditional model).
-    encoders: Vec<(
-        &'static str,
-        std::collections::HashMap<String, candle_core::Tensor>,
-    )>,
-}
-
-impl Snapshots {
-    fn write(&self, step: u64, checkpoint: &std::path::Path) -> Result<PathBuf> {
-        let ema = candle_core::safetensors::load(
-            checkpoint.join("ema.safetensors"),
-            &candle_core::Device::Cpu,
-        )
-        .with_context(|| format!("reading {}", checkpoint.display()))?;
-        let mut weights: std::collections::HashMap<&str, _> =
-            self.encoders.iter().map(|(f, w)| (*f, w.clone())).collect();
-        weights.insert(veila_diffusion::app::bundle::DENOISER_FILE, ema);
-        let mut config = self.config.clone();
-        config.provenance = serde_json::json!({ "snapshot_of_step": step, "trained_by": "cargo xtask train-default" });
-        let out = self.dir.join(format!("step-{step:010}"));
-        Bundle::save(&out, &config, &weights)?;
-        Ok(out)
-    }
-}
-
-impl Drop for Progress {
-    fn drop(&mut self) {
-        self.bar.finish_and_clear();
-    }
-}
-
-impl<M: veila_diffusion::Denoiser> TrainObserver<M> for Progress {
-    fn on_step(&mut self, s: &StepStats) -> ControlFlow<()> {
-        let line = self.loss.line(s);
-        self.bar.set_position(s.step);
-        if self.bar.is_hidden() && (s.step.is_multiple_of(50) || s.step == 1) {
-            eprintln!("  step {} {line}", s.step);
-        }
-        self.bar.set_message(line);
-        ControlFlow::Continue(())
-    }
-
-    fn on_checkpoint(&mut self, step: u64, path: &std::path::Path) {
-        if let Some(s) = &self.snapshots
-            && step.is_multiple_of(s.every)
-        {
-            match s.write(step, path) {
-                Ok(out) => self.bar.println(format!("  snapshot {}", out.display())),
-                Err(e) => self
-                    .bar
-                    .println(format!("  snapshot of step {step} failed: {e:#}")),
-            }
-        }
-    }
-}
-
 impl TrainDefaultArgs {
     /// The recipe these flags ask for.
     pub fn recipe(&self) -> SimRecipe {
@@ -256,298 +182,33 @@ impl TrainDefaultArgs {
     }
 }
 
-/// Trains and writes a bundle; returns the bundle config written.
+/// Trains and writes a bundle (`veila_diffusion::app::sim_recipe`); returns the bundle config
+/// written.
 pub fn run(args: TrainDefaultArgs) -> Result<BundleConfig> {
-    run_with(args, None)
-}
-
-/// [`run`] on already simulated training frames (`None`: simulate `args.frames` of them).
-pub fn run_with(args: TrainDefaultArgs, frames: Option<&[SimExample]>) -> Result<BundleConfig> {
-    let t_all = Instant::now();
     let recipe = args.recipe();
-    let render_style = args
-        .images
-        .checked_style(args.randomize_share, args.wide_facades)?;
     let device = args.device.open()?;
     let root = workspace_root();
-    let mut cfg = recipe.bundle_config()?;
-    if args.sky_depth && args.encoders_from.is_some() {
-        anyhow::bail!(
-            "--sky-depth changes how the depth encoder trains, and --encoders-from reuses trained ones: pass one of them"
-        );
-    }
-    if args.encoder_scenes.is_some() && args.encoders_from.is_some() {
-        anyhow::bail!(
-            "--encoder-scenes chooses the frames the encoders train on, and --encoders-from reuses trained ones: pass one of them"
-        );
-    }
-    let encoder_list = recipe.encoder_list();
-    if encoder_list.is_some() && frames.is_some() {
-        anyhow::bail!(
-            "training on given frames trains the encoders on them too: pass --encoders-from, or --encoder-scenes equal to --scenes"
-        );
-    }
-    let method = cfg.method();
-    println!(
-        "train-default: variant {} ({}), method {} ({}), {} frames, encoders {} steps, denoiser {} steps x batch {}, seed {}",
-        args.variant.name(),
-        args.variant.label(),
-        method.name(),
-        method.label(),
-        args.frames,
-        args.encoder_steps,
-        args.steps,
-        args.batch,
-        args.seed
-    );
-    let t = Instant::now();
-    let rendered;
-    let examples: &[SimExample] = match frames {
-        Some(f) => f,
-        None => {
-            rendered = crate::progress::render_split(
-                &args.scenes,
-                args.frames,
-                &cfg,
-                &render_style,
-                "simulating train frames",
-            )?;
-            &rendered
-        }
+    let work = match &args.work {
+        Some(w) => w.clone(),
+        None => root.join("target/train-default").join(format!(
+            "{}-{}",
+            args.variant.name(),
+            recipe.bundle_config()?.method().name()
+        )),
     };
-    // the encoders' own frames when they train on another list (same count, style and seeds;
-    // never with given frames, refused above)
-    let encoder_rendered;
-    let encoder_examples: &[SimExample] = match &encoder_list {
-        Some(list) => {
-            encoder_rendered = crate::progress::render_split(
-                list,
-                args.frames,
-                &cfg,
-                &render_style,
-                "simulating the encoders' train frames",
-            )?;
-            &encoder_rendered
-        }
-        None => examples,
+    let run = SimRun {
+        root: &root,
+        out: &args.out,
+        work: &work,
+        device: &device,
+        device_name: &args.device.name(),
+        snapshot_every: args.snapshot_every,
+        frames: None,
     };
-    let sim_secs = t.elapsed().as_secs_f64();
-    match &encoder_list {
-        Some(l) => println!(
-            "  simulated {} frames in {sim_secs:.1} s (networks: {}; encoders: {})",
-            examples.len() + encoder_examples.len(),
-            args.scenes.display(),
-            l.display()
-        ),
-        None => println!("  simulated {} frames in {sim_secs:.1} s", examples.len()),
-    }
-
-    let work = args.work.clone().unwrap_or_else(|| {
-        root.join("target/train-default")
-            .join(format!("{}-{}", args.variant.name(), method.name()))
-    });
-    let settings = recipe.settings();
-    let run_key = recipe.run_key(&cfg, &settings, examples.len());
-    veila_diffusion::claim_checkpoint_dir(&work, &run_key)
-        .with_context(|| "pass another --work to start a separate run")?;
-
-    let images: Vec<Vec<u8>> = encoder_examples.iter().map(|e| e.rgb.clone()).collect();
-    let labels: Vec<Vec<u32>> = encoder_examples.iter().map(|e| e.labels.clone()).collect();
-    let sky_m = recipe.sky_target_m(&cfg).context("--sky-depth")?;
-    let depths: Vec<Vec<f32>> = encoder_examples
-        .iter()
-        .map(|e| match sky_m {
-            Some(far) => sim_examples::depth_with_sky_at(&e.depth_m, far),
-            None => e.depth_m.clone(),
-        })
-        .collect();
-    let cameras: Vec<veila_geom::PinholeCamera> =
-        encoder_examples.iter().map(|e| e.camera).collect();
-    let enc_dir = work.join(recipe.encoder_dir_name(examples.len()));
-    let encoders = match &args.encoders_from {
-        Some(dir) => EncoderSource::Bundle(dir),
-        None => EncoderSource::Train {
-            data: EncoderData::Memory {
-                images: &images,
-                labels: Some(&labels),
-                depth_m: &depths,
-                cameras: Some(&cameras),
-            },
-            dir: &enc_dir,
-        },
-    };
-    let init = args
-        .init_from
-        .as_ref()
-        .map(|dir| {
-            Bundle::from_dir(dir, &device)
-                .with_context(|| format!("loading initial weights from {}", dir.display()))
-        })
-        .transpose()?;
-    let mean_init = init.as_ref().and_then(|b| b.mean.as_ref().map(|(_, w)| w));
-    let train_examples: Vec<TrainExample> = examples
-        .iter()
-        .map(|e| e.train_example(&cfg))
-        .collect::<veila_diffusion::Result<_>>()?;
-    let snapshots = match args.snapshot_every {
-        None => None,
-        Some(every) => Some(snapshot_plan(&args, &cfg, &work, every)?),
-    };
-    let t = Instant::now();
-    let mut bar: Option<indicatif::ProgressBar> = None;
-    let outcome = run_recipe(
-        &mut cfg,
-        RecipeInput {
-            encoders,
-            examples: (&train_examples).into(),
-            work_dir: &work,
-            init: init.as_ref().map(|b| &b.weights),
-            mean_init,
-            parallel: None,
-        },
-        &settings,
-        &device,
-        |event| match event {
-            EncoderEvent::Reused(which, path) => {
-                println!("  {} encoder: reusing {}", which.name(), path.display())
-            }
-            EncoderEvent::Step(which, s, total) => {
-                let b = bar.get_or_insert_with(|| {
-                    let label = format!("{} encoder", which.name());
-                    crate::progress::progress_bar(total as u64, &label)
-                });
-                b.set_position(s.step as u64);
-                b.set_message(format!("loss {:.4}", s.loss));
-            }
-            EncoderEvent::Trained(which, last) => {
-                if let Some(b) = bar.take() {
-                    b.finish_and_clear();
-                }
-                println!("  {} encoder: final batch loss {last:.4}", which.name());
-            }
-        },
-        |stage, p, step| {
-            println!(
-                "  {}: resumed from {} (step {step})",
-                stage.name(),
-                p.display()
-            )
-        },
-        |stage, total| Progress {
-            bar: crate::progress::progress_bar(total, stage.name()),
-            loss: LossAverage::default(),
-            snapshots: snapshots
-                .clone()
-                .filter(|_| stage == veila_diffusion::app::Stage::Denoiser),
-        },
-    )
-    .with_context(|| match &args.encoders_from {
-        Some(dir) => format!("training (encoders from {})", dir.display()),
-        None => format!("training in {}", work.display()),
-    })?;
-    let den_secs = t.elapsed().as_secs_f64() - outcome.encoder_seconds;
-    let den = outcome
-        .fit
-        .denoiser
-        .as_ref()
-        .context("the mean network's run stopped early")?;
-    if let Some(dir) = &args.init_from {
-        println!(
-            "  initialised {} of {} denoiser tensors from {}",
-            den.initialised,
-            den.ema_weights.len(),
-            dir.display()
-        );
-        if let Some(m) = &outcome.fit.mean {
-            println!(
-                "  initialised {} of {} mean-network tensors from {}",
-                m.initialised,
-                m.ema_weights.len(),
-                dir.display()
-            );
-        }
-    }
-    if let Some(m) = &outcome.fit.mean {
-        println!(
-            "  mean network: {} steps this run, mean loss {}, {:.0} s; residual scale {:?}",
-            m.summary.steps_run,
-            m.summary.mean_loss_text(),
-            outcome.fit.seconds[0],
-            cfg.residual.as_ref().map(|r| &r.scale)
-        );
-    }
-    println!(
-        "  denoiser: {} steps this run, mean loss {}, {} skipped, {:.0} s",
-        den.summary.steps_run,
-        den.summary.mean_loss_text(),
-        den.summary.skipped,
-        outcome.fit.seconds[1]
-    );
-    cfg.provenance = recipe.provenance(
-        &cfg,
-        &outcome,
-        &args.device.name(),
-        examples.len(),
-        sim_secs,
-        den_secs,
-    )?;
-    Bundle::save(&args.out, &cfg, &outcome.into_weights())?;
-    // read back through the verifying loader
-    Bundle::from_dir(&args.out, &device)
-        .with_context(|| format!("re-reading {}", args.out.display()))?;
-    println!(
-        "wrote {} in {:.0} s ({} parameters in the denoiser)",
-        args.out.display(),
-        t_all.elapsed().as_secs_f64(),
-        veila_nn::checkpoint::parameter_count(&cfg.denoiser)?
-    );
-    Ok(cfg)
+    Ok(recipe.train(&run, &Terminal::default())?)
 }
 
 /// `--images`: a [`TrainImages`] style by its name.
-/// The snapshots `--snapshot-every` asks for: refused for the residual method and for encoders
-/// trained in this run (a snapshot takes them from `--encoders-from`).
-fn snapshot_plan(
-    args: &TrainDefaultArgs,
-    cfg: &BundleConfig,
-    work: &std::path::Path,
-    every: u64,
-) -> Result<Snapshots> {
-    if every == 0 || !every.is_multiple_of(args.checkpoint_every.max(1)) {
-        anyhow::bail!(
-            "--snapshot-every {every} must be a positive multiple of --checkpoint-every {}",
-            args.checkpoint_every
-        );
-    }
-    if cfg.residual.is_some() {
-        anyhow::bail!(
-            "--snapshot-every: the residual method's bundle needs its finished mean network"
-        );
-    }
-    let mut encoders = Vec::new();
-    if cfg.denoiser.conditioning.is_some() {
-        let Some(dir) = &args.encoders_from else {
-            anyhow::bail!("--snapshot-every with a conditional model needs --encoders-from");
-        };
-        for file in [
-            veila_diffusion::app::bundle::SEMANTIC_FILE,
-            veila_diffusion::app::bundle::DEPTH_FILE,
-        ] {
-            if cfg.weight_files().contains(&file) {
-                let w = candle_core::safetensors::load(dir.join(file), &candle_core::Device::Cpu)
-                    .with_context(|| format!("reading {}", dir.join(file).display()))?;
-                encoders.push((file, w));
-            }
-        }
-    }
-    Ok(Snapshots {
-        every,
-        dir: work.join("snapshots"),
-        config: cfg.clone(),
-        encoders,
-    })
-}
-
 fn parse_images(s: &str) -> Result<TrainImages> {
     Ok(s.parse()?)
 }
@@ -574,12 +235,9 @@ mod tests {
     fn the_flags_default_to_the_shipped_recipe() {
         // the shipped recipe: networks on train-v5, encoders on the street list
         let r = parse(&[]).recipe();
+        assert_eq!(r, SimRecipe::shipped());
         assert_eq!(r.scenes, Path::new("scenes/train-v5.txt"));
         assert_eq!(r.encoder_list(), Some(PathBuf::from("scenes/train.txt")));
-        assert_eq!(
-            (r.images, r.frames, r.steps),
-            (TrainImages::Materials, 960, 12500)
-        );
     }
 
     #[test]
@@ -593,7 +251,7 @@ mod tests {
         a.out = std::env::temp_dir().join("veila-never-written");
         let e = run(a).unwrap_err().to_string();
         assert!(
-            e.contains("--encoder-scenes") && e.contains("--encoders-from"),
+            e.contains("encoder_scenes") && e.contains("encoders_from"),
             "{e}"
         );
         assert!(!std::env::temp_dir().join("veila-never-written").exists());

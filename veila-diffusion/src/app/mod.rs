@@ -21,6 +21,8 @@
 //! * [`crossmodal_eval`]: the cross-modal metrics (CM-DC, CM-SC) of
 //!   generated scan files for `veila eval`: each scan's calibration, maps or camera image found,
 //!   Depth-Anything-V2 / SegFormer run, the scores averaged (the math: `veila_metrics::crossmodal`).
+//! * [`progress`]: how a long run (a recipe, a benchmark) shows itself to the binary that drives
+//!   it: lines and bars.
 //! * [`scoring`]: generated scans scored against simulated frames (the set metrics per fold
 //!   with the encoders and feature networks that feed them; `cargo xtask bench-report`).
 //! * `sim_examples` (feature `sim`): simulated frames of a split list at a bundle's size, for
@@ -29,15 +31,21 @@
 //!   samples against their real scans, with the image-free baselines (`cargo xtask bench-real`,
 //!   `bench-report`).
 //! * `realism` (feature `sim`): the realism benchmark: realism, texture, faithfulness,
-//!   memorisation and diversity of generated scans against their data floors (`cargo xtask
-//!   bench-realism`).
+//!   memorisation and diversity of generated scans against their data floors, its whole run and
+//!   report (`cargo xtask bench-realism`).
+//! * `bench_report` (feature `sim`): the benchmark report: the bundle against the baselines, the
+//!   floor and its ablation variants, the sampler sweep, the real frames (`cargo xtask
+//!   bench-report`).
+//! * `report_files` (feature `sim`): a benchmark's `report.json` and `report.md`.
 //! * `sim_recipe` (feature `sim`): the bundled model's recipe on simulator frames (`cargo xtask
 //!   train-default`): its options, the run key of its work folder, the folder of its trained
-//!   encoders and the provenance it writes.
+//!   encoders, the provenance it writes, and the run itself.
 //! * `feature_net_data` (feature `sim`): simulated training scans of the FRD / FPD feature
 //!   networks (`cargo xtask train-feature-nets`).
 //! * [`nn`]: the Veila U-Net from `veila-nn` as a [`crate::Denoiser`] ([`VeilaDenoiser`]).
 
+#[cfg(feature = "sim")]
+pub mod bench_report;
 pub mod bundle;
 pub mod crossmodal_eval;
 pub mod dataset;
@@ -48,11 +56,14 @@ pub mod generate;
 pub mod mean;
 pub mod nn;
 pub mod pipeline;
+pub mod progress;
 #[cfg(feature = "sim")]
 pub mod real_frames;
 #[cfg(feature = "sim")]
 pub mod realism;
 pub mod recipe;
+#[cfg(feature = "sim")]
+pub mod report_files;
 pub mod rig;
 pub mod scoring;
 #[cfg(feature = "sim")]

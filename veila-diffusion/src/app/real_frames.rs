@@ -1,8 +1,8 @@
 //! The real frames the tests can reach (`../shared/data/real`): a bundle's scans of each against
 //! the real scan, next to two image-free baselines ([`evaluate`], [`RealReport::markdown`]). The
 //! real-frame section of `cargo xtask bench-report`, and on its own `cargo xtask bench-real`
-//! (seconds; for iterating on the sim-to-real gap), which simulate the mean-scan baselines and
-//! write the report.
+//! (seconds; for iterating on the sim-to-real gap), which write the report. The mean-scan
+//! baselines are simulated here too ([`mean_scan_of`], [`reference_mean_scan`]).
 //!
 //! Per frame (with so few frames every frame is its own row, never a mean):
 //! - **range MAE in the camera's view** (m): mean |generated - real| over the range-grid pixels
@@ -51,9 +51,11 @@ use veila_metrics::view::{
     flat_ground_depth,
 };
 
+use super::progress::Progress;
 use super::rig::{load_view, prepare_view};
 use super::scoring::encoder_maps;
-use super::{Bundle, GenerateOptions, ScanPipeline};
+use super::sim_examples::{DEFAULT_SCENES, RenderStyle, render_split_shown, train_split_of};
+use super::{Bundle, BundleConfig, GenerateOptions, ScanPipeline};
 use crate::SamplerConfig;
 use crate::error::{Error, Result};
 
@@ -94,6 +96,40 @@ pub struct RealFrame {
 /// The folder of the shared real samples beside the workspace.
 pub fn real_root(workspace: &Path) -> PathBuf {
     workspace.join("../shared/data/real")
+}
+
+/// The mean-scan baseline of a scene list: the per-pixel median of the simulated scans of its
+/// first `frames` frames (`list` relative to the workspace `root`), rendered for `cfg`.
+pub fn mean_scan_of(
+    root: &Path,
+    list: &Path,
+    frames: usize,
+    cfg: &BundleConfig,
+    label: &str,
+    progress: &dyn Progress,
+) -> Result<RangeImage> {
+    let style = RenderStyle::default();
+    let train = render_split_shown(root, list, frames, cfg, &style, label, progress)?;
+    let refs: Vec<&RangeImage> = train.iter().map(|e| &e.range).collect();
+    Ok(veila_metrics::baseline::median_scan(&refs)?)
+}
+
+/// The mean scan of the street list ([`DEFAULT_SCENES`], `frames` frames) and its row label, when
+/// the bundle of `cfg` trained on another list; `None` when it trained on that one
+/// ([`RealOptions::reference_mean_scan`]).
+pub fn reference_mean_scan(
+    root: &Path,
+    cfg: &BundleConfig,
+    frames: usize,
+    progress: &dyn Progress,
+) -> Result<Option<(String, RangeImage)>> {
+    let streets = PathBuf::from(DEFAULT_SCENES);
+    if train_split_of(cfg) == streets {
+        return Ok(None);
+    }
+    let label = "simulating the street list's baseline frames";
+    let median = mean_scan_of(root, &streets, frames, cfg, label, progress)?;
+    Ok(Some((format!("mean-scan ({})", streets.display()), median)))
 }
 
 /// Every real frame present under `root`, and a line for each one that is missing.
@@ -499,6 +535,37 @@ impl RealReport {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_street_mean_scan_joins_only_for_a_bundle_trained_on_another_list() {
+        use crate::app::bundle::Variant;
+        let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let mut cfg = BundleConfig::cpu_default(Variant::Full);
+        cfg.provenance = serde_json::json!({ "train_split": "scenes/train.txt" });
+        assert!(
+            reference_mean_scan(&workspace, &cfg, 3, &())
+                .unwrap()
+                .is_none()
+        );
+        // a bundle without a recorded list was trained on the street list
+        cfg.provenance = serde_json::Value::Null;
+        assert!(
+            reference_mean_scan(&workspace, &cfg, 3, &())
+                .unwrap()
+                .is_none()
+        );
+        cfg.provenance = serde_json::json!({ "train_split": "scenes/train-v5.txt" });
+        let (label, scan) = reference_mean_scan(&workspace, &cfg, 4, &())
+            .unwrap()
+            .unwrap();
+        assert_eq!(label, "mean-scan (scenes/train.txt)");
+        // the per-pixel median of the street list's first frames, not of the bundle's own list
+        // (whose fourth frame is a T junction)
+        let median =
+            |list: &str| mean_scan_of(&workspace, Path::new(list), 4, &cfg, "", &()).unwrap();
+        assert_eq!(scan.range_m, median("scenes/train.txt").range_m);
+        assert_ne!(scan.range_m, median("scenes/train-v5.txt").range_m);
+    }
 
     #[test]
     fn every_nuscenes_camera_is_a_frame_of_its_own_image() {

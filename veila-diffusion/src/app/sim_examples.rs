@@ -12,7 +12,7 @@
 //!   list beside a training list).
 //! * [`render_split`] / [`render_split_styled`]: the first `n` frames of a list, rendered in
 //!   parallel; byte-identical for a given list, bundle config and [`RenderStyle`] whatever the
-//!   thread count.
+//!   thread count ([`render_split_shown`]: with a progress bar).
 //! * [`TrainImages`] and [`RenderStyle`]: issue 18's domain randomisation of the camera images
 //!   (scene appearance, sensor model), as a bundle's provenance records it.
 //! * [`retrieval_baseline`]: the zero-skill retrieval baseline on simulated frames.
@@ -28,6 +28,7 @@ use veila_geom::{PinholeCamera, ProjectionOptions, Projector, RangeImage};
 use super::bundle::{Bundle, BundleConfig};
 use super::dataset::{TrainExample, TrainView};
 use super::generate::CameraView;
+use super::progress::Progress;
 use super::rig::prepare_view;
 use crate::error::{Error, Result, invalid};
 
@@ -456,6 +457,21 @@ pub fn render_split_styled(
             Ok(ex)
         })
         .collect()
+}
+
+/// [`render_split_styled`] of a list relative to the workspace `root`, shown as a bar named
+/// `label` (the benchmarks' and the recipe's frames).
+pub fn render_split_shown(
+    root: &Path,
+    list: &Path,
+    n: usize,
+    cfg: &BundleConfig,
+    style: &RenderStyle,
+    label: &str,
+    progress: &dyn Progress,
+) -> Result<Vec<SimExample>> {
+    let bar = progress.bar(label, n as u64);
+    render_split_styled(&root.join(list), n, cfg, style, &|| bar.inc())
 }
 
 /// Item `k` of a split: scene file `path` at `seed`, rendered in `style`.

@@ -121,6 +121,15 @@ impl SamplerName {
             SamplerName::Dpm => SamplerConfig::dpm_solver_pp_2m(steps),
         }
     }
+
+    /// [`config`](Self::config) with the guidance scale `guidance` (a benchmark's `--sampler` and
+    /// `--steps` with a bundle's guidance).
+    pub fn guided(self, steps: usize, guidance: f64) -> SamplerConfig {
+        SamplerConfig {
+            guidance_scale: guidance,
+            ..self.config(steps)
+        }
+    }
 }
 
 impl std::fmt::Display for SamplerName {

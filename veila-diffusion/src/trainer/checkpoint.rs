@@ -27,7 +27,8 @@ use crate::objective::DiffusionConfig;
 
 const FORMAT_VERSION: u32 = 1;
 const MODEL_FILE: &str = "model.safetensors";
-const EMA_FILE: &str = "ema.safetensors";
+/// The EMA weights' file of a checkpoint (load these for sampling).
+pub const EMA_FILE: &str = "ema.safetensors";
 const OPT_FILE: &str = "optimizer.safetensors";
 const STATE_FILE: &str = "state.json";
 

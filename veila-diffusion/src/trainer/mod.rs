@@ -54,7 +54,7 @@ mod progress;
 
 pub use batch::{Batch, BatchSource, part_range};
 pub use checkpoint::{
-    CheckpointState, RUN_RECORD_FILE, RngState, TensorFileReader, claim_checkpoint_dir,
+    CheckpointState, EMA_FILE, RUN_RECORD_FILE, RngState, TensorFileReader, claim_checkpoint_dir,
     find_latest_checkpoint,
 };
 pub use config::{ActivationCheckpointing, Precision, TrainConfig};

@@ -1,5 +1,7 @@
 //! Size and reach rules of the sources: the binary's files stay small (every `veila-cli` source
-//! file at most [`CLI_MAX_LINES`] lines: logic beyond plumbing belongs in a library), and no
+//! file at most [`CLI_MAX_LINES`] lines: logic beyond plumbing belongs in a library), xtask stays
+//! automation (at most [`XTASK_MAX_LINES`] lines in all: a benchmark's logic lives in the library
+//! it measures, its command is a thin driver), and no
 //! source file includes another's by `#[path]` (a file shared by two crates belongs in a library
 //! both depend on).
 
@@ -7,6 +9,9 @@ use std::path::{Path, PathBuf};
 
 /// The most lines a `veila-cli` source file may have.
 pub(super) const CLI_MAX_LINES: usize = 600;
+
+/// The most lines xtask's sources may have together.
+pub(super) const XTASK_MAX_LINES: usize = 5_000;
 
 /// The `.rs` files under `dir`, recursively, sorted.
 pub(super) fn rust_files(dir: &Path) -> Vec<PathBuf> {
@@ -38,6 +43,15 @@ fn long_files(dir: &Path, max: usize) -> Vec<String> {
             (n > max).then(|| format!("{} ({n} lines)", p.display()))
         })
         .collect()
+}
+
+/// The lines of every file under `dir`, together.
+fn total_lines(dir: &Path) -> usize {
+    rust_files(dir)
+        .iter()
+        .filter_map(|p| std::fs::read_to_string(p).ok())
+        .map(|text| text.lines().count())
+        .sum()
 }
 
 /// `path: line` for every `#[path = ...]` attribute in the files under `dirs`.
@@ -90,6 +104,15 @@ fn cli_files_stay_small() {
 }
 
 #[test]
+fn xtask_stays_automation() {
+    let n = total_lines(&super::workspace_root().join("xtask/src"));
+    assert!(
+        n <= XTASK_MAX_LINES,
+        "xtask has {n} lines, over {XTASK_MAX_LINES}: move benchmark and recipe logic into the library it belongs to, and keep the command a thin driver"
+    );
+}
+
+#[test]
 fn no_path_includes() {
     let hits = path_includes(&crate_dirs());
     assert!(
@@ -112,6 +135,7 @@ fn size_and_path_checks_catch_planted_files() {
     .unwrap();
     let long = long_files(dir.path(), 5);
     assert_eq!(long.len(), 1, "{long:?}");
+    assert_eq!(total_lines(dir.path()), 3 + 7 + 3);
     assert!(long[0].contains("long.rs (7 lines)"), "{long:?}");
     let inc = path_includes(&[dir.path().to_path_buf()]);
     assert_eq!(inc.len(), 1, "{inc:?}");

@@ -3,17 +3,24 @@
 //! frames themselves — the bundle config, the [`RecipeSettings`], the key that ties a resumable
 //! work folder to its run ([`SimRecipe::run_key`]), the folder name of its trained encoders
 //! ([`SimRecipe::encoder_dir_name`]) and the provenance written into the bundle
-//! ([`SimRecipe::provenance`]). The binary renders the frames, draws progress and writes the
-//! bundle; `veila train`'s counterparts on converted shards are in [`super::train_config`].
+//! ([`SimRecipe::provenance`]). The run itself, [`SimRecipe::train`] (`run.rs`), renders the
+//! frames, trains through [`super::recipe::run_recipe`] and writes the bundle, with learning-curve
+//! snapshots on request (`snapshots.rs`); the binary parses the flags and draws the progress.
+//! `veila train`'s counterparts on converted shards are in [`super::train_config`].
 
 use std::path::{Path, PathBuf};
 
 use super::bundle::{BundleConfig, Method, Variant};
 use super::encoder_train::EncoderAugment;
 use super::recipe::{RecipeOutcome, RecipeSettings};
-use super::sim_examples::{DEFAULT_SCENES, TrainImages};
+use super::sim_examples::{DEFAULT_SCENES, RECIPE_SCENES, TrainImages};
 use crate::error::{Error, Result, invalid};
 use crate::trainer::{ActivationCheckpointing, Clock, Precision};
+
+mod run;
+mod snapshots;
+
+pub use run::SimRun;
 
 /// The options of one run of the recipe on simulator frames (`cargo xtask train-default`'s flags;
 /// its defaults are the shipped model's recipe).
@@ -77,6 +84,38 @@ pub struct SimRecipe {
 pub const RECIPE_EMA_DECAY: f64 = 0.995;
 
 impl SimRecipe {
+    /// The shipped model's recipe (`cargo xtask train-default` without flags).
+    pub fn shipped() -> SimRecipe {
+        SimRecipe {
+            variant: Variant::Full,
+            method: Method::Residual,
+            frames: 960,
+            scenes: PathBuf::from(RECIPE_SCENES),
+            encoder_scenes: None,
+            encoder_steps: 4000,
+            steps: 12500,
+            mean_steps: None,
+            batch: 8,
+            lr: 1e-3,
+            seed: 0,
+            checkpoint_every: 50,
+            encoders_from: None,
+            init_from: None,
+            images: TrainImages::Materials,
+            randomize_share: None,
+            wide_facades: None,
+            augment_encoders: false,
+            ground_prior: false,
+            depth_features: false,
+            sky_depth: false,
+            base_channels: None,
+            res_blocks: None,
+            channel_mults: None,
+            ema_decay: RECIPE_EMA_DECAY,
+            uniform_loss_weighting: false,
+        }
+    }
+
     /// The bundle config the run trains: the variant's CPU default with the method, the ground
     /// prior and the depth features switched as asked.
     pub fn bundle_config(&self) -> Result<BundleConfig> {
@@ -318,38 +357,6 @@ impl SimRecipe {
 mod tests {
     use super::*;
 
-    /// The shipped recipe's options (`cargo xtask train-default` without flags).
-    fn shipped() -> SimRecipe {
-        SimRecipe {
-            variant: Variant::Full,
-            method: Method::Residual,
-            frames: 960,
-            scenes: PathBuf::from(super::super::sim_examples::RECIPE_SCENES),
-            encoder_scenes: None,
-            encoder_steps: 4000,
-            steps: 12500,
-            mean_steps: None,
-            batch: 8,
-            lr: 1e-3,
-            seed: 0,
-            checkpoint_every: 50,
-            encoders_from: None,
-            init_from: None,
-            images: TrainImages::Materials,
-            randomize_share: None,
-            wide_facades: None,
-            augment_encoders: false,
-            ground_prior: false,
-            depth_features: false,
-            sky_depth: false,
-            base_channels: None,
-            res_blocks: None,
-            channel_mults: None,
-            ema_decay: RECIPE_EMA_DECAY,
-            uniform_loss_weighting: false,
-        }
-    }
-
     #[test]
     fn the_sky_target_is_the_depth_encoders_far_limit_where_there_is_one() {
         let full = BundleConfig::cpu_default(Variant::Full);
@@ -361,13 +368,13 @@ mod tests {
             .unwrap();
         let sky = SimRecipe {
             sky_depth: true,
-            ..shipped()
+            ..SimRecipe::shipped()
         };
         assert_eq!(sky.sky_target_m(&full).unwrap(), Some(far));
-        assert_eq!(shipped().sky_target_m(&full).unwrap(), None);
+        assert_eq!(SimRecipe::shipped().sky_target_m(&full).unwrap(), None);
         // without a depth encoder the flag has nothing to train, and says so
         let blind = BundleConfig::cpu_default(Variant::Unconditional);
-        assert_eq!(shipped().sky_target_m(&blind).unwrap(), None);
+        assert_eq!(SimRecipe::shipped().sky_target_m(&blind).unwrap(), None);
         let e = sky.sky_target_m(&blind).unwrap_err().to_string();
         assert!(e.contains("sky_depth"), "{e}");
     }
@@ -377,11 +384,11 @@ mod tests {
         let with = |scenes: &str, encoder_scenes: Option<&str>| SimRecipe {
             scenes: scenes.into(),
             encoder_scenes: encoder_scenes.map(PathBuf::from),
-            ..shipped()
+            ..SimRecipe::shipped()
         };
         // the shipped recipe: networks on train-v5, encoders on the street list
         assert_eq!(
-            shipped().encoder_list(),
+            SimRecipe::shipped().encoder_list(),
             Some(PathBuf::from("scenes/train.txt"))
         );
         // one list for everything: no second set of frames
@@ -396,14 +403,14 @@ mod tests {
         // reused encoders train on nothing
         let reused = SimRecipe {
             encoders_from: Some("models/default".into()),
-            ..shipped()
+            ..SimRecipe::shipped()
         };
         assert_eq!(reused.encoder_list(), None);
     }
 
     #[test]
     fn the_run_key_and_the_encoder_folder_name_only_the_switches_that_are_on() {
-        let r = shipped();
+        let r = SimRecipe::shipped();
         let cfg = r.bundle_config().unwrap();
         let key = r.run_key(&cfg, &r.settings(), 960);
         assert_eq!(key["frames"], 960);
@@ -429,7 +436,7 @@ mod tests {
             augment_encoders: true,
             ground_prior: true,
             sky_depth: true,
-            ..shipped()
+            ..SimRecipe::shipped()
         };
         assert_eq!(
             all.encoder_dir_name(96),

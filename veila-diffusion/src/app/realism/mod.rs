@@ -1,5 +1,6 @@
 //! The realism benchmark (feature `sim`): a generator judged as a generator, on held-out simulated
-//! frames split into folds of equal size. `cargo xtask bench-realism` drives it.
+//! frames split into folds of equal size. `cargo xtask bench-realism` drives it: a whole run is
+//! [`run`] (`run.rs`, the rows of [`RealismOptions`]), its report [`RealismReport`] (`report.rs`).
 //!
 //! Every row (a baseline, the data floor, a model at one sampler setting) is scored per fold and
 //! sample seed as a [`SetMetrics`] (metric → region → value), so rows share one table format:
@@ -34,6 +35,12 @@ use super::scoring::{Judges, SetMetrics, data_floor, set_metrics};
 use super::sim_examples::SimExample;
 use crate::error::{Error, Result, invalid};
 use candle_core::Device;
+
+mod report;
+mod run;
+
+pub use report::{RealismReport, Row};
+pub use run::{RealismOptions, run};
 
 /// The texture regions: inside the camera's view and outside it.
 pub const TEXTURE_REGIONS: [&str; 2] = ["view", "outside"];
