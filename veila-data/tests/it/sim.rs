@@ -1927,7 +1927,11 @@ fn shipped_scene_files_write_byte_identical_output_and_config_json() {
         .filter(|((k, h), (ek, eh))| (k.as_str(), h.as_str()) != (*ek, *eh))
         .map(|((k, h), (_, eh))| format!("{k}: {h} (recorded {eh})"))
         .collect();
-    assert!(changed.is_empty(), "outputs changed:\n{}", changed.join("\n"));
+    assert!(
+        changed.is_empty(),
+        "outputs changed:\n{}",
+        changed.join("\n")
+    );
 }
 
 fn scenes_dir() -> PathBuf {
