@@ -36,6 +36,9 @@
 //!   encoders and the provenance it writes.
 //! * `feature_net_data` (feature `sim`): simulated training scans of the FRD / FPD feature
 //!   networks (`cargo xtask train-feature-nets`).
+//! * [`segment`]: LiDAR semantic segmentation (`veila segment`): segmenter model folders,
+//!   their training on simulator frames or shards with exact resume, prediction of point
+//!   labels, and SemanticKITTI's scores of label folders.
 //! * [`nn`]: the Veila U-Net from `veila-nn` as a [`crate::Denoiser`] ([`VeilaDenoiser`]).
 
 pub mod bundle;
@@ -55,6 +58,7 @@ pub mod realism;
 pub mod recipe;
 pub mod rig;
 pub mod scoring;
+pub mod segment;
 #[cfg(feature = "sim")]
 pub mod sim_examples;
 #[cfg(feature = "sim")]
