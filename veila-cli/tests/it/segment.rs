@@ -146,7 +146,7 @@ fn predict_labels_every_point_of_every_scan_and_never_writes_over_inputs() {
     let bad = tmp.path().join("bad");
     fails_with(
         &predict(&scans, &bad, &["--model", m]),
-        &["000002.bin", "multiple of 16"],
+        &["000002.bin", "not a multiple of the 16-byte record"],
     );
     assert!(!bad.exists(), "a partial output was left");
     std::fs::remove_file(scans.join("000002.bin")).unwrap();
