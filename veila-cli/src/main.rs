@@ -138,7 +138,7 @@ const EXAMPLES: &[(&str, &str)] = &[
     ("sensors", "veila sensors > my-sensor.toml"),
     (
         "segment",
-        "veila segment predict --scans data/sequences/08/velodyne --out out/labels\n  veila segment eval --predictions out/labels --labels data/sequences/08/labels",
+        "veila segment predict --scans data/sequences/08/velodyne --out out/labels",
     ),
     (
         "project",

@@ -68,6 +68,34 @@ fn random_tensors(
     varmap_tensors(&vm).expect("the weights")
 }
 
+/// Saves a tiny segmenter (`SegmenterConfig::tiny`, SemanticKITTI's first five classes) with
+/// random weights in `dir` (by `SegmenterModel::save`).
+pub fn save_segmenter(dir: &Path) {
+    use veila_diffusion::app::segment::{LabelSpace, SegmenterModel, SegmenterModelConfig};
+    let network = veila_nn::segmenter::SegmenterConfig::tiny();
+    let mut classes = LabelSpace::semantic_kitti().classes();
+    classes.truncate(network.num_classes);
+    let cfg = SegmenterModelConfig {
+        format: veila_diffusion::app::segment::model::SEGMENTER_FORMAT.into(),
+        sensor: veila_geom::LidarSensor {
+            rows: network.rows as u32,
+            cols: network.cols as u32,
+            ..veila_geom::LidarSensor::hdl64e()
+        },
+        network,
+        knn: Default::default(),
+        classes,
+        provenance: serde_json::Value::Null,
+    };
+    let weights = random_tensors(
+        |vb| {
+            veila_nn::segmenter::Segmenter::new(&cfg.network, vb).expect("the segmenter");
+        },
+        6,
+    );
+    SegmenterModel::save(dir, &cfg, &weights).expect("a segmenter folder");
+}
+
 /// Saves a bundle of [`bundle_config`] with random weights in `dir` (by [`Bundle::save`]).
 pub fn save_bundle(dir: &Path) -> BundleConfig {
     let cfg = bundle_config();

@@ -88,6 +88,48 @@ pub(crate) fn read_folder_file(dir: &Path, name: &str, what: &str) -> Result<Vec
     }
 }
 
+/// A model folder's files in memory (`(file name, bytes)`) with their manifest, already parsed:
+/// [`ModelFiles::verified`] gives a file's bytes once the manifest vouches for them.
+#[derive(Debug)]
+pub(crate) struct ModelFiles<'a> {
+    files: &'a [(&'a str, &'a [u8])],
+    origin: &'a Path,
+    manifest: Manifest,
+}
+
+impl<'a> ModelFiles<'a> {
+    /// Parses the manifest among `files` (`origin` names the folder in errors).
+    pub(crate) fn new(files: &'a [(&'a str, &'a [u8])], origin: &'a Path) -> Result<Self> {
+        let mut me = ModelFiles {
+            files,
+            origin,
+            manifest: Manifest {
+                format: String::new(),
+                files: BTreeMap::new(),
+            },
+        };
+        me.manifest = Manifest::parse(me.get(MANIFEST_FILE)?, &origin.join(MANIFEST_FILE))?;
+        Ok(me)
+    }
+
+    fn get(&self, name: &str) -> Result<&'a [u8]> {
+        self.files
+            .iter()
+            .find(|(n, _)| *n == name)
+            .map(|(_, b)| *b)
+            .ok_or_else(|| Error::Checkpoint {
+                reason: format!("missing file `{name}`"),
+                path: self.origin.to_path_buf(),
+            })
+    }
+
+    /// The bytes of file `name`, listed in the manifest with their sha256 ([`Manifest::verify`]);
+    /// otherwise an error naming the file.
+    pub(crate) fn verified(&self, name: &str) -> Result<&'a [u8]> {
+        self.manifest.verify(name, self.get(name)?, self.origin)
+    }
+}
+
 /// A model folder being written (a bundle, a segmenter): its files go into a hidden temporary
 /// folder beside it, each listed with its sha256 in the manifest, which [`ManifestFolder::finish`]
 /// writes last before one rename puts the folder in place (an existing one is replaced only after
@@ -224,18 +266,8 @@ impl Bundle {
     /// Builds a bundle from its files in memory (`(file name, bytes)`); `origin` names the source in
     /// errors. Every file is checked against `manifest.json` first.
     pub fn from_files(files: &[(&str, &[u8])], origin: &Path, device: &Device) -> Result<Self> {
-        let get = |name: &str| -> Result<&[u8]> {
-            files
-                .iter()
-                .find(|(n, _)| *n == name)
-                .map(|(_, b)| *b)
-                .ok_or_else(|| Error::Checkpoint {
-                    reason: format!("missing file `{name}`"),
-                    path: origin.to_path_buf(),
-                })
-        };
-        let manifest = Manifest::parse(get(MANIFEST_FILE)?, &origin.join(MANIFEST_FILE))?;
-        let verified = |name: &str| -> Result<&[u8]> { manifest.verify(name, get(name)?, origin) };
+        let model_files = ModelFiles::new(files, origin)?;
+        let verified = |name: &str| model_files.verified(name);
         let cfg: BundleConfig =
             serde_json::from_slice(verified(CONFIG_FILE)?).map_err(|source| Error::Json {
                 path: origin.join(CONFIG_FILE),

@@ -383,4 +383,16 @@ mod tests {
         }
         assert!(parse("[data]\nscenes = \"s\"\nwhat = 1\n[output]\ndir = \"r\"\n").is_err());
     }
+
+    #[test]
+    fn the_example_configs_are_valid() {
+        for name in ["segment.toml", "segment-sim.toml"] {
+            let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("../examples")
+                .join(name);
+            let text = std::fs::read_to_string(&p).unwrap();
+            let mut f: SegTrainFile = toml::from_str(&text).unwrap();
+            f.resolve_and_check(&p).unwrap();
+        }
+    }
 }

@@ -26,7 +26,7 @@ use veila_nn::segmenter::{Segmenter, SegmenterConfig, pixel_classes};
 use super::frames::GridScan;
 use super::labels::SegClass;
 use crate::app::bundle::{
-    MANIFEST_FILE, Manifest, ManifestFolder, read_folder_file, safetensors_bytes,
+    MANIFEST_FILE, ManifestFolder, ModelFiles, read_folder_file, safetensors_bytes,
 };
 use crate::error::{Error, Result};
 
@@ -147,18 +147,8 @@ impl SegmenterModel {
     /// default one); `origin` names the source in errors. Every file is checked against the
     /// manifest first.
     pub fn from_files(files: &[(&str, &[u8])], origin: &Path, device: &Device) -> Result<Self> {
-        let get = |name: &str| -> Result<&[u8]> {
-            files
-                .iter()
-                .find(|(n, _)| *n == name)
-                .map(|(_, b)| *b)
-                .ok_or_else(|| Error::Checkpoint {
-                    reason: format!("missing file `{name}`"),
-                    path: origin.to_path_buf(),
-                })
-        };
-        let manifest = Manifest::parse(get(MANIFEST_FILE)?, &origin.join(MANIFEST_FILE))?;
-        let verified = |name: &str| -> Result<&[u8]> { manifest.verify(name, get(name)?, origin) };
+        let model_files = ModelFiles::new(files, origin)?;
+        let verified = |name: &str| model_files.verified(name);
         let cfg_path = origin.join(SEGMENTER_CONFIG_FILE);
         let config = parse_config(verified(SEGMENTER_CONFIG_FILE)?, &cfg_path)?;
         config.check(&cfg_path)?;

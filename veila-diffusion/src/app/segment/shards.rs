@@ -9,13 +9,13 @@
 
 use std::path::Path;
 
-use glam::Vec3;
-use veila_data::shard::{Manifest, ShardSample, read_shard};
+use veila_data::shard::{Manifest, ShardSample};
 use veila_geom::{Projector, RayTable};
 use veila_nn::segmenter::SegmenterConfig;
 
 use super::frames::SegFrame;
 use super::labels::LabelSpace;
+use crate::app::train_data::each_sample;
 use crate::error::{Error, Result};
 
 /// The training frames of the first `max` samples (all without it) of the shards in `dir`, their
@@ -35,38 +35,28 @@ pub fn shard_frames(
     let rays = RayTable::new(&manifest.sensor)?;
     let want = max.unwrap_or(manifest.count).min(manifest.count);
     let mut frames = Vec::with_capacity(want);
-    'shards: for i in 0..manifest.shards.len() {
-        let path = manifest.shard_path(dir, i)?;
-        let shard = read_shard(&path)?;
-        if shard.sensor != manifest.sensor {
-            return Err(Error::Input {
-                path,
-                reason: "the shard's sensor differs from the manifest's".into(),
-            });
+    each_sample(dir, &manifest, |path, s| {
+        if frames.len() == want {
+            return Ok(false);
         }
-        for s in &shard.samples {
-            if frames.len() == want {
-                break 'shards;
-            }
-            let err = |reason: String| Error::Input {
-                path: path.clone(),
-                reason: format!("sample {}: {reason}", s.id),
-            };
-            let ids = pixel_train_ids(s, labels, given_map).map_err(&err)?;
-            let un = rays.unproject(&s.scan)?;
-            let classes: Vec<u32> = un
-                .pixels
-                .iter()
-                .map(|&(r, c)| ids[r as usize * s.scan.cols as usize + c as usize])
-                .collect();
-            let points: Vec<Vec3> = un.points;
-            frames.push(
-                SegFrame::from_points(&points, &un.intensity, &classes, projector, cfg)
-                    .map_err(|e| err(e.to_string()))?,
-            );
-            on_frame();
-        }
-    }
+        let err = |reason: String| Error::Input {
+            path: path.to_path_buf(),
+            reason: format!("sample {}: {reason}", s.id),
+        };
+        let ids = pixel_train_ids(s, labels, given_map).map_err(err)?;
+        let un = rays.unproject(&s.scan)?;
+        let classes: Vec<u32> = un
+            .pixels
+            .iter()
+            .map(|&(r, c)| ids[r as usize * s.scan.cols as usize + c as usize])
+            .collect();
+        frames.push(
+            SegFrame::from_points(&un.points, &un.intensity, &classes, projector, cfg)
+                .map_err(|e| err(e.to_string()))?,
+        );
+        on_frame();
+        Ok(true)
+    })?;
     if frames.is_empty() {
         return Err(Error::Input {
             path: dir.join("manifest.json"),

@@ -52,18 +52,26 @@ fn train_ids(cloud: &PointCloud) -> Vec<u32> {
         .collect()
 }
 
-fn in_parallel<T: Send>(
-    items: &[(PathBuf, u64)],
-    job: impl Fn(&Path, u64) -> Result<Vec<T>> + Sync,
+/// `make` of every scan of the first `scenes` pairs of `list` (`frames` of each, as [`render`]
+/// takes it), the scenes rendered in parallel and kept in list order; `on_scene` after each.
+fn simulate<T: Send>(
+    list: &Path,
+    scenes: usize,
+    frames: Option<u32>,
     on_scene: &(dyn Fn() + Sync),
+    make: impl Fn(&PointCloud) -> Result<T> + Sync,
 ) -> Result<Vec<T>> {
+    let items: Vec<(PathBuf, u64)> = split_items(list, scenes)?;
+    check_count(list, items.len(), scenes)?;
     let per: Vec<Vec<T>> = items
         .par_iter()
         .map(|(path, seed)| {
-            let out = job(path, *seed).map_err(|e| Error::Input {
-                path: path.clone(),
-                reason: format!("seed {seed}: {e}"),
-            })?;
+            let out = render(path, *seed, frames)
+                .and_then(|clouds| clouds.iter().map(&make).collect::<Result<Vec<T>>>())
+                .map_err(|e| Error::Input {
+                    path: path.clone(),
+                    reason: format!("seed {seed}: {e}"),
+                })?;
             on_scene();
             Ok(out)
         })
@@ -82,18 +90,9 @@ pub fn simulated_frames(
     cfg: &SegmenterConfig,
     on_scene: &(dyn Fn() + Sync),
 ) -> Result<Vec<SegFrame>> {
-    let items = split_items(list, scenes)?;
-    check_count(list, items.len(), scenes)?;
-    in_parallel(
-        &items,
-        |path, seed| {
-            render(path, seed, Some(frames_per_scene))?
-                .iter()
-                .map(|c| SegFrame::from_points(&c.xyz, &c.intensity, &train_ids(c), projector, cfg))
-                .collect()
-        },
-        on_scene,
-    )
+    simulate(list, scenes, Some(frames_per_scene), on_scene, |c| {
+        SegFrame::from_points(&c.xyz, &c.intensity, &train_ids(c), projector, cfg)
+    })
 }
 
 /// One held-out scan of each of the first `scenes` pairs of `list` (the split's frame of each),
@@ -105,23 +104,12 @@ pub fn simulated_held_out(
     cfg: &SegmenterConfig,
     on_scene: &(dyn Fn() + Sync),
 ) -> Result<Vec<HeldOutScan>> {
-    let items = split_items(list, scenes)?;
-    check_count(list, items.len(), scenes)?;
-    in_parallel(
-        &items,
-        |path, seed| {
-            render(path, seed, None)?
-                .iter()
-                .map(|c| {
-                    Ok(HeldOutScan {
-                        scan: GridScan::new(&c.xyz, &c.intensity, projector, cfg)?,
-                        truth: train_ids(c),
-                    })
-                })
-                .collect()
-        },
-        on_scene,
-    )
+    simulate(list, scenes, None, on_scene, |c| {
+        Ok(HeldOutScan {
+            scan: GridScan::new(&c.xyz, &c.intensity, projector, cfg)?,
+            truth: train_ids(c),
+        })
+    })
 }
 
 fn check_count(list: &Path, got: usize, want: usize) -> Result<()> {
