@@ -177,6 +177,17 @@ fn a_stopped_and_resumed_run_ends_with_the_bytes_of_an_uninterrupted_one() {
         "resumed weights differ"
     );
     assert_eq!(a.held_out, b2.held_out);
+    // a finished run run again does nothing more and still reports its weights and scores
+    let again = fit_segmenter(&input(&a_dir), &settings(), &dev, |e| {
+        assert!(
+            !matches!(e, SegEvent::Step { .. }),
+            "an update after the last"
+        );
+        ControlFlow::Continue(())
+    })
+    .unwrap();
+    assert_eq!(weight_bytes(&again.weights), weight_bytes(&a.weights));
+    assert_eq!(again.held_out, a.held_out);
     // the BatchNorm statistics were trained and kept
     let rm = a.weights["stem.0.bn.running_mean"]
         .to_vec1::<f32>()

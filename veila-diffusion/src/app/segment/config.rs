@@ -378,7 +378,7 @@ mod tests {
             "[data]\nscenes = \"s\"\nscene_count = 100000\nframes_per_scene = 1000\n[output]\ndir = \"r\"\n",
             "[data]\nscenes = \"s\"\n[train]\nsteps = 0\nbatch = 8\nlr = 1e-3\nwarmup_steps = 1\nweight_decay = 0\nseed = 0\nclass_weights = \"uniform\"\naugment = true\ncheckpoint_every = 5\n[output]\ndir = \"r\"\n",
         ] {
-            let e = parse(bad).err().expect(bad).to_string();
+            let e = parse(bad).expect_err(bad).to_string();
             assert!(e.contains("seg.toml"), "{e}");
         }
         assert!(parse("[data]\nscenes = \"s\"\nwhat = 1\n[output]\ndir = \"r\"\n").is_err());

@@ -437,6 +437,16 @@ pub fn fit_segmenter(
             break;
         }
     }
+    if held_out.is_none() && step == settings.steps && !input.held_out.is_empty() {
+        // a run resumed after its last update still reports its scores
+        held_out = Some(score_held_out(
+            model,
+            &vars,
+            input.held_out,
+            input.ignored,
+            device,
+        )?);
+    }
     Ok(SegFitOutcome {
         step,
         weights: weights_of(&vars),
