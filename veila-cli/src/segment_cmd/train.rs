@@ -153,7 +153,7 @@ pub(crate) fn run(args: TrainArgs) -> Result<()> {
                 log.line(serde_json::json!({
                     "stage": "held-out", "step": step, "miou": scores.miou,
                     "miou_present": scores.miou_present, "accuracy": scores.accuracy,
-                    "iou": scores.iou,
+                    "iou": scores.iou, "present": scores.present,
                 }));
             }
             SegEvent::Checkpoint { .. } => {}

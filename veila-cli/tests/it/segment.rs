@@ -13,7 +13,6 @@ use candle_core::{DType, Device};
 use candle_nn::VarMap;
 use veila_diffusion::app::segment::{LabelSpace, SegmenterModel, SegmenterModelConfig};
 use veila_geom::LidarSensor;
-use veila_nn::segmenter::knn::KnnConfig;
 use veila_nn::segmenter::{Segmenter, SegmenterConfig};
 
 use crate::common::{ok, tiny_scene, veila};
@@ -31,18 +30,7 @@ fn tiny_model(dir: &Path) {
     let network = SegmenterConfig::tiny();
     let mut classes = LabelSpace::semantic_kitti().classes();
     classes.truncate(network.num_classes);
-    let cfg = SegmenterModelConfig {
-        format: veila_diffusion::app::segment::model::SEGMENTER_FORMAT.into(),
-        sensor: LidarSensor {
-            rows: network.rows as u32,
-            cols: network.cols as u32,
-            ..LidarSensor::hdl64e()
-        },
-        network,
-        knn: KnnConfig::default(),
-        classes,
-        provenance: serde_json::Value::Null,
-    };
+    let cfg = SegmenterModelConfig::new(network, &LidarSensor::hdl64e(), classes);
     let vm = VarMap::new();
     Segmenter::new(
         &cfg.network,

@@ -75,18 +75,7 @@ pub fn save_segmenter(dir: &Path) {
     let network = veila_nn::segmenter::SegmenterConfig::tiny();
     let mut classes = LabelSpace::semantic_kitti().classes();
     classes.truncate(network.num_classes);
-    let cfg = SegmenterModelConfig {
-        format: veila_diffusion::app::segment::model::SEGMENTER_FORMAT.into(),
-        sensor: veila_geom::LidarSensor {
-            rows: network.rows as u32,
-            cols: network.cols as u32,
-            ..veila_geom::LidarSensor::hdl64e()
-        },
-        network,
-        knn: Default::default(),
-        classes,
-        provenance: serde_json::Value::Null,
-    };
+    let cfg = SegmenterModelConfig::new(network, &LidarSensor::hdl64e(), classes);
     let weights = random_tensors(
         |vb| {
             veila_nn::segmenter::Segmenter::new(&cfg.network, vb).expect("the segmenter");

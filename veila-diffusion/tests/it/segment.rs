@@ -15,25 +15,13 @@ use veila_diffusion::app::segment::{
 };
 use veila_geom::{LidarSensor, ProjectionOptions, Projector};
 use veila_nn::segmenter::SegmenterConfig;
-use veila_nn::segmenter::knn::KnnConfig;
 
 fn tiny_model() -> SegmenterModelConfig {
     let network = SegmenterConfig::tiny();
     let labels = LabelSpace::semantic_kitti();
     let mut classes = labels.classes();
     classes.truncate(network.num_classes);
-    SegmenterModelConfig {
-        format: veila_diffusion::app::segment::model::SEGMENTER_FORMAT.into(),
-        sensor: LidarSensor {
-            rows: network.rows as u32,
-            cols: network.cols as u32,
-            ..LidarSensor::hdl64e()
-        },
-        network,
-        knn: KnnConfig::default(),
-        classes,
-        provenance: serde_json::Value::Null,
-    }
+    SegmenterModelConfig::new(network, &LidarSensor::hdl64e(), classes)
 }
 
 /// A synthetic scan: walls at 4-30 m around the sensor, the class by azimuth sector and height.

@@ -37,13 +37,13 @@
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
-use veila_geom::{LidarSensor, SensorPreset};
+use veila_geom::SensorPreset;
 use veila_nn::segmenter::SegmenterConfig;
 use veila_nn::segmenter::knn::KnnConfig;
 
 use super::frames::ClassWeighting;
 use super::labels::LabelSpace;
-use super::model::{SEGMENTER_FORMAT, SegmenterModelConfig};
+use super::model::SegmenterModelConfig;
 use super::train::SegTrainSettings;
 use crate::error::{Error, Result};
 
@@ -321,32 +321,18 @@ impl SegTrainFile {
         Ok(())
     }
 
-    /// The sensor of the model: `[model] sensor`'s field of view on the preset's grid.
-    pub fn sensor(&self) -> LidarSensor {
-        let net = self.model.preset.network();
-        LidarSensor {
-            rows: net.rows as u32,
-            cols: net.cols as u32,
-            ..self.model.sensor.sensor()
-        }
-    }
-
     /// The config of the model this file trains, in the classes of `labels` (its provenance
-    /// empty: the run fills it in).
+    /// empty: the run fills it in): the preset's network on `[model] sensor`'s field of view.
     pub fn model_config(&self, labels: &LabelSpace) -> Result<SegmenterModelConfig> {
         let mut network = self.model.preset.network();
         network.num_classes = labels.num_classes();
         if let Some(n) = &self.model.name {
             network.name = n.clone();
         }
-        Ok(SegmenterModelConfig {
-            format: SEGMENTER_FORMAT.into(),
-            network,
-            sensor: self.sensor(),
-            knn: self.model.knn,
-            classes: labels.classes(),
-            provenance: serde_json::Value::Null,
-        })
+        let mut cfg =
+            SegmenterModelConfig::new(network, &self.model.sensor.sensor(), labels.classes());
+        cfg.knn = self.model.knn;
+        Ok(cfg)
     }
 }
 
@@ -365,9 +351,9 @@ mod tests {
         let f = parse("[data]\nscenes = \"s.txt\"\n[output]\ndir = \"run\"\n").unwrap();
         assert_eq!(f.data.scenes.as_deref(), Some(Path::new("cfg/s.txt")));
         assert_eq!(f.output.dir, Path::new("cfg/run"));
-        assert_eq!(f.sensor().rows, 32);
-        assert_eq!(f.sensor().fov_down_deg, -25.0);
         let cfg = f.model_config(&LabelSpace::semantic_kitti()).unwrap();
+        assert_eq!((cfg.sensor.rows, cfg.sensor.cols), (32, 256));
+        assert_eq!(cfg.sensor.fov_down_deg, -25.0);
         assert_eq!(cfg.classes.len(), 20);
         for bad in [
             "[data]\n[output]\ndir = \"run\"\n",

@@ -207,6 +207,7 @@ pub fn train_from_file(
             "miou_present": s.miou_present,
             "accuracy": s.accuracy,
             "iou": s.iou,
+            "present": s.present,
         })),
     });
     Ok(SegTrained {

@@ -58,6 +58,23 @@ pub struct SegmenterModelConfig {
 }
 
 impl SegmenterModelConfig {
+    /// The model of `network` with the field of view and range of `fov` (its grid: the
+    /// network's) and the `classes`, RangeNet++'s clean-up, no provenance.
+    pub fn new(network: SegmenterConfig, fov: &LidarSensor, classes: Vec<SegClass>) -> Self {
+        SegmenterModelConfig {
+            format: SEGMENTER_FORMAT.into(),
+            sensor: LidarSensor {
+                rows: network.rows as u32,
+                cols: network.cols as u32,
+                ..fov.clone()
+            },
+            network,
+            knn: KnnConfig::default(),
+            classes,
+            provenance: serde_json::Value::Null,
+        }
+    }
+
     /// Checks every part (errors name `origin`): the format, the network's and the sensor's
     /// bounds, the sensor's grid against the network's, a sensor that needs no rings (a KITTI
     /// `.bin` has none), the clean-up, and one class per train id.
