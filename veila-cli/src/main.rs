@@ -34,6 +34,7 @@ mod eval_features; // FRD / FPD features for eval          (veila-nn::feature_ne
 mod eval_files; // which files of a folder eval reads (one per scan)
 mod eval_regions; // which regions eval scores (camera-cropped scans have no rear)
 mod generate_cmd; // generate                           (veila-diffusion::pipeline)
+mod segment_cmd; // segment train / predict / eval        (veila-diffusion::app::segment)
 mod sim_cmd; // simulate                               (veila-data::sim)
 mod train_cmd; // train (bundles from converted shards) (veila-diffusion::trainer)
 mod weather_cmd; // weather                                (veila-data::weather)
@@ -85,6 +86,12 @@ enum Command {
     /// Train a model bundle (encoders and denoiser) on converted shards from a TOML config;
     /// resumable: rerunning the same config continues from the newest checkpoint.
     Train(train_cmd::TrainArgs),
+    /// LiDAR semantic segmentation: train a range-view segmenter, label the points of KITTI
+    /// scans (SemanticKITTI `.label` files), score predictions against ground truth.
+    Segment {
+        #[command(subcommand)]
+        cmd: segment_cmd::SegmentCmd,
+    },
     /// Print a built-in sensor preset as a sensor file (TOML; a starting point for
     /// `--sensor FILE.toml`).
     Sensors {
@@ -129,6 +136,10 @@ const EXAMPLES: &[(&str, &str)] = &[
     ),
     ("fd", "veila fd generated.npy reference.npy --json fd.json"),
     ("sensors", "veila sensors > my-sensor.toml"),
+    (
+        "segment",
+        "veila segment predict --scans data/sequences/08/velodyne --out out/labels",
+    ),
     (
         "project",
         "veila project 000008.bin --sensor hdl64e --out 000008.exr --png 000008_range.png",
@@ -213,6 +224,7 @@ fn run(command: Command) -> Result<()> {
         Command::Convert(a) => convert_cmd::run(a),
         Command::Train(a) => train_cmd::run(a),
         Command::Bench(a) => bench_cmd::run(a),
+        Command::Segment { cmd } => segment_cmd::run(cmd),
         Command::Completions { shell } => {
             // into memory first: clap_complete panics on a failed write
             let mut script = Vec::new();

@@ -9,6 +9,7 @@ use veila_data::PointCloud;
 use veila_data::read_capped::{MAX_JSON_METADATA_BYTES, read_metadata};
 use veila_diffusion::app::BundleConfig;
 use veila_diffusion::app::bundle::{Bundle, CONFIG_FILE, MANIFEST_FILE};
+use veila_diffusion::app::segment::SegmenterModel;
 use veila_geom::RangeImage;
 
 /// Environment variable naming the default bundle folder.
@@ -185,6 +186,44 @@ fn no_bundle(checkpoint: Option<&Path>, dir: &Path) -> anyhow::Error {
     )
 }
 
+/// The bundled segmenter in the source tree this binary was built from.
+pub(crate) fn bundled_segmenter_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/segmenter")
+}
+
+/// Loads and verifies a segmenter folder: `dir` when given, else the source tree's
+/// `models/segmenter` while it exists, else the copy embedded in the binary.
+pub(crate) fn load_segmenter(dir: Option<&Path>, device: &Device) -> Result<SegmenterModel> {
+    let dir = match dir {
+        Some(d) => d.to_path_buf(),
+        None => {
+            let d = bundled_segmenter_dir();
+            if !d.join(MANIFEST_FILE).is_file() && !embedded::EMBEDDED_SEGMENTER.is_empty() {
+                return SegmenterModel::from_files(
+                    embedded::EMBEDDED_SEGMENTER,
+                    Path::new("<embedded models/segmenter>"),
+                    device,
+                )
+                .context("loading the embedded segmenter");
+            }
+            d
+        }
+    };
+    match std::fs::metadata(dir.join(MANIFEST_FILE)) {
+        Ok(_) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => bail!(
+            "no segmenter at {} (expected segmenter.json, segmenter.safetensors and manifest.json; pass --model DIR)",
+            dir.display()
+        ),
+        Err(e) => bail!(
+            "cannot read the segmenter at {}: {e} (reading {MANIFEST_FILE})",
+            dir.display()
+        ),
+    }
+    SegmenterModel::from_dir(&dir, device)
+        .with_context(|| format!("loading segmenter {}", dir.display()))
+}
+
 /// The points of a range image on the bundle's grid, in its frame (one per return): for scans that
 /// are not generated (the demo's baselines); generated scans come with their points.
 pub(crate) fn to_points(bundle: &Bundle, range: &RangeImage) -> Result<PointCloud> {
@@ -227,5 +266,26 @@ mod tests {
         // the help texts' "bundled model" is this one
         assert_eq!(bundled_config().unwrap().sampler, b.config.sampler);
         assert_eq!(manifest_bytes(Some(&dir)), manifest_bytes(None));
+    }
+
+    #[test]
+    fn the_embedded_segmenter_is_the_source_trees() {
+        let dir = bundled_segmenter_dir();
+        if !dir.join(MANIFEST_FILE).is_file() {
+            assert!(embedded::EMBEDDED_SEGMENTER.is_empty());
+            return;
+        }
+        for (name, bytes) in embedded::EMBEDDED_SEGMENTER {
+            assert_eq!(*bytes, std::fs::read(dir.join(name)).unwrap(), "{name}");
+        }
+        assert_eq!(embedded::EMBEDDED_SEGMENTER.len(), 3);
+        let m = SegmenterModel::from_files(
+            embedded::EMBEDDED_SEGMENTER,
+            Path::new("<embedded>"),
+            &Device::Cpu,
+        )
+        .unwrap();
+        assert_eq!(m.config.network.rows, 32);
+        assert_eq!(m.config.network.cols, 256);
     }
 }

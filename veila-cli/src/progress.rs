@@ -185,3 +185,11 @@ pub(crate) fn init_logging(verbose: u8, quiet: bool) {
         .with_writer(LogWriter::default)
         .try_init();
 }
+
+/// The process's peak resident set (`VmHWM` of `/proc/self/status`, Linux) in MiB.
+pub(crate) fn peak_host_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
+}

@@ -186,8 +186,9 @@ pub fn read_kitti_labels(path: &Path) -> Result<Vec<KittiObjectLabel>> {
     parse_kitti_labels(&text, path)
 }
 
-/// List `dir/*.{ext}` file stems, sorted.
-pub(crate) fn list_stems(dir: &Path, ext: &str) -> Result<Vec<String>> {
+/// The stems of the files `dir/*{ext}` (`ext` with its dot, e.g. `.bin`), sorted; hidden files
+/// (a leading `.`) are skipped. Errors name `dir`.
+pub fn list_stems(dir: &Path, ext: &str) -> Result<Vec<String>> {
     let rd = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
     let mut out = Vec::new();
     for entry in rd {

@@ -314,6 +314,13 @@ pub(crate) fn read_kitti_records(path: &Path) -> Result<PointCloud> {
     Ok(cloud)
 }
 
+/// Every KITTI record of `path` in file order, non-finite ones included: the points a
+/// SemanticKITTI `.label` file (one label per record) is aligned with. Read in bounded chunks, the
+/// length checked against the cap before anything is read.
+pub fn read_kitti_bin_records(path: &Path) -> Result<PointCloud> {
+    read_kitti_records(path)
+}
+
 /// Decode KITTI velodyne bytes (x, y, z, reflectance f32 records). `path` names the source in errors.
 pub fn parse_kitti_bin(bytes: &[u8], path: &Path) -> Result<LoadedPoints> {
     let mut cloud = decode_kitti_records(bytes, path)?;

@@ -117,6 +117,43 @@ pub mod class {
         }
     }
 
+    /// SemanticKITTI's `learning_map_inv` (`semantic-kitti.yaml`): the raw id each train id is
+    /// written back as.
+    pub const LEARNING_MAP_INV: [u16; NUM_LEARNING_CLASSES] = [
+        0, 10, 11, 15, 18, 20, 30, 31, 32, 40, 44, 48, 49, 50, 51, 70, 71, 72, 80, 81,
+    ];
+
+    /// The name of each train id: that of its [`LEARNING_MAP_INV`] raw id in `semantic-kitti.yaml`.
+    pub const LEARNING_NAMES: [&str; NUM_LEARNING_CLASSES] = [
+        "unlabeled",
+        "car",
+        "bicycle",
+        "motorcycle",
+        "truck",
+        "other-vehicle",
+        "person",
+        "bicyclist",
+        "motorcyclist",
+        "road",
+        "parking",
+        "sidewalk",
+        "other-ground",
+        "building",
+        "fence",
+        "vegetation",
+        "trunk",
+        "terrain",
+        "pole",
+        "traffic-sign",
+    ];
+
+    /// Whether `semantic-kitti.yaml`'s `learning_map` lists the raw id: those with a train class,
+    /// and the four it maps to 0 (unlabeled, outlier, other-structure, other-object). A raw id it
+    /// does not list is not a SemanticKITTI class (a label written under another label map).
+    pub fn in_learning_map(raw: u16) -> bool {
+        learning_id(raw) != 0 || matches!(raw, 0 | 1 | 52 | 99)
+    }
+
     /// The class name used in `semantic-kitti.yaml`, or `None` for ids the simulator never emits.
     pub fn name(class: u16) -> Option<&'static str> {
         Some(match class {

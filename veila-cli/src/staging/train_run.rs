@@ -32,8 +32,10 @@ pub(crate) const TRAIN_MARKER: &str = ".veila-train.json";
 
 const MARKER_FORMAT: &str = "veila-train-run/1";
 
-/// The names train writes at the top of its folder.
-const BUNDLE: &str = "bundle";
+/// The names train writes at the top of its folder (`veila segment train` writes `segmenter`
+/// where `veila train` writes `bundle`).
+pub(crate) const BUNDLE: &str = "bundle";
+pub(crate) const SEGMENTER: &str = "segmenter";
 const CHECKPOINTS: &str = "checkpoints";
 const LOG: &str = "train_log.jsonl";
 
@@ -67,7 +69,8 @@ impl TrainInputs {
     }
 }
 
-/// Whether `name`, at the top of a run folder, is one train writes there: `bundle`, `checkpoints`,
+/// Whether `name`, at the top of a run folder, is one train writes there: `bundle` (or
+/// `segmenter`), `checkpoints`,
 /// `train_log.jsonl`, `train_log.rank-N.jsonl`, the marker, a partial bundle of a killed run, or
 /// one of veila's own temporary files.
 pub(crate) fn is_train_name(name: &str) -> bool {
@@ -75,10 +78,14 @@ pub(crate) fn is_train_name(name: &str) -> bool {
         .strip_prefix("train_log.rank-")
         .and_then(|r| r.strip_suffix(".jsonl"))
         .is_some_and(is_digits);
-    matches!(name, BUNDLE | CHECKPOINTS | LOG | TRAIN_MARKER)
+    matches!(name, BUNDLE | SEGMENTER | CHECKPOINTS | LOG | TRAIN_MARKER)
         || rank_log
-        || is_partial_of(name, |n| n == BUNDLE)
+        || is_partial_of(name, is_model_name)
         || veila_data::atomic::is_leftover_name(name)
+}
+
+fn is_model_name(name: &str) -> bool {
+    name == BUNDLE || name == SEGMENTER
 }
 
 fn is_digits(s: &str) -> bool {
@@ -172,7 +179,7 @@ fn check_inputs(out: &Path, inputs: &TrainInputs) -> Result<()> {
             describe(p)
         );
     }
-    let owned = [BUNDLE, CHECKPOINTS, TRAIN_MARKER].map(|n| o.join(n));
+    let owned = [BUNDLE, SEGMENTER, CHECKPOINTS, TRAIN_MARKER].map(|n| o.join(n));
     for (what, p) in &inputs.files {
         let Ok(i) = std::fs::canonicalize(p) else {
             continue;
@@ -253,11 +260,13 @@ fn check_own_folder(out: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Claim `out` for a training run of `ranks` processes: the checks of the module docs, then its
-/// lock (held until the returned lock is dropped), its marker, `checkpoints/`, the partial files
-/// of a killed earlier run removed, and an interrupt that says which checkpoints were kept.
+/// Claim `out` for a training run of `ranks` processes writing its model to `out/model` (`bundle`
+/// or `segmenter`): the checks of the module docs, then its lock (held until the returned lock is
+/// dropped), its marker, `checkpoints/`, the partial files of a killed earlier run removed, and an
+/// interrupt that says which checkpoints were kept.
 pub(crate) fn claim_train_run(
     out: &Path,
+    model: &str,
     ranks: usize,
     inputs: &TrainInputs,
 ) -> Result<FolderLock> {
@@ -267,11 +276,11 @@ pub(crate) fn claim_train_run(
     // what a writer that finished while we waited left
     check_own_folder(out)?;
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create", describe(out)))?;
-    write_marker(out, ranks)?;
+    write_marker(out, model, ranks)?;
     let ck = out.join(CHECKPOINTS);
     std::fs::create_dir_all(&ck).with_context(|| format!("{}: cannot create", describe(&ck)))?;
     // a killed earlier run's partial files: only train's own names, and veila's locked temporaries
-    remove_partial(&held, out, |n| is_partial_of(n, |name| name == BUNDLE))?;
+    remove_partial(&held, out, |n| is_partial_of(n, is_model_name))?;
     veila_data::atomic::sweep_stale(out);
     for d in [ck.clone(), ck.join("mean")] {
         remove_partial(&held, &d, |n| is_partial_of(n, is_checkpoint_name))?;
@@ -289,10 +298,10 @@ pub(crate) fn claim_train_run(
 }
 
 /// Write (or complete) the marker: the names this run writes in `out`.
-fn write_marker(out: &Path, ranks: usize) -> Result<()> {
+fn write_marker(out: &Path, model: &str, ranks: usize) -> Result<()> {
     let old = read_marker(out)?;
     let mut files: Vec<String> = old.map(|m| m.files).unwrap_or_default();
-    let mut mine = vec![BUNDLE.to_string(), CHECKPOINTS.into(), LOG.into()];
+    let mut mine = vec![model.to_string(), CHECKPOINTS.into(), LOG.into()];
     mine.extend((1..ranks).map(|r| format!("train_log.rank-{r}.jsonl")));
     let before = files.clone();
     for n in mine {
@@ -312,10 +321,10 @@ fn write_marker(out: &Path, ranks: usize) -> Result<()> {
     Ok(())
 }
 
-/// Before a run that will write `out/bundle`: an existing bundle is replaced only with `force`,
-/// and only when it is a folder.
-pub(crate) fn check_train_bundle(out: &Path, force: bool) -> Result<()> {
-    let b = out.join(BUNDLE);
+/// Before a run that will write `out/model` (`bundle` or `segmenter`): an existing one is
+/// replaced only with `force`, and only when it is a folder.
+pub(crate) fn check_train_bundle(out: &Path, model: &str, force: bool) -> Result<()> {
+    let b = out.join(model);
     let Ok(meta) = std::fs::symlink_metadata(&b) else {
         return Ok(());
     };
@@ -329,15 +338,15 @@ pub(crate) fn check_train_bundle(out: &Path, force: bool) -> Result<()> {
             veila_data::read_capped::file_type_name(&t)
         };
         bail!(
-            "{}: exists and is {kind}, not a bundle folder: train replaces only its own bundle \
-             folder, with or without --force (nothing was changed)",
+            "{}: exists and is {kind}, not a {model} folder: train replaces only its own \
+             {model} folder, with or without --force (nothing was changed)",
             describe(&b)
         );
     }
     if !force {
         bail!(
-            "{}: a bundle is already there (a finished run's): pass --force to replace it with \
-             this run's, or choose another [output] dir (nothing was changed)",
+            "{}: a {model} is already there (a finished run's): pass --force to replace it \
+             with this run's, or choose another [output] dir (nothing was changed)",
             describe(&b)
         );
     }

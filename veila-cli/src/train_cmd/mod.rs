@@ -214,6 +214,7 @@ impl TrainRun {
         }
         Ok(Some(crate::staging::claim_train_run(
             &file.output.dir,
+            crate::staging::BUNDLE,
             self.group.world_size,
             &inputs,
         )?))
@@ -248,7 +249,7 @@ impl TrainRun {
                 )
             })?;
             // a finished run's bundle is replaced only with --force (checked before the work)
-            crate::staging::check_train_bundle(out, self.args.force)?;
+            crate::staging::check_train_bundle(out, crate::staging::BUNDLE, self.args.force)?;
         }
         if let Some(p) = &self.parallel {
             // the others wait for rank 0's claim (and learn whether it failed: a zero sum)
@@ -488,19 +489,11 @@ impl TrainRun {
             veila_nn::checkpoint::parameter_count(&cfg.denoiser)?,
             bundle_dir.display()
         );
-        if let Some(mib) = peak_host_mib() {
+        if let Some(mib) = progress::peak_host_mib() {
             println!("peak host memory: {mib:.0} MiB");
         }
         Ok(())
     }
-}
-
-/// The process's peak resident set (`VmHWM` of `/proc/self/status`, Linux) in MiB.
-fn peak_host_mib() -> Option<f64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
-    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kib / 1024.0)
 }
 
 #[cfg(test)]

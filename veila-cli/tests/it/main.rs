@@ -19,6 +19,7 @@ mod hostile_outputs;
 mod hostile_signals;
 mod reliability;
 mod report_html;
+mod segment;
 mod simulate;
 mod train;
 mod untrusted_values;

@@ -21,5 +21,22 @@ fn builtin_learning_map_matches_semantic_kitti_yaml() {
             map.train_id(raw as u32),
             "raw id {raw}"
         );
+        assert_eq!(
+            class::in_learning_map(raw),
+            map.learning_map.contains_key(&raw),
+            "raw id {raw} listed"
+        );
+    }
+    for (t, raw) in class::LEARNING_MAP_INV.iter().enumerate() {
+        assert_eq!(
+            map.learning_map_inv.get(&(t as u8)),
+            Some(raw),
+            "train id {t}"
+        );
+        assert_eq!(
+            map.train_name(t as u8),
+            Some(class::LEARNING_NAMES[t]),
+            "train id {t}"
+        );
     }
 }

@@ -42,6 +42,9 @@
 //!   encoders, the provenance it writes, and the run itself.
 //! * `feature_net_data` (feature `sim`): simulated training scans of the FRD / FPD feature
 //!   networks (`cargo xtask train-feature-nets`).
+//! * [`segment`]: LiDAR semantic segmentation (`veila segment`): segmenter model folders,
+//!   their training on simulator frames or shards with exact resume, prediction of point
+//!   labels, and SemanticKITTI's scores of label folders.
 //! * [`nn`]: the Veila U-Net from `veila-nn` as a [`crate::Denoiser`] ([`VeilaDenoiser`]).
 
 #[cfg(feature = "sim")]
@@ -66,6 +69,7 @@ pub mod recipe;
 pub mod report_files;
 pub mod rig;
 pub mod scoring;
+pub mod segment;
 #[cfg(feature = "sim")]
 pub mod sim_examples;
 #[cfg(feature = "sim")]

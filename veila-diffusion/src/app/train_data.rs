@@ -312,6 +312,32 @@ impl ExampleSource for ShardSource {
     }
 }
 
+/// Hands every sample of the shards in `dir` (listed in `manifest`), in order, to `each` with its
+/// shard file, one shard in memory at a time, until `each` answers `false`. A shard whose sensor
+/// is not the manifest's is an error naming it.
+pub fn each_sample(
+    dir: &Path,
+    manifest: &Manifest,
+    mut each: impl FnMut(&Path, &ShardSample) -> Result<bool>,
+) -> Result<()> {
+    for i in 0..manifest.shards.len() {
+        let path = manifest.shard_path(dir, i)?;
+        let shard = read_shard(&path)?;
+        if shard.sensor != manifest.sensor {
+            return Err(Error::Input {
+                path,
+                reason: "the shard's sensor differs from the manifest's".into(),
+            });
+        }
+        for s in &shard.samples {
+            if !each(&path, s)? {
+                return Ok(());
+            }
+        }
+    }
+    Ok(())
+}
+
 /// The first `want` samples of the shards in `dir` (listed in `manifest`), prepared for the bundle
 /// `cfg` and held in memory; `on_sample` is called after each. With `unify_cameras` a conditional
 /// model's samples all get the first one's camera.
@@ -327,31 +353,22 @@ pub fn load_prepared(
     let projector = Projector::new(&cfg.denoiser.sensor, ProjectionOptions::default())?;
     let shard_rays = RayTable::new(&manifest.sensor)?;
     let mut prepared = Vec::with_capacity(want);
-    'outer: for i in 0..manifest.shards.len() {
-        let path = manifest.shard_path(dir, i)?;
-        let shard = read_shard(&path)?;
-        if shard.sensor != manifest.sensor {
-            return Err(Error::Input {
-                path,
-                reason: "the shard's sensor differs from the manifest's".into(),
-            });
+    each_sample(dir, manifest, |path, s| {
+        if prepared.len() == want {
+            return Ok(false);
         }
-        for s in &shard.samples {
-            if prepared.len() == want {
-                break 'outer;
-            }
-            prepared.push(prepare_sample(
-                s,
-                &shard.sensor,
-                &shard_rays,
-                cfg,
-                &projector,
-                &path,
-                needs_camera,
-            )?);
-            on_sample();
-        }
-    }
+        prepared.push(prepare_sample(
+            s,
+            &manifest.sensor,
+            &shard_rays,
+            cfg,
+            &projector,
+            path,
+            needs_camera,
+        )?);
+        on_sample();
+        Ok(true)
+    })?;
     if cfg.denoiser.conditioning.is_some()
         && unify_cameras
         && let Some(first) = prepared.first().map(|p| p.camera)

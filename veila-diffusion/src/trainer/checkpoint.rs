@@ -26,11 +26,11 @@ use crate::error::{Error, Result};
 use crate::objective::DiffusionConfig;
 
 const FORMAT_VERSION: u32 = 1;
-const MODEL_FILE: &str = "model.safetensors";
+pub(crate) const MODEL_FILE: &str = "model.safetensors";
 /// The EMA weights' file of a checkpoint (load these for sampling).
 pub const EMA_FILE: &str = "ema.safetensors";
-const OPT_FILE: &str = "optimizer.safetensors";
-const STATE_FILE: &str = "state.json";
+pub(crate) const OPT_FILE: &str = "optimizer.safetensors";
+pub(crate) const STATE_FILE: &str = "state.json";
 
 /// Position of the trainer's ChaCha8 stream.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -148,7 +148,7 @@ fn bad(path: &Path, reason: impl Into<String>) -> Error {
     }
 }
 
-fn save_tensors(map: &HashMap<String, Tensor>, path: &Path) -> Result<()> {
+pub(crate) fn save_tensors(map: &HashMap<String, Tensor>, path: &Path) -> Result<()> {
     // a failed write (a full disk) is an I/O error, not a bad checkpoint
     candle_core::safetensors::save(map, path).map_err(|e| match e {
         candle_core::Error::Io(source) => io("writing checkpoint", path)(source),
@@ -207,6 +207,82 @@ pub(crate) fn checkpoint_name(step: u64) -> String {
     format!("step-{step:010}")
 }
 
+/// Writes checkpoint `step` into `dir` (created if needed) and returns its path: `write` fills a
+/// hidden temporary folder beside the final one (`.step-N.tmp-PID`), which is then renamed into
+/// place as `step-N` (a checkpoint of the same step is replaced), so a crash never leaves a
+/// partial checkpoint under a `step-*` name; then only the newest `keep` checkpoints stay. The
+/// folder must end up holding a `state.json` ([`STATE_FILE`]) to count as complete.
+pub(crate) fn write_checkpoint_dir(
+    dir: &Path,
+    step: u64,
+    keep: Option<usize>,
+    write: impl FnOnce(&Path) -> Result<()>,
+) -> Result<PathBuf> {
+    fs::create_dir_all(dir).map_err(io("creating checkpoint directory", dir))?;
+    let final_path = dir.join(checkpoint_name(step));
+    let tmp = dir.join(format!(
+        ".{}.tmp-{}",
+        checkpoint_name(step),
+        std::process::id()
+    ));
+    if tmp.exists() {
+        fs::remove_dir_all(&tmp).map_err(io("removing stale temporary checkpoint", &tmp))?;
+    }
+    fs::create_dir(&tmp).map_err(io("creating temporary checkpoint", &tmp))?;
+    if let Err(e) = write(&tmp) {
+        let _ = fs::remove_dir_all(&tmp);
+        return Err(e);
+    }
+    if final_path.exists() {
+        let old = dir.join(format!(
+            ".{}.old-{}",
+            checkpoint_name(step),
+            std::process::id()
+        ));
+        fs::rename(&final_path, &old).map_err(io("replacing checkpoint", &final_path))?;
+        fs::rename(&tmp, &final_path).map_err(io("renaming checkpoint into place", &final_path))?;
+        let _ = fs::remove_dir_all(&old);
+    } else {
+        fs::rename(&tmp, &final_path).map_err(io("renaming checkpoint into place", &final_path))?;
+    }
+    if let Ok(d) = fs::File::open(dir) {
+        let _ = d.sync_all();
+    }
+    if let Some(keep) = keep {
+        let all = list_checkpoints(dir)?;
+        if all.len() > keep {
+            for (_, p) in &all[..all.len() - keep] {
+                fs::remove_dir_all(p).map_err(io("pruning old checkpoint", p))?;
+            }
+        }
+    }
+    Ok(final_path)
+}
+
+/// Writes `value` as pretty JSON to `path` and syncs it (a checkpoint's `state.json`).
+pub(crate) fn write_state_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
+    let json = serde_json::to_vec_pretty(value).map_err(|source| Error::Json {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    fs::write(path, json).map_err(io("writing", path))?;
+    fs::File::open(path)
+        .and_then(|f| f.sync_all())
+        .map_err(io("syncing", path))
+}
+
+/// Reads and parses a checkpoint's JSON file `path` (capped, as [`read_state_text`]).
+pub(crate) fn read_state_json<T: serde::de::DeserializeOwned>(
+    path: &Path,
+    kind: &str,
+) -> Result<T> {
+    let text = read_state_text(path, kind)?;
+    serde_json::from_str(&text).map_err(|source| Error::Json {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
 /// The newest complete checkpoint (`step-*` directory with a `state.json`) in `dir`, if any.
 pub fn find_latest_checkpoint(dir: &Path) -> Result<Option<PathBuf>> {
     Ok(list_checkpoints(dir)?.pop().map(|(_, p)| p))
@@ -240,18 +316,7 @@ impl<M: Denoiser> Trainer<M> {
     /// Writes a checkpoint of the current state into `dir` (created if needed) and returns its path.
     /// Applies `keep_checkpoints`.
     pub fn save_checkpoint(&self, dir: &Path) -> Result<PathBuf> {
-        fs::create_dir_all(dir).map_err(io("creating checkpoint directory", dir))?;
-        let final_path = dir.join(checkpoint_name(self.step));
-        let tmp = dir.join(format!(
-            ".{}.tmp-{}",
-            checkpoint_name(self.step),
-            std::process::id()
-        ));
-        if tmp.exists() {
-            fs::remove_dir_all(&tmp).map_err(io("removing stale temporary checkpoint", &tmp))?;
-        }
-        fs::create_dir(&tmp).map_err(io("creating temporary checkpoint", &tmp))?;
-        let write = || -> Result<()> {
+        write_checkpoint_dir(dir, self.step, self.config.keep_checkpoints, |tmp| {
             save_tensors(&self.weights()?, &tmp.join(MODEL_FILE))?;
             save_tensors(&self.ema_weights(), &tmp.join(EMA_FILE))?;
             save_tensors(&self.opt.state_tensors(), &tmp.join(OPT_FILE))?;
@@ -266,47 +331,8 @@ impl<M: Denoiser> Trainer<M> {
                 train_seconds: self.clock.seconds,
                 clock_from_step: Some(self.clock.from_step),
             };
-            let json_path = tmp.join(STATE_FILE);
-            let json = serde_json::to_vec_pretty(&state).map_err(|source| Error::Json {
-                path: json_path.clone(),
-                source,
-            })?;
-            fs::write(&json_path, json).map_err(io("writing", &json_path))?;
-            fs::File::open(&json_path)
-                .and_then(|f| f.sync_all())
-                .map_err(io("syncing", &json_path))?;
-            Ok(())
-        };
-        if let Err(e) = write() {
-            let _ = fs::remove_dir_all(&tmp);
-            return Err(e);
-        }
-        if final_path.exists() {
-            let old = dir.join(format!(
-                ".{}.old-{}",
-                checkpoint_name(self.step),
-                std::process::id()
-            ));
-            fs::rename(&final_path, &old).map_err(io("replacing checkpoint", &final_path))?;
-            fs::rename(&tmp, &final_path)
-                .map_err(io("renaming checkpoint into place", &final_path))?;
-            let _ = fs::remove_dir_all(&old);
-        } else {
-            fs::rename(&tmp, &final_path)
-                .map_err(io("renaming checkpoint into place", &final_path))?;
-        }
-        if let Ok(d) = fs::File::open(dir) {
-            let _ = d.sync_all();
-        }
-        if let Some(keep) = self.config.keep_checkpoints {
-            let all = list_checkpoints(dir)?;
-            if all.len() > keep {
-                for (_, p) in &all[..all.len() - keep] {
-                    fs::remove_dir_all(p).map_err(io("pruning old checkpoint", p))?;
-                }
-            }
-        }
-        Ok(final_path)
+            write_state_json(&tmp.join(STATE_FILE), &state)
+        })
     }
 
     /// Restores weights, EMA, optimizer, step and RNG from a checkpoint directory written by
@@ -317,11 +343,7 @@ impl<M: Denoiser> Trainer<M> {
     /// Each tensor file is read by `read`, told the names and shapes it must hold.
     pub fn load_checkpoint(&mut self, path: &Path, read: TensorFileReader) -> Result<()> {
         let state_path = path.join(STATE_FILE);
-        let text = read_state_text(&state_path, "the checkpoint state")?;
-        let state: CheckpointState = serde_json::from_str(&text).map_err(|source| Error::Json {
-            path: state_path.clone(),
-            source,
-        })?;
+        let state: CheckpointState = read_state_json(&state_path, "the checkpoint state")?;
         if state.format_version != FORMAT_VERSION {
             return Err(bad(
                 path,

@@ -57,6 +57,10 @@ pub use checkpoint::{
     CheckpointState, EMA_FILE, RUN_RECORD_FILE, RngState, TensorFileReader, claim_checkpoint_dir,
     find_latest_checkpoint,
 };
+pub(crate) use checkpoint::{
+    MODEL_FILE, OPT_FILE, STATE_FILE, read_state_json, save_tensors, write_checkpoint_dir,
+    write_state_json,
+};
 pub use config::{ActivationCheckpointing, Precision, TrainConfig};
 pub use lr::LrSchedule;
 pub use optim::{AdamSlot, AdamW, FusedAdamW, ParamsAdamW};

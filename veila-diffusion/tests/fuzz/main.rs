@@ -1,5 +1,5 @@
 //! Mutation fuzzing of every artifact reader (issue 58): a model bundle (`bundle.json`, its
-//! `manifest.json`, its safetensors weights), checkpoint and encoder weights, training shards and
+//! `manifest.json`, its safetensors weights), a segmenter folder, checkpoint and encoder weights, training shards and
 //! their manifest, range images (EXR), point clouds (PLY, KITTI `.bin`, nuScenes `.pcd.bin`),
 //! `.npy` / `.npz` sample sets, KITTI and nuScenes calibrations, the training and scene TOML,
 //! sensor files, SemanticKITTI label maps (YAML) and `.label` files, camera images.

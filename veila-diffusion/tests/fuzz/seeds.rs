@@ -68,6 +68,23 @@ fn random_tensors(
     varmap_tensors(&vm).expect("the weights")
 }
 
+/// Saves a tiny segmenter (`SegmenterConfig::tiny`, SemanticKITTI's first five classes) with
+/// random weights in `dir` (by `SegmenterModel::save`).
+pub fn save_segmenter(dir: &Path) {
+    use veila_diffusion::app::segment::{LabelSpace, SegmenterModel, SegmenterModelConfig};
+    let network = veila_nn::segmenter::SegmenterConfig::tiny();
+    let mut classes = LabelSpace::semantic_kitti().classes();
+    classes.truncate(network.num_classes);
+    let cfg = SegmenterModelConfig::new(network, &LidarSensor::hdl64e(), classes);
+    let weights = random_tensors(
+        |vb| {
+            veila_nn::segmenter::Segmenter::new(&cfg.network, vb).expect("the segmenter");
+        },
+        6,
+    );
+    SegmenterModel::save(dir, &cfg, &weights).expect("a segmenter folder");
+}
+
 /// Saves a bundle of [`bundle_config`] with random weights in `dir` (by [`Bundle::save`]).
 pub fn save_bundle(dir: &Path) -> BundleConfig {
     let cfg = bundle_config();

@@ -1,5 +1,6 @@
-//! Model artifacts: a bundle's `bundle.json`, its `manifest.json` and its weights, and the
-//! weights files veila-nn reads (denoiser checkpoints, small-CNN encoder files).
+//! Model artifacts: a bundle's `bundle.json`, its `manifest.json` and its weights, a segmenter
+//! folder's files, and the weights files veila-nn reads (denoiser checkpoints, small-CNN encoder
+//! files).
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -196,6 +197,50 @@ fn checkpoint_and_encoder_weights() {
         "checkpoint and encoder weights (safetensors)",
         &seeds,
         &[&st, &st],
+        &run,
+    );
+}
+
+/// A segmenter folder's files, the input's first byte choosing which one it replaces.
+const SEGMENTER_FILES: [&str; 3] = ["segmenter.json", "segmenter.safetensors", MANIFEST_FILE];
+
+#[test]
+fn segmenter_folder() {
+    let tmp = tempdir();
+    let dir = tmp.path().join("segmenter");
+    seeds::save_segmenter(&dir);
+    let files = bundle_files(&dir);
+    let manifest = files[MANIFEST_FILE].clone();
+    let seeds: Vec<Vec<u8>> = SEGMENTER_FILES
+        .iter()
+        .enumerate()
+        .map(|(i, f)| [vec![i as u8], files[*f].clone()].concat())
+        .collect();
+    let name = dir.display().to_string();
+    let run = |bytes: &[u8]| {
+        let (tag, payload) = bytes.split_first().unwrap_or((&0, &[]));
+        let file = SEGMENTER_FILES[*tag as usize % SEGMENTER_FILES.len()];
+        for f in SEGMENTER_FILES {
+            put(&dir.join(f), &files[f]);
+        }
+        put(&dir.join(file), payload);
+        if file != MANIFEST_FILE {
+            put(
+                &dir.join(MANIFEST_FILE),
+                &resigned(&manifest, file, payload),
+            );
+        }
+        Verdict::of(
+            veila_diffusion::app::segment::SegmenterModel::from_dir(&dir, &Device::Cpu),
+            &[&name],
+        )
+    };
+    let json = tagged(&mutate::json);
+    let st = tagged(&mutate::safetensors);
+    fuzz(
+        "segmenter folder (segmenter.json, weights, manifest)",
+        &seeds,
+        &[&json, &json, &st],
         &run,
     );
 }

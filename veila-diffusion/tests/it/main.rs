@@ -6,4 +6,5 @@ mod encoder_augment;
 mod methods;
 mod samplers;
 mod scan_pipeline;
+mod segment;
 mod training;

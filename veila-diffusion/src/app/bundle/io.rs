@@ -30,6 +30,193 @@ pub struct Manifest {
     pub files: BTreeMap<String, String>,
 }
 
+impl Manifest {
+    /// Parses the bytes of a `manifest.json` (`path` names it in errors) and checks its format
+    /// ([`MANIFEST_FORMAT`]).
+    pub fn parse(bytes: &[u8], path: &Path) -> Result<Self> {
+        let manifest: Manifest = serde_json::from_slice(bytes).map_err(|source| Error::Json {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        if manifest.format != MANIFEST_FORMAT {
+            return Err(Error::Checkpoint {
+                reason: format!(
+                    "manifest format `{}`, expected `{MANIFEST_FORMAT}`",
+                    manifest.format
+                ),
+                path: path.to_path_buf(),
+            });
+        }
+        Ok(manifest)
+    }
+
+    /// `bytes`, the content of file `name` of the folder `origin`, when the manifest lists it with
+    /// their sha256; otherwise an error naming the file (or the manifest).
+    pub fn verify<'a>(&self, name: &str, bytes: &'a [u8], origin: &Path) -> Result<&'a [u8]> {
+        let want = self.files.get(name).ok_or_else(|| Error::Checkpoint {
+            reason: format!("`{name}` is not listed in the manifest"),
+            path: origin.join(MANIFEST_FILE),
+        })?;
+        let got = sha256_hex(bytes);
+        if !want.eq_ignore_ascii_case(&got) {
+            return Err(Error::Checkpoint {
+                reason: format!(
+                    "sha256 mismatch: the manifest says {want}, the file hashes to {got} (corrupted or replaced)"
+                ),
+                path: origin.join(name),
+            });
+        }
+        Ok(bytes)
+    }
+}
+
+/// The bytes of file `name` of the model folder `dir` (`what` names the kind of folder in errors:
+/// `bundle`, `segmenter`): it must lie inside `dir` after links are followed
+/// ([`veila_data::contained::contained`]; one that leads out is refused unread) and be a regular
+/// file under its kind's cap, checked before it is read: weights (`.safetensors`) under
+/// `veila-nn`'s, JSON under [`MAX_JSON_METADATA_BYTES`].
+pub(crate) fn read_folder_file(dir: &Path, name: &str, what: &str) -> Result<Vec<u8>> {
+    let path = contained(dir, Path::new(name), &format!("{what} file"), dir)?;
+    if name.ends_with(".safetensors") {
+        Ok(veila_nn::checkpoint::read_weights_file(&path)?)
+    } else {
+        Ok(read_metadata(
+            &path,
+            MAX_JSON_METADATA_BYTES,
+            &format!("a {what}'s {name}"),
+        )?)
+    }
+}
+
+/// A model folder's files in memory (`(file name, bytes)`) with their manifest, already parsed:
+/// [`ModelFiles::verified`] gives a file's bytes once the manifest vouches for them.
+#[derive(Debug)]
+pub(crate) struct ModelFiles<'a> {
+    files: &'a [(&'a str, &'a [u8])],
+    origin: &'a Path,
+    manifest: Manifest,
+}
+
+impl<'a> ModelFiles<'a> {
+    /// Parses the manifest among `files` (`origin` names the folder in errors).
+    pub(crate) fn new(files: &'a [(&'a str, &'a [u8])], origin: &'a Path) -> Result<Self> {
+        let mut me = ModelFiles {
+            files,
+            origin,
+            manifest: Manifest {
+                format: String::new(),
+                files: BTreeMap::new(),
+            },
+        };
+        me.manifest = Manifest::parse(me.get(MANIFEST_FILE)?, &origin.join(MANIFEST_FILE))?;
+        Ok(me)
+    }
+
+    fn get(&self, name: &str) -> Result<&'a [u8]> {
+        self.files
+            .iter()
+            .find(|(n, _)| *n == name)
+            .map(|(_, b)| *b)
+            .ok_or_else(|| Error::Checkpoint {
+                reason: format!("missing file `{name}`"),
+                path: self.origin.to_path_buf(),
+            })
+    }
+
+    /// The bytes of file `name`, listed in the manifest with their sha256 ([`Manifest::verify`]);
+    /// otherwise an error naming the file.
+    pub(crate) fn verified(&self, name: &str) -> Result<&'a [u8]> {
+        self.manifest.verify(name, self.get(name)?, self.origin)
+    }
+}
+
+/// A model folder being written (a bundle, a segmenter): its files go into a hidden temporary
+/// folder beside it, each listed with its sha256 in the manifest, which [`ManifestFolder::finish`]
+/// writes last before one rename puts the folder in place (an existing one is replaced only after
+/// the new one is complete).
+#[derive(Debug)]
+pub(crate) struct ManifestFolder {
+    dir: PathBuf,
+    parent: PathBuf,
+    name: String,
+    tmp: PathBuf,
+    manifest: Manifest,
+}
+
+fn folder_io(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> Error {
+    let path = path.to_path_buf();
+    move |source| Error::Io {
+        action,
+        path,
+        source,
+    }
+}
+
+impl ManifestFolder {
+    /// Starts writing the folder `dir` (its parent is created).
+    pub(crate) fn new(dir: &Path) -> Result<Self> {
+        let parent = dir
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."))
+            .to_path_buf();
+        fs::create_dir_all(&parent).map_err(folder_io("creating model parent folder", &parent))?;
+        let name = dir
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "model".into());
+        let tmp = parent.join(format!(".{name}.tmp-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&tmp);
+        fs::create_dir_all(&tmp).map_err(folder_io("creating model folder", &tmp))?;
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            parent,
+            name,
+            tmp,
+            manifest: Manifest {
+                format: MANIFEST_FORMAT.into(),
+                files: BTreeMap::new(),
+            },
+        })
+    }
+
+    /// The temporary folder (for files the manifest does not list).
+    pub(crate) fn tmp(&self) -> &Path {
+        &self.tmp
+    }
+
+    /// Writes `file` and lists it in the manifest.
+    pub(crate) fn put(&mut self, file: &str, bytes: &[u8]) -> Result<()> {
+        let p = self.tmp.join(file);
+        fs::write(&p, bytes).map_err(folder_io("writing model file", &p))?;
+        self.manifest.files.insert(file.into(), sha256_hex(bytes));
+        Ok(())
+    }
+
+    /// Writes the manifest and renames the folder into place.
+    pub(crate) fn finish(self) -> Result<()> {
+        let json = serde_json::to_vec_pretty(&self.manifest).map_err(|source| Error::Json {
+            path: self.dir.join(MANIFEST_FILE),
+            source,
+        })?;
+        let p = self.tmp.join(MANIFEST_FILE);
+        fs::write(&p, json).map_err(folder_io("writing model file", &p))?;
+        let dir = &self.dir;
+        if dir.exists() {
+            let old = self
+                .parent
+                .join(format!(".{}.old-{}", self.name, std::process::id()));
+            let _ = fs::remove_dir_all(&old);
+            fs::rename(dir, &old).map_err(folder_io("replacing model folder", dir))?;
+            fs::rename(&self.tmp, dir).map_err(folder_io("replacing model folder", dir))?;
+            let _ = fs::remove_dir_all(&old);
+        } else {
+            fs::rename(&self.tmp, dir).map_err(folder_io("writing model folder", dir))?;
+        }
+        Ok(())
+    }
+}
+
 /// A loaded bundle: config, networks (on one device, `f32`).
 #[derive(Debug, Clone)]
 pub struct Bundle {
@@ -55,24 +242,9 @@ impl Bundle {
     /// reads, pretrained weights included, lies inside `dir` after links are followed
     /// ([`veila_data::contained::contained`]): one that leads out is refused unread.
     pub fn from_dir(dir: &Path, device: &Device) -> Result<Self> {
-        // every file of the folder lies in it: a link out of it is refused unread
-        let inside = |name: &str| -> Result<PathBuf> {
-            Ok(contained(dir, Path::new(name), "bundle file", dir)?)
-        };
-        // weights: regular files under veila-nn's cap, checked before reading
-        let read = |name: &str| -> Result<Vec<u8>> {
-            Ok(veila_nn::checkpoint::read_weights_file(&inside(name)?)?)
-        };
-        let read_json = |name: &str| -> Result<Vec<u8>> {
-            let what = format!("a bundle's {name}");
-            Ok(read_metadata(
-                &inside(name)?,
-                MAX_JSON_METADATA_BYTES,
-                &what,
-            )?)
-        };
-        let manifest = read_json(MANIFEST_FILE)?;
-        let config = read_json(CONFIG_FILE)?;
+        let read = |name: &str| read_folder_file(dir, name, "bundle");
+        let manifest = read(MANIFEST_FILE)?;
+        let config = read(CONFIG_FILE)?;
         let cfg: BundleConfig = serde_json::from_slice(&config).map_err(|source| Error::Json {
             path: dir.join(CONFIG_FILE),
             source,
@@ -94,47 +266,8 @@ impl Bundle {
     /// Builds a bundle from its files in memory (`(file name, bytes)`); `origin` names the source in
     /// errors. Every file is checked against `manifest.json` first.
     pub fn from_files(files: &[(&str, &[u8])], origin: &Path, device: &Device) -> Result<Self> {
-        let get = |name: &str| -> Result<&[u8]> {
-            files
-                .iter()
-                .find(|(n, _)| *n == name)
-                .map(|(_, b)| *b)
-                .ok_or_else(|| Error::Checkpoint {
-                    reason: format!("missing file `{name}`"),
-                    path: origin.to_path_buf(),
-                })
-        };
-        let manifest: Manifest =
-            serde_json::from_slice(get(MANIFEST_FILE)?).map_err(|source| Error::Json {
-                path: origin.join(MANIFEST_FILE),
-                source,
-            })?;
-        if manifest.format != MANIFEST_FORMAT {
-            return Err(Error::Checkpoint {
-                reason: format!(
-                    "manifest format `{}`, expected `{MANIFEST_FORMAT}`",
-                    manifest.format
-                ),
-                path: origin.join(MANIFEST_FILE),
-            });
-        }
-        let verified = |name: &str| -> Result<&[u8]> {
-            let bytes = get(name)?;
-            let want = manifest.files.get(name).ok_or_else(|| Error::Checkpoint {
-                reason: format!("`{name}` is not listed in the manifest"),
-                path: origin.join(MANIFEST_FILE),
-            })?;
-            let got = sha256_hex(bytes);
-            if !want.eq_ignore_ascii_case(&got) {
-                return Err(Error::Checkpoint {
-                    reason: format!(
-                        "sha256 mismatch: the manifest says {want}, the file hashes to {got} (corrupted or replaced)"
-                    ),
-                    path: origin.join(name),
-                });
-            }
-            Ok(bytes)
-        };
+        let model_files = ModelFiles::new(files, origin)?;
+        let verified = |name: &str| model_files.verified(name);
         let cfg: BundleConfig =
             serde_json::from_slice(verified(CONFIG_FILE)?).map_err(|source| Error::Json {
                 path: origin.join(CONFIG_FILE),
@@ -220,40 +353,7 @@ impl Bundle {
         weights: &HashMap<&str, HashMap<String, Tensor>>,
     ) -> Result<()> {
         config.check(dir)?;
-        let parent = dir
-            .parent()
-            .filter(|p| !p.as_os_str().is_empty())
-            .unwrap_or(Path::new("."));
-        fs::create_dir_all(parent).map_err(|source| Error::Io {
-            action: "creating bundle parent folder",
-            path: parent.to_path_buf(),
-            source,
-        })?;
-        let name = dir
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "bundle".into());
-        let tmp = parent.join(format!(".{name}.tmp-{}", std::process::id()));
-        let _ = fs::remove_dir_all(&tmp);
-        let io = |action: &'static str, path: &Path| {
-            let path = path.to_path_buf();
-            move |source| Error::Io {
-                action,
-                path,
-                source,
-            }
-        };
-        fs::create_dir_all(&tmp).map_err(io("creating bundle folder", &tmp))?;
-        let mut manifest = Manifest {
-            format: MANIFEST_FORMAT.into(),
-            files: BTreeMap::new(),
-        };
-        let mut put = |file: &str, bytes: &[u8]| -> Result<()> {
-            let p = tmp.join(file);
-            fs::write(&p, bytes).map_err(io("writing bundle file", &p))?;
-            manifest.files.insert(file.into(), sha256_hex(bytes));
-            Ok(())
-        };
+        let mut folder = ManifestFolder::new(dir)?;
         let mut config = BundleConfig {
             format: BUNDLE_FORMAT.into(),
             ..config.clone()
@@ -271,10 +371,10 @@ impl Bundle {
                 continue;
             };
             let file = format!("{field}.{}.safetensors", spec.kind);
-            let dst = tmp.join(&file);
+            let dst = folder.tmp().join(&file);
             fs::hard_link(&src, &dst)
                 .or_else(|_| fs::copy(&src, &dst).map(|_| ()))
-                .map_err(io(
+                .map_err(folder_io(
                     "copying pretrained encoder weights into the bundle",
                     &src,
                 ))?;
@@ -285,31 +385,16 @@ impl Bundle {
             path: dir.join(CONFIG_FILE),
             source,
         })?;
-        put(CONFIG_FILE, &json)?;
+        folder.put(CONFIG_FILE, &json)?;
         for file in config.weight_files() {
             let tensors = weights.get(file).ok_or_else(|| Error::Checkpoint {
                 reason: format!("no weights given for `{file}`"),
                 path: dir.to_path_buf(),
             })?;
             let bytes = safetensors_bytes(tensors, &dir.join(file))?;
-            put(file, &bytes)?;
+            folder.put(file, &bytes)?;
         }
-        let json = serde_json::to_vec_pretty(&manifest).map_err(|source| Error::Json {
-            path: dir.join(MANIFEST_FILE),
-            source,
-        })?;
-        let p = tmp.join(MANIFEST_FILE);
-        fs::write(&p, json).map_err(io("writing bundle file", &p))?;
-        if dir.exists() {
-            let old = parent.join(format!(".{name}.old-{}", std::process::id()));
-            let _ = fs::remove_dir_all(&old);
-            fs::rename(dir, &old).map_err(io("replacing bundle", dir))?;
-            fs::rename(&tmp, dir).map_err(io("replacing bundle", dir))?;
-            let _ = fs::remove_dir_all(&old);
-        } else {
-            fs::rename(&tmp, dir).map_err(io("writing bundle", dir))?;
-        }
-        Ok(())
+        folder.finish()
     }
 }
 

@@ -36,6 +36,7 @@ mod variant;
 pub use config::{BundleConfig, RESIDUAL_SCALE, ResidualConfig};
 pub use encoder::EncoderSpec;
 pub use io::{Bundle, Manifest};
+pub(crate) use io::{ManifestFolder, ModelFiles, read_folder_file};
 pub use variant::{Method, Variant};
 pub use veila_nn::checkpoint::{safetensors_bytes, sha256_hex};
 
