@@ -205,6 +205,21 @@ pub(crate) fn list_stems(dir: &Path, ext: &str) -> Result<Vec<String>> {
     Ok(out)
 }
 
+/// The split folder of `root` that holds `sub/`: `root` itself or `root/training`; else an error
+/// naming `root` as not being `what`.
+fn split_folder(root: &Path, sub: &str, what: &str) -> Result<PathBuf> {
+    if root.join(sub).is_dir() {
+        Ok(root.to_path_buf())
+    } else if root.join("training").join(sub).is_dir() {
+        Ok(root.join("training"))
+    } else {
+        Err(Error::format(
+            root,
+            format!("not {what}: neither {sub}/ nor training/{sub}/ exists"),
+        ))
+    }
+}
+
 /// One camera frame of a KITTI-layout folder: `image_2/NAME.png` and its `calib/NAME.txt`.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct CameraFrame {
@@ -223,16 +238,7 @@ pub struct CameraFrame {
 /// name, or an `image_2/` without images is an error naming the file or folder; nothing is read
 /// but the listings.
 pub fn list_camera_frames(root: &Path) -> Result<Vec<CameraFrame>> {
-    let base = if root.join("image_2").is_dir() {
-        root.to_path_buf()
-    } else if root.join("training/image_2").is_dir() {
-        root.join("training")
-    } else {
-        return Err(Error::format(
-            root,
-            "not a KITTI-layout folder: neither image_2/ nor training/image_2/ exists",
-        ));
-    };
+    let base = split_folder(root, "image_2", "a KITTI-layout folder")?;
     let images = base.join("image_2");
     let mut found: Vec<(String, &str)> = Vec::new();
     for ext in [".png", ".jpg"] {
@@ -280,16 +286,7 @@ impl KittiObjectDataset {
     /// Open `root` (the folder holding `training/`, or a split folder holding `velodyne/`). Only the
     /// file list is read; frames are read by [`Dataset::load`].
     pub fn open(root: &Path) -> Result<Self> {
-        let base = if root.join("velodyne").is_dir() {
-            root.to_path_buf()
-        } else if root.join("training/velodyne").is_dir() {
-            root.join("training")
-        } else {
-            return Err(Error::format(
-                root,
-                "not a KITTI object folder: neither velodyne/ nor training/velodyne/ exists",
-            ));
-        };
+        let base = split_folder(root, "velodyne", "a KITTI object folder")?;
         let ids = list_stems(&base.join("velodyne"), ".bin")?;
         Ok(KittiObjectDataset {
             base,

@@ -3,7 +3,6 @@
 //! shards give the scans of their KITTI folder; a frame's scan is `generate --image`'s with the
 //! frame's seed; bad input fails clearly, naming the file, and never writes among the inputs.
 
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
@@ -13,18 +12,8 @@ use veila_diffusion::app::dataset_gen::frame_seed;
 use crate::common::*;
 
 /// `frames` simulated frames in the KITTI layout, in `dir/sim`.
-fn simulate_frames(dir: &Path, frames: u32) -> PathBuf {
-    let scene = dir.join("tiny.toml");
-    std::fs::write(&scene, tiny_scene(16, 128, frames)).unwrap();
-    let out = dir.join("sim");
-    ok(&veila()
-        .args(["simulate", "--quiet", "--seed", "3", "--scene"])
-        .arg(&scene)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap());
-    out
+fn simulate(dir: &Path, frames: u32) -> PathBuf {
+    simulate_frames(dir, &tiny_scene(16, 128, frames), 3, frames)
 }
 
 /// `veila generate --quiet --frames FRAMES --out OUT --seed 9` with the bundled model, and
@@ -49,28 +38,10 @@ fn run(frames: &Path, out: &Path, extra: &[&str]) -> Output {
     frames_cmd(frames, out, extra).output().unwrap()
 }
 
-/// Every file under `dir` (relative path -> bytes), hidden ones included.
-fn tree(dir: &Path) -> BTreeMap<String, Vec<u8>> {
-    fn walk(root: &Path, dir: &Path, out: &mut BTreeMap<String, Vec<u8>>) {
-        for e in std::fs::read_dir(dir).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                walk(root, &p, out);
-            } else {
-                let rel = p.strip_prefix(root).unwrap().to_string_lossy().into_owned();
-                out.insert(rel, std::fs::read(&p).unwrap());
-            }
-        }
-    }
-    let mut out = BTreeMap::new();
-    walk(dir, dir, &mut out);
-    out
-}
-
 #[test]
 fn killed_resumed_and_split_datasets_are_one_runs_bytes() {
     let tmp = tempfile::tempdir().unwrap();
-    let sim = simulate_frames(tmp.path(), 6);
+    let sim = simulate(tmp.path(), 6);
     let whole = tmp.path().join("whole");
     let o = run(&sim, &whole, &[]);
     ok(&o);
@@ -79,7 +50,7 @@ fn killed_resumed_and_split_datasets_are_one_runs_bytes() {
         stdout.contains("6 of 6 frames; the dataset is complete"),
         "{stdout}"
     );
-    let want = tree(&whole);
+    let want = files_in(&whole);
     assert_eq!(want.len(), 7, "{:?}", want.keys());
     assert!(want.contains_key("dataset.json"));
 
@@ -105,7 +76,7 @@ fn killed_resumed_and_split_datasets_are_one_runs_bytes() {
     }
     let o = run(&sim, &killed, &[]);
     ok(&o);
-    assert_eq!(tree(&killed), want, "killed and resumed");
+    assert_eq!(files_in(&killed), want, "killed and resumed");
 
     // two workers: one by its flags, one as task 1 of a Slurm array
     let split = tmp.path().join("split");
@@ -125,7 +96,7 @@ fn killed_resumed_and_split_datasets_are_one_runs_bytes() {
         "{}",
         String::from_utf8_lossy(&o.stdout)
     );
-    assert_eq!(tree(&split), want, "two workers");
+    assert_eq!(files_in(&split), want, "two workers");
 
     // a frame's scan is the one `generate --image` draws with the frame's seed
     let one = tmp.path().join("one");
@@ -159,7 +130,7 @@ fn killed_resumed_and_split_datasets_are_one_runs_bytes() {
         .unwrap());
     let from_shards = tmp.path().join("from-shards");
     ok(&run(&shards, &from_shards, &[]));
-    let got = tree(&from_shards);
+    let got = files_in(&from_shards);
     for (name, bytes) in want.iter().filter(|(n, _)| n.ends_with(".bin")) {
         assert_eq!(&got[name], bytes, "{name} from shards");
     }
@@ -168,8 +139,8 @@ fn killed_resumed_and_split_datasets_are_one_runs_bytes() {
 #[test]
 fn bad_frames_and_outputs_fail_clearly_and_leave_the_inputs_alone() {
     let tmp = tempfile::tempdir().unwrap();
-    let sim = simulate_frames(tmp.path(), 2);
-    let inputs = tree(&sim);
+    let sim = simulate(tmp.path(), 2);
+    let inputs = files_in(&sim);
     // the output among the inputs
     for out in [sim.clone(), sim.join("generated")] {
         fails_with(
@@ -177,7 +148,7 @@ fn bad_frames_and_outputs_fail_clearly_and_leave_the_inputs_alone() {
             &["frames' folder", "choose another --out"],
         );
     }
-    assert_eq!(tree(&sim), inputs);
+    assert_eq!(files_in(&sim), inputs);
     // no such folder; a folder of neither layout
     let missing = tmp.path().join("missing");
     fails_with(
@@ -201,7 +172,7 @@ fn bad_frames_and_outputs_fail_clearly_and_leave_the_inputs_alone() {
     // another job's folder: refused with what differs, unchanged
     let done = tmp.path().join("done");
     ok(&run(&sim, &done, &[]));
-    let before = tree(&done);
+    let before = files_in(&done);
     fails_with(
         &run(&sim, &done, &["--steps", "2"]),
         &[
@@ -210,7 +181,7 @@ fn bad_frames_and_outputs_fail_clearly_and_leave_the_inputs_alone() {
             "sampler.steps: this run 2, the folder's 1",
         ],
     );
-    assert_eq!(tree(&done), before);
+    assert_eq!(files_in(&done), before);
     // the worker flags belong to --frames; --samples does not
     fails_with(
         &generate(

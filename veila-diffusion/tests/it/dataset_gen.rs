@@ -52,6 +52,14 @@ fn make_kitti(root: &Path, n: usize) {
     }
 }
 
+/// The bundled model, a temporary folder, and a KITTI split of `n` frames in it.
+fn setup(n: usize) -> (Bundle, tempfile::TempDir, PathBuf) {
+    let tmp = tempfile::tempdir().unwrap();
+    let kitti = tmp.path().join("kitti");
+    make_kitti(&kitti, n);
+    (bundled(), tmp, kitti)
+}
+
 fn job(bundle: &Bundle, out: &Path, worker: (usize, usize)) -> DatasetJob<'static> {
     DatasetJob {
         out_dir: out.to_path_buf(),
@@ -92,10 +100,7 @@ fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
 
 #[test]
 fn resumed_and_split_runs_write_the_bytes_of_one_run() {
-    let bundle = bundled();
-    let tmp = tempfile::tempdir().unwrap();
-    let kitti = tmp.path().join("kitti");
-    make_kitti(&kitti, 5);
+    let (bundle, tmp, kitti) = setup(5);
     let whole = tmp.path().join("whole");
     let s = run(&bundle, &kitti, &job(&bundle, &whole, (0, 1))).unwrap();
     assert_eq!((s.total, s.generated, s.skipped, s.complete), (5, 5, 0, 5));
@@ -149,10 +154,7 @@ fn resumed_and_split_runs_write_the_bytes_of_one_run() {
 
 #[test]
 fn shards_give_what_their_kitti_folder_gives() {
-    let bundle = bundled();
-    let tmp = tempfile::tempdir().unwrap();
-    let kitti = tmp.path().join("kitti");
-    make_kitti(&kitti, 3);
+    let (bundle, tmp, kitti) = setup(3);
     let shards = tmp.path().join("shards");
     let (dataset, _) =
         veila_data::convert::open_dataset(veila_data::DatasetName::Kitti, &kitti, true).unwrap();
@@ -192,10 +194,7 @@ fn shards_give_what_their_kitti_folder_gives() {
 
 #[test]
 fn another_jobs_folder_or_one_among_the_inputs_is_refused_untouched() {
-    let bundle = bundled();
-    let tmp = tempfile::tempdir().unwrap();
-    let kitti = tmp.path().join("kitti");
-    make_kitti(&kitti, 2);
+    let (bundle, tmp, kitti) = setup(2);
     let out = tmp.path().join("out");
     run(&bundle, &kitti, &job(&bundle, &out, (0, 1))).unwrap();
     let before = files(&out);
@@ -283,10 +282,7 @@ impl ScanLabeller for Short {
 
 #[test]
 fn the_labeller_hook_writes_a_label_per_point_beside_each_scan() {
-    let bundle = bundled();
-    let tmp = tempfile::tempdir().unwrap();
-    let kitti = tmp.path().join("kitti");
-    make_kitti(&kitti, 2);
+    let (bundle, tmp, kitti) = setup(2);
     let out = tmp.path().join("out");
     let plain = tmp.path().join("plain");
     let mut j = job(&bundle, &out, (0, 1));

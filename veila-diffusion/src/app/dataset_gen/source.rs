@@ -58,16 +58,20 @@ pub struct LoadedFrame {
 #[derive(Debug)]
 enum Frames {
     Kitti(Vec<CameraFrame>),
-    Shards {
-        dir: PathBuf,
-        manifest: Manifest,
-        /// `(shard, sample)` of every frame, in order.
-        at: Vec<(usize, usize)>,
-        /// The shard read last (frames are read in order: one header read per shard).
-        open: Mutex<Option<(usize, ShardReader)>>,
-        /// The most cameras a frame of these shards has.
-        views: usize,
-    },
+    Shards(Box<ShardFrames>),
+}
+
+/// The frames of converted shards.
+#[derive(Debug)]
+struct ShardFrames {
+    dir: PathBuf,
+    manifest: Manifest,
+    /// `(shard, sample)` of every frame, in order.
+    at: Vec<(usize, usize)>,
+    /// The shard read last (frames are read in order: one header read per shard).
+    open: Mutex<Option<(usize, ShardReader)>>,
+    /// The most cameras a frame of these shards has.
+    views: usize,
 }
 
 /// The frames of a KITTI-layout folder or of converted shards, in order, with their names; a frame
@@ -119,13 +123,13 @@ impl FrameSource {
                 at.extend((0..entry.ids.len()).map(|k| (s, k)));
                 views = views.max(shard_views(dir, &manifest, s)?);
             }
-            let frames = Frames::Shards {
+            let frames = Frames::Shards(Box::new(ShardFrames {
                 dir: dir.to_path_buf(),
                 manifest,
                 at,
                 open: Mutex::new(None),
                 views,
-            };
+            }));
             (SourceKind::Shards, ids, frames)
         } else {
             let list = list_camera_frames(dir)?;
@@ -180,7 +184,7 @@ impl FrameSource {
     pub fn check_views(&self, model_views: usize) -> Result<()> {
         let have = match &self.frames {
             Frames::Kitti(_) => 1,
-            Frames::Shards { views, .. } => *views,
+            Frames::Shards(s) => s.views,
         };
         if have == 0 {
             return Err(Error::Input {
@@ -223,16 +227,10 @@ impl FrameSource {
                     views: vec![(v.image, v.camera)],
                 })
             }
-            Frames::Shards {
-                dir,
-                manifest,
-                at,
-                open,
-                ..
-            } => {
-                let (s, j) = at[k];
-                let path = manifest.shard_path(dir, s)?;
-                let mut open = open.lock().unwrap_or_else(|e| e.into_inner());
+            Frames::Shards(shards) => {
+                let (s, j) = shards.at[k];
+                let path = shards.manifest.shard_path(&shards.dir, s)?;
+                let mut open = shards.open.lock().unwrap_or_else(|e| e.into_inner());
                 if open.as_ref().is_none_or(|(o, _)| *o != s) {
                     *open = Some((s, ShardReader::open(&path)?));
                 }
