@@ -16,13 +16,12 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use veila_data::convert::{
-    ConvertOptions, Progress, SourceSpec, convert, open_source, worker_shard,
-};
+use veila_data::convert::{ConvertOptions, Progress, SourceSpec, convert, open_source};
 use veila_data::dataset::DatasetName;
 use veila_data::semantic_kitti::{Sequences, SplitPart};
 
 use crate::progress;
+use crate::workers::WorkerArgs;
 
 /// Arguments of `veila convert`.
 #[derive(Debug, Args)]
@@ -39,13 +38,8 @@ pub(crate) struct ConvertArgs {
     out: PathBuf,
     #[arg(long, help = crate::choices::sensor_spec_help("Default: the dataset's sensor."))]
     sensor: Option<String>,
-    /// This worker's index, 0 to 65535, below --shard-count (default: from Slurm / Kubernetes
-    /// environment variables, else 0).
-    #[arg(long, value_parser = crate::bounds::int::<usize>(0, 65_535))]
-    shard_index: Option<usize>,
-    /// Number of workers, 1 to 65536 (default: from the environment, else 1).
-    #[arg(long, value_parser = crate::bounds::int::<usize>(1, 65_536))]
-    shard_count: Option<usize>,
+    #[command(flatten)]
+    workers: WorkerArgs,
     /// Frames per shard file, 1 to 1024; peak memory is about this many frames (~4 MiB each for
     /// KITTI with images).
     #[arg(long, default_value_t = 32, value_parser = crate::bounds::int::<usize>(1, 1024))]
@@ -70,9 +64,7 @@ pub(crate) struct ConvertArgs {
 }
 
 pub(crate) fn run(args: ConvertArgs) -> Result<()> {
-    let (index, count) = worker_shard(args.shard_index, args.shard_count, &|k| {
-        std::env::var(k).ok()
-    })?;
+    let (index, count) = args.workers.resolve()?;
     let spec = SourceSpec {
         images: !args.no_images,
         label_map: args.label_map.clone(),

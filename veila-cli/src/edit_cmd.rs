@@ -29,6 +29,7 @@ use crate::{model, progress, staging};
 /// Arguments of `veila edit`.
 #[derive(Debug, Args)]
 #[command(group(ArgGroup::new("region").required(true).args(["mask", "remove_box"])))]
+#[command(group(ArgGroup::new("rig_images").required(true).args(["images"])))]
 pub(crate) struct EditArgs {
     #[command(flatten)]
     rig: RigArgs,

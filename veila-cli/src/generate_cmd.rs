@@ -10,12 +10,16 @@
 //! library's `ScanPipeline`, the path every door takes: a LiDAR frame whose forward axis is not
 //! the first camera's (nuScenes: `y` forward) is sampled in the model's frame and every scan comes
 //! back in the calibration's LiDAR frame, as the files are.
+//!
+//! With `--frames DIR` it generates a dataset instead: a scan for every frame of a KITTI-layout
+//! folder or of converted shards, into a KITTI-layout folder, resumable and split across workers
+//! ([`frames`]; the job is the library's `veila_diffusion::app::dataset_gen`).
 
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{Context, Result};
-use clap::Args;
+use anyhow::{Context, Result, bail};
+use clap::{ArgGroup, Args};
 use serde::Serialize;
 use veila_diffusion::app::{GenerateOptions, ScanPipeline};
 use veila_diffusion::{SamplerConfig, SamplerName};
@@ -25,13 +29,26 @@ use crate::generation::{
     check_options, input_info, load_rig, model_info, resolve_sampler, round3, sampler_help,
     sampler_parser, write_scan,
 };
+use crate::workers::WorkerArgs;
 use crate::{model, progress, staging};
+
+mod frames;
 
 /// Arguments of `veila generate`.
 #[derive(Debug, Args)]
+#[command(group(ArgGroup::new("input").required(true).args(["images", "frames"])))]
 pub(crate) struct GenerateArgs {
     #[command(flatten)]
     pub(crate) rig: RigArgs,
+    /// Generate a dataset: a scan for every frame of DIR, a KITTI-layout folder (image_2/NAME.png
+    /// and calib/NAME.txt) or converted shards (manifest.json), into --out as velodyne/NAME.bin
+    /// with dataset.json. Each frame's seed follows from --seed and its name; a rerun resumes,
+    /// and workers (--shard-index/--shard-count, Slurm arrays, Kubernetes Indexed Jobs) share
+    /// one --out.
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["samples", "force", "cameras"])]
+    pub(crate) frames: Option<PathBuf>,
+    #[command(flatten)]
+    pub(crate) workers: WorkerArgs,
     /// Model bundle folder (default: $VEILA_MODEL, else the bundled models/default;
     /// `--checkpoint` is an alias).
     #[arg(long, value_name = "DIR", env = "VEILA_MODEL", alias = "checkpoint")]
@@ -68,7 +85,8 @@ pub(crate) struct GenerateArgs {
     /// does not grow with N).
     #[arg(long, value_name = "N", default_value_t = 1, value_parser = crate::bounds::int::<usize>(1, MAX_SAMPLES as u64))]
     pub(crate) samples: usize,
-    /// Output folder (created; must be absent or empty unless --force).
+    /// Output folder (created; must be absent or empty unless --force; with --frames, absent,
+    /// empty or this job's dataset, which is resumed).
     #[arg(long, value_name = "DIR")]
     pub(crate) out: PathBuf,
     /// Write into an existing, non-empty output folder (same-named files are replaced).
@@ -100,6 +118,13 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
     // the parsers hold every flag to its range; what depends on the model is checked once it is
     // loaded, before the rig is read
     let t0 = Instant::now();
+    let worker = match &args.frames {
+        Some(_) => Some(args.workers.resolve()?),
+        None if args.workers.given() => {
+            bail!("--shard-index and --shard-count split a dataset: give them with --frames")
+        }
+        None => None,
+    };
     let mut inputs = staging::Inputs::new();
     inputs.extend(&args.rig.images).extend(&args.rig.calibs);
     let device = model::device()?;
@@ -121,6 +146,17 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
         residual_weight: args.residual_weight,
     };
     check_options(&options, &bundle)?;
+    if let (Some(dir), Some(worker)) = (&args.frames, worker) {
+        return frames::run(
+            &bundle,
+            frames::FramesRun {
+                frames: dir,
+                out: &args.out,
+                options: &options,
+                worker,
+            },
+        );
+    }
     let views = load_rig(&args.rig)?;
     let pipeline = ScanPipeline::from_views(&bundle, &views)?;
     let turns = pipeline.quarter_turns();

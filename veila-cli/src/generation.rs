@@ -25,13 +25,14 @@ use crate::model;
 #[derive(Debug, Args)]
 pub(crate) struct RigArgs {
     /// Camera image (PNG or JPEG); repeat once per camera of the rig.
-    #[arg(long = "image", value_name = "IMG", required = true)]
+    // required: each command says so with a group (`generate --frames` takes a folder instead)
+    #[arg(long = "image", value_name = "IMG", requires = "calibs")]
     pub(crate) images: Vec<PathBuf>,
     /// Calibration: KITTI object calib/NNNNNN.txt (P2, R0_rect, Tr_velo_to_cam), KITTI odometry /
     /// SemanticKITTI calib.txt (P2, Tr) or a nuScenes per-sample JSON. Give it once for every image
     /// or once per image. Calibrations carry no image size: each camera takes its image's size, so
     /// give the original images (a resized image is rejected by a principal-point check).
-    #[arg(long = "calib", value_name = "CALIB", required = true)]
+    #[arg(long = "calib", value_name = "CALIB", requires = "images")]
     pub(crate) calibs: Vec<PathBuf>,
     /// Which camera of the calibration each image shows: the KITTI projection matrix index (0-3,
     /// default 2 = image_2) or the nuScenes channel (default CAM_FRONT). Once per image.

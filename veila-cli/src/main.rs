@@ -21,6 +21,7 @@ mod progress;
 mod report; // self-contained HTML reports (veila eval --report)
 mod staging; // the output discipline of every command
 mod transport; // the all-reduce of data-parallel `veila train` (TCP on the CPU, NCCL on GPUs)
+mod workers; // which worker of a split job this is (--shard-index/--shard-count, Slurm, Kubernetes)
 // command modules (one per family):
 mod bench_cmd; // bench (training and sampling speed)  (veila-nn, veila-diffusion)
 mod convert_cmd; // convert (datasets into training shards) (veila-data::convert)

@@ -358,6 +358,23 @@ pub fn write_atomic_with(
     Ok(())
 }
 
+/// Write `bytes` to `path` atomically unless `path` exists: `Ok(true)` when this call created it,
+/// `Ok(false)` when a file was already there (left as it was). Of several processes racing to
+/// create one file, exactly one succeeds and the others see its complete content.
+pub fn write_atomic_new(path: &Path, bytes: &[u8]) -> Result<bool> {
+    let mut tmp = locked_temp_beside(path)?;
+    tmp.as_file_mut()
+        .write_all(bytes)
+        .map_err(|e| Error::io(path, e))?;
+    tmp.as_file().sync_all().map_err(|e| Error::io(path, e))?;
+    make_readable(tmp.as_file(), path)?;
+    match tmp.persist_noclobber(path) {
+        Ok(_) => Ok(true),
+        Err(e) if e.error.kind() == std::io::ErrorKind::AlreadyExists => Ok(false),
+        Err(e) => Err(Error::io(path, e.error)),
+    }
+}
+
 /// Write several files so that either all of them appear or none does: every file is first written
 /// to a temporary file beside its destination, and only when all temporaries are complete are they
 /// renamed into place. A failure before that point (an unwritable folder, a full disk) leaves no
@@ -461,6 +478,16 @@ mod tests {
         assert_eq!(std::fs::read(out.join("a")).unwrap(), b"old");
         drop(lock);
         assert_eq!(std::fs::read_dir(d.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn a_new_file_is_written_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.json");
+        assert!(write_atomic_new(&p, b"first").unwrap());
+        assert!(!write_atomic_new(&p, b"second").unwrap());
+        assert_eq!(std::fs::read(&p).unwrap(), b"first");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
     }
 
     #[test]

@@ -721,7 +721,8 @@ pub fn open_source(spec: &SourceSpec) -> Result<(Box<dyn Dataset>, Option<LabelM
     }
 }
 
-/// This worker's `(index, count)` for [`ConvertOptions`]: from `index` / `count` when given, else
+/// This worker's `(index, count)` for [`ConvertOptions`] (and every other job split across workers
+/// the same way, such as `veila generate --frames`): from `index` / `count` when given, else
 /// from the environment (`env` looks a variable up): `SLURM_ARRAY_TASK_ID` (minus
 /// `SLURM_ARRAY_TASK_MIN`) of `SLURM_ARRAY_TASK_COUNT` (a Slurm array job), or
 /// `JOB_COMPLETION_INDEX` (a Kubernetes Indexed Job) with `count` or `VEILA_SHARD_COUNT` giving the
@@ -732,7 +733,7 @@ pub fn worker_shard(
     env: &dyn Fn(&str) -> Option<String>,
 ) -> Result<(usize, usize)> {
     let invalid = |message: String| Error::Invalid {
-        what: "conversion worker".into(),
+        what: "worker".into(),
         message,
     };
     let env_usize = |name: &str| -> Result<Option<usize>> {

@@ -206,6 +206,75 @@ pub fn list_stems(dir: &Path, ext: &str) -> Result<Vec<String>> {
     Ok(out)
 }
 
+/// The split folder of `root` that holds `sub/`: `root` itself or `root/training`; else an error
+/// naming `root` as not being `what`.
+fn split_folder(root: &Path, sub: &str, what: &str) -> Result<PathBuf> {
+    if root.join(sub).is_dir() {
+        Ok(root.to_path_buf())
+    } else if root.join("training").join(sub).is_dir() {
+        Ok(root.join("training"))
+    } else {
+        Err(Error::format(
+            root,
+            format!("not {what}: neither {sub}/ nor training/{sub}/ exists"),
+        ))
+    }
+}
+
+/// One camera frame of a KITTI-layout folder: `image_2/NAME.png` and its `calib/NAME.txt`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct CameraFrame {
+    /// The frame's name (the image's file stem, `000008`).
+    pub name: String,
+    /// `image_2/NAME.png` (or `.jpg`).
+    pub image: PathBuf,
+    /// `calib/NAME.txt`, read with the one calibration reader
+    /// ([`crate::spec::read_calib_camera`]).
+    pub calib: PathBuf,
+}
+
+/// The camera frames of a KITTI-layout folder, sorted by name: every `image_2/NAME.png` (or
+/// `NAME.jpg`) of `root` (or of `root/training`) with its `calib/NAME.txt`. No scan is needed (the
+/// layout of a folder to generate scans for). An image without its calibration, two images of one
+/// name, or an `image_2/` without images is an error naming the file or folder; nothing is read
+/// but the listings.
+pub fn list_camera_frames(root: &Path) -> Result<Vec<CameraFrame>> {
+    let base = split_folder(root, "image_2", "a KITTI-layout folder")?;
+    let images = base.join("image_2");
+    let mut found: Vec<(String, &str)> = Vec::new();
+    for ext in [".png", ".jpg"] {
+        found.extend(list_stems(&images, ext)?.into_iter().map(|s| (s, ext)));
+    }
+    found.sort();
+    if let Some(w) = found.windows(2).find(|w| w[0].0 == w[1].0) {
+        let (name, a, b) = (&w[0].0, w[0].1, w[1].1);
+        return Err(Error::format(
+            &images,
+            format!("two images of frame `{name}` ({name}{a} and {name}{b}): keep one"),
+        ));
+    }
+    if found.is_empty() {
+        return Err(Error::format(&images, "no .png or .jpg camera image"));
+    }
+    found
+        .into_iter()
+        .map(|(name, ext)| {
+            let calib = base.join("calib").join(format!("{name}.txt"));
+            let image = images.join(format!("{name}{ext}"));
+            if !calib.is_file() {
+                return Err(Error::format(
+                    &image,
+                    format!(
+                        "no calibration for this image: {} is missing",
+                        calib.display()
+                    ),
+                ));
+            }
+            Ok(CameraFrame { name, image, calib })
+        })
+        .collect()
+}
+
 /// The KITTI object benchmark (one split), read lazily.
 #[derive(Debug, Clone)]
 pub struct KittiObjectDataset {
@@ -218,16 +287,7 @@ impl KittiObjectDataset {
     /// Open `root` (the folder holding `training/`, or a split folder holding `velodyne/`). Only the
     /// file list is read; frames are read by [`Dataset::load`].
     pub fn open(root: &Path) -> Result<Self> {
-        let base = if root.join("velodyne").is_dir() {
-            root.to_path_buf()
-        } else if root.join("training/velodyne").is_dir() {
-            root.join("training")
-        } else {
-            return Err(Error::format(
-                root,
-                "not a KITTI object folder: neither velodyne/ nor training/velodyne/ exists",
-            ));
-        };
+        let base = split_folder(root, "velodyne", "a KITTI object folder")?;
         let ids = list_stems(&base.join("velodyne"), ".bin")?;
         Ok(KittiObjectDataset {
             base,

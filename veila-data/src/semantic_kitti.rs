@@ -292,9 +292,14 @@ pub fn read_labels(path: &Path, expected_points: Option<usize>) -> Result<Vec<u3
     parse_labels(&bytes, expected_points, path)
 }
 
+/// Raw labels as the bytes of a `.label` file (one little-endian `u32` per point).
+pub fn encode_labels(labels: &[u32]) -> Vec<u8> {
+    labels.iter().flat_map(|l| l.to_le_bytes()).collect()
+}
+
 /// Write raw labels as a `.label` file, atomically.
 pub fn write_labels(path: &Path, labels: &[u32]) -> Result<()> {
-    let bytes: Vec<u8> = labels.iter().flat_map(|l| l.to_le_bytes()).collect();
+    let bytes = encode_labels(labels);
     write_atomic_with(path, |w| std::io::Write::write_all(w, &bytes))
 }
 

@@ -655,6 +655,21 @@ impl ShardReader {
         self.ids.is_empty()
     }
 
+    /// How many cameras with an image sample `k` holds (`NNNNN/image` and each
+    /// `NNNNN/viewJ/image`), from the header alone.
+    pub fn cameras(&self, k: usize) -> usize {
+        let first = format!("{k:05}/image");
+        let view = format!("{k:05}/view");
+        self.tensors
+            .keys()
+            .filter(|n| {
+                *n == &first
+                    || n.strip_prefix(&view)
+                        .is_some_and(|r| r.ends_with("/image") && r.split('/').count() == 2)
+            })
+            .count()
+    }
+
     /// Sample `k`, read from the file (what [`read_shard`] gives as `samples[k]`).
     pub fn sample(&self, k: usize) -> Result<ShardSample> {
         use std::io::{Seek, SeekFrom};
@@ -1023,6 +1038,9 @@ mod tests {
         let r = ShardReader::open(&p).unwrap();
         assert_eq!((r.len(), r.sensor(), r.dataset()), (5, &sensor, "test"));
         assert_eq!(r.ids(), &["f0", "f1", "f2", "f3", "f4"]);
+        // the cameras with an image, from the header: sample 3 has lost its first one
+        let cameras: Vec<usize> = (0..5).map(|k| r.cameras(k)).collect();
+        assert_eq!(cameras, [2, 3, 1, 1, 3]);
         // any order, any number of times
         for k in [4, 0, 3, 3, 1, 2] {
             assert_eq!(r.sample(k).unwrap(), samples[k], "sample {k}");

@@ -92,6 +92,16 @@ pub enum Error {
         reason: String,
     },
 
+    /// An output folder that cannot take this job (another job's, holding files it did not
+    /// write, or inside its own input); nothing in it was changed.
+    #[error("{}: {reason}", path.display())]
+    Output {
+        /// The output folder or the file in it that is in the way.
+        path: PathBuf,
+        /// What is wrong and what to do, in words.
+        reason: String,
+    },
+
     /// Reading or writing a file of `veila-data`'s formats failed (the error names the file).
     #[cfg(feature = "app")]
     #[error(transparent)]

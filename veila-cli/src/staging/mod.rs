@@ -60,7 +60,7 @@ use merge::*;
 use publish::special_file_kind;
 pub(crate) use publish::{check_outputs, publish_files};
 use signals::*;
-pub(crate) use signals::{explain, install_signal_cleanup, set_command};
+pub(crate) use signals::{explain, install_signal_cleanup, set_command, set_interrupt_note};
 pub(crate) use train_run::{BUNDLE, SEGMENTER, TrainInputs, check_train_bundle, claim_train_run};
 
 /// The manifest of a folder output: each command's files (relative paths with `/`).

@@ -13,6 +13,7 @@ mod eval_crossmodal;
 mod eval_features;
 mod eval_protocols;
 mod generate;
+mod generate_frames;
 mod help_defaults;
 mod hostile_inputs;
 mod hostile_outputs;

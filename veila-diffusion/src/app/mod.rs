@@ -11,6 +11,9 @@
 //! * [`train`]: training a bundle's denoiser and mean network ([`mean`]: the residual targets and
 //!   the frozen mean network); [`encoder_train`]: training the small CNN encoders.
 //! * [`dataset`]: training examples in memory or read on demand (data of any size).
+//! * [`dataset_gen`]: dataset-scale generation (`veila generate --frames`): a scan for every
+//!   frame of a KITTI-layout folder or of converted shards, seeded per frame, resumable and
+//!   split across workers, into a KITTI-layout folder.
 //! * [`train_config`]: the training config of `veila train` (`[data]`, `[model]`, `[train]`,
 //!   `[output]`) and the bundle config and recipe settings it gives.
 //! * [`train_data`]: converted shards as training examples, in memory or streamed.
@@ -52,6 +55,7 @@ pub mod bench_report;
 pub mod bundle;
 pub mod crossmodal_eval;
 pub mod dataset;
+pub mod dataset_gen;
 pub mod encoder_train;
 #[cfg(feature = "sim")]
 pub mod feature_net_data;

@@ -2,7 +2,8 @@
 //! `manifest.json`, its safetensors weights), a segmenter folder, checkpoint and encoder weights, training shards and
 //! their manifest, range images (EXR), point clouds (PLY, KITTI `.bin`, nuScenes `.pcd.bin`),
 //! `.npy` / `.npz` sample sets, KITTI and nuScenes calibrations, the training and scene TOML,
-//! sensor files, SemanticKITTI label maps (YAML) and `.label` files, camera images.
+//! sensor files, SemanticKITTI label maps (YAML) and `.label` files, camera images, and a generated
+//! dataset's `dataset.json`.
 //!
 //! Each target starts from valid files made by the library's own writers (or small valid
 //! literals) and feeds its reader mutated copies: bit flips, boundary values, truncations,

@@ -283,3 +283,39 @@ fn label_map() {
         &run,
     );
 }
+
+#[test]
+fn generated_dataset_manifest() {
+    use veila_diffusion::app::dataset_gen::{
+        BundleId, DATASET_FORMAT, DATASET_MANIFEST, DatasetManifest, SEED_RULE,
+    };
+    let tmp = tempdir();
+    let path = tmp.path().join(DATASET_MANIFEST);
+    let seed = DatasetManifest {
+        format: DATASET_FORMAT.into(),
+        bundle: BundleId {
+            name: "default".into(),
+            manifest_sha256: "ab".repeat(32),
+        },
+        sampler: veila_diffusion::SamplerName::Ddpm.config(16),
+        residual_weight: 1.0,
+        seed: 7,
+        seed_rule: SEED_RULE.into(),
+        source: "kitti-layout".into(),
+        labeller: Some("segmenter".into()),
+        frames: vec!["000000".into(), "08_000123".into()],
+    }
+    .to_bytes()
+    .expect("a manifest");
+    let name = path.display().to_string();
+    let run = |bytes: &[u8]| {
+        put(&path, bytes);
+        Verdict::of(DatasetManifest::read(&path), &[&name])
+    };
+    fuzz(
+        "generated dataset manifest (dataset.json)",
+        &[seed],
+        &[&mutate::json, &mutate::text_tokens],
+        &run,
+    );
+}

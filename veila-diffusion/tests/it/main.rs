@@ -1,6 +1,7 @@
 //! Integration tests of veila-diffusion (one binary, modules per area).
 mod bundle_pipeline;
 mod common;
+mod dataset_gen;
 mod device;
 mod encoder_augment;
 mod methods;

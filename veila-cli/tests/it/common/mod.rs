@@ -82,11 +82,23 @@ pub fn ok(o: &Output) {
 /// Simulates frame 0 of `scene_toml` into `dir/sim` (KITTI layout) with `veila simulate` and
 /// returns that folder.
 pub fn simulate(dir: &Path, scene_toml: &str, seed: u64) -> PathBuf {
+    simulate_frames(dir, scene_toml, seed, 1)
+}
+
+/// Simulates `frames` frames of `scene_toml` into `dir/sim` (KITTI layout) with `veila simulate`
+/// and returns that folder.
+pub fn simulate_frames(dir: &Path, scene_toml: &str, seed: u64, frames: u32) -> PathBuf {
     let scene = dir.join("tiny.toml");
     std::fs::write(&scene, scene_toml).unwrap();
     let out = dir.join("sim");
     ok(&veila()
-        .args(["simulate", "--quiet", "--frames", "1", "--seed"])
+        .args([
+            "simulate",
+            "--quiet",
+            "--frames",
+            &frames.to_string(),
+            "--seed",
+        ])
         .arg(seed.to_string())
         .arg("--scene")
         .arg(&scene)
@@ -120,6 +132,23 @@ pub fn names(dir: &Path) -> Vec<String> {
         .collect();
     v.sort();
     v
+}
+
+/// Every file of `dir` and of its sub-folders, one level down (`velodyne/000000.bin`), with its
+/// bytes.
+pub fn files_in(dir: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
+    let mut out = std::collections::BTreeMap::new();
+    for top in names(dir) {
+        let p = dir.join(&top);
+        if p.is_dir() {
+            for n in names(&p) {
+                out.insert(format!("{top}/{n}"), std::fs::read(p.join(&n)).unwrap());
+            }
+        } else {
+            out.insert(top, std::fs::read(&p).unwrap());
+        }
+    }
+    out
 }
 
 /// Names in `dir` that a veila process leaves while it works (staging folders, backups, lock and

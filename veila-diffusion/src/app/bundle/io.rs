@@ -234,6 +234,9 @@ pub struct Bundle {
     pub mean: Option<(Net, HashMap<String, Tensor>)>,
     /// Where it was loaded from (a folder, or a label for embedded bundles).
     pub origin: PathBuf,
+    /// Lowercase hex SHA-256 of its `manifest.json`: the bundle's identity, since every file it
+    /// loads was checked against that manifest (a run that must use the same model records it).
+    pub manifest_sha256: String,
 }
 
 impl Bundle {
@@ -338,6 +341,7 @@ impl Bundle {
             weights,
             mean,
             origin: origin.to_path_buf(),
+            manifest_sha256: sha256_hex(get(MANIFEST_FILE)?),
         })
     }
 
