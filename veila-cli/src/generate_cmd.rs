@@ -49,6 +49,11 @@ pub(crate) struct GenerateArgs {
     pub(crate) frames: Option<PathBuf>,
     #[command(flatten)]
     pub(crate) workers: WorkerArgs,
+    /// With --frames: pseudo-label every generated scan's points with a segmenter, written as
+    /// labels/NAME.label (SemanticKITTI raw ids); DIR is a segmenter folder, default the bundled
+    /// one (models/segmenter).
+    #[arg(long, value_name = "DIR", num_args = 0..=1)]
+    pub(crate) segmenter: Option<Option<PathBuf>>,
     /// Model bundle folder (default: $VEILA_MODEL, else the bundled models/default;
     /// `--checkpoint` is an alias).
     #[arg(long, value_name = "DIR", env = "VEILA_MODEL", alias = "checkpoint")]
@@ -125,6 +130,9 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
         }
         None => None,
     };
+    if args.segmenter.is_some() && args.frames.is_none() {
+        bail!("--segmenter pseudo-labels a dataset's scans: give it with --frames");
+    }
     let mut inputs = staging::Inputs::new();
     inputs.extend(&args.rig.images).extend(&args.rig.calibs);
     let device = model::device()?;
@@ -147,6 +155,10 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
     };
     check_options(&options, &bundle)?;
     if let (Some(dir), Some(worker)) = (&args.frames, worker) {
+        let segmenter = match &args.segmenter {
+            Some(seg_dir) => Some(model::load_segmenter(seg_dir.as_deref(), &device)?),
+            None => None,
+        };
         return frames::run(
             &bundle,
             frames::FramesRun {
@@ -154,6 +166,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
                 out: &args.out,
                 options: &options,
                 worker,
+                segmenter: segmenter.as_ref(),
             },
         );
     }

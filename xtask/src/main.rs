@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 #[global_allocator]
 static GLOBAL: veila_nn::process::MiMalloc = veila_nn::process::MiMalloc;
 
+mod bench_augment; // cargo xtask bench-augment (veila-diffusion app::augment)
 mod bench_encoders; // cargo xtask bench-encoders
 mod bench_memory; // cargo xtask bench-memory (peak host memory of veila train)
 mod bench_model; // cargo xtask bench-model (veila-nn speed)
@@ -48,6 +49,10 @@ enum Command {
     /// and time of every model row and sampler setting, next to the mean scan, retrieval and the
     /// data floor, on held-out simulated frames.
     BenchRealism(bench_realism::BenchRealismArgs),
+    /// Generated scans for LiDAR segmentation: a segmenter trained on 1 %, 10 % and 20 % of the
+    /// labels, alone and with generated scans pseudo-labelled by a teacher, against the true-scan,
+    /// mean-network and retrieval controls (resumable; the paper's augmentation table).
+    BenchAugment(bench_augment::BenchAugmentArgs),
     /// CPU engine speed: forward b1/b8 and a b8 training step of the small denoiser (medians, JSON).
     BenchModel(bench_model::BenchModelArgs),
     /// Build `veila` with `--features cuda` without a local CUDA install (nvcc and libraries from
@@ -87,6 +92,7 @@ fn run(command: Command) -> Result<()> {
         Command::BenchReport(a) => bench_report::run(a),
         Command::BenchReal(a) => bench_real::run(a),
         Command::BenchRealism(a) => bench_realism::run(a),
+        Command::BenchAugment(a) => bench_augment::run(a),
         Command::BenchModel(a) => bench_model::run(a),
         Command::BenchEncoders(a) => bench_encoders::run(a),
         Command::BenchMemory(a) => bench_memory::run(a),

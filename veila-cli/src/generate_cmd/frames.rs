@@ -12,6 +12,7 @@ use std::path::Path;
 
 use anyhow::{Context, Result};
 use veila_diffusion::app::dataset_gen::{DatasetEvent, DatasetJob, FrameSource, generate_dataset};
+use veila_diffusion::app::segment::SegmenterModel;
 use veila_diffusion::app::{Bundle, GenerateOptions};
 
 use crate::{progress, staging};
@@ -26,6 +27,8 @@ pub(super) struct FramesRun<'a> {
     pub(super) options: &'a GenerateOptions,
     /// `(index, count)` of this worker.
     pub(super) worker: (usize, usize),
+    /// `--segmenter`: labels every scan's points.
+    pub(super) segmenter: Option<&'a SegmenterModel>,
 }
 
 pub(super) fn run(bundle: &Bundle, r: FramesRun<'_>) -> Result<()> {
@@ -39,7 +42,9 @@ pub(super) fn run(bundle: &Bundle, r: FramesRun<'_>) -> Result<()> {
         seed: r.options.seed,
         worker_index: index,
         worker_count: count,
-        labeller: None,
+        labeller: r
+            .segmenter
+            .map(|s| s as &dyn veila_diffusion::app::dataset_gen::ScanLabeller),
     };
     let out = r.out.display().to_string();
     staging::set_interrupt_note(move || {
@@ -49,11 +54,15 @@ pub(super) fn run(bundle: &Bundle, r: FramesRun<'_>) -> Result<()> {
         )
     });
     eprintln!(
-        "generating scans for the {} frames of {} ({}) as worker {index} of {count} into {}",
+        "generating scans for the {} frames of {} ({}) as worker {index} of {count} into {}{}",
         source.len(),
         r.frames.display(),
         source.kind().as_str(),
-        r.out.display()
+        r.out.display(),
+        match r.segmenter {
+            Some(s) => format!(", pseudo-labelled by {}", s.origin().display()),
+            None => String::new(),
+        }
     );
     let bar = progress::bar(0, "generate");
     let (mut done, mut seconds) = (0usize, 0.0f64);

@@ -223,3 +223,44 @@ fn bad_frames_and_outputs_fail_clearly_and_leave_the_inputs_alone() {
     );
     assert!(!tmp.path().join("o5").exists());
 }
+
+#[test]
+fn segmenter_pseudo_labels_every_point_and_is_part_of_the_job() {
+    let tmp = tempfile::tempdir().unwrap();
+    let sim = simulate(tmp.path(), 2);
+    let out = tmp.path().join("labelled");
+    ok(&run(&sim, &out, &["--segmenter"]));
+    let f = files_in(&out);
+    for id in ["000000", "000001"] {
+        let bin = &f[&format!("velodyne/{id}.bin")];
+        let labels = &f[&format!("labels/{id}.label")];
+        // one u32 per 16-byte KITTI record
+        assert_eq!(labels.len() * 4, bin.len(), "frame {id}");
+    }
+    let manifest = String::from_utf8_lossy(&f["dataset.json"]).into_owned();
+    assert!(manifest.contains("segmenter manifest sha256"), "{manifest}");
+    // the same folder without the segmenter is another job, refused and unchanged
+    fails_with(&run(&sim, &out, &[]), &["dataset.json", "another job"]);
+    assert_eq!(files_in(&out), f);
+    // a segmenter folder that is not one: named, nothing written
+    let missing = tmp.path().join("no-segmenter");
+    fails_with(
+        &run(
+            &sim,
+            &tmp.path().join("o6"),
+            &["--segmenter", missing.to_str().unwrap()],
+        ),
+        &["no segmenter at", "no-segmenter"],
+    );
+    assert!(!tmp.path().join("o6").exists());
+    // --segmenter belongs to --frames
+    fails_with(
+        &generate(
+            &sim.join("image_2/000000.png"),
+            &sim.join("calib/000000.txt"),
+            &tmp.path().join("o7"),
+            &["--segmenter"],
+        ),
+        &["--frames"],
+    );
+}

@@ -39,6 +39,9 @@
 //! * `bench_report` (feature `sim`): the benchmark report: the bundle against the baselines, the
 //!   floor and its ablation variants, the sampler sweep, the real frames (`cargo xtask
 //!   bench-report`).
+//! * `augment` (feature `sim`): the augmentation benchmark: segmenters trained on scarce labels
+//!   with and without generated scans pseudo-labelled by a teacher, against the true-scan, mean
+//!   network and retrieval controls (`cargo xtask bench-augment`).
 //! * `report_files` (feature `sim`): a benchmark's `report.json` and `report.md`.
 //! * `sim_recipe` (feature `sim`): the bundled model's recipe on simulator frames (`cargo xtask
 //!   train-default`): its options, the run key of its work folder, the folder of its trained
@@ -50,6 +53,8 @@
 //!   labels, and SemanticKITTI's scores of label folders.
 //! * [`nn`]: the Veila U-Net from `veila-nn` as a [`crate::Denoiser`] ([`VeilaDenoiser`]).
 
+#[cfg(feature = "sim")]
+pub mod augment;
 #[cfg(feature = "sim")]
 pub mod bench_report;
 pub mod bundle;

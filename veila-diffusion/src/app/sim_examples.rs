@@ -43,7 +43,8 @@ pub struct SimExample {
     pub depth_m: Vec<f32>,
     /// The camera of the resized image.
     pub camera: PinholeCamera,
-    /// The scan projected on the bundle's grid.
+    /// The scan projected on the bundle's grid, with each pixel's SemanticKITTI raw label (its
+    /// point's) where the simulator labels its points.
     pub range: RangeImage,
     /// The rig's further cameras at the bundle image size (multi-view configs, see
     /// [`RIG_YAWS_DEG`]).
@@ -115,7 +116,23 @@ pub fn example_from_frame(frame: &SimFrame, cfg: &BundleConfig) -> Result<SimExa
     let depth_m = nearest(&img.depth_m, w, h, nw, nh);
     let projector = Projector::new(&cfg.denoiser.sensor, ProjectionOptions::default())?;
     let cloud = &frame.scan.points;
-    let (range, _) = projector.project(&cloud.xyz, Some(&cloud.intensity), None)?;
+    let (mut range, _) = projector.project(&cloud.xyz, Some(&cloud.intensity), None)?;
+    // each pixel's class: its point's SemanticKITTI raw label (the segmentation benchmark's truth)
+    if let Some(raw) = &cloud.label {
+        let labels = range
+            .point_index
+            .iter()
+            .zip(&range.mask)
+            .map(|(&i, &m)| {
+                if m {
+                    raw.get(i as usize).copied().unwrap_or(0)
+                } else {
+                    0
+                }
+            })
+            .collect();
+        range.label = Some(labels);
+    }
     Ok(SimExample {
         rgb,
         labels,
@@ -444,12 +461,23 @@ pub fn render_split_styled(
     style: &RenderStyle,
     on_frame: &(dyn Fn() + Sync),
 ) -> Result<Vec<SimExample>> {
-    let items = split_items(list, n)?;
+    render_items(&split_items(list, n)?, 0, cfg, style, on_frame)
+}
+
+/// `items` (a split's items from its item `first` on) rendered in parallel, in order.
+fn render_items(
+    items: &[(PathBuf, u64)],
+    first: usize,
+    cfg: &BundleConfig,
+    style: &RenderStyle,
+    on_frame: &(dyn Fn() + Sync),
+) -> Result<Vec<SimExample>> {
     items
         .par_iter()
         .enumerate()
-        .map(|(k, (path, seed))| {
-            let ex = render_item(path, *seed, k as u64, cfg, style).map_err(|e| Error::Input {
+        .map(|(j, (path, seed))| {
+            let k = (first + j) as u64;
+            let ex = render_item(path, *seed, k, cfg, style).map_err(|e| Error::Input {
                 path: path.clone(),
                 reason: format!("seed {seed}: {e}"),
             })?;
@@ -472,6 +500,34 @@ pub fn render_split_shown(
 ) -> Result<Vec<SimExample>> {
     let bar = progress.bar(label, n as u64);
     render_split_styled(&root.join(list), n, cfg, style, &|| bar.inc())
+}
+
+/// The split's frames `skip..skip + n` of a list relative to the workspace `root`, in the
+/// default style, shown as a bar named `label`: the frames after the `skip` a bundle trained on.
+pub fn render_split_after(
+    root: &Path,
+    list: &Path,
+    skip: usize,
+    n: usize,
+    cfg: &BundleConfig,
+    label: &str,
+    progress: &dyn Progress,
+) -> Result<Vec<SimExample>> {
+    let items = split_items(&root.join(list), skip + n)?;
+    if items.len() < skip + n {
+        return Err(Error::Input {
+            path: root.join(list),
+            reason: format!(
+                "the list has {} frames, {} were asked for ({skip} skipped, then {n})",
+                items.len(),
+                skip + n
+            ),
+        });
+    }
+    let bar = progress.bar(label, n as u64);
+    render_items(&items[skip..], skip, cfg, &RenderStyle::default(), &|| {
+        bar.inc()
+    })
 }
 
 /// Item `k` of a split: scene file `path` at `seed`, rendered in `style`.

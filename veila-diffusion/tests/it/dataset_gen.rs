@@ -354,3 +354,40 @@ fn seeds_and_names_follow_their_rules() {
         "{e}"
     );
 }
+
+/// `--segmenter`: the bundled segmenter as the labeller gives each written scan the labels
+/// `veila segment predict` gives that `.bin` file, and names itself in `dataset.json`.
+#[test]
+fn the_bundled_segmenter_pseudo_labels_as_segment_predict_labels_the_written_scans() {
+    use veila_diffusion::app::segment::SegmenterModel;
+    let seg_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/segmenter");
+    let seg = SegmenterModel::from_dir(&seg_dir, &Device::Cpu).unwrap();
+    let (bundle, tmp, kitti) = setup(2);
+    let out = tmp.path().join("out");
+    let mut j = job(&bundle, &out, (0, 1));
+    j.labeller = Some(&seg);
+    run(&bundle, &kitti, &j).unwrap();
+    let manifest = std::fs::read_to_string(out.join(DATASET_MANIFEST)).unwrap();
+    assert!(
+        seg.identity().starts_with("segmenter manifest sha256 ")
+            && manifest.contains(seg.identity()),
+        "{manifest}"
+    );
+    let mut labelled = 0usize;
+    for id in ["000000", "000001"] {
+        let cloud =
+            veila_data::scan::read_kitti_bin_records(&out.join(format!("velodyne/{id}.bin")))
+                .unwrap();
+        let grid = seg.grid_scan(&cloud.xyz, &cloud.intensity).unwrap();
+        let expect = seg.raw_ids(&seg.predict(std::slice::from_ref(&grid)).unwrap()[0]);
+        let written: Vec<u32> = std::fs::read(out.join(format!("labels/{id}.label")))
+            .unwrap()
+            .chunks(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
+        assert_eq!(written.len(), cloud.xyz.len());
+        assert_eq!(written, expect, "frame {id}");
+        labelled += written.iter().filter(|&&l| l != 0).count();
+    }
+    assert!(labelled > 0, "every point unlabelled");
+}

@@ -123,6 +123,12 @@ impl<'a> ModelFiles<'a> {
             })
     }
 
+    /// The bytes of `manifest.json` (its SHA-256 identifies the folder: every file is checked
+    /// against it).
+    pub(crate) fn manifest_bytes(&self) -> Result<&'a [u8]> {
+        self.get(MANIFEST_FILE)
+    }
+
     /// The bytes of file `name`, listed in the manifest with their sha256 ([`Manifest::verify`]);
     /// otherwise an error naming the file.
     pub(crate) fn verified(&self, name: &str) -> Result<&'a [u8]> {
@@ -341,7 +347,7 @@ impl Bundle {
             weights,
             mean,
             origin: origin.to_path_buf(),
-            manifest_sha256: sha256_hex(get(MANIFEST_FILE)?),
+            manifest_sha256: sha256_hex(model_files.manifest_bytes()?),
         })
     }
 

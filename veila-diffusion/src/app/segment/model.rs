@@ -26,8 +26,10 @@ use veila_nn::segmenter::{Segmenter, SegmenterConfig, pixel_classes};
 use super::frames::GridScan;
 use super::labels::SegClass;
 use crate::app::bundle::{
-    MANIFEST_FILE, ManifestFolder, ModelFiles, read_folder_file, safetensors_bytes,
+    MANIFEST_FILE, ManifestFolder, ModelFiles, read_folder_file, safetensors_bytes, sha256_hex,
 };
+use crate::app::dataset_gen::ScanLabeller;
+use crate::app::pipeline::Scan;
 use crate::error::{Error, Result};
 
 /// Format tag of `segmenter.json`.
@@ -138,6 +140,8 @@ pub struct SegmenterModel {
     pub net: Segmenter,
     projector: Projector,
     origin: PathBuf,
+    /// What identifies it ([`SegmenterModel::identity`]).
+    identity: String,
     device: Device,
 }
 
@@ -176,7 +180,12 @@ impl SegmenterModel {
             &expected,
             device,
         )?;
-        Self::new(config, weights, origin, device)
+        let mut model = Self::new(config, weights, origin, device)?;
+        model.identity = format!(
+            "segmenter manifest sha256 {}",
+            sha256_hex(model_files.manifest_bytes()?)
+        );
+        Ok(model)
     }
 
     /// The segmenter of `config` with `weights` (exactly the tensors its network asks for);
@@ -188,6 +197,17 @@ impl SegmenterModel {
         device: &Device,
     ) -> Result<Self> {
         config.check(origin)?;
+        let identity = {
+            let json = serde_json::to_vec(&config).map_err(|source| Error::Json {
+                path: origin.join(SEGMENTER_CONFIG_FILE),
+                source,
+            })?;
+            let bytes = safetensors_bytes(&weights, &origin.join(SEGMENTER_WEIGHTS_FILE))?;
+            format!(
+                "segmenter in memory sha256 {}",
+                sha256_hex(&[json, bytes].concat())
+            )
+        };
         let net = Segmenter::new(
             &config.network,
             VarBuilder::from_tensors(weights, DType::F32, device),
@@ -198,6 +218,7 @@ impl SegmenterModel {
             net,
             projector,
             origin: origin.to_path_buf(),
+            identity,
             device: device.clone(),
         })
     }
@@ -258,12 +279,35 @@ impl SegmenterModel {
             .collect()
     }
 
+    /// What identifies it: the SHA-256 of its `manifest.json` (every file it loaded was checked
+    /// against it), or for one built from weights in memory, of its config and weights.
+    pub fn identity(&self) -> &str {
+        &self.identity
+    }
+
     /// The raw ids written for `train_ids` (the classes' `raw_id`).
     pub fn raw_ids(&self, train_ids: &[u32]) -> Vec<u32> {
         train_ids
             .iter()
             .map(|&t| self.config.classes.get(t as usize).map_or(0, |c| c.raw_id))
             .collect()
+    }
+}
+
+/// Pseudo-labels for dataset generation (`veila generate --frames --segmenter`): every point of a
+/// generated scan, labelled as `veila segment predict` labels the points of its `.bin`.
+impl ScanLabeller for SegmenterModel {
+    fn identity(&self) -> String {
+        SegmenterModel::identity(self).to_string()
+    }
+
+    fn label(&self, scan: &Scan) -> Result<Vec<u32>> {
+        let grid = self.grid_scan(&scan.points.xyz, &scan.points.intensity)?;
+        let train_ids = self
+            .predict(std::slice::from_ref(&grid))?
+            .pop()
+            .unwrap_or_default();
+        Ok(self.raw_ids(&train_ids))
     }
 }
 

@@ -1,0 +1,537 @@
+//! The augmentation benchmark (`cargo xtask bench-augment`, feature `sim`): do scans the bundle
+//! generates from camera images, pseudo-labelled by a teacher, make a LiDAR segmenter better when
+//! labels are scarce? The paper's last table, on the simulator.
+//!
+//! * **The split.** The frames of the bundle's training list that follow the ones it trained on
+//!   (`pool_frames`): the bundle never saw them, as a generator trained on one dataset never saw
+//!   another's frames. Each labelled fraction's frames are a fixed prefix of one seeded
+//!   permutation ([`labelled_frames`]), shared by every row and seed; the rest are unlabelled and
+//!   only their camera images are used, except by the true-scan control.
+//! * **The rows**, at each fraction and training seed: the segmenter trained on the labelled
+//!   frames alone (also the teacher); the labelled frames plus one scan for each unlabelled frame
+//!   from each [`ScanSource`] (generated, the true scans, the mean network's, retrieved),
+//!   pseudo-labelled by that teacher; the generated scans pseudo-labelled by a teacher trained on
+//!   the whole split (the paper's variant, which uses more labels); and, once per seed, that
+//!   whole-split teacher itself.
+//! * **Everything on the bundle's grid.** Every scan is the bundle's 32 x 256 range image as
+//!   points (one per pixel, at its ray's centre), the true scans too, so generated and true scans
+//!   reach the segmenter the same way; the test frames are scored over those points with their
+//!   true labels.
+//! * **Resumable.** `work/` holds each source's scans once sampled and each run's checkpoints and
+//!   result; a rerun of the same job continues where it stopped, and a different job is refused.
+
+mod data;
+mod options;
+mod report;
+
+use std::path::Path;
+use std::time::Instant;
+
+use candle_core::Device;
+
+pub use data::{GridPoints, LABELLED_LIST_SEED, ScanSource, labelled_frames};
+pub use options::{AugmentOptions, pct};
+pub use report::{AugmentReport, FractionTable, RowStats, RunResult, Verdict, verdict};
+
+use self::data::{Grid, run_dir, scan_set, split_name};
+use super::bundle::Bundle;
+use super::progress::Progress;
+use super::segment::{
+    HeldOutScan, LabelSpace, SegEvent, SegFrame, SegTrainSettings, SegmenterModel,
+    SegmenterModelConfig, class_counts, class_weights, fit_segmenter, train::SegTrainInput,
+};
+use super::sim_examples::{render_split_after, test_list_for, train_split_of};
+use crate::error::{Error, Result, invalid};
+
+/// A run's name: its folder under `work/runs/`.
+fn run_name(seed: u64, fraction: Option<f64>, what: &str) -> String {
+    match fraction {
+        Some(f) => format!("seed-{seed}/labelled-{}/{what}", pct(f)),
+        None => format!("seed-{seed}/{what}"),
+    }
+}
+
+/// What one segmenter run trains on and is called.
+struct RunSpec<'a> {
+    name: String,
+    row: String,
+    fraction: Option<f64>,
+    seed: u64,
+    labelled: &'a [SegFrame],
+    pseudo: Vec<SegFrame>,
+}
+
+/// The shared part of every run.
+struct Bench<'a> {
+    opts: &'a AugmentOptions,
+    model: SegmenterModelConfig,
+    test: Vec<HeldOutScan>,
+    ignored: Vec<usize>,
+    job: serde_json::Value,
+    progress: &'a dyn Progress,
+    device: Device,
+}
+
+impl Bench<'_> {
+    /// Trains (or resumes, or reads back) the run `spec`; its weights are kept in its folder for
+    /// when it teaches.
+    fn run(&self, spec: RunSpec<'_>) -> Result<(RunResult, SegmenterModel)> {
+        let dir = self.opts.root.join(run_dir(&self.opts.work, &spec.name));
+        let result_path = dir.join("result.json");
+        let model_dir = dir.join("segmenter");
+        if let (Ok(text), true) = (std::fs::read(&result_path), model_dir.is_dir()) {
+            let r: RunResult = serde_json::from_slice(&text).map_err(|source| Error::Json {
+                path: result_path.clone(),
+                source,
+            })?;
+            let model = SegmenterModel::from_dir(&model_dir, &self.device)?;
+            self.progress
+                .line(&format!("  {}: done before, mIoU {:.3}", spec.name, r.miou));
+            return Ok((r, model));
+        }
+        let frames: Vec<SegFrame> = spec
+            .labelled
+            .iter()
+            .cloned()
+            .chain(spec.pseudo.iter().cloned())
+            .collect();
+        let n = self.model.network.num_classes;
+        let counts = class_counts(&frames, n);
+        let weights = class_weights(&counts, self.opts.class_weighting, &self.ignored);
+        let settings = SegTrainSettings {
+            seed: spec.seed,
+            ..self.opts.train.clone()
+        };
+        let bar = self.progress.bar(&spec.name, settings.steps);
+        let t = Instant::now();
+        let outcome = fit_segmenter(
+            &SegTrainInput {
+                model: &self.model,
+                frames: &frames,
+                class_weights: &weights,
+                ignored: &self.ignored,
+                held_out: &self.test,
+                ck_dir: &dir.join("checkpoints"),
+                data: serde_json::json!({ "job": self.job, "run": spec.name }),
+            },
+            &settings,
+            &self.device,
+            |e| {
+                if let SegEvent::Step { step, loss, .. } = e {
+                    bar.set(step, &format!("loss {loss:.3}"));
+                }
+                std::ops::ControlFlow::Continue(())
+            },
+        )?;
+        drop(bar);
+        let scores = outcome
+            .held_out
+            .ok_or_else(|| Error::Data(format!("{}: no held-out scores", spec.name)))?;
+        let result = RunResult {
+            name: spec.name.clone(),
+            row: spec.row,
+            fraction: spec.fraction,
+            seed: spec.seed,
+            labelled_frames: spec.labelled.len(),
+            pseudo_frames: spec.pseudo.len(),
+            miou: scores.miou,
+            miou_present: scores.miou_present,
+            accuracy: scores.accuracy,
+            iou: scores.iou.clone(),
+            present: scores.present.clone(),
+            train_seconds: outcome.train_seconds,
+            wall_seconds: t.elapsed().as_secs_f64(),
+        };
+        let mut config = self.model.clone();
+        config.provenance = serde_json::json!({
+            "trained_by": "cargo xtask bench-augment",
+            "run": spec.name,
+            "steps": settings.steps,
+        });
+        SegmenterModel::save(&model_dir, &config, &outcome.weights)?;
+        let json = serde_json::to_vec_pretty(&result).map_err(|source| Error::Json {
+            path: result_path.clone(),
+            source,
+        })?;
+        veila_data::atomic::write_atomic(&result_path, &json)?;
+        // the checkpoints are not needed once the result and the weights are kept
+        let _ = std::fs::remove_dir_all(dir.join("checkpoints"));
+        self.progress.line(&format!(
+            "  {}: mIoU {:.3} ({} labelled + {} pseudo-labelled frames, {:.0} s)",
+            spec.name,
+            result.miou,
+            result.labelled_frames,
+            result.pseudo_frames,
+            result.train_seconds
+        ));
+        let model = SegmenterModel::from_dir(&model_dir, &self.device)?;
+        Ok((result, model))
+    }
+}
+
+/// Claims `work` for `job`: records it, or checks that the folder's is the same.
+fn claim_work(work: &Path, job: &serde_json::Value) -> Result<()> {
+    std::fs::create_dir_all(work).map_err(|source| Error::Io {
+        action: "creating the work folder",
+        path: work.to_path_buf(),
+        source,
+    })?;
+    let path = work.join("job.json");
+    match std::fs::read(&path) {
+        Ok(text) => {
+            let found: serde_json::Value =
+                serde_json::from_slice(&text).map_err(|source| Error::Json {
+                    path: path.clone(),
+                    source,
+                })?;
+            if &found != job {
+                return Err(Error::Output {
+                    path,
+                    reason: "holds another job's runs (another bundle, sampler, split or \
+                             training); give another --work or remove it"
+                        .into(),
+                });
+            }
+            Ok(())
+        }
+        Err(_) => {
+            let bytes = serde_json::to_vec_pretty(job).map_err(|source| Error::Json {
+                path: path.clone(),
+                source,
+            })?;
+            Ok(veila_data::atomic::write_atomic(&path, &bytes)?)
+        }
+    }
+}
+
+/// Runs the benchmark of `opts` (module docs), writes its report (`report.md`, `report.json`)
+/// into `out`, and returns it; `progress` shows the run.
+pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentReport> {
+    opts.check()?;
+    let t0 = Instant::now();
+    let device = Device::Cpu;
+    let bundle = Bundle::from_dir(&opts.root.join(&opts.model), &device)?;
+    if !bundle.is_conditional() {
+        return Err(invalid(
+            "model",
+            format!("{}: the bundle must be conditional", opts.model.display()),
+        ));
+    }
+    let sampler = opts
+        .sampler
+        .clone()
+        .unwrap_or_else(|| bundle.config.sampler.clone());
+    let job = opts.job(&bundle, &sampler);
+    let work = opts.root.join(&opts.work);
+    claim_work(&work, &job)?;
+
+    let labels = LabelSpace::semantic_kitti();
+    let mut network = super::segment::SegPreset::Bundled.network();
+    network.num_classes = labels.num_classes();
+    let sensor = &bundle.config.denoiser.sensor;
+    let model = SegmenterModelConfig::new(network.clone(), sensor, labels.classes());
+    let grid = Grid::new(sensor, network)?;
+
+    let train_list = train_split_of(&bundle.config);
+    let test_list = test_list_for(&opts.root, &train_list);
+    let cfg = &bundle.config;
+    let split = render_split_after(
+        &opts.root,
+        &train_list,
+        opts.pool_frames,
+        opts.split_frames,
+        cfg,
+        "simulating the split",
+        progress,
+    )?;
+    let tests = render_split_after(
+        &opts.root,
+        &test_list,
+        0,
+        opts.test_frames,
+        cfg,
+        "simulating test frames",
+        progress,
+    )?;
+    let test: Vec<HeldOutScan> = tests
+        .iter()
+        .map(|e| grid.held_out(&grid.points(&e.range)?))
+        .collect::<Result<_>>()?;
+    drop(tests);
+    let split_label = split_name(&train_list, opts.pool_frames, opts.split_frames);
+    let mut pool = || {
+        render_split_after(
+            &opts.root,
+            &train_list,
+            0,
+            opts.pool_frames,
+            cfg,
+            "simulating the retrieval database",
+            progress,
+        )
+    };
+    // each source's scans of the split as points
+    let mut sources: Vec<(ScanSource, Vec<GridPoints>, f64)> = Vec::new();
+    // a bundle without a mean network has no mean-network row
+    let kinds = ScanSource::ALL
+        .into_iter()
+        .filter(|s| *s != ScanSource::MeanNetwork || bundle.config.residual.is_some());
+    for source in kinds {
+        let t = Instant::now();
+        let scans = scan_set(
+            source,
+            &bundle,
+            &sampler,
+            &split,
+            &split_label,
+            opts.pool_frames,
+            &mut pool,
+            opts.pool_frames,
+            &work,
+            progress,
+        )?;
+        let secs = t.elapsed().as_secs_f64() / scans.len().max(1) as f64;
+        let points = scans
+            .iter()
+            .map(|s| grid.points(s))
+            .collect::<Result<Vec<_>>>()?;
+        sources.push((source, points, secs));
+    }
+    let of = |which: ScanSource| {
+        &sources
+            .iter()
+            .find(|(s, ..)| *s == which)
+            .expect("every bundle has generated and true scans")
+            .1
+    };
+    let truth = of(ScanSource::True);
+    let true_frames: Vec<SegFrame> = truth
+        .iter()
+        .map(|p| grid.frame(p, &grid.train_ids(p)))
+        .collect::<Result<_>>()?;
+    drop(split);
+
+    let bench = Bench {
+        opts,
+        model,
+        test,
+        ignored: labels.ignored(),
+        job,
+        progress,
+        device,
+    };
+    let pseudo = |teacher: &SegmenterModel, points: &[GridPoints], frames: &[usize]| {
+        frames
+            .iter()
+            .map(|&i| grid.pseudo_labelled(teacher, &points[i]))
+            .collect::<Result<Vec<_>>>()
+    };
+    let generated = of(ScanSource::Generated);
+    let mut results = Vec::new();
+    for &seed in &opts.seeds {
+        // the paper's teacher: the whole split labelled
+        let (whole, whole_teacher) = bench.run(RunSpec {
+            name: run_name(seed, None, "whole-split"),
+            row: report::WHOLE_SPLIT.into(),
+            fraction: None,
+            seed,
+            labelled: &true_frames,
+            pseudo: Vec::new(),
+        })?;
+        results.push(whole);
+        for &fraction in &opts.fractions {
+            let lab = labelled_frames(true_frames.len(), fraction);
+            let unlabelled: Vec<usize> = (0..true_frames.len())
+                .filter(|i| lab.binary_search(i).is_err())
+                .collect();
+            let labelled: Vec<SegFrame> = lab.iter().map(|&i| true_frames[i].clone()).collect();
+            let (sup, teacher) = bench.run(RunSpec {
+                name: run_name(seed, Some(fraction), "supervised"),
+                row: report::SUPERVISED.into(),
+                fraction: Some(fraction),
+                seed,
+                labelled: &labelled,
+                pseudo: Vec::new(),
+            })?;
+            results.push(sup);
+            for (source, points, _) in &sources {
+                let name = run_name(seed, Some(fraction), source.name());
+                let done = opts
+                    .root
+                    .join(run_dir(&opts.work, &name))
+                    .join("result.json");
+                let frames = if done.is_file() {
+                    Vec::new()
+                } else {
+                    pseudo(&teacher, points, &unlabelled)?
+                };
+                let (r, _) = bench.run(RunSpec {
+                    name,
+                    row: report::source_row(*source),
+                    fraction: Some(fraction),
+                    seed,
+                    labelled: &labelled,
+                    pseudo: frames,
+                })?;
+                results.push(r);
+            }
+            let name = run_name(seed, Some(fraction), "generated-whole-split-teacher");
+            let done = opts
+                .root
+                .join(run_dir(&opts.work, &name))
+                .join("result.json");
+            let frames = if done.is_file() {
+                Vec::new()
+            } else {
+                pseudo(&whole_teacher, generated, &unlabelled)?
+            };
+            let (r, _) = bench.run(RunSpec {
+                name,
+                row: report::WHOLE_TEACHER.into(),
+                fraction: Some(fraction),
+                seed,
+                labelled: &labelled,
+                pseudo: frames,
+            })?;
+            results.push(r);
+        }
+    }
+    let report = AugmentReport::new(
+        opts,
+        &bundle,
+        &sampler,
+        &split_label,
+        &test_list.display().to_string(),
+        sources.iter().map(|(s, _, secs)| (*s, *secs)).collect(),
+        results,
+        t0.elapsed().as_secs_f64(),
+    );
+    report.write(&opts.root.join(&opts.out))?;
+    Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::app::segment::ClassWeighting;
+
+    fn options(root: &Path, tmp: &Path, steps: u64) -> AugmentOptions {
+        AugmentOptions {
+            root: root.to_path_buf(),
+            model: root.join("models/default"),
+            pool_frames: 4,
+            split_frames: 8,
+            test_frames: 3,
+            fractions: vec![0.25],
+            seeds: vec![3],
+            train: SegTrainSettings {
+                steps,
+                batch: 2,
+                lr: 1e-3,
+                min_lr: 1e-4,
+                warmup_steps: 1,
+                weight_decay: 0.0,
+                seed: 0,
+                augment: true,
+                checkpoint_every: 1,
+                keep_checkpoints: Some(1),
+                eval_every: None,
+            },
+            class_weighting: ClassWeighting::InverseSqrtFrequency,
+            sampler: None,
+            work: tmp.join("work"),
+            out: tmp.join("out"),
+            command: "test".into(),
+        }
+    }
+
+    /// A whole run at toy size: every row at the fraction, the fixed lists' sizes, the report;
+    /// a rerun reads every result back instead of training, and another job's folder is refused.
+    #[test]
+    fn a_toy_run_has_every_row_resumes_from_its_results_and_refuses_another_job() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        if !root.join("models/default").is_dir() {
+            eprintln!("skipped: no models/default");
+            return;
+        }
+        let tmp = tempfile::tempdir().unwrap();
+        let mut opts = options(&root, tmp.path(), 2);
+        let mut bundle_sampler = Bundle::from_dir(&opts.model, &Device::Cpu)
+            .unwrap()
+            .config
+            .sampler;
+        bundle_sampler.steps = 1;
+        opts.sampler = Some(bundle_sampler);
+        let report = run(&opts, &()).unwrap();
+        let table = &report.fractions[0];
+        let rows: Vec<&str> = table.rows.iter().map(|r| r.row.as_str()).collect();
+        assert_eq!(
+            rows,
+            [
+                report::SUPERVISED.to_string(),
+                report::source_row(ScanSource::Generated),
+                report::source_row(ScanSource::True),
+                report::source_row(ScanSource::MeanNetwork),
+                report::source_row(ScanSource::Retrieved),
+                report::WHOLE_TEACHER.to_string(),
+            ]
+        );
+        // 25 % of 8 frames labelled, the other 6 pseudo-labelled in every augmented row
+        for r in &table.rows {
+            assert_eq!(r.labelled_frames, 2, "{}", r.row);
+            let pseudo = if r.row == report::SUPERVISED { 0 } else { 6 };
+            assert_eq!(r.pseudo_frames, pseudo, "{}", r.row);
+            assert!((0.0..=1.0).contains(&r.miou), "{}: {}", r.row, r.miou);
+        }
+        let whole = report.whole_split.as_ref().unwrap();
+        assert_eq!((whole.labelled_frames, whole.pseudo_frames), (8, 0));
+        assert_eq!(report.runs.len(), 7);
+        assert!(table.generated_vs_supervised.is_some() && table.generated_vs_true.is_some());
+        let md = std::fs::read_to_string(tmp.path().join("out/report.md")).unwrap();
+        assert!(md.contains("## 25% labelled") && md.contains("generated scans against"));
+        let work = tmp.path().join("work");
+        assert!(work.join("scans/generated.safetensors").is_file());
+        // a rerun reads every result (and the scans) back: the same numbers, no training
+        let again = run(&opts, &()).unwrap();
+        assert_eq!(again.runs, report.runs);
+        assert!(
+            !work
+                .join("runs/seed-3/labelled-25/generated/checkpoints")
+                .exists()
+        );
+        // another job in the same folder is refused, the folder untouched
+        let before = std::fs::read(work.join("job.json")).unwrap();
+        let other = AugmentOptions {
+            train: SegTrainSettings {
+                steps: 3,
+                ..opts.train.clone()
+            },
+            ..opts.clone()
+        };
+        let e = run(&other, &()).unwrap_err().to_string();
+        assert!(e.contains("another job"), "{e}");
+        assert_eq!(std::fs::read(work.join("job.json")).unwrap(), before);
+    }
+
+    #[test]
+    fn bad_options_are_refused_before_anything_runs() {
+        let tmp = tempfile::tempdir().unwrap();
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        for (edit, what) in [
+            (
+                Box::new(|o: &mut AugmentOptions| o.fractions = vec![0.0])
+                    as Box<dyn Fn(&mut AugmentOptions)>,
+                "strictly between 0 and 1",
+            ),
+            (Box::new(|o| o.fractions = vec![1.0]), "strictly between"),
+            (Box::new(|o| o.seeds.clear()), "no seed"),
+            (Box::new(|o| o.split_frames = 1), "2 frames or more"),
+        ] {
+            let mut o = options(&root, tmp.path(), 2);
+            edit(&mut o);
+            let e = run(&o, &()).unwrap_err().to_string();
+            assert!(e.contains(what), "{e}");
+        }
+        assert!(!tmp.path().join("work").exists());
+    }
+}
