@@ -36,7 +36,7 @@ pub struct BenchAugmentArgs {
     #[arg(long, value_delimiter = ',', default_value = "0,1")]
     seeds: Vec<u64>,
     /// Updates of every segmenter run.
-    #[arg(long, default_value_t = 240)]
+    #[arg(long, default_value_t = 300)]
     steps: u64,
     /// Frames per update.
     #[arg(long, default_value_t = 8)]
@@ -102,7 +102,7 @@ pub fn run(args: BenchAugmentArgs) -> Result<()> {
     for f in &report.fractions {
         if let Some(v) = &f.generated_vs_supervised {
             println!(
-                "{}% labelled: generated scans {} ({:+.1} mIoU points against supervised only)",
+                "{}% labelled, generated scans against supervised only: {} ({:+.1} mIoU points)",
                 veila_diffusion::app::augment::pct(f.fraction),
                 v.word,
                 100.0 * v.mean

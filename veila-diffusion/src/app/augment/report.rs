@@ -301,8 +301,8 @@ impl AugmentReport {
              Split: {} ({} frames the bundle never trained on); test: {} ({} frames). Every scan \
              on the bundle's grid as points; mIoU over SemanticKITTI's 19 classes on the test \
              frames' points, mean ± std over training seeds {:?}. Each run: the bundled-grid \
-             segmenter, {} updates of batch {}, lr {} (cosine to {}), {} warm-up, weight decay \
-             {}, class weights {:?}, augmentation {}. Training time: {:.1} h over {} runs.\n\n",
+             segmenter, {} updates of batch {}, lr {:.1e} (cosine to {:.1e}), {} warm-up updates, weight decay \
+             {}, class weights {}, augmentation {}. Training time: {:.1} h over {} runs.\n\n",
             self.command,
             self.date_utc,
             self.machine,
@@ -322,7 +322,7 @@ impl AugmentReport {
             t.min_lr,
             t.warmup_steps,
             t.weight_decay,
-            o.class_weighting,
+            serde_json::to_string(&o.class_weighting).unwrap_or_default(),
             if t.augment { "on" } else { "off" },
             self.train_seconds / 3600.0,
             self.runs.len(),
