@@ -327,6 +327,25 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
             .collect::<Result<Vec<_>>>()
     };
     let generated = of(ScanSource::Generated);
+    let per_scan: Vec<(ScanSource, f64)> = sources.iter().map(|(s, _, secs)| (*s, *secs)).collect();
+    let planned = opts.seeds.len() * (1 + opts.fractions.len() * (2 + sources.len()));
+    let test_name = test_list.display().to_string();
+    // the report so far after every run (a long run shows its first seed's table early)
+    let write = |results: &[RunResult]| -> Result<AugmentReport> {
+        let report = AugmentReport::new(
+            opts,
+            &bundle,
+            &sampler,
+            &split_label,
+            &test_name,
+            per_scan.clone(),
+            results.to_vec(),
+            planned,
+            t0.elapsed().as_secs_f64(),
+        );
+        report.write(&opts.root.join(&opts.out))?;
+        Ok(report)
+    };
     let mut results = Vec::new();
     for &seed in &opts.seeds {
         // the paper's teacher: the whole split labelled
@@ -339,6 +358,7 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
             pseudo: Vec::new(),
         })?;
         results.push(whole);
+        write(&results)?;
         for &fraction in &opts.fractions {
             let lab = labelled_frames(true_frames.len(), fraction);
             let unlabelled: Vec<usize> = (0..true_frames.len())
@@ -354,6 +374,7 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
                 pseudo: Vec::new(),
             })?;
             results.push(sup);
+            write(&results)?;
             for (source, points, _) in &sources {
                 let name = run_name(seed, Some(fraction), source.name());
                 let done = opts
@@ -374,6 +395,7 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
                     pseudo: frames,
                 })?;
                 results.push(r);
+                write(&results)?;
             }
             let name = run_name(seed, Some(fraction), "generated-whole-split-teacher");
             let done = opts
@@ -394,20 +416,10 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
                 pseudo: frames,
             })?;
             results.push(r);
+            write(&results)?;
         }
     }
-    let report = AugmentReport::new(
-        opts,
-        &bundle,
-        &sampler,
-        &split_label,
-        &test_list.display().to_string(),
-        sources.iter().map(|(s, _, secs)| (*s, *secs)).collect(),
-        results,
-        t0.elapsed().as_secs_f64(),
-    );
-    report.write(&opts.root.join(&opts.out))?;
-    Ok(report)
+    write(&results)
 }
 
 #[cfg(test)]
@@ -485,10 +497,11 @@ mod tests {
         }
         let whole = report.whole_split.as_ref().unwrap();
         assert_eq!((whole.labelled_frames, whole.pseudo_frames), (8, 0));
-        assert_eq!(report.runs.len(), 7);
+        assert_eq!((report.runs.len(), report.planned_runs), (7, 7));
         assert!(table.generated_vs_supervised.is_some() && table.generated_vs_true.is_some());
         let md = std::fs::read_to_string(tmp.path().join("out/report.md")).unwrap();
         assert!(md.contains("## 25% labelled") && md.contains("generated scans against"));
+        assert!(!md.contains("Partial"), "{md}");
         let work = tmp.path().join("work");
         assert!(work.join("scans/generated.safetensors").is_file());
         // a rerun reads every result (and the scans) back: the same numbers, no training

@@ -201,8 +201,10 @@ pub struct AugmentReport {
     pub whole_split: Option<RowStats>,
     /// One table per fraction.
     pub fractions: Vec<FractionTable>,
-    /// Every run.
+    /// Every run done so far.
     pub runs: Vec<RunResult>,
+    /// Runs the whole table takes (the report is partial while `runs` has fewer).
+    pub planned_runs: usize,
     /// Seconds of training over every run.
     pub train_seconds: f64,
     /// Wall seconds of the session that wrote the report.
@@ -220,6 +222,7 @@ impl AugmentReport {
         test_list: &str,
         seconds_per_scan: Vec<(ScanSource, f64)>,
         runs: Vec<RunResult>,
+        planned_runs: usize,
         session_seconds: f64,
     ) -> Self {
         let rows_of = |fraction: Option<f64>, row: &str| {
@@ -281,6 +284,7 @@ impl AugmentReport {
             fractions,
             train_seconds: runs.iter().map(|r| r.train_seconds).sum(),
             runs,
+            planned_runs,
             session_seconds,
         }
     }
@@ -327,6 +331,14 @@ impl AugmentReport {
             self.train_seconds / 3600.0,
             self.runs.len(),
         );
+        if self.runs.len() < self.planned_runs {
+            s += &format!(
+                "**Partial: {} of {} runs done** (the run goes on, or resumes with the same \
+                 command; rows show the seeds done so far).\n\n",
+                self.runs.len(),
+                self.planned_runs
+            );
+        }
         s += "Seconds a scan to make: ";
         s += &self
             .seconds_per_scan
