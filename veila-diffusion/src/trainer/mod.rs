@@ -57,6 +57,8 @@ pub use checkpoint::{
     CheckpointState, EMA_FILE, RUN_RECORD_FILE, RngState, TensorFileReader, claim_checkpoint_dir,
     find_latest_checkpoint,
 };
+// the segmenter's checkpoints (`app::segment`) are written with the trainer's file helpers
+#[cfg(feature = "app")]
 pub(crate) use checkpoint::{
     MODEL_FILE, OPT_FILE, STATE_FILE, read_state_json, save_tensors, write_checkpoint_dir,
     write_state_json,

@@ -31,7 +31,7 @@ use candle_core::Device;
 
 pub use data::{GridPoints, LABELLED_LIST_SEED, ScanSource, labelled_frames};
 pub use options::{AugmentOptions, pct};
-pub use report::{AugmentReport, FractionTable, RowStats, RunResult, Verdict, verdict};
+pub use report::{AugmentReport, FractionTable, MIN_EFFECT, RowStats, RunResult, Verdict, verdict};
 
 use self::data::{Grid, run_dir, scan_set, split_name};
 use super::bundle::Bundle;
