@@ -59,6 +59,8 @@ struct RunSpec<'a> {
     seed: u64,
     labelled: &'a [SegFrame],
     pseudo: Vec<SegFrame>,
+    /// Whether its weights label the scans of other runs.
+    teaches: bool,
 }
 
 /// The shared part of every run.
@@ -75,16 +77,23 @@ struct Bench<'a> {
 impl Bench<'_> {
     /// Trains (or resumes, or reads back) the run `spec`; its weights are kept in its folder for
     /// when it teaches.
-    fn run(&self, spec: RunSpec<'_>) -> Result<(RunResult, SegmenterModel)> {
+    fn run(&self, spec: RunSpec<'_>) -> Result<(RunResult, Option<SegmenterModel>)> {
         let dir = self.opts.root.join(run_dir(&self.opts.work, &spec.name));
         let result_path = dir.join("result.json");
         let model_dir = dir.join("segmenter");
-        if let (Ok(text), true) = (std::fs::read(&result_path), model_dir.is_dir()) {
+        // a finished run is read back; a teacher's weights are needed too (a teacher whose
+        // weights are gone, as from a work folder rebuilt from its results alone, trains again
+        // to the same weights: every run is seeded)
+        let have_model = model_dir.is_dir();
+        if let (Ok(text), true) = (std::fs::read(&result_path), have_model || !spec.teaches) {
             let r: RunResult = serde_json::from_slice(&text).map_err(|source| Error::Json {
                 path: result_path.clone(),
                 source,
             })?;
-            let model = SegmenterModel::from_dir(&model_dir, &self.device)?;
+            let model = match have_model {
+                true => Some(SegmenterModel::from_dir(&model_dir, &self.device)?),
+                false => None,
+            };
             self.progress
                 .line(&format!("  {}: done before, mIoU {:.3}", spec.name, r.miou));
             return Ok((r, model));
@@ -165,8 +174,13 @@ impl Bench<'_> {
             result.train_seconds
         ));
         let model = SegmenterModel::from_dir(&model_dir, &self.device)?;
-        Ok((result, model))
+        Ok((result, Some(model)))
     }
+}
+
+/// A teacher's weights, which [`Bench::run`] always returns for a teacher.
+fn teacher_of(model: Option<SegmenterModel>, r: &RunResult) -> Result<SegmenterModel> {
+    model.ok_or_else(|| Error::Data(format!("{}: the teacher's weights are missing", r.name)))
 }
 
 /// Claims `work` for `job`: records it, or checks that the folder's is the same.
@@ -356,7 +370,9 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
             seed,
             labelled: &true_frames,
             pseudo: Vec::new(),
+            teaches: true,
         })?;
+        let whole_teacher = teacher_of(whole_teacher, &whole)?;
         results.push(whole);
         write(&results)?;
         for &fraction in &opts.fractions {
@@ -372,7 +388,9 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
                 seed,
                 labelled: &labelled,
                 pseudo: Vec::new(),
+                teaches: true,
             })?;
+            let teacher = teacher_of(teacher, &sup)?;
             results.push(sup);
             write(&results)?;
             for (source, points, _) in &sources {
@@ -393,6 +411,7 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
                     seed,
                     labelled: &labelled,
                     pseudo: frames,
+                    teaches: false,
                 })?;
                 results.push(r);
                 write(&results)?;
@@ -414,6 +433,7 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
                 seed,
                 labelled: &labelled,
                 pseudo: frames,
+                teaches: false,
             })?;
             results.push(r);
             write(&results)?;
@@ -511,6 +531,29 @@ mod tests {
             !work
                 .join("runs/seed-3/labelled-25/generated/checkpoints")
                 .exists()
+        );
+        // a work folder holding results alone (restored from committed results): a student is
+        // read back, a teacher trains again, to the same weights (every run is seeded)
+        let runs = work.join("runs/seed-3/labelled-25");
+        let (student, teacher) = (
+            runs.join("generated/segmenter"),
+            runs.join("supervised/segmenter"),
+        );
+        let weights = std::fs::read(teacher.join("segmenter.safetensors")).unwrap();
+        std::fs::remove_dir_all(&student).unwrap();
+        std::fs::remove_dir_all(&teacher).unwrap();
+        let third = run(&opts, &()).unwrap();
+        let scores = |r: &AugmentReport| -> Vec<(String, f64, Vec<f64>)> {
+            r.runs
+                .iter()
+                .map(|x| (x.name.clone(), x.miou, x.iou.clone()))
+                .collect()
+        };
+        assert_eq!(scores(&third), scores(&report));
+        assert!(!student.exists());
+        assert_eq!(
+            std::fs::read(teacher.join("segmenter.safetensors")).unwrap(),
+            weights
         );
         // another job in the same folder is refused, the folder untouched
         let before = std::fs::read(work.join("job.json")).unwrap();
