@@ -393,8 +393,20 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
             let teacher = teacher_of(teacher, &sup)?;
             results.push(sup);
             write(&results)?;
-            for (source, points, _) in &sources {
-                let name = run_name(seed, Some(fraction), source.name());
+            // the students: each source's scans by the fraction's teacher, then the generated
+            // scans by the whole-split teacher
+            let mut students: Vec<(&str, String, &SegmenterModel, &[GridPoints])> = sources
+                .iter()
+                .map(|(s, p, _)| (s.name(), report::source_row(*s), &teacher, p.as_slice()))
+                .collect();
+            students.push((
+                "generated-whole-split-teacher",
+                report::WHOLE_TEACHER.into(),
+                &whole_teacher,
+                generated.as_slice(),
+            ));
+            for (what, row, by, points) in students {
+                let name = run_name(seed, Some(fraction), what);
                 let done = opts
                     .root
                     .join(run_dir(&opts.work, &name))
@@ -402,11 +414,11 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
                 let frames = if done.is_file() {
                     Vec::new()
                 } else {
-                    pseudo(&teacher, points, &unlabelled)?
+                    pseudo(by, points, &unlabelled)?
                 };
                 let (r, _) = bench.run(RunSpec {
                     name,
-                    row: report::source_row(*source),
+                    row,
                     fraction: Some(fraction),
                     seed,
                     labelled: &labelled,
@@ -416,27 +428,6 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
                 results.push(r);
                 write(&results)?;
             }
-            let name = run_name(seed, Some(fraction), "generated-whole-split-teacher");
-            let done = opts
-                .root
-                .join(run_dir(&opts.work, &name))
-                .join("result.json");
-            let frames = if done.is_file() {
-                Vec::new()
-            } else {
-                pseudo(&whole_teacher, generated, &unlabelled)?
-            };
-            let (r, _) = bench.run(RunSpec {
-                name,
-                row: report::WHOLE_TEACHER.into(),
-                fraction: Some(fraction),
-                seed,
-                labelled: &labelled,
-                pseudo: frames,
-                teaches: false,
-            })?;
-            results.push(r);
-            write(&results)?;
         }
     }
     write(&results)
