@@ -180,10 +180,14 @@ struct ScanSetKey {
     first_frame: usize,
     frames: usize,
     pool_frames: usize,
+    /// Seconds a scan took to make when the set was made (not part of the key).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    seconds_per_scan: Option<f64>,
 }
 
 /// The scans of `source` for every frame of `split` (frames `first..first + split.len()` of the
-/// bundle's list): from the cache in `work/scans/` when it holds this very set, else made and
+/// bundle's list), with the seconds a scan took to make (as recorded when the set was made; 0 for
+/// the true scans): from the cache in `work/scans/` when it holds this very set, else made and
 /// cached. `pool` is rendered only when the retrieved scans must be made.
 #[allow(clippy::too_many_arguments)]
 pub fn scan_set(
@@ -197,9 +201,9 @@ pub fn scan_set(
     pool_frames: usize,
     work: &Path,
     progress: &dyn Progress,
-) -> Result<Vec<RangeImage>> {
+) -> Result<(Vec<RangeImage>, Option<f64>)> {
     if source == ScanSource::True {
-        return Ok(split.iter().map(|e| e.range.clone()).collect());
+        return Ok((split.iter().map(|e| e.range.clone()).collect(), Some(0.0)));
     }
     let key = ScanSetKey {
         source,
@@ -209,20 +213,21 @@ pub fn scan_set(
         first_frame: first,
         frames: split.len(),
         pool_frames,
+        seconds_per_scan: None,
     };
     let dir = work.join("scans");
     let (key_path, data_path) = (
         dir.join(format!("{}.json", source.name())),
         dir.join(format!("{}.safetensors", source.name())),
     );
-    if let Some(scans) = read_cached(&key, &key_path, &data_path, bundle)? {
+    if let Some((scans, seconds)) = read_cached(&key, &key_path, &data_path, bundle)? {
         progress.line(&format!(
             "  {}: {} scans from {}",
             source.name(),
             scans.len(),
             data_path.display()
         ));
-        return Ok(scans);
+        return Ok((scans, seconds));
     }
     let t = std::time::Instant::now();
     let scans = match source {
@@ -259,8 +264,13 @@ pub fn scan_set(
         t.elapsed().as_secs_f64(),
         t.elapsed().as_secs_f64() / scans.len().max(1) as f64
     ));
+    let seconds = t.elapsed().as_secs_f64() / scans.len().max(1) as f64;
+    let key = ScanSetKey {
+        seconds_per_scan: Some(seconds),
+        ..key
+    };
     write_cached(&key, &key_path, &data_path, &scans)?;
-    Ok(scans)
+    Ok((scans, Some(seconds)))
 }
 
 fn io_error<'a>(action: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> Error + 'a {
@@ -276,7 +286,7 @@ fn read_cached(
     key_path: &Path,
     data_path: &Path,
     bundle: &Bundle,
-) -> Result<Option<Vec<RangeImage>>> {
+) -> Result<Option<(Vec<RangeImage>, Option<f64>)>> {
     let Ok(text) = std::fs::read(key_path) else {
         return Ok(None);
     };
@@ -284,7 +294,12 @@ fn read_cached(
         path: key_path.to_path_buf(),
         source,
     })?;
-    if &cached != key || !data_path.is_file() {
+    let seconds = cached.seconds_per_scan;
+    let same = ScanSetKey {
+        seconds_per_scan: None,
+        ..cached
+    };
+    if &same != key || !data_path.is_file() {
         return Ok(None);
     }
     let tensors = candle_core::safetensors::load(data_path, &Device::Cpu)?;
@@ -306,7 +321,7 @@ fn read_cached(
             reason: format!("not {} scans of {rows} x {cols}", key.frames),
         });
     }
-    Ok(Some(
+    Ok(Some((
         (0..key.frames)
             .map(|f| {
                 let s = f * px..(f + 1) * px;
@@ -319,7 +334,8 @@ fn read_cached(
                 im
             })
             .collect(),
-    ))
+        seconds,
+    )))
 }
 
 fn write_cached(

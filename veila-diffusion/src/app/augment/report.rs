@@ -193,8 +193,9 @@ pub struct AugmentReport {
     pub test: String,
     /// The options (training settings, fractions, seeds).
     pub options: AugmentOptions,
-    /// Seconds a scan of each source took to make (0 for the true scans; from a cache: reading).
-    pub seconds_per_scan: Vec<(ScanSource, f64)>,
+    /// Seconds a scan of each source took to make when its set was made (0 for the true scans;
+    /// none where a cached set does not record it).
+    pub seconds_per_scan: Vec<(ScanSource, Option<f64>)>,
     /// The class names, by train id.
     pub classes: Vec<String>,
     /// The whole-split teacher's row.
@@ -220,7 +221,7 @@ impl AugmentReport {
         sampler: &SamplerConfig,
         split: &str,
         test_list: &str,
-        seconds_per_scan: Vec<(ScanSource, f64)>,
+        seconds_per_scan: Vec<(ScanSource, Option<f64>)>,
         runs: Vec<RunResult>,
         planned_runs: usize,
         session_seconds: f64,
@@ -343,10 +344,13 @@ impl AugmentReport {
         s += &self
             .seconds_per_scan
             .iter()
-            .map(|(src, secs)| format!("{} {secs:.2}", src.name()))
+            .map(|(src, secs)| match secs {
+                Some(secs) => format!("{} {secs:.2}", src.name()),
+                None => format!("{} (not recorded)", src.name()),
+            })
             .collect::<Vec<_>>()
             .join(", ");
-        s += " (a cached set: reading it).\n\n";
+        s += " (when the set was sampled; a resumed run reads it from the work folder).\n\n";
         if let Some(w) = &self.whole_split {
             s += &format!(
                 "Whole split labelled ({} frames): mIoU {:.3} ± {:.3}, {:.0} s of training a run.\n\n",
