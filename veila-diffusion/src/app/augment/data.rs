@@ -273,14 +273,6 @@ pub fn scan_set(
     Ok((scans, Some(seconds)))
 }
 
-fn io_error<'a>(action: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> Error + 'a {
-    move |source| Error::Io {
-        action,
-        path: path.to_path_buf(),
-        source,
-    }
-}
-
 fn read_cached(
     key: &ScanSetKey,
     key_path: &Path,
@@ -345,7 +337,11 @@ fn write_cached(
     scans: &[RangeImage],
 ) -> Result<()> {
     let dir = data_path.parent().unwrap_or(Path::new("."));
-    std::fs::create_dir_all(dir).map_err(io_error("creating the scan cache", dir))?;
+    std::fs::create_dir_all(dir).map_err(|source| Error::Io {
+        action: "creating the scan cache",
+        path: dir.to_path_buf(),
+        source,
+    })?;
     let px = scans.first().map_or(0, |s| s.num_pixels());
     let stack = |f: &dyn Fn(&RangeImage) -> Vec<f32>| -> Result<Tensor> {
         let v: Vec<f32> = scans.iter().flat_map(f).collect();

@@ -58,7 +58,8 @@ struct RunSpec<'a> {
     fraction: Option<f64>,
     seed: u64,
     labelled: &'a [SegFrame],
-    pseudo: Vec<SegFrame>,
+    /// The teacher, the scans it labels and which of them (made only when the run trains).
+    pseudo: Option<(&'a SegmenterModel, &'a [GridPoints], &'a [usize])>,
     /// Whether its weights label the scans of other runs.
     teaches: bool,
 }
@@ -66,6 +67,7 @@ struct RunSpec<'a> {
 /// The shared part of every run.
 struct Bench<'a> {
     opts: &'a AugmentOptions,
+    grid: &'a Grid,
     model: SegmenterModelConfig,
     test: Vec<HeldOutScan>,
     ignored: Vec<usize>,
@@ -98,12 +100,15 @@ impl Bench<'_> {
                 .line(&format!("  {}: done before, mIoU {:.3}", spec.name, r.miou));
             return Ok((r, model));
         }
-        let frames: Vec<SegFrame> = spec
-            .labelled
-            .iter()
-            .cloned()
-            .chain(spec.pseudo.iter().cloned())
-            .collect();
+        let pseudo: Vec<SegFrame> = match spec.pseudo {
+            Some((teacher, points, which)) => which
+                .iter()
+                .map(|&i| self.grid.pseudo_labelled(teacher, &points[i]))
+                .collect::<Result<_>>()?,
+            None => Vec::new(),
+        };
+        let pseudo_frames = pseudo.len();
+        let frames: Vec<SegFrame> = spec.labelled.iter().cloned().chain(pseudo).collect();
         let n = self.model.network.num_classes;
         let counts = class_counts(&frames, n);
         let weights = class_weights(&counts, self.opts.class_weighting, &self.ignored);
@@ -142,7 +147,7 @@ impl Bench<'_> {
             fraction: spec.fraction,
             seed: spec.seed,
             labelled_frames: spec.labelled.len(),
-            pseudo_frames: spec.pseudo.len(),
+            pseudo_frames,
             miou: scores.miou,
             miou_present: scores.miou_present,
             accuracy: scores.accuracy,
@@ -325,18 +330,13 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
 
     let bench = Bench {
         opts,
+        grid: &grid,
         model,
         test,
         ignored: labels.ignored(),
         job,
         progress,
         device,
-    };
-    let pseudo = |teacher: &SegmenterModel, points: &[GridPoints], frames: &[usize]| {
-        frames
-            .iter()
-            .map(|&i| grid.pseudo_labelled(teacher, &points[i]))
-            .collect::<Result<Vec<_>>>()
     };
     let generated = of(ScanSource::Generated);
     let per_scan: Vec<(ScanSource, Option<f64>)> =
@@ -368,7 +368,7 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
             fraction: None,
             seed,
             labelled: &true_frames,
-            pseudo: Vec::new(),
+            pseudo: None,
             teaches: true,
         })?;
         let whole_teacher = teacher_of(whole_teacher, &whole)?;
@@ -386,7 +386,7 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
                 fraction: Some(fraction),
                 seed,
                 labelled: &labelled,
-                pseudo: Vec::new(),
+                pseudo: None,
                 teaches: true,
             })?;
             let teacher = teacher_of(teacher, &sup)?;
@@ -405,23 +405,13 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
                 generated.as_slice(),
             ));
             for (what, row, by, points) in students {
-                let name = run_name(seed, Some(fraction), what);
-                let done = opts
-                    .root
-                    .join(run_dir(&opts.work, &name))
-                    .join("result.json");
-                let frames = if done.is_file() {
-                    Vec::new()
-                } else {
-                    pseudo(by, points, &unlabelled)?
-                };
                 let (r, _) = bench.run(RunSpec {
-                    name,
+                    name: run_name(seed, Some(fraction), what),
                     row,
                     fraction: Some(fraction),
                     seed,
                     labelled: &labelled,
-                    pseudo: frames,
+                    pseudo: Some((by, points, &unlabelled)),
                     teaches: false,
                 })?;
                 results.push(r);

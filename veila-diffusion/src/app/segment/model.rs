@@ -180,12 +180,11 @@ impl SegmenterModel {
             &expected,
             device,
         )?;
-        let mut model = Self::new(config, weights, origin, device)?;
-        model.identity = format!(
+        let identity = format!(
             "segmenter manifest sha256 {}",
             sha256_hex(model_files.manifest_bytes()?)
         );
-        Ok(model)
+        Self::build(config, weights, origin, device, Some(identity))
     }
 
     /// The segmenter of `config` with `weights` (exactly the tensors its network asks for);
@@ -196,17 +195,32 @@ impl SegmenterModel {
         origin: &Path,
         device: &Device,
     ) -> Result<Self> {
+        Self::build(config, weights, origin, device, None)
+    }
+
+    /// [`SegmenterModel::new`] with its identity given, or (`None`) computed from the config and
+    /// the weights.
+    fn build(
+        config: SegmenterModelConfig,
+        weights: HashMap<String, Tensor>,
+        origin: &Path,
+        device: &Device,
+        identity: Option<String>,
+    ) -> Result<Self> {
         config.check(origin)?;
-        let identity = {
-            let json = serde_json::to_vec(&config).map_err(|source| Error::Json {
-                path: origin.join(SEGMENTER_CONFIG_FILE),
-                source,
-            })?;
-            let bytes = safetensors_bytes(&weights, &origin.join(SEGMENTER_WEIGHTS_FILE))?;
-            format!(
-                "segmenter in memory sha256 {}",
-                sha256_hex(&[json, bytes].concat())
-            )
+        let identity = match identity {
+            Some(id) => id,
+            None => {
+                let json = serde_json::to_vec(&config).map_err(|source| Error::Json {
+                    path: origin.join(SEGMENTER_CONFIG_FILE),
+                    source,
+                })?;
+                let bytes = safetensors_bytes(&weights, &origin.join(SEGMENTER_WEIGHTS_FILE))?;
+                format!(
+                    "segmenter in memory sha256 {}",
+                    sha256_hex(&[json, bytes].concat())
+                )
+            }
         };
         let net = Segmenter::new(
             &config.network,
