@@ -8,7 +8,9 @@
 //! distance (mean |Δ log2(1 + r)|) to its nearest probe frame, next to the frames' distances to
 //! each other: the overfit check. A model trained on a handful of frames (`train-default --frames
 //! 8`) and probed on those frames (`--scenes scenes/train-v5.txt`) must draw near-copies of them;
-//! if it cannot, the encoding, loss, sampler or decoding disagree.
+//! if it cannot, the encoding, loss, sampler or decoding disagree. Each draw's texture figures
+//! (`veila demo`'s) sit next to its nearest frame's: a network that draws the layout but not the
+//! fine texture of the frames it memorised cannot draw it for new ones either.
 //!
 //! ```sh
 //! cargo run --release -p veila-diffusion --features sim --example denoise_probe -- \
@@ -85,7 +87,7 @@ fn sample_check(
     draws: usize,
 ) -> Result<(), Box<dyn std::error::Error>> {
     use veila_diffusion::app::generate::GenerateOptions;
-    use veila_metrics::texture::{nearest_scan, scan_distance};
+    use veila_metrics::texture::{TextureSummary, nearest_scan, scan_distance};
     let pool: Vec<_> = frames.iter().map(|f| f.range.clone()).collect();
     let mut between = Vec::new();
     for (i, a) in pool.iter().enumerate() {
@@ -117,10 +119,25 @@ fn sample_check(
         t.elapsed().as_secs_f64(),
         between.get(between.len() / 2).copied().unwrap_or(f64::NAN)
     );
-    println!("| sample | nearest frame | distance | valid share |\n|---|---|---|---|");
+    // the texture figures of each draw against its nearest frame, and the frame's own: whether
+    // the network can draw the data's fine texture at all, not only its layout
+    println!(
+        "| sample | nearest frame | distance | valid share | smooth lower (%), draw / frame | \
+         depth edges upper (%), draw / frame | texture along rows (w1, decades) |\n|---|---|---|---|---|---|---|"
+    );
     for (s, scan) in scans.iter().enumerate() {
         let (i, d) = nearest_scan(scan, &pool)?;
-        println!("| {s} | {i} | {d:.4} | {:.3} |", valid_share(scan));
+        let draw = TextureSummary::of(scan, &pool[i])?;
+        let frame = TextureSummary::of(&pool[i], &pool[i])?;
+        println!(
+            "| {s} | {i} | {d:.4} | {:.3} | {:.2} / {:.2} | {:.2} / {:.2} | {:.3} |",
+            valid_share(scan),
+            draw.smooth_lower_pct,
+            frame.smooth_lower_pct,
+            draw.depth_edges_upper_pct,
+            frame.depth_edges_upper_pct,
+            draw.w1_along_decades
+        );
     }
     Ok(())
 }

@@ -37,6 +37,14 @@ pub fn cpu_cores() -> usize {
     std::thread::available_parallelism().map_or(1, |n| n.get())
 }
 
+/// The machine as a benchmark report names it: "1 CPU core", "2 CPU cores".
+pub fn cpu_cores_phrase() -> String {
+    match cpu_cores() {
+        1 => "1 CPU core".to_string(),
+        n => format!("{n} CPU cores"),
+    }
+}
+
 /// Process settings that candle and mimalloc read from the environment, set where the user has
 /// not.
 ///

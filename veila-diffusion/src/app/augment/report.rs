@@ -272,7 +272,7 @@ impl AugmentReport {
         AugmentReport {
             command: opts.command.clone(),
             date_utc: veila_data::stamp::report_time(),
-            machine: format!("{} CPU cores", veila_nn::process::cpu_cores()),
+            machine: veila_nn::process::cpu_cores_phrase(),
             model: opts.model.display().to_string(),
             model_manifest_sha256: bundle.manifest_sha256.clone(),
             sampler: sampler.clone(),

@@ -52,7 +52,7 @@ pub fn run(mut options: BenchReportOptions, progress: &dyn Progress) -> Result<R
     let report = Report {
         command: opts.command.clone(),
         date_utc: veila_data::stamp::report_time(),
-        machine: format!("{} CPU cores (CPU only)", veila_nn::process::cpu_cores()),
+        machine: format!("{} (CPU only)", veila_nn::process::cpu_cores_phrase()),
         test_split: bench.test_list.display().to_string(),
         test_frames: bench.tests.len(),
         folds: opts.folds,

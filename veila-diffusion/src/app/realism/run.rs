@@ -123,7 +123,7 @@ pub fn run(opts: &RealismOptions, progress: &dyn Progress) -> Result<RealismRepo
     let report = RealismReport {
         command: opts.command.clone(),
         date_utc: veila_data::stamp::report_time(),
-        machine: format!("{} CPU cores", veila_nn::process::cpu_cores()),
+        machine: veila_nn::process::cpu_cores_phrase(),
         test_split: test_list.display().to_string(),
         folds: bench.num_folds(),
         fold_size: n,
