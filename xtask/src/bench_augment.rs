@@ -53,6 +53,11 @@ pub struct BenchAugmentArgs {
     /// Output folder of the report.
     #[arg(long, default_value = "docs/bench-augment")]
     out: PathBuf,
+    /// Write the report from the results in the work folder and stop: renders and trains
+    /// nothing. Merges workers that ran the seeds apart (`--seeds 0` and `--seeds 1` at once on
+    /// one work folder), or shows a run in progress.
+    #[arg(long)]
+    report_only: bool,
 }
 
 /// Runs the benchmark and writes the report.
@@ -98,7 +103,10 @@ pub fn run(args: BenchAugmentArgs) -> Result<()> {
         out: args.out,
         command: crate::progress::command_line(),
     };
-    let report = veila_diffusion::app::augment::run(&options, &Terminal::default())?;
+    let report = match args.report_only {
+        true => veila_diffusion::app::augment::report_from_work(&options)?,
+        false => veila_diffusion::app::augment::run(&options, &Terminal::default())?,
+    };
     for f in &report.fractions {
         if let Some(v) = &f.generated_vs_supervised {
             println!(

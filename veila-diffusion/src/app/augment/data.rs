@@ -273,6 +273,21 @@ pub fn scan_set(
     Ok((scans, Some(seconds)))
 }
 
+/// The seconds a scan of `source` took to make, as recorded in `work/scans/` (0 for the true
+/// scans; none when the set was never made or its time was not recorded).
+pub(super) fn cached_seconds(work: &Path, source: ScanSource) -> Result<Option<f64>> {
+    if source == ScanSource::True {
+        return Ok(Some(0.0));
+    }
+    let path = work.join("scans").join(format!("{}.json", source.name()));
+    let Ok(text) = std::fs::read(&path) else {
+        return Ok(None);
+    };
+    let key: ScanSetKey =
+        serde_json::from_slice(&text).map_err(|source| Error::Json { path, source })?;
+    Ok(key.seconds_per_scan)
+}
+
 fn read_cached(
     key: &ScanSetKey,
     key_path: &Path,

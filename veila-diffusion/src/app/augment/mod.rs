@@ -422,6 +422,74 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
     write(&results)
 }
 
+/// Writes the report of `opts` from the results already in its work folder, rendering and
+/// training nothing, and returns it: the merge of workers that ran the seeds apart (`--seeds 0`
+/// and `--seeds 1` at once on the same work folder, each writing a report of its own seed), or
+/// a look at a run in progress. Runs not done are left out and the report says it is partial.
+pub fn report_from_work(opts: &AugmentOptions) -> Result<AugmentReport> {
+    opts.check()?;
+    let t0 = Instant::now();
+    let bundle = Bundle::from_dir(&opts.root.join(&opts.model), &Device::Cpu)?;
+    let sampler = opts
+        .sampler
+        .clone()
+        .unwrap_or_else(|| bundle.config.sampler.clone());
+    let work = opts.root.join(&opts.work);
+    if !work.join("job.json").is_file() {
+        return Err(Error::Input {
+            path: work.join("job.json"),
+            reason: "no benchmark ran in this work folder".into(),
+        });
+    }
+    claim_work(&work, &opts.job(&bundle, &sampler))?;
+    let train_list = train_split_of(&bundle.config);
+    let test_list = test_list_for(&opts.root, &train_list);
+    let kinds: Vec<ScanSource> = ScanSource::ALL
+        .into_iter()
+        .filter(|s| *s != ScanSource::MeanNetwork || bundle.config.residual.is_some())
+        .collect();
+    let per_scan = kinds
+        .iter()
+        .map(|&s| Ok((s, data::cached_seconds(&work, s)?)))
+        .collect::<Result<Vec<_>>>()?;
+    let mut results = Vec::new();
+    for seed in &opts.seeds {
+        let fractions = std::iter::once(None).chain(opts.fractions.iter().map(|&f| Some(f)));
+        for fraction in fractions {
+            let names: Vec<&str> = match fraction {
+                None => vec!["whole-split"],
+                Some(_) => std::iter::once("supervised")
+                    .chain(kinds.iter().map(|s| s.name()))
+                    .chain(std::iter::once("generated-whole-split-teacher"))
+                    .collect(),
+            };
+            for what in names {
+                let path = run_dir(&work, &run_name(*seed, fraction, what)).join("result.json");
+                let Ok(text) = std::fs::read(&path) else {
+                    continue;
+                };
+                let r: RunResult =
+                    serde_json::from_slice(&text).map_err(|source| Error::Json { path, source })?;
+                results.push(r);
+            }
+        }
+    }
+    let planned = opts.seeds.len() * (1 + opts.fractions.len() * (2 + kinds.len()));
+    let report = AugmentReport::new(
+        opts,
+        &bundle,
+        &sampler,
+        &split_name(&train_list, opts.pool_frames, opts.split_frames),
+        &test_list.display().to_string(),
+        per_scan,
+        results,
+        planned,
+        t0.elapsed().as_secs_f64(),
+    );
+    report.write(&opts.root.join(&opts.out))?;
+    Ok(report)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -515,6 +583,20 @@ mod tests {
                 .join("runs/seed-3/labelled-25/generated/checkpoints")
                 .exists()
         );
+        // the report from the work folder alone: the same runs and tables, no training; one
+        // result gone, it is partial and that run's row has no seed
+        let merged = report_from_work(&opts).unwrap();
+        assert_eq!(merged.runs, report.runs);
+        assert_eq!(merged.fractions, report.fractions);
+        assert_eq!(merged.seconds_per_scan, report.seconds_per_scan);
+        let kept = work.join("runs/seed-3/labelled-25/retrieved/result.json");
+        let text = std::fs::read(&kept).unwrap();
+        std::fs::remove_file(&kept).unwrap();
+        let partial = report_from_work(&opts).unwrap();
+        assert_eq!((partial.runs.len(), partial.planned_runs), (6, 7));
+        let md = std::fs::read_to_string(tmp.path().join("out/report.md")).unwrap();
+        assert!(md.contains("Partial: 6 of 7 runs"), "{md}");
+        std::fs::write(&kept, text).unwrap();
         // a work folder holding results alone (restored from committed results): a student is
         // read back, a teacher trains again, to the same weights (every run is seeded)
         let runs = work.join("runs/seed-3/labelled-25");

@@ -334,8 +334,9 @@ impl AugmentReport {
         );
         if self.runs.len() < self.planned_runs {
             s += &format!(
-                "**Partial: {} of {} runs done** (the run goes on, or resumes with the same \
-                 command; rows show the seeds done so far).\n\n",
+                "**Partial: {} of {} runs done** (`cargo xtask bench-augment` with the same \
+                 options, without `--report-only`, goes on from here; rows show the seeds done \
+                 so far).\n\n",
                 self.runs.len(),
                 self.planned_runs
             );
