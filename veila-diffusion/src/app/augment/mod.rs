@@ -51,6 +51,27 @@ fn run_name(seed: u64, fraction: Option<f64>, what: &str) -> String {
     }
 }
 
+/// The folder names of the runs that are not one source's student (those are the source's
+/// [`ScanSource::name`]).
+const WHOLE_SPLIT_RUN: &str = "whole-split";
+const SUPERVISED_RUN: &str = "supervised";
+const WHOLE_TEACHER_RUN: &str = "generated-whole-split-teacher";
+
+/// The scan sources of `bundle`'s rows: every [`ScanSource`], less the mean network's where the
+/// bundle has none.
+fn sources_of(bundle: &Bundle) -> Vec<ScanSource> {
+    ScanSource::ALL
+        .into_iter()
+        .filter(|s| *s != ScanSource::MeanNetwork || bundle.config.residual.is_some())
+        .collect()
+}
+
+/// Runs the whole table takes: per seed, the whole-split teacher and, at each fraction, the
+/// supervised run, one student per source and the whole-split teacher's student.
+fn planned_runs(opts: &AugmentOptions, sources: usize) -> usize {
+    opts.seeds.len() * (1 + opts.fractions.len() * (2 + sources))
+}
+
 /// What one segmenter run trains on and is called.
 struct RunSpec<'a> {
     name: String,
@@ -292,10 +313,7 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
     // each source's scans of the split as points
     let mut sources: Vec<(ScanSource, Vec<GridPoints>, Option<f64>)> = Vec::new();
     // a bundle without a mean network has no mean-network row
-    let kinds = ScanSource::ALL
-        .into_iter()
-        .filter(|s| *s != ScanSource::MeanNetwork || bundle.config.residual.is_some());
-    for source in kinds {
+    for source in sources_of(&bundle) {
         let (scans, secs) = scan_set(
             source,
             &bundle,
@@ -341,7 +359,7 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
     let generated = of(ScanSource::Generated);
     let per_scan: Vec<(ScanSource, Option<f64>)> =
         sources.iter().map(|(s, _, secs)| (*s, *secs)).collect();
-    let planned = opts.seeds.len() * (1 + opts.fractions.len() * (2 + sources.len()));
+    let planned = planned_runs(opts, sources.len());
     let test_name = test_list.display().to_string();
     // the report so far after every run (a long run shows its first seed's table early)
     let write = |results: &[RunResult]| -> Result<AugmentReport> {
@@ -363,7 +381,7 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
     for &seed in &opts.seeds {
         // the paper's teacher: the whole split labelled
         let (whole, whole_teacher) = bench.run(RunSpec {
-            name: run_name(seed, None, "whole-split"),
+            name: run_name(seed, None, WHOLE_SPLIT_RUN),
             row: report::WHOLE_SPLIT.into(),
             fraction: None,
             seed,
@@ -381,7 +399,7 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
                 .collect();
             let labelled: Vec<SegFrame> = lab.iter().map(|&i| true_frames[i].clone()).collect();
             let (sup, teacher) = bench.run(RunSpec {
-                name: run_name(seed, Some(fraction), "supervised"),
+                name: run_name(seed, Some(fraction), SUPERVISED_RUN),
                 row: report::SUPERVISED.into(),
                 fraction: Some(fraction),
                 seed,
@@ -399,7 +417,7 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
                 .map(|(s, p, _)| (s.name(), report::source_row(*s), &teacher, p.as_slice()))
                 .collect();
             students.push((
-                "generated-whole-split-teacher",
+                WHOLE_TEACHER_RUN,
                 report::WHOLE_TEACHER.into(),
                 &whole_teacher,
                 generated.as_slice(),
@@ -444,10 +462,7 @@ pub fn report_from_work(opts: &AugmentOptions) -> Result<AugmentReport> {
     claim_work(&work, &opts.job(&bundle, &sampler))?;
     let train_list = train_split_of(&bundle.config);
     let test_list = test_list_for(&opts.root, &train_list);
-    let kinds: Vec<ScanSource> = ScanSource::ALL
-        .into_iter()
-        .filter(|s| *s != ScanSource::MeanNetwork || bundle.config.residual.is_some())
-        .collect();
+    let kinds = sources_of(&bundle);
     let per_scan = kinds
         .iter()
         .map(|&s| Ok((s, data::cached_seconds(&work, s)?)))
@@ -457,10 +472,10 @@ pub fn report_from_work(opts: &AugmentOptions) -> Result<AugmentReport> {
         let fractions = std::iter::once(None).chain(opts.fractions.iter().map(|&f| Some(f)));
         for fraction in fractions {
             let names: Vec<&str> = match fraction {
-                None => vec!["whole-split"],
-                Some(_) => std::iter::once("supervised")
+                None => vec![WHOLE_SPLIT_RUN],
+                Some(_) => std::iter::once(SUPERVISED_RUN)
                     .chain(kinds.iter().map(|s| s.name()))
-                    .chain(std::iter::once("generated-whole-split-teacher"))
+                    .chain(std::iter::once(WHOLE_TEACHER_RUN))
                     .collect(),
             };
             for what in names {
@@ -474,7 +489,7 @@ pub fn report_from_work(opts: &AugmentOptions) -> Result<AugmentReport> {
             }
         }
     }
-    let planned = opts.seeds.len() * (1 + opts.fractions.len() * (2 + kinds.len()));
+    let planned = planned_runs(opts, kinds.len());
     let report = AugmentReport::new(
         opts,
         &bundle,
