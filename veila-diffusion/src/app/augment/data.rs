@@ -12,6 +12,7 @@ use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
+use veila_data::read_capped::{MAX_CONFIG_BYTES, read_metadata};
 use veila_geom::{Projector, RangeImage, RayTable};
 use veila_nn::segmenter::SegmenterConfig;
 
@@ -280,12 +281,23 @@ pub(super) fn cached_seconds(work: &Path, source: ScanSource) -> Result<Option<f
         return Ok(Some(0.0));
     }
     let path = work.join("scans").join(format!("{}.json", source.name()));
-    let Ok(text) = std::fs::read(&path) else {
+    Ok(read_work_json::<ScanSetKey>(&path)?.and_then(|key| key.seconds_per_scan))
+}
+
+/// A JSON file of the work folder (the job, a run's result, a scan set's key): `None` where it
+/// does not exist, else read under [`MAX_CONFIG_BYTES`] (a work folder may be restored from
+/// elsewhere) and parsed, with an error naming it.
+pub(super) fn read_work_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<Option<T>> {
+    if let Ok(false) = path.try_exists() {
         return Ok(None);
-    };
-    let key: ScanSetKey =
-        serde_json::from_slice(&text).map_err(|source| Error::Json { path, source })?;
-    Ok(key.seconds_per_scan)
+    }
+    let bytes = read_metadata(path, MAX_CONFIG_BYTES, "work-folder JSON")?;
+    serde_json::from_slice(&bytes)
+        .map(Some)
+        .map_err(|source| Error::Json {
+            path: path.to_path_buf(),
+            source,
+        })
 }
 
 fn read_cached(
@@ -294,13 +306,9 @@ fn read_cached(
     data_path: &Path,
     bundle: &Bundle,
 ) -> Result<Option<(Vec<RangeImage>, Option<f64>)>> {
-    let Ok(text) = std::fs::read(key_path) else {
+    let Some(cached) = read_work_json::<ScanSetKey>(key_path)? else {
         return Ok(None);
     };
-    let cached: ScanSetKey = serde_json::from_slice(&text).map_err(|source| Error::Json {
-        path: key_path.to_path_buf(),
-        source,
-    })?;
     let seconds = cached.seconds_per_scan;
     let same = ScanSetKey {
         seconds_per_scan: None,

@@ -33,7 +33,7 @@ pub use data::{GridPoints, LABELLED_LIST_SEED, ScanSource, labelled_frames};
 pub use options::{AugmentOptions, pct};
 pub use report::{AugmentReport, FractionTable, MIN_EFFECT, RowStats, RunResult, Verdict, verdict};
 
-use self::data::{Grid, run_dir, scan_set, split_name};
+use self::data::{Grid, read_work_json, run_dir, scan_set, split_name};
 use super::bundle::Bundle;
 use super::progress::Progress;
 use super::segment::{
@@ -108,11 +108,11 @@ impl Bench<'_> {
         // weights are gone, as from a work folder rebuilt from its results alone, trains again
         // to the same weights: every run is seeded)
         let have_model = model_dir.is_dir();
-        if let (Ok(text), true) = (std::fs::read(&result_path), have_model || !spec.teaches) {
-            let r: RunResult = serde_json::from_slice(&text).map_err(|source| Error::Json {
-                path: result_path.clone(),
-                source,
-            })?;
+        let done = match have_model || !spec.teaches {
+            true => read_work_json::<RunResult>(&result_path)?,
+            false => None,
+        };
+        if let Some(r) = done {
             let model = match have_model {
                 true => Some(SegmenterModel::from_dir(&model_dir, &self.device)?),
                 false => None,
@@ -217,13 +217,8 @@ fn claim_work(work: &Path, job: &serde_json::Value) -> Result<()> {
         source,
     })?;
     let path = work.join("job.json");
-    match std::fs::read(&path) {
-        Ok(text) => {
-            let found: serde_json::Value =
-                serde_json::from_slice(&text).map_err(|source| Error::Json {
-                    path: path.clone(),
-                    source,
-                })?;
+    match read_work_json::<serde_json::Value>(&path)? {
+        Some(found) => {
             if &found != job {
                 return Err(Error::Output {
                     path,
@@ -234,7 +229,7 @@ fn claim_work(work: &Path, job: &serde_json::Value) -> Result<()> {
             }
             Ok(())
         }
-        Err(_) => {
+        None => {
             let bytes = serde_json::to_vec_pretty(job).map_err(|source| Error::Json {
                 path: path.clone(),
                 source,
@@ -480,12 +475,7 @@ pub fn report_from_work(opts: &AugmentOptions) -> Result<AugmentReport> {
             };
             for what in names {
                 let path = run_dir(&work, &run_name(*seed, fraction, what)).join("result.json");
-                let Ok(text) = std::fs::read(&path) else {
-                    continue;
-                };
-                let r: RunResult =
-                    serde_json::from_slice(&text).map_err(|source| Error::Json { path, source })?;
-                results.push(r);
+                results.extend(read_work_json::<RunResult>(&path)?);
             }
         }
     }
