@@ -184,6 +184,17 @@ impl OutputLock {
         }
     }
 
+    /// Lock the output `out` if no other process holds it: `None` when one does (a worker that
+    /// shares a job with others takes the next piece instead of waiting). The lock goes with the
+    /// process however it ends, so a killed worker's piece is free again at once.
+    pub fn try_acquire(out: &Path) -> Result<Option<Self>> {
+        let (parent, name) = split_output(out)?;
+        Ok(match Self::attempt(parent, name)? {
+            Attempt::Held(l) => Some(l),
+            Attempt::Busy => None,
+        })
+    }
+
     fn attempt(parent: PathBuf, name: String) -> Result<Attempt> {
         let path = parent.join(lock_file_name(&name));
         loop {
@@ -456,9 +467,12 @@ mod tests {
         let other = d.path().join(".").join("o");
         let e = OutputLock::acquire(&other).unwrap_err().to_string();
         assert!(e.contains("another veila process"), "{e}");
+        assert!(OutputLock::try_acquire(&other).unwrap().is_none());
         drop(a);
         assert_eq!(std::fs::read_dir(d.path()).unwrap().count(), 0);
-        let _b = OutputLock::acquire(&other).unwrap();
+        let b = OutputLock::try_acquire(&other).unwrap();
+        assert!(b.is_some());
+        assert!(OutputLock::acquire(&out).is_err());
     }
 
     #[test]

@@ -47,15 +47,15 @@ pub struct BenchAugmentArgs {
     /// Sampler steps of the generated scans [default: the bundle's].
     #[arg(long)]
     sampler_steps: Option<usize>,
-    /// The work folder: each source's scans, each run's checkpoints and result (a rerun resumes).
+    /// The work folder: each source's scans, each run's checkpoints and result (a rerun resumes;
+    /// workers started on the same folder take a run each and split the table between them).
     #[arg(long, default_value = "target/bench-augment")]
     work: PathBuf,
     /// Output folder of the report.
     #[arg(long, default_value = "docs/bench-augment")]
     out: PathBuf,
     /// Write the report from the results in the work folder and stop: renders and trains
-    /// nothing. Merges workers that ran the seeds apart (`--seeds 0` and `--seeds 1` at once on
-    /// one work folder), or shows a run in progress.
+    /// nothing; shows a run in progress.
     #[arg(long)]
     report_only: bool,
 }

@@ -221,14 +221,43 @@ pub fn scan_set(
         dir.join(format!("{}.json", source.name())),
         dir.join(format!("{}.safetensors", source.name())),
     );
-    if let Some((scans, seconds)) = read_cached(&key, &key_path, &data_path, bundle)? {
-        progress.line(&format!(
-            "  {}: {} scans from {}",
-            source.name(),
-            scans.len(),
-            data_path.display()
-        ));
-        return Ok((scans, seconds));
+    let cached = || -> Result<Option<(Vec<RangeImage>, Option<f64>)>> {
+        let found = read_cached(&key, &key_path, &data_path, bundle)?;
+        if let Some((scans, _)) = &found {
+            progress.line(&format!(
+                "  {}: {} scans from {}",
+                source.name(),
+                scans.len(),
+                data_path.display()
+            ));
+        }
+        Ok(found)
+    };
+    if let Some(found) = cached()? {
+        return Ok(found);
+    }
+    // one worker of those sharing the work folder makes the set; the others wait for it
+    std::fs::create_dir_all(&dir).map_err(|source| Error::Io {
+        action: "creating the scans folder",
+        path: dir.clone(),
+        source,
+    })?;
+    let mut said = false;
+    let _lock = loop {
+        if let Some(l) = veila_data::atomic::OutputLock::try_acquire(&dir.join(source.name()))? {
+            break l;
+        }
+        if !said {
+            progress.line(&format!(
+                "  {}: another worker makes these scans; waiting",
+                source.name()
+            ));
+            said = true;
+        }
+        std::thread::sleep(std::time::Duration::from_secs(5));
+    };
+    if let Some(found) = cached()? {
+        return Ok(found);
     }
     let t = std::time::Instant::now();
     let scans = match source {

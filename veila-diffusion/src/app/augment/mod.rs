@@ -19,6 +19,10 @@
 //!   true labels.
 //! * **Resumable.** `work/` holds each source's scans once sampled and each run's checkpoints and
 //!   result; a rerun of the same job continues where it stopped, and a different job is refused.
+//! * **Shared.** Workers started on one work folder of one machine (one a core) split the table:
+//!   each takes the next run of the plan that no other holds (a `flock` in the folder, which
+//!   goes with a killed worker) and whose teacher is done, one makes each scan set while the
+//!   others wait for it, and each writes the report of every result done.
 
 mod data;
 mod options;
@@ -66,10 +70,94 @@ fn sources_of(bundle: &Bundle) -> Vec<ScanSource> {
         .collect()
 }
 
-/// Runs the whole table takes: per seed, the whole-split teacher and, at each fraction, the
-/// supervised run, one student per source and the whole-split teacher's student.
-fn planned_runs(opts: &AugmentOptions, sources: usize) -> usize {
-    opts.seeds.len() * (1 + opts.fractions.len() * (2 + sources))
+/// One run of the table, as planned before anything trains.
+#[derive(Debug, Clone)]
+struct PlannedRun {
+    name: String,
+    row: String,
+    fraction: Option<f64>,
+    seed: u64,
+    /// The run whose weights label its extra scans, and whose scans they are (`None`: the
+    /// labelled frames alone).
+    pseudo: Option<(String, ScanSource)>,
+    /// Whether its weights label the scans of other runs.
+    teaches: bool,
+}
+
+/// Every run of the table, in the order a worker takes them: per seed, the whole-split teacher
+/// and, at each fraction, the supervised run (the fraction's teacher), one student per source and
+/// the whole-split teacher's student. A student comes after its teacher.
+fn plan(opts: &AugmentOptions, sources: &[ScanSource]) -> Vec<PlannedRun> {
+    let mut runs = Vec::new();
+    for &seed in &opts.seeds {
+        let whole = run_name(seed, None, WHOLE_SPLIT_RUN);
+        runs.push(PlannedRun {
+            name: whole.clone(),
+            row: report::WHOLE_SPLIT.into(),
+            fraction: None,
+            seed,
+            pseudo: None,
+            teaches: true,
+        });
+        for &fraction in &opts.fractions {
+            let at = |what: &str| run_name(seed, Some(fraction), what);
+            let teacher = at(SUPERVISED_RUN);
+            let student = |name: String, row: String, by: &str, source: ScanSource| PlannedRun {
+                name,
+                row,
+                fraction: Some(fraction),
+                seed,
+                pseudo: Some((by.to_string(), source)),
+                teaches: false,
+            };
+            runs.push(PlannedRun {
+                name: teacher.clone(),
+                row: report::SUPERVISED.into(),
+                fraction: Some(fraction),
+                seed,
+                pseudo: None,
+                teaches: true,
+            });
+            for &source in sources {
+                runs.push(student(
+                    at(source.name()),
+                    report::source_row(source),
+                    &teacher,
+                    source,
+                ));
+            }
+            runs.push(student(
+                at(WHOLE_TEACHER_RUN),
+                report::WHOLE_TEACHER.into(),
+                &whole,
+                ScanSource::Generated,
+            ));
+        }
+    }
+    runs
+}
+
+/// The results of `plan`'s runs that are done in `work`, in the plan's order (whichever worker
+/// ran them).
+fn results_in(work: &Path, plan: &[PlannedRun]) -> Result<Vec<RunResult>> {
+    let mut results = Vec::new();
+    for p in plan {
+        results.extend(read_work_json::<RunResult>(
+            &run_dir(work, &p.name).join("result.json"),
+        )?);
+    }
+    Ok(results)
+}
+
+/// How often a worker that waits for runs other workers hold looks again.
+const POLL: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// What [`Bench::run`] did with a run.
+enum Taken {
+    /// Trained now, or read back: its result, and its weights where it teaches.
+    Done(Box<(RunResult, Option<SegmenterModel>)>),
+    /// Another worker holds it.
+    Held,
 }
 
 /// What one segmenter run trains on and is called.
@@ -100,26 +188,45 @@ struct Bench<'a> {
 impl Bench<'_> {
     /// Trains (or resumes, or reads back) the run `spec`; its weights are kept in its folder for
     /// when it teaches.
-    fn run(&self, spec: RunSpec<'_>) -> Result<(RunResult, Option<SegmenterModel>)> {
+    fn run(&self, spec: RunSpec<'_>) -> Result<Taken> {
         let dir = self.opts.root.join(run_dir(&self.opts.work, &spec.name));
         let result_path = dir.join("result.json");
         let model_dir = dir.join("segmenter");
         // a finished run is read back; a teacher's weights are needed too (a teacher whose
         // weights are gone, as from a work folder rebuilt from its results alone, trains again
         // to the same weights: every run is seeded)
-        let have_model = model_dir.is_dir();
-        let done = match have_model || !spec.teaches {
-            true => read_work_json::<RunResult>(&result_path)?,
-            false => None,
-        };
-        if let Some(r) = done {
+        let read_back = || -> Result<Option<Taken>> {
+            let have_model = model_dir.is_dir();
+            let done = match have_model || !spec.teaches {
+                true => read_work_json::<RunResult>(&result_path)?,
+                false => None,
+            };
+            let Some(r) = done else { return Ok(None) };
             let model = match have_model {
                 true => Some(SegmenterModel::from_dir(&model_dir, &self.device)?),
                 false => None,
             };
             self.progress
                 .line(&format!("  {}: done before, mIoU {:.3}", spec.name, r.miou));
-            return Ok((r, model));
+            Ok(Some(Taken::Done(Box::new((r, model)))))
+        };
+        if let Some(done) = read_back()? {
+            return Ok(done);
+        }
+        // workers sharing the work folder take a run each: the one that holds its lock trains
+        // it (the lock goes with a killed worker); another may have finished it meanwhile
+        if let Some(parent) = dir.parent() {
+            std::fs::create_dir_all(parent).map_err(|source| Error::Io {
+                action: "creating the run folder",
+                path: parent.to_path_buf(),
+                source,
+            })?;
+        }
+        let Some(_lock) = veila_data::atomic::OutputLock::try_acquire(&dir)? else {
+            return Ok(Taken::Held);
+        };
+        if let Some(done) = read_back()? {
+            return Ok(done);
         }
         let pseudo: Vec<SegFrame> = match spec.pseudo {
             Some((teacher, points, which)) => which
@@ -200,13 +307,8 @@ impl Bench<'_> {
             result.train_seconds
         ));
         let model = SegmenterModel::from_dir(&model_dir, &self.device)?;
-        Ok((result, Some(model)))
+        Ok(Taken::Done(Box::new((result, Some(model)))))
     }
-}
-
-/// A teacher's weights, which [`Bench::run`] always returns for a teacher.
-fn teacher_of(model: Option<SegmenterModel>, r: &RunResult) -> Result<SegmenterModel> {
-    model.ok_or_else(|| Error::Data(format!("{}: the teacher's weights are missing", r.name)))
 }
 
 /// Claims `work` for `job`: records it, or checks that the folder's is the same.
@@ -351,13 +453,14 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
         progress,
         device,
     };
-    let generated = of(ScanSource::Generated);
     let per_scan: Vec<(ScanSource, Option<f64>)> =
         sources.iter().map(|(s, _, secs)| (*s, *secs)).collect();
-    let planned = planned_runs(opts, sources.len());
+    let kinds: Vec<ScanSource> = sources.iter().map(|(s, ..)| *s).collect();
+    let plan = plan(opts, &kinds);
     let test_name = test_list.display().to_string();
-    // the report so far after every run (a long run shows its first seed's table early)
-    let write = |results: &[RunResult]| -> Result<AugmentReport> {
+    // the report of every run done so far, by this worker or another, after each run (a long
+    // run shows its first seed's table early)
+    let write = || -> Result<AugmentReport> {
         let report = AugmentReport::new(
             opts,
             &bundle,
@@ -365,80 +468,93 @@ pub fn run(opts: &AugmentOptions, progress: &dyn Progress) -> Result<AugmentRepo
             &split_label,
             &test_name,
             per_scan.clone(),
-            results.to_vec(),
-            planned,
+            results_in(&work, &plan)?,
+            plan.len(),
             t0.elapsed().as_secs_f64(),
         );
         report.write(&opts.root.join(&opts.out))?;
         Ok(report)
     };
-    let mut results = Vec::new();
-    for &seed in &opts.seeds {
-        // the paper's teacher: the whole split labelled
-        let (whole, whole_teacher) = bench.run(RunSpec {
-            name: run_name(seed, None, WHOLE_SPLIT_RUN),
-            row: report::WHOLE_SPLIT.into(),
-            fraction: None,
-            seed,
-            labelled: &true_frames,
-            pseudo: None,
-            teaches: true,
-        })?;
-        let whole_teacher = teacher_of(whole_teacher, &whole)?;
-        results.push(whole);
-        write(&results)?;
-        for &fraction in &opts.fractions {
+    // each fraction's labelled frames and the unlabelled frames whose scans are pseudo-labelled
+    let fractions: Vec<(f64, Vec<SegFrame>, Vec<usize>)> = opts
+        .fractions
+        .iter()
+        .map(|&fraction| {
             let lab = labelled_frames(true_frames.len(), fraction);
-            let unlabelled: Vec<usize> = (0..true_frames.len())
+            let unlabelled = (0..true_frames.len())
                 .filter(|i| lab.binary_search(i).is_err())
                 .collect();
-            let labelled: Vec<SegFrame> = lab.iter().map(|&i| true_frames[i].clone()).collect();
-            let (sup, teacher) = bench.run(RunSpec {
-                name: run_name(seed, Some(fraction), SUPERVISED_RUN),
-                row: report::SUPERVISED.into(),
-                fraction: Some(fraction),
-                seed,
-                labelled: &labelled,
-                pseudo: None,
-                teaches: true,
+            let labelled = lab.iter().map(|&i| true_frames[i].clone()).collect();
+            (fraction, labelled, unlabelled)
+        })
+        .collect();
+    // the first run of the plan that is not done, not held by another worker and whose teacher
+    // is known, again and again: workers sharing the folder split the table between them, and
+    // a worker with nothing to take waits for the others
+    let mut teachers: std::collections::HashMap<String, SegmenterModel> = Default::default();
+    let mut done = vec![false; plan.len()];
+    let mut waiting = false;
+    while done.iter().any(|d| !d) {
+        let mut took = None;
+        for (k, p) in plan.iter().enumerate().filter(|(k, _)| !done[*k]) {
+            let (labelled, unlabelled): (&[SegFrame], &[usize]) = match p.fraction {
+                None => (&true_frames, &[]),
+                Some(f) => fractions
+                    .iter()
+                    .find(|(x, ..)| *x == f)
+                    .map(|(_, l, u)| (l.as_slice(), u.as_slice()))
+                    .expect("every planned fraction has its lists"),
+            };
+            let pseudo = match &p.pseudo {
+                None => None,
+                Some((by, source)) => match teachers.get(by) {
+                    // its teacher is still to train (here or by another worker)
+                    None => continue,
+                    Some(teacher) => Some((teacher, of(*source).as_slice(), unlabelled)),
+                },
+            };
+            let taken = bench.run(RunSpec {
+                name: p.name.clone(),
+                row: p.row.clone(),
+                fraction: p.fraction,
+                seed: p.seed,
+                labelled,
+                pseudo,
+                teaches: p.teaches,
             })?;
-            let teacher = teacher_of(teacher, &sup)?;
-            results.push(sup);
-            write(&results)?;
-            // the students: each source's scans by the fraction's teacher, then the generated
-            // scans by the whole-split teacher
-            let mut students: Vec<(&str, String, &SegmenterModel, &[GridPoints])> = sources
-                .iter()
-                .map(|(s, p, _)| (s.name(), report::source_row(*s), &teacher, p.as_slice()))
-                .collect();
-            students.push((
-                WHOLE_TEACHER_RUN,
-                report::WHOLE_TEACHER.into(),
-                &whole_teacher,
-                generated.as_slice(),
-            ));
-            for (what, row, by, points) in students {
-                let (r, _) = bench.run(RunSpec {
-                    name: run_name(seed, Some(fraction), what),
-                    row,
-                    fraction: Some(fraction),
-                    seed,
-                    labelled: &labelled,
-                    pseudo: Some((by, points, &unlabelled)),
-                    teaches: false,
-                })?;
-                results.push(r);
-                write(&results)?;
+            if let Taken::Done(done) = taken {
+                let (r, model) = *done;
+                took = Some((k, r, model));
+                break;
+            }
+        }
+        match took {
+            Some((k, r, model)) => {
+                if plan[k].teaches {
+                    let model = model.ok_or_else(|| {
+                        Error::Data(format!("{}: the teacher's weights are missing", r.name))
+                    })?;
+                    teachers.insert(plan[k].name.clone(), model);
+                }
+                done[k] = true;
+                waiting = false;
+                write()?;
+            }
+            None => {
+                if !waiting {
+                    progress.line("  waiting for runs that other workers hold");
+                    waiting = true;
+                }
+                std::thread::sleep(POLL);
             }
         }
     }
-    write(&results)
+    write()
 }
 
 /// Writes the report of `opts` from the results already in its work folder, rendering and
-/// training nothing, and returns it: the merge of workers that ran the seeds apart (`--seeds 0`
-/// and `--seeds 1` at once on the same work folder, each writing a report of its own seed), or
-/// a look at a run in progress. Runs not done are left out and the report says it is partial.
+/// training nothing, and returns it: a look at a run in progress, or a report rebuilt from
+/// committed results. Runs not done are left out and the report says it is partial.
 pub fn report_from_work(opts: &AugmentOptions) -> Result<AugmentReport> {
     opts.check()?;
     let t0 = Instant::now();
@@ -462,24 +578,7 @@ pub fn report_from_work(opts: &AugmentOptions) -> Result<AugmentReport> {
         .iter()
         .map(|&s| Ok((s, data::cached_seconds(&work, s)?)))
         .collect::<Result<Vec<_>>>()?;
-    let mut results = Vec::new();
-    for seed in &opts.seeds {
-        let fractions = std::iter::once(None).chain(opts.fractions.iter().map(|&f| Some(f)));
-        for fraction in fractions {
-            let names: Vec<&str> = match fraction {
-                None => vec![WHOLE_SPLIT_RUN],
-                Some(_) => std::iter::once(SUPERVISED_RUN)
-                    .chain(kinds.iter().map(|s| s.name()))
-                    .chain(std::iter::once(WHOLE_TEACHER_RUN))
-                    .collect(),
-            };
-            for what in names {
-                let path = run_dir(&work, &run_name(*seed, fraction, what)).join("result.json");
-                results.extend(read_work_json::<RunResult>(&path)?);
-            }
-        }
-    }
-    let planned = planned_runs(opts, kinds.len());
+    let plan = plan(opts, &kinds);
     let report = AugmentReport::new(
         opts,
         &bundle,
@@ -487,8 +586,8 @@ pub fn report_from_work(opts: &AugmentOptions) -> Result<AugmentReport> {
         &split_name(&train_list, opts.pool_frames, opts.split_frames),
         &test_list.display().to_string(),
         per_scan,
-        results,
-        planned,
+        results_in(&work, &plan)?,
+        plan.len(),
         t0.elapsed().as_secs_f64(),
     );
     report.write(&opts.root.join(&opts.out))?;
@@ -499,6 +598,20 @@ pub fn report_from_work(opts: &AugmentOptions) -> Result<AugmentReport> {
 mod tests {
     use super::*;
     use crate::app::segment::ClassWeighting;
+
+    /// The lines a run tells.
+    #[derive(Default)]
+    struct Lines(std::sync::Mutex<Vec<String>>);
+
+    impl Progress for Lines {
+        fn line(&self, text: &str) {
+            self.0.lock().unwrap().push(text.to_string());
+        }
+
+        fn bar(&self, _label: &str, _total: u64) -> Box<dyn crate::app::progress::Bar + '_> {
+            Box::new(())
+        }
+    }
 
     fn options(root: &Path, tmp: &Path, steps: u64) -> AugmentOptions {
         AugmentOptions {
@@ -547,7 +660,22 @@ mod tests {
             .sampler;
         bundle_sampler.steps = 1;
         opts.sampler = Some(bundle_sampler);
-        let report = run(&opts, &()).unwrap();
+        // two workers share the work folder: every run is trained once, by one of them, and
+        // each ends with the whole report
+        let (lines, lines_b) = (Lines::default(), Lines::default());
+        let (report, other) = std::thread::scope(|s| {
+            let b = s.spawn(|| run(&opts, &lines_b).unwrap());
+            (run(&opts, &lines).unwrap(), b.join().unwrap())
+        });
+        assert_eq!(other.runs, report.runs);
+        let trained = |l: &Lines| {
+            l.0.lock()
+                .unwrap()
+                .iter()
+                .filter(|t| t.contains("pseudo-labelled frames"))
+                .count()
+        };
+        assert_eq!(trained(&lines) + trained(&lines_b), 7);
         let table = &report.fractions[0];
         let rows: Vec<&str> = table.rows.iter().map(|r| r.row.as_str()).collect();
         assert_eq!(
