@@ -35,6 +35,7 @@ fn diffusion() -> Diffusion {
         time_input: TimeInput::default(),
         loss_weighting: LossWeighting::Uniform,
         objective: Default::default(),
+        train_levels: Default::default(),
     })
     .unwrap()
 }

@@ -12,9 +12,17 @@
 //! (`veila demo`'s) sit next to its nearest frame's: a network that draws the layout but not the
 //! fine texture of the frames it memorised cannot draw it for new ones either.
 //!
+//! With `--low` it looks closer at the clean levels, where a sample's fine texture forms: at each
+//! level, the RMS of `x̂₀`'s error next to the level's `σ`, the share of the added noise `x̂₀`
+//! keeps (its error projected on `σ·ε`: 0 removes the noise, 1 passes it through), and the error
+//! when the network is told another time than the true one (`t` times 0.5, 0.7, 1.4, 2; the
+//! conversion to `x̂₀` keeps the true level). A network that reads the level well scores best at
+//! the true time; one that scores about the same at every told time reads the level from the
+//! noise itself.
+//!
 //! ```sh
 //! cargo run --release -p veila-diffusion --features sim --example denoise_probe -- \
-//!     BUNDLE_DIR [FRAMES] [--scenes LIST] [--sample N]
+//!     BUNDLE_DIR [FRAMES] [--scenes LIST] [--sample N] [--low]
 //! ```
 //! Run from the workspace root (it reads `scenes/test-v5.txt` unless `--scenes`).
 
@@ -28,16 +36,19 @@ use veila_diffusion::app::bundle::Bundle;
 use veila_diffusion::app::sim_examples::render_split;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
-    const USAGE: &str = "usage: denoise_probe BUNDLE_DIR [FRAMES] [--scenes LIST] [--sample N]";
+    const USAGE: &str =
+        "usage: denoise_probe BUNDLE_DIR [FRAMES] [--scenes LIST] [--sample N] [--low]";
     let mut dir = None;
     let mut n = 8usize;
     let mut scenes = String::from("scenes/test-v5.txt");
     let mut draws = 0usize;
+    let mut low = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
             "--scenes" => scenes = args.next().ok_or(USAGE)?,
             "--sample" => draws = args.next().ok_or(USAGE)?.parse()?,
+            "--low" => low = true,
             _ if dir.is_none() => dir = Some(a),
             _ => n = a.parse()?,
         }
@@ -73,8 +84,76 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             mse(&mean)?
         );
     }
+    if low {
+        low_levels(&diffusion, &model, &x0, &mut rng)?;
+    }
     if draws > 0 {
         sample_check(&bundle, &frames, draws)?;
+    }
+    Ok(())
+}
+
+/// A network told `factor` times the time it is run at.
+struct ToldTime<D> {
+    inner: D,
+    factor: f64,
+}
+
+impl<D: veila_diffusion::Denoiser> veila_diffusion::Denoiser for ToldTime<D> {
+    type Cond = D::Cond;
+
+    fn forward(
+        &self,
+        x_t: &candle_core::Tensor,
+        t: &candle_core::Tensor,
+        cond: Option<&Self::Cond>,
+    ) -> candle_core::Result<candle_core::Tensor> {
+        self.inner.forward(x_t, &(t * self.factor)?, cond)
+    }
+}
+
+/// The `--low` table (module docs).
+fn low_levels(
+    diffusion: &Diffusion,
+    model: &VeilaDenoiser<'_>,
+    x0: &candle_core::Tensor,
+    rng: &mut rand_chacha::ChaCha8Rng,
+) -> Result<(), Box<dyn std::error::Error>> {
+    const TOLD: [f64; 4] = [0.5, 0.7, 1.4, 2.0];
+    println!(
+        "\n| t | σ | x̂₀ error RMS | error / σ | noise kept | RMS told t x {} |\n|---|---|---|---|---|---|",
+        TOLD.map(|k| k.to_string()).join(" / ")
+    );
+    let rms = |a: &candle_core::Tensor| -> candle_core::Result<f64> {
+        Ok((a - x0)?.sqr()?.mean_all()?.to_scalar::<f32>()?.sqrt() as f64)
+    };
+    for t in [0.0003, 0.001, 0.003, 0.01, 0.02, 0.05] {
+        let level = diffusion.schedule().level(t);
+        let eps = veila_diffusion::noise::randn(rng, x0.dims(), x0.device())?;
+        let noise = (&eps * level.sigma())?;
+        let x_t = ((x0 * level.alpha())? + &noise)?;
+        let den = diffusion.denoise(model, &x_t, &level, None, None, None)?;
+        let err = (&den.x0 - x0)?;
+        let kept = (&err * &noise)?.sum_all()?.to_scalar::<f32>()? as f64
+            / noise.sqr()?.sum_all()?.to_scalar::<f32>()? as f64;
+        let told = TOLD
+            .iter()
+            .map(|&factor| {
+                let m = ToldTime {
+                    inner: model,
+                    factor,
+                };
+                let d = diffusion.denoise(&m, &x_t, &level, None, None, None)?;
+                Ok(format!("{:.5}", rms(&d.x0)?))
+            })
+            .collect::<Result<Vec<_>, Box<dyn std::error::Error>>>()?;
+        let e = rms(&den.x0)?;
+        println!(
+            "| {t} | {:.5} | {e:.5} | {:.3} | {kept:.3} | {} |",
+            level.sigma(),
+            e / level.sigma(),
+            told.join(" / ")
+        );
     }
     Ok(())
 }

@@ -82,7 +82,7 @@ pub use sampler::{
     SamplerKind, SamplerName, StepInfo, inpaint,
 };
 pub use schedule::{
-    CosineLogSnr, DiscreteSchedule, NoiseLevel, NoiseSchedule, ScheduleConfig, Spacing,
+    CosineLogSnr, DiscreteSchedule, NoiseLevel, NoiseSchedule, ScheduleConfig, Spacing, TrainLevels,
 };
 pub use trainer::{
     ActivationCheckpointing, Batch, BatchSource, Clock, FitSummary, LossAverage, LrSchedule,

@@ -21,7 +21,7 @@ use crate::denoiser::{CondDropout, Denoiser, time_tensor};
 use crate::error::{Error, Result, invalid};
 use crate::noise::randn;
 use crate::prediction::{LossWeighting, Prediction, TimeInput};
-use crate::schedule::{NoiseLevel, NoiseSchedule, ScheduleConfig};
+use crate::schedule::{NoiseLevel, NoiseSchedule, ScheduleConfig, TrainLevels};
 
 /// Serializable description of a diffusion process (store it next to the model weights).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -42,6 +42,9 @@ pub struct DiffusionConfig {
     /// The schedule, prediction and weighting above apply to [`Objective::Diffusion`] only.
     #[serde(default, skip_serializing_if = "Objective::is_diffusion")]
     pub objective: Objective,
+    /// Which noise levels training draws ([`Objective::Diffusion`] only).
+    #[serde(default, skip_serializing_if = "TrainLevels::is_uniform_time")]
+    pub train_levels: TrainLevels,
 }
 
 /// The training objective (see the module documentation).
@@ -108,6 +111,7 @@ impl Default for DiffusionConfig {
             time_input: TimeInput::default(),
             loss_weighting: LossWeighting::MinSnr { gamma: 5.0 },
             objective: Objective::Diffusion,
+            train_levels: TrainLevels::UniformTime,
         }
     }
 }
@@ -167,6 +171,7 @@ impl Diffusion {
                 format!("need finite values and logit_std >= 0, got {logit_mean}, {logit_std}"),
             ));
         }
+        config.train_levels.validate()?;
         let max = MAX_TIME_INPUT_SCALE;
         if let TimeInput::Scaled { scale } = config.time_input
             && !(scale.is_finite() && scale > 0.0 && scale <= max)
@@ -305,7 +310,7 @@ impl Diffusion {
         let objective = self.config.objective;
         let levels: Vec<NoiseLevel> = match objective {
             Objective::Diffusion => (0..b)
-                .map(|_| self.schedule.sample_train_level(rng))
+                .map(|_| self.config.train_levels.draw(&self.schedule, rng))
                 .collect(),
             Objective::RectifiedFlow {
                 logit_mean,

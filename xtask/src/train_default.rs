@@ -134,6 +134,10 @@ pub struct TrainDefaultArgs {
     /// v-prediction the x₀-space weight SNR + 1).
     #[arg(long, default_value = "min-snr", value_parser = ["min-snr", "uniform"])]
     pub loss_weighting: String,
+    /// The share of diffusion training draws at the clean levels, log-SNR 6 to 18, where a
+    /// sample's fine texture forms (the rest uniform in time) [default: none, uniform time].
+    #[arg(long)]
+    pub clean_share: Option<f64>,
     /// EMA decay of the shipped weights, in [0, 1).
     #[arg(long, default_value_t = veila_diffusion::app::sim_recipe::RECIPE_EMA_DECAY)]
     pub ema_decay: f64,
@@ -178,6 +182,7 @@ impl TrainDefaultArgs {
                 .map(|m| m.iter().map(|&x| x as usize).collect()),
             ema_decay: self.ema_decay,
             uniform_loss_weighting: self.loss_weighting == "uniform",
+            clean_share: self.clean_share,
         }
     }
 }

@@ -30,6 +30,7 @@ fn diffusion(pred: Prediction, w: LossWeighting) -> Diffusion {
         time_input: TimeInput::default(),
         loss_weighting: w,
         objective: Default::default(),
+        train_levels: Default::default(),
     })
     .unwrap()
 }

@@ -189,6 +189,7 @@ fn oracle_setup(schedule: ScheduleConfig, pred: Prediction) -> (Diffusion, Gauss
         time_input: TimeInput::default(),
         loss_weighting: LossWeighting::Uniform,
         objective: Default::default(),
+        train_levels: Default::default(),
     })
     .unwrap();
     let oracle = GaussianOracle::new(0.2, 0.5, diffusion.clone()).unwrap();

@@ -295,3 +295,90 @@ fn spacing_names_round_trip_and_match_serde() {
     let err = "log-snr".parse::<Spacing>().unwrap_err().to_string();
     assert!(err.contains("log_snr"), "{err}");
 }
+
+/// Uniform time stays the exact stream it always was (runs resume to the same draws); a clean
+/// share puts that share of the draws uniformly in its log-SNR range, and the rest where uniform
+/// time puts them: the share above `λ = 6` is `share + (1 − share)·t(6)` (closed form on the
+/// cosine schedule, `λ ≥ 6` exactly when `t ≤ t(6)`).
+#[test]
+fn clean_share_draws_its_share_uniformly_in_log_snr() {
+    use rand::SeedableRng;
+    let sch = NoiseSchedule::new(&ScheduleConfig::cosine_logsnr()).unwrap();
+    let rng = || rand_chacha::ChaCha8Rng::seed_from_u64(5);
+    let (mut a, mut b) = (rng(), rng());
+    for _ in 0..100 {
+        assert_eq!(
+            TrainLevels::UniformTime.draw(&sch, &mut a),
+            sch.sample_train_level(&mut b)
+        );
+    }
+    let n = 40_000;
+    let draws = |levels: TrainLevels| -> Vec<f64> {
+        let mut r = rng();
+        (0..n).map(|_| levels.draw(&sch, &mut r).log_snr).collect()
+    };
+    // all at the clean levels: inside the range, uniform (its mean and quartiles)
+    let mut all = draws(TrainLevels::clean_share(1.0));
+    assert!(all.iter().all(|l| (6.0 - 1e-9..=18.0 + 1e-9).contains(l)));
+    all.sort_by(f64::total_cmp);
+    let mean = all.iter().sum::<f64>() / n as f64;
+    // the standard error of a uniform's mean over a width of 12 is 12 / sqrt(12 n)
+    assert!(
+        (mean - 12.0).abs() < 4.0 * 12.0 / (12.0 * n as f64).sqrt(),
+        "{mean}"
+    );
+    for (q, want) in [(0.25, 9.0), (0.5, 12.0), (0.75, 15.0)] {
+        let got = all[(q * n as f64) as usize];
+        assert!((got - want).abs() < 0.15, "quantile {q}: {got}");
+    }
+    // a quarter: the share above λ = 6 against its closed form
+    let t6 = match &sch {
+        NoiseSchedule::Continuous(c) => c.time_of_log_snr(6.0),
+        NoiseSchedule::Discrete(_) => unreachable!(),
+    };
+    let want = 0.25 + 0.75 * t6;
+    let got = draws(TrainLevels::clean_share(0.25))
+        .iter()
+        .filter(|&&l| l >= 6.0)
+        .count() as f64
+        / n as f64;
+    let se = (want * (1.0 - want) / n as f64).sqrt();
+    assert!((got - want).abs() < 4.0 * se, "{got} against {want}");
+    // uniform time alone puts about 1 draw in 200 above λ = 10
+    let above_10 = match &sch {
+        NoiseSchedule::Continuous(c) => c.time_of_log_snr(10.0),
+        NoiseSchedule::Discrete(_) => unreachable!(),
+    };
+    assert!((0.003..0.007).contains(&above_10), "{above_10}");
+}
+
+#[test]
+fn bad_clean_shares_are_refused_and_the_default_is_left_out_of_a_config() {
+    for bad in [
+        TrainLevels::clean_share(1.5),
+        TrainLevels::clean_share(f64::NAN),
+        TrainLevels::CleanShare {
+            share: 0.5,
+            log_snr_min: 10.0,
+            log_snr_max: 10.0,
+        },
+    ] {
+        assert!(bad.validate().is_err(), "{bad:?}");
+        let cfg = crate::DiffusionConfig {
+            train_levels: bad,
+            ..Default::default()
+        };
+        assert!(crate::Diffusion::new(cfg).is_err());
+    }
+    let plain = serde_json::to_value(crate::DiffusionConfig::default()).unwrap();
+    assert!(plain.get("train_levels").is_none(), "{plain}");
+    let cfg = crate::DiffusionConfig {
+        train_levels: TrainLevels::clean_share(0.25),
+        ..Default::default()
+    };
+    let json = serde_json::to_string(&cfg).unwrap();
+    assert_eq!(
+        serde_json::from_str::<crate::DiffusionConfig>(&json).unwrap(),
+        cfg
+    );
+}

@@ -22,6 +22,7 @@ fn diffusion(schedule: ScheduleConfig, prediction: Prediction) -> Diffusion {
         time_input: TimeInput::default(),
         loss_weighting: LossWeighting::Uniform,
         objective: Default::default(),
+        train_levels: Default::default(),
     })
     .unwrap()
 }

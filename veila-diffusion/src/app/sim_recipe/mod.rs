@@ -78,6 +78,9 @@ pub struct SimRecipe {
     pub ema_decay: f64,
     /// Weigh every noise level alike in the prediction's MSE instead of min-SNR-5.
     pub uniform_loss_weighting: bool,
+    /// The share of training draws at the clean levels
+    /// ([`TrainLevels::clean_share`](crate::TrainLevels::clean_share); `None`: uniform time).
+    pub clean_share: Option<f64>,
 }
 
 /// The EMA decay of the shipped recipe.
@@ -113,6 +116,7 @@ impl SimRecipe {
             channel_mults: None,
             ema_decay: RECIPE_EMA_DECAY,
             uniform_loss_weighting: false,
+            clean_share: None,
         }
     }
 
@@ -136,6 +140,10 @@ impl SimRecipe {
             cfg.diffusion.loss_weighting = crate::prediction::LossWeighting::Uniform;
         }
         let mut cfg = cfg.with_method(self.method);
+        if let Some(share) = self.clean_share {
+            cfg.diffusion.train_levels = crate::TrainLevels::clean_share(share);
+            cfg.diffusion.train_levels.validate()?;
+        }
         if self.ground_prior {
             cfg.set_ground_prior(Some(veila_nn::encoders::ground::GroundPrior::default()));
         }
