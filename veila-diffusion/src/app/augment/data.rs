@@ -24,6 +24,9 @@ use crate::app::sim_examples::{SimExample, retrieval_baseline};
 use crate::error::{Error, Result};
 use crate::sampler::SamplerConfig;
 
+/// How often a worker that waits for another (a scan set it makes, a run it holds) looks again.
+pub(super) const POLL: std::time::Duration = std::time::Duration::from_secs(5);
+
 /// Seed of the permutation whose prefixes are the labelled lists (one for every row and seed).
 pub const LABELLED_LIST_SEED: u64 = 0x5e9_1ab;
 
@@ -254,7 +257,7 @@ pub fn scan_set(
             ));
             said = true;
         }
-        std::thread::sleep(std::time::Duration::from_secs(5));
+        std::thread::sleep(POLL);
     };
     if let Some(found) = cached()? {
         return Ok(found);

@@ -37,7 +37,7 @@ pub use data::{GridPoints, LABELLED_LIST_SEED, ScanSource, labelled_frames};
 pub use options::{AugmentOptions, pct};
 pub use report::{AugmentReport, FractionTable, MIN_EFFECT, RowStats, RunResult, Verdict, verdict};
 
-use self::data::{Grid, read_work_json, run_dir, scan_set, split_name};
+use self::data::{Grid, POLL, read_work_json, run_dir, scan_set, split_name};
 use super::bundle::Bundle;
 use super::progress::Progress;
 use super::segment::{
@@ -148,9 +148,6 @@ fn results_in(work: &Path, plan: &[PlannedRun]) -> Result<Vec<RunResult>> {
     }
     Ok(results)
 }
-
-/// How often a worker that waits for runs other workers hold looks again.
-const POLL: std::time::Duration = std::time::Duration::from_secs(5);
 
 /// What [`Bench::run`] did with a run.
 enum Taken {
