@@ -20,9 +20,15 @@
 //! the true time; one that scores about the same at every told time reads the level from the
 //! noise itself.
 //!
+//! With `--restart` it finds the levels where a draw's fine texture is made: each frame is noised
+//! to a start level `t₀` and sampled from there down with the realism benchmark's solver (the
+//! levels below `t₀` of 32 DPM-Solver++ steps uniform in log-SNR; SDEdit's partial resampling), and the result's texture figures sit next to the frame's.
+//! Started low enough, the sampler must hand the frame back with its texture; the lowest `t₀` at
+//! which the texture breaks is where the network's `x̂₀` stops being precise enough for it.
+//!
 //! ```sh
 //! cargo run --release -p veila-diffusion --features sim --example denoise_probe -- \
-//!     BUNDLE_DIR [FRAMES] [--scenes LIST] [--sample N] [--low]
+//!     BUNDLE_DIR [FRAMES] [--scenes LIST] [--sample N] [--low] [--restart]
 //! ```
 //! Run from the workspace root (it reads `scenes/test-v5.txt` unless `--scenes`).
 
@@ -37,18 +43,20 @@ use veila_diffusion::app::sim_examples::render_split;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     const USAGE: &str =
-        "usage: denoise_probe BUNDLE_DIR [FRAMES] [--scenes LIST] [--sample N] [--low]";
+        "usage: denoise_probe BUNDLE_DIR [FRAMES] [--scenes LIST] [--sample N] [--low] [--restart]";
     let mut dir = None;
     let mut n = 8usize;
     let mut scenes = String::from("scenes/test-v5.txt");
     let mut draws = 0usize;
     let mut low = false;
+    let mut restart = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
             "--scenes" => scenes = args.next().ok_or(USAGE)?,
             "--sample" => draws = args.next().ok_or(USAGE)?.parse()?,
             "--low" => low = true,
+            "--restart" => restart = true,
             _ if dir.is_none() => dir = Some(a),
             _ => n = a.parse()?,
         }
@@ -86,6 +94,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     if low {
         low_levels(&diffusion, &model, &x0, &mut rng)?;
+    }
+    if restart {
+        restart_levels(&bundle, &diffusion, &model, &frames, &x0, &mut rng)?;
     }
     if draws > 0 {
         sample_check(&bundle, &frames, draws)?;
@@ -153,6 +164,72 @@ fn low_levels(
             level.sigma(),
             e / level.sigma(),
             told.join(" / ")
+        );
+    }
+    Ok(())
+}
+
+/// The `--restart` table (module docs): the frames noised to `t₀` and sampled down from there.
+fn restart_levels(
+    bundle: &Bundle,
+    diffusion: &Diffusion,
+    model: &VeilaDenoiser<'_>,
+    frames: &[veila_diffusion::app::sim_examples::SimExample],
+    x0: &candle_core::Tensor,
+    rng: &mut rand_chacha::ChaCha8Rng,
+) -> Result<(), Box<dyn std::error::Error>> {
+    use veila_diffusion::Spacing;
+    use veila_diffusion::sampler::{DpmSolverPp2M, Sampler, SamplerConfig};
+    use veila_metrics::texture::{TextureSummary, scan_distance};
+    // the realism benchmark's solver: 32 DPM-Solver++ steps, uniform in log-SNR down to t = 1e-3
+    let mut cfg = SamplerConfig::dpm_solver_pp_2m(32);
+    cfg.spacing = Spacing::LogSnr;
+    let sampler = Sampler::new(diffusion, cfg)?;
+    let frame_tex: Vec<TextureSummary> = frames
+        .iter()
+        .map(|f| TextureSummary::of(&f.range, &f.range))
+        .collect::<Result<_, _>>()?;
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    println!(
+        "\n| t₀ | σ at t₀ | steps | smooth lower (%), result / frame | depth edges upper (%), result / frame | \
+         texture along rows (w1, decades) | distance to its frame |\n|---|---|---|---|---|---|---|"
+    );
+    for t0 in [0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0] {
+        let start = diffusion.schedule().level(t0);
+        let mut levels = vec![start];
+        levels.extend(sampler.levels().iter().copied().filter(|l| l.t < t0));
+        let eps = veila_diffusion::noise::randn(rng, x0.dims(), x0.device())?;
+        let mut x = ((x0 * start.alpha())? + (&eps * start.sigma())?)?;
+        let mut solver = DpmSolverPp2M::default();
+        for (i, from) in levels.iter().enumerate() {
+            let to = levels
+                .get(i + 1)
+                .copied()
+                .unwrap_or(veila_diffusion::NoiseLevel::CLEAN);
+            let den = diffusion.denoise(model, &x, from, None, None, None)?;
+            x = solver.step(&x, &den.x0, from, &to)?;
+        }
+        let scans = bundle.config.encoding.decode_batch(&x)?;
+        let (mut smooth, mut edges, mut w1, mut dist) = (vec![], vec![], vec![], vec![]);
+        for (scan, f) in scans.iter().zip(frames) {
+            let tex = TextureSummary::of(scan, &f.range)?;
+            smooth.push(tex.smooth_lower_pct);
+            edges.push(tex.depth_edges_upper_pct);
+            w1.push(tex.w1_along_decades);
+            dist.push(scan_distance(scan, &f.range)?);
+        }
+        let frame_smooth: Vec<f64> = frame_tex.iter().map(|t| t.smooth_lower_pct).collect();
+        let frame_edges: Vec<f64> = frame_tex.iter().map(|t| t.depth_edges_upper_pct).collect();
+        println!(
+            "| {t0} | {:.5} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.3} | {:.4} |",
+            start.sigma(),
+            levels.len(),
+            mean(&smooth),
+            mean(&frame_smooth),
+            mean(&edges),
+            mean(&frame_edges),
+            mean(&w1),
+            mean(&dist)
         );
     }
     Ok(())
