@@ -47,6 +47,21 @@ pub struct DiffusionConfig {
     pub train_levels: TrainLevels,
 }
 
+impl DiffusionConfig {
+    /// Whether a network trained under `self` computes what one trained under `other` does: the
+    /// same schedule, prediction, time input and objective. The loss weighting and the training
+    /// levels only decide where training spends its updates (a weighting over levels by two
+    /// names), so a checkpoint resumes under others: a run may go on with a new level
+    /// distribution. Whether a run *should* is the caller's rule (the recipes' run records ask for
+    /// identical settings).
+    pub fn same_network(&self, other: &Self) -> bool {
+        self.schedule == other.schedule
+            && self.prediction == other.prediction
+            && self.time_input == other.time_input
+            && self.objective == other.objective
+    }
+}
+
 /// The training objective (see the module documentation).
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]

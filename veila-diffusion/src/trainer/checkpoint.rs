@@ -337,8 +337,10 @@ impl<M: Denoiser> Trainer<M> {
 
     /// Restores weights, EMA, optimizer, step and RNG from a checkpoint directory written by
     /// [`Self::save_checkpoint`]. Every tensor must match the model's variables by name and shape;
-    /// the diffusion configuration must be the one this trainer uses. The trainer's current
-    /// [`TrainConfig`] is kept (so a run can be continued with, e.g., more steps). Nothing is
+    /// the diffusion configuration must define the network this trainer trains
+    /// ([`DiffusionConfig::same_network`]: its loss weighting and training levels may differ).
+    /// The trainer's current [`TrainConfig`] and diffusion configuration are kept (so a run can be
+    /// continued with, e.g., more steps or a share of the draws at the clean levels). Nothing is
     /// modified when validation fails.
     /// Each tensor file is read by `read`, told the names and shapes it must hold.
     pub fn load_checkpoint(&mut self, path: &Path, read: TensorFileReader) -> Result<()> {
@@ -350,8 +352,11 @@ impl<M: Denoiser> Trainer<M> {
                 format!("unsupported format_version {}", state.format_version),
             ));
         }
-        if &state.diffusion_config != self.diffusion.config() {
-            return Err(bad(path, "diffusion config differs from the trainer's"));
+        if !state.diffusion_config.same_network(self.diffusion.config()) {
+            return Err(bad(
+                path,
+                "its diffusion process (schedule, prediction, time input or objective) differs from the trainer's",
+            ));
         }
         let rng = state
             .rng

@@ -12,7 +12,7 @@ use veila_diffusion::noise::randn;
 use veila_diffusion::trainer::find_latest_checkpoint;
 use veila_diffusion::{
     Batch, Denoiser, Diffusion, DiffusionConfig, Error, LossWeighting, Prediction, StepStats,
-    TimeInput, TrainConfig, TrainObserver, Trainer,
+    TimeInput, TrainConfig, TrainLevels, TrainObserver, Trainer,
 };
 
 use crate::common::{TinyConfig, TinyNet};
@@ -239,6 +239,78 @@ fn resume_is_exact() {
     assert_ne!(flat(&a.weights().unwrap()), flat(&a.ema_weights()));
 }
 
+/// A checkpoint resumes under another loss weighting or other training levels (they only say
+/// where updates go), and is refused under another process: a network trained to predict ε does
+/// not resume as one predicting `v`.
+#[test]
+fn a_run_goes_on_with_other_training_levels_but_not_another_process() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut a = trainer(6, "net");
+    let mut rec = Recorder {
+        stop_at: Some(3),
+        ..Default::default()
+    };
+    a.fit(&mut source, Some(dir.path()), &mut rec).unwrap();
+    let ckpt = find_latest_checkpoint(dir.path()).unwrap().unwrap();
+    let with = |cfg: DiffusionConfig| {
+        let (net, vm) = TinyNet::build_seeded(CFG, "net", 99);
+        Trainer::new(net, vm, Diffusion::new(cfg).unwrap(), config(6)).unwrap()
+    };
+    let base = diffusion(Prediction::Epsilon).config().clone();
+
+    let mut clean = with(DiffusionConfig {
+        loss_weighting: LossWeighting::Uniform,
+        train_levels: TrainLevels::clean_share(0.5),
+        ..base.clone()
+    });
+    clean
+        .load_checkpoint(&ckpt, read_checkpoint_tensors)
+        .unwrap();
+    assert_eq!(clean.step(), 3);
+    assert_eq!(flat(&clean.weights().unwrap()), flat(&a.weights().unwrap()));
+    // it trains on under its own levels, and its next checkpoint records them
+    let mut rec_c = Recorder::default();
+    clean.fit(&mut source, None, &mut rec_c).unwrap();
+    assert_eq!(clean.step(), 6);
+    assert_eq!(
+        clean.diffusion().config().train_levels,
+        TrainLevels::clean_share(0.5)
+    );
+
+    for (what, cfg) in [
+        (
+            "prediction",
+            DiffusionConfig {
+                prediction: Prediction::V,
+                ..base.clone()
+            },
+        ),
+        (
+            "time input",
+            DiffusionConfig {
+                time_input: TimeInput::LogSnr,
+                ..base.clone()
+            },
+        ),
+    ] {
+        let mut other = with(cfg);
+        let before = flat(&other.weights().unwrap());
+        let err = other
+            .load_checkpoint(&ckpt, read_checkpoint_tensors)
+            .unwrap_err();
+        assert!(
+            err.to_string().contains("diffusion process"),
+            "{what}: {err}"
+        );
+        assert_eq!(other.step(), 0, "{what}");
+        assert_eq!(
+            flat(&other.weights().unwrap()),
+            before,
+            "{what}: nothing loaded"
+        );
+    }
+}
+
 /// The training clock counts batch assembly and updates (not what observers do), travels in
 /// the checkpoints, and after a checkpoint from a build without a clock counts from that step.
 #[test]
@@ -391,7 +463,7 @@ fn checkpoints_are_atomic_complete_and_pruned() {
         t4.load_checkpoint(&good, read_checkpoint_tensors)
             .unwrap_err()
             .to_string()
-            .contains("diffusion config")
+            .contains("diffusion process")
     );
 }
 
