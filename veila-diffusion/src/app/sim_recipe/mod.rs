@@ -365,6 +365,59 @@ impl SimRecipe {
 mod tests {
     use super::*;
 
+    /// The lines a run tells.
+    #[derive(Default)]
+    struct Lines(std::sync::Mutex<Vec<String>>);
+
+    impl crate::app::progress::Progress for Lines {
+        fn line(&self, text: &str) {
+            self.0.lock().unwrap().push(text.to_string());
+        }
+
+        fn bar(&self, _label: &str, _total: u64) -> Box<dyn crate::app::progress::Bar + '_> {
+            Box::new(())
+        }
+    }
+
+    #[test]
+    fn a_work_folder_of_another_run_is_refused_before_any_frame_is_simulated() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let tmp = tempfile::tempdir().unwrap();
+        let work = tmp.path().join("work");
+        std::fs::create_dir(&work).unwrap();
+        std::fs::write(work.join(crate::trainer::RUN_RECORD_FILE), "{}").unwrap();
+        let recipe = SimRecipe {
+            variant: Variant::Unconditional,
+            frames: 3,
+            steps: 2,
+            ..SimRecipe::shipped()
+        };
+        let lines = Lines::default();
+        let out = tmp.path().join("bundle");
+        let run = SimRun {
+            root: &root,
+            out: &out,
+            work: &work,
+            device: &candle_core::Device::Cpu,
+            device_name: "cpu",
+            snapshot_every: None,
+            frames: None,
+        };
+        let e = recipe.train(&run, &lines).unwrap_err().to_string();
+        assert!(e.contains("other settings"), "{e}");
+        let told = lines.0.into_inner().unwrap();
+        assert!(
+            told.iter().all(|l| !l.contains("simulated")),
+            "frames were simulated first: {told:?}"
+        );
+        assert!(!out.exists());
+        assert_eq!(
+            std::fs::read_to_string(work.join(crate::trainer::RUN_RECORD_FILE)).unwrap(),
+            "{}",
+            "the other run's record is left as it was"
+        );
+    }
+
     #[test]
     fn the_sky_target_is_the_depth_encoders_far_limit_where_there_is_one() {
         let full = BundleConfig::cpu_default(Variant::Full);

@@ -15,7 +15,7 @@ use crate::app::bundle::{Bundle, BundleConfig};
 use crate::app::dataset::TrainExample;
 use crate::app::progress::{Bar, Progress};
 use crate::app::recipe::{EncoderData, EncoderEvent, EncoderSource, RecipeInput, run_recipe};
-use crate::app::sim_examples::{SimExample, depth_with_sky_at, render_split_shown};
+use crate::app::sim_examples::{SimExample, depth_with_sky_at, render_split_shown, split_items};
 use crate::app::stage::Stage;
 use crate::denoiser::Denoiser;
 use crate::error::{Error, Result, invalid};
@@ -89,6 +89,15 @@ impl SimRecipe {
             self.batch,
             self.seed
         ));
+        // a work folder of another run is refused before the frames are simulated, which takes
+        // minutes to an hour
+        let planned = match run.frames {
+            Some(f) => f.len(),
+            None => split_items(&run.root.join(&self.scenes), self.frames)?.len(),
+        };
+        let settings = self.settings();
+        let run_key = self.run_key(&cfg, &settings, planned);
+        claim_checkpoint_dir(run.work, &run_key)?;
         let t = Instant::now();
         let render = |list: &Path, label: &str| {
             render_split_shown(run.root, list, self.frames, &cfg, &style, label, progress)
@@ -122,9 +131,12 @@ impl SimRecipe {
             None => format!("  simulated {} frames in {sim_secs:.1} s", examples.len()),
         });
 
-        let settings = self.settings();
-        let run_key = self.run_key(&cfg, &settings, examples.len());
-        claim_checkpoint_dir(run.work, &run_key)?;
+        if examples.len() != planned {
+            return Err(Error::Data(format!(
+                "{} frames simulated where the scene list gave {planned}",
+                examples.len()
+            )));
+        }
         let images: Vec<Vec<u8>> = encoder_examples.iter().map(|e| e.rgb.clone()).collect();
         let labels: Vec<Vec<u32>> = encoder_examples.iter().map(|e| e.labels.clone()).collect();
         let sky_m = self.sky_target_m(&cfg)?;
