@@ -22,8 +22,8 @@
 //!
 //! With `--restart` it finds the levels where a draw's fine texture is made: each frame is noised
 //! to a start level `t₀` and sampled from there down with the realism benchmark's solver (the
-//! levels below `t₀` of 32 DPM-Solver++ steps uniform in log-SNR; SDEdit's partial resampling), and the result's texture figures sit next to the frame's.
-//! Started low enough, the sampler must hand the frame back with its texture; the lowest `t₀` at
+//! levels below `t₀` of 32 DPM-Solver++ steps uniform in log-SNR; SDEdit's partial resampling),
+//! and the result's texture figures sit next to the frame's. Started low enough, the sampler must hand the frame back with its texture; the lowest `t₀` at
 //! which the texture breaks is where the network's `x̂₀` stops being precise enough for it.
 //!
 //! ```sh

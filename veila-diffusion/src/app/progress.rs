@@ -37,3 +37,19 @@ impl Bar for () {
 
     fn set(&self, _done: u64, _status: &str) {}
 }
+
+/// The lines a run tells, kept for a test to read (bars show nothing).
+#[cfg(test)]
+#[derive(Default)]
+pub(crate) struct Lines(pub(crate) std::sync::Mutex<Vec<String>>);
+
+#[cfg(test)]
+impl Progress for Lines {
+    fn line(&self, text: &str) {
+        self.0.lock().unwrap().push(text.to_string());
+    }
+
+    fn bar(&self, _label: &str, _total: u64) -> Box<dyn Bar + '_> {
+        Box::new(())
+    }
+}

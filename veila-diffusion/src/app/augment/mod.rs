@@ -596,19 +596,7 @@ mod tests {
     use super::*;
     use crate::app::segment::ClassWeighting;
 
-    /// The lines a run tells.
-    #[derive(Default)]
-    struct Lines(std::sync::Mutex<Vec<String>>);
-
-    impl Progress for Lines {
-        fn line(&self, text: &str) {
-            self.0.lock().unwrap().push(text.to_string());
-        }
-
-        fn bar(&self, _label: &str, _total: u64) -> Box<dyn crate::app::progress::Bar + '_> {
-            Box::new(())
-        }
-    }
+    use crate::app::progress::Lines;
 
     fn options(root: &Path, tmp: &Path, steps: u64) -> AugmentOptions {
         AugmentOptions {

@@ -365,19 +365,7 @@ impl SimRecipe {
 mod tests {
     use super::*;
 
-    /// The lines a run tells.
-    #[derive(Default)]
-    struct Lines(std::sync::Mutex<Vec<String>>);
-
-    impl crate::app::progress::Progress for Lines {
-        fn line(&self, text: &str) {
-            self.0.lock().unwrap().push(text.to_string());
-        }
-
-        fn bar(&self, _label: &str, _total: u64) -> Box<dyn crate::app::progress::Bar + '_> {
-            Box::new(())
-        }
-    }
+    use crate::app::progress::Lines;
 
     #[test]
     fn a_work_folder_of_another_run_is_refused_before_any_frame_is_simulated() {
