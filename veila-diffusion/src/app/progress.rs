@@ -39,11 +39,11 @@ impl Bar for () {
 }
 
 /// The lines a run tells, kept for a test to read (bars show nothing).
-#[cfg(test)]
+#[cfg(all(test, feature = "sim"))]
 #[derive(Default)]
 pub(crate) struct Lines(pub(crate) std::sync::Mutex<Vec<String>>);
 
-#[cfg(test)]
+#[cfg(all(test, feature = "sim"))]
 impl Progress for Lines {
     fn line(&self, text: &str) {
         self.0.lock().unwrap().push(text.to_string());
