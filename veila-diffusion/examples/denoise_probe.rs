@@ -21,10 +21,12 @@
 //! noise itself.
 //!
 //! With `--restart` it finds the levels where a draw's fine texture is made: each frame is noised
-//! to a start level `t₀` and sampled from there down with the realism benchmark's solver (the
-//! levels below `t₀` of 32 DPM-Solver++ steps uniform in log-SNR; SDEdit's partial resampling),
-//! and the result's texture figures sit next to the frame's. Started low enough, the sampler must hand the frame back with its texture; the lowest `t₀` at
-//! which the texture breaks is where the network's `x̂₀` stops being precise enough for it.
+//! to a start level `t₀` and sampled from there down with the realism benchmark's solver
+//! ([`Sampler::sample_from_level`](veila_diffusion::sampler::Sampler::sample_from_level) on the
+//! levels below `t₀` of 32 DPM-Solver++ steps uniform in log-SNR, `x̂₀` clipped as there; SDEdit's
+//! partial resampling), and the result's texture figures sit next to the frame's. Started low
+//! enough, the sampler must hand the frame back with its texture; the lowest `t₀` at which the
+//! texture breaks is where the network's `x̂₀` stops being precise enough for it.
 //!
 //! ```sh
 //! cargo run --release -p veila-diffusion --features sim --example denoise_probe -- \
@@ -179,7 +181,7 @@ fn restart_levels(
     rng: &mut rand_chacha::ChaCha8Rng,
 ) -> Result<(), Box<dyn std::error::Error>> {
     use veila_diffusion::Spacing;
-    use veila_diffusion::sampler::{DpmSolverPp2M, Sampler, SamplerConfig};
+    use veila_diffusion::sampler::{Sampler, SamplerConfig};
     use veila_metrics::texture::{TextureSummary, scan_distance};
     // the realism benchmark's solver: 32 DPM-Solver++ steps, uniform in log-SNR down to t = 1e-3
     let mut cfg = SamplerConfig::dpm_solver_pp_2m(32);
@@ -196,19 +198,10 @@ fn restart_levels(
     );
     for t0 in [0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0] {
         let start = diffusion.schedule().level(t0);
-        let mut levels = vec![start];
-        levels.extend(sampler.levels().iter().copied().filter(|l| l.t < t0));
         let eps = veila_diffusion::noise::randn(rng, x0.dims(), x0.device())?;
-        let mut x = ((x0 * start.alpha())? + (&eps * start.sigma())?)?;
-        let mut solver = DpmSolverPp2M::default();
-        for (i, from) in levels.iter().enumerate() {
-            let to = levels
-                .get(i + 1)
-                .copied()
-                .unwrap_or(veila_diffusion::NoiseLevel::CLEAN);
-            let den = diffusion.denoise(model, &x, from, None, None, None)?;
-            x = solver.step(&x, &den.x0, from, &to)?;
-        }
+        let x_t = diffusion.q_sample(x0, &eps, &vec![start; x0.dim(0)?])?;
+        let mut steps = 0;
+        let x = sampler.sample_from_level(model, x_t, start, None, rng, |_| steps += 1)?;
         let scans = bundle.config.encoding.decode_batch(&x)?;
         let (mut smooth, mut edges, mut w1, mut dist) = (vec![], vec![], vec![], vec![]);
         for (scan, f) in scans.iter().zip(frames) {
@@ -223,7 +216,7 @@ fn restart_levels(
         println!(
             "| {t0} | {:.5} | {} | {:.2} / {:.2} | {:.2} / {:.2} | {:.3} | {:.4} |",
             start.sigma(),
-            levels.len(),
+            steps,
             mean(&smooth),
             mean(&frame_smooth),
             mean(&edges),

@@ -46,10 +46,7 @@ pub(super) fn load_data(file: &TrainFile, cfg: &BundleConfig) -> Result<TrainDat
         .max_frames
         .unwrap_or(manifest.count)
         .min(manifest.count);
-    // the camera is needed by conditional models and to train encoders
-    let needs_camera = cfg.denoiser.conditioning.is_some()
-        || (file.model.encoders_from.is_none()
-            && (cfg.semantic_encoder.is_some() || cfg.depth_encoder.is_some()));
+    let needs_camera = cfg.needs_camera(file.model.encoders_from.is_some());
     let conditional = cfg.denoiser.conditioning.is_some();
     let mut prepared: Vec<Prepared> = Vec::new();
     let mut stream: Option<Arc<dyn ExampleSource>> = None;

@@ -645,6 +645,15 @@ impl Scene {
         Ok((frame, views))
     }
 
+    /// The scan of frame `index` alone, with the config's LiDAR and return model: the same
+    /// scan as [`Scene::render_frame`]'s, without the camera image, which costs most of a frame
+    /// (for models that never look at the camera, such as unconditional ones).
+    pub fn render_scan(&self, index: u32) -> Result<SimScan> {
+        let sensor = self.config.lidar.sensor()?;
+        self.snapshot(index)
+            .render_lidar(&sensor, &self.config.lidar.returns)
+    }
+
     /// Render frame `index` with the scene's own sensors (the config's LiDAR, return model and
     /// camera): the paired scan and image without touching files, for training and demo code.
     pub fn render_frame(&self, index: u32) -> Result<SimFrame> {

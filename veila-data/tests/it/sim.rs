@@ -554,6 +554,36 @@ fn deterministic_regardless_of_thread_count() {
     assert!(one == many, "outputs differ between 1 and 4 threads");
 }
 
+#[test]
+fn a_scan_alone_is_the_scan_of_the_full_frame() {
+    // range noise and drawn appearance (materials change intensities) both on: the scan alone
+    // must draw the same random numbers as the scan of a frame with its camera image
+    let mut cfg = tiny_config();
+    cfg.layout = Layout::Junction;
+    cfg.frames.count = 4;
+    cfg.lidar.returns.range_noise_m = 0.01;
+    cfg.appearance.randomize = true;
+    cfg.appearance.randomize_materials = true;
+    let scene = Scene::generate(&cfg, 11).unwrap();
+    let mut seen = Vec::new();
+    for index in [0, 3] {
+        let frame = scene.render_frame(index).unwrap();
+        let alone = scene.render_scan(index).unwrap();
+        let bytes = scan_bytes(&alone);
+        assert!(!alone.points.xyz.is_empty(), "frame {index}: no returns");
+        assert_eq!(
+            bytes,
+            scan_bytes(&frame.scan),
+            "frame {index}: points differ"
+        );
+        assert_eq!(alone.range_image.range_m, frame.scan.range_image.range_m);
+        assert_eq!(alone.range_image.label, frame.scan.range_image.label);
+        assert_eq!(alone.surface_range_m, frame.scan.surface_range_m);
+        seen.push(bytes);
+    }
+    assert_ne!(seen[0], seen[1], "frames 0 and 3 gave the same scan");
+}
+
 /// Runs `f` in a rayon pool of `threads` threads.
 fn with_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
     rayon::ThreadPoolBuilder::new()

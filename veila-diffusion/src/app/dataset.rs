@@ -45,6 +45,19 @@ pub struct TrainView {
     pub camera: PinholeCamera,
 }
 
+/// The camera an example without an image carries, for models that never look at the camera
+/// ([`super::bundle::BundleConfig::needs_camera`]): identity pose, unit focal length, the
+/// principal point at the centre of `cfg`'s image.
+pub fn blind_camera(cfg: &super::bundle::BundleConfig) -> Result<PinholeCamera> {
+    let (w, h) = (cfg.image_width as u32, cfg.image_height as u32);
+    let k = [
+        [1.0, 0.0, 0.5 * w as f32, 0.0],
+        [0.0, 1.0, 0.5 * h as f32, 0.0],
+        [0.0, 0.0, 1.0, 0.0],
+    ];
+    Ok(PinholeCamera::new(k, glam::Mat4::IDENTITY, w, h)?)
+}
+
 impl TrainExample {
     /// An example of one camera.
     pub fn new(rgb: Vec<u8>, camera: PinholeCamera, x0: Vec<f32>) -> Self {

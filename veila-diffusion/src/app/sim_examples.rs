@@ -22,11 +22,11 @@ use std::path::{Path, PathBuf};
 use rayon::prelude::*;
 use veila_data::augment::Photometric;
 use veila_data::semantic_kitti::class;
-use veila_data::sim::{Scene, SceneConfig, SceneList, SimFrame, SimImage, SimView};
+use veila_data::sim::{Scene, SceneConfig, SceneList, SimFrame, SimImage, SimScan, SimView};
 use veila_geom::{PinholeCamera, ProjectionOptions, Projector, RangeImage};
 
 use super::bundle::{Bundle, BundleConfig};
-use super::dataset::{TrainExample, TrainView};
+use super::dataset::{TrainExample, TrainView, blind_camera};
 use super::generate::CameraView;
 use super::progress::Progress;
 use super::rig::prepare_view;
@@ -114,10 +114,22 @@ pub fn example_from_frame(frame: &SimFrame, cfg: &BundleConfig) -> Result<SimExa
         .map(|r| class::learning_id(r) as u32)
         .collect();
     let depth_m = nearest(&img.depth_m, w, h, nw, nh);
+    Ok(SimExample {
+        rgb,
+        labels,
+        depth_m,
+        camera,
+        range: scan_on_grid(&frame.scan, cfg)?,
+        extra_views: Vec::new(),
+    })
+}
+
+/// A simulated scan projected on `cfg`'s range grid, each pixel with its point's SemanticKITTI
+/// raw label (the segmentation benchmark's truth) where the simulator labels its points.
+fn scan_on_grid(scan: &SimScan, cfg: &BundleConfig) -> Result<RangeImage> {
     let projector = Projector::new(&cfg.denoiser.sensor, ProjectionOptions::default())?;
-    let cloud = &frame.scan.points;
+    let cloud = &scan.points;
     let (mut range, _) = projector.project(&cloud.xyz, Some(&cloud.intensity), None)?;
-    // each pixel's class: its point's SemanticKITTI raw label (the segmentation benchmark's truth)
     if let Some(raw) = &cloud.label {
         let labels = range
             .point_index
@@ -133,14 +145,7 @@ pub fn example_from_frame(frame: &SimFrame, cfg: &BundleConfig) -> Result<SimExa
             .collect();
         range.label = Some(labels);
     }
-    Ok(SimExample {
-        rgb,
-        labels,
-        depth_m,
-        camera,
-        range,
-        extra_views: Vec::new(),
-    })
+    Ok(range)
 }
 
 /// [`example_from_frame`] with the rig's further cameras (`views` from
@@ -427,6 +432,10 @@ pub struct RenderStyle {
     /// The share of the facade looks drawn from the whole colour wheel where materials are drawn
     /// (`[appearance] wide_facade_share`; 0: the stock palettes).
     pub wide_facade_share: f32,
+    /// No camera at all: the scans alone, for models that never look at the camera
+    /// ([`BundleConfig::needs_camera`]); a camera image costs most of a frame. The examples have
+    /// no image, labels or depth, and carry [`blind_camera`]. The scans are the same either way.
+    pub scan_only: bool,
 }
 
 impl RenderStyle {
@@ -439,6 +448,7 @@ impl RenderStyle {
             sensor: on.then(Photometric::default),
             share: None,
             wide_facade_share: 0.0,
+            scan_only: false,
         }
     }
 
@@ -548,6 +558,17 @@ fn render_item(
     }
     let scene = Scene::generate(&scene_cfg, seed)?;
     let frames = scene_cfg.frames.count.max(1) as u64;
+    if style.scan_only {
+        let scan = scene.render_scan((seed % frames) as u32)?;
+        return Ok(SimExample {
+            rgb: Vec::new(),
+            labels: Vec::new(),
+            depth_m: Vec::new(),
+            camera: blind_camera(cfg)?,
+            range: scan_on_grid(&scan, cfg)?,
+            extra_views: Vec::new(),
+        });
+    }
     let yaws = &RIG_YAWS_DEG[..cfg.num_views().clamp(1, RIG_YAWS_DEG.len() + 1) - 1];
     let (mut frame, mut views) = scene.render_frame_rig((seed % frames) as u32, yaws)?;
     if let Some(sensor) = style.sensor.as_ref().filter(|_| on) {
@@ -713,6 +734,37 @@ mod tests {
         assert_eq!(flags(TrainImages::Materials), (false, false, true, false));
         assert_eq!(flags(TrainImages::Appearance), (false, true, true, false));
         assert_eq!(flags(TrainImages::Randomized), (true, false, false, true));
+    }
+
+    #[test]
+    fn scans_alone_are_the_scans_of_whole_frames_without_a_camera() {
+        let cfg = BundleConfig::cpu_default(Variant::Unconditional);
+        let list = workspace_root().join("scenes/train-v5.txt");
+        // stock images, and drawn appearance (which sets the scans' intensities too)
+        for style in [RenderStyle::default(), TrainImages::Appearance.style(None)] {
+            let whole = render_split_styled(&list, 3, &cfg, &style, &|| {}).unwrap();
+            let alone = RenderStyle {
+                scan_only: true,
+                ..style
+            };
+            let scans = render_split_styled(&list, 3, &cfg, &alone, &|| {}).unwrap();
+            assert_eq!(scans.len(), 3);
+            for (k, (w, s)) in whole.iter().zip(&scans).enumerate() {
+                assert!(!w.rgb.is_empty() && s.rgb.is_empty(), "frame {k}");
+                assert!(s.labels.is_empty() && s.depth_m.is_empty(), "frame {k}");
+                assert_eq!(s.camera, blind_camera(&cfg).unwrap());
+                assert!(w.range.mask.iter().any(|&m| m), "frame {k}: no returns");
+                assert_eq!(w.range.range_m, s.range.range_m, "frame {k}");
+                assert_eq!(w.range.intensity, s.range.intensity, "frame {k}");
+                assert_eq!(w.range.mask, s.range.mask, "frame {k}");
+                assert_eq!(w.range.label, s.range.label, "frame {k}");
+                assert_eq!(
+                    w.train_example(&cfg).unwrap().x0,
+                    s.train_example(&cfg).unwrap().x0
+                );
+            }
+            assert_ne!(scans[0].range.range_m, scans[1].range.range_m);
+        }
     }
 
     #[test]

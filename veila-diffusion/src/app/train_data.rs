@@ -12,7 +12,7 @@ use veila_data::shard::{Manifest, ShardReader, ShardSample, read_shard};
 use veila_geom::{LidarSensor, PinholeCamera, ProjectionOptions, Projector, RayTable};
 
 use super::bundle::BundleConfig;
-use super::dataset::{EncoderExample, ExampleSource, TrainExample, TrainView};
+use super::dataset::{EncoderExample, ExampleSource, TrainExample, TrainView, blind_camera};
 use crate::error::{Error, Result};
 
 /// The error of one sample of a shard file.
@@ -65,14 +65,9 @@ pub fn prepare_sample(
     let x0 = cfg.encoding.encode_to_vec(on_grid)?;
     if !needs_camera {
         // an unconditional model without encoders to train never looks at the camera
-        let k = [
-            [1.0, 0.0, 0.5 * iw as f32, 0.0],
-            [0.0, 1.0, 0.5 * ih as f32, 0.0],
-            [0.0, 0.0, 1.0, 0.0],
-        ];
         return Ok(Prepared {
             rgb: Vec::new(),
-            camera: PinholeCamera::new(k, glam::Mat4::IDENTITY, iw, ih)?,
+            camera: blind_camera(cfg)?,
             x0,
             extra_views: Vec::new(),
             depth_m: Vec::new(),

@@ -387,20 +387,75 @@ impl<'a> Sampler<'a> {
         x_t: Tensor,
         cond: Option<&D::Cond>,
         rng: &mut R,
-        mut on_step: impl FnMut(&StepInfo<'_>),
+        on_step: impl FnMut(&StepInfo<'_>),
     ) -> Result<Tensor> {
         let _span = tracing::debug_span!("sample", steps = self.levels.len()).entered();
-        let b = x_t.dim(0)?;
-        let uncond = self.uncond_for(cond, b)?;
         if !self.diffusion.config().objective.is_diffusion() {
+            let uncond = self.uncond_for(cond, x_t.dim(0)?)?;
             return self.sample_flow(model, x_t, cond, uncond.as_ref(), on_step);
         }
+        self.sample_levels(model, x_t, &self.levels, cond, rng, on_step)
+    }
+
+    /// Samples from `x_t` at `start`, a level of this process ([`crate::NoiseSchedule::level`]
+    /// of its schedule), instead of from pure noise: the network is evaluated at `start`, then at
+    /// each of [`Self::levels`] below it, then the sample is clean. SDEdit's partial resampling
+    /// (Meng et al., 2022) from `x_t = α·x₀ + σ·ε` ([`Diffusion::q_sample`]), and `--restart`
+    /// of the `denoise_probe` example: where along the levels a draw's fine texture is made.
+    /// A multistep solver starts afresh at `start` (its first step is first order). Diffusion
+    /// objectives only: rectified flow and regression have no levels to start from.
+    pub fn sample_from_level<D: Denoiser, R: NoiseSource + ?Sized>(
+        &self,
+        model: &D,
+        x_t: Tensor,
+        start: NoiseLevel,
+        cond: Option<&D::Cond>,
+        rng: &mut R,
+        on_step: impl FnMut(&StepInfo<'_>),
+    ) -> Result<Tensor> {
+        let objective = &self.diffusion.config().objective;
+        if !objective.is_diffusion() {
+            return Err(invalid(
+                "start",
+                format!(
+                    "sampling from a level needs a diffusion objective, this process is {}",
+                    objective.name()
+                ),
+            ));
+        }
+        if !(start.t > 0.0 && start.t <= 1.0 && start.sigma2 > 0.0) {
+            return Err(invalid(
+                "start",
+                format!(
+                    "must be a noisy level, with t in (0, 1], got t = {}",
+                    start.t
+                ),
+            ));
+        }
+        let levels: Vec<NoiseLevel> = std::iter::once(start)
+            .chain(self.levels.iter().copied().filter(|l| l.t < start.t))
+            .collect();
+        let _span = tracing::debug_span!("sample", steps = levels.len()).entered();
+        self.sample_levels(model, x_t, &levels, cond, rng, on_step)
+    }
+
+    /// The diffusion samplers' loop over `levels` (noisiest first), from `x_t` at `levels[0]`.
+    fn sample_levels<D: Denoiser, R: NoiseSource + ?Sized>(
+        &self,
+        model: &D,
+        x_t: Tensor,
+        levels: &[NoiseLevel],
+        cond: Option<&D::Cond>,
+        rng: &mut R,
+        mut on_step: impl FnMut(&StepInfo<'_>),
+    ) -> Result<Tensor> {
+        let uncond = self.uncond_for(cond, x_t.dim(0)?)?;
         let mut x = x_t;
         let mut solver = DpmSolverPp2M::default();
-        let n = self.levels.len();
+        let n = levels.len();
         for i in 0..n {
-            let from = self.levels[i];
-            let to = self.levels.get(i + 1).copied().unwrap_or(NoiseLevel::CLEAN);
+            let from = levels[i];
+            let to = levels.get(i + 1).copied().unwrap_or(NoiseLevel::CLEAN);
             let d = self.denoise(model, &x, &from, cond, uncond.as_ref())?;
             x = match self.config.kind {
                 SamplerKind::Ddpm { variance } => {

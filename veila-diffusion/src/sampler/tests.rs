@@ -368,3 +368,106 @@ fn x0_bounds_clamp_each_element_to_its_own_interval() {
         );
     }
 }
+
+#[test]
+fn sampling_from_a_level_follows_the_gaussians_probability_flow_in_closed_form() -> Result<()> {
+    // x₀ ~ N(μ, s²): the probability-flow ODE from level (α, σ) is the monotone linear map
+    // x₀ = μ + s·(x_t − α·μ) / √(α²s² + σ²), which a fine deterministic solver must follow
+    let (mu, s) = (0.2f64, 0.5f64);
+    let (diffusion, oracle) = oracle_setup(ScheduleConfig::cosine_logsnr(), Prediction::V);
+    let mut cfg = SamplerConfig::dpm_solver_pp_2m(200);
+    cfg.spacing = Spacing::LogSnr;
+    cfg.clip_x0 = None;
+    let sampler = Sampler::new(&diffusion, cfg)?;
+    let shape = [1, 1, 4, 16];
+    let x_t = randn(&mut ChaCha8Rng::seed_from_u64(3), &shape, &Device::Cpu)?;
+    let xs = vec(&x_t);
+    for t0 in [1.0, 0.7, 0.3, 0.05] {
+        let start = diffusion.schedule().level(t0);
+        let mut steps = 0;
+        let got = vec(&sampler.sample_from_level(
+            &oracle,
+            x_t.clone(),
+            start,
+            None,
+            &mut ChaCha8Rng::seed_from_u64(1),
+            |_| steps += 1,
+        )?);
+        let n_below = sampler.levels().iter().filter(|l| l.t < t0).count();
+        assert_eq!(steps, 1 + n_below, "t0 = {t0}");
+        let (a, sd) = (start.alpha(), start.sigma());
+        let spread = (a * a * s * s + sd * sd).sqrt();
+        for (g, x) in got.iter().zip(&xs) {
+            let want = mu + s * (*x as f64 - a * mu) / spread;
+            assert!(
+                (*g as f64 - want).abs() < 2e-3,
+                "t0 = {t0}: {g} against {want}"
+            );
+        }
+        // the start level matters: read as pure noise, the same x_t lands elsewhere
+        if t0 < 0.5 {
+            let as_noise = vec(&sampler.sample_from(
+                &oracle,
+                x_t.clone(),
+                None,
+                &mut ChaCha8Rng::seed_from_u64(1),
+                |_| {},
+            )?);
+            let m = as_noise
+                .iter()
+                .zip(&got)
+                .map(|(p, q)| (p - q).abs())
+                .fold(0.0f32, f32::max);
+            assert!(m > 0.05, "t0 = {t0}: {m}");
+        }
+    }
+    Ok(())
+}
+
+#[test]
+fn sampling_from_the_first_level_is_sampling_from_noise() -> Result<()> {
+    let (diffusion, oracle) = oracle_setup(ScheduleConfig::cosine_logsnr(), Prediction::V);
+    // DDPM draws noise at every step: the same draws in the same order give the same bits
+    let sampler = Sampler::new(&diffusion, SamplerConfig::ddpm(12))?;
+    let x_t = randn(
+        &mut ChaCha8Rng::seed_from_u64(5),
+        &[2, 1, 4, 8],
+        &Device::Cpu,
+    )?;
+    let a = sampler.sample_from(
+        &oracle,
+        x_t.clone(),
+        None,
+        &mut ChaCha8Rng::seed_from_u64(2),
+        |_| {},
+    )?;
+    let first = sampler.levels()[0];
+    let b = sampler.sample_from_level(
+        &oracle,
+        x_t,
+        first,
+        None,
+        &mut ChaCha8Rng::seed_from_u64(2),
+        |_| {},
+    )?;
+    assert_eq!(vec(&a), vec(&b));
+    // no clean or out-of-range start, and no start for a process without levels
+    let clean = NoiseLevel::CLEAN;
+    let x = Tensor::zeros((1, 1, 2, 2), candle_core::DType::F32, &Device::Cpu)?;
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let e = sampler
+        .sample_from_level(&oracle, x.clone(), clean, None, &mut rng, |_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("noisy level"), "{e}");
+    let flow = Diffusion::new(DiffusionConfig {
+        objective: Objective::rectified_flow(),
+        ..DiffusionConfig::default()
+    })?;
+    let e = Sampler::new(&flow, SamplerConfig::ddim(4, 0.0))?
+        .sample_from_level(&oracle, x, first, None, &mut rng, |_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("diffusion objective"), "{e}");
+    Ok(())
+}

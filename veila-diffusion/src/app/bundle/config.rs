@@ -338,4 +338,13 @@ impl BundleConfig {
             .as_ref()
             .map_or(1, |c| c.num_views.max(1))
     }
+
+    /// Whether training this bundle looks at the camera: its denoiser is conditional, or it has
+    /// encoders to train (`encoders_reused`: they come trained, from another bundle). Without
+    /// it, the examples need no image ([`crate::app::dataset::blind_camera`]).
+    pub fn needs_camera(&self, encoders_reused: bool) -> bool {
+        self.denoiser.conditioning.is_some()
+            || (!encoders_reused
+                && (self.semantic_encoder.is_some() || self.depth_encoder.is_some()))
+    }
 }

@@ -407,6 +407,47 @@ mod tests {
     }
 
     #[test]
+    fn a_model_that_never_looks_at_the_camera_trains_on_the_scans_alone() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let tmp = tempfile::tempdir().unwrap();
+        // the encoders' own list differs from the networks' (the shipped recipe's), yet an
+        // unconditional model has no encoders: no frames of theirs are simulated
+        let recipe = SimRecipe {
+            variant: Variant::Unconditional,
+            frames: 3,
+            steps: 2,
+            batch: 2,
+            checkpoint_every: 2,
+            ..SimRecipe::shipped()
+        };
+        assert!(recipe.encoder_list().is_some());
+        let lines = Lines::default();
+        let (work, out) = (tmp.path().join("work"), tmp.path().join("bundle"));
+        let run = SimRun {
+            root: &root,
+            out: &out,
+            work: &work,
+            device: &candle_core::Device::Cpu,
+            device_name: "cpu",
+            snapshot_every: None,
+            frames: None,
+        };
+        let cfg = recipe.train(&run, &lines).unwrap();
+        assert!(!cfg.needs_camera(false));
+        let told = lines.0.into_inner().unwrap();
+        let simulated: Vec<&String> = told.iter().filter(|l| l.contains("simulated")).collect();
+        assert_eq!(simulated.len(), 1, "{told:?}");
+        assert!(
+            simulated[0].contains("simulated 3 frames") && simulated[0].contains("scans alone"),
+            "{told:?}"
+        );
+        assert!(out.join("bundle.json").exists());
+        // a conditional model needs the camera, even with its encoders reused
+        let full = BundleConfig::cpu_default(Variant::Full);
+        assert!(full.needs_camera(false) && full.needs_camera(true));
+    }
+
+    #[test]
     fn the_sky_target_is_the_depth_encoders_far_limit_where_there_is_one() {
         let full = BundleConfig::cpu_default(Variant::Full);
         let far = full

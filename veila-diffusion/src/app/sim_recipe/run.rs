@@ -70,12 +70,16 @@ impl SimRecipe {
     /// Trains and writes the bundle of this recipe as `run` says; returns the config written.
     pub fn train(&self, run: &SimRun<'_>, progress: &dyn Progress) -> Result<BundleConfig> {
         let t_all = Instant::now();
-        let style = self
+        let mut style = self
             .images
             .checked_style(self.randomize_share, self.wide_facades)?;
         let mut cfg = self.bundle_config()?;
+        // a model that never looks at the camera is trained on the scans alone (the same scans,
+        // several times faster to simulate)
+        style.scan_only = !cfg.needs_camera(self.encoders_from.is_some());
         self.check(run.frames.is_some())?;
-        let encoder_list = self.encoder_list();
+        // (no encoder frames where there is no camera to train them on)
+        let encoder_list = self.encoder_list().filter(|_| !style.scan_only);
         let method = cfg.method();
         progress.line(&format!(
             "train-default: variant {} ({}), method {} ({}), {} frames, encoders {} steps, denoiser {} steps x batch {}, seed {}",
@@ -128,7 +132,15 @@ impl SimRecipe {
                 self.scenes.display(),
                 l.display()
             ),
-            None => format!("  simulated {} frames in {sim_secs:.1} s", examples.len()),
+            None => format!(
+                "  simulated {} frames in {sim_secs:.1} s{}",
+                examples.len(),
+                if style.scan_only {
+                    " (scans alone: the model never looks at the camera)"
+                } else {
+                    ""
+                }
+            ),
         });
 
         if examples.len() != planned {
