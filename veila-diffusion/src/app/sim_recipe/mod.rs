@@ -367,6 +367,19 @@ mod tests {
 
     use crate::app::progress::Lines;
 
+    /// A run on the CPU that simulates its own frames and writes no snapshots.
+    fn cpu_run<'a>(root: &'a Path, work: &'a Path, out: &'a Path) -> SimRun<'a> {
+        SimRun {
+            root,
+            out,
+            work,
+            device: &candle_core::Device::Cpu,
+            device_name: "cpu",
+            snapshot_every: None,
+            frames: None,
+        }
+    }
+
     #[test]
     fn a_work_folder_of_another_run_is_refused_before_any_frame_is_simulated() {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
@@ -382,15 +395,7 @@ mod tests {
         };
         let lines = Lines::default();
         let out = tmp.path().join("bundle");
-        let run = SimRun {
-            root: &root,
-            out: &out,
-            work: &work,
-            device: &candle_core::Device::Cpu,
-            device_name: "cpu",
-            snapshot_every: None,
-            frames: None,
-        };
+        let run = cpu_run(&root, &work, &out);
         let e = recipe.train(&run, &lines).unwrap_err().to_string();
         assert!(e.contains("other settings"), "{e}");
         let told = lines.0.into_inner().unwrap();
@@ -423,15 +428,7 @@ mod tests {
         assert!(recipe.encoder_list().is_some());
         let lines = Lines::default();
         let (work, out) = (tmp.path().join("work"), tmp.path().join("bundle"));
-        let run = SimRun {
-            root: &root,
-            out: &out,
-            work: &work,
-            device: &candle_core::Device::Cpu,
-            device_name: "cpu",
-            snapshot_every: None,
-            frames: None,
-        };
+        let run = cpu_run(&root, &work, &out);
         let cfg = recipe.train(&run, &lines).unwrap();
         assert!(!cfg.needs_camera(false));
         let told = lines.0.into_inner().unwrap();
