@@ -166,6 +166,10 @@ pub enum LossWeighting {
 }
 
 impl LossWeighting {
+    /// The names the training doors take (`train-default --loss-weighting`, `veila train`'s
+    /// `[model] loss_weighting`): `min-snr` (min-SNR-5) and `uniform`.
+    pub const NAMES: [&'static str; 2] = ["min-snr", "uniform"];
+
     /// The weight for a sample at `level` under `prediction`.
     pub fn weight(&self, level: &NoiseLevel, prediction: Prediction) -> f64 {
         let Self::MinSnr { gamma } = *self else {
@@ -197,6 +201,21 @@ impl LossWeighting {
                     gamma
                 }
             }
+        }
+    }
+}
+
+impl std::str::FromStr for LossWeighting {
+    type Err = String;
+    /// [`LossWeighting::NAMES`]: `min-snr` is min-SNR-5, `uniform` every level alike.
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "min-snr" => Ok(Self::MinSnr { gamma: 5.0 }),
+            "uniform" => Ok(Self::Uniform),
+            _ => Err(format!(
+                "unknown loss weighting `{s}` (one of: {})",
+                Self::NAMES.join(", ")
+            )),
         }
     }
 }

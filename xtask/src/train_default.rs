@@ -9,6 +9,7 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::Args;
+use veila_diffusion::LossWeighting;
 use veila_diffusion::app::bundle::{BundleConfig, Method, Variant};
 use veila_diffusion::app::sim_examples::{self, TrainImages};
 use veila_diffusion::app::sim_recipe::{SimRecipe, SimRun};
@@ -132,8 +133,8 @@ pub struct TrainDefaultArgs {
     /// Loss weighting over noise levels of the diffusion methods: `min-snr` (min-SNR-5, the
     /// shipped recipe's) or `uniform` (every level alike in the prediction's MSE: for
     /// v-prediction the x₀-space weight SNR + 1).
-    #[arg(long, default_value = "min-snr", value_parser = ["min-snr", "uniform"])]
-    pub loss_weighting: String,
+    #[arg(long, default_value = "min-snr", value_parser = str::parse::<LossWeighting>)]
+    pub loss_weighting: LossWeighting,
     /// The share of diffusion training draws at the clean levels, log-SNR 6 to 18, where a
     /// sample's fine texture forms (the rest uniform in time) [default: none, uniform time].
     #[arg(long)]
@@ -181,7 +182,7 @@ impl TrainDefaultArgs {
                 .as_ref()
                 .map(|m| m.iter().map(|&x| x as usize).collect()),
             ema_decay: self.ema_decay,
-            uniform_loss_weighting: self.loss_weighting == "uniform",
+            loss_weighting: Some(self.loss_weighting),
             clean_share: self.clean_share,
         }
     }

@@ -28,6 +28,11 @@
 //! #                                #   from each image's calibration (LiDAR 1.73 m above the ground)
 //! # depth_features = false         # true: the small-CNN depth encoder's own depth reading is one
 //! #                                #   more channel of its feature maps (same weights)
+//! # base_channels = 16             # the U-Nets' width: R2DM's is 64 (a GPU's), the CPU default 16
+//! # channel_mults = [1, 2, 2, 4]   # width multiplier of each U-Net level
+//! # res_blocks = 1                 # residual blocks per level
+//! # loss_weighting = "min-snr"     # or "uniform": every noise level alike in the loss
+//! # clean_share = 0.25             # share of training draws at the clean levels (fine texture)
 //!
 //! [train]
 //! steps = 1000                     # denoiser steps
@@ -52,7 +57,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use veila_nn::encoders::kind::EncoderKind;
 
-use super::bundle::{BundleConfig, EncoderSpec, Method, Variant, sha256_hex};
+use super::bundle::{BundleConfig, EncoderSpec, Method, NetworkKnobs, Variant, sha256_hex};
 use super::encoder_train::EncoderAugment;
 use super::recipe::RecipeSettings;
 use crate::error::{Error, Result};
@@ -160,6 +165,23 @@ pub struct ModelSection {
     /// (`true`), or not (`false`); default: the config's (off for the CPU default).
     #[serde(default)]
     pub depth_features: Option<bool>,
+    /// Width of the U-Nets' first level (default: the config's; the CPU default's is 16).
+    #[serde(default)]
+    pub base_channels: Option<usize>,
+    /// Width multipliers of the U-Net levels, one per level (default: the config's).
+    #[serde(default)]
+    pub channel_mults: Option<Vec<usize>>,
+    /// Residual blocks per U-Net level (default: the config's).
+    #[serde(default)]
+    pub res_blocks: Option<usize>,
+    /// How the noise levels weigh in the loss: `min-snr` (min-SNR-5) or `uniform` (every level
+    /// alike in the prediction's MSE); default: the config's.
+    #[serde(default)]
+    pub loss_weighting: Option<String>,
+    /// The share of training draws at the clean levels, where a sample's fine texture forms
+    /// (`TrainLevels::clean_share`, within `[0, 1]`); default: the config's (uniform time).
+    #[serde(default)]
+    pub clean_share: Option<f64>,
 }
 
 /// `[train]`.
@@ -559,6 +581,20 @@ impl TrainFile {
             cfg.set_depth_features(on)
                 .map_err(|e| bad(format!("[model] depth_features: {e}")))?;
         }
+        let loss_weighting = m
+            .loss_weighting
+            .as_deref()
+            .map(str::parse)
+            .transpose()
+            .map_err(|e: String| bad(format!("[model] {e}")))?;
+        cfg.set_network(&NetworkKnobs {
+            base_channels: m.base_channels,
+            channel_mults: m.channel_mults.clone(),
+            res_blocks: m.res_blocks,
+            loss_weighting,
+            clean_share: m.clean_share,
+        })
+        .map_err(|e| bad(format!("[model] {e}")))?;
         if let Some(views) = m.views {
             if !(1..=6).contains(&views) {
                 return Err(bad("[model] views must be 1 to 6".into()));
@@ -692,5 +728,83 @@ mod tests {
             err.contains("train.toml") && err.contains("depth_features"),
             "{err}"
         );
+    }
+
+    #[test]
+    fn both_doors_size_the_networks_and_place_the_updates_alike() {
+        use crate::app::sim_recipe::SimRecipe;
+        use crate::prediction::LossWeighting;
+        let knobs = serde_json::json!({
+            "method": "residual",
+            "base_channels": 24,
+            "channel_mults": [1, 2, 4, 8],
+            "res_blocks": 2,
+            "loss_weighting": "uniform",
+            "clean_share": 0.25,
+        });
+        let veila_train = config(knobs).unwrap();
+        let d = &veila_train.denoiser;
+        assert_eq!(
+            (d.base_channels, &d.channel_mults, d.num_res_blocks),
+            (24, &vec![1, 2, 4, 8], 2)
+        );
+        // the residual method's mean network is sized alike, and keeps its own input
+        let mean = &veila_train.residual.as_ref().unwrap().mean_net;
+        assert_eq!(
+            (mean.base_channels, &mean.channel_mults, mean.num_res_blocks),
+            (24, &vec![1, 2, 4, 8], 2)
+        );
+        assert_eq!(mean.in_channels * 2, d.in_channels);
+        assert_eq!(veila_train.diffusion.loss_weighting, LossWeighting::Uniform);
+        assert_eq!(
+            veila_train.diffusion.train_levels,
+            crate::TrainLevels::clean_share(0.25)
+        );
+        // `train-default` with the same knobs trains the same networks
+        let recipe = SimRecipe {
+            method: Method::Residual,
+            base_channels: Some(24),
+            channel_mults: Some(vec![1, 2, 4, 8]),
+            res_blocks: Some(2),
+            loss_weighting: Some(LossWeighting::Uniform),
+            clean_share: Some(0.25),
+            ..SimRecipe::shipped()
+        };
+        let sim = recipe.bundle_config().unwrap();
+        assert_eq!(sim.denoiser, veila_train.denoiser);
+        assert_eq!(sim.residual, veila_train.residual);
+        assert_eq!(sim.diffusion, veila_train.diffusion);
+        // nothing given keeps the config's, and min-snr is the CPU default's
+        let plain = config(serde_json::json!({})).unwrap();
+        assert_eq!(
+            config(serde_json::json!({"loss_weighting": "min-snr"})).unwrap(),
+            plain
+        );
+        assert_ne!(plain.denoiser, veila_train.denoiser);
+        // refusals name the file and the field
+        for (model, needle) in [
+            (
+                serde_json::json!({"loss_weighting": "snr"}),
+                "loss weighting `snr`",
+            ),
+            (serde_json::json!({"clean_share": 1.5}), "share"),
+            (serde_json::json!({"base_channels": 0}), "base_channels"),
+            (
+                serde_json::json!({"base_channels": 1_000_000}),
+                "base_channels",
+            ),
+            (serde_json::json!({"res_blocks": 1000}), "num_res_blocks"),
+            // 32 rows cannot halve six times
+            (
+                serde_json::json!({"channel_mults": [1, 1, 1, 1, 1, 1, 1]}),
+                "channel_mults",
+            ),
+        ] {
+            let e = config(model.clone()).unwrap_err().to_string();
+            assert!(
+                e.contains("train.toml") && e.contains(needle),
+                "{model}: {e}"
+            );
+        }
     }
 }

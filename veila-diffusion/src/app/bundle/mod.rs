@@ -37,7 +37,7 @@ pub use config::{BundleConfig, RESIDUAL_SCALE, ResidualConfig};
 pub use encoder::EncoderSpec;
 pub use io::{Bundle, Manifest};
 pub(crate) use io::{ManifestFolder, ModelFiles, read_folder_file};
-pub use variant::{Method, Variant};
+pub use variant::{Method, NetworkKnobs, Variant};
 pub use veila_nn::checkpoint::{safetensors_bytes, sha256_hex};
 
 /// Format tag of `bundle.json` this build writes.

@@ -1,5 +1,6 @@
 //! The model variants of the ablation study and the generative methods, as switches on a
-//! bundle config ([`BundleConfig::cpu_default`], [`BundleConfig::with_method`]).
+//! bundle config ([`BundleConfig::cpu_default`], [`BundleConfig::with_method`]), and the size of
+//! the networks and where their updates go ([`NetworkKnobs`], [`BundleConfig::set_network`]).
 
 use serde::{Deserialize, Serialize};
 use veila_geom::EpipolarConfig;
@@ -8,6 +9,7 @@ use veila_nn::encoders::small_cnn::SmallCnnConfig;
 
 use super::{BUNDLE_FORMAT, BundleConfig, EncoderSpec, ResidualConfig};
 use crate::encoding::RangeEncoding;
+use crate::error::{Result, invalid};
 use crate::objective::DiffusionConfig;
 use crate::sampler::SamplerConfig;
 
@@ -300,5 +302,55 @@ impl BundleConfig {
                 _ => Method::V,
             },
         }
+    }
+}
+
+/// The size of the networks and where their updates go, as both training doors take them
+/// (`cargo xtask train-default`'s flags, `veila train`'s `[model]`); `None` keeps the config's.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct NetworkKnobs {
+    /// Width of the U-Nets' first level.
+    pub base_channels: Option<usize>,
+    /// Width multipliers of the U-Net levels (their count is the number of levels).
+    pub channel_mults: Option<Vec<usize>>,
+    /// Residual blocks per U-Net level.
+    pub res_blocks: Option<usize>,
+    /// How the noise levels weigh in the loss.
+    pub loss_weighting: Option<crate::prediction::LossWeighting>,
+    /// The share of training draws at the clean levels
+    /// ([`TrainLevels::clean_share`](crate::TrainLevels::clean_share)).
+    pub clean_share: Option<f64>,
+}
+
+impl BundleConfig {
+    /// Sizes the denoiser, and a residual bundle's mean network alike, and sets the loss
+    /// weighting and training levels as `knobs` say; the networks are checked against their
+    /// limits (widths, levels, the grid's divisibility) and the training levels against theirs.
+    pub fn set_network(&mut self, knobs: &NetworkKnobs) -> Result<()> {
+        let nets = std::iter::once(&mut self.denoiser)
+            .chain(self.residual.as_mut().map(|r| &mut r.mean_net));
+        for net in nets {
+            if let Some(c) = knobs.base_channels {
+                net.base_channels = c;
+            }
+            if let Some(m) = &knobs.channel_mults {
+                net.channel_mults = m.clone();
+            }
+            if let Some(n) = knobs.res_blocks {
+                net.num_res_blocks = n;
+            }
+            net.validate().map_err(|e| {
+                invalid("base_channels / res_blocks / channel_mults", e.to_string())
+            })?;
+        }
+        if let Some(w) = knobs.loss_weighting {
+            self.diffusion.loss_weighting = w;
+        }
+        if let Some(share) = knobs.clean_share {
+            let levels = crate::TrainLevels::clean_share(share);
+            levels.validate()?;
+            self.diffusion.train_levels = levels;
+        }
+        Ok(())
     }
 }

@@ -10,7 +10,7 @@
 
 use std::path::{Path, PathBuf};
 
-use super::bundle::{BundleConfig, Method, Variant};
+use super::bundle::{BundleConfig, Method, NetworkKnobs, Variant};
 use super::encoder_train::EncoderAugment;
 use super::recipe::{RecipeOutcome, RecipeSettings};
 use super::sim_examples::{DEFAULT_SCENES, RECIPE_SCENES, TrainImages};
@@ -76,8 +76,8 @@ pub struct SimRecipe {
     pub channel_mults: Option<Vec<usize>>,
     /// EMA decay of the shipped weights (the shipped recipe's: 0.995).
     pub ema_decay: f64,
-    /// Weigh every noise level alike in the prediction's MSE instead of min-SNR-5.
-    pub uniform_loss_weighting: bool,
+    /// How the noise levels weigh in the loss (`None`: the CPU default's min-SNR-5).
+    pub loss_weighting: Option<crate::prediction::LossWeighting>,
     /// The share of training draws at the clean levels
     /// ([`TrainLevels::clean_share`](crate::TrainLevels::clean_share); `None`: uniform time).
     pub clean_share: Option<f64>,
@@ -115,35 +115,27 @@ impl SimRecipe {
             res_blocks: None,
             channel_mults: None,
             ema_decay: RECIPE_EMA_DECAY,
-            uniform_loss_weighting: false,
+            loss_weighting: None,
             clean_share: None,
         }
     }
 
-    /// The bundle config the run trains: the variant's CPU default with the method, the ground
-    /// prior and the depth features switched as asked.
+    /// The network knobs of these options (the CPU default's where they are `None`).
+    pub fn network_knobs(&self) -> NetworkKnobs {
+        NetworkKnobs {
+            base_channels: self.base_channels,
+            channel_mults: self.channel_mults.clone(),
+            res_blocks: self.res_blocks,
+            loss_weighting: self.loss_weighting,
+            clean_share: self.clean_share,
+        }
+    }
+
+    /// The bundle config the run trains: the variant's CPU default with the method, the network
+    /// knobs, the ground prior and the depth features switched as asked.
     pub fn bundle_config(&self) -> Result<BundleConfig> {
-        let mut cfg = BundleConfig::cpu_default(self.variant);
-        if let Some(c) = self.base_channels {
-            cfg.denoiser.base_channels = c;
-        }
-        if let Some(n) = self.res_blocks {
-            cfg.denoiser.num_res_blocks = n;
-        }
-        if let Some(m) = &self.channel_mults {
-            cfg.denoiser.channel_mults = m.clone();
-        }
-        cfg.denoiser
-            .validate()
-            .map_err(|e| invalid("base_channels / res_blocks / channel_mults", e.to_string()))?;
-        if self.uniform_loss_weighting {
-            cfg.diffusion.loss_weighting = crate::prediction::LossWeighting::Uniform;
-        }
-        let mut cfg = cfg.with_method(self.method);
-        if let Some(share) = self.clean_share {
-            cfg.diffusion.train_levels = crate::TrainLevels::clean_share(share);
-            cfg.diffusion.train_levels.validate()?;
-        }
+        let mut cfg = BundleConfig::cpu_default(self.variant).with_method(self.method);
+        cfg.set_network(&self.network_knobs())?;
         if self.ground_prior {
             cfg.set_ground_prior(Some(veila_nn::encoders::ground::GroundPrior::default()));
         }
