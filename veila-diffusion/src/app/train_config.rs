@@ -794,6 +794,11 @@ mod tests {
                 "base_channels",
             ),
             (serde_json::json!({"res_blocks": 1000}), "num_res_blocks"),
+            // every level within its width limit, the whole far past 2^30 weights
+            (
+                serde_json::json!({"base_channels": 4096, "channel_mults": [1, 2, 4, 4]}),
+                "limit of 1073741824",
+            ),
             // 32 rows cannot halve six times
             (
                 serde_json::json!({"channel_mults": [1, 1, 1, 1, 1, 1, 1]}),

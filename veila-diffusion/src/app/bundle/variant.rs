@@ -325,7 +325,8 @@ pub struct NetworkKnobs {
 impl BundleConfig {
     /// Sizes the denoiser, and a residual bundle's mean network alike, and sets the loss
     /// weighting and training levels as `knobs` say; the networks are checked against their
-    /// limits (widths, levels, the grid's divisibility) and the training levels against theirs.
+    /// limits (widths, levels, the grid's divisibility, at most
+    /// [`veila_nn::weights::MAX_PARAMETERS`] weights) and the training levels against theirs.
     pub fn set_network(&mut self, knobs: &NetworkKnobs) -> Result<()> {
         let nets = std::iter::once(&mut self.denoiser)
             .chain(self.residual.as_mut().map(|r| &mut r.mean_net));
@@ -339,9 +340,13 @@ impl BundleConfig {
             if let Some(n) = knobs.res_blocks {
                 net.num_res_blocks = n;
             }
-            net.validate().map_err(|e| {
-                invalid("base_channels / res_blocks / channel_mults", e.to_string())
-            })?;
+            // the shapes alone are recorded (nothing of the network's size is allocated): a
+            // network past veila-nn's MAX_PARAMETERS is refused before training allocates it
+            net.validate()
+                .and_then(|()| veila_nn::checkpoint::parameter_count(net).map(drop))
+                .map_err(|e| {
+                    invalid("base_channels / res_blocks / channel_mults", e.to_string())
+                })?;
         }
         if let Some(w) = knobs.loss_weighting {
             self.diffusion.loss_weighting = w;
