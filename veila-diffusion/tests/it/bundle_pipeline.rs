@@ -1735,6 +1735,39 @@ fn streamed_batches_equal_the_batches_in_memory() {
 }
 
 #[test]
+fn each_method_samples_by_default_where_its_texture_forms() {
+    use veila_diffusion::Spacing;
+    use veila_diffusion::sampler::SamplerKind;
+    for v in [Variant::Full, Variant::Unconditional] {
+        // direct diffusion: steps uniform in log-SNR, whose last ones visit the clean levels
+        for m in [Method::Eps, Method::V] {
+            let s = BundleConfig::cpu_default(v).with_method(m).sampler;
+            assert_eq!(
+                (s.kind, s.steps, s.spacing),
+                (SamplerKind::DpmSolverPp2M, 16, Spacing::LogSnr),
+                "{} {}",
+                v.name(),
+                m.name()
+            );
+            let process =
+                veila_diffusion::Diffusion::new(BundleConfig::cpu_default(v).diffusion).unwrap();
+            let sampler = veila_diffusion::sampler::Sampler::new(&process, s).unwrap();
+            let t_last = sampler.levels().last().unwrap().t;
+            assert!(t_last < 0.01, "{}: the last call at t = {t_last}", m.name());
+        }
+        // the residual's: the frontier rule's 16 DDPM steps (BENCHMARKS.md)
+        let s = BundleConfig::cpu_default(v)
+            .with_method(Method::Residual)
+            .sampler;
+        assert!(matches!(s.kind, SamplerKind::Ddpm { .. }));
+        assert_eq!(
+            (s.steps, s.spacing, s.guidance_scale),
+            (16, Spacing::Trailing, 1.0)
+        );
+    }
+}
+
+#[test]
 fn variants_parse_by_name_and_three_cameras_trains_and_generates_with_three_views() {
     for v in Variant::ALL {
         assert_eq!(v.name().parse::<Variant>().unwrap(), v);
