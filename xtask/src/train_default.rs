@@ -130,6 +130,10 @@ pub struct TrainDefaultArgs {
     /// 1,2,2,4]; as many levels as given.
     #[arg(long, value_delimiter = ',', value_parser = clap::value_parser!(u64).range(1..=64))]
     pub channel_mults: Option<Vec<u64>>,
+    /// Octaves of the Fourier features of each pixel's ray direction fed to the U-Nets
+    /// [default: the shipped recipe's 4; 6 resolve about 2.6 pixels of azimuth, R2DM's scale].
+    #[arg(long, value_parser = clap::value_parser!(u64).range(0..=32))]
+    pub ray_freqs: Option<u64>,
     /// Loss weighting over noise levels of the diffusion methods: `min-snr` (min-SNR-5, the
     /// shipped recipe's) or `uniform` (every level alike in the prediction's MSE: for
     /// v-prediction the x₀-space weight SNR + 1).
@@ -181,6 +185,7 @@ impl TrainDefaultArgs {
                 .channel_mults
                 .as_ref()
                 .map(|m| m.iter().map(|&x| x as usize).collect()),
+            ray_freqs: self.ray_freqs.map(|n| n as usize),
             ema_decay: self.ema_decay,
             loss_weighting: Some(self.loss_weighting),
             clean_share: self.clean_share,

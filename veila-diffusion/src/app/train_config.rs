@@ -31,6 +31,7 @@
 //! # base_channels = 16             # the U-Nets' width: R2DM's is 64 (a GPU's), the CPU default 16
 //! # channel_mults = [1, 2, 2, 4]   # width multiplier of each U-Net level
 //! # res_blocks = 1                 # residual blocks per level
+//! # ray_freqs = 4                  # octaves of each pixel's ray-direction Fourier features
 //! # loss_weighting = "min-snr"     # or "uniform": every noise level alike in the loss
 //! # clean_share = 0.25             # share of training draws at the clean levels (fine texture)
 //!
@@ -174,6 +175,10 @@ pub struct ModelSection {
     /// Residual blocks per U-Net level (default: the config's).
     #[serde(default)]
     pub res_blocks: Option<usize>,
+    /// Octaves of the Fourier features of each pixel's ray direction fed to the U-Nets (default:
+    /// the config's; the CPU default's is 4).
+    #[serde(default)]
+    pub ray_freqs: Option<usize>,
     /// How the noise levels weigh in the loss: `min-snr` (min-SNR-5) or `uniform` (every level
     /// alike in the prediction's MSE); default: the config's.
     #[serde(default)]
@@ -591,6 +596,7 @@ impl TrainFile {
             base_channels: m.base_channels,
             channel_mults: m.channel_mults.clone(),
             res_blocks: m.res_blocks,
+            ray_freqs: m.ray_freqs,
             loss_weighting,
             clean_share: m.clean_share,
         })
@@ -739,6 +745,7 @@ mod tests {
             "base_channels": 24,
             "channel_mults": [1, 2, 4, 8],
             "res_blocks": 2,
+            "ray_freqs": 6,
             "loss_weighting": "uniform",
             "clean_share": 0.25,
         });
@@ -755,6 +762,9 @@ mod tests {
             (24, &vec![1, 2, 4, 8], 2)
         );
         assert_eq!(mean.in_channels * 2, d.in_channels);
+        for net in [d, mean] {
+            assert_eq!(net.ray_features.map(|e| e.num_freqs), Some(6));
+        }
         assert_eq!(veila_train.diffusion.loss_weighting, LossWeighting::Uniform);
         assert_eq!(
             veila_train.diffusion.train_levels,
@@ -766,6 +776,7 @@ mod tests {
             base_channels: Some(24),
             channel_mults: Some(vec![1, 2, 4, 8]),
             res_blocks: Some(2),
+            ray_freqs: Some(6),
             loss_weighting: Some(LossWeighting::Uniform),
             clean_share: Some(0.25),
             ..SimRecipe::shipped()
@@ -794,6 +805,10 @@ mod tests {
                 "base_channels",
             ),
             (serde_json::json!({"res_blocks": 1000}), "num_res_blocks"),
+            (
+                serde_json::json!({"ray_freqs": 40}),
+                "at most 32 frequencies",
+            ),
             // every level within its width limit, the whole far past 2^30 weights
             (
                 serde_json::json!({"base_channels": 4096, "channel_mults": [1, 2, 4, 4]}),

@@ -320,6 +320,10 @@ pub struct NetworkKnobs {
     pub channel_mults: Option<Vec<usize>>,
     /// Residual blocks per U-Net level.
     pub res_blocks: Option<usize>,
+    /// Octaves of the Fourier features of every pixel's ray direction fed to the U-Nets (the
+    /// CPU default's 4 resolve about 10 pixels of azimuth at 256 columns; 6 about 2.6, R2DM's
+    /// pixel-scale code).
+    pub ray_freqs: Option<usize>,
     /// How the noise levels weigh in the loss.
     pub loss_weighting: Option<crate::prediction::LossWeighting>,
     /// The share of training draws at the clean levels
@@ -345,12 +349,23 @@ impl BundleConfig {
             if let Some(n) = knobs.res_blocks {
                 net.num_res_blocks = n;
             }
+            if let Some(n) = knobs.ray_freqs {
+                let enc = net.ray_features.get_or_insert(veila_geom::FourierEncoding {
+                    num_freqs: n,
+                    scale: 1.0,
+                    include_input: true,
+                });
+                enc.num_freqs = n;
+            }
             // the shapes alone are recorded (nothing of the network's size is allocated): a
             // network past veila-nn's MAX_PARAMETERS is refused before training allocates it
             net.validate()
                 .and_then(|()| veila_nn::checkpoint::parameter_count(net).map(drop))
                 .map_err(|e| {
-                    invalid("base_channels / res_blocks / channel_mults", e.to_string())
+                    invalid(
+                        "base_channels / res_blocks / channel_mults / ray_freqs",
+                        e.to_string(),
+                    )
                 })?;
         }
         if let Some(w) = knobs.loss_weighting {

@@ -74,6 +74,8 @@ pub struct SimRecipe {
     pub res_blocks: Option<usize>,
     /// Width multipliers of the U-Net levels (`None`: the CPU default's 1, 2, 2, 4).
     pub channel_mults: Option<Vec<usize>>,
+    /// Octaves of the ray-direction Fourier features (`None`: the CPU default's 4).
+    pub ray_freqs: Option<usize>,
     /// EMA decay of the shipped weights (the shipped recipe's: 0.995).
     pub ema_decay: f64,
     /// How the noise levels weigh in the loss (`None`: the CPU default's min-SNR-5).
@@ -114,6 +116,7 @@ impl SimRecipe {
             base_channels: None,
             res_blocks: None,
             channel_mults: None,
+            ray_freqs: None,
             ema_decay: RECIPE_EMA_DECAY,
             loss_weighting: None,
             clean_share: None,
@@ -126,6 +129,7 @@ impl SimRecipe {
             base_channels: self.base_channels,
             channel_mults: self.channel_mults.clone(),
             res_blocks: self.res_blocks,
+            ray_freqs: self.ray_freqs,
             loss_weighting: self.loss_weighting,
             clean_share: self.clean_share,
         }
