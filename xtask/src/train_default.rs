@@ -136,9 +136,9 @@ pub struct TrainDefaultArgs {
     pub ray_freqs: Option<u64>,
     /// Loss weighting over noise levels of the diffusion methods: `min-snr` (min-SNR-5, the
     /// shipped recipe's) or `uniform` (every level alike in the prediction's MSE: for
-    /// v-prediction the x₀-space weight SNR + 1).
-    #[arg(long, default_value = "min-snr", value_parser = str::parse::<LossWeighting>)]
-    pub loss_weighting: LossWeighting,
+    /// v-prediction the x₀-space weight SNR + 1) [default: min-snr].
+    #[arg(long, value_parser = str::parse::<LossWeighting>)]
+    pub loss_weighting: Option<LossWeighting>,
     /// The share of diffusion training draws at the clean levels, log-SNR 6 to 18, where a
     /// sample's fine texture forms (the rest uniform in time) [default: none, uniform time].
     #[arg(long)]
@@ -187,7 +187,7 @@ impl TrainDefaultArgs {
                 .map(|m| m.iter().map(|&x| x as usize).collect()),
             ray_freqs: self.ray_freqs.map(|n| n as usize),
             ema_decay: self.ema_decay,
-            loss_weighting: Some(self.loss_weighting),
+            loss_weighting: self.loss_weighting,
             clean_share: self.clean_share,
         }
     }
