@@ -350,12 +350,14 @@ impl BundleConfig {
                 net.num_res_blocks = n;
             }
             if let Some(n) = knobs.ray_freqs {
-                let enc = net.ray_features.get_or_insert(veila_geom::FourierEncoding {
-                    num_freqs: n,
-                    scale: 1.0,
-                    include_input: true,
-                });
-                enc.num_freqs = n;
+                // a config without ray features gets the CPU default's kind of them
+                net.ray_features
+                    .get_or_insert(veila_geom::FourierEncoding {
+                        num_freqs: n,
+                        scale: 1.0,
+                        include_input: true,
+                    })
+                    .num_freqs = n;
             }
             // the shapes alone are recorded (nothing of the network's size is allocated): a
             // network past veila-nn's MAX_PARAMETERS is refused before training allocates it
