@@ -79,7 +79,9 @@ pub struct TrainDefaultArgs {
     #[arg(long)]
     pub encoders_from: Option<PathBuf>,
     /// Start the denoiser from this bundle's denoiser weights wherever names and shapes match
-    /// (bench-report's fine-tuned ablations); the rest keeps its seeded initialisation.
+    /// (bench-report's fine-tuned ablations; a conditional model from an unconditional bundle,
+    /// `docs/lab/cond-v16`); the rest keeps its seeded initialisation. Refused when fewer than
+    /// half of the bundle's tensors fit.
     #[arg(long)]
     pub init_from: Option<PathBuf>,
     /// How the training frames' camera images are rendered (issue 18): `stock`, `lighting` (sun

@@ -203,6 +203,9 @@ impl TrainRun {
         if let Some(p) = &m.encoders_from {
             inputs.folder("[model] encoders_from bundle", p);
         }
+        if let Some(p) = &m.init_from {
+            inputs.folder("[model] init_from bundle", p);
+        }
         for (what, p) in [
             ("[model] bundle", &m.bundle),
             ("[model] semantic_weights", &m.semantic_weights),
@@ -237,6 +240,11 @@ impl TrainRun {
             encoders_from: file
                 .model
                 .encoders_from
+                .as_ref()
+                .map(|p| p.display().to_string()),
+            init_from: file
+                .model
+                .init_from
                 .as_ref()
                 .map(|p| p.display().to_string()),
         };
@@ -314,6 +322,16 @@ impl TrainRun {
         let data = &*data;
         let memory = EncoderMemory::of(&prepared);
         let encoders = self.encoder_source(cfg, data, &memory, &enc_dir)?;
+        let init = match &self.file.model.init_from {
+            Some(dir) => Some(Bundle::from_dir(dir, &self.device).with_context(|| {
+                format!(
+                    "{}: [model] init_from {}",
+                    self.args.config.display(),
+                    dir.display()
+                )
+            })?),
+            None => None,
+        };
         let examples: Vec<TrainExample> = prepared
             .into_iter()
             .map(|p| TrainExample {
@@ -339,8 +357,8 @@ impl TrainRun {
                     None => (&examples).into(),
                 },
                 work_dir: &self.ck_dir,
-                init: None,
-                mean_init: None,
+                init: init.as_ref().map(|b| &b.weights),
+                mean_init: init.as_ref().and_then(|b| b.mean.as_ref().map(|(_, w)| w)),
                 parallel: self.parallel.as_ref(),
             },
             &settings,
@@ -370,6 +388,34 @@ impl TrainRun {
         if !encoder_note.is_empty() {
             println!("  encoders: {}", encoder_note.trim_end_matches("; "));
         }
+        if let Some(dir) = &self.file.model.init_from {
+            let fits = [
+                (
+                    "mean-network",
+                    outcome
+                        .fit
+                        .mean
+                        .as_ref()
+                        .map(|m| (m.initialised, m.ema_weights.len())),
+                ),
+                (
+                    "denoiser",
+                    outcome
+                        .fit
+                        .denoiser
+                        .as_ref()
+                        .map(|d| (d.initialised, d.ema_weights.len())),
+                ),
+            ];
+            for (what, fit) in fits {
+                if let Some((n, of)) = fit {
+                    println!(
+                        "  {what}: {n} of {of} tensors started from {}",
+                        dir.display()
+                    );
+                }
+            }
+        }
         let networks_secs = t_den.elapsed().as_secs_f64() - outcome.encoder_seconds;
         Ok(Trained {
             outcome,
@@ -388,12 +434,25 @@ impl TrainRun {
     }
 
     /// A training error in context: only a failure to load `[model] encoders_from` is blamed on
-    /// it; the others say what failed.
+    /// it, and only weights that do not fit on `[model] init_from`; the others say what failed.
     fn blame(&self, e: veila_diffusion::Error) -> anyhow::Error {
         match e {
             e @ veila_diffusion::Error::EncodersFrom { .. } => anyhow::Error::new(e).context(
                 format!("{}: [model] encoders_from", self.args.config.display()),
             ),
+            e @ veila_diffusion::Error::InvalidConfig { field: "init", .. } => {
+                let dir = self
+                    .file
+                    .model
+                    .init_from
+                    .as_deref()
+                    .unwrap_or(Path::new("?"));
+                anyhow::Error::new(e).context(format!(
+                    "{}: [model] init_from {}",
+                    self.args.config.display(),
+                    dir.display()
+                ))
+            }
             e => anyhow::Error::new(e).context(format!(
                 "training (checkpoints in {})",
                 self.ck_dir.display()
@@ -461,6 +520,7 @@ impl TrainRun {
             "data_manifest_sha256": fingerprint.data_manifest_sha256,
             "samples": fingerprint.samples,
             "encoders_from": fingerprint.encoders_from,
+            "init_from": fingerprint.init_from,
             "train": fingerprint.train,
             "ranks": self.group.world_size,
             "final_mean_loss_this_run": mean_loss,

@@ -1151,3 +1151,99 @@ fn train_refuses_an_output_that_is_holds_or_is_inside_an_input() {
     );
     assert_eq!(tree(t), before);
 }
+
+/// A bundle config of `write_small_bundle_config`'s size, direct v-diffusion (no mean network),
+/// with the camera or, `conditional = false`, without (no encoders), at `base_channels`.
+fn write_v_bundle_config(path: &Path, conditional: bool, base_channels: u64) {
+    write_small_bundle_config(path);
+    let mut v: serde_json::Value = serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap();
+    v["residual"] = serde_json::Value::Null;
+    v["denoiser"]["in_channels"] = v["denoiser"]["out_channels"].clone();
+    v["denoiser"]["base_channels"] = base_channels.into();
+    if !conditional {
+        v["denoiser"]["conditioning"] = serde_json::Value::Null;
+        v["semantic_encoder"] = serde_json::Value::Null;
+        v["depth_encoder"] = serde_json::Value::Null;
+    }
+    std::fs::write(path, serde_json::to_vec_pretty(&v).unwrap()).unwrap();
+}
+
+/// `[model] init_from`: a conditional model started from an unconditional bundle takes its
+/// whole U-Net, and its GCMA layers start at zero (so it draws what the unconditional model
+/// drew); the output says how much it took. A bundle of another width is refused, naming the
+/// config and the field, and no bundle is written.
+#[test]
+fn a_conditional_model_starts_from_an_unconditional_bundle() {
+    let tmp = tempfile::tempdir().unwrap();
+    make_shards(&tmp.path().join("shards"), 3, false, true);
+    write_v_bundle_config(&tmp.path().join("uncond.json"), false, 8);
+    write_v_bundle_config(&tmp.path().join("cond.json"), true, 8);
+    write_v_bundle_config(&tmp.path().join("wide.json"), true, 12);
+    let uncond = tmp.path().join("uncond.toml");
+    write_config(
+        &uncond,
+        "shards",
+        "uncond",
+        "bundle = \"uncond.json\"",
+        SMALL,
+    );
+    ok(&train(&uncond, &[]));
+    let fine_tune = |name: &str, bundle: &str| {
+        let config = tmp.path().join(format!("{name}.toml"));
+        let model = format!(
+            "bundle = \"{bundle}\"\nencoders_from = \"{}\"\ninit_from = \"uncond/bundle\"",
+            model_dir().display()
+        );
+        // one update too small to move a weight: what the run starts from is what it ships
+        let train_section = "steps = 1\nbatch = 1\nlr = 1e-12\nseed = 5\ncheckpoint_every = 1";
+        write_config(&config, "shards", name, &model, train_section);
+        (config.clone(), train(&config, &[]))
+    };
+    let (_, out) = fine_tune("cond", "cond.json");
+    ok(&out);
+    let given = tensors(&tmp.path().join("uncond/bundle/denoiser.safetensors"));
+    let started = tensors(&tmp.path().join("cond/bundle/denoiser.safetensors"));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let line = format!(
+        "denoiser: {} of {} tensors started from",
+        given.len(),
+        started.len()
+    );
+    assert!(stdout.contains(&line), "no `{line}` in:\n{stdout}");
+    assert!(started.len() > given.len(), "the camera adds layers");
+    let started: std::collections::HashMap<_, _> = started.into_iter().collect();
+    for (name, w) in &given {
+        let s = &started[name];
+        let diff = w
+            .iter()
+            .zip(s)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(
+            diff < 1e-6,
+            "{name}: moved by {diff} from the unconditional bundle"
+        );
+    }
+    let gcma_out: Vec<_> = started
+        .iter()
+        .filter(|(n, _)| n.contains(".gcma.out."))
+        .collect();
+    assert!(!gcma_out.is_empty());
+    for (name, w) in gcma_out {
+        assert!(
+            w.iter().all(|v| v.abs() < 1e-6),
+            "{name} does not start at zero"
+        );
+    }
+    // another width: only the output bias fits
+    let (config, out) = fine_tune("wide", "wide.json");
+    fails_with(
+        &out,
+        &[
+            config.to_str().unwrap(),
+            "[model] init_from",
+            "another model",
+        ],
+    );
+    assert!(!tmp.path().join("wide/bundle").exists());
+}

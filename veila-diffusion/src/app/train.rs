@@ -539,6 +539,19 @@ where
                 initialised += 1;
             }
         }
+        // another model's weights (another width, say) would otherwise leave the run at its
+        // seeded start without a word: a fine-tune takes most of what it is given
+        if 2 * initialised < init.len() {
+            return Err(Error::InvalidConfig {
+                field: "init",
+                reason: format!(
+                    "only {initialised} of the {} tensors given to start the {} from fit it by name and \
+                     shape: they are another model's",
+                    init.len(),
+                    fit.stage.name()
+                ),
+            });
+        }
     }
     let mut data = match fit.examples {
         Examples::Memory(examples) => DenoiserTraining::new(

@@ -132,6 +132,13 @@ pub struct ModelSection {
     /// Reuse the encoders of this bundle folder.
     #[serde(default)]
     pub encoders_from: Option<PathBuf>,
+    /// Start the networks from this bundle folder's weights wherever names and shapes match
+    /// (fine-tuning): its denoiser's, and its mean network's for a residual model. An
+    /// unconditional bundle gives a conditional model its whole U-Net; the camera's GCMA layers
+    /// are new and start at zero, so before its first update the model draws what the
+    /// unconditional one drew. A bundle of which fewer than half the tensors fit is refused.
+    #[serde(default)]
+    pub init_from: Option<PathBuf>,
     /// Name written into the bundle.
     #[serde(default)]
     pub name: Option<String>,
@@ -361,6 +368,9 @@ pub struct RunFingerprint {
     pub samples: usize,
     /// `[model] encoders_from`, when set.
     pub encoders_from: Option<String>,
+    /// `[model] init_from`, when set (absent from the run records of runs without it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub init_from: Option<String>,
 }
 
 /// The error of a config value: the config file and what is wrong.
@@ -400,6 +410,7 @@ impl TrainFile {
         let m = &mut self.model;
         m.bundle = m.bundle.as_deref().map(resolve);
         m.encoders_from = m.encoders_from.as_deref().map(resolve);
+        m.init_from = m.init_from.as_deref().map(resolve);
         m.semantic_weights = m.semantic_weights.as_deref().map(resolve);
         m.depth_weights = m.depth_weights.as_deref().map(resolve);
         let t = &self.train;
