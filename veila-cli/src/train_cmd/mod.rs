@@ -389,26 +389,10 @@ impl TrainRun {
             println!("  encoders: {}", encoder_note.trim_end_matches("; "));
         }
         if let Some(dir) = &self.file.model.init_from {
-            let fits = [
-                (
-                    "mean-network",
-                    outcome
-                        .fit
-                        .mean
-                        .as_ref()
-                        .map(|m| (m.initialised, m.ema_weights.len())),
-                ),
-                (
-                    "denoiser",
-                    outcome
-                        .fit
-                        .denoiser
-                        .as_ref()
-                        .map(|d| (d.initialised, d.ema_weights.len())),
-                ),
-            ];
-            for (what, fit) in fits {
-                if let Some((n, of)) = fit {
+            let fit = &outcome.fit;
+            for (what, f) in [("mean-network", &fit.mean), ("denoiser", &fit.denoiser)] {
+                if let Some(f) = f {
+                    let (n, of) = (f.initialised, f.ema_weights.len());
                     println!(
                         "  {what}: {n} of {of} tensors started from {}",
                         dir.display()
