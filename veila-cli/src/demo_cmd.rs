@@ -61,6 +61,11 @@ pub(crate) struct DemoArgs {
     /// Classifier-free guidance scale, 0 to 20 (default: the bundle's).
     #[arg(long, value_name = "S", allow_negative_numbers = true, value_parser = crate::bounds::guidance())]
     guidance: Option<f64>,
+    /// Bundles with a prior mean network: the level the draw starts from, above 0 and at most 1,
+    /// from the mean network's scan with that much noise (1 = pure noise; default: the bundle's).
+    /// Lower follows the image more closely and takes fewer steps; higher keeps more texture.
+    #[arg(long, value_name = "T", value_parser = crate::bounds::start_level())]
+    start_t: Option<f64>,
     /// Residual-diffusion bundles: how much of the sampled residual goes on top of the mean
     /// network's scan, 0 to 1. 1 is a full sample (the data's texture); 0 is the smooth
     /// conditional mean, the smallest pixel error.
@@ -148,6 +153,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
             spacing: args.spacing,
             steps: args.steps,
             guidance: args.guidance,
+            start_t: args.start_t,
             ..Default::default()
         },
     );
@@ -307,7 +313,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
     // files first, then the report: a reader that goes away early (`| head`) cannot cost the output
     staging.commit()?;
     println!(
-        "scene {scene_name}, seed {}: generated a {}x{} scan ({} returns; the true scan has {} on this grid) from the camera image in {:.1} s ({} x {} steps, guidance {})",
+        "scene {scene_name}, seed {}: generated a {}x{} scan ({} returns; the true scan has {} on this grid) from the camera image in {:.1} s ({} x {} steps, guidance {}{})",
         args.seed,
         grid.rows,
         grid.cols,
@@ -316,7 +322,11 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         seconds_generation,
         sampler.kind,
         sampler.steps,
-        sampler.guidance_scale
+        sampler.guidance_scale,
+        match sampler.start_t.filter(|_| bundle.config.prior.is_some()) {
+            Some(t) => format!(", from the mean network's scan at t = {t}"),
+            None => String::new(),
+        }
     );
     if !summary.camera_effects.is_empty() {
         println!(

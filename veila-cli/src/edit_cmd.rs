@@ -262,6 +262,7 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
             spacing: args.spacing,
             steps: args.steps,
             guidance: args.guidance,
+            start_t: None,
         },
     );
     if matches!(sampler.kind, SamplerKind::DpmSolverPp2M) {

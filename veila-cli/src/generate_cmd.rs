@@ -71,6 +71,11 @@ pub(crate) struct GenerateArgs {
     /// Classifier-free guidance scale, 0 to 20 (1 = none; default: the bundle's).
     #[arg(long, value_name = "S", allow_negative_numbers = true, value_parser = crate::bounds::guidance())]
     pub(crate) guidance: Option<f64>,
+    /// Bundles with a prior mean network: the level the draw starts from, above 0 and at most 1,
+    /// from the mean network's scan with that much noise (1 = pure noise; default: the bundle's).
+    /// Lower follows the image more closely and takes fewer steps; higher keeps more texture.
+    #[arg(long, value_name = "T", value_parser = crate::bounds::start_level())]
+    pub(crate) start_t: Option<f64>,
     /// Residual-diffusion bundles: how much of the sampled residual goes on top of the mean
     /// network's scan, 0 to 1. 1 is a full sample (the data's texture); 0 is the smooth
     /// conditional mean, the smallest pixel error.
@@ -144,6 +149,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
             spacing: args.spacing,
             steps: args.steps,
             guidance: args.guidance,
+            start_t: args.start_t,
         },
     );
     let options = GenerateOptions {

@@ -100,10 +100,12 @@ pub(crate) struct SamplerFlags {
     pub(crate) steps: Option<usize>,
     /// `--guidance`.
     pub(crate) guidance: Option<f64>,
+    /// `--start-t` (`None`: the bundle's).
+    pub(crate) start_t: Option<f64>,
 }
 
-/// The sampler: the bundle's unless `--sampler` is given; `--spacing`, `--steps` and
-/// `--guidance` override. The flags' parsers hold them to the library's bounds, and the bundle's
+/// The sampler: the bundle's unless `--sampler` is given; `--spacing`, `--steps`,
+/// `--guidance` and `--start-t` override (a bundle's start level stays with another sampler). The flags' parsers hold them to the library's bounds, and the bundle's
 /// own values were checked against the same bounds when it was loaded (an error there names
 /// `bundle.json` and the field); what depends on the bundle is checked by
 /// [`GenerateOptions::check`](veila_diffusion::app::GenerateOptions::check).
@@ -113,6 +115,7 @@ pub(crate) fn resolve_sampler(bundle: &Bundle, flags: SamplerFlags) -> SamplerCo
         spacing,
         steps,
         guidance,
+        start_t,
     } = flags;
     let base = &bundle.config.sampler;
     let steps = steps.unwrap_or(base.steps);
@@ -127,6 +130,7 @@ pub(crate) fn resolve_sampler(bundle: &Bundle, flags: SamplerFlags) -> SamplerCo
         cfg.spacing = spacing;
     }
     cfg.guidance_scale = guidance.unwrap_or(base.guidance_scale);
+    cfg.start_t = start_t.or(base.start_t);
     if !bundle.is_conditional() && cfg.guidance_scale != 1.0 {
         if guidance.is_some() {
             eprintln!(

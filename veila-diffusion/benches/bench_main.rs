@@ -84,6 +84,7 @@ fn cfg(kind: SamplerKind, steps: usize, spacing: Spacing) -> SamplerConfig {
         spacing,
         guidance_scale: 1.0,
         clip_x0: None,
+        start_t: None,
     }
 }
 

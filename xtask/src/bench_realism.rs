@@ -39,6 +39,10 @@ pub struct BenchRealismArgs {
     /// Guidance scales of the conditional model rows [default: each bundle's own].
     #[arg(long, value_delimiter = ',')]
     guidance: Vec<f64>,
+    /// Start levels of the rows of bundles with a prior mean network, each above 0 and at most 1
+    /// (comma-separated) [default: each bundle's own].
+    #[arg(long, value_delimiter = ',')]
+    start_t: Vec<f64>,
     /// Held-out test frames (from the first model's test list), split into --folds folds of
     /// equal size.
     #[arg(long, default_value_t = 402)]
@@ -68,6 +72,7 @@ pub fn run(args: BenchRealismArgs) -> Result<()> {
         steps: args.steps,
         spacings: args.spacing,
         guidance: args.guidance,
+        start_t: args.start_t,
         test_frames: args.test_frames,
         folds: args.folds,
         seeds: args.seeds,

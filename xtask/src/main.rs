@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 #[global_allocator]
 static GLOBAL: veila_nn::process::MiMalloc = veila_nn::process::MiMalloc;
 
+mod attach_prior; // cargo xtask attach-prior (veila-diffusion app::bundle::attach_prior)
 mod bench_augment; // cargo xtask bench-augment (veila-diffusion app::augment)
 mod bench_encoders; // cargo xtask bench-encoders
 mod bench_memory; // cargo xtask bench-memory (peak host memory of veila train)
@@ -34,6 +35,9 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// A direct-diffusion bundle with another bundle's mean network as the prior its draws start
+    /// from (the same encoders required).
+    AttachPrior(attach_prior::AttachPriorArgs),
     /// Build KITTI-Weather (clean, night, fog, snow variants) from a KITTI-layout dataset.
     KittiWeather(kitti_weather::KittiWeatherArgs),
     /// Train the bundled model (models/default) from a fixed seed on the simulator's train split.
@@ -87,6 +91,7 @@ fn main() {
 
 fn run(command: Command) -> Result<()> {
     match command {
+        Command::AttachPrior(a) => attach_prior::run(a),
         Command::KittiWeather(a) => kitti_weather::run(a),
         Command::TrainFeatureNets(a) => feature_nets::run(a),
         Command::BenchReport(a) => bench_report::run(a),

@@ -135,7 +135,8 @@ impl GenerateOptions {
     /// before any work: the sampler's settings ([`crate::SamplerConfig::validate`]; 0 steps, the mean
     /// network alone, only for a residual-diffusion bundle), at least one sample, and a
     /// [`residual_weight`](Self::residual_weight) in [`RESIDUAL_WEIGHT`], other than 1 only for a
-    /// residual-diffusion bundle.
+    /// residual-diffusion bundle, and a [`start_t`](crate::SamplerConfig::start_t) only for a
+    /// bundle with a prior.
     pub fn check(&self, bundle: &Bundle) -> Result<()> {
         self.sampler.validate()?;
         let residual = bundle.config.residual.is_some();
@@ -167,6 +168,14 @@ impl GenerateOptions {
                     "{w} needs a residual-diffusion bundle (one with a mean network to add a \
                      weighted residual to); leave it at 1"
                 ),
+            });
+        }
+        if self.sampler.start_t.is_some() && bundle.config.prior.is_none() {
+            return Err(Error::InvalidConfig {
+                field: "start_t",
+                reason: "a start level needs a bundle with a prior mean network (`prior` in its \
+                         bundle.json); leave it out to start from pure noise"
+                    .into(),
             });
         }
         Ok(())
@@ -242,6 +251,9 @@ impl Bundle {
 
     /// Draws `options.samples` scans for one camera rig, in the model's frame. `on_step(done,
     /// total)` is called after each sampler step. Views are ignored by unconditional bundles.
+    /// A bundle with a prior starts at the sampler's [`start_t`](crate::SamplerConfig::start_t)
+    /// from its mean network's scan; an unconditional draw
+    /// ([`GenerateOptions::unconditional`]) has no image for it and starts from pure noise.
     pub fn generate(
         &self,
         views: &[CameraView<'_>],
@@ -253,7 +265,8 @@ impl Bundle {
 
     /// Keeps the pixels where `known_mask` (`rows * cols`, row-major) is true at the values of
     /// `known` and regenerates the rest, consistent with the kept part and the views (RePaint; the
-    /// sampler must be DDPM or DDIM). In the model's frame, like [`Bundle::generate`].
+    /// sampler must be DDPM or DDIM). In the model's frame, like [`Bundle::generate`]. RePaint
+    /// runs the whole schedule: a prior's start level is not used.
     pub fn inpaint(
         &self,
         views: &[CameraView<'_>],
@@ -308,15 +321,37 @@ fn sample(
     let mut rng = per_sample_rng(options.seed, options.samples);
     let known = encode_known(bundle, inpainting, options.samples)?;
     let batch = Batch::new(bundle, views, options, conditional)?;
-    let mean = batch.mean_pass(&mut rng)?;
-    let x = match (&mean, bundle.config.residual.as_ref()) {
-        (Some(mu), Some(_)) if options.sampler.steps == 0 || options.residual_weight == 0.0 => {
+    // a prior starts a conditional draw from pure noise's place; RePaint runs the whole schedule
+    let start_t = options
+        .sampler
+        .start_t
+        .filter(|_| conditional && inpainting.is_none() && bundle.config.prior.is_some());
+    let residual = bundle.config.residual.is_some();
+    let mean = if residual || start_t.is_some() {
+        batch.mean_pass(&mut rng)?
+    } else {
+        None
+    };
+    let x = match (mean, start_t) {
+        (Some(mu), _)
+            if residual && (options.sampler.steps == 0 || options.residual_weight == 0.0) =>
+        {
             on_step(0, 0);
-            mu.clone()
+            mu
         }
-        _ => {
+        (mean, start_t) => {
             let repaint = inpainting.map(|(_, _, r)| r).zip(known.as_ref());
-            batch.denoise(mean.as_ref(), repaint, &mut rng, &mut on_step)?
+            let (mean, start) = match (mean, start_t) {
+                (Some(mu), Some(t)) if !residual => (None, Some((mu, t))),
+                (mean, _) => (mean, None),
+            };
+            batch.denoise(
+                mean.as_ref(),
+                start.as_ref(),
+                repaint,
+                &mut rng,
+                &mut on_step,
+            )?
         }
     };
     let x = paste_known(x, known.as_ref())?;
@@ -461,7 +496,7 @@ impl<'a> Batch<'a> {
         Ok(Some((geometry, f.clone())))
     }
 
-    /// Residual diffusion: the mean network's one pass (`None` for direct diffusion).
+    /// The mean network's one pass (`None` without one): a residual bundle's, or a prior's.
     fn mean_pass(&self, rng: &mut PerSample<ChaCha8Rng>) -> Result<Option<Tensor>> {
         let Some(mnet) = self.bundle.mean_for_views(self.views)? else {
             return Ok(None);
@@ -488,11 +523,13 @@ impl<'a> Batch<'a> {
         )?))
     }
 
-    /// The denoiser's sampler run from noise, or RePaint on the known scan (`repaint`: its
-    /// settings and the encoded scan and mask), then the residual added to the mean.
+    /// The denoiser's sampler run from noise, or from a prior's scan `μ` at level `t` (`start`:
+    /// `α_t·μ + σ_t·ε`), or RePaint on the known scan (`repaint`: its settings and the encoded
+    /// scan and mask), then a residual bundle's residual added to its mean (`mean`).
     fn denoise(
         &self,
         mean: Option<&Tensor>,
+        start: Option<&(Tensor, f64)>,
         repaint: Option<(&RepaintConfig, &(Tensor, Tensor))>,
         rng: &mut PerSample<ChaCha8Rng>,
         on_step: &mut impl FnMut(usize, usize),
@@ -507,14 +544,22 @@ impl<'a> Batch<'a> {
         };
         let cond = (cond.image.is_some() || cond.mean.is_some()).then_some(cond);
         let model = VeilaDenoiser::new(net);
-        let x = match repaint {
-            None => {
+        let x = match (repaint, start) {
+            (None, Some((mu, t))) => {
+                let level = diffusion.schedule().level(*t);
+                let eps = rng.noise(&self.shape, &self.device)?;
+                let x_t = diffusion.q_sample(mu, &eps, &vec![level; self.shape[0]])?;
+                sampler.sample_from_level(&model, x_t, level, cond.as_ref(), rng, |info| {
+                    on_step(info.index + 1, info.total)
+                })?
+            }
+            (None, None) => {
                 let x_t = rng.noise(&self.shape, &self.device)?;
                 sampler.sample_from(&model, x_t, cond.as_ref(), rng, |info| {
                     on_step(info.index + 1, info.total)
                 })?
             }
-            Some((repaint, (x0, m))) => {
+            (Some((repaint, (x0, m))), _) => {
                 let x0 = self.known_residual(x0, mean)?;
                 inpaint(&sampler, &model, &x0, m, cond.as_ref(), repaint, rng)?
             }

@@ -88,7 +88,9 @@ pub mod train;
 pub mod train_config;
 pub mod train_data;
 
-pub use bundle::{Bundle, BundleConfig, Method, ResidualConfig, Variant};
+pub use bundle::{
+    Bundle, BundleConfig, Method, PriorConfig, ResidualConfig, Variant, attach_prior,
+};
 pub use dataset::{EncoderExample, ExampleSource, Examples, TrainView};
 pub use encoder_train::{
     EncoderAugment, EncoderStep, train_small_cnn, train_small_cnn_from, varmap_tensors,

@@ -219,6 +219,8 @@ mod tests {
             with(&|o| o.samples = 0),
             with(&|o| o.residual_weight = 1.5),
             with(&|o| o.residual_weight = f64::NAN),
+            with(&|o| o.sampler.start_t = Some(0.0)),
+            with(&|o| o.sampler.start_t = Some(1.5)),
         ] {
             assert!(bad.check(&bundle).is_err(), "{bad:?}");
         }
@@ -232,5 +234,11 @@ mod tests {
             let e = bad.check(&bundle).unwrap_err().to_string();
             assert!(e.contains("residual-diffusion"), "{e}");
         }
+        // a start level needs a prior mean network, which a residual bundle's is not
+        let e = with(&|o| o.sampler.start_t = Some(0.5))
+            .check(&bundle)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("prior"), "{e}");
     }
 }

@@ -748,6 +748,7 @@ mod tests {
     }
 
     #[test]
+    #[cfg(feature = "sim")] // the other door, the simulator's recipe
     fn both_doors_size_the_networks_and_place_the_updates_alike() {
         use crate::app::sim_recipe::SimRecipe;
         use crate::prediction::LossWeighting;

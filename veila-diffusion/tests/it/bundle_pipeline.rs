@@ -24,7 +24,7 @@ use veila_nn::encoders::small_cnn::SmallCnn;
 const IH: usize = 64;
 const IW: usize = 96;
 
-fn small_config(variant: Variant) -> BundleConfig {
+pub(crate) fn small_config(variant: Variant) -> BundleConfig {
     let mut cfg = BundleConfig::cpu_default(variant);
     cfg.image_height = IH;
     cfg.image_width = IW;
@@ -73,7 +73,7 @@ fn save_random_bundle(dir: &std::path::Path, cfg: &BundleConfig, seed: u64) {
     Bundle::save(dir, cfg, &weights).unwrap();
 }
 
-fn camera() -> PinholeCamera {
+pub(crate) fn camera() -> PinholeCamera {
     let k = [
         [60.0, 0.0, IW as f32 / 2.0, 0.0],
         [0.0, 60.0, IH as f32 / 2.0, 0.0],
@@ -89,7 +89,7 @@ fn camera() -> PinholeCamera {
     PinholeCamera::new(k, cam_from_lidar, IW as u32, IH as u32).unwrap()
 }
 
-fn image(seed: u8) -> Vec<u8> {
+pub(crate) fn image(seed: u8) -> Vec<u8> {
     (0..IH * IW * 3)
         .map(|i| ((i * 37 + seed as usize * 11) % 251) as u8)
         .collect()

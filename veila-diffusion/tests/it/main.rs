@@ -5,6 +5,7 @@ mod dataset_gen;
 mod device;
 mod encoder_augment;
 mod methods;
+mod prior;
 mod samplers;
 mod scan_pipeline;
 mod segment;

@@ -72,6 +72,7 @@ fn deterministic_samplers_converge_to_the_exact_ode_solution() {
                     spacing,
                     guidance_scale: 1.0,
                     clip_x0: None,
+                    start_t: None,
                 },
             )
         };
@@ -109,6 +110,7 @@ fn ddpm_samples_the_data_distribution() {
         &d,
         SamplerConfig {
             clip_x0: None,
+            start_t: None,
             ..SamplerConfig::ddpm(250)
         },
     )
@@ -207,6 +209,7 @@ fn full_runs_from_noise_stay_finite_at_the_schedule_extremes() {
                         spacing: Spacing::Trailing,
                         guidance_scale: 1.0,
                         clip_x0: clip,
+                        start_t: None,
                     };
                     let s = Sampler::new(&d, cfg).unwrap();
                     let mut rng = ChaCha8Rng::seed_from_u64(2);
@@ -243,6 +246,7 @@ fn classifier_free_guidance_extrapolates_the_condition() {
             SamplerConfig {
                 guidance_scale: scale,
                 clip_x0: None,
+                start_t: None,
                 ..SamplerConfig::ddim(50, 0.0)
             },
         )
@@ -325,6 +329,7 @@ fn inpainting_keeps_known_pixels_and_fills_the_rest() {
             SamplerConfig {
                 kind,
                 clip_x0: None,
+                start_t: None,
                 ..SamplerConfig::ddpm(40)
             },
         )
@@ -447,6 +452,7 @@ fn samplers_end_on_the_points_of_a_finite_data_set() {
                 spacing: Spacing::default(),
                 guidance_scale: 1.0,
                 clip_x0: None,
+                start_t: None,
             };
             let sampler = Sampler::new(&d, cfg).unwrap();
             let x = sampler

@@ -51,6 +51,11 @@ pub struct BundleConfig {
     /// `μ`. `None`: the denoiser models `x₀` directly.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub residual: Option<ResidualConfig>,
+    /// A prior for direct diffusion: a one-pass mean network whose scan starts the sampler at
+    /// level [`SamplerConfig::start_t`] (`α·μ + σ·ε`) instead of pure noise, so the draw keeps the
+    /// image's layout and the denoiser adds the texture. Never with `residual`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub prior: Option<PriorConfig>,
     /// How the bundle was made (seed, steps, data, timings); informational.
     #[serde(default)]
     pub provenance: serde_json::Value,
@@ -68,10 +73,28 @@ impl BundleConfig {
             v.push(DEPTH_FILE);
         }
         v.push(DENOISER_FILE);
-        if self.residual.is_some() {
+        if self.mean_net().is_some() {
             v.push(MEAN_FILE);
         }
         v
+    }
+
+    /// [`Self::mean_net`], to change.
+    pub fn mean_net_mut(&mut self) -> Option<&mut DenoiserConfig> {
+        match (&mut self.residual, &mut self.prior) {
+            (Some(r), _) => Some(&mut r.mean_net),
+            (None, Some(p)) => Some(&mut p.mean_net),
+            (None, None) => None,
+        }
+    }
+
+    /// The mean network, a residual bundle's or a prior's (its weights are [`MEAN_FILE`]).
+    pub fn mean_net(&self) -> Option<&DenoiserConfig> {
+        match (&self.residual, &self.prior) {
+            (Some(r), _) => Some(&r.mean_net),
+            (None, Some(p)) => Some(&p.mean_net),
+            (None, None) => None,
+        }
     }
 
     /// Channels of the encoded range image (what the bundle generates).
@@ -127,25 +150,37 @@ impl BundleConfig {
                 self.denoiser.out_channels
             )));
         }
-        if let Some(r) = &self.residual {
-            if r.mean_net.in_channels != c || r.mean_net.out_channels != c {
+        if self.residual.is_some() && self.prior.is_some() {
+            return Err(bad(
+                "a bundle has a residual or a prior mean network, not both".into(),
+            ));
+        }
+        if self.prior.is_some() && !conditional {
+            return Err(bad(
+                "a prior mean network needs an image-conditioned bundle (without the image its \
+                 scan is the mean scan)"
+                    .into(),
+            ));
+        }
+        if let Some(m) = self.mean_net() {
+            if m.in_channels != c || m.out_channels != c {
                 return Err(bad(format!(
                     "the mean network needs {c} input and output channels, it has {} and {}",
-                    r.mean_net.in_channels, r.mean_net.out_channels
+                    m.in_channels, m.out_channels
                 )));
             }
-            if r.mean_net.conditioning.is_some() != conditional {
+            if m.conditioning.is_some() != conditional {
                 return Err(bad(
                     "the mean network and the denoiser must both be conditional or both not".into(),
                 ));
             }
-            if r.mean_net.height() != self.denoiser.height()
-                || r.mean_net.width() != self.denoiser.width()
-            {
+            if m.height() != self.denoiser.height() || m.width() != self.denoiser.width() {
                 return Err(bad(
                     "the mean network's grid differs from the denoiser's".into()
                 ));
             }
+        }
+        if let Some(r) = &self.residual {
             let (lo, hi) = RESIDUAL_SCALE;
             if r.scale.len() != c || r.scale.iter().any(|s| !(lo..=hi).contains(s)) {
                 return Err(bad(format!(
@@ -175,6 +210,11 @@ impl BundleConfig {
                 .validate()
                 .map_err(|e| format!("residual.mean_net: {e}"))?;
         }
+        if let Some(p) = &self.prior {
+            p.mean_net
+                .validate()
+                .map_err(|e| format!("prior.mean_net: {e}"))?;
+        }
         crate::Diffusion::new(self.diffusion.clone()).map_err(at("diffusion"))?;
         self.epipolar
             .validate()
@@ -187,6 +227,13 @@ impl BundleConfig {
                  must be between 1 and {}",
                 crate::MAX_STEPS
             ));
+        }
+        if self.sampler.start_t.is_some() && self.prior.is_none() {
+            return Err(
+                "sampler.start_t: a start level needs a prior mean network (`prior`); leave it \
+                 out to start from pure noise"
+                    .into(),
+            );
         }
         Ok(())
     }
@@ -298,8 +345,8 @@ impl BundleConfig {
             }
         };
         fit(&mut self.denoiser);
-        if let Some(r) = self.residual.as_mut() {
-            fit(&mut r.mean_net);
+        if let Some(m) = self.mean_net_mut() {
+            fit(m);
         }
         self.semantic_encoder = semantic;
         self.depth_encoder = depth;
@@ -318,6 +365,16 @@ pub struct ResidualConfig {
     /// Per-channel divisor of the residual (its standard deviation on the training set), so
     /// that the diffusion sees unit-scale data.
     pub scale: Vec<f32>,
+}
+
+/// A prior mean network of a direct-diffusion bundle (see [`BundleConfig::prior`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PriorConfig {
+    /// A U-Net of the denoiser's family trained with
+    /// [`Objective::Regression`](crate::Objective::Regression) on the same encoders' features
+    /// (a residual bundle's mean network is one).
+    pub mean_net: DenoiserConfig,
 }
 
 impl ResidualConfig {

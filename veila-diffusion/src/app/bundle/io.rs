@@ -236,7 +236,7 @@ pub struct Bundle {
     pub denoiser: Net,
     /// The denoiser's weights by name (to rebuild it for another number of views).
     pub weights: HashMap<String, Tensor>,
-    /// The mean network of residual diffusion and its weights by name.
+    /// The mean network (residual diffusion's or a prior's) and its weights by name.
     pub mean: Option<(Net, HashMap<String, Tensor>)>,
     /// Where it was loaded from (a folder, or a label for embedded bundles).
     pub origin: PathBuf,
@@ -321,10 +321,10 @@ impl Bundle {
             &cfg.denoiser,
             candle_nn::VarBuilder::from_tensors(weights.clone(), DType::F32, device),
         )?;
-        let mean = match &cfg.residual {
-            Some(r) => {
+        let mean = match cfg.mean_net() {
+            Some(mean_net) => {
                 let path = origin.join(MEAN_FILE);
-                let expected = veila_nn::checkpoint::expected_tensors(&r.mean_net)?;
+                let expected = veila_nn::checkpoint::expected_tensors(mean_net)?;
                 let w = veila_nn::checkpoint::read_checked_bytes(
                     verified(MEAN_FILE)?,
                     &path,
@@ -332,7 +332,7 @@ impl Bundle {
                     device,
                 )?;
                 let net = Net::new(
-                    &r.mean_net,
+                    mean_net,
                     candle_nn::VarBuilder::from_tensors(w.clone(), DType::F32, device),
                 )?;
                 Some((net, w))
@@ -441,12 +441,12 @@ impl Bundle {
         )
     }
 
-    /// The mean network of a residual bundle for `views` camera views.
+    /// The mean network (a residual bundle's or a prior's) for `views` camera views.
     pub(crate) fn mean_for_views(&self, views: usize) -> Result<Option<Net>> {
-        match (&self.mean, &self.config.residual) {
-            (Some((net, weights)), Some(r)) => Ok(Some(rebuild_for_views(
+        match (&self.mean, self.config.mean_net()) {
+            (Some((net, weights)), Some(mean_net)) => Ok(Some(rebuild_for_views(
                 net,
-                &r.mean_net,
+                mean_net,
                 weights,
                 views,
                 self.denoiser_device(),

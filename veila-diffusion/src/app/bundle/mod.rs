@@ -10,7 +10,7 @@
 //! | `semantic_encoder.safetensors` | `E_s` weights (when the semantic encoder is a `small-cnn`) |
 //! | `depth_encoder.safetensors` | `E_d` weights (when the depth encoder is a `small-cnn`) |
 //! | `denoiser.safetensors` | the U-Net (EMA weights for trained bundles) |
-//! | `mean.safetensors` | the mean network of residual diffusion (when the config has `residual`) |
+//! | `mean.safetensors` | the mean network (when the config has `residual` or `prior`) |
 //! | `manifest.json` | `{"format": "veila-manifest/1", "files": {"NAME": "SHA256_HEX", ...}}` |
 //!
 //! [`Bundle::from_dir`] reads a folder, [`Bundle::from_files`] takes the same files from memory (a
@@ -31,12 +31,14 @@
 mod config;
 mod encoder;
 mod io;
+mod prior;
 mod variant;
 
-pub use config::{BundleConfig, RESIDUAL_SCALE, ResidualConfig};
+pub use config::{BundleConfig, PriorConfig, RESIDUAL_SCALE, ResidualConfig};
 pub use encoder::EncoderSpec;
 pub use io::{Bundle, Manifest};
 pub(crate) use io::{ManifestFolder, ModelFiles, read_folder_file};
+pub use prior::attach_prior;
 pub use variant::{Method, NetworkKnobs, Variant};
 pub use veila_nn::checkpoint::{safetensors_bytes, sha256_hex};
 
@@ -56,5 +58,5 @@ pub const SEMANTIC_FILE: &str = "semantic_encoder.safetensors";
 pub const DEPTH_FILE: &str = "depth_encoder.safetensors";
 /// Denoiser weights.
 pub const DENOISER_FILE: &str = "denoiser.safetensors";
-/// File name of the residual-diffusion mean network's weights.
+/// File name of the mean network's weights (residual diffusion's, or a prior's).
 pub const MEAN_FILE: &str = "mean.safetensors";

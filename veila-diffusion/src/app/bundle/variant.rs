@@ -252,6 +252,7 @@ impl BundleConfig {
             epipolar: EpipolarConfig::default(),
             sampler,
             residual: None,
+            prior: None,
             provenance: serde_json::Value::Null,
         }
     }
@@ -259,12 +260,15 @@ impl BundleConfig {
 
 impl BundleConfig {
     /// This config switched to `method` (denoiser channels, objective, residual settings and
-    /// sampler); the residual scale starts at 1 and is set by training.
+    /// sampler); the residual scale starts at 1 and is set by training, and a prior mean network
+    /// and its start level are dropped.
     pub fn with_method(mut self, method: Method) -> Self {
         use crate::objective::Objective;
         use crate::prediction::Prediction;
         let c = self.encoding.num_channels();
         self.residual = None;
+        self.prior = None;
+        self.sampler.start_t = None;
         self.denoiser.in_channels = c;
         self.diffusion.objective = Objective::Diffusion;
         match method {
@@ -332,13 +336,14 @@ pub struct NetworkKnobs {
 }
 
 impl BundleConfig {
-    /// Sizes the denoiser, and a residual bundle's mean network alike, and sets the loss
+    /// Sizes the denoiser, and a mean network (residual or prior) alike, and sets the loss
     /// weighting and training levels as `knobs` say; the networks are checked against their
     /// limits (widths, levels, the grid's divisibility, at most
     /// [`veila_nn::weights::MAX_PARAMETERS`] weights) and the training levels against theirs.
     pub fn set_network(&mut self, knobs: &NetworkKnobs) -> Result<()> {
         let nets = std::iter::once(&mut self.denoiser)
-            .chain(self.residual.as_mut().map(|r| &mut r.mean_net));
+            .chain(self.residual.as_mut().map(|r| &mut r.mean_net))
+            .chain(self.prior.as_mut().map(|p| &mut p.mean_net));
         for net in nets {
             if let Some(c) = knobs.base_channels {
                 net.base_channels = c;

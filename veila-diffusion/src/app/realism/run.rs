@@ -34,6 +34,9 @@ pub struct RealismOptions {
     pub spacings: Vec<Spacing>,
     /// Guidance scales of the conditional model rows (none: each bundle's own).
     pub guidance: Vec<f64>,
+    /// Start levels of the rows of bundles with a prior mean network
+    /// ([`SamplerConfig::start_t`]; none: each bundle's own).
+    pub start_t: Vec<f64>,
     /// Held-out test frames, split into `folds` folds of equal size.
     pub test_frames: usize,
     /// Folds of the test frames.
@@ -144,8 +147,8 @@ fn each_or_own<T: Copy>(asked: &[T]) -> Vec<Option<T>> {
     }
 }
 
-/// The model rows of one bundle: every sampler at every spacing, step count and guidance scale
-/// (a residual bundle also gets its mean network alone).
+/// The model rows of one bundle: every sampler at every spacing, step count, guidance scale and
+/// (with a prior) start level (a residual bundle also gets its mean network alone).
 fn row_specs(bundle: &Bundle, opts: &RealismOptions) -> Vec<(RowSpec, String)> {
     let own = &bundle.config.sampler;
     let steps = if opts.steps.is_empty() {
@@ -158,6 +161,11 @@ fn row_specs(bundle: &Bundle, opts: &RealismOptions) -> Vec<(RowSpec, String)> {
     } else {
         opts.guidance.clone()
     };
+    let starts = if opts.start_t.is_empty() || bundle.config.prior.is_none() {
+        vec![own.start_t]
+    } else {
+        opts.start_t.iter().copied().map(Some).collect()
+    };
     // `None`: the bundle's own sampler; the sampler's own spacing
     let samplers = each_or_own(&opts.samplers);
     let spacings = each_or_own(&opts.spacings);
@@ -165,7 +173,10 @@ fn row_specs(bundle: &Bundle, opts: &RealismOptions) -> Vec<(RowSpec, String)> {
     for name in samplers {
         for &spacing in &spacings {
             for &s in &steps {
-                for &g in &guidance {
+                for (&g, &start_t) in guidance
+                    .iter()
+                    .flat_map(|g| starts.iter().map(move |t| (g, t)))
+                {
                     let mut sampler = match name {
                         None => SamplerConfig {
                             steps: s,
@@ -177,11 +188,15 @@ fn row_specs(bundle: &Bundle, opts: &RealismOptions) -> Vec<(RowSpec, String)> {
                     if let Some(spacing) = spacing {
                         sampler.spacing = spacing;
                     }
-                    let label = format!(
+                    sampler.start_t = start_t;
+                    let mut label = format!(
                         "{} x {s} ({} spacing), guidance {g}",
                         sampler.kind.title(),
                         sampler.spacing
                     );
+                    if let Some(t) = start_t {
+                        label.push_str(&format!(", from the mean network at t = {t}"));
+                    }
                     let seeds = opts.seeds;
                     let spec = RowSpec {
                         sampler,
