@@ -65,18 +65,11 @@ pub(crate) fn guidance() -> impl Fn(&str) -> Result<f64, String> + Clone + Send 
     float(0.0, veila_diffusion::MAX_GUIDANCE)
 }
 
-/// A sampler's start level ([`veila_diffusion::SamplerConfig::start_t`]): above 0, at most 1
-/// (pure noise).
+/// A sampler's start level ([`veila_diffusion::SamplerConfig::start_t`]): 0.001 (below the
+/// samplers' last level, the mean network's scan itself) to 1 (pure noise).
 pub(crate) fn start_level() -> impl Fn(&str) -> Result<f64, String> + Clone + Send + Sync + 'static
 {
-    move |s: &str| {
-        let range = || "must be a level above 0 and at most 1 (1 = pure noise)".to_string();
-        let v: f64 = s.trim().parse().map_err(|_| range())?;
-        if !(v.is_finite() && v > 0.0 && v <= 1.0) {
-            return Err(range());
-        }
-        Ok(v)
-    }
+    float(0.001, 1.0)
 }
 
 /// A residual weight: the library's [`veila_diffusion::app::RESIDUAL_WEIGHT`], 0 to 1.

@@ -61,8 +61,8 @@ pub(crate) struct DemoArgs {
     /// Classifier-free guidance scale, 0 to 20 (default: the bundle's).
     #[arg(long, value_name = "S", allow_negative_numbers = true, value_parser = crate::bounds::guidance())]
     guidance: Option<f64>,
-    /// Bundles with a prior mean network: the level the draw starts from, above 0 and at most 1,
-    /// from the mean network's scan with that much noise (1 = pure noise; default: the bundle's).
+    /// Bundles with a prior mean network: the level the draw starts from, 0.001 to 1, from the
+    /// mean network's scan with that much noise (1 = pure noise; default: the bundle's).
     /// Lower follows the image more closely and takes fewer steps; higher keeps more texture.
     #[arg(long, value_name = "T", value_parser = crate::bounds::start_level())]
     start_t: Option<f64>,

@@ -190,8 +190,10 @@ pub struct SamplerConfig {
     /// `(0, 1]`: from `α_t·μ + σ_t·ε` at level `t`, where `μ` is the scan a bundle's prior mean
     /// network predicts from the image (Come-Closer-Diffuse-Faster, Chung et al. 2022), then down
     /// the sampler's levels below `t` ([`Sampler::sample_from_level`]). Only for a bundle with a
-    /// prior ([`crate::app::BundleConfig::prior`]); `1` is the same as pure noise. Lower starts
-    /// follow the image more closely, cost fewer steps and keep less of the model's own texture.
+    /// prior (`prior` in its `bundle.json`; the application's generation reads this field, and
+    /// [`Sampler::sample_from`] itself always starts at its first level); `1` is the same as pure
+    /// noise. Lower starts follow the image more closely, cost fewer steps and keep less of the
+    /// model's own texture.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub start_t: Option<f64>,
 }
