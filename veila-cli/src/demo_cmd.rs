@@ -323,10 +323,10 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         sampler.kind,
         sampler.steps,
         sampler.guidance_scale,
-        match sampler.start_t.filter(|_| bundle.config.prior.is_some()) {
-            Some(t) => format!(", from the mean network's scan at t = {t}"),
-            None => String::new(),
-        }
+        sampler
+            .start_t
+            .map(|t| format!(", from the mean network's scan at t = {t}"))
+            .unwrap_or_default()
     );
     if !summary.camera_effects.is_empty() {
         println!(

@@ -104,10 +104,11 @@ pub(crate) struct SamplerFlags {
     pub(crate) start_t: Option<f64>,
 }
 
-/// The sampler: the bundle's unless `--sampler` is given; `--spacing`, `--steps`,
-/// `--guidance` and `--start-t` override (a bundle's start level stays with another sampler). The flags' parsers hold them to the library's bounds, and the bundle's
-/// own values were checked against the same bounds when it was loaded (an error there names
-/// `bundle.json` and the field); what depends on the bundle is checked by
+/// The sampler: the bundle's unless `--sampler` is given; `--spacing`, `--steps`, `--guidance`
+/// and `--start-t` override (a bundle's start level stays with another sampler). The flags'
+/// parsers hold them to the library's bounds, and the bundle's own values were checked against
+/// the same bounds when it was loaded (an error there names `bundle.json` and the field); what
+/// depends on the bundle is checked by
 /// [`GenerateOptions::check`](veila_diffusion::app::GenerateOptions::check).
 pub(crate) fn resolve_sampler(bundle: &Bundle, flags: SamplerFlags) -> SamplerConfig {
     let SamplerFlags {

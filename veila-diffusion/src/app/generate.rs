@@ -321,30 +321,28 @@ fn sample(
     let mut rng = per_sample_rng(options.seed, options.samples);
     let known = encode_known(bundle, inpainting, options.samples)?;
     let batch = Batch::new(bundle, views, options, conditional)?;
-    // a prior starts a conditional draw from pure noise's place; RePaint runs the whole schedule
-    let start_t = options
-        .sampler
-        .start_t
-        .filter(|_| conditional && inpainting.is_none() && bundle.config.prior.is_some());
-    let residual = bundle.config.residual.is_some();
-    let mean = if residual || start_t.is_some() {
+    // the mean network's scan: a residual bundle's mean, or where a prior's draw starts
+    // (`check_options` allows a start level only with a prior; an unconditional draw has no image
+    // for it, and RePaint runs the whole schedule)
+    let start_t = (conditional && inpainting.is_none())
+        .then_some(options.sampler.start_t)
+        .flatten();
+    let mean = if bundle.config.residual.is_some() || start_t.is_some() {
         batch.mean_pass(&mut rng)?
     } else {
         None
     };
-    let x = match (mean, start_t) {
-        (Some(mu), _)
-            if residual && (options.sampler.steps == 0 || options.residual_weight == 0.0) =>
-        {
+    let (mean, start) = match start_t {
+        Some(t) => (None, mean.map(|mu| (mu, t))),
+        None => (mean, None),
+    };
+    let x = match &mean {
+        Some(mu) if options.sampler.steps == 0 || options.residual_weight == 0.0 => {
             on_step(0, 0);
-            mu
+            mu.clone()
         }
-        (mean, start_t) => {
+        _ => {
             let repaint = inpainting.map(|(_, _, r)| r).zip(known.as_ref());
-            let (mean, start) = match (mean, start_t) {
-                (Some(mu), Some(t)) if !residual => (None, Some((mu, t))),
-                (mean, _) => (mean, None),
-            };
             batch.denoise(
                 mean.as_ref(),
                 start.as_ref(),
