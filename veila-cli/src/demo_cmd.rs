@@ -22,6 +22,7 @@ use veila_data::vis::render::{self, BevOptions, OverlayOptions, RangePreview};
 use veila_data::weather::{
     CameraInput, DepthMap, Intrinsics, Preset, Weather, WeatherConfig, WeatherSim,
 };
+use veila_diffusion::SamplerConfig;
 use veila_diffusion::app::{GenerateOptions, RigImage, ScanPipeline};
 use veila_geom::{ProjectionOptions, Projector, RangeImage, Region};
 use veila_metrics::bev::{BevConfig, bev_histogram};
@@ -253,11 +254,17 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
             metrics: m.metrics,
         });
     }
-    // a residual bundle's sample next to its own mean network: what the texture costs in error
-    if bundle.config.residual.is_some() && sampler.steps > 0 && args.residual_weight > 0.0 {
+    // the sample next to the model's own mean network (a residual's or a prior's; 0 steps):
+    // what the texture costs in error
+    if bundle.config.mean_net().is_some() && sampler.steps > 0 && args.residual_weight > 0.0 {
         let mean_only = pipeline.generate(
             &GenerateOptions {
-                residual_weight: 0.0,
+                sampler: SamplerConfig {
+                    steps: 0,
+                    start_t: None,
+                    ..options.sampler.clone()
+                },
+                residual_weight: 1.0,
                 ..options.clone()
             },
             |_, _| {},
@@ -272,7 +279,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
         texture.insert("mean net", TextureSummary::of(&range, &true_range)?);
         baseline_rows.push(BaselineSummary {
             name: "mean net",
-            description: "the model's own mean network alone (--residual-weight 0): the smooth conditional mean, the smallest pixel error".into(),
+            description: "the model's own mean network alone (a residual bundle's --residual-weight 0): the smooth conditional mean, the smallest pixel error".into(),
             metrics: m.metrics,
         });
     }
@@ -313,20 +320,13 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
     // files first, then the report: a reader that goes away early (`| head`) cannot cost the output
     staging.commit()?;
     println!(
-        "scene {scene_name}, seed {}: generated a {}x{} scan ({} returns; the true scan has {} on this grid) from the camera image in {:.1} s ({} x {} steps, guidance {}{})",
+        "scene {scene_name}, seed {}: generated a {}x{} scan ({} returns; the true scan has {} on this grid) from the camera image in {:.1} s ({sampler})",
         args.seed,
         grid.rows,
         grid.cols,
         summary.range_pixels_generated,
         summary.range_pixels_true,
         seconds_generation,
-        sampler.kind,
-        sampler.steps,
-        sampler.guidance_scale,
-        sampler
-            .start_t
-            .map(|t| format!(", from the mean network's scan at t = {t}"))
-            .unwrap_or_default()
     );
     if !summary.camera_effects.is_empty() {
         println!(

@@ -244,15 +244,12 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
     staging.commit()?;
 
     println!(
-        "generated {} scan(s) on the {}x{} grid of model `{}` from {} view(s): {} x {} steps, guidance {}, seed {}",
+        "generated {} scan(s) on the {}x{} grid of model `{}` from {} view(s): {sampler}, seed {}",
         args.samples,
         report.model.grid[0],
         report.model.grid[1],
         crate::out::untrusted(&report.model.name),
         views.len(),
-        report.sampler_name,
-        sampler.steps,
-        sampler.guidance_scale,
         args.seed
     );
     for r in &report.scans {

@@ -97,13 +97,11 @@ pub(super) fn run(bundle: &Bundle, r: FramesRun<'_>) -> Result<()> {
     };
     println!(
         "worker {index} of {count}: generated {} scan(s){per_frame}, {} complete already, with \
-         model `{}` ({} x {} steps, guidance {}, seed {})",
+         model `{}` ({}, seed {})",
         summary.generated,
         summary.skipped,
         crate::out::untrusted(&bundle.config.name),
-        r.options.sampler.kind,
-        r.options.sampler.steps,
-        r.options.sampler.guidance_scale,
+        r.options.sampler,
         r.options.seed
     );
     let state = if summary.complete == summary.total {

@@ -133,17 +133,18 @@ impl GenerateOptions {
 
     /// Checks these options against `bundle`, as sampling with them does, for a door to call
     /// before any work: the sampler's settings ([`crate::SamplerConfig::validate`]; 0 steps, the mean
-    /// network alone, only for a residual-diffusion bundle), at least one sample, and a
+    /// network alone, only for a bundle with one: a residual's or a prior's), at least one sample, and a
     /// [`residual_weight`](Self::residual_weight) in [`RESIDUAL_WEIGHT`], other than 1 only for a
     /// residual-diffusion bundle, and a [`start_t`](crate::SamplerConfig::start_t) only for a
     /// bundle with a prior.
     pub fn check(&self, bundle: &Bundle) -> Result<()> {
         self.sampler.validate()?;
         let residual = bundle.config.residual.is_some();
-        if self.sampler.steps == 0 && !residual {
+        if self.sampler.steps == 0 && bundle.config.mean_net().is_none() {
             return Err(Error::InvalidConfig {
                 field: "steps",
-                reason: "0 sampler steps (the mean network alone) need a residual-diffusion bundle"
+                reason: "0 sampler steps (the mean network alone) need a bundle with a mean \
+                         network: a residual-diffusion bundle or one with a prior"
                     .into(),
             });
         }
@@ -327,21 +328,23 @@ fn sample(
     let start_t = (conditional && inpainting.is_none())
         .then_some(options.sampler.start_t)
         .flatten();
-    let mean = if bundle.config.residual.is_some() || start_t.is_some() {
+    // the mean network alone: 0 steps (any bundle with one), or a residual's weight 0
+    let mean_alone = options.sampler.steps == 0 || options.residual_weight == 0.0;
+    let mean = if bundle.config.residual.is_some() || start_t.is_some() || mean_alone {
         batch.mean_pass(&mut rng)?
     } else {
         None
     };
-    let (mean, start) = match start_t {
-        Some(t) => (None, mean.map(|mu| (mu, t))),
-        None => (mean, None),
-    };
-    let x = match &mean {
-        Some(mu) if options.sampler.steps == 0 || options.residual_weight == 0.0 => {
+    let x = match mean {
+        Some(mu) if mean_alone => {
             on_step(0, 0);
-            mu.clone()
+            mu
         }
-        _ => {
+        mean => {
+            let (mean, start) = match start_t {
+                Some(t) => (None, mean.map(|mu| (mu, t))),
+                None => (mean, None),
+            };
             let repaint = inpainting.map(|(_, _, r)| r).zip(known.as_ref());
             batch.denoise(
                 mean.as_ref(),
@@ -365,6 +368,14 @@ fn check_options(
 ) -> Result<bool> {
     options.check(bundle)?;
     let conditional = bundle.is_conditional() && !options.unconditional;
+    if options.sampler.steps == 0 && !conditional {
+        return Err(Error::InvalidConfig {
+            field: "steps",
+            reason: "0 sampler steps (the mean network alone) need the image: the mean network \
+                     has no unconditional branch"
+                .into(),
+        });
+    }
     if conditional && views.is_empty() {
         return Err(Error::InvalidConfig {
             field: "views",

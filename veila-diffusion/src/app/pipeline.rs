@@ -198,47 +198,79 @@ mod tests {
     #[test]
     fn options_are_checked_against_the_bundle() {
         let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/default");
-        let mut bundle = Bundle::from_dir(&dir, &Device::Cpu).unwrap();
-        assert!(
-            bundle.config.residual.is_some(),
-            "the bundled model is residual"
-        );
-        let ok = GenerateOptions::new(bundle.config.sampler.clone());
+        let bundled = Bundle::from_dir(&dir, &Device::Cpu).unwrap();
+        // the bundled model has a mean network, as a residual's or as a prior's; the checks read
+        // only the config, so the same weights serve all three kinds of bundle below
+        let mean_net = bundled
+            .config
+            .mean_net()
+            .expect("the bundled model has a mean network");
+        let kind = |residual: bool, prior: bool| {
+            let mut b = Bundle::from_dir(&dir, &Device::Cpu).unwrap();
+            b.config.residual = residual.then(|| crate::app::ResidualConfig {
+                mean_net: mean_net.clone(),
+                scale: vec![1.0; 3],
+            });
+            b.config.prior = prior.then(|| crate::app::PriorConfig {
+                mean_net: mean_net.clone(),
+            });
+            b.config.sampler.start_t = None;
+            b
+        };
+        let (residual, prior, direct) = (kind(true, false), kind(false, true), kind(false, false));
+        let ok = GenerateOptions::new(bundled.config.sampler.clone());
+        ok.check(&bundled).unwrap();
+        let ok = GenerateOptions::new(residual.config.sampler.clone());
         let with = |f: &dyn Fn(&mut GenerateOptions)| {
             let mut o = ok.clone();
             f(&mut o);
             o
         };
-        ok.check(&bundle).unwrap();
-        // a residual bundle: the mean network alone, by 0 steps or weight 0
-        with(&|o| o.sampler.steps = 0).check(&bundle).unwrap();
-        with(&|o| o.residual_weight = 0.0).check(&bundle).unwrap();
-        for bad in [
-            with(&|o| o.sampler.steps = MAX_STEPS + 1),
-            with(&|o| o.sampler.guidance_scale = -1.0),
-            with(&|o| o.samples = 0),
-            with(&|o| o.residual_weight = 1.5),
-            with(&|o| o.residual_weight = f64::NAN),
-            with(&|o| o.sampler.start_t = Some(0.0)),
-            with(&|o| o.sampler.start_t = Some(1.5)),
-        ] {
-            assert!(bad.check(&bundle).is_err(), "{bad:?}");
+        for bundle in [&residual, &prior, &direct] {
+            ok.check(bundle).unwrap();
+            for bad in [
+                with(&|o| o.sampler.steps = MAX_STEPS + 1),
+                with(&|o| o.sampler.guidance_scale = -1.0),
+                with(&|o| o.samples = 0),
+                with(&|o| o.residual_weight = 1.5),
+                with(&|o| o.residual_weight = f64::NAN),
+                with(&|o| o.sampler.start_t = Some(0.0)),
+                with(&|o| o.sampler.start_t = Some(1.5)),
+            ] {
+                assert!(bad.check(bundle).is_err(), "{bad:?}");
+            }
         }
-        // without a mean network, neither
-        bundle.config.residual = None;
-        ok.check(&bundle).unwrap();
-        for bad in [
-            with(&|o| o.sampler.steps = 0),
-            with(&|o| o.residual_weight = 0.5),
-        ] {
-            let e = bad.check(&bundle).unwrap_err().to_string();
+        // the mean network alone: 0 steps with either kind of mean network, weight 0 with a
+        // residual's
+        with(&|o| o.sampler.steps = 0).check(&residual).unwrap();
+        with(&|o| o.sampler.steps = 0).check(&prior).unwrap();
+        with(&|o| o.residual_weight = 0.0).check(&residual).unwrap();
+        let e = with(&|o| o.sampler.steps = 0)
+            .check(&direct)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("mean network"), "{e}");
+        // a prior's mean network starts the draw and is not a residual's
+        with(&|o| o.sampler.start_t = Some(0.5))
+            .check(&prior)
+            .unwrap();
+        with(&|o| o.sampler.start_t = Some(1.0))
+            .check(&prior)
+            .unwrap();
+        for bundle in [&prior, &direct] {
+            let e = with(&|o| o.residual_weight = 0.5)
+                .check(bundle)
+                .unwrap_err()
+                .to_string();
             assert!(e.contains("residual-diffusion"), "{e}");
         }
         // a start level needs a prior mean network, which a residual bundle's is not
-        let e = with(&|o| o.sampler.start_t = Some(0.5))
-            .check(&bundle)
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("prior"), "{e}");
+        for bundle in [&residual, &direct] {
+            let e = with(&|o| o.sampler.start_t = Some(0.5))
+                .check(bundle)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("prior"), "{e}");
+        }
     }
 }

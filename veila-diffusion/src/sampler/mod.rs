@@ -206,6 +206,22 @@ fn clip_one() -> Option<f64> {
     Some(1.0)
 }
 
+/// One line for logs and summaries: `ddpm x 16 steps, guidance 1`, and where a prior's draw
+/// starts, `dpm-solver++(2m) x 16 steps, guidance 1.5, from the mean network's scan at t = 0.2`.
+impl std::fmt::Display for SamplerConfig {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} x {} steps, guidance {}",
+            self.kind, self.steps, self.guidance_scale
+        )?;
+        if let Some(t) = self.start_t {
+            write!(f, ", from the mean network's scan at t = {t}")?;
+        }
+        Ok(())
+    }
+}
+
 impl SamplerConfig {
     /// DDPM with `steps` steps and the posterior variance.
     pub fn ddpm(steps: usize) -> Self {
@@ -326,7 +342,7 @@ impl<'a> Sampler<'a> {
         if config.steps == 0 {
             return Err(invalid(
                 "steps",
-                "must be at least 1 (0 steps: only a residual bundle's mean network)",
+                "must be at least 1 (0 steps, the mean network alone, is for a bundle with one)",
             ));
         }
         let (levels, flow_times) = match diffusion.config().objective {

@@ -471,3 +471,14 @@ fn sampling_from_the_first_level_is_sampling_from_noise() -> Result<()> {
     assert!(e.contains("diffusion objective"), "{e}");
     Ok(())
 }
+
+#[test]
+fn a_sampler_names_its_start_level_in_its_summary() {
+    let mut c = SamplerName::Dpm.guided(16, 1.5);
+    assert_eq!(c.to_string(), "dpm-solver++(2m) x 16 steps, guidance 1.5");
+    c.start_t = Some(0.2);
+    assert_eq!(
+        c.to_string(),
+        "dpm-solver++(2m) x 16 steps, guidance 1.5, from the mean network's scan at t = 0.2"
+    );
+}

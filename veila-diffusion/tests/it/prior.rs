@@ -134,6 +134,23 @@ fn a_prior_starts_the_draw_from_its_mean_networks_scan() {
         draw(&prior, prior.config.sampler.clone(), 1.0).range_m,
         draw(&prior, prior.config.sampler.clone(), 1.0).range_m
     );
+    // 0 steps: the prior's mean network alone, exactly the residual bundle's mean (the same
+    // weights); it needs the image
+    let zero = SamplerConfig {
+        steps: 0,
+        start_t: None,
+        ..prior.config.sampler.clone()
+    };
+    assert_eq!(draw(&prior, zero.clone(), 1.0).range_m, mu.range_m);
+    let blind = GenerateOptions {
+        unconditional: true,
+        ..GenerateOptions::new(zero)
+    };
+    let e = prior
+        .generate(&[], &blind, |_, _| {})
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("image"), "{e}");
     // a start level needs a prior
     let v = Bundle::from_dir(&v_dir, &dev).unwrap();
     let e = GenerateOptions::new(SamplerConfig {

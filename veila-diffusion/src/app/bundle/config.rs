@@ -221,10 +221,10 @@ impl BundleConfig {
             .map_err(|e| format!("epipolar: {e}"))?;
         self.encoding.validate().map_err(at("encoding"))?;
         self.sampler.validate().map_err(at("sampler"))?;
-        if self.sampler.steps == 0 && self.residual.is_none() {
+        if self.sampler.steps == 0 && self.mean_net().is_none() {
             return Err(format!(
-                "sampler.steps: 0 steps (the mean network alone) need a residual-diffusion bundle; \
-                 must be between 1 and {}",
+                "sampler.steps: 0 steps (the mean network alone) need a bundle with a mean network \
+                 (a residual-diffusion bundle or a prior); must be between 1 and {}",
                 crate::MAX_STEPS
             ));
         }

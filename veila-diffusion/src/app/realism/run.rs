@@ -148,7 +148,8 @@ fn each_or_own<T: Copy>(asked: &[T]) -> Vec<Option<T>> {
 }
 
 /// The model rows of one bundle: every sampler at every spacing, step count, guidance scale and
-/// (with a prior) start level (a residual bundle also gets its mean network alone).
+/// (with a prior) start level (a bundle with a mean network, a residual's or a prior's, also
+/// gets that network alone).
 fn row_specs(bundle: &Bundle, opts: &RealismOptions) -> Vec<(RowSpec, String)> {
     let own = &bundle.config.sampler;
     let steps = if opts.steps.is_empty() {
@@ -208,11 +209,16 @@ fn row_specs(bundle: &Bundle, opts: &RealismOptions) -> Vec<(RowSpec, String)> {
             }
         }
     }
-    if bundle.config.residual.is_some() {
+    if bundle.config.mean_net().is_some() {
+        // 0 steps: the mean network's scan, a residual's or a prior's
         let spec = RowSpec {
-            sampler: own.clone(),
+            sampler: SamplerConfig {
+                steps: 0,
+                start_t: None,
+                ..own.clone()
+            },
             seeds: 1,
-            residual_weight: 0.0,
+            residual_weight: 1.0,
         };
         out.push((spec, "mean network alone".into()));
     }
