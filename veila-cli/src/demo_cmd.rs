@@ -53,6 +53,9 @@ pub(crate) struct DemoArgs {
     /// `--checkpoint` is an alias).
     #[arg(long, value_name = "DIR", env = "VEILA_MODEL", alias = "checkpoint")]
     model: Option<PathBuf>,
+    // the help names the bundled model's sampler as its bundle.json does
+    #[arg(long, value_parser = generation::sampler_parser(), help = generation::sampler_help())]
+    sampler: Option<veila_diffusion::SamplerName>,
     /// Where the sampler's steps lie on the noise schedule (default: the bundle's).
     #[arg(long, value_parser = crate::generation::spacing_parser())]
     spacing: Option<veila_diffusion::Spacing>,
@@ -151,11 +154,11 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
     let sampler = generation::resolve_sampler(
         &bundle,
         generation::SamplerFlags {
+            name: args.sampler,
             spacing: args.spacing,
             steps: args.steps,
             guidance: args.guidance,
             start_t: args.start_t,
-            ..Default::default()
         },
     );
     let options = GenerateOptions {

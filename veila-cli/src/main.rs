@@ -297,7 +297,7 @@ mod tests {
         let doors = doors_offering("sampler", &library);
         assert_eq!(
             doors,
-            ["veila edit", "veila generate"],
+            ["veila demo", "veila edit", "veila generate"],
             "the commands with --sampler"
         );
     }
