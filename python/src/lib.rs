@@ -15,8 +15,9 @@ use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
+use veila_diffusion::SamplerName;
 use veila_diffusion::app::bundle::Bundle;
-use veila_diffusion::app::{GenerateOptions, RigImage, ScanPipeline};
+use veila_diffusion::app::{GenerateOptions, RigImage, SamplerChoice, ScanPipeline};
 use veila_geom::{LidarSensor, PinholeCamera, RangeImage, RayTable, Region, SensorPreset};
 use veila_metrics::protocol::{PeerProtocol, PeerSummary};
 
@@ -468,7 +469,8 @@ fn load_bundle(model_dir: Option<&Path>) -> Result<Bundle, String> {
 
 /// Generates a 360° scan from one camera image and its calibration with the bundled model.
 #[pyfunction]
-#[pyo3(signature = (image, intrinsics, cam_from_lidar, steps = None, seed = 0, model_dir = None))]
+#[pyo3(signature = (image, intrinsics, cam_from_lidar, steps = None, seed = 0, model_dir = None, sampler = None, guidance = None, start_t = None))]
+#[allow(clippy::too_many_arguments)] // a Python function's keyword arguments
 fn generate<'py>(
     py: Python<'py>,
     image: numpy::PyReadonlyArray3<'py, u8>,
@@ -477,7 +479,14 @@ fn generate<'py>(
     steps: Option<usize>,
     seed: u64,
     model_dir: Option<PathBuf>,
+    sampler: Option<&str>,
+    guidance: Option<f64>,
+    start_t: Option<f64>,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let name = sampler
+        .map(|s| s.parse::<SamplerName>())
+        .transpose()
+        .map_err(value_err)?;
     let img = image.as_array();
     let (h, w, c) = img.dim();
     if c != 3 || h == 0 || w == 0 {
@@ -514,21 +523,26 @@ fn generate<'py>(
     let bundle = py
         .detach(|| load_bundle(model_dir.as_deref()))
         .map_err(value_err)?;
+    // the bundle's sampler with the caller's choices, as `veila generate`'s flags make it
+    let choice = SamplerChoice {
+        name,
+        spacing: None,
+        steps,
+        guidance,
+        start_t,
+    };
+    let options = GenerateOptions {
+        sampler: choice.resolve(&bundle),
+        samples: 1,
+        seed,
+        unconditional: false,
+        residual_weight: 1.0,
+    };
+    options.check(&bundle).map_err(value_err)?;
     let scan = py
         .detach(|| -> Result<_, String> {
             let full = veila_data::image::RgbImage::from_raw(w as u32, h as u32, rgb)
                 .ok_or("image buffer size")?;
-            let mut sampler = bundle.config.sampler.clone();
-            if let Some(s) = steps {
-                sampler.steps = s;
-            }
-            let options = GenerateOptions {
-                sampler,
-                samples: 1,
-                seed,
-                unconditional: false,
-                residual_weight: 1.0,
-            };
             // the library's one path: fitted to the encoders, sampled in the model's frame, the
             // scan back in the calibration's LiDAR frame
             let rig = [RigImage {

@@ -289,6 +289,12 @@ def test_read_calibration_projects_like_p2_r0_tr(tmp_path):
 # ---------------------------------------------------------------------------------- generation
 
 
+def veila_bundle_kind():
+    """``"residual"``, ``"prior"`` or ``"direct"``: the kind of the source tree's models/default."""
+    cfg = json.loads((Path(__file__).resolve().parents[2] / "models" / "default" / "bundle.json").read_text())
+    return "residual" if cfg.get("residual") else "prior" if cfg.get("prior") else "direct"
+
+
 def kitti_camera(width, height):
     s = width / 1242.0
     k = np.array([[721.5 * s, 0, 609.6 * s], [0, 721.5 * s, 172.9 * s], [0, 0, 1]], np.float32)
@@ -302,6 +308,9 @@ def test_generate_is_deterministic_follows_the_seed_and_is_consistent():
     a = veila.generate(image, k, t, steps=2, seed=3)
     b = veila.generate(image, k, t, steps=2, seed=3)
     c = veila.generate(image, k, t, steps=2, seed=4)
+    # the sampler keywords reach the sampler
+    assert not np.array_equal(a["range"], veila.generate(image, k, t, steps=2, seed=3, sampler="ddim")["range"])
+    assert not np.array_equal(a["range"], veila.generate(image, k, t, steps=2, seed=3, guidance=2.0)["range"])
     assert a["points"].shape[1] == 3 and len(a["points"]) == len(a["intensity"]) == a["mask"].sum() > 0
     np.testing.assert_array_equal(a["range"], b["range"])
     assert not np.array_equal(a["range"], c["range"])
@@ -320,6 +329,14 @@ def test_generate_checks_its_input(tmp_path):
         veila.generate(np.zeros((125, 414, 4), np.uint8), k, t, steps=2)
     with pytest.raises(ValueError, match="steps"):
         veila.generate(image, k, t, steps=0)
+    with pytest.raises(ValueError, match="sampler"):
+        veila.generate(image, k, t, steps=2, sampler="euler")
+    with pytest.raises(ValueError, match="guidance"):
+        veila.generate(image, k, t, steps=2, guidance=25.0)
+    # a start level needs a bundle with a prior mean network; the bundled model's is a residual's
+    if veila_bundle_kind() == "residual":
+        with pytest.raises(ValueError, match="prior"):
+            veila.generate(image, k, t, steps=2, start_t=0.5)
     with pytest.raises(ValueError, match="no-model"):
         veila.generate(image, k, t, steps=2, model_dir=tmp_path / "no-model")
     # implausible calibrations are refused before the model is loaded, saying what is wrong

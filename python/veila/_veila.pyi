@@ -116,10 +116,16 @@ def generate(
     steps: Optional[int] = None,
     seed: int = 0,
     model_dir: Optional[_Path] = None,
+    sampler: Optional[str] = None,
+    guidance: Optional[float] = None,
+    start_t: Optional[float] = None,
 ) -> Dict[str, np.ndarray]:
     """Generates a 360° LiDAR scan from one RGB image ``(H, W, 3)`` uint8 and its calibration
     (``intrinsics`` ``(3, 3)`` or ``(3, 4)``, ``cam_from_lidar`` ``(4, 4)``), with the model bundled in
-    the wheel (or the bundle folder ``model_dir``). Same inputs and seed give the same scan, byte for
-    byte the one ``veila generate`` writes for that image, calibration and seed. Returns
+    the wheel (or the bundle folder ``model_dir``). ``sampler`` (``"ddpm"``, ``"ddim"`` or ``"dpm"``),
+    ``steps``, ``guidance`` (0 to 20) and ``start_t`` (a bundle with a prior mean network: the level
+    the draw starts from, above 0 to 1) override the bundle's sampler as ``veila generate``'s flags
+    do; a value outside its range raises ``ValueError``. Same inputs and seed give the same scan, byte
+    for byte the one ``veila generate`` writes for that image, calibration, sampler and seed. Returns
     ``{"points": (M, 3), "intensity": (M,), "range": (rows, cols), "mask": (rows, cols)}``, all in
     the LiDAR frame of ``cam_from_lidar`` (a nuScenes LiDAR, y forward, included)."""

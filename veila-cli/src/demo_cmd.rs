@@ -153,7 +153,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
     let bundle = model::load_bundle(args.model.as_deref(), &device)?;
     let sampler = generation::resolve_sampler(
         &bundle,
-        generation::SamplerFlags {
+        generation::SamplerChoice {
             name: args.sampler,
             spacing: args.spacing,
             steps: args.steps,

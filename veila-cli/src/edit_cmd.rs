@@ -20,7 +20,7 @@ use veila_diffusion::{RepaintConfig, SamplerConfig, SamplerKind, SamplerName};
 use veila_geom::{ProjectionOptions, Projector, RangeImage, RayTable};
 
 use crate::generation::{
-    InputInfo, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerFlags, ScanRecord, Seconds, check_options,
+    InputInfo, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerChoice, ScanRecord, Seconds, check_options,
     inpainting_sampler_help, input_info, load_rig, model_info, range_preview, resolve_sampler,
     sampler_parser, write_scan,
 };
@@ -257,7 +257,7 @@ pub(crate) fn run(args: EditArgs) -> Result<()> {
     let bundle = model::load_bundle(args.model.as_deref(), &device)?;
     let mut sampler = resolve_sampler(
         &bundle,
-        SamplerFlags {
+        SamplerChoice {
             name: args.sampler,
             spacing: args.spacing,
             steps: args.steps,

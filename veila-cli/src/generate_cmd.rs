@@ -25,7 +25,7 @@ use veila_diffusion::app::{GenerateOptions, ScanPipeline};
 use veila_diffusion::{SamplerConfig, SamplerName};
 
 use crate::generation::{
-    InputInfo, MAX_SAMPLES, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerFlags, ScanRecord, Seconds,
+    InputInfo, MAX_SAMPLES, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerChoice, ScanRecord, Seconds,
     check_options, input_info, load_rig, model_info, resolve_sampler, round3, sampler_help,
     sampler_parser, write_scan,
 };
@@ -144,7 +144,7 @@ pub(crate) fn run(args: GenerateArgs) -> Result<()> {
     let bundle = model::load_bundle(args.model.as_deref(), &device)?;
     let sampler = resolve_sampler(
         &bundle,
-        SamplerFlags {
+        SamplerChoice {
             name: args.sampler,
             spacing: args.spacing,
             steps: args.steps,

@@ -15,6 +15,7 @@ use veila_data::scan::write_kitti_bin;
 use veila_data::vis::render::{
     BevOptions, OverlayOptions, RangePreview, render_bev, render_overlay, render_range,
 };
+pub(crate) use veila_diffusion::app::SamplerChoice;
 use veila_diffusion::app::bundle::{Bundle, DENOISER_FILE, Manifest, sha256_hex};
 use veila_diffusion::app::{GenerateOptions, RigView, Scan, load_view, point_colours};
 use veila_diffusion::{SamplerConfig, SamplerName, Spacing};
@@ -89,59 +90,20 @@ pub(crate) fn load_rig(rig: &RigArgs) -> Result<Vec<RigView>> {
     Ok(views)
 }
 
-/// The sampler flags `generate`, `edit` and `demo` share.
-#[derive(Debug, Clone, Copy, Default)]
-pub(crate) struct SamplerFlags {
-    /// `--sampler` (`None`: the bundle's).
-    pub(crate) name: Option<SamplerName>,
-    /// `--spacing` (`None`: the bundle's, or the named sampler's default).
-    pub(crate) spacing: Option<Spacing>,
-    /// `--steps`.
-    pub(crate) steps: Option<usize>,
-    /// `--guidance`.
-    pub(crate) guidance: Option<f64>,
-    /// `--start-t` (`None`: the bundle's).
-    pub(crate) start_t: Option<f64>,
-}
-
 /// The sampler: the bundle's unless `--sampler` is given; `--spacing`, `--steps`, `--guidance`
-/// and `--start-t` override (a bundle's start level stays with another sampler). The flags'
-/// parsers hold them to the library's bounds, and the bundle's own values were checked against
-/// the same bounds when it was loaded (an error there names `bundle.json` and the field); what
-/// depends on the bundle is checked by
-/// [`GenerateOptions::check`](veila_diffusion::app::GenerateOptions::check).
-pub(crate) fn resolve_sampler(bundle: &Bundle, flags: SamplerFlags) -> SamplerConfig {
-    let SamplerFlags {
-        name,
-        spacing,
-        steps,
-        guidance,
-        start_t,
-    } = flags;
-    let base = &bundle.config.sampler;
-    let steps = steps.unwrap_or(base.steps);
-    let mut cfg = match name {
-        None => SamplerConfig {
-            steps,
-            ..base.clone()
-        },
-        Some(name) => name.config(steps),
-    };
-    if let Some(spacing) = spacing {
-        cfg.spacing = spacing;
+/// and `--start-t` override (the library's [`SamplerChoice::resolve`], which the Python door and
+/// the benchmarks share; a bundle's start level stays with another sampler). The flags' parsers
+/// hold them to the library's bounds, and the bundle's own values were checked against the same
+/// bounds when it was loaded (an error there names `bundle.json` and the field); what depends on
+/// the bundle is checked by [`GenerateOptions::check`](veila_diffusion::app::GenerateOptions::check).
+pub(crate) fn resolve_sampler(bundle: &Bundle, flags: SamplerChoice) -> SamplerConfig {
+    if flags.ignores_guidance(bundle) {
+        eprintln!(
+            "note: the model is unconditional; --guidance {} has no effect",
+            flags.guidance.unwrap_or(1.0)
+        );
     }
-    cfg.guidance_scale = guidance.unwrap_or(base.guidance_scale);
-    cfg.start_t = start_t.or(base.start_t);
-    if !bundle.is_conditional() && cfg.guidance_scale != 1.0 {
-        if guidance.is_some() {
-            eprintln!(
-                "note: the model is unconditional; --guidance {} has no effect",
-                cfg.guidance_scale
-            );
-        }
-        cfg.guidance_scale = 1.0;
-    }
-    cfg
+    flags.resolve(bundle)
 }
 
 /// `options` checked against `bundle` before any work (the library's check; its error names the

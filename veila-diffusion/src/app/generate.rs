@@ -183,6 +183,57 @@ impl GenerateOptions {
     }
 }
 
+/// A door's sampler choices over a bundle's own sampler (the `--sampler`, `--spacing`, `--steps`,
+/// `--guidance` and `--start-t` of the commands, the keywords of the Python `generate`, a
+/// benchmark's row): each `None` keeps what the bundle has.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct SamplerChoice {
+    /// Another update rule, with its own default spacing (`None`: the bundle's sampler).
+    pub name: Option<crate::SamplerName>,
+    /// Where the steps lie on the schedule.
+    pub spacing: Option<crate::Spacing>,
+    /// Network evaluations per branch.
+    pub steps: Option<usize>,
+    /// Classifier-free guidance scale.
+    pub guidance: Option<f64>,
+    /// Where a prior's draw starts ([`SamplerConfig::start_t`]); a bundle's own start level stays
+    /// with another update rule.
+    pub start_t: Option<f64>,
+}
+
+impl SamplerChoice {
+    /// The sampler these choices make of `bundle`'s. An unconditional bundle samples at guidance
+    /// 1 whatever is asked (it has no second branch; [`Self::ignores_guidance`] says when a door
+    /// should tell its user). Nothing is validated here: [`GenerateOptions::check`] does that, the
+    /// same way for every door.
+    pub fn resolve(&self, bundle: &Bundle) -> SamplerConfig {
+        let base = &bundle.config.sampler;
+        let steps = self.steps.unwrap_or(base.steps);
+        let mut cfg = match self.name {
+            None => SamplerConfig {
+                steps,
+                ..base.clone()
+            },
+            Some(name) => name.config(steps),
+        };
+        if let Some(spacing) = self.spacing {
+            cfg.spacing = spacing;
+        }
+        cfg.guidance_scale = self.guidance.unwrap_or(base.guidance_scale);
+        cfg.start_t = self.start_t.or(base.start_t);
+        if !bundle.is_conditional() {
+            cfg.guidance_scale = 1.0;
+        }
+        cfg
+    }
+
+    /// Whether a guidance scale other than 1 was asked of an unconditional bundle, which
+    /// [`Self::resolve`] sets to 1.
+    pub fn ignores_guidance(&self, bundle: &Bundle) -> bool {
+        !bundle.is_conditional() && self.guidance.is_some_and(|g| g != 1.0)
+    }
+}
+
 impl GenerateOptions {
     /// The options of each batch when `self.samples` scans are drawn in batches of at most
     /// `max_batch` (memory then does not grow with the number of samples): `(index of the batch's

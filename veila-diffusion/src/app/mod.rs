@@ -95,7 +95,7 @@ pub use dataset::{EncoderExample, ExampleSource, Examples, TrainView};
 pub use encoder_train::{
     EncoderAugment, EncoderStep, train_small_cnn, train_small_cnn_from, varmap_tensors,
 };
-pub use generate::{CameraView, GenerateOptions, RESIDUAL_WEIGHT, ViewFeatures};
+pub use generate::{CameraView, GenerateOptions, RESIDUAL_WEIGHT, SamplerChoice, ViewFeatures};
 pub use mean::{
     MeanPredictor, predict_means, raw_residual, regression_weight, residual_scale,
     residual_scale_of, residual_target,

@@ -196,6 +196,51 @@ mod tests {
     use crate::MAX_STEPS;
 
     #[test]
+    fn a_doors_sampler_choices_override_the_bundles_sampler() {
+        use crate::app::SamplerChoice;
+        use crate::{SamplerKind, SamplerName, Spacing};
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/default");
+        let mut bundle = Bundle::from_dir(&dir, &Device::Cpu).unwrap();
+        bundle.config.sampler.guidance_scale = 1.5;
+        bundle.config.sampler.start_t = Some(0.3);
+        let own = bundle.config.sampler.clone();
+        assert_eq!(SamplerChoice::default().resolve(&bundle), own);
+        // another rule comes with its own spacing; steps, guidance and the start level carry over
+        let ddim = SamplerChoice {
+            name: Some(SamplerName::Ddim),
+            steps: Some(7),
+            ..SamplerChoice::default()
+        }
+        .resolve(&bundle);
+        assert_eq!(ddim.kind, SamplerKind::Ddim { eta: 0.0 });
+        assert_eq!(ddim.steps, 7);
+        assert_eq!(ddim.spacing, SamplerName::Ddim.config(7).spacing);
+        assert_eq!((ddim.guidance_scale, ddim.start_t), (1.5, Some(0.3)));
+        let each = SamplerChoice {
+            name: None,
+            spacing: Some(Spacing::Leading),
+            steps: Some(3),
+            guidance: Some(2.0),
+            start_t: Some(0.9),
+        };
+        let c = each.resolve(&bundle);
+        assert_eq!(
+            (c.kind, c.spacing, c.steps, c.guidance_scale, c.start_t),
+            (own.kind, Spacing::Leading, 3, 2.0, Some(0.9))
+        );
+        assert!(!each.ignores_guidance(&bundle));
+        // an unconditional bundle has no second branch: guidance 1 whatever is asked
+        bundle.config.denoiser.conditioning = None;
+        assert_eq!(each.resolve(&bundle).guidance_scale, 1.0);
+        assert!(each.ignores_guidance(&bundle));
+        let one = SamplerChoice {
+            guidance: Some(1.0),
+            ..each
+        };
+        assert!(!one.ignores_guidance(&bundle));
+    }
+
+    #[test]
     fn options_are_checked_against_the_bundle() {
         let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/default");
         let bundled = Bundle::from_dir(&dir, &Device::Cpu).unwrap();

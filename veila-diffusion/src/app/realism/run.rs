@@ -178,18 +178,14 @@ fn row_specs(bundle: &Bundle, opts: &RealismOptions) -> Vec<(RowSpec, String)> {
                     .iter()
                     .flat_map(|g| starts.iter().map(move |t| (g, t)))
                 {
-                    let mut sampler = match name {
-                        None => SamplerConfig {
-                            steps: s,
-                            guidance_scale: g,
-                            ..own.clone()
-                        },
-                        Some(name) => name.guided(s, g),
-                    };
-                    if let Some(spacing) = spacing {
-                        sampler.spacing = spacing;
+                    let sampler = crate::app::SamplerChoice {
+                        name,
+                        spacing,
+                        steps: Some(s),
+                        guidance: Some(g),
+                        start_t,
                     }
-                    sampler.start_t = start_t;
+                    .resolve(bundle);
                     let mut label = format!(
                         "{} x {s} ({} spacing), guidance {g}",
                         sampler.kind.title(),
