@@ -23,7 +23,7 @@ use veila_data::weather::{
     CameraInput, DepthMap, Intrinsics, Preset, Weather, WeatherConfig, WeatherSim,
 };
 use veila_diffusion::SamplerConfig;
-use veila_diffusion::app::{GenerateOptions, RigImage, ScanPipeline};
+use veila_diffusion::app::{GenerateOptions, RigImage, SamplerChoice, ScanPipeline};
 use veila_geom::{ProjectionOptions, Projector, RangeImage, Region};
 use veila_metrics::bev::{BevConfig, bev_histogram};
 use veila_metrics::crossmodal::{DepthAlignment, Map2d, ProjectionFilter, cm_depth_consistency};
@@ -153,7 +153,7 @@ pub(crate) fn run(args: DemoArgs) -> Result<()> {
     let bundle = model::load_bundle(args.model.as_deref(), &device)?;
     let sampler = generation::resolve_sampler(
         &bundle,
-        generation::SamplerChoice {
+        SamplerChoice {
             name: args.sampler,
             spacing: args.spacing,
             steps: args.steps,

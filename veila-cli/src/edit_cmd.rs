@@ -15,12 +15,12 @@ use veila_data::range_exr::read_range_exr;
 use veila_data::scan::{PointFormat, read_points};
 use veila_data::vis::render::{self, render_range};
 use veila_diffusion::app::bundle::Bundle;
-use veila_diffusion::app::{GenerateOptions, ScanPipeline};
+use veila_diffusion::app::{GenerateOptions, SamplerChoice, ScanPipeline};
 use veila_diffusion::{RepaintConfig, SamplerConfig, SamplerKind, SamplerName};
 use veila_geom::{ProjectionOptions, Projector, RangeImage, RayTable};
 
 use crate::generation::{
-    InputInfo, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerChoice, ScanRecord, Seconds, check_options,
+    InputInfo, ModelInfo, RigArgs, SAMPLE_BATCH, ScanRecord, Seconds, check_options,
     inpainting_sampler_help, input_info, load_rig, model_info, range_preview, resolve_sampler,
     sampler_parser, write_scan,
 };

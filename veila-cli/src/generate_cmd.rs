@@ -21,13 +21,13 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::{ArgGroup, Args};
 use serde::Serialize;
-use veila_diffusion::app::{GenerateOptions, ScanPipeline};
+use veila_diffusion::app::{GenerateOptions, SamplerChoice, ScanPipeline};
 use veila_diffusion::{SamplerConfig, SamplerName};
 
 use crate::generation::{
-    InputInfo, MAX_SAMPLES, ModelInfo, RigArgs, SAMPLE_BATCH, SamplerChoice, ScanRecord, Seconds,
-    check_options, input_info, load_rig, model_info, resolve_sampler, round3, sampler_help,
-    sampler_parser, write_scan,
+    InputInfo, MAX_SAMPLES, ModelInfo, RigArgs, SAMPLE_BATCH, ScanRecord, Seconds, check_options,
+    input_info, load_rig, model_info, resolve_sampler, round3, sampler_help, sampler_parser,
+    write_scan,
 };
 use crate::workers::WorkerArgs;
 use crate::{model, progress, staging};

@@ -15,9 +15,10 @@ use veila_data::scan::write_kitti_bin;
 use veila_data::vis::render::{
     BevOptions, OverlayOptions, RangePreview, render_bev, render_overlay, render_range,
 };
-pub(crate) use veila_diffusion::app::SamplerChoice;
 use veila_diffusion::app::bundle::{Bundle, DENOISER_FILE, Manifest, sha256_hex};
-use veila_diffusion::app::{GenerateOptions, RigView, Scan, load_view, point_colours};
+use veila_diffusion::app::{
+    GenerateOptions, RigView, SamplerChoice, Scan, load_view, point_colours,
+};
 use veila_diffusion::{SamplerConfig, SamplerName, Spacing};
 
 use crate::model;

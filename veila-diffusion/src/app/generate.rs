@@ -133,7 +133,8 @@ impl GenerateOptions {
 
     /// Checks these options against `bundle`, as sampling with them does, for a door to call
     /// before any work: the sampler's settings ([`crate::SamplerConfig::validate`]; 0 steps, the mean
-    /// network alone, only for a bundle with one: a residual's or a prior's), at least one sample, and a
+    /// network alone, only for a bundle with one, a residual's or a prior's, and an image-conditioned
+    /// draw), at least one sample, and a
     /// [`residual_weight`](Self::residual_weight) in [`RESIDUAL_WEIGHT`], other than 1 only for a
     /// residual-diffusion bundle, and a [`start_t`](crate::SamplerConfig::start_t) only for a
     /// bundle with a prior.
@@ -146,6 +147,15 @@ impl GenerateOptions {
                 reason: "0 sampler steps (the mean network alone) need a bundle with a mean \
                          network: a residual-diffusion bundle or one with a prior"
                     .into(),
+            });
+        }
+        if self.sampler.steps == 0 && (self.unconditional || !bundle.is_conditional()) {
+            return Err(Error::InvalidConfig {
+                field: "steps",
+                reason:
+                    "0 sampler steps (the mean network alone) need the image: the mean network \
+                         has no unconditional branch"
+                        .into(),
             });
         }
         if self.samples == 0 {
@@ -419,14 +429,6 @@ fn check_options(
 ) -> Result<bool> {
     options.check(bundle)?;
     let conditional = bundle.is_conditional() && !options.unconditional;
-    if options.sampler.steps == 0 && !conditional {
-        return Err(Error::InvalidConfig {
-            field: "steps",
-            reason: "0 sampler steps (the mean network alone) need the image: the mean network \
-                     has no unconditional branch"
-                .into(),
-        });
-    }
     if conditional && views.is_empty() {
         return Err(Error::InvalidConfig {
             field: "views",
