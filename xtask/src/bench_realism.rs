@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::Args;
 use veila_diffusion::SamplerName;
-use veila_diffusion::app::realism::RealismOptions;
+use veila_diffusion::app::realism::{Degradation, RealismOptions};
 
 use crate::bench_real::sampler_parser;
 use crate::progress::{Terminal, in_workspace, workspace_root};
@@ -43,6 +43,11 @@ pub struct BenchRealismArgs {
     /// (comma-separated) [default: each bundle's own].
     #[arg(long, value_delimiter = ',')]
     start_t: Vec<f64>,
+    /// Calibration rows: the data floor's true scans degraded and scored like a generator's,
+    /// noise:P (P % of range noise, above 0 to 100) or blur:K (a K x K window of log range, K odd,
+    /// 3 to 15), comma-separated [default: none].
+    #[arg(long, value_delimiter = ',')]
+    calibrate: Vec<Degradation>,
     /// Held-out test frames (from the first model's test list), split into --folds folds of
     /// equal size.
     #[arg(long, default_value_t = 402)]
@@ -73,6 +78,7 @@ pub fn run(args: BenchRealismArgs) -> Result<()> {
         spacings: args.spacing,
         guidance: args.guidance,
         start_t: args.start_t,
+        calibrations: args.calibrate,
         test_frames: args.test_frames,
         folds: args.folds,
         seeds: args.seeds,

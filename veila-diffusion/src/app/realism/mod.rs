@@ -20,7 +20,9 @@
 //!
 //! The data floor ([`RealismBench::floor`]) scores the true scans of fold `f + 1` as if they had
 //! been generated for fold `f`, on every distribution metric: what a perfect generator of this
-//! many scans would score.
+//! many scans would score. Calibration rows ([`Degradation`], `calibrate.rs`) put those true
+//! scans through a known degradation (range noise, a blur) and score them the same way: what a
+//! realism figure means in pixels.
 
 use veila_geom::{RangeImage, RayTable, Region};
 use veila_metrics::texture::{
@@ -36,9 +38,11 @@ use super::sim_examples::SimExample;
 use crate::error::{Error, Result, invalid};
 use candle_core::Device;
 
+mod calibrate;
 mod report;
 mod run;
 
+pub use calibrate::Degradation;
 pub use report::{RealismReport, Row};
 pub use run::{RealismOptions, run};
 
@@ -510,6 +514,42 @@ mod tests {
             }
             let t = value(m, "texture along rows (w1, decades)", "view");
             assert!(t.is_finite() && t > 0.0, "{t}");
+        }
+        // a calibration row is the floor's scans degraded: a vanishing noise scores as the floor,
+        // without the metrics that compare a scan with its own frame; a blur loses the edges.
+        // (Not FRD: the range net projects a 256-column scan onto its 512 columns, whose edges
+        // the ray centres lie on, so a rounding decides each point's column, and on a set of 4
+        // scans that moves FRD by about 10 %.)
+        let faint = bench
+            .calibration(&bundle, "noise:0.0001".parse().unwrap())
+            .unwrap();
+        let blur = bench
+            .calibration(&bundle, "blur:5".parse().unwrap())
+            .unwrap();
+        assert_eq!((faint.len(), blur.len()), (2, 2));
+        for ((c, b), fl) in faint.iter().zip(&blur).zip(&floor) {
+            for metric in ["fpd", "jsd", "mmd (x1e4)"] {
+                let (v, w) = (value(c, metric, "all"), value(fl, metric, "all"));
+                assert!(
+                    (v - w).abs() <= 1e-3 * w.max(1.0),
+                    "{metric}: {v} against {w}"
+                );
+            }
+            assert!(!c.contains_key("range mae (m)") && !c.contains_key("cm-dc (abs rel)"));
+            let edges = |m: &SetMetrics| value(m, "depth edges (%)", "view");
+            assert!(
+                edges(b) < 0.5 * edges(fl),
+                "{} against {}",
+                edges(b),
+                edges(fl)
+            );
+            let smooth = |m: &SetMetrics| value(m, "smooth pairs (%)", "view");
+            assert!(
+                smooth(b) > smooth(fl),
+                "{} against {}",
+                smooth(b),
+                smooth(fl)
+            );
         }
         // the floor's memorisation row is the true scans' own distance to the pool
         assert_eq!(

@@ -17,7 +17,7 @@ use crate::error::Result;
 pub struct Row {
     /// Its label in the tables.
     pub label: String,
-    /// `model`, `baseline` or `floor`.
+    /// `model`, `baseline`, `floor` or `calibration`.
     pub kind: &'static str,
     /// Seconds per generated scan (model rows).
     pub seconds_per_scan: Option<f64>,

@@ -8,7 +8,7 @@ use candle_core::Device;
 use veila_nn::feature_nets::FeatureNets;
 
 use super::report::{RealismReport, Row};
-use super::{RealismBench, RowSpec};
+use super::{Degradation, RealismBench, RowSpec};
 use crate::app::bundle::Bundle;
 use crate::app::progress::{Bar, Progress};
 use crate::app::sim_examples::{RenderStyle, render_split_shown, test_list_for, train_split_of};
@@ -37,6 +37,9 @@ pub struct RealismOptions {
     /// Start levels of the rows of bundles with a prior mean network
     /// ([`SamplerConfig::start_t`]; none: each bundle's own).
     pub start_t: Vec<f64>,
+    /// Calibration rows: the data floor's true scans put through each degradation and scored
+    /// like a generator's (none: no calibration rows).
+    pub calibrations: Vec<Degradation>,
     /// Held-out test frames, split into `folds` folds of equal size.
     pub test_frames: usize,
     /// Folds of the test frames.
@@ -109,6 +112,10 @@ pub fn run(opts: &RealismOptions, progress: &dyn Progress) -> Result<RealismRepo
             n,
         ),
     ];
+    for &d in &opts.calibrations {
+        let sets = bench.calibration(judge, d)?;
+        rows.push(Row::new(d.label(), "calibration", None, (&sets, &[]), n));
+    }
     for (bundle, dir) in bundles.iter().zip(&opts.models) {
         for (spec, label) in row_specs(bundle, opts) {
             let label = format!("{} {label}", dir.display());
