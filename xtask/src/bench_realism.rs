@@ -45,7 +45,8 @@ pub struct BenchRealismArgs {
     start_t: Vec<f64>,
     /// Calibration rows: the data floor's true scans degraded and scored like a generator's,
     /// noise:P (P % of range noise, above 0 to 100) or blur:K (a K x K window of log range, K odd,
-    /// 3 to 15), comma-separated [default: none].
+    /// 3 to 15; blur:K:LO-HI blurs only the pixels whose range is LO to HI metres),
+    /// comma-separated [default: none].
     #[arg(long, value_delimiter = ',')]
     calibrate: Vec<Degradation>,
     /// Held-out test frames (from the first model's test list), split into --folds folds of

@@ -40,6 +40,9 @@ pub enum Degradation {
     Blur {
         /// Pixels on a side, odd.
         size: usize,
+        /// Only the pixels whose own range lies in `[lo, hi)` metres change (their windows still
+        /// hold every non-empty pixel); `None`: every pixel.
+        band_m: Option<(f32, f32)>,
     },
 }
 
@@ -58,7 +61,7 @@ impl Degradation {
                     }
                 }
             }
-            Degradation::Blur { size } => {
+            Degradation::Blur { size, band_m } => {
                 let (rows, cols) = (scan.rows as usize, scan.cols as usize);
                 let half = (size / 2) as isize;
                 let ln: Vec<f64> = scan
@@ -68,7 +71,9 @@ impl Degradation {
                     .collect();
                 for y in 0..rows {
                     for x in 0..cols {
-                        if !scan.mask[y * cols + x] {
+                        let r = scan.range_m[y * cols + x];
+                        let in_band = band_m.is_none_or(|(lo, hi)| r >= lo && r < hi);
+                        if !scan.mask[y * cols + x] || !in_band {
                             continue;
                         }
                         let (mut sum, mut n) = (0.0, 0usize);
@@ -98,15 +103,18 @@ impl Degradation {
             Degradation::RangeNoise { percent } => {
                 format!("data floor with {percent} % range noise (calibration)")
             }
-            Degradation::Blur { size } => {
-                format!("data floor blurred {size} x {size} in log range (calibration)")
+            Degradation::Blur { size, band_m } => {
+                let band = band_m
+                    .map(|(lo, hi)| format!(" where the range is {lo} to {hi} m"))
+                    .unwrap_or_default();
+                format!("data floor blurred {size} x {size} in log range{band} (calibration)")
             }
         }
     }
 }
 
 /// `noise:P` (P percent of range noise, above 0 and at most 100) or `blur:K` (a K x K window,
-/// K odd, 3 to 15).
+/// K odd, 3 to 15), `blur:K:LO-HI` for the pixels whose range is `LO` to `HI` metres alone.
 impl FromStr for Degradation {
     type Err = Error;
 
@@ -115,7 +123,7 @@ impl FromStr for Degradation {
             invalid(
                 "calibration",
                 format!(
-                    "`{s}`: {why} (expected noise:P, P above 0 and at most {MAX_NOISE_PERCENT}, or blur:K, K odd, 3 to {MAX_BLUR})"
+                    "`{s}`: {why} (expected noise:P, P above 0 and at most {MAX_NOISE_PERCENT}, or blur:K[:LO-HI], K odd, 3 to {MAX_BLUR}, LO-HI a range band in metres)"
                 ),
             )
         };
@@ -129,6 +137,23 @@ impl FromStr for Degradation {
                 Ok(Degradation::RangeNoise { percent })
             }
             "blur" => {
+                let (value, band) = match value.split_once(':') {
+                    Some((v, b)) => (v, Some(b)),
+                    None => (value, None),
+                };
+                let band_m = band
+                    .map(|b| {
+                        let (lo, hi) =
+                            b.split_once('-').ok_or_else(|| bad("no `-` in the band"))?;
+                        let num =
+                            |t: &str| t.trim().parse::<f32>().map_err(|_| bad("not a number"));
+                        let (lo, hi) = (num(lo)?, num(hi)?);
+                        if !(lo >= 0.0 && hi > lo && hi.is_finite()) {
+                            return Err(bad("the band must be 0 <= LO < HI"));
+                        }
+                        Ok((lo, hi))
+                    })
+                    .transpose()?;
                 let size: usize = value
                     .trim()
                     .parse()
@@ -136,7 +161,7 @@ impl FromStr for Degradation {
                 if !(3..=MAX_BLUR).contains(&size) || size.is_multiple_of(2) {
                     return Err(bad("out of range"));
                 }
-                Ok(Degradation::Blur { size })
+                Ok(Degradation::Blur { size, band_m })
             }
             _ => Err(bad("unknown kind")),
         }
@@ -147,7 +172,13 @@ impl fmt::Display for Degradation {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Degradation::RangeNoise { percent } => write!(f, "noise:{percent}"),
-            Degradation::Blur { size } => write!(f, "blur:{size}"),
+            Degradation::Blur { size, band_m } => {
+                write!(f, "blur:{size}")?;
+                match band_m {
+                    Some((lo, hi)) => write!(f, ":{lo}-{hi}"),
+                    None => Ok(()),
+                }
+            }
         }
     }
 }
@@ -233,7 +264,11 @@ mod tests {
                 1.0 + (y * 12 + x) as f32 * 0.37
             }
         });
-        let out = Degradation::Blur { size: 3 }.apply(&truth, 0);
+        let out = Degradation::Blur {
+            size: 3,
+            band_m: None,
+        }
+        .apply(&truth, 0);
         assert_eq!(out.mask, truth.mask);
         let at = |y: usize, x: usize| truth.range_m[y * 12 + x];
         // the seam: column 0's window holds column 11; the top row is clamped (row 0 twice)
@@ -260,13 +295,40 @@ mod tests {
         assert_eq!(out.range_m[2 * 12 + 5], 0.0);
         // a constant scan is a fixed point
         let flat = scan(|_, _| 12.5);
-        let b = Degradation::Blur { size: 5 }.apply(&flat, 0);
+        let b = Degradation::Blur {
+            size: 5,
+            band_m: None,
+        }
+        .apply(&flat, 0);
         assert!(b.range_m.iter().all(|r| (r - 12.5).abs() < 1e-4));
+        // a band: only the pixels whose own range is in it change, from the same windows
+        let banded = Degradation::Blur {
+            size: 3,
+            band_m: Some((10.0, 20.0)),
+        }
+        .apply(&truth, 0);
+        let mut changed = 0;
+        for ((b, o), t) in banded.range_m.iter().zip(&out.range_m).zip(&truth.range_m) {
+            if (10.0..20.0).contains(t) {
+                assert_eq!(b, o);
+                changed += usize::from(b != t);
+            } else {
+                assert_eq!(b, t);
+            }
+        }
+        assert!(changed > 10, "{changed}");
     }
 
     #[test]
     fn calibrations_parse_within_their_bounds_and_print_back() {
-        for s in ["noise:1", "noise:0.5", "blur:3", "blur:15"] {
+        for s in [
+            "noise:1",
+            "noise:0.5",
+            "blur:3",
+            "blur:15",
+            "blur:3:20-120",
+            "blur:5:0-7.5",
+        ] {
             let d: Degradation = s.parse().unwrap();
             assert_eq!(d.to_string(), s);
         }
@@ -278,6 +340,10 @@ mod tests {
             "blur:4",
             "blur:1",
             "blur:17",
+            "blur:3:20",
+            "blur:3:20-10",
+            "blur:3:-1-5",
+            "blur:3:0-inf",
             "blur",
             "sharpen:3",
         ] {
