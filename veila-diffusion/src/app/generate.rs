@@ -134,10 +134,9 @@ impl GenerateOptions {
     /// Checks these options against `bundle`, as sampling with them does, for a door to call
     /// before any work: the sampler's settings ([`crate::SamplerConfig::validate`]; 0 steps, the mean
     /// network alone, only for a bundle with one, a residual's or a prior's, and an image-conditioned
-    /// draw), at least one sample, and a
-    /// [`residual_weight`](Self::residual_weight) in [`RESIDUAL_WEIGHT`], other than 1 only for a
-    /// residual-diffusion bundle, and a [`start_t`](crate::SamplerConfig::start_t) only for a
-    /// bundle with a prior.
+    /// draw), at least one sample, and a [`residual_weight`](Self::residual_weight) in
+    /// [`RESIDUAL_WEIGHT`], other than 1 only for a residual-diffusion bundle, and a
+    /// [`start_t`](crate::SamplerConfig::start_t) only for a bundle with a prior.
     pub fn check(&self, bundle: &Bundle) -> Result<()> {
         self.sampler.validate()?;
         let residual = bundle.config.residual.is_some();

@@ -99,7 +99,7 @@ pub fn metric_stats(
 }
 
 #[cfg(feature = "sim")]
-pub use sets::{Judges, data_floor, set_metrics};
+pub use sets::{Judges, data_floor, distribution_metrics, set_metrics};
 
 /// The set metrics on simulated frames.
 #[cfg(feature = "sim")]
@@ -290,39 +290,10 @@ mod sets {
                 got: format!("{} scans of {} frames", generated.len(), tests.len()),
             });
         }
-        let rays = RayTable::new(&bundle.config.denoiser.sensor)?;
-        let unprojected = generated
-            .iter()
-            .map(|r| Ok(rays.unproject(r)?))
-            .collect::<Result<Vec<_>>>()?;
-        let gen_points: Vec<Vec<Vec3>> = unprojected.iter().map(|u| u.points.clone()).collect();
-        let gen_intensity: Vec<Vec<f32>> =
-            unprojected.iter().map(|u| u.intensity.clone()).collect();
+        let (gen_points, gen_intensity) = unproject_all(bundle, generated)?;
         let mut m = SetMetrics::new();
-        let cfg = BevConfig::r2dm();
-        for (region, reference) in Region::ALL.into_iter().zip(&judges.reference) {
-            let hg = gen_points
-                .iter()
-                .map(|p| bev_histogram(p, &cfg, region, "generated scan"))
-                .collect::<std::result::Result<Vec<_>, _>>()?;
-            let hr = &reference.histograms;
-            let rn = region.name().to_string();
-            m.entry("jsd".into())
-                .or_default()
-                .insert(rn.clone(), or_nan("jsd", dist::jsd(&hg, hr)));
-            m.entry("mmd (x1e4)".into()).or_default().insert(
-                rn.clone(),
-                1e4 * or_nan("mmd", dist::mmd_r2dm_dense(&hg, hr, 0.5)),
-            );
-            if let (Some(nets), Some(reference)) = (nets, &reference.features) {
-                let (frd, fpd) = frd_fpd(nets, &gen_points, &gen_intensity, reference, region)
-                    .unwrap_or_else(|e| {
-                        tracing::warn!("frd / fpd ({rn}): {e}; reported as n/a");
-                        (f64::NAN, f64::NAN)
-                    });
-                m.entry("frd".into()).or_default().insert(rn.clone(), frd);
-                m.entry("fpd".into()).or_default().insert(rn.clone(), fpd);
-            }
+        distribution_into(&mut m, &gen_points, &gen_intensity, judges, nets)?;
+        for region in Region::ALL {
             let mut sum = 0.0;
             let mut n = 0usize;
             for (g, ex) in generated.iter().zip(tests) {
@@ -331,9 +302,10 @@ mod sets {
                     n += 1;
                 }
             }
-            m.entry("range mae (m)".into())
-                .or_default()
-                .insert(rn, if n > 0 { sum / n as f64 } else { f64::NAN });
+            m.entry("range mae (m)".into()).or_default().insert(
+                region.name().into(),
+                if n > 0 { sum / n as f64 } else { f64::NAN },
+            );
         }
         // cross-modal consistency in the camera's field of view, against the encoder heads
         let filter = ProjectionFilter::default();
@@ -378,6 +350,74 @@ mod sets {
             .or_default()
             .insert(front, if ns > 0 { sc / ns as f64 } else { f64::NAN });
         Ok(m)
+    }
+
+    /// The distribution metrics alone (JSD, MMD, and FRD / FPD with the feature networks) of a
+    /// set of scans on `bundle`'s grid against the fold's [`Judges`], every region: what compares
+    /// the set with the fold's true scans as a whole, not scan by scan with their frames.
+    pub fn distribution_metrics(
+        bundle: &Bundle,
+        scans: &[RangeImage],
+        judges: &Judges,
+        nets: Option<&FeatureNets>,
+    ) -> Result<SetMetrics> {
+        let (points, intensity) = unproject_all(bundle, scans)?;
+        let mut m = SetMetrics::new();
+        distribution_into(&mut m, &points, &intensity, judges, nets)?;
+        Ok(m)
+    }
+
+    /// Per scan: its points and their intensities.
+    type ScanPoints = (Vec<Vec<Vec3>>, Vec<Vec<f32>>);
+
+    /// Every scan's points and intensities.
+    fn unproject_all(bundle: &Bundle, scans: &[RangeImage]) -> Result<ScanPoints> {
+        let rays = RayTable::new(&bundle.config.denoiser.sensor)?;
+        let mut points = Vec::with_capacity(scans.len());
+        let mut intensity = Vec::with_capacity(scans.len());
+        for r in scans {
+            let u = rays.unproject(r)?;
+            points.push(u.points);
+            intensity.push(u.intensity);
+        }
+        Ok((points, intensity))
+    }
+
+    /// JSD, MMD and (with the feature networks) FRD / FPD of the scans' points against the
+    /// judges' reference, every region, into `m`.
+    fn distribution_into(
+        m: &mut SetMetrics,
+        points: &[Vec<Vec3>],
+        intensity: &[Vec<f32>],
+        judges: &Judges,
+        nets: Option<&FeatureNets>,
+    ) -> Result<()> {
+        let cfg = BevConfig::r2dm();
+        for (region, reference) in Region::ALL.into_iter().zip(&judges.reference) {
+            let hg = points
+                .iter()
+                .map(|p| bev_histogram(p, &cfg, region, "generated scan"))
+                .collect::<std::result::Result<Vec<_>, _>>()?;
+            let hr = &reference.histograms;
+            let rn = region.name().to_string();
+            m.entry("jsd".into())
+                .or_default()
+                .insert(rn.clone(), or_nan("jsd", dist::jsd(&hg, hr)));
+            m.entry("mmd (x1e4)".into()).or_default().insert(
+                rn.clone(),
+                1e4 * or_nan("mmd", dist::mmd_r2dm_dense(&hg, hr, 0.5)),
+            );
+            if let (Some(nets), Some(reference)) = (nets, &reference.features) {
+                let (frd, fpd) = frd_fpd(nets, points, intensity, reference, region)
+                    .unwrap_or_else(|e| {
+                        tracing::warn!("frd / fpd ({rn}): {e}; reported as n/a");
+                        (f64::NAN, f64::NAN)
+                    });
+                m.entry("frd".into()).or_default().insert(rn.clone(), frd);
+                m.entry("fpd".into()).or_default().insert(rn, fpd);
+            }
+        }
+        Ok(())
     }
 
     /// The data floor: the set metrics (JSD, MMD, and FRD / FPD where the judges hold feature

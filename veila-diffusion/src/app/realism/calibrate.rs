@@ -13,12 +13,8 @@ use veila_geom::RangeImage;
 
 use super::RealismBench;
 use crate::app::bundle::Bundle;
-use crate::app::scoring::SetMetrics;
+use crate::app::scoring::{SetMetrics, distribution_metrics};
 use crate::error::{Error, Result, invalid};
-
-/// The metrics of a calibration set that compare a scan with its own frame: meaningless for the
-/// true scans of another fold, so they are left out of a calibration row.
-const FRAME_METRICS: [&str; 3] = ["range mae (m)", "cm-dc (abs rel)", "cm-sc (%)"];
 
 /// Largest blur window (pixels on a side).
 pub const MAX_BLUR: usize = 15;
@@ -185,8 +181,9 @@ impl fmt::Display for Degradation {
 
 impl RealismBench {
     /// A calibration row, one set per fold: the true scans of fold `f + 1` (the data floor's)
-    /// put through `degradation` and scored against fold `f` like a generator's, without the
-    /// metrics that compare a scan with its own frame.
+    /// put through `degradation` and scored against fold `f` like a generator's, on every metric
+    /// but those that compare a scan with its own frame (range MAE, CM-DC, CM-SC), which mean
+    /// nothing for the scans of another fold and are not computed.
     pub fn calibration(&self, judge: &Bundle, degradation: Degradation) -> Result<Vec<SetMetrics>> {
         let k = self.num_folds();
         (0..k)
@@ -197,10 +194,10 @@ impl RealismBench {
                     .enumerate()
                     .map(|(i, s)| degradation.apply(s, (f * 100_003 + i) as u64))
                     .collect();
-                let mut m = self.score(judge, f, &scans)?;
-                for key in FRAME_METRICS {
-                    m.remove(key);
-                }
+                let mut m =
+                    distribution_metrics(judge, &scans, &self.judges[f], self.nets.as_ref())?;
+                self.texture_into(&mut m, &self.folds[f], &scans)?;
+                self.memorisation_into(&mut m, &scans)?;
                 Ok(m)
             })
             .collect()
