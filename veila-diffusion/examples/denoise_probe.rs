@@ -28,9 +28,14 @@
 //! enough, the sampler must hand the frame back with its texture; the lowest `t₀` at which the
 //! texture breaks is where the network's `x̂₀` stops being precise enough for it.
 //!
+//! With `--bands` it splits the range channel's `x̂₀` error by the true range of the pixel (bands
+//! of metres, dropped rays apart), in the encoded unit the loss sees and in metres, next to the
+//! frames' own mean in that band: where in depth the network errs, and how much of each band's
+//! variance it has explained at each level.
+//!
 //! ```sh
 //! cargo run --release -p veila-diffusion --features sim --example denoise_probe -- \
-//!     BUNDLE_DIR [FRAMES] [--scenes LIST] [--sample N] [--low] [--restart]
+//!     BUNDLE_DIR [FRAMES] [--scenes LIST] [--sample N] [--low] [--restart] [--bands]
 //! ```
 //! Run from the workspace root (it reads `scenes/test-v5.txt` unless `--scenes`).
 
@@ -44,14 +49,14 @@ use veila_diffusion::app::bundle::Bundle;
 use veila_diffusion::app::sim_examples::render_split;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
-    const USAGE: &str =
-        "usage: denoise_probe BUNDLE_DIR [FRAMES] [--scenes LIST] [--sample N] [--low] [--restart]";
+    const USAGE: &str = "usage: denoise_probe BUNDLE_DIR [FRAMES] [--scenes LIST] [--sample N] [--low] [--restart] [--bands]";
     let mut dir = None;
     let mut n = 8usize;
     let mut scenes = String::from("scenes/test-v5.txt");
     let mut draws = 0usize;
     let mut low = false;
     let mut restart = false;
+    let mut bands = false;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
@@ -59,6 +64,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             "--sample" => draws = args.next().ok_or(USAGE)?.parse()?,
             "--low" => low = true,
             "--restart" => restart = true,
+            "--bands" => bands = true,
             _ if dir.is_none() => dir = Some(a),
             _ => n = a.parse()?,
         }
@@ -94,6 +100,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             mse(&mean)?
         );
     }
+    if bands {
+        band_errors(&bundle, &diffusion, &model, &frames, &x0, &mean, &mut rng)?;
+    }
     if low {
         low_levels(&diffusion, &model, &x0, &mut rng)?;
     }
@@ -102,6 +111,90 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     if draws > 0 {
         sample_check(&bundle, &frames, draws)?;
+    }
+    Ok(())
+}
+
+/// The `--bands` table (module docs): the range channel's `x̂₀` error by the pixel's true range.
+fn band_errors(
+    bundle: &Bundle,
+    diffusion: &Diffusion,
+    model: &VeilaDenoiser<'_>,
+    frames: &[veila_diffusion::app::sim_examples::SimExample],
+    x0: &candle_core::Tensor,
+    mean: &candle_core::Tensor,
+    rng: &mut rand_chacha::ChaCha8Rng,
+) -> Result<(), Box<dyn std::error::Error>> {
+    const EDGES_M: [f32; 5] = [0.0, 10.0, 20.0, 40.0, f32::INFINITY];
+    let labels = ["dropped", "< 10 m", "10-20 m", "20-40 m", ">= 40 m"];
+    // band of each pixel of the batch (0: dropped ray), in the channel-0 layout of x0
+    let band: Vec<usize> = frames
+        .iter()
+        .flat_map(|f| {
+            f.range.range_m.iter().zip(&f.range.mask).map(|(&r, &m)| {
+                if !m || !(r.is_finite() && r > 0.0) {
+                    0
+                } else {
+                    1 + EDGES_M[1..].iter().position(|&e| r < e).unwrap_or(3)
+                }
+            })
+        })
+        .collect();
+    let range_channel = |x: &candle_core::Tensor| -> candle_core::Result<Vec<f32>> {
+        x.narrow(1, 0, 1)?.flatten_all()?.to_vec1::<f32>()
+    };
+    let truth = range_channel(x0)?;
+    let mean_v = range_channel(mean)?;
+    let enc = &bundle.config.encoding;
+    let count: Vec<usize> = (0..5)
+        .map(|b| band.iter().filter(|&&x| x == b).count())
+        .collect();
+    println!(
+        "\nrange channel, pixels per band: {}",
+        labels
+            .iter()
+            .zip(&count)
+            .map(|(l, c)| format!("{l} {c}"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    println!(
+        "| t | σ | {} |\n|---|---|{}",
+        labels
+            .iter()
+            .map(|l| format!("{l}: RMS enc / mean's / metres MAE"))
+            .collect::<Vec<_>>()
+            .join(" | "),
+        "---|".repeat(5)
+    );
+    for t in [0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9] {
+        let level = diffusion.schedule().level(t);
+        let eps = veila_diffusion::noise::randn(rng, x0.dims(), x0.device())?;
+        let x_t = ((x0 * level.alpha())? + (&eps * level.sigma())?)?;
+        let den = diffusion.denoise(model, &x_t, &level, None, None, None)?;
+        let pred = range_channel(&den.x0)?;
+        let mut sq = [0.0f64; 5];
+        let mut sq_mean = [0.0f64; 5];
+        let mut abs_m = [0.0f64; 5];
+        for (p, &b) in band.iter().enumerate() {
+            let e = (pred[p] - truth[p]) as f64;
+            sq[b] += e * e;
+            let em = (mean_v[p] - truth[p]) as f64;
+            sq_mean[b] += em * em;
+            abs_m[b] += (enc.decode_range(pred[p]) - enc.decode_range(truth[p])).abs() as f64;
+        }
+        let cells: Vec<String> = (0..5)
+            .map(|b| {
+                let n = count[b].max(1) as f64;
+                format!(
+                    "{:.4} / {:.4} / {:.2}",
+                    (sq[b] / n).sqrt(),
+                    (sq_mean[b] / n).sqrt(),
+                    abs_m[b] / n
+                )
+            })
+            .collect();
+        println!("| {t} | {:.4} | {} |", level.sigma(), cells.join(" | "));
     }
     Ok(())
 }

@@ -145,6 +145,10 @@ pub struct TrainDefaultArgs {
     /// sample's fine texture forms (the rest uniform in time) [default: none, uniform time].
     #[arg(long)]
     pub clean_share: Option<f64>,
+    /// Weigh each return's error in the denoiser's loss by ((r + 1) / 11)^P, r its range in
+    /// metres: P from 0 (every pixel alike) to 2 (errors as metres) [default: none, alike].
+    #[arg(long, value_name = "P")]
+    pub range_weight: Option<f64>,
     /// EMA decay of the shipped weights, in [0, 1).
     #[arg(long, default_value_t = veila_diffusion::app::sim_recipe::RECIPE_EMA_DECAY)]
     pub ema_decay: f64,
@@ -191,6 +195,7 @@ impl TrainDefaultArgs {
             ema_decay: self.ema_decay,
             loss_weighting: self.loss_weighting,
             clean_share: self.clean_share,
+            range_weight: self.range_weight,
         }
     }
 }

@@ -41,6 +41,44 @@ pub fn regression_weight(enc: &crate::RangeEncoding, x0: &[f32], hw: usize) -> V
     w
 }
 
+/// Per-element loss weights of the denoiser under [`BundleConfig::range_weight`] `power`: a
+/// return's range and intensity weigh `((r + 1) / 11)^power`, `r` its range in metres decoded from
+/// `x0` (1 at 10 m); dropped rays and the ray-drop channel weigh 1.
+pub fn range_weight(enc: &crate::RangeEncoding, x0: &[f32], hw: usize, power: f64) -> Vec<f32> {
+    let c = enc.num_channels();
+    let mut w = vec![1.0f32; c * hw];
+    for p in 0..hw.min(x0.len()) {
+        let returned = match enc.raydrop_channel() {
+            Some(dc) => x0
+                .get(dc * hw + p)
+                .is_some_and(|&v| v > enc.raydrop_threshold),
+            None => enc.decode_range(x0[p]) >= enc.min_range_m,
+        };
+        if !returned {
+            continue;
+        }
+        let r = enc.decode_range(x0[p]) as f64;
+        let wp = ((r + 1.0) / 11.0).powf(power) as f32;
+        for ch in 0..c {
+            if Some(ch) != enc.raydrop_channel() {
+                w[ch * hw + p] = wp;
+            }
+        }
+    }
+    w
+}
+
+/// The loss weights of one encoded example `x0` in `stage`: the mean network's
+/// [`regression_weight`]; the denoiser's [`range_weight`] where the config asks for one (on the
+/// true scan, so a residual denoiser weighs its residual by the range it corrects); `None`: all 1.
+pub fn loss_weight(config: &BundleConfig, stage: Stage, x0: &[f32], hw: usize) -> Option<Vec<f32>> {
+    match (stage, config.range_weight) {
+        (Stage::Mean, _) => Some(regression_weight(&config.encoding, x0, hw)),
+        (Stage::Denoiser, Some(p)) if p > 0.0 => Some(range_weight(&config.encoding, x0, hw, p)),
+        _ => None,
+    }
+}
+
 /// The raw residual `x₀ − μ` of residual diffusion: where the target has no return, its range and
 /// intensity are taken to be the mean's (they are not decoded), so only the ray-drop channel
 /// carries a residual there.
@@ -289,4 +327,42 @@ pub fn residual_scale_of(
         }
     }
     Ok(sums.scale())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A return's weight is `((r + 1) / 11)^p` on range and intensity, worked out by hand for
+    /// a few ranges; a dropped ray and the ray-drop channel keep 1.
+    #[test]
+    fn range_weight_grows_with_the_true_range_and_spares_dropped_rays() {
+        let enc = crate::RangeEncoding::kitti();
+        let ranges_m = [10.0f32, 32.0, 2.0, -1.0]; // the last: a dropped ray
+        let hw = ranges_m.len();
+        let mut x0 = vec![-1.0f32; 3 * hw];
+        for (p, &r) in ranges_m.iter().enumerate() {
+            if r > 0.0 {
+                x0[p] = enc.encode_range(r);
+                x0[hw + p] = 0.2;
+                x0[2 * hw + p] = 1.0;
+            }
+        }
+        for power in [1.0, 2.0, 0.5] {
+            let w = range_weight(&enc, &x0, hw, power);
+            let want = [1.0, 3f64.powf(power), (3.0f64 / 11.0).powf(power), 1.0];
+            for (p, want) in want.iter().enumerate() {
+                for ch in 0..2 {
+                    let got = w[ch * hw + p] as f64;
+                    assert!(
+                        (got - want).abs() < 1e-4 * want,
+                        "power {power} pixel {p} channel {ch}: {got} vs {want}"
+                    );
+                }
+                assert_eq!(w[2 * hw + p], 1.0, "the ray-drop channel weighs 1");
+            }
+        }
+        // power 0 is every pixel alike
+        assert!(range_weight(&enc, &x0, hw, 0.0).iter().all(|&v| v == 1.0));
+    }
 }

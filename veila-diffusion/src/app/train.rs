@@ -22,8 +22,7 @@ use super::dataset::{ExampleSource, Examples, Order, Prefetcher, Rigs};
 pub use super::dataset::{TrainExample, TrainView};
 use super::generate::{ViewFeatures, encode_views};
 use super::mean::{
-    MeanPredictor, predict_means, regression_weight, residual_scale, residual_scale_of,
-    residual_target,
+    MeanPredictor, loss_weight, predict_means, residual_scale, residual_scale_of, residual_target,
 };
 use super::nn::{NetCond, VeilaDenoiser};
 use super::stage::{Stage, encode_examples, has_gcma, num_views, rig_condition, stage_config};
@@ -154,8 +153,7 @@ impl DenoiserTraining {
                 }
                 None => x0.push(Tensor::from_slice(&ex.x0, (1, c, h, w), device)?),
             }
-            if stage == Stage::Mean {
-                let wt = regression_weight(&config.encoding, &ex.x0, h * w);
+            if let Some(wt) = loss_weight(config, stage, &ex.x0, h * w) {
                 weights.push(Tensor::from_vec(wt, (1, c, h, w), device)?);
             }
             if conditional {
@@ -171,7 +169,7 @@ impl DenoiserTraining {
                 rigs: examples.iter().map(|e| e.rig(num_views(net))).collect(),
                 x0,
                 means: residual.is_some().then_some(mean_t),
-                weights: (stage == Stage::Mean).then_some(weights),
+                weights: (!weights.is_empty()).then_some(weights),
             },
             rigs: has_gcma(net).then(Rigs::new),
             epipolar: config.epipolar,
@@ -421,14 +419,13 @@ impl DenoiserTraining {
                 (Tensor::from_vec(x, (b, c, h, w), dev)?, None)
             }
         };
-        let weight = if st.stage == Stage::Mean {
-            let wt: Vec<f32> = examples
-                .iter()
-                .flat_map(|e| regression_weight(&config.encoding, &e.x0, h * w))
-                .collect();
-            Some(Tensor::from_vec(wt, (b, c, h, w), dev)?)
-        } else {
-            None
+        let weight = match examples
+            .iter()
+            .map(|e| loss_weight(config, st.stage, &e.x0, h * w))
+            .collect::<Option<Vec<_>>>()
+        {
+            Some(wt) => Some(Tensor::from_vec(wt.concat(), (b, c, h, w), dev)?),
+            None => None,
         };
         let image = match &input {
             Some(input) => {

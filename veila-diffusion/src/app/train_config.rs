@@ -34,6 +34,7 @@
 //! # ray_freqs = 4                  # octaves of each pixel's ray-direction Fourier features
 //! # loss_weighting = "min-snr"     # or "uniform": every noise level alike in the loss
 //! # clean_share = 0.25             # share of training draws at the clean levels (fine texture)
+//! # range_weight = 1.0             # a return's loss weight ((r + 1) / 11)^P: far errors count more
 //!
 //! [train]
 //! steps = 1000                     # denoiser steps
@@ -194,6 +195,10 @@ pub struct ModelSection {
     /// (`TrainLevels::clean_share`, within `[0, 1]`); default: the config's (uniform time).
     #[serde(default)]
     pub clean_share: Option<f64>,
+    /// The power of the range weight in the denoiser's loss, 0 to 2
+    /// (`BundleConfig::range_weight`); default: every pixel alike.
+    #[serde(default)]
+    pub range_weight: Option<f64>,
 }
 
 /// `[train]`.
@@ -610,6 +615,7 @@ impl TrainFile {
             ray_freqs: m.ray_freqs,
             loss_weighting,
             clean_share: m.clean_share,
+            range_weight: m.range_weight,
         })
         .map_err(|e| bad(format!("[model] {e}")))?;
         if let Some(views) = m.views {
@@ -760,6 +766,7 @@ mod tests {
             "ray_freqs": 6,
             "loss_weighting": "uniform",
             "clean_share": 0.25,
+            "range_weight": 1.0,
         });
         let veila_train = config(knobs).unwrap();
         let d = &veila_train.denoiser;
@@ -782,6 +789,7 @@ mod tests {
             veila_train.diffusion.train_levels,
             crate::TrainLevels::clean_share(0.25)
         );
+        assert_eq!(veila_train.range_weight, Some(1.0));
         // `train-default` with the same knobs trains the same networks
         let recipe = SimRecipe {
             method: Method::Residual,
@@ -791,12 +799,14 @@ mod tests {
             ray_freqs: Some(6),
             loss_weighting: Some(LossWeighting::Uniform),
             clean_share: Some(0.25),
+            range_weight: Some(1.0),
             ..SimRecipe::shipped()
         };
         let sim = recipe.bundle_config().unwrap();
         assert_eq!(sim.denoiser, veila_train.denoiser);
         assert_eq!(sim.residual, veila_train.residual);
         assert_eq!(sim.diffusion, veila_train.diffusion);
+        assert_eq!(sim.range_weight, veila_train.range_weight);
         // nothing given keeps the config's, and min-snr is the CPU default's
         let plain = config(serde_json::json!({})).unwrap();
         assert_eq!(
@@ -811,6 +821,11 @@ mod tests {
                 "loss weighting `snr`",
             ),
             (serde_json::json!({"clean_share": 1.5}), "share"),
+            (serde_json::json!({"range_weight": 2.5}), "range_weight"),
+            (
+                serde_json::json!({"range_weight": f64::NAN}),
+                "range_weight",
+            ),
             (serde_json::json!({"base_channels": 0}), "base_channels"),
             (
                 serde_json::json!({"base_channels": 1_000_000}),

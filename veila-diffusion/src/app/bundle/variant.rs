@@ -253,6 +253,7 @@ impl BundleConfig {
             sampler,
             residual: None,
             prior: None,
+            range_weight: None,
             provenance: serde_json::Value::Null,
         }
     }
@@ -333,6 +334,8 @@ pub struct NetworkKnobs {
     /// The share of training draws at the clean levels
     /// ([`TrainLevels::clean_share`](crate::TrainLevels::clean_share)).
     pub clean_share: Option<f64>,
+    /// The power of the range weight in the denoiser's loss ([`BundleConfig::range_weight`]).
+    pub range_weight: Option<f64>,
 }
 
 impl BundleConfig {
@@ -382,6 +385,16 @@ impl BundleConfig {
             let levels = crate::TrainLevels::clean_share(share);
             levels.validate()?;
             self.diffusion.train_levels = levels;
+        }
+        if let Some(p) = knobs.range_weight {
+            let (lo, hi) = super::config::RANGE_WEIGHT_POWER;
+            if !(p.is_finite() && (lo..=hi).contains(&p)) {
+                return Err(invalid(
+                    "range_weight",
+                    format!("must be between {lo} and {hi}, got {p}"),
+                ));
+            }
+            self.range_weight = (p > 0.0).then_some(p);
         }
         Ok(())
     }

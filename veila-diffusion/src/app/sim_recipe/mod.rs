@@ -83,6 +83,9 @@ pub struct SimRecipe {
     /// The share of training draws at the clean levels
     /// ([`TrainLevels::clean_share`](crate::TrainLevels::clean_share); `None`: uniform time).
     pub clean_share: Option<f64>,
+    /// The power of the range weight in the denoiser's loss
+    /// ([`BundleConfig::range_weight`]; `None`: every pixel alike).
+    pub range_weight: Option<f64>,
 }
 
 /// The EMA decay of the shipped recipe.
@@ -120,6 +123,7 @@ impl SimRecipe {
             ema_decay: RECIPE_EMA_DECAY,
             loss_weighting: None,
             clean_share: None,
+            range_weight: None,
         }
     }
 
@@ -132,6 +136,7 @@ impl SimRecipe {
             ray_freqs: self.ray_freqs,
             loss_weighting: self.loss_weighting,
             clean_share: self.clean_share,
+            range_weight: self.range_weight,
         }
     }
 
