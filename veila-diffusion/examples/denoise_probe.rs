@@ -132,7 +132,7 @@ fn band_errors(
         .iter()
         .flat_map(|f| {
             f.range.range_m.iter().zip(&f.range.mask).map(|(&r, &m)| {
-                if !m || !(r.is_finite() && r > 0.0) {
+                if !(m && r.is_finite() && r > 0.0) {
                     0
                 } else {
                     1 + EDGES_M[1..].iter().position(|&e| r < e).unwrap_or(3)
