@@ -34,7 +34,7 @@ mod io;
 mod prior;
 mod variant;
 
-pub use config::{BundleConfig, PriorConfig, RESIDUAL_SCALE, ResidualConfig};
+pub use config::{BundleConfig, PriorConfig, RANGE_WEIGHT_POWER, RESIDUAL_SCALE, ResidualConfig};
 pub use encoder::EncoderSpec;
 pub use io::{Bundle, Manifest};
 pub(crate) use io::{ManifestFolder, ModelFiles, read_folder_file};

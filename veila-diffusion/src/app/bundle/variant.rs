@@ -387,7 +387,7 @@ impl BundleConfig {
             self.diffusion.train_levels = levels;
         }
         if let Some(p) = knobs.range_weight {
-            let (lo, hi) = super::config::RANGE_WEIGHT_POWER;
+            let (lo, hi) = super::RANGE_WEIGHT_POWER;
             if !(p.is_finite() && (lo..=hi).contains(&p)) {
                 return Err(invalid(
                     "range_weight",
