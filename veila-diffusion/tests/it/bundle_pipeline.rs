@@ -341,6 +341,43 @@ fn training_batches_are_a_pure_function_of_the_step_and_cover_each_epoch() {
         "3 parts of a batch of 2"
     );
     assert_eq!(batch.cond.unwrap().image.unwrap().batch(), 2);
+    assert!(
+        batch.weight.is_none(),
+        "the denoiser weighs every pixel alike by default"
+    );
+    // with a range weight, each batch carries its own examples' weights, in the batch's order
+    let mut weighted = cfg.clone();
+    weighted.range_weight = Some(1.0);
+    let data_w = DenoiserTraining::new(
+        &weighted,
+        Some(&sem),
+        Some(&dep),
+        &net,
+        &examples,
+        Stage::Denoiser,
+        None,
+        2,
+        9,
+        &dev,
+    )
+    .unwrap();
+    let got = data_w
+        .batch(&net, 3)
+        .unwrap()
+        .weight
+        .expect("range weights");
+    let want: Vec<f32> = data_w
+        .indices(3)
+        .iter()
+        .flat_map(|&i| {
+            veila_diffusion::app::mean::range_weight(&cfg.encoding, &examples[i].x0, h * w, 1.0)
+        })
+        .collect();
+    assert_eq!(got.flatten_all().unwrap().to_vec1::<f32>().unwrap(), want);
+    assert!(
+        want.iter().any(|&v| v != 1.0),
+        "the weights differ from 1 somewhere"
+    );
     // examples of another rig train in the same run: the batches holding example 1 carry two
     // geometries, the others one
     let mut mixed = examples.clone();
