@@ -822,10 +822,7 @@ mod tests {
             ),
             (serde_json::json!({"clean_share": 1.5}), "share"),
             (serde_json::json!({"range_weight": 2.5}), "range_weight"),
-            (
-                serde_json::json!({"range_weight": f64::NAN}),
-                "range_weight",
-            ),
+            (serde_json::json!({"range_weight": -0.5}), "range_weight"),
             (serde_json::json!({"base_channels": 0}), "base_channels"),
             (
                 serde_json::json!({"base_channels": 1_000_000}),
