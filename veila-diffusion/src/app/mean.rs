@@ -48,17 +48,17 @@ pub fn range_weight(enc: &crate::RangeEncoding, x0: &[f32], hw: usize, power: f6
     let c = enc.num_channels();
     let mut w = vec![1.0f32; c * hw];
     for p in 0..hw.min(x0.len()) {
+        let r = enc.decode_range(x0[p]);
         let returned = match enc.raydrop_channel() {
             Some(dc) => x0
                 .get(dc * hw + p)
                 .is_some_and(|&v| v > enc.raydrop_threshold),
-            None => enc.decode_range(x0[p]) >= enc.min_range_m,
+            None => r >= enc.min_range_m,
         };
         if !returned {
             continue;
         }
-        let r = enc.decode_range(x0[p]) as f64;
-        let wp = ((r + 1.0) / 11.0).powf(power) as f32;
+        let wp = ((r as f64 + 1.0) / 11.0).powf(power) as f32;
         for ch in 0..c {
             if Some(ch) != enc.raydrop_channel() {
                 w[ch * hw + p] = wp;

@@ -419,14 +419,12 @@ impl DenoiserTraining {
                 (Tensor::from_vec(x, (b, c, h, w), dev)?, None)
             }
         };
-        let weight = match examples
+        let weight = examples
             .iter()
             .map(|e| loss_weight(config, st.stage, &e.x0, h * w))
             .collect::<Option<Vec<_>>>()
-        {
-            Some(wt) => Some(Tensor::from_vec(wt.concat(), (b, c, h, w), dev)?),
-            None => None,
-        };
+            .map(|wt| Tensor::from_vec(wt.concat(), (b, c, h, w), dev))
+            .transpose()?;
         let image = match &input {
             Some(input) => {
                 let rigs: Vec<Vec<PinholeCamera>> = examples.iter().map(|e| e.rig(nv)).collect();

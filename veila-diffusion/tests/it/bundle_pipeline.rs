@@ -299,19 +299,23 @@ fn training_batches_are_a_pure_function_of_the_step_and_cover_each_epoch() {
             )
         })
         .collect();
-    let data = DenoiserTraining::new(
-        &cfg,
-        Some(&sem),
-        Some(&dep),
-        &net,
-        &examples,
-        Stage::Denoiser,
-        None,
-        2,
-        9,
-        &dev,
-    )
-    .unwrap();
+    // the denoiser's training data of `examples` under `cfg`, batch 2, seed 9
+    let training = |cfg: &BundleConfig, examples: &[TrainExample]| {
+        DenoiserTraining::new(
+            cfg,
+            Some(&sem),
+            Some(&dep),
+            &net,
+            examples,
+            Stage::Denoiser,
+            None,
+            2,
+            9,
+            &dev,
+        )
+        .unwrap()
+    };
+    let data = training(&cfg, &examples);
     let a: Vec<usize> = (0..5).flat_map(|s| data.indices(s)).collect();
     let b: Vec<usize> = (0..5).flat_map(|s| data.indices(s)).collect();
     assert_eq!(a, b);
@@ -348,19 +352,7 @@ fn training_batches_are_a_pure_function_of_the_step_and_cover_each_epoch() {
     // with a range weight, each batch carries its own examples' weights, in the batch's order
     let mut weighted = cfg.clone();
     weighted.range_weight = Some(1.0);
-    let data_w = DenoiserTraining::new(
-        &weighted,
-        Some(&sem),
-        Some(&dep),
-        &net,
-        &examples,
-        Stage::Denoiser,
-        None,
-        2,
-        9,
-        &dev,
-    )
-    .unwrap();
+    let data_w = training(&weighted, &examples);
     let got = data_w
         .batch(&net, 3)
         .unwrap()
@@ -382,19 +374,7 @@ fn training_batches_are_a_pure_function_of_the_step_and_cover_each_epoch() {
     // geometries, the others one
     let mut mixed = examples.clone();
     mixed[1].camera = second_camera();
-    let data = DenoiserTraining::new(
-        &cfg,
-        Some(&sem),
-        Some(&dep),
-        &net,
-        &mixed,
-        Stage::Denoiser,
-        None,
-        2,
-        9,
-        &dev,
-    )
-    .unwrap();
+    let data = training(&cfg, &mixed);
     let mut seen = [false; 2];
     for step in 0..5 {
         let idx = data.indices(step);

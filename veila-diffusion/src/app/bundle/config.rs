@@ -23,6 +23,17 @@ pub const RESIDUAL_SCALE: (f32, f32) = (1e-4, 10.0);
 /// The interval of [`BundleConfig::range_weight`]: 0 (every pixel alike) to 2 (errors as metres).
 pub const RANGE_WEIGHT_POWER: (f64, f64) = (0.0, 2.0);
 
+/// Checks a [`BundleConfig::range_weight`] power against [`RANGE_WEIGHT_POWER`] (the message
+/// names the interval, not the field).
+pub(super) fn check_range_weight(p: f64) -> std::result::Result<(), String> {
+    let (lo, hi) = RANGE_WEIGHT_POWER;
+    if p.is_finite() && (lo..=hi).contains(&p) {
+        Ok(())
+    } else {
+        Err(format!("must be between {lo} and {hi}, got {p}"))
+    }
+}
+
 /// Everything about a bundle except its weights.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -240,12 +251,7 @@ impl BundleConfig {
             ));
         }
         if let Some(p) = self.range_weight {
-            let (lo, hi) = RANGE_WEIGHT_POWER;
-            if !(p.is_finite() && (lo..=hi).contains(&p)) {
-                return Err(format!(
-                    "range_weight: must be between {lo} and {hi}, got {p}"
-                ));
-            }
+            check_range_weight(p).map_err(|e| format!("range_weight: {e}"))?;
         }
         if self.sampler.start_t.is_some() && self.prior.is_none() {
             return Err(

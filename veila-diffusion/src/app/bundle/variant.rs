@@ -387,13 +387,7 @@ impl BundleConfig {
             self.diffusion.train_levels = levels;
         }
         if let Some(p) = knobs.range_weight {
-            let (lo, hi) = super::RANGE_WEIGHT_POWER;
-            if !(p.is_finite() && (lo..=hi).contains(&p)) {
-                return Err(invalid(
-                    "range_weight",
-                    format!("must be between {lo} and {hi}, got {p}"),
-                ));
-            }
+            super::config::check_range_weight(p).map_err(|e| invalid("range_weight", e))?;
             self.range_weight = (p > 0.0).then_some(p);
         }
         Ok(())
