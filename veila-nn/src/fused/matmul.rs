@@ -84,6 +84,13 @@ pub(super) fn matmul_into(
 /// AVX-512's wider panels); here the rows are read in place, 4 x 3 outputs at a time in vector
 /// accumulators (`pulp`: AVX-512, AVX2 + FMA or scalar, chosen at run time; fused multiply-adds
 /// where the CPU has them, so the last bits depend on the CPU, as `gemm`'s do).
+///
+/// The rows of `b` are taken a group of [`abt_group`] at a time, and every block of `a`'s rows
+/// is run against one group before the next group starts: the group then stays in the core's
+/// second-level cache while `a` streams past it, instead of the whole of `b` (a convolution's
+/// columns: 9.4 MB for a sample at 32 channels and 32 x 256 pixels) being read again from memory
+/// for every four rows of `a`. Each output is still one dot product summed in the same order, so
+/// the grouping changes no bit of the result.
 struct Abt<'a> {
     dst: &'a mut [f32],
     a: &'a [f32],
@@ -94,6 +101,19 @@ struct Abt<'a> {
     a_rs: usize,
     b_rs: usize,
     accumulate: bool,
+    /// Rows of `b` in a group (a multiple of 3, the block's width).
+    group: usize,
+}
+
+/// About half the second-level cache of the smallest core this runs on (1 MiB on Zen 5, 1.25
+/// MiB on Ice Lake): the bytes of `b`'s rows [`Abt`] keeps there at once.
+const ABT_GROUP_BYTES: usize = 512 * 1024;
+
+/// The rows of `b` in one of [`Abt`]'s groups for rows of `len` floats: as many as fit
+/// [`ABT_GROUP_BYTES`], a multiple of 3, at least 3.
+fn abt_group(len: usize) -> usize {
+    let fit = ABT_GROUP_BYTES / (len.max(1) * std::mem::size_of::<f32>());
+    (fit / 3 * 3).max(3)
 }
 
 impl pulp::WithSimd for Abt<'_> {
@@ -111,6 +131,7 @@ impl pulp::WithSimd for Abt<'_> {
             a_rs,
             b_rs,
             accumulate,
+            group,
         } = self;
         let a_span = |i: usize| i * a_rs..i * a_rs + len;
         let b_span = |i: usize| i * b_rs..i * b_rs + len;
@@ -134,59 +155,62 @@ impl pulp::WithSimd for Abt<'_> {
             }
             t
         };
-        for i in (0..m).step_by(4) {
-            for j in (0..nb).step_by(3) {
-                if i + 4 > m || j + 3 > nb {
-                    for ii in i..(i + 4).min(m) {
-                        for jj in j..(j + 3).min(nb) {
-                            put(&mut dst[ii * nb + jj], dot(&a[a_span(ii)], &b[b_span(jj)]));
+        for j0 in (0..nb).step_by(group.max(3)) {
+            let j_end = (j0 + group.max(3)).min(nb);
+            for i in (0..m).step_by(4) {
+                for j in (j0..j_end).step_by(3) {
+                    if i + 4 > m || j + 3 > nb {
+                        for ii in i..(i + 4).min(m) {
+                            for jj in j..(j + 3).min(nb) {
+                                put(&mut dst[ii * nb + jj], dot(&a[a_span(ii)], &b[b_span(jj)]));
+                            }
                         }
+                        continue;
                     }
-                    continue;
-                }
-                let ar = |r: usize| S::as_simd_f32s(&a[a_span(i + r)]);
-                let br = |q: usize| S::as_simd_f32s(&b[b_span(j + q)]);
-                let ((a0, a0t), (a1, a1t), (a2, a2t), (a3, a3t)) = (ar(0), ar(1), ar(2), ar(3));
-                let ((b0, b0t), (b1, b1t), (b2, b2t)) = (br(0), br(1), br(2));
-                let z = simd.splat_f32s(0.0);
-                let (mut c00, mut c01, mut c02) = (z, z, z);
-                let (mut c10, mut c11, mut c12) = (z, z, z);
-                let (mut c20, mut c21, mut c22) = (z, z, z);
-                let (mut c30, mut c31, mut c32) = (z, z, z);
-                for ((((x0, x1), x2), x3), ((y0, y1), y2)) in a0
-                    .iter()
-                    .zip(a1)
-                    .zip(a2)
-                    .zip(a3)
-                    .zip(b0.iter().zip(b1).zip(b2))
-                {
-                    c00 = simd.mul_add_f32s(*x0, *y0, c00);
-                    c01 = simd.mul_add_f32s(*x0, *y1, c01);
-                    c02 = simd.mul_add_f32s(*x0, *y2, c02);
-                    c10 = simd.mul_add_f32s(*x1, *y0, c10);
-                    c11 = simd.mul_add_f32s(*x1, *y1, c11);
-                    c12 = simd.mul_add_f32s(*x1, *y2, c12);
-                    c20 = simd.mul_add_f32s(*x2, *y0, c20);
-                    c21 = simd.mul_add_f32s(*x2, *y1, c21);
-                    c22 = simd.mul_add_f32s(*x2, *y2, c22);
-                    c30 = simd.mul_add_f32s(*x3, *y0, c30);
-                    c31 = simd.mul_add_f32s(*x3, *y1, c31);
-                    c32 = simd.mul_add_f32s(*x3, *y2, c32);
-                }
-                let acc = [
-                    [c00, c01, c02],
-                    [c10, c11, c12],
-                    [c20, c21, c22],
-                    [c30, c31, c32],
-                ];
-                let (at, bt) = ([a0t, a1t, a2t, a3t], [b0t, b1t, b2t]);
-                for r in 0..4 {
-                    for q in 0..3 {
-                        let mut t = simd.reduce_sum_f32s(acc[r][q]);
-                        for (p, v) in at[r].iter().zip(bt[q]) {
-                            t += p * v;
+                    let ar = |r: usize| S::as_simd_f32s(&a[a_span(i + r)]);
+                    let br = |q: usize| S::as_simd_f32s(&b[b_span(j + q)]);
+                    let ((a0, a0t), (a1, a1t), (a2, a2t), (a3, a3t)) = (ar(0), ar(1), ar(2), ar(3));
+                    let ((b0, b0t), (b1, b1t), (b2, b2t)) = (br(0), br(1), br(2));
+                    let z = simd.splat_f32s(0.0);
+                    let (mut c00, mut c01, mut c02) = (z, z, z);
+                    let (mut c10, mut c11, mut c12) = (z, z, z);
+                    let (mut c20, mut c21, mut c22) = (z, z, z);
+                    let (mut c30, mut c31, mut c32) = (z, z, z);
+                    for ((((x0, x1), x2), x3), ((y0, y1), y2)) in a0
+                        .iter()
+                        .zip(a1)
+                        .zip(a2)
+                        .zip(a3)
+                        .zip(b0.iter().zip(b1).zip(b2))
+                    {
+                        c00 = simd.mul_add_f32s(*x0, *y0, c00);
+                        c01 = simd.mul_add_f32s(*x0, *y1, c01);
+                        c02 = simd.mul_add_f32s(*x0, *y2, c02);
+                        c10 = simd.mul_add_f32s(*x1, *y0, c10);
+                        c11 = simd.mul_add_f32s(*x1, *y1, c11);
+                        c12 = simd.mul_add_f32s(*x1, *y2, c12);
+                        c20 = simd.mul_add_f32s(*x2, *y0, c20);
+                        c21 = simd.mul_add_f32s(*x2, *y1, c21);
+                        c22 = simd.mul_add_f32s(*x2, *y2, c22);
+                        c30 = simd.mul_add_f32s(*x3, *y0, c30);
+                        c31 = simd.mul_add_f32s(*x3, *y1, c31);
+                        c32 = simd.mul_add_f32s(*x3, *y2, c32);
+                    }
+                    let acc = [
+                        [c00, c01, c02],
+                        [c10, c11, c12],
+                        [c20, c21, c22],
+                        [c30, c31, c32],
+                    ];
+                    let (at, bt) = ([a0t, a1t, a2t, a3t], [b0t, b1t, b2t]);
+                    for r in 0..4 {
+                        for q in 0..3 {
+                            let mut t = simd.reduce_sum_f32s(acc[r][q]);
+                            for (p, v) in at[r].iter().zip(bt[q]) {
+                                t += p * v;
+                            }
+                            put(&mut dst[(i + r) * nb + j + q], t);
                         }
-                        put(&mut dst[(i + r) * nb + j + q], t);
                     }
                 }
             }
@@ -226,6 +250,7 @@ pub(super) fn matmul_abt(
             a_rs,
             b_rs,
             accumulate,
+            group: abt_group(len),
         });
     };
     const ROWS: usize = 4;
@@ -323,9 +348,35 @@ mod tests {
                     a_rs: len,
                     b_rs: len,
                     accumulate: false,
+                    group: abt_group(len),
                 },
             );
             check(&scalar, "scalar");
+            // the groups of `b`'s rows change no bit: one group of 3 rows, of 6, of all of them
+            let grouped = |group: usize| -> Vec<u32> {
+                let mut dst = vec![f32::NAN; m * nb];
+                pulp::Arch::new().dispatch(Abt {
+                    dst: &mut dst,
+                    a: &a,
+                    b: &b,
+                    m,
+                    nb,
+                    len,
+                    a_rs: len,
+                    b_rs: len,
+                    accumulate: false,
+                    group,
+                });
+                dst.iter().map(|v| v.to_bits()).collect()
+            };
+            let whole = grouped(nb.div_ceil(3) * 3);
+            for group in [3, 6] {
+                assert_eq!(
+                    grouped(group),
+                    whole,
+                    "{m}x{nb}x{len} in groups of {group} rows"
+                );
+            }
         }
         let mut small = vec![0f32; 4];
         assert!(
