@@ -155,8 +155,9 @@ impl pulp::WithSimd for Abt<'_> {
             }
             t
         };
-        for j0 in (0..nb).step_by(group.max(3)) {
-            let j_end = (j0 + group.max(3)).min(nb);
+        let group = group.max(3);
+        for j0 in (0..nb).step_by(group) {
+            let j_end = (j0 + group).min(nb);
             for i in (0..m).step_by(4) {
                 for j in (j0..j_end).step_by(3) {
                     if i + 4 > m || j + 3 > nb {
@@ -335,30 +336,17 @@ mod tests {
                 }
                 check(&acc, "strided, accumulated");
             }
-            let mut scalar = vec![f32::NAN; m * nb];
-            pulp::Simd::vectorize(
-                pulp::Scalar::new(),
+            // the product of contiguous rows in groups of `group` rows of `b`
+            fn product<'a>(
+                dst: &'a mut [f32],
+                (a, b): (&'a [f32], &'a [f32]),
+                (m, nb, len): (usize, usize, usize),
+                group: usize,
+            ) -> Abt<'a> {
                 Abt {
-                    dst: &mut scalar,
-                    a: &a,
-                    b: &b,
-                    m,
-                    nb,
-                    len,
-                    a_rs: len,
-                    b_rs: len,
-                    accumulate: false,
-                    group: abt_group(len),
-                },
-            );
-            check(&scalar, "scalar");
-            // the groups of `b`'s rows change no bit: one group of 3 rows, of 6, of all of them
-            let grouped = |group: usize| -> Vec<u32> {
-                let mut dst = vec![f32::NAN; m * nb];
-                pulp::Arch::new().dispatch(Abt {
-                    dst: &mut dst,
-                    a: &a,
-                    b: &b,
+                    dst,
+                    a,
+                    b,
                     m,
                     nb,
                     len,
@@ -366,7 +354,18 @@ mod tests {
                     b_rs: len,
                     accumulate: false,
                     group,
-                });
+                }
+            }
+            let mut scalar = vec![f32::NAN; m * nb];
+            pulp::Simd::vectorize(
+                pulp::Scalar::new(),
+                product(&mut scalar, (&a, &b), (m, nb, len), abt_group(len)),
+            );
+            check(&scalar, "scalar");
+            // the groups of `b`'s rows change no bit: one group of 3 rows, of 6, of all of them
+            let grouped = |group: usize| -> Vec<u32> {
+                let mut dst = vec![f32::NAN; m * nb];
+                pulp::Arch::new().dispatch(product(&mut dst, (&a, &b), (m, nb, len), group));
                 dst.iter().map(|v| v.to_bits()).collect()
             };
             let whole = grouped(nb.div_ceil(3) * 3);
